@@ -1,0 +1,39 @@
+"""Shared fixtures: Warp devices to test on, and the sample datasets."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def sample_data_root() -> Path:
+    """Folder with the real RTI samples: $WARP_HIGHLIGHTS_DATA, else ../shared/data beside the project."""
+    return Path(os.environ.get("WARP_HIGHLIGHTS_DATA", PROJECT_ROOT.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def data_root() -> Path:
+    root = sample_data_root()
+    if not root.is_dir():
+        pytest.skip(f"sample datasets not found at {root} (set WARP_HIGHLIGHTS_DATA)")
+    return root
+
+
+def _devices() -> list[str]:
+    import warp as wp
+
+    wp.init()
+    devices = ["cpu"]
+    if wp.is_cuda_available():
+        devices.append("cuda:0")
+    return devices
+
+
+@pytest.fixture(params=_devices())
+def device(request) -> str:
+    """Every device-generic test runs on the CPU, and on CUDA when present."""
+    return request.param
