@@ -1,0 +1,150 @@
+"""The command line: the main jobs end to end, and one clear line with exit status 2 for bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from warp_highlights.cli import main
+from warp_highlights.dataset import ReflectanceField
+from warp_highlights.images import write_image
+from warp_highlights.lights import LightSet
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    assert "Traceback" not in err
+    return err
+
+
+def test_render_writes_a_loadable_dataset(tmp_path, capsys):
+    out = tmp_path / "sphere"
+    assert main(["render", "sphere", str(out), "--lights", "8", "--size", "32x24", "--gray", "-q"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    field = ReflectanceField.load(out, progress=False)
+    assert field.images.shape == (8, 24, 32)
+    assert field.heldout.light_count == 12
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["settings"]["colour"] is False
+
+
+def test_render_dome_with_lights_file_and_no_heldout(tmp_path):
+    lp = tmp_path / "dome.lp"
+    LightSet.fibonacci_dome(10).write_lp(lp, [f"x{i}.jpg" for i in range(10)])
+    out = tmp_path / "dome"
+    assert main(["render", "donut", str(out), "--lights-file", str(lp), "--heldout", "none", "--size", "32x18", "-q"]) == 0
+    field = ReflectanceField.load(out, progress=False)
+    assert field.light_count == 10 and field.heldout is None
+
+
+def test_info_summarises_a_dataset(tmp_path, capsys):
+    out = tmp_path / "ds"
+    main(["render", "sphere", str(out), "--lights", "6", "--size", "24x16", "-q"])
+    capsys.readouterr()
+    assert main(["info", str(out), "--json", "-q"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["lights"] == 6 and summary["size"] == "24x16" and summary["heldout_lights"] == 8
+
+
+def test_demo_renders_and_draws_a_contact_sheet(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", str(out), "--lights", "12", "--size", "64x36", "-q"]) == 0
+    assert (out / "donut" / "lights.lp").is_file()
+    assert (out / "donut-contact-sheet.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    ("arguments", "expected"),
+    [
+        (["render", "cube", "{out}"], "unknown shape 'cube'"),
+        (["render", "sphere", "{out}", "--size", "big"], "WIDTHxHEIGHT"),
+        (["render", "sphere", "{out}", "--samples", "5"], "square number"),
+        (["render", "sphere", "{out}", "--lights", "2"], "at least 4"),
+        (["render", "sphere", "{out}", "--albedo", "red"], "albedo"),
+        (["render", "sphere", "{out}", "--albedo", "2,0,0"], "albedo"),
+        (["render", "sphere", "{out}", "--shininess", "0"], "shininess"),
+        (["render", "sphere", "{out}", "--lights-file", "{tmp}/none.lp"], "none.lp"),
+        (["render", "sphere", "{out}", "--device", "cuda:7"], "cuda:7"),
+        (["render", "{tmp}/missing.ply", "{out}"], "missing.ply"),
+        (["info", "{tmp}/nowhere"], "nowhere"),
+        (["sheet", "{tmp}", "-o", "{tmp}/sheet.jpg"], ".png"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, arguments, expected):
+    argv = [a.format(out=tmp_path / "out", tmp=tmp_path) for a in arguments] + ["-q"]
+    assert main(argv) == 2
+    line = _error_line(capsys)
+    assert line.startswith(f"warp-highlights {argv[0]}: error:")
+    assert expected in line
+
+
+def test_existing_output_is_never_clobbered(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "precious.txt").write_text("keep me")
+    assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q"]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert (out / "precious.txt").read_text() == "keep me"
+    assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q", "--overwrite"]) == 0
+    assert not (out / "precious.txt").exists() and (out / "lights.lp").is_file()
+
+
+def _broken_dataset(folder, case: str):
+    folder.mkdir()
+    image = np.full((8, 10), 0.5, np.float32)
+    names = [f"img{i}.exr" for i in range(4)]
+    directions = LightSet.fibonacci_dome(4).directions
+    for name in names:
+        write_image(folder / name, image)
+    lines = [f"{n} {x:.6f} {y:.6f} {z:.6f}" for n, (x, y, z) in zip(names, directions)]
+    if case == "missing image":
+        (folder / names[2]).unlink()
+    elif case == "zero vector":
+        lines[1] = f"{names[1]} 0 0 0"
+    elif case == "count":
+        lines = lines[:3]
+    elif case == "size":
+        write_image(folder / names[3], np.zeros((9, 10), np.float32))
+    elif case == "nan":
+        bad = image.copy()
+        bad[2, 3] = np.nan
+        write_image(folder / names[1], bad)
+    (folder / "dirs.lp").write_text("4\n" + "\n".join(lines) + "\n")
+
+
+@pytest.mark.parametrize(
+    ("case", "expected"),
+    [
+        ("missing image", "img2.exr"),
+        ("zero vector", "dirs.lp:3"),
+        ("count", "4"),
+        ("size", "img3.exr"),
+        ("nan", "img1.exr"),
+    ],
+)
+def test_info_rejects_bad_datasets_in_one_line(tmp_path, capsys, case, expected):
+    _broken_dataset(tmp_path / "ds", case)
+    assert main(["info", str(tmp_path / "ds"), "-q"]) == 2
+    assert expected in _error_line(capsys)
+
+
+def test_module_entry_point_reports_errors_without_traceback(tmp_path):
+    env = dict(os.environ)
+    result = subprocess.run(
+        [sys.executable, "-m", "warp_highlights", "render", "cube", str(tmp_path / "x"), "-q"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if not line.startswith("Warp CUDA warning")]
+    assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"]
+    version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True, timeout=300)
+    assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")

@@ -1,0 +1,387 @@
+"""ReflectanceField.load / save and DatasetWriter: round trips, atomic commits, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from warp_highlights.dataset import DatasetWriter, ReflectanceField
+from warp_highlights.errors import InputError
+from warp_highlights.images import read_image, srgb_to_linear, write_image
+from warp_highlights.lights import LightSet
+
+pytest.importorskip("OpenEXR")
+pytest.importorskip("PIL")
+pytest.importorskip("tqdm")
+
+
+def _field(*, channels: int = 3, count: int = 5, heldout_count: int = 3, seed: int = 0) -> ReflectanceField:
+    """Small synthetic field with ground truth, held-out lights, mask and metadata."""
+    rng = np.random.default_rng(seed)
+
+    def stack(n):
+        shape = (n, 6, 7) if channels == 1 else (n, 6, 7, 3)
+        return (rng.standard_normal(shape) * 3.0).astype(np.float32)
+
+    def field_of(lights):
+        diffuse, specular = stack(len(lights)), stack(len(lights))
+        return ReflectanceField(diffuse + specular, lights, specular=specular, diffuse=diffuse)
+
+    heldout = field_of(LightSet.fibonacci_dome(heldout_count, min_elevation_deg=20.0))
+    main = field_of(LightSet.fibonacci_sphere(count))
+    main.heldout = heldout
+    main.mask = rng.uniform(size=(6, 7)) > 0.5
+    main.meta = {"generator": "test", "shape": "donut", "resolution": [7, 6]}
+    return main
+
+
+def _assert_same(loaded: ReflectanceField, field: ReflectanceField) -> None:
+    np.testing.assert_array_equal(loaded.images, field.images)
+    np.testing.assert_array_equal(loaded.specular, field.specular)
+    np.testing.assert_array_equal(loaded.diffuse, field.diffuse)
+    np.testing.assert_allclose(loaded.lights.directions, field.lights.directions, rtol=0, atol=1e-15)
+
+
+def _single_line_error(excinfo, *names: str) -> str:
+    message = str(excinfo.value)
+    assert "\n" not in message
+    for name in names:
+        assert name in message
+    return message
+
+
+def _jpeg_dataset(folder, sizes, *, lp_name="dirs.lp", mode="RGB"):
+    """A real-capture-like folder: JPEGs of the given (width, height) and a .lp listing them."""
+    from PIL import Image
+
+    folder.mkdir(parents=True, exist_ok=True)
+    lights = LightSet.fibonacci_dome(len(sizes))
+    names = [f"image{i:02d}.jpg" for i in range(len(sizes))]
+    for name, (width, height) in zip(names, sizes):
+        Image.new(mode, (width, height), 128).save(folder / name)
+    lights.write_lp(folder / lp_name, names)
+    return folder
+
+
+# --- round trips ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_streamed_dataset_loads_back_exactly(tmp_path, channels):
+    field = _field(channels=channels)
+    folder = tmp_path / "donut"
+    with DatasetWriter(folder) as writer:
+        for start in range(0, field.light_count, 2):  # chunks, as the renderer produces them
+            chunk = slice(start, start + 2)
+            writer.write_images("lights", start, field.images[chunk], field.specular[chunk], field.diffuse[chunk])
+        held = field.heldout
+        writer.write_images("heldout", 0, held.images, held.specular, held.diffuse)
+        writer.finish(field.lights, held.lights, mask=field.mask, meta=field.meta)
+    for name in ("images/0000.exr", "specular/0004.exr", "diffuse/0004.exr", "heldout/h0002.exr",
+                 "specular/h0002.exr", "diffuse/h0000.exr", "lights.lp", "heldout.lp", "mask.png", "meta.json"):
+        assert (folder / name).is_file(), name
+    assert json.loads((folder / "meta.json").read_text()) == field.meta
+    assert [p.name for p in tmp_path.iterdir()] == ["donut"]  # temporary folder renamed away
+
+    loaded = ReflectanceField.load(folder, progress=False)
+    _assert_same(loaded, field)
+    _assert_same(loaded.heldout, field.heldout)
+    np.testing.assert_array_equal(loaded.mask, field.mask)
+    assert loaded.meta == field.meta
+    assert loaded.root == folder and loaded.channels == channels
+    assert (loaded.light_count, loaded.height, loaded.width) == (5, 6, 7)
+    assert loaded.lights.filenames[0] == "images/0000.exr"
+
+
+def test_save_half_is_exact_to_half(tmp_path):
+    field = _field()
+    field.save(tmp_path / "half", half=True)
+    loaded = ReflectanceField.load(tmp_path / "half", progress=False)
+    np.testing.assert_array_equal(loaded.images, field.images.astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(loaded.heldout.diffuse, field.heldout.diffuse.astype(np.float16).astype(np.float32))
+
+
+def test_save_without_extras(tmp_path):
+    field = ReflectanceField(np.ones((2, 3, 4), np.float32), LightSet(np.eye(3)[:2]))
+    field.save(tmp_path / "plain")
+    assert sorted(p.name for p in (tmp_path / "plain").iterdir()) == ["images", "lights.lp"]
+    loaded = ReflectanceField.load(tmp_path / "plain", progress=False)
+    assert loaded.specular is None and loaded.heldout is None and loaded.mask is None and loaded.meta == {}
+
+
+def test_empty_heldout_set_writes_no_heldout_file(tmp_path):
+    with DatasetWriter(tmp_path / "d") as writer:
+        writer.write_images("lights", 0, np.zeros((2, 3, 4), np.float32))
+        writer.finish(LightSet.fibonacci_sphere(2), LightSet(np.zeros((0, 3))))
+    assert not (tmp_path / "d" / "heldout.lp").exists()
+    assert ReflectanceField.load(tmp_path / "d", progress=False).heldout is None
+
+
+def test_many_lights_get_wider_names(tmp_path):
+    writer = DatasetWriter(tmp_path / "wide")
+    writer.write_images("lights", 10000, np.zeros((1, 2, 2), np.float32))
+    writer.write_images("heldout", 7, np.zeros((1, 2, 2), np.float32))
+    names = sorted(str(p.relative_to(p.parents[1])) for p in tmp_path.glob(".wide.partial-*/*/*.exr"))
+    assert names == ["heldout/h0007.exr", "images/10000.exr"]
+    writer.abort()
+    assert not any(tmp_path.iterdir())
+
+
+def test_png_dataset_in_sub_folders_with_linear_flag(tmp_path):
+    folder = tmp_path / "capture"
+    levels = np.arange(2 * 3 * 4, dtype=np.uint8).reshape(2, 3, 4) * 10
+    names = [f"shots/a b/{i}.png" for i in range(2)]
+    for name, image in zip(names, levels):
+        write_image(folder / name, image / 255.0, linear=True)
+    LightSet(np.array([[0, 0, 1], [0, 1, 1]]), names).write_lp(folder / "capture.lp")
+    loaded = ReflectanceField.load(folder, linear=True, progress=False)
+    np.testing.assert_array_equal(loaded.images, (levels / 255.0).astype(np.float32))
+    decoded = ReflectanceField.load(folder, progress=False)
+    np.testing.assert_array_equal(decoded.images, srgb_to_linear(levels / 255.0).astype(np.float32))
+    np.testing.assert_array_equal(decoded.images[1], read_image(folder / names[1]))
+
+
+def test_lights_lp_wins_over_other_lp_and_heldout_lp_is_not_a_candidate(tmp_path):
+    field = _field()
+    field.save(tmp_path / "d")
+    LightSet(np.eye(3), ["x", "y", "z"]).write_lp(tmp_path / "d" / "other.lp")
+    assert ReflectanceField.load(tmp_path / "d", progress=False).light_count == 5
+    (tmp_path / "d" / "other.lp").unlink()
+    (tmp_path / "d" / "lights.lp").rename(tmp_path / "d" / "capture.lp")
+    loaded = ReflectanceField.load(tmp_path / "d", progress=False)
+    assert loaded.light_count == 5 and loaded.heldout.light_count == 3
+
+
+# --- the writer's safety --------------------------------------------------------------------------
+
+
+def test_writer_refuses_an_existing_folder(tmp_path):
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "keep.txt").write_text("precious")
+    with pytest.raises(InputError) as excinfo:
+        DatasetWriter(tmp_path / "d")
+    assert "exists; pass --overwrite or choose another folder" in _single_line_error(excinfo, "d")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        DatasetWriter(tmp_path / "file")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "file"]
+
+
+def test_writer_uses_an_existing_empty_folder(tmp_path):
+    (tmp_path / "d").mkdir()
+    _field().save(tmp_path / "d")
+    assert ReflectanceField.load(tmp_path / "d", progress=False).light_count == 5
+
+
+def test_overwrite_replaces_the_folder(tmp_path):
+    _field(seed=1).save(tmp_path / "d")
+    (tmp_path / "d" / "stale.txt").write_text("old")
+    field = _field(seed=2, count=4)
+    field.save(tmp_path / "d", overwrite=True)
+    assert not (tmp_path / "d" / "stale.txt").exists()
+    _assert_same(ReflectanceField.load(tmp_path / "d", progress=False), field)
+    assert [p.name for p in tmp_path.iterdir()] == ["d"]
+
+
+def test_abort_leaves_an_existing_folder_intact(tmp_path):
+    folder = tmp_path / "d"
+    _field(seed=1).save(folder)
+    before = {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    with pytest.raises(RuntimeError, match="renderer crashed"):
+        with DatasetWriter(folder, overwrite=True) as writer:
+            writer.write_images("lights", 0, np.zeros((2, 6, 7, 3), np.float32))
+            raise RuntimeError("renderer crashed")
+    after = {p.relative_to(folder): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    assert after == before
+    assert [p.name for p in tmp_path.iterdir()] == ["d"]
+
+
+def test_explicit_abort_and_misuse(tmp_path):
+    writer = DatasetWriter(tmp_path / "d")
+    with pytest.raises(ValueError, match="finish"):
+        writer.commit()
+    with pytest.raises(ValueError, match="group"):
+        writer.write_images("other", 0, np.zeros((1, 2, 2)))
+    writer.write_images("lights", 0, np.zeros((2, 2, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        writer.write_images("lights", 2, np.zeros((1, 3, 3)))
+    with pytest.raises(ValueError, match=r"no image written for light\(s\) \[2\]"):
+        writer.finish(LightSet.fibonacci_sphere(3), None)
+    with pytest.raises(ValueError, match="beyond"):
+        writer.finish(LightSet.fibonacci_sphere(1), None)
+    writer.abort()
+    writer.abort()
+    assert not any(tmp_path.iterdir())
+
+
+def test_finish_rejects_partial_ground_truth(tmp_path):
+    with pytest.raises(ValueError, match="specular images written for some lights"):
+        with DatasetWriter(tmp_path / "d") as writer:
+            writer.write_images("lights", 0, np.zeros((1, 2, 2)), specular=np.zeros((1, 2, 2)))
+            writer.write_images("lights", 1, np.zeros((1, 2, 2)))
+            writer.finish(LightSet.fibonacci_sphere(2), None)
+    assert not any(tmp_path.iterdir())
+
+
+def test_leaving_the_block_without_finish_aborts(tmp_path):
+    with pytest.raises(ValueError, match="finish"):
+        with DatasetWriter(tmp_path / "d") as writer:
+            writer.write_images("lights", 0, np.zeros((1, 2, 2)))
+    assert not any(tmp_path.iterdir())
+
+
+# --- bad datasets ---------------------------------------------------------------------------------
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "nowhere", progress=False)
+    _single_line_error(excinfo, "nowhere", "not found")
+
+
+def test_no_light_file(tmp_path):
+    (tmp_path / "d").mkdir()
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "d", progress=False)
+    _single_line_error(excinfo, "no light file")
+
+
+def test_several_light_files_are_listed(tmp_path):
+    folder = _jpeg_dataset(tmp_path / "d", [(8, 6)] * 2)
+    (folder / "b.lp").write_text((folder / "dirs.lp").read_text())
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False)
+    _single_line_error(excinfo, "several light files", "b.lp, dirs.lp")
+
+
+def test_missing_image(tmp_path):
+    folder = _jpeg_dataset(tmp_path / "d", [(8, 6)] * 3)
+    (folder / "image01.jpg").unlink()
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False)
+    _single_line_error(excinfo, "dirs.lp:3:", "image01.jpg")
+
+
+def test_mismatched_size_names_the_file_and_both_sizes(tmp_path):
+    folder = _jpeg_dataset(tmp_path / "d", [(8, 6), (8, 6), (9, 6)])
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False)
+    _single_line_error(excinfo, "image02.jpg: image is 9x6", "image00.jpg is 8x6")
+
+
+def test_mismatched_channels(tmp_path):
+    folder = _jpeg_dataset(tmp_path / "d", [(8, 6)] * 2)
+    from PIL import Image
+
+    Image.new("L", (8, 6), 100).save(folder / "image01.jpg")
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False)
+    _single_line_error(excinfo, "image01.jpg: image has 1 channel(s)", "has 3")
+
+
+def test_heldout_of_another_size(tmp_path):
+    folder = _jpeg_dataset(tmp_path / "d", [(8, 6)] * 2)
+    _jpeg_dataset(tmp_path / "t", [(8, 7)])
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, heldout=tmp_path / "t", progress=False)
+    _single_line_error(excinfo, "image00.jpg: image is 8x7")
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, heldout=tmp_path / "missing", progress=False)
+    _single_line_error(excinfo, "missing", "not found")
+
+
+def _nan_dataset(tmp_path):
+    field = _field(count=3)
+    field.images[1, 0, 0, 0] = np.nan
+    field.images[2, 1, :2, 1] = np.inf
+    field.heldout.specular[0, 0, 0, 0] = -np.inf
+    field.save(tmp_path / "d")
+    return tmp_path / "d"
+
+
+def test_nonfinite_pixels_are_counted(tmp_path):
+    folder = _nan_dataset(tmp_path)
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False)
+    _single_line_error(excinfo, "4 non-finite pixel values", "0001.exr", "replace_nonfinite=True")
+
+
+def test_nonfinite_pixels_replaced_on_request(tmp_path):
+    folder = _nan_dataset(tmp_path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loaded = ReflectanceField.load(folder, replace_nonfinite=True, progress=False)
+    assert any("4 non-finite" in str(w.message) for w in caught)
+    assert loaded.images[1, 0, 0, 0] == 0.0 and np.all(loaded.images[2, 1, :2, 1] == 0.0)
+    assert loaded.heldout.specular[0, 0, 0, 0] == 0.0
+    assert np.isfinite(loaded.images).all()
+
+
+def test_partial_specular_set_names_the_first_missing(tmp_path):
+    _field().save(tmp_path / "d")
+    (tmp_path / "d" / "specular" / "0002.exr").unlink()
+    (tmp_path / "d" / "specular" / "0003.exr").unlink()
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "d", progress=False)
+    _single_line_error(excinfo, "specular/0002.exr: missing specular image for 0002.exr", "all 5 lights or none")
+
+
+def test_ground_truth_of_another_size(tmp_path):
+    _field().save(tmp_path / "d")
+    write_image(tmp_path / "d" / "diffuse" / "h0001.exr", np.zeros((6, 8, 3), np.float32))
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "d", progress=False)
+    _single_line_error(excinfo, "h0001.exr: image is 8x6")
+
+
+def test_bad_mask_and_meta(tmp_path):
+    _field().save(tmp_path / "d")
+    write_image(tmp_path / "d" / "mask.png", np.ones((5, 7)))
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "d", progress=False)
+    _single_line_error(excinfo, "mask.png: mask is 7x5")
+    (tmp_path / "d" / "mask.png").unlink()
+    (tmp_path / "d" / "meta.json").write_text('{\n  "shape": donut\n}\n')
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(tmp_path / "d", progress=False)
+    _single_line_error(excinfo, "meta.json:2: invalid JSON")
+    (tmp_path / "d" / "meta.json").write_text("[1, 2]")
+    with pytest.raises(InputError, match="JSON object"):
+        ReflectanceField.load(tmp_path / "d", progress=False)
+
+
+def test_constructor_checks_shapes():
+    lights = LightSet.fibonacci_sphere(2)
+    with pytest.raises(InputError, match="3 images for 2 light"):
+        ReflectanceField(np.zeros((3, 4, 4)), lights)
+    with pytest.raises(InputError, match="specular"):
+        ReflectanceField(np.zeros((2, 4, 4)), lights, specular=np.zeros((2, 4, 5)))
+    with pytest.raises(InputError, match="mask"):
+        ReflectanceField(np.zeros((2, 4, 4)), lights, mask=np.zeros((4, 5)))
+    with pytest.raises(InputError, match="shape"):
+        ReflectanceField(np.zeros((2, 4, 4, 2)), lights)
+
+
+# --- the real samples -----------------------------------------------------------------------------
+
+
+@pytest.mark.realdata
+def test_synthrti_sample_loads_with_sibling_heldout(data_root):
+    sample = data_root / "synthrti-object1-material5"
+    field = ReflectanceField.load(sample / "Dome", heldout=sample / "Test", progress=False)
+    assert field.images.shape == (49, 320, 320, 3) and field.images.dtype == np.float32
+    assert field.heldout.images.shape == (20, 320, 320, 3)
+    assert field.heldout.lights.light_count == 20
+    assert 0.0 <= field.images.min() and field.images.max() <= 1.0
+    assert field.specular is None and field.mask is None
+
+
+@pytest.mark.realdata
+def test_realrti_sample_loads(data_root):
+    field = ReflectanceField.load(data_root / "realrti-item11", progress=False)
+    assert field.light_count == 54 and field.channels == 3
+    assert (field.width, field.height) == (567, 534)
+    assert field.heldout is None

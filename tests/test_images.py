@@ -1,0 +1,275 @@
+"""Image IO: sRGB transfer function, EXR / PNG 8+16-bit / JPEG round trips, clean errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from warp_highlights import images as images_module
+from warp_highlights.errors import InputError
+from warp_highlights.images import image_size, linear_to_srgb, read_image, srgb_to_linear, write_image
+
+pytest.importorskip("OpenEXR")
+Image = pytest.importorskip("PIL.Image")
+
+
+def _png_header(path) -> tuple[int, int]:
+    """(bit depth, colour type) from a PNG's IHDR chunk."""
+    head = path.read_bytes()[:26]
+    return head[24], head[25]
+
+
+def _single_line_error(excinfo, path) -> str:
+    message = str(excinfo.value)
+    assert "\n" not in message
+    assert path.name in message
+    return message
+
+
+# --- sRGB -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("encoded", "linear"),
+    [
+        (0.0, 0.0),
+        (1.0, 1.0),
+        (0.04045, 0.04045 / 12.92),
+        (0.5, 0.21404114),
+        (128 / 255, 0.21586050),
+        (0.02, 0.02 / 12.92),
+    ],
+)
+def test_srgb_known_values(encoded, linear):
+    # The standard's rounded thresholds (0.04045, 0.0031308) leave a step of ~3e-8 at the boundary.
+    assert srgb_to_linear(encoded) == pytest.approx(linear, abs=1e-8)
+    assert linear_to_srgb(linear) == pytest.approx(encoded, abs=1e-7)
+
+
+def test_srgb_boundary_uses_the_linear_segment():
+    assert srgb_to_linear(0.04045) == 0.04045 / 12.92
+    assert linear_to_srgb(0.0031308) == 0.0031308 * 12.92
+    below, above = srgb_to_linear(np.array([0.04045, np.nextafter(0.04045, 1.0)]))
+    assert 0.0 < above - below < 1e-8
+
+
+def test_srgb_round_trip_and_dtypes():
+    x = np.linspace(0.0, 1.0, 10001)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)
+    assert srgb_to_linear(x.astype(np.float32)).dtype == np.float32
+    assert linear_to_srgb(np.arange(3)).dtype == np.float64
+
+
+# --- EXR ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (5, 7, 3)])
+def test_exr_round_trip_float32_is_exact(tmp_path, shape):
+    image = (np.random.default_rng(1).standard_normal(shape) * 100.0).astype(np.float32)
+    path = tmp_path / "a.exr"
+    write_image(path, image)
+    back = read_image(path)
+    assert back.dtype == np.float32 and back.shape == shape
+    np.testing.assert_array_equal(back, image)
+    assert image_size(path) == (7, 5)
+
+
+@pytest.mark.parametrize("shape", [(5, 7), (5, 7, 3)])
+def test_exr_round_trip_half_is_exact_to_half(tmp_path, shape):
+    image = np.random.default_rng(2).uniform(-4, 40, shape).astype(np.float32)
+    path = tmp_path / "a.exr"
+    write_image(path, image, half=True)
+    np.testing.assert_array_equal(read_image(path), image.astype(np.float16).astype(np.float32))
+
+
+def test_exr_keeps_nonfinite_values(tmp_path):
+    image = np.array([[np.nan, np.inf], [-np.inf, 1.0]], dtype=np.float32)
+    write_image(tmp_path / "a.exr", image)
+    np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), image)
+
+
+# --- PNG ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_png_8bit_round_trip(tmp_path, channels):
+    rng = np.random.default_rng(3)
+    levels = rng.permutation(np.tile(np.arange(256, dtype=np.uint8), 3 * channels)).reshape(12, 64, channels)
+    levels = levels[:, :, 0] if channels == 1 else levels
+    path = tmp_path / "a.png"
+    write_image(path, srgb_to_linear(levels / 255.0))
+    assert _png_header(path) == (8, 0 if channels == 1 else 2)
+    np.testing.assert_array_equal(np.asarray(Image.open(path)), levels)
+    np.testing.assert_array_equal(read_image(path), srgb_to_linear(levels / 255.0).astype(np.float32))
+    np.testing.assert_array_equal(read_image(path, linear=True), (levels / 255.0).astype(np.float32))
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_png_16bit_keeps_all_65536_levels(tmp_path, channels):
+    levels = np.arange(65536, dtype=np.uint16).reshape(256, 256)
+    if channels == 3:
+        levels = np.stack([levels, levels[::-1], levels.T], axis=-1)
+    path = tmp_path / "a.png"
+    write_image(path, levels / 65535.0, bits=16, linear=True)
+    assert _png_header(path) == (16, 0 if channels == 1 else 2)
+    back = read_image(path, linear=True)
+    assert back.shape == levels.shape
+    np.testing.assert_array_equal(np.rint(back * 65535.0).astype(np.uint16), levels)
+    assert np.unique(back).size == 65536
+
+
+@pytest.mark.parametrize("shape", [(9, 11), (9, 11, 3)])
+def test_png_16bit_srgb_round_trip(tmp_path, shape):
+    image = np.random.default_rng(4).uniform(0.0, 1.0, shape).astype(np.float32)
+    write_image(tmp_path / "a.png", image, bits=16)
+    np.testing.assert_allclose(read_image(tmp_path / "a.png"), image, atol=2e-5)
+
+
+def test_png_16bit_rgba_drops_alpha(tmp_path):
+    levels = np.random.default_rng(5).integers(0, 65536, (6, 8, 4)).astype(np.uint16)
+    path = tmp_path / "rgba.png"
+    images_module._write_png16_colour(path, levels)
+    assert _png_header(path) == (16, 6)
+    back = read_image(path, linear=True)
+    np.testing.assert_array_equal(np.rint(back * 65535.0).astype(np.uint16), levels[:, :, :3])
+
+
+@pytest.mark.parametrize(
+    ("mode", "shape"),
+    [("L", (4, 6)), ("LA", (4, 6)), ("RGB", (4, 6, 3)), ("RGBA", (4, 6, 3)), ("P", (4, 6, 3)), ("1", (4, 6))],
+)
+def test_png_modes_convert(tmp_path, mode, shape):
+    rgb = np.random.default_rng(6).integers(0, 256, (4, 6, 3)).astype(np.uint8)
+    Image.fromarray(rgb).convert(mode).save(tmp_path / "a.png")
+    back = read_image(tmp_path / "a.png")
+    assert back.shape == shape and back.dtype == np.float32
+    if mode in ("RGB", "RGBA"):
+        np.testing.assert_array_equal(back, srgb_to_linear(rgb / 255.0).astype(np.float32))
+
+
+def test_png_clips_and_zeroes_nan_on_write(tmp_path):
+    write_image(tmp_path / "a.png", np.array([[-1.0, 2.0, np.nan]]))
+    np.testing.assert_array_equal(read_image(tmp_path / "a.png"), [[0.0, 1.0, 0.0]])
+
+
+# --- JPEG -----------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".jpeg", ".JPG"])
+def test_jpeg_reads_with_correct_size(tmp_path, suffix):
+    rgb = np.full((23, 37, 3), (200, 120, 40), dtype=np.uint8)
+    path = tmp_path / f"a{suffix}"
+    Image.fromarray(rgb).save(path, format="JPEG", quality=95)
+    image = read_image(path)
+    assert image.shape == (23, 37, 3) and image.dtype == np.float32
+    assert image_size(path) == (37, 23)
+    np.testing.assert_allclose(image, srgb_to_linear(rgb / 255.0), atol=0.02)
+
+
+def test_jpeg_write_round_trip(tmp_path):
+    image = np.full((16, 16), 0.25, dtype=np.float32)
+    write_image(tmp_path / "a.jpg", image)
+    back = read_image(tmp_path / "a.jpg")
+    assert back.shape == (16, 16)
+    np.testing.assert_allclose(back, image, atol=0.01)
+
+
+@pytest.mark.realdata
+def test_real_samples(data_root):
+    folder = data_root / "synthrti-object1-material5" / "Dome"
+    image = read_image(folder / "image01.jpg")
+    assert image.shape == (320, 320, 3) and 0.0 <= image.min() and image.max() <= 1.0
+    assert image_size(folder / "image01.jpg") == (320, 320)
+    normals = read_image(folder / "normals.png", linear=True)  # 16-bit RGB PNG
+    assert normals.shape == (320, 320, 3)
+    assert np.unique(normals).size > 256  # Pillow alone would have cut it to 8 bits
+
+
+# --- errors and atomic writes ---------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "none.png"
+    with pytest.raises(InputError) as excinfo:
+        read_image(path)
+    assert "not found" in _single_line_error(excinfo, path)
+    with pytest.raises(InputError):
+        image_size(path)
+
+
+def test_unsupported_extension_lists_supported(tmp_path):
+    path = tmp_path / "a.tif"
+    path.write_bytes(b"II*\x00")
+    for call in (read_image, image_size, lambda p: write_image(p, np.zeros((2, 2)))):
+        with pytest.raises(InputError) as excinfo:
+            call(path)
+        assert ".exr, .png, .jpg, .jpeg" in _single_line_error(excinfo, path)
+
+
+@pytest.mark.parametrize("suffix", [".exr", ".png", ".jpg"])
+def test_corrupt_file_is_named(tmp_path, suffix):
+    path = tmp_path / f"broken{suffix}"
+    path.write_bytes(b"this is not an image" * 20)
+    with pytest.raises(InputError) as excinfo:
+        read_image(path)
+    assert "cannot read image" in _single_line_error(excinfo, path)
+
+
+@pytest.mark.parametrize(
+    ("damage", "channels"),
+    [("truncate", 1), ("truncate", 3), ("flip_byte", 1), ("flip_byte", 3), ("drop_end", 3)],
+)
+def test_damaged_16bit_png_is_reported_not_fatal(tmp_path, damage, channels):
+    # Grayscale goes through Pillow, which reads a file without its end chunk when the data is whole;
+    # colour goes through VTK, whose libpng would kill the process on any of these.
+    shape = (64, 64) if channels == 1 else (64, 64, 3)
+    path = tmp_path / "a.png"
+    write_image(path, np.random.default_rng(7).uniform(0, 1, shape), bits=16)
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    elif damage == "drop_end":
+        data = data[:-12]
+    else:
+        data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError) as excinfo:
+        read_image(path)
+    assert "cannot read image" in _single_line_error(excinfo, path)
+
+
+@pytest.mark.parametrize(
+    ("name", "image", "kwargs", "needle"),
+    [
+        ("a.png", np.zeros((2, 2, 4)), {}, "shape"),
+        ("a.png", np.zeros(5), {}, "shape"),
+        ("a.png", np.zeros((2, 2)), {"half": True}, "EXR option"),
+        ("a.jpg", np.zeros((2, 2)), {"bits": 16}, "bits=16"),
+        ("a.png", np.zeros((2, 2)), {"bits": 12}, "bits=12"),
+    ],
+)
+def test_write_rejects_bad_requests(tmp_path, name, image, kwargs, needle):
+    with pytest.raises(InputError) as excinfo:
+        write_image(tmp_path / name, image, **kwargs)
+    assert needle in _single_line_error(excinfo, tmp_path / name)
+
+
+def test_write_makes_parent_folders(tmp_path):
+    write_image(tmp_path / "a" / "b" / "c.exr", np.ones((2, 3), dtype=np.float32))
+    assert image_size(tmp_path / "a" / "b" / "c.exr") == (3, 2)
+
+
+def test_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
+    path = tmp_path / "a.exr"
+    write_image(path, np.ones((2, 2), dtype=np.float32))
+    before = path.read_bytes()
+
+    def fail_halfway(tmp, image, *, half):
+        tmp.write_bytes(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(images_module, "_write_exr", fail_halfway)
+    with pytest.raises(OSError, match="disk full"):
+        write_image(path, np.zeros((2, 2), dtype=np.float32))
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["a.exr"]

@@ -1,0 +1,188 @@
+"""The synthetic-data renderer against analytic shading of a sphere, and its dataset output."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from warp_highlights.dataset import ReflectanceField
+from warp_highlights.lights import LightSet
+from warp_highlights.render import Material, Renderer, RenderSettings, render_dataset, view_rotation
+from warp_highlights.shapes import sphere, teapot, torus
+
+FRONT_LIGHTS = np.array(
+    [
+        [0.0, 0.0, 1.0],
+        [0.5, 0.3, 0.81],
+        [-0.6, 0.2, 0.77],
+        [0.2, -0.7, 0.68],
+        [-0.4, -0.5, 0.77],
+        [0.8, 0.1, 0.59],
+    ]
+)
+
+
+def _unit(v):
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _project(renderer: Renderer, points: np.ndarray) -> np.ndarray:
+    """Scene points -> (col, row) pixel coordinates, pixel centres at integers (float64)."""
+    s = renderer.settings
+    t = math.tan(math.radians(s.fov_y_deg) / 2.0)
+    rel = points - renderer.camera_position
+    depth = -rel[..., 2]
+    x_ndc = rel[..., 0] / depth / (t * s.width / s.height)
+    y_ndc = rel[..., 1] / depth / t
+    return np.stack([(x_ndc + 1) / 2 * s.width - 0.5, (1 - y_ndc) / 2 * s.height - 0.5], axis=-1)
+
+
+def _sphere_hits(renderer: Renderer) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic unit-sphere hit points through every pixel centre (NaN where the ray misses)."""
+    s = renderer.settings
+    t = math.tan(math.radians(s.fov_y_deg) / 2.0)
+    cols, rows = np.meshgrid(np.arange(s.width) + 0.5, np.arange(s.height) + 0.5)
+    d = _unit(np.stack([(2 * cols / s.width - 1) * t * s.width / s.height, (1 - 2 * rows / s.height) * t, -np.ones_like(cols)], -1))
+    o = renderer.camera_position
+    b = d @ o
+    disc = b * b - (o @ o - 1.0)
+    hit_t = -b - np.sqrt(np.where(disc > 0, disc, np.nan))
+    return o + hit_t[..., None] * d, disc > 0
+
+
+def _analytic_highlight(renderer: Renderer, light: np.ndarray) -> np.ndarray:
+    """Point of the unit sphere whose normal is the half-vector of the light and the view there."""
+    normal = _unit(light + np.array([0.0, 0.0, 1.0]))
+    for _ in range(50):
+        view = _unit(renderer.camera_position - normal)
+        normal = _unit(light + view)
+    return normal
+
+
+@pytest.fixture(scope="module")
+def sphere_renderer_cpu():
+    material = Material(albedo=(1.0, 1.0, 1.0), ambient=0.0, specular=1.0, shininess=600.0)
+    settings = RenderSettings(width=200, height=150, samples_per_pixel=4, colour=False)
+    return Renderer(sphere(subdivisions=6), material=material, settings=settings, device="cpu")
+
+
+def test_specular_peak_lands_on_the_half_vector_point(sphere_renderer_cpu):
+    renderer = sphere_renderer_cpu
+    lights = _unit(FRONT_LIGHTS)
+    specular = renderer.render(lights).specular
+    for image, light in zip(specular, lights):
+        expected = _project(renderer, _analytic_highlight(renderer, light))
+        rows, cols = np.nonzero(image >= 0.5 * image.max())
+        weights = image[rows, cols]
+        measured = np.array([np.average(cols, weights=weights), np.average(rows, weights=weights)])
+        assert np.linalg.norm(measured - expected) < 1.0, (light, measured, expected)
+        peak_row, peak_col = np.unravel_index(np.argmax(image), image.shape)
+        assert np.linalg.norm(np.array([peak_col, peak_row]) - expected) <= 1.5
+
+
+def test_specular_peak_is_high_dynamic_range(sphere_renderer_cpu):
+    specular = sphere_renderer_cpu.render(_unit(FRONT_LIGHTS[:1])).specular
+    peak = sphere_renderer_cpu.material.peak_specular
+    assert specular.max() > 1.0
+    assert specular.max() == pytest.approx(peak, rel=0.1)
+
+
+def test_diffuse_matches_lambert_on_sphere(sphere_renderer_cpu):
+    renderer = sphere_renderer_cpu
+    lights = _unit(np.concatenate([FRONT_LIGHTS, [[1.0, 0.0, 0.0], [0.0, 1.0, -0.3]]]))
+    diffuse = renderer.render(lights).diffuse
+    points, inside = _sphere_hits(renderer)
+    interior = inside & (renderer.coverage == 1.0)
+    for image, light in zip(diffuse, lights):
+        expected = np.maximum(points @ light, 0.0)
+        # Pixels right at the terminator mix lit and unlit samples; compare away from it.
+        away = interior & (np.abs(np.nan_to_num(points @ light)) > 0.05)
+        error = np.abs(image[away] - expected[away])
+        assert error.mean() < 0.004, light
+        assert error.max() < 0.03, light
+
+
+def test_convex_sphere_never_shadows_itself(sphere_renderer_cpu):
+    renderer = sphere_renderer_cpu
+    lights = _unit(np.array([[1.0, 0.0, 0.05], [0.0, -1.0, 0.1], [0.7, 0.7, -0.2]]))
+    diffuse = renderer.render(lights).diffuse
+    points, inside = _sphere_hits(renderer)
+    interior = inside & (renderer.coverage == 1.0)
+    for image, light in zip(diffuse, lights):
+        lit = interior & (np.nan_to_num(points @ light) > 0.05)
+        assert np.all(image[lit] > 0.0)
+
+
+def test_torus_under_grazing_light_shadows_itself():
+    rotation = view_rotation("donut")
+    settings = RenderSettings(width=160, height=90, samples_per_pixel=4, colour=False)
+    material = Material(albedo=(1.0, 1.0, 1.0), ambient=0.0, specular=0.0)
+    renderer = Renderer(torus(), material=material, settings=settings, rotation=rotation, device="cpu")
+    # Nearly in the torus' plane: the near side of the ring shades the inside of the far side.
+    light = _unit(rotation @ np.array([1.0, 0.12, 0.0]))
+    diffuse = renderer.render(light[None]).diffuse[0]
+    normals = renderer.camera_samples_numpy()["shading_normal"].mean(axis=2)
+    facing = (renderer.coverage == 1.0) & (normals @ light > 0.2)
+    shadowed = facing & (diffuse == 0.0)
+    assert shadowed.sum() > 30
+    # The same light straight from the ring's axis leaves no facing pixel dark.
+    overhead = _unit(rotation @ np.array([0.0, 1.0, 0.0]))
+    diffuse = renderer.render(overhead[None]).diffuse[0]
+    facing = (renderer.coverage == 1.0) & (normals @ overhead > 0.2)
+    assert np.all(diffuse[facing] > 0.0)
+
+
+@pytest.mark.parametrize("shape", ["donut", "teapot"])
+def test_shapes_render_finite_and_non_negative(shape):
+    mesh = torus() if shape == "donut" else teapot(subdivisions=6)
+    settings = RenderSettings(width=96, height=54, samples_per_pixel=4)
+    renderer = Renderer(mesh, settings=settings, rotation=view_rotation(shape), device="cpu")
+    lights = LightSet.fibonacci_sphere(12).directions
+    images = renderer.render(lights)
+    for array in (images.full, images.diffuse, images.specular):
+        assert array.shape == (12, 54, 96, 3)
+        assert np.all(np.isfinite(array)) and array.min() >= 0.0
+    np.testing.assert_allclose(images.full, images.diffuse + images.specular, rtol=1e-6, atol=1e-7)
+    assert images.specular.max() > 1.0  # HDR highlights
+    assert 0.1 < renderer.mask.mean() < 0.9  # framed: the object fills a good part, not all, of the image
+
+
+def test_render_is_deterministic_and_chunking_changes_nothing():
+    lights = LightSet.fibonacci_sphere(7).directions
+    whole = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=64), device="cpu").render(lights)
+    chunked = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=3), device="cpu").render(lights)
+    np.testing.assert_array_equal(whole.full, chunked.full)
+
+
+def test_device_variants_agree(device):
+    lights = LightSet.fibonacci_sphere(5).directions
+    settings = RenderSettings(width=64, height=36)
+    reference = Renderer(torus(), settings=settings, rotation=view_rotation("donut"), device="cpu").render(lights)
+    other = Renderer(torus(), settings=settings, rotation=view_rotation("donut"), device=device).render(lights)
+    # Same samples; a handful of silhouette or shadow-edge samples may flip with float rounding.
+    assert np.mean(np.abs(other.full - reference.full) > 1e-3) < 0.01
+
+
+def test_render_dataset_writes_the_dataset_layout(tmp_path):
+    lights = LightSet.fibonacci_sphere(12)
+    folder = render_dataset(
+        "sphere",
+        tmp_path / "ds",
+        lights=lights,
+        settings=RenderSettings(width=48, height=32),
+        device="cpu",
+        progress=False,
+    )
+    field = ReflectanceField.load(folder, progress=False)
+    assert field.light_count == 12 and field.images.shape == (12, 32, 48, 3)
+    assert field.heldout is not None and field.heldout.light_count == 2 * 12 - 4
+    np.testing.assert_allclose(field.lights.directions, lights.directions, atol=1e-6)
+    np.testing.assert_allclose(field.images, field.specular + field.diffuse, rtol=1e-6, atol=1e-6)
+    assert field.heldout.specular is not None and field.mask is not None and field.mask.any()
+    meta = json.loads((folder / "meta.json").read_text())
+    assert meta["shape"] == "sphere" and meta["light_count"] == 12 and meta["heldout_count"] == 20
+    assert not any(p.name.startswith(".") for p in tmp_path.iterdir())  # no temporary folder left

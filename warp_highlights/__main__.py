@@ -1,0 +1,7 @@
+"""``python -m warp_highlights``: the same as the ``warp-highlights`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

@@ -1,0 +1,290 @@
+"""The ``warp-highlights`` command line (also ``python -m warp_highlights``).
+
+User mistakes end with one line on stderr and exit status 2; Ctrl-C with status 130. Nothing is left
+half-written: every output goes to a temporary name first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+from .errors import InputError
+
+__all__ = ["main"]
+
+EXIT_INPUT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line; returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    _quiet_warp(verbose="-v" in argv or "--verbose" in argv)
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):
+        parser.print_help(sys.stderr)
+        return EXIT_INPUT_ERROR
+    try:
+        return args.run(args) or 0
+    except InputError as error:
+        print(f"warp-highlights {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_INPUT_ERROR
+    except KeyboardInterrupt:
+        print(f"warp-highlights {args.command}: interrupted; nothing partial was left behind", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="warp-highlights",
+        description="Relight reflectance fields with moving specular highlights (NVIDIA Warp).",
+    )
+    parser.add_argument("--version", action="version", version=f"warp-highlights {__version__}")
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    render = commands.add_parser(
+        "render",
+        help="render a synthetic reflectance field with ground truth",
+        description="Ray-trace a shape under many distant lights and write a dataset folder "
+        "(images/, specular/, diffuse/, lights.lp, held-out ground truth, mask.png, meta.json).",
+    )
+    render.add_argument("shape", help="donut, teapot, sphere, or a mesh file pyvista reads (PLY/OBJ/STL)")
+    render.add_argument("out", type=Path, help="dataset folder to create")
+    _add_render_options(render)
+    render.set_defaults(run=_run_render)
+
+    info = commands.add_parser("info", help="check a dataset folder and summarise it")
+    info.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images)")
+    info.add_argument("--heldout", type=Path, help="folder with held-out lights and images, if not inside DATASET")
+    info.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _add_common_options(info)
+    info.set_defaults(run=_run_info)
+
+    sheet = commands.add_parser("sheet", help="contact sheet PNG of a dataset: full, specular, diffuse per light")
+    sheet.add_argument("dataset", type=Path, help="dataset folder")
+    sheet.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
+    sheet.add_argument("--count", type=int, default=12, help="number of lights shown (default 12)")
+    sheet.add_argument("--thumb-height", type=int, default=135, help="height of each tile in pixels (default 135)")
+    sheet.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    _add_common_options(sheet)
+    sheet.set_defaults(run=_run_sheet)
+
+    demo = commands.add_parser(
+        "demo",
+        help="the built-in synthetic default, end to end",
+        description="Render the built-in donut at a CPU-friendly size and write a contact sheet.",
+    )
+    demo.add_argument("out", type=Path, nargs="?", default=Path("warp-highlights-demo"), help="output folder")
+    demo.add_argument("--lights", type=int, default=64, help="number of lights (default 64)")
+    demo.add_argument("--size", default="240x135", help="image size WIDTHxHEIGHT (default 240x135)")
+    demo.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    demo.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    _add_common_options(demo)
+    demo.set_defaults(run=_run_demo)
+    return parser
+
+
+def _add_common_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("-v", "--verbose", action="store_true", help="let Warp report kernel compilation")
+
+
+def _add_render_options(parser: argparse.ArgumentParser) -> None:
+    from .render import Material, RenderSettings
+
+    material, settings = Material(), RenderSettings()
+    lights = parser.add_argument_group("lights")
+    lights.add_argument("--lights", type=int, default=250, help="number of Fibonacci-lattice lights (default 250)")
+    lights.add_argument("--dome", action="store_true", help="lights on the upper hemisphere only (an RTI dome)")
+    lights.add_argument("--min-elevation", type=float, default=10.0, help="lowest dome light, degrees (default 10)")
+    lights.add_argument("--lights-file", type=Path, help="take the light directions from this .lp file instead")
+    lights.add_argument(
+        "--heldout",
+        default="centroids",
+        help="held-out ground truth: 'centroids' (every triangle centroid, the default), 'none', or a .lp file",
+    )
+    image = parser.add_argument_group("image")
+    image.add_argument("--size", default=f"{settings.width}x{settings.height}", help="WIDTHxHEIGHT (default 480x270)")
+    image.add_argument("--samples", type=int, default=settings.samples_per_pixel, help="samples per pixel, a square (default 4)")
+    image.add_argument("--fov", type=float, default=settings.fov_y_deg, help="vertical field of view, degrees (default 30)")
+    image.add_argument("--gray", action="store_true", help="single-channel luminance images instead of RGB")
+    image.add_argument("--half", action="store_true", help="store EXR as half floats (smaller files)")
+    image.add_argument("--seed", type=int, default=settings.seed, help="seed of the pixel-sample jitter")
+    surface = parser.add_argument_group("material (defaults depend on the shape)")
+    surface.add_argument("--albedo", help="diffuse colour R,G,B, linear, each in [0, 1]")
+    surface.add_argument("--ambient", type=float, help=f"ambient radiance (donut: {material.ambient})")
+    surface.add_argument("--specular", type=float, help=f"specular strength (donut: {material.specular})")
+    surface.add_argument("--shininess", type=float, help=f"Blinn-Phong exponent (donut: {material.shininess:g})")
+    parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
+    _add_common_options(parser)
+
+
+def _quiet_warp(*, verbose: bool) -> None:
+    """Hide Warp's greeting and per-module compile lines unless asked for; keep its warnings."""
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'480x270' -> (480, 270)."""
+    parts = text.lower().replace("*", "x").split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise InputError(f"image size '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
+    if width < 1 or height < 1 or width * height > 64_000_000:
+        raise InputError(f"image size '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
+    return width, height
+
+
+def parse_triple(text: str, what: str) -> tuple[float, float, float]:
+    """'0.7,0.4,0.2' -> (0.7, 0.4, 0.2); one number is repeated."""
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        raise InputError(f"{what} '{text}' is not R,G,B numbers, e.g. 0.7,0.42,0.24") from None
+    if len(values) == 1:
+        values *= 3
+    if len(values) != 3:
+        raise InputError(f"{what} '{text}' needs 1 or 3 numbers, e.g. 0.7,0.42,0.24")
+    return tuple(values)
+
+
+def _check_device(device: str | None) -> str | None:
+    import warp as wp
+
+    wp.init()
+    if device is None:
+        return None
+    try:
+        return str(wp.get_device(device))
+    except (RuntimeError, ValueError):
+        names = ", ".join(str(d) for d in wp.get_devices())
+        raise InputError(f"device '{device}' is not available here; use one of: {names}") from None
+
+
+def _light_sets(args) -> tuple:
+    from .lights import LightSet
+
+    if args.lights_file is not None:
+        lights = LightSet.read_lp(args.lights_file, check_files=False)
+    elif args.lights < 4:
+        raise InputError(f"--lights must be at least 4 to triangulate, got {args.lights}")
+    elif args.dome:
+        lights = LightSet.fibonacci_dome(args.lights, min_elevation_deg=args.min_elevation)
+    else:
+        lights = LightSet.fibonacci_sphere(args.lights)
+    lights = LightSet(lights.directions)  # rendered images get our own file names
+    heldout = args.heldout
+    if heldout.lower() == "none":
+        heldout = None
+    elif heldout.lower() != "centroids":
+        heldout = LightSet(LightSet.read_lp(Path(heldout), check_files=False).directions)
+    else:
+        heldout = "centroids"
+    return lights, heldout
+
+
+def _material(args):
+    from dataclasses import replace
+
+    from .render import default_material
+
+    material = default_material(args.shape)
+    changes = {k: getattr(args, k) for k in ("ambient", "specular", "shininess") if getattr(args, k) is not None}
+    if args.albedo is not None:
+        changes["albedo"] = parse_triple(args.albedo, "albedo")
+    return replace(material, **changes)
+
+
+def _run_render(args) -> int:
+    from .render import RenderSettings, render_dataset
+
+    width, height = parse_size(args.size)
+    settings = RenderSettings(
+        width=width, height=height, samples_per_pixel=args.samples, fov_y_deg=args.fov, colour=not args.gray, seed=args.seed
+    )
+    material = _material(args)
+    lights, heldout = _light_sets(args)
+    device = _check_device(args.device)
+    started = time.perf_counter()
+    folder = render_dataset(
+        args.shape,
+        args.out,
+        lights=lights,
+        heldout=heldout,
+        material=material,
+        settings=settings,
+        device=device,
+        overwrite=args.overwrite,
+        half=args.half,
+        progress=not args.quiet,
+    )
+    meta = json.loads((folder / "meta.json").read_text())
+    print(
+        f"wrote {folder}: {meta['light_count']} lights + {meta['heldout_count']} held-out, "
+        f"{width}x{height}, {args.samples} samples/px, on {meta['device']}, {time.perf_counter() - started:.1f} s"
+    )
+    return 0
+
+
+def _run_info(args) -> int:
+    from .dataset import ReflectanceField
+
+    field = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
+    summary = field.summary()
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        for key, value in summary.items():
+            print(f"{key:>18}: {value}")
+    return 0
+
+
+def _run_sheet(args) -> int:
+    from .dataset import ReflectanceField
+    from .preview import save_contact_sheet
+
+    if args.output.suffix.lower() != ".png":
+        raise InputError(f"contact sheet '{args.output}' must be a .png file")
+    field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+    path = save_contact_sheet(field, args.output, count=args.count, thumb_height=args.thumb_height)
+    print(f"wrote {path}")
+    return 0
+
+
+def _run_demo(args) -> int:
+    from .dataset import ReflectanceField
+    from .lights import LightSet
+    from .preview import save_contact_sheet
+    from .render import RenderSettings, default_material, render_dataset
+
+    width, height = parse_size(args.size)
+    device = _check_device(args.device)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise InputError(f"output folder {out} exists and is not empty; pass --overwrite or choose another folder")
+    out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    dataset = render_dataset(
+        "donut",
+        out / "donut",
+        lights=LightSet.fibonacci_sphere(args.lights),
+        material=default_material("donut"),
+        settings=RenderSettings(width=width, height=height),
+        device=device,
+        overwrite=True,
+        progress=not args.quiet,
+    )
+    sheet = save_contact_sheet(ReflectanceField.load(dataset, progress=False), out / "donut-contact-sheet.png")
+    print(f"rendered {dataset} ({args.lights} lights, {width}x{height}) and {sheet} in {time.perf_counter() - started:.1f} s")
+    return 0

@@ -1,0 +1,530 @@
+"""Reflectance fields on disk: load a dataset folder, and write one chunk by chunk.
+
+The folder layout is described in ``docs/dataset-format.md``: a ``.lp`` light file listing the images,
+optional ground-truth ``specular/`` and ``diffuse/`` EXRs named after each image's stem, optional
+held-out lights (``heldout.lp``), ``mask.png`` and ``meta.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .images import read_image, write_image
+from .lights import LightSet
+
+__all__ = ["DatasetWriter", "ReflectanceField"]
+
+_COMPONENTS = ("specular", "diffuse")
+_GROUP_FOLDERS = {"lights": ("images", ""), "heldout": ("heldout", "h")}  # group -> (folder, stem prefix)
+
+
+@dataclass(eq=False)
+class ReflectanceField:
+    """Images of one object under many light directions, with optional ground truth.
+
+    Attributes:
+        images: ``(n, H, W)`` or ``(n, H, W, 3)`` float32 linear radiance, one image per light.
+        lights: The ``n`` light directions (and image file names when loaded from disk).
+        specular: Ground-truth specular component, same shape as ``images``, or None.
+        diffuse: Ground-truth diffuse component, same shape as ``images``, or None.
+        mask: ``(H, W)`` bool, True on the object, or None.
+        heldout: Ground truth at other light directions (same image size), or None.
+        meta: Free-form metadata (generator, shape, material, resolution, colour space).
+        root: Folder the field was loaded from, or None.
+    """
+
+    images: np.ndarray
+    lights: LightSet
+    specular: np.ndarray | None = None
+    diffuse: np.ndarray | None = None
+    mask: np.ndarray | None = None
+    heldout: ReflectanceField | None = None
+    meta: dict = field(default_factory=dict)
+    root: Path | None = None
+
+    def __post_init__(self) -> None:
+        self.images = np.asarray(self.images, dtype=np.float32)
+        if self.images.ndim not in (3, 4) or (self.images.ndim == 4 and self.images.shape[3] != 3):
+            raise InputError(f"images must have shape (n, H, W) or (n, H, W, 3), got {self.images.shape}")
+        if len(self.lights) != len(self.images):
+            raise InputError(f"{len(self.images)} images for {len(self.lights)} light directions")
+        for name in _COMPONENTS:
+            component = getattr(self, name)
+            if component is not None:
+                component = np.asarray(component, dtype=np.float32)
+                if component.shape != self.images.shape:
+                    raise InputError(f"{name} has shape {component.shape}, images {self.images.shape}")
+                setattr(self, name, component)
+        if self.mask is not None:
+            self.mask = np.asarray(self.mask, dtype=bool)
+            if self.mask.shape != (self.height, self.width):
+                raise InputError(f"mask has shape {self.mask.shape}, images are {self.height}x{self.width}")
+        if self.heldout is not None and self.heldout.images.shape[1:] != self.images.shape[1:]:
+            raise InputError(
+                f"held-out images have shape {self.heldout.images.shape[1:]}, images {self.images.shape[1:]}"
+            )
+        if self.root is not None:
+            self.root = Path(self.root)
+
+    @property
+    def light_count(self) -> int:
+        """Number of images (lights)."""
+        return self.images.shape[0]
+
+    @property
+    def height(self) -> int:
+        """Image height in pixels."""
+        return self.images.shape[1]
+
+    @property
+    def width(self) -> int:
+        """Image width in pixels."""
+        return self.images.shape[2]
+
+    @property
+    def channels(self) -> int:
+        """1 for grayscale, 3 for RGB."""
+        return 1 if self.images.ndim == 3 else self.images.shape[3]
+
+    def summary(self) -> dict:
+        """Counts, size, light coverage and value ranges, as ``warp-highlights info`` prints them."""
+        from .triangulation import SphericalTriangulation
+
+        directions = self.lights.directions
+        triangulation = SphericalTriangulation(directions)
+        elevation = np.degrees(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0)))
+        summary = {
+            "folder": str(self.root) if self.root is not None else None,
+            "lights": self.light_count,
+            "size": f"{self.width}x{self.height}",
+            "channels": self.channels,
+            "coverage": "dome (open boundary)" if triangulation.is_dome else "full sphere",
+            "triangles": triangulation.face_count,
+            "elevation_deg": [round(float(elevation.min()), 2), round(float(elevation.max()), 2)],
+            "value_range": [float(self.images.min()), float(self.images.max())],
+            "mean_value": float(self.images.mean()),
+            "ground_truth": [name for name in _COMPONENTS if getattr(self, name) is not None],
+            "mask_pixels": None if self.mask is None else int(self.mask.sum()),
+            "heldout_lights": 0 if self.heldout is None else self.heldout.light_count,
+        }
+        if self.meta:
+            summary["generator"] = self.meta.get("generator")
+        return summary
+
+    @classmethod
+    def load(
+        cls,
+        folder,
+        *,
+        heldout=None,
+        linear: bool = False,
+        replace_nonfinite: bool = False,
+        progress: bool = True,
+    ) -> ReflectanceField:
+        """Load a dataset folder into memory (one preallocated float32 array per image stack).
+
+        Args:
+            folder: Dataset folder with ``lights.lp`` (or exactly one other ``.lp``) and its images.
+            heldout: Another dataset folder holding the held-out lights and images; by default
+                ``heldout.lp`` in ``folder``, when present.
+            linear: PNG/JPEG values are linear already; skip the sRGB decode.
+            replace_nonfinite: Replace NaN/inf pixels by 0 (with a warning) instead of failing.
+            progress: Show a progress bar on stderr (only when it is a terminal).
+
+        Raises:
+            InputError: One line on any bad input: missing folder, image or light file, several
+                ``.lp`` files, images of different sizes or channel counts, a partial ground-truth
+                set, non-finite pixels, a bad mask or ``meta.json``.
+        """
+        from tqdm import tqdm
+
+        folder = _existing_folder(folder)
+        main = _ImageGroup.plan(_find_light_file(folder))
+        extra = _heldout_group(folder, heldout)
+        groups = [main] if extra is None else [main, extra]
+        with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
+                  disable=None if progress else True, leave=False) as bar:
+            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar)
+            fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
+        reader.report_nonfinite()
+        result = fields[0]
+        result.heldout = fields[1] if extra is not None else None
+        result.mask = _read_mask(folder / "mask.png", (result.height, result.width))
+        result.meta = _read_meta(folder / "meta.json")
+        return result
+
+    def save(self, folder, *, half: bool = False, overwrite: bool = False) -> Path:
+        """Write the field as a dataset folder of EXR images (see :class:`DatasetWriter`).
+
+        Args:
+            folder: Target folder; replaced atomically when ``overwrite``.
+            half: Store 16-bit half floats instead of float32.
+            overwrite: Replace an existing non-empty folder.
+
+        Returns:
+            The dataset folder.
+        """
+        with DatasetWriter(folder, overwrite=overwrite, half=half) as writer:
+            writer.write_images("lights", 0, self.images, self.specular, self.diffuse)
+            heldout_lights = None
+            if self.heldout is not None:
+                writer.write_images("heldout", 0, self.heldout.images, self.heldout.specular, self.heldout.diffuse)
+                heldout_lights = self.heldout.lights
+            writer.finish(self.lights, heldout_lights, mask=self.mask, meta=self.meta or None)
+        return Path(folder)
+
+
+class DatasetWriter:
+    """Streams a dataset to a hidden temporary folder, then moves it into place in one rename.
+
+    Nothing already at ``folder`` is touched until :meth:`commit`; :meth:`abort` (or an exception
+    inside a ``with`` block) removes the temporary folder. Images are named ``images/NNNN.exr`` and
+    ``heldout/hNNNN.exr`` (4 digits, more when needed), their ground truth ``specular/<stem>.exr`` and
+    ``diffuse/<stem>.exr``.
+
+    Example:
+        with DatasetWriter("out/donut") as writer:
+            for start in range(0, n, 64):
+                writer.write_images("lights", start, full, specular, diffuse)
+            writer.finish(lights, heldout_lights, meta={"shape": "donut"})
+        # leaving the block commits
+    """
+
+    def __init__(self, folder, *, overwrite: bool = False, half: bool = False):
+        """Create the temporary folder beside ``folder``.
+
+        Args:
+            folder: Final dataset folder.
+            overwrite: Allow replacing an existing non-empty folder (at commit).
+            half: Store 16-bit half floats instead of float32.
+
+        Raises:
+            InputError: ``folder`` is a file, or exists non-empty without ``overwrite``.
+        """
+        self.folder = Path(folder)
+        self.overwrite = overwrite
+        self.half = half
+        _check_target(self.folder, overwrite=overwrite)
+        self.folder.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.folder.parent / f".{self.folder.name}.partial-{uuid.uuid4().hex[:12]}"
+        self._tmp.mkdir()
+        self._written = {group: {kind: set() for kind in ("full", *_COMPONENTS)} for group in _GROUP_FOLDERS}
+        self._shape: tuple[int, ...] | None = None
+        self._state = "open"
+
+    def write_images(self, group: str, start_index: int, full, specular=None, diffuse=None) -> None:
+        """Write a chunk of consecutive images.
+
+        Args:
+            group: ``"lights"`` or ``"heldout"``.
+            start_index: Light index of the first image of the chunk.
+            full: ``(k, H, W)`` or ``(k, H, W, 3)`` linear images.
+            specular: Ground-truth specular component, same shape as ``full``, or None.
+            diffuse: Ground-truth diffuse component, same shape as ``full``, or None.
+        """
+        self._require_state("open", "write_images")
+        if group not in _GROUP_FOLDERS:
+            raise ValueError(f"group must be 'lights' or 'heldout', got {group!r}")
+        stacks = {"full": self._checked_stack(full)}
+        for kind, stack in zip(_COMPONENTS, (specular, diffuse)):
+            if stack is not None:
+                stacks[kind] = self._checked_stack(stack)
+                if stacks[kind].shape != stacks["full"].shape:
+                    raise ValueError(f"{kind} chunk has shape {stacks[kind].shape}, images {stacks['full'].shape}")
+        for kind, stack in stacks.items():
+            for offset, image in enumerate(stack):
+                index = start_index + offset
+                write_image(self._tmp / _image_name(group, kind, index), image, half=self.half)
+                self._written[group][kind].add(index)
+
+    def finish(self, lights: LightSet, heldout_lights: LightSet | None, mask=None, meta=None) -> None:
+        """Write the light files, mask and metadata once every image is written.
+
+        Args:
+            lights: The reflectance field's lights, one per written ``"lights"`` image.
+            heldout_lights: The held-out lights, one per written ``"heldout"`` image, or None (an
+                empty set counts as None: no ``heldout.lp`` is written).
+            mask: ``(H, W)`` bool object mask, written as ``mask.png`` (white = object), or None.
+            meta: JSON-serialisable dict written as ``meta.json`` (indent 2), or None.
+        """
+        self._require_state("open", "finish")
+        for group, group_lights in (("lights", lights), ("heldout", heldout_lights)):
+            count = 0 if group_lights is None else group_lights.light_count
+            self._check_complete(group, count)
+            if count:
+                names = [_image_name(group, "full", i) for i in range(count)]
+                group_lights.write_lp(self._tmp / f"{group}.lp", filenames=names)
+        if mask is not None:
+            mask = np.asarray(mask, dtype=bool)
+            if self._shape is not None and mask.shape != self._shape[:2]:
+                raise ValueError(f"mask has shape {mask.shape}, images {self._shape[:2]}")
+            write_image(self._tmp / "mask.png", mask.astype(np.float32), linear=True)
+        if meta is not None:
+            text = json.dumps(meta, indent=2, default=_json_default)
+            (self._tmp / "meta.json").write_text(text + "\n", encoding="utf-8")
+        self._state = "finished"
+
+    def commit(self) -> Path:
+        """Move the finished dataset into place; an existing folder (with ``overwrite``) is swapped out
+        and removed.
+
+        Returns:
+            The dataset folder.
+        """
+        self._require_state("finished", "commit")
+        _check_target(self.folder, overwrite=self.overwrite)
+        if self.folder.exists():
+            old = self.folder.parent / f".{self.folder.name}.old-{uuid.uuid4().hex[:12]}"
+            os.rename(self.folder, old)
+            try:
+                os.rename(self._tmp, self.folder)
+            except OSError:
+                os.rename(old, self.folder)
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(self._tmp, self.folder)
+        self._state = "committed"
+        return self.folder
+
+    def abort(self) -> None:
+        """Remove the temporary folder; the target folder is left as it was. Safe to call twice."""
+        if self._state != "committed":
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._state = "aborted"
+
+    def __enter__(self) -> DatasetWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif self._state in ("open", "finished"):
+            try:
+                self.commit()
+            except BaseException:
+                self.abort()
+                raise
+
+    def _require_state(self, state: str, action: str) -> None:
+        if self._state != state:
+            raise ValueError(f"DatasetWriter.{action}() needs a writer that is {state}, this one is {self._state}")
+
+    def _checked_stack(self, stack) -> np.ndarray:
+        stack = np.asarray(stack, dtype=np.float32)
+        if stack.ndim not in (3, 4) or (stack.ndim == 4 and stack.shape[3] != 3):
+            raise ValueError(f"image chunks must have shape (k, H, W) or (k, H, W, 3), got {stack.shape}")
+        if self._shape is None:
+            self._shape = stack.shape[1:]
+        elif stack.shape[1:] != self._shape:
+            raise ValueError(f"image chunk of shape {stack.shape[1:]} after chunks of shape {self._shape}")
+        return stack
+
+    def _check_complete(self, group: str, count: int) -> None:
+        written = self._written[group]
+        missing = sorted(set(range(count)) - written["full"])
+        if missing:
+            raise ValueError(f"{group}: no image written for light(s) {missing[:5]} of {count}")
+        extra = sorted(written["full"] - set(range(count)))
+        if extra:
+            raise ValueError(f"{group}: images written for light(s) {extra[:5]} beyond the {count} lights")
+        for kind in _COMPONENTS:
+            if written[kind] and written[kind] != written["full"]:
+                raise ValueError(f"{group}: {kind} images written for some lights but not all")
+
+
+# --- loading helpers ----------------------------------------------------------------------------
+
+
+@dataclass
+class _ImageGroup:
+    """The files of one light set: its light file, images and optional ground-truth components."""
+
+    light_file: Path
+    lights: LightSet
+    images: list[Path]
+    specular: list[Path] | None
+    diffuse: list[Path] | None
+
+    @classmethod
+    def plan(cls, light_file: Path) -> _ImageGroup:
+        lights = LightSet.read_lp(light_file, check_files=True)
+        images = [light_file.parent / name for name in lights.filenames]
+        specular, diffuse = (_component_paths(light_file.parent, kind, images) for kind in _COMPONENTS)
+        return cls(light_file, lights, images, specular, diffuse)
+
+    @property
+    def file_count(self) -> int:
+        return sum(len(paths) for paths in (self.images, self.specular, self.diffuse) if paths)
+
+
+class _StackReader:
+    """Reads image stacks into preallocated float32 arrays, checking size, channels and finiteness."""
+
+    def __init__(self, *, linear: bool, replace_nonfinite: bool, bar):
+        self.linear = linear
+        self.replace_nonfinite = replace_nonfinite
+        self.bar = bar
+        self.first: tuple[Path, tuple[int, ...]] | None = None
+        self.nonfinite_count = 0
+        self.nonfinite_file: Path | None = None
+
+    def read_group(self, group: _ImageGroup) -> tuple:
+        """(images, lights, specular, diffuse) of one group, in ``ReflectanceField`` field order."""
+        images = self.read_stack(group.images)
+        specular, diffuse = (self.read_stack(p) if p else None for p in (group.specular, group.diffuse))
+        return images, group.lights, specular, diffuse
+
+    def read_stack(self, paths: list[Path]) -> np.ndarray:
+        stack = None
+        for index, path in enumerate(paths):
+            image = read_image(path, linear=self.linear)
+            self._check_shape(path, image)
+            self._check_finite(path, image)
+            if stack is None:
+                stack = np.empty((len(paths), *image.shape), dtype=np.float32)
+            stack[index] = image
+            self.bar.update()
+        return stack
+
+    def report_nonfinite(self) -> None:
+        """Raise (or warn, when replacing) about the non-finite pixels seen so far."""
+        if not self.nonfinite_count:
+            return
+        what = f"{self.nonfinite_count} non-finite pixel values (NaN or inf), first in {self.nonfinite_file}"
+        if not self.replace_nonfinite:
+            raise InputError(f"{what}; fix the images or pass replace_nonfinite=True to replace them by 0")
+        warnings.warn(f"{what}; replaced by 0", stacklevel=3)
+
+    def _check_shape(self, path: Path, image: np.ndarray) -> None:
+        if self.first is None:
+            self.first = (path, image.shape)
+            return
+        first_path, first_shape = self.first
+        if image.shape[:2] != first_shape[:2]:
+            raise InputError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]} but the first image {first_path} is "
+                f"{first_shape[1]}x{first_shape[0]}; all images must share one size"
+            )
+        if image.ndim != len(first_shape):
+            raise InputError(
+                f"{path}: image has {_channel_count(image.shape)} channel(s) but the first image {first_path} "
+                f"has {_channel_count(first_shape)}; use all grayscale or all RGB"
+            )
+
+    def _check_finite(self, path: Path, image: np.ndarray) -> None:
+        bad = ~np.isfinite(image)
+        count = int(bad.sum())
+        if count:
+            self.nonfinite_count += count
+            self.nonfinite_file = self.nonfinite_file or path
+            if self.replace_nonfinite:
+                image[bad] = 0.0
+
+
+def _channel_count(shape: tuple[int, ...]) -> int:
+    return 1 if len(shape) == 2 else shape[2]
+
+
+def _existing_folder(folder) -> Path:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: dataset folder not found")
+    return folder
+
+
+def _find_light_file(folder: Path) -> Path:
+    """``lights.lp``, else the one ``*.lp`` other than ``heldout.lp``."""
+    if (folder / "lights.lp").is_file():
+        return folder / "lights.lp"
+    candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())
+    if not candidates:
+        raise InputError(f"{folder}: no light file (lights.lp or another .lp) in the dataset folder")
+    if len(candidates) > 1:
+        names = ", ".join(p.name for p in candidates)
+        raise InputError(f"{folder}: several light files ({names}); keep one or name it lights.lp")
+    return candidates[0]
+
+
+def _heldout_group(folder: Path, heldout) -> _ImageGroup | None:
+    if heldout is not None:
+        return _ImageGroup.plan(_find_light_file(_existing_folder(heldout)))
+    if (folder / "heldout.lp").is_file():
+        return _ImageGroup.plan(folder / "heldout.lp")
+    return None
+
+
+def _component_paths(folder: Path, kind: str, images: list[Path]) -> list[Path] | None:
+    """``<folder>/<kind>/<image stem>.exr`` for every image, None when there are none at all."""
+    paths = [folder / kind / f"{image.stem}.exr" for image in images]
+    present = [path.is_file() for path in paths]
+    if not any(present):
+        return None
+    if not all(present):
+        index = present.index(False)
+        raise InputError(
+            f"{paths[index]}: missing {kind} image for {images[index].name}; "
+            f"provide {kind}/ images for all {len(images)} lights or none"
+        )
+    return paths
+
+
+def _read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+    if not path.is_file():
+        return None
+    mask = read_image(path, linear=True)
+    if mask.ndim == 3:
+        mask = mask.mean(axis=2)
+    if mask.shape != shape:
+        raise InputError(
+            f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} but the images are {shape[1]}x{shape[0]}"
+        )
+    return mask >= 0.5
+
+
+def _read_meta(path: Path) -> dict:
+    if not path.is_file():
+        return {}
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}:{exc.lineno}: invalid JSON ({exc.msg})") from exc
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{path}: not UTF-8 text ({exc.reason})") from exc
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: expected a JSON object {{...}}, got {type(meta).__name__}")
+    return meta
+
+
+# --- writing helpers ----------------------------------------------------------------------------
+
+
+def _image_name(group: str, kind: str, index: int) -> str:
+    """Relative path of an image: ``images/0007.exr``, ``specular/h0007.exr``, ..."""
+    folder, prefix = _GROUP_FOLDERS[group]
+    return f"{folder if kind == 'full' else kind}/{prefix}{index:04d}.exr"
+
+
+def _check_target(folder: Path, *, overwrite: bool) -> None:
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"{folder} exists and is not a folder; choose another folder")
+    if folder.is_dir() and not overwrite and any(folder.iterdir()):
+        raise InputError(f"{folder} exists; pass --overwrite or choose another folder")
+
+
+def _json_default(value):
+    """NumPy scalars and arrays -> plain Python for ``json.dumps``."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"meta value of type {type(value).__name__} is not JSON-serialisable")

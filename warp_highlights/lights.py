@@ -1,0 +1,221 @@
+"""Light directions: Fibonacci-lattice generators and the RTI ``.lp`` light file.
+
+A direction points from the object towards the light: x to the right of the image, y up the image,
+z towards the camera. Directions are stored as float64 unit vectors.
+"""
+
+from __future__ import annotations
+
+import codecs
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InputError
+from .images import atomic_target
+
+__all__ = ["LightSet"]
+
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # radians between consecutive lattice points
+_DUPLICATE_CHORD = 1e-6  # unit vectors closer than this (about 0.2 arc seconds) count as one direction
+_ENTRY = re.compile(r"^\s*(?P<name>\S.*?)\s+(?P<x>\S+)\s+(?P<y>\S+)\s+(?P<z>\S+)\s*$")
+_DOT_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+_COMMA_NUMBER = re.compile(r"^[+-]?(\d+,?\d*|,\d+)([eE][+-]?\d+)?$")
+_COUNT = re.compile(r"^[+-]?\d+$")
+
+
+@dataclass(eq=False)
+class LightSet:
+    """A set of light directions, optionally with the image file recorded for each.
+
+    Attributes:
+        directions: ``(n, 3)`` float64 unit vectors towards the lights (normalised on construction).
+        filenames: Image paths relative to the dataset folder, one per light, as in the ``.lp`` file.
+    """
+
+    directions: np.ndarray
+    filenames: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        directions = np.asarray(self.directions, dtype=np.float64)
+        if directions.ndim != 2 or directions.shape[1] != 3:
+            raise InputError(f"light directions must have shape (n, 3), got {directions.shape}")
+        norms = np.linalg.norm(directions, axis=1)
+        bad = np.flatnonzero(~(np.isfinite(norms) & (norms > 0.0)))
+        if bad.size:
+            raise InputError(f"light direction {bad[0]} is zero or not finite: {directions[bad[0]].tolist()}")
+        self.directions = directions / norms[:, None]
+        if self.filenames is not None:
+            self.filenames = [str(name) for name in self.filenames]
+            if len(self.filenames) != len(directions):
+                raise InputError(f"{len(self.filenames)} file names for {len(directions)} light directions")
+
+    @property
+    def light_count(self) -> int:
+        """Number of lights."""
+        return len(self.directions)
+
+    def __len__(self) -> int:
+        return self.light_count
+
+    @classmethod
+    def fibonacci_sphere(cls, count: int) -> LightSet:
+        """Fibonacci lattice over the full sphere: ``count`` nearly evenly spaced directions.
+
+        Args:
+            count: Number of directions, at least 1.
+        """
+        return cls(_fibonacci_cap(_checked_count(count), z_min=-1.0))
+
+    @classmethod
+    def fibonacci_dome(cls, count: int, *, min_elevation_deg: float = 10.0) -> LightSet:
+        """Fibonacci lattice over the cap above an elevation, uniform in solid angle, like an RTI dome.
+
+        Args:
+            count: Number of directions, at least 1.
+            min_elevation_deg: Lowest elevation above the image plane, degrees in [-90, 90); every
+                direction has ``z >= sin(min_elevation_deg)``.
+        """
+        if not -90.0 <= min_elevation_deg < 90.0:
+            raise InputError(f"min_elevation_deg must be in [-90, 90), got {min_elevation_deg}")
+        return cls(_fibonacci_cap(_checked_count(count), z_min=math.sin(math.radians(min_elevation_deg))))
+
+    @classmethod
+    def read_lp(cls, path, *, check_files: bool = True) -> LightSet:
+        """Read an RTI light file: the count N, then N lines ``<image file> <x> <y> <z>``.
+
+        Liberal in what it accepts: UTF-8 (with or without BOM) or UTF-16 with BOM, CRLF, blank lines,
+        tabs, trailing spaces, decimal commas (when a line's numbers all use them), file names with
+        spaces and backslashes, unnormalised vectors.
+
+        Args:
+            path: The ``.lp`` file.
+            check_files: Require every listed image to exist, relative to the file's folder.
+
+        Raises:
+            InputError: One line naming the file and line: unreadable or empty file, bad count,
+                malformed line, zero vector, count mismatch, duplicate direction, missing image.
+        """
+        path = Path(path)
+        lines = _numbered_lines(path)
+        if not lines:
+            raise InputError(f"{path}: empty light file; expected a count, then '<image file> <x> <y> <z>' lines")
+        count = _parse_count(path, *lines[0])
+        entries = [_parse_entry(path, number, text) for number, text in lines[1:]]
+        if len(entries) != count:
+            raise InputError(
+                f"{path}:{lines[0][0]}: the count says {count} lights but {len(entries)} are listed; "
+                "correct the count or the list"
+            )
+        line_numbers = [number for number, _ in lines[1:]]
+        lights = cls(np.array([vector for _, vector in entries]), [name for name, _ in entries])
+        _check_duplicates(path, lights.directions, line_numbers)
+        if check_files:
+            _check_files(path, lights.filenames, line_numbers)
+        return lights
+
+    def write_lp(self, path, filenames: list[str] | None = None) -> None:
+        """Write an RTI light file atomically (temp file in the same folder, then rename).
+
+        Args:
+            path: Target ``.lp`` file.
+            filenames: Image names to list; default ``self.filenames``, else ``0000``, ``0001``, ...
+                (4 digits, more when needed).
+        """
+        path = Path(path)
+        names = filenames if filenames is not None else self.filenames
+        if names is None:
+            names = [f"{i:04d}" for i in range(self.light_count)]
+        if len(names) != self.light_count:
+            raise InputError(f"{path}: {len(names)} file names for {self.light_count} light directions")
+        rows = [str(self.light_count)]
+        for name, (x, y, z) in zip(names, self.directions):
+            if not str(name).strip() or "\n" in str(name) or "\r" in str(name):
+                raise InputError(f"{path}: image file name {str(name)!r} cannot be written to a light file")
+            rows.append(f"{name} {float(x)!r} {float(y)!r} {float(z)!r}")
+        with atomic_target(path) as tmp:
+            tmp.write_text("\n".join(rows) + "\n", encoding="utf-8")
+
+
+def _checked_count(count: int) -> int:
+    if isinstance(count, bool) or int(count) != count or count < 1:
+        raise InputError(f"light count must be a positive integer, got {count!r}")
+    return int(count)
+
+
+def _fibonacci_cap(count: int, *, z_min: float) -> np.ndarray:
+    """``count`` lattice points on the spherical cap ``z >= z_min``, equal solid angle each."""
+    i = np.arange(count, dtype=np.float64)
+    z = 1.0 - (1.0 - z_min) * (i + 0.5) / count
+    r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+    phi = i * _GOLDEN_ANGLE
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _numbered_lines(path: Path) -> list[tuple[int, str]]:
+    """Non-blank lines of a text file with their 1-based line numbers."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: light file not found") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read light file ({exc.strerror})") from exc
+    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        text = raw.decode("utf-16")
+    else:
+        try:
+            text = raw.decode("utf-8-sig")
+        except UnicodeDecodeError:
+            text = raw.decode("latin-1")
+    return [(number, line) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
+
+
+def _parse_count(path: Path, number: int, text: str) -> int:
+    token = text.split()[0]
+    if not _COUNT.match(token):
+        raise InputError(f"{path}:{number}: the first line must be the light count, got {_clip(text)!r}")
+    if int(token) < 1:
+        raise InputError(f"{path}:{number}: the light count must be positive, got {int(token)}")
+    return int(token)
+
+
+def _parse_entry(path: Path, number: int, text: str) -> tuple[str, tuple[float, float, float]]:
+    """One ``<file> <x> <y> <z>`` line -> (file name with '/' separators, vector)."""
+    match = _ENTRY.match(text)
+    if match is None:
+        raise InputError(f"{path}:{number}: expected '<image file> <x> <y> <z>', got {_clip(text)!r}")
+    tokens = match.group("x", "y", "z")
+    commas = any("," in t for t in tokens) and not any("." in t for t in tokens)
+    pattern = _COMMA_NUMBER if commas else _DOT_NUMBER
+    for token in tokens:
+        if not pattern.match(token):
+            raise InputError(f"{path}:{number}: {token!r} is not a number in {_clip(text)!r}")
+    vector = tuple(float(t.replace(",", ".")) for t in tokens)
+    if not all(math.isfinite(v) for v in vector) or not any(vector):
+        raise InputError(f"{path}:{number}: the light direction {vector} is zero or not finite")
+    return match.group("name").replace("\\", "/"), vector
+
+
+def _check_duplicates(path: Path, directions: np.ndarray, line_numbers: list[int]) -> None:
+    pairs = cKDTree(directions).query_pairs(_DUPLICATE_CHORD)
+    if pairs:
+        a, b = min(pairs)
+        raise InputError(
+            f"{path}: lines {line_numbers[a]} and {line_numbers[b]} give the same light direction; remove one"
+        )
+
+
+def _check_files(path: Path, filenames: list[str], line_numbers: list[int]) -> None:
+    folder = path.parent
+    for name, number in zip(filenames, line_numbers):
+        if not (folder / name).is_file():
+            raise InputError(f"{path}:{number}: image {name!r} not found in {folder}")
+
+
+def _clip(text: str, limit: int = 60) -> str:
+    text = text.strip()
+    return text if len(text) <= limit else text[: limit - 3] + "..."

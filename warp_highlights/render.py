@@ -1,0 +1,362 @@
+"""Synthetic reflectance fields: ray-trace a mesh under many distant lights, with ground truth.
+
+The camera sits on +z and looks along -z, so the scene frame is the light-direction frame of
+method.md section 0 (x right, y up the image, z towards the camera). Meshes are normalised to a unit
+bounding sphere and turned to a per-shape viewing orientation; the camera distance is chosen so the
+object fills a given fraction of the frame.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+from . import __version__
+from .errors import InputError
+from .kernels import raytrace
+from .lights import LightSet
+from .shapes import TriangleMesh, make_shape
+from .triangulation import SphericalTriangulation
+
+__all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "view_rotation"]
+
+# Rec. 709 / sRGB primaries: luminance weights for single-channel renders.
+_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclass(frozen=True)
+class Material:
+    """Lambertian base plus a normalised Blinn-Phong lobe, under a distant light of intensity 1.
+
+    Attributes:
+        albedo: linear RGB diffuse reflectance in [0, 1]; radiance = albedo * max(n.l, 0).
+        ambient: constant radiance added on the object (also in shadow), linear, per channel or scalar.
+        specular: scale of the lobe (white); peak radiance ~ specular * (shininess + 8) / (8 pi).
+        shininess: Blinn-Phong exponent of (n . h); larger is a smaller, brighter highlight.
+    """
+
+    albedo: tuple[float, float, float] = (0.7, 0.42, 0.24)
+    ambient: float = 0.02
+    specular: float = 0.5
+    shininess: float = 120.0
+
+    def __post_init__(self):
+        albedo = np.asarray(self.albedo, dtype=np.float64)
+        if albedo.shape != (3,) or not np.all(np.isfinite(albedo)) or albedo.min() < 0 or albedo.max() > 1:
+            raise InputError(f"albedo must be three numbers in [0, 1], got {self.albedo}")
+        for name in ("ambient", "specular"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise InputError(f"{name} must be a finite number >= 0, got {value}")
+        if not math.isfinite(self.shininess) or self.shininess < 1:
+            raise InputError(f"shininess must be a number >= 1, got {self.shininess}")
+
+    @property
+    def peak_specular(self) -> float:
+        """Radiance at the centre of a highlight on a surface facing the light."""
+        return self.specular * (self.shininess + 8.0) / (8.0 * math.pi)
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Image and sampling settings.
+
+    Attributes:
+        width, height: image size in pixels.
+        samples_per_pixel: a square number (4, 9, 16, ...): stratified jittered samples per pixel.
+        fov_y_deg: vertical field of view of the pinhole camera, degrees.
+        fill: fraction of the frame (height or width, whichever binds) the object's projection fills.
+        colour: True for RGB images, False for single-channel luminance.
+        light_chunk: lights shaded per launch; bounds device memory (3 images x chunk x H x W x C floats).
+        seed: seed of the sample jitter.
+        shadow_bias: shadow-ray offset in units of the object's bounding radius.
+    """
+
+    width: int = 480
+    height: int = 270
+    samples_per_pixel: int = 4
+    fov_y_deg: float = 30.0
+    fill: float = 0.9
+    colour: bool = True
+    light_chunk: int = 64
+    seed: int = 0
+    shadow_bias: float = 1e-4
+
+    def __post_init__(self):
+        if self.width < 1 or self.height < 1:
+            raise InputError(f"image size must be positive, got {self.width}x{self.height}")
+        root = math.isqrt(max(self.samples_per_pixel, 0))
+        if self.samples_per_pixel < 1 or root * root != self.samples_per_pixel:
+            raise InputError(f"samples per pixel must be a square number (1, 4, 9, 16, ...), got {self.samples_per_pixel}")
+        if not 0 < self.fov_y_deg < 170:
+            raise InputError(f"field of view must be between 0 and 170 degrees, got {self.fov_y_deg}")
+        if not 0 < self.fill <= 1:
+            raise InputError(f"fill must be in (0, 1], got {self.fill}")
+        if self.light_chunk < 1:
+            raise InputError(f"light chunk must be >= 1, got {self.light_chunk}")
+
+    @property
+    def grid(self) -> int:
+        """Samples per pixel along each axis."""
+        return math.isqrt(self.samples_per_pixel)
+
+
+def view_rotation(shape: str) -> np.ndarray:
+    """3x3 rotation that shows ``shape`` from a pleasant three-quarter view (identity for mesh files)."""
+    if shape in ("donut", "torus"):
+        return _rotation_x(math.radians(40.0))
+    if shape == "teapot":
+        return _rotation_x(math.radians(20.0)) @ _rotation_y(math.radians(-25.0))
+    return np.eye(3)
+
+
+def default_material(shape: str) -> Material:
+    """The built-in material of each synthetic shape."""
+    if shape == "teapot":
+        return Material(albedo=(0.52, 0.58, 0.68), ambient=0.02, specular=0.5, shininess=150.0)
+    if shape == "sphere":
+        return Material(albedo=(0.6, 0.6, 0.6), ambient=0.02, specular=0.5, shininess=120.0)
+    return Material()
+
+
+@dataclass
+class RenderedImages:
+    """Images of one light chunk, linear float32, shape (L, H, W, C) or (L, H, W) when single-channel."""
+
+    start: int
+    full: np.ndarray
+    diffuse: np.ndarray
+    specular: np.ndarray
+
+
+@dataclass
+class Renderer:
+    """Renders one mesh from one camera under any number of distant lights.
+
+    Args:
+        mesh: the object; it is normalised to a unit bounding sphere and turned by ``rotation``.
+        material: surface parameters.
+        settings: image and sampling settings.
+        rotation: 3x3 viewing rotation applied to the normalised mesh.
+        device: Warp device ("cpu", "cuda:0", ...); None for Warp's preferred device.
+    """
+
+    mesh: TriangleMesh
+    material: Material = field(default_factory=Material)
+    settings: RenderSettings = field(default_factory=RenderSettings)
+    rotation: np.ndarray | None = None
+    device: str | None = None
+
+    def __post_init__(self):
+        wp.init()
+        self.device = str(wp.get_device(self.device))
+        scene = self.mesh.normalized()
+        if self.rotation is not None:
+            scene = scene.transformed(rotation=np.asarray(self.rotation, dtype=np.float64))
+        self.scene_mesh = scene
+        self.camera_position = _frame_camera(scene.points, self.settings)
+        self._points = wp.array(scene.points.astype(np.float32), dtype=wp.vec3, device=self.device)
+        self._normals = wp.array(scene.normals.astype(np.float32), dtype=wp.vec3, device=self.device)
+        self._mesh = wp.Mesh(
+            points=self._points,
+            indices=wp.array(scene.faces.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
+        )
+        camera = raytrace.make_camera(self.camera_position, self.settings.fov_y_deg, self.settings.width, self.settings.height)
+        self._samples = raytrace.trace_camera(
+            self._mesh,
+            self._normals,
+            camera,
+            grid=self.settings.grid,
+            seed=self.settings.seed,
+            shadow_bias=self.settings.shadow_bias,
+            device=self.device,
+        )
+        self._params = raytrace.make_shading_parameters(
+            shininess=self.material.shininess, samples_per_pixel=self.settings.samples_per_pixel
+        )
+
+    @property
+    def coverage(self) -> np.ndarray:
+        """(H, W) float32: fraction of each pixel covered by the object."""
+        return self._samples.coverage_image
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(H, W) bool: pixels at least half covered by the object."""
+        return self.coverage >= 0.5
+
+    def camera_samples_numpy(self) -> dict[str, np.ndarray]:
+        """Host copies of the camera pass: hit_mask (H, W, S) and shading_normal, view_direction,
+        shadow_origin (H, W, S, 3), in scene coordinates."""
+        names = ("hit_mask", "shading_normal", "view_direction", "shadow_origin")
+        return {name: getattr(self._samples, name).numpy() for name in names}
+
+    def _colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        albedo = np.asarray(self.material.albedo, dtype=np.float64)
+        if not self.settings.colour:
+            albedo = np.array([albedo @ _LUMINANCE])
+        channels = len(albedo)
+        return albedo, np.full(channels, self.material.ambient), np.full(channels, self.material.specular)
+
+    def shade_on_device(self, directions: np.ndarray) -> tuple[wp.array, wp.array, wp.array]:
+        """(full, diffuse, specular) device arrays (L, H, W, C) for ``directions``, all in one batch."""
+        albedo, ambient, specular_colour = self._colours()
+        return raytrace.shade_and_compose(
+            self._mesh,
+            self._samples,
+            _unit_directions(directions),
+            self._params,
+            albedo=albedo,
+            ambient=ambient,
+            specular_colour=specular_colour,
+            height=self.settings.height,
+            width=self.settings.width,
+            device=self.device,
+        )
+
+    def render_chunks(self, directions: np.ndarray) -> Iterator[RenderedImages]:
+        """Yield the images of ``directions`` ((L, 3) unit vectors) chunk by chunk, in order."""
+        directions = _unit_directions(directions)
+        chunk = self.settings.light_chunk
+        for start in range(0, len(directions), chunk):
+            images = [a.numpy() for a in self.shade_on_device(directions[start : start + chunk])]
+            if not self.settings.colour:
+                images = [a[..., 0] for a in images]
+            yield RenderedImages(start, *images)
+
+    def render(self, directions: np.ndarray) -> RenderedImages:
+        """All images of ``directions`` at once (for tests and small sets; use render_chunks for many)."""
+        parts = list(self.render_chunks(directions))
+        if not parts:
+            shape = (0, self.settings.height, self.settings.width) + ((3,) if self.settings.colour else ())
+            empty = np.zeros(shape, np.float32)
+            return RenderedImages(0, empty, empty.copy(), empty.copy())
+        return RenderedImages(0, *(np.concatenate([getattr(p, k) for p in parts]) for k in ("full", "diffuse", "specular")))
+
+    def describe(self) -> dict:
+        """What meta.json records about the scene."""
+        return {
+            "material": asdict(self.material),
+            "settings": asdict(self.settings),
+            "camera": {
+                "position": [float(x) for x in self.camera_position],
+                "look_direction": [0.0, 0.0, -1.0],
+                "up": [0.0, 1.0, 0.0],
+                "fov_y_deg": self.settings.fov_y_deg,
+            },
+            "view_rotation": (np.eye(3) if self.rotation is None else np.asarray(self.rotation)).tolist(),
+            "mesh": {"name": self.mesh.name, "vertices": self.mesh.vertex_count, "faces": self.mesh.face_count},
+            "light_model": "distant light of intensity 1; diffuse = albedo * max(n.l, 0) * visibility + ambient; "
+            "specular = specular * (shininess + 8) / (8 pi) * max(n.h, 0)^shininess * max(n.l, 0) * visibility",
+            "colour_space": "linear Rec.709" if self.settings.colour else "linear luminance (Rec.709 weights)",
+        }
+
+
+def render_dataset(
+    shape: str,
+    folder: str | Path,
+    *,
+    lights: LightSet,
+    heldout: LightSet | None | str = "centroids",
+    material: Material | None = None,
+    settings: RenderSettings | None = None,
+    device: str | None = None,
+    overwrite: bool = False,
+    half: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Render a dataset folder (dataset-format.md) with ground-truth specular and diffuse images.
+
+    Args:
+        shape: "donut", "teapot", "sphere", or a mesh file pyvista reads.
+        folder: the dataset folder to create; written in a temporary sibling and renamed when complete.
+        lights: the reflectance field's light directions.
+        heldout: "centroids" (every face centroid of the lights' spherical triangulation), a LightSet,
+            or None for no held-out ground truth.
+        material, settings: defaults per shape when None.
+        device: Warp device; None for Warp's preferred device.
+        overwrite: replace an existing non-empty folder.
+        half: store EXR as half floats instead of float32.
+        progress: show a progress bar on stderr.
+
+    Returns:
+        The folder written.
+    """
+    from tqdm import tqdm
+
+    from .dataset import DatasetWriter
+
+    started = time.perf_counter()
+    mesh = make_shape(shape)
+    shape_name = mesh.name if Path(shape).suffix == "" else str(shape)
+    material = material or default_material(shape)
+    settings = settings or RenderSettings()
+    if heldout == "centroids":
+        heldout = LightSet(SphericalTriangulation(lights.directions).centroid_directions())
+    elif isinstance(heldout, str):
+        raise InputError(f"held-out lights must be 'centroids', a LightSet or None, got {heldout!r}")
+    renderer = Renderer(mesh, material=material, settings=settings, rotation=view_rotation(shape), device=device)
+    groups = [("lights", lights)] + ([("heldout", heldout)] if heldout is not None and len(heldout) else [])
+    total = sum(len(group) for _, group in groups)
+    with DatasetWriter(folder, overwrite=overwrite, half=half) as writer, tqdm(
+        total=total, unit="light", desc=f"render {shape_name}", disable=not progress, leave=False
+    ) as bar:
+        for group, light_set in groups:
+            for images in renderer.render_chunks(light_set.directions):
+                writer.write_images(group, images.start, images.full, specular=images.specular, diffuse=images.diffuse)
+                bar.update(len(images.full))
+        meta = {
+            "generator": f"warp-highlights {__version__} render",
+            "shape": shape_name,
+            "resolution": [settings.width, settings.height],
+            "light_count": len(lights),
+            "heldout_count": 0 if heldout is None else len(heldout),
+            "heldout_protocol": "triangle centroids of the lights' spherical Delaunay triangulation"
+            if heldout is not None
+            else None,
+            "device": renderer.device,
+            "render_seconds": round(time.perf_counter() - started, 3),
+            **renderer.describe(),
+        }
+        writer.finish(lights, heldout, mask=renderer.mask, meta=meta)
+        return writer.commit()
+
+
+def _frame_camera(points: np.ndarray, settings: RenderSettings) -> np.ndarray:
+    """Camera position on the +z axis through the projected bounding-box centre, filling ``fill``.
+
+    Every vertex p must satisfy |x - cx| / (d - z) <= fill * aspect * t and |y - cy| / (d - z) <= fill * t
+    with t = tan(fov/2); the smallest such distance d has a closed form per vertex.
+    """
+    t = math.tan(math.radians(settings.fov_y_deg) / 2.0) * settings.fill
+    aspect = settings.width / settings.height
+    centre = (points.min(axis=0) + points.max(axis=0)) / 2.0
+    rel = points - np.array([centre[0], centre[1], 0.0])
+    distance = np.max(np.maximum(np.abs(rel[:, 0]) / (aspect * t), np.abs(rel[:, 1]) / t) + rel[:, 2])
+    # Never put the camera inside the object's bounding sphere.
+    distance = max(distance, points[:, 2].max() + 1e-3)
+    return np.array([centre[0], centre[1], distance])
+
+
+def _unit_directions(directions: np.ndarray) -> np.ndarray:
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    norms = np.linalg.norm(directions, axis=1, keepdims=True)
+    if not np.all(np.isfinite(directions)) or np.any(norms < 1e-12):
+        raise InputError("light directions must be finite, non-zero 3-vectors")
+    return directions / norms
+
+
+def _rotation_x(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rotation_y(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
