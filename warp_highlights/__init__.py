@@ -1,3 +1,28 @@
 """warp-highlights: relight reflectance fields with moving specular highlights, built on NVIDIA Warp."""
 
+from __future__ import annotations
+
+import importlib.util as _importlib_util
+import sys as _sys
+from pathlib import Path as _Path
+
 __version__ = "0.1.0"
+
+
+def _attach_checkout_kernels() -> None:
+    """Make ``warp_highlights.kernels`` importable when running from a source checkout via PYTHONPATH.
+
+    An install maps the top-level kernels/ folder to this subpackage (pyproject.toml); on a machine
+    where the project is only on PYTHONPATH (the lent GPU machine), the mapping is done here.
+    """
+    name = f"{__name__}.kernels"
+    folder = _Path(__file__).resolve().parent.parent / "kernels"
+    if name in _sys.modules or _importlib_util.find_spec(name) is not None or not (folder / "__init__.py").is_file():
+        return
+    spec = _importlib_util.spec_from_file_location(name, folder / "__init__.py", submodule_search_locations=[str(folder)])
+    module = _importlib_util.module_from_spec(spec)
+    _sys.modules[name] = module
+    spec.loader.exec_module(module)
+
+
+_attach_checkout_kernels()

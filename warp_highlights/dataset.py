@@ -12,6 +12,7 @@ import os
 import shutil
 import uuid
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -240,11 +241,17 @@ class DatasetWriter:
                 stacks[kind] = self._checked_stack(stack)
                 if stacks[kind].shape != stacks["full"].shape:
                     raise ValueError(f"{kind} chunk has shape {stacks[kind].shape}, images {stacks['full'].shape}")
+        jobs = [
+            (self._tmp / _image_name(group, kind, start_index + offset), image)
+            for kind, stack in stacks.items()
+            for offset, image in enumerate(stack)
+        ]
+        # EXR compression runs in C++ without the GIL: a few threads keep every core and the disk busy.
+        with ThreadPoolExecutor(max_workers=min(len(jobs), 2 * (os.cpu_count() or 1)) or 1) as pool:
+            for future in [pool.submit(write_image, path, image, half=self.half) for path, image in jobs]:
+                future.result()
         for kind, stack in stacks.items():
-            for offset, image in enumerate(stack):
-                index = start_index + offset
-                write_image(self._tmp / _image_name(group, kind, index), image, half=self.half)
-                self._written[group][kind].add(index)
+            self._written[group][kind].update(range(start_index, start_index + len(stack)))
 
     def finish(self, lights: LightSet, heldout_lights: LightSet | None, mask=None, meta=None) -> None:
         """Write the light files, mask and metadata once every image is written.

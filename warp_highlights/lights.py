@@ -196,7 +196,9 @@ def _parse_entry(path: Path, number: int, text: str) -> tuple[str, tuple[float, 
             raise InputError(f"{path}:{number}: {token!r} is not a number in {_clip(text)!r}")
     vector = tuple(float(t.replace(",", ".")) for t in tokens)
     if not all(math.isfinite(v) for v in vector) or not any(vector):
-        raise InputError(f"{path}:{number}: the light direction {vector} is zero or not finite")
+        raise InputError(
+            f"{path}:{number}: the light direction {vector} is zero or not finite; give the direction towards the light"
+        )
     return match.group("name").replace("\\", "/"), vector
 
 
@@ -213,7 +215,7 @@ def _check_files(path: Path, filenames: list[str], line_numbers: list[int]) -> N
     folder = path.parent
     for name, number in zip(filenames, line_numbers):
         if not (folder / name).is_file():
-            raise InputError(f"{path}:{number}: image {name!r} not found in {folder}")
+            raise InputError(f"{path}:{number}: image {name!r} not found in {folder}; fix the name or add the image")
 
 
 def _clip(text: str, limit: int = 60) -> str:
