@@ -205,6 +205,8 @@ def test_explicit_abort_and_misuse(tmp_path):
         writer.commit()
     with pytest.raises(ValueError, match="group"):
         writer.write_images("other", 0, np.zeros((1, 2, 2)))
+    with pytest.raises(ValueError, match="1 non-finite"):
+        writer.write_images("lights", 0, np.array([[[0.0, np.nan], [0.0, 0.0]]]))
     writer.write_images("lights", 0, np.zeros((2, 2, 2)))
     with pytest.raises(ValueError, match="shape"):
         writer.write_images("lights", 2, np.zeros((1, 3, 3)))
@@ -294,11 +296,15 @@ def test_heldout_of_another_size(tmp_path):
 
 
 def _nan_dataset(tmp_path):
+    """A dataset with non-finite pixels, as a foreign tool might write it (our writer refuses them)."""
     field = _field(count=3)
+    field.save(tmp_path / "d")
     field.images[1, 0, 0, 0] = np.nan
     field.images[2, 1, :2, 1] = np.inf
     field.heldout.specular[0, 0, 0, 0] = -np.inf
-    field.save(tmp_path / "d")
+    write_image(tmp_path / "d" / "images" / "0001.exr", field.images[1])
+    write_image(tmp_path / "d" / "images" / "0002.exr", field.images[2])
+    write_image(tmp_path / "d" / "specular" / "h0000.exr", field.heldout.specular[0])
     return tmp_path / "d"
 
 

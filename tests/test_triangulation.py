@@ -71,3 +71,12 @@ def test_degenerate_input_is_an_input_error():
     ring = np.stack([np.cos(np.linspace(0, 6, 10)), np.sin(np.linspace(0, 6, 10)), np.zeros(10)], 1)
     with pytest.raises(InputError):
         SphericalTriangulation(ring)
+
+
+@pytest.mark.realdata
+def test_synthrti_dome_boundary_is_its_lowest_ring(data_root):
+    lights = LightSet.read_lp(data_root / "synthrti-object1-material5" / "Dome" / "dirs.lp")
+    tri = SphericalTriangulation(lights.directions)
+    lowest = np.flatnonzero(np.isclose(lights.directions[:, 2], lights.directions[:, 2].min(), atol=1e-3))
+    assert len(lowest) == 18
+    np.testing.assert_array_equal(np.unique(tri.boundary_edges()), lowest)

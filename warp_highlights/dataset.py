@@ -334,6 +334,8 @@ class DatasetWriter:
             self._shape = stack.shape[1:]
         elif stack.shape[1:] != self._shape:
             raise ValueError(f"image chunk of shape {stack.shape[1:]} after chunks of shape {self._shape}")
+        if not np.isfinite(stack).all():
+            raise ValueError(f"image chunk holds {int((~np.isfinite(stack)).sum())} non-finite values; nothing is written")
         return stack
 
     def _check_complete(self, group: str, count: int) -> None:

@@ -6,14 +6,12 @@ tone-mapped by clipping to [0, 1] and sRGB encoding, with the light's index and 
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
-from .images import linear_to_srgb
+from .images import atomic_target, linear_to_srgb
 
 __all__ = ["contact_sheet", "save_contact_sheet", "spread_indices"]
 
@@ -67,14 +65,8 @@ def save_contact_sheet(field, path: str | Path, **options) -> Path:
         raise InputError(f"contact sheet '{path}' must be a .png file")
     path.parent.mkdir(parents=True, exist_ok=True)
     picture = contact_sheet(field, **options)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(handle)
-    try:
+    with atomic_target(path) as temporary:
         Image.fromarray(picture).save(temporary, format="PNG")
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.remove(temporary)
     return path
 
 

@@ -109,6 +109,7 @@ class RenderSettings:
 
 def view_rotation(shape: str) -> np.ndarray:
     """3x3 rotation that shows ``shape`` from a pleasant three-quarter view (identity for mesh files)."""
+    shape = shape.lower()
     if shape in ("donut", "torus"):
         return _rotation_x(math.radians(40.0))
     if shape == "teapot":
@@ -118,6 +119,7 @@ def view_rotation(shape: str) -> np.ndarray:
 
 def default_material(shape: str) -> Material:
     """The built-in material of each synthetic shape."""
+    shape = shape.lower()
     if shape == "teapot":
         return Material(albedo=(0.52, 0.58, 0.68), ambient=0.02, specular=0.5, shininess=150.0)
     if shape == "sphere":

@@ -1,0 +1,36 @@
+"""The core imports with warp + numpy + scipy only, as on the lent GPU machine."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+OPTIONAL = ("PIL", "OpenEXR", "pyvista", "vtk", "tqdm")
+
+SCRIPT = f"""
+import importlib.abc, sys
+
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in {OPTIONAL!r}:
+            raise ImportError("blocked optional dependency: " + name)
+        return None
+
+sys.meta_path.insert(0, Block())
+import warp
+warp.config.log_level = warp.LOG_WARNING
+import warp_highlights.kernels.raytrace
+from warp_highlights import dataset, lights, render, shapes, triangulation
+from warp_highlights.render import Renderer, RenderSettings
+image = Renderer(shapes.teapot(subdivisions=4), settings=RenderSettings(width=16, height=9), device="cpu").render(
+    lights.LightSet.fibonacci_sphere(4).directions
+)
+assert image.full.shape == (4, 9, 16, 3)
+print("core ok")
+"""
+
+
+def test_core_imports_without_optional_dependencies():
+    result = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "core ok" in result.stdout
