@@ -148,3 +148,14 @@ def test_module_entry_point_reports_errors_without_traceback(tmp_path):
     assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"]
     version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True, timeout=300)
     assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")
+
+
+def test_render_accepts_a_mesh_file(tmp_path):
+    pv = pytest.importorskip("pyvista")
+    mesh_path = tmp_path / "ball.ply"
+    pv.Sphere(radius=2.0, theta_resolution=48, phi_resolution=24).save(mesh_path)
+    out = tmp_path / "ball"
+    assert main(["render", str(mesh_path), str(out), "--lights", "6", "--size", "32x24", "--heldout", "none", "-q"]) == 0
+    field = ReflectanceField.load(out, progress=False)
+    assert field.mask.mean() > 0.2 and field.specular.max() > 1.0
+    assert json.loads((out / "meta.json").read_text())["shape"] == str(mesh_path)
