@@ -347,11 +347,8 @@ def _frame_camera(points: np.ndarray, settings: RenderSettings) -> np.ndarray:
 
 
 def _unit_directions(directions: np.ndarray) -> np.ndarray:
-    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    norms = np.linalg.norm(directions, axis=1, keepdims=True)
-    if not np.all(np.isfinite(directions)) or np.any(norms < 1e-12):
-        raise InputError("light directions must be finite, non-zero 3-vectors")
-    return directions / norms
+    """(L, 3) unit vectors; LightSet rejects zero or non-finite ones with one clear line."""
+    return LightSet(np.asarray(directions, dtype=np.float64).reshape(-1, 3)).directions
 
 
 def _rotation_x(angle: float) -> np.ndarray:

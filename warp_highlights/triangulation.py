@@ -63,14 +63,17 @@ class SphericalTriangulation:
 
     def edges(self) -> np.ndarray:
         """(E, 2) int32 undirected edges, each once, smaller index first, sorted."""
-        pairs = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
-        return np.unique(np.sort(pairs, axis=1), axis=0).astype(np.int32)
+        return np.unique(self._face_edges(), axis=0).astype(np.int32)
 
     def boundary_edges(self) -> np.ndarray:
         """(K, 2) int32 edges used by only one face (empty on a full sphere), smaller index first."""
-        pairs = np.sort(np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]]), axis=1)
-        unique, counts = np.unique(pairs, axis=0, return_counts=True)
+        unique, counts = np.unique(self._face_edges(), axis=0, return_counts=True)
         return unique[counts == 1].astype(np.int32)
+
+    def _face_edges(self) -> np.ndarray:
+        """(3F, 2) the three edges of every face, smaller index first (shared edges appear twice)."""
+        pairs = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
+        return np.sort(pairs, axis=1)
 
     def centroid_directions(self) -> np.ndarray:
         """(F, 3) unit directions through the face centroids: normalize(wA + wB + wC) (the thesis' held-out queries)."""
