@@ -26,3 +26,51 @@ def _attach_checkout_kernels() -> None:
 
 
 _attach_checkout_kernels()
+
+# Public API, imported on first use so that `import warp_highlights` stays light (the CLI parses its
+# arguments before Warp loads).
+_EXPORTS = {
+    "AdamSettings": "config",
+    "RasterSettings": "config",
+    "StructureLossSettings": "config",
+    "GaussianBatch": "gaussians",
+    "GaussianParams": "gaussians",
+    "LightSet": "lights",
+    "ReflectanceField": "dataset",
+    "Renderer": "render",
+    "SphericalTriangulation": "triangulation",
+    "InputError": "errors",
+    "Rasterizer": "kernels.raster",
+    "LogL1Loss": "kernels.losses",
+    "StructureLoss": "kernels.losses",
+    "EnergyLoss": "kernels.losses",
+    "GaussianAdam": "kernels.optim",
+}
+__all__ = [
+    "AdamSettings",
+    "EnergyLoss",
+    "GaussianAdam",
+    "GaussianBatch",
+    "GaussianParams",
+    "InputError",
+    "LightSet",
+    "LogL1Loss",
+    "RasterSettings",
+    "Rasterizer",
+    "ReflectanceField",
+    "Renderer",
+    "SphericalTriangulation",
+    "StructureLoss",
+    "StructureLossSettings",
+    "__version__",
+]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        import importlib
+
+        value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
