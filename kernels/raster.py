@@ -11,16 +11,18 @@ cut-off ellipse (a hard cut would make the image jump as a Gaussian moves).
 
 Forward, three launches:
 
-1. ``prepare_gaussians`` (problem x slot): inverse covariance, scaled amplitude, pixel bounding box.
+1. ``prepare_gaussians`` (problem x slot): principal frame (rotation, inverse variances), scaled
+   amplitude, pixel bounding box.
 2. ``bin_tiles`` (problem x tile): the list of Gaussians whose cut-off ellipse reaches the tile's
    pixel centres (exact ellipse/rectangle test), in slot order so sums are deterministic.
-3. ``rasterize_tiles`` (problem x row x column): each pixel sums its tile's list.
+3. ``rasterize_tiles`` (one thread per pixel, tile-major 1D launch): each pixel sums its tile's list.
 
 Steps 1-2 build an index and stay off the tape. Step 3 is recorded on the active ``wp.Tape`` with a
 hand-written adjoint, ``rasterize_backward``: Gaussian-major, one thread per (problem, slot, lane),
 lanes striding over the columns of the Gaussian's footprint and, per column, over the rows inside the
 ellipse. Each thread sums its pixels' contributions to six image moments in registers and adds seven
 numbers to the parameter gradients at the end, so no pixel-level atomics pile onto a parameter.
+Forward and backward apply the same per-pixel test d^2 < c^2, computed the same way.
 """
 
 # ruff: noqa: UP018  (Warp declares a mutable kernel local with float(0.0) / int(0))
