@@ -45,10 +45,13 @@ _LN2 = math.log(2.0)
 
 
 @wp.kernel(enable_backward=False)
-def log_transform(image: wp.array3d(dtype=float), out: wp.array3d(dtype=float)):
-    """out = log2(1 + max(image, 0))."""
+def log_transform(image: wp.array3d(dtype=float), out: wp.array3d(dtype=float), non_finite: wp.array(dtype=wp.int32)):
+    """out = log2(1 + max(image, 0)); non_finite[0] counts the pixels that are not finite."""
     b, row, col = wp.tid()
-    out[b, row, col] = wp.log2(1.0 + wp.max(image[b, row, col], 0.0))
+    value = image[b, row, col]
+    if not wp.isfinite(value):
+        wp.atomic_add(non_finite, 0, 1)
+    out[b, row, col] = wp.log2(1.0 + wp.max(value, 0.0))
 
 
 @wp.kernel(enable_backward=False)
@@ -116,18 +119,18 @@ class LogL1Loss:
 
     def __init__(self, target, *, device=None):
         self.device = wp.get_device(device if device is not None else getattr(target, "device", None))
-        if isinstance(target, wp.array):
-            host = target.numpy()
-        else:
-            host = np.asarray(target, dtype=np.float32)
-        if host.ndim != 3:
-            raise InputError(f"targets must have shape (problems, height, width), got {host.shape}")
-        if not np.all(np.isfinite(host)):
-            raise InputError(f"targets have {int(np.count_nonzero(~np.isfinite(host)))} non-finite pixels")
-        target_array = wp.array(host.astype(np.float32), dtype=float, device=self.device)
-        self.shape = host.shape
+        on_device = isinstance(target, wp.array) and target.device == self.device and target.dtype == wp.float32
+        if not on_device:  # host data (or another device): one copy; device targets are used in place
+            target = wp.array(np.asarray(target.numpy() if isinstance(target, wp.array) else target, dtype=np.float32), dtype=float, device=self.device)
+        if target.ndim != 3:
+            raise InputError(f"targets must have shape (problems, height, width), got {target.shape}")
+        self.shape = target.shape
         self.log_target = wp.empty(self.shape, dtype=float, device=self.device)
-        wp.launch(log_transform, dim=self.shape, inputs=[target_array], outputs=[self.log_target], device=self.device, record_tape=False)
+        non_finite = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(log_transform, dim=self.shape, inputs=[target], outputs=[self.log_target, non_finite], device=self.device, record_tape=False)
+        count = int(non_finite.numpy()[0])
+        if count:
+            raise InputError(f"targets have {count} non-finite pixels")
         self.pixel_area = pixel_area_rpx2(self.shape[1])
         self._row_sums = wp.empty(self.shape[:2], dtype=float, device=self.device)
         lanes = 32 if self.device.is_cuda else 1

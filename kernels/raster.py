@@ -120,6 +120,17 @@ def ellipse_reaches_rectangle(frame: wp.vec4, mean: wp.vec2, lo: wp.vec2, hi: wp
     return best <= limit2
 
 
+@wp.func
+def slot_is_drawn(g: GaussianArrays, b: int, n: int, peak_scale: float) -> bool:
+    """Whether slot (b, n) takes part: active, all parameters finite, and w a^2 / (1 - tau) finite.
+
+    The forward and the backward skip exactly the same slots (broken ones are left for pruning).
+    """
+    a = g.amplitude[b, n]
+    finite = wp.isfinite(a) and wp.isfinite(g.weight[b, n]) and wp.isfinite(g.mean[b, n]) and wp.isfinite(g.sigma[b, n]) and wp.isfinite(g.theta[b, n])
+    return g.active[b, n] != 0 and finite and wp.isfinite(g.weight[b, n] * a * a * peak_scale)
+
+
 @wp.kernel(enable_backward=False)
 def prepare_gaussians(
     g: GaussianArrays,
@@ -135,10 +146,9 @@ def prepare_gaussians(
     """Per Gaussian: principal frame, w a^2 / (1 - tau) (0 when free), and pixel box (c0, r0, c1, r1), empty when off-image."""
     b, n = wp.tid()
     a = g.amplitude[b, n]
-    scale = g.weight[b, n] * a * a * peak_scale
-    finite = wp.isfinite(a) and wp.isfinite(g.mean[b, n]) and wp.isfinite(g.sigma[b, n]) and wp.isfinite(g.theta[b, n])
-    if g.active[b, n] == 0 or not finite or not wp.isfinite(scale):
-        scale = 0.0  # free slots and broken Gaussians draw nothing (pruning removes the latter)
+    scale = float(0.0)
+    if slot_is_drawn(g, b, n, peak_scale):
+        scale = g.weight[b, n] * a * a * peak_scale
     frames[b, n] = gaussian_frame(g.sigma[b, n], g.theta[b, n], eps)
     scales[b, n] = scale
     if scale == 0.0:
@@ -254,19 +264,15 @@ def rasterize_backward(
 ):
     """Adjoint of ``rasterize_tiles``: adds d(loss)/d(parameters) given d(loss)/d(image)."""
     b, n, lane = wp.tid()
-    if g.active[b, n] == 0:
-        return
-    if not (wp.isfinite(g.amplitude[b, n]) and wp.isfinite(g.mean[b, n]) and wp.isfinite(g.sigma[b, n]) and wp.isfinite(g.theta[b, n]) and wp.isfinite(g.weight[b, n])):
+    peak_scale = 1.0 / (1.0 - tau)
+    if not slot_is_drawn(g, b, n, peak_scale):
         return
     height = image_grad.shape[1]
     width = image_grad.shape[2]
     h = float(height)
     a = g.amplitude[b, n]
     w = g.weight[b, n]
-    peak_scale = 1.0 / (1.0 - tau)
     scale = w * a * a * peak_scale  # value = scale (e - tau), so d value / d d2 = -scale e / 2
-    if not wp.isfinite(scale):
-        return  # overflowed: the forward drew nothing for it either
     mu = g.mean[b, n]
     sig = g.sigma[b, n]
     th = g.theta[b, n]
