@@ -66,7 +66,11 @@ def log_l1_partials(image: wp.array3d(dtype=float), log_target: wp.array3d(dtype
     total = float(0.0)
     col = lane
     while col < image.shape[2]:
-        total += wp.abs(wp.log2(1.0 + image[b, row, col]) - log_target[b, row, col])
+        r = image[b, row, col]
+        difference = -log_target[b, row, col]
+        if r != 0.0:  # log2(1 + 0) = 0: empty pixels skip the logarithm
+            difference += wp.log2(1.0 + r)
+        total += wp.abs(difference)
         col += lanes
     partials[b, row, lane] = total
 
@@ -98,17 +102,26 @@ def log_l1_backward(
     out_grad: wp.array(dtype=float),
     pixels_per_problem: int,
     scale: float,
+    pixels_per_thread: int,
     image_grad: wp.array(dtype=float),
 ):
     """image_grad += d(scale |log2(1 + R) - T|)/dR * out_grad[problem], over flattened (B H W) arrays.
 
     1D so each thread spends one 32-bit division on its index rather than a 3D launch's 64-bit ones.
+    A thread handles ``pixels_per_thread`` consecutive pixels (1 on CUDA, an image row on the CPU,
+    where a thread per pixel costs more in call overhead than the pixel's work).
     """
-    i = wp.tid()
-    r = image[i]
-    difference = wp.log2(1.0 + r) - log_target[i]
-    if difference != 0.0:
-        image_grad[i] = image_grad[i] + out_grad[i // pixels_per_problem] * scale * wp.sign(difference) / ((1.0 + r) * _LN2)
+    first = wp.tid() * pixels_per_thread
+    # a thread's pixels lie in one problem (a row never straddles two images)
+    factor = out_grad[first // pixels_per_problem] * scale / _LN2
+    for j in range(pixels_per_thread):
+        i = first + j
+        r = image[i]
+        difference = -log_target[i]
+        if r != 0.0:  # log2(1 + 0) = 0: empty pixels (most of a highlight image) skip the logarithm
+            difference += wp.log2(1.0 + r)
+        if difference != 0.0:
+            image_grad[i] = image_grad[i] + factor * wp.sign(difference) / (1.0 + r)
 
 
 class LogL1Loss:
@@ -148,8 +161,9 @@ class LogL1Loss:
 
         def backward():
             pixels = self.shape[1] * self.shape[2]
-            inputs = [image.flatten(), self.log_target.flatten(), out.grad, pixels, scale]
-            wp.launch(log_l1_backward, dim=image.size, inputs=inputs, outputs=[image.grad.flatten()], device=self.device, record_tape=False)
+            per_thread = 1 if self.device.is_cuda else self.shape[2]
+            inputs = [image.flatten(), self.log_target.flatten(), out.grad, pixels, scale, per_thread]
+            wp.launch(log_l1_backward, dim=image.size // per_thread, inputs=inputs, outputs=[image.grad.flatten()], device=self.device, record_tape=False)
 
         _record(backward, [out, image])
         return out

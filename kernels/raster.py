@@ -209,6 +209,34 @@ def bin_tiles(
     tile_counts[b, t] = count
 
 
+@wp.func
+def _tile_pixel(
+    frames: wp.array2d(dtype=wp.vec4),
+    means: wp.array2d(dtype=wp.vec2),
+    scales: wp.array2d(dtype=float),
+    tile_lists: wp.array3d(dtype=wp.int32),
+    b: int,
+    t: int,
+    count: int,
+    row: int,
+    col: int,
+    h: float,
+    cutoff2: float,
+    tau: float,
+) -> float:
+    """Value of pixel (row, col) of problem b: the sum over the ``count`` Gaussians listed for tile t."""
+    px = (float(col) + 0.5) / h
+    py = (float(row) + 0.5) / h
+    value = float(0.0)
+    for k in range(count):
+        n = tile_lists[b, t, k]
+        mu = means[b, n]
+        d2 = frame_distance2(frames[b, n], px - mu[0], py - mu[1])
+        if d2 < cutoff2:
+            value += scales[b, n] * (wp.exp(-0.5 * d2) - tau)
+    return value
+
+
 @wp.kernel(enable_backward=False)
 def rasterize_tiles(
     frames: wp.array2d(dtype=wp.vec4),
@@ -220,36 +248,47 @@ def rasterize_tiles(
     tiles_x: int,
     cutoff2: float,
     tau: float,
+    whole_tile: int,
     image: wp.array3d(dtype=float),
 ):
     """Per pixel: the sum of the truncated Gaussians listed for its tile.
 
     A 1D launch in tile-major order (problem, tile, pixel of the tile): the threads of a warp share a
     tile's list, and the index arithmetic is 32-bit shifts instead of the 64-bit divisions a 3D
-    launch spends on every thread.
+    launch spends on every thread. On the CPU (``whole_tile`` = 1) a thread draws a whole tile instead,
+    one launch index per tile: the per-pixel index divisions would cost more than the drawing of the
+    mostly empty tiles of a highlight image.
     """
-    i = wp.tid()
-    tile_pixels = 1 << (2 * tile_shift)
-    per_problem = tile_counts.shape[1] * tile_pixels
-    b = i // per_problem
-    t = (i - b * per_problem) >> (2 * tile_shift)
-    p = i & (tile_pixels - 1)
-    ty = t // tiles_x
-    row = (ty << tile_shift) + (p >> tile_shift)
-    col = ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1))
-    if row >= image.shape[1] or col >= image.shape[2]:
-        return
     h = float(image.shape[1])
-    px = (float(col) + 0.5) / h
-    py = (float(row) + 0.5) / h
-    value = float(0.0)
-    for k in range(tile_counts[b, t]):
-        n = tile_lists[b, t, k]
-        mu = means[b, n]
-        d2 = frame_distance2(frames[b, n], px - mu[0], py - mu[1])
-        if d2 < cutoff2:
-            value += scales[b, n] * (wp.exp(-0.5 * d2) - tau)
-    image[b, row, col] = value
+    if whole_tile == 0:
+        i = wp.tid()
+        tile_pixels = 1 << (2 * tile_shift)
+        per_problem = tile_counts.shape[1] * tile_pixels
+        b = i // per_problem
+        t = (i - b * per_problem) >> (2 * tile_shift)
+        p = i & (tile_pixels - 1)
+        ty = t // tiles_x
+        row = (ty << tile_shift) + (p >> tile_shift)
+        col = ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1))
+        if row < image.shape[1] and col < image.shape[2]:
+            image[b, row, col] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], row, col, h, cutoff2, tau)
+    else:
+        i = wp.tid()
+        b = i // tile_counts.shape[1]
+        t = i - b * tile_counts.shape[1]
+        ty = t // tiles_x
+        size = 1 << tile_shift
+        row0 = ty << tile_shift
+        col0 = (t - ty * tiles_x) << tile_shift
+        row_end = wp.min(row0 + size, image.shape[1])
+        col_end = wp.min(col0 + size, image.shape[2])
+        count = tile_counts[b, t]
+        for row in range(row0, row_end):
+            for col in range(col0, col_end):
+                value = float(0.0)
+                if count > 0:
+                    value = _tile_pixel(frames, means, scales, tile_lists, b, t, count, row, col, h, cutoff2, tau)
+                image[b, row, col] = value
 
 
 @wp.kernel(enable_backward=False)
@@ -416,10 +455,11 @@ class Rasterizer:
                 outputs=[self.tile_lists, self.tile_counts],
                 record_tape=False,
             )
+            whole_tile = 0 if self.device.is_cuda else 1
             wp.launch(
                 rasterize_tiles,
-                dim=problems * self.tile_count * s.tile_size**2,
-                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, s.tile_size.bit_length() - 1, self.tiles_x, s.cutoff**2, tau],
+                dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
+                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, s.tile_size.bit_length() - 1, self.tiles_x, s.cutoff**2, tau, whole_tile],
                 outputs=[out],
                 record_tape=False,
             )

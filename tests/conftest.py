@@ -37,3 +37,31 @@ def _devices() -> list[str]:
 def device(request) -> str:
     """Every device-generic test runs on the CPU, and on CUDA when present."""
     return request.param
+
+
+@pytest.fixture(scope="session")
+def small_donut(tmp_path_factory) -> Path:
+    """A rendered donut dataset small enough for CPU fits in tests: 32 Fibonacci lights, 96 x 54, centroid ground truth."""
+    from warp_highlights.lights import LightSet
+    from warp_highlights.render import RenderSettings, default_material, render_dataset
+
+    folder = tmp_path_factory.mktemp("data") / "donut"
+    return render_dataset(
+        "donut",
+        folder,
+        lights=LightSet.fibonacci_sphere(32),
+        material=default_material("donut"),
+        settings=RenderSettings(width=96, height=54),
+        device="cpu",
+        progress=False,
+    )
+
+
+FAST_FIT = [
+    "estimation.iterations=300",
+    "estimation.densify_until=200",
+    "estimation.densify_every=50",
+    "retarget.rigid_iterations=40",
+    "retarget.iterations=80",
+]
+"""Overrides that keep a test fit of ``small_donut`` to a few seconds on one CPU core."""

@@ -76,6 +76,35 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_common_options(sheet)
     sheet.set_defaults(run=_run_sheet)
 
+    fit = commands.add_parser(
+        "fit",
+        help="fit a highlight field to a dataset (segmentation, estimation, retargeting)",
+        description="Segment every image into diffuse and specular parts, fit a few Gaussians to each specular "
+        "image, re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths, and "
+        "write everything to one highlight-field file.",
+    )
+    fit.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images)")
+    fit.add_argument("-o", "--output", type=Path, required=True, help="highlight-field file to write (e.g. donut.whf)")
+    fit.add_argument("--size", help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
+    fit.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="STAGE.NAME=VALUE",
+        help="override a hyper-parameter, e.g. --set retarget.c_str=0.01 --set estimation.iterations=600 "
+        "(repeatable; --list-settings shows them all)",
+    )
+    fit.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
+    fit.add_argument("--diffuse", choices=["lambert", "images", "none"], default="lambert", help="diffuse part to store: per-pixel Lambertian fit (default), that plus the diffuse images, or none")
+    fit.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    fit.add_argument("--workers", type=int, help="CPU threads for the fitting stages (default: one per core)")
+    fit.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    fit.add_argument("--report", type=Path, help="also write the fit report as JSON to this file")
+    fit.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    _add_common_options(fit)
+    fit.set_defaults(run=_run_fit)
+
     demo = commands.add_parser(
         "demo",
         help="the built-in synthetic default, end to end",
@@ -260,6 +289,73 @@ def _run_sheet(args) -> int:
     path = save_contact_sheet(field, args.output, count=args.count, thumb_height=args.thumb_height)
     print(f"wrote {path}")
     return 0
+
+
+def _run_fit(args) -> int:
+    from .config import FitSettings
+
+    settings = FitSettings().with_overrides(args.overrides)
+    if args.list_settings:
+        _print_settings(settings.to_dict())
+        return 0
+    output = Path(args.output)
+    _check_output_file(output, overwrite=args.overwrite)
+    if args.report is not None:
+        _check_output_file(Path(args.report), overwrite=True)
+    size = parse_size(args.size) if args.size else None
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
+    device = _check_device(args.device)
+    from .dataset import ReflectanceField
+    from .fit import fit_field
+
+    started = time.perf_counter()
+    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+    load_seconds = time.perf_counter() - started
+    log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
+    field = fit_field(dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, workers=args.workers, progress=not args.quiet, log=log)
+    field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
+    written = field.save(output)
+    field.report["file_bytes"] = written
+    if args.report is not None:
+        from .images import atomic_target
+
+        with atomic_target(Path(args.report)) as temporary:
+            temporary.write_text(json.dumps(field.report, indent=2))
+    _print_fit_summary(field, output, written, time.perf_counter() - started)
+    return 0
+
+
+def _check_output_file(path: Path, *, overwrite: bool) -> None:
+    if path.exists() and (path.is_dir() or not overwrite):
+        what = "is a folder" if path.is_dir() else "exists; pass --overwrite to replace it"
+        raise InputError(f"output {path} {what}")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
+
+
+def _print_settings(values: dict, prefix: str = "") -> None:
+    for key, value in values.items():
+        if isinstance(value, dict):
+            _print_settings(value, prefix + key + ".")
+        else:
+            print(f"{prefix}{key}={value}")
+
+
+def _print_fit_summary(field, output: Path, written: int, seconds: float) -> None:
+    report = field.report
+    est, ret = report["estimation"], report["retargeting"]
+    count, quality = est["gaussians_per_light"], est["psnr_db"]
+    print(f"wrote {output} ({written / 1e6:.2f} MB) in {seconds:.1f} s on {report['device']}")
+    print(f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, working size {report['size'][0]}x{report['size'][1]}")
+    print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
+    print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}")
+    print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
+    print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
+    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels with too few lit samples (kept diffuse)")
+    parts = field.size_report()
+    print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 
 
 def _run_demo(args) -> int:

@@ -11,14 +11,20 @@ Where the thesis gives a value it is the default; every other default says how i
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 
 from .errors import InputError
 
 __all__ = [
     "REFERENCE_HEIGHT_PX",
     "AdamSettings",
+    "ComponentSettings",
+    "EstimationSettings",
+    "FitSettings",
+    "PathSettings",
     "RasterSettings",
+    "RetargetSettings",
+    "SegmentationSettings",
     "StructureLossSettings",
     "normalized_to_rpx",
     "pixel_area_rpx2",
@@ -149,3 +155,242 @@ class AdamSettings:
         for name in ("beta1", "beta2"):
             value = getattr(self, name)
             _require(math.isfinite(value) and 0 <= value < 1, f"{name} must be in [0, 1), got {value}")
+
+
+@dataclass(frozen=True)
+class SegmentationSettings:
+    """Diffuse/specular split per pixel (method.md section 2; thesis values).
+
+    Attributes:
+        valid_threshold: a light counts for a pixel's Lambertian fit when its value is at least this
+            (linear radiance; thesis t_seg = 0.05): darker samples are shadowed or unlit.
+        outlier_factor: after each fit, lights whose residual exceeds this many times the median
+            residual are left out of the next fit (thesis: 2).
+        max_iterations: cap on the refits per pixel (method.md: 10).
+        min_valid_lights: pixels with fewer valid lights are all diffuse (4 unknowns need 4 lights).
+        diffuse_floor, diffuse_offset: the fitted diffuse becomes max(D~, floor) + offset before
+            D = min(I, D~) (thesis: 0.05 and 0.01), so noise on dark pixels stays diffuse.
+    """
+
+    valid_threshold: float = 0.05
+    outlier_factor: float = 2.0
+    max_iterations: int = 10
+    min_valid_lights: int = 4
+    diffuse_floor: float = 0.05
+    diffuse_offset: float = 0.01
+
+    def __post_init__(self):
+        _require(math.isfinite(self.valid_threshold) and self.valid_threshold >= 0, f"valid_threshold must be >= 0, got {self.valid_threshold}")
+        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1, f"outlier_factor must be >= 1, got {self.outlier_factor}")
+        _require(1 <= int(self.max_iterations) <= 100, f"max_iterations must be in [1, 100], got {self.max_iterations}")
+        _require(int(self.min_valid_lights) >= 4, f"min_valid_lights must be >= 4 (the fit has 4 unknowns), got {self.min_valid_lights}")
+        for name in ("diffuse_floor", "diffuse_offset"):
+            value = getattr(self, name)
+            _require(math.isfinite(value) and value >= 0, f"{name} must be >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class EstimationSettings:
+    """Fitting a few Gaussians to every specular image (method.md section 3).
+
+    iterations, densify_every, densify_until, residual_threshold and capacity are method.md's values
+    (the thesis' schedule and t_est). The region-size floor, the per-round cap and the pruning limits
+    are ours: set by hand on the 64-light 240x135 donut, where they dropped single-pixel noise regions
+    and collapsed Gaussians without losing a visible highlight; they were not swept.
+
+    Attributes:
+        iterations: Adam steps in all (T_est).
+        densify_every: iterations between two add/prune rounds (K_add); the first round is at 0.
+        densify_until: no add/prune round at or after this iteration (T_add); a final prune runs at
+            the end.
+        residual_threshold: a pixel whose residual S - R exceeds this (linear radiance, thesis
+            t_est = 0.2) belongs to a region that gets a new Gaussian.
+        min_region_area_rpx2: regions smaller than this (rpx^2) get no Gaussian: single noisy pixels
+            would otherwise each get one.
+        max_new_per_round: at most this many Gaussians are added to a set per round, largest
+            regions first, so a set grows only as fast as Adam can place what it has.
+        prune_energy: Gaussians with less energy than this (intensity x rpx^2) are removed, as are
+            Gaussians whose centre left the image by more than prune_outside_sigmas of their size
+            and Gaussians with non-finite parameters.
+        capacity: slots per set (padding; a set never holds more Gaussians).
+        adam: learning rates (AdamSettings).
+    """
+
+    iterations: int = 1000
+    densify_every: int = 100
+    densify_until: int = 600
+    residual_threshold: float = 0.2
+    min_region_area_rpx2: float = 4.0
+    max_new_per_round: int = 8
+    prune_energy: float = 1.0
+    prune_outside_sigmas: float = 2.0
+    capacity: int = 64
+    adam: AdamSettings = AdamSettings()
+
+    def __post_init__(self):
+        _require(int(self.iterations) >= 1, f"iterations must be >= 1, got {self.iterations}")
+        _require(int(self.densify_every) >= 1, f"densify_every must be >= 1, got {self.densify_every}")
+        _require(int(self.densify_until) >= 0, f"densify_until must be >= 0, got {self.densify_until}")
+        _require(math.isfinite(self.residual_threshold) and self.residual_threshold > 0, f"residual_threshold must be > 0, got {self.residual_threshold}")
+        _require(math.isfinite(self.min_region_area_rpx2) and self.min_region_area_rpx2 >= 0, f"min_region_area_rpx2 must be >= 0, got {self.min_region_area_rpx2}")
+        _require(int(self.max_new_per_round) >= 1, f"max_new_per_round must be >= 1, got {self.max_new_per_round}")
+        _require(math.isfinite(self.prune_energy) and self.prune_energy >= 0, f"prune_energy must be >= 0, got {self.prune_energy}")
+        _require(math.isfinite(self.prune_outside_sigmas) and self.prune_outside_sigmas >= 0, f"prune_outside_sigmas must be >= 0, got {self.prune_outside_sigmas}")
+        _require(1 <= int(self.capacity) <= 1024, f"capacity must be in [1, 1024], got {self.capacity}")
+
+
+@dataclass(frozen=True)
+class ComponentSettings:
+    """Connected components of a Gaussian set (method.md section 5, phase 1).
+
+    Attributes:
+        level: two Gaussians touch when their ellipses at this Mahalanobis distance intersect
+            (method.md: k = 2).
+    """
+
+    level: float = 2.0
+
+    def __post_init__(self):
+        _require(math.isfinite(self.level) and self.level > 0, f"level must be > 0, got {self.level}")
+
+
+@dataclass(frozen=True)
+class RetargetSettings:
+    """Re-fitting every estimated set onto its neighbours' specular images (method.md section 5).
+
+    The defaults come from benchmarks/sweep_retarget.py on the 250-light 480x270 donut (H100; table in
+    benchmarks/README.md), scored by what the fit is for: the PSNR of the circular interpolation at
+    all 496 triangle centroids against the rendered ground truth. The interpolation quality was flat
+    in c_str (43.70-43.73 dB from 0 to 1) while the structure loss fell from 39 to 0.2 rpx^2;
+    c_str = 0.1 keeps it at 4 rpx^2 without stiffening the sets. Any c_ene >= 1e-3 cost 0.3-2 dB,
+    so the energy term stays as a light tie (1e-4, indistinguishable from 0). Short phases scored
+    best (T1, T2 = 50, 150: 43.80 dB; 200, 500: 43.70; 400, 800: 43.22): longer fits chase the
+    target's detail at the cost of the correspondence the paths rely on. The 64-light 240x135 CPU
+    sweep agreed (benchmarks/README.md).
+
+    Attributes:
+        rigid_iterations: phase 1 steps (T1): one translation and rotation per connected component.
+        iterations: phase 2 steps (T2): every parameter, loss c_fit L_fit + c_str L_str + c_ene L_ene.
+        c_fit, c_str, c_ene: weights of the three phase-2 terms (L_fit and L_str in rpx^2 units,
+            L_ene in (intensity x rpx^2)^2).
+        lr_translation_rpx, lr_rotation: Adam steps of phase 1 (rpx, radians); the translation step
+            is 4x estimation's mean step because a whole component travels up to tens of rpx between
+            neighbouring lights.
+        adam: phase 2 learning rates.
+        structure: the structure loss' neighbourhood weights.
+        components: when two Gaussians belong to one component.
+    """
+
+    rigid_iterations: int = 50
+    iterations: int = 150
+    c_fit: float = 1.0
+    c_str: float = 0.1
+    c_ene: float = 1e-4
+    lr_translation_rpx: float = 1.0
+    lr_rotation: float = 0.01
+    adam: AdamSettings = AdamSettings()
+    structure: StructureLossSettings = StructureLossSettings()
+    components: ComponentSettings = ComponentSettings()
+
+    def __post_init__(self):
+        _require(int(self.rigid_iterations) >= 0, f"rigid_iterations must be >= 0, got {self.rigid_iterations}")
+        _require(int(self.iterations) >= 0, f"iterations must be >= 0, got {self.iterations}")
+        for name in ("c_fit", "c_str", "c_ene", "lr_translation_rpx", "lr_rotation"):
+            value = getattr(self, name)
+            _require(math.isfinite(value) and value >= 0, f"{name} must be a finite number >= 0, got {value}")
+
+
+@dataclass(frozen=True)
+class PathSettings:
+    """Which way each Gaussian turns along a triangle edge (method.md section 6).
+
+    Attributes:
+        straight_below: |rotation| (radians) under which the path is the straight segment (no centre).
+        length_scale_rpx: unit of the distances in the propagation weights xi = 1 / (1 + rho^2 + rhobar^2)
+            (method.md: 15 rpx).
+    """
+
+    straight_below: float = 1e-4
+    length_scale_rpx: float = 15.0
+
+    def __post_init__(self):
+        _require(math.isfinite(self.straight_below) and self.straight_below >= 0, f"straight_below must be >= 0, got {self.straight_below}")
+        _require(math.isfinite(self.length_scale_rpx) and self.length_scale_rpx > 0, f"length_scale_rpx must be > 0, got {self.length_scale_rpx}")
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Every hyper-parameter of a fit, grouped by stage; ``with_overrides`` applies 'stage.name=value' edits."""
+
+    segmentation: SegmentationSettings = SegmentationSettings()
+    estimation: EstimationSettings = EstimationSettings()
+    retarget: RetargetSettings = RetargetSettings()
+    paths: PathSettings = PathSettings()
+    raster: RasterSettings = RasterSettings()
+
+    def to_dict(self) -> dict:
+        """Nested plain dict (JSON-able), as stored in a highlight field."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> FitSettings:
+        """Inverse of ``to_dict``; unknown keys are an ``InputError``."""
+        return _build(cls, values, "settings")
+
+    def with_overrides(self, overrides: list[str]) -> FitSettings:
+        """Apply edits such as ``"retarget.c_str=0.01"`` or ``"estimation.adam.lr_mean_rpx=0.5"``."""
+        values = self.to_dict()
+        for text in overrides:
+            key, sep, raw = text.partition("=")
+            path = [part.strip() for part in key.strip().split(".")]
+            if not sep or not all(path):
+                raise InputError(f"override '{text}' is not STAGE.NAME=VALUE, e.g. retarget.c_str=0.01")
+            node = values
+            for part in path[:-1]:
+                if not isinstance(node.get(part), dict):
+                    raise InputError(f"override '{text}': no settings group '{part}'; groups: {', '.join(_groups(values))}")
+                node = node[part]
+            name = path[-1]
+            if name not in node or isinstance(node[name], dict):
+                raise InputError(f"override '{text}': no setting '{name}' here; choose from: {', '.join(k for k, v in node.items() if not isinstance(v, dict))}")
+            node[name] = _parse_like(node[name], raw.strip(), text)
+        return FitSettings.from_dict(values)
+
+
+def _groups(values: dict, prefix: str = "") -> list[str]:
+    names = []
+    for key, value in values.items():
+        if isinstance(value, dict):
+            names.append(prefix + key)
+            names.extend(_groups(value, prefix + key + "."))
+    return names
+
+
+def _parse_like(current, raw: str, text: str):
+    try:
+        if isinstance(current, bool):
+            if raw.lower() not in ("true", "false", "1", "0"):
+                raise ValueError
+            return raw.lower() in ("true", "1")
+        if isinstance(current, int):
+            return int(raw)
+        return float(raw)
+    except ValueError:
+        raise InputError(f"override '{text}': '{raw}' is not a valid {type(current).__name__}") from None
+
+
+def _build(cls, values: dict, where: str):
+    if not isinstance(values, dict):
+        raise InputError(f"{where} must be a mapping, got {type(values).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    unknown = sorted(set(values) - set(known))
+    if unknown:
+        raise InputError(f"{where}: unknown setting(s) {', '.join(unknown)}")
+    kwargs = {}
+    for name, value in values.items():
+        default = known[name].default
+        if hasattr(default, "__dataclass_fields__"):
+            kwargs[name] = _build(type(default), value, f"{where}.{name}")
+        else:
+            kwargs[name] = value
+    return cls(**kwargs)

@@ -7,16 +7,59 @@ has faces that close the open side; they are removed, leaving an open mesh with 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from .errors import InputError
 
-__all__ = ["SphericalTriangulation"]
+__all__ = ["Location", "SphericalTriangulation"]
 
 # A face whose plane passes this close to the origin (or beyond it) has an empty circumcap of at least
 # a hemisphere: no lights there, so it closes the open side of a dome rather than covering lights.
 _PLANE_OFFSET_TOLERANCE = 1e-9
+# A direction at most this far outside a face (sine of the angle to the face's edge plane, ~radians)
+# still counts as inside: it absorbs rounding on shared edges, vertices and the boundary of a dome.
+_INSIDE_TOLERANCE = 1e-12
+# locate() works on blocks of queries x faces of about this many entries, to bound its memory.
+_BLOCK_ENTRIES = 1 << 20
+
+
+@dataclass(frozen=True, eq=False)
+class Location:
+    """Where directions fall on a triangulation: one face and barycentric weights per direction.
+
+    Arrays have a leading query axis (Q,), absent when a single (3,) direction was located.
+
+    Attributes:
+        faces: (Q,) int32 face index into ``SphericalTriangulation.faces``.
+        vertices: (Q, 3) int32 light indices of those faces, ``triangulation.faces[faces]``.
+        barycentric: (Q, 3) float64 planar barycentric weights in the order of ``vertices``:
+            non-negative, summing to 1.
+        clamped: (Q,) bool, True where the direction lay outside a dome and was projected onto its rim.
+        directions: (Q, 3) float64 unit directions actually located (the projected ones where clamped).
+    """
+
+    faces: np.ndarray
+    vertices: np.ndarray
+    barycentric: np.ndarray
+    clamped: np.ndarray
+    directions: np.ndarray
+
+
+class _LocateTables(NamedTuple):
+    """Per-face and per-rim-edge constants of ``SphericalTriangulation.locate``."""
+
+    edge_normals: np.ndarray  # (3, F, 3) unit normals of the planes (origin, edge); inside is positive
+    inverses: np.ndarray  # (F, 3, 3) inverse of the matrix whose columns are the face's vertices
+    rim_start: np.ndarray  # (K, 3) unit start vertex of each boundary edge
+    rim_end: np.ndarray  # (K, 3) unit end vertex
+    rim_normal: np.ndarray  # (K, 3) unit normal of the edge's great circle, start x end
+    rim_face: np.ndarray  # (K,) the face owning the edge
+    rim_corner: np.ndarray  # (K, 2) positions (0..2) of start and end within that face
 
 
 class SphericalTriangulation:
@@ -32,10 +75,7 @@ class SphericalTriangulation:
     """
 
     def __init__(self, directions: np.ndarray):
-        directions = np.asarray(directions, dtype=np.float64)
-        if directions.ndim != 2 or directions.shape[1] != 3 or len(directions) < 3:
-            raise InputError(f"a triangulation needs at least 3 light directions of shape (n, 3), got {directions.shape}")
-        self.directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        self.directions = _light_directions(directions)
         try:
             hull = ConvexHull(self.directions)
         except QhullError as error:
@@ -46,6 +86,31 @@ class SphericalTriangulation:
         faces = _wind_outwards(self.directions, hull.simplices)
         faces, self.is_dome = _drop_closing_faces(self.directions, faces)
         self.faces = faces.astype(np.int32)
+
+    @classmethod
+    def from_faces(cls, directions: np.ndarray, faces: np.ndarray) -> SphericalTriangulation:
+        """Rebuild a stored triangulation without re-running the hull (the faces are checked, not recomputed).
+
+        Raises ``InputError`` when a face index is out of range, a face is degenerate or wound
+        inwards, or a directed edge is used twice (inconsistent winding).
+        """
+        directions = _light_directions(directions)
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) < 1 or not np.issubdtype(faces.dtype, np.integer):
+            raise InputError(f"faces must be a non-empty (F, 3) integer array, got {faces.dtype} {faces.shape}")
+        if faces.min() < 0 or faces.max() >= len(directions):
+            raise InputError(f"face indices must lie in 0..{len(directions) - 1}")
+        tri = cls.__new__(cls)
+        tri.directions = directions
+        tri.faces = faces.astype(np.int32)
+        a, b, c = (tri.directions[tri.faces[:, k]] for k in range(3))
+        if np.any(np.einsum("ij,ij->i", np.cross(b - a, c - a), a + b + c) <= 0):
+            raise InputError("a face is degenerate or wound inwards")
+        directed = tri._directed_face_edges()
+        if len(np.unique(directed, axis=0)) != len(directed):
+            raise InputError("the faces are not wound consistently (a directed edge is used twice)")
+        tri.is_dome = len(tri.boundary_edges()) > 0
+        return tri
 
     @property
     def light_count(self) -> int:
@@ -70,15 +135,170 @@ class SphericalTriangulation:
         unique, counts = np.unique(self._face_edges(), axis=0, return_counts=True)
         return unique[counts == 1].astype(np.int32)
 
+    def directed_edges(self) -> np.ndarray:
+        """(2E, 2) int32 (source, target) pairs: every edge in both directions, sorted.
+
+        These are the retargeting problems: 6n - 12 on a full sphere of n lights.
+        """
+        edges = self.edges()
+        return np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0).astype(np.int32)
+
+    def _directed_face_edges(self) -> np.ndarray:
+        """(3F, 2) the three edges of every face in winding order."""
+        return np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
+
     def _face_edges(self) -> np.ndarray:
         """(3F, 2) the three edges of every face, smaller index first (shared edges appear twice)."""
-        pairs = np.concatenate([self.faces[:, [0, 1]], self.faces[:, [1, 2]], self.faces[:, [2, 0]]])
-        return np.sort(pairs, axis=1)
+        return np.sort(self._directed_face_edges(), axis=1)
 
     def centroid_directions(self) -> np.ndarray:
         """(F, 3) unit directions through the face centroids: normalize(wA + wB + wC) (the thesis' held-out queries)."""
         total = self.directions[self.faces].sum(axis=1)
         return total / np.linalg.norm(total, axis=1, keepdims=True)
+
+    def locate(self, directions: np.ndarray) -> Location:
+        """Find the face each direction falls in, and its planar barycentric weights (method.md section 4).
+
+        The face is the one whose planar triangle the ray from the origin along the direction crosses;
+        the weights are those of the crossing point. A direction on a shared edge or vertex gets one of
+        its faces, chosen deterministically (the one it lies deepest inside). On a dome, a direction
+        outside the covered region is first moved to the nearest point (in angle) of the boundary and
+        flagged ``clamped``.
+
+        Args:
+            directions: (Q, 3) or (3,) directions towards the light, of any non-zero length.
+
+        Returns:
+            A ``Location``; its arrays have no query axis when a single (3,) direction was given.
+
+        Raises:
+            InputError: The shape is not (3,) or (Q, 3), or a direction is zero or not finite.
+        """
+        queries = _query_directions(directions)
+        tables = self._locate_tables
+        count = len(queries)
+        faces = np.empty(count, dtype=np.intp)
+        depth = np.empty(count, dtype=np.float64)  # sine of the angle inside the face's nearest edge
+        block = max(1, _BLOCK_ENTRIES // self.face_count)
+        for start in range(0, count, block):
+            part = queries[start : start + block]
+            margin = part @ tables.edge_normals[0].T
+            np.minimum(margin, part @ tables.edge_normals[1].T, out=margin)
+            np.minimum(margin, part @ tables.edge_normals[2].T, out=margin)
+            best = margin.argmax(axis=1)
+            faces[start : start + block] = best
+            depth[start : start + block] = margin[np.arange(len(part)), best]
+
+        located = queries.copy()
+        clamped = np.zeros(count, dtype=bool)
+        if self.is_dome:
+            clamped = depth < -_INSIDE_TOLERANCE
+        weights = np.einsum("qij,qj->qi", tables.inverses[faces], located)
+        if clamped.any():
+            outside = np.flatnonzero(clamped)
+            edges, located[outside] = _nearest_rim_points(queries[outside], tables)
+            faces[outside] = tables.rim_face[edges]
+            weights[outside] = np.einsum("qij,qj->qi", tables.inverses[faces[outside]], located[outside])
+            # The projected direction lies in the plane of the rim edge: its opposite corner weighs 0.
+            weights[outside, 3 - tables.rim_corner[edges].sum(axis=1)] = 0.0
+        np.maximum(weights, 0.0, out=weights)
+        weights /= weights.sum(axis=1, keepdims=True)
+
+        faces = faces.astype(np.int32)
+        arrays = (faces, self.faces[faces], weights, clamped, located)
+        if np.ndim(directions) == 1:
+            arrays = tuple(array[0] for array in arrays)
+        return Location(*(np.asarray(array) for array in arrays))
+
+    @cached_property
+    def _locate_tables(self) -> _LocateTables:
+        """Constants of ``locate``, computed on first use."""
+        corners = self.directions[self.faces]  # (F, 3 vertices, 3 coordinates)
+        a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+        edge_normals = np.stack([np.cross(a, b), np.cross(b, c), np.cross(c, a)])
+        edge_normals /= np.linalg.norm(edge_normals, axis=2, keepdims=True)
+        inverses = np.linalg.inv(corners.transpose(0, 2, 1))  # columns are the vertices
+
+        directed = self._directed_face_edges()  # face f's k-th edge is row k * F + f
+        owner = np.arange(len(directed)) % self.face_count
+        start_corner = np.arange(len(directed)) // self.face_count
+        _, inverse, counts = np.unique(np.sort(directed, axis=1), axis=0, return_inverse=True, return_counts=True)
+        rim = np.flatnonzero(counts[inverse.ravel()] == 1)
+        rim_start = self.directions[directed[rim, 0]]
+        rim_end = self.directions[directed[rim, 1]]
+        rim_normal = np.cross(rim_start, rim_end)
+        rim_normal /= np.linalg.norm(rim_normal, axis=1, keepdims=True)
+        return _LocateTables(
+            edge_normals=edge_normals,
+            inverses=inverses,
+            rim_start=rim_start,
+            rim_end=rim_end,
+            rim_normal=rim_normal,
+            rim_face=owner[rim],
+            rim_corner=np.stack([start_corner[rim], (start_corner[rim] + 1) % 3], axis=1),
+        )
+
+
+def _light_directions(directions: np.ndarray) -> np.ndarray:
+    """Check (n >= 3, 3) light directions and return them as float64 unit vectors."""
+    directions = np.asarray(directions, dtype=np.float64)
+    if directions.ndim != 2 or directions.shape[1] != 3 or len(directions) < 3:
+        raise InputError(f"a triangulation needs at least 3 light directions of shape (n, 3), got {directions.shape}")
+    norms = np.linalg.norm(directions, axis=1)
+    bad = np.flatnonzero(~(np.isfinite(norms) & (norms > 0.0)))
+    if bad.size:
+        raise InputError(f"light direction {bad[0]} is zero or not finite: {directions[bad[0]].tolist()}")
+    return directions / norms[:, None]
+
+
+def _query_directions(directions: np.ndarray) -> np.ndarray:
+    """Check (Q, 3) or (3,) query directions of any non-zero length; return them as (Q, 3) unit vectors."""
+    try:
+        queries = np.array(directions, dtype=np.float64, ndmin=2)
+    except (TypeError, ValueError):
+        raise InputError("locate needs numeric directions of shape (3,) or (Q, 3)") from None
+    if queries.ndim != 2 or queries.shape[1] != 3 or np.ndim(directions) not in (1, 2):
+        raise InputError(f"locate needs directions of shape (3,) or (Q, 3), got {np.shape(directions)}")
+    # Divide by the largest component first, so that huge or tiny vectors neither overflow nor underflow.
+    scale = np.abs(queries).max(axis=1, initial=0.0)
+    bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0.0)))
+    if bad.size:
+        raise InputError(f"query direction {bad[0]} is zero or not finite: {queries[bad[0]].tolist()}")
+    queries /= scale[:, None]
+    return queries / np.linalg.norm(queries, axis=1, keepdims=True)
+
+
+def _nearest_rim_points(queries: np.ndarray, tables: _LocateTables) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest point, in angle, of a dome's boundary to each unit direction outside it.
+
+    The boundary is the union of the great-circle arcs of the boundary edges, endpoints included.
+
+    Returns:
+        (Q,) index of the boundary edge holding the point, and the (Q, 3) unit points.
+    """
+    # Unit vectors in the edge's plane, at its start pointing along the arc and at its end pointing back:
+    # a direction projects inside the arc exactly when it has a non-negative component along both.
+    along = np.cross(tables.rim_normal, tables.rim_start)
+    back = np.cross(tables.rim_end, tables.rim_normal)
+    edges = np.empty(len(queries), dtype=np.intp)
+    points = np.empty_like(queries)
+    block = max(1, _BLOCK_ENTRIES // len(tables.rim_face))
+    for start in range(0, len(queries), block):
+        part = queries[start : start + block]
+        rows = np.arange(len(part))
+        off_plane = part @ tables.rim_normal.T  # sine of the angle to each edge's great circle
+        foot = np.sqrt(np.maximum(1.0 - off_plane**2, 0.0))  # cosine of that angle
+        to_start = part @ tables.rim_start.T
+        to_end = part @ tables.rim_end.T
+        over_arc = (part @ along.T >= 0.0) & (part @ back.T >= 0.0) & (foot > 1e-12)
+        closeness = np.where(over_arc, foot, np.maximum(to_start, to_end))  # cosine of the angle to the arc
+        best = closeness.argmax(axis=1)
+        inner = part - off_plane[rows, best][:, None] * tables.rim_normal[best]
+        inner /= np.maximum(np.linalg.norm(inner, axis=1, keepdims=True), 1e-300)
+        corner = np.where((to_start >= to_end)[rows, best][:, None], tables.rim_start[best], tables.rim_end[best])
+        edges[start : start + block] = best
+        points[start : start + block] = np.where(over_arc[rows, best][:, None], inner, corner)
+    return edges, points
 
 
 def _wind_outwards(points: np.ndarray, simplices: np.ndarray) -> np.ndarray:

@@ -1,0 +1,259 @@
+"""Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (method.md section 2).
+
+Every (pixel, channel) fits the Lambertian model D~_i = nbar . omega_i + k_a to its samples I_i over the
+lights, by a 4 x 4 normal-equation solve, robustly:
+
+1. L = the lights with I_i >= t (shadowed or unlit samples say nothing about nbar);
+2. fit over the current set, residuals l_i = |I_i - D~_i| over L, median m~; the next set is
+   L' = {i in L : l_i <= f m~}; repeat until L' stops changing (or the iteration cap);
+3. D~_i = max(D~_i, floor) + offset, D_i = min(I_i, D~_i), S_i = I_i - D_i.
+
+Pixels with fewer than ``min_valid`` valid lights are all diffuse (S = 0). The sets never need storing:
+L' is a function of the fit and threshold that produced it, so two sets are compared by re-evaluating
+both memberships over the lights. The median is a bisection on the residual value (no per-thread
+scratch memory), accurate to float32 resolution.
+"""
+
+# ruff: noqa: UP018, RUF046  (Warp declares a mutable kernel local with float(0.0) / int(0))
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from warp_highlights.config import SegmentationSettings
+from warp_highlights.errors import InputError
+
+__all__ = ["Segmentation", "luminance", "segment", "segment_pixels"]
+
+_MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
+_LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB primaries, linear
+
+
+@wp.func
+def _lambert(direction: wp.vec3, fit: wp.vec4) -> float:
+    return direction[0] * fit[0] + direction[1] * fit[1] + direction[2] * fit[2] + fit[3]
+
+
+@wp.func
+def _in_set(value: float, direction: wp.vec3, threshold: float, fit: wp.vec4, limit: float) -> int:
+    # membership of one sample in the set defined by (fit, limit); limit < 0 means "all valid"
+    if value < threshold:
+        return 0
+    if limit < 0.0:
+        return 1
+    if wp.abs(value - _lambert(direction, fit)) <= limit:
+        return 1
+    return 0
+
+
+@wp.func
+def _solve(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, limit: float) -> wp.vec4:
+    """Least-squares (nbar, k_a) over the set defined by (fit, limit); NaN vector when singular."""
+    normal = wp.mat44()
+    rhs = wp.vec4()
+    for i in range(images.shape[0]):
+        value = images[i, q]
+        if _in_set(value, directions[i], threshold, fit, limit) == 1:
+            row = wp.vec4(directions[i][0], directions[i][1], directions[i][2], 1.0)
+            normal += wp.outer(row, row)
+            rhs += row * value
+    trace = normal[0, 0] + normal[1, 1] + normal[2, 2] + normal[3, 3]
+    # relative ridge: keeps a nearly coplanar light set solvable without moving a well-posed fit
+    ridge = 1.0e-6 * trace
+    for k in range(4):
+        normal[k, k] = normal[k, k] + ridge
+    if wp.determinant(normal) <= 1.0e-12 * trace * trace * trace * trace:
+        return wp.vec4(wp.nan, wp.nan, wp.nan, wp.nan)
+    return wp.inverse(normal) * rhs
+
+
+@wp.func
+def _kth_residual(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, rank: int, largest: float) -> float:
+    """The rank-th smallest (0-based) residual |I_i - D~_i| over the valid lights, by bisection."""
+    lo = float(0.0)
+    hi = largest
+    for _ in range(_MEDIAN_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        below = int(0)
+        for i in range(images.shape[0]):
+            value = images[i, q]
+            if value >= threshold and wp.abs(value - _lambert(directions[i], fit)) <= mid:
+                below += 1
+        if below > rank:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@wp.kernel
+def segment_pixels(
+    images: wp.array2d(dtype=float),
+    directions: wp.array(dtype=wp.vec3),
+    threshold: float,
+    outlier_factor: float,
+    max_iterations: int,
+    min_valid: int,
+    floor: float,
+    offset: float,
+    diffuse: wp.array2d(dtype=float),
+    specular: wp.array2d(dtype=float),
+    lambert: wp.array(dtype=wp.vec4),
+    status: wp.array(dtype=wp.vec2i),
+):
+    """One (pixel, channel) column q of ``images`` (lights, columns): D, S, the fit, and (valid lights, iterations)."""
+    q = wp.tid()
+    lights = images.shape[0]
+    valid = int(0)
+    total = float(0.0)
+    for i in range(lights):
+        value = images[i, q]
+        total += value
+        if value >= threshold:
+            valid += 1
+    if valid < min_valid:
+        for i in range(lights):
+            diffuse[i, q] = images[i, q]
+            specular[i, q] = 0.0
+        lambert[q] = wp.vec4(0.0, 0.0, 0.0, total / float(lights))
+        status[q] = wp.vec2i(valid, 0)
+        return
+
+    # the current set is the one defined by (set_fit, set_limit); limit -1 = every valid light
+    set_fit = wp.vec4()
+    set_limit = float(-1.0)
+    fit = _solve(images, directions, q, threshold, set_fit, set_limit)
+    iterations = int(1)
+    while iterations < max_iterations and not wp.isnan(fit[0]):
+        largest = float(0.0)
+        for i in range(lights):
+            value = images[i, q]
+            if value >= threshold:
+                largest = wp.max(largest, wp.abs(value - _lambert(directions[i], fit)))
+        median = 0.5 * (
+            _kth_residual(images, directions, q, threshold, fit, (valid - 1) // 2, largest)
+            + _kth_residual(images, directions, q, threshold, fit, valid // 2, largest)
+        )
+        limit = outlier_factor * median
+        kept = int(0)
+        changed = int(0)
+        for i in range(lights):
+            value = images[i, q]
+            now = _in_set(value, directions[i], threshold, fit, limit)
+            kept += now
+            if now != _in_set(value, directions[i], threshold, set_fit, set_limit):
+                changed = 1
+        if changed == 0 or kept < min_valid:
+            break
+        refit = _solve(images, directions, q, threshold, fit, limit)
+        if wp.isnan(refit[0]):
+            break
+        set_fit = fit
+        set_limit = limit
+        fit = refit
+        iterations += 1
+
+    if wp.isnan(fit[0]):  # no usable fit: all diffuse, like a pixel with too few lights
+        for i in range(lights):
+            diffuse[i, q] = images[i, q]
+            specular[i, q] = 0.0
+        lambert[q] = wp.vec4(0.0, 0.0, 0.0, total / float(lights))
+        status[q] = wp.vec2i(0, iterations)
+        return
+    for i in range(lights):
+        value = images[i, q]
+        model = wp.max(_lambert(directions[i], fit), floor) + offset
+        d = wp.min(value, model)
+        diffuse[i, q] = d
+        specular[i, q] = value - d
+    lambert[q] = fit
+    status[q] = wp.vec2i(valid, iterations)
+
+
+@wp.kernel
+def luminance(
+    specular: wp.array3d(dtype=float),
+    weights: wp.vec3,
+    channels: int,
+    out: wp.array2d(dtype=float),
+):
+    """out[light, pixel] = weighted sum of the pixel's channels (the channel axis is innermost)."""
+    light, pixel = wp.tid()
+    if channels == 1:
+        out[light, pixel] = specular[light, pixel, 0]
+    else:
+        out[light, pixel] = weights[0] * specular[light, pixel, 0] + weights[1] * specular[light, pixel, 1] + weights[2] * specular[light, pixel, 2]
+
+
+class Segmentation:
+    """Result of ``segment``: device arrays shaped like the input stack, plus the per-pixel fit.
+
+    Attributes:
+        diffuse, specular: (n, H, W) or (n, H, W, C) float32 Warp arrays, D and S (D + S = I).
+        specular_luminance: (n, H, W) float32 Warp array, the fitting target of estimation.
+        lambert: (H, W, C, 4) float32 NumPy: nbar_x, nbar_y, nbar_z, k_a per pixel and channel.
+        valid_lights: (H, W) int32 NumPy, the fewest valid lights over the pixel's channels.
+        iterations: (H, W) int32 NumPy, the most refits over the pixel's channels.
+        few_light_pixels: pixels treated as all diffuse because a channel had too few valid lights.
+    """
+
+    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid):
+        self.diffuse = diffuse
+        self.specular = specular
+        self.specular_luminance = specular_luminance
+        self.lambert = lambert
+        self.valid_lights = valid_lights
+        self.iterations = iterations
+        self.few_light_pixels = int(np.count_nonzero(valid_lights < min_valid))
+
+
+def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None) -> Segmentation:
+    """Split every image into diffuse and specular parts in one launch over all pixels and channels.
+
+    Args:
+        images: (n, H, W) or (n, H, W, C) linear radiance, NumPy or a float32 Warp array.
+        directions: (n, 3) unit light directions (towards the light, camera space).
+        settings: thresholds and iteration cap (``SegmentationSettings``).
+        device: Warp device (default: the images' device, else Warp's default).
+    """
+    s = settings or SegmentationSettings()
+    device = wp.get_device(device if device is not None else getattr(images, "device", None))
+    shape = tuple(images.shape)
+    if len(shape) not in (3, 4):
+        raise InputError(f"images must have shape (n, H, W) or (n, H, W, C), got {shape}")
+    directions = np.asarray(directions, dtype=np.float32)
+    if directions.shape != (shape[0], 3):
+        raise InputError(f"{shape[0]} images need ({shape[0]}, 3) light directions, got {directions.shape}")
+    if isinstance(images, wp.array) and images.device == device and images.dtype == wp.float32:
+        stack = images
+    else:
+        host = images.numpy() if isinstance(images, wp.array) else images
+        stack = wp.array(np.ascontiguousarray(host, dtype=np.float32), dtype=float, device=device)
+    n, height, width = shape[:3]
+    channels = shape[3] if len(shape) == 4 else 1
+    columns = height * width * channels
+    flat = stack.reshape((n, columns))
+    diffuse = wp.empty((n, columns), dtype=float, device=device)
+    specular = wp.empty((n, columns), dtype=float, device=device)
+    lambert = wp.empty(columns, dtype=wp.vec4, device=device)
+    status = wp.empty(columns, dtype=wp.vec2i, device=device)
+    wp.launch(
+        segment_pixels,
+        dim=columns,
+        inputs=[flat, wp.array(directions, dtype=wp.vec3, device=device), s.valid_threshold, s.outlier_factor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset],
+        outputs=[diffuse, specular, lambert, status],
+        device=device,
+    )
+    target = wp.empty((n, height * width), dtype=float, device=device)
+    wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*_LUMINANCE), channels], outputs=[target], device=device)
+    counts = status.numpy().reshape(height, width, channels, 2)
+    return Segmentation(
+        diffuse=diffuse.reshape(shape),
+        specular=specular.reshape(shape),
+        specular_luminance=target.reshape((n, height, width)),
+        lambert=lambert.numpy().reshape(height, width, channels, 4),
+        valid_lights=counts[..., 0].min(axis=2),
+        iterations=counts[..., 1].max(axis=2),
+        min_valid=int(s.min_valid_lights),
+    )

@@ -1,0 +1,138 @@
+"""`warp-highlights fit` end to end, its report, the interpolation reference on a fitted field, and bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import FAST_FIT
+
+from warp_highlights.cli import main
+from warp_highlights.field import HighlightField
+from warp_highlights.interpolation import interpolate_sets
+
+
+def _overrides() -> list[str]:
+    return [arg for item in FAST_FIT for arg in ("--set", item)]
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    assert "Traceback" not in err
+    return err
+
+
+@pytest.fixture(scope="module")
+def fitted(small_donut, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "donut.whf"
+    report = out.with_suffix(".json")
+    assert main(["fit", str(small_donut), "-o", str(out), "--report", str(report), "--diffuse", "images", "-q", *_overrides()]) == 0
+    return out, report
+
+
+def test_fit_writes_a_field_and_a_report(fitted, capsys):
+    out, report_path = fitted
+    field = HighlightField.load(out)
+    assert field.light_count == 32 and len(field.directed_edges) == 6 * 32 - 12
+    assert (field.width, field.height) == (96, 54)
+    assert field.diffuse is not None and field.diffuse.images.shape == (32, 54, 96, 3)
+    report = json.loads(report_path.read_text())
+    assert set(report["seconds"]) >= {"loading", "segmentation", "estimation", "retargeting", "paths"}
+    assert report["file_bytes"] == out.stat().st_size
+    assert report["estimation"]["gaussians_per_light"]["mean"] == pytest.approx(field.counts.mean())
+    assert report["retargeting"]["improved_share"] > 0.9
+    assert field.fit_settings().estimation.iterations == 300  # the overrides are stored
+
+
+def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
+    out = tmp_path / "half.whf"
+    assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--diffuse", "none", "--workers", "1", "-q", *_overrides()]) == 0
+    text = capsys.readouterr().out
+    for expected in ("stage times", "segmentation", "estimation", "retargeting", "Gaussians per light", "estimation PSNR", "MB"):
+        assert expected in text
+    field = HighlightField.load(out)
+    assert (field.width, field.height) == (48, 27) and field.diffuse is None
+
+
+def test_saved_and_loaded_field_is_identical(fitted, tmp_path):
+    field = HighlightField.load(fitted[0])
+    again = tmp_path / "again.whf"
+    field.save(again)
+    loaded = HighlightField.load(again)
+    for name in ("amplitude", "mean", "sigma", "theta", "active"):
+        np.testing.assert_array_equal(getattr(loaded.estimated, name), getattr(field.estimated, name))
+        np.testing.assert_array_equal(getattr(loaded.retargeted, name), getattr(field.retargeted, name))
+    np.testing.assert_array_equal(loaded.path_delta, field.path_delta)
+    np.testing.assert_array_equal(loaded.path_centre, field.path_centre)
+
+
+@pytest.mark.parametrize("method", ["circular", "straight"])
+def test_interpolation_at_a_vertex_is_that_vertex_set(fitted, method):
+    field = HighlightField.load(fitted[0])
+    faces = field.triangulation.faces[:20]
+    weights = np.tile([1.0, 0.0, 0.0], (len(faces), 1))
+    sets = interpolate_sets(field, faces, weights, method=method)
+    capacity = field.capacity
+    first = slice(0, capacity)
+    source = field.estimated
+    np.testing.assert_array_equal(sets.active[:, first], source.active[faces[:, 0]])
+    for name in ("amplitude", "mean", "theta"):
+        np.testing.assert_allclose(getattr(sets, name)[:, first][sets.active[:, first]], getattr(source, name)[faces[:, 0]][source.active[faces[:, 0]]], atol=1e-12)
+    assert np.all(sets.weight[:, capacity:][sets.active[:, capacity:]] == 0.0)
+
+
+def test_list_settings(capsys):
+    assert main(["fit", "unused", "-o", "unused.whf", "--list-settings"]) == 0
+    text = capsys.readouterr().out
+    assert "retarget.c_str=0.1" in text and "estimation.iterations=1000" in text
+
+
+def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatch, capsys):
+    import warp_highlights.fit as fit_module
+
+    out = tmp_path / "field.whf"
+    out.write_bytes(b"previous field")
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit_module, "fit_field", interrupted)
+    assert main(["fit", str(small_donut), "-o", str(out), "--overwrite", "-q"]) == 130
+    assert "interrupted" in _error_line(capsys)
+    assert out.read_bytes() == b"previous field"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["field.whf"]
+
+
+@pytest.mark.parametrize(
+    "arguments, message",
+    [
+        (["fit", "{missing}", "-o", "{out}"], "not"),
+        (["fit", "{data}", "-o", "{out}", "--set", "retarget.nothing=1"], "no setting"),
+        (["fit", "{data}", "-o", "{out}", "--set", "retarget.c_str=-1"], "c_str"),
+        (["fit", "{data}", "-o", "{out}", "--size", "50x50"], "aspect"),
+        (["fit", "{data}", "-o", "{out}", "--size", "192x108"], "larger"),
+        (["fit", "{data}", "-o", "{existing}"], "--overwrite"),
+        (["fit", "{data}", "-o", "{nofolder}"], "does not exist"),
+        (["fit", "{data}", "-o", "{out}", "--workers", "0"], "workers"),
+        (["fit", "{data}", "-o", "{out}", "--device", "cuda:7"], "device"),
+        (["fit", "{data}", "-o", "{tmp}"], "folder"),
+    ],
+)
+def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys):
+    existing = tmp_path / "existing.whf"
+    existing.write_bytes(b"keep")
+    names = {
+        "missing": str(tmp_path / "missing"),
+        "data": str(small_donut),
+        "out": str(tmp_path / "out.whf"),
+        "existing": str(existing),
+        "nofolder": str(tmp_path / "no" / "such" / "f.whf"),
+        "tmp": str(tmp_path),
+    }
+    args = [a.format(**names) for a in arguments] + ["-q"]
+    assert main(args) == 2
+    assert message in _error_line(capsys)
+    assert existing.read_bytes() == b"keep"
+    assert not (tmp_path / "out.whf").exists()

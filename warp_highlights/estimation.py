@@ -1,0 +1,261 @@
+"""Estimation: a few Gaussians per specular image, for every light in one batch (method.md section 3).
+
+All sets are fitted together: one rasterizer launch, one loss and one Adam step per iteration cover
+every light. The number of Gaussians changes in add/prune rounds (every ``densify_every`` iterations
+until ``densify_until``, plus a final prune): the residual S - R of every image is labelled into
+connected regions above ``residual_threshold`` at once (one ``scipy.ndimage.label`` call over the
+stack), and each large region gets one Gaussian placed from its residual-weighted moments.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+from scipy import ndimage
+
+from .chunks import Cancelled, map_chunks, problem_chunks
+from .config import (
+    REFERENCE_HEIGHT_PX,
+    EstimationSettings,
+    RasterSettings,
+    pixel_area_rpx2,
+)
+from .errors import InputError
+from .gaussians import GaussianBatch, GaussianParams
+from .kernels._tape import recording
+from .kernels.losses import LogL1Loss
+from .kernels.optim import GaussianAdam
+from .kernels.raster import Rasterizer
+
+__all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
+
+_MIN_SIGMA_PX = 0.5  # a new Gaussian is at least half a pixel wide, so it draws on a pixel centre
+
+
+@dataclass
+class EstimationResult:
+    """Fitted sets and how well they fit.
+
+    Attributes:
+        params: (n, capacity) fitted Gaussians.
+        loss: (n,) final fit loss per light (log2-L1, rpx^2-weighted).
+        psnr: (n,) PSNR (dB, peak 1, images clipped to [0, 1], capped at 100) of R(G) against S.
+        added, pruned: Gaussians added and removed over the whole fit, per light.
+    """
+
+    params: GaussianParams
+    loss: np.ndarray
+    psnr: np.ndarray
+    added: np.ndarray
+    pruned: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Gaussians per light."""
+        return self.params.counts
+
+
+def psnr(image, reference, *, cap: float = 100.0) -> np.ndarray:
+    """PSNR in dB with peak 1 over the last two axes, both clipped to [0, 1]; identical images give ``cap``."""
+    a = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
+    b = np.clip(np.asarray(reference, dtype=np.float64), 0.0, 1.0)
+    mse = ((a - b) ** 2).mean(axis=(-2, -1))
+    with np.errstate(divide="ignore"):
+        value = 10.0 * np.log10(1.0 / mse)
+    return np.minimum(value, cap)
+
+
+def gaussian_energy_rpx(params: GaussianParams, sigma_eps: float) -> np.ndarray:
+    """(B, N) energy 2 pi a^2 sqrt((sx^2 + eps)(sy^2 + eps)) of every slot in intensity x rpx^2 (0 when free)."""
+    sx2 = params.sigma[..., 0] ** 2 + sigma_eps
+    sy2 = params.sigma[..., 1] ** 2 + sigma_eps
+    energy = 2.0 * math.pi * params.amplitude**2 * np.sqrt(sx2 * sy2) * REFERENCE_HEIGHT_PX**2
+    return np.where(params.active, energy, 0.0)
+
+
+def estimate(
+    targets,
+    *,
+    settings: EstimationSettings | None = None,
+    raster: RasterSettings | None = None,
+    device=None,
+    workers: int | None = None,
+    progress=None,
+) -> EstimationResult:
+    """Fit Gaussians to every specular image.
+
+    Args:
+        targets: (n, H, W) specular luminance, a float32 Warp array or NumPy.
+        settings: iterations, add/prune schedule and thresholds, Adam rates.
+        raster: how Gaussians are drawn.
+        device: Warp device (default: the targets' device, else Warp's default).
+        workers: CPU threads (default: one per core); ignored on CUDA.
+        progress: optional callable ``advance(iterations)`` called as the fit goes.
+    """
+    s = settings or EstimationSettings()
+    raster = raster or RasterSettings()
+    device = wp.get_device(device if device is not None else getattr(targets, "device", None))
+    host_targets = targets.numpy() if isinstance(targets, wp.array) else np.asarray(targets, dtype=np.float32)
+    if host_targets.ndim != 3:
+        raise InputError(f"estimation targets must have shape (lights, height, width), got {host_targets.shape}")
+    if not np.all(np.isfinite(host_targets)):
+        raise InputError("the specular images have non-finite pixels")
+    chunks = problem_chunks(len(host_targets), device, workers)
+
+    def run(chunk: slice, stop) -> tuple:
+        if isinstance(targets, wp.array) and targets.device == device and len(chunks) == 1:
+            device_targets = targets
+        else:
+            device_targets = wp.array(np.ascontiguousarray(host_targets[chunk]), dtype=float, device=device)
+        return _Estimator(device_targets, host_targets[chunk], s, raster, device).run(stop, progress)
+
+    parts = map_chunks(run, chunks)
+    params = _concatenate([p[0] for p in parts])
+    loss, images, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
+    return EstimationResult(params=params, loss=loss, psnr=psnr(images, host_targets), added=added, pruned=pruned)
+
+
+def _concatenate(parts: list[GaussianParams]) -> GaussianParams:
+    if len(parts) == 1:
+        return parts[0]
+    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
+    return GaussianParams(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in names})
+
+
+class _Estimator:
+    """One batch of estimation problems on one device (a chunk of the lights)."""
+
+    def __init__(self, targets: wp.array, host_targets: np.ndarray, settings: EstimationSettings, raster: RasterSettings, device):
+        self.s = settings
+        self.raster_settings = raster
+        self.host_targets = host_targets
+        problems, self.height, self.width = host_targets.shape
+        self.batch = GaussianBatch(problems, settings.capacity, device=device)
+        self.raster = Rasterizer(self.height, self.width, settings=raster, device=device)
+        self.fit = LogL1Loss(targets)
+        self.adam = GaussianAdam(self.batch, settings.adam)
+        self.image = self.raster.new_image(problems)
+        self.loss = wp.zeros(problems, dtype=float, device=device, requires_grad=True)
+        self.ones = wp.ones(problems, dtype=float, device=device)
+        self.added = np.zeros(problems, dtype=np.int64)
+        self.pruned = np.zeros(problems, dtype=np.int64)
+
+    def run(self, stop, progress) -> tuple:
+        s = self.s
+        tape = wp.Tape()
+        for iteration in range(s.iterations):
+            if stop.is_set():
+                raise Cancelled
+            if iteration % s.densify_every == 0 and iteration < s.densify_until:
+                if iteration > 0:
+                    self._prune()
+                self._densify(self._residual())
+            self.loss.zero_()
+            with recording(tape):
+                self.raster.render(self.batch, out=self.image)
+                self.fit(self.image, out=self.loss)
+            tape.backward(grads={self.loss: self.ones})
+            self.adam.step()
+            tape.zero()
+            tape.reset()
+            if progress is not None and (iteration + 1) % 10 == 0:
+                progress(10)
+        if progress is not None:
+            progress(s.iterations % 10)
+        self._prune()
+        self.loss.zero_()
+        self.raster.render(self.batch, out=self.image)
+        self.fit(self.image, out=self.loss)
+        return self.batch.numpy(), self.loss.numpy().astype(np.float64), self.image.numpy().copy(), self.added, self.pruned
+
+    def _residual(self) -> np.ndarray:
+        self.raster.render(self.batch, out=self.image)
+        return self.host_targets - self.image.numpy()
+
+    def _prune(self) -> None:
+        """Remove Gaussians with too little energy, far off the image, or non-finite parameters."""
+        params = self.batch.numpy()
+        energy = gaussian_energy_rpx(params, self.raster_settings.sigma_eps)
+        reach = self.s.prune_outside_sigmas * np.abs(params.sigma).max(axis=2)
+        x, y = params.mean[..., 0], params.mean[..., 1]
+        aspect = self.width / self.height
+        outside = (x < -reach) | (x > aspect + reach) | (y < -reach) | (y > 1.0 + reach)
+        with np.errstate(invalid="ignore"):
+            drop = params.active & (~params.finite | (energy < self.s.prune_energy) | outside)
+        if drop.any():
+            self.pruned += drop.sum(axis=1)
+            self.batch.remove(drop)
+
+    def _densify(self, residual: np.ndarray) -> None:
+        """Add one Gaussian per large region where the residual exceeds the threshold, largest first."""
+        s = self.s
+        above = residual > s.residual_threshold
+        # 8-connected within an image, never across images
+        structure = np.zeros((3, 3, 3), dtype=bool)
+        structure[1] = True
+        labels, count = ndimage.label(above, structure=structure)
+        if count == 0:
+            return
+        problem, row, col = np.nonzero(labels)
+        label = labels[problem, row, col] - 1
+        weight = residual[problem, row, col].astype(np.float64)
+        area = np.bincount(label, minlength=count)
+        mass = np.bincount(label, weights=weight, minlength=count)
+        region_problem = np.zeros(count, dtype=np.int64)
+        region_problem[label] = problem
+        peak = np.zeros(count)
+        np.maximum.at(peak, label, weight)
+        # pixel centres in image heights
+        x = (col + 0.5) / self.height
+        y = (row + 0.5) / self.height
+        mx = np.bincount(label, weights=weight * x, minlength=count) / mass
+        my = np.bincount(label, weights=weight * y, minlength=count) / mass
+        dx, dy = x - mx[label], y - my[label]
+        cxx = np.bincount(label, weights=weight * dx * dx, minlength=count) / mass
+        cxy = np.bincount(label, weights=weight * dx * dy, minlength=count) / mass
+        cyy = np.bincount(label, weights=weight * dy * dy, minlength=count) / mass
+
+        min_pixels = s.min_region_area_rpx2 / pixel_area_rpx2(self.height)
+        free = self.batch.capacity - self.batch.counts()
+        allowed = np.minimum(free, s.max_new_per_round)
+        candidates = np.flatnonzero(area >= min_pixels)
+        # largest first within each problem: sort by problem, then by mass descending
+        order = candidates[np.lexsort((-mass[candidates], region_problem[candidates]))]
+        problems = region_problem[order]
+        first = np.searchsorted(problems, problems, side="left")
+        rank = np.arange(len(order)) - first
+        chosen = order[rank < allowed[problems]]
+        if chosen.size == 0:
+            return
+
+        # principal axes of the weighted second moments: sigma_x along theta (the major axis)
+        half_trace = 0.5 * (cxx[chosen] + cyy[chosen])
+        root = np.sqrt((0.5 * (cxx[chosen] - cyy[chosen])) ** 2 + cxy[chosen] ** 2)
+        major, minor = half_trace + root, np.maximum(half_trace - root, 0.0)
+        theta = 0.5 * np.arctan2(2.0 * cxy[chosen], cxx[chosen] - cyy[chosen])
+        floor = _MIN_SIGMA_PX / self.height
+        sigma = np.stack([np.maximum(np.sqrt(major), floor), np.maximum(np.sqrt(minor), floor)], axis=1)
+        mean = np.stack([mx[chosen], my[chosen]], axis=1)
+        # A curved region (the arc of a ring highlight) has its centroid off the highlight, where a
+        # Gaussian would only fade away: there, start a round Gaussian at the region's peak, as wide
+        # as the band is thick (area / length for a band whose length is sqrt(12) x its spread along
+        # the major axis; a uniform band of thickness t has a standard deviation of t / sqrt(12)
+        # across it). Later rounds cover the rest of the arc.
+        centre_row = np.clip(np.floor(my[chosen] * self.height).astype(np.int64), 0, self.height - 1)
+        centre_col = np.clip(np.floor(mx[chosen] * self.height).astype(np.int64), 0, self.width - 1)
+        off_region = labels[region_problem[chosen], centre_row, centre_col] != chosen + 1
+        if off_region.any():
+            peak_pixel = np.zeros(count, dtype=np.int64)
+            order_by_value = np.lexsort((weight, label))  # last entry per label is its peak
+            peak_pixel[label[order_by_value]] = order_by_value
+            at = peak_pixel[chosen[off_region]]
+            mean[off_region] = np.stack([x[at], y[at]], axis=1)
+            pixel = 1.0 / self.height
+            thickness = area[chosen[off_region]] * pixel**2 / (np.sqrt(12.0) * np.sqrt(major[off_region]) + pixel)
+            sigma[off_region] = np.maximum(thickness / np.sqrt(12.0), floor)[:, None]
+        self.batch.add(region_problem[chosen], amplitude=np.sqrt(peak[chosen]), mean=mean, sigma=sigma, theta=theta)
+        self.added += np.bincount(region_problem[chosen], minlength=self.batch.problem_count)
+

@@ -1,0 +1,181 @@
+"""The whole precomputation: reflectance field -> highlight field (method.md sections 2-6 and 8).
+
+segment -> estimate -> triangulate -> retarget (components, phase 1, phase 2) -> decide paths. Each
+stage runs batched over all lights or all directed edges; ``fit_field`` times them and collects the
+figures the ``fit`` command prints.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+import numpy as np
+import warp as wp
+
+from . import __version__
+from .chunks import problem_chunks
+from .config import FitSettings
+from .dataset import ReflectanceField
+from .errors import InputError
+from .estimation import estimate
+from .field import DiffuseModel, HighlightField
+from .kernels.segmentation import segment
+from .paths import decide_paths
+from .resample import resize_stack, working_size
+from .retarget import retarget
+from .triangulation import SphericalTriangulation
+
+__all__ = ["DIFFUSE_CHOICES", "fit_field"]
+
+DIFFUSE_CHOICES = ("lambert", "images", "none")
+
+
+def fit_field(
+    dataset: ReflectanceField,
+    *,
+    settings: FitSettings | None = None,
+    device=None,
+    size: tuple[int, int] | None = None,
+    diffuse: str = "lambert",
+    workers: int | None = None,
+    progress: bool = False,
+    log=None,
+) -> HighlightField:
+    """Fit a highlight field to a reflectance field.
+
+    Args:
+        dataset: images and light directions.
+        settings: every hyper-parameter (``FitSettings``).
+        device: Warp device (default: Warp's default, CUDA when present).
+        size: working resolution (width, height) of the same aspect ratio, or None for the images' own.
+        diffuse: what to keep of the diffuse part: "lambert" (per-pixel nbar and k_a), "images"
+            (that plus the diffuse images, float16, for barycentric blending) or "none".
+        workers: CPU threads (default: one per core); ignored on CUDA.
+        progress: show a progress bar per stage (tqdm, on stderr).
+        log: optional callable receiving one line per finished stage.
+    """
+    settings = settings or FitSettings()
+    if diffuse not in DIFFUSE_CHOICES:
+        raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_CHOICES)}, got '{diffuse}'")
+    device = wp.get_device(device)
+    timer = _StageTimer(log)
+    width, height = working_size(dataset.width, dataset.height, size)
+
+    with timer.stage("triangulation"):
+        triangulation = SphericalTriangulation(dataset.lights.directions)
+        edges = triangulation.directed_edges()
+    with timer.stage("segmentation"):
+        images = resize_stack(dataset.images, width, height)
+        seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device)
+        wp.synchronize_device(device)
+    with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
+        estimated = estimate(seg.specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
+    with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, workers, device, len(edges)) as advance:
+        retargeted = retarget(estimated.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
+    with timer.stage("paths"):
+        source = estimated.params
+        decisions = decide_paths(_take_rows(source, edges[:, 0]), retargeted.params, settings.paths)
+
+    diffuse_model = None
+    if diffuse != "none":
+        lambert = np.nan_to_num(seg.lambert, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
+        diffuse_images = None
+        if diffuse == "images":
+            stack = seg.diffuse.numpy()
+            diffuse_images = (stack if stack.ndim == 4 else stack[..., None]).astype(np.float16)
+        diffuse_model = DiffuseModel(lambert=lambert, images=diffuse_images)
+
+    counts = estimated.counts
+    report = {
+        "version": __version__,
+        "device": str(device),
+        "source_size": [dataset.width, dataset.height],
+        "size": [width, height],
+        "lights": dataset.light_count,
+        "directed_edges": len(edges),
+        "dome": bool(triangulation.is_dome),
+        "seconds": timer.seconds,
+        "segmentation": {"few_light_pixels": seg.few_light_pixels, "mean_iterations": float(seg.iterations.mean())},
+        "estimation": {
+            "gaussians_per_light": _stats(counts),
+            "psnr_db": _stats(estimated.psnr),
+            "loss": _stats(estimated.loss),
+            "added": int(estimated.added.sum()),
+            "pruned": int(estimated.pruned.sum()),
+        },
+        "retargeting": {
+            "source_loss": _stats(retargeted.source_loss),
+            "rigid_loss": _stats(retargeted.rigid_loss),
+            "loss": _stats(retargeted.loss),
+            "structure_loss": _stats(retargeted.structure_loss),
+            "improved_share": float(np.mean(retargeted.loss <= retargeted.source_loss + 1e-6)),
+            "restored_slots": int(retargeted.restored.sum()),
+        },
+        "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},
+        "per_light": {"gaussians": counts.tolist(), "psnr_db": np.round(estimated.psnr, 3).tolist()},
+    }
+    return HighlightField(
+        lights=dataset.lights,
+        triangulation=triangulation,
+        width=width,
+        height=height,
+        estimated=estimated.params,
+        directed_edges=edges,
+        retargeted=retargeted.params,
+        path_delta=decisions.delta.astype(np.float32),
+        path_centre=decisions.centre.astype(np.float32),
+        settings=settings.to_dict(),
+        report=report,
+        diffuse=diffuse_model,
+    )
+
+
+def _take_rows(params, rows):
+    from .gaussians import GaussianParams
+
+    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
+    return GaussianParams(**{name: getattr(params, name)[rows] for name in names})
+
+
+def _stats(values) -> dict:
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return {"mean": 0.0, "min": 0.0, "max": 0.0, "p5": 0.0, "p95": 0.0}
+    return {
+        "mean": float(values.mean()),
+        "min": float(values.min()),
+        "max": float(values.max()),
+        "p5": float(np.percentile(values, 5)),
+        "p95": float(np.percentile(values, 95)),
+    }
+
+
+class _StageTimer:
+    def __init__(self, log):
+        self.log = log
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str):
+        started = time.perf_counter()
+        yield
+        self.seconds[name] = round(time.perf_counter() - started, 3)
+        if self.log is not None:
+            self.log(f"{name}: {self.seconds[name]:.1f} s")
+
+
+@contextmanager
+def _bar(enabled: bool, name: str, iterations: int, workers, device, problems: int):
+    """A tqdm bar over ``iterations`` steps and a thread-safe ``advance(k)`` for the stage's chunks.
+
+    Every chunk (one per CPU thread) reports its own steps, so the bar counts steps of all chunks.
+    """
+    if not enabled:
+        yield None
+        return
+    from tqdm import tqdm
+
+    chunk_count = len(problem_chunks(problems, device, workers))
+    with tqdm(total=iterations * chunk_count, desc=f"{name} ({problems} sets)", unit="step", leave=False, mininterval=0.5) as bar:
+        yield bar.update

@@ -1,0 +1,319 @@
+"""Circular paths of Gaussians along a triangle edge, and which way each one turns (method.md section 6).
+
+A Gaussian p of the estimated set G_A reappears as slot p of the retargeted set G_{A->B}. Between
+the two it turns by a signed angle delta, which can be either of two options that reach the same
+orientation (orientations live in [0, pi)):
+
+- the positive option delta+ = wrap_[0, pi)(theta_{A->B} - theta_A), and
+- the negative option delta- = delta+ - pi.
+
+Along the edge its mean follows the arc of the circle about the centre O that turns mu_A into
+mu_B by delta: ``R(delta)(mu_A - O) + O = mu_B``, with ``R(a) = [[cos a, -sin a], [sin a, cos a]]``
+acting on (x, y). For |delta| below ``PathSettings.straight_below`` the arc is replaced by the
+straight segment (O then recedes to infinity; the centre returned is the chord's midpoint).
+
+``decide_paths`` picks one option per Gaussian per directed edge, once, at fit time; the
+interpolation then only evaluates ``circular_position``.
+
+Units: means and centres in image heights (x right, y down); angles in radians from +x towards +y.
+Every function is vectorised NumPy float64 and broadcasts over leading axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import PathSettings, rpx_to_normalized
+from .errors import InputError
+from .gaussians import GaussianParams
+
+__all__ = [
+    "PARITY_MODES",
+    "PathDecisions",
+    "circular_position",
+    "decide_paths",
+    "path_centre",
+    "rotation_options",
+]
+
+PARITY_MODES = ("orientation", "rotation")
+"""What phi_pq compares (``decide_paths(parity=...)``): the orientations theta_A of the two
+Gaussians (method.md, thesis eq. 3.27 as written) or their positive rotation options delta+."""
+
+# Pairs of Gaussians handled at once by the propagation (bounds the (edges, N, N) temporaries).
+_PAIR_BLOCK = 1 << 22
+
+
+def _wrap_half_turn(angle: np.ndarray) -> np.ndarray:
+    """``angle`` (radians) wrapped to [0, pi); rounding can never return pi itself."""
+    wrapped = np.mod(angle, np.pi)
+    return np.where(wrapped >= np.pi, 0.0, wrapped)
+
+
+def _straight_threshold(straight_below: float | None) -> float:
+    if straight_below is None:
+        return PathSettings().straight_below
+    value = float(straight_below)
+    if not (np.isfinite(value) and value >= 0):
+        raise InputError(
+            f"straight_below must be a finite angle >= 0 (radians), got {straight_below}"
+        )
+    return value
+
+
+def _perpendicular(vector: np.ndarray) -> np.ndarray:
+    """``vector`` (..., 2) turned by +pi/2, i.e. R(pi/2) applied to (x, y)."""
+    return np.stack([-vector[..., 1], vector[..., 0]], axis=-1)
+
+
+def _rotate(vector: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """R(angle) applied to ``vector`` (..., 2); ``angle`` broadcasts against ``vector[..., 0]``."""
+    cos, sin = np.cos(angle), np.sin(angle)
+    x, y = vector[..., 0], vector[..., 1]
+    return np.stack([cos * x - sin * y, sin * x + cos * y], axis=-1)
+
+
+def rotation_options(theta_a, theta_b) -> tuple[np.ndarray, np.ndarray]:
+    """The two signed rotations that turn orientation ``theta_a`` into ``theta_b`` (mod pi).
+
+    Args:
+        theta_a: orientation in G_A, radians, any shape (any range: only its value mod pi counts).
+        theta_b: orientation in G_{A->B}, radians, broadcastable with ``theta_a``.
+
+    Returns:
+        ``(delta_pos, delta_neg)``, radians: delta+ = wrap_[0, pi)(theta_b - theta_a) in [0, pi)
+        and delta- = delta+ - pi in [-pi, 0).
+    """
+    delta_pos = _wrap_half_turn(
+        np.asarray(theta_b, dtype=np.float64) - np.asarray(theta_a, dtype=np.float64)
+    )
+    return delta_pos, delta_pos - np.pi
+
+
+def path_centre(
+    mean_a, mean_b, delta, straight_below: float | None = None
+) -> np.ndarray:
+    """Centre O of the arc that carries ``mean_a`` to ``mean_b`` while turning by ``delta``.
+
+    O lies on the chord's perpendicular bisector, at ``midpoint + cot(delta / 2) / 2 * R(pi/2)(mean_b -
+    mean_a)``, so that ``R(delta)(mean_a - O) + O == mean_b``.
+
+    Args:
+        mean_a: start positions (..., 2), image heights.
+        mean_b: end positions (..., 2), image heights.
+        delta: signed rotations (...), radians, meant to lie in [-pi, pi].
+        straight_below: |delta| (radians) under which the path is the straight segment; default
+            ``PathSettings().straight_below``. delta = 0 is always straight.
+
+    Returns:
+        O, (..., 2) image heights (broadcast shape). Straight paths get the chord's midpoint (finite,
+        unused by the path). Coincident ends give O = mean_a; |delta| = pi gives the midpoint.
+    """
+    threshold = _straight_threshold(straight_below)
+    mean_a = np.asarray(mean_a, dtype=np.float64)
+    mean_b = np.asarray(mean_b, dtype=np.float64)
+    delta = np.asarray(delta, dtype=np.float64)
+    midpoint = 0.5 * (mean_a + mean_b)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        half = 0.5 * delta
+        cot = np.cos(half) / np.sin(half)
+        straight = ~(np.abs(delta) >= threshold) | ~np.isfinite(cot)
+        cot = np.where(straight, 0.0, cot)
+        centre = midpoint + 0.5 * cot[..., None] * _perpendicular(mean_b - mean_a)
+    return np.where(np.isfinite(centre).all(axis=-1, keepdims=True), centre, midpoint)
+
+
+def circular_position(
+    mean_a, mean_b, delta, fraction, straight_below: float | None = None
+) -> np.ndarray:
+    """Position a ``fraction`` of the way along the path from ``mean_a`` to ``mean_b``.
+
+    The path is the arc ``R(fraction * delta)(mean_a - O) + O`` with O = ``path_centre(mean_a, mean_b,
+    delta)``. It is evaluated in the equivalent chord form ``mean_a + sin(fraction * delta / 2) /
+    sin(delta / 2) * R((fraction - 1) * delta / 2)(mean_b - mean_a)``, which needs no O and loses
+    no precision when the radius is large. For |delta| below ``straight_below`` (and delta = 0) it is
+    the straight blend ``mean_a + fraction * (mean_b - mean_a)``, the arc's limit.
+
+    Args:
+        mean_a: start positions (..., 2), image heights (mu_A).
+        mean_b: end positions (..., 2), image heights (mu_{A->B}).
+        delta: the chosen signed rotations (...), radians, in [-pi, pi] (``PathDecisions.delta``).
+        fraction: how far along, (...) or scalar; 0 gives ``mean_a``, 1 gives ``mean_b`` (the
+            barycentric weight of the edge's far vertex during interpolation).
+        straight_below: as in ``path_centre`` (use the same value for both).
+
+    Returns:
+        Positions (..., 2), image heights (broadcast shape).
+    """
+    threshold = _straight_threshold(straight_below)
+    mean_a = np.asarray(mean_a, dtype=np.float64)
+    chord = np.asarray(mean_b, dtype=np.float64) - mean_a
+    delta = np.asarray(delta, dtype=np.float64)
+    fraction = np.asarray(fraction, dtype=np.float64)
+    delta, fraction = np.broadcast_arrays(delta, fraction)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        sin_half = np.sin(0.5 * delta)
+        straight = ~(np.abs(delta) >= threshold) | (sin_half == 0)
+        scale = np.where(
+            straight,
+            fraction,
+            np.sin(0.5 * fraction * delta) / np.where(straight, 1.0, sin_half),
+        )
+        turn = np.where(straight, 0.0, 0.5 * (fraction - 1.0) * delta)
+        position = mean_a + scale[..., None] * _rotate(chord, turn)
+        blend = mean_a + fraction[..., None] * chord
+    return np.where(np.isfinite(position).all(axis=-1, keepdims=True), position, blend)
+
+
+@dataclass(frozen=True)
+class PathDecisions:
+    """The path of every Gaussian on every directed edge A->B, decided at fit time.
+
+    Attributes:
+        delta: (E, N) float64, the chosen signed rotation (radians): delta+ in [0, pi) or delta- in
+            [-pi, 0); theta_A + delta reaches theta_{A->B} (mod pi). 0 in inactive slots.
+        centre: (E, N, 2) float64, the arc's centre O for ``delta`` (image heights); the chord's
+            midpoint for a straight path; the source mean in inactive slots.
+        negative: (E, N) bool, True where the negative option was chosen (False when inactive).
+        score: (E, N) float64, the propagated weight w' = M^2 w (<= 0 chooses negative); 0 when
+            inactive. |w'| <= 1.05.
+    """
+
+    delta: np.ndarray
+    centre: np.ndarray
+    negative: np.ndarray
+    score: np.ndarray
+
+
+def _negative_option_weight(mean_a, mean_b, sigma_a, theta_a, delta_neg) -> np.ndarray:
+    """w of method.md section 6 (thesis eq. 3.24) for the negative option, (E, N).
+
+    The angle thetabar between the major axis and the direction mu_A -> O follows from the chord
+    alone: that direction is R(pi/2 - delta/2) applied to the unit chord (up to sign, which cos^2
+    ignores). For a straight path (O at infinity) this is the limit |delta| -> 0, the chord's
+    normal. When mu_A == mu_B there is no direction and the second term is 0.
+    """
+    d = np.abs(delta_neg)
+    straightness = (np.cos(d) + d - 0.5 * np.pi) / (0.5 * np.pi - 1.0)
+    chord = mean_b - mean_a
+    length = np.hypot(chord[..., 0], chord[..., 1])
+    moved = length > 0
+    unit_chord = chord / np.where(moved, length, 1.0)[..., None]
+    towards_centre = _rotate(unit_chord, 0.5 * np.pi - 0.5 * delta_neg)
+    # sigma_x lies along theta, sigma_y across it; a round Gaussian takes theta as its axis
+    axis = theta_a + np.where(
+        np.abs(sigma_a[..., 1]) > np.abs(sigma_a[..., 0]), 0.5 * np.pi, 0.0
+    )
+    cos_bar = (
+        np.cos(axis) * towards_centre[..., 0] + np.sin(axis) * towards_centre[..., 1]
+    )
+    cos2 = np.where(moved, cos_bar * cos_bar, 0.5)
+    return straightness + (cos2 - 0.5) / 10.0
+
+
+def _propagate(
+    weight, mean_a, mean_b, parity_angle, active, length_scale
+) -> np.ndarray:
+    """w' = M (M w) per edge over its active Gaussians (method.md section 6, thesis eq. 3.25-3.29)."""
+    edges, slots = weight.shape
+    inv_scale2 = 1.0 / (length_scale * length_scale)
+    propagated = np.zeros_like(weight)
+    block = max(1, _PAIR_BLOCK // (slots * slots))
+    for start in range(0, edges, block):  # blocks of edges, each fully vectorised
+        rows = slice(start, start + block)
+        on = active[rows]
+        pair = on[:, :, None] & on[:, None, :]
+        distance2 = np.zeros(pair.shape)
+        for means in (mean_a[rows], mean_b[rows]):
+            for axis in (0, 1):
+                difference = means[:, :, None, axis] - means[:, None, :, axis]
+                distance2 += difference * difference
+        xi = np.where(pair, 1.0 / (1.0 + distance2 * inv_scale2), 0.0)
+        # eta includes xi_pp = 1, so every active row of |M| sums to 1
+        eta = xi.sum(axis=-1)
+        angle = parity_angle[rows]
+        phi = np.sign(0.5 * np.pi - np.abs(angle[:, :, None] - angle[:, None, :]))
+        # phi_pp = 1 and xi_pp = 1 give M_pp = 1 / eta_p; free rows and columns are 0
+        matrix = phi * xi / np.where(eta > 0, eta, 1.0)[..., None]
+        once = matrix @ np.where(on, weight[rows], 0.0)[..., None]
+        propagated[rows] = (matrix @ once)[..., 0]
+    return propagated
+
+
+def decide_paths(
+    source: GaussianParams,
+    retargeted: GaussianParams,
+    settings: PathSettings | None = None,
+    *,
+    parity: str = "orientation",
+) -> PathDecisions:
+    """Choose the rotation option of every Gaussian on every directed edge A->B (method.md section 6).
+
+    Per Gaussian, the weight of the negative option (thesis eq. 3.24) is
+    ``w = (cos d + d - pi/2) / (pi/2 - 1) + (cos^2(thetabar) - 1/2) / 10`` with d = |delta-| and
+    thetabar the angle between the major axis in G_A (theta if |sigma_x| >= |sigma_y|, else
+    theta + pi/2) and the direction from mu_A to the negative option's centre. Neighbours then vote:
+    ``xi_pq = 1 / (1 + rho_pq^2 + rhobar_pq^2)`` (mean distances in G_A and G_{A->B}, in units of
+    ``settings.length_scale_rpx``), ``eta_p = sum_q xi_pq``, ``M_pp = 1 / eta_p``,
+    ``M_pq = phi_pq xi_pq / eta_p``, ``w' = M (M w)`` over the edge's active Gaussians.
+    w' <= 0 chooses delta-, w' > 0 chooses delta+.
+
+    Choices where the thesis is silent or loose:
+        - eta_p sums over every active q *including* q = p (xi_pp = 1), as eq. 3.26 is written; only
+          then does each row of |M| sum to 1, which keeps w' in the range of w as the thesis intends.
+        - thetabar for a straight negative option (|delta-| < ``straight_below``, O at infinity) is
+          its limit, measured against the chord's normal; if mu_A == mu_B there is no direction and
+          the thetabar term is 0. A round Gaussian (|sigma_x| == |sigma_y|) takes theta as its axis.
+        - phi_pq = sign(pi/2 - |a_p - a_q|) with a in [0, pi); exactly perpendicular pairs get
+          phi = 0 (no vote). ``parity="orientation"`` (default, method.md / eq. 3.27 as written)
+          uses a = theta_A; ``parity="rotation"`` uses a = delta+, for which phi = +1 exactly when
+          the same-sign options of p and q are closer rotations than the opposite-sign ones (with
+          theta_A, two near-parallel Gaussians either side of the 0/pi wrap get phi = -1).
+
+    Args:
+        source: G_A per directed edge, (E, N) slots (the estimated set of each edge's start light).
+        retargeted: G_{A->B}, (E, N); slot p is the same Gaussian as in ``source``. Only slots active
+            in ``source`` take part.
+        settings: ``PathSettings`` (straight_below, length_scale_rpx); default ``PathSettings()``.
+        parity: ``"orientation"`` or ``"rotation"``, what phi_pq compares (see above).
+
+    Returns:
+        ``PathDecisions`` with (E, N) arrays; finite for finite inputs.
+    """
+    settings = PathSettings() if settings is None else settings
+    if source.shape != retargeted.shape:
+        raise InputError(
+            f"source and retargeted Gaussian sets must have the same (edges, slots) shape, got "
+            f"{source.shape} and {retargeted.shape}"
+        )
+    if parity not in PARITY_MODES:
+        raise InputError(
+            f"parity must be one of {', '.join(PARITY_MODES)}, got {parity!r}"
+        )
+    active = np.asarray(source.active, dtype=bool)
+    mean_a = np.asarray(source.mean, dtype=np.float64)
+    mean_b = np.asarray(retargeted.mean, dtype=np.float64)
+    theta_a = np.asarray(source.theta, dtype=np.float64)
+    delta_pos, delta_neg = rotation_options(theta_a, retargeted.theta)
+
+    weight = np.where(
+        active,
+        _negative_option_weight(mean_a, mean_b, source.sigma, theta_a, delta_neg),
+        0.0,
+    )
+    parity_angle = _wrap_half_turn(theta_a) if parity == "orientation" else delta_pos
+    length_scale = rpx_to_normalized(settings.length_scale_rpx)
+    score = _propagate(weight, mean_a, mean_b, parity_angle, active, length_scale)
+
+    negative = active & (score <= 0)
+    delta = np.where(active, np.where(negative, delta_neg, delta_pos), 0.0)
+    centre = path_centre(mean_a, mean_b, delta, settings.straight_below)
+    centre = np.where(active[..., None], centre, mean_a)
+    return PathDecisions(
+        delta=delta,
+        centre=centre,
+        negative=negative,
+        score=np.where(active, score, 0.0),
+    )

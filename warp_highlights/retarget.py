@@ -1,0 +1,192 @@
+"""Retargeting: re-fit every estimated set onto each neighbour's specular image (method.md section 5).
+
+One problem per directed edge i -> j of the triangulation (6n - 12 on a full sphere), all in one batch:
+start from G_i and fit S_j.
+
+- Phase 1 (``rigid_iterations``): each connected component of G_i moves as a rigid body (one
+  translation and rotation per component), loss L_fit only.
+- Phase 2 (``iterations``): every parameter, loss c_fit L_fit + c_str L_str + c_ene L_ene, with the
+  structure and energy terms measured against G_i.
+
+Slot p of the result is slot p of G_i moved, so the correspondence the interpolation needs is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .chunks import Cancelled, map_chunks, problem_chunks
+from .components import ConnectedComponents
+from .config import RasterSettings, RetargetSettings
+from .errors import InputError
+from .gaussians import GaussianBatch, GaussianParams
+from .kernels._tape import recording
+from .kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
+from .kernels.optim import GaussianAdam
+from .kernels.raster import Rasterizer
+from .kernels.retarget import RigidAdam, RigidMotion, gather_images
+
+__all__ = ["RetargetResult", "retarget"]
+
+
+@dataclass
+class RetargetResult:
+    """Retargeted sets and their losses, one row per directed edge.
+
+    Attributes:
+        params: (E, N) the re-fitted sets; slot p of row e is slot p of the source set.
+        source_loss: (E,) fit loss of the unchanged source set against the target image.
+        rigid_loss: (E,) fit loss after phase 1.
+        loss: (E,) fit loss after phase 2 (the final set).
+        structure_loss: (E,) structure loss of the final set against its source (rpx^2).
+        restored: (E,) slots that diverged (non-finite) and were reset to the source.
+    """
+
+    params: GaussianParams
+    source_loss: np.ndarray
+    rigid_loss: np.ndarray
+    loss: np.ndarray
+    structure_loss: np.ndarray
+    restored: np.ndarray
+
+
+def retarget(
+    estimated: GaussianParams,
+    targets,
+    edges: np.ndarray,
+    *,
+    settings: RetargetSettings | None = None,
+    raster: RasterSettings | None = None,
+    device=None,
+    workers: int | None = None,
+    progress=None,
+) -> RetargetResult:
+    """Fit every source set ``estimated[i]`` to the target image ``targets[j]`` for each edge (i, j).
+
+    Args:
+        estimated: (n, N) estimated sets, one per light.
+        targets: (n, H, W) specular luminance per light, a float32 Warp array or NumPy.
+        edges: (E, 2) directed edges (source light, target light).
+        settings: phase lengths, loss weights, learning rates.
+        raster: how Gaussians are drawn.
+        device: Warp device (default: the targets' device, else Warp's default).
+        workers: CPU threads (default: one per core); ignored on CUDA.
+        progress: optional callable ``advance(iterations)``.
+    """
+    s = settings or RetargetSettings()
+    raster = raster or RasterSettings()
+    device = wp.get_device(device if device is not None else getattr(targets, "device", None))
+    edges = np.asarray(edges)
+    n = estimated.problem_count
+    if edges.ndim != 2 or edges.shape[1] != 2 or len(edges) == 0 or edges.min() < 0 or edges.max() >= n:
+        raise InputError(f"edges must be a non-empty (E, 2) array of light indices in 0..{n - 1}")
+    if len(targets.shape) != 3 or targets.shape[0] != n:
+        raise InputError(f"targets must have shape ({n}, H, W), got {tuple(targets.shape)}")
+    if not np.all(estimated.finite[estimated.active]):
+        raise InputError("the estimated sets have non-finite parameters")
+    components = ConnectedComponents.of(estimated, level=s.components.level, sigma_eps=raster.sigma_eps)
+    labels = components.labels[edges[:, 0]]
+    centroids = components.centroid_of_slot()[edges[:, 0]]
+    on_device = isinstance(targets, wp.array) and targets.device == device
+    all_targets = targets if on_device else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device)
+    chunks = problem_chunks(len(edges), device, workers)
+
+    def run(chunk: slice, stop) -> tuple:
+        source = _take(estimated, edges[chunk, 0])
+        job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
+        return job.run(stop, progress)
+
+    parts = map_chunks(run, chunks)
+    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
+    params = GaussianParams(**{name: np.concatenate([getattr(p[0], name) for p in parts]) for name in names})
+    losses = [np.concatenate([p[k] for p in parts]) for k in range(1, 6)]
+    return RetargetResult(params, *losses)
+
+
+def _take(params: GaussianParams, rows: np.ndarray) -> GaussianParams:
+    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
+    return GaussianParams(**{name: getattr(params, name)[rows] for name in names})
+
+
+class _Retargeting:
+    """One batch of directed edges on one device."""
+
+    def __init__(self, source_params: GaussianParams, all_targets: wp.array, target_rows, labels, centroids, settings: RetargetSettings, raster: RasterSettings, device):
+        self.s = settings
+        problems = source_params.problem_count
+        _, height, width = all_targets.shape
+        self.source_params = source_params
+        self.source = GaussianBatch.from_numpy(source_params, device=device, requires_grad=False)
+        self.moving = GaussianBatch.from_numpy(source_params, device=device)
+        targets = wp.empty((problems, height, width), dtype=float, device=device)
+        wp.launch(gather_images, dim=targets.shape, inputs=[all_targets, wp.array(np.asarray(target_rows, dtype=np.int32), dtype=wp.int32, device=device)], outputs=[targets], device=device)
+        self.raster = Rasterizer(height, width, settings=raster, device=device)
+        self.fit = LogL1Loss(targets)
+        self.structure = StructureLoss(self.source, settings.structure)
+        self.energy = EnergyLoss(self.source, raster)
+        self.rigid = RigidMotion(self.source, labels, centroids)
+        self.image = self.raster.new_image(problems)
+        self.loss = wp.zeros(problems, dtype=float, device=device, requires_grad=True)
+        self.ones = wp.ones(problems, dtype=float, device=device)
+
+    def _fit_loss(self, batch: GaussianBatch) -> np.ndarray:
+        self.loss.zero_()
+        self.raster.render(batch, out=self.image)
+        self.fit(self.image, out=self.loss)
+        return self.loss.numpy().astype(np.float64)
+
+    def run(self, stop, progress) -> tuple:
+        s = self.s
+        source_loss = self._fit_loss(self.source)
+        tape = wp.Tape()
+
+        def iterate(step_count: int, losses, optimiser) -> None:
+            for iteration in range(step_count):
+                if stop.is_set():
+                    raise Cancelled
+                self.loss.zero_()
+                with recording(tape):
+                    losses()
+                tape.backward(grads={self.loss: self.ones})
+                optimiser.step()
+                tape.zero()
+                tape.reset()
+                if progress is not None and (iteration + 1) % 10 == 0:
+                    progress(10)
+            if progress is not None:
+                progress(step_count % 10)
+
+        def rigid_losses():
+            self.rigid.apply(self.moving)
+            self.raster.render(self.moving, out=self.image)
+            self.fit(self.image, out=self.loss)
+
+        rigid_adam = RigidAdam(self.rigid, lr_translation_rpx=s.lr_translation_rpx, lr_rotation=s.lr_rotation, beta1=s.adam.beta1, beta2=s.adam.beta2, epsilon=s.adam.epsilon)
+        iterate(s.rigid_iterations, rigid_losses, rigid_adam)
+        self.rigid.apply(self.moving)
+        rigid_loss = self._fit_loss(self.moving)
+
+        def full_losses():
+            self.raster.render(self.moving, out=self.image)
+            self.fit(self.image, out=self.loss, weight=s.c_fit)
+            if s.c_str > 0:
+                self.structure(self.moving, out=self.loss, weight=s.c_str)
+            if s.c_ene > 0:
+                self.energy(self.moving, out=self.loss, weight=s.c_ene)
+
+        iterate(s.iterations, full_losses, GaussianAdam(self.moving, s.adam))
+
+        params = self.moving.numpy()
+        diverged = params.active & ~params.finite
+        restored = diverged.sum(axis=1)
+        if diverged.any():
+            for name in ("amplitude", "mean", "sigma", "theta", "weight"):
+                getattr(params, name)[diverged] = getattr(self.source_params, name)[diverged]
+            self.moving.assign(params)
+        loss = self._fit_loss(self.moving)
+        structure = wp.zeros(self.source.problem_count, dtype=float, device=self.source.device)
+        self.structure(self.moving, out=structure)
+        return params, source_loss, rigid_loss, loss, structure.numpy().astype(np.float64), restored
