@@ -113,7 +113,7 @@ def log_l1_backward(
     """
     first = wp.tid() * pixels_per_thread
     # a thread's pixels lie in one problem (a row never straddles two images)
-    factor = out_grad[first // pixels_per_problem] * scale / _LN2
+    factor = out_grad[first // pixels_per_problem] * scale
     for j in range(pixels_per_thread):
         i = first + j
         r = image[i]
@@ -121,7 +121,7 @@ def log_l1_backward(
         if r != 0.0:  # log2(1 + 0) = 0: empty pixels (most of a highlight image) skip the logarithm
             difference += wp.log2(1.0 + r)
         if difference != 0.0:
-            image_grad[i] = image_grad[i] + factor * wp.sign(difference) / (1.0 + r)
+            image_grad[i] = image_grad[i] + factor * wp.sign(difference) / ((1.0 + r) * _LN2)
 
 
 class LogL1Loss:

@@ -15,7 +15,8 @@ Forward, three launches:
    amplitude, pixel bounding box.
 2. ``bin_tiles`` (problem x tile): the list of Gaussians whose cut-off ellipse reaches the tile's
    pixel centres (exact ellipse/rectangle test), in slot order so sums are deterministic.
-3. ``rasterize_tiles`` (one thread per pixel, tile-major 1D launch): each pixel sums its tile's list.
+3. ``rasterize_tiles`` (tile-major 1D launch; one thread per pixel on CUDA, per tile on the CPU): each
+   pixel sums its tile's list.
 
 Steps 1-2 build an index and stay off the tape. Step 3 is recorded on the active ``wp.Tape`` with a
 hand-written adjoint, ``rasterize_backward``: Gaussian-major, one thread per (problem, slot, lane),
@@ -440,29 +441,31 @@ class Rasterizer:
         self._buffers((problems, capacity))
         s = self.settings
         tau = s.cutoff_level
-        with wp.ScopedDevice(self.device):
-            wp.launch(
-                prepare_gaussians,
-                dim=(problems, capacity),
-                inputs=[batch.arrays, s.sigma_eps, s.cutoff, 1.0 / (1.0 - tau), self.height, self.width],
-                outputs=[self.frames, self.scales, self.boxes],
-                record_tape=False,
-            )
-            wp.launch(
-                bin_tiles,
-                dim=(problems, self.tile_count),
-                inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2, int(self.culling)],
-                outputs=[self.tile_lists, self.tile_counts],
-                record_tape=False,
-            )
-            whole_tile = 0 if self.device.is_cuda else 1
-            wp.launch(
-                rasterize_tiles,
-                dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
-                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, s.tile_size.bit_length() - 1, self.tiles_x, s.cutoff**2, tau, whole_tile],
-                outputs=[out],
-                record_tape=False,
-            )
+        wp.launch(
+            prepare_gaussians,
+            dim=(problems, capacity),
+            inputs=[batch.arrays, s.sigma_eps, s.cutoff, 1.0 / (1.0 - tau), self.height, self.width],
+            outputs=[self.frames, self.scales, self.boxes],
+            device=self.device,
+            record_tape=False,
+        )
+        wp.launch(
+            bin_tiles,
+            dim=(problems, self.tile_count),
+            inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2, int(self.culling)],
+            outputs=[self.tile_lists, self.tile_counts],
+            device=self.device,
+            record_tape=False,
+        )
+        whole_tile = 0 if self.device.is_cuda else 1
+        wp.launch(
+            rasterize_tiles,
+            dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
+            inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, s.tile_size.bit_length() - 1, self.tiles_x, s.cutoff**2, tau, whole_tile],
+            outputs=[out],
+            device=self.device,
+            record_tape=False,
+        )
         tape = active_tape()
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:

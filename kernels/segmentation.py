@@ -5,7 +5,7 @@ lights, by a 4 x 4 normal-equation solve, robustly:
 
 1. L = the lights with I_i >= t (shadowed or unlit samples say nothing about nbar);
 2. fit over the current set, residuals l_i = |I_i - D~_i| over L, median m~; the next set is
-   L' = {i in L : l_i <= f m~}; repeat until L' stops changing (or the iteration cap);
+   L' = {i in L : l_i <= max(f m~, floor)}; repeat until L' stops changing (or the iteration cap);
 3. D~_i = max(D~_i, floor) + offset, D_i = min(I_i, D~_i), S_i = I_i - D_i.
 
 Pixels with fewer than ``min_valid`` valid lights are all diffuse (S = 0). The sets never need storing:
@@ -93,6 +93,7 @@ def segment_pixels(
     directions: wp.array(dtype=wp.vec3),
     threshold: float,
     outlier_factor: float,
+    outlier_floor: float,
     max_iterations: int,
     min_valid: int,
     floor: float,
@@ -135,7 +136,7 @@ def segment_pixels(
             _kth_residual(images, directions, q, threshold, fit, (valid - 1) // 2, largest)
             + _kth_residual(images, directions, q, threshold, fit, valid // 2, largest)
         )
-        limit = outlier_factor * median
+        limit = wp.max(outlier_factor * median, outlier_floor)
         kept = int(0)
         changed = int(0)
         for i in range(lights):
@@ -195,7 +196,8 @@ class Segmentation:
         lambert: (H, W, C, 4) float32 NumPy: nbar_x, nbar_y, nbar_z, k_a per pixel and channel.
         valid_lights: (H, W) int32 NumPy, the fewest valid lights over the pixel's channels.
         iterations: (H, W) int32 NumPy, the most refits over the pixel's channels.
-        few_light_pixels: pixels treated as all diffuse because a channel had too few valid lights.
+        few_light_pixels: pixels left all diffuse because a channel had too few valid lights (or, rarely,
+            no solvable fit).
     """
 
     def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid):
@@ -232,6 +234,10 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
         stack = wp.array(np.ascontiguousarray(host, dtype=np.float32), dtype=float, device=device)
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
+    if channels not in (1, 3):
+        raise InputError(f"images must have 1 or 3 channels, got {channels}")
+    if not np.all(np.isfinite(stack.numpy() if stack is images else host)):
+        raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
     columns = height * width * channels
     flat = stack.reshape((n, columns))
     diffuse = wp.empty((n, columns), dtype=float, device=device)
@@ -241,7 +247,7 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     wp.launch(
         segment_pixels,
         dim=columns,
-        inputs=[flat, wp.array(directions, dtype=wp.vec3, device=device), s.valid_threshold, s.outlier_factor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset],
+        inputs=[flat, wp.array(directions, dtype=wp.vec3, device=device), s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset],
         outputs=[diffuse, specular, lambert, status],
         device=device,
     )

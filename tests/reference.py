@@ -41,6 +41,11 @@ def render(params: GaussianParams, height: int, width: int, settings: RasterSett
     return images
 
 
+def pixel_area(height: int) -> float:
+    """Area of one pixel in rpx^2 for an image ``height`` pixels tall."""
+    return (REFERENCE_HEIGHT_PX / height) ** 2
+
+
 def log_l1(image: np.ndarray, target: np.ndarray, height: int) -> np.ndarray:
     """Per-problem fit loss: sum |log2(1 + R) - log2(1 + S)| times the pixel area in rpx^2."""
     area = (REFERENCE_HEIGHT_PX / height) ** 2

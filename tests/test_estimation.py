@@ -79,15 +79,42 @@ def test_densify_places_a_gaussian_on_a_curved_highlight():
     assert params.sigma[0, params.active[0]].max() * height < 3.0
 
 
+def test_densify_places_a_gaussian_on_a_rendered_one():
+    """Pixel centres sit at (col + 0.5) / H: the moments of a rendered Gaussian give back its parameters."""
+    truth = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
+    image = _render([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
+    estimator = _Estimator(_device_array(image), image, EstimationSettings(residual_threshold=0.01), QUICK_RASTER, "cpu")
+    estimator._densify(estimator._residual())
+    placed = estimator.batch.numpy()
+    slot = np.flatnonzero(placed.active[0])
+    assert len(slot) == 1
+    np.testing.assert_allclose(placed.mean[0, slot[0]], truth.mean[0, 0], atol=0.2 / 54)
+    assert abs(placed.theta[0, slot[0]] - 0.5) < 0.05
+    assert placed.amplitude[0, slot[0]] == pytest.approx(np.sqrt(image.max()))
+
+
+def test_densify_serves_the_largest_regions_first():
+    image = np.zeros((1, 54, 96), dtype=np.float32)
+    image[0, 5:8, 5:8] = 1.0  # 9 pixels
+    image[0, 20:40, 50:70] = 1.0  # 400 pixels
+    image[0, 40:45, 10:15] = 1.0  # 25 pixels
+    estimator = _Estimator(_device_array(image), image, EstimationSettings(max_new_per_round=2), QUICK_RASTER, "cpu")
+    estimator._densify(estimator._residual())
+    placed = estimator.batch.numpy()
+    means = placed.mean[0, placed.active[0]] * 54 - 0.5
+    assert len(means) == 2
+    np.testing.assert_allclose(sorted(means[:, 0]), [12.0, 59.5], atol=0.01)
+
+
 def test_prune_drops_dim_offscreen_and_nonfinite_gaussians():
     target = np.zeros((1, 54, 96), dtype=np.float32)
     estimator = _Estimator(_device_array(target), target, EstimationSettings(prune_energy=1.0), QUICK_RASTER, "cpu")
     estimator.batch.add(
-        np.zeros(4, dtype=int),
-        amplitude=[1.0, 0.01, 1.0, 1.0],
-        mean=[[0.8, 0.5], [0.8, 0.5], [5.0, 0.5], [0.8, 0.5]],
-        sigma=[[0.05, 0.05]] * 4,
-        theta=[0.0] * 4,
+        np.zeros(5, dtype=int),
+        amplitude=[1.0, 0.01, 1.0, 1.0, 1.0],
+        mean=[[0.8, 0.5], [0.8, 0.5], [5.0, 0.5], [0.8, 0.5], [0.8, 0.5]],
+        sigma=[[0.05, 0.05]] * 4 + [[0.2, 0.0001]],  # the last: 0.005 px across, between pixel centres
+        theta=[0.0] * 5,
     )
     params = estimator.batch.numpy()
     params.amplitude[0, 3] = np.nan
@@ -95,8 +122,8 @@ def test_prune_drops_dim_offscreen_and_nonfinite_gaussians():
     energy = gaussian_energy_rpx(params, QUICK_RASTER.sigma_eps)
     assert energy[0, 0] > 1.0 > energy[0, 1]
     estimator._prune()
-    assert estimator.batch.numpy().active[0].tolist()[:4] == [True, False, False, False]
-    assert estimator.pruned[0] == 3
+    assert estimator.batch.numpy().active[0].tolist()[:5] == [True, False, False, False, False]
+    assert estimator.pruned[0] == 4
 
 
 def test_bad_targets():

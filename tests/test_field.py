@@ -20,10 +20,10 @@ from warp_highlights.lights import LightSet
 from warp_highlights.triangulation import SphericalTriangulation
 
 SETTINGS = {
-    "estimation": {"k_add": 100, "t_add": 600, "t_est": 1000, "capacity": 8},
-    "retarget": {"c_fit": 1.0, "c_str": 0.01, "c_ene": 1e-3, "t1": 200, "t2": 500},
+    "estimation": {"iterations": 1000, "densify_every": 100, "densify_until": 600, "capacity": 8},
+    "retarget": {"c_fit": 1.0, "c_str": 0.01, "c_ene": 1e-3, "rigid_iterations": 200, "iterations": 500},
     "raster": {"cutoff": 4.0, "sigma_eps_rpx2": 0.01, "tile_size": 16},
-}
+}  # a partial FitSettings dict: load() checks the stored settings
 
 
 # --- building test fields --------------------------------------------------------------------------

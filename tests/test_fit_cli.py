@@ -56,6 +56,32 @@ def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
     assert (field.width, field.height) == (48, 27) and field.diffuse is None
 
 
+def test_a_field_with_invalid_stored_settings_is_refused(fitted, tmp_path):
+    from warp_highlights.errors import InputError
+
+    field = HighlightField.load(fitted[0])
+    field.settings["retarget"]["iterations"] = "many"
+    broken = tmp_path / "broken.whf"
+    field.save(broken)
+    with pytest.raises(InputError, match="settings"):
+        HighlightField.load(broken)
+
+
+def test_auto_exposure_scales_the_radiance_and_is_recorded(small_donut, tmp_path):
+    from warp_highlights.dataset import ReflectanceField
+    from warp_highlights.fit import exposure_factor
+
+    data = ReflectanceField.load(small_donut, progress=False)
+    factor = exposure_factor(data.images, "auto")
+    assert np.percentile(data.images * factor, 99.9) == pytest.approx(1.0, rel=0.05)
+    out = tmp_path / "auto.whf"
+    assert main(["fit", str(small_donut), "-o", str(out), "--exposure", "auto", "--size", "48x27", "-q", *_overrides()]) == 0
+    from warp_highlights.resample import resize_stack
+
+    working = exposure_factor(resize_stack(data.images, 48, 27), "auto")  # measured at the working size
+    assert HighlightField.load(out).report["exposure"] == pytest.approx(working, rel=1e-6)
+
+
 def test_saved_and_loaded_field_is_identical(fitted, tmp_path):
     field = HighlightField.load(fitted[0])
     again = tmp_path / "again.whf"
@@ -84,7 +110,7 @@ def test_interpolation_at_a_vertex_is_that_vertex_set(fitted, method):
 
 
 def test_list_settings(capsys):
-    assert main(["fit", "unused", "-o", "unused.whf", "--list-settings"]) == 0
+    assert main(["fit", "--list-settings"]) == 0
     text = capsys.readouterr().out
     assert "retarget.c_str=0.1" in text and "estimation.iterations=1000" in text
 
@@ -108,7 +134,13 @@ def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatc
 @pytest.mark.parametrize(
     "arguments, message",
     [
-        (["fit", "{missing}", "-o", "{out}"], "not"),
+        (["fit", "{missing}", "-o", "{out}"], "dataset folder not found"),
+        (["fit", "{data}"], "-o FIELD"),
+        (["fit", "{data}", "-o", "{out}", "--report", "{out}"], "its own name"),
+        (["fit", "{data}", "-o", "{out}", "--set", "paths=3"], "is a group"),
+        (["fit", "{data}", "-o", "{out}", "--set", "estimation.iterations=10.5"], "integer"),
+        (["fit", "{data}", "-o", "{out}", "--size", "2x1"], "too small"),
+        (["fit", "{data}", "-o", "{out}", "--exposure", "bright"], "exposure"),
         (["fit", "{data}", "-o", "{out}", "--set", "retarget.nothing=1"], "no setting"),
         (["fit", "{data}", "-o", "{out}", "--set", "retarget.c_str=-1"], "c_str"),
         (["fit", "{data}", "-o", "{out}", "--size", "50x50"], "aspect"),
@@ -136,3 +168,19 @@ def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys
     assert message in _error_line(capsys)
     assert existing.read_bytes() == b"keep"
     assert not (tmp_path / "out.whf").exists()
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize(("folder", "size"), [("synthrti-object1-material5/Dome", "80x80"), ("realrti-item11", "71x67")])
+def test_fit_real_dome_captures(data_root, folder, size, tmp_path):
+    """JPEG RTI domes (sRGB decoded, dirs.lp) fit end to end at a small working size."""
+    out = tmp_path / "field.whf"
+    assert main(["fit", str(data_root / folder), "-o", str(out), "--size", size, "-q", *_overrides()]) == 0
+    field = HighlightField.load(out)
+    assert field.triangulation.is_dome
+    assert len(field.directed_edges) == 2 * len(field.triangulation.edges())
+    assert f"{field.width}x{field.height}" == size
+    assert field.counts.sum() > 0, "no highlight found on a glossy / metallic object"
+    report = field.report
+    assert report["retargeting"]["improved_share"] > 0.9
+    assert report["estimation"]["psnr_db"]["mean"] > 30.0

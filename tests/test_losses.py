@@ -61,6 +61,25 @@ def test_log_l1_matches_numpy_and_uses_the_pixel_area(device):
     np.testing.assert_allclose(big, value, rtol=1e-5)
 
 
+def test_log_l1_image_gradient_takes_each_problems_own_upstream_gradient(device):
+    rng = np.random.default_rng(4)
+    image = rng.uniform(0, 3, (3, 5, 7)).astype(np.float32)
+    image[:, 1, :] = 0.0  # empty pixels take the no-logarithm path
+    target = rng.uniform(0, 3, (3, 5, 7)).astype(np.float32)
+    target[:, 1, :3] = 0.0
+    fit = losses.LogL1Loss(target, device=device)
+    pixels = wp.array(image, device=device, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        value = fit(pixels)
+    upstream = np.array([1.0, -2.0, 0.5], dtype=np.float32)
+    tape.backward(grads={value: wp.array(upstream, device=device)})
+    area = reference.pixel_area(5)
+    difference = np.log2(1 + image.astype(np.float64)) - np.log2(1 + target.astype(np.float64))
+    expected = upstream[:, None, None] * area * np.sign(difference) / ((1 + image) * np.log(2))
+    np.testing.assert_allclose(pixels.grad.numpy(), expected, rtol=1e-5, atol=1e-6)
+
+
 def test_fit_loss_gradient_through_the_rasterizer(device):
     height, width = 21, 27
     _, batch = _pair(device, seed=2, height=height, width=width)

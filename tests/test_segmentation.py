@@ -70,7 +70,6 @@ def test_kernel_matches_float64_reference(device):
 
 
 def test_pure_lambertian_pixels_have_no_specular_and_recover_the_normal():
-    rng = np.random.default_rng(5)
     directions = LightSet.fibonacci_sphere(50).directions
     normal = np.array([0.3, -0.2, 0.93])
     normal /= np.linalg.norm(normal)
@@ -79,7 +78,8 @@ def test_pure_lambertian_pixels_have_no_specular_and_recover_the_normal():
     fit = seg.lambert[0, 0, 0]
     np.testing.assert_allclose(fit[:3] / np.linalg.norm(fit[:3]), normal, atol=0.02)
     assert seg.specular.numpy().max() < 1e-5
-    assert rng is not None
+    # rounding noise is not an outlier: an exact Lambertian pixel is done after one refit at most
+    assert seg.iterations.max() <= 2
 
 
 def test_dark_pixels_are_all_diffuse_and_counted():
@@ -120,3 +120,9 @@ def test_bad_input():
         segment(np.zeros((8, 4, 4), dtype=np.float32), directions[:5], device="cpu")
     with pytest.raises(InputError, match="shape"):
         segment(np.zeros((8, 4), dtype=np.float32), directions, device="cpu")
+    with pytest.raises(InputError, match="channels"):
+        segment(np.zeros((8, 4, 4, 2), dtype=np.float32), directions, device="cpu")
+    bad = np.ones((8, 4, 4), dtype=np.float32)
+    bad[3, 1, 1] = np.inf
+    with pytest.raises(InputError, match="non-finite"):
+        segment(bad, directions, device="cpu")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 import warp as wp
 
@@ -20,13 +20,21 @@ class Cancelled(Exception):
     """Raised inside a chunk's thread when another chunk failed or the user interrupted."""
 
 
+def _core_count() -> int:
+    """CPU cores this process may use (affinity and container limits where the OS reports them)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def problem_chunks(count: int, device, workers: int | None = None) -> list[slice]:
     """Contiguous slices of ``range(count)``: one on CUDA, up to ``workers`` (default: CPU cores) on the CPU."""
     device = wp.get_device(device)
     if device.is_cuda:
         parts = 1
     else:
-        parts = workers if workers is not None else (os.cpu_count() or 1)
+        parts = workers if workers is not None else _core_count()
     parts = max(1, min(int(parts), count))
     bounds = [round(k * count / parts) for k in range(parts + 1)]
     return [slice(bounds[k], bounds[k + 1]) for k in range(parts) if bounds[k + 1] > bounds[k]]
@@ -36,25 +44,33 @@ def map_chunks(function, chunks: list[slice]) -> list:
     """``[function(chunk, stop) for chunk in chunks]``, on one thread per chunk when there are several.
 
     ``stop`` is a ``threading.Event`` that long loops should poll (and raise ``Cancelled``): it is set
-    when any chunk fails or the caller is interrupted (Ctrl-C), so no thread keeps fitting after the
-    caller gave up. The first exception is re-raised after every thread has stopped.
+    as soon as any chunk fails or the caller is interrupted (Ctrl-C), so no thread keeps fitting after
+    the work is lost. The first real error (not a ``Cancelled``) is re-raised once every thread has
+    stopped.
     """
     stop = threading.Event()
     if len(chunks) == 1:
         return [function(chunks[0], stop)]
+
+    def guarded(chunk: slice):
+        try:
+            return function(chunk, stop)
+        except BaseException:
+            stop.set()
+            raise
+
     pool = ThreadPoolExecutor(max_workers=len(chunks), thread_name_prefix="warp-highlights")
-    futures = [pool.submit(function, chunk, stop) for chunk in chunks]
+    futures = [pool.submit(guarded, chunk) for chunk in chunks]
     try:
-        results = []
-        for future in futures:
-            try:
-                results.append(future.result())
-            except BaseException:
-                stop.set()
-                raise
-        return results
-    except BaseException:
+        wait(futures, return_when=FIRST_EXCEPTION)
+        wait(futures)
+    except BaseException:  # Ctrl-C while waiting
         stop.set()
-        raise
-    finally:
         pool.shutdown(wait=True)
+        raise
+    pool.shutdown(wait=True)
+    errors = [f.exception() for f in futures if f.exception() is not None]
+    if errors:
+        real = [e for e in errors if not isinstance(e, Cancelled)]
+        raise (real or errors)[0]
+    return [f.result() for f in futures]

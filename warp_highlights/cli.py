@@ -83,8 +83,8 @@ def _build_parser() -> argparse.ArgumentParser:
         "image, re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths, and "
         "write everything to one highlight-field file.",
     )
-    fit.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images)")
-    fit.add_argument("-o", "--output", type=Path, required=True, help="highlight-field file to write (e.g. donut.whf)")
+    fit.add_argument("dataset", type=Path, nargs="?", help="dataset folder (a .lp light file and its images)")
+    fit.add_argument("-o", "--output", type=Path, help="highlight-field file to write (e.g. donut.whf); required")
     fit.add_argument("--size", help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
     fit.add_argument(
         "--set",
@@ -97,6 +97,12 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     fit.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
     fit.add_argument("--diffuse", choices=["lambert", "images", "none"], default="lambert", help="diffuse part to store: per-pixel Lambertian fit (default), that plus the diffuse images, or none")
+    fit.add_argument(
+        "--exposure",
+        default="1",
+        help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
+        "display white is 1, so dim photographs want 'auto' (default 1: rendered data)",
+    )
     fit.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     fit.add_argument("--workers", type=int, help="CPU threads for the fitting stages (default: one per core)")
     fit.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
@@ -298,9 +304,13 @@ def _run_fit(args) -> int:
     if args.list_settings:
         _print_settings(settings.to_dict())
         return 0
+    if args.dataset is None or args.output is None:
+        raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
     output = Path(args.output)
     _check_output_file(output, overwrite=args.overwrite)
     if args.report is not None:
+        if Path(args.report).resolve() == output.resolve():
+            raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
         _check_output_file(Path(args.report), overwrite=True)
     size = parse_size(args.size) if args.size else None
     if args.workers is not None and args.workers < 1:
@@ -313,7 +323,9 @@ def _run_fit(args) -> int:
     dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
     load_seconds = time.perf_counter() - started
     log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
-    field = fit_field(dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, workers=args.workers, progress=not args.quiet, log=log)
+    field = fit_field(
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure, workers=args.workers, progress=not args.quiet, log=log
+    )
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
     written = field.save(output)
     field.report["file_bytes"] = written
@@ -348,12 +360,15 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     est, ret = report["estimation"], report["retargeting"]
     count, quality = est["gaussians_per_light"], est["psnr_db"]
     print(f"wrote {output} ({written / 1e6:.2f} MB) in {seconds:.1f} s on {report['device']}")
-    print(f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, working size {report['size'][0]}x{report['size'][1]}")
+    print(
+        f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, "
+        f"working size {report['size'][0]}x{report['size'][1]}, exposure x{report['exposure']:.3g}"
+    )
     print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
     print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}")
     print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
     print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
-    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels with too few lit samples (kept diffuse)")
+    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
     parts = field.size_report()
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 

@@ -72,7 +72,7 @@ class RasterSettings:
             unspecified; 0.01 rpx^2 (a floor of 0.1 rpx on the standard deviation) keeps a collapsed
             Gaussian finite without changing any Gaussian wider than half a pixel by more than 2%.
             A Gaussian that collapses between pixel centres draws nothing and gets no gradient; the
-            estimation's pruning removes such Gaussians (no energy or loss contribution).
+            estimation's pruning removes Gaussians narrower than 0.05 pixel.
         tile_size: culling tile edge in pixels, a power of two (a performance knob; it never changes
             the image).
             8, 16 and 32 measured within 2% of each other on the CPU and the H200
@@ -166,7 +166,11 @@ class SegmentationSettings:
             (linear radiance; thesis t_seg = 0.05): darker samples are shadowed or unlit.
         outlier_factor: after each fit, lights whose residual exceeds this many times the median
             residual are left out of the next fit (thesis: 2).
-        max_iterations: cap on the refits per pixel (method.md: 10).
+        outlier_floor: the outlier limit is never below this (linear radiance). Neither method.md nor
+            the thesis has it: on an exactly Lambertian pixel the residuals are float32 rounding
+            noise (~1e-6), and twice their median would drop lights on noise alone, refit on fewer
+            lights and run to the iteration cap. 1e-4 is far below any visible highlight.
+        max_iterations: cap on the fits per pixel, the first included (method.md: 10).
         min_valid_lights: pixels with fewer valid lights are all diffuse (4 unknowns need 4 lights).
         diffuse_floor, diffuse_offset: the fitted diffuse becomes max(D~, floor) + offset before
             D = min(I, D~) (thesis: 0.05 and 0.01), so noise on dark pixels stays diffuse.
@@ -174,6 +178,7 @@ class SegmentationSettings:
 
     valid_threshold: float = 0.05
     outlier_factor: float = 2.0
+    outlier_floor: float = 1e-4
     max_iterations: int = 10
     min_valid_lights: int = 4
     diffuse_floor: float = 0.05
@@ -184,7 +189,7 @@ class SegmentationSettings:
         _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1, f"outlier_factor must be >= 1, got {self.outlier_factor}")
         _require(1 <= int(self.max_iterations) <= 100, f"max_iterations must be in [1, 100], got {self.max_iterations}")
         _require(int(self.min_valid_lights) >= 4, f"min_valid_lights must be >= 4 (the fit has 4 unknowns), got {self.min_valid_lights}")
-        for name in ("diffuse_floor", "diffuse_offset"):
+        for name in ("diffuse_floor", "diffuse_offset", "outlier_floor"):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0, f"{name} must be >= 0, got {value}")
 
@@ -210,8 +215,9 @@ class EstimationSettings:
         max_new_per_round: at most this many Gaussians are added to a set per round, largest
             regions first, so a set grows only as fast as Adam can place what it has.
         prune_energy: Gaussians with less energy than this (intensity x rpx^2) are removed, as are
-            Gaussians whose centre left the image by more than prune_outside_sigmas of their size
-            and Gaussians with non-finite parameters.
+            Gaussians whose centre left the image by more than prune_outside_sigmas of their size,
+            Gaussians narrower than 0.05 pixel across (they reach almost no pixel centre, so they
+            neither draw nor learn) and Gaussians with non-finite parameters.
         capacity: slots per set (padding; a set never holds more Gaussians).
         adam: learning rates (AdamSettings).
     """
@@ -230,7 +236,7 @@ class EstimationSettings:
     def __post_init__(self):
         _require(int(self.iterations) >= 1, f"iterations must be >= 1, got {self.iterations}")
         _require(int(self.densify_every) >= 1, f"densify_every must be >= 1, got {self.densify_every}")
-        _require(int(self.densify_until) >= 0, f"densify_until must be >= 0, got {self.densify_until}")
+        _require(int(self.densify_until) >= 1, f"densify_until must be >= 1 (no add round means no Gaussians), got {self.densify_until}")
         _require(math.isfinite(self.residual_threshold) and self.residual_threshold > 0, f"residual_threshold must be > 0, got {self.residual_threshold}")
         _require(math.isfinite(self.min_region_area_rpx2) and self.min_region_area_rpx2 >= 0, f"min_region_area_rpx2 must be >= 0, got {self.min_region_area_rpx2}")
         _require(int(self.max_new_per_round) >= 1, f"max_new_per_round must be >= 1, got {self.max_new_per_round}")
@@ -352,7 +358,9 @@ class FitSettings:
                 node = node[part]
             name = path[-1]
             if name not in node or isinstance(node[name], dict):
-                raise InputError(f"override '{text}': no setting '{name}' here; choose from: {', '.join(k for k, v in node.items() if not isinstance(v, dict))}")
+                settings = [k for k, v in node.items() if not isinstance(v, dict)]
+                choices = f"choose from: {', '.join(settings)}" if settings else f"'{name}' is a group; name a setting in it, e.g. {name}.<setting>"
+                raise InputError(f"override '{text}': no setting '{name}' here; {choices}")
             node[name] = _parse_like(node[name], raw.strip(), text)
         return FitSettings.from_dict(values)
 
@@ -376,7 +384,8 @@ def _parse_like(current, raw: str, text: str):
             return int(raw)
         return float(raw)
     except ValueError:
-        raise InputError(f"override '{text}': '{raw}' is not a valid {type(current).__name__}") from None
+        kind = {bool: "true or false", int: "an integer", float: "a number"}[type(current)]
+        raise InputError(f"override '{text}': '{raw}' is not {kind}") from None
 
 
 def _build(cls, values: dict, where: str):
@@ -392,5 +401,18 @@ def _build(cls, values: dict, where: str):
         if hasattr(default, "__dataclass_fields__"):
             kwargs[name] = _build(type(default), value, f"{where}.{name}")
         else:
-            kwargs[name] = value
+            kwargs[name] = _checked_value(default, value, f"{where}.{name}")
     return cls(**kwargs)
+
+
+def _checked_value(default, value, where: str):
+    """``value`` as the type of ``default`` (bool, int or float); anything else is an ``InputError``."""
+    is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if isinstance(default, bool) and isinstance(value, bool):
+        return value
+    if isinstance(default, int) and not isinstance(default, bool) and is_number and float(value).is_integer():
+        return int(value)
+    if isinstance(default, float) and is_number:
+        return float(value)
+    kind = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
+    raise InputError(f"{where} must be {kind}, got {value!r}")

@@ -33,6 +33,7 @@ from .kernels.raster import Rasterizer
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 
 _MIN_SIGMA_PX = 0.5  # a new Gaussian is at least half a pixel wide, so it draws on a pixel centre
+_COLLAPSED_SIGMA_PX = 0.05  # pruned below this width (pixels of the working image)
 
 
 @dataclass
@@ -176,15 +177,18 @@ class _Estimator:
         return self.host_targets - self.image.numpy()
 
     def _prune(self) -> None:
-        """Remove Gaussians with too little energy, far off the image, or non-finite parameters."""
+        """Remove Gaussians with too little energy, collapsed to a line, far off the image, or non-finite."""
         params = self.batch.numpy()
         energy = gaussian_energy_rpx(params, self.raster_settings.sigma_eps)
         reach = self.s.prune_outside_sigmas * np.abs(params.sigma).max(axis=2)
         x, y = params.mean[..., 0], params.mean[..., 1]
         aspect = self.width / self.height
         outside = (x < -reach) | (x > aspect + reach) | (y < -reach) | (y > 1.0 + reach)
+        # narrower than this across, a Gaussian reaches almost no pixel centre within its cut-off and
+        # so gets (almost) no gradient: it would sit there with energy but no effect
+        collapsed = np.abs(params.sigma).min(axis=2) * self.height < _COLLAPSED_SIGMA_PX
         with np.errstate(invalid="ignore"):
-            drop = params.active & (~params.finite | (energy < self.s.prune_energy) | outside)
+            drop = params.active & (~params.finite | (energy < self.s.prune_energy) | outside | collapsed)
         if drop.any():
             self.pruned += drop.sum(axis=1)
             self.batch.remove(drop)
@@ -248,9 +252,10 @@ class _Estimator:
         centre_col = np.clip(np.floor(mx[chosen] * self.height).astype(np.int64), 0, self.width - 1)
         off_region = labels[region_problem[chosen], centre_row, centre_col] != chosen + 1
         if off_region.any():
+            by_value = np.lexsort((weight, label))  # grouped by label, ascending residual
+            last = np.flatnonzero(np.r_[np.diff(label[by_value]) != 0, True])  # each group's peak
             peak_pixel = np.zeros(count, dtype=np.int64)
-            order_by_value = np.lexsort((weight, label))  # last entry per label is its peak
-            peak_pixel[label[order_by_value]] = order_by_value
+            peak_pixel[label[by_value[last]]] = by_value[last]
             at = peak_pixel[chosen[off_region]]
             mean[off_region] = np.stack([x[at], y[at]], axis=1)
             pixel = 1.0 / self.height

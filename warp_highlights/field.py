@@ -432,11 +432,16 @@ class HighlightField:
             ) from None
         with stream:
             try:
-                return _read_field(cls, path, stream)
+                field = _read_field(cls, path, stream)
             except (InputError, MemoryError):
                 raise
             except Exception as exc:  # noqa: BLE001 (zipfile, zlib, numpy or json internals: damaged bytes)
                 raise _corrupt(path, f"{type(exc).__name__}: {exc}") from None
+        try:
+            field.fit_settings()
+        except InputError as error:
+            raise _corrupt(path, f"stored settings: {error}") from None
+        return field
 
     # --- writing helpers -------------------------------------------------------------------------
 

@@ -7,6 +7,7 @@ figures the ``fit`` command prints.
 
 from __future__ import annotations
 
+import threading
 import time
 from contextlib import contextmanager
 
@@ -38,6 +39,7 @@ def fit_field(
     device=None,
     size: tuple[int, int] | None = None,
     diffuse: str = "lambert",
+    exposure: float | str = 1.0,
     workers: int | None = None,
     progress: bool = False,
     log=None,
@@ -51,6 +53,11 @@ def fit_field(
         size: working resolution (width, height) of the same aspect ratio, or None for the images' own.
         diffuse: what to keep of the diffuse part: "lambert" (per-pixel nbar and k_a), "images"
             (that plus the diffuse images, float16, for barycentric blending) or "none".
+        exposure: factor applied to the radiance before fitting, or "auto": the factor that maps the
+            99.9th percentile of all samples to 1 (display white). The method's thresholds (lit sample
+            0.05, new Gaussian 0.2) assume display white is 1, as in rendered data; a dim photographic
+            capture needs "auto" (or its own factor) or its highlights stay under the thresholds. The
+            fitted field is in the scaled units and records the factor (``report["exposure"]``).
         workers: CPU threads (default: one per core); ignored on CUDA.
         progress: show a progress bar per stage (tqdm, on stderr).
         log: optional callable receiving one line per finished stage.
@@ -67,6 +74,9 @@ def fit_field(
         edges = triangulation.directed_edges()
     with timer.stage("segmentation"):
         images = resize_stack(dataset.images, width, height)
+        factor = exposure_factor(images, exposure)
+        if factor != 1.0:
+            images = images * np.float32(factor)
         seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device)
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
@@ -93,6 +103,7 @@ def fit_field(
         "source_size": [dataset.width, dataset.height],
         "size": [width, height],
         "lights": dataset.light_count,
+        "exposure": factor,
         "directed_edges": len(edges),
         "dome": bool(triangulation.is_dome),
         "seconds": timer.seconds,
@@ -129,6 +140,24 @@ def fit_field(
         report=report,
         diffuse=diffuse_model,
     )
+
+
+def exposure_factor(images: np.ndarray, exposure: float | str) -> float:
+    """The radiance factor for ``exposure``: a positive number as it is, or "auto" (99.9th percentile -> 1)."""
+    if isinstance(exposure, str):
+        if exposure.strip().lower() != "auto":
+            try:
+                exposure = float(exposure)
+            except ValueError:
+                raise InputError(f"exposure must be a positive number or 'auto', got '{exposure}'") from None
+        else:
+            level = float(np.percentile(images[:: max(1, len(images) // 64)], 99.9))
+            if not np.isfinite(level) or level <= 0:
+                raise InputError("cannot pick an exposure automatically: the images are black; pass --exposure with a factor")
+            return 1.0 / level
+    if not (np.isfinite(exposure) and exposure > 0):
+        raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
+    return float(exposure)
 
 
 def _take_rows(params, rows):
@@ -177,5 +206,11 @@ def _bar(enabled: bool, name: str, iterations: int, workers, device, problems: i
     from tqdm import tqdm
 
     chunk_count = len(problem_chunks(problems, device, workers))
+    lock = threading.Lock()
     with tqdm(total=iterations * chunk_count, desc=f"{name} ({problems} sets)", unit="step", leave=False, mininterval=0.5) as bar:
-        yield bar.update
+
+        def advance(steps: int) -> None:
+            with lock:
+                bar.update(steps)
+
+        yield advance

@@ -23,6 +23,8 @@ def working_size(width: int, height: int, requested: tuple[int, int] | None) -> 
     if requested is None:
         return width, height
     new_width, new_height = requested
+    if min(new_width, new_height) < 8:
+        raise InputError(f"working size {new_width}x{new_height} is too small; use at least 8 pixels a side")
     if abs(new_width - width * new_height / height) > 1.0:
         raise InputError(
             f"working size {new_width}x{new_height} changes the aspect ratio of the {width}x{height} images; "

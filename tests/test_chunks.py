@@ -1,0 +1,53 @@
+"""CPU chunking: slices cover the problems, a failing chunk stops the others at once, the device default is untouched."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import warp as wp
+
+from warp_highlights.chunks import Cancelled, map_chunks, problem_chunks
+
+
+def test_chunks_cover_every_problem_once():
+    for count in (1, 2, 7, 100):
+        for workers in (1, 2, 3, 16):
+            chunks = problem_chunks(count, "cpu", workers)
+            covered = np.concatenate([np.arange(count)[c] for c in chunks])
+            np.testing.assert_array_equal(covered, np.arange(count))
+            assert len(chunks) == min(workers, count)
+
+
+def test_a_failing_chunk_stops_the_others_and_its_error_wins():
+    started = time.perf_counter()
+
+    def work(chunk, stop):
+        if chunk.start == 1:
+            time.sleep(0.05)
+            raise ValueError("chunk 1 failed")
+        for _ in range(500):  # 5 s unless stopped
+            if stop.is_set():
+                raise Cancelled
+            time.sleep(0.01)
+        return chunk.start
+
+    with pytest.raises(ValueError, match="chunk 1 failed"):
+        map_chunks(work, [slice(0, 1), slice(1, 2), slice(2, 3)])
+    assert time.perf_counter() - started < 2.0
+
+
+def test_results_keep_chunk_order():
+    assert map_chunks(lambda chunk, stop: chunk.start, [slice(0, 2), slice(2, 5), slice(5, 6)]) == [0, 2, 5]
+
+
+def test_threaded_cpu_fit_leaves_the_default_device_alone():
+    from warp_highlights.config import EstimationSettings
+    from warp_highlights.estimation import estimate
+
+    before = wp.get_device()
+    target = np.zeros((4, 16, 16), dtype=np.float32)
+    target[:, 6:9, 6:9] = 1.0
+    estimate(target, settings=EstimationSettings(iterations=30, densify_every=10, densify_until=20), device="cpu", workers=4)
+    assert wp.get_device() == before
