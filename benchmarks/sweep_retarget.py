@@ -99,7 +99,7 @@ def main() -> None:
         result = retarget(est.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device)
         wp.synchronize_device(device)
         seconds = time.perf_counter() - t
-        decisions = decide_paths(_rows(est.params, edges[:, 0]), result.params, settings.paths)
+        decisions = decide_paths(est.params.take(edges[:, 0]), result.params, settings.paths)
         field = HighlightField(
             lights=data.lights, triangulation=triangulation, width=width, height=height, estimated=est.params,
             directed_edges=edges, retargeted=result.params, path_delta=decisions.delta, path_centre=decisions.centre,
@@ -126,13 +126,6 @@ def main() -> None:
         out = Path(os.environ["OUT"]) / "sweep_retarget.json"
         out.write_text(json.dumps({"dataset": str(args.dataset), "device": str(device), "size": [width, height],
                                    "alpha_mean": float(alpha_psnr.mean()), "rows": rows}, indent=2))
-
-
-def _rows(params, rows):
-    from warp_highlights.gaussians import GaussianParams
-
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    return GaussianParams(**{name: getattr(params, name)[rows] for name in names})
 
 
 if __name__ == "__main__":

@@ -504,12 +504,16 @@ def test_random_batches_match_a_pairwise_union_find():
         np.random.default_rng(11), 6, 16, 40, 60, sigma_px=(0.3, 6.0)
     )
     eps = RasterSettings().sigma_eps
+    counts = []
     for level in (1.0, 2.0, 4.0):
         comps = ConnectedComponents.of(params, level=level)
         expected = _reference_labels(params, level, eps)
         np.testing.assert_array_equal(comps.labels, expected)
         np.testing.assert_array_equal(comps.counts, expected.max(axis=1) + 1)
-    assert 1 < comps.counts.mean() < 15  # neither all apart nor all merged
+        counts.append(comps.counts)
+    # growing ellipses only merge components: never more at a larger level, and fewer somewhere
+    assert np.all(counts[1] <= counts[0]) and np.all(counts[2] <= counts[1])
+    assert counts[2].sum() < counts[1].sum() < counts[0].sum()
 
 
 def test_bad_arguments_are_refused():

@@ -108,7 +108,7 @@ def test_rigid_phase_recovers_a_moved_component():
     truth[0, 0] = (6 / 270, -4 / 270, 0.15)
     target_params = _moved_numpy(params, labels, centroids, truth)
     targets = np.stack([np.zeros((54, 96), np.float32), raster.render(GaussianBatch.from_numpy(target_params, device="cpu", requires_grad=False)).numpy()[0]])
-    two = GaussianParams(**{name: np.concatenate([getattr(params, name)] * 2) for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
+    two = params.take([0, 0])
     result = retarget(two, targets, np.array([[0, 1]]), settings=RetargetSettings(rigid_iterations=300, iterations=0), device="cpu")
     got = result.params
     np.testing.assert_allclose(got.mean[0, :3], target_params.mean[0, :3], atol=0.6 / 270)

@@ -114,16 +114,10 @@ def estimate(
         return _Estimator(device_targets, host_targets[chunk], s, raster, device).run(stop, progress)
 
     parts = map_chunks(run, chunks)
-    params = _concatenate([p[0] for p in parts])
+    params = GaussianParams.concatenate([p[0] for p in parts])
     loss, images, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
     return EstimationResult(params=params, loss=loss, psnr=psnr(images, host_targets), added=added, pruned=pruned)
 
-
-def _concatenate(parts: list[GaussianParams]) -> GaussianParams:
-    if len(parts) == 1:
-        return parts[0]
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    return GaussianParams(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in names})
 
 
 class _Estimator:

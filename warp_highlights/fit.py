@@ -85,7 +85,7 @@ def fit_field(
         retargeted = retarget(estimated.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
     with timer.stage("paths"):
         source = estimated.params
-        decisions = decide_paths(_take_rows(source, edges[:, 0]), retargeted.params, settings.paths)
+        decisions = decide_paths(source.take(edges[:, 0]), retargeted.params, settings.paths)
 
     diffuse_model = None
     if diffuse != "none":
@@ -158,13 +158,6 @@ def exposure_factor(images: np.ndarray, exposure: float | str) -> float:
     if not (np.isfinite(exposure) and exposure > 0):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")
     return float(exposure)
-
-
-def _take_rows(params, rows):
-    from .gaussians import GaussianParams
-
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    return GaussianParams(**{name: getattr(params, name)[rows] for name in names})
 
 
 def _stats(values) -> dict:

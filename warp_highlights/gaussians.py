@@ -137,6 +137,17 @@ class GaussianParams(_SlotShape):
     def copy(self) -> GaussianParams:
         return GaussianParams(**{f.name: getattr(self, f.name).copy() for f in fields(self)})
 
+    def take(self, rows) -> GaussianParams:
+        """The problems ``rows`` (an index array, repeats allowed), e.g. every directed edge's source set."""
+        return GaussianParams(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
+
+    @classmethod
+    def concatenate(cls, parts: list[GaussianParams], *, axis: int = 0) -> GaussianParams:
+        """Join batches along the problems (axis 0) or, for equal problem counts, along the slots (axis 1)."""
+        if len(parts) == 1:
+            return parts[0]
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts], axis=axis) for f in fields(cls)})
+
 
 class GaussianBatch(_SlotShape):
     """B Gaussian sets of N slots as Warp arrays (structure of arrays), the input of every kernel.

@@ -39,15 +39,15 @@ def interpolate_sets(field, vertices: np.ndarray, barycentric: np.ndarray, *, me
     n = field.light_count
     edges = field.directed_edges.astype(np.int64)
     keys = edges[:, 0] * n + edges[:, 1]  # sorted: directed_edges() is lexicographically sorted
+    straight_below = field.fit_settings().paths.straight_below
     parts = []
     for k in range(3):
         a, b, c = vertices[:, k], vertices[:, (k + 1) % 3], vertices[:, (k + 2) % 3]
         la, lb, lc = weights[:, k], weights[:, (k + 1) % 3], weights[:, (k + 2) % 3]
         ab = _edge_rows(keys, a * n + b)
         ac = _edge_rows(keys, a * n + c)
-        parts.append(_moved_vertex_set(field, a, ab, ac, la, lb, lc, method))
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    return GaussianParams(**{name: np.concatenate([getattr(p, name) for p in parts], axis=1) for name in names})
+        parts.append(_moved_vertex_set(field, a, ab, ac, la, lb, lc, method, straight_below))
+    return GaussianParams.concatenate(parts, axis=1)
 
 
 def _edge_rows(keys: np.ndarray, wanted: np.ndarray) -> np.ndarray:
@@ -58,10 +58,10 @@ def _edge_rows(keys: np.ndarray, wanted: np.ndarray) -> np.ndarray:
     return rows
 
 
-def _moved_vertex_set(field, a, ab, ac, la, lb, lc, method: str) -> GaussianParams:
-    """G'_A for every query: (Q, N)."""
+def _moved_vertex_set(field, a, ab, ac, la, lb, lc, method: str, straight_below: float) -> GaussianParams:
+    """G'_A for every query: (Q, N); ``ab``, ``ac`` are the rows of edges A->B, A->C in the retargeted sets."""
     source = field.estimated
-    to_b, to_c = field.retargeted, field.retargeted
+    to_b = to_c = field.retargeted
     active = source.active[a]
     amplitude = la[:, None] * source.amplitude[a] + lb[:, None] * to_b.amplitude[ab] + lc[:, None] * to_c.amplitude[ac]
     sigma = la[:, None, None] * np.abs(source.sigma[a]) + lb[:, None, None] * np.abs(to_b.sigma[ab]) + lc[:, None, None] * np.abs(to_c.sigma[ac])
@@ -70,7 +70,6 @@ def _moved_vertex_set(field, a, ab, ac, la, lb, lc, method: str) -> GaussianPara
     theta = source.theta[a] + lb[:, None] * delta_b + lc[:, None] * delta_c
     mean_a = source.mean[a]
     if method == "circular":
-        straight_below = field.fit_settings().paths.straight_below
         towards_b = circular_position(mean_a, to_b.mean[ab], delta_b, lb[:, None], straight_below)
         towards_c = circular_position(mean_a, to_c.mean[ac], delta_c, lc[:, None], straight_below)
         mean = towards_b + towards_c - mean_a

@@ -95,20 +95,14 @@ def retarget(
     chunks = problem_chunks(len(edges), device, workers)
 
     def run(chunk: slice, stop) -> tuple:
-        source = _take(estimated, edges[chunk, 0])
+        source = estimated.take(edges[chunk, 0])
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
         return job.run(stop, progress)
 
     parts = map_chunks(run, chunks)
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    params = GaussianParams(**{name: np.concatenate([getattr(p[0], name) for p in parts]) for name in names})
+    params = GaussianParams.concatenate([p[0] for p in parts])
     losses = [np.concatenate([p[k] for p in parts]) for k in range(1, 6)]
     return RetargetResult(params, *losses)
-
-
-def _take(params: GaussianParams, rows: np.ndarray) -> GaussianParams:
-    names = ("amplitude", "mean", "sigma", "theta", "weight", "active")
-    return GaussianParams(**{name: getattr(params, name)[rows] for name in names})
 
 
 class _Retargeting:
