@@ -341,10 +341,15 @@ def test_an_exact_tie_goes_negative():
             (A0, A0, ELONGATED, 0.0, 170 * DEG),
         ]
     )
-    result = decide_paths(source, target)
+    result = decide_paths(source, target, parity="orientation")
     np.testing.assert_array_equal(result.score, 0.0)
     assert result.negative.all()
     np.testing.assert_allclose(result.delta[0], [-170 * DEG, -10 * DEG], atol=1e-12)
+    # comparing rotations (the default), delta+ = 10 and 170 deg are more than pi/2 apart: phi = -1,
+    # M = [[1/2, -1/2], [-1/2, 1/2]], M^2 = M, w' = w: each Gaussian takes its own short turn
+    result = decide_paths(source, target)
+    np.testing.assert_allclose(result.score[0], [0.7208449481334932, -0.7208449481334932], atol=1e-12)
+    np.testing.assert_allclose(result.delta[0], [10 * DEG, -10 * DEG], atol=1e-12)
 
 
 def test_far_apart_gaussians_decide_alone():
@@ -364,13 +369,17 @@ def test_parity_inverts_the_vote():
     source, target = pair_edge(L, p_theta=0.02, q_theta=np.pi - 0.02)
     # orientation parity: |0.02 - (pi - 0.02)| > pi/2, phi = -1, M^2 off-diagonal -3/8:
     # w'_q = -3/8 w_p + 5/8 w_q = -0.279752: negative
-    result = decide_paths(source, target)
+    result = decide_paths(source, target, parity="orientation")
     assert math.isclose(result.score[0, 1], -3 / 8 * w_p + 5 / 8 * w_q, abs_tol=1e-9)
     assert result.negative[0, 1]
     # rotation parity compares delta+ = 10 deg and 78.5 deg: phi = +1, w'_q = +0.297522: positive
     result = decide_paths(source, target, parity="rotation")
     assert math.isclose(result.score[0, 1], 3 / 8 * w_p + 5 / 8 * w_q, abs_tol=1e-9)
     assert not result.negative[0, 1]
+    # the settings choose the default: compare_rotations=True is parity="rotation"
+    assert np.array_equal(decide_paths(source, target).score, result.score)
+    by_orientation = decide_paths(source, target, PathSettings(compare_rotations=False))
+    assert math.isclose(by_orientation.score[0, 1], -3 / 8 * w_p + 5 / 8 * w_q, abs_tol=1e-9)
     with pytest.raises(InputError, match="parity"):
         decide_paths(source, target, parity="sideways")
 

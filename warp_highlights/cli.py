@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 
 from . import __version__
+from .cli_args import check_device as _check_device
+from .cli_args import parse_size, parse_triple
 from .errors import InputError
 
 __all__ = ["main"]
@@ -111,14 +113,20 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_common_options(fit)
     fit.set_defaults(run=_run_fit)
 
+    from .cli_relight import add_relight_commands
+
+    add_relight_commands(commands, common=_add_common_options)
+
     demo = commands.add_parser(
         "demo",
         help="the built-in synthetic default, end to end",
-        description="Render the built-in donut at a CPU-friendly size and write a contact sheet.",
+        description="Render the built-in donut at a CPU-friendly size (with held-out ground truth), fit a highlight field, "
+        "evaluate it against the ground truth, and animate the light: everything goes into one folder with an index.md.",
     )
     demo.add_argument("out", type=Path, nargs="?", default=Path("warp-highlights-demo"), help="output folder")
     demo.add_argument("--lights", type=int, default=64, help="number of lights (default 64)")
     demo.add_argument("--size", default="240x135", help="image size WIDTHxHEIGHT (default 240x135)")
+    demo.add_argument("--frames", type=int, default=72, help="frames of each animation (default 72)")
     demo.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     demo.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     _add_common_options(demo)
@@ -169,42 +177,7 @@ def _quiet_warp(*, verbose: bool) -> None:
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """'480x270' -> (480, 270)."""
-    parts = text.lower().replace("*", "x").split("x")
-    try:
-        width, height = (int(p) for p in parts)
-    except ValueError:
-        raise InputError(f"image size '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
-    if width < 1 or height < 1 or width * height > 64_000_000:
-        raise InputError(f"image size '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
-    return width, height
 
-
-def parse_triple(text: str, what: str) -> tuple[float, float, float]:
-    """'0.7,0.4,0.2' -> (0.7, 0.4, 0.2); one number is repeated."""
-    try:
-        values = [float(v) for v in text.replace(";", ",").split(",")]
-    except ValueError:
-        raise InputError(f"{what} '{text}' is not R,G,B numbers, e.g. 0.7,0.42,0.24") from None
-    if len(values) == 1:
-        values *= 3
-    if len(values) != 3:
-        raise InputError(f"{what} '{text}' needs 1 or 3 numbers, e.g. 0.7,0.42,0.24")
-    return tuple(values)
-
-
-def _check_device(device: str | None) -> str | None:
-    import warp as wp
-
-    wp.init()
-    if device is None:
-        return None
-    try:
-        return str(wp.get_device(device))
-    except (RuntimeError, ValueError):
-        names = ", ".join(str(d) for d in wp.get_devices())
-        raise InputError(f"device '{device}' is not available here; use one of: {names}") from None
 
 
 def _light_sets(args) -> tuple:
@@ -374,28 +347,17 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
 
 
 def _run_demo(args) -> int:
-    from .dataset import ReflectanceField
-    from .lights import LightSet
-    from .preview import save_contact_sheet
-    from .render import RenderSettings, default_material, render_dataset
+    from .demo import run_demo
 
     width, height = parse_size(args.size)
     device = _check_device(args.device)
     out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.overwrite:
         raise InputError(f"output folder {out} exists and is not empty; pass --overwrite or choose another folder")
-    out.mkdir(parents=True, exist_ok=True)
+    if args.frames < 2:
+        raise InputError(f"--frames must be at least 2, got {args.frames}")
     started = time.perf_counter()
-    dataset = render_dataset(
-        "donut",
-        out / "donut",
-        lights=LightSet.fibonacci_sphere(args.lights),
-        material=default_material("donut"),
-        settings=RenderSettings(width=width, height=height),
-        device=device,
-        overwrite=True,
-        progress=not args.quiet,
-    )
-    sheet = save_contact_sheet(ReflectanceField.load(dataset, progress=False), out / "donut-contact-sheet.png")
-    print(f"rendered {dataset} ({args.lights} lights, {width}x{height}) and {sheet} in {time.perf_counter() - started:.1f} s")
+    index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
+                     log=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr)))
+    print(f"demo finished in {time.perf_counter() - started:.0f} s: see {index}")
     return 0

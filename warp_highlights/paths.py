@@ -247,7 +247,7 @@ def decide_paths(
     retargeted: GaussianParams,
     settings: PathSettings | None = None,
     *,
-    parity: str = "orientation",
+    parity: str | None = None,
 ) -> PathDecisions:
     """Choose the rotation option of every Gaussian on every directed edge A->B (method.md section 6).
 
@@ -267,8 +267,8 @@ def decide_paths(
           its limit, measured against the chord's normal; if mu_A == mu_B there is no direction and
           the thetabar term is 0. A round Gaussian (|sigma_x| == |sigma_y|) takes theta as its axis.
         - phi_pq = sign(pi/2 - |a_p - a_q|) with a in [0, pi); exactly perpendicular pairs get
-          phi = 0 (no vote). ``parity="orientation"`` (default, method.md / eq. 3.27 as written)
-          uses a = theta_A; ``parity="rotation"`` uses a = delta+, for which phi = +1 exactly when
+          phi = 0 (no vote). ``parity="orientation"`` (method.md / eq. 3.27 as written) uses
+          a = theta_A; ``parity="rotation"`` (the default) uses a = delta+, for which phi = +1 exactly when
           the same-sign options of p and q are closer rotations than the opposite-sign ones (with
           theta_A, two near-parallel Gaussians either side of the 0/pi wrap get phi = -1).
 
@@ -277,7 +277,8 @@ def decide_paths(
         retargeted: G_{A->B}, (E, N); slot p is the same Gaussian as in ``source``. Only slots active
             in ``source`` take part.
         settings: ``PathSettings`` (straight_below, length_scale_rpx); default ``PathSettings()``.
-        parity: ``"orientation"`` or ``"rotation"``, what phi_pq compares (see above).
+        parity: ``"orientation"`` or ``"rotation"``, what phi_pq compares (see above); default from
+            ``settings.compare_rotations``.
 
     Returns:
         ``PathDecisions`` with (E, N) arrays; finite for finite inputs.
@@ -288,6 +289,8 @@ def decide_paths(
             f"source and retargeted Gaussian sets must have the same (edges, slots) shape, got "
             f"{source.shape} and {retargeted.shape}"
         )
+    if parity is None:
+        parity = "rotation" if settings.compare_rotations else "orientation"
     if parity not in PARITY_MODES:
         raise InputError(
             f"parity must be one of {', '.join(PARITY_MODES)}, got {parity!r}"

@@ -24,7 +24,7 @@ from .lights import LightSet
 from .shapes import TriangleMesh, make_shape
 from .triangulation import SphericalTriangulation
 
-__all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "view_rotation"]
+__all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "renderer_from_meta", "view_rotation"]
 
 # Rec. 709 / sRGB primaries: luminance weights for single-channel renders.
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
@@ -359,3 +359,22 @@ def _rotation_x(angle: float) -> np.ndarray:
 def _rotation_y(angle: float) -> np.ndarray:
     c, s = math.cos(angle), math.sin(angle)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def renderer_from_meta(meta: dict, *, device: str | None = None) -> Renderer | None:
+    """The renderer that made a dataset, rebuilt from its ``meta.json``; None when it cannot be.
+
+    Only datasets of the built-in shapes are rebuilt (a mesh file may have moved or changed); the
+    material, image settings and view rotation come from the metadata, so new ground truth at other
+    light directions matches the dataset's images.
+    """
+    try:
+        shape = str(meta["shape"]).strip().lower()
+        if shape not in ("donut", "torus", "teapot", "sphere"):
+            return None
+        material = Material(**meta["material"])
+        settings = RenderSettings(**meta["settings"])
+        rotation = np.asarray(meta["view_rotation"], dtype=np.float64).reshape(3, 3)
+    except (KeyError, TypeError, ValueError, InputError):
+        return None
+    return Renderer(make_shape(shape), material=material, settings=settings, rotation=rotation, device=device)

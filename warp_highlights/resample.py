@@ -6,7 +6,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["area_weights", "resize_stack", "working_size"]
+__all__ = ["area_weights", "linear_weights", "resample_image", "resize_stack", "working_size"]
 
 
 def area_weights(source: int, target: int) -> np.ndarray:
@@ -16,6 +16,33 @@ def area_weights(source: int, target: int) -> np.ndarray:
     hi = np.minimum(edges_out[1:, None], np.arange(1, source + 1)[None, :])
     overlap = np.clip(hi - lo, 0.0, None)
     return overlap / overlap.sum(axis=1, keepdims=True)
+
+
+def linear_weights(source: int, target: int) -> np.ndarray:
+    """(target, source) matrix of linear interpolation at the target pixel centres (edges clamped, rows sum to 1)."""
+    centres = (np.arange(target) + 0.5) * (source / target) - 0.5
+    centres = np.clip(centres, 0.0, source - 1)
+    lower = np.minimum(np.floor(centres).astype(np.int64), max(source - 2, 0))
+    frac = centres - lower
+    weights = np.zeros((target, source))
+    rows = np.arange(target)
+    weights[rows, lower] += 1.0 - frac
+    weights[rows, np.minimum(lower + 1, source - 1)] += frac
+    return weights
+
+
+def resample_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W, ...) -> (height, width, ...) float32: area average along an axis that shrinks, linear along one that grows."""
+    image = np.asarray(image, dtype=np.float32)
+    source_height, source_width = image.shape[:2]
+    if (source_height, source_width) == (height, width):
+        return image
+    pick = lambda s, t: area_weights(s, t) if t <= s else linear_weights(s, t)
+    rows = pick(source_height, height).astype(np.float32)
+    cols = pick(source_width, width).astype(np.float32)
+    flat = image.reshape(source_height, source_width, -1)
+    out = np.einsum("ij,jkc,lk->ilc", rows, flat, cols, optimize=True)
+    return out.reshape((height, width) + image.shape[2:])
 
 
 def working_size(width: int, height: int, requested: tuple[int, int] | None) -> tuple[int, int]:

@@ -1,0 +1,254 @@
+"""Kernels of relighting (method.md section 6): locate queries, interpolate Gaussian sets, compose images.
+
+Three launches turn Q query directions into Q images, whatever Q is:
+
+1. ``locate_directions`` (one thread per query, float64): the face of the triangulation the query's
+   ray crosses and its planar barycentric weights; on a dome, a query outside the covered region is
+   first moved to the nearest point of the boundary (the same rules as
+   ``SphericalTriangulation.locate``).
+2. ``interpolate_gaussians`` (query x corner x slot): the interpolated set G' of every query, 3N slots
+   (corner k's moved set in slots k N .. k N + N - 1), ready for the rasterizer.
+3. ``compose_images`` (query x pixel): I' = scale (D' + c S') with D' the Lambertian model, a
+   barycentric blend of per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of
+   a per-light stack.
+
+None of these is differentiated: relighting only renders.
+"""
+
+# ruff: noqa: UP018, RUF046  (Warp declares a mutable kernel local with float(0.0) / int(0))
+
+from __future__ import annotations
+
+import warp as wp
+
+from warp_highlights.gaussians import GaussianArrays
+
+__all__ = [
+    "DIFFUSE_BLEND",
+    "DIFFUSE_LAMBERT",
+    "DIFFUSE_NONE",
+    "arc_position",
+    "blend_images",
+    "compose_images",
+    "interpolate_gaussians",
+    "locate_directions",
+]
+
+DIFFUSE_NONE = 0
+"""``compose_images`` mode: no diffuse term."""
+DIFFUSE_LAMBERT = 1
+"""``compose_images`` mode: D' = max(nbar . omega, 0) + k_a per pixel and channel."""
+DIFFUSE_BLEND = 2
+"""``compose_images`` mode: D' = barycentric blend of the three corner lights' images."""
+
+
+@wp.func
+def _turn(v: wp.vec2, angle: float) -> wp.vec2:
+    c = wp.cos(angle)
+    s = wp.sin(angle)
+    return wp.vec2(c * v[0] - s * v[1], s * v[0] + c * v[1])
+
+
+@wp.func
+def arc_position(mean_a: wp.vec2, mean_b: wp.vec2, delta: float, fraction: float, straight_below: float) -> wp.vec2:
+    """The point ``fraction`` of the way along the arc that carries mean_a to mean_b turning by delta.
+
+    Chord form of R(f delta)(mean_a - O) + O (no centre needed, exact for any radius):
+    mean_a + sin(f delta / 2) / sin(delta / 2) R((f - 1) delta / 2)(mean_b - mean_a); the straight
+    blend when |delta| < straight_below. Matches ``warp_highlights.paths.circular_position``.
+    """
+    chord = mean_b - mean_a
+    sin_half = wp.sin(0.5 * delta)
+    if wp.abs(delta) < straight_below or sin_half == 0.0:
+        return mean_a + fraction * chord
+    return mean_a + (wp.sin(0.5 * fraction * delta) / sin_half) * _turn(chord, 0.5 * (fraction - 1.0) * delta)
+
+
+@wp.kernel(enable_backward=False)
+def locate_directions(
+    queries: wp.array(dtype=wp.vec3d),
+    edge_normals: wp.array2d(dtype=wp.vec3d),
+    inverses: wp.array(dtype=wp.mat33d),
+    rim_start: wp.array(dtype=wp.vec3d),
+    rim_end: wp.array(dtype=wp.vec3d),
+    rim_normal: wp.array(dtype=wp.vec3d),
+    rim_along: wp.array(dtype=wp.vec3d),
+    rim_back: wp.array(dtype=wp.vec3d),
+    rim_face: wp.array(dtype=wp.int32),
+    rim_opposite: wp.array(dtype=wp.int32),
+    is_dome: int,
+    inside_tolerance: wp.float64,
+    faces: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.vec3),
+    located: wp.array(dtype=wp.vec3),
+    clamped: wp.array(dtype=wp.int32),
+):
+    """Face and barycentric weights of each unit query (float64 geometry, float32 results).
+
+    The face is the one the query lies deepest inside (largest smallest edge-plane margin, first on
+    ties). On a dome, a query more than ``inside_tolerance`` outside every face moves to the nearest
+    point of the rim arcs (``rim_*``: per boundary edge its ends, great-circle normal, the in-plane
+    directions along the arc at its start and back at its end, its face and that face's opposite
+    corner, whose weight is then 0).
+    """
+    q = wp.tid()
+    query = queries[q]
+    best = int(0)
+    depth = wp.float64(-2.0)
+    for f in range(edge_normals.shape[0]):
+        margin = wp.min(wp.min(wp.dot(query, edge_normals[f, 0]), wp.dot(query, edge_normals[f, 1])), wp.dot(query, edge_normals[f, 2]))
+        if margin > depth:
+            depth = margin
+            best = f
+    point = query
+    opposite = int(-1)
+    outside = is_dome != 0 and depth < -inside_tolerance
+    if outside:
+        edge = int(0)
+        closest = wp.float64(-3.0)
+        for e in range(rim_face.shape[0]):
+            off_plane = wp.dot(query, rim_normal[e])
+            foot = wp.sqrt(wp.max(wp.float64(1.0) - off_plane * off_plane, wp.float64(0.0)))
+            over_arc = wp.dot(query, rim_along[e]) >= wp.float64(0.0) and wp.dot(query, rim_back[e]) >= wp.float64(0.0) and foot > wp.float64(1.0e-12)
+            closeness = wp.max(wp.dot(query, rim_start[e]), wp.dot(query, rim_end[e]))
+            if over_arc:
+                closeness = foot
+            if closeness > closest:
+                closest = closeness
+                edge = e
+        off_plane = wp.dot(query, rim_normal[edge])
+        foot = wp.sqrt(wp.max(wp.float64(1.0) - off_plane * off_plane, wp.float64(0.0)))
+        if wp.dot(query, rim_along[edge]) >= wp.float64(0.0) and wp.dot(query, rim_back[edge]) >= wp.float64(0.0) and foot > wp.float64(1.0e-12):
+            inner = query - off_plane * rim_normal[edge]
+            point = inner / wp.max(wp.length(inner), wp.float64(1.0e-300))
+        elif wp.dot(query, rim_start[edge]) >= wp.dot(query, rim_end[edge]):
+            point = rim_start[edge]
+        else:
+            point = rim_end[edge]
+        best = rim_face[edge]
+        opposite = rim_opposite[edge]
+    w = inverses[best] @ point
+    total = wp.float64(0.0)
+    for k in range(3):
+        if k == opposite or w[k] < wp.float64(0.0):
+            w[k] = wp.float64(0.0)
+        total += w[k]
+    faces[q] = best
+    weights[q] = wp.vec3(float(w[0] / total), float(w[1] / total), float(w[2] / total))
+    located[q] = wp.vec3(float(point[0]), float(point[1]), float(point[2]))
+    clamped[q] = int(outside)
+
+
+@wp.kernel(enable_backward=False)
+def interpolate_gaussians(
+    estimated: GaussianArrays,
+    retargeted: GaussianArrays,
+    path_delta: wp.array2d(dtype=float),
+    face_vertices: wp.array2d(dtype=wp.int32),
+    face_edges: wp.array3d(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.vec3),
+    circular: int,
+    straight_below: float,
+    out: GaussianArrays,
+):
+    """out[q, k N + p] = slot p of corner k's set moved to query q (method.md section 6).
+
+    For corner A = face_vertices[f, k] with weights (lA, lB, lC) rotated so lA is corner k's:
+    a' = lA a_A + lB a_AB + lC a_AC (likewise |sigma|), theta' = theta_A + lB delta_AB + lC delta_AC,
+    mu' = arc(A->B, lB) + arc(A->C, lC) - mu_A (circular) or the barycentric blend (straight); the
+    slot's weight is lA. A slot with lA = 0 is left inactive: it would draw nothing.
+    ``face_edges[f, k]`` holds the rows of the directed edges A->B and A->C.
+    """
+    q, k, p = wp.tid()
+    slot = k * estimated.active.shape[1] + p
+    f = faces[q]
+    a = face_vertices[f, k]
+    w = weights[q]
+    la = w[k]
+    lb = w[(k + 1) % 3]
+    lc = w[(k + 2) % 3]
+    if estimated.active[a, p] == 0 or la <= 0.0:
+        out.active[q, slot] = 0
+        out.amplitude[q, slot] = 0.0
+        out.mean[q, slot] = wp.vec2(0.0, 0.0)
+        out.sigma[q, slot] = wp.vec2(0.0, 0.0)
+        out.theta[q, slot] = 0.0
+        out.weight[q, slot] = 1.0
+        return
+    to_b = face_edges[f, k, 0]
+    to_c = face_edges[f, k, 1]
+    delta_b = path_delta[to_b, p]
+    delta_c = path_delta[to_c, p]
+    mean_a = estimated.mean[a, p]
+    mean_b = retargeted.mean[to_b, p]
+    mean_c = retargeted.mean[to_c, p]
+    mean = la * mean_a + lb * mean_b + lc * mean_c
+    if circular != 0:
+        mean = arc_position(mean_a, mean_b, delta_b, lb, straight_below) + arc_position(mean_a, mean_c, delta_c, lc, straight_below) - mean_a
+    sa = estimated.sigma[a, p]
+    sb = retargeted.sigma[to_b, p]
+    sc = retargeted.sigma[to_c, p]
+    out.active[q, slot] = 1
+    out.amplitude[q, slot] = la * estimated.amplitude[a, p] + lb * retargeted.amplitude[to_b, p] + lc * retargeted.amplitude[to_c, p]
+    out.mean[q, slot] = mean
+    out.sigma[q, slot] = wp.vec2(
+        la * wp.abs(sa[0]) + lb * wp.abs(sb[0]) + lc * wp.abs(sc[0]),
+        la * wp.abs(sa[1]) + lb * wp.abs(sb[1]) + lc * wp.abs(sc[1]),
+    )
+    out.theta[q, slot] = estimated.theta[a, p] + lb * delta_b + lc * delta_c
+    out.weight[q, slot] = la
+
+
+@wp.kernel(enable_backward=False)
+def blend_images(
+    stack: wp.array2d(dtype=float),
+    face_vertices: wp.array2d(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.vec3),
+    out: wp.array2d(dtype=float),
+):
+    """out[q, i] = sum_k weights[q][k] stack[corner k of q's face, i]: the alpha blend of flattened images."""
+    q, i = wp.tid()
+    f = faces[q]
+    w = weights[q]
+    out[q, i] = w[0] * stack[face_vertices[f, 0], i] + w[1] * stack[face_vertices[f, 1], i] + w[2] * stack[face_vertices[f, 2], i]
+
+
+@wp.kernel(enable_backward=False)
+def compose_images(
+    specular: wp.array2d(dtype=float),
+    specular_colour: wp.vec3,
+    add_specular: int,
+    diffuse_mode: int,
+    lambert: wp.array2d(dtype=wp.vec4),
+    diffuse_images: wp.array3d(dtype=wp.float16),
+    face_vertices: wp.array2d(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    weights: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    scale: float,
+    out: wp.array3d(dtype=float),
+):
+    """out[q, i, c] = scale (D'[q, i, c] + colour[c] S'[q, i]) for pixel i and channel c.
+
+    D' per ``diffuse_mode``: ``DIFFUSE_NONE`` 0; ``DIFFUSE_LAMBERT`` max(nbar . omega_q, 0) + k_a from
+    ``lambert[i, c]`` = (nbar_x, nbar_y, nbar_z, k_a); ``DIFFUSE_BLEND`` the barycentric blend of
+    ``diffuse_images[light, i, c]``. S' is added only when ``add_specular`` is set.
+    """
+    q, i = wp.tid()
+    value = float(0.0)
+    f = faces[q]
+    w = weights[q]
+    omega = directions[q]
+    for c in range(out.shape[2]):
+        value = 0.0
+        if diffuse_mode == DIFFUSE_LAMBERT:
+            m = lambert[i, c]
+            value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
+        elif diffuse_mode == DIFFUSE_BLEND:
+            for k in range(3):
+                value += w[k] * float(diffuse_images[face_vertices[f, k], i, c])
+        if add_specular != 0:
+            value += specular_colour[c] * specular[q, i]
+        out[q, i, c] = scale * value

@@ -1,0 +1,326 @@
+"""Relighting kernels (kernels/interpolation.py, warp_highlights/relight.py) against float64 references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from gaussian_cases import inside_params
+from reference import render as reference_render
+from warp_highlights.kernels.raster import Rasterizer
+
+from warp_highlights.config import FitSettings
+from warp_highlights.errors import InputError
+from warp_highlights.field import DiffuseModel, HighlightField
+from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.interpolation import interpolate_sets
+from warp_highlights.lights import LightSet
+from warp_highlights.paths import decide_paths
+from warp_highlights.relight import Relighter, face_edge_rows
+from warp_highlights.resample import (
+    area_weights,
+    linear_weights,
+    resample_image,
+    resize_stack,
+)
+from warp_highlights.triangulation import SphericalTriangulation
+
+HEIGHT, WIDTH = 27, 48
+
+
+def synthetic_field(lights: LightSet, *, capacity: int = 4, seed: int = 0, channels: int = 3, diffuse_images: bool = False) -> HighlightField:
+    """A field with random Gaussians, retargeted sets that move and turn them, and decided paths."""
+    rng = np.random.default_rng(seed)
+    n = len(lights)
+    triangulation = SphericalTriangulation(lights.directions)
+    edges = triangulation.directed_edges()
+    estimated = inside_params(rng, n, capacity, HEIGHT, WIDTH, sigma_px=(1.0, 4.0))
+    estimated.weight[:] = 1.0
+    estimated.active[:, -1] = False  # a free slot in every set
+    estimated.active[0] = False  # and one empty set
+    retargeted = estimated.take(edges[:, 0])
+    moved = rng.normal(scale=3.0 / HEIGHT, size=retargeted.mean.shape)
+    retargeted.mean = retargeted.mean + moved
+    retargeted.theta = retargeted.theta + rng.uniform(-1.2, 1.2, size=retargeted.theta.shape)
+    retargeted.amplitude = retargeted.amplitude * rng.uniform(0.7, 1.3, size=retargeted.amplitude.shape)
+    retargeted.sigma = retargeted.sigma * rng.uniform(0.8, 1.25, size=retargeted.sigma.shape)
+    settings = FitSettings()
+    decisions = decide_paths(estimated.take(edges[:, 0]), retargeted, settings.paths)
+    lambert = rng.normal(scale=0.5, size=(HEIGHT, WIDTH, channels, 4)).astype(np.float32)
+    lambert[..., 3] = np.abs(lambert[..., 3])
+    images = rng.uniform(0, 1, size=(n, HEIGHT, WIDTH, channels)).astype(np.float16) if diffuse_images else None
+    return HighlightField(
+        lights=lights, triangulation=triangulation, width=WIDTH, height=HEIGHT, estimated=estimated,
+        directed_edges=edges, retargeted=retargeted, path_delta=decisions.delta, path_centre=decisions.centre,
+        settings=settings.to_dict(), report={}, diffuse=DiffuseModel(lambert=lambert, images=images),
+    )
+
+
+@pytest.fixture(scope="module")
+def sphere_field():
+    return synthetic_field(LightSet.fibonacci_sphere(24), diffuse_images=True)
+
+
+@pytest.fixture(scope="module")
+def dome_field():
+    return synthetic_field(LightSet.fibonacci_dome(20, min_elevation_deg=15.0), seed=1)
+
+
+def random_directions(rng, count: int) -> np.ndarray:
+    directions = rng.normal(size=(count, 3))
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+def render_numpy(sets: GaussianParams, height: int = HEIGHT, width: int = WIDTH) -> np.ndarray:
+    return reference_render(sets, height, width, FitSettings().raster)
+
+
+@pytest.mark.parametrize("which", ["sphere_field", "dome_field"])
+def test_locate_kernel_matches_the_host_locate(which, request, device):
+    field = request.getfixturevalue(which)
+    relighter = Relighter(field, device=device)
+    queries = random_directions(np.random.default_rng(3), 300)
+    queries = np.concatenate([queries, field.lights.directions, 2.5 * field.triangulation.centroid_directions()])
+    chunk = relighter.launch(queries, full=False)
+    host = field.triangulation.locate(queries)
+    faces = chunk.faces.numpy()
+    weights = chunk.weights.numpy()
+    assert np.array_equal(chunk.clamped.numpy() != 0, host.clamped)
+    if which == "dome_field":
+        assert host.clamped.sum() > 50  # the test covers directions outside the dome
+    same = faces == host.faces
+    assert same.mean() > 0.95  # only ties on shared edges and vertices may pick the other face
+    np.testing.assert_allclose(weights[same], host.barycentric[same], atol=2e-6)
+    # where another face was picked, the point lies on their shared boundary: same position either way
+    corners = field.lights.directions[field.triangulation.faces]
+    kernel_points = np.einsum("qk,qkc->qc", weights, corners[faces])
+    host_points = np.einsum("qk,qkc->qc", host.barycentric, corners[host.faces])
+    np.testing.assert_allclose(kernel_points, host_points, atol=2e-6)
+    np.testing.assert_allclose(chunk.located.numpy(), host.directions, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["circular", "straight"])
+def test_interpolated_sets_match_the_float64_reference(sphere_field, method, device):
+    field = sphere_field
+    queries = random_directions(np.random.default_rng(5), 64)
+    relighter = Relighter(field, device=device)
+    sets = relighter.interpolated_sets(queries, method=method)
+    location = field.triangulation.locate(queries)
+    expected = interpolate_sets(field, location.vertices, location.barycentric, method=method)
+    drawn = expected.active & (expected.weight > 0)
+    assert np.array_equal(sets.active, drawn)  # corners of weight 0 are left out, nothing else
+    assert drawn.sum() > 200
+    for name, tolerance in (("amplitude", 1e-5), ("mean", 2e-6), ("sigma", 1e-6), ("theta", 2e-5), ("weight", 1e-6)):
+        np.testing.assert_allclose(getattr(sets, name)[drawn], getattr(expected, name)[drawn], atol=tolerance, err_msg=name)
+    images = relighter.relight(queries, method=method, full=False).specular
+    np.testing.assert_allclose(images, render_numpy(expected), atol=2e-4 * max(1.0, float(images.max())))
+
+
+def test_circular_and_straight_differ_only_in_the_means(sphere_field):
+    queries = random_directions(np.random.default_rng(6), 32)
+    relighter = Relighter(sphere_field, device="cpu")
+    circular = relighter.interpolated_sets(queries, method="circular")
+    straight = relighter.interpolated_sets(queries, method="straight")
+    for name in ("amplitude", "sigma", "theta", "weight", "active"):
+        assert np.array_equal(getattr(circular, name), getattr(straight, name))
+    gap = np.linalg.norm(circular.mean - straight.mean, axis=-1)[circular.active]
+    assert gap.max() > 1e-3  # the paths turn, so arcs leave the chords
+
+
+def test_arc_position_kernel_matches_the_path_identity(device):
+    from warp_highlights.kernels.interpolation import arc_position
+
+    from warp_highlights.paths import circular_position, path_centre
+
+    rng = np.random.default_rng(8)
+    count = 500
+    mean_a = rng.uniform(0, 1.5, size=(count, 2))
+    mean_b = mean_a + rng.normal(scale=0.1, size=(count, 2))
+    delta = rng.uniform(-np.pi, np.pi, size=count)
+    delta[:20] = rng.uniform(-1e-5, 1e-5, size=20)  # straight paths
+    fraction = rng.uniform(0, 1, size=count)
+    fraction[-50:] = 1.0
+
+    @wp.kernel
+    def evaluate(a: wp.array(dtype=wp.vec2), b: wp.array(dtype=wp.vec2), d: wp.array(dtype=float), t: wp.array(dtype=float), out: wp.array(dtype=wp.vec2)):
+        i = wp.tid()
+        out[i] = arc_position(a[i], b[i], d[i], t[i], 1.0e-4)
+
+    arrays = [wp.array(x.astype(np.float32), dtype=dtype, device=device) for x, dtype in ((mean_a, wp.vec2), (mean_b, wp.vec2), (delta, float), (fraction, float))]
+    out = wp.empty(count, dtype=wp.vec2, device=device)
+    wp.launch(evaluate, dim=count, inputs=arrays, outputs=[out], device=device)
+    got = out.numpy()
+    np.testing.assert_allclose(got, circular_position(mean_a, mean_b, delta, fraction, 1e-4), atol=2e-6)
+    # fraction 1 reaches mu_B; the arc keeps its distance to the centre O with R(delta)(mu_A - O) + O = mu_B
+    np.testing.assert_allclose(got[-50:], mean_b[-50:], atol=2e-6)
+    centre = path_centre(mean_a, mean_b, delta, 1e-4)
+    curved = np.abs(delta) > 0.05
+    radius_a = np.linalg.norm(mean_a - centre, axis=1)
+    np.testing.assert_allclose(np.linalg.norm(got - centre, axis=1)[curved], radius_a[curved], rtol=1e-4, atol=2e-6)
+
+
+def test_a_query_at_a_light_renders_that_lights_estimated_set(sphere_field, device):
+    field = sphere_field
+    relighter = Relighter(field, device=device)
+    lights = np.flatnonzero(field.estimated.counts > 0)[:8]
+    images = relighter.relight(field.lights.directions[lights], full=False).specular
+    raster = Rasterizer(HEIGHT, WIDTH, settings=FitSettings().raster, device=device)
+    expected = raster.render(GaussianBatch.from_numpy(field.estimated.take(lights), device=device, requires_grad=False)).numpy()
+    assert expected.max() > 0.1
+    np.testing.assert_allclose(images, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_images_change_continuously_across_a_triangle_edge(sphere_field):
+    field = sphere_field
+    tri = field.triangulation
+    relighter = Relighter(field, device="cpu")
+    interior = [tuple(edge) for edge in tri.edges()]
+    steps = []
+    for a, b in interior[:12]:
+        wa, wb = field.lights.directions[a], field.lights.directions[b]
+        on_edge = (0.6 * wa + 0.4 * wb) / np.linalg.norm(0.6 * wa + 0.4 * wb)
+        normal = np.cross(wa, wb) / np.linalg.norm(np.cross(wa, wb))
+        offsets = np.array([-1e-3, -1e-6, 1e-6, 1e-3])
+        queries = on_edge[None] + offsets[:, None] * normal[None]
+        result = relighter.relight(queries, full=True)
+        assert result.faces[1] != result.faces[2]  # the two queries straddle the edge
+        near = np.abs(result.full[2] - result.full[1]).max()
+        far = np.abs(result.full[3] - result.full[0]).max()
+        steps.append((near, far))
+    near, far = np.array(steps).T
+    assert near.max() < 1e-3  # a 2e-6 rad step changes nothing visible...
+    assert far.max() > 100 * near.max()  # ...while a 2e-3 rad step does: the image moves, it does not jump
+
+
+def test_alpha_blend_is_exact(sphere_field, device):
+    field = sphere_field
+    rng = np.random.default_rng(11)
+    specular = rng.uniform(0, 2, size=(field.light_count, HEIGHT, WIDTH)).astype(np.float32)
+    images = rng.uniform(0, 2, size=(field.light_count, HEIGHT, WIDTH, 3)).astype(np.float32)
+    relighter = Relighter(field, device=device, alpha_specular=specular, alpha_images=images, scale=0.5)
+    queries = random_directions(rng, 40)
+    result = relighter.relight(queries, method="alpha")
+    vertices = field.triangulation.faces[result.faces]
+    weights = result.barycentric.astype(np.float32)
+    np.testing.assert_allclose(result.specular, np.einsum("qk,qkhw->qhw", weights, specular[vertices]), rtol=1e-6, atol=1e-6)
+    halves = images.astype(np.float16).astype(np.float32)  # full images are kept as float16 on the device
+    np.testing.assert_allclose(result.full, 0.5 * np.einsum("qk,qkhwc->qhwc", weights, halves[vertices]), rtol=1e-6, atol=1e-6)
+    at_light = relighter.relight(field.lights.directions[3], method="alpha", full=False).specular
+    np.testing.assert_allclose(at_light, specular[3], rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("diffuse", ["lambert", "images", "none"])
+def test_full_image_is_diffuse_plus_coloured_specular(sphere_field, diffuse, device):
+    field = sphere_field
+    colour = (1.0, 0.5, 0.25)
+    relighter = Relighter(field, device=device, diffuse=diffuse, specular_colour=colour, scale=2.0)
+    queries = random_directions(np.random.default_rng(12), 6)
+    result = relighter.relight(queries)
+    unit = queries / np.linalg.norm(queries, axis=1, keepdims=True)
+    if diffuse == "lambert":
+        expected = np.stack([field.diffuse.lambertian(q) for q in unit])
+    elif diffuse == "images":
+        vertices = field.triangulation.faces[result.faces]
+        stack = field.diffuse.images.astype(np.float32)
+        expected = np.einsum("qk,qkhwc->qhwc", result.barycentric, stack[vertices])
+    else:
+        expected = np.zeros_like(result.full)
+    expected = 2.0 * (expected + np.asarray(colour) * result.specular[..., None])
+    np.testing.assert_allclose(result.full, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_other_output_sizes_render_the_same_gaussians(sphere_field):
+    field = sphere_field
+    queries = random_directions(np.random.default_rng(13), 5)
+    big = Relighter(field, device="cpu", size=(2 * WIDTH, 2 * HEIGHT), diffuse="lambert")
+    result = big.relight(queries)
+    sets = Relighter(field, device="cpu").interpolated_sets(queries)
+    np.testing.assert_allclose(result.specular, render_numpy(sets, 2 * HEIGHT, 2 * WIDTH), atol=2e-4 * max(1.0, float(result.specular.max())))
+    assert result.full.shape == (5, 2 * HEIGHT, 2 * WIDTH, 3)
+    with pytest.raises(InputError, match="aspect ratio"):
+        Relighter(field, size=(WIDTH, WIDTH))
+
+
+def test_relight_of_a_saved_and_loaded_field_is_identical(tmp_path):
+    field = synthetic_field(LightSet.fibonacci_sphere(18), seed=4)
+    path = tmp_path / "field.whf"
+    field.save(path, lambert_half=False)
+    loaded = HighlightField.load(path)
+    queries = random_directions(np.random.default_rng(14), 20)
+    for method in ("circular", "straight"):
+        before = Relighter(field, device="cpu").relight(queries, method=method)
+        after = Relighter(loaded, device="cpu").relight(queries, method=method)
+        assert np.array_equal(before.specular, after.specular)
+        assert np.array_equal(before.full, after.full)
+        assert before.specular.max() > 0
+
+
+def test_chunks_give_the_same_images_as_one_launch(sphere_field):
+    queries = random_directions(np.random.default_rng(15), 23)
+    whole = Relighter(sphere_field, device="cpu").relight(queries)
+    chunked = Relighter(sphere_field, device="cpu", max_batch=4)
+    seen = []
+    parts = chunked.relight(queries, progress=seen.append)
+    assert seen == [4, 8, 12, 16, 20, 23]
+    assert np.array_equal(whole.specular, parts.specular)
+    assert np.array_equal(whole.full, parts.full)
+    streamed = list(chunked.iter_relight(queries, full=False))
+    assert [len(p.specular) for p in streamed] == [4, 4, 4, 4, 4, 3]
+    assert np.array_equal(np.concatenate([p.specular for p in streamed]), whole.specular)
+
+
+def test_single_direction_has_no_query_axis(sphere_field):
+    result = Relighter(sphere_field, device="cpu").relight([0.0, 0.0, 3.0])
+    assert result.specular.shape == (HEIGHT, WIDTH)
+    assert result.full.shape == (HEIGHT, WIDTH, 3)
+    assert result.barycentric.shape == (3,)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "call", "expected"),
+    [
+        ({}, {"directions": [0.0, 0.0, 0.0]}, "zero or not finite"),
+        ({}, {"directions": [[1.0, np.nan, 0.0]]}, "zero or not finite"),
+        ({}, {"directions": [[1.0, 0.0]]}, "shape"),
+        ({}, {"directions": [0, 0, 1], "method": "cubic"}, "method must be one of"),
+        ({}, {"directions": [0, 0, 1], "method": "alpha"}, "needs the specular images"),
+        ({"diffuse": "sometimes"}, None, "diffuse must be one of"),
+        ({"scale": 0.0}, None, "scale must be a positive"),
+        ({"alpha_specular": np.zeros((3, HEIGHT, WIDTH))}, None, "alpha specular must have shape"),
+        ({"max_batch": 0}, None, "max_batch"),
+    ],
+)
+def test_bad_input_is_one_line(sphere_field, arguments, call, expected):
+    with pytest.raises(InputError, match=expected) as raised:
+        relighter = Relighter(sphere_field, device="cpu", **arguments)
+        relighter.relight(**call)
+    assert "\n" not in str(raised.value)
+
+
+def test_diffuse_images_need_a_field_that_stores_them(dome_field):
+    with pytest.raises(InputError, match="--diffuse images"):
+        Relighter(dome_field, diffuse="images")
+
+
+def test_face_edge_rows_point_at_the_right_edges(sphere_field):
+    field = sphere_field
+    rows = face_edge_rows(field.triangulation.faces, field.directed_edges, field.light_count)
+    faces = field.triangulation.faces
+    for k in range(3):
+        assert np.array_equal(field.directed_edges[rows[:, k, 0]], np.stack([faces[:, k], faces[:, (k + 1) % 3]], axis=1))
+        assert np.array_equal(field.directed_edges[rows[:, k, 1]], np.stack([faces[:, k], faces[:, (k + 2) % 3]], axis=1))
+
+
+def test_resample_image_shrinks_by_area_and_grows_linearly():
+    rng = np.random.default_rng(16)
+    image = rng.uniform(size=(30, 40, 2)).astype(np.float32)
+    np.testing.assert_allclose(resample_image(image, 20, 15), resize_stack(image[None], 20, 15)[0], rtol=1e-5)
+    ramp = np.add.outer(np.arange(10.0), 2.0 * np.arange(16.0)).astype(np.float32)
+    grown = resample_image(ramp, 32, 20)
+    rows = (np.arange(20) + 0.5) / 2 - 0.5
+    cols = (np.arange(32) + 0.5) / 2 - 0.5
+    expected = np.add.outer(np.clip(rows, 0, 9), 2.0 * np.clip(cols, 0, 15))
+    np.testing.assert_allclose(grown, expected, atol=1e-5)  # a ramp is reproduced exactly inside
+    for weights in (area_weights(7, 3), linear_weights(3, 7), linear_weights(1, 4)):
+        np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    assert resample_image(np.ones((5, 8)), 16, 10).shape == (10, 16)

@@ -1,0 +1,724 @@
+"""Light paths and animation writers: relight a highlight field along a path, write GIF, MP4 or frames.
+
+Light directions are float64 unit vectors from the object towards the light, in camera space: x to
+the right of the image, y towards the top, z towards the camera (method.md section 0). Angles taken
+as arguments are in degrees; elevation is measured from the image plane (xy) towards +z (the camera
+side), azimuth from +x towards +y.
+
+The writers stream: frames come from any iterable (a generator of relit images) and at most a few
+are held at a time. Frames are linear float images ``(H, W)`` or ``(H, W, 3)``, 1.0 = display white;
+they are clipped to [0, 1] and sRGB-encoded for GIF, MP4 and PNG, kept linear for EXR. Every output
+is written to a temporary sibling (file or folder) and renamed into place when complete, so a failed
+or interrupted write leaves nothing behind and an existing output untouched.
+
+Pillow is imported inside the functions that use it; MP4 needs an ``ffmpeg`` executable (on the PATH,
+or from the ``imageio-ffmpeg`` package).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+import operator
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+import uuid
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .images import _encode_levels, atomic_target, write_image
+from .lights import LightSet
+
+__all__ = [
+    "ANIMATION_OUTPUTS",
+    "LIGHT_PATH_FORMS",
+    "animation_kind",
+    "check_animation_output",
+    "great_circle",
+    "orbit",
+    "parse_light_path",
+    "through_directions",
+    "write_animation",
+]
+
+ANIMATION_OUTPUTS = ".gif, .mp4, or a folder (a name without suffix, or an existing folder) of PNG/EXR frames"
+"""What :func:`write_animation` can write, for messages and help texts."""
+
+LIGHT_PATH_FORMS = "great:x,y,z:x,y,z, orbit:ELEVATION_DEG[:START_AZIMUTH_DEG] or list:FILE"
+"""The light path specs :func:`parse_light_path` reads, for messages and help texts."""
+
+_ANTIPODAL_RAD = 1e-6  # directions closer than this to opposite have no unique great circle between them
+_SAME_RAD = 1e-12  # directions closer than this are one direction (no arc to follow)
+_GIF_PALETTE_FRAMES = 8  # frames sampled (the first ones) to build the one GIF palette
+_GIF_PALETTE_PIXELS = 1 << 21  # at most this many sampled pixels go into the palette quantiser
+_GIF_GRAY_ENTRIES = 32  # palette entries reserved for a gray ramp (highlights, shadows of later frames)
+_FRAME_DIGITS = 4  # digits of frame numbers in file names, more when there are more frames
+_FRAME_NAME = re.compile(r"^frame_\d+\.(png|exr)$")
+_FRAMES_FORMATS = ("png", "exr")
+
+
+# --- light paths ----------------------------------------------------------------------------------
+
+
+def great_circle(start, end, frames: int) -> np.ndarray:
+    """Directions along the shorter great-circle arc from ``start`` to ``end`` (spherical interpolation).
+
+    Args:
+        start: First direction, 3 numbers (normalised here).
+        end: Last direction, 3 numbers (normalised here).
+        frames: Number of directions, at least 1; both endpoints are included (1 gives ``start``).
+
+    Returns:
+        ``(frames, 3)`` float64 unit vectors at equal angular steps; the first is ``start`` and the last
+        is ``end`` exactly (after normalisation). Equal endpoints give a constant path.
+
+    Raises:
+        InputError: A zero or non-finite direction, a bad frame count, or opposite endpoints (every
+            great circle through them is as short as any other, so the path is ambiguous).
+    """
+    frames = _checked_frame_count(frames)
+    a, b = _unit(start, "start direction"), _unit(end, "end direction")
+    if frames == 1:
+        return a[None].copy()
+    _check_not_opposite(a, b, f"great circle from {_fmt(a)} to {_fmt(b)}")
+    return np.concatenate([_arc(a, b, frames - 1), b[None]])
+
+
+def orbit(elevation_deg: float, frames: int, *, start_azimuth_deg: float = 0.0, turns: float = 1.0) -> np.ndarray:
+    """Directions on a circle of constant elevation around the view axis, for a looping animation.
+
+    Args:
+        elevation_deg: Elevation above the image plane towards the camera, degrees in [-90, 90];
+            every direction has ``z = sin(elevation)``.
+        frames: Number of directions, at least 1.
+        start_azimuth_deg: Azimuth of the first direction, degrees from +x towards +y.
+        turns: Number of full turns (negative: clockwise as seen from the camera). With whole turns
+            the first direction is not repeated at the end, so the animation loops seamlessly.
+
+    Returns:
+        ``(frames, 3)`` float64 unit vectors; frame k is at azimuth
+        ``start_azimuth_deg + 360 * turns * k / frames``.
+
+    Raises:
+        InputError: Elevation outside [-90, 90], a non-finite angle or turn count, a bad frame count.
+    """
+    frames = _checked_frame_count(frames)
+    elevation = _finite(elevation_deg, "elevation_deg")
+    if not -90.0 <= elevation <= 90.0:
+        raise InputError(f"orbit elevation must be in [-90, 90] degrees, got {elevation:g}")
+    start = _finite(start_azimuth_deg, "start_azimuth_deg")
+    turns = _finite(turns, "turns")
+    azimuth = np.radians(start + 360.0 * turns * np.arange(frames) / frames)
+    e = math.radians(elevation)
+    ring = math.cos(e)
+    return np.stack([ring * np.cos(azimuth), ring * np.sin(azimuth), np.full(frames, math.sin(e))], axis=1)
+
+
+def through_directions(directions, frames: int) -> np.ndarray:
+    """Directions along great-circle arcs through a list of directions, in order.
+
+    The ``frames - 1`` steps are shared among the arcs in proportion to their lengths (each arc gets
+    at least one step, the largest step is kept as small as possible), so the light moves at a nearly
+    constant angular speed and every given direction is exactly one of the frames.
+
+    Args:
+        directions: ``(K, 3)`` directions to pass through (normalised here). Repeating a direction
+            right after itself adds no frames.
+        frames: Number of directions, at least 1 for K == 1 (a constant path), else at least one more
+            than the number of arcs of non-zero length.
+
+    Returns:
+        ``(frames, 3)`` float64 unit vectors; the first is ``directions[0]``, the last ``directions[-1]``.
+
+    Raises:
+        InputError: A bad array shape, a zero or non-finite direction, two consecutive opposite
+            directions (ambiguous arc), or too few frames to visit every direction.
+    """
+    frames = _checked_frame_count(frames)
+    points = _unit_rows(directions)
+    angles = _angle(points[:-1], points[1:])
+    for i in np.flatnonzero(angles > math.pi - _ANTIPODAL_RAD):
+        _check_not_opposite(points[i], points[i + 1], f"directions {i} and {i + 1} of the list")
+    moving = angles >= _SAME_RAD
+    if not moving.any():
+        return np.repeat(points[:1], frames, axis=0)
+    if frames - 1 < moving.sum():
+        raise InputError(
+            f"a path through {len(points)} directions needs at least {moving.sum() + 1} frames, got {frames}; "
+            "use more frames or fewer directions"
+        )
+    steps = _share_steps(angles, moving, frames - 1)
+    arcs = [_arc(points[i], points[i + 1], int(steps[i])) for i in np.flatnonzero(moving)]
+    return np.concatenate([*arcs, points[-1:]])
+
+
+def parse_light_path(spec: str, frames: int) -> np.ndarray:
+    """Light path from a command-line spec.
+
+    Forms: ``great:x,y,z:x,y,z`` (great-circle arc, :func:`great_circle`), ``orbit:ELEVATION_DEG`` or
+    ``orbit:ELEVATION_DEG:START_AZIMUTH_DEG`` (one turn, :func:`orbit`), ``list:FILE``
+    (:func:`through_directions` through the directions of FILE: an RTI ``.lp`` light file, or a text
+    file with one direction per line as ``x y z`` or ``x,y,z``; blank lines and ``#`` comments allowed).
+
+    Args:
+        spec: The path spec.
+        frames: Number of directions.
+
+    Returns:
+        ``(frames, 3)`` float64 unit vectors.
+
+    Raises:
+        InputError: One line naming the spec, the problem (file and line for files) and the expected form.
+    """
+    spec = str(spec)
+    kind, _, rest = spec.strip().partition(":")
+    parsers = {"great": _parse_great, "orbit": _parse_orbit, "list": _parse_list}
+    parser = parsers.get(kind.strip().lower())
+    if parser is None:
+        raise InputError(f"light path {spec!r}: unknown kind {kind.strip()!r}; expected {LIGHT_PATH_FORMS}")
+    try:
+        return parser(rest.strip(), frames)
+    except InputError as exc:
+        raise InputError(f"light path {spec!r}: {exc}") from None
+
+
+# --- writers --------------------------------------------------------------------------------------
+
+
+def animation_kind(path) -> str:
+    """What :func:`write_animation` writes to ``path``, from its suffix.
+
+    Args:
+        path: ``*.gif``, ``*.mp4``, or a folder: an existing folder or a name without suffix.
+
+    Returns:
+        ``"gif"``, ``"mp4"`` or ``"frames"``.
+
+    Raises:
+        InputError: Any other suffix (e.g. ``.avi``); the message lists the supported outputs.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix in (".gif", ".mp4"):
+        return suffix[1:]
+    if suffix == "" or path.is_dir():
+        return "frames"
+    raise InputError(f"{path}: cannot write an animation as {path.suffix!r}; supported: {ANIMATION_OUTPUTS}")
+
+
+def check_animation_output(path, *, overwrite: bool = False, frames_format: str = "png") -> str:
+    """Every check :func:`write_animation` makes before the first frame, for a CLI to run up front.
+
+    Args:
+        path: The output (see :func:`animation_kind`).
+        overwrite: Replace an existing output.
+        frames_format: ``"png"`` or ``"exr"``; only folders take ``"exr"``.
+
+    Returns:
+        The output kind, ``"gif"``, ``"mp4"`` or ``"frames"``.
+
+    Raises:
+        InputError: Unknown output type, an existing output without ``overwrite``, a folder holding
+            other files, a bad ``frames_format``, or MP4 without ffmpeg.
+    """
+    path = Path(path)
+    kind = animation_kind(path)
+    if frames_format not in _FRAMES_FORMATS:
+        raise InputError(f"frames_format must be 'png' or 'exr', got {frames_format!r}")
+    if frames_format != "png" and kind != "frames":
+        raise InputError(f"{path}: frames_format={frames_format!r} is for frame folders; give a folder name")
+    _check_target(path, kind, overwrite=overwrite)
+    if kind == "mp4":
+        _ffmpeg_executable()
+    return kind
+
+
+def write_animation(
+    frames: Iterable,
+    path,
+    *,
+    fps: float = 24.0,
+    frame_count: int | None = None,
+    overwrite: bool = False,
+    progress: Callable[[int], object] | None = None,
+    frames_format: str = "png",
+) -> Path:
+    """Write frames as an animated GIF, an MP4 video or a folder of numbered images, atomically.
+
+    GIF: one 256-colour palette for every frame (adaptive, from the first 8 frames, plus a gray
+    ramp; exact gray levels for grayscale frames), no dithering, so still regions never flicker; loops
+    forever; every frame is kept, identical ones too. MP4: H.264 (libx264, yuv420p, BT.709), odd sizes padded to even by repeating the last
+    row/column. Folder: ``frame_0000.png`` ... (8-bit sRGB) or ``frame_0000.exr`` (linear float32).
+
+    Args:
+        frames: Iterable of linear float images, ``(H, W)`` or ``(H, W, 3)``, all the same shape;
+            1.0 = display white, values outside [0, 1] are clipped (except in EXR). Consumed once,
+            streamed: a generator is fine.
+        path: Output: ``*.gif``, ``*.mp4``, or a folder (see :func:`animation_kind`).
+        fps: Frames per second; GIF takes at most 50 (its clock counts hundredths of a second, and
+            the frame durations alternate to keep the average rate exact).
+        frame_count: Number of frames ``frames`` yields, when known (default ``len(frames)`` where it
+            has one); a different count is an error, and it sets the digits of frame file names.
+        overwrite: Replace an existing output (a folder only when it holds nothing but frames).
+        progress: Called with the number of frames written so far, after each frame.
+        frames_format: Folder output only: ``"png"`` or ``"exr"``.
+
+    Returns:
+        The written path.
+
+    Raises:
+        InputError: Unknown output type, existing output without ``overwrite``, no frames, a frame of
+            another shape or with non-finite values (index named), a bad ``fps``, MP4 without ffmpeg
+            or an ffmpeg failure. Nothing is written then; an existing output stays as it was.
+    """
+    path = Path(path)
+    kind = check_animation_output(path, overwrite=overwrite, frames_format=frames_format)
+    fps = _checked_fps(fps, kind)
+    if frame_count is None and hasattr(frames, "__len__"):
+        frame_count = len(frames) or None  # an empty sequence is reported as "no frames" below
+    if frame_count is not None:
+        frame_count = _checked_frame_count(frame_count)
+    report = progress if progress is not None else (lambda done: None)
+    checked = _checked_frames(frames, frame_count)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if kind == "frames":
+        with _atomic_folder(path, overwrite=overwrite) as tmp:
+            _write_frames(checked, tmp, frames_format=frames_format, frame_count=frame_count, progress=report)
+    else:
+        writer = _write_gif if kind == "gif" else _write_mp4
+        with atomic_target(path) as tmp:
+            writer(checked, tmp, fps=fps, progress=report)
+            _check_target(path, kind, overwrite=overwrite)  # nothing appeared there meanwhile
+    return path
+
+
+# --- path helpers ---------------------------------------------------------------------------------
+
+
+def _checked_frame_count(frames) -> int:
+    try:
+        count = operator.index(frames)
+    except TypeError:
+        count = None
+    if count is None or isinstance(frames, bool) or count < 1:
+        raise InputError(f"the frame count must be a positive integer, got {frames!r}")
+    return count
+
+
+def _finite(value, name: str) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return number
+
+
+def _unit(vector, name: str) -> np.ndarray:
+    """One direction -> float64 unit vector, or an InputError naming it."""
+    try:
+        v = np.asarray(vector, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be 3 numbers x,y,z, got {vector!r}") from None
+    if v.shape != (3,):
+        raise InputError(f"{name} must be 3 numbers x,y,z, got shape {v.shape}")
+    norm = float(np.linalg.norm(v))
+    if not (math.isfinite(norm) and norm > 0.0):
+        raise InputError(f"{name} {v.tolist()} is zero or not finite; give the direction towards the light")
+    return v / norm
+
+
+def _unit_rows(directions) -> np.ndarray:
+    try:
+        points = np.asarray(directions, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("directions must be a (K, 3) array of numbers") from None
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
+        raise InputError(f"directions must have shape (K, 3) with K >= 1, got {points.shape}")
+    return np.stack([_unit(p, f"direction {i}") for i, p in enumerate(points)])
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle in radians between unit vectors (last axis), accurate near 0 and pi."""
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.sum(a * b, axis=-1))
+
+
+def _check_not_opposite(a: np.ndarray, b: np.ndarray, what: str) -> None:
+    if _angle(a, b) > math.pi - _ANTIPODAL_RAD:
+        raise InputError(
+            f"{what}: the directions are opposite, so the great circle between them is ambiguous; "
+            "use a list path through a middle direction"
+        )
+
+
+def _arc(a: np.ndarray, b: np.ndarray, count: int) -> np.ndarray:
+    """``count`` directions at equal angular steps from ``a`` towards ``b``: a included, b excluded."""
+    theta = float(_angle(a, b))
+    if theta < _SAME_RAD:
+        return np.repeat(a[None], count, axis=0)
+    w = b - np.dot(a, b) * a  # component of b orthogonal to a; length sin(theta)
+    w /= np.linalg.norm(w)
+    t = theta * np.arange(count)[:, None] / count
+    points = np.cos(t) * a + np.sin(t) * w
+    points /= np.linalg.norm(points, axis=1, keepdims=True)
+    points[0] = a
+    return points
+
+
+def _share_steps(angles: np.ndarray, moving: np.ndarray, total: int) -> np.ndarray:
+    """``total`` steps over the arcs: one per moving arc, the rest in proportion to arc length.
+
+    The proportional share is rounded down, and each step left over goes to the arc whose step is
+    currently the longest (at most one per arc).
+    """
+    spare = total - int(moving.sum())
+    shares = np.floor(spare * np.where(moving, angles, 0.0) / angles[moving].sum())
+    steps = moving.astype(np.int64) + shares.astype(np.int64)
+    for _ in range(total - int(steps.sum())):
+        step_length = np.where(moving, angles / np.maximum(steps, 1), -1.0)
+        steps[np.argmax(step_length)] += 1
+    return steps
+
+
+def _fmt(v: np.ndarray) -> str:
+    return "(" + ", ".join(f"{x:.4g}" for x in v) + ")"
+
+
+# --- light path spec parsing ------------------------------------------------------------------------
+
+
+def _parse_number(text: str, what: str, example: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"{what} must be a number, got {text.strip()!r}, e.g. {example}")
+    return value
+
+
+def _parse_vector(text: str, what: str) -> np.ndarray:
+    example = "great:1,0,1:-1,0,1"
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise InputError(f"the {what} direction must be three numbers x,y,z, got {text.strip()!r}, e.g. {example}")
+    return np.array([_parse_number(p, f"each coordinate of the {what} direction", example) for p in parts])
+
+
+def _parse_great(rest: str, frames: int) -> np.ndarray:
+    parts = rest.split(":")
+    if len(parts) != 2:
+        raise InputError("expected two directions, great:x,y,z:x,y,z, e.g. great:1,0,1:-1,0,1")
+    return great_circle(_parse_vector(parts[0], "start"), _parse_vector(parts[1], "end"), frames)
+
+
+def _parse_orbit(rest: str, frames: int) -> np.ndarray:
+    parts = rest.split(":")
+    if len(parts) > 2 or not rest:
+        raise InputError("expected orbit:ELEVATION_DEG or orbit:ELEVATION_DEG:START_AZIMUTH_DEG, e.g. orbit:30")
+    elevation = _parse_number(parts[0], "elevation (degrees)", "orbit:30")
+    azimuth = _parse_number(parts[1], "start azimuth (degrees)", "orbit:30:90") if len(parts) == 2 else 0.0
+    return orbit(elevation, frames, start_azimuth_deg=azimuth)
+
+
+def _parse_list(rest: str, frames: int) -> np.ndarray:
+    if not rest:
+        raise InputError("expected list:FILE with an .lp light file or a text file of 'x y z' lines")
+    path = Path(rest)
+    if path.suffix.lower() == ".lp":
+        directions = LightSet.read_lp(path, check_files=False).directions
+    else:
+        directions = _read_direction_file(path)
+    return through_directions(directions, frames)
+
+
+def _read_direction_file(path: Path) -> np.ndarray:
+    """Text file of one direction a line (``x y z`` or ``x,y,z``; blank lines, ``#`` comments) -> (K, 3)."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError(f"{path}: direction file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read direction file ({exc}); expected a text file of 'x y z' lines") from None
+    rows = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        body = line.split("#", 1)[0].strip()
+        if body:
+            rows.append(_parse_direction_line(path, number, body))
+    if not rows:
+        raise InputError(f"{path}: no directions in the file; write one direction a line as 'x y z' or 'x,y,z'")
+    return np.array(rows)
+
+
+def _parse_direction_line(path: Path, number: int, body: str) -> list[float]:
+    tokens = [t for t in re.split(r"[,\s]+", body) if t]
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(map(math.isfinite, values)) or not any(values):
+        raise InputError(
+            f"{path}:{number}: expected a non-zero direction as 'x y z' or 'x,y,z', got {body[:60]!r}"
+        )
+    return values
+
+
+# --- writer helpers ---------------------------------------------------------------------------------
+
+
+def _checked_fps(fps, kind: str) -> float:
+    fps = _finite(fps, "fps")
+    if fps <= 0.0:
+        raise InputError(f"fps must be positive, got {fps:g}")
+    if kind == "gif" and not 100.0 / 65535.0 <= fps <= 50.0:
+        raise InputError(f"a GIF plays at 0.0016 to 50 frames per second, got fps={fps:g}; write .mp4 for more")
+    return fps
+
+
+def _check_target(path: Path, kind: str, *, overwrite: bool) -> None:
+    """InputError unless ``path`` may be written: new, or replaceable with ``overwrite``."""
+    if kind != "frames":
+        if path.is_dir():
+            raise InputError(f"{path} is a folder; choose a file name for the {kind.upper()} animation")
+        if path.exists() and not overwrite:
+            raise InputError(f"{path} exists; pass --overwrite to replace it or choose another name")
+        return
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path} exists and is not a folder; choose another folder for the frames")
+    entries = list(path.iterdir()) if path.is_dir() else []
+    others = [e.name for e in entries if not (_FRAME_NAME.match(e.name) and e.is_file())]
+    if others:
+        raise InputError(
+            f"{path} holds files other than animation frames (e.g. {others[0]!r}); choose a new or empty folder"
+        )
+    if entries and not overwrite:
+        raise InputError(f"{path} holds frames already; pass --overwrite to replace them or choose another folder")
+
+
+def _checked_frames(frames: Iterable, frame_count: int | None) -> Iterator[np.ndarray]:
+    """Yield float32 frames, checking shape, finiteness and count; InputError names the frame index."""
+    shape = None
+    index = -1
+    for index, frame in enumerate(frames):
+        image = np.asarray(frame, dtype=np.float32)
+        if image.ndim == 3 and image.shape[2] == 1:
+            image = image[:, :, 0]
+        if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3) or 0 in image.shape:
+            raise InputError(f"frame {index} has shape {image.shape}; expected (H, W) or (H, W, 3)")
+        if shape is None:
+            shape = image.shape
+        elif image.shape != shape:
+            raise InputError(f"frame {index} has shape {image.shape} but frame 0 has {shape}; all frames must match")
+        if not np.isfinite(image).all():
+            raise InputError(f"frame {index} has NaN or infinite values; fix the frames, nothing was written")
+        yield image
+    if index < 0:
+        raise InputError("no frames to write; the light path or the frame source is empty")
+    if frame_count is not None and index + 1 != frame_count:
+        raise InputError(f"got {index + 1} frames but frame_count says {frame_count}")
+
+
+@contextlib.contextmanager
+def _atomic_folder(path: Path, *, overwrite: bool) -> Iterator[Path]:
+    """Yield a temporary folder beside ``path``; on success it replaces ``path``, on error it is removed."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
+    tmp.mkdir()
+    try:
+        yield tmp
+        _check_target(path, "frames", overwrite=overwrite)
+        _replace_folder(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _replace_folder(tmp: Path, path: Path) -> None:
+    """Rename ``tmp`` to ``path``; an existing ``path`` is swapped out first and removed after."""
+    if not path.exists():
+        os.rename(tmp, path)
+        return
+    old = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.old")
+    os.rename(path, old)
+    try:
+        os.rename(tmp, path)
+    except BaseException:
+        os.rename(old, path)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_frames(
+    frames: Iterator[np.ndarray], folder: Path, *, frames_format: str, frame_count: int | None, progress
+) -> None:
+    """Numbered frames ``frame_0000.png`` ... into ``folder`` (more digits when there are more frames)."""
+    digits = max(_FRAME_DIGITS, len(str(frame_count - 1))) if frame_count else _FRAME_DIGITS
+    count = 0
+    for count, image in enumerate(frames, start=1):
+        write_image(folder / f"frame_{count - 1:0{digits}d}.{frames_format}", image)
+        progress(count)
+    if len(str(count - 1)) > digits:  # more frames than announced: pad every name to one width
+        wide = len(str(count - 1))
+        for i in range(count):
+            old = folder / f"frame_{i:0{digits}d}.{frames_format}"
+            old.rename(folder / f"frame_{i:0{wide}d}.{frames_format}")
+
+
+def _srgb8(image: np.ndarray) -> np.ndarray:
+    """Linear float frame -> uint8 sRGB codes (clipped to [0, 1])."""
+    return _encode_levels(image, 255, linear=False)
+
+
+def _gif_centiseconds(fps: float) -> Iterator[int]:
+    """GIF frame durations in 1/100 s whose running sum tracks ``k / fps`` (e.g. 4, 4, 5 at 24 fps)."""
+    for k in itertools.count():
+        yield round(100.0 * (k + 1) / fps) - round(100.0 * k / fps)
+
+
+def _gif_palette(samples: list[np.ndarray]):
+    """One ``P``-mode palette image for all frames from sampled uint8 RGB frames; None for grayscale.
+
+    Half the adaptive entries follow how often colours occur (large areas stay smooth), half treat
+    every distinct colour alike (small highlights and their halos get colours too); a gray ramp fills
+    the rest, for whites and shadows the sample did not have.
+    """
+    from PIL import Image
+
+    if samples[0].ndim == 2:
+        return None
+    mosaic = np.concatenate(samples, axis=0)
+    stride = max(1, math.ceil(math.sqrt(mosaic.shape[0] * mosaic.shape[1] / _GIF_PALETTE_PIXELS)))
+    mosaic = np.ascontiguousarray(mosaic[::stride, ::stride])
+    distinct = np.unique(mosaic.reshape(-1, 3), axis=0)
+    side = math.ceil(math.sqrt(len(distinct)))
+    distinct = np.concatenate([distinct, np.repeat(distinct[:1], side * side - len(distinct), axis=0)])
+    half = (256 - _GIF_GRAY_ENTRIES) // 2
+    colours = _median_cut(Image.fromarray(mosaic), half) + _median_cut(
+        Image.fromarray(distinct.reshape(side, side, 3)), half
+    )
+    gray = np.rint(np.linspace(0, 255, 256 - len(colours) // 3)).astype(int)
+    colours += [int(v) for v in np.repeat(gray, 3)]
+    palette = Image.new("P", (1, 1))
+    palette.putpalette(colours)
+    return palette
+
+
+def _median_cut(image, count: int) -> list[int]:
+    """Flat RGB list of the (at most ``count``) colours median cut picks for a Pillow RGB image."""
+    from PIL import Image
+
+    adaptive = image.quantize(count, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    entries = adaptive.getpalette()
+    used = sorted(index for _, index in adaptive.getcolors(256))
+    return [value for i in used for value in entries[3 * i : 3 * i + 3]]
+
+
+def _gif_image(levels: np.ndarray, palette):
+    """uint8 frame -> Pillow image with the shared palette (nearest colour, no dithering)."""
+    from PIL import Image
+
+    image = Image.fromarray(np.ascontiguousarray(levels))
+    if palette is None:
+        return image  # "L": GIF's gray palette holds every level exactly
+    return image.quantize(palette=palette, dither=Image.Dither.NONE)
+
+
+def _write_gif(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
+    """Stream a looping GIF: global palette from the first frames, then every frame without a local palette."""
+    from PIL import GifImagePlugin
+
+    head = [_srgb8(image) for image in itertools.islice(frames, _GIF_PALETTE_FRAMES)]
+    palette = _gif_palette(head)
+    durations = _gif_centiseconds(fps)
+    with open(path, "wb") as fp:
+        for done, levels in enumerate(itertools.chain(head, map(_srgb8, frames)), start=1):
+            image = _gif_image(levels, palette)
+            if done == 1:
+                header, _ = GifImagePlugin.getheader(image, info={"loop": 0, "duration": 10})
+                fp.writelines(header)
+            fp.writelines(GifImagePlugin.getdata(image, duration=10 * next(durations)))
+            progress(done)
+        fp.write(b";")
+
+
+def _ffmpeg_executable() -> str:
+    """Path of an ffmpeg executable: on the PATH, else from imageio-ffmpeg; InputError when neither."""
+    found = shutil.which("ffmpeg")
+    if found:
+        return found
+    try:
+        import imageio_ffmpeg
+
+        return imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError):
+        raise InputError(
+            "writing .mp4 needs ffmpeg: install it or `pip install imageio-ffmpeg`, or write .gif or a frames folder"
+        ) from None
+
+
+def _ffmpeg_command(executable: str, width: int, height: int, fps: float, path: Path) -> list[str]:
+    return [
+        executable, "-hide_banner", "-loglevel", "error", "-nostdin", "-y",
+        "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-framerate", f"{fps:.6g}", "-i", "pipe:0",
+        "-an", "-vf", "scale=out_color_matrix=bt709:out_range=tv",
+        "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "18",
+        "-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709",
+        "-movflags", "+faststart", "-f", "mp4", str(path),
+    ]  # fmt: skip
+
+
+def _rgb24_even(image: np.ndarray) -> np.ndarray:
+    """Linear frame -> uint8 sRGB (H', W', 3) with even H', W' (last row/column repeated)."""
+    levels = _srgb8(image)
+    if levels.ndim == 2:
+        levels = np.repeat(levels[:, :, None], 3, axis=2)
+    height, width = levels.shape[:2]
+    return np.pad(levels, ((0, height % 2), (0, width % 2), (0, 0)), mode="edge")
+
+
+def _write_mp4(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
+    """Pipe rgb24 frames into ffmpeg (libx264, yuv420p); its error output becomes an InputError."""
+    executable = _ffmpeg_executable()
+    first = _rgb24_even(next(frames))
+    command = _ffmpeg_command(executable, first.shape[1], first.shape[0], fps, path)
+    with tempfile.TemporaryFile() as log:
+        process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
+        try:
+            code = _feed_ffmpeg(process, itertools.chain([first], map(_rgb24_even, frames)), progress)
+        finally:
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+            with contextlib.suppress(OSError):
+                process.stdin.close()
+        if code != 0:
+            log.seek(0)
+            raise InputError(f"ffmpeg could not write the MP4 video ({_ffmpeg_reason(log.read(), code)})")
+
+
+def _feed_ffmpeg(process: subprocess.Popen, frames: Iterator[np.ndarray], progress) -> int:
+    """Write every frame to ffmpeg's input, close it, return ffmpeg's exit status."""
+    for done, levels in enumerate(frames, start=1):
+        try:
+            process.stdin.write(levels.tobytes())
+        except BrokenPipeError:
+            break  # ffmpeg stopped; its log says why
+        progress(done)
+    with contextlib.suppress(BrokenPipeError):
+        process.stdin.close()
+    return process.wait()
+
+
+def _ffmpeg_reason(log: bytes, code: int) -> str:
+    """The first and last lines of ffmpeg's error output (cause and summary), without ``[codec @ 0x..]``."""
+    lines = [re.sub(r"^\[[^\]]*\]\s*", "", line).strip() for line in log.decode("utf-8", "replace").splitlines()]
+    lines = [line for line in lines if line]
+    if not lines:
+        return f"exit status {code}"
+    return lines[0] if len(lines) == 1 else f"{lines[0]}; {lines[-1]}"

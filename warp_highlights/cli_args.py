@@ -1,0 +1,58 @@
+"""Argument parsers and checks shared by the ``warp-highlights`` commands."""
+
+from __future__ import annotations
+
+from .errors import InputError
+
+__all__ = ["check_device", "parse_direction", "parse_size", "parse_triple"]
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'480x270' -> (480, 270)."""
+    parts = text.lower().replace("*", "x").split("x")
+    try:
+        width, height = (int(p) for p in parts)
+    except ValueError:
+        raise InputError(f"image size '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
+    if width < 1 or height < 1 or width * height > 64_000_000:
+        raise InputError(f"image size '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
+    return width, height
+
+
+def parse_triple(text: str, what: str) -> tuple[float, float, float]:
+    """'0.7,0.4,0.2' -> (0.7, 0.4, 0.2); one number is repeated."""
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        raise InputError(f"{what} '{text}' is not R,G,B numbers, e.g. 0.7,0.42,0.24") from None
+    if len(values) == 1:
+        values *= 3
+    if len(values) != 3:
+        raise InputError(f"{what} '{text}' needs 1 or 3 numbers, e.g. 0.7,0.42,0.24")
+    return tuple(values)
+
+
+def check_device(device: str | None) -> str | None:
+    import warp as wp
+
+    wp.init()
+    if device is None:
+        return None
+    try:
+        return str(wp.get_device(device))
+    except (RuntimeError, ValueError):
+        names = ", ".join(str(d) for d in wp.get_devices())
+        raise InputError(f"device '{device}' is not available here; use one of: {names}") from None
+
+
+def parse_direction(text: str) -> tuple[float, float, float]:
+    """'0.3,0.5,1' -> (0.3, 0.5, 1.0): a light direction (towards the light), any non-zero length."""
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        raise InputError(f"light direction '{text}' is not X,Y,Z numbers, e.g. 0.3,0.5,1") from None
+    if len(values) != 3:
+        raise InputError(f"light direction '{text}' needs 3 numbers X,Y,Z, e.g. 0.3,0.5,1")
+    if not all(abs(v) < float("inf") for v in values) or not any(values):
+        raise InputError(f"light direction '{text}' must be finite and non-zero, e.g. 0.3,0.5,1")
+    return tuple(values)

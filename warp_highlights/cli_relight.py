@@ -1,0 +1,330 @@
+"""The ``relight``, ``animate`` and ``evaluate`` commands of ``warp-highlights`` (registered by ``cli``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .cli_args import check_device, parse_direction, parse_size, parse_triple
+from .errors import InputError
+
+__all__ = ["add_relight_commands", "print_evaluation_table", "write_evaluation"]
+
+_IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def add_relight_commands(commands, *, common) -> None:
+    """Add the three subcommands to ``commands`` (argparse sub-parsers); ``common`` adds -q/-v."""
+    relight = commands.add_parser(
+        "relight",
+        help="render a fitted field for one or more light directions",
+        description="Relight a highlight field: locate each light direction in the triangulation, move the "
+        "Gaussians along their paths, rasterize the highlights and add the diffuse part.",
+    )
+    relight.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    relight.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera); repeatable")
+    relight.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
+    relight.add_argument("-o", "--output", type=Path, required=True, help="image file (.exr linear, .png sRGB) for one light; a folder for several (images + lights.lp)")
+    _add_relight_options(relight)
+    relight.add_argument("--overwrite", action="store_true", help="replace existing output")
+    common(relight)
+    relight.set_defaults(run=_run_relight)
+
+    animate = commands.add_parser(
+        "animate",
+        help="render a fitted field along a light path: GIF, MP4 or a folder of frames",
+        description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great "
+        "circle between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that "
+        "elevation), list:FILE (a .lp or x y z text file, visited in order).",
+    )
+    animate.add_argument("field", type=Path, help="highlight-field file")
+    animate.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
+    animate.add_argument("-o", "--output", type=Path, required=True, help=".gif, .mp4 (needs ffmpeg) or a folder of frames")
+    animate.add_argument("--frames", type=int, default=96, help="number of frames (default 96)")
+    animate.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
+    animate.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
+    animate.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
+    animate.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
+    _add_relight_options(animate)
+    animate.add_argument("--overwrite", action="store_true", help="replace existing output")
+    common(animate)
+    animate.set_defaults(run=_run_animate)
+
+    evaluate = commands.add_parser(
+        "evaluate",
+        help="score a fitted field against held-out ground truth: JSON report and plots",
+        description="Relight the field at every held-out light of the dataset (the triangle centroids for rendered "
+        "data) with the circular, straight and alpha-blend methods and compare with the ground truth (PSNR, "
+        "peak 1). Writes report.json and PNG plots into the output folder.",
+    )
+    evaluate.add_argument("field", type=Path, help="highlight-field file")
+    evaluate.add_argument("dataset", type=Path, help="the dataset folder the field was fitted to, with held-out lights")
+    evaluate.add_argument("-o", "--output", type=Path, help="output folder (default: FIELD's name + '-evaluation' beside it)")
+    evaluate.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
+    evaluate.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
+    evaluate.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
+    evaluate.add_argument("--steps", type=int, default=10, help="barycentric grid steps for that plot (default 10: 66 points)")
+    evaluate.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    evaluate.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    evaluate.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    common(evaluate)
+    evaluate.set_defaults(run=_run_evaluate)
+
+
+def _add_relight_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular", help="interpolation (default circular; alpha needs --dataset)")
+    parser.add_argument("--size", help="output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto: stored images, else the Lambertian model)")
+    parser.add_argument("--specular-only", action="store_true", help="write the highlights S' alone")
+    parser.add_argument("--specular-colour", help="colour of the highlights R,G,B (default 1,1,1: white light)")
+    parser.add_argument("--dataset", type=Path, help="the dataset the field was fitted to (for --method alpha)")
+    parser.add_argument("--linear", action="store_true", help="the dataset's PNG/JPEG values are linear, not sRGB")
+    parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+
+
+def _make_relighter(args, field, *, methods: tuple[str, ...]):
+    """A Relighter for the command's options; loads the dataset when a method needs it."""
+    from .relight import Relighter, alpha_inputs
+
+    device = check_device(args.device)
+    size = parse_size(args.size) if args.size else None
+    colour = parse_triple(args.specular_colour, "specular colour") if args.specular_colour else (1.0, 1.0, 1.0)
+    alpha_specular = alpha_images = None
+    if "alpha" in methods:
+        if args.dataset is None:
+            raise InputError("--method alpha blends the captured images: pass --dataset DATASET (the folder the field was fitted to)")
+        from .dataset import ReflectanceField
+
+        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+        alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
+    exposure = float(field.report.get("exposure") or 1.0)
+    return Relighter(
+        field, device=device, size=size, diffuse=args.diffuse, specular_colour=colour, scale=1.0 / exposure,
+        alpha_specular=alpha_specular, alpha_images=alpha_images,
+    )
+
+
+def _output_image(relit, index: int, *, specular_only: bool, exposure: float) -> np.ndarray:
+    """The image to write: I' (dataset units) or S' (brought back to the dataset's units too)."""
+    if specular_only or relit.full is None:
+        return relit.specular[index] / exposure
+    image = relit.full[index]
+    return image[..., 0] if image.shape[-1] == 1 else image
+
+
+def _run_relight(args) -> int:
+    from .field import HighlightField
+    from .images import write_image
+    from .lights import LightSet
+
+    directions = [parse_direction(text) for text in args.light]
+    if args.lights is not None:
+        directions += list(LightSet.read_lp(args.lights, check_files=False).directions)
+    if not directions:
+        raise InputError("give at least one light: --light X,Y,Z (towards the light, e.g. --light 0.3,0.5,1) or --lights FILE.lp")
+    output = Path(args.output)
+    several = len(directions) > 1
+    if several and output.suffix.lower() in _IMAGE_SUFFIXES:
+        raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
+    if not several and output.suffix.lower() not in _IMAGE_SUFFIXES:
+        raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
+    _check_new_path(output, overwrite=args.overwrite, folder=several)
+    field = HighlightField.load(args.field)
+    relighter = _make_relighter(args, field, methods=(args.method,))
+    exposure = float(field.report.get("exposure") or 1.0)
+    started = time.perf_counter()
+    relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
+    seconds = time.perf_counter() - started
+    if not several:
+        write_image(output, _output_image(_single(relit), 0, specular_only=args.specular_only, exposure=exposure))
+        clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
+        print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
+        return 0
+    _write_image_folder(output, relit, np.asarray(directions), specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite)
+    print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, {args.method}, "
+          f"{1000 * seconds / len(directions):.2f} ms per light)")
+    return 0
+
+
+def _single(relit):
+    """Give a single query's RelitImages its query axis back."""
+    from .relight import RelitImages
+
+    if relit.specular.ndim == 3:
+        return relit
+    return RelitImages(*(None if a is None else np.asarray(a)[None] for a in (relit.specular, relit.full, relit.faces, relit.barycentric, relit.clamped)))
+
+
+def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular_only: bool, exposure: float, overwrite: bool) -> None:
+    """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself."""
+    import shutil
+    import uuid
+
+    from .images import write_image
+    from .lights import LightSet
+
+    temporary = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:12]}.tmp")
+    temporary.mkdir(parents=True)
+    try:
+        digits = max(4, len(str(len(directions) - 1)))
+        names = [f"relit_{i:0{digits}d}.exr" for i in range(len(directions))]
+        for i, name in enumerate(names):
+            write_image(temporary / name, _output_image(relit, i, specular_only=specular_only, exposure=exposure))
+        unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+        LightSet(unit).write_lp(temporary / "lights.lp", filenames=names)
+        if folder.exists() and overwrite:
+            shutil.rmtree(folder)
+        temporary.rename(folder)
+    finally:
+        if temporary.exists():
+            shutil.rmtree(temporary)
+
+
+def _check_new_path(path: Path, *, overwrite: bool, folder: bool) -> None:
+    if path.exists() and not overwrite:
+        raise InputError(f"output {path} exists; pass --overwrite to replace it")
+    if path.exists() and path.is_dir() != folder:
+        raise InputError(f"output {path} is {'a file' if folder else 'a folder'}; choose another name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
+
+
+def _parse_methods(text: str) -> tuple[str, ...]:
+    from .relight import RELIGHT_METHODS
+
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    unknown = [m for m in methods if m not in RELIGHT_METHODS]
+    if not methods or unknown:
+        raise InputError(f"methods '{text}': use a comma-separated list of {', '.join(RELIGHT_METHODS)}")
+    return methods
+
+
+def _run_animate(args) -> int:
+    from .animation import check_animation_output, parse_light_path, write_animation
+    from .field import HighlightField
+
+    if args.frames < 1:
+        raise InputError(f"--frames must be at least 1, got {args.frames}")
+    frames_format = "exr" if args.exr else "png"
+    check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
+    directions = parse_light_path(args.path, args.frames)
+    methods = _parse_methods(args.methods) if args.compare else (args.method,)
+    field = HighlightField.load(args.field)
+    relighter = _make_relighter(args, field, methods=methods)
+    exposure = float(field.report.get("exposure") or 1.0)
+
+    def frames():
+        for start in range(0, len(directions), relighter.max_batch):
+            chunk = directions[start : start + relighter.max_batch]
+            panels = [relighter.relight(chunk, method=m, full=not args.specular_only) for m in methods]
+            for i in range(len(chunk)):
+                images = [_output_image(p, i, specular_only=args.specular_only, exposure=exposure) for p in panels]
+                yield np.concatenate(images, axis=1)
+
+    from tqdm import tqdm
+
+    started = time.perf_counter()
+    with tqdm(total=len(directions), unit="frame", desc="animate", disable=args.quiet, leave=False) as bar:
+        path = write_animation(frames(), args.output, fps=args.fps, frame_count=len(directions), overwrite=args.overwrite,
+                               progress=lambda done: bar.update(done - bar.n), frames_format=frames_format)
+    label = " | ".join(methods)
+    print(f"wrote {path}: {len(directions)} frames of {label}, {relighter.width}x{relighter.height}, {time.perf_counter() - started:.1f} s")
+    return 0
+
+
+def _run_evaluate(args) -> int:
+    from .dataset import ReflectanceField
+    from .evaluation import evaluate_field
+    from .field import HighlightField
+
+    methods = _parse_methods(args.methods)
+    triangle = args.triangle.strip().lower()
+    if triangle not in ("auto", "none"):
+        try:
+            triangle = int(triangle)
+        except ValueError:
+            raise InputError(f"--triangle '{args.triangle}' must be a face index, 'auto' or 'none'") from None
+    output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
+    _check_new_path(output, overwrite=args.overwrite, folder=True)
+    device = check_device(args.device)
+    field = HighlightField.load(args.field)
+    dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
+    say = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
+    evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
+                                barycentric_steps=args.steps, progress=say)
+    report = evaluation.to_dict()
+    report["field"] = str(args.field)
+    report["dataset"] = str(args.dataset)
+    written = write_evaluation(output, evaluation, report, overwrite=args.overwrite, title=Path(args.field).stem)
+    print_evaluation_table(report)
+    print(f"wrote {output}: " + ", ".join(written))
+    return 0
+
+
+def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool, title: str) -> list[str]:
+    """report.json and the plots into ``folder`` (written beside it, then renamed); returns the file names."""
+    import shutil
+    import uuid
+
+    from . import plots
+
+    temporary = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:12]}.tmp")
+    temporary.mkdir(parents=True)
+    try:
+        for kind, scores in (("specular", evaluation.specular_psnr), ("full", evaluation.full_psnr)):
+            if scores:
+                excluded = max(int(np.isnan(v).sum()) for v in scores.values())
+                what = "specular highlights S'" if kind == "specular" else "full images I' = D' + S'"
+                plots.plot_psnr_distributions(scores, temporary / f"psnr-{kind}.png", title=f"{title}: PSNR of the {what} at {len(evaluation.directions)} held-out lights", excluded=excluded)
+        scores = evaluation.specular_psnr or evaluation.full_psnr
+        if "circular" in scores and "alpha" in scores:
+            plots.plot_psnr_pairs(scores["circular"], scores["alpha"], temporary / "psnr-circular-vs-alpha.png", title=f"{title}: per held-out light")
+        if evaluation.gaussians_per_light is not None:
+            plots.plot_gaussian_counts(evaluation.gaussians_per_light, temporary / "gaussian-counts.png", per_query=evaluation.gaussians_per_query, title=f"{title}: Gaussians")
+        sweep = evaluation.barycentric_sweep
+        if sweep is not None and "skipped" not in sweep:
+            labels = tuple(f"light {v}" for v in sweep["vertices"])
+            plots.plot_barycentric_psnr(sweep["weights"], sweep["specular_psnr"], temporary / "barycentric-psnr.png", corner_labels=labels,
+                                        title=f"{title}: PSNR inside triangle {sweep['face']}")
+        if evaluation.examples:
+            order = [k for k in ("truth", "circular", "straight", "alpha") if k in evaluation.examples]
+            images, labels = [], []
+            for row, query in enumerate(evaluation.example_queries):
+                for key in order:
+                    images.append(evaluation.examples[key][row])
+                    score = "" if key == "truth" or key not in evaluation.specular_psnr else f" {evaluation.specular_psnr[key][query]:.1f} dB"
+                    labels.append(f"#{query} {key}{score}")
+            plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order), title=f"{title}: specular highlights at held-out lights")
+        (temporary / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
+        names = sorted(p.name for p in temporary.iterdir())
+        if folder.exists() and overwrite:
+            shutil.rmtree(folder)
+        temporary.rename(folder)
+        return names
+    finally:
+        if temporary.exists():
+            shutil.rmtree(temporary)
+
+
+def print_evaluation_table(report: dict) -> None:
+    """The summary as a Markdown table on stdout."""
+    summary = report["summary"]
+    for kind, part in summary.items():
+        print(f"{kind} PSNR (dB) at {report['heldout']} held-out lights, {report['size'][0]}x{report['size'][1]}:")
+        print("| method | mean | p5 | p95 | excluded |")
+        print("|---|---|---|---|---|")
+        for method in report["methods"]:
+            s = part.get(method)
+            if s and s["mean"] is not None:
+                print(f"| {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} | {s['excluded']} |")
+        share = part.get("circular_beats_alpha")
+        if share is not None:
+            print(f"circular beats alpha on {100 * share:.0f}% of the held-out lights")
+    gaussians = report["gaussians"]["per_light"]
+    print(f"Gaussians per light: mean {gaussians['mean']:.1f}, max {gaussians['max']}")

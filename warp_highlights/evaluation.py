@@ -1,0 +1,307 @@
+"""Compare a fitted field with ground truth at held-out light directions (method.md section 7).
+
+For every held-out direction (the thesis' protocol: the centroid of every triangle) the field is
+relit with each method and compared with the ground truth:
+
+- ``specular``: S' against the ground-truth specular luminance (when the dataset has it), in the
+  field's units (the fit's exposure applied) - the protocol's figure;
+- ``full``: I' = D' + S' against the held-out image, in the dataset's units (when the field has a
+  diffuse model; the alpha method blends the dataset's images).
+
+PSNR has peak 1 on images clipped to [0, 1]. A query whose image and ground truth are both all zero
+is left out and counted (``excluded``). The alpha baseline blends the specular images that the
+field's own segmentation settings give for the dataset's images.
+
+Optionally (``barycentric_steps``), one triangle is sampled on a barycentric grid, with ground truth
+rendered anew from the dataset's ``meta.json`` (synthetic datasets of the built-in shapes): PSNR
+over the position inside a triangle (the thesis' Fig. 4.12).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .errors import InputError
+from .relight import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
+from .resample import resize_stack
+
+__all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "summarize"]
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclass
+class Evaluation:
+    """What ``evaluate_field`` measured; ``to_dict`` gives the JSON report.
+
+    Attributes:
+        directions: (Q, 3) held-out directions.
+        faces, barycentric: where each fell in the triangulation.
+        specular_psnr: method -> (Q,) dB, NaN where excluded; empty without specular ground truth.
+        full_psnr: method -> (Q,) dB for full images; empty when not measured.
+        gaussians_per_light: (n,) active Gaussians of every estimated set.
+        gaussians_per_query: (Q,) active Gaussians of every circular interpolated set.
+        barycentric_sweep: None, or a dict with ``face``, ``vertices``, ``weights`` (K, 3) and
+            ``specular_psnr`` (method -> (K,)), or with ``skipped`` (the reason).
+        examples: method -> (k, H, W) S' of a few queries (``example_queries``), and "truth".
+        seconds: wall time per step.
+    """
+
+    directions: np.ndarray
+    faces: np.ndarray
+    barycentric: np.ndarray
+    specular_psnr: dict = field(default_factory=dict)
+    full_psnr: dict = field(default_factory=dict)
+    gaussians_per_light: np.ndarray | None = None
+    gaussians_per_query: np.ndarray | None = None
+    barycentric_sweep: dict | None = None
+    example_queries: np.ndarray | None = None
+    examples: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """Per kind (specular, full) and method: mean, p5, p95, ... of the PSNR; and win shares."""
+        result = {}
+        for kind, scores in (("specular", self.specular_psnr), ("full", self.full_psnr)):
+            if not scores:
+                continue
+            part = {method: summarize(values) for method, values in scores.items()}
+            for first, second in (("circular", "alpha"), ("circular", "straight"), ("straight", "alpha")):
+                if first in scores and second in scores:
+                    part[f"{first}_beats_{second}"] = win_share(scores[first], scores[second])
+            result[kind] = part
+        return result
+
+    def to_dict(self) -> dict:
+        """The JSON report: info, summary, Gaussian counts, per-query figures, the barycentric sweep."""
+        per_query = {
+            "directions": np.round(self.directions, 6).tolist(),
+            "faces": self.faces.tolist(),
+            "barycentric": np.round(self.barycentric, 6).tolist(),
+            "gaussians": None if self.gaussians_per_query is None else self.gaussians_per_query.tolist(),
+            "specular_psnr": {m: _rounded(v) for m, v in self.specular_psnr.items()},
+            "full_psnr": {m: _rounded(v) for m, v in self.full_psnr.items()},
+        }
+        sweep = self.barycentric_sweep
+        if sweep is not None and "skipped" not in sweep:
+            sweep = {
+                "face": int(sweep["face"]),
+                "vertices": [int(v) for v in sweep["vertices"]],
+                "weights": np.round(sweep["weights"], 6).tolist(),
+                "specular_psnr": {m: _rounded(v) for m, v in sweep["specular_psnr"].items()},
+                "summary": {m: summarize(v) for m, v in sweep["specular_psnr"].items()},
+            }
+        return {
+            **self.info,
+            "summary": self.summary(),
+            "gaussians": {
+                "per_light": _count_stats(self.gaussians_per_light),
+                "per_query": _count_stats(self.gaussians_per_query),
+            },
+            "barycentric_sweep": sweep,
+            "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
+            "per_query": per_query,
+        }
+
+
+def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 100.0) -> np.ndarray:
+    """(Q,) PSNR in dB (peak 1, both clipped to [0, 1], at most ``cap``); NaN where both are all zero.
+
+    Works on (Q, H, W) or (Q, H, W, C) stacks.
+    """
+    a = np.clip(np.asarray(images, dtype=np.float64), 0.0, 1.0).reshape(len(images), -1)
+    b = np.clip(np.asarray(truth, dtype=np.float64), 0.0, 1.0).reshape(len(truth), -1)
+    mse = ((a - b) ** 2).mean(axis=1)
+    with np.errstate(divide="ignore"):
+        value = np.minimum(10.0 * np.log10(1.0 / mse), cap)
+    black = (a.max(axis=1) <= 0.0) & (b.max(axis=1) <= 0.0)
+    return np.where(black, np.nan, value)
+
+
+def summarize(values) -> dict:
+    """mean, median, p5, p95, min, max over the finite values; ``count`` of those, ``excluded`` NaNs."""
+    values = np.asarray(values, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    stats = {"count": int(finite.size), "excluded": int(values.size - finite.size)}
+    if finite.size == 0:
+        return stats | {k: None for k in ("mean", "median", "p5", "p95", "min", "max")}
+    return stats | {
+        "mean": float(finite.mean()),
+        "median": float(np.median(finite)),
+        "p5": float(np.percentile(finite, 5)),
+        "p95": float(np.percentile(finite, 95)),
+        "min": float(finite.min()),
+        "max": float(finite.max()),
+    }
+
+
+def win_share(first, second) -> float | None:
+    """Share of the queries (finite in both) where ``first`` scores strictly higher than ``second``."""
+    first, second = np.asarray(first), np.asarray(second)
+    both = np.isfinite(first) & np.isfinite(second)
+    return float(np.mean(first[both] > second[both])) if both.any() else None
+
+
+def barycentric_grid(steps: int) -> np.ndarray:
+    """(K, 3) weights (i, j, k) / steps with i + j + k = steps, corners included; K = (s+1)(s+2)/2."""
+    if int(steps) < 1:
+        raise InputError(f"barycentric steps must be >= 1, got {steps}")
+    steps = int(steps)
+    rows = [(i, j, steps - i - j) for i in range(steps, -1, -1) for j in range(steps - i, -1, -1)]
+    return np.array(rows, dtype=np.float64) / steps
+
+
+def evaluate_field(
+    highlight_field,
+    dataset,
+    *,
+    device=None,
+    methods: tuple[str, ...] = RELIGHT_METHODS,
+    barycentric_face: int | str | None = "auto",
+    barycentric_steps: int = 10,
+    example_count: int = 4,
+    progress=None,
+) -> Evaluation:
+    """Relight ``highlight_field`` at the held-out lights of ``dataset`` and score every method.
+
+    Args:
+        highlight_field: the fitted ``HighlightField``.
+        dataset: the ``ReflectanceField`` it was fitted to, with held-out lights (``heldout``).
+        device: Warp device.
+        methods: any of ``RELIGHT_METHODS``.
+        barycentric_face: face to sample on a grid (Fig. 4.12): an index, "auto" (the face of the
+            held-out query with the median circular - alpha gain), or None to skip.
+        barycentric_steps: grid resolution of that face (weights in steps of 1 / barycentric_steps).
+        example_count: held-out queries whose images are kept for a comparison figure.
+        progress: optional callable(str) told about each step.
+    """
+    say = progress or (lambda _message: None)
+    methods = tuple(methods)
+    for method in methods:
+        if method not in RELIGHT_METHODS:
+            raise InputError(f"method must be one of {', '.join(RELIGHT_METHODS)}, got '{method}'")
+    f = highlight_field
+    device = wp.get_device(device)
+    check_same_lights(f, dataset)
+    heldout = dataset.heldout
+    if heldout is None or heldout.light_count == 0:
+        raise InputError(
+            "the dataset has no held-out lights to compare with: render it with held-out lights "
+            "(warp-highlights render ... --heldout centroids) or pass --heldout FOLDER"
+        )
+    exposure = float(f.report.get("exposure") or 1.0)
+    seconds = {}
+    started = time.perf_counter()
+    alpha_specular = alpha_images = None
+    if "alpha" in methods:
+        say("segmenting the dataset for the alpha blend")
+        alpha_specular, alpha_images = alpha_inputs(f, dataset, device=device)
+    relighter = Relighter(f, device=device, scale=1.0 / exposure, alpha_specular=alpha_specular, alpha_images=alpha_images)
+    seconds["set_up"] = time.perf_counter() - started
+
+    directions = heldout.lights.directions
+    truth_specular = None
+    if heldout.specular is not None:
+        truth_specular = luminance(resize_stack(heldout.specular, f.width, f.height)) * exposure
+    truth_full = resize_stack(heldout.images, f.width, f.height)
+    if truth_full.ndim == 3:
+        truth_full = truth_full[..., None]
+    compare_full = f.diffuse is not None and truth_full.shape[-1] == relighter.channels
+    examples_at = np.unique(np.linspace(0, len(directions) - 1, min(example_count, len(directions))).round().astype(int))
+
+    result = Evaluation(directions=directions, faces=np.zeros(0, int), barycentric=np.zeros((0, 3)))
+    for method in methods:
+        say(f"relighting {len(directions)} held-out directions ({method})")
+        t = time.perf_counter()
+        want_full = compare_full or method == "alpha" and truth_full.shape[-1] == relighter.channels
+        relit = relighter.relight(directions, method=method, full=want_full)
+        seconds[f"relight_{method}"] = time.perf_counter() - t
+        result.faces, result.barycentric = relit.faces, relit.barycentric
+        if truth_specular is not None:
+            result.specular_psnr[method] = psnr_excluding_black(relit.specular, truth_specular)
+        if want_full and relit.full is not None and compare_full:
+            result.full_psnr[method] = psnr_excluding_black(relit.full, truth_full)
+        result.examples[method] = relit.specular[examples_at]
+    if truth_specular is not None:
+        result.examples["truth"] = truth_specular[examples_at]
+    result.example_queries = examples_at
+    result.gaussians_per_light = f.estimated.counts
+    if "circular" in methods or "straight" in methods:
+        sets = relighter.interpolated_sets(directions, method="circular")
+        result.gaussians_per_query = sets.counts
+
+    if barycentric_face is not None:
+        t = time.perf_counter()
+        result.barycentric_sweep = _barycentric_sweep(relighter, dataset, result, methods, barycentric_face, barycentric_steps, exposure, device, say)
+        seconds["barycentric_sweep"] = time.perf_counter() - t
+    seconds["total"] = time.perf_counter() - started
+    result.seconds = seconds
+    result.info = {
+        "device": str(device),
+        "size": [f.width, f.height],
+        "lights": f.light_count,
+        "heldout": len(directions),
+        "heldout_protocol": dataset.meta.get("heldout_protocol") if dataset.meta else None,
+        "exposure": exposure,
+        "methods": list(methods),
+        "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full", result.full_psnr)) if scores],
+    }
+    return result
+
+
+def luminance(stack: np.ndarray) -> np.ndarray:
+    """(..., H, W, 3) -> (..., H, W) Rec. 709 luminance; single-channel stacks pass through."""
+    stack = np.asarray(stack, dtype=np.float32)
+    return (stack @ LUMINANCE.astype(np.float32)) if stack.shape[-1] == 3 and stack.ndim == 4 else stack
+
+
+def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposure, device, say) -> dict:
+    from .render import renderer_from_meta
+
+    f = relighter.field
+    if face == "auto":
+        scores = result.specular_psnr
+        if "circular" not in scores or "alpha" not in scores:
+            return {"skipped": "needs specular ground truth and the circular and alpha methods"}
+        gain = scores["circular"] - scores["alpha"]
+        finite = np.flatnonzero(np.isfinite(gain))
+        if finite.size == 0:
+            return {"skipped": "no held-out query with a finite PSNR"}
+        median = finite[np.argsort(gain[finite])[finite.size // 2]]
+        face = int(result.faces[median])
+    face = int(face)
+    if not 0 <= face < f.triangulation.face_count:
+        raise InputError(f"triangle {face} does not exist: the triangulation has {f.triangulation.face_count} faces (0..{f.triangulation.face_count - 1})")
+    renderer = renderer_from_meta(dataset.meta or {}, device=str(device))
+    if renderer is None:
+        return {"skipped": "ground truth inside a triangle needs a synthetic dataset of a built-in shape (its meta.json)"}
+    vertices = f.triangulation.faces[face]
+    weights = barycentric_grid(steps)
+    points = weights @ f.lights.directions[vertices]
+    directions = points / np.linalg.norm(points, axis=1, keepdims=True)
+    say(f"rendering ground truth at {len(directions)} points of triangle {face}")
+    rendered = renderer.render(directions).specular
+    truth = luminance(resize_stack(rendered, f.width, f.height)) * exposure
+    scores = {}
+    for method in methods:
+        relit = relighter.relight(directions, method=method, full=False)
+        scores[method] = psnr_excluding_black(relit.specular, truth)
+    return {"face": face, "vertices": vertices, "weights": weights, "specular_psnr": scores}
+
+
+def _rounded(values) -> list:
+    return [None if not np.isfinite(v) else round(float(v), 3) for v in np.asarray(values, dtype=np.float64)]
+
+
+def _count_stats(counts) -> dict | None:
+    if counts is None:
+        return None
+    counts = np.asarray(counts)
+    if counts.size == 0:
+        return {"mean": 0.0, "min": 0, "max": 0, "total": 0}
+    return {"mean": float(counts.mean()), "median": float(np.median(counts)), "min": int(counts.min()), "max": int(counts.max()), "total": int(counts.sum())}

@@ -1,0 +1,423 @@
+"""Relight a fitted highlight field for any light directions (method.md section 6), batched on a device.
+
+A :class:`Relighter` uploads a field once (its Gaussians, paths, triangulation tables and diffuse
+model) and then turns any number of query directions into images with a fixed number of kernel
+launches: locate -> interpolate the Gaussian sets -> rasterize S' -> compose I' = D' + S'. Large
+batches run in chunks that bound the device memory.
+
+Methods:
+
+- ``circular``: Gaussians move along the stored circular paths (the method);
+- ``straight``: the same, with positions blended along straight lines (the thesis' ablation);
+- ``alpha``: no Gaussians; the barycentric blend of the three corner lights' images (the baseline).
+  It needs those images: ``alpha_specular`` (specular luminance per light) for S' and
+  ``alpha_images`` (full images per light) for I'.
+
+Units: images in the field's radiance units (the fit's exposure applied; 1 = display white) times
+``scale``; Gaussian coordinates in image heights, so any output size with the field's aspect ratio
+works.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .config import RasterSettings
+from .errors import InputError
+from .gaussians import GaussianBatch, GaussianParams
+from .kernels import interpolation as kernels
+from .kernels.raster import Rasterizer
+from .resample import resample_image
+
+__all__ = ["DIFFUSE_MODES", "RELIGHT_METHODS", "Relighter", "RelitImages", "alpha_inputs", "check_same_lights", "face_edge_rows"]
+
+RELIGHT_METHODS = ("circular", "straight", "alpha")
+DIFFUSE_MODES = ("auto", "lambert", "images", "none")
+"""``auto``: the blended diffuse images when the field stores them, else the Lambertian model, else none."""
+
+# Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
+_CHUNK_BYTES = 256 * 2**20
+_INSIDE_TOLERANCE = 1e-12  # as SphericalTriangulation.locate
+
+
+@dataclass(frozen=True, eq=False)
+class RelitImages:
+    """Images of Q queries, NumPy float32.
+
+    Attributes:
+        specular: (Q, H, W) S', the specular luminance (not scaled).
+        full: (Q, H, W, C) I' = scale (D' + colour S'), or None when not asked for.
+        faces: (Q,) face of the triangulation each query fell in.
+        barycentric: (Q, 3) weights of that face's corners (``triangulation.faces`` order).
+        clamped: (Q,) bool, True where the query lay outside a dome and was moved onto its rim.
+    """
+
+    specular: np.ndarray
+    full: np.ndarray | None
+    faces: np.ndarray
+    barycentric: np.ndarray
+    clamped: np.ndarray
+
+
+class _DeviceQueries:
+    """Device buffers of one chunk of queries: directions, location, interpolated sets, images."""
+
+    def __init__(self, count: int, capacity: int, height: int, width: int, channels: int, device):
+        self.count = count
+        self.directions = wp.empty(count, dtype=wp.vec3d, device=device)
+        self.faces = wp.empty(count, dtype=wp.int32, device=device)
+        self.weights = wp.empty(count, dtype=wp.vec3, device=device)
+        self.located = wp.empty(count, dtype=wp.vec3, device=device)
+        self.unit = wp.empty(count, dtype=wp.vec3, device=device)
+        self.clamped = wp.empty(count, dtype=wp.int32, device=device)
+        self.sets = GaussianBatch(count, 3 * capacity, device=device, requires_grad=False)
+        self.specular = wp.empty((count, height, width), dtype=float, device=device)
+        self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
+
+
+class Relighter:
+    """Renders a ``HighlightField`` for batches of light directions on one device.
+
+    Args:
+        field: the fitted field.
+        device: Warp device (default: Warp's default device).
+        size: output (width, height) in pixels; default the field's size. Must keep the field's aspect
+            ratio (to within a pixel); the diffuse model is resampled to it.
+        diffuse: one of ``DIFFUSE_MODES``.
+        specular_colour: colour c of the highlights in I' = D' + c S' per channel (white by default).
+        scale: factor applied to I' (e.g. 1 / exposure to return to the input's units).
+        alpha_specular: (n, H, W) specular luminance per light, for the ``alpha`` method's S'.
+        alpha_images: (n, H, W[, C]) full images per light, for the ``alpha`` method's I'.
+        raster: rasterizer settings (default: the field's).
+        max_batch: queries per launch (default: as many as fit in about 256 MB of images).
+    """
+
+    def __init__(
+        self,
+        field,
+        *,
+        device=None,
+        size: tuple[int, int] | None = None,
+        diffuse: str = "auto",
+        specular_colour=(1.0, 1.0, 1.0),
+        scale: float = 1.0,
+        alpha_specular: np.ndarray | None = None,
+        alpha_images: np.ndarray | None = None,
+        raster: RasterSettings | None = None,
+        max_batch: int | None = None,
+    ):
+        if diffuse not in DIFFUSE_MODES:
+            raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_MODES)}, got '{diffuse}'")
+        self.field = field
+        self.device = wp.get_device(device)
+        self.width, self.height = _output_size(field, size)
+        settings = field.fit_settings()
+        self.straight_below = float(settings.paths.straight_below)
+        self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
+        self.diffuse = _diffuse_mode(field, diffuse)
+        self.channels = field.diffuse.channel_count if field.diffuse is not None else 1
+        colour = np.broadcast_to(np.asarray(specular_colour, dtype=np.float64).reshape(-1), (3,))
+        if not np.all(np.isfinite(colour)):
+            raise InputError(f"specular colour must be finite, got {list(specular_colour)}")
+        self.specular_colour = wp.vec3(*colour.astype(np.float32))
+        if not (np.isfinite(scale) and scale > 0):
+            raise InputError(f"scale must be a positive number, got {scale}")
+        self.scale = float(scale)
+        self._upload_field()
+        self._upload_diffuse()
+        self._alpha_specular = self._upload_stack(alpha_specular, "alpha specular", channels=False)
+        self._alpha_images = self._upload_stack(alpha_images, "alpha images", channels=True)
+        if self._alpha_images is not None and self._alpha_images.shape[2] != self.channels:
+            if field.diffuse is not None:
+                raise InputError(f"alpha images have {self._alpha_images.shape[2]} channels, the field's diffuse model {self.channels}")
+            self.channels = self._alpha_images.shape[2]
+        pixel_bytes = 4 * self.height * self.width * (1 + self.channels)
+        default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
+        self.max_batch = int(max_batch) if max_batch is not None else default_batch
+        if self.max_batch < 1:
+            raise InputError(f"max_batch must be >= 1, got {max_batch}")
+        self._buffers: _DeviceQueries | None = None
+
+    # --- set-up ------------------------------------------------------------------------------------
+
+    def _upload_field(self) -> None:
+        field, device = self.field, self.device
+        self.capacity = field.capacity
+        self._estimated = GaussianBatch.from_numpy(field.estimated, device=device, requires_grad=False)
+        self._retargeted = GaussianBatch.from_numpy(field.retargeted, device=device, requires_grad=False)
+        self._path_delta = wp.array(field.path_delta.astype(np.float32), dtype=float, device=device)
+        tri = field.triangulation
+        self._face_vertices = wp.array(tri.faces.astype(np.int32), dtype=wp.int32, device=device)
+        self._face_edges = wp.array(face_edge_rows(tri.faces, field.directed_edges, field.light_count), dtype=wp.int32, device=device)
+        tables = tri._locate_tables
+        vec3d = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.vec3d, device=device)
+        self._edge_normals = vec3d(tables.edge_normals.transpose(1, 0, 2))
+        self._inverses = wp.array(tables.inverses.astype(np.float64), dtype=wp.mat33d, device=device)
+        rim_count = len(tables.rim_face)
+        self._is_dome = int(tri.is_dome and rim_count > 0)
+        if rim_count:
+            along = np.cross(tables.rim_normal, tables.rim_start)
+            back = np.cross(tables.rim_end, tables.rim_normal)
+            opposite = 3 - tables.rim_corner.sum(axis=1)
+            rims = (tables.rim_start, tables.rim_end, tables.rim_normal, along, back)
+            faces = tables.rim_face
+        else:  # a closed sphere: one dummy rim edge keeps the launch's arrays non-empty
+            rims = (np.zeros((1, 3)),) * 5
+            faces, opposite = np.zeros(1), np.zeros(1)
+        self._rims = [vec3d(r) for r in rims] + [
+            wp.array(np.asarray(faces, dtype=np.int32), dtype=wp.int32, device=device),
+            wp.array(np.asarray(opposite, dtype=np.int32), dtype=wp.int32, device=device),
+        ]
+
+    def _upload_diffuse(self) -> None:
+        device, model = self.device, self.field.diffuse
+        lambert = np.zeros((1, 1, 4), dtype=np.float32)
+        images = np.zeros((1, 1, 1), dtype=np.float16)
+        if model is not None and self.diffuse == kernels.DIFFUSE_LAMBERT:
+            planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
+            lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
+        if model is not None and self.diffuse == kernels.DIFFUSE_BLEND:
+            stack = model.images.astype(np.float32)
+            stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
+            images = stack.reshape(len(stack), self.height * self.width, model.channel_count).astype(np.float16)
+        self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
+        self._diffuse_images = wp.array(np.ascontiguousarray(images), dtype=wp.float16, device=device)
+
+    def _upload_stack(self, stack, what: str, *, channels: bool):
+        if stack is None:
+            return None
+        stack = np.asarray(stack, dtype=np.float32)
+        n = self.field.light_count
+        if channels and stack.ndim == 3:
+            stack = stack[..., None]
+        expected = 4 if channels else 3
+        if stack.ndim != expected or len(stack) != n:
+            raise InputError(f"{what} must have shape (n={n}, H, W{', C' if channels else ''}), got {stack.shape}")
+        if not np.all(np.isfinite(stack)):
+            raise InputError(f"{what} contain non-finite values")
+        if stack.shape[1:3] != (self.height, self.width):
+            stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
+        if channels:
+            return wp.array(stack.reshape(n, self.height * self.width, -1).astype(np.float16), dtype=wp.float16, device=self.device)
+        return wp.array(stack.reshape(n, -1), dtype=float, device=self.device)
+
+    def _chunk_buffers(self, count: int) -> _DeviceQueries:
+        if self._buffers is None or self._buffers.count != count:
+            self._buffers = _DeviceQueries(count, self.capacity, self.height, self.width, self.channels, self.device)
+        return self._buffers
+
+    # --- the pipeline ------------------------------------------------------------------------------
+
+    def launch(self, directions: np.ndarray, *, method: str = "circular", full: bool = True, render: bool = True) -> _DeviceQueries:
+        """Run the kernels for at most ``max_batch`` directions; the results stay on the device.
+
+        Returns the chunk's buffers: ``specular`` (Q, H, W) unless not ``render``, ``full``
+        (Q, H*W, C) when ``full``, ``faces``, ``weights``, ``clamped``, ``sets`` (the interpolated
+        Gaussians). They are reused by the next call with the same count.
+        """
+        method = _checked_method(method)
+        directions = _unit_queries(directions)
+        if len(directions) > self.max_batch:
+            raise InputError(f"launch takes at most max_batch={self.max_batch} queries, got {len(directions)}; use relight()")
+        buffers = self._chunk_buffers(len(directions))
+        buffers.directions.assign(directions)
+        buffers.unit.assign(directions.astype(np.float32))
+        self._locate(buffers)
+        if method == "alpha":
+            self._alpha(buffers, full=full)
+            return buffers
+        wp.launch(
+            kernels.interpolate_gaussians,
+            dim=(buffers.count, 3, self.capacity),
+            inputs=[self._estimated.arrays, self._retargeted.arrays, self._path_delta, self._face_vertices, self._face_edges,
+                    buffers.faces, buffers.weights, int(method == "circular"), self.straight_below],
+            outputs=[buffers.sets.arrays],
+            device=self.device,
+        )
+        if not render:
+            return buffers
+        self.raster.render(buffers.sets, out=buffers.specular)
+        if full:
+            self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=self._diffuse_images)
+        return buffers
+
+    def _locate(self, buffers: _DeviceQueries) -> None:
+        wp.launch(
+            kernels.locate_directions,
+            dim=buffers.count,
+            inputs=[buffers.directions, self._edge_normals, self._inverses, *self._rims, self._is_dome, _INSIDE_TOLERANCE],
+            outputs=[buffers.faces, buffers.weights, buffers.located, buffers.clamped],
+            device=self.device,
+        )
+
+    def _alpha(self, buffers: _DeviceQueries, *, full: bool) -> None:
+        if self._alpha_specular is None:
+            raise InputError("the alpha method needs the specular images of the lights (alpha_specular; on the command line, --dataset)")
+        wp.launch(
+            kernels.blend_images,
+            dim=(buffers.count, self.height * self.width),
+            inputs=[self._alpha_specular, self._face_vertices, buffers.faces, buffers.weights],
+            outputs=[buffers.specular.reshape((buffers.count, self.height * self.width))],
+            device=self.device,
+        )
+        if full:
+            if self._alpha_images is None:
+                raise InputError("the alpha method's full images need the images of the lights (alpha_images; on the command line, --dataset)")
+            self._compose(buffers, buffers.specular, add_specular=False, mode=kernels.DIFFUSE_BLEND, images=self._alpha_images)
+
+    def _compose(self, buffers: _DeviceQueries, specular: wp.array, *, add_specular: bool, mode: int, images: wp.array) -> None:
+        pixels = self.height * self.width
+        wp.launch(
+            kernels.compose_images,
+            dim=(buffers.count, pixels),
+            inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, int(add_specular), mode, self._lambert, images,
+                    self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale],
+            outputs=[buffers.full],
+            device=self.device,
+        )
+
+    # --- host-facing API ---------------------------------------------------------------------------
+
+    def relight(self, directions, *, method: str = "circular", full: bool = True, progress=None) -> RelitImages:
+        """Images for (Q, 3) or (3,) light directions (any non-zero length), copied to the host.
+
+        Args:
+            directions: towards the lights, camera space (method.md section 0).
+            method: one of ``RELIGHT_METHODS``.
+            full: also compose I' (else ``RelitImages.full`` is None).
+            progress: optional callable(count_done) called after each chunk.
+        """
+        single = np.ndim(directions) == 1
+        queries = _unit_queries(directions)
+        parts = []
+        for start in range(0, len(queries), self.max_batch):
+            chunk = self.launch(queries[start : start + self.max_batch], method=method, full=full)
+            parts.append(_host_chunk(chunk, full=full, height=self.height, width=self.width))
+            if progress is not None:
+                progress(min(start + self.max_batch, len(queries)))
+        result = RelitImages(*(None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in range(5)))
+        if single:
+            result = RelitImages(*(None if a is None else a[0] for a in (result.specular, result.full, result.faces, result.barycentric, result.clamped)))
+        return result
+
+    def iter_relight(self, directions, *, method: str = "circular", full: bool = True):
+        """Yield ``RelitImages`` chunk by chunk (at most ``max_batch`` queries each), for streaming."""
+        queries = _unit_queries(directions)
+        for start in range(0, len(queries), self.max_batch):
+            chunk = self.launch(queries[start : start + self.max_batch], method=method, full=full)
+            yield RelitImages(*_host_chunk(chunk, full=full, height=self.height, width=self.width))
+
+    def interpolated_sets(self, directions, *, method: str = "circular") -> GaussianParams:
+        """The interpolated Gaussian sets (Q, 3N) of the queries, float64 host copy (circular or straight)."""
+        if _checked_method(method) == "alpha":
+            raise InputError("the alpha method has no Gaussian sets; use circular or straight")
+        queries = _unit_queries(directions)
+        parts = []
+        for start in range(0, len(queries), self.max_batch):
+            parts.append(self.launch(queries[start : start + self.max_batch], method=method, full=False, render=False).sets.numpy())
+        return GaussianParams.concatenate(parts, axis=0)
+
+
+def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray]:
+    """The alpha method's per-light stacks for ``field`` from the ``dataset`` it was fitted to.
+
+    Returns (specular, images): (n, H, W) specular luminance from the field's own segmentation
+    settings, in the field's units (exposure applied), and (n, H, W, C) images in the dataset's
+    units, both at the field's size. Pass them to ``Relighter(alpha_specular=..., alpha_images=...)``.
+    """
+    from .kernels.segmentation import segment
+    from .resample import resize_stack
+
+    check_same_lights(field, dataset)
+    images = resize_stack(dataset.images, field.width, field.height)
+    exposure = np.float32(field.report.get("exposure") or 1.0)
+    seg = segment(images * exposure, dataset.lights.directions, settings=field.fit_settings().segmentation, device=device)
+    return seg.specular_luminance.numpy().copy(), images
+
+
+def check_same_lights(field, dataset) -> None:
+    """Raise ``InputError`` unless ``dataset`` has the lights ``field`` was fitted to (same order)."""
+    if dataset.light_count != field.light_count:
+        raise InputError(f"the field was fitted to {field.light_count} lights but the dataset has {dataset.light_count}; pass the dataset it was fitted to")
+    gap = float(np.abs(dataset.lights.directions - field.lights.directions).max())
+    if gap > 1e-5:
+        raise InputError(f"the dataset's light directions differ from the field's (by up to {gap:.2g}); pass the dataset it was fitted to")
+
+
+def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: int) -> np.ndarray:
+    """(F, 3, 2) int32: for corner k of face f, the rows of edges v_k -> v_{k+1} and v_k -> v_{k+2}.
+
+    ``directed_edges`` must be sorted lexicographically (``SphericalTriangulation.directed_edges``).
+    """
+    faces = np.asarray(faces, dtype=np.int64)
+    edges = np.asarray(directed_edges, dtype=np.int64)
+    keys = edges[:, 0] * light_count + edges[:, 1]
+    rows = np.empty(faces.shape + (2,), dtype=np.int64)
+    for k in range(3):
+        for j, step in enumerate((1, 2)):
+            wanted = faces[:, k] * light_count + faces[:, (k + step) % 3]
+            found = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
+            if not np.all(keys[found] == wanted):
+                raise InputError("the field's directed edges do not cover every face's edges")
+            rows[:, k, j] = found
+    return rows.astype(np.int32)
+
+
+def _host_chunk(chunk: _DeviceQueries, *, full: bool, height: int, width: int) -> tuple:
+    # .numpy() of a CPU array is a view of buffers the next chunk overwrites: copy
+    images = chunk.full.numpy().reshape(chunk.count, height, width, -1).copy() if full else None
+    return (chunk.specular.numpy().copy(), images, chunk.faces.numpy().copy(), chunk.weights.numpy().astype(np.float64), chunk.clamped.numpy() != 0)
+
+
+def _checked_method(method: str) -> str:
+    if method not in RELIGHT_METHODS:
+        raise InputError(f"method must be one of {', '.join(RELIGHT_METHODS)}, got '{method}'")
+    return method
+
+
+def _unit_queries(directions) -> np.ndarray:
+    """(Q, 3) float64 unit vectors from (Q, 3) or (3,) finite non-zero directions."""
+    try:
+        queries = np.array(directions, dtype=np.float64, ndmin=2)
+    except (TypeError, ValueError):
+        raise InputError("light directions must be numbers of shape (3,) or (Q, 3)") from None
+    if queries.ndim != 2 or queries.shape[1] != 3 or len(queries) < 1:
+        raise InputError(f"light directions must have shape (3,) or (Q, 3), got {np.shape(directions)}")
+    scale = np.abs(queries).max(axis=1)
+    bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0.0)))
+    if bad.size:
+        raise InputError(f"light direction {bad[0]} is zero or not finite: {queries[bad[0]].tolist()}")
+    queries = queries / scale[:, None]
+    return queries / np.linalg.norm(queries, axis=1, keepdims=True)
+
+
+def _output_size(field, size) -> tuple[int, int]:
+    if size is None:
+        return field.width, field.height
+    width, height = (int(v) for v in size)
+    if min(width, height) < 1:
+        raise InputError(f"output size must be at least 1x1 pixels, got {width}x{height}")
+    if abs(width - field.width * height / field.height) > 1.0:
+        raise InputError(
+            f"output size {width}x{height} changes the field's aspect ratio ({field.width}x{field.height}); "
+            f"use e.g. {round(field.width * height / field.height)}x{height}"
+        )
+    return width, height
+
+
+def _diffuse_mode(field, diffuse: str) -> int:
+    model = field.diffuse
+    if diffuse == "auto":
+        if model is None:
+            return kernels.DIFFUSE_NONE
+        return kernels.DIFFUSE_BLEND if model.images is not None else kernels.DIFFUSE_LAMBERT
+    if diffuse == "none":
+        return kernels.DIFFUSE_NONE
+    if model is None:
+        raise InputError(f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")
+    if diffuse == "images" and model.images is None:
+        raise InputError("diffuse 'images' needs a field fitted with --diffuse images (this one stores only the Lambertian model)")
+    return kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND
