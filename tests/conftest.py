@@ -65,3 +65,17 @@ FAST_FIT = [
     "retarget.iterations=80",
 ]
 """Overrides that keep a test fit of ``small_donut`` to a few seconds on one CPU core."""
+
+
+@pytest.fixture(scope="session")
+def small_field(small_donut, tmp_path_factory) -> Path:
+    """A quick fit of ``small_donut`` (``FAST_FIT``, diffuse images kept), saved as a .whf file."""
+    from warp_highlights.config import FitSettings
+    from warp_highlights.dataset import ReflectanceField
+    from warp_highlights.fit import fit_field
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", progress=False)
+    path = tmp_path_factory.mktemp("field") / "donut.whf"
+    field.save(path)
+    return path

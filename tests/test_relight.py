@@ -324,3 +324,12 @@ def test_resample_image_shrinks_by_area_and_grows_linearly():
     for weights in (area_weights(7, 3), linear_weights(3, 7), linear_weights(1, 4)):
         np.testing.assert_allclose(weights.sum(axis=1), 1.0)
     assert resample_image(np.ones((5, 8)), 16, 10).shape == (10, 16)
+
+
+def test_field_relight_shortcut_matches_the_relighter(sphere_field):
+    queries = random_directions(np.random.default_rng(17), 3)
+    shortcut = sphere_field.relight(queries, device="cpu")
+    direct = Relighter(sphere_field, device="cpu").relight(queries)
+    assert np.array_equal(shortcut.full, direct.full)
+    again = sphere_field.relight(queries, method="straight", device="cpu", diffuse="lambert")
+    assert np.array_equal(again.specular, Relighter(sphere_field, device="cpu").relight(queries, method="straight").specular)

@@ -25,7 +25,7 @@ EXIT_INTERRUPTED = 130
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; returns the exit status."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = _attach_negative_values(sys.argv[1:] if argv is None else list(argv))
     _quiet_warp(verbose="-v" in argv or "--verbose" in argv)
     parser = _build_parser()
     args = parser.parse_args(argv)
@@ -40,6 +40,24 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"warp-highlights {args.command}: interrupted; nothing partial was left behind", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _attach_negative_values(argv: list[str]) -> list[str]:
+    """'--light -0.5,0.2,1' -> '--light=-0.5,0.2,1': argparse takes a value starting with '-' for an option."""
+    result = []
+    values = iter(argv)
+    for token in values:
+        if token == "--light":
+            value = next(values, None)
+            if value is not None and len(value) > 1 and value[0] == "-" and (value[1].isdigit() or value[1] == "."):
+                result.append(f"--light={value}")
+                continue
+            result.append(token)
+            if value is not None:
+                result.append(value)
+            continue
+        result.append(token)
+    return result
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -352,7 +370,9 @@ def _run_demo(args) -> int:
     width, height = parse_size(args.size)
     device = _check_device(args.device)
     out = Path(args.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.overwrite:
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output {out} is a file; the demo needs a folder name")
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise InputError(f"output folder {out} exists and is not empty; pass --overwrite or choose another folder")
     if args.frames < 2:
         raise InputError(f"--frames must be at least 2, got {args.frames}")

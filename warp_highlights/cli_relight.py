@@ -12,10 +12,10 @@ import numpy as np
 
 from .cli_args import check_device, parse_direction, parse_size, parse_triple
 from .errors import InputError
+from .images import IMAGE_EXTENSIONS
 
 __all__ = ["add_relight_commands", "print_evaluation_table", "write_evaluation"]
 
-_IMAGE_SUFFIXES = (".png", ".exr", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
 def add_relight_commands(commands, *, common) -> None:
@@ -27,7 +27,7 @@ def add_relight_commands(commands, *, common) -> None:
         "Gaussians along their paths, rasterize the highlights and add the diffuse part.",
     )
     relight.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    relight.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera); repeatable")
+    relight.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. --light -0.5,0.2,1; repeatable")
     relight.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
     relight.add_argument("-o", "--output", type=Path, required=True, help="image file (.exr linear, .png sRGB) for one light; a folder for several (images + lights.lp)")
     _add_relight_options(relight)
@@ -129,9 +129,9 @@ def _run_relight(args) -> int:
         raise InputError("give at least one light: --light X,Y,Z (towards the light, e.g. --light 0.3,0.5,1) or --lights FILE.lp")
     output = Path(args.output)
     several = len(directions) > 1
-    if several and output.suffix.lower() in _IMAGE_SUFFIXES:
+    if several and output.suffix.lower() in IMAGE_EXTENSIONS:
         raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
-    if not several and output.suffix.lower() not in _IMAGE_SUFFIXES:
+    if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
     _check_new_path(output, overwrite=args.overwrite, folder=several)
     field = HighlightField.load(args.field)

@@ -322,6 +322,22 @@ class HighlightField:
 
         return FitSettings.from_dict(self.settings)
 
+    def relight(self, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"):
+        """Images for light direction(s): a ``RelitImages`` (S' and I' = D' + S', NumPy float32).
+
+        A shortcut for ``Relighter(self, device=..., size=..., diffuse=...).relight(directions,
+        method=...)``; the relighter (the field's arrays on the device) is kept for the next call with
+        the same options. Build a ``Relighter`` yourself for the alpha method or batch control.
+        """
+        from .relight import Relighter
+
+        key = (str(device), None if size is None else tuple(size), diffuse)
+        cache = self.__dict__.setdefault("_relighters", {})
+        if key not in cache:
+            cache.clear()
+            cache[key] = Relighter(self, device=device, size=size, diffuse=diffuse)
+        return cache[key].relight(directions, method=method)
+
     def size_report(self) -> dict:
         """Bytes per part as stored (compressed): header, lights, triangulation, gaussians, paths,
         diffuse, container (zip headers and directory) and total.

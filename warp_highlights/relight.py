@@ -76,6 +76,7 @@ class _DeviceQueries:
         self.sets = GaussianBatch(count, 3 * capacity, device=device, requires_grad=False)
         self.specular = wp.empty((count, height, width), dtype=float, device=device)
         self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
+        self.staging = None  # pinned host copies of specular and full, made on first use
 
 
 class Relighter:
@@ -90,7 +91,8 @@ class Relighter:
         specular_colour: colour c of the highlights in I' = D' + c S' per channel (white by default).
         scale: factor applied to I' (e.g. 1 / exposure to return to the input's units).
         alpha_specular: (n, H, W) specular luminance per light, for the ``alpha`` method's S'.
-        alpha_images: (n, H, W[, C]) full images per light, for the ``alpha`` method's I'.
+        alpha_images: (n, H, W[, C]) full images per light, for the ``alpha`` method's I' (field
+            units, like ``alpha_specular``: ``scale`` applies to them too).
         raster: rasterizer settings (default: the field's).
         max_batch: queries per launch (default: as many as fit in about 256 MB of images).
     """
@@ -325,8 +327,9 @@ def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray
     """The alpha method's per-light stacks for ``field`` from the ``dataset`` it was fitted to.
 
     Returns (specular, images): (n, H, W) specular luminance from the field's own segmentation
-    settings, in the field's units (exposure applied), and (n, H, W, C) images in the dataset's
-    units, both at the field's size. Pass them to ``Relighter(alpha_specular=..., alpha_images=...)``.
+    settings and the (n, H, W, C) images, both at the field's size and in the field's units (the
+    fit's exposure applied, like every Relighter input). Pass them to
+    ``Relighter(alpha_specular=..., alpha_images=...)``.
     """
     from .kernels.segmentation import segment
     from .resample import resize_stack
@@ -334,7 +337,8 @@ def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray
     check_same_lights(field, dataset)
     images = resize_stack(dataset.images, field.width, field.height)
     exposure = np.float32(field.report.get("exposure") or 1.0)
-    seg = segment(images * exposure, dataset.lights.directions, settings=field.fit_settings().segmentation, device=device)
+    images = images * exposure
+    seg = segment(images, dataset.lights.directions, settings=field.fit_settings().segmentation, device=device)
     return seg.specular_luminance.numpy().copy(), images
 
 
@@ -367,9 +371,20 @@ def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: i
 
 
 def _host_chunk(chunk: _DeviceQueries, *, full: bool, height: int, width: int) -> tuple:
-    # .numpy() of a CPU array is a view of buffers the next chunk overwrites: copy
-    images = chunk.full.numpy().reshape(chunk.count, height, width, -1).copy() if full else None
-    return (chunk.specular.numpy().copy(), images, chunk.faces.numpy().copy(), chunk.weights.numpy().astype(np.float64), chunk.clamped.numpy() != 0)
+    """The chunk's results as new NumPy arrays (through pinned staging buffers from a GPU)."""
+    specular, images = chunk.specular, chunk.full if full else None
+    if chunk.specular.device.is_cuda:
+        # a copy into page-locked memory runs at full bus speed (a pageable one took 1 ms per 480x270 image)
+        if chunk.staging is None:
+            chunk.staging = (wp.empty_like(chunk.specular, device="cpu", pinned=True), wp.empty_like(chunk.full, device="cpu", pinned=True))
+        wp.copy(chunk.staging[0], specular)
+        if full:
+            wp.copy(chunk.staging[1], images)
+        wp.synchronize_device(chunk.specular.device)
+        specular, images = chunk.staging[0], chunk.staging[1] if full else None
+    # .numpy() of a CPU array is a view of a buffer the next chunk overwrites: copy
+    images = images.numpy().reshape(chunk.count, height, width, -1).copy() if full else None
+    return (specular.numpy().copy(), images, chunk.faces.numpy().copy(), chunk.weights.numpy().astype(np.float64), chunk.clamped.numpy() != 0)
 
 
 def _checked_method(method: str) -> str:

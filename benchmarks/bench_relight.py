@@ -1,0 +1,160 @@
+"""Time relighting: one query at a time (the interactive case) and a batch (the thesis' 496 centroids).
+
+    python benchmarks/bench_relight.py [--field FIELD --dataset DATASET] [--device cuda:0] [--size 480x270]
+
+Without ``--field`` it renders and fits the demo's donut (64 lights, 240x135) first, and relights it at
+``--size`` (Gaussians are resolution-independent; the diffuse model is resampled). Per method it times:
+
+- ``one, on device``: locate + interpolate + rasterize + compose I' for one new direction, then
+  synchronize (what an interactive viewer waits for before drawing);
+- ``one, to host``: the same plus copying I' to NumPy;
+- ``batch``: ``--batch`` directions (default 496) in as few launches as memory allows, per query,
+  on the device and with the copy to the host.
+
+Prints a table (median of ``--repeat`` runs, milliseconds per query) and writes every figure to
+$OUT/bench_relight.json when OUT is set. The alpha method needs the dataset's images (``--dataset``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from warp_highlights.dataset import ReflectanceField
+from warp_highlights.field import HighlightField
+from warp_highlights.relight import Relighter, alpha_inputs
+
+
+def demo_field(folder: Path, device) -> tuple[HighlightField, ReflectanceField]:
+    from warp_highlights.fit import fit_field
+    from warp_highlights.lights import LightSet
+    from warp_highlights.render import RenderSettings, default_material, render_dataset
+
+    path = render_dataset("donut", folder / "donut", lights=LightSet.fibonacci_sphere(64), material=default_material("donut"),
+                          settings=RenderSettings(width=240, height=135), heldout=None, device=device, progress=False)
+    dataset = ReflectanceField.load(path, progress=False)
+    return fit_field(dataset, device=device, progress=False), dataset
+
+
+def random_directions(count: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(count, 3))
+    directions[:, 2] = np.abs(directions[:, 2])  # lights on the camera's side, where highlights are
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+def time_calls(function, count: int) -> np.ndarray:
+    """Seconds of each of ``count`` calls of function(i)."""
+    seconds = np.empty(count)
+    for i in range(count):
+        started = time.perf_counter()
+        function(i)
+        seconds[i] = time.perf_counter() - started
+    return seconds
+
+
+def bench_method(relighter: Relighter, method: str, *, repeat: int, batch: int) -> dict:
+    device = relighter.device
+    singles = random_directions(repeat + 3, seed=1)
+    queries = random_directions(batch, seed=2)
+
+    def one_on_device(i):
+        relighter.launch(singles[i : i + 1], method=method)
+        wp.synchronize_device(device)
+
+    def one_to_host(i):
+        relighter.relight(singles[i], method=method)
+
+    def batch_on_device(_):
+        for start in range(0, batch, relighter.max_batch):
+            relighter.launch(queries[start : start + relighter.max_batch], method=method)
+        wp.synchronize_device(device)
+
+    def batch_to_host(_):
+        relighter.relight(queries, method=method)
+
+    for warm in (one_on_device, one_to_host, batch_on_device):
+        warm(0)  # compile, allocate
+    batch_repeat = max(3, repeat // 20)
+    figures = {
+        "one_on_device_ms": 1e3 * time_calls(one_on_device, repeat),
+        "one_to_host_ms": 1e3 * time_calls(one_to_host, repeat),
+        "batch_on_device_ms_per_query": 1e3 * time_calls(batch_on_device, batch_repeat) / batch,
+        "batch_to_host_ms_per_query": 1e3 * time_calls(batch_to_host, batch_repeat) / batch,
+    }
+    sets = relighter.interpolated_sets(queries[: min(batch, 64)]) if method != "alpha" else None
+    return {
+        **{k: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))} for k, v in figures.items()},
+        "gaussians_per_query": None if sets is None else float(sets.counts.mean()),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--field", type=Path, help="highlight field (default: fit the demo donut first)")
+    parser.add_argument("--dataset", type=Path, help="its dataset, for the alpha method")
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--size", default="480x270", help="output WIDTHxHEIGHT (default 480x270, the thesis' size)")
+    parser.add_argument("--batch", type=int, default=496, help="queries in the batch (default 496: the thesis' centroids)")
+    parser.add_argument("--repeat", type=int, default=200, help="single queries timed per method (default 200)")
+    parser.add_argument("--methods", default="circular,straight,alpha")
+    parser.add_argument("--diffuse", default="auto", help="diffuse part of I' (default auto)")
+    args = parser.parse_args()
+    wp.config.quiet = True
+    wp.init()
+    device = wp.get_device(args.device)
+    width, height = (int(v) for v in args.size.lower().split("x"))
+
+    with tempfile.TemporaryDirectory() as work:
+        if args.field is None:
+            field, dataset = demo_field(Path(work), device)
+            source = "demo donut (64 lights, fitted at 240x135)"
+        else:
+            field = HighlightField.load(args.field)
+            dataset = ReflectanceField.load(args.dataset, progress=False) if args.dataset else None
+            source = str(args.field)
+    methods = [m for m in args.methods.split(",") if m]
+    alpha_specular = alpha_images = None
+    if "alpha" in methods:
+        if dataset is None:
+            methods.remove("alpha")
+        else:
+            alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
+    relighter = Relighter(field, device=device, size=(width, height), diffuse=args.diffuse,
+                          alpha_specular=alpha_specular, alpha_images=alpha_images)
+    results = {m: bench_method(relighter, m, repeat=args.repeat, batch=args.batch) for m in methods}
+
+    name = device.name if device.is_cuda else (platform.processor() or platform.machine())
+    cores = os.cpu_count()
+    print(f"relight {source}: {field.light_count} lights, {field.estimated.counts.mean():.1f} Gaussians per light, "
+          f"output {width}x{height} x {relighter.channels} channels, {device} ({name}, {cores} cores), warp {wp.config.version}")
+    print(f"max batch per launch {relighter.max_batch}; medians in ms per query")
+    print(f"| method | Gaussians / query | one (device) | one (to host) | batch of {args.batch} (device) | batch (to host) |")
+    print("|---|---|---|---|---|---|")
+    for method, r in results.items():
+        g = "-" if r["gaussians_per_query"] is None else f"{r['gaussians_per_query']:.1f}"
+        print(f"| {method} | {g} | {r['one_on_device_ms']['median']:.3f} | {r['one_to_host_ms']['median']:.3f} | "
+              f"{r['batch_on_device_ms_per_query']['median']:.3f} | {r['batch_to_host_ms_per_query']['median']:.3f} |")
+    print("thesis (RTX 3080, 480x270): 12 ms per interpolated image (donut), 11 ms (teapot)")
+    if os.environ.get("OUT"):
+        out = Path(os.environ["OUT"]) / "bench_relight.json"
+        out.write_text(json.dumps({
+            "source": source, "device": str(device), "device_name": name, "cpu_count": cores, "warp": wp.config.version,
+            "size": [width, height], "batch": args.batch, "repeat": args.repeat, "lights": field.light_count,
+            "gaussians_per_light": float(field.estimated.counts.mean()), "max_batch": relighter.max_batch, "results": results,
+        }, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,475 @@
+"""`warp-highlights relight`, `animate`, `evaluate` and `demo` end to end, and their bad input."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warp_highlights.cli import main
+from warp_highlights.field import HighlightField
+from warp_highlights.images import read_image
+from warp_highlights.lights import LightSet
+
+LIGHT = "0.3,0.5,1"
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err, "no error message"
+    assert err.count("\n") == 0, err
+    assert "Traceback" not in err
+    return err
+
+
+def _tree(folder: Path) -> list[str]:
+    """Everything under ``folder``, hidden temporary files included."""
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+@pytest.fixture(scope="module")
+def field(small_field):
+    return HighlightField.load(small_field)
+
+
+def _relighter(field, **options):
+    from warp_highlights.relight import Relighter
+
+    return Relighter(field, device="cpu", scale=1.0 / float(field.report.get("exposure") or 1.0), **options)
+
+
+# --- relight ---------------------------------------------------------------------------------------
+
+
+def test_relight_one_light_to_exr_equals_the_relighter(small_field, field, tmp_path, capsys):
+    out = tmp_path / "relit.exr"
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    image = read_image(out)
+    assert image.shape == (field.height, field.width, 3)
+    expected = _relighter(field).relight(np.array([0.3, 0.5, 1.0])).full
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-7)
+    assert image.max() > 0.05  # something is lit
+
+
+def test_relight_to_png_is_the_same_image_in_srgb(small_field, field, tmp_path):
+    out = tmp_path / "relit.png"
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--device", "cpu", "-q"]) == 0
+    image = read_image(out)
+    assert image.shape == (field.height, field.width, 3)
+    expected = np.clip(_relighter(field).relight(np.array([0.3, 0.5, 1.0])).full, 0.0, 1.0)
+    np.testing.assert_allclose(image, expected, atol=0.01)
+
+
+def test_relight_at_double_size(small_field, field, tmp_path):
+    out = tmp_path / "big.exr"
+    size = f"{2 * field.width}x{2 * field.height}"
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--size", size, "--device", "cpu", "-q"]) == 0
+    image = read_image(out)
+    assert image.shape == (2 * field.height, 2 * field.width, 3)
+    expected = _relighter(field, size=(2 * field.width, 2 * field.height)).relight(np.array([0.3, 0.5, 1.0])).full
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-7)
+
+
+def test_relight_specular_only(small_field, field, tmp_path):
+    out = tmp_path / "spec.exr"
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--specular-only", "--device", "cpu", "-q"]) == 0
+    image = read_image(out)
+    assert image.shape == (field.height, field.width)
+    relit = _relighter(field).relight(np.array([0.3, 0.5, 1.0]), full=False)
+    np.testing.assert_allclose(image, relit.specular / float(field.report.get("exposure") or 1.0), rtol=1e-6, atol=1e-7)
+    assert image.max() > 0.05 and np.mean(image > 1e-3) < 0.5  # a highlight, not a diffuse shading
+
+
+def _check_folder(out: Path, field, directions: np.ndarray, *, method: str = "circular") -> None:
+    names = [f"relit_{i:04d}.exr" for i in range(len(directions))]
+    assert sorted(p.name for p in out.iterdir()) == sorted(names + ["lights.lp"])
+    lights = LightSet.read_lp(out / "lights.lp")  # checks the named images exist
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    np.testing.assert_allclose(lights.directions, unit, atol=1e-5)
+    assert [Path(n).name for n in lights.filenames] == names
+    expected = _relighter(field).relight(directions, method=method).full
+    for i, name in enumerate(names):
+        np.testing.assert_allclose(read_image(out / name), expected[i], rtol=1e-6, atol=1e-7)
+
+
+def test_relight_two_lights_into_a_folder(small_field, field, tmp_path, capsys):
+    out = tmp_path / "two"
+    assert main(["relight", str(small_field), "--light", LIGHT, "--light=-2,0,1", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert "2 images" in capsys.readouterr().out
+    _check_folder(out, field, np.array([[0.3, 0.5, 1.0], [-2.0, 0.0, 1.0]]))
+    assert _tree(tmp_path) == ["two", *(f"two/{n}" for n in ("lights.lp", "relit_0000.exr", "relit_0001.exr"))]
+
+
+def test_relight_a_light_with_a_negative_first_coordinate(small_field, tmp_path):
+    # a light on the left, written the way the help shows (--light X,Y,Z): argparse must not take it for an option
+    out = tmp_path / "left.exr"
+    try:
+        status = main(["relight", str(small_field), "--light", "-0.5,0.2,1", "-o", str(out), "--device", "cpu", "-q"])
+    except SystemExit as stop:  # argparse: "argument --light: expected one argument"
+        status = f"argparse exit {stop.code}"
+    assert status == 0
+    assert out.is_file()
+
+
+def test_relight_a_light_file_and_a_light(small_field, field, tmp_path):
+    lp = tmp_path / "query.lp"
+    directions = np.array([[0.0, 0.0, 2.0], [1.0, 1.0, 0.5], [0.0, -1.0, 0.2]])
+    LightSet(directions / np.linalg.norm(directions, axis=1, keepdims=True)).write_lp(lp)
+    out = tmp_path / "many"
+    assert main(["relight", str(small_field), "--light", LIGHT, "--lights", str(lp), "-o", str(out), "--device", "cpu", "-q"]) == 0
+    _check_folder(out, field, np.concatenate([[[0.3, 0.5, 1.0]], directions]))
+    # and again with --overwrite, fewer lights: the old images go
+    assert main(["relight", str(small_field), "--lights", str(lp), "-o", str(out), "--overwrite", "--device", "cpu", "-q"]) == 0
+    _check_folder(out, field, directions)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
+
+
+def test_relight_alpha_needs_the_dataset(small_field, tmp_path, capsys):
+    out = tmp_path / "alpha.exr"
+    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert "--dataset" in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+def test_relight_alpha_with_the_dataset(small_field, small_donut, field, tmp_path):
+    from warp_highlights.dataset import ReflectanceField
+    from warp_highlights.relight import alpha_inputs
+
+    out = tmp_path / "alpha.exr"
+    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "--dataset", str(small_donut), "-o", str(out),
+                 "--device", "cpu", "-q"]) == 0
+    specular, images = alpha_inputs(field, ReflectanceField.load(small_donut, progress=False), device="cpu")
+    expected = _relighter(field, alpha_specular=specular, alpha_images=images).relight(np.array([0.3, 0.5, 1.0]), method="alpha").full
+    image = read_image(out)
+    np.testing.assert_allclose(image, expected, rtol=1e-3, atol=1e-3)  # the images are blended as float16
+    circular = _relighter(field).relight(np.array([0.3, 0.5, 1.0])).full
+    assert np.abs(image - circular).max() > 1e-3  # a different method
+
+
+def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path):
+    """With a field fitted with an exposure, --method alpha still writes the dataset's units."""
+    from conftest import FAST_FIT
+
+    from warp_highlights.config import FitSettings
+    from warp_highlights.dataset import ReflectanceField
+    from warp_highlights.fit import fit_field
+    from warp_highlights.resample import resize_stack
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", exposure=2.0,
+                      size=(48, 27), progress=False)
+    path = tmp_path / "exposed.whf"
+    field.save(path)
+    light = 5
+    direction = ",".join(f"{v:.17g}" for v in dataset.lights.directions[light])
+    captured = resize_stack(dataset.images, 48, 27)[light]
+    for method in ("circular", "alpha"):
+        out = tmp_path / f"{method}.exr"
+        assert main(["relight", str(path), f"--light={direction}", "--method", method, "--dataset", str(small_donut), "-o", str(out),
+                     "--device", "cpu", "-q"]) == 0
+        image = read_image(out)
+        ratio = image.sum() / captured.sum()
+        assert ratio == pytest.approx(1.0, abs=0.05), (method, ratio)
+    np.testing.assert_allclose(image, captured, rtol=2e-3, atol=1e-4)  # alpha at a light: that light's image
+
+
+@pytest.mark.parametrize(
+    ("arguments", "expected"),
+    [
+        (["--light", "0.3,up,1", "-o", "x.png"], "is not X,Y,Z numbers"),
+        (["--light", "0.3,1", "-o", "x.png"], "needs 3 numbers"),
+        (["--light", "0,0,0", "-o", "x.png"], "non-zero"),
+        (["--light", "nan,0,1", "-o", "x.png"], "finite"),
+        (["--light", LIGHT, "--light", "0,0,1", "-o", "x.png"], "give -o a folder name"),
+        (["--light", LIGHT, "-o", "x"], "image suffix"),
+        (["-o", "x.png"], "at least one light"),
+        (["--light", LIGHT, "-o", "x.png", "--size", "100x100"], "aspect ratio"),
+        (["--light", LIGHT, "-o", "x.png", "--size", "big"], "WIDTHxHEIGHT"),
+        (["--light", LIGHT, "-o", "x.png", "--specular-colour", "1,2"], "1 or 3 numbers"),
+        (["--light", LIGHT, "-o", "no/such/folder/x.png"], "does not exist"),
+    ],
+)
+def test_relight_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments, expected):
+    monkeypatch.chdir(tmp_path)
+    assert main(["relight", str(small_field), *arguments, "--device", "cpu", "-q"]) == 2
+    assert expected in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+def test_relight_keeps_an_existing_output(small_field, tmp_path, capsys):
+    out = tmp_path / "relit.png"
+    out.write_bytes(b"precious")
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert out.read_bytes() == b"precious" and _tree(tmp_path) == ["relit.png"]
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    (folder / "keep.txt").write_text("x")
+    assert main(["relight", str(small_field), "--light", LIGHT, "--light", "0,0,1", "-o", str(folder), "--device", "cpu", "-q"]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert _tree(folder) == ["keep.txt"]
+
+
+def test_relight_on_a_device_that_is_not_there(small_field, tmp_path, capsys):
+    out = tmp_path / "relit.png"
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--device", "cuda:97", "-q"]) == 2
+    assert "cuda:97" in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+def test_relight_a_missing_field(tmp_path, capsys):
+    out = tmp_path / "relit.png"
+    assert main(["relight", str(tmp_path / "nope.whf"), "--light", LIGHT, "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert "nope.whf" in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+# --- animate ---------------------------------------------------------------------------------------
+
+
+def test_animate_an_orbit_to_a_gif(small_field, field, tmp_path, capsys):
+    from PIL import Image
+
+    out = tmp_path / "orbit.gif"
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert "6 frames" in capsys.readouterr().out
+    with Image.open(out) as gif:
+        assert gif.n_frames == 6 and gif.size == (field.width, field.height)
+        frames = []
+        for i in range(6):
+            gif.seek(i)
+            frames.append(np.asarray(gif.convert("RGB"), dtype=np.float64))
+    assert np.abs(frames[0] - frames[3]).max() > 10  # the light moves: the frames differ
+
+
+def test_animate_to_a_folder_of_frames(small_field, field, tmp_path):
+    out = tmp_path / "frames"
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert len(names) == 6 and all(n.endswith(".png") for n in names)
+    from warp_highlights.animation import orbit
+
+    expected = np.clip(_relighter(field).relight(orbit(30, 6)).full, 0, 1)
+    for i, name in enumerate(names):
+        image = read_image(out / name)
+        assert image.shape == (field.height, field.width, 3)
+        np.testing.assert_allclose(image, expected[i], atol=0.01)
+
+
+def test_animate_compare_puts_the_methods_side_by_side(small_field, field, tmp_path):
+    from PIL import Image
+
+    out = tmp_path / "compare.gif"
+    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "4", "--compare", "--methods", "circular,straight",
+                 "-o", str(out), "--device", "cpu", "-q"]) == 0
+    with Image.open(out) as gif:
+        assert gif.n_frames == 4 and gif.size == (2 * field.width, field.height)
+
+
+def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
+    from warp_highlights.animation import great_circle
+
+    out = tmp_path / "arc"
+    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr", "--specular-only", "-o", str(out),
+                 "--device", "cpu", "-q"]) == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert len(names) == 3 and all(n.endswith(".exr") for n in names)
+    expected = _relighter(field).relight(great_circle([1, 0, 1], [-1, 0, 1], 3), full=False).specular
+    for i, name in enumerate(names):
+        np.testing.assert_allclose(read_image(out / name), expected[i], rtol=1e-6, atol=1e-7)
+
+
+def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, tmp_path):
+    out = tmp_path / "compare"
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "2", "--compare", "--dataset", str(small_donut), "--exr",
+                 "--specular-only", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    frames = [read_image(p) for p in sorted(out.iterdir())]
+    assert len(frames) == 2 and frames[0].shape == (field.height, 2 * field.width)
+    from warp_highlights.animation import orbit
+
+    circular = _relighter(field).relight(orbit(30, 2), full=False).specular
+    np.testing.assert_allclose(frames[1][:, : field.width], circular[1], rtol=1e-6, atol=1e-7)  # left: circular
+    assert np.abs(frames[1][:, field.width :] - circular[1]).max() > 1e-3  # right: the alpha blend
+
+
+@pytest.mark.parametrize(
+    ("arguments", "expected"),
+    [
+        (["--path", "spiral:3", "-o", "x.gif"], "unknown kind"),
+        (["--path", "orbit:120", "-o", "x.gif"], "[-90, 90]"),
+        (["--path", "great:1,0,0:-1,0,0", "-o", "x.gif"], "great"),
+        (["--path", "orbit:30", "-o", "x.avi"], ".avi"),
+        (["--path", "orbit:30", "-o", "x.gif", "--frames", "0"], "--frames"),
+        (["--path", "orbit:30", "-o", "x.gif", "--compare"], "--dataset"),  # default methods circular,alpha
+        (["--path", "orbit:30", "-o", "x.gif", "--compare", "--methods", "circular,cubic"], "methods"),
+        (["--path", "orbit:30", "-o", "x.gif", "--method", "alpha"], "--dataset"),
+    ],
+)
+def test_animate_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments, expected):
+    monkeypatch.chdir(tmp_path)
+    assert main(["animate", str(small_field), "--frames", "3", *arguments, "--device", "cpu", "-q"]) == 2
+    assert expected in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+# --- evaluate --------------------------------------------------------------------------------------
+
+PLOTS = ["barycentric-psnr.png", "examples.png", "gaussian-counts.png", "psnr-circular-vs-alpha.png", "psnr-full.png", "psnr-specular.png"]
+
+
+@pytest.fixture(scope="module")
+def evaluated(small_field, small_donut, tmp_path_factory):
+    out = tmp_path_factory.mktemp("evaluate") / "report"
+    import contextlib
+    import io
+
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        status = main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device", "cpu", "-q"])
+    return status, out, text.getvalue()
+
+
+def test_evaluate_writes_a_report_and_plots(evaluated, small_field, field):
+    status, out, text = evaluated
+    assert status == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["report.json"])
+    report = json.loads((out / "report.json").read_text())
+    specular = report["summary"]["specular"]
+    for method in ("circular", "straight", "alpha"):
+        assert specular[method]["count"] == 2 * field.light_count - 4
+        assert 10.0 < specular[method]["p5"] <= specular[method]["mean"] <= specular[method]["p95"] <= 100.0
+    assert 0.0 <= specular["circular_beats_alpha"] <= 1.0
+    assert report["field"] == str(small_field) and report["methods"] == ["circular", "straight", "alpha"]
+    assert len(report["barycentric_sweep"]["weights"]) == 6
+    from PIL import Image
+
+    for name in PLOTS:
+        with Image.open(out / name) as image:
+            assert image.format == "PNG" and min(image.size) > 100
+    # the table on stdout
+    assert "| circular |" in text and "| alpha |" in text
+    assert f"{specular['circular']['mean']:.2f}" in text
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".")]
+
+
+def test_evaluate_keeps_an_existing_report(evaluated, small_field, small_donut, capsys):
+    _, out, _ = evaluated
+    before = (out / "report.json").read_bytes()
+    assert main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert (out / "report.json").read_bytes() == before
+
+
+def test_evaluate_without_the_triangle_plot(small_field, small_donut, tmp_path, capsys):
+    import shutil
+
+    field_path = tmp_path / "mine.whf"
+    shutil.copy(small_field, field_path)
+    assert main(["evaluate", str(field_path), str(small_donut), "--triangle", "none", "--methods", "circular,alpha", "--device", "cpu", "-q"]) == 0
+    out = tmp_path / "mine-evaluation"  # the default: beside the field
+    names = sorted(p.name for p in out.iterdir())
+    assert "barycentric-psnr.png" not in names and "psnr-circular-vs-alpha.png" in names
+    report = json.loads((out / "report.json").read_text())
+    assert report["barycentric_sweep"] is None and set(report["summary"]["specular"]) == {"circular", "alpha", "circular_beats_alpha"}
+    assert "| straight |" not in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("arguments", "expected"),
+    [
+        (["--triangle", "99999", "--steps", "2"], "triangle 99999 does not exist"),
+        (["--triangle", "middle"], "--triangle"),
+        (["--methods", "circular,cubic"], "methods"),
+        (["--methods", ""], "methods"),
+    ],
+)
+def test_evaluate_bad_input_is_one_line_and_writes_nothing(small_field, small_donut, tmp_path, capsys, arguments, expected):
+    out = tmp_path / "report"
+    assert main(["evaluate", str(small_field), str(small_donut), *arguments, "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert expected in _error_line(capsys)
+    assert _tree(tmp_path) == []
+
+
+def test_evaluate_needs_heldout_lights(small_field, small_donut, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(small_donut, copy)
+    (copy / "heldout.lp").unlink()
+    assert main(["evaluate", str(small_field), str(copy), "-o", str(tmp_path / "report"), "--device", "cpu", "-q"]) == 2
+    assert "held-out" in _error_line(capsys)
+    assert not (tmp_path / "report").exists()
+
+
+def test_evaluate_a_dataset_without_a_renderer_skips_the_triangle_plot(small_field, small_donut, tmp_path):
+    import shutil
+
+    copy = tmp_path / "photos"
+    shutil.copytree(small_donut, copy)
+    (copy / "meta.json").unlink()
+    out = tmp_path / "report"
+    assert main(["evaluate", str(small_field), str(copy), "--steps", "2", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert "meta.json" in report["barycentric_sweep"]["skipped"]
+    assert not (out / "barycentric-psnr.png").exists() and (out / "psnr-specular.png").is_file()
+
+
+# --- demo ------------------------------------------------------------------------------------------
+
+
+def test_demo_writes_an_index_of_what_it_made(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", str(out), "--lights", "16", "--size", "64x36", "--frames", "4", "--device", "cpu", "-q"]) == 0
+    assert "index.md" in capsys.readouterr().out
+    index = (out / "index.md").read_text()
+    listed = re.findall(r"^\| `([^`]+)` \|", index, flags=re.MULTILINE)
+    assert {"donut/", "donut.whf", "evaluation/", "orbit.gif", "relit.png"} <= set(listed)
+    for name in listed:
+        path = out / name.rstrip("/")
+        assert path.is_dir() if name.endswith("/") else path.is_file(), name
+    # every file of the folder is in the index
+    assert sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()) == sorted(listed + ["demo.json", "index.md"])
+    # the evaluation row names the plots it holds
+    row = next(line for line in index.splitlines() if line.startswith("| `evaluation/`"))
+    plots = re.findall(r"[\w-]+\.(?:png|json)", row)
+    assert sorted(set(plots)) == sorted(p.name for p in (out / "evaluation").iterdir())
+    demo = json.loads((out / "demo.json").read_text())
+    assert set(demo["files"]) == set(listed)
+    assert set(demo["seconds"]) == {"render", "fit", "evaluate", "animate"} and demo["total_seconds"] > 0
+    report = json.loads((out / "evaluation" / "report.json").read_text())
+    for method in ("circular", "straight", "alpha"):
+        assert f"| {method} | {report['summary']['specular'][method]['mean']:.2f} |" in index
+    from PIL import Image
+
+    with Image.open(out / "orbit.gif") as gif:
+        assert gif.n_frames == 4 and gif.size == (64, 36)
+    with Image.open(out / "orbit-highlights.gif") as gif:
+        assert gif.n_frames == 4 and gif.size == (3 * 64, 36)
+    assert read_image(out / "relit.png").shape == (36, 64, 3)
+    field = HighlightField.load(out / "donut.whf")
+    assert (field.width, field.height, field.light_count) == (64, 36, 16)
+
+    before = _tree(out)
+    assert main(["demo", str(out), "--lights", "16", "--size", "64x36", "--frames", "4", "--device", "cpu", "-q"]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert _tree(out) == before
+
+
+def test_demo_refuses_a_file_as_its_folder(tmp_path, capsys):
+    target = tmp_path / "notes.txt"
+    target.write_text("keep me")
+    for extra in ([], ["--overwrite"]):
+        assert main(["demo", str(target), "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu", "-q", *extra]) == 2
+        assert "notes.txt" in _error_line(capsys)
+        assert target.read_text() == "keep me" and _tree(tmp_path) == ["notes.txt"]
+
+
+def test_demo_bad_options(tmp_path, capsys):
+    for extra, expected in ((["--lights", "3"], "at least 4 lights"), (["--frames", "1"], "--frames"), (["--size", "64"], "WIDTHxHEIGHT")):
+        assert main(["demo", str(tmp_path / "demo"), "--device", "cpu", "-q", *extra]) == 2
+        assert expected in _error_line(capsys)
+    assert _tree(tmp_path) == []
