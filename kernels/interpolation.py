@@ -155,10 +155,11 @@ def interpolate_gaussians(
     """out[q, k N + p] = slot p of corner k's set moved to query q (method.md section 6).
 
     For corner A = face_vertices[f, k] with weights (lA, lB, lC) rotated so lA is corner k's:
-    a' = lA a_A + lB a_AB + lC a_AC (likewise |sigma|), theta' = theta_A + lB delta_AB + lC delta_AC,
+    |a'| = lA |a_A| + lB |a_AB| + lC |a_AC| (likewise |sigma|), theta' = theta_A + lB delta_AB + lC delta_AC,
     mu' = arc(A->B, lB) + arc(A->C, lC) - mu_A (circular) or the barycentric blend (straight); the
     slot's weight is lA. A slot with lA = 0 is left inactive: it would draw nothing.
-    ``face_edges[f, k]`` holds the rows of the directed edges A->B and A->C.
+    ``face_edges[f, k]`` holds the rows of the directed edges A->B and A->C; ``path_delta`` is in
+    radians, means and sizes in image heights.
     """
     q, k, p = wp.tid()
     slot = k * estimated.active.shape[1] + p
@@ -190,7 +191,8 @@ def interpolate_gaussians(
     sb = retargeted.sigma[to_b, p]
     sc = retargeted.sigma[to_c, p]
     out.active[q, slot] = 1
-    out.amplitude[q, slot] = la * estimated.amplitude[a, p] + lb * retargeted.amplitude[to_b, p] + lc * retargeted.amplitude[to_c, p]
+    # only a^2 is drawn and fitting may flip a's sign: blend |a|, or a highlight would fade through 0
+    out.amplitude[q, slot] = la * wp.abs(estimated.amplitude[a, p]) + lb * wp.abs(retargeted.amplitude[to_b, p]) + lc * wp.abs(retargeted.amplitude[to_c, p])
     out.mean[q, slot] = mean
     out.sigma[q, slot] = wp.vec2(
         la * wp.abs(sa[0]) + lb * wp.abs(sb[0]) + lc * wp.abs(sc[0]),

@@ -333,3 +333,34 @@ def test_field_relight_shortcut_matches_the_relighter(sphere_field):
     assert np.array_equal(shortcut.full, direct.full)
     again = sphere_field.relight(queries, method="straight", device="cpu", diffuse="lambert")
     assert np.array_equal(again.specular, Relighter(sphere_field, device="cpu").relight(queries, method="straight").specular)
+
+
+def test_a_gaussian_whose_fit_flipped_its_amplitude_sign_does_not_fade_through_zero():
+    """Only a^2 is drawn, so a_A = +0.4 and a_AB = -0.4 are the same highlight: |a| is blended."""
+    field = synthetic_field(LightSet.fibonacci_sphere(12), capacity=2, seed=7)
+    flipped = field.retargeted.copy()
+    flipped.amplitude = -flipped.amplitude
+    mirrored = HighlightField(
+        lights=field.lights, triangulation=field.triangulation, width=WIDTH, height=HEIGHT, estimated=field.estimated,
+        directed_edges=field.directed_edges, retargeted=flipped, path_delta=field.path_delta, path_centre=field.path_centre,
+        settings=field.settings, report={}, diffuse=field.diffuse,
+    )
+    queries = field.triangulation.centroid_directions()
+    before = Relighter(field, device="cpu").relight(queries, full=False).specular
+    after = Relighter(mirrored, device="cpu").relight(queries, full=False).specular
+    np.testing.assert_allclose(after, before, rtol=1e-6, atol=1e-7)
+    assert before.max() > 0.1
+    location = field.triangulation.locate(queries)
+    reference = interpolate_sets(mirrored, location.vertices, location.barycentric)
+    assert np.all(reference.amplitude[reference.active] > 0)
+
+
+def test_kept_results_survive_later_calls(sphere_field):
+    relighter = Relighter(sphere_field, device="cpu", max_batch=4)
+    first_queries = random_directions(np.random.default_rng(18), 4)
+    first = relighter.relight(first_queries)
+    kept = first.full.copy(), first.specular.copy()
+    relighter.relight(random_directions(np.random.default_rng(19), 4))  # same count: same device buffers
+    relighter.relight(random_directions(np.random.default_rng(20), 1))
+    assert np.array_equal(first.full, kept[0]) and np.array_equal(first.specular, kept[1])
+    assert np.array_equal(relighter.relight(first_queries).full, kept[0])

@@ -473,3 +473,26 @@ def test_demo_bad_options(tmp_path, capsys):
         assert main(["demo", str(tmp_path / "demo"), "--device", "cpu", "-q", *extra]) == 2
         assert expected in _error_line(capsys)
     assert _tree(tmp_path) == []
+
+
+def test_overwrite_never_deletes_other_files(small_field, small_donut, tmp_path, capsys):
+    """--overwrite replaces only folders holding what the command itself writes."""
+    for argv in (
+        ["relight", str(small_field), "--light", "0,0,1", "--light", "1,0,1", "-q"],
+        ["evaluate", str(small_field), str(small_donut), "--triangle", "none", "-q"],
+    ):
+        out = tmp_path / argv[0]
+        out.mkdir()
+        (out / "thesis.tex").write_text("keep me")
+        assert main([*argv, "-o", str(out), "--overwrite"]) == 2
+        assert "holds other files" in _error_line(capsys)
+        assert _tree(out) == ["thesis.tex"]
+        # a folder the command wrote itself is replaced, and the old contents go
+        (out / "thesis.tex").unlink()
+        assert main([*argv, "-o", str(out)]) == 0
+        first = _tree(out)
+        (out / first[0]).write_bytes(b"stale")
+        assert main([*argv, "-o", str(out), "--overwrite"]) == 0
+        assert _tree(out) == first
+        assert (out / first[0]).read_bytes() != b"stale"
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

@@ -195,9 +195,6 @@ def _quiet_warp(*, verbose: bool) -> None:
     wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
 
 
-
-
-
 def _light_sets(args) -> tuple:
     from .lights import LightSet
 

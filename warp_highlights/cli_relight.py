@@ -102,7 +102,7 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
 
         dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
         alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
-    exposure = float(field.report.get("exposure") or 1.0)
+    exposure = field.exposure
     return Relighter(
         field, device=device, size=size, diffuse=args.diffuse, specular_colour=colour, scale=1.0 / exposure,
         alpha_specular=alpha_specular, alpha_images=alpha_images,
@@ -133,10 +133,15 @@ def _run_relight(args) -> int:
         raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
-    _check_new_path(output, overwrite=args.overwrite, folder=several)
+    if several:
+        from .images import check_replaceable_folder
+
+        check_replaceable_folder(output, overwrite=args.overwrite, owned=_relit_folder_entry)
+    else:
+        _check_new_path(output, overwrite=args.overwrite, folder=False)
     field = HighlightField.load(args.field)
     relighter = _make_relighter(args, field, methods=(args.method,))
-    exposure = float(field.report.get("exposure") or 1.0)
+    exposure = field.exposure
     started = time.perf_counter()
     relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
     seconds = time.perf_counter() - started
@@ -160,29 +165,22 @@ def _single(relit):
     return RelitImages(*(None if a is None else np.asarray(a)[None] for a in (relit.specular, relit.full, relit.faces, relit.barycentric, relit.clamped)))
 
 
+def _relit_folder_entry(name: str) -> bool:
+    return name == "lights.lp" or (name.startswith("relit_") and name.endswith(".exr"))
+
+
 def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular_only: bool, exposure: float, overwrite: bool) -> None:
     """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself."""
-    import shutil
-    import uuid
-
-    from .images import write_image
+    from .images import atomic_folder, write_image
     from .lights import LightSet
 
-    temporary = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:12]}.tmp")
-    temporary.mkdir(parents=True)
-    try:
+    with atomic_folder(folder, overwrite=overwrite, owned=_relit_folder_entry) as temporary:
         digits = max(4, len(str(len(directions) - 1)))
         names = [f"relit_{i:0{digits}d}.exr" for i in range(len(directions))]
         for i, name in enumerate(names):
             write_image(temporary / name, _output_image(relit, i, specular_only=specular_only, exposure=exposure))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         LightSet(unit).write_lp(temporary / "lights.lp", filenames=names)
-        if folder.exists() and overwrite:
-            shutil.rmtree(folder)
-        temporary.rename(folder)
-    finally:
-        if temporary.exists():
-            shutil.rmtree(temporary)
 
 
 def _check_new_path(path: Path, *, overwrite: bool, folder: bool) -> None:
@@ -217,7 +215,7 @@ def _run_animate(args) -> int:
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
     field = HighlightField.load(args.field)
     relighter = _make_relighter(args, field, methods=methods)
-    exposure = float(field.report.get("exposure") or 1.0)
+    exposure = field.exposure
 
     def frames():
         for start in range(0, len(directions), relighter.max_batch):
@@ -242,6 +240,7 @@ def _run_evaluate(args) -> int:
     from .dataset import ReflectanceField
     from .evaluation import evaluate_field
     from .field import HighlightField
+    from .images import check_replaceable_folder
 
     methods = _parse_methods(args.methods)
     triangle = args.triangle.strip().lower()
@@ -251,9 +250,13 @@ def _run_evaluate(args) -> int:
         except ValueError:
             raise InputError(f"--triangle '{args.triangle}' must be a face index, 'auto' or 'none'") from None
     output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
-    _check_new_path(output, overwrite=args.overwrite, folder=True)
+    check_replaceable_folder(output, overwrite=args.overwrite, owned=evaluation_folder_entry)
+    if args.steps < 1:
+        raise InputError(f"--steps must be at least 1, got {args.steps}")
     device = check_device(args.device)
     field = HighlightField.load(args.field)
+    if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
+        raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
     say = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
@@ -267,16 +270,17 @@ def _run_evaluate(args) -> int:
     return 0
 
 
+def evaluation_folder_entry(name: str) -> bool:
+    """What ``write_evaluation`` writes: report.json and PNG plots."""
+    return name == "report.json" or name.endswith(".png")
+
+
 def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool, title: str) -> list[str]:
-    """report.json and the plots into ``folder`` (written beside it, then renamed); returns the file names."""
-    import shutil
-    import uuid
-
+    """report.json and the plots into ``folder`` (written beside it, then swapped in); returns the file names."""
     from . import plots
+    from .images import atomic_folder
 
-    temporary = folder.with_name(f".{folder.name}.{uuid.uuid4().hex[:12]}.tmp")
-    temporary.mkdir(parents=True)
-    try:
+    with atomic_folder(folder, overwrite=overwrite, owned=evaluation_folder_entry) as temporary:
         for kind, scores in (("specular", evaluation.specular_psnr), ("full", evaluation.full_psnr)):
             if scores:
                 excluded = max(int(np.isnan(v).sum()) for v in scores.values())
@@ -292,7 +296,7 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
             labels = tuple(f"light {v}" for v in sweep["vertices"])
             plots.plot_barycentric_psnr(sweep["weights"], sweep["specular_psnr"], temporary / "barycentric-psnr.png", corner_labels=labels,
                                         title=f"{title}: PSNR inside triangle {sweep['face']}")
-        if evaluation.examples:
+        if evaluation.examples and len(evaluation.example_queries):
             order = [k for k in ("truth", "circular", "straight", "alpha") if k in evaluation.examples]
             images, labels = [], []
             for row, query in enumerate(evaluation.example_queries):
@@ -303,13 +307,7 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
             plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order), title=f"{title}: specular highlights at held-out lights")
         (temporary / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
         names = sorted(p.name for p in temporary.iterdir())
-        if folder.exists() and overwrite:
-            shutil.rmtree(folder)
-        temporary.rename(folder)
-        return names
-    finally:
-        if temporary.exists():
-            shutil.rmtree(temporary)
+    return names
 
 
 def print_evaluation_table(report: dict) -> None:

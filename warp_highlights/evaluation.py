@@ -194,7 +194,7 @@ def evaluate_field(
             "the dataset has no held-out lights to compare with: render it with held-out lights "
             "(warp-highlights render ... --heldout centroids) or pass --heldout FOLDER"
         )
-    exposure = float(f.report.get("exposure") or 1.0)
+    exposure = f.exposure
     seconds = {}
     started = time.perf_counter()
     alpha_specular = alpha_images = None
@@ -218,15 +218,28 @@ def evaluate_field(
     for method in methods:
         say(f"relighting {len(directions)} held-out directions ({method})")
         t = time.perf_counter()
-        want_full = compare_full or method == "alpha" and truth_full.shape[-1] == relighter.channels
-        relit = relighter.relight(directions, method=method, full=want_full)
+        want_full = compare_full
+        specular_scores, full_scores, faces, weights, examples = [], [], [], [], []
+        start = 0
+        for chunk in relighter.iter_relight(directions, method=method, full=want_full):  # one chunk in memory at a time
+            stop = start + len(chunk.specular)
+            _check_finite(chunk, method)
+            if truth_specular is not None:
+                specular_scores.append(psnr_excluding_black(chunk.specular, truth_specular[start:stop]))
+            if want_full:
+                full_scores.append(psnr_excluding_black(chunk.full, truth_full[start:stop]))
+            faces.append(chunk.faces)
+            weights.append(chunk.barycentric)
+            keep = examples_at[(examples_at >= start) & (examples_at < stop)] - start
+            examples.append(chunk.specular[keep])
+            start = stop
         seconds[f"relight_{method}"] = time.perf_counter() - t
-        result.faces, result.barycentric = relit.faces, relit.barycentric
-        if truth_specular is not None:
-            result.specular_psnr[method] = psnr_excluding_black(relit.specular, truth_specular)
-        if want_full and relit.full is not None and compare_full:
-            result.full_psnr[method] = psnr_excluding_black(relit.full, truth_full)
-        result.examples[method] = relit.specular[examples_at]
+        result.faces, result.barycentric = np.concatenate(faces), np.concatenate(weights)
+        if specular_scores:
+            result.specular_psnr[method] = np.concatenate(specular_scores)
+        if full_scores:
+            result.full_psnr[method] = np.concatenate(full_scores)
+        result.examples[method] = np.concatenate(examples)
     if truth_specular is not None:
         result.examples["truth"] = truth_specular[examples_at]
     result.example_queries = examples_at
@@ -252,6 +265,12 @@ def evaluate_field(
         "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full", result.full_psnr)) if scores],
     }
     return result
+
+
+def _check_finite(chunk, method: str) -> None:
+    for name, images in (("specular", chunk.specular), ("full", chunk.full)):
+        if images is not None and not np.all(np.isfinite(images)):
+            raise InputError(f"the {method} method gave non-finite {name} images; the field file may be damaged (refit it)")
 
 
 def luminance(stack: np.ndarray) -> np.ndarray:
@@ -290,6 +309,7 @@ def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposur
     scores = {}
     for method in methods:
         relit = relighter.relight(directions, method=method, full=False)
+        _check_finite(relit, method)
         scores[method] = psnr_excluding_black(relit.specular, truth)
     return {"face": face, "vertices": vertices, "weights": weights, "specular_psnr": scores}
 

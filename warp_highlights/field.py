@@ -322,20 +322,30 @@ class HighlightField:
 
         return FitSettings.from_dict(self.settings)
 
-    def relight(self, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"):
-        """Images for light direction(s): a ``RelitImages`` (S' and I' = D' + S', NumPy float32).
+    @property
+    def exposure(self) -> float:
+        """The factor the fit multiplied the input radiance by (``fit --exposure``); 1 when absent."""
+        value = self.report.get("exposure")
+        return float(value) if isinstance(value, (int, float)) and math.isfinite(value) and value > 0 else 1.0
 
-        A shortcut for ``Relighter(self, device=..., size=..., diffuse=...).relight(directions,
-        method=...)``; the relighter (the field's arrays on the device) is kept for the next call with
-        the same options. Build a ``Relighter`` yourself for the alpha method or batch control.
+    def relight(self, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"):
+        """Images for light direction(s): a ``RelitImages`` (S' in the field's units, I' = D' + S' in
+        the input's: divided by ``exposure``), NumPy float32.
+
+        A shortcut for ``Relighter(self, device=..., size=..., diffuse=..., scale=1 / exposure)
+        .relight(directions, method=...)``; the relighter (the field's arrays on the device) is kept for
+        the next call with the same options (not thread-safe: use one ``Relighter`` per thread). Build
+        a ``Relighter`` yourself for the alpha method or batch control.
         """
+        import warp as wp
+
         from .relight import Relighter
 
-        key = (str(device), None if size is None else tuple(size), diffuse)
+        key = (str(wp.get_device(device)), None if size is None else tuple(size), diffuse)
         cache = self.__dict__.setdefault("_relighters", {})
         if key not in cache:
             cache.clear()
-            cache[key] = Relighter(self, device=device, size=size, diffuse=diffuse)
+            cache[key] = Relighter(self, device=device, size=size, diffuse=diffuse, scale=1.0 / self.exposure)
         return cache[key].relight(directions, method=method)
 
     def size_report(self) -> dict:

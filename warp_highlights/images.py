@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import struct
 import uuid
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from functools import lru_cache
 from pathlib import Path
 
@@ -27,6 +28,8 @@ from .errors import InputError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "atomic_folder",
+    "check_replaceable_folder",
     "image_size",
     "linear_to_srgb",
     "read_image",
@@ -176,6 +179,51 @@ def atomic_target(path: Path) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_replaceable_folder(path: Path, *, overwrite: bool, owned: Callable[[str], bool]) -> None:
+    """Raise ``InputError`` unless ``atomic_folder`` may write ``path``.
+
+    A missing or empty folder is fine; an existing one needs ``overwrite`` and may hold only entries
+    for which ``owned(name)`` is true (what the writer itself makes), so other files are never deleted.
+    """
+    if not path.exists():
+        parent = path.parent if str(path.parent) else Path(".")
+        if not parent.is_dir():
+            raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
+        return
+    if not path.is_dir():
+        raise InputError(f"output {path} is a file; give a folder name")
+    entries = [entry.name for entry in path.iterdir()]
+    if entries and not overwrite:
+        raise InputError(f"output folder {path} exists; pass --overwrite to replace it")
+    foreign = sorted(name for name in entries if not owned(name))
+    if foreign:
+        raise InputError(f"output folder {path} holds other files ({foreign[0]}, ...); choose another folder, it is not replaced")
+
+
+@contextlib.contextmanager
+def atomic_folder(path: Path, *, overwrite: bool, owned: Callable[[str], bool]) -> Iterator[Path]:
+    """Yield a new temporary folder beside ``path``; on success it takes ``path``'s place.
+
+    ``check_replaceable_folder`` runs first. The old folder is moved aside before the new one is
+    renamed in and removed after, so a failure at any point leaves either the old or the new output.
+    """
+    check_replaceable_folder(path, overwrite=overwrite, owned=owned)
+    tag = uuid.uuid4().hex[:12]
+    tmp = path.with_name(f".{path.name}.{tag}.tmp")
+    old = path.with_name(f".{path.name}.{tag}.old")
+    tmp.mkdir(parents=True)
+    try:
+        yield tmp
+        check_replaceable_folder(path, overwrite=overwrite, owned=owned)  # nothing appeared meanwhile
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+    finally:
+        for leftover in (tmp, old):
+            if leftover.exists():
+                shutil.rmtree(leftover)
 
 
 # --- helpers -----------------------------------------------------------------------------------

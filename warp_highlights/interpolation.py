@@ -1,7 +1,7 @@
 """Interpolated Gaussian sets for query directions (method.md section 6), in float64 NumPy.
 
 For a query in triangle (A, B, C) with barycentric (lA, lB, lC), each vertex V contributes its set
-moved towards the other two vertices' retargeted sets: amplitudes and sizes blend barycentrically,
+moved towards the other two vertices' retargeted sets: |amplitudes| and |sizes| blend barycentrically,
 positions follow the stored circular paths (or straight lines), rotations turn by lB delta_AB + lC
 delta_AC. The union of the three moved sets, weighted lA, lB, lC, is the interpolated set. At a vertex
 (lA = 1) it is exactly G_A. This is the reference the relighting kernels are tested against; it is
@@ -63,7 +63,8 @@ def _moved_vertex_set(field, a, ab, ac, la, lb, lc, method: str, straight_below:
     source = field.estimated
     to_b = to_c = field.retargeted
     active = source.active[a]
-    amplitude = la[:, None] * source.amplitude[a] + lb[:, None] * to_b.amplitude[ab] + lc[:, None] * to_c.amplitude[ac]
+    # only a^2 is drawn and fitting may flip a's sign: blend |a| (like |sigma|)
+    amplitude = la[:, None] * np.abs(source.amplitude[a]) + lb[:, None] * np.abs(to_b.amplitude[ab]) + lc[:, None] * np.abs(to_c.amplitude[ac])
     sigma = la[:, None, None] * np.abs(source.sigma[a]) + lb[:, None, None] * np.abs(to_b.sigma[ab]) + lc[:, None, None] * np.abs(to_c.sigma[ac])
     delta_b = field.path_delta[ab].astype(np.float64)
     delta_c = field.path_delta[ac].astype(np.float64)

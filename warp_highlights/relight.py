@@ -41,6 +41,8 @@ DIFFUSE_MODES = ("auto", "lambert", "images", "none")
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
 _INSIDE_TOLERANCE = 1e-12  # as SphericalTriangulation.locate
+_FLOAT16_MAX = float(np.finfo(np.float16).max)
+_KEPT_BUFFER_SETS = 3  # query counts whose device buffers are kept (a full chunk, the last chunk, one query)
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,7 +50,8 @@ class RelitImages:
     """Images of Q queries, NumPy float32.
 
     Attributes:
-        specular: (Q, H, W) S', the specular luminance (not scaled).
+        specular: (Q, H, W) S', the specular luminance in the field's units (the fit's exposure
+            applied; ``scale`` is not).
         full: (Q, H, W, C) I' = scale (D' + colour S'), or None when not asked for.
         faces: (Q,) face of the triangulation each query fell in.
         barycentric: (Q, 3) weights of that face's corners (``triangulation.faces`` order).
@@ -76,7 +79,7 @@ class _DeviceQueries:
         self.sets = GaussianBatch(count, 3 * capacity, device=device, requires_grad=False)
         self.specular = wp.empty((count, height, width), dtype=float, device=device)
         self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
-        self.staging = None  # pinned host copies of specular and full, made on first use
+        self.staging_specular = self.staging_full = None  # pinned host copies (CUDA), made on first use
 
 
 class Relighter:
@@ -121,9 +124,10 @@ class Relighter:
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
         self.diffuse = _diffuse_mode(field, diffuse)
         self.channels = field.diffuse.channel_count if field.diffuse is not None else 1
-        colour = np.broadcast_to(np.asarray(specular_colour, dtype=np.float64).reshape(-1), (3,))
-        if not np.all(np.isfinite(colour)):
-            raise InputError(f"specular colour must be finite, got {list(specular_colour)}")
+        colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
+        if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
+            raise InputError(f"specular colour must be 1 or 3 finite numbers >= 0, got {np.asarray(specular_colour).tolist()}")
+        colour = np.broadcast_to(colour, (3,))
         self.specular_colour = wp.vec3(*colour.astype(np.float32))
         if not (np.isfinite(scale) and scale > 0):
             raise InputError(f"scale must be a positive number, got {scale}")
@@ -141,7 +145,7 @@ class Relighter:
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
             raise InputError(f"max_batch must be >= 1, got {max_batch}")
-        self._buffers: _DeviceQueries | None = None
+        self._buffers: dict[int, _DeviceQueries] = {}
 
     # --- set-up ------------------------------------------------------------------------------------
 
@@ -203,13 +207,20 @@ class Relighter:
         if stack.shape[1:3] != (self.height, self.width):
             stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
         if channels:
+            if np.abs(stack).max() > _FLOAT16_MAX:
+                raise InputError(f"{what} exceed the float16 range ({_FLOAT16_MAX:g}) they are kept in; scale them down")
             return wp.array(stack.reshape(n, self.height * self.width, -1).astype(np.float16), dtype=wp.float16, device=self.device)
         return wp.array(stack.reshape(n, -1), dtype=float, device=self.device)
 
     def _chunk_buffers(self, count: int) -> _DeviceQueries:
-        if self._buffers is None or self._buffers.count != count:
-            self._buffers = _DeviceQueries(count, self.capacity, self.height, self.width, self.channels, self.device)
-        return self._buffers
+        """Buffers for ``count`` queries, kept per count (a few), so mixing single and batch queries reuses them."""
+        buffers = self._buffers.pop(count, None)
+        if buffers is None:
+            buffers = _DeviceQueries(count, self.capacity, self.height, self.width, self.channels, self.device)
+        self._buffers[count] = buffers  # most recently used last
+        while len(self._buffers) > _KEPT_BUFFER_SETS:
+            self._buffers.pop(next(iter(self._buffers)))
+        return buffers
 
     # --- the pipeline ------------------------------------------------------------------------------
 
@@ -284,7 +295,7 @@ class Relighter:
     # --- host-facing API ---------------------------------------------------------------------------
 
     def relight(self, directions, *, method: str = "circular", full: bool = True, progress=None) -> RelitImages:
-        """Images for (Q, 3) or (3,) light directions (any non-zero length), copied to the host.
+        """Images for (Q, 3) or (3,) light directions (any non-zero length), as new host arrays.
 
         Args:
             directions: towards the lights, camera space (method.md section 0).
@@ -294,23 +305,31 @@ class Relighter:
         """
         single = np.ndim(directions) == 1
         queries = _unit_queries(directions)
-        parts = []
-        for start in range(0, len(queries), self.max_batch):
-            chunk = self.launch(queries[start : start + self.max_batch], method=method, full=full)
-            parts.append(_host_chunk(chunk, full=full, height=self.height, width=self.width))
+        count = len(queries)
+        specular = np.empty((count, self.height, self.width), dtype=np.float32)
+        images = np.empty((count, self.height, self.width, self.channels), dtype=np.float32) if full else None
+        faces = np.empty(count, dtype=np.int32)
+        barycentric = np.empty((count, 3), dtype=np.float64)
+        clamped = np.empty(count, dtype=bool)
+        for start in range(0, count, self.max_batch):
+            stop = min(start + self.max_batch, count)
+            chunk = self.launch(queries[start:stop], method=method, full=full)
+            _copy_to_host(chunk, specular[start:stop], None if images is None else images[start:stop])
+            faces[start:stop] = chunk.faces.numpy()
+            barycentric[start:stop] = chunk.weights.numpy()
+            clamped[start:stop] = chunk.clamped.numpy() != 0
             if progress is not None:
-                progress(min(start + self.max_batch, len(queries)))
-        result = RelitImages(*(None if parts[0][k] is None else np.concatenate([p[k] for p in parts]) for k in range(5)))
+                progress(stop)
+        result = RelitImages(specular, images, faces, barycentric, clamped)
         if single:
-            result = RelitImages(*(None if a is None else a[0] for a in (result.specular, result.full, result.faces, result.barycentric, result.clamped)))
+            result = RelitImages(specular[0], None if images is None else images[0], faces[0], barycentric[0], clamped[0])
         return result
 
     def iter_relight(self, directions, *, method: str = "circular", full: bool = True):
-        """Yield ``RelitImages`` chunk by chunk (at most ``max_batch`` queries each), for streaming."""
+        """Yield ``RelitImages`` chunk by chunk (at most ``max_batch`` queries each, new arrays), for streaming."""
         queries = _unit_queries(directions)
         for start in range(0, len(queries), self.max_batch):
-            chunk = self.launch(queries[start : start + self.max_batch], method=method, full=full)
-            yield RelitImages(*_host_chunk(chunk, full=full, height=self.height, width=self.width))
+            yield self.relight(queries[start : start + self.max_batch], method=method, full=full)
 
     def interpolated_sets(self, directions, *, method: str = "circular") -> GaussianParams:
         """The interpolated Gaussian sets (Q, 3N) of the queries, float64 host copy (circular or straight)."""
@@ -336,8 +355,7 @@ def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray
 
     check_same_lights(field, dataset)
     images = resize_stack(dataset.images, field.width, field.height)
-    exposure = np.float32(field.report.get("exposure") or 1.0)
-    images = images * exposure
+    images = images * np.float32(field.exposure)
     seg = segment(images, dataset.lights.directions, settings=field.fit_settings().segmentation, device=device)
     return seg.specular_luminance.numpy().copy(), images
 
@@ -370,21 +388,25 @@ def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: i
     return rows.astype(np.int32)
 
 
-def _host_chunk(chunk: _DeviceQueries, *, full: bool, height: int, width: int) -> tuple:
-    """The chunk's results as new NumPy arrays (through pinned staging buffers from a GPU)."""
-    specular, images = chunk.specular, chunk.full if full else None
-    if chunk.specular.device.is_cuda:
+def _copy_to_host(chunk: _DeviceQueries, specular: np.ndarray, images: np.ndarray | None) -> None:
+    """Copy the chunk's S' (and I' when ``images`` is given) into host arrays (Q, H, W), (Q, H, W, C)."""
+    device_specular, device_full = chunk.specular, chunk.full
+    if device_specular.device.is_cuda:
         # a copy into page-locked memory runs at full bus speed (a pageable one took 1 ms per 480x270 image)
-        if chunk.staging is None:
-            chunk.staging = (wp.empty_like(chunk.specular, device="cpu", pinned=True), wp.empty_like(chunk.full, device="cpu", pinned=True))
-        wp.copy(chunk.staging[0], specular)
-        if full:
-            wp.copy(chunk.staging[1], images)
+        if chunk.staging_specular is None:
+            chunk.staging_specular = wp.empty_like(device_specular, device="cpu", pinned=True)
+        wp.copy(chunk.staging_specular, device_specular)
+        device_specular = chunk.staging_specular
+        if images is not None:
+            if chunk.staging_full is None:
+                chunk.staging_full = wp.empty_like(chunk.full, device="cpu", pinned=True)
+            wp.copy(chunk.staging_full, chunk.full)
+            device_full = chunk.staging_full
         wp.synchronize_device(chunk.specular.device)
-        specular, images = chunk.staging[0], chunk.staging[1] if full else None
-    # .numpy() of a CPU array is a view of a buffer the next chunk overwrites: copy
-    images = images.numpy().reshape(chunk.count, height, width, -1).copy() if full else None
-    return (specular.numpy().copy(), images, chunk.faces.numpy().copy(), chunk.weights.numpy().astype(np.float64), chunk.clamped.numpy() != 0)
+    # host views of buffers the next chunk overwrites: copy them out now
+    specular[...] = device_specular.numpy()
+    if images is not None:
+        images[...] = device_full.numpy().reshape(images.shape)
 
 
 def _checked_method(method: str) -> str:
