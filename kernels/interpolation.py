@@ -23,6 +23,8 @@ import warp as wp
 
 from warp_highlights.gaussians import GaussianArrays
 
+from .retarget import rotate_vec2
+
 __all__ = [
     "DIFFUSE_BLEND",
     "DIFFUSE_LAMBERT",
@@ -43,13 +45,6 @@ DIFFUSE_BLEND = 2
 
 
 @wp.func
-def _turn(v: wp.vec2, angle: float) -> wp.vec2:
-    c = wp.cos(angle)
-    s = wp.sin(angle)
-    return wp.vec2(c * v[0] - s * v[1], s * v[0] + c * v[1])
-
-
-@wp.func
 def arc_position(mean_a: wp.vec2, mean_b: wp.vec2, delta: float, fraction: float, straight_below: float) -> wp.vec2:
     """The point ``fraction`` of the way along the arc that carries mean_a to mean_b turning by delta.
 
@@ -61,7 +56,7 @@ def arc_position(mean_a: wp.vec2, mean_b: wp.vec2, delta: float, fraction: float
     sin_half = wp.sin(0.5 * delta)
     if wp.abs(delta) < straight_below or sin_half == 0.0:
         return mean_a + fraction * chord
-    return mean_a + (wp.sin(0.5 * fraction * delta) / sin_half) * _turn(chord, 0.5 * (fraction - 1.0) * delta)
+    return mean_a + (wp.sin(0.5 * fraction * delta) / sin_half) * rotate_vec2(chord, 0.5 * (fraction - 1.0) * delta)
 
 
 @wp.kernel(enable_backward=False)

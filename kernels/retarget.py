@@ -21,11 +21,12 @@ from warp_highlights.gaussians import GaussianArrays, GaussianBatch
 
 from ._tape import active_tape
 
-__all__ = ["RigidAdam", "RigidMotion", "apply_rigid", "apply_rigid_backward", "gather_images", "rigid_adam_step"]
+__all__ = ["RigidAdam", "RigidMotion", "apply_rigid", "apply_rigid_backward", "gather_images", "rigid_adam_step", "rotate_vec2"]
 
 
 @wp.func
-def _rotate(v: wp.vec2, angle: float) -> wp.vec2:
+def rotate_vec2(v: wp.vec2, angle: float) -> wp.vec2:
+    """R(angle) v: turns (x, y) by ``angle`` radians from +x towards +y."""
     c = wp.cos(angle)
     s = wp.sin(angle)
     return wp.vec2(c * v[0] - s * v[1], s * v[0] + c * v[1])
@@ -45,7 +46,7 @@ def apply_rigid(
         return
     m = motion[b, labels[b, p]]
     offset = source.mean[b, p] - centroids[b, p]
-    moved.mean[b, p] = _rotate(offset, m[2]) + centroids[b, p] + wp.vec2(m[0], m[1])
+    moved.mean[b, p] = rotate_vec2(offset, m[2]) + centroids[b, p] + wp.vec2(m[0], m[1])
     moved.theta[b, p] = source.theta[b, p] + m[2]
     moved.amplitude[b, p] = source.amplitude[b, p]
     moved.sigma[b, p] = source.sigma[b, p]
@@ -70,7 +71,7 @@ def apply_rigid_backward(
     offset = source.mean[b, p] - centroids[b, p]
     g = moved_grad.mean[b, p]
     # d/dphi of R(phi) offset is R(phi + pi/2) offset
-    turn = _rotate(offset, angle + 0.5 * wp.pi)
+    turn = rotate_vec2(offset, angle + 0.5 * wp.pi)
     wp.atomic_add(motion_grad, b, c, wp.vec3(g[0], g[1], wp.dot(g, turn) + moved_grad.theta[b, p]))
 
 
