@@ -32,6 +32,7 @@ from warp_highlights.kernels.segmentation import segment
 from warp_highlights.config import FitSettings
 from warp_highlights.dataset import ReflectanceField
 from warp_highlights.estimation import estimate, psnr
+from warp_highlights.evaluation import luminance
 from warp_highlights.field import HighlightField
 from warp_highlights.gaussians import GaussianBatch
 from warp_highlights.interpolation import interpolate_sets
@@ -39,12 +40,6 @@ from warp_highlights.paths import decide_paths
 from warp_highlights.resample import resize_stack
 from warp_highlights.retarget import retarget
 from warp_highlights.triangulation import SphericalTriangulation
-
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-
-
-def luminance(stack: np.ndarray) -> np.ndarray:
-    return stack @ LUMINANCE if stack.ndim == 4 else stack
 
 
 def main() -> None:

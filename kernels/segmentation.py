@@ -24,10 +24,11 @@ import warp as wp
 from warp_highlights.config import SegmentationSettings
 from warp_highlights.errors import InputError
 
-__all__ = ["Segmentation", "luminance", "segment", "segment_pixels"]
+__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "luminance", "segment", "segment_pixels"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
-_LUMINANCE = (0.2126, 0.7152, 0.0722)  # Rec. 709 / sRGB primaries, linear
+LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
+"""Rec. 709 / sRGB primaries, linear: the luminance the Gaussians are fitted to."""
 
 
 @wp.func
@@ -252,7 +253,7 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
         device=device,
     )
     target = wp.empty((n, height * width), dtype=float, device=device)
-    wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*_LUMINANCE), channels], outputs=[target], device=device)
+    wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*LUMINANCE_WEIGHTS), channels], outputs=[target], device=device)
     counts = status.numpy().reshape(height, width, channels, 2)
     return Segmentation(
         diffuse=diffuse.reshape(shape),

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from . import __version__
 from .cli_args import check_device as _check_device
-from .cli_args import parse_size, parse_triple
+from .cli_args import check_output_file, parse_size, parse_triple
 from .errors import InputError
 
 __all__ = ["main"]
@@ -295,11 +295,11 @@ def _run_fit(args) -> int:
     if args.dataset is None or args.output is None:
         raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
     output = Path(args.output)
-    _check_output_file(output, overwrite=args.overwrite)
+    check_output_file(output, overwrite=args.overwrite)
     if args.report is not None:
         if Path(args.report).resolve() == output.resolve():
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
-        _check_output_file(Path(args.report), overwrite=True)
+        check_output_file(Path(args.report), overwrite=True)
     size = parse_size(args.size) if args.size else None
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be at least 1, got {args.workers}")
@@ -324,15 +324,6 @@ def _run_fit(args) -> int:
             temporary.write_text(json.dumps(field.report, indent=2))
     _print_fit_summary(field, output, written, time.perf_counter() - started)
     return 0
-
-
-def _check_output_file(path: Path, *, overwrite: bool) -> None:
-    if path.exists() and (path.is_dir() or not overwrite):
-        what = "is a folder" if path.is_dir() else "exists; pass --overwrite to replace it"
-        raise InputError(f"output {path} {what}")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
 
 
 def _print_settings(values: dict, prefix: str = "") -> None:

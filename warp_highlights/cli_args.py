@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from .errors import InputError
 
-__all__ = ["check_device", "parse_direction", "parse_size", "parse_triple"]
+__all__ = ["check_device", "check_output_file", "parse_direction", "parse_size", "parse_triple"]
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -56,3 +58,13 @@ def parse_direction(text: str) -> tuple[float, float, float]:
     if not all(abs(v) < float("inf") for v in values) or not any(values):
         raise InputError(f"light direction '{text}' must be finite and non-zero, e.g. 0.3,0.5,1")
     return tuple(values)
+
+
+def check_output_file(path: Path, *, overwrite: bool) -> None:
+    """Raise ``InputError`` unless ``path`` may be written: a new file in an existing folder, or ``overwrite``."""
+    if path.exists() and (path.is_dir() or not overwrite):
+        what = "is a folder" if path.is_dir() else "exists; pass --overwrite to replace it"
+        raise InputError(f"output {path} {what}")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")

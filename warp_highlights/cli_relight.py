@@ -10,7 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_args import check_device, parse_direction, parse_size, parse_triple
+from .cli_args import (
+    check_device,
+    check_output_file,
+    parse_direction,
+    parse_size,
+    parse_triple,
+)
 from .errors import InputError
 from .images import IMAGE_EXTENSIONS
 
@@ -138,7 +144,7 @@ def _run_relight(args) -> int:
 
         check_replaceable_folder(output, overwrite=args.overwrite, owned=_relit_folder_entry)
     else:
-        _check_new_path(output, overwrite=args.overwrite, folder=False)
+        check_output_file(output, overwrite=args.overwrite)
     field = HighlightField.load(args.field)
     relighter = _make_relighter(args, field, methods=(args.method,))
     exposure = field.exposure
@@ -146,7 +152,7 @@ def _run_relight(args) -> int:
     relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
     seconds = time.perf_counter() - started
     if not several:
-        write_image(output, _output_image(_single(relit), 0, specular_only=args.specular_only, exposure=exposure))
+        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure))
         clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
         print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
         return 0
@@ -154,15 +160,6 @@ def _run_relight(args) -> int:
     print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, {args.method}, "
           f"{1000 * seconds / len(directions):.2f} ms per light)")
     return 0
-
-
-def _single(relit):
-    """Give a single query's RelitImages its query axis back."""
-    from .relight import RelitImages
-
-    if relit.specular.ndim == 3:
-        return relit
-    return RelitImages(*(None if a is None else np.asarray(a)[None] for a in (relit.specular, relit.full, relit.faces, relit.barycentric, relit.clamped)))
 
 
 def _relit_folder_entry(name: str) -> bool:
@@ -181,16 +178,6 @@ def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular
             write_image(temporary / name, _output_image(relit, i, specular_only=specular_only, exposure=exposure))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         LightSet(unit).write_lp(temporary / "lights.lp", filenames=names)
-
-
-def _check_new_path(path: Path, *, overwrite: bool, folder: bool) -> None:
-    if path.exists() and not overwrite:
-        raise InputError(f"output {path} exists; pass --overwrite to replace it")
-    if path.exists() and path.is_dir() != folder:
-        raise InputError(f"output {path} is {'a file' if folder else 'a folder'}; choose another name")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
 
 
 def _parse_methods(text: str) -> tuple[str, ...]:

@@ -68,7 +68,8 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     step("fit", t, f"{field.estimated.counts.mean():.1f} Gaussians per light -> {field_path.name}")
 
     t = time.perf_counter()
-    evaluation = evaluate_field(field, dataset, device=device)
+    alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
+    evaluation = evaluate_field(field, dataset, device=device, alpha_stacks=(alpha_specular, alpha_images))
     report = evaluation.to_dict() | {"field": str(field_path), "dataset": str(folder)}
     written = write_evaluation(out / "evaluation", evaluation, report, overwrite=True, title="donut")
     made.append(("evaluation/", "report.json and plots: " + ", ".join(written)))
@@ -76,7 +77,6 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     step("evaluate", t, "specular PSNR " + ", ".join(f"{m} {summary[m]['mean']:.2f} dB" for m in ("circular", "straight", "alpha")))
 
     t = time.perf_counter()
-    alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
     relighter = Relighter(field, device=device, alpha_specular=alpha_specular, alpha_images=alpha_images)
     path = orbit(ORBIT_ELEVATION_DEG, frames)
     write_image(out / "relit.png", relighter.relight(path[0]).full)

@@ -26,12 +26,12 @@ import numpy as np
 import warp as wp
 
 from .errors import InputError
+from .kernels.segmentation import LUMINANCE_WEIGHTS
 from .relight import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
 from .resample import resize_stack
 
 __all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "summarize"]
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 @dataclass
@@ -165,6 +165,7 @@ def evaluate_field(
     barycentric_face: int | str | None = "auto",
     barycentric_steps: int = 10,
     example_count: int = 4,
+    alpha_stacks: tuple[np.ndarray, np.ndarray] | None = None,
     progress=None,
 ) -> Evaluation:
     """Relight ``highlight_field`` at the held-out lights of ``dataset`` and score every method.
@@ -178,6 +179,7 @@ def evaluate_field(
             held-out query with the median circular - alpha gain), or None to skip.
         barycentric_steps: grid resolution of that face (weights in steps of 1 / barycentric_steps).
         example_count: held-out queries whose images are kept for a comparison figure.
+        alpha_stacks: ``alpha_inputs(highlight_field, dataset)`` when the caller has them already.
         progress: optional callable(str) told about each step.
     """
     say = progress or (lambda _message: None)
@@ -200,7 +202,7 @@ def evaluate_field(
     alpha_specular = alpha_images = None
     if "alpha" in methods:
         say("segmenting the dataset for the alpha blend")
-        alpha_specular, alpha_images = alpha_inputs(f, dataset, device=device)
+        alpha_specular, alpha_images = alpha_stacks or alpha_inputs(f, dataset, device=device)
     relighter = Relighter(f, device=device, scale=1.0 / exposure, alpha_specular=alpha_specular, alpha_images=alpha_images)
     seconds["set_up"] = time.perf_counter() - started
 
@@ -276,7 +278,7 @@ def _check_finite(chunk, method: str) -> None:
 def luminance(stack: np.ndarray) -> np.ndarray:
     """(..., H, W, 3) -> (..., H, W) Rec. 709 luminance; single-channel stacks pass through."""
     stack = np.asarray(stack, dtype=np.float32)
-    return (stack @ LUMINANCE.astype(np.float32)) if stack.shape[-1] == 3 and stack.ndim == 4 else stack
+    return (stack @ np.asarray(LUMINANCE_WEIGHTS, dtype=np.float32)) if stack.shape[-1] == 3 and stack.ndim == 4 else stack
 
 
 def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposure, device, say) -> dict:

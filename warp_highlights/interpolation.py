@@ -16,7 +16,7 @@ from .errors import InputError
 from .gaussians import GaussianParams
 from .paths import circular_position
 
-__all__ = ["INTERPOLATION_METHODS", "interpolate_sets"]
+__all__ = ["INTERPOLATION_METHODS", "edge_rows", "interpolate_sets"]
 
 INTERPOLATION_METHODS = ("circular", "straight")
 
@@ -36,25 +36,26 @@ def interpolate_sets(field, vertices: np.ndarray, barycentric: np.ndarray, *, me
     weights = np.asarray(barycentric, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or weights.shape != vertices.shape:
         raise InputError(f"vertices and barycentric must both have shape (Q, 3), got {vertices.shape} and {weights.shape}")
-    n = field.light_count
-    edges = field.directed_edges.astype(np.int64)
-    keys = edges[:, 0] * n + edges[:, 1]  # sorted: directed_edges() is lexicographically sorted
     straight_below = field.fit_settings().paths.straight_below
     parts = []
     for k in range(3):
         a, b, c = vertices[:, k], vertices[:, (k + 1) % 3], vertices[:, (k + 2) % 3]
         la, lb, lc = weights[:, k], weights[:, (k + 1) % 3], weights[:, (k + 2) % 3]
-        ab = _edge_rows(keys, a * n + b)
-        ac = _edge_rows(keys, a * n + c)
+        ab = edge_rows(field.directed_edges, field.light_count, a, b)
+        ac = edge_rows(field.directed_edges, field.light_count, a, c)
         parts.append(_moved_vertex_set(field, a, ab, ac, la, lb, lc, method, straight_below))
     return GaussianParams.concatenate(parts, axis=1)
 
 
-def _edge_rows(keys: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    rows = np.searchsorted(keys, wanted)
-    rows = np.minimum(rows, len(keys) - 1)
+def edge_rows(directed_edges: np.ndarray, light_count: int, sources, targets) -> np.ndarray:
+    """Rows of the directed edges sources -> targets in ``directed_edges`` (sorted lexicographically,
+    as ``SphericalTriangulation.directed_edges`` gives them); ``InputError`` if one is missing."""
+    edges = np.asarray(directed_edges, dtype=np.int64)
+    keys = edges[:, 0] * light_count + edges[:, 1]
+    wanted = np.asarray(sources, dtype=np.int64) * light_count + np.asarray(targets, dtype=np.int64)
+    rows = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
     if not np.all(keys[rows] == wanted):
-        raise InputError("a query triangle uses an edge the field has no retargeted sets for")
+        raise InputError("a triangle uses an edge the field has no retargeted sets for")
     return rows
 
 

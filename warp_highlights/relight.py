@@ -28,9 +28,11 @@ import warp as wp
 from .config import RasterSettings
 from .errors import InputError
 from .gaussians import GaussianBatch, GaussianParams
+from .interpolation import edge_rows
 from .kernels import interpolation as kernels
 from .kernels.raster import Rasterizer
 from .resample import resample_image
+from .triangulation import unit_query_directions
 
 __all__ = ["DIFFUSE_MODES", "RELIGHT_METHODS", "Relighter", "RelitImages", "alpha_inputs", "check_same_lights", "face_edge_rows"]
 
@@ -232,7 +234,7 @@ class Relighter:
         Gaussians). They are reused by the next call with the same count.
         """
         method = _checked_method(method)
-        directions = _unit_queries(directions)
+        directions = unit_query_directions(directions)
         if len(directions) > self.max_batch:
             raise InputError(f"launch takes at most max_batch={self.max_batch} queries, got {len(directions)}; use relight()")
         buffers = self._chunk_buffers(len(directions))
@@ -304,7 +306,7 @@ class Relighter:
             progress: optional callable(count_done) called after each chunk.
         """
         single = np.ndim(directions) == 1
-        queries = _unit_queries(directions)
+        queries = unit_query_directions(directions)
         count = len(queries)
         specular = np.empty((count, self.height, self.width), dtype=np.float32)
         images = np.empty((count, self.height, self.width, self.channels), dtype=np.float32) if full else None
@@ -327,7 +329,7 @@ class Relighter:
 
     def iter_relight(self, directions, *, method: str = "circular", full: bool = True):
         """Yield ``RelitImages`` chunk by chunk (at most ``max_batch`` queries each, new arrays), for streaming."""
-        queries = _unit_queries(directions)
+        queries = unit_query_directions(directions)
         for start in range(0, len(queries), self.max_batch):
             yield self.relight(queries[start : start + self.max_batch], method=method, full=full)
 
@@ -335,7 +337,7 @@ class Relighter:
         """The interpolated Gaussian sets (Q, 3N) of the queries, float64 host copy (circular or straight)."""
         if _checked_method(method) == "alpha":
             raise InputError("the alpha method has no Gaussian sets; use circular or straight")
-        queries = _unit_queries(directions)
+        queries = unit_query_directions(directions)
         parts = []
         for start in range(0, len(queries), self.max_batch):
             parts.append(self.launch(queries[start : start + self.max_batch], method=method, full=False, render=False).sets.numpy())
@@ -375,16 +377,10 @@ def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: i
     ``directed_edges`` must be sorted lexicographically (``SphericalTriangulation.directed_edges``).
     """
     faces = np.asarray(faces, dtype=np.int64)
-    edges = np.asarray(directed_edges, dtype=np.int64)
-    keys = edges[:, 0] * light_count + edges[:, 1]
     rows = np.empty(faces.shape + (2,), dtype=np.int64)
     for k in range(3):
         for j, step in enumerate((1, 2)):
-            wanted = faces[:, k] * light_count + faces[:, (k + step) % 3]
-            found = np.minimum(np.searchsorted(keys, wanted), len(keys) - 1)
-            if not np.all(keys[found] == wanted):
-                raise InputError("the field's directed edges do not cover every face's edges")
-            rows[:, k, j] = found
+            rows[:, k, j] = edge_rows(directed_edges, light_count, faces[:, k], faces[:, (k + step) % 3])
     return rows.astype(np.int32)
 
 
@@ -413,22 +409,6 @@ def _checked_method(method: str) -> str:
     if method not in RELIGHT_METHODS:
         raise InputError(f"method must be one of {', '.join(RELIGHT_METHODS)}, got '{method}'")
     return method
-
-
-def _unit_queries(directions) -> np.ndarray:
-    """(Q, 3) float64 unit vectors from (Q, 3) or (3,) finite non-zero directions."""
-    try:
-        queries = np.array(directions, dtype=np.float64, ndmin=2)
-    except (TypeError, ValueError):
-        raise InputError("light directions must be numbers of shape (3,) or (Q, 3)") from None
-    if queries.ndim != 2 or queries.shape[1] != 3 or len(queries) < 1:
-        raise InputError(f"light directions must have shape (3,) or (Q, 3), got {np.shape(directions)}")
-    scale = np.abs(queries).max(axis=1)
-    bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0.0)))
-    if bad.size:
-        raise InputError(f"light direction {bad[0]} is zero or not finite: {queries[bad[0]].tolist()}")
-    queries = queries / scale[:, None]
-    return queries / np.linalg.norm(queries, axis=1, keepdims=True)
 
 
 def _output_size(field, size) -> tuple[int, int]:

@@ -20,14 +20,13 @@ import warp as wp
 from . import __version__
 from .errors import InputError
 from .kernels import raytrace
+from .kernels.segmentation import LUMINANCE_WEIGHTS
 from .lights import LightSet
 from .shapes import TriangleMesh, make_shape
 from .triangulation import SphericalTriangulation
 
 __all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "renderer_from_meta", "view_rotation"]
 
-# Rec. 709 / sRGB primaries: luminance weights for single-channel renders.
-_LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 @dataclass(frozen=True)
@@ -202,7 +201,7 @@ class Renderer:
     def _colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         albedo = np.asarray(self.material.albedo, dtype=np.float64)
         if not self.settings.colour:
-            albedo = np.array([albedo @ _LUMINANCE])
+            albedo = np.array([albedo @ np.asarray(LUMINANCE_WEIGHTS)])
         channels = len(albedo)
         return albedo, np.full(channels, self.material.ambient), np.full(channels, self.material.specular)
 

@@ -16,7 +16,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from .errors import InputError
 
-__all__ = ["Location", "SphericalTriangulation"]
+__all__ = ["Location", "SphericalTriangulation", "unit_query_directions"]
 
 # A face whose plane passes this close to the origin (or beyond it) has an empty circumcap of at least
 # a hemisphere: no lights there, so it closes the open side of a dome rather than covering lights.
@@ -174,7 +174,7 @@ class SphericalTriangulation:
         Raises:
             InputError: The shape is not (3,) or (Q, 3), or a direction is zero or not finite.
         """
-        queries = _query_directions(directions)
+        queries = unit_query_directions(directions)
         tables = self._locate_tables
         count = len(queries)
         faces = np.empty(count, dtype=np.intp)
@@ -251,14 +251,14 @@ def _light_directions(directions: np.ndarray) -> np.ndarray:
     return directions / norms[:, None]
 
 
-def _query_directions(directions: np.ndarray) -> np.ndarray:
+def unit_query_directions(directions: np.ndarray) -> np.ndarray:
     """Check (Q, 3) or (3,) query directions of any non-zero length; return them as (Q, 3) unit vectors."""
     try:
         queries = np.array(directions, dtype=np.float64, ndmin=2)
     except (TypeError, ValueError):
-        raise InputError("locate needs numeric directions of shape (3,) or (Q, 3)") from None
+        raise InputError("query directions must be numbers of shape (3,) or (Q, 3)") from None
     if queries.ndim != 2 or queries.shape[1] != 3 or np.ndim(directions) not in (1, 2):
-        raise InputError(f"locate needs directions of shape (3,) or (Q, 3), got {np.shape(directions)}")
+        raise InputError(f"query directions must have shape (3,) or (Q, 3), got {np.shape(directions)}")
     # Divide by the largest component first, so that huge or tiny vectors neither overflow nor underflow.
     scale = np.abs(queries).max(axis=1, initial=0.0)
     bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0.0)))
