@@ -135,6 +135,10 @@ def _build_parser() -> argparse.ArgumentParser:
 
     add_relight_commands(commands, common=_add_common_options)
 
+    from .cli_view import add_view_command
+
+    add_view_command(commands, common=_add_common_options)
+
     demo = commands.add_parser(
         "demo",
         help="the built-in synthetic default, end to end",

@@ -110,7 +110,8 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
         "",
         f"Circular beats the alpha blend on {100 * summary['circular_beats_alpha']:.0f}% of the held-out lights.",
         "",
-        ("Next: `warp-highlights relight donut.whf --light 0.3,0.5,1 -o relit.exr`, "
+        ("Next: `warp-highlights view donut.whf` (drag the light; `--screenshot view.png` without a display), "
+         "`warp-highlights relight donut.whf --light 0.3,0.5,1 -o relit.exr`, "
          "`warp-highlights animate donut.whf --path orbit:20 -o orbit.gif`."),
     ]
     with atomic_target(index) as temporary:

@@ -30,6 +30,7 @@ __all__ = [
     "IMAGE_EXTENSIONS",
     "atomic_folder",
     "check_replaceable_folder",
+    "display_rgb8",
     "image_size",
     "linear_to_srgb",
     "read_image",
@@ -72,6 +73,22 @@ def linear_to_srgb(x) -> np.ndarray:
     x = _as_float(x)
     curve = 1.055 * np.maximum(x, 0.0031308) ** (1.0 / 2.4) - 0.055
     return np.where(x <= 0.0031308, x * 12.92, curve).astype(x.dtype, copy=False)
+
+
+def display_rgb8(image) -> np.ndarray:
+    """Linear image (H, W), (H, W, 1) or (H, W, 3) -> (H, W, 3) uint8 sRGB for the screen.
+
+    Values are clipped to [0, 1] (1 is display white), NaN shows as black and +inf as white.
+    """
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(f"a displayed image must be (H, W), (H, W, 1) or (H, W, 3), got {image.shape}")
+    encoded = linear_to_srgb(np.clip(np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
+    return np.round(encoded * 255.0).astype(np.uint8)
 
 
 def read_image(path, *, linear: bool = False) -> np.ndarray:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .images import atomic_target, linear_to_srgb
+from .images import atomic_target, display_rgb8
 
 __all__ = ["contact_sheet", "save_contact_sheet", "spread_indices"]
 
@@ -51,7 +51,7 @@ def contact_sheet(field, *, count: int = 12, thumb_height: int = 135, columns: i
         direction = field.lights.directions[light]
         draw.text((x0, y0), f"#{light}  ({direction[0]:+.2f}, {direction[1]:+.2f}, {direction[2]:+.2f})", fill=(220, 220, 220))
         for k, layer in enumerate(layers):
-            tile = Image.fromarray(_display(layer[light])).resize((thumb_width, thumb_height), Image.Resampling.LANCZOS)
+            tile = Image.fromarray(display_rgb8(layer[light])).resize((thumb_width, thumb_height), Image.Resampling.LANCZOS)
             canvas.paste(tile, (x0 + k * (thumb_width + _GAP), y0 + _LABEL_HEIGHT))
     return np.asarray(canvas)
 
@@ -68,10 +68,3 @@ def save_contact_sheet(field, path: str | Path, **options) -> Path:
     with atomic_target(path) as temporary:
         Image.fromarray(picture).save(temporary, format="PNG")
     return path
-
-
-def _display(image: np.ndarray) -> np.ndarray:
-    """Linear image (H, W) or (H, W, 3) -> uint8 sRGB RGB, clipped to [0, 1]."""
-    rgb = image if image.ndim == 3 else np.repeat(image[..., None], 3, axis=2)
-    encoded = linear_to_srgb(np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0))
-    return np.round(encoded * 255.0).astype(np.uint8)

@@ -1,0 +1,422 @@
+"""pyvista views (``warp_highlights.viz``), the light designer and ``warp-highlights view``.
+
+Geometry is checked against brute force (rotations, triangle membership, circle centres); what is
+drawn is read back from the plotter's actors; screenshots are rendered off screen.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from warp_highlights import viz
+from warp_highlights.cli import main
+from warp_highlights.designer import (
+    LightDesigner,
+    default_direction,
+    describe_direction,
+    sphere_camera,
+)
+from warp_highlights.errors import InputError
+from warp_highlights.field import HighlightField
+from warp_highlights.images import display_rgb8, read_image
+from warp_highlights.interpolation import interpolate_sets
+from warp_highlights.lights import LightSet
+from warp_highlights.paths import circular_position
+from warp_highlights.triangulation import SphericalTriangulation
+
+SPHERE = SphericalTriangulation(LightSet.fibonacci_sphere(32).directions)
+DOME = SphericalTriangulation(LightSet.fibonacci_dome(40, min_elevation_deg=15.0).directions)
+
+
+@pytest.fixture(scope="module")
+def field(small_field):
+    return HighlightField.load(small_field)
+
+
+@pytest.fixture
+def plotter():
+    plotter = viz.new_plotter(off_screen=True, window_size=(320, 240))
+    yield plotter
+    plotter.close()
+
+
+def _rotate(axis: np.ndarray, angle: float, vector: np.ndarray) -> np.ndarray:
+    """Rodrigues' rotation, the brute-force reference for great-circle arcs."""
+    axis = axis / np.linalg.norm(axis)
+    return vector * np.cos(angle) + np.cross(axis, vector) * np.sin(angle) + axis * (axis @ vector) * (1 - np.cos(angle))
+
+
+def _cells(mesh) -> list[np.ndarray]:
+    """The points of every line cell of a PolyData, in order."""
+    return [np.asarray(mesh.get_cell(k).points) for k in range(mesh.n_cells)]
+
+
+def _actor_mesh(plotter, name: str):
+    return plotter.renderer.actors[name].mapper.dataset
+
+
+# --- the light sphere ------------------------------------------------------------------------------
+
+
+def test_great_circle_arcs_match_rotations_about_the_edge_normal():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(6, 3))
+    b = rng.normal(size=(6, 3))
+    lines = viz.great_circle_arcs(a, b, segments=10, radius=1.0)
+    assert lines.n_cells == 6
+    for k, points in enumerate(_cells(lines)):
+        ua, ub = a[k] / np.linalg.norm(a[k]), b[k] / np.linalg.norm(b[k])
+        angle = np.arccos(np.clip(ua @ ub, -1, 1))
+        expected = np.array([_rotate(np.cross(ua, ub), angle * t, ua) for t in np.linspace(0, 1, 11)])
+        np.testing.assert_allclose(points, expected, atol=1e-6)
+
+
+def test_coincident_arc_ends_give_a_point_not_nan():
+    lines = viz.great_circle_arcs([[0, 0, 1.0]], [[0, 0, 2.0]], segments=4)
+    assert np.all(np.isfinite(lines.points))
+    np.testing.assert_allclose(lines.points, [[0, 0, viz.LINE_RADIUS]] * 5, atol=1e-6)
+
+
+@pytest.mark.parametrize("triangulation", [SPHERE, DOME], ids=["sphere", "dome"])
+def test_triangulation_lines_are_one_arc_per_edge_with_the_rim_flagged(triangulation):
+    lines = viz.triangulation_lines(triangulation)
+    edges = triangulation.edges()
+    assert lines.n_cells == len(edges)
+    np.testing.assert_array_equal(lines.cell_data["edge"], edges)
+    rim = {tuple(e) for e in triangulation.boundary_edges()}
+    assert [bool(f) for f in lines.cell_data["boundary"]] == [tuple(e) in rim for e in edges]
+    assert (len(rim) > 0) == triangulation.is_dome
+    for (i, j), points in zip(edges, _cells(lines), strict=True):
+        np.testing.assert_allclose(np.linalg.norm(points, axis=1), viz.LINE_RADIUS, atol=1e-9)
+        np.testing.assert_allclose(points[0], viz.LINE_RADIUS * triangulation.directions[i], atol=1e-6)
+        np.testing.assert_allclose(points[-1], viz.LINE_RADIUS * triangulation.directions[j], atol=1e-6)
+
+
+@pytest.mark.parametrize("triangulation", [SPHERE, DOME], ids=["sphere", "dome"])
+def test_plot_triangulation_draws_every_edge_light_and_the_dome_rim(triangulation, plotter):
+    viz.plot_triangulation(triangulation, plotter=plotter, labels=True)
+    actors = plotter.renderer.actors
+    assert _actor_mesh(plotter, "edges").n_cells == len(triangulation.edges())
+    assert _actor_mesh(plotter, "lights").n_points == triangulation.light_count
+    if triangulation.is_dome:
+        assert _actor_mesh(plotter, "boundary").n_cells == len(triangulation.boundary_edges())
+    else:
+        assert "boundary" not in actors
+    assert "query" not in actors
+
+
+def test_spherical_triangle_lies_inside_its_triangle_on_the_sphere():
+    corners = SPHERE.directions[SPHERE.faces[5]]
+    patch = viz.spherical_triangle(*corners, level=6, radius=1.0)
+    assert patch.n_cells == 36
+    points = np.asarray(patch.points)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=1e-12)
+    for k in range(3):  # inside the great circle through each edge, brute force
+        a, b, c = corners[k], corners[(k + 1) % 3], corners[(k + 2) % 3]
+        side = np.cross(a, b)
+        assert np.all(points @ side * np.sign(c @ side) >= -1e-12)
+    # a fine patch approximates the triangle's spherical excess (Girard's theorem)
+    fine = viz.spherical_triangle(*corners, level=40, radius=1.0)
+    a, b, c = corners
+    excess = 2 * np.arctan2(abs(a @ np.cross(b, c)), 1 + a @ b + b @ c + c @ a)
+    assert fine.area == pytest.approx(excess, rel=2e-3)
+
+
+def test_plot_query_marks_the_triangle_it_falls_in_and_a_clamped_rim_point(plotter):
+    viz.plot_triangulation(DOME, plotter=plotter)
+    location = viz.plot_query(DOME, (0.2, 0.3, 1.0), plotter=plotter)
+    corners = DOME.directions[DOME.faces[int(location.faces)]]
+    np.testing.assert_allclose(_actor_mesh(plotter, "query corners").points, corners * viz.LINE_RADIUS, atol=1e-6)
+    assert _actor_mesh(plotter, "query triangle edges").n_cells == 3
+    assert "clamped" not in plotter.renderer.actors
+    below = viz.plot_query(DOME, (1.0, 0.0, -0.5), plotter=plotter)
+    assert bool(below.clamped)
+    clamped = plotter.renderer.actors["clamped"]
+    assert clamped.GetVisibility()
+    np.testing.assert_allclose(clamped.mapper.dataset.center, below.directions * viz.LINE_RADIUS, atol=1e-6)
+    viz.plot_query(DOME, (0.2, 0.3, 1.0), plotter=plotter)
+    assert not clamped.GetVisibility()
+
+
+def test_query_updates_reuse_the_actors(plotter):
+    """A drag must not create actors per move: the second query re-fills the first's meshes."""
+    viz.plot_query(SPHERE, (0.2, 0.3, 1.0), plotter=plotter)
+    before = dict(plotter.renderer.actors)
+    viz.plot_query(SPHERE, (-0.6, 0.1, 0.4), plotter=plotter)
+    after = dict(plotter.renderer.actors)
+    assert before.keys() == after.keys()
+    assert all(before[name] is after[name] for name in before)
+
+
+# --- the image plane -------------------------------------------------------------------------------
+
+
+def test_image_plane_covers_the_gaussian_coordinates_and_updates_in_place():
+    image = np.zeros((4, 6, 3), dtype=np.float32)
+    image[0, 0] = (1.0, 0.0, 0.0)  # top-left red
+    image[3, 5] = (0.0, 0.0, 1.0)  # bottom-right blue
+    plane, texture = viz.image_plane(image)
+    np.testing.assert_allclose(plane.bounds[:4], (0.0, 1.5, -1.0, 0.0))
+    np.testing.assert_array_equal(texture.to_array(), display_rgb8(image))
+    viz.update_image(texture, np.ones((4, 6), dtype=np.float32))
+    assert np.all(texture.to_array() == 255)
+    with pytest.raises(InputError, match="pixels"):
+        viz.update_image(texture, np.ones((5, 6)))
+
+
+def test_plot_image_shows_row_zero_at_the_top_left_and_reuses_its_actor(plotter):
+    """Rendered: pixel (col, row) of the image lands at Gaussian coordinates ((col + 0.5)/H, (row + 0.5)/H)."""
+    image = np.zeros((4, 6, 3), dtype=np.float32)
+    image[0, 0] = (1.0, 0.0, 0.0)
+    image[3, 5] = (0.0, 0.0, 1.0)
+    viz.plot_image(image, plotter=plotter)  # 320 x 240 window: the 6 x 4 image fills its width, 53.3 px a pixel
+    picture = plotter.screenshot(None, return_img=True)
+    red = np.argwhere((picture[..., 0] > 200) & (picture[..., 1] < 50) & (picture[..., 2] < 50))
+    blue = np.argwhere((picture[..., 2] > 200) & (picture[..., 0] < 50) & (picture[..., 1] < 50))
+    assert len(red) and len(blue)
+    assert red[:, 1].max() < 60 and red[:, 0].max() < blue[:, 0].min()  # red: left column, above blue
+    assert blue[:, 1].min() > 260  # blue: right column
+    actor = plotter.renderer.actors["image"]
+    viz.plot_image(np.ones((4, 6)), plotter=plotter, frame=False)
+    assert plotter.renderer.actors["image"] is actor
+    assert np.all(actor.texture.to_array() == 255)
+
+
+def test_display_rgb8_clips_encodes_and_handles_non_finite_values():
+    image = np.array([[0.0, 0.5, 1.0, 4.0, np.nan, np.inf, -1.0]], dtype=np.float32)
+    shown = display_rgb8(image)
+    assert shown.shape == (1, 7, 3) and shown.dtype == np.uint8
+    assert shown[0, :, 0].tolist() == [0, 188, 255, 255, 0, 255, 0]
+    with pytest.raises(InputError, match="displayed image"):
+        display_rgb8(np.zeros((2, 2, 2)))
+
+
+# --- Gaussian paths --------------------------------------------------------------------------------
+
+
+def _busy_face(field) -> int:
+    """The face whose corners have the most Gaussians (so every path kind appears)."""
+    counts = field.estimated.counts[field.triangulation.faces].sum(axis=1)
+    return int(np.argmax(counts))
+
+
+def test_gaussian_paths_start_and_end_at_the_gaussians_positions(field):
+    face = _busy_face(field)
+    paths = viz.gaussian_paths(field, face, samples=17)
+    vertices = field.triangulation.faces[face]
+    assert paths.path_count == 2 * field.estimated.counts[vertices].sum()
+    rows = {tuple(e): k for k, e in enumerate(field.directed_edges)}
+    for p in range(paths.path_count):
+        source, target, slot = vertices[paths.corner[p]], vertices[paths.target[p]], paths.slot[p]
+        assert paths.corner[p] != paths.target[p]
+        assert paths.gaussian[p] == paths.corner[p] * field.capacity + slot
+        row = rows[(source, target)]
+        np.testing.assert_allclose(paths.circular[p, 0], field.estimated.mean[source, slot], atol=1e-12)
+        np.testing.assert_allclose(paths.circular[p, -1], field.retargeted.mean[row, slot], atol=1e-9)
+        np.testing.assert_allclose(paths.straight[p, [0, -1]], paths.circular[p, [0, -1]], atol=1e-9)
+        assert paths.delta[p] == pytest.approx(field.path_delta[row, slot])
+    # the drawn polylines are the same points on the image plane
+    for method in viz.PATH_METHODS:
+        cells = _cells(paths.polylines(method))
+        assert len(cells) == paths.path_count
+        for p, points in enumerate(cells):
+            np.testing.assert_allclose(points[0], viz.to_plane(paths.start[p], lift=points[0][2]), atol=1e-6)
+            np.testing.assert_allclose(points[-1], viz.to_plane(paths.end[p], lift=points[0][2]), atol=1e-6)
+
+
+def test_circular_paths_are_arcs_about_the_stored_centres(field):
+    """Brute force: every sample of a turning path is as far from the fit's stored centre O as its start."""
+    paths = viz.gaussian_paths(field, _busy_face(field), samples=9)
+    straight_below = field.fit_settings().paths.straight_below
+    rows = {tuple(e): k for k, e in enumerate(field.directed_edges)}
+    turning = 0
+    for p in range(paths.path_count):
+        vertices = field.triangulation.faces[paths.face]
+        row = rows[(vertices[paths.corner[p]], vertices[paths.target[p]])]
+        if abs(paths.delta[p]) < max(straight_below, 0.05):
+            continue
+        turning += 1
+        centre = field.path_centre[row, paths.slot[p]].astype(np.float64)
+        radii = np.linalg.norm(paths.circular[p] - centre, axis=1)
+        np.testing.assert_allclose(radii, radii[0], rtol=2e-4, atol=2e-6)
+        # and the arc turns by delta: R(delta / 2)(start - O) + O is the middle sample
+        half = paths.delta[p] / 2
+        rotation = np.array([[np.cos(half), -np.sin(half)], [np.sin(half), np.cos(half)]])
+        np.testing.assert_allclose(rotation @ (paths.start[p] - centre) + centre, paths.circular[p, 4], atol=2e-5)
+    assert turning > 0
+    np.testing.assert_allclose(paths.circular, circular_position(paths.start[:, None], paths.end[:, None], paths.delta[:, None],
+                                                                 np.linspace(0, 1, 9)[None], straight_below))
+
+
+def test_gaussian_paths_reject_a_missing_face(field):
+    with pytest.raises(InputError, match="does not exist"):
+        viz.gaussian_paths(field, field.triangulation.face_count)
+    with pytest.raises(InputError, match="samples"):
+        viz.gaussian_paths(field, 0, samples=1)
+
+
+def test_ellipse_outlines_lie_at_two_sigma():
+    from warp_highlights.gaussians import GaussianParams
+
+    params = GaussianParams.from_sets([{"amplitude": [1.0, 0.5], "mean": [[0.5, 0.4], [0.9, 0.2]], "sigma": [[0.05, 0.02], [0.01, 0.03]],
+                                        "theta": [0.7, -0.3]}])
+    outlines = viz.gaussian_ellipses(params, sigmas=2.0, samples=13)
+    assert outlines.shape == (2, 13, 2)
+    for k in range(2):
+        c, s = np.cos(params.theta[0, k]), np.sin(params.theta[0, k])
+        rotation = np.array([[c, -s], [s, c]])
+        cov = rotation @ np.diag(params.sigma[0, k] ** 2) @ rotation.T
+        d = outlines[k] - params.mean[0, k]
+        mahalanobis = np.sqrt(np.einsum("ni,ij,nj->n", d, np.linalg.inv(cov), d))
+        np.testing.assert_allclose(mahalanobis, 2.0, rtol=1e-9)
+
+
+def test_plot_paths_draws_every_path_and_the_interpolated_gaussians(field, plotter):
+    face = _busy_face(field)
+    direction = field.triangulation.centroid_directions()[face]
+    viz.plot_paths(field, direction, plotter=plotter, method="circular")
+    paths = viz.gaussian_paths(field, face)
+    location = field.triangulation.locate(direction)
+    interpolated = interpolate_sets(field, location.vertices[None], location.barycentric[None])
+    assert _actor_mesh(plotter, "paths circular").n_cells == paths.path_count
+    assert _actor_mesh(plotter, "paths straight").n_cells == paths.path_count
+    assert _actor_mesh(plotter, "path starts").n_points == len(np.unique(paths.gaussian))
+    now = _actor_mesh(plotter, "gaussians now")
+    assert now.n_cells == interpolated.active.sum()
+    # each outline's centre is the interpolated mean (the first outline: the first active slot)
+    first = np.flatnonzero(interpolated.active[0])[0]
+    outline = _cells(now)[0][:-1]
+    np.testing.assert_allclose(outline.mean(axis=0)[:2], viz.to_plane(interpolated.mean[0, first])[:2], atol=1e-6)
+    # one colour per Gaussian: both paths of a Gaussian share it, different Gaussians differ
+    colours = np.asarray(_actor_mesh(plotter, "paths circular").cell_data["colour"])
+    for g in np.unique(paths.gaussian):
+        assert len(np.unique(colours[paths.gaussian == g], axis=0)) == 1
+    assert len(np.unique(colours, axis=0)) == len(np.unique(paths.gaussian))
+    viz.plot_paths(field, direction, plotter=plotter, methods=("circular",))
+    assert not plotter.renderer.actors["paths straight"].GetVisibility()
+
+
+def test_gaussian_colours_are_distinct():
+    colours = viz.gaussian_colours(60)
+    assert colours.shape == (60, 3) and np.all((colours >= 0) & (colours <= 1))
+    assert len(np.unique(np.round(colours * 255), axis=0)) == 60
+
+
+# --- the designer ----------------------------------------------------------------------------------
+
+
+def test_designer_screenshot_is_the_window_and_not_empty(field, device, tmp_path):
+    designer = LightDesigner(field, device=device, off_screen=True, window_size=(660, 240))
+    try:
+        picture = designer.screenshot(tmp_path / "view.png")
+    finally:
+        designer.close()
+    assert picture.shape == (240, 660, 3)
+    written = read_image(tmp_path / "view.png")
+    assert written.shape == (240, 660, 3)
+    background = np.array([0x1F, 0x23, 0x29])
+    for k in range(3):  # every panel drew something besides the background
+        panel = picture[:, 220 * k : 220 * (k + 1)].reshape(-1, 3).astype(int)
+        drawn = np.any(np.abs(panel - background) > 8, axis=1).mean()
+        assert drawn > 0.05, f"panel {k} is empty"
+
+
+def test_designer_shows_the_relighters_image_and_follows_the_handle(field, device):
+    designer = LightDesigner(field, device=device, off_screen=True, window_size=(600, 200), panels=("image", "sphere"))
+    try:
+        designer._on_handle_moved((0.0, 0.0, 0.0))  # ignored: no direction
+        designer._on_handle_moved((2.0, -1.0, 2.0))
+        np.testing.assert_allclose(designer.direction, np.array([2.0, -1.0, 2.0]) / 3.0)
+        relit = designer.relighter.relight(designer.direction)
+        designer.plotter.subplot(0, 0)
+        shown = designer.plotter.renderer.actors["image"].texture.to_array()
+        np.testing.assert_array_equal(shown, display_rgb8(relit.full))
+        designer.plotter.subplot(0, 1)
+        location = field.triangulation.locate(designer.direction)
+        np.testing.assert_allclose(_actor_mesh(designer.plotter, "query corners").points,
+                                   field.triangulation.directions[location.vertices] * viz.LINE_RADIUS, atol=1e-6)
+        assert set(designer.timings) == {"relight", "scene"}
+        designer._toggle_highlights()
+        designer.plotter.subplot(0, 0)
+        shown = designer.plotter.renderer.actors["image"].texture.to_array()
+        np.testing.assert_array_equal(shown, display_rgb8(relit.specular / field.exposure))
+        designer._toggle_method()
+        assert designer.method == "straight"
+    finally:
+        designer.close()
+
+
+def test_designer_redraws_paths_only_for_a_new_triangle(field):
+    designer = LightDesigner(field, device="cpu", off_screen=True, window_size=(300, 200), panels=("paths",))
+    try:
+        faces = field.triangulation.faces
+        first = designer._paths
+        centroid = field.triangulation.centroid_directions()[designer._face]
+        designer.set_direction(centroid + 1e-3 * np.cross(centroid, [0.0, 1.0, 0.0]))
+        assert designer._paths is first
+        other = (designer._face + 7) % len(faces)
+        designer.set_direction(field.triangulation.centroid_directions()[other])
+        assert designer._face == other and designer._paths.face == other
+    finally:
+        designer.close()
+
+
+def test_designer_rejects_unknown_panels(field):
+    with pytest.raises(InputError, match="panels"):
+        LightDesigner(field, off_screen=True, panels=("sphere", "sky"))
+    with pytest.raises(InputError, match="panels"):
+        LightDesigner(field, off_screen=True, panels=("paths", "paths"))
+
+
+def test_default_direction_is_a_triangle_centroid_and_text_and_camera_helpers():
+    direction = default_direction(SPHERE)
+    assert np.isclose(np.linalg.norm(direction), 1.0)
+    np.testing.assert_allclose(SPHERE.locate(direction).barycentric, 1 / 3, atol=1e-9)
+    assert describe_direction((0.0, 0.0, 1.0)) == "(+0.00, +0.00, +1.00)  elevation 90 deg, azimuth 0 deg"
+    assert describe_direction((0.0, -1.0, 0.0)).endswith("elevation 0 deg, azimuth 270 deg")
+    position, focus, up = sphere_camera(np.array([0.0, 0.0, -1.0]))
+    assert np.linalg.norm(position) == pytest.approx(4.7)
+    assert focus == (0.0, 0.0, 0.0) and abs(np.dot(position, up)) < 4.7
+
+
+# --- the command -----------------------------------------------------------------------------------
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    return err
+
+
+def test_view_screenshot_has_the_window_size(small_field, tmp_path, capsys):
+    out = tmp_path / "view.png"
+    assert main(["view", str(small_field), "--screenshot", str(out), "--window-size", "500x180", "--device", "cpu",
+                 "--light", "-0.4,0.3,0.8", "--panels", "paths,sphere"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    picture = read_image(out)
+    assert picture.shape == (180, 500, 3)
+    assert picture.std() > 0.02
+    assert not list(tmp_path.glob(".*")), "a temporary file was left behind"
+
+
+def test_view_bad_input_is_one_line(small_field, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "view.png"
+    out.write_bytes(b"keep")
+    assert main(["view", str(small_field), "--screenshot", str(out)]) == 2
+    assert "--overwrite" in _error_line(capsys)
+    assert out.read_bytes() == b"keep"
+    assert main(["view", str(small_field), "--screenshot", str(tmp_path / "view.jpg")]) == 2
+    assert ".png" in _error_line(capsys)
+    assert main(["view", str(small_field), "--screenshot", str(tmp_path / "a.png"), "--panels", "sphere,sky"]) == 2
+    assert "panels" in _error_line(capsys)
+    assert main(["view", str(small_field), "--screenshot", str(tmp_path / "a.png"), "--light", "0,0,0"]) == 2
+    assert "non-zero" in _error_line(capsys)
+    assert main(["view", str(tmp_path / "missing.whf"), "--screenshot", str(tmp_path / "a.png")]) == 2
+    assert "missing.whf" in _error_line(capsys)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    assert main(["view", str(small_field)]) == 2
+    assert "--screenshot" in _error_line(capsys)
+    assert not (tmp_path / "a.png").exists()
