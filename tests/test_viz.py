@@ -6,8 +6,11 @@ drawn is read back from the plotter's actors; screenshots are rendered off scree
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
+import pyvista as pv
 
 from warp_highlights import viz
 from warp_highlights.cli import main
@@ -72,17 +75,22 @@ def test_great_circle_arcs_match_rotations_about_the_edge_normal():
         np.testing.assert_allclose(points, expected, atol=1e-6)
 
 
-def test_coincident_arc_ends_give_a_point_not_nan():
+def test_coincident_arc_ends_give_a_point_and_opposite_ends_are_refused():
     lines = viz.great_circle_arcs([[0, 0, 1.0]], [[0, 0, 2.0]], segments=4)
     assert np.all(np.isfinite(lines.points))
     np.testing.assert_allclose(lines.points, [[0, 0, viz.LINE_RADIUS]] * 5, atol=1e-6)
+    with pytest.raises(InputError, match="opposite"):
+        viz.great_circle_arcs([[0, 0, 1.0]], [[0, 0, -1.0]])
 
 
 @pytest.mark.parametrize("triangulation", [SPHERE, DOME], ids=["sphere", "dome"])
 def test_triangulation_lines_are_one_arc_per_edge_with_the_rim_flagged(triangulation):
     lines = viz.triangulation_lines(triangulation)
     edges = triangulation.edges()
-    assert lines.n_cells == len(edges)
+    pairs = {tuple(sorted((int(f[k]), int(f[(k + 1) % 3])))) for f in triangulation.faces for k in range(3)}
+    assert lines.n_cells == len(pairs)
+    if not triangulation.is_dome:
+        assert lines.n_cells == 3 * triangulation.light_count - 6  # Euler: a closed triangulated sphere
     np.testing.assert_array_equal(lines.cell_data["edge"], edges)
     rim = {tuple(e) for e in triangulation.boundary_edges()}
     assert [bool(f) for f in lines.cell_data["boundary"]] == [tuple(e) in rim for e in edges]
@@ -97,7 +105,8 @@ def test_triangulation_lines_are_one_arc_per_edge_with_the_rim_flagged(triangula
 def test_plot_triangulation_draws_every_edge_light_and_the_dome_rim(triangulation, plotter):
     viz.plot_triangulation(triangulation, plotter=plotter, labels=True)
     actors = plotter.renderer.actors
-    assert _actor_mesh(plotter, "edges").n_cells == len(triangulation.edges())
+    pairs = {tuple(sorted((int(f[k]), int(f[(k + 1) % 3])))) for f in triangulation.faces for k in range(3)}
+    assert _actor_mesh(plotter, "edges").n_cells == len(pairs)
     assert _actor_mesh(plotter, "lights").n_points == triangulation.light_count
     if triangulation.is_dome:
         assert _actor_mesh(plotter, "boundary").n_cells == len(triangulation.boundary_edges())
@@ -139,14 +148,37 @@ def test_plot_query_marks_the_triangle_it_falls_in_and_a_clamped_rim_point(plott
     assert not clamped.GetVisibility()
 
 
-def test_query_updates_reuse_the_actors(plotter):
-    """A drag must not create actors per move: the second query re-fills the first's meshes."""
+def test_query_updates_reuse_the_actors_and_draw_the_new_geometry(plotter):
+    """A drag must not create actors per move: the second query re-fills the first's meshes, and what
+    the mappers draw is the second query's."""
     viz.plot_query(SPHERE, (0.2, 0.3, 1.0), plotter=plotter)
+    plotter.screenshot(None, return_img=True)
     before = dict(plotter.renderer.actors)
-    viz.plot_query(SPHERE, (-0.6, 0.1, 0.4), plotter=plotter)
+    second = viz.plot_query(SPHERE, (-0.6, 0.1, 0.4), plotter=plotter)
     after = dict(plotter.renderer.actors)
     assert before.keys() == after.keys()
     assert all(before[name] is after[name] for name in before)
+    after["query corners"].mapper.Update()
+    corners = after["query corners"].mapper.GetInput()
+    drawn = np.array([corners.GetPoint(k) for k in range(corners.GetNumberOfPoints())])
+    np.testing.assert_allclose(drawn, SPHERE.directions[second.vertices] * viz.LINE_RADIUS, atol=1e-6)
+
+
+def test_put_mesh_updates_a_mesh_coloured_by_scalars_after_other_actors_were_added(plotter):
+    """pyvista feeds a scalar-coloured mesh through a filter: the update must reach the mapper's input."""
+    first = pv.PolyData(np.zeros((3, 3)) + [0.0, 0.0, 0.0])
+    first.point_data["colour"] = np.zeros((3, 3), dtype=np.uint8)
+    actor = viz.put_mesh(plotter, first, "dots", scalars="colour", rgb=True)
+    plotter.add_mesh(pv.Sphere(), name="another")
+    del first  # the caller lets go of its mesh: pyvista's mapper then only has a copy of the filtered one
+    gc.collect()
+    second = pv.PolyData(np.arange(15, dtype=float).reshape(5, 3))
+    second.point_data["colour"] = np.full((5, 3), 200, dtype=np.uint8)
+    assert viz.put_mesh(plotter, second, "dots", scalars="colour", rgb=True) is actor
+    actor.mapper.Update()
+    drawn = actor.mapper.GetInput()
+    assert drawn.GetNumberOfPoints() == 5
+    np.testing.assert_allclose(drawn.GetPoint(4), (12.0, 13.0, 14.0))
 
 
 # --- the image plane -------------------------------------------------------------------------------
@@ -283,7 +315,7 @@ def test_plot_paths_draws_every_path_and_the_interpolated_gaussians(field, plott
     assert _actor_mesh(plotter, "paths straight").n_cells == paths.path_count
     assert _actor_mesh(plotter, "path starts").n_points == len(np.unique(paths.gaussian))
     now = _actor_mesh(plotter, "gaussians now")
-    assert now.n_cells == interpolated.active.sum()
+    assert now.n_cells == (interpolated.active & (interpolated.weight > 0)).sum()
     # each outline's centre is the interpolated mean (the first outline: the first active slot)
     first = np.flatnonzero(interpolated.active[0])[0]
     outline = _cells(now)[0][:-1]
@@ -293,6 +325,13 @@ def test_plot_paths_draws_every_path_and_the_interpolated_gaussians(field, plott
     for g in np.unique(paths.gaussian):
         assert len(np.unique(colours[paths.gaussian == g], axis=0)) == 1
     assert len(np.unique(colours, axis=0)) == len(np.unique(paths.gaussian))
+    # the start dots and the outlines wear their Gaussian's colour too
+    of_gaussian = {int(g): tuple(colours[k]) for k, g in enumerate(paths.gaussian)}
+    dots = np.asarray(_actor_mesh(plotter, "path starts").point_data["colour"])
+    assert [tuple(c) for c in dots] == [of_gaussian[int(g)] for g in np.unique(paths.gaussian)]
+    outline_colours = np.asarray(now.cell_data["colour"])[:, :3]
+    shown = np.flatnonzero(interpolated.active[0] & (interpolated.weight[0] > 0))
+    assert [tuple(c) for c in outline_colours] == [of_gaussian[int(g)] for g in shown]
     viz.plot_paths(field, direction, plotter=plotter, methods=("circular",))
     assert not plotter.renderer.actors["paths straight"].GetVisibility()
 
@@ -362,6 +401,51 @@ def test_designer_redraws_paths_only_for_a_new_triangle(field):
         designer.close()
 
 
+def test_designer_after_moves_draws_what_a_fresh_designer_draws(field, tmp_path):
+    """Every panel follows the light: after moving through other triangles (and toggling the method
+    twice), the window is pixel for pixel the window of a new designer opened at that light."""
+    centroids = field.triangulation.centroid_directions()
+    target = centroids[_busy_face(field)]
+    options = {"device": "cpu", "off_screen": True, "window_size": (600, 200)}
+    moved = LightDesigner(field, direction=centroids[(_busy_face(field) + 9) % len(centroids)], **options)
+    fresh = None
+    try:
+        moved.screenshot()
+        moved.set_direction(centroids[(_busy_face(field) + 3) % len(centroids)])
+        fresh = LightDesigner(field, direction=target, **options)  # other plotters' actors come and go meanwhile
+        gc.collect()
+        moved._toggle_method()
+        moved.set_direction(target, render=False)
+        moved._toggle_method()
+        assert moved._face == fresh._face == _busy_face(field)
+        for name in ("sphere", "image", "paths"):  # cameras are placed on arrival in a triangle: align them
+            moved.plotter.subplot(0, moved.panels.index(name))
+            fresh.plotter.subplot(0, fresh.panels.index(name))
+            moved.plotter.camera_position = fresh.plotter.camera_position
+            moved.plotter.camera.parallel_scale = fresh.plotter.camera.parallel_scale
+        difference = np.abs(moved.screenshot().astype(int) - fresh.screenshot().astype(int)).max(axis=2)
+        difference[:30] = 0  # the texts: "relit in ... ms" differs from run to run
+        assert difference.max() == 0, f"{(difference > 0).sum()} pixels differ"
+    finally:
+        moved.close()
+        if fresh is not None:
+            fresh.close()
+
+
+def test_designer_panels_agree_on_the_triangle_at_a_light(field):
+    """A light direction sits on several triangles; the sphere and the paths must name the same one."""
+    designer = LightDesigner(field, device="cpu", off_screen=True, window_size=(400, 200), panels=("sphere", "paths"))
+    try:
+        for light in range(0, field.light_count, 5):
+            designer.set_direction(field.lights.directions[light], render=False)
+            designer.plotter.subplot(0, 0)
+            corners = np.asarray(_actor_mesh(designer.plotter, "query corners").points)
+            np.testing.assert_allclose(corners, field.triangulation.directions[designer._paths.vertices] * viz.LINE_RADIUS, atol=1e-6)
+            assert designer._paths.face == designer._face
+    finally:
+        designer.close()
+
+
 def test_designer_rejects_unknown_panels(field):
     with pytest.raises(InputError, match="panels"):
         LightDesigner(field, off_screen=True, panels=("sphere", "sky"))
@@ -375,9 +459,11 @@ def test_default_direction_is_a_triangle_centroid_and_text_and_camera_helpers():
     np.testing.assert_allclose(SPHERE.locate(direction).barycentric, 1 / 3, atol=1e-9)
     assert describe_direction((0.0, 0.0, 1.0)) == "(+0.00, +0.00, +1.00)  elevation 90 deg, azimuth 0 deg"
     assert describe_direction((0.0, -1.0, 0.0)).endswith("elevation 0 deg, azimuth 270 deg")
-    position, focus, up = sphere_camera(np.array([0.0, 0.0, -1.0]))
-    assert np.linalg.norm(position) == pytest.approx(4.7)
-    assert focus == (0.0, 0.0, 0.0) and abs(np.dot(position, up)) < 4.7
+    for light in ([0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [0.6, -0.2, 0.7]):
+        position, focus, up = sphere_camera(np.array(light) / np.linalg.norm(light))
+        assert np.linalg.norm(position) == pytest.approx(4.7) and focus == (0.0, 0.0, 0.0)
+        assert np.dot(position, light) > 0  # seen from its own side
+        assert abs(np.dot(position, up)) < 0.96 * 4.7  # the up vector is not along the view
 
 
 # --- the command -----------------------------------------------------------------------------------

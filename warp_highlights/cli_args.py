@@ -9,15 +9,15 @@ from .errors import InputError
 __all__ = ["check_device", "check_output_file", "parse_direction", "parse_size", "parse_triple"]
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """'480x270' -> (480, 270)."""
+def parse_size(text: str, what: str = "image size") -> tuple[int, int]:
+    """'480x270' -> (480, 270); ``what`` names the value in the error message."""
     parts = text.lower().replace("*", "x").split("x")
     try:
         width, height = (int(p) for p in parts)
     except ValueError:
-        raise InputError(f"image size '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
-    if width < 1 or height < 1 or width * height > 64_000_000:
-        raise InputError(f"image size '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
+        raise InputError(f"{what} '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
+    if not (1 <= width <= 8000 and 1 <= height <= 8000):
+        raise InputError(f"{what} '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
     return width, height
 
 

@@ -46,7 +46,7 @@ def _run_view(args) -> int:
 
     direction = parse_direction(args.light) if args.light else None
     size = parse_size(args.size) if args.size else None
-    window_size = parse_size(args.window_size) if args.window_size else None
+    window_size = parse_size(args.window_size, "window size") if args.window_size else None
     panels = check_panels(p.strip() for p in args.panels.split(",") if p.strip())
     screenshot = args.screenshot
     if screenshot is not None:

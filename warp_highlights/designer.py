@@ -119,7 +119,8 @@ class LightDesigner:
         self._build()
         self.set_direction(self.direction, render=False)
         if self._panel("sphere"):
-            self.plotter.camera_position = sphere_camera(self.direction)
+            position, _, up = sphere_camera(self.direction)
+            viz.look_at_sphere(self.plotter, position, up=up)
 
     # --- set-up ------------------------------------------------------------------------------------
 
@@ -152,28 +153,29 @@ class LightDesigner:
         relit = self.relighter.relight(self.direction, method=self.method, full=not self.specular_only)
         relight_ms = 1e3 * (time.perf_counter() - started)
         started = time.perf_counter()
-        face = int(relit.faces)
-        if face != self._face:
-            self._face = face
-            self._paths = viz.gaussian_paths(self.field, face)
-        self._draw_sphere(relit)
+        # One location for the sphere and the paths (float64, on the host). On a shared edge the
+        # device's float32 locate may name the neighbouring triangle; the image is the same there.
+        location = self.field.triangulation.locate(self.direction)
+        self._face = int(location.faces)
+        self._draw_sphere(location)
         self._draw_image(relit, relight_ms)
-        self._draw_paths(relit)
+        self._draw_paths(relit, location)
         if render:
             self.plotter.render()
         self.timings = {"relight": relight_ms, "scene": 1e3 * (time.perf_counter() - started)}
         return self.timings
 
-    def _draw_sphere(self, relit) -> None:
+    def _draw_sphere(self, location) -> None:
         if not self._panel("sphere"):
             return
-        location = viz.plot_query(self.field.triangulation, self.direction, plotter=self.plotter, handle=not self.interactive)
+        viz.plot_query(self.field.triangulation, self.direction, plotter=self.plotter, handle=not self.interactive, location=location)
         corners = ", ".join(str(int(v)) for v in location.vertices)
         weights = ", ".join(f"{w:.2f}" for w in location.barycentric)
-        lines = [f"light {describe_direction(self.direction)}   (grey arrow: towards the camera)", f"triangle {int(location.faces)}: lights {corners}, weights {weights}"]
+        lines = [f"light {describe_direction(self.direction)}   (grey arrow: towards the camera)",
+                 f"triangle {int(location.faces)}: lights {corners}, weights {weights}"]
         if bool(location.clamped):
             lines.append("outside the dome: relit at the nearest rim point (red)")
-        viz.put_text(self.plotter, "\n".join(lines), "sphere text", position="upper_left", color=_TEXT)
+        viz.put_text(self.plotter, "\n".join(lines), "sphere text", color=_TEXT)
         if self.interactive:
             viz.put_text(self.plotter, "drag the yellow handle to move the light", "sphere help", position="lower_left", color=_TEXT)
 
@@ -183,23 +185,23 @@ class LightDesigner:
         shown = relit.specular / self.field.exposure if self.specular_only or relit.full is None else relit.full
         viz.plot_image(shown, plotter=self.plotter, frame=False)
         what = "highlights S'" if self.specular_only else "full image"
-        device = self.relighter.device
-        viz.put_text(self.plotter, f"{self.method} paths, {what}, {self.relighter.width}x{self.relighter.height}\nrelit in {relight_ms:.1f} ms on {device}",
-                              position="upper_left", font_size=9, color=_TEXT, name="image text")
+        viz.put_text(self.plotter, f"{self.method} paths, {what}, {self.relighter.width}x{self.relighter.height}\n"
+                     f"relit in {relight_ms:.1f} ms on {self.relighter.device}", "image text", color=_TEXT)
         if self.interactive:
             viz.put_text(self.plotter, "m: circular / straight    h: highlights / full image", "image help", position="lower_left", color=_TEXT)
 
-    def _draw_paths(self, relit) -> None:
+    def _draw_paths(self, relit, location) -> None:
         if not self._panel("paths"):
             return
-        interpolated = self.relighter.interpolated_sets(self.direction, method=self.method)
+        if self._paths is None or self._paths.face != self._face:
+            self._paths = viz.gaussian_paths(self.field, self._face)
         frame = "paths" if self._framed_face != self._face else None  # reframe on a new triangle only: keep the user's zoom
         self._framed_face = self._face
         viz.plot_paths(self.field, self.direction, plotter=self.plotter, method=self.method, background=relit.specular,
-                       paths=self._paths, interpolated=interpolated, frame=frame)
+                       paths=self._paths, frame=frame, location=location)
         count = len(np.unique(self._paths.gaussian))
         viz.put_text(self.plotter, f"paths of the {count} Gaussians of triangle {self._face}\nthick: circular, thin: straight, dot: start, "
-                              f"outline: now ({self.method}, 1 sigma)", "paths text", position="upper_left", color=_TEXT)
+                     f"outline: now ({self.method}, 1 sigma)", "paths text", color=_TEXT)
 
     def _on_handle_moved(self, centre) -> None:
         centre = np.asarray(centre, dtype=np.float64)
@@ -209,7 +211,7 @@ class LightDesigner:
         unit = centre / norm
         if self._widget is not None:
             self._widget.SetCenter(*unit)  # keep the handle on the sphere
-        self.set_direction(unit)
+        self.set_direction(unit, render=False)  # the widget redraws the window after this callback
 
     def _toggle_method(self) -> None:
         self.method = "straight" if self.method == "circular" else "circular"
@@ -223,6 +225,7 @@ class LightDesigner:
 
     def screenshot(self, path=None) -> np.ndarray:
         """Render and return the window as (H, W, 3) uint8; also write it to the PNG ``path`` (atomically)."""
+        self.plotter.render()  # after the first frame pyvista's screenshot returns the last drawn one
         picture = self.plotter.screenshot(None, return_img=True)
         if path is not None:
             from PIL import Image

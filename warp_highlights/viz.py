@@ -20,6 +20,7 @@ import colorsys
 import copy
 import os
 import sys
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,7 @@ __all__ = [
     "hide",
     "image_plane",
     "light_points",
+    "look_at_sphere",
     "new_plotter",
     "plot_image",
     "plot_paths",
@@ -69,6 +71,7 @@ _PATH_SAMPLES = 33  # points of each drawn Gaussian path
 _ELLIPSE_SAMPLES = 49
 _ELLIPSE_SIGMAS = 1.0  # outlines drawn at this Mahalanobis distance
 _PATH_LIFT = 2e-3  # height of the paths above the image plane (image heights), so they sit on top
+_ADDED_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # renderer -> {name: (actor, mesh)}, see put_mesh
 _COLOURS = {
     "sphere": "#d9dde3",
     "lights": "#f28e2b",
@@ -100,7 +103,10 @@ def new_plotter(*, off_screen: bool | None = None, window_size: tuple[int, int] 
         off_screen = not has_display()
     if off_screen and not has_display():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
+    try:
+        import pyvista as pv
+    except ImportError as error:
+        raise InputError(f"drawing needs pyvista, which does not import here ({error}): pip install pyvista") from None
 
     theme = None
     if multi_samples is not None:
@@ -141,6 +147,8 @@ def great_circle_arcs(starts, ends, *, segments: int = _ARC_SEGMENTS, radius: fl
     if a.shape != b.shape:
         raise InputError(f"arc starts and ends differ in shape: {a.shape} vs {b.shape}")
     angle = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
+    if np.any(angle > np.pi - 1e-9):
+        raise InputError("an arc between opposite directions has no single great circle")
     t = np.linspace(0.0, 1.0, segments + 1)
     with np.errstate(divide="ignore", invalid="ignore"):
         sin_angle = np.sin(angle)
@@ -226,27 +234,40 @@ def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, 
     plotter.add_mesh(points, color=_COLOURS["lights"], point_size=9, render_points_as_spheres=True, name="lights", pickable=False)
     if labels:
         plotter.add_point_labels(points.points * 1.04, [str(k) for k in range(triangulation.light_count)], font_size=9, point_size=1,
-                                 shape=None, always_visible=True, name="light labels")
+                                 shape=None, name="light labels")
     if camera:
         plotter.add_mesh(pv.Arrow(start=(0, 0, 1.05), direction=(0, 0, 1), scale=0.45, tip_length=0.3, shaft_radius=0.02),
                          color=_COLOURS["camera"], name="camera", pickable=False)
     if direction is not None:
         plot_query(triangulation, direction, plotter=plotter)
-    plotter.camera_position = [(2.3, 1.7, 3.6), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)]
+    look_at_sphere(plotter, (2.3, 1.7, 3.6))
     return plotter
 
 
-def plot_query(triangulation, direction, *, plotter, handle: bool = True):
+def look_at_sphere(plotter, toward, *, up=(0.0, 1.0, 0.0), radius: float = 1.2) -> None:
+    """Point the active subplot's camera at the centre from direction ``toward``, just far enough
+    that a sphere of ``radius`` (the unit sphere and its marks) fills the panel's shorter side."""
+    toward = unit_direction(toward)
+    left, bottom, right, top = plotter.renderer.GetViewport()
+    aspect = (right - left) * plotter.window_size[0] / max((top - bottom) * plotter.window_size[1], 1)
+    half_height = np.radians(plotter.camera.view_angle) / 2
+    half = min(half_height, np.arctan(np.tan(half_height) * aspect))
+    plotter.camera_position = [tuple(radius / np.sin(half) * toward), (0.0, 0.0, 0.0), tuple(up)]
+
+
+def plot_query(triangulation, direction, *, plotter, handle: bool = True, location=None):
     """Mark a query direction on the light sphere: a line from the centre to it, a handle sphere at
     it (``handle``), its triangle filled and outlined, and where a dome clamped it onto its rim.
 
     Re-calling with the same plotter replaces the marks (actors ``query``, ``query handle``, ``query
-    triangle``, ``query triangle edges``, ``query corners``, ``clamped``). Returns the ``Location``.
+    triangle``, ``query triangle edges``, ``query corners``, ``clamped``). ``location``: the direction's
+    ``triangulation.locate`` result when already known (so every panel shows the same triangle on a
+    shared edge). Returns the ``Location``.
     """
     import pyvista as pv
 
     direction = unit_direction(direction)
-    location = triangulation.locate(direction)
+    location = triangulation.locate(direction) if location is None else location
     corners = triangulation.directions[location.vertices]
     put_mesh(plotter, spherical_triangle(*corners), "query triangle", color=_COLOURS["triangle"], opacity=0.55)
     put_mesh(plotter, great_circle_arcs(corners, np.roll(corners, -1, axis=0)), "query triangle edges", color=_COLOURS["triangle"], line_width=4)
@@ -431,7 +452,7 @@ def gaussian_ellipses(params, rows=None, *, sigmas: float = _ELLIPSE_SIGMAS, sam
 
 
 def plot_paths(field, direction, *, plotter=None, method: str = "circular", background=None, paths: GaussianPaths | None = None,
-               interpolated=None, methods=PATH_METHODS, frame: str | None = "paths"):
+               interpolated=None, methods=PATH_METHODS, frame: str | None = "paths", location=None):
     """Draw the Gaussian paths of the triangle a light direction falls in, over the image plane.
 
     Each Gaussian of the triangle's corners has one colour: its two paths (thick: circular, thin:
@@ -450,6 +471,7 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
         methods: which paths to draw.
         frame: point the camera at the ``"paths"`` (with a margin), the whole ``"image"``, or leave it
             (None).
+        location: ``field.triangulation.locate(direction)`` when already known.
 
     Returns:
         The plotter; actors ``image``, ``paths circular``, ``paths straight``, ``path starts``,
@@ -459,7 +481,7 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
 
     method = check_path_method(method)
     direction = unit_direction(direction)
-    location = field.triangulation.locate(direction)
+    location = field.triangulation.locate(direction) if location is None else location
     if paths is None or paths.face != int(location.faces):
         paths = gaussian_paths(field, int(location.faces))
     if interpolated is None:
@@ -497,8 +519,9 @@ def _plot_current_gaussians(plotter, interpolated, colours: np.ndarray) -> np.nd
     """Outlines of the interpolated set, coloured by Gaussian, opacity following their weights; returns them (G, S, 2)."""
     import pyvista as pv
 
-    active = np.flatnonzero(interpolated.active[0])
-    outlines = gaussian_ellipses(interpolated)
+    shown = interpolated.active[0] & (interpolated.weight[0] > 0)  # a corner of weight 0 contributes nothing
+    active = np.flatnonzero(shown)
+    outlines = gaussian_ellipses(interpolated)[shown[interpolated.active[0]]]
     if not len(active):
         hide(plotter, "gaussians now")
         return outlines
@@ -514,16 +537,23 @@ def _plot_current_gaussians(plotter, interpolated, colours: np.ndarray) -> np.nd
 
 
 def put_mesh(plotter, mesh, name: str, **options):
-    """``plotter.add_mesh(mesh, name=name, **options)``, except that an existing actor ``name`` of the
-    active subplot gets the new geometry in place (no new actor, so no new shaders: what keeps a drag
-    smooth). ``options`` only take effect when the actor is made."""
-    actor = plotter.renderer.actors.get(name)
-    current = getattr(getattr(actor, "mapper", None), "dataset", None)
-    if current is not None and type(current) is type(mesh):
-        current.copy_from(mesh, deep=False)
+    """``plotter.add_mesh(mesh, name=name, **options)``, except that an actor ``name`` this function
+    made in the active subplot gets the new geometry in place (no new actor, so no new buffers and
+    shaders: what keeps a drag smooth). ``options`` only take effect when the actor is made.
+
+    The mesh that was added is kept here, not read back from the actor: a mesh coloured by
+    ``scalars`` reaches its mapper through a filter, and the actor's ``mapper.dataset`` is then a copy.
+    """
+    renderer = plotter.renderer
+    actor = renderer.actors.get(name)
+    made = _ADDED_MESHES.get(renderer, {}).get(name)
+    if actor is not None and made is not None and made[0] is actor and type(made[1]) is type(mesh):
+        made[1].copy_from(mesh, deep=False)
         actor.SetVisibility(True)
         return actor
-    return plotter.add_mesh(mesh, name=name, pickable=False, **options)
+    actor = plotter.add_mesh(mesh, name=name, pickable=False, **options)
+    _ADDED_MESHES.setdefault(renderer, {})[name] = (actor, mesh)
+    return actor
 
 
 def put_text(plotter, text: str, name: str, *, position: str = "upper_left", font_size: int = 9, color=None):
