@@ -386,6 +386,45 @@ def test_designer_shows_the_relighters_image_and_follows_the_handle(field, devic
         designer.close()
 
 
+def test_dragging_the_handle_moves_the_light_on_the_sphere_and_the_image_follows(field, monkeypatch):
+    """A real window and interactor (drawn through EGL, so no display is needed): press on the handle,
+    move the mouse, release. The light follows on the unit sphere, the image is re-rendered, and each
+    move draws the window once."""
+    monkeypatch.setenv("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    designer = LightDesigner(field, device="cpu", off_screen=False, window_size=(600, 300), panels=("sphere", "image"), multi_samples=0)
+    try:
+        plotter = designer.plotter
+        plotter.show(auto_close=False, interactive=False)
+        interactor = plotter.iren.interactor
+        draws = []
+        plotter.ren_win.AddObserver("StartEvent", lambda *_: draws.append(1))
+        plotter.subplot(0, 1)
+        before = plotter.renderer.actors["image"].texture.to_array().copy()
+        plotter.subplot(0, 0)
+        start = designer.direction.copy()
+        plotter.renderer.SetWorldPoint(*start, 1.0)
+        plotter.renderer.WorldToDisplay()
+        x, y, _ = plotter.renderer.GetDisplayPoint()
+        interactor.SetEventInformation(int(x), int(y))
+        interactor.InvokeEvent("LeftButtonPressEvent")
+        draws.clear()
+        for k in range(1, 6):
+            interactor.SetEventInformation(int(x) + 12 * k, int(y) + 4 * k)
+            interactor.InvokeEvent("MouseMoveEvent")
+        assert len(draws) == 5  # one draw per move: the callback leaves it to the widget
+        interactor.InvokeEvent("LeftButtonReleaseEvent")
+        assert np.degrees(np.arccos(np.clip(start @ designer.direction, -1, 1))) > 5
+        assert np.linalg.norm(designer.direction) == pytest.approx(1.0)
+        np.testing.assert_allclose(designer._widget.GetCenter(), designer.direction, atol=1e-9)  # the handle stays on the sphere
+        plotter.subplot(0, 1)
+        after = plotter.renderer.actors["image"].texture.to_array()
+        expected = display_rgb8(designer.relighter.relight(designer.direction).full)
+        np.testing.assert_array_equal(after, expected)
+        assert np.abs(after.astype(int) - before).max() > 20
+    finally:
+        designer.close()
+
+
 def test_designer_redraws_paths_only_for_a_new_triangle(field):
     designer = LightDesigner(field, device="cpu", off_screen=True, window_size=(300, 200), panels=("paths",))
     try:
