@@ -9,9 +9,10 @@ import sys
 import time
 import types
 
-import nbformat
 import pytest
 from conftest import PROJECT_ROOT
+
+nbformat = pytest.importorskip("nbformat", reason="pip install -e '.[test]' brings nbformat, nbclient and ipykernel")
 
 NOTEBOOK_FOLDER = PROJECT_ROOT / "notebooks"
 NAMES = ("quickstart", "custom_loss_kernel")
