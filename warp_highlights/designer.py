@@ -90,7 +90,7 @@ class LightDesigner:
         plotter: the ``pyvista.Plotter``.
         direction: the current unit light direction (3,).
         timings: milliseconds of the last update: ``relight`` (relit image to the host) and ``scene``
-            (meshes rebuilt and drawn).
+            (meshes refilled and texts set, plus the draw when :meth:`set_direction` draws).
     """
 
     def __init__(self, field, *, direction=None, method: str = "circular", device=None, size=None, diffuse: str = "auto",
