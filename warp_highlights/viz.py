@@ -9,9 +9,11 @@ Scene coordinates:
 - **Image plane**: the Gaussians' image-height units with y turned up so the picture stands upright:
   image point (x, y) is drawn at (x, -y, 0), and the image covers [0, W/H] x [-1, 0].
 
-The ``*_mesh``/``*_lines`` builders return plain pyvista meshes (and :class:`GaussianPaths` NumPy
-arrays); the ``plot_*`` functions add them to a ``pyvista.Plotter`` (a new one when none is given,
-off screen when there is no display) and return it. pyvista is imported on first use.
+The builders (``great_circle_arcs``, ``triangulation_lines``, ``spherical_triangle``, ``image_plane``,
+``gaussian_paths``...) return plain pyvista meshes or NumPy arrays; the ``plot_*`` functions add
+them to a ``pyvista.Plotter`` (a new one when none is given, off screen when there is no display) and
+return it; called again on the same plotter they refill their actors in place (``put_mesh``).
+pyvista is imported on first use.
 """
 
 from __future__ import annotations
