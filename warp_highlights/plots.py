@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .images import atomic_target, linear_to_srgb
+from .images import atomic_target, display_rgb8
 
 __all__ = [
     "barycentric_to_plane",
@@ -351,7 +351,7 @@ def plot_image_grid(
 ) -> Path:
     """A grid of linear images shown sRGB-encoded, e.g. "truth / circular / straight / alpha".
 
-    Values are clipped to [0, 1] (NaN shown as black) and encoded with :func:`images.linear_to_srgb`,
+    Values are clipped to [0, 1] (NaN shown as black) and encoded by :func:`images.display_rgb8`,
     so the figure shows them as an 8-bit sRGB PNG of the image would.
 
     Args:
@@ -389,8 +389,7 @@ def plot_image_grid(
     for ax in axes:
         ax.set_axis_off()
     for ax, image, label in zip(axes, images, labels, strict=False):
-        shown = linear_to_srgb(np.clip(np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
-        ax.imshow(shown, cmap="gray" if shown.ndim == 2 else None, vmin=0.0, vmax=1.0, interpolation="nearest")
+        ax.imshow(display_rgb8(image), interpolation="nearest")
         ax.set_title(label, fontsize=10)
     if title:
         fig.suptitle(title)

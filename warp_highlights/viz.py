@@ -18,8 +18,8 @@ pyvista is imported on first use.
 
 from __future__ import annotations
 
-import colorsys
 import copy
+import functools
 import os
 import sys
 import weakref
@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import InputError
 from .images import display_rgb8
-from .interpolation import edge_rows, interpolate_sets
+from .interpolation import INTERPOLATION_METHODS, edge_rows, interpolate_sets
 from .paths import circular_position
 from .triangulation import unit_query_directions
 
@@ -66,7 +66,8 @@ LINE_RADIUS = 1.004
 """Radius the edges and the current triangle are drawn at: just above the unit sphere, so the sphere's
 facets never hide them."""
 
-PATH_METHODS = ("circular", "straight")
+PATH_METHODS = INTERPOLATION_METHODS
+"""The paths drawn: ``interpolation.INTERPOLATION_METHODS``."""
 
 _ARC_SEGMENTS = 24  # segments of each drawn great-circle edge (a 109-degree tetrahedron edge: 4.5 deg each)
 _PATH_SAMPLES = 33  # points of each drawn Gaussian path
@@ -170,7 +171,10 @@ def triangulation_lines(triangulation, *, segments: int = _ARC_SEGMENTS, radius:
     directions = triangulation.directions
     lines = great_circle_arcs(directions[edges[:, 0]], directions[edges[:, 1]], segments=segments, radius=radius)
     lines.cell_data["edge"] = edges
-    lines.cell_data["boundary"] = _edge_membership(edges, triangulation.boundary_edges()).astype(np.uint8)
+    rim = triangulation.boundary_edges()
+    boundary = np.zeros(len(edges), dtype=np.uint8)
+    boundary[edge_rows(edges, triangulation.light_count, rim[:, 0], rim[:, 1])] = 1
+    lines.cell_data["boundary"] = boundary
     return lines
 
 
@@ -189,11 +193,20 @@ def spherical_triangle(a, b, c, *, level: int = 12, radius: float = LINE_RADIUS)
     import pyvista as pv
 
     corners = _unit_rows(np.stack([a, b, c]), "triangle corners")
+    weights, faces = _triangle_grid(int(level))
+    points = weights @ corners
+    points = radius * points / np.linalg.norm(points, axis=1, keepdims=True)
+    return pv.PolyData(points, faces=faces)
+
+
+@functools.lru_cache(maxsize=4)
+def _triangle_grid(level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentric weights (P, 3) of a triangle's grid points at subdivision ``level`` and its
+    ``level**2`` faces as VTK connectivity (made once per level: the query's triangle is rebuilt on
+    every move)."""
     rows = [(i, j) for i in range(level + 1) for j in range(level + 1 - i)]
     index = {ij: k for k, ij in enumerate(rows)}
     weights = np.array([(level - i - j, i, j) for i, j in rows], dtype=np.float64) / level
-    points = weights @ corners
-    points = radius * points / np.linalg.norm(points, axis=1, keepdims=True)
     faces = []
     for i in range(level):
         for j in range(level - i):
@@ -201,7 +214,9 @@ def spherical_triangle(a, b, c, *, level: int = 12, radius: float = LINE_RADIUS)
             if i + j + 1 < level:
                 faces.append((index[i + 1, j], index[i + 1, j + 1], index[i, j + 1]))
     faces = np.asarray(faces, dtype=np.int64)
-    return pv.PolyData(points, faces=np.hstack([np.full((len(faces), 1), 3), faces]).ravel())
+    connectivity = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+    weights.flags.writeable = connectivity.flags.writeable = False
+    return weights, connectivity
 
 
 def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, labels: bool = False, sphere: bool = True, camera: bool = True):
@@ -432,8 +447,10 @@ def gaussian_paths(field, face: int, *, samples: int = _PATH_SAMPLES) -> Gaussia
 
 def gaussian_colours(count: int) -> np.ndarray:
     """(count, 3) float RGB in [0, 1]: well-separated hues (golden-ratio steps), one per Gaussian."""
+    from matplotlib.colors import hsv_to_rgb
+
     hues = (np.arange(count) * 0.6180339887498949 + 0.08) % 1.0
-    return np.array([colorsys.hsv_to_rgb(h, 0.75, 1.0) for h in hues], dtype=np.float64).reshape(count, 3)
+    return hsv_to_rgb(np.stack([hues, np.full(count, 0.75), np.ones(count)], axis=-1)).reshape(count, 3)
 
 
 def gaussian_ellipses(params, rows=None, *, sigmas: float = _ELLIPSE_SIGMAS, samples: int = _ELLIPSE_SAMPLES) -> np.ndarray:
@@ -619,15 +636,6 @@ def _unit_rows(values, what: str) -> np.ndarray:
     if not np.all(np.isfinite(values)) or np.any(norms == 0):
         raise InputError(f"{what} must be finite, non-zero directions")
     return values / norms
-
-
-def _edge_membership(edges: np.ndarray, subset: np.ndarray) -> np.ndarray:
-    """(E,) bool: which rows of ``edges`` (sorted pairs) appear in ``subset``."""
-    if len(subset) == 0:
-        return np.zeros(len(edges), dtype=bool)
-    key = edges[:, 0].astype(np.int64) * (edges.max() + 1) + edges[:, 1]
-    wanted = subset[:, 0].astype(np.int64) * (edges.max() + 1) + subset[:, 1]
-    return np.isin(key, wanted)
 
 
 def _to_rgb8(colours: np.ndarray) -> np.ndarray:
