@@ -23,11 +23,12 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from warp_highlights.config import FitSettings
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.fit import fit_field
-from warp_highlights.lights import LightSet
-from warp_highlights.render import RenderSettings, default_material, render_dataset
+from warp_highlights.fit.pipeline import fit_field
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.fieldfile import field_size_report, save_field
+from warp_highlights.model.config import FitSettings
+from warp_highlights.model.lights import LightSet
+from warp_highlights.synth.render import RenderSettings, default_material, render_dataset
 
 # thesis Table 4.2 (donut, RTX 3080), seconds for the whole dataset of 250 lights at 480x270
 THESIS_SECONDS = {"segmentation": 1.5, "estimation": 324.0, "retargeting": 3573.0, "total": 3915.0}
@@ -78,7 +79,7 @@ def main() -> None:
                 best = (total, field)
         total, field = best
         path = Path(scratch) / "field.whf"
-        size = field.save(path)
+        size = save_field(field, path)
 
     report = field.report
     stages = dict(report["seconds"])
@@ -92,7 +93,7 @@ def main() -> None:
           f"estimation PSNR mean {report['estimation']['psnr_db']['mean']:.1f} dB; "
           f"retargeting loss {report['retargeting']['source_loss']['mean']:.0f} -> {report['retargeting']['loss']['mean']:.0f}")
     print(f"field file: {size / 1e6:.2f} MB (thesis estimate for 256 lights x 25 Gaussians: {THESIS_FIELD_BYTES / 1e6:.1f} MB); parts: "
-          + ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in field.size_report().items()))
+          + ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in field_size_report(field).items()))
     print("\n| stage | seconds | thesis (RTX 3080, 250 lights, 480x270) | speed-up |")
     print("|---|---|---|---|")
     comparable = data.light_count == 250 and (width, height) == (480, 270)

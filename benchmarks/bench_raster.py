@@ -35,8 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from warp_highlights.kernels import losses, optim
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import RasterSettings, rpx_to_normalized
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.config import RasterSettings, rpx_to_normalized
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 HEIGHT, WIDTH = 270, 480
 

@@ -30,22 +30,23 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.field import HighlightField
-from warp_highlights.relight import Relighter, alpha_inputs
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.fieldfile import load_field
+from warp_highlights.model.field import HighlightField
+from warp_highlights.relight.relighter import Relighter, alpha_inputs
 
 
 def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     """Render (in memory: no EXR writer needed) and fit the demo's donut: 64 lights, 240x135."""
-    from warp_highlights.fit import fit_field
-    from warp_highlights.lights import LightSet
-    from warp_highlights.render import (
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.model.lights import LightSet
+    from warp_highlights.synth.render import (
         Renderer,
         RenderSettings,
         default_material,
         view_rotation,
     )
-    from warp_highlights.shapes import make_shape
+    from warp_highlights.synth.shapes import make_shape
 
     lights = LightSet.fibonacci_sphere(64)
     renderer = Renderer(make_shape("donut"), material=default_material("donut"), settings=RenderSettings(width=240, height=135),
@@ -127,7 +128,7 @@ def main() -> None:
         field, dataset = demo_field(device)
         source = "demo donut (64 lights, fitted at 240x135)"
     else:
-        field = HighlightField.load(args.field)
+        field = load_field(args.field)
         dataset = ReflectanceField.load(args.dataset, progress=False) if args.dataset else None
         source = str(args.field)
     methods = [m for m in args.methods.split(",") if m]

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from warp_highlights.lights import LightSet
-from warp_highlights.render import Renderer, RenderSettings, default_material, view_rotation
-from warp_highlights.shapes import make_shape
+from warp_highlights.model.lights import LightSet
+from warp_highlights.synth.render import Renderer, RenderSettings, default_material, view_rotation
+from warp_highlights.synth.shapes import make_shape
 
 
 def _time(fn, device) -> tuple[float, object]:

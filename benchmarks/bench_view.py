@@ -29,9 +29,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from warp_highlights.animation import orbit
-from warp_highlights.designer import LightDesigner
-from warp_highlights.field import HighlightField
+from warp_highlights.io.fieldfile import load_field
+from warp_highlights.view.animation import orbit
+from warp_highlights.view.designer import LightDesigner
 
 PANEL_SETS = (("sphere", "image", "paths"), ("sphere",), ("image",), ("paths",))
 
@@ -68,7 +68,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.quiet = True
-    field = HighlightField.load(args.field)
+    field = load_field(args.field)
     window = tuple(int(v) for v in args.window_size.lower().split("x"))
     device = str(wp.get_device(args.device))
     import vtk
@@ -76,7 +76,7 @@ def main() -> None:
     print(f"# bench_view: {args.field.name} ({field.light_count} lights, {field.width}x{field.height}), relight on {device}, "
           f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, VTK {vtk.vtkVersion.GetVTKVersion()}")
     results = {}
-    from warp_highlights.viz import software_opengl
+    from warp_highlights.view.viz import software_opengl
 
     print(f"# OpenGL: {'software (CPU)' if software_opengl() else 'hardware'}")
     print("| panels | window | MSAA | relight ms | scene ms | draw ms | move ms | moves/s |")

@@ -29,17 +29,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.segmentation import segment
 
-from warp_highlights.config import FitSettings
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.estimation import estimate, psnr
-from warp_highlights.evaluation import luminance
-from warp_highlights.field import HighlightField
-from warp_highlights.gaussians import GaussianBatch
-from warp_highlights.interpolation import interpolate_sets
-from warp_highlights.paths import decide_paths
-from warp_highlights.resample import resize_stack
-from warp_highlights.retarget import retarget
-from warp_highlights.triangulation import SphericalTriangulation
+from warp_highlights.fit.estimation import estimate, psnr
+from warp_highlights.fit.paths import decide_paths
+from warp_highlights.fit.retargeting import retarget
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.resample import resize_stack
+from warp_highlights.model.config import FitSettings
+from warp_highlights.model.field import HighlightField
+from warp_highlights.model.gaussians import GaussianBatch
+from warp_highlights.model.triangulation import SphericalTriangulation
+from warp_highlights.relight.evaluation import luminance
+from warp_highlights.relight.interpolation import interpolate_sets
 
 
 def main() -> None:

@@ -30,8 +30,8 @@ from warp_highlights.kernels import losses
 from warp_highlights.kernels.optim import GaussianAdam
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import AdamSettings, rpx_to_normalized
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.config import AdamSettings, rpx_to_normalized
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 HEIGHT, WIDTH = 135, 240
 

@@ -1,4 +1,19 @@
 """Every Warp kernel of warp-highlights, one module per concern, each kernel beside its launch wrapper.
 
-Installed as ``warp_highlights.kernels`` (see pyproject.toml).
+Installed as ``warp_highlights.kernels`` (see pyproject.toml). The kernels take the model's Gaussian
+batches and settings and import nothing else of the package (ARCHITECTURE.md). A new kernel goes into
+the module of its concern, with a float64 NumPy reference and a gradient check in the tests.
+
+- ``raster``: the differentiable rasterizer of batched 2D Gaussian sets (``Rasterizer``).
+- ``losses``: per-problem losses with hand-written adjoints (``LogL1Loss``, ``StructureLoss``, ``EnergyLoss``).
+- ``optim``: batched Adam over every problem and slot, one launch per step (``GaussianAdam``).
+- ``segmentation``: the robust per-pixel diffuse/specular split (``segment``).
+- ``retarget``: rigid motions of connected components and the image gather (retargeting phase 1).
+- ``interpolation``: locate queries, interpolate Gaussian sets, compose relit images.
+- ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
 """
+
+from warp_highlights._api import lazy_exports
+
+_MODULES = ("interpolation", "losses", "optim", "raster", "raytrace", "retarget", "segmentation")
+__getattr__, __dir__, __all__ = lazy_exports(__name__, {}, modules={name: name for name in _MODULES})

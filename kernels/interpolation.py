@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from warp_highlights.gaussians import GaussianArrays
+from warp_highlights.model.gaussians import GaussianArrays
 
 from .retarget import rotate_vec2
 
@@ -50,7 +50,7 @@ def arc_position(mean_a: wp.vec2, mean_b: wp.vec2, delta: float, fraction: float
 
     Chord form of R(f delta)(mean_a - O) + O (no centre needed, exact for any radius):
     mean_a + sin(f delta / 2) / sin(delta / 2) R((f - 1) delta / 2)(mean_b - mean_a); the straight
-    blend when |delta| < straight_below. Matches ``warp_highlights.paths.circular_position``.
+    blend when |delta| < straight_below. Matches ``warp_highlights.model.arcs.circular_position``.
     """
     chord = mean_b - mean_a
     sin_half = wp.sin(0.5 * delta)

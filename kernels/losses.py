@@ -25,14 +25,14 @@ import math
 import numpy as np
 import warp as wp
 
-from warp_highlights.config import (
+from warp_highlights.model.config import (
     RasterSettings,
     StructureLossSettings,
     normalized_to_rpx,
     pixel_area_rpx2,
 )
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianArrays, GaussianBatch
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 from ._tape import active_tape
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_highlights.config import AdamSettings, rpx_to_normalized
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianArrays, GaussianBatch
+from warp_highlights.model.config import AdamSettings, rpx_to_normalized
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 __all__ = ["GaussianAdam", "adam_step", "reset_slots"]
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_highlights.config import rpx_to_normalized
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianArrays, GaussianBatch
+from warp_highlights.model.config import rpx_to_normalized
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 from ._tape import active_tape
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_highlights.config import SegmentationSettings
-from warp_highlights.errors import InputError
+from warp_highlights.model.config import SegmentationSettings
+from warp_highlights.model.errors import InputError
 
 __all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "luminance", "segment", "segment_pixels"]
 

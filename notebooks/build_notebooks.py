@@ -52,7 +52,7 @@ This notebook runs the whole warp-highlights pipeline in Python on a small synth
 5. **compare** circular paths, straight paths and the alpha blend at a held-out light, and
    **evaluate** all three against rendered ground truth.
 
-It is the same as `warp-highlights demo` (see `warp_highlights/demo.py`), at a smaller size:
+It is the same as `warp-highlights demo` (see `warp_highlights/cli/demo.py`), at a smaller size:
 48 lights at 192 x 108 pixels instead of 64 at 240 x 135, so that it runs top to bottom in well under a
 minute on a 2-core CPU. Everything runs on `wp.get_preferred_device()`: CUDA when present, else the
 CPU. Files go into a temporary folder (or the folder named by `$WARP_HIGHLIGHTS_NOTEBOOK_OUT`), never
@@ -70,7 +70,7 @@ import numpy as np
 import warp as wp
 
 import warp_highlights as wh
-from warp_highlights.images import display_rgb8  # linear radiance -> 8-bit sRGB
+from warp_highlights.io.images import display_rgb8  # linear radiance -> 8-bit sRGB
 
 plt.rcParams.update({"figure.dpi": 72, "font.size": 9, "axes.titlesize": 9})  # small inline PNGs
 wp.config.log_level = wp.LOG_WARNING  # no greeting and no per-module compile lines; warnings stay
@@ -106,7 +106,7 @@ evaluation compares with. The lights are a Fibonacci spiral over the whole spher
 them light the donut from behind.
 """),
     code("""
-from warp_highlights.render import RenderSettings, render_dataset
+from warp_highlights.synth.render import RenderSettings, render_dataset
 
 t = time.perf_counter()
 folder = render_dataset("donut", work / "donut", lights=wh.LightSet.fibonacci_sphere(LIGHTS),
@@ -123,7 +123,7 @@ part (linear radiance, clipped to [0, 1] and sRGB-encoded). The specular highlig
 method models with Gaussians; the diffuse part gets a per-pixel Lambertian model.
 """),
     code("""
-from warp_highlights.preview import contact_sheet
+from warp_highlights.view.preview import contact_sheet
 
 sheet = contact_sheet(dataset, count=6, thumb_height=HEIGHT, columns=2)
 plt.figure(figsize=(sheet.shape[1] / 72, sheet.shape[0] / 72))
@@ -173,7 +173,7 @@ t = time.perf_counter()
 field = wh.fit_field(dataset, device=device, log=lambda line: print("  " + line))
 print(f"fit in {time.perf_counter() - t:.1f} s\\n")
 print(field.describe())
-size = field.save(work / "donut.whf")
+size = wh.save_field(field, work / "donut.whf")
 print(f"saved donut.whf: {size / 1e3:.0f} kB")
 """),
     md("""
@@ -187,7 +187,7 @@ so they are scaled by the image height to pixels).
     code("""
 from matplotlib.patches import Ellipse
 
-from warp_highlights.evaluation import luminance
+from warp_highlights.relight.evaluation import luminance
 
 counts = field.counts
 angle = np.degrees(np.arccos(np.clip(dataset.lights.directions[:, 2], -1, 1)))
@@ -222,13 +222,13 @@ plt.show()
     md("""
 ## 4. Relight from a new direction
 
-`HighlightField.relight` takes any light directions (x right, y up, z towards the camera). It finds
-each direction's triangle, moves every corner's Gaussians along their stored paths by the barycentric
-weights, rasterizes them and adds the diffuse model: `I' = D' + S'`. It returns NumPy images
-(`RelitImages`: `.full`, `.specular`, `.faces`, `.barycentric`).
+`wh.relight_field(field, directions)` takes any light directions (x right, y up, z towards the
+camera). It finds each direction's triangle, moves every corner's Gaussians along their stored paths
+by the barycentric weights, rasterizes them and adds the diffuse model: `I' = D' + S'`. It returns
+NumPy images (`RelitImages`: `.full`, `.specular`, `.faces`, `.barycentric`).
 """),
     code("""
-relit = field.relight(query, device=device)
+relit = wh.relight_field(field, query, device=device)
 show([relit.full[0], relit.specular[0]], ["relit image I' = D' + S'", "its highlights S'"],
      suptitle=f"light {np.round(query[0] / np.linalg.norm(query), 2).tolist()} (not one of the {LIGHTS} lights)")
 """),
@@ -237,10 +237,10 @@ The highlights move continuously with the light. Four directions on a circle at 
 elevation (the orbit `warp-highlights animate --path orbit:35` draws), one batch of queries:
 """),
     code("""
-from warp_highlights.animation import orbit
+from warp_highlights.view.animation import orbit
 
 directions = orbit(35.0, 4)
-frames = field.relight(directions, device=device)
+frames = wh.relight_field(field, directions, device=device)
 show(list(frames.full), [f"azimuth {a:.0f} deg" for a in np.linspace(0, 360, 4, endpoint=False)], panel_width=3.2)
 """),
     md("""
@@ -259,8 +259,8 @@ the dataset once and a `Relighter` holds everything on the device. Here is a hel
 the triangle centroids rendered as ground truth, where the corners are as far away as they get.
 """),
     code("""
-from warp_highlights.evaluation import psnr_excluding_black
-from warp_highlights.relight import alpha_inputs
+from warp_highlights.relight.evaluation import psnr_excluding_black
+from warp_highlights.relight.relighter import alpha_inputs
 
 alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
 relighter = wh.Relighter(field, device=device, alpha_specular=alpha_specular, alpha_images=alpha_images)
@@ -306,11 +306,11 @@ rows.append(f"On the highlights, circular beats the alpha blend at {100 * shares
 display(Markdown("\\n".join(rows)))
 """),
     md("""
-The `warp_highlights.plots` functions write the report's figures as PNG files; here the PSNR
+The `warp_highlights.view.plots` functions write the report's figures as PNG files; here the PSNR
 distribution of the three methods over all held-out lights.
 """),
     code("""
-from warp_highlights.plots import plot_psnr_distributions
+from warp_highlights.view.plots import plot_psnr_distributions
 
 png = plot_psnr_distributions(evaluation.specular_psnr, work / "psnr-specular.png",
                               title=f"Specular PSNR at {len(evaluation.directions)} held-out lights (donut, {LIGHTS} lights)")
@@ -319,7 +319,7 @@ display(Image(filename=str(png), width=720))
     md("""
 ## 7. Look at the light sphere and the paths
 
-`warp_highlights.viz` draws the same objects with pyvista. `plot_triangulation` shows the light
+`warp_highlights.view.viz` draws the same objects with pyvista. `plot_triangulation` shows the light
 sphere: every light (orange), the triangulation's edges, the held-out light of section 5 (yellow) and
 its triangle (blue); the grey arrow points at the camera. `plot_paths` shows that triangle's Gaussians
 over the image plane, one colour per Gaussian: the circular arc each one follows towards the two other
@@ -331,7 +331,7 @@ the light designer, where dragging the light re-renders the image.
     code("""
 import pyvista as pv
 
-from warp_highlights import viz
+from warp_highlights.view import viz
 
 pv.set_jupyter_backend("static")
 light = heldout.lights.directions[q]
@@ -391,7 +391,7 @@ import warp as wp
 from IPython.display import Markdown, display
 
 import warp_highlights as wh
-from warp_highlights.config import pixel_area_rpx2, rpx_to_normalized
+from warp_highlights.model.config import pixel_area_rpx2, rpx_to_normalized
 
 plt.rcParams.update({"figure.dpi": 72, "font.size": 9, "axes.titlesize": 9})  # small inline PNGs
 wp.config.log_level = wp.LOG_WARNING  # no greeting and no per-module compile lines; warnings stay

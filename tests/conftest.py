@@ -42,8 +42,8 @@ def device(request) -> str:
 @pytest.fixture(scope="session")
 def small_donut(tmp_path_factory) -> Path:
     """A rendered donut dataset small enough for CPU fits in tests: 32 Fibonacci lights, 96 x 54, centroid ground truth."""
-    from warp_highlights.lights import LightSet
-    from warp_highlights.render import RenderSettings, default_material, render_dataset
+    from warp_highlights.model.lights import LightSet
+    from warp_highlights.synth.render import RenderSettings, default_material, render_dataset
 
     folder = tmp_path_factory.mktemp("data") / "donut"
     return render_dataset(
@@ -70,12 +70,13 @@ FAST_FIT = [
 @pytest.fixture(scope="session")
 def small_field(small_donut, tmp_path_factory) -> Path:
     """A quick fit of ``small_donut`` (``FAST_FIT``, diffuse images kept), saved as a .whf file."""
-    from warp_highlights.config import FitSettings
-    from warp_highlights.dataset import ReflectanceField
-    from warp_highlights.fit import fit_field
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.io.fieldfile import save_field
+    from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
     field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", progress=False)
     path = tmp_path_factory.mktemp("field") / "donut.whf"
-    field.save(path)
+    save_field(field, path)
     return path

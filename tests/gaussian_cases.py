@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from warp_highlights.gaussians import GaussianParams
+from warp_highlights.model.gaussians import GaussianParams
 
 
 def random_params(rng: np.random.Generator, problems: int, capacity: int, height: int, width: int, *, sigma_px=(0.3, 40.0), inactive: float = 0.25) -> GaussianParams:

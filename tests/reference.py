@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from warp_highlights.config import REFERENCE_HEIGHT_PX, RasterSettings
-from warp_highlights.gaussians import GaussianParams
+from warp_highlights.model.config import REFERENCE_HEIGHT_PX, RasterSettings
+from warp_highlights.model.gaussians import GaussianParams
 
 
 def pixel_grid(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,8 +8,12 @@ import sys
 import numpy as np
 import pytest
 
-from warp_highlights import animation as animation_module
-from warp_highlights.animation import (
+from warp_highlights.io.images import linear_to_srgb, read_image
+from warp_highlights.io.lightfile import write_lp
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
+from warp_highlights.view import animation as animation_module
+from warp_highlights.view.animation import (
     animation_kind,
     check_animation_output,
     great_circle,
@@ -18,9 +22,6 @@ from warp_highlights.animation import (
     through_directions,
     write_animation,
 )
-from warp_highlights.errors import InputError
-from warp_highlights.images import linear_to_srgb, read_image
-from warp_highlights.lights import LightSet
 
 Image = pytest.importorskip("PIL.Image")
 
@@ -206,7 +207,7 @@ def test_parse_light_path_text_list(tmp_path):
 def test_parse_light_path_lp_list(tmp_path):
     directions = np.array([[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [-1.0, 0.0, 1.0]])
     lp = tmp_path / "path.lp"
-    LightSet(directions).write_lp(lp)  # the listed images do not exist: only the directions are read
+    write_lp(LightSet(directions), lp)  # the listed images do not exist: only the directions are read
     np.testing.assert_allclose(parse_light_path(f"list:{lp}", 11), through_directions(directions, 11), atol=1e-15)
 
 

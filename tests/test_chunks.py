@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from warp_highlights.chunks import Cancelled, map_chunks, problem_chunks
+from warp_highlights.fit.chunks import Cancelled, map_chunks, problem_chunks
 
 
 def test_chunks_cover_every_problem_once():
@@ -43,8 +43,8 @@ def test_results_keep_chunk_order():
 
 
 def test_threaded_cpu_fit_leaves_the_default_device_alone():
-    from warp_highlights.config import EstimationSettings
-    from warp_highlights.estimation import estimate
+    from warp_highlights.fit.estimation import estimate
+    from warp_highlights.model.config import EstimationSettings
 
     before = wp.get_device()
     target = np.zeros((4, 16, 16), dtype=np.float32)

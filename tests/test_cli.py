@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from warp_highlights.cli import main
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.images import write_image
-from warp_highlights.lights import LightSet
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.images import write_image
+from warp_highlights.io.lightfile import write_lp
+from warp_highlights.model.lights import LightSet
 
 
 def _error_line(capsys) -> str:
@@ -36,7 +37,7 @@ def test_render_writes_a_loadable_dataset(tmp_path, capsys):
 
 def test_render_dome_with_lights_file_and_no_heldout(tmp_path):
     lp = tmp_path / "dome.lp"
-    LightSet.fibonacci_dome(10).write_lp(lp, [f"x{i}.jpg" for i in range(10)])
+    write_lp(LightSet.fibonacci_dome(10), lp, [f"x{i}.jpg" for i in range(10)])
     out = tmp_path / "dome"
     assert main(["render", "donut", str(out), "--lights-file", str(lp), "--heldout", "none", "--size", "32x18", "-q"]) == 0
     field = ReflectanceField.load(out, progress=False)

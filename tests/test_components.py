@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from gaussian_cases import random_params
 
-from warp_highlights.components import (
+from warp_highlights.model.components import (
     ConnectedComponents,
     _exterior_distance,
     ellipses_intersect,
     gaussian_covariances,
 )
-from warp_highlights.config import RasterSettings
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianParams
+from warp_highlights.model.config import RasterSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianParams
 
 LEVEL = 2.0
 

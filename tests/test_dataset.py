@@ -8,10 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
-from warp_highlights.dataset import DatasetWriter, ReflectanceField
-from warp_highlights.errors import InputError
-from warp_highlights.images import read_image, srgb_to_linear, write_image
-from warp_highlights.lights import LightSet
+from warp_highlights.io.dataset import DatasetWriter, ReflectanceField
+from warp_highlights.io.images import read_image, srgb_to_linear, write_image
+from warp_highlights.io.lightfile import write_lp
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
 
 pytest.importorskip("OpenEXR")
 pytest.importorskip("PIL")
@@ -62,7 +63,7 @@ def _jpeg_dataset(folder, sizes, *, lp_name="dirs.lp", mode="RGB"):
     names = [f"image{i:02d}.jpg" for i in range(len(sizes))]
     for name, (width, height) in zip(names, sizes):
         Image.new(mode, (width, height), 128).save(folder / name)
-    lights.write_lp(folder / lp_name, names)
+    write_lp(lights, folder / lp_name, names)
     return folder
 
 
@@ -136,7 +137,7 @@ def test_png_dataset_in_sub_folders_with_linear_flag(tmp_path):
     names = [f"shots/a b/{i}.png" for i in range(2)]
     for name, image in zip(names, levels):
         write_image(folder / name, image / 255.0, linear=True)
-    LightSet(np.array([[0, 0, 1], [0, 1, 1]]), names).write_lp(folder / "capture.lp")
+    write_lp(LightSet(np.array([[0, 0, 1], [0, 1, 1]]), names), folder / "capture.lp")
     loaded = ReflectanceField.load(folder, linear=True, progress=False)
     np.testing.assert_array_equal(loaded.images, (levels / 255.0).astype(np.float32))
     decoded = ReflectanceField.load(folder, progress=False)
@@ -147,7 +148,7 @@ def test_png_dataset_in_sub_folders_with_linear_flag(tmp_path):
 def test_lights_lp_wins_over_other_lp_and_heldout_lp_is_not_a_candidate(tmp_path):
     field = _field()
     field.save(tmp_path / "d")
-    LightSet(np.eye(3), ["x", "y", "z"]).write_lp(tmp_path / "d" / "other.lp")
+    write_lp(LightSet(np.eye(3), ["x", "y", "z"]), tmp_path / "d" / "other.lp")
     assert ReflectanceField.load(tmp_path / "d", progress=False).light_count == 5
     (tmp_path / "d" / "other.lp").unlink()
     (tmp_path / "d" / "lights.lp").rename(tmp_path / "d" / "capture.lp")

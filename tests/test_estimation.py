@@ -7,11 +7,11 @@ import pytest
 from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.segmentation import segment
 
-from warp_highlights.config import EstimationSettings
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.errors import InputError
-from warp_highlights.estimation import _Estimator, estimate, gaussian_energy_rpx, psnr
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.fit.estimation import _Estimator, estimate, gaussian_energy_rpx, psnr
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.model.config import EstimationSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 QUICK = EstimationSettings(iterations=400, densify_every=50, densify_until=300)
 
@@ -141,6 +141,6 @@ def _device_array(values):
     return wp.array(values, dtype=float, device="cpu")
 
 
-from warp_highlights.config import RasterSettings
+from warp_highlights.model.config import RasterSettings
 
 QUICK_RASTER = RasterSettings()

@@ -9,9 +9,11 @@ import math
 import numpy as np
 import pytest
 
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.errors import InputError
-from warp_highlights.evaluation import (
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.fieldfile import load_field
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
+from warp_highlights.relight.evaluation import (
     Evaluation,
     barycentric_grid,
     evaluate_field,
@@ -20,9 +22,7 @@ from warp_highlights.evaluation import (
     summarize,
     win_share,
 )
-from warp_highlights.field import HighlightField
-from warp_highlights.lights import LightSet
-from warp_highlights.relight import Relighter, alpha_inputs
+from warp_highlights.relight.relighter import Relighter, alpha_inputs
 
 REC709 = np.array([0.2126, 0.7152, 0.0722])
 
@@ -154,7 +154,7 @@ def test_to_dict_of_an_evaluation_with_excluded_queries_is_strict_json():
 
 @pytest.fixture(scope="module")
 def donut(small_field, small_donut):
-    return HighlightField.load(small_field), ReflectanceField.load(small_donut, progress=False)
+    return load_field(small_field), ReflectanceField.load(small_donut, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -329,7 +329,7 @@ def test_luminance():
 
 
 def test_renderer_from_meta_reproduces_the_datasets_images(donut):
-    from warp_highlights.render import renderer_from_meta
+    from warp_highlights.synth.render import renderer_from_meta
 
     _, dataset = donut
     renderer = renderer_from_meta(dataset.meta, device="cpu")
@@ -349,8 +349,8 @@ def exposed(small_donut):
     """A field fitted with exposure 2 (its radiance is twice the dataset's), at half size."""
     from conftest import FAST_FIT
 
-    from warp_highlights.config import FitSettings
-    from warp_highlights.fit import fit_field
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
     field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", exposure=2.0,
@@ -361,7 +361,7 @@ def exposed(small_donut):
 
 def test_full_psnr_of_every_method_is_in_the_datasets_units(exposed):
     """I' of the alpha baseline is the blend of the captured images, as they were captured."""
-    from warp_highlights.resample import resize_stack
+    from warp_highlights.io.resample import resize_stack
 
     field, dataset = exposed
     result = evaluate_field(field, dataset, device="cpu", barycentric_face=None)
@@ -385,7 +385,7 @@ def test_evaluate_the_real_dome_capture_at_its_test_lights(data_root, tmp_path):
     sample = data_root / "synthrti-object1-material5"
     field_path = tmp_path / "dome.whf"
     assert main(["fit", str(sample / "Dome"), "-o", str(field_path), "--size", "80x80", "-q", *[a for o in FAST_FIT for a in ("--set", o)]]) == 0
-    field = HighlightField.load(field_path)
+    field = load_field(field_path)
     dataset = ReflectanceField.load(sample / "Dome", heldout=sample / "Test", progress=False)
     evaluation = evaluate_field(field, dataset, device="cpu", barycentric_face="auto")
     assert not evaluation.specular_psnr  # photographs: no specular ground truth

@@ -8,16 +8,18 @@ import os
 import re
 import zipfile
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from warp_highlights import field as field_module
-from warp_highlights.errors import InputError
-from warp_highlights.field import MAGIC, DiffuseModel, HighlightField
-from warp_highlights.gaussians import GaussianParams
-from warp_highlights.lights import LightSet
-from warp_highlights.triangulation import SphericalTriangulation
+from warp_highlights.io import fieldfile
+from warp_highlights.io.fieldfile import FORMAT_VERSION, MAGIC, field_size_report, load_field, save_field
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.field import DiffuseModel, HighlightField
+from warp_highlights.model.gaussians import GaussianParams
+from warp_highlights.model.lights import LightSet
+from warp_highlights.model.triangulation import SphericalTriangulation
 
 SETTINGS = {
     "estimation": {"iterations": 1000, "densify_every": 100, "densify_until": 600, "capacity": 8},
@@ -173,16 +175,16 @@ def test_save_load_round_trip_is_exact(tmp_path, kind, diffuse):
     original = make_field(lights, diffuse=diffuse, seed=7)
     assert original.triangulation.is_dome == (kind == "dome")
     path = tmp_path / "field.whf"
-    written = original.save(path)
+    written = save_field(original, path)
     assert written == path.stat().st_size
-    loaded = HighlightField.load(path)
+    loaded = load_field(path)
     assert_fields_equal(original, loaded, lambert_exact=False)
     assert loaded.triangulation.is_dome == (kind == "dome")
-    assert loaded.size_report() == original.size_report()
+    assert field_size_report(loaded) == field_size_report(original)
     # the exact variant of the Lambertian model
     if diffuse is not None:
-        original.save(path, lambert_half=False)
-        assert_fields_equal(original, HighlightField.load(path), lambert_exact=True)
+        save_field(original, path, lambert_half=False)
+        assert_fields_equal(original, load_field(path), lambert_exact=True)
 
 
 def test_round_trip_keeps_light_filenames_and_single_channel_diffuse(tmp_path):
@@ -193,8 +195,8 @@ def test_round_trip_keeps_light_filenames_and_single_channel_diffuse(tmp_path):
     rng = np.random.default_rng(1)
     parts["diffuse"] = random_diffuse(rng, lights, (5, 7), channels=1, images=True)
     original = HighlightField(**parts)
-    original.save(tmp_path / "f")  # any file name
-    loaded = HighlightField.load(tmp_path / "f")
+    save_field(original, tmp_path / "f")  # any file name
+    loaded = load_field(tmp_path / "f")
     assert loaded.lights.filenames == lights.filenames
     assert_fields_equal(original, loaded, lambert_exact=False)
 
@@ -255,27 +257,27 @@ def test_path_values_of_free_slots_may_be_anything():
 
 
 def test_fit_settings_dict_round_trips(tmp_path):
-    from warp_highlights.config import FitSettings
+    from warp_highlights.model.config import FitSettings
 
     parts = field_parts(LightSet.fibonacci_sphere(12))
     parts["settings"] = FitSettings().to_dict()
     original = HighlightField(**parts)
-    original.save(tmp_path / "f.whf")
-    loaded = HighlightField.load(tmp_path / "f.whf")
+    save_field(original, tmp_path / "f.whf")
+    loaded = load_field(tmp_path / "f.whf")
     assert loaded.settings == original.settings
     assert loaded.fit_settings() == FitSettings.from_dict(original.settings)
 
 
 def test_saving_is_deterministic_and_readable_by_numpy(tmp_path):
     field = make_field(diffuse="images")
-    field.save(tmp_path / "a.whf")
-    field.save(tmp_path / "b.whf")
+    save_field(field, tmp_path / "a.whf")
+    save_field(field, tmp_path / "b.whf")
     assert (tmp_path / "a.whf").read_bytes() == (tmp_path / "b.whf").read_bytes()
     with zipfile.ZipFile(tmp_path / "a.whf") as archive:
         assert archive.namelist()[0] == "header.json"
         header = json.loads(archive.read("header.json"))
     assert header["magic"] == MAGIC
-    assert header["format_version"] == HighlightField.FORMAT_VERSION
+    assert header["format_version"] == FORMAT_VERSION
     with np.load(tmp_path / "a.whf") as npz:
         packed = npz["gaussians/estimated"]
         assert packed.dtype == np.float32 and packed.shape == (
@@ -300,11 +302,11 @@ def test_256_lights_with_25_gaussians_per_set_is_smaller_than_the_thesis(tmp_pat
     field = HighlightField(**parts)
     assert field.light_count + field.edge_count == 7 * 256 - 12
     assert field.gaussian_count == 25 * (7 * 256 - 12)
-    predicted = field.size_report()
-    written = field.save(tmp_path / "big.whf")
+    predicted = field_size_report(field)
+    written = save_field(field, tmp_path / "big.whf")
     assert written == (tmp_path / "big.whf").stat().st_size
     assert written < 2.2e6 * 0.8, f"{written} bytes"
-    sizes = field.size_report()
+    sizes = field_size_report(field)
     assert sizes == predicted  # measuring in memory gives the same bytes as writing
     assert sizes["total"] == written
     assert sum(v for k, v in sizes.items() if k != "total") == written
@@ -312,7 +314,7 @@ def test_256_lights_with_25_gaussians_per_set_is_smaller_than_the_thesis(tmp_pat
     assert sizes["gaussians"] <= 25 * (7 * 256 - 12) * (6 * 4 + 2) * 1.01
     assert sizes["paths"] <= 25 * (6 * 256 - 12) * 3 * 4 * 1.01
     assert "file: " in field.describe()
-    assert_fields_equal(field, HighlightField.load(tmp_path / "big.whf"))
+    assert_fields_equal(field, load_field(tmp_path / "big.whf"))
 
 
 # --- summary ---------------------------------------------------------------------------------------
@@ -337,7 +339,7 @@ def test_properties_and_describe(tmp_path):
     assert "16 lights (dome)" in text and f"{field.edge_count} directed edges" in text
     assert f"min {field.counts.min()}, max {field.counts.max()}" in text
     assert "Lambertian, 3 channel(s)" in text and "file:" not in text
-    field.save(tmp_path / "f.whf")
+    save_field(field, tmp_path / "f.whf")
     assert str(tmp_path / "f.whf") in field.describe()
     assert "HighlightField(16 lights" in repr(field)
 
@@ -361,10 +363,10 @@ def test_failed_save_keeps_the_old_file_and_leaves_no_temp_file(
     tmp_path, monkeypatch, error
 ):
     path = tmp_path / "field.whf"
-    make_field(seed=1).save(path)
+    save_field(make_field(seed=1), path)
     old = path.read_bytes()
     calls = []
-    real = field_module._write_array
+    real = fieldfile._write_array
 
     def failing(archive, name, array):
         calls.append(name)
@@ -372,29 +374,29 @@ def test_failed_save_keeps_the_old_file_and_leaves_no_temp_file(
             raise error
         real(archive, name, array)
 
-    monkeypatch.setattr(field_module, "_write_array", failing)
+    monkeypatch.setattr(fieldfile, "_write_array", failing)
     with pytest.raises(type(error)):
-        make_field(seed=2).save(path)
+        save_field(make_field(seed=2), path)
     assert len(calls) == 4
     assert path.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == ["field.whf"]
     monkeypatch.undo()
-    assert_fields_equal(make_field(seed=1), HighlightField.load(path))
+    assert_fields_equal(make_field(seed=1), load_field(path))
 
 
 def test_failed_rename_is_an_input_error_and_keeps_the_old_file(tmp_path, monkeypatch):
     path = tmp_path / "field.whf"
-    make_field(seed=1).save(path)
+    save_field(make_field(seed=1), path)
     old = path.read_bytes()
 
     def refuse(src, dst):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(field_module.os, "replace", refuse)
+    monkeypatch.setattr(fieldfile.os, "replace", refuse)
     with pytest.raises(
         InputError, match="cannot write the field file.*Permission denied"
     ):
-        make_field(seed=2).save(path)
+        save_field(make_field(seed=2), path)
     assert path.read_bytes() == old
     assert sorted(p.name for p in tmp_path.iterdir()) == ["field.whf"]
 
@@ -402,9 +404,9 @@ def test_failed_rename_is_an_input_error_and_keeps_the_old_file(tmp_path, monkey
 def test_save_creates_folders_and_refuses_a_folder(tmp_path):
     field = make_field()
     target = tmp_path / "new" / "sub" / "f.whf"
-    assert field.save(target) == target.stat().st_size
+    assert save_field(field, target) == target.stat().st_size
     with pytest.raises(InputError, match="is a folder"):
-        field.save(tmp_path / "new")
+        save_field(field, tmp_path / "new")
 
 
 # --- load errors -----------------------------------------------------------------------------------
@@ -417,14 +419,14 @@ def saved(tmp_path_factory) -> tuple:
     field = make_field(
         LightSet.fibonacci_sphere(12), diffuse="images", size=(6, 4), seed=3
     )
-    field.save(path, lambert_half=False)
+    save_field(field, path, lambert_half=False)
     return field, path, path.read_bytes()
 
 
 def load_error(path) -> str:
     """The message of the InputError that loading ``path`` must raise (one line naming the file)."""
     with pytest.raises(InputError) as info:
-        HighlightField.load(path)
+        load_field(path)
     message = str(info.value)
     assert str(path) in message and "\n" not in message
     assert info.value.__cause__ is None or isinstance(info.value.__cause__, InputError)
@@ -467,7 +469,7 @@ def read_entry(data: bytes, name: str) -> np.ndarray:
 def test_rewrite_helper_round_trips(saved, tmp_path):
     field, _, data = saved
     rewrite(data, tmp_path / "copy.whf")
-    assert_fields_equal(field, HighlightField.load(tmp_path / "copy.whf"))
+    assert_fields_equal(field, load_field(tmp_path / "copy.whf"))
 
 
 def test_missing_file_and_folder(tmp_path):
@@ -547,7 +549,7 @@ def test_flipped_bytes_raise_input_error_or_load_equal_data(saved, tmp_path):
             damaged[position] ^= mask
             path.write_bytes(bytes(damaged))
             try:
-                loaded = HighlightField.load(path)
+                loaded = load_field(path)
             except InputError as exc:
                 assert str(path) in str(exc) and "\n" not in str(exc)
                 errors["directory" if position >= directory_start else "entries"] += 1
@@ -927,8 +929,8 @@ def test_empty_sets_are_allowed(tmp_path):
     parts = field_parts(lights, per_set=(0, 0))
     field = HighlightField(**parts)
     assert field.gaussian_count == 0
-    field.save(tmp_path / "empty.whf")
-    assert_fields_equal(field, HighlightField.load(tmp_path / "empty.whf"))
+    save_field(field, tmp_path / "empty.whf")
+    assert_fields_equal(field, load_field(tmp_path / "empty.whf"))
 
 
 def test_error_files_do_not_leak_open_handles(saved, tmp_path):
@@ -952,8 +954,41 @@ def test_lambert_beyond_float16_is_stored_as_float32(tmp_path):
     lambert[0, 0, 0, 3] = 1e5
     parts["diffuse"] = DiffuseModel(lambert)
     original = HighlightField(**parts)
-    original.save(tmp_path / "f.whf")  # lambert_half=True, but the values do not fit
+    save_field(original, tmp_path / "f.whf")  # lambert_half=True, but the values do not fit
     with zipfile.ZipFile(tmp_path / "f.whf") as archive:
         header = json.loads(archive.read("header.json"))
     assert header["diffuse"]["lambert_dtype"] == "float32"
-    assert_fields_equal(original, HighlightField.load(tmp_path / "f.whf"))
+    assert_fields_equal(original, load_field(tmp_path / "f.whf"))
+
+
+# --- files written by earlier versions -------------------------------------------------------------
+
+LEGACY = Path(__file__).resolve().parent / "data"
+
+
+def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_same(tmp_path):
+    """tests/data/legacy-v1.whf was written by the flat-package version (commit 6f21722)."""
+    from warp_highlights.relight.relighter import Relighter
+
+    path = LEGACY / "legacy-v1.whf"
+    field = load_field(path)
+    assert (field.light_count, field.edge_count, field.capacity, field.width, field.height) == (20, 98, 64, 40, 24)
+    assert field.gaussian_count == 374 and field.triangulation.is_dome
+    assert field.diffuse is not None and field.diffuse.images is not None
+    assert field_size_report(field)["total"] == path.stat().st_size == 60165
+
+    expected = np.load(LEGACY / "legacy-v1-relit.npz")
+    for method in ("circular", "straight"):
+        relit = Relighter(field, device="cpu", diffuse="auto", scale=1.0 / field.exposure).relight(expected["directions"], method=method)
+        np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
+
+    again = tmp_path / "again.whf"
+    save_field(field, again)
+    old, new = entries(path.read_bytes()), entries(again.read_bytes())
+    assert list(new) == list(old)
+    old_header, new_header = json.loads(old.pop("header.json")), json.loads(new.pop("header.json"))
+    assert old_header.pop("library_version") == "0.1.0"
+    new_header.pop("library_version")
+    assert new_header == old_header
+    assert new == old  # every array entry byte for byte

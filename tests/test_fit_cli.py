@@ -9,8 +9,8 @@ import pytest
 from conftest import FAST_FIT
 
 from warp_highlights.cli import main
-from warp_highlights.field import HighlightField
-from warp_highlights.interpolation import interpolate_sets
+from warp_highlights.io.fieldfile import load_field, save_field
+from warp_highlights.relight.interpolation import interpolate_sets
 
 
 def _overrides() -> list[str]:
@@ -34,7 +34,7 @@ def fitted(small_donut, tmp_path_factory):
 
 def test_fit_writes_a_field_and_a_report(fitted, capsys):
     out, report_path = fitted
-    field = HighlightField.load(out)
+    field = load_field(out)
     assert field.light_count == 32 and len(field.directed_edges) == 6 * 32 - 12
     assert (field.width, field.height) == (96, 54)
     assert field.diffuse is not None and field.diffuse.images.shape == (32, 54, 96, 3)
@@ -52,41 +52,41 @@ def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
     text = capsys.readouterr().out
     for expected in ("stage times", "segmentation", "estimation", "retargeting", "Gaussians per light", "estimation PSNR", "MB"):
         assert expected in text
-    field = HighlightField.load(out)
+    field = load_field(out)
     assert (field.width, field.height) == (48, 27) and field.diffuse is None
 
 
 def test_a_field_with_invalid_stored_settings_is_refused(fitted, tmp_path):
-    from warp_highlights.errors import InputError
+    from warp_highlights.model.errors import InputError
 
-    field = HighlightField.load(fitted[0])
+    field = load_field(fitted[0])
     field.settings["retarget"]["iterations"] = "many"
     broken = tmp_path / "broken.whf"
-    field.save(broken)
+    save_field(field, broken)
     with pytest.raises(InputError, match="settings"):
-        HighlightField.load(broken)
+        load_field(broken)
 
 
 def test_auto_exposure_scales_the_radiance_and_is_recorded(small_donut, tmp_path):
-    from warp_highlights.dataset import ReflectanceField
-    from warp_highlights.fit import exposure_factor
+    from warp_highlights.fit.pipeline import exposure_factor
+    from warp_highlights.io.dataset import ReflectanceField
 
     data = ReflectanceField.load(small_donut, progress=False)
     factor = exposure_factor(data.images, "auto")
     assert np.percentile(data.images * factor, 99.9) == pytest.approx(1.0, rel=0.05)
     out = tmp_path / "auto.whf"
     assert main(["fit", str(small_donut), "-o", str(out), "--exposure", "auto", "--size", "48x27", "-q", *_overrides()]) == 0
-    from warp_highlights.resample import resize_stack
+    from warp_highlights.io.resample import resize_stack
 
     working = exposure_factor(resize_stack(data.images, 48, 27), "auto")  # measured at the working size
-    assert HighlightField.load(out).report["exposure"] == pytest.approx(working, rel=1e-6)
+    assert load_field(out).report["exposure"] == pytest.approx(working, rel=1e-6)
 
 
 def test_saved_and_loaded_field_is_identical(fitted, tmp_path):
-    field = HighlightField.load(fitted[0])
+    field = load_field(fitted[0])
     again = tmp_path / "again.whf"
-    field.save(again)
-    loaded = HighlightField.load(again)
+    save_field(field, again)
+    loaded = load_field(again)
     for name in ("amplitude", "mean", "sigma", "theta", "active"):
         np.testing.assert_array_equal(getattr(loaded.estimated, name), getattr(field.estimated, name))
         np.testing.assert_array_equal(getattr(loaded.retargeted, name), getattr(field.retargeted, name))
@@ -96,7 +96,7 @@ def test_saved_and_loaded_field_is_identical(fitted, tmp_path):
 
 @pytest.mark.parametrize("method", ["circular", "straight"])
 def test_interpolation_at_a_vertex_is_that_vertex_set(fitted, method):
-    field = HighlightField.load(fitted[0])
+    field = load_field(fitted[0])
     faces = field.triangulation.faces[:20]
     weights = np.tile([1.0, 0.0, 0.0], (len(faces), 1))
     sets = interpolate_sets(field, faces, weights, method=method)
@@ -116,7 +116,7 @@ def test_list_settings(capsys):
 
 
 def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatch, capsys):
-    import warp_highlights.fit as fit_module
+    import warp_highlights.fit.pipeline as fit_module
 
     out = tmp_path / "field.whf"
     out.write_bytes(b"previous field")
@@ -176,7 +176,7 @@ def test_fit_real_dome_captures(data_root, folder, size, tmp_path):
     """JPEG RTI domes (sRGB decoded, dirs.lp) fit end to end at a small working size."""
     out = tmp_path / "field.whf"
     assert main(["fit", str(data_root / folder), "-o", str(out), "--size", size, "-q", *_overrides()]) == 0
-    field = HighlightField.load(out)
+    field = load_field(out)
     assert field.triangulation.is_dome
     assert len(field.directed_edges) == 2 * len(field.triangulation.edges())
     assert f"{field.width}x{field.height}" == size

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from gaussian_cases import random_params
 
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 
 def test_numpy_round_trip_keeps_active_slots_and_zeroes_free_ones(device):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warp_highlights import images as images_module
-from warp_highlights.errors import InputError
-from warp_highlights.images import image_size, linear_to_srgb, read_image, srgb_to_linear, write_image
+from warp_highlights.io import images as images_module
+from warp_highlights.io.images import image_size, linear_to_srgb, read_image, srgb_to_linear, write_image
+from warp_highlights.model.errors import InputError
 
 pytest.importorskip("OpenEXR")
 Image = pytest.importorskip("PIL.Image")

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from warp_highlights.errors import InputError
-from warp_highlights.lights import LightSet
+from warp_highlights.io.lightfile import read_lp, write_lp
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
 
 
 def _nearest_neighbour_distances(directions: np.ndarray) -> np.ndarray:
@@ -111,33 +112,33 @@ def test_lp_round_trip(tmp_path):
     lights = LightSet.fibonacci_dome(37)
     names = [f"images/{i:04d} copy.png" for i in range(37)]
     path = tmp_path / "lights.lp"
-    lights.write_lp(path, names)
+    write_lp(lights, path, names)
     assert [p.name for p in tmp_path.iterdir()] == ["lights.lp"]  # no temporary file left behind
-    back = LightSet.read_lp(path, check_files=False)
+    back = read_lp(path, check_files=False)
     assert back.filenames == names
     np.testing.assert_allclose(back.directions, lights.directions, rtol=0, atol=1e-15)
 
 
 def test_lp_write_uses_own_or_default_names(tmp_path):
-    LightSet(np.eye(3), ["x.jpg", "y.jpg", "z.jpg"]).write_lp(tmp_path / "own.lp")
-    assert LightSet.read_lp(tmp_path / "own.lp", check_files=False).filenames == ["x.jpg", "y.jpg", "z.jpg"]
-    LightSet(np.eye(3)).write_lp(tmp_path / "default.lp")
+    write_lp(LightSet(np.eye(3), ["x.jpg", "y.jpg", "z.jpg"]), tmp_path / "own.lp")
+    assert read_lp(tmp_path / "own.lp", check_files=False).filenames == ["x.jpg", "y.jpg", "z.jpg"]
+    write_lp(LightSet(np.eye(3)), tmp_path / "default.lp")
     lines = (tmp_path / "default.lp").read_text().splitlines()
     assert lines[0] == "3" and lines[1].startswith("0000 ") and len(lines) == 4
 
 
 def test_lp_write_keeps_six_significant_digits(tmp_path):
     lights = LightSet(np.array([[1.234567891e-5, 0.3, 0.9]]), ["a"])
-    lights.write_lp(tmp_path / "a.lp")
+    write_lp(lights, tmp_path / "a.lp")
     x = float((tmp_path / "a.lp").read_text().splitlines()[1].split()[1])
     assert abs(x - lights.directions[0, 0]) <= 1e-6 * abs(lights.directions[0, 0])
 
 
 def test_lp_write_rejects_unwritable_names(tmp_path):
     with pytest.raises(InputError, match="cannot be written"):
-        LightSet(np.eye(3)).write_lp(tmp_path / "a.lp", ["a", "b\nc", "d"])
+        write_lp(LightSet(np.eye(3)), tmp_path / "a.lp", ["a", "b\nc", "d"])
     with pytest.raises(InputError, match="3 light directions"):
-        LightSet(np.eye(3)).write_lp(tmp_path / "a.lp", ["a"])
+        write_lp(LightSet(np.eye(3)), tmp_path / "a.lp", ["a"])
 
 
 # --- .lp quirks -----------------------------------------------------------------------------------
@@ -154,7 +155,7 @@ def test_lp_reads_real_world_quirks(tmp_path):
         "\r\n\r\n"
     )
     path = _write_lp(tmp_path, text, images=["image one.jpg", "sub/image2.jpg", "image,3.jpg"])
-    lights = LightSet.read_lp(path)
+    lights = read_lp(path)
     assert lights.filenames == ["image one.jpg", "sub/image2.jpg", "image,3.jpg"]
     s = math.sqrt(0.5)
     np.testing.assert_allclose(lights.directions, [[s, 0, s], [0, 1, 0], [0, 0, 1]], atol=1e-15)
@@ -162,17 +163,17 @@ def test_lp_reads_real_world_quirks(tmp_path):
 
 def test_lp_reads_utf16_with_bom(tmp_path):
     path = _write_lp(tmp_path, "1\r\na.jpg 0 0 1\r\n".encode("utf-16"), images=["a.jpg"])
-    assert LightSet.read_lp(path).filenames == ["a.jpg"]
+    assert read_lp(path).filenames == ["a.jpg"]
 
 
 def test_lp_reads_comma_line_next_to_dot_line(tmp_path):
     path = _write_lp(tmp_path, "2\na 0,6 -0,8 0\nb 0.6 0.8 0\n")
-    np.testing.assert_allclose(LightSet.read_lp(path, check_files=False).directions, [[0.6, -0.8, 0], [0.6, 0.8, 0]])
+    np.testing.assert_allclose(read_lp(path, check_files=False).directions, [[0.6, -0.8, 0], [0.6, 0.8, 0]])
 
 
 def test_lp_count_line_may_carry_more_tokens(tmp_path):
     path = _write_lp(tmp_path, "1 lights\na 0 0 1\n")
-    assert LightSet.read_lp(path, check_files=False).light_count == 1
+    assert read_lp(path, check_files=False).light_count == 1
 
 
 # --- .lp rejections -------------------------------------------------------------------------------
@@ -199,45 +200,45 @@ def test_lp_count_line_may_carry_more_tokens(tmp_path):
 def test_lp_rejects_with_file_and_line(tmp_path, text, line, needle):
     path = _write_lp(tmp_path, text)
     with pytest.raises(InputError) as excinfo:
-        LightSet.read_lp(path, check_files=False)
+        read_lp(path, check_files=False)
     assert needle in _single_line_error(excinfo, path, line)
 
 
 def test_lp_rejects_duplicate_directions_naming_both_lines(tmp_path):
     path = _write_lp(tmp_path, "3\na.jpg 0 0 1\n\nb.jpg 1 0 0\nc.jpg 0 0 2\n")
     with pytest.raises(InputError) as excinfo:
-        LightSet.read_lp(path, check_files=False)
+        read_lp(path, check_files=False)
     assert "lines 2 and 5" in _single_line_error(excinfo, path)
 
 
 def test_lp_rejects_missing_image(tmp_path):
     path = _write_lp(tmp_path, "2\na.jpg 0 0 1\nb.jpg 0 1 0\n", images=["a.jpg"])
     with pytest.raises(InputError) as excinfo:
-        LightSet.read_lp(path)
+        read_lp(path)
     assert "'b.jpg' not found" in _single_line_error(excinfo, path, 3)
-    assert LightSet.read_lp(path, check_files=False).light_count == 2
+    assert read_lp(path, check_files=False).light_count == 2
 
 
 @pytest.mark.parametrize("text", [b"", b"\xef\xbb\xbf", b"\r\n  \n\t\n"])
 def test_lp_rejects_empty_file(tmp_path, text):
     path = _write_lp(tmp_path, text)
     with pytest.raises(InputError) as excinfo:
-        LightSet.read_lp(path)
+        read_lp(path)
     assert "empty" in _single_line_error(excinfo, path)
 
 
 def test_lp_rejects_missing_file(tmp_path):
     path = tmp_path / "nothing.lp"
     with pytest.raises(InputError) as excinfo:
-        LightSet.read_lp(path)
+        read_lp(path)
     assert "not found" in _single_line_error(excinfo, path)
 
 
 @pytest.mark.realdata
 def test_real_lp_files(data_root):
-    dome = LightSet.read_lp(data_root / "synthrti-object1-material5" / "Dome" / "dirs.lp")
-    test = LightSet.read_lp(data_root / "synthrti-object1-material5" / "Test" / "dirs.lp")
-    item = LightSet.read_lp(data_root / "realrti-item11" / "dirs.lp")
+    dome = read_lp(data_root / "synthrti-object1-material5" / "Dome" / "dirs.lp")
+    test = read_lp(data_root / "synthrti-object1-material5" / "Test" / "dirs.lp")
+    item = read_lp(data_root / "realrti-item11" / "dirs.lp")
     assert (dome.light_count, test.light_count, item.light_count) == (49, 20, 54)
     assert dome.filenames[0] == "image01.jpg" and item.filenames[0] == "image00.jpg"
     for lights in (dome, test, item):

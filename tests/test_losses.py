@@ -10,9 +10,9 @@ from gaussian_cases import central_differences, inside_params
 from warp_highlights.kernels import losses
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import StructureLossSettings
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianBatch
+from warp_highlights.model.config import StructureLossSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch
 
 PARAMETERS = ("amplitude", "mean", "sigma", "theta", "weight")
 

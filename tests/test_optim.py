@@ -10,9 +10,9 @@ from warp_highlights.kernels import losses
 from warp_highlights.kernels.optim import GaussianAdam
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import AdamSettings, rpx_to_normalized
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.config import AdamSettings, rpx_to_normalized
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 GROUPS = {"amplitude": "lr_amplitude", "mean": "lr_mean_rpx", "sigma": "lr_sigma_rpx", "theta": "lr_theta"}
 

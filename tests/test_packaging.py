@@ -20,8 +20,10 @@ sys.meta_path.insert(0, Block())
 import warp
 warp.config.log_level = warp.LOG_WARNING
 import warp_highlights.kernels.raytrace
-from warp_highlights import dataset, lights, render, shapes, triangulation
-from warp_highlights.render import Renderer, RenderSettings
+from warp_highlights.io import dataset
+from warp_highlights.model import lights, triangulation
+from warp_highlights.synth import render, shapes
+from warp_highlights.synth.render import Renderer, RenderSettings
 image = Renderer(shapes.teapot(subdivisions=4), settings=RenderSettings(width=16, height=9), device="cpu").render(
     lights.LightSet.fibonacci_sphere(4).directions
 )
@@ -40,8 +42,9 @@ quick = wh.FitSettings().with_overrides(["estimation.iterations=3", "retarget.ri
 field = wh.fit_field(data, settings=quick, device="cpu")
 import tempfile, pathlib
 with tempfile.TemporaryDirectory() as folder:
-    field.save(pathlib.Path(folder) / "f.whf")
-    assert wh.HighlightField.load(pathlib.Path(folder) / "f.whf").light_count == 4
+    wh.save_field(field, pathlib.Path(folder) / "f.whf")
+    assert wh.load_field(pathlib.Path(folder) / "f.whf").light_count == 4
+    assert wh.relight_field(field, [0.0, 0.0, 1.0], device="cpu").specular.shape == (9, 16)
 print("core ok")
 """
 

@@ -11,16 +11,11 @@ import math
 import numpy as np
 import pytest
 
-from warp_highlights.config import PathSettings
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianParams
-from warp_highlights.paths import (
-    PathDecisions,
-    circular_position,
-    decide_paths,
-    path_centre,
-    rotation_options,
-)
+from warp_highlights.fit.paths import PathDecisions, decide_paths
+from warp_highlights.model.arcs import circular_position, path_centre, rotation_options
+from warp_highlights.model.config import PathSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianParams
 
 L = 15.0 / 270.0  # default length scale, 15 rpx in image heights
 DEG = math.pi / 180.0
@@ -463,7 +458,7 @@ def test_batched_equals_per_edge_and_padding_is_ignored():
 
 
 def test_edge_blocks_do_not_change_the_result(monkeypatch):
-    from warp_highlights import paths
+    from warp_highlights.fit import paths
 
     rng = np.random.default_rng(8)
     source, target = random_edges(rng, 7, 12)

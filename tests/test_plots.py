@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from warp_highlights import plots
-from warp_highlights.errors import InputError
+from warp_highlights.model.errors import InputError
+from warp_highlights.view import plots
 
 pytest.importorskip("matplotlib")
 Image = pytest.importorskip("PIL.Image")
@@ -256,7 +256,7 @@ def test_figures_from_several_threads(tmp_path, scores):
 def test_import_needs_no_matplotlib_and_plotting_never_touches_pyplot(tmp_path):
     script = (
         "import sys, numpy as np\n"
-        "import warp_highlights.plots as plots\n"
+        "import warp_highlights.view.plots as plots\n"
         "assert 'matplotlib' not in sys.modules, 'imported matplotlib at module level'\n"
         f"plots.plot_gaussian_counts(np.arange(5), {str(tmp_path / 'c.png')!r})\n"
         "assert 'matplotlib.pyplot' not in sys.modules, 'used pyplot'\n"

@@ -9,9 +9,9 @@ import warp as wp
 from gaussian_cases import central_differences, inside_params, random_params
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import RasterSettings
-from warp_highlights.errors import InputError
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.config import RasterSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 PARAMETERS = ("amplitude", "mean", "sigma", "theta", "weight")
 

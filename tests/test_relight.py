@@ -1,4 +1,4 @@
-"""Relighting kernels (kernels/interpolation.py, warp_highlights/relight.py) against float64 references."""
+"""Relighting kernels (kernels/interpolation.py, warp_highlights/relight/relighter.py) against float64 references."""
 
 from __future__ import annotations
 
@@ -9,21 +9,22 @@ from gaussian_cases import inside_params
 from reference import render as reference_render
 from warp_highlights.kernels.raster import Rasterizer
 
-from warp_highlights.config import FitSettings
-from warp_highlights.errors import InputError
-from warp_highlights.field import DiffuseModel, HighlightField
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
-from warp_highlights.interpolation import interpolate_sets
-from warp_highlights.lights import LightSet
-from warp_highlights.paths import decide_paths
-from warp_highlights.relight import Relighter, face_edge_rows
-from warp_highlights.resample import (
+from warp_highlights.fit.paths import decide_paths
+from warp_highlights.io.fieldfile import load_field, save_field
+from warp_highlights.io.resample import (
     area_weights,
     linear_weights,
     resample_image,
     resize_stack,
 )
-from warp_highlights.triangulation import SphericalTriangulation
+from warp_highlights.model.config import FitSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.field import DiffuseModel, HighlightField
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.lights import LightSet
+from warp_highlights.model.triangulation import SphericalTriangulation
+from warp_highlights.relight.interpolation import interpolate_sets
+from warp_highlights.relight.relighter import Relighter, face_edge_rows, relight_field
 
 HEIGHT, WIDTH = 27, 48
 
@@ -130,7 +131,7 @@ def test_circular_and_straight_differ_only_in_the_means(sphere_field):
 def test_arc_position_kernel_matches_the_path_identity(device):
     from warp_highlights.kernels.interpolation import arc_position
 
-    from warp_highlights.paths import circular_position, path_centre
+    from warp_highlights.model.arcs import circular_position, path_centre
 
     rng = np.random.default_rng(8)
     count = 500
@@ -246,11 +247,11 @@ def test_relight_of_a_saved_and_loaded_field_is_identical(tmp_path, diffuse_imag
     field = synthetic_field(LightSet.fibonacci_sphere(18), seed=4, diffuse_images=diffuse_images)
     path = tmp_path / "field.whf"
     if lambert_half:  # the default save rounds the Lambertian model to float16: compare two loads
-        field.save(path)
-        field = HighlightField.load(path)
+        save_field(field, path)
+        field = load_field(path)
         path = tmp_path / "again.whf"
-    field.save(path, lambert_half=lambert_half)
-    loaded = HighlightField.load(path)
+    save_field(field, path, lambert_half=lambert_half)
+    loaded = load_field(path)
     queries = random_directions(np.random.default_rng(14), 20)
     for method in ("circular", "straight"):
         before = Relighter(field, device="cpu").relight(queries, method=method)
@@ -333,10 +334,10 @@ def test_resample_image_shrinks_by_area_and_grows_linearly():
 
 def test_field_relight_shortcut_matches_the_relighter(sphere_field):
     queries = random_directions(np.random.default_rng(17), 3)
-    shortcut = sphere_field.relight(queries, device="cpu")
+    shortcut = relight_field(sphere_field, queries, device="cpu")
     direct = Relighter(sphere_field, device="cpu").relight(queries)
     assert np.array_equal(shortcut.full, direct.full)
-    again = sphere_field.relight(queries, method="straight", device="cpu", diffuse="lambert")
+    again = relight_field(sphere_field, queries, method="straight", device="cpu", diffuse="lambert")
     assert np.array_equal(again.specular, Relighter(sphere_field, device="cpu").relight(queries, method="straight").specular)
 
 

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from warp_highlights.cli import main
-from warp_highlights.field import HighlightField
-from warp_highlights.images import read_image
-from warp_highlights.lights import LightSet
+from warp_highlights.io.fieldfile import load_field, save_field
+from warp_highlights.io.images import read_image
+from warp_highlights.io.lightfile import read_lp, write_lp
+from warp_highlights.model.lights import LightSet
 
 LIGHT = "0.3,0.5,1"
 
@@ -32,11 +33,11 @@ def _tree(folder: Path) -> list[str]:
 
 @pytest.fixture(scope="module")
 def field(small_field):
-    return HighlightField.load(small_field)
+    return load_field(small_field)
 
 
 def _relighter(field, **options):
-    from warp_highlights.relight import Relighter
+    from warp_highlights.relight.relighter import Relighter
 
     return Relighter(field, device="cpu", scale=1.0 / float(field.report.get("exposure") or 1.0), **options)
 
@@ -87,7 +88,7 @@ def test_relight_specular_only(small_field, field, tmp_path):
 def _check_folder(out: Path, field, directions: np.ndarray, *, method: str = "circular") -> None:
     names = [f"relit_{i:04d}.exr" for i in range(len(directions))]
     assert sorted(p.name for p in out.iterdir()) == sorted(names + ["lights.lp"])
-    lights = LightSet.read_lp(out / "lights.lp")  # checks the named images exist
+    lights = read_lp(out / "lights.lp")  # checks the named images exist
     unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     np.testing.assert_allclose(lights.directions, unit, atol=1e-5)
     assert [Path(n).name for n in lights.filenames] == names
@@ -118,7 +119,7 @@ def test_relight_a_light_with_a_negative_first_coordinate(small_field, tmp_path)
 def test_relight_a_light_file_and_a_light(small_field, field, tmp_path):
     lp = tmp_path / "query.lp"
     directions = np.array([[0.0, 0.0, 2.0], [1.0, 1.0, 0.5], [0.0, -1.0, 0.2]])
-    LightSet(directions / np.linalg.norm(directions, axis=1, keepdims=True)).write_lp(lp)
+    write_lp(LightSet(directions / np.linalg.norm(directions, axis=1, keepdims=True)), lp)
     out = tmp_path / "many"
     assert main(["relight", str(small_field), "--light", LIGHT, "--lights", str(lp), "-o", str(out), "--device", "cpu", "-q"]) == 0
     _check_folder(out, field, np.concatenate([[[0.3, 0.5, 1.0]], directions]))
@@ -136,8 +137,8 @@ def test_relight_alpha_needs_the_dataset(small_field, tmp_path, capsys):
 
 
 def test_relight_alpha_with_the_dataset(small_field, small_donut, field, tmp_path):
-    from warp_highlights.dataset import ReflectanceField
-    from warp_highlights.relight import alpha_inputs
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.relight.relighter import alpha_inputs
 
     out = tmp_path / "alpha.exr"
     assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "--dataset", str(small_donut), "-o", str(out),
@@ -154,16 +155,16 @@ def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path
     """With a field fitted with an exposure, --method alpha still writes the dataset's units."""
     from conftest import FAST_FIT
 
-    from warp_highlights.config import FitSettings
-    from warp_highlights.dataset import ReflectanceField
-    from warp_highlights.fit import fit_field
-    from warp_highlights.resample import resize_stack
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.io.resample import resize_stack
+    from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
     field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", exposure=2.0,
                       size=(48, 27), progress=False)
     path = tmp_path / "exposed.whf"
-    field.save(path)
+    save_field(field, path)
     light = 5
     direction = ",".join(f"{v:.17g}" for v in dataset.lights.directions[light])
     captured = resize_stack(dataset.images, 48, 27)[light]
@@ -251,7 +252,7 @@ def test_animate_to_a_folder_of_frames(small_field, field, tmp_path):
     assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
     names = sorted(p.name for p in out.iterdir())
     assert len(names) == 6 and all(n.endswith(".png") for n in names)
-    from warp_highlights.animation import orbit
+    from warp_highlights.view.animation import orbit
 
     expected = np.clip(_relighter(field).relight(orbit(30, 6)).full, 0, 1)
     for i, name in enumerate(names):
@@ -271,7 +272,7 @@ def test_animate_compare_puts_the_methods_side_by_side(small_field, field, tmp_p
 
 
 def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
-    from warp_highlights.animation import great_circle
+    from warp_highlights.view.animation import great_circle
 
     out = tmp_path / "arc"
     assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr", "--specular-only", "-o", str(out),
@@ -289,7 +290,7 @@ def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, t
                  "--specular-only", "-o", str(out), "--device", "cpu", "-q"]) == 0
     frames = [read_image(p) for p in sorted(out.iterdir())]
     assert len(frames) == 2 and frames[0].shape == (field.height, 2 * field.width)
-    from warp_highlights.animation import orbit
+    from warp_highlights.view.animation import orbit
 
     circular = _relighter(field).relight(orbit(30, 2), full=False).specular
     np.testing.assert_allclose(frames[1][:, : field.width], circular[1], rtol=1e-6, atol=1e-7)  # left: circular
@@ -450,7 +451,7 @@ def test_demo_writes_an_index_of_what_it_made(tmp_path, capsys):
     with Image.open(out / "orbit-highlights.gif") as gif:
         assert gif.n_frames == 4 and gif.size == (3 * 64, 36)
     assert read_image(out / "relit.png").shape == (36, 64, 3)
-    field = HighlightField.load(out / "donut.whf")
+    field = load_field(out / "donut.whf")
     assert (field.width, field.height, field.light_count) == (64, 36, 16)
 
     before = _tree(out)

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.lights import LightSet
-from warp_highlights.render import Material, Renderer, RenderSettings, render_dataset, view_rotation
-from warp_highlights.shapes import sphere, teapot, torus
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.model.lights import LightSet
+from warp_highlights.synth.render import Material, Renderer, RenderSettings, render_dataset, view_rotation
+from warp_highlights.synth.shapes import sphere, teapot, torus
 
 FRONT_LIGHTS = np.array(
     [

@@ -10,13 +10,13 @@ from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.retarget import RigidMotion, gather_images
 from warp_highlights.kernels.segmentation import segment
 
-from warp_highlights.config import RetargetSettings
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.errors import InputError
-from warp_highlights.estimation import estimate
-from warp_highlights.gaussians import GaussianBatch, GaussianParams
-from warp_highlights.retarget import retarget
-from warp_highlights.triangulation import SphericalTriangulation
+from warp_highlights.fit.estimation import estimate
+from warp_highlights.fit.retargeting import retarget
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.model.config import RetargetSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.triangulation import SphericalTriangulation
 
 
 def _two_component_set() -> GaussianParams:

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from warp_highlights.kernels.segmentation import segment
 
-from warp_highlights.config import SegmentationSettings
-from warp_highlights.dataset import ReflectanceField
-from warp_highlights.errors import InputError
-from warp_highlights.estimation import psnr
-from warp_highlights.lights import LightSet
+from warp_highlights.fit.estimation import psnr
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.model.config import SegmentationSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
 
 
 def reference_segment(samples: np.ndarray, directions: np.ndarray, s: SegmentationSettings):

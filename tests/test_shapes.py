@@ -1,4 +1,4 @@
-"""Tests of the synthetic shapes and mesh loading (warp_highlights.shapes); NumPy and pyvista only."""
+"""Tests of the synthetic shapes and mesh loading (warp_highlights.synth.shapes); NumPy and pyvista only."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from warp_highlights.errors import InputError
-from warp_highlights.shapes import (
+from warp_highlights.model.errors import InputError
+from warp_highlights.synth.shapes import (
     SHAPE_NAMES,
     TriangleMesh,
     load_mesh,
@@ -197,7 +197,7 @@ def test_shapes_module_does_not_import_pyvista():
     import subprocess
     import sys
 
-    code = "import sys, warp_highlights.shapes as s; s.teapot(subdivisions=2); print('pyvista' in sys.modules)"
+    code = "import sys, warp_highlights.synth.shapes as s; s.teapot(subdivisions=2); print('pyvista' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from warp_highlights.errors import InputError
-from warp_highlights.lights import LightSet
-from warp_highlights.triangulation import Location, SphericalTriangulation
+from warp_highlights.io.lightfile import read_lp
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
+from warp_highlights.model.triangulation import Location, SphericalTriangulation
 
 
 def _circumcaps_are_empty(tri: SphericalTriangulation) -> bool:
@@ -59,7 +60,7 @@ def test_dome_has_a_boundary_and_no_closing_faces(min_elevation):
 @pytest.mark.realdata
 @pytest.mark.parametrize("folder", ["synthrti-object1-material5/Dome", "realrti-item11"])
 def test_sample_domes_triangulate_with_a_boundary(data_root, folder):
-    lights = LightSet.read_lp(next((data_root / folder).glob("*.lp")))
+    lights = read_lp(next((data_root / folder).glob("*.lp")))
     tri = SphericalTriangulation(lights.directions)
     assert tri.is_dome and len(tri.boundary_edges()) > 0
     assert tri.light_count - len(tri.edges()) + tri.face_count == 1
@@ -75,7 +76,7 @@ def test_degenerate_input_is_an_input_error():
 
 @pytest.mark.realdata
 def test_synthrti_dome_boundary_is_its_lowest_ring(data_root):
-    lights = LightSet.read_lp(data_root / "synthrti-object1-material5" / "Dome" / "dirs.lp")
+    lights = read_lp(data_root / "synthrti-object1-material5" / "Dome" / "dirs.lp")
     tri = SphericalTriangulation(lights.directions)
     lowest = np.flatnonzero(np.isclose(lights.directions[:, 2], lights.directions[:, 2].min(), atol=1e-3))
     assert len(lowest) == 18
@@ -232,7 +233,7 @@ def test_locate_on_fibonacci_domes_clamps_to_the_nearest_boundary_point(min_elev
 @pytest.mark.realdata
 @pytest.mark.parametrize("folder", ["synthrti-object1-material5/Dome", "realrti-item11"])
 def test_locate_on_sample_domes_clamps_to_the_nearest_boundary_point(data_root, folder):
-    lights = LightSet.read_lp(next((data_root / folder).glob("*.lp")))
+    lights = read_lp(next((data_root / folder).glob("*.lp")))
     _check_dome(SphericalTriangulation(lights.directions), np.random.default_rng(7))
 
 

@@ -1,4 +1,4 @@
-"""pyvista views (``warp_highlights.viz``), the light designer and ``warp-highlights view``.
+"""pyvista views (``warp_highlights.view.viz``), the light designer and ``warp-highlights view``.
 
 Geometry is checked against brute force (rotations, triangle membership, circle centres); what is
 drawn is read back from the plotter's actors; screenshots are rendered off screen.
@@ -13,21 +13,21 @@ import pytest
 
 pv = pytest.importorskip("pyvista", reason="the views need pyvista (a dependency; absent on the bare GPU machines)")
 
-from warp_highlights import viz
 from warp_highlights.cli import main
-from warp_highlights.designer import (
+from warp_highlights.io.fieldfile import load_field
+from warp_highlights.io.images import display_rgb8, read_image
+from warp_highlights.model.arcs import circular_position
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
+from warp_highlights.model.triangulation import SphericalTriangulation
+from warp_highlights.relight.interpolation import interpolate_sets
+from warp_highlights.view import viz
+from warp_highlights.view.designer import (
     LightDesigner,
     default_direction,
     describe_direction,
     sphere_camera,
 )
-from warp_highlights.errors import InputError
-from warp_highlights.field import HighlightField
-from warp_highlights.images import display_rgb8, read_image
-from warp_highlights.interpolation import interpolate_sets
-from warp_highlights.lights import LightSet
-from warp_highlights.paths import circular_position
-from warp_highlights.triangulation import SphericalTriangulation
 
 SPHERE = SphericalTriangulation(LightSet.fibonacci_sphere(32).directions)
 DOME = SphericalTriangulation(LightSet.fibonacci_dome(40, min_elevation_deg=15.0).directions)
@@ -35,7 +35,7 @@ DOME = SphericalTriangulation(LightSet.fibonacci_dome(40, min_elevation_deg=15.0
 
 @pytest.fixture(scope="module")
 def field(small_field):
-    return HighlightField.load(small_field)
+    return load_field(small_field)
 
 
 @pytest.fixture
@@ -290,7 +290,7 @@ def test_gaussian_paths_reject_a_missing_face(field):
 
 
 def test_ellipse_outlines_lie_at_two_sigma():
-    from warp_highlights.gaussians import GaussianParams
+    from warp_highlights.model.gaussians import GaussianParams
 
     params = GaussianParams.from_sets([{"amplitude": [1.0, 0.5], "mean": [[0.5, 0.4], [0.9, 0.2]], "sigma": [[0.05, 0.02], [0.01, 0.03]],
                                         "theta": [0.7, -0.3]}])

@@ -1,4 +1,10 @@
-"""warp-highlights: relight reflectance fields with moving specular highlights, built on NVIDIA Warp."""
+"""warp-highlights: relight reflectance fields with moving specular highlights, built on NVIDIA Warp.
+
+The package reads as the method's pipeline (ARCHITECTURE.md): ``model`` (what a highlight field is
+made of), ``io`` (files), ``kernels`` (every Warp kernel), ``fit`` (segment -> estimate -> retarget ->
+decide paths), ``relight``, ``synth`` (synthetic data), ``view`` and ``cli``. The names below are the
+everyday API; each sub-package's ``__init__`` lists what else it offers.
+"""
 
 from __future__ import annotations
 
@@ -27,88 +33,61 @@ def _attach_checkout_kernels() -> None:
 
 _attach_checkout_kernels()
 
-# Public API, imported on first use so that `import warp_highlights` stays light (the CLI parses its
-# arguments before Warp loads).
-_EXPORTS = {
-    "AdamSettings": "config",
-    "ComponentSettings": "config",
-    "EstimationSettings": "config",
-    "FitSettings": "config",
-    "PathSettings": "config",
-    "RasterSettings": "config",
-    "RetargetSettings": "config",
-    "SegmentationSettings": "config",
-    "StructureLossSettings": "config",
-    "ConnectedComponents": "components",
-    "DiffuseModel": "field",
-    "HighlightField": "field",
-    "Location": "triangulation",
-    "decide_paths": "paths",
-    "estimate": "estimation",
-    "fit_field": "fit",
-    "retarget": "retarget",
-    "segment": "kernels.segmentation",
-    "GaussianBatch": "gaussians",
-    "GaussianParams": "gaussians",
-    "LightSet": "lights",
-    "ReflectanceField": "dataset",
-    "Renderer": "render",
-    "SphericalTriangulation": "triangulation",
-    "InputError": "errors",
-    "Rasterizer": "kernels.raster",
-    "LogL1Loss": "kernels.losses",
-    "StructureLoss": "kernels.losses",
-    "EnergyLoss": "kernels.losses",
-    "GaussianAdam": "kernels.optim",
-    "Relighter": "relight",
-    "RelitImages": "relight",
-    "Evaluation": "evaluation",
-    "evaluate_field": "evaluation",
-}
-__all__ = [
-    "AdamSettings",
-    "ComponentSettings",
-    "ConnectedComponents",
-    "DiffuseModel",
-    "EnergyLoss",
-    "EstimationSettings",
-    "Evaluation",
-    "FitSettings",
-    "GaussianAdam",
-    "GaussianBatch",
-    "GaussianParams",
-    "HighlightField",
-    "InputError",
-    "LightSet",
-    "Location",
-    "LogL1Loss",
-    "PathSettings",
-    "RasterSettings",
-    "Rasterizer",
-    "ReflectanceField",
-    "Relighter",
-    "RelitImages",
-    "Renderer",
-    "RetargetSettings",
-    "SegmentationSettings",
-    "SphericalTriangulation",
-    "StructureLoss",
-    "StructureLossSettings",
-    "__version__",
-    "decide_paths",
-    "estimate",
-    "evaluate_field",
-    "fit_field",
-    "retarget",
-    "segment",
-]
+# The public API, imported on first use so that `import warp_highlights` stays light (the command line
+# parses its arguments before Warp loads). Each name lives in the sub-package that says what it is
+# (ARCHITECTURE.md); the sub-packages' own __init__ files list more.
+from ._api import lazy_exports as _lazy_exports  # noqa: E402 (after the kernels are attached)
 
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        import importlib
-
-        value = getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, __dir__, _exported = _lazy_exports(
+    __name__,
+    {
+        # the object model
+        "LightSet": "model.lights",
+        "SphericalTriangulation": "model.triangulation",
+        "Location": "model.triangulation",
+        "GaussianParams": "model.gaussians",
+        "GaussianBatch": "model.gaussians",
+        "ConnectedComponents": "model.components",
+        "HighlightField": "model.field",
+        "DiffuseModel": "model.field",
+        "FitSettings": "model.config",
+        "RasterSettings": "model.config",
+        "SegmentationSettings": "model.config",
+        "EstimationSettings": "model.config",
+        "AdamSettings": "model.config",
+        "StructureLossSettings": "model.config",
+        "ComponentSettings": "model.config",
+        "RetargetSettings": "model.config",
+        "PathSettings": "model.config",
+        "InputError": "model.errors",
+        # files
+        "read_lp": "io.lightfile",
+        "write_lp": "io.lightfile",
+        "ReflectanceField": "io.dataset",
+        "save_field": "io.fieldfile",
+        "load_field": "io.fieldfile",
+        "field_size_report": "io.fieldfile",
+        # the kernels' Python side
+        "Rasterizer": "kernels.raster",
+        "LogL1Loss": "kernels.losses",
+        "StructureLoss": "kernels.losses",
+        "EnergyLoss": "kernels.losses",
+        "GaussianAdam": "kernels.optim",
+        # fitting, stage by stage
+        "segment": "kernels.segmentation",
+        "estimate": "fit.estimation",
+        "retarget": "fit.retargeting",
+        "decide_paths": "fit.paths",
+        "fit_field": "fit.pipeline",
+        # relighting and evaluation
+        "Relighter": "relight.relighter",
+        "RelitImages": "relight.relighter",
+        "relight_field": "relight.relighter",
+        "Evaluation": "relight.evaluation",
+        "evaluate_field": "relight.evaluation",
+        # synthetic data
+        "Renderer": "synth.render",
+    },
+    modules={"viz": "view.viz"},
+)
+__all__ = ["__version__", *_exported]

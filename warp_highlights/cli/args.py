@@ -2,11 +2,46 @@
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
-from .errors import InputError
+from ..model.errors import InputError
 
-__all__ = ["check_device", "check_output_file", "parse_direction", "parse_size", "parse_triple"]
+__all__ = ["Command", "add_common_options", "check_device", "check_output_file", "parse_direction", "parse_size", "parse_triple"]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One ``warp-highlights`` subcommand; each command module lists its own in ``COMMANDS``.
+
+    Attributes:
+        name: What the user types after ``warp-highlights``.
+        arguments: Adds the command's arguments to its parser (``-q``/``-v`` follow them).
+        run: Runs the command on the parsed arguments; returns the exit status.
+        help: Its line in ``warp-highlights --help``.
+        description: The text at the top of its own ``--help``; None for none.
+    """
+
+    name: str
+    arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    help: str
+    description: str | None = None
+
+    def add_to(self, commands) -> None:
+        """Add the command to ``commands``, what ``ArgumentParser.add_subparsers`` returned."""
+        parser = commands.add_parser(self.name, help=self.help, description=self.description)
+        self.arguments(parser)
+        add_common_options(parser)
+        parser.set_defaults(run=self.run)
+
+
+def add_common_options(parser: argparse.ArgumentParser) -> None:
+    """Add -q/--quiet and -v/--verbose, which every command takes."""
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("-v", "--verbose", action="store_true", help="let Warp report kernel compilation")
 
 
 def parse_size(text: str, what: str = "image size") -> tuple[int, int]:

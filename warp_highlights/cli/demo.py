@@ -2,18 +2,47 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..model.errors import InputError
+from .args import Command, check_device, parse_size
 
-__all__ = ["run_demo"]
+__all__ = ["COMMANDS", "run_demo"]
 
 ORBIT_ELEVATION_DEG = 35.0
 """Elevation of the demo's light orbit: high enough that the donut's top keeps a highlight."""
+
+
+def _demo_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("out", type=Path, nargs="?", default=Path("warp-highlights-demo"), help="output folder")
+    parser.add_argument("--lights", type=int, default=64, help="number of lights (default 64)")
+    parser.add_argument("--size", default="240x135", help="image size WIDTHxHEIGHT (default 240x135)")
+    parser.add_argument("--frames", type=int, default=72, help="frames of each animation (default 72)")
+    parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+
+
+def _run_demo(args) -> int:
+    width, height = parse_size(args.size)
+    device = check_device(args.device)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output {out} is a file; the demo needs a folder name")
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise InputError(f"output folder {out} exists and is not empty; pass --overwrite or choose another folder")
+    if args.frames < 2:
+        raise InputError(f"--frames must be at least 2, got {args.frames}")
+    started = time.perf_counter()
+    index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
+                     log=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr)))
+    print(f"demo finished in {time.perf_counter() - started:.0f} s: see {index}")
+    return 0
 
 
 def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135), frames: int = 72, device=None, progress: bool = True, log=print) -> Path:
@@ -28,16 +57,17 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
         progress: progress bars on stderr.
         log: receives one line per finished step.
     """
-    from .animation import orbit, write_animation
-    from .cli_relight import write_evaluation
-    from .dataset import ReflectanceField
-    from .evaluation import evaluate_field
-    from .fit import fit_field
-    from .images import atomic_target, write_image
-    from .lights import LightSet
-    from .preview import save_contact_sheet
-    from .relight import Relighter, alpha_inputs
-    from .render import RenderSettings, default_material, render_dataset
+    from ..fit.pipeline import fit_field
+    from ..io.dataset import ReflectanceField
+    from ..io.fieldfile import save_field
+    from ..io.images import atomic_target, write_image
+    from ..model.lights import LightSet
+    from ..relight.evaluation import evaluate_field
+    from ..relight.relighter import Relighter, alpha_inputs
+    from ..synth.render import RenderSettings, default_material, render_dataset
+    from ..view.animation import orbit, write_animation
+    from ..view.preview import save_contact_sheet
+    from .relight import write_evaluation
 
     width, height = size
     if lights < 4:
@@ -63,7 +93,7 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     t = time.perf_counter()
     field = fit_field(dataset, device=device, progress=progress)
     field_path = out / "donut.whf"
-    field.save(field_path)
+    save_field(field, field_path)
     made.append((field_path.name, f"the fitted highlight field ({field_path.stat().st_size / 1e6:.2f} MB; warp-highlights relight/animate/evaluate read it)"))
     step("fit", t, f"{field.estimated.counts.mean():.1f} Gaussians per light -> {field_path.name}")
 
@@ -119,3 +149,12 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     with atomic_target(out / "demo.json") as temporary:
         temporary.write_text(json.dumps({"seconds": steps, "total_seconds": total, "files": dict(made)}, indent=2))
     return index
+
+
+COMMANDS = (
+    Command("demo", _demo_arguments, _run_demo, help="the built-in synthetic default, end to end",
+            description="Render the built-in donut at a CPU-friendly size (with held-out ground truth), fit a highlight "
+            "field, evaluate it against the ground truth, and animate the light: everything goes into one "
+            "folder with an index.md."),
+)
+"""The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

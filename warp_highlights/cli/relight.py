@@ -1,4 +1,4 @@
-"""The ``relight``, ``animate`` and ``evaluate`` commands of ``warp-highlights`` (registered by ``cli``)."""
+"""The ``relight``, ``animate`` and ``evaluate`` commands of ``warp-highlights`` (registered by ``cli.main``)."""
 
 from __future__ import annotations
 
@@ -10,76 +10,54 @@ from pathlib import Path
 
 import numpy as np
 
-from .cli_args import (
+from ..io.images import IMAGE_EXTENSIONS
+from ..model.errors import InputError
+from .args import (
+    Command,
     check_device,
     check_output_file,
     parse_direction,
     parse_size,
     parse_triple,
 )
-from .errors import InputError
-from .images import IMAGE_EXTENSIONS
 
-__all__ = ["add_relight_commands", "print_evaluation_table", "write_evaluation"]
+__all__ = ["COMMANDS", "print_evaluation_table", "write_evaluation"]
 
 
 
-def add_relight_commands(commands, *, common) -> None:
-    """Add the three subcommands to ``commands`` (argparse sub-parsers); ``common`` adds -q/-v."""
-    relight = commands.add_parser(
-        "relight",
-        help="render a fitted field for one or more light directions",
-        description="Relight a highlight field: locate each light direction in the triangulation, move the "
-        "Gaussians along their paths, rasterize the highlights and add the diffuse part.",
-    )
-    relight.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    relight.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. --light -0.5,0.2,1; repeatable")
-    relight.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
-    relight.add_argument("-o", "--output", type=Path, required=True, help="image file (.exr linear, .png sRGB) for one light; a folder for several (images + lights.lp)")
-    _add_relight_options(relight)
-    relight.add_argument("--overwrite", action="store_true", help="replace existing output")
-    common(relight)
-    relight.set_defaults(run=_run_relight)
+def _relight_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. --light -0.5,0.2,1; repeatable")
+    parser.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="image file (.exr linear, .png sRGB) for one light; a folder for several (images + lights.lp)")
+    _add_relight_options(parser)
+    parser.add_argument("--overwrite", action="store_true", help="replace existing output")
 
-    animate = commands.add_parser(
-        "animate",
-        help="render a fitted field along a light path: GIF, MP4 or a folder of frames",
-        description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great "
-        "circle between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that "
-        "elevation), list:FILE (a .lp or x y z text file, visited in order).",
-    )
-    animate.add_argument("field", type=Path, help="highlight-field file")
-    animate.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
-    animate.add_argument("-o", "--output", type=Path, required=True, help=".gif, .mp4 (needs ffmpeg) or a folder of frames")
-    animate.add_argument("--frames", type=int, default=96, help="number of frames (default 96)")
-    animate.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
-    animate.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
-    animate.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
-    animate.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
-    _add_relight_options(animate)
-    animate.add_argument("--overwrite", action="store_true", help="replace existing output")
-    common(animate)
-    animate.set_defaults(run=_run_animate)
 
-    evaluate = commands.add_parser(
-        "evaluate",
-        help="score a fitted field against held-out ground truth: JSON report and plots",
-        description="Relight the field at every held-out light of the dataset (the triangle centroids for rendered "
-        "data) with the circular, straight and alpha-blend methods and compare with the ground truth (PSNR, "
-        "peak 1). Writes report.json and PNG plots into the output folder.",
-    )
-    evaluate.add_argument("field", type=Path, help="highlight-field file")
-    evaluate.add_argument("dataset", type=Path, help="the dataset folder the field was fitted to, with held-out lights")
-    evaluate.add_argument("-o", "--output", type=Path, help="output folder (default: FIELD's name + '-evaluation' beside it)")
-    evaluate.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
-    evaluate.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
-    evaluate.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
-    evaluate.add_argument("--steps", type=int, default=10, help="barycentric grid steps for that plot (default 10: 66 points)")
-    evaluate.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
-    evaluate.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
-    evaluate.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
-    common(evaluate)
-    evaluate.set_defaults(run=_run_evaluate)
+def _animate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("field", type=Path, help="highlight-field file")
+    parser.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
+    parser.add_argument("-o", "--output", type=Path, required=True, help=".gif, .mp4 (needs ffmpeg) or a folder of frames")
+    parser.add_argument("--frames", type=int, default=96, help="number of frames (default 96)")
+    parser.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
+    parser.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
+    parser.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
+    parser.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
+    _add_relight_options(parser)
+    parser.add_argument("--overwrite", action="store_true", help="replace existing output")
+
+
+def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("field", type=Path, help="highlight-field file")
+    parser.add_argument("dataset", type=Path, help="the dataset folder the field was fitted to, with held-out lights")
+    parser.add_argument("-o", "--output", type=Path, help="output folder (default: FIELD's name + '-evaluation' beside it)")
+    parser.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
+    parser.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
+    parser.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
+    parser.add_argument("--steps", type=int, default=10, help="barycentric grid steps for that plot (default 10: 66 points)")
+    parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
 
 def _add_relight_options(parser: argparse.ArgumentParser) -> None:
@@ -95,7 +73,7 @@ def _add_relight_options(parser: argparse.ArgumentParser) -> None:
 
 def _make_relighter(args, field, *, methods: tuple[str, ...]):
     """A Relighter for the command's options; loads the dataset when a method needs it."""
-    from .relight import Relighter, alpha_inputs
+    from ..relight.relighter import Relighter, alpha_inputs
 
     device = check_device(args.device)
     size = parse_size(args.size) if args.size else None
@@ -104,7 +82,7 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
     if "alpha" in methods:
         if args.dataset is None:
             raise InputError("--method alpha blends the captured images: pass --dataset DATASET (the folder the field was fitted to)")
-        from .dataset import ReflectanceField
+        from ..io.dataset import ReflectanceField
 
         dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
         alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
@@ -124,13 +102,13 @@ def _output_image(relit, index: int, *, specular_only: bool, exposure: float) ->
 
 
 def _run_relight(args) -> int:
-    from .field import HighlightField
-    from .images import write_image
-    from .lights import LightSet
+    from ..io.fieldfile import load_field
+    from ..io.images import write_image
+    from ..io.lightfile import read_lp
 
     directions = [parse_direction(text) for text in args.light]
     if args.lights is not None:
-        directions += list(LightSet.read_lp(args.lights, check_files=False).directions)
+        directions += list(read_lp(args.lights, check_files=False).directions)
     if not directions:
         raise InputError("give at least one light: --light X,Y,Z (towards the light, e.g. --light 0.3,0.5,1) or --lights FILE.lp")
     output = Path(args.output)
@@ -140,12 +118,12 @@ def _run_relight(args) -> int:
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
     if several:
-        from .images import check_replaceable_folder
+        from ..io.images import check_replaceable_folder
 
         check_replaceable_folder(output, overwrite=args.overwrite, owned=_relit_folder_entry)
     else:
         check_output_file(output, overwrite=args.overwrite)
-    field = HighlightField.load(args.field)
+    field = load_field(args.field)
     relighter = _make_relighter(args, field, methods=(args.method,))
     exposure = field.exposure
     started = time.perf_counter()
@@ -168,8 +146,9 @@ def _relit_folder_entry(name: str) -> bool:
 
 def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular_only: bool, exposure: float, overwrite: bool) -> None:
     """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself."""
-    from .images import atomic_folder, write_image
-    from .lights import LightSet
+    from ..io.images import atomic_folder, write_image
+    from ..io.lightfile import write_lp
+    from ..model.lights import LightSet
 
     with atomic_folder(folder, overwrite=overwrite, owned=_relit_folder_entry) as temporary:
         digits = max(4, len(str(len(directions) - 1)))
@@ -177,11 +156,11 @@ def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular
         for i, name in enumerate(names):
             write_image(temporary / name, _output_image(relit, i, specular_only=specular_only, exposure=exposure))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-        LightSet(unit).write_lp(temporary / "lights.lp", filenames=names)
+        write_lp(LightSet(unit), temporary / "lights.lp", filenames=names)
 
 
 def _parse_methods(text: str) -> tuple[str, ...]:
-    from .relight import RELIGHT_METHODS
+    from ..relight.relighter import RELIGHT_METHODS
 
     methods = tuple(m.strip() for m in text.split(",") if m.strip())
     unknown = [m for m in methods if m not in RELIGHT_METHODS]
@@ -191,8 +170,8 @@ def _parse_methods(text: str) -> tuple[str, ...]:
 
 
 def _run_animate(args) -> int:
-    from .animation import check_animation_output, parse_light_path, write_animation
-    from .field import HighlightField
+    from ..io.fieldfile import load_field
+    from ..view.animation import check_animation_output, parse_light_path, write_animation
 
     if args.frames < 1:
         raise InputError(f"--frames must be at least 1, got {args.frames}")
@@ -200,7 +179,7 @@ def _run_animate(args) -> int:
     check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
-    field = HighlightField.load(args.field)
+    field = load_field(args.field)
     relighter = _make_relighter(args, field, methods=methods)
     exposure = field.exposure
 
@@ -224,10 +203,10 @@ def _run_animate(args) -> int:
 
 
 def _run_evaluate(args) -> int:
-    from .dataset import ReflectanceField
-    from .evaluation import evaluate_field
-    from .field import HighlightField
-    from .images import check_replaceable_folder
+    from ..io.dataset import ReflectanceField
+    from ..io.fieldfile import load_field
+    from ..io.images import check_replaceable_folder
+    from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)
     triangle = args.triangle.strip().lower()
@@ -241,7 +220,7 @@ def _run_evaluate(args) -> int:
     if args.steps < 1:
         raise InputError(f"--steps must be at least 1, got {args.steps}")
     device = check_device(args.device)
-    field = HighlightField.load(args.field)
+    field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
@@ -264,8 +243,8 @@ def evaluation_folder_entry(name: str) -> bool:
 
 def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool, title: str) -> list[str]:
     """report.json and the plots into ``folder`` (written beside it, then swapped in); returns the file names."""
-    from . import plots
-    from .images import atomic_folder
+    from ..io.images import atomic_folder
+    from ..view import plots
 
     with atomic_folder(folder, overwrite=overwrite, owned=evaluation_folder_entry) as temporary:
         for kind, scores in (("specular", evaluation.specular_psnr), ("full", evaluation.full_psnr)):
@@ -313,3 +292,19 @@ def print_evaluation_table(report: dict) -> None:
             print(f"circular beats alpha on {100 * share:.0f}% of the held-out lights")
     gaussians = report["gaussians"]["per_light"]
     print(f"Gaussians per light: mean {gaussians['mean']:.1f}, max {gaussians['max']}")
+
+
+COMMANDS = (
+    Command("relight", _relight_arguments, _run_relight, help="render a fitted field for one or more light directions",
+            description="Relight a highlight field: locate each light direction in the triangulation, move the Gaussians "
+            "along their paths, rasterize the highlights and add the diffuse part."),
+    Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, MP4 or a folder of frames",
+            description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great circle "
+            "between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that elevation), "
+            "list:FILE (a .lp or x y z text file, visited in order)."),
+    Command("evaluate", _evaluate_arguments, _run_evaluate, help="score a fitted field against held-out ground truth: JSON report and plots",
+            description="Relight the field at every held-out light of the dataset (the triangle centroids for rendered "
+            "data) with the circular, straight and alpha-blend methods and compare with the ground truth (PSNR, "
+            "peak 1). Writes report.json and PNG plots into the output folder."),
+)
+"""The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

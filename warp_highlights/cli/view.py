@@ -2,47 +2,36 @@
 
 from __future__ import annotations
 
+import argparse
 import time
 from pathlib import Path
 
-from .cli_args import check_device, check_output_file, parse_direction, parse_size
-from .errors import InputError
+from ..model.errors import InputError
+from .args import Command, check_device, check_output_file, parse_direction, parse_size
 
-__all__ = ["add_view_command"]
+__all__ = ["COMMANDS"]
 
 
-def add_view_command(commands, *, common) -> None:
-    """Add ``view`` to ``commands`` (argparse sub-parsers); ``common`` adds -q/-v."""
-    from .designer import PANELS
+def _view_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..view.designer import PANELS
 
-    view = commands.add_parser(
-        "view",
-        help="look at a fitted field: light sphere, relit image, Gaussian paths; drag the light",
-        description="Open the light designer: the light sphere with the triangulation (a dome's rim in red), the current "
-        "light and its triangle; the object relit for that light; and the paths of the triangle's Gaussians over the "
-        "image plane (thick: circular, thin: straight, one colour per Gaussian). Drag the yellow handle to move the "
-        "light; keys: m switches circular/straight, h the full image/highlights alone. With --screenshot it renders "
-        "off screen into a PNG instead (no display needed).",
-    )
-    view.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    view.add_argument("--light", metavar="X,Y,Z", help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
-    view.add_argument("--method", choices=["circular", "straight"], default="circular", help="interpolation (default circular)")
-    view.add_argument("--size", help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
-    view.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto)")
-    view.add_argument("--specular-only", action="store_true", help="show the highlights S' alone")
-    view.add_argument("--panels", default=",".join(PANELS), help=f"panels left to right, comma-separated (default {','.join(PANELS)})")
-    view.add_argument("--window-size", help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
-    view.add_argument("--screenshot", type=Path, metavar="PNG", help="render off screen into this PNG and exit")
-    view.add_argument("--overwrite", action="store_true", help="replace an existing screenshot")
-    view.add_argument("--device", default=None, help="Warp device for relighting: cpu, cuda, cuda:N (default: CUDA when present)")
-    common(view)
-    view.set_defaults(run=_run_view)
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("--light", metavar="X,Y,Z", help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
+    parser.add_argument("--method", choices=["circular", "straight"], default="circular", help="interpolation (default circular)")
+    parser.add_argument("--size", help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto)")
+    parser.add_argument("--specular-only", action="store_true", help="show the highlights S' alone")
+    parser.add_argument("--panels", default=",".join(PANELS), help=f"panels left to right, comma-separated (default {','.join(PANELS)})")
+    parser.add_argument("--window-size", help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
+    parser.add_argument("--screenshot", type=Path, metavar="PNG", help="render off screen into this PNG and exit")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing screenshot")
+    parser.add_argument("--device", default=None, help="Warp device for relighting: cpu, cuda, cuda:N (default: CUDA when present)")
 
 
 def _run_view(args) -> int:
-    from .designer import LightDesigner, check_panels
-    from .field import HighlightField
-    from .viz import has_display
+    from ..io.fieldfile import load_field
+    from ..view.designer import LightDesigner, check_panels
+    from ..view.viz import has_display
 
     direction = parse_direction(args.light) if args.light else None
     size = parse_size(args.size) if args.size else None
@@ -56,7 +45,7 @@ def _run_view(args) -> int:
     elif not has_display():
         raise InputError("there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")
     device = check_device(args.device)
-    field = HighlightField.load(args.field)
+    field = load_field(args.field)
     started = time.perf_counter()
     designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size, diffuse=args.diffuse,
                              specular_only=args.specular_only, panels=panels, window_size=window_size, off_screen=screenshot is not None)
@@ -71,3 +60,14 @@ def _run_view(args) -> int:
         designer.close()
     return 0
 
+
+COMMANDS = (
+    Command("view", _view_arguments, _run_view, help="look at a fitted field: light sphere, relit image, Gaussian paths; drag the light",
+            description="Open the light designer: the light sphere with the triangulation (a dome's rim in red), the "
+            "current light and its triangle; the object relit for that light; and the paths of the triangle's "
+            "Gaussians over the image plane (thick: circular, thin: straight, one colour per Gaussian). Drag "
+            "the yellow handle to move the light; keys: m switches circular/straight, h the full "
+            "image/highlights alone. With --screenshot it renders off screen into a PNG instead (no display "
+            "needed)."),
+)
+"""The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -16,19 +16,19 @@ import numpy as np
 import warp as wp
 from scipy import ndimage
 
-from .chunks import Cancelled, map_chunks, problem_chunks
-from .config import (
+from ..kernels._tape import recording
+from ..kernels.losses import LogL1Loss
+from ..kernels.optim import GaussianAdam
+from ..kernels.raster import Rasterizer
+from ..model.config import (
     REFERENCE_HEIGHT_PX,
     EstimationSettings,
     RasterSettings,
     pixel_area_rpx2,
 )
-from .errors import InputError
-from .gaussians import GaussianBatch, GaussianParams
-from .kernels._tape import recording
-from .kernels.losses import LogL1Loss
-from .kernels.optim import GaussianAdam
-from .kernels.raster import Rasterizer
+from ..model.errors import InputError
+from ..model.gaussians import GaussianBatch, GaussianParams
+from .chunks import Cancelled, map_chunks, problem_chunks
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 

@@ -14,18 +14,18 @@ from contextlib import contextmanager
 import numpy as np
 import warp as wp
 
-from . import __version__
+from .. import __version__
+from ..io.dataset import ReflectanceField
+from ..io.resample import resize_stack, working_size
+from ..kernels.segmentation import segment
+from ..model.config import FitSettings
+from ..model.errors import InputError
+from ..model.field import DiffuseModel, HighlightField
+from ..model.triangulation import SphericalTriangulation
 from .chunks import problem_chunks
-from .config import FitSettings
-from .dataset import ReflectanceField
-from .errors import InputError
 from .estimation import estimate
-from .field import DiffuseModel, HighlightField
-from .kernels.segmentation import segment
 from .paths import decide_paths
-from .resample import resize_stack, working_size
-from .retarget import retarget
-from .triangulation import SphericalTriangulation
+from .retargeting import retarget
 
 __all__ = ["DIFFUSE_CHOICES", "fit_field"]
 

@@ -18,9 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..model.errors import InputError
+from ..model.lights import LightSet
 from .images import read_image, write_image
-from .lights import LightSet
+from .lightfile import read_lp, write_lp
 
 __all__ = ["DatasetWriter", "ReflectanceField"]
 
@@ -98,7 +99,7 @@ class ReflectanceField:
 
     def summary(self) -> dict:
         """Counts, size, light coverage and value ranges, as ``warp-highlights info`` prints them."""
-        from .triangulation import SphericalTriangulation
+        from ..model.triangulation import SphericalTriangulation
 
         directions = self.lights.directions
         triangulation = SphericalTriangulation(directions)
@@ -269,7 +270,7 @@ class DatasetWriter:
             self._check_complete(group, count)
             if count:
                 names = [_image_name(group, "full", i) for i in range(count)]
-                group_lights.write_lp(self._tmp / f"{group}.lp", filenames=names)
+                write_lp(group_lights, self._tmp / f"{group}.lp", filenames=names)
         if mask is not None:
             mask = np.asarray(mask, dtype=bool)
             if self._shape is not None and mask.shape != self._shape[:2]:
@@ -366,7 +367,7 @@ class _ImageGroup:
 
     @classmethod
     def plan(cls, light_file: Path) -> _ImageGroup:
-        lights = LightSet.read_lp(light_file, check_files=True)
+        lights = read_lp(light_file, check_files=True)
         images = [light_file.parent / name for name in lights.filenames]
         specular, diffuse = (_component_paths(light_file.parent, kind, images) for kind in _COMPONENTS)
         return cls(light_file, lights, images, specular, diffuse)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
+from ..model.errors import InputError
 
 __all__ = ["area_weights", "linear_weights", "resample_image", "resize_stack", "working_size"]
 

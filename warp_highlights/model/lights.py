@@ -1,31 +1,23 @@
-"""Light directions: Fibonacci-lattice generators and the RTI ``.lp`` light file.
+"""Light directions: the ``LightSet`` and its Fibonacci-lattice generators.
 
 A direction points from the object towards the light: x to the right of the image, y up the image,
-z towards the camera. Directions are stored as float64 unit vectors.
+z towards the camera. Directions are stored as float64 unit vectors. The RTI ``.lp`` light file that
+lists them is ``warp_highlights.io.lightfile``.
 """
 
 from __future__ import annotations
 
-import codecs
 import math
-import re
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from .._api import warn_moved
 from .errors import InputError
-from .images import atomic_target
 
 __all__ = ["LightSet"]
 
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # radians between consecutive lattice points
-_DUPLICATE_CHORD = 1e-6  # unit vectors closer than this (about 0.2 arc seconds) count as one direction
-_ENTRY = re.compile(r"^\s*(?P<name>\S.*?)\s+(?P<x>\S+)\s+(?P<y>\S+)\s+(?P<z>\S+)\s*$")
-_DOT_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
-_COMMA_NUMBER = re.compile(r"^[+-]?(\d+,?\d*|,\d+)([eE][+-]?\d+)?$")
-_COUNT = re.compile(r"^[+-]?\d+$")
 
 
 @dataclass(eq=False)
@@ -84,61 +76,24 @@ class LightSet:
             raise InputError(f"min_elevation_deg must be in [-90, 90), got {min_elevation_deg}")
         return cls(_fibonacci_cap(_checked_count(count), z_min=math.sin(math.radians(min_elevation_deg))))
 
+    # --- deprecated: the .lp file moved to warp_highlights.io.lightfile (issue 13); removed in 0.3 ---
+    # These imports are the only ones from the model upwards besides the field's: tests/test_layout.py
+    # allows exactly these, inside these methods, and checks that each method warns.
+
     @classmethod
     def read_lp(cls, path, *, check_files: bool = True) -> LightSet:
-        """Read an RTI light file: the count N, then N lines ``<image file> <x> <y> <z>``.
+        """Deprecated: ``warp_highlights.read_lp(path, check_files=...)``."""
+        warn_moved("LightSet.read_lp(path)", "warp_highlights.read_lp(path)")
+        from ..io.lightfile import read_lp
 
-        Liberal in what it accepts: UTF-8 (with or without BOM) or UTF-16 with BOM, CRLF, blank lines,
-        tabs, trailing spaces, decimal commas (when a line's numbers all use them), file names with
-        spaces and backslashes, unnormalised vectors.
-
-        Args:
-            path: The ``.lp`` file.
-            check_files: Require every listed image to exist, relative to the file's folder.
-
-        Raises:
-            InputError: One line naming the file and line: unreadable or empty file, bad count,
-                malformed line, zero vector, count mismatch, duplicate direction, missing image.
-        """
-        path = Path(path)
-        lines = _numbered_lines(path)
-        if not lines:
-            raise InputError(f"{path}: empty light file; expected a count, then '<image file> <x> <y> <z>' lines")
-        count = _parse_count(path, *lines[0])
-        entries = [_parse_entry(path, number, text) for number, text in lines[1:]]
-        if len(entries) != count:
-            raise InputError(
-                f"{path}:{lines[0][0]}: the count says {count} lights but {len(entries)} are listed; "
-                "correct the count or the list"
-            )
-        line_numbers = [number for number, _ in lines[1:]]
-        lights = cls(np.array([vector for _, vector in entries]), [name for name, _ in entries])
-        _check_duplicates(path, lights.directions, line_numbers)
-        if check_files:
-            _check_files(path, lights.filenames, line_numbers)
-        return lights
+        return read_lp(path, check_files=check_files)
 
     def write_lp(self, path, filenames: list[str] | None = None) -> None:
-        """Write an RTI light file atomically (temp file in the same folder, then rename).
+        """Deprecated: ``warp_highlights.write_lp(lights, path, filenames)``."""
+        warn_moved("LightSet.write_lp(path)", "warp_highlights.write_lp(lights, path)")
+        from ..io.lightfile import write_lp
 
-        Args:
-            path: Target ``.lp`` file.
-            filenames: Image names to list; default ``self.filenames``, else ``0000``, ``0001``, ...
-                (4 digits, more when needed).
-        """
-        path = Path(path)
-        names = filenames if filenames is not None else self.filenames
-        if names is None:
-            names = [f"{i:04d}" for i in range(self.light_count)]
-        if len(names) != self.light_count:
-            raise InputError(f"{path}: {len(names)} file names for {self.light_count} light directions")
-        rows = [str(self.light_count)]
-        for name, (x, y, z) in zip(names, self.directions):
-            if not str(name).strip() or "\n" in str(name) or "\r" in str(name):
-                raise InputError(f"{path}: image file name {str(name)!r} cannot be written to a light file")
-            rows.append(f"{name} {float(x)!r} {float(y)!r} {float(z)!r}")
-        with atomic_target(path) as tmp:
-            tmp.write_text("\n".join(rows) + "\n", encoding="utf-8")
+        write_lp(self, path, filenames)
 
 
 def _checked_count(count: int) -> int:
@@ -154,70 +109,3 @@ def _fibonacci_cap(count: int, *, z_min: float) -> np.ndarray:
     r = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
     phi = i * _GOLDEN_ANGLE
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def _numbered_lines(path: Path) -> list[tuple[int, str]]:
-    """Non-blank lines of a text file with their 1-based line numbers."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"{path}: light file not found") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read light file ({exc.strerror})") from exc
-    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
-        text = raw.decode("utf-16")
-    else:
-        try:
-            text = raw.decode("utf-8-sig")
-        except UnicodeDecodeError:
-            text = raw.decode("latin-1")
-    return [(number, line) for number, line in enumerate(text.splitlines(), start=1) if line.strip()]
-
-
-def _parse_count(path: Path, number: int, text: str) -> int:
-    token = text.split()[0]
-    if not _COUNT.match(token):
-        raise InputError(f"{path}:{number}: the first line must be the light count, got {_clip(text)!r}")
-    if int(token) < 1:
-        raise InputError(f"{path}:{number}: the light count must be positive, got {int(token)}")
-    return int(token)
-
-
-def _parse_entry(path: Path, number: int, text: str) -> tuple[str, tuple[float, float, float]]:
-    """One ``<file> <x> <y> <z>`` line -> (file name with '/' separators, vector)."""
-    match = _ENTRY.match(text)
-    if match is None:
-        raise InputError(f"{path}:{number}: expected '<image file> <x> <y> <z>', got {_clip(text)!r}")
-    tokens = match.group("x", "y", "z")
-    commas = any("," in t for t in tokens) and not any("." in t for t in tokens)
-    pattern = _COMMA_NUMBER if commas else _DOT_NUMBER
-    for token in tokens:
-        if not pattern.match(token):
-            raise InputError(f"{path}:{number}: {token!r} is not a number in {_clip(text)!r}")
-    vector = tuple(float(t.replace(",", ".")) for t in tokens)
-    if not all(math.isfinite(v) for v in vector) or not any(vector):
-        raise InputError(
-            f"{path}:{number}: the light direction {vector} is zero or not finite; give the direction towards the light"
-        )
-    return match.group("name").replace("\\", "/"), vector
-
-
-def _check_duplicates(path: Path, directions: np.ndarray, line_numbers: list[int]) -> None:
-    pairs = cKDTree(directions).query_pairs(_DUPLICATE_CHORD)
-    if pairs:
-        a, b = min(pairs)
-        raise InputError(
-            f"{path}: lines {line_numbers[a]} and {line_numbers[b]} give the same light direction; remove one"
-        )
-
-
-def _check_files(path: Path, filenames: list[str], line_numbers: list[int]) -> None:
-    folder = path.parent
-    for name, number in zip(filenames, line_numbers):
-        if not (folder / name).is_file():
-            raise InputError(f"{path}:{number}: image {name!r} not found in {folder}; fix the name or add the image")
-
-
-def _clip(text: str, limit: int = 60) -> str:
-    text = text.strip()
-    return text if len(text) <= limit else text[: limit - 3] + "..."

@@ -25,10 +25,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .errors import InputError
-from .kernels.segmentation import LUMINANCE_WEIGHTS
-from .relight import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
-from .resample import resize_stack
+from ..io.resample import resize_stack
+from ..kernels.segmentation import LUMINANCE_WEIGHTS
+from ..model.errors import InputError
+from .relighter import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
 
 __all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "summarize"]
 
@@ -282,7 +282,7 @@ def luminance(stack: np.ndarray) -> np.ndarray:
 
 
 def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposure, device, say) -> dict:
-    from .render import renderer_from_meta
+    from ..synth.render import renderer_from_meta
 
     f = relighter.field
     if face == "auto":

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import InputError
-from .gaussians import GaussianParams
-from .paths import circular_position
+from ..model.arcs import circular_position
+from ..model.errors import InputError
+from ..model.gaussians import GaussianParams
 
 __all__ = ["INTERPOLATION_METHODS", "edge_rows", "interpolate_sets"]
 

@@ -25,16 +25,25 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .config import RasterSettings
-from .errors import InputError
-from .gaussians import GaussianBatch, GaussianParams
+from ..io.resample import resample_image
+from ..kernels import interpolation as kernels
+from ..kernels.raster import Rasterizer
+from ..model.config import RasterSettings
+from ..model.errors import InputError
+from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.triangulation import unit_query_directions
 from .interpolation import edge_rows
-from .kernels import interpolation as kernels
-from .kernels.raster import Rasterizer
-from .resample import resample_image
-from .triangulation import unit_query_directions
 
-__all__ = ["DIFFUSE_MODES", "RELIGHT_METHODS", "Relighter", "RelitImages", "alpha_inputs", "check_same_lights", "face_edge_rows"]
+__all__ = [
+    "DIFFUSE_MODES",
+    "RELIGHT_METHODS",
+    "Relighter",
+    "RelitImages",
+    "alpha_inputs",
+    "check_same_lights",
+    "face_edge_rows",
+    "relight_field",
+]
 
 RELIGHT_METHODS = ("circular", "straight", "alpha")
 DIFFUSE_MODES = ("auto", "lambert", "images", "none")
@@ -344,6 +353,25 @@ class Relighter:
         return GaussianParams.concatenate(parts, axis=0)
 
 
+def relight_field(
+    field, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"
+) -> RelitImages:
+    """Images of a ``HighlightField`` for light direction(s): S' in the field's units, I' = D' + S'
+    in the input's (divided by the fit's ``exposure``), NumPy float32.
+
+    A shortcut for ``Relighter(field, device=..., size=..., diffuse=..., scale=1 / field.exposure)
+    .relight(directions, method=...)``; the relighter (the field's arrays on the device) is kept with
+    the field for the next call with the same options (not thread-safe: use one ``Relighter`` per
+    thread). Build a ``Relighter`` yourself for the alpha method or batch control.
+    """
+    key = (str(wp.get_device(device)), None if size is None else tuple(size), diffuse)
+    cache = vars(field).setdefault("_relighters", {})
+    if key not in cache:
+        cache.clear()
+        cache[key] = Relighter(field, device=device, size=size, diffuse=diffuse, scale=1.0 / field.exposure)
+    return cache[key].relight(directions, method=method)
+
+
 def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray]:
     """The alpha method's per-light stacks for ``field`` from the ``dataset`` it was fitted to.
 
@@ -352,8 +380,8 @@ def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray
     fit's exposure applied, like every Relighter input). Pass them to
     ``Relighter(alpha_specular=..., alpha_images=...)``.
     """
-    from .kernels.segmentation import segment
-    from .resample import resize_stack
+    from ..io.resample import resize_stack
+    from ..kernels.segmentation import segment
 
     check_same_lights(field, dataset)
     images = resize_stack(dataset.images, field.width, field.height)

@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import warp as wp
 
-from . import __version__
-from .errors import InputError
-from .kernels import raytrace
-from .kernels.segmentation import LUMINANCE_WEIGHTS
-from .lights import LightSet
+from .. import __version__
+from ..kernels import raytrace
+from ..kernels.segmentation import LUMINANCE_WEIGHTS
+from ..model.errors import InputError
+from ..model.lights import LightSet
+from ..model.triangulation import SphericalTriangulation
 from .shapes import TriangleMesh, make_shape
-from .triangulation import SphericalTriangulation
 
 __all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "renderer_from_meta", "view_rotation"]
 
@@ -291,7 +291,7 @@ def render_dataset(
     """
     from tqdm import tqdm
 
-    from .dataset import DatasetWriter
+    from ..io.dataset import DatasetWriter
 
     started = time.perf_counter()
     mesh = make_shape(shape)

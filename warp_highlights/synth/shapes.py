@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..model.errors import InputError
 
 __all__ = [
     "SHAPE_NAMES",
@@ -393,7 +393,7 @@ _Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 @functools.lru_cache(maxsize=1)
 def _teapot_control_net() -> np.ndarray:
     """Newell's 32 bicubic patches as (32, 4, 4, 3) control points, z up, original units."""
-    text = resources.files("warp_highlights").joinpath("data", "teapot.txt").read_text(encoding="utf-8")
+    text = resources.files("warp_highlights.synth").joinpath("data", "teapot.txt").read_text(encoding="utf-8")
     sections: dict[str, list[list[str]]] = {}
     current = None
     for line in text.splitlines():

@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .images import _encode_levels, atomic_target, write_image
-from .lights import LightSet
+from ..io.images import _encode_levels, atomic_target, write_image
+from ..io.lightfile import read_lp
+from ..model.errors import InputError
 
 __all__ = [
     "ANIMATION_OUTPUTS",
@@ -434,7 +434,7 @@ def _parse_list(rest: str, frames: int) -> np.ndarray:
         raise InputError("expected list:FILE with an .lp light file or a text file of 'x y z' lines")
     path = Path(rest)
     if path.suffix.lower() == ".lp":
-        directions = LightSet.read_lp(path, check_files=False).directions
+        directions = read_lp(path, check_files=False).directions
     else:
         directions = _read_direction_file(path)
     return through_directions(directions, frames)

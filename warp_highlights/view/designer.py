@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.images import atomic_target
+from ..model.errors import InputError
 from . import viz
-from .errors import InputError
-from .images import atomic_target
 
 __all__ = ["PANELS", "LightDesigner", "check_panels", "default_direction", "describe_direction", "sphere_camera"]
 
@@ -95,7 +95,7 @@ class LightDesigner:
 
     def __init__(self, field, *, direction=None, method: str = "circular", device=None, size=None, diffuse: str = "auto",
                  specular_only: bool = False, panels=PANELS, window_size=None, off_screen: bool = False, multi_samples: int | None = None):
-        from .relight import Relighter
+        from ..relight.relighter import Relighter
 
         panels = check_panels(panels)
         self.field = field

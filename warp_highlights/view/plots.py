@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .images import atomic_target, display_rgb8
+from ..io.images import atomic_target, display_rgb8
+from ..model.errors import InputError
 
 __all__ = [
     "barycentric_to_plane",

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .images import atomic_target, display_rgb8
+from ..io.images import atomic_target, display_rgb8
+from ..model.errors import InputError
 
 __all__ = ["contact_sheet", "save_contact_sheet", "spread_indices"]
 

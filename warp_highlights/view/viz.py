@@ -1,6 +1,6 @@
 """pyvista views of a highlight field: the light sphere with its triangulation, and the Gaussians'
 paths over the image plane. ``warp-highlights view`` composes them into the light designer
-(:mod:`warp_highlights.designer`); notebooks and scripts compose their own.
+(:mod:`warp_highlights.view.designer`); notebooks and scripts compose their own.
 
 Scene coordinates:
 
@@ -27,11 +27,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
-from .images import display_rgb8
-from .interpolation import INTERPOLATION_METHODS, edge_rows, interpolate_sets
-from .paths import circular_position
-from .triangulation import unit_query_directions
+from ..io.images import display_rgb8
+from ..model.arcs import circular_position
+from ..model.errors import InputError
+from ..model.triangulation import unit_query_directions
+from ..relight.interpolation import INTERPOLATION_METHODS, edge_rows, interpolate_sets
 
 __all__ = [
     "LINE_RADIUS",
@@ -484,7 +484,7 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
         plotter: draw into this ``pyvista.Plotter`` (its active subplot); default a new one.
         method: "circular" or "straight": how the outlines at ``direction`` are interpolated.
         background: an image (H, W[, C]) drawn dimmed under the paths, or None for the relit
-            highlights S' at ``direction`` (``field.relight``, Warp's default device).
+            highlights S' at ``direction`` (``relight_field``, Warp's default device).
         paths: the triangle's :class:`GaussianPaths` when already computed.
         interpolated: the (1, 3N) interpolated set at ``direction`` when already computed.
         methods: which paths to draw.
@@ -507,7 +507,9 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
         interpolated = interpolate_sets(field, location.vertices[None], location.barycentric[None], method=method)
     plotter = plotter if plotter is not None else new_plotter()
     if background is None:
-        background = field.relight(direction, method=method).specular
+        from ..relight.relighter import relight_field  # loads Warp: only when the image is needed
+
+        background = relight_field(field, direction, method=method).specular
     if frame not in ("paths", "image", None):
         raise InputError(f"frame must be 'paths', 'image' or None, got {frame!r}")
     plot_image(background, plotter=plotter, dim=0.55, frame=frame == "image")

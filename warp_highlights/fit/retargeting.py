@@ -18,16 +18,16 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..kernels._tape import recording
+from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
+from ..kernels.optim import GaussianAdam
+from ..kernels.raster import Rasterizer
+from ..kernels.retarget import RigidAdam, RigidMotion, gather_images
+from ..model.components import ConnectedComponents
+from ..model.config import RasterSettings, RetargetSettings
+from ..model.errors import InputError
+from ..model.gaussians import GaussianBatch, GaussianParams
 from .chunks import Cancelled, map_chunks, problem_chunks
-from .components import ConnectedComponents
-from .config import RasterSettings, RetargetSettings
-from .errors import InputError
-from .gaussians import GaussianBatch, GaussianParams
-from .kernels._tape import recording
-from .kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
-from .kernels.optim import GaussianAdam
-from .kernels.raster import Rasterizer
-from .kernels.retarget import RigidAdam, RigidMotion, gather_images
 
 __all__ = ["RetargetResult", "retarget"]
 

@@ -1,0 +1,121 @@
+"""The ``fit`` command of ``warp-highlights``: a dataset folder -> a highlight-field file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from ..model.errors import InputError
+from .args import Command, check_device, check_output_file, parse_size
+
+__all__ = ["COMMANDS"]
+
+
+def _fit_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dataset", type=Path, nargs="?", help="dataset folder (a .lp light file and its images)")
+    parser.add_argument("-o", "--output", type=Path, help="highlight-field file to write (e.g. donut.whf); required")
+    parser.add_argument("--size", help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
+    parser.add_argument(
+            "--set",
+            dest="overrides",
+            action="append",
+            default=[],
+            metavar="STAGE.NAME=VALUE",
+            help="override a hyper-parameter, e.g. --set retarget.c_str=0.01 --set estimation.iterations=600 "
+            "(repeatable; --list-settings shows them all)",
+        )
+    parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
+    parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="lambert", help="diffuse part to store: per-pixel Lambertian fit (default), that plus the diffuse images, or none")
+    parser.add_argument(
+            "--exposure",
+            default="1",
+            help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
+            "display white is 1, so dim photographs want 'auto' (default 1: rendered data)",
+        )
+    parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--workers", type=int, help="CPU threads for the fitting stages (default: one per core)")
+    parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    parser.add_argument("--report", type=Path, help="also write the fit report as JSON to this file")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+
+
+def _run_fit(args) -> int:
+    from ..model.config import FitSettings
+
+    settings = FitSettings().with_overrides(args.overrides)
+    if args.list_settings:
+        _print_settings(settings.to_dict())
+        return 0
+    if args.dataset is None or args.output is None:
+        raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
+    output = Path(args.output)
+    check_output_file(output, overwrite=args.overwrite)
+    if args.report is not None:
+        if Path(args.report).resolve() == output.resolve():
+            raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
+        check_output_file(Path(args.report), overwrite=True)
+    size = parse_size(args.size) if args.size else None
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be at least 1, got {args.workers}")
+    device = check_device(args.device)
+    from ..fit.pipeline import fit_field
+    from ..io.dataset import ReflectanceField
+    from ..io.fieldfile import save_field
+
+    started = time.perf_counter()
+    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+    load_seconds = time.perf_counter() - started
+    log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
+    field = fit_field(
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure, workers=args.workers, progress=not args.quiet, log=log
+    )
+    field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
+    written = save_field(field, output)
+    field.report["file_bytes"] = written
+    if args.report is not None:
+        from ..io.images import atomic_target
+
+        with atomic_target(Path(args.report)) as temporary:
+            temporary.write_text(json.dumps(field.report, indent=2))
+    _print_fit_summary(field, output, written, time.perf_counter() - started)
+    return 0
+
+
+def _print_settings(values: dict, prefix: str = "") -> None:
+    for key, value in values.items():
+        if isinstance(value, dict):
+            _print_settings(value, prefix + key + ".")
+        else:
+            print(f"{prefix}{key}={value}")
+
+
+def _print_fit_summary(field, output: Path, written: int, seconds: float) -> None:
+    from ..io.fieldfile import field_size_report
+
+    report = field.report
+    est, ret = report["estimation"], report["retargeting"]
+    count, quality = est["gaussians_per_light"], est["psnr_db"]
+    print(f"wrote {output} ({written / 1e6:.2f} MB) in {seconds:.1f} s on {report['device']}")
+    print(
+        f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, "
+        f"working size {report['size'][0]}x{report['size'][1]}, exposure x{report['exposure']:.3g}"
+    )
+    print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
+    print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}")
+    print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
+    print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
+    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
+    parts = field_size_report(field)
+    print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
+
+
+COMMANDS = (
+    Command("fit", _fit_arguments, _run_fit, help="fit a highlight field to a dataset (segmentation, estimation, retargeting)",
+            description="Segment every image into diffuse and specular parts, fit a few Gaussians to each specular image, "
+            "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths, and "
+            "write everything to one highlight-field file."),
+)
+"""The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -1,0 +1,28 @@
+"""Fitting: a reflectance field -> a highlight field (method.md sections 2-6), stage by stage.
+
+The pipeline is ``segment -> estimate -> retarget -> decide_paths``; ``fit_field`` runs all of it.
+Each stage takes and returns a whole batch (every light, every directed edge). Imports the model,
+io and the kernels (ARCHITECTURE.md).
+
+- ``fit_field``: the whole precomputation: dataset -> ``HighlightField`` (report included).
+- ``segment``: stage 1: every image -> diffuse and specular parts (a Warp kernel, from ``kernels``).
+- ``estimate``: stage 2: a few Gaussians per specular image, every light in one batch.
+- ``EstimationResult``: the estimated sets with their loss and PSNR per light.
+- ``retarget``: stage 3: re-fit every estimated set onto each neighbouring light's specular image.
+- ``RetargetResult``: the retargeted sets of every directed edge with their losses.
+- ``decide_paths``: stage 4: which way each Gaussian turns along each directed edge.
+- ``PathDecisions``: the chosen rotations and arc centres.
+"""
+
+from .._api import lazy_exports
+
+__getattr__, __dir__, __all__ = lazy_exports(
+    __name__,
+    {
+        "fit_field": "pipeline",
+        "segment": "..kernels.segmentation",
+        **dict.fromkeys(["estimate", "EstimationResult"], "estimation"),
+        **dict.fromkeys(["retarget", "RetargetResult"], "retargeting"),
+        **dict.fromkeys(["decide_paths", "PathDecisions"], "paths"),
+    },
+)

@@ -1,0 +1,660 @@
+"""The highlight field's file: ``save_field``, ``load_field``; the one place that knows its layout.
+
+The model it stores is :class:`warp_highlights.model.field.HighlightField` (method.md section 8).
+
+File format (version 1; any file name, ``.whf`` suggested): a zip archive, deflate-compressed, written
+atomically (temporary file in the same folder, fsync, rename). Its first entry is ``header.json``; every
+other entry is a standard little-endian ``.npy`` array, so ``numpy.load`` can open the file too.
+
+==============================  ===============  =================================================
+entry                           dtype, shape     contents
+==============================  ===============  =================================================
+``header.json``                 UTF-8 JSON       magic ``"warp-highlights field"``, format version,
+                                                 library version, counts, image size, dome flag,
+                                                 diffuse layout, light file names, settings, report
+``lights/directions.npy``       <f8 (n, 3)       unit light directions (exact)
+``triangulation/faces.npy``     <i4 (F, 3)       faces, wound outwards
+``gaussians/estimated_counts``  <u2 (n,)         active Gaussians per light
+``gaussians/estimated_slots``   <u2 (K,)         slot of each active Gaussian, light-major, increasing
+``gaussians/estimated.npy``     <f4 (K, 6)       a, mu_x, mu_y, sigma_x, sigma_y, theta per Gaussian
+``gaussians/retargeted.npy``    <f4 (K_r, 6)     the same for the retargeted sets, edge-major; the
+                                                 slots of edge (i, j) are those of light i
+``paths/delta.npy``             <f4 (K_r,)       signed rotation per retargeted Gaussian (radians)
+``paths/centre.npy``            <f4 (K_r, 2)     rotation centre (image heights)
+``diffuse/lambert.npy``         <f2 (C, 4, H, W) optional: nbar_x, nbar_y, nbar_z, k_a planes per
+                                or <f4           channel (float16 by default, see ``save_field``)
+``diffuse/images.npy``          <f2 (n, C, H, W) optional: diffuse image of every light
+==============================  ===============  =================================================
+
+(The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
+planes (channel-first), which compresses smooth images several times better than the interleaved
+in-memory layout. Only active Gaussians are stored.
+The directed edges are not stored: they are ``triangulation.directed_edges()``. Weights are not stored:
+a fitted set has weight 1 everywhere. Free slots are not stored: they read back as zeros (weight 1), and
+the constructor clears them in the same way, so a saved and loaded field equals the original exactly
+(except the Lambertian diffuse model, which is stored as float16 unless ``lambert_half=False``).
+
+A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
+version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import uuid
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..model.errors import InputError
+from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
+from ..model.gaussians import GaussianParams
+from ..model.lights import LightSet
+from ..model.triangulation import SphericalTriangulation
+
+__all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
+
+MAGIC = "warp-highlights field"
+"""The ``magic`` string in every field file's header."""
+
+FORMAT_VERSION = 1
+"""Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
+
+_HEADER = "header.json"
+_DIRECTIONS = "lights/directions.npy"
+_FACES = "triangulation/faces.npy"
+_ESTIMATED_COUNTS = "gaussians/estimated_counts.npy"
+_ESTIMATED_SLOTS = "gaussians/estimated_slots.npy"
+_ESTIMATED = "gaussians/estimated.npy"
+_RETARGETED = "gaussians/retargeted.npy"
+_PATH_DELTA = "paths/delta.npy"
+_PATH_CENTRE = "paths/centre.npy"
+_LAMBERT = "diffuse/lambert.npy"
+_IMAGES = "diffuse/images.npy"
+
+_PARAMETER_COLUMNS = ("amplitude", "mean_x", "mean_y", "sigma_x", "sigma_y", "theta")
+_PARTS = ("header", "lights", "triangulation", "gaussians", "paths", "diffuse")
+_MAX_HEADER_BYTES = 64 * 2**20
+_FLOAT16_MAX = float(np.finfo(np.float16).max)
+_UNIT_TOLERANCE = 1e-6  # stored light directions must be unit vectors to this accuracy
+_ZIP_LOCAL_HEADER = b"PK\x03\x04"
+_ZIP_NAME_OFFSET = 30  # a zip local file header is 30 bytes, then the entry name
+# entry dates are fixed, so that the same field always gives the same bytes
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def save_field(field: HighlightField, path, *, lambert_half: bool = True) -> int:
+    """Write the field to one file, atomically; returns the bytes written.
+
+    The file is first written to a hidden temporary file in the target's folder, flushed to disk,
+    then renamed over ``path``; on any error (or Ctrl-C) the temporary file is removed and an
+    existing file at ``path`` is left as it was. Missing parent folders are created.
+
+    Args:
+        field: The field to store.
+        path: Target file (any name; ``.whf`` suggested).
+        lambert_half: Store the Lambertian diffuse model as float16 (half the size; about 3
+            significant digits, so it loads back rounded to float16). False stores it exactly.
+            Values beyond the float16 range are always stored as float32.
+
+    Raises:
+        InputError: ``path`` is a folder, or the file cannot be written (permissions, disk full).
+    """
+    if not isinstance(field, HighlightField):
+        raise InputError(f"save_field needs a HighlightField, got {type(field).__name__}")
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give a file name such as field.whf")
+    folder = path.parent
+    tmp = folder / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "xb") as stream:
+            sizes = _write_archive(field, stream, lambert_half=lambert_half)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise InputError(
+            f"{path}: cannot write the field file ({exc.strerror or exc})"
+        ) from None
+    finally:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+    _fsync_folder(folder)
+    field.file_sizes, field.file_path = sizes, path
+    return sizes["total"]
+
+
+def load_field(path) -> HighlightField:
+    """Read a field file written by ``save_field`` (this or any earlier format version).
+
+    Raises:
+        InputError: one line naming the file: missing or unreadable, not a field file, written by
+            a newer version, truncated, or corrupt (failed checksum, missing entry, wrong dtype or
+            shape, out-of-range index, non-finite value, inconsistent counts).
+    """
+    path = Path(path)
+    try:
+        stream = open(path, "rb")  # noqa: SIM115 (closed below; open errors reported apart from read errors)
+    except FileNotFoundError:
+        raise InputError(f"{path}: field file not found") from None
+    except IsADirectoryError:
+        raise InputError(f"{path} is a folder, not a field file") from None
+    except OSError as exc:
+        raise InputError(
+            f"{path}: cannot read the field file ({exc.strerror or exc})"
+        ) from None
+    with stream:
+        try:
+            field = _read_field(path, stream)
+        except (InputError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001 (zipfile, zlib, numpy or json internals: damaged bytes)
+            raise _corrupt(path, f"{type(exc).__name__}: {exc}") from None
+    try:
+        field.fit_settings()
+    except InputError as error:
+        raise _corrupt(path, f"stored settings: {error}") from None
+    return field
+
+
+def field_size_report(field: HighlightField) -> dict:
+    """Bytes per part as stored (compressed): header, lights, triangulation, gaussians, paths,
+    diffuse, container (zip headers and directory) and total.
+
+    The sizes of the field's last ``save_field`` or ``load_field`` (``field.file_sizes``); for a field
+    never saved or loaded, the sizes that ``save_field`` would write, measured without writing a file.
+    """
+    if field.file_sizes is None:
+        return _write_archive(field, _CountingSink(), lambert_half=True)
+    return dict(field.file_sizes)
+
+
+def _header(field: HighlightField, diffuse_layout: dict | None) -> dict:
+    return {
+        "magic": MAGIC,
+        "format_version": FORMAT_VERSION,
+        "library_version": __version__,
+        "light_count": field.light_count,
+        "is_dome": bool(field.triangulation.is_dome),
+        "face_count": field.triangulation.face_count,
+        "directed_edge_count": field.edge_count,
+        "capacity": field.capacity,
+        "width": field.width,
+        "height": field.height,
+        "estimated_gaussian_count": int(field.estimated.active.sum()),
+        "retargeted_gaussian_count": int(field.retargeted.active.sum()),
+        "parameter_columns": list(_PARAMETER_COLUMNS),
+        "diffuse": diffuse_layout,
+        "light_filenames": field.lights.filenames,
+        "settings": field.settings,
+        "report": field.report,
+    }
+
+
+def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict:
+    """Write the zip archive to a binary stream; returns the size report."""
+    # row-major order: light by light (edge by edge), slots increasing; load scatters the same way
+    est_rows, est_slots = np.nonzero(field.estimated.active)
+    ret_rows, ret_slots = np.nonzero(field.retargeted.active)
+    arrays = [
+        (_DIRECTIONS, field.lights.directions.astype("<f8")),
+        (_FACES, field.triangulation.faces.astype("<i4")),
+        (_ESTIMATED_COUNTS, field.counts.astype("<u2")),
+        (_ESTIMATED_SLOTS, est_slots.astype("<u2")),
+        (_ESTIMATED, _pack(field.estimated, est_rows, est_slots)),
+        (_RETARGETED, _pack(field.retargeted, ret_rows, ret_slots)),
+        (_PATH_DELTA, field.path_delta[ret_rows, ret_slots].astype("<f4")),
+        (_PATH_CENTRE, field.path_centre[ret_rows, ret_slots].astype("<f4")),
+    ]
+    diffuse_layout = None
+    if field.diffuse is not None:
+        lambert = field.diffuse.lambert
+        half = lambert_half and float(np.abs(lambert).max()) <= _FLOAT16_MAX
+        diffuse_layout = {
+            "channels": field.diffuse.channel_count,
+            "lambert_dtype": "float16" if half else "float32",
+            "images": field.diffuse.images is not None,
+        }
+        planes = lambert.transpose(2, 3, 0, 1).astype("<f2" if half else "<f4")
+        arrays.append((_LAMBERT, planes))
+        if field.diffuse.images is not None:
+            images = field.diffuse.images.transpose(0, 3, 1, 2).astype("<f2")
+            arrays.append((_IMAGES, images))
+    header = json.dumps(
+        _header(field, diffuse_layout), indent=1, allow_nan=False
+    ).encode("utf-8")
+    with zipfile.ZipFile(stream, "w") as archive:
+        with archive.open(_entry_info(_HEADER), "w") as entry:
+            entry.write(header)
+        for name, array in arrays:
+            _write_array(archive, name, array)
+        infos = archive.infolist()
+    return _size_report(infos, stream.tell())
+
+
+# --- writing helpers -------------------------------------------------------------------------------
+
+
+def _pack(params: GaussianParams, rows: np.ndarray, slots: np.ndarray) -> np.ndarray:
+    """(K, 6) little-endian float32 rows [a, mu_x, mu_y, sigma_x, sigma_y, theta] of the given slots."""
+    columns = [
+        params.amplitude[rows, slots],
+        params.mean[rows, slots, 0],
+        params.mean[rows, slots, 1],
+        params.sigma[rows, slots, 0],
+        params.sigma[rows, slots, 1],
+        params.theta[rows, slots],
+    ]
+    return np.stack(columns, axis=1).astype("<f4")
+
+
+def _entry_info(name: str) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
+    info.compress_type = zipfile.ZIP_DEFLATED
+    info.external_attr = 0o644 << 16
+    return info
+
+
+def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip)."""
+    with archive.open(
+        _entry_info(name), "w", force_zip64=array.nbytes > 2**30
+    ) as entry:
+        np.lib.format.write_array(
+            entry, np.ascontiguousarray(array), allow_pickle=False
+        )
+
+
+def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:
+    sizes = dict.fromkeys(_PARTS, 0)
+    for info in infos:
+        part = "header" if info.filename == _HEADER else info.filename.split("/")[0]
+        if part in sizes:
+            sizes[part] += info.compress_size
+    sizes["container"] = total - sum(sizes.values())
+    sizes["total"] = total
+    return sizes
+
+
+class _CountingSink:
+    """A write-only, seekable stream that keeps only its size (to measure a file without writing it)."""
+
+    def __init__(self):
+        self._position = 0
+        self._size = 0
+
+    def write(self, data) -> int:
+        length = memoryview(data).nbytes
+        self._position += length
+        self._size = max(self._size, self._position)
+        return length
+
+    def tell(self) -> int:
+        return self._position
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        base = {0: 0, 1: self._position, 2: self._size}[whence]
+        self._position = base + offset
+        return self._position
+
+    def seekable(self) -> bool:
+        return True
+
+    def flush(self) -> None:
+        pass
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Make the rename durable where the platform allows (POSIX); best effort."""
+    if os.name != "posix":
+        return
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+# --- reading ---------------------------------------------------------------------------------------
+
+
+def _corrupt(path: Path, what: str) -> InputError:
+    return InputError(
+        f"{path}: corrupt field file: {what}; write it again (or restore a copy)"
+    )
+
+
+def _not_a_field(path: Path, what: str) -> InputError:
+    return InputError(f"{path}: not a warp-highlights field file ({what})")
+
+
+def _sniff(head: bytes) -> str:
+    """A few words on what a file that is not a zip archive looks like."""
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "a PNG image"
+    if head.startswith(b"\xff\xd8\xff"):
+        return "a JPEG image"
+    if head.startswith(b"\x76\x2f\x31\x01"):
+        return "an OpenEXR image"
+    if head.startswith(b"\x93NUMPY"):
+        return "a NumPy .npy array"
+    if all(byte >= 0x20 or byte in b"\t\r\n" for byte in head):
+        return "a text file"
+    return "unrecognised binary content"
+
+
+def _read_field(path: Path, stream) -> HighlightField:
+    head = stream.read(64)
+    if not head:
+        raise InputError(f"{path}: empty file, not a warp-highlights field file")
+    if not head.startswith(_ZIP_LOCAL_HEADER):
+        raise _not_a_field(path, _sniff(head))
+    # our files start with the local header of header.json; a cut may leave part of the name
+    ours = _HEADER.encode().startswith(
+        head[_ZIP_NAME_OFFSET : _ZIP_NAME_OFFSET + len(_HEADER)]
+    )
+    stream.seek(0)
+    try:
+        archive = zipfile.ZipFile(stream)
+    except (
+        zipfile.BadZipFile,
+        EOFError,
+        OSError,
+        ValueError,
+        NotImplementedError,
+    ) as exc:
+        if ours:
+            raise InputError(
+                f"{path}: truncated or corrupt field file (its zip directory cannot be read: {exc}); write it again"
+            ) from None
+        raise _not_a_field(path, f"a damaged zip archive: {exc}") from None
+    with archive:
+        names = set(archive.namelist())
+        if _HEADER not in names:
+            raise _not_a_field(path, f"a zip archive without {_HEADER}")
+        header = _read_header(path, archive)
+        return _build_field(path, archive, names, header, stream)
+
+
+def _read_header(path: Path, archive: zipfile.ZipFile) -> dict:
+    info = archive.getinfo(_HEADER)
+    if info.file_size > _MAX_HEADER_BYTES:
+        raise _corrupt(path, f"{_HEADER} is {info.file_size} bytes")
+    with archive.open(info) as entry:
+        raw = entry.read(_MAX_HEADER_BYTES + 1)
+    try:
+        header = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise _corrupt(path, f"{_HEADER} is not valid JSON ({exc})") from None
+    if not isinstance(header, dict) or header.get("magic") != MAGIC:
+        raise _not_a_field(path, f"{_HEADER} lacks the magic string {MAGIC!r}")
+    version = header.get("format_version")
+    if not _is_int(version) or version < 1:
+        raise _corrupt(
+            path, f"format_version must be a positive integer, got {version!r}"
+        )
+    if version > FORMAT_VERSION:
+        raise InputError(
+            f"{path}: written by a newer warp-highlights (library {header.get('library_version')!s}, field format "
+            f"{version}; this version {__version__} reads format {FORMAT_VERSION}); upgrade warp-highlights"
+        )
+    return header
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _header_int(
+    path: Path, header: dict, key: str, minimum: int, maximum: int | None = None
+) -> int:
+    value = header.get(key)
+    if (
+        not _is_int(value)
+        or value < minimum
+        or (maximum is not None and value > maximum)
+    ):
+        upper = "" if maximum is None else f"..{maximum}"
+        raise _corrupt(
+            path,
+            f"header entry {key!r} must be an integer in {minimum}{upper or ' or more'}, got {value!r}",
+        )
+    return value
+
+
+def _header_value(path: Path, header: dict, key: str, kinds: tuple, description: str):
+    value = header.get(key)
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        raise _corrupt(
+            path, f"header entry {key!r} must be {description}, got {value!r}"
+        )
+    return value
+
+
+def _read_array(
+    path: Path,
+    archive: zipfile.ZipFile,
+    names: set,
+    name: str,
+    dtype: str,
+    shape: tuple,
+) -> np.ndarray:
+    """Read one ``.npy`` entry, checking its dtype and shape before reading the data."""
+    if name not in names:
+        raise _corrupt(path, f"entry {name} is missing")
+    expected = np.dtype(dtype)
+    with archive.open(name) as entry:
+        try:
+            version = np.lib.format.read_magic(entry)
+            if version == (1, 0):
+                stored_shape, fortran, stored_dtype = (
+                    np.lib.format.read_array_header_1_0(entry)
+                )
+            elif version == (2, 0):
+                stored_shape, fortran, stored_dtype = (
+                    np.lib.format.read_array_header_2_0(entry)
+                )
+            else:
+                raise ValueError(f"unsupported .npy version {version}")
+        except ValueError as exc:
+            raise _corrupt(
+                path, f"entry {name} is not a valid .npy array ({exc})"
+            ) from None
+        if stored_dtype != expected:
+            raise _corrupt(
+                path,
+                f"entry {name} holds {stored_dtype.str} data, expected {expected.str}",
+            )
+        if fortran:
+            raise _corrupt(path, f"entry {name} is stored in Fortran order")
+        if tuple(stored_shape) != tuple(shape):
+            raise _corrupt(
+                path,
+                f"entry {name} has shape {tuple(stored_shape)}, expected {tuple(shape)}",
+            )
+        size = math.prod(shape) * expected.itemsize
+        data = entry.read(size)
+        if len(data) != size:
+            raise _corrupt(path, f"entry {name} is truncated")
+        if entry.read(1):  # also completes the zip checksum test
+            raise _corrupt(path, f"entry {name} has data after its array")
+    array = (
+        np.frombuffer(data, dtype=expected)
+        .reshape(shape)
+        .astype(expected.newbyteorder("="))
+    )
+    if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+        raise _corrupt(path, f"entry {name} has non-finite values")
+    return array
+
+
+def _build_field(
+    path: Path, archive: zipfile.ZipFile, names: set, header: dict, stream
+) -> HighlightField:
+    n = _header_int(path, header, "light_count", 3)
+    face_count = _header_int(path, header, "face_count", 1)
+    edge_count = _header_int(path, header, "directed_edge_count", 2)
+    capacity = _header_int(path, header, "capacity", 1, MAX_CAPACITY)
+    width = _header_int(path, header, "width", 1)
+    height = _header_int(path, header, "height", 1)
+    estimated_total = _header_int(
+        path, header, "estimated_gaussian_count", 0, n * capacity
+    )
+    retargeted_total = _header_int(
+        path, header, "retargeted_gaussian_count", 0, edge_count * capacity
+    )
+    is_dome = _header_value(path, header, "is_dome", (bool,), "true or false")
+    settings = _header_value(path, header, "settings", (dict,), "a JSON object")
+    report = _header_value(path, header, "report", (dict,), "a JSON object")
+    filenames = header.get("light_filenames")
+    if filenames is not None and (
+        not isinstance(filenames, list)
+        or len(filenames) != n
+        or not all(isinstance(f, str) for f in filenames)
+    ):
+        raise _corrupt(
+            path, f"header entry 'light_filenames' must be null or {n} strings"
+        )
+    diffuse_layout = header.get("diffuse")
+    if diffuse_layout is not None:
+        if not isinstance(diffuse_layout, dict):
+            raise _corrupt(path, "header entry 'diffuse' must be null or a JSON object")
+        channels = _header_int(path, diffuse_layout, "channels", 1)
+        lambert_dtype = diffuse_layout.get("lambert_dtype")
+        if lambert_dtype not in ("float16", "float32"):
+            raise _corrupt(
+                path,
+                f"diffuse lambert_dtype must be 'float16' or 'float32', got {lambert_dtype!r}",
+            )
+        with_images = _header_value(
+            path, diffuse_layout, "images", (bool,), "true or false"
+        )
+
+    def read(name, dtype, shape):
+        return _read_array(path, archive, names, name, dtype, shape)
+
+    directions = read(_DIRECTIONS, "<f8", (n, 3))
+    if np.any(np.abs(np.linalg.norm(directions, axis=1) - 1.0) > _UNIT_TOLERANCE):
+        raise _corrupt(
+            path, f"entry {_DIRECTIONS} holds vectors that are not unit length"
+        )
+    faces = read(_FACES, "<i4", (face_count, 3))
+    if faces.min() < 0 or faces.max() >= n:
+        raise _corrupt(path, f"entry {_FACES} has vertex indices outside 0..{n - 1}")
+    try:
+        lights = LightSet(directions, filenames)
+        triangulation = SphericalTriangulation.from_faces(directions, faces)
+    except InputError as exc:
+        raise _corrupt(path, str(exc)) from None
+    # keep the stored directions bit for bit (normalising a unit vector again may change its last bit)
+    lights.directions = directions
+    triangulation.directions = directions
+    if triangulation.is_dome != is_dome:
+        raise _corrupt(
+            path,
+            f"the header says is_dome={is_dome} but the faces say {triangulation.is_dome}",
+        )
+    directed = triangulation.directed_edges()
+    if len(directed) != edge_count:
+        raise _corrupt(
+            path,
+            f"the faces give {len(directed)} directed edges but the header says {edge_count}",
+        )
+
+    counts = read(_ESTIMATED_COUNTS, "<u2", (n,)).astype(np.int64)
+    if counts.max() > capacity or counts.sum() != estimated_total:
+        raise _corrupt(
+            path,
+            f"entry {_ESTIMATED_COUNTS} does not match the capacity and the Gaussian count",
+        )
+    slots = read(_ESTIMATED_SLOTS, "<u2", (estimated_total,)).astype(np.int64)
+    owners = np.repeat(np.arange(n), counts)
+    if estimated_total and (
+        slots.max() >= capacity
+        or np.any((slots[1:] <= slots[:-1]) & (owners[1:] == owners[:-1]))
+    ):
+        raise _corrupt(
+            path,
+            f"entry {_ESTIMATED_SLOTS} has slot indices out of range or out of order",
+        )
+    estimated_active = np.zeros((n, capacity), dtype=bool)
+    estimated_active[owners, slots] = True
+    retargeted_active = estimated_active[directed[:, 0]]
+    if int(retargeted_active.sum()) != retargeted_total:
+        raise _corrupt(
+            path,
+            "the retargeted Gaussian count in the header does not match the estimated slots",
+        )
+
+    estimated = _unpack(read(_ESTIMATED, "<f4", (estimated_total, 6)), estimated_active)
+    retargeted = _unpack(
+        read(_RETARGETED, "<f4", (retargeted_total, 6)), retargeted_active
+    )
+    rows, cols = np.nonzero(retargeted_active)
+    path_delta = np.zeros((edge_count, capacity), dtype=np.float32)
+    path_delta[rows, cols] = read(_PATH_DELTA, "<f4", (retargeted_total,))
+    path_centre = np.zeros((edge_count, capacity, 2), dtype=np.float32)
+    path_centre[rows, cols] = read(_PATH_CENTRE, "<f4", (retargeted_total, 2))
+
+    diffuse = None
+    if diffuse_layout is not None:
+        lambert_code = "<f2" if lambert_dtype == "float16" else "<f4"
+        planes = read(_LAMBERT, lambert_code, (channels, 4, height, width))
+        lambert = planes.transpose(2, 3, 0, 1)
+        images = None
+        if with_images:
+            images = read(_IMAGES, "<f2", (n, channels, height, width)).transpose(
+                0, 2, 3, 1
+            )
+        try:
+            diffuse = DiffuseModel(lambert, images)
+        except InputError as exc:
+            raise _corrupt(path, str(exc)) from None
+
+    try:
+        field = HighlightField(
+            lights=lights,
+            triangulation=triangulation,
+            width=width,
+            height=height,
+            estimated=estimated,
+            directed_edges=directed,
+            retargeted=retargeted,
+            path_delta=path_delta,
+            path_centre=path_centre,
+            settings=settings,
+            report=report,
+            diffuse=diffuse,
+        )
+    except InputError as exc:
+        raise _corrupt(path, str(exc)) from None
+    stream.seek(0, os.SEEK_END)
+    field.file_sizes = _size_report(archive.infolist(), stream.tell())
+    field.file_path = path
+    return field
+
+
+def _unpack(rows: np.ndarray, active: np.ndarray) -> GaussianParams:
+    """Inverse of ``_pack``: scatter (K, 6) rows into the active slots (row-major order) of a batch."""
+    params = GaussianParams.empty(*active.shape)
+    r, s = np.nonzero(active)
+    values = rows.astype(np.float64)
+    params.amplitude[r, s] = values[:, 0]
+    params.mean[r, s] = values[:, 1:3]
+    params.sigma[r, s] = values[:, 3:5]
+    params.theta[r, s] = values[:, 5]
+    params.active = active
+    return params
