@@ -15,5 +15,11 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 
 from warp_highlights._api import lazy_exports
 
-_MODULES = ("interpolation", "losses", "optim", "raster", "raytrace", "retarget", "segmentation")
-__getattr__, __dir__, __all__ = lazy_exports(__name__, {}, modules={name: name for name in _MODULES})
+__getattr__, __dir__, __all__ = lazy_exports(
+    __name__,
+    {},
+    modules={
+        "interpolation": "interpolation", "losses": "losses", "optim": "optim", "raster": "raster",
+        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation",
+    },
+)

@@ -4,6 +4,7 @@ names give. Delete this file with the forwards in 0.3."""
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +39,16 @@ def test_highlight_field_load_save_and_size_report_forward(tmp_path):
     assert (tmp_path / "a.whf").read_bytes() == (tmp_path / "b.whf").read_bytes()
     sizes = _moved(field.size_report, "warp_highlights.field_size_report(field)")
     assert sizes == wh.field_size_report(field)
+
+
+def test_size_report_of_a_field_never_saved_and_format_version_forward():
+    fresh = replace(wh.load_field(LEGACY))  # a new object: it has never been in a file
+    assert fresh.file_sizes is None
+    sizes = _moved(fresh.size_report, "warp_highlights.field_size_report(field)")
+    assert sizes == wh.field_size_report(wh.load_field(LEGACY))  # measured without writing: the same bytes
+    from warp_highlights.io.fieldfile import FORMAT_VERSION
+
+    assert _moved(lambda: HighlightField.FORMAT_VERSION, "warp_highlights.io.fieldfile.FORMAT_VERSION") == FORMAT_VERSION
 
 
 def test_highlight_field_relight_forwards():

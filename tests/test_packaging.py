@@ -55,8 +55,31 @@ def test_core_imports_without_optional_dependencies():
     assert "core ok" in result.stdout
 
 
+API_0_1 = (
+    "AdamSettings ComponentSettings ConnectedComponents DiffuseModel EnergyLoss EstimationSettings Evaluation "
+    "FitSettings GaussianAdam GaussianBatch GaussianParams HighlightField InputError LightSet Location LogL1Loss "
+    "PathSettings RasterSettings Rasterizer ReflectanceField Relighter RelitImages Renderer RetargetSettings "
+    "SegmentationSettings SphericalTriangulation StructureLoss StructureLossSettings __version__ decide_paths "
+    "estimate evaluate_field fit_field retarget segment"
+).split()
+"""The top-level names of 0.1, before the sub-package layout: they stay (issue 13)."""
+
+
 def test_public_api_names_resolve():
     import warp_highlights
 
+    assert set(API_0_1) <= set(warp_highlights.__all__)
     for name in warp_highlights.__all__:
         assert getattr(warp_highlights, name) is not None, name
+
+
+def test_importing_the_package_loads_nothing_heavy():
+    """``import warp_highlights`` (and the command line's module) must not load Warp, NumPy or pyvista:
+    names load on first use."""
+    script = (
+        "import sys, warp_highlights, warp_highlights.cli, warp_highlights.model, warp_highlights.view;"
+        "print(sorted({'warp', 'numpy', 'scipy', 'pyvista', 'PIL'} & set(sys.modules)))"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"

@@ -46,5 +46,6 @@ def lazy_exports(
 
 
 def warn_moved(old: str, new: str) -> None:
-    """Warn once per call site that ``old`` is deprecated in favour of ``new`` (both as the user writes them)."""
+    """Warn that ``old`` is deprecated in favour of ``new`` (both as the user writes them), pointing at the
+    line that called the deprecated name (a ``DeprecationWarning``)."""
     warnings.warn(f"{old} is deprecated and will be removed in warp-highlights 0.3; use {new}", DeprecationWarning, stacklevel=3)

@@ -1,4 +1,4 @@
-"""The ``relight``, ``animate`` and ``evaluate`` commands of ``warp-highlights`` (registered by ``cli.main``)."""
+"""The ``relight``, ``animate`` and ``evaluate`` commands of ``warp-highlights`` (registered by ``cli.app``)."""
 
 from __future__ import annotations
 

@@ -96,6 +96,16 @@ class DiffuseModel:
         return np.maximum(self.lambert[..., :3] @ omega, 0.0) + self.lambert[..., 3]
 
 
+class _MovedFormatVersion:
+    """``HighlightField.FORMAT_VERSION``, deprecated: ``warp_highlights.io.fieldfile.FORMAT_VERSION``."""
+
+    def __get__(self, instance, owner) -> int:
+        warn_moved("HighlightField.FORMAT_VERSION", "warp_highlights.io.fieldfile.FORMAT_VERSION")
+        from ..io.fieldfile import FORMAT_VERSION
+
+        return FORMAT_VERSION
+
+
 @dataclass(eq=False, repr=False)
 class HighlightField:
     """A fitted highlight field (method.md section 8); treat it as immutable once made.
@@ -140,6 +150,8 @@ class HighlightField:
     settings: dict
     report: dict
     diffuse: DiffuseModel | None = None
+
+    FORMAT_VERSION = _MovedFormatVersion()  # deprecated (a class attribute, not a field)
 
     def __post_init__(self):
         if not isinstance(self.lights, LightSet):
@@ -309,8 +321,8 @@ class HighlightField:
         )
 
     # --- deprecated: moved out of the model (issue 13); removed in 0.3 -----------------------------
-    # These imports are the only ones from the model upwards: tests/test_layout.py allows exactly
-    # these, inside these methods, and checks that each method warns.
+    # These imports (and the one in _MovedFormatVersion) are the only ones from the model upwards:
+    # tests/test_layout.py allows exactly these, inside these methods, and checks that each one warns.
 
     def save(self, path, *, lambert_half: bool = True) -> int:
         """Deprecated: ``warp_highlights.save_field(field, path, lambert_half=...)``."""

@@ -1,4 +1,5 @@
-"""The ``warp-highlights`` command line (also ``python -m warp_highlights``).
+"""The ``warp-highlights`` application (also ``python -m warp_highlights``): the parser, built from the
+command modules' ``COMMANDS``, and ``main``, which runs one command.
 
 User mistakes end with one line on stderr and exit status 2; Ctrl-C with status 130. Nothing is left
 half-written: every output goes to a temporary name first.
@@ -13,13 +14,15 @@ from .. import __version__
 from ..model.errors import InputError
 from . import dataset, demo, fit, relight, view
 
-__all__ = ["main"]
+__all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "main"]
 
 COMMAND_MODULES = (dataset, fit, relight, view, demo)
 """The modules whose ``COMMANDS`` make up the command line, in the order ``--help`` lists them."""
 
 EXIT_INPUT_ERROR = 2
+"""Exit status after bad input (one line on stderr says what, where and what to do)."""
 EXIT_INTERRUPTED = 130
+"""Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
 
 
 def main(argv: list[str] | None = None) -> int:
