@@ -80,3 +80,26 @@ def small_field(small_donut, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("field") / "donut.whf"
     save_field(field, path)
     return path
+
+
+TINY_FIT = [
+    "--set", "estimation.iterations=60",
+    "--set", "estimation.densify_until=40",
+    "--set", "estimation.densify_every=10",
+    "--set", "retarget.rigid_iterations=10",
+    "--set", "retarget.iterations=20",
+]  # fmt: skip
+"""``fit`` options for a fit of a few tenths of a second (the reliability tests need a field, not a good one)."""
+
+
+@pytest.fixture(scope="session")
+def tiny_sphere(tmp_path_factory) -> tuple[Path, Path]:
+    """``(dataset, field)``: a 16-light 32x18 sphere with held-out centroids and a ``TINY_FIT`` of it
+    (diffuse images kept), made through the command line."""
+    from warp_highlights.cli import main
+
+    root = tmp_path_factory.mktemp("tiny-sphere")
+    data, field = root / "sphere", root / "sphere.whf"
+    assert main(["render", "sphere", str(data), "--lights", "16", "--size", "32x18", "--samples", "1", "--device", "cpu", "-q"]) == 0
+    assert main(["fit", str(data), "-o", str(field), "--diffuse", "images", "--device", "cpu", "-q", *TINY_FIT]) == 0
+    return data, field

@@ -40,6 +40,11 @@ def _unit(v) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
+def _visible(folder) -> list[str]:
+    """Sorted names in ``folder`` without hidden ones (the output manifest)."""
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+
+
 def _one_line(excinfo, *fragments: str) -> str:
     message = str(excinfo.value)
     assert "\n" not in message
@@ -399,7 +404,7 @@ def test_frames_folder_png(tmp_path):
     done = []
     write_animation(_frames(5), target, progress=done.append)
     assert done == [1, 2, 3, 4, 5]
-    names = sorted(p.name for p in target.iterdir())
+    names = _visible(target)
     assert names == [f"frame_{i:04d}.png" for i in range(5)]
     for name, frame in zip(names, _frames(5)):
         with Image.open(target / name) as im:
@@ -412,7 +417,7 @@ def test_frames_folder_exr_keeps_linear_values(tmp_path):
     pytest.importorskip("OpenEXR")
     target = tmp_path / "linear"
     write_animation(_frames(3), target, frames_format="exr")
-    names = sorted(p.name for p in target.iterdir())
+    names = _visible(target)
     assert names == ["frame_0000.exr", "frame_0001.exr", "frame_0002.exr"]
     for name, frame in zip(names, _frames(3)):
         image = read_image(target / name)
@@ -433,12 +438,12 @@ def test_frames_folder_names_widen_when_there_are_more_frames(tmp_path, monkeypa
     monkeypatch.setattr(animation_module, "_FRAME_DIGITS", 1)  # as with 4 digits and 10000+ frames
     tiny = np.zeros((2, 2), np.float32)
     write_animation((tiny for _ in range(11)), tmp_path / "many")  # count unknown until the end
-    names = sorted(p.name for p in (tmp_path / "many").iterdir())
+    names = _visible(tmp_path / "many")
     assert names == [f"frame_{i:02d}.png" for i in range(11)]
     write_animation([tiny] * 3, tmp_path / "few")
-    assert sorted(p.name for p in (tmp_path / "few").iterdir()) == ["frame_0.png", "frame_1.png", "frame_2.png"]
+    assert _visible(tmp_path / "few") == ["frame_0.png", "frame_1.png", "frame_2.png"]
     write_animation((tiny for _ in range(12)), tmp_path / "known", frame_count=12)
-    assert min(p.name for p in (tmp_path / "known").iterdir()) == "frame_00.png"
+    assert min(_visible(tmp_path / "known")) == "frame_00.png"
 
 
 def _ffmpeg_or_skip() -> None:
@@ -586,7 +591,7 @@ def test_existing_output_needs_overwrite(tmp_path, name):
     write_animation(_frames(3), target, overwrite=True)
     assert _snapshot(tmp_path) != before
     if name == "frames":
-        assert len(list(target.iterdir())) == 3
+        assert len(_visible(target)) == 3
     if name.endswith(".gif"):
         with Image.open(target) as im:
             assert im.n_frames == 3
@@ -598,12 +603,17 @@ def test_frames_folder_with_other_files_is_never_replaced(tmp_path):
     (folder / "notes.txt").write_text("keep me", encoding="utf-8")
     with pytest.raises(InputError) as excinfo:
         write_animation(_frames(2), folder, overwrite=True)
-    _one_line(excinfo, "notes.txt", "new or empty folder")
+    _one_line(excinfo, "notes.txt", "did not write")
     assert [p.name for p in folder.iterdir()] == ["notes.txt"]
     empty = tmp_path / "empty.d"
     empty.mkdir()  # an existing empty folder (any name) is a fine target without overwrite
     write_animation(_frames(2), empty)
-    assert len(list(empty.iterdir())) == 2
+    assert len(_visible(empty)) == 2
+    (empty / "later.txt").write_text("added by the user", encoding="utf-8")  # not in the manifest
+    with pytest.raises(InputError) as excinfo:
+        write_animation(_frames(2), empty, overwrite=True)
+    _one_line(excinfo, "later.txt", "did not write")
+    assert (empty / "later.txt").read_text(encoding="utf-8") == "added by the user"
 
 
 def test_file_target_that_is_a_folder(tmp_path):

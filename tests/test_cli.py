@@ -66,7 +66,13 @@ def test_demo_renders_and_draws_a_contact_sheet(tmp_path):
         (["render", "cube", "{out}"], "unknown shape 'cube'"),
         (["render", "sphere", "{out}", "--size", "big"], "WIDTHxHEIGHT"),
         (["render", "sphere", "{out}", "--samples", "5"], "square number"),
-        (["render", "sphere", "{out}", "--lights", "2"], "at least 4"),
+        (["render", "sphere", "{out}", "--lights", "2"], "use 4..20000"),
+        (["render", "sphere", "{out}", "--size", "-16x9"], "out of range"),
+        (["render", "sphere", "{out}", "--lights", "200000"], "use 4..20000"),
+        (["sheet", "{tmp}", "-o", "{tmp}/s.png", "--thumb-height", "0"], "use 16..1024 pixels"),
+        (["sheet", "{tmp}", "-o", "{tmp}/s.png", "--thumb-height", "100000"], "use 16..1024 pixels"),
+        (["fit", "{tmp}", "-o", "{tmp}/f.whf", "--exposure", "-2"], "--exposure"),
+        (["fit", "{tmp}", "-o", "{tmp}/f.whf", "--workers", "0"], "--workers"),
         (["render", "sphere", "{out}", "--albedo", "red"], "albedo"),
         (["render", "sphere", "{out}", "--albedo", "2,0,0"], "albedo"),
         (["render", "sphere", "{out}", "--shininess", "0"], "shininess"),
@@ -92,8 +98,15 @@ def test_existing_output_is_never_clobbered(tmp_path, capsys):
     assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q"]) == 2
     assert "--overwrite" in _error_line(capsys)
     assert (out / "precious.txt").read_text() == "keep me"
-    assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q", "--overwrite"]) == 0
-    assert not (out / "precious.txt").exists() and (out / "lights.lp").is_file()
+    # --overwrite replaces only what this project wrote: a folder holding the user's file is refused
+    assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q", "--overwrite"]) == 2
+    assert "precious.txt" in _error_line(capsys)
+    assert (out / "precious.txt").read_text() == "keep me"
+    (out / "precious.txt").unlink()
+    assert main(["render", "sphere", str(out), "--lights", "6", "--size", "16x16", "-q"]) == 0
+    assert main(["render", "sphere", str(out), "--lights", "5", "--size", "16x16", "-q", "--overwrite"]) == 0
+    assert (out / "lights.lp").is_file() and not (out / "images" / "0005.exr").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no temporaries left
 
 
 def _broken_dataset(folder, case: str):

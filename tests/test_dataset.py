@@ -108,14 +108,14 @@ def test_save_half_is_exact_to_half(tmp_path):
 def test_save_without_extras(tmp_path):
     field = ReflectanceField(np.ones((2, 3, 4), np.float32), LightSet(np.eye(3)[:2]))
     field.save(tmp_path / "plain")
-    assert sorted(p.name for p in (tmp_path / "plain").iterdir()) == ["images", "lights.lp"]
+    assert sorted(p.name for p in (tmp_path / "plain").iterdir()) == [".warp-highlights.json", "images", "lights.lp"]
     loaded = ReflectanceField.load(tmp_path / "plain", progress=False)
     assert loaded.specular is None and loaded.heldout is None and loaded.mask is None and loaded.meta == {}
 
 
 def test_empty_heldout_set_writes_no_heldout_file(tmp_path):
     with DatasetWriter(tmp_path / "d") as writer:
-        writer.write_images("lights", 0, np.zeros((2, 3, 4), np.float32))
+        writer.write_images("lights", 0, np.full((2, 3, 4), 0.5, np.float32))  # all black would be refused
         writer.finish(LightSet.fibonacci_sphere(2), LightSet(np.zeros((0, 3))))
     assert not (tmp_path / "d" / "heldout.lp").exists()
     assert ReflectanceField.load(tmp_path / "d", progress=False).heldout is None
@@ -164,7 +164,7 @@ def test_writer_refuses_an_existing_folder(tmp_path):
     (tmp_path / "d" / "keep.txt").write_text("precious")
     with pytest.raises(InputError) as excinfo:
         DatasetWriter(tmp_path / "d")
-    assert "exists; pass --overwrite or choose another folder" in _single_line_error(excinfo, "d")
+    assert "exists; pass --overwrite" in _single_line_error(excinfo, "d")
     (tmp_path / "file").write_text("x")
     with pytest.raises(InputError, match="not a folder"):
         DatasetWriter(tmp_path / "file")
@@ -178,13 +178,38 @@ def test_writer_uses_an_existing_empty_folder(tmp_path):
 
 
 def test_overwrite_replaces_the_folder(tmp_path):
-    _field(seed=1).save(tmp_path / "d")
-    (tmp_path / "d" / "stale.txt").write_text("old")
+    _field(seed=1, count=6).save(tmp_path / "d")
     field = _field(seed=2, count=4)
     field.save(tmp_path / "d", overwrite=True)
-    assert not (tmp_path / "d" / "stale.txt").exists()
+    assert not (tmp_path / "d" / "images" / "0005.exr").exists()  # the old dataset is gone entirely
     _assert_same(ReflectanceField.load(tmp_path / "d", progress=False), field)
     assert [p.name for p in tmp_path.iterdir()] == ["d"]
+
+
+def test_overwrite_never_deletes_files_the_project_did_not_write(tmp_path):
+    _field(seed=1).save(tmp_path / "d")
+    (tmp_path / "d" / "notes.txt").write_text("the user's")
+    (tmp_path / "d" / "images" / "extra.jpg").write_bytes(b"a photo")
+    before = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    with pytest.raises(InputError) as excinfo:
+        _field(seed=2).save(tmp_path / "d", overwrite=True)
+    assert "did not write" in _single_line_error(excinfo, "d")
+    assert {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+    (tmp_path / "d" / "notes.txt").unlink()
+    with pytest.raises(InputError, match="extra.jpg"):  # files inside sub-folders count too
+        _field(seed=2).save(tmp_path / "d", overwrite=True)
+
+
+def test_overwrite_replaces_a_dataset_written_before_manifests(tmp_path):
+    _field(seed=1).save(tmp_path / "d")
+    (tmp_path / "d" / ".warp-highlights.json").unlink()  # as written by version 0.1
+    (tmp_path / "d" / "images" / "photo.jpg").write_bytes(b"the user's")
+    with pytest.raises(InputError, match="images/photo.jpg"):  # recognised file by file, sub-folders too
+        _field(seed=2).save(tmp_path / "d", overwrite=True)
+    (tmp_path / "d" / "images" / "photo.jpg").unlink()
+    field = _field(seed=2, count=4)
+    field.save(tmp_path / "d", overwrite=True)
+    _assert_same(ReflectanceField.load(tmp_path / "d", progress=False), field)
 
 
 def test_abort_leaves_an_existing_folder_intact(tmp_path):

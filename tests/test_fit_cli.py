@@ -150,6 +150,10 @@ def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatc
         (["fit", "{data}", "-o", "{out}", "--workers", "0"], "workers"),
         (["fit", "{data}", "-o", "{out}", "--device", "cuda:7"], "device"),
         (["fit", "{data}", "-o", "{tmp}"], "folder"),
+        (["fit", "{data}", "-o", "{out}", "--report", "{existing}"], "--overwrite"),  # the report obeys it too
+        (["fit", "{data}", "-o", "{out}", "--exposure", "1e300"], "1e-12..1e+12"),
+        (["fit", "{data}", "-o", "{out}", "--set", "estimation.iterations=100000000"], "[1, 100000]"),
+        (["fit", "{data}", "-o", "{out}", "--bogus"], "fit: error: unrecognized arguments: --bogus"),
     ],
 )
 def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys):

@@ -87,7 +87,7 @@ def test_relight_specular_only(small_field, field, tmp_path):
 
 def _check_folder(out: Path, field, directions: np.ndarray, *, method: str = "circular") -> None:
     names = [f"relit_{i:04d}.exr" for i in range(len(directions))]
-    assert sorted(p.name for p in out.iterdir()) == sorted(names + ["lights.lp"])
+    assert sorted(p.name for p in out.iterdir()) == sorted(names + ["lights.lp", ".warp-highlights.json"])
     lights = read_lp(out / "lights.lp")  # checks the named images exist
     unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     np.testing.assert_allclose(lights.directions, unit, atol=1e-5)
@@ -102,7 +102,7 @@ def test_relight_two_lights_into_a_folder(small_field, field, tmp_path, capsys):
     assert main(["relight", str(small_field), "--light", LIGHT, "--light=-2,0,1", "-o", str(out), "--device", "cpu", "-q"]) == 0
     assert "2 images" in capsys.readouterr().out
     _check_folder(out, field, np.array([[0.3, 0.5, 1.0], [-2.0, 0.0, 1.0]]))
-    assert _tree(tmp_path) == ["two", *(f"two/{n}" for n in ("lights.lp", "relit_0000.exr", "relit_0001.exr"))]
+    assert _tree(tmp_path) == ["two", *(f"two/{n}" for n in (".warp-highlights.json", "lights.lp", "relit_0000.exr", "relit_0001.exr"))]
 
 
 def test_relight_a_light_with_a_negative_first_coordinate(small_field, tmp_path):
@@ -250,7 +250,7 @@ def test_animate_an_orbit_to_a_gif(small_field, field, tmp_path, capsys):
 def test_animate_to_a_folder_of_frames(small_field, field, tmp_path):
     out = tmp_path / "frames"
     assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
-    names = sorted(p.name for p in out.iterdir())
+    names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     assert len(names) == 6 and all(n.endswith(".png") for n in names)
     from warp_highlights.view.animation import orbit
 
@@ -277,7 +277,7 @@ def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
     out = tmp_path / "arc"
     assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr", "--specular-only", "-o", str(out),
                  "--device", "cpu", "-q"]) == 0
-    names = sorted(p.name for p in out.iterdir())
+    names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     assert len(names) == 3 and all(n.endswith(".exr") for n in names)
     expected = _relighter(field).relight(great_circle([1, 0, 1], [-1, 0, 1], 3), full=False).specular
     for i, name in enumerate(names):
@@ -288,7 +288,7 @@ def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, t
     out = tmp_path / "compare"
     assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "2", "--compare", "--dataset", str(small_donut), "--exr",
                  "--specular-only", "-o", str(out), "--device", "cpu", "-q"]) == 0
-    frames = [read_image(p) for p in sorted(out.iterdir())]
+    frames = [read_image(p) for p in sorted(out.glob("frame_*"))]
     assert len(frames) == 2 and frames[0].shape == (field.height, 2 * field.width)
     from warp_highlights.view.animation import orbit
 
@@ -337,7 +337,7 @@ def evaluated(small_field, small_donut, tmp_path_factory):
 def test_evaluate_writes_a_report_and_plots(evaluated, small_field, field):
     status, out, text = evaluated
     assert status == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["report.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["report.json", ".warp-highlights.json"])
     report = json.loads((out / "report.json").read_text())
     specular = report["summary"]["specular"]
     for method in ("circular", "straight", "alpha"):
@@ -433,11 +433,11 @@ def test_demo_writes_an_index_of_what_it_made(tmp_path, capsys):
         path = out / name.rstrip("/")
         assert path.is_dir() if name.endswith("/") else path.is_file(), name
     # every file of the folder is in the index
-    assert sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()) == sorted(listed + ["demo.json", "index.md"])
+    assert sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()) == sorted(listed + ["demo.json", "index.md", ".warp-highlights.json"])
     # the evaluation row names the plots it holds
     row = next(line for line in index.splitlines() if line.startswith("| `evaluation/`"))
     plots = re.findall(r"[\w-]+\.(?:png|json)", row)
-    assert sorted(set(plots)) == sorted(p.name for p in (out / "evaluation").iterdir())
+    assert sorted(set(plots)) == sorted(p.name for p in (out / "evaluation").iterdir() if not p.name.startswith("."))
     demo = json.loads((out / "demo.json").read_text())
     assert set(demo["files"]) == set(listed)
     assert set(demo["seconds"]) == {"render", "fit", "evaluate", "animate"} and demo["total_seconds"] > 0
@@ -470,7 +470,7 @@ def test_demo_refuses_a_file_as_its_folder(tmp_path, capsys):
 
 
 def test_demo_bad_options(tmp_path, capsys):
-    for extra, expected in ((["--lights", "3"], "at least 4 lights"), (["--frames", "1"], "--frames"), (["--size", "64"], "WIDTHxHEIGHT")):
+    for extra, expected in ((["--lights", "3"], "use 4..2000"), (["--frames", "1"], "--frames"), (["--size", "64"], "WIDTHxHEIGHT")):
         assert main(["demo", str(tmp_path / "demo"), "--device", "cpu", "-q", *extra]) == 2
         assert expected in _error_line(capsys)
     assert _tree(tmp_path) == []
@@ -486,14 +486,19 @@ def test_overwrite_never_deletes_other_files(small_field, small_donut, tmp_path,
         out.mkdir()
         (out / "thesis.tex").write_text("keep me")
         assert main([*argv, "-o", str(out), "--overwrite"]) == 2
-        assert "holds other files" in _error_line(capsys)
+        assert "thesis.tex, which warp-highlights did not write" in _error_line(capsys)
         assert _tree(out) == ["thesis.tex"]
         # a folder the command wrote itself is replaced, and the old contents go
         (out / "thesis.tex").unlink()
         assert main([*argv, "-o", str(out)]) == 0
         first = _tree(out)
-        (out / first[0]).write_bytes(b"stale")
+        victim = next(name for name in first if not name.startswith("."))
+        manifest = (out / ".warp-highlights.json").read_bytes()
         assert main([*argv, "-o", str(out), "--overwrite"]) == 0
-        assert _tree(out) == first
-        assert (out / first[0]).read_bytes() != b"stale"
+        assert _tree(out) == first and (out / ".warp-highlights.json").read_bytes() != manifest  # a new folder
+        # a file of ours that the user edited since is not deleted either
+        (out / victim).write_bytes(b"edited by the user")
+        assert main([*argv, "-o", str(out), "--overwrite"]) == 2
+        assert f"holds {victim}, which was changed after warp-highlights wrote it" in _error_line(capsys)
+        assert (out / victim).read_bytes() == b"edited by the user"
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]

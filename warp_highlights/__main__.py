@@ -1,7 +1,5 @@
 """``python -m warp_highlights``: the same as the ``warp-highlights`` command."""
 
-import sys
+from .cli.console import run
 
-from .cli.app import main
-
-sys.exit(main())
+run()

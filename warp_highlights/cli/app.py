@@ -1,20 +1,25 @@
 """The ``warp-highlights`` application (also ``python -m warp_highlights``): the parser, built from the
 command modules' ``COMMANDS``, and ``main``, which runs one command.
 
-User mistakes end with one line on stderr and exit status 2; Ctrl-C with status 130. Nothing is left
-half-written: every output goes to a temporary name first.
+User mistakes and operating-system failures (permissions, a full disk, a missing folder) end with one
+line on stderr and exit status 2; Ctrl-C with status 130, SIGTERM with 143. Nothing is left
+half-written: every output goes to a temporary name first, and whatever a failed or interrupted
+command had started is removed (``io.atomic``).
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 
 from .. import __version__
+from ..io.atomic import Terminated, describe_os_error, end_of_command, handle_termination, received_signal, remove_partials
 from ..model.errors import InputError
 from . import dataset, demo, fit, relight, view
 
-__all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "main"]
+__all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OneLineParser", "main"]
 
 COMMAND_MODULES = (dataset, fit, relight, view, demo)
 """The modules whose ``COMMANDS`` make up the command line, in the order ``--help`` lists them."""
@@ -23,36 +28,129 @@ EXIT_INPUT_ERROR = 2
 """Exit status after bad input (one line on stderr says what, where and what to do)."""
 EXIT_INTERRUPTED = 130
 """Exit status after Ctrl-C (128 + SIGINT, as shells report it)."""
+EXIT_TERMINATED = 143
+"""Exit status after SIGTERM (128 + 15): ``kill``, a job scheduler's time limit."""
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command line; returns the exit status."""
-    argv = _attach_negative_values(sys.argv[1:] if argv is None else list(argv))
-    _quiet_warp(verbose="-v" in argv or "--verbose" in argv)
-    parser = _build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "command", None):
-        parser.print_help(sys.stderr)
-        return EXIT_INPUT_ERROR
+    """Run the command line (``argv``, default the process's arguments); returns the exit status."""
+    console = argv is None
+    previous = _install_signal_handlers()
     try:
-        return args.run(args) or 0
+        parser = _build_parser()
+        argv = _attach_negative_values(sys.argv[1:] if argv is None else list(argv), _value_options(parser))
+        _quiet_warp(verbose="-v" in argv or "--verbose" in argv)
+        try:
+            args, unknown = parser.parse_known_args(argv)
+            if unknown:  # reported by the command's own parser, so the line names the command
+                command = getattr(args, "command", None)
+                (parser._command_parsers.get(command, parser) if command else parser).error(
+                    f"unrecognized arguments: {' '.join(unknown)}")
+        except SystemExit as stop:  # --help, --version, or a one-line usage error (OneLineParser)
+            return stop.code if isinstance(stop.code, int) else EXIT_INPUT_ERROR
+        if not getattr(args, "command", None):
+            parser.print_help(sys.stdout)
+            print("warp-highlights: error: no command given; choose one of those listed above", file=sys.stderr)
+            return EXIT_INPUT_ERROR
+        _init_warp(verbose=args.verbose)
+        return _run(args)
+    except KeyboardInterrupt as interruption:  # before the command started: nothing was written
+        print("warp-highlights: interrupted while starting; nothing was written", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(interruption, Terminated) else EXIT_INTERRUPTED
+    finally:
+        if console:  # the process is about to exit: a late signal must not turn success into a crash
+            _ignore_signals()
+        else:
+            _restore_signal_handlers(previous)
+
+
+def _run(args) -> int:
+    """Run the parsed command; every failure becomes one line on stderr and an exit status."""
+    name = f"warp-highlights {args.command}"
+    try:
+        try:
+            return args.run(args) or 0
+        finally:
+            end_of_command()  # a signal held back once the outputs were in place: the command finished
+            remove_partials()  # whatever the command had started to write, on any way out
     except InputError as error:
-        print(f"warp-highlights {args.command}: error: {error}", file=sys.stderr)
-        return EXIT_INPUT_ERROR
+        message, status = f"error: {error}", EXIT_INPUT_ERROR
+    except Terminated:
+        message, status = "terminated (SIGTERM); nothing partial was left behind", EXIT_TERMINATED
     except KeyboardInterrupt:
-        print(f"warp-highlights {args.command}: interrupted; nothing partial was left behind", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        message, status = "interrupted; nothing partial was left behind", EXIT_INTERRUPTED
+    except OSError as error:
+        message, status = f"error: {describe_os_error(error)}", EXIT_INPUT_ERROR
+    except MemoryError:
+        message, status = ("error: not enough memory for this request; use a smaller --size, fewer lights or frames, "
+                           "or a machine with more memory"), EXIT_INPUT_ERROR
+    except Exception:
+        signum = received_signal()
+        if signum is None:
+            raise  # a bug, not the user's doing: the traceback is what a report needs
+        # a signal that broke a library call (e.g. an import) on its way: still an interruption
+        terminated = signum == signal.SIGTERM
+        message = ("terminated (SIGTERM)" if terminated else "interrupted") + "; nothing partial was left behind"
+        status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
+    _close_progress_bars()
+    print(f"{name}: {message}", file=sys.stderr)
+    return status
 
 
-def _attach_negative_values(argv: list[str]) -> list[str]:
-    """'--light -0.5,0.2,1' -> '--light=-0.5,0.2,1': argparse takes a value starting with '-' for an option."""
+def _install_signal_handlers():
+    """SIGINT and SIGTERM interrupt the command (cleanup runs); returns what was installed before."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    handle_termination(hold_after_output=True)
+    return previous
+
+
+def _ignore_signals() -> None:
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, signal.SIG_IGN)
+
+
+def _restore_signal_handlers(previous) -> None:
+    for signum, handler in (previous or {}).items():
+        signal.signal(signum, handler)
+
+
+def _close_progress_bars() -> None:
+    """End any progress bar left open by the failure, so the error starts on its own line."""
+    tqdm = sys.modules.get("tqdm")
+    if tqdm is None:
+        return
+    for bar in list(getattr(tqdm.tqdm, "_instances", ())):
+        try:
+            bar.close()
+        except Exception:  # a half-torn-down bar must not hide the real error
+            pass
+
+
+def _value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """Every option string (of any command) that takes a value."""
+    options = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                options |= _value_options(sub)
+        elif action.option_strings and action.nargs != 0:
+            options.update(action.option_strings)
+    return options
+
+
+def _attach_negative_values(argv: list[str], value_options: set[str]) -> list[str]:
+    """'--light -0.5,0.2,1' -> '--light=-0.5,0.2,1': argparse would take a value starting with '-'
+    for an option of its own and answer with a usage error instead of our range check."""
     result = []
     values = iter(argv)
     for token in values:
-        if token == "--light":
+        if token in value_options:
             value = next(values, None)
             if value is not None and len(value) > 1 and value[0] == "-" and (value[1].isdigit() or value[1] == "."):
-                result.append(f"--light={value}")
+                result.append(f"{token}={value}")
                 continue
             result.append(token)
             if value is not None:
@@ -62,8 +160,15 @@ def _attach_negative_values(argv: list[str]) -> list[str]:
     return result
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are one line (what is wrong, where to look), exit 2."""
+
+    def error(self, message: str):
+        self.exit(EXIT_INPUT_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def _build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="warp-highlights",
         description="Relight reflectance fields with moving specular highlights (NVIDIA Warp).",
     )
@@ -73,7 +178,34 @@ def _build_parser() -> argparse.ArgumentParser:
     for module in COMMAND_MODULES:
         for command in module.COMMANDS:
             command.add_to(commands)
+    parser._command_parsers = dict(commands.choices)
     return parser
+
+
+def _init_warp(*, verbose: bool) -> None:
+    """Start Warp now; on a machine without an NVIDIA driver, without its 'CUDA driver not found'
+    warning (expected there, and it would come before our own one-line messages) unless ``-v``."""
+    import warp as wp
+
+    if verbose or _cuda_driver_present():
+        return  # Warp starts on first use, saying what it has to say
+    from ..io.images import quiet_native_stderr
+
+    with quiet_native_stderr():
+        wp.init()
+
+
+def _cuda_driver_present() -> bool:
+    """Whether the NVIDIA driver library can be loaded here (what Warp looks for)."""
+    import ctypes
+
+    for name in ("libcuda.so", "libcuda.so.1", "nvcuda.dll"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
 
 
 def _quiet_warp(*, verbose: bool) -> None:

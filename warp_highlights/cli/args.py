@@ -9,7 +9,21 @@ from pathlib import Path
 
 from ..model.errors import InputError
 
-__all__ = ["Command", "add_common_options", "check_device", "check_output_file", "parse_direction", "parse_size", "parse_triple"]
+__all__ = [
+    "Command",
+    "add_common_options",
+    "add_pixel_limit_option",
+    "check_device",
+    "check_output_file",
+    "check_output_folder",
+    "in_range",
+    "parse_direction",
+    "parse_size",
+    "parse_triple",
+    "pixel_limit",
+    "size_option",
+    "triple_option",
+]
 
 
 @dataclass(frozen=True)
@@ -44,6 +58,69 @@ def add_common_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="let Warp report kernel compilation")
 
 
+def in_range(kind: type, low: float, high: float, *, unit: str = ""):
+    """An argparse ``type`` that reads an int or float and refuses values outside [low, high], naming
+    the range (so the error says what is allowed, at parse time, before any work)."""
+    allowed = f"{low:g}..{high:g}{' ' + unit if unit else ''}"
+
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            noun = "a whole number" if kind is int else "a number"
+            raise argparse.ArgumentTypeError(f"'{text}' is not {noun}; use {allowed}") from None
+        if not low <= value <= high:  # also refuses NaN
+            raise argparse.ArgumentTypeError(f"{text} is out of range; use {allowed}")
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+def size_option(what: str = "image size"):
+    """An argparse ``type`` for WIDTHxHEIGHT (see :func:`parse_size`)."""
+    return _as_option(parse_size, what, "size")
+
+
+def triple_option(what: str):
+    """An argparse ``type`` for R,G,B values that are finite and not negative (see :func:`parse_triple`)."""
+    return _as_option(parse_triple, what, "triple")
+
+
+def _as_option(parse: Callable, what: str, name: str):
+    """``parse(text, what)`` as an argparse ``type``: its InputError becomes argparse's one-line error."""
+
+    def option(text: str):
+        try:
+            return parse(text, what)
+        except InputError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    option.__name__ = name
+    return option
+
+
+MAX_SIDE_PX = 8000
+"""Largest accepted image side in pixels (an 8K frame is 7680 wide); larger requests are refused
+before any memory is taken."""
+
+
+def add_pixel_limit_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--max-megapixels``: the largest image a command decodes (a guard against decompression
+    bombs and mistakes; raise it for very large scans)."""
+    from ..io.images import DEFAULT_MAX_PIXELS
+
+    parser.add_argument(
+        "--max-megapixels", type=in_range(float, 0.001, 100_000.0), default=DEFAULT_MAX_PIXELS / 1e6, metavar="MP",
+        help=f"refuse images larger than this many megapixels (default {DEFAULT_MAX_PIXELS / 1e6:g}; raise it for larger scans)",
+    )
+
+
+def pixel_limit(args) -> int:
+    """The pixel budget of ``--max-megapixels``, in pixels."""
+    return int(args.max_megapixels * 1_000_000)
+
+
 def parse_size(text: str, what: str = "image size") -> tuple[int, int]:
     """'480x270' -> (480, 270); ``what`` names the value in the error message."""
     parts = text.lower().replace("*", "x").split("x")
@@ -51,13 +128,13 @@ def parse_size(text: str, what: str = "image size") -> tuple[int, int]:
         width, height = (int(p) for p in parts)
     except ValueError:
         raise InputError(f"{what} '{text}' is not WIDTHxHEIGHT, e.g. 480x270") from None
-    if not (1 <= width <= 8000 and 1 <= height <= 8000):
-        raise InputError(f"{what} '{text}' is out of range: use 1..8000 pixels a side, e.g. 480x270")
+    if not (1 <= width <= MAX_SIDE_PX and 1 <= height <= MAX_SIDE_PX):
+        raise InputError(f"{what} '{text}' is out of range: use 1..{MAX_SIDE_PX} pixels a side, e.g. 480x270")
     return width, height
 
 
 def parse_triple(text: str, what: str) -> tuple[float, float, float]:
-    """'0.7,0.4,0.2' -> (0.7, 0.4, 0.2); one number is repeated."""
+    """'0.7,0.4,0.2' -> (0.7, 0.4, 0.2); one number is repeated; each must be finite and >= 0."""
     try:
         values = [float(v) for v in text.replace(";", ",").split(",")]
     except ValueError:
@@ -66,6 +143,8 @@ def parse_triple(text: str, what: str) -> tuple[float, float, float]:
         values *= 3
     if len(values) != 3:
         raise InputError(f"{what} '{text}' needs 1 or 3 numbers, e.g. 0.7,0.42,0.24")
+    if not all(0.0 <= v < float("inf") for v in values):
+        raise InputError(f"{what} '{text}' must be finite and not negative, e.g. 0.7,0.42,0.24")
     return tuple(values)
 
 
@@ -96,10 +175,18 @@ def parse_direction(text: str) -> tuple[float, float, float]:
 
 
 def check_output_file(path: Path, *, overwrite: bool) -> None:
-    """Raise ``InputError`` unless ``path`` may be written: a new file in an existing folder, or ``overwrite``."""
-    if path.exists() and (path.is_dir() or not overwrite):
-        what = "is a folder" if path.is_dir() else "exists; pass --overwrite to replace it"
-        raise InputError(f"output {path} {what}")
-    parent = path.parent if str(path.parent) else Path(".")
-    if not parent.is_dir():
-        raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
+    """Raise ``InputError`` unless a file may be written at ``path`` (new, or ``overwrite``; its folder
+    exists and takes files); removes what killed runs left for it. Before any work starts."""
+    from ..io.atomic import check_file_target, clean_stale_partials
+
+    clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
+    check_file_target(path, overwrite=overwrite)
+
+
+def check_output_folder(path: Path, *, overwrite: bool, legacy=None) -> None:
+    """Raise ``InputError`` unless an output folder may be written at ``path`` (new or empty, or with
+    ``overwrite`` one this project wrote; its parent exists and takes files). Before any work starts."""
+    from ..io.atomic import check_folder_target, clean_stale_partials
+
+    clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
+    check_folder_target(path, overwrite=overwrite, legacy=legacy)

@@ -4,11 +4,26 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 from ..model.errors import InputError
-from .args import Command, check_device, parse_size, parse_triple
+from .args import (
+    Command,
+    add_pixel_limit_option,
+    check_device,
+    check_output_file,
+    check_output_folder,
+    in_range,
+    pixel_limit,
+    size_option,
+    triple_option,
+)
+
+MAX_RENDER_LIGHTS = 20_000
+"""Most lights ``render`` takes: light stages have up to a few thousand; beyond that the hundreds of
+thousands of image files are a mistake rather than a capture."""
 
 __all__ = ["COMMANDS"]
 
@@ -21,9 +36,11 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
 
     material, settings = Material(), RenderSettings()
     lights = parser.add_argument_group("lights")
-    lights.add_argument("--lights", type=int, default=250, help="number of Fibonacci-lattice lights (default 250)")
+    lights.add_argument("--lights", type=in_range(int, 4, MAX_RENDER_LIGHTS), default=250,
+                        help=f"number of Fibonacci-lattice lights, 4..{MAX_RENDER_LIGHTS} (default 250)")
     lights.add_argument("--dome", action="store_true", help="lights on the upper hemisphere only (an RTI dome)")
-    lights.add_argument("--min-elevation", type=float, default=10.0, help="lowest dome light, degrees (default 10)")
+    lights.add_argument("--min-elevation", type=in_range(float, 0.0, 80.0, unit="degrees"), default=10.0,
+                        help="lowest dome light, 0..80 degrees (default 10)")
     lights.add_argument("--lights-file", type=Path, help="take the light directions from this .lp file instead")
     lights.add_argument(
         "--heldout",
@@ -31,17 +48,19 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
         help="held-out ground truth: 'centroids' (every triangle centroid, the default), 'none', or a .lp file",
     )
     image = parser.add_argument_group("image")
-    image.add_argument("--size", default=f"{settings.width}x{settings.height}", help="WIDTHxHEIGHT (default 480x270)")
-    image.add_argument("--samples", type=int, default=settings.samples_per_pixel, help="samples per pixel, a square (default 4)")
-    image.add_argument("--fov", type=float, default=settings.fov_y_deg, help="vertical field of view, degrees (default 30)")
+    image.add_argument("--size", type=size_option(), default=f"{settings.width}x{settings.height}", help="WIDTHxHEIGHT (default 480x270)")
+    image.add_argument("--samples", type=in_range(int, 1, 1024), default=settings.samples_per_pixel,
+                       help="samples per pixel, a square number up to 1024 (default 4)")
+    image.add_argument("--fov", type=in_range(float, 1.0, 169.0, unit="degrees"), default=settings.fov_y_deg,
+                       help="vertical field of view, 1..169 degrees (default 30)")
     image.add_argument("--gray", action="store_true", help="single-channel luminance images instead of RGB")
     image.add_argument("--half", action="store_true", help="store EXR as half floats (smaller files)")
-    image.add_argument("--seed", type=int, default=settings.seed, help="seed of the pixel-sample jitter")
+    image.add_argument("--seed", type=in_range(int, 0, 2**32 - 1), default=settings.seed, help="seed of the pixel-sample jitter")
     surface = parser.add_argument_group("material (defaults depend on the shape)")
-    surface.add_argument("--albedo", help="diffuse colour R,G,B, linear, each in [0, 1]")
-    surface.add_argument("--ambient", type=float, help=f"ambient radiance (donut: {material.ambient})")
-    surface.add_argument("--specular", type=float, help=f"specular strength (donut: {material.specular})")
-    surface.add_argument("--shininess", type=float, help=f"Blinn-Phong exponent (donut: {material.shininess:g})")
+    surface.add_argument("--albedo", type=triple_option("albedo"), help="diffuse colour R,G,B, linear, each in [0, 1]")
+    surface.add_argument("--ambient", type=in_range(float, 0.0, 100.0), help=f"ambient radiance, 0..100 (donut: {material.ambient})")
+    surface.add_argument("--specular", type=in_range(float, 0.0, 100.0), help=f"specular strength, 0..100 (donut: {material.specular})")
+    surface.add_argument("--shininess", type=in_range(float, 1.0, 1e6), help=f"Blinn-Phong exponent, 1..1e6 (donut: {material.shininess:g})")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
@@ -51,14 +70,18 @@ def _info_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--heldout", type=Path, help="folder with held-out lights and images, if not inside DATASET")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_pixel_limit_option(parser)
 
 
 def _sheet_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="dataset folder")
     parser.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
-    parser.add_argument("--count", type=int, default=12, help="number of lights shown (default 12)")
-    parser.add_argument("--thumb-height", type=int, default=135, help="height of each tile in pixels (default 135)")
+    parser.add_argument("--count", type=in_range(int, 1, 100), default=12, help="number of lights shown, 1..100 (default 12)")
+    parser.add_argument("--thumb-height", type=in_range(int, 16, 1024, unit="pixels"), default=135,
+                        help="height of each tile, 16..1024 pixels (default 135)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing PNG file")
+    add_pixel_limit_option(parser)
 
 
 def _light_sets(args) -> tuple:
@@ -67,8 +90,6 @@ def _light_sets(args) -> tuple:
 
     if args.lights_file is not None:
         lights = read_lp(args.lights_file, check_files=False)
-    elif args.lights < 4:
-        raise InputError(f"--lights must be at least 4 to triangulate, got {args.lights}")
     elif args.dome:
         lights = LightSet.fibonacci_dome(args.lights, min_elevation_deg=args.min_elevation)
     else:
@@ -92,19 +113,22 @@ def _material(args):
     material = default_material(args.shape)
     changes = {k: getattr(args, k) for k in ("ambient", "specular", "shininess") if getattr(args, k) is not None}
     if args.albedo is not None:
-        changes["albedo"] = parse_triple(args.albedo, "albedo")
+        changes["albedo"] = args.albedo
     return replace(material, **changes)
 
 
 def _run_render(args) -> int:
+    from ..io.dataset import dataset_folder_entry
     from ..synth.render import RenderSettings, render_dataset
 
-    width, height = parse_size(args.size)
+    width, height = args.size
     settings = RenderSettings(
         width=width, height=height, samples_per_pixel=args.samples, fov_y_deg=args.fov, colour=not args.gray, seed=args.seed
     )
+    check_output_folder(args.out, overwrite=args.overwrite, legacy=dataset_folder_entry)
     material = _material(args)
     lights, heldout = _light_sets(args)
+    _check_disk_space(args.out, lights, heldout, settings, half=args.half, quiet=args.quiet)
     device = check_device(args.device)
     started = time.perf_counter()
     folder = render_dataset(
@@ -127,10 +151,40 @@ def _run_render(args) -> int:
     return 0
 
 
+RENDER_COMPRESSION_ALLOWANCE = 2.0
+"""The factor by which EXR's ZIP compression is assumed to shrink rendered images when checking the
+free disk space up front (rendered objects on black backgrounds compress 2-10x; 2 keeps the check
+from refusing renders that would fit)."""
+
+
+def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet: bool) -> None:
+    """Refuse a render whose images cannot fit on the disk, with the figures; announce a large one."""
+    import shutil
+
+    from ..io.memory import bytes_text
+    from ..model.lights import LightSet
+
+    held = 2 * len(lights) if heldout == "centroids" else (len(heldout) if isinstance(heldout, LightSet) else 0)
+    images = 3 * (len(lights) + held)  # full, specular and diffuse per light; at most 2n-4 triangle centroids
+    raw = images * settings.width * settings.height * (3 if settings.colour else 1) * (2 if half else 4)
+    needed = raw / RENDER_COMPRESSION_ALLOWANCE
+    parent = out.parent if str(out.parent) else Path(".")
+    free = shutil.disk_usage(parent).free
+    if needed > free:
+        raise InputError(
+            f"rendering {images} images of {settings.width}x{settings.height} into {out} needs about {bytes_text(needed)} "
+            f"but the disk has {bytes_text(free)} free; choose fewer lights, a smaller --size, --half, or another disk"
+        )
+    if not quiet and images * settings.width * settings.height > 2e8:
+        print(f"render: {images} images of {settings.width}x{settings.height} (about {bytes_text(needed)}); this takes a while",
+              file=sys.stderr)
+
+
 def _run_info(args) -> int:
     from ..io.dataset import ReflectanceField
 
-    field = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
+    field = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
+                                  max_pixels=pixel_limit(args))
     summary = field.summary()
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -146,7 +200,8 @@ def _run_sheet(args) -> int:
 
     if args.output.suffix.lower() != ".png":
         raise InputError(f"contact sheet '{args.output}' must be a .png file")
-    field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+    check_output_file(args.output, overwrite=args.overwrite)
+    field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
     path = save_contact_sheet(field, args.output, count=args.count, thumb_height=args.thumb_height)
     print(f"wrote {path}")
     return 0

@@ -9,15 +9,18 @@ import time
 from pathlib import Path
 
 from ..model.errors import InputError
-from .args import Command, check_device, check_output_file, parse_size
+from .args import Command, add_pixel_limit_option, check_device, check_output_file, in_range, pixel_limit, size_option
 
 __all__ = ["COMMANDS"]
+
+MIN_EXPOSURE, MAX_EXPOSURE = 1e-12, 1e12
+"""The range ``--exposure`` takes: wide enough for any radiance units, far from float32 overflow."""
 
 
 def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, nargs="?", help="dataset folder (a .lp light file and its images)")
     parser.add_argument("-o", "--output", type=Path, help="highlight-field file to write (e.g. donut.whf); required")
-    parser.add_argument("--size", help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
+    parser.add_argument("--size", type=size_option("working size"), help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
     parser.add_argument(
             "--set",
             dest="overrides",
@@ -31,15 +34,30 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="lambert", help="diffuse part to store: per-pixel Lambertian fit (default), that plus the diffuse images, or none")
     parser.add_argument(
             "--exposure",
+            type=_exposure_option,
             default="1",
             help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
             "display white is 1, so dim photographs want 'auto' (default 1: rendered data)",
         )
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
-    parser.add_argument("--workers", type=int, help="CPU threads for the fitting stages (default: one per core)")
+    parser.add_argument("--workers", type=in_range(int, 1, 4096), help="CPU threads for the fitting stages, 1..4096 (default: one per core)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--report", type=Path, help="also write the fit report as JSON to this file")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing output files (the field and the report)")
+    add_pixel_limit_option(parser)
+
+
+def _exposure_option(text: str):
+    """``--exposure``: 'auto' or a positive finite factor, checked at parse time."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is neither 'auto' nor a number; use auto or a factor > 0, e.g. 4") from None
+    if not (MIN_EXPOSURE <= value <= MAX_EXPOSURE):
+        raise argparse.ArgumentTypeError(f"{text} is out of range; use auto or a factor in {MIN_EXPOSURE:g}..{MAX_EXPOSURE:g}, e.g. 4")
+    return value
 
 
 def _run_fit(args) -> int:
@@ -56,17 +74,15 @@ def _run_fit(args) -> int:
     if args.report is not None:
         if Path(args.report).resolve() == output.resolve():
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
-        check_output_file(Path(args.report), overwrite=True)
-    size = parse_size(args.size) if args.size else None
-    if args.workers is not None and args.workers < 1:
-        raise InputError(f"--workers must be at least 1, got {args.workers}")
+        check_output_file(Path(args.report), overwrite=args.overwrite)
+    size = args.size
     device = check_device(args.device)
     from ..fit.pipeline import fit_field
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import save_field
 
     started = time.perf_counter()
-    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
     load_seconds = time.perf_counter() - started
     log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     field = fit_field(
@@ -76,9 +92,9 @@ def _run_fit(args) -> int:
     written = save_field(field, output)
     field.report["file_bytes"] = written
     if args.report is not None:
-        from ..io.images import atomic_target
+        from ..io.atomic import atomic_file
 
-        with atomic_target(Path(args.report)) as temporary:
+        with atomic_file(Path(args.report), overwrite=args.overwrite) as temporary:
             temporary.write_text(json.dumps(field.report, indent=2))
     _print_fit_summary(field, output, written, time.perf_counter() - started)
     return 0

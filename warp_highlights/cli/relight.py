@@ -14,14 +14,22 @@ from ..io.images import IMAGE_EXTENSIONS
 from ..model.errors import InputError
 from .args import (
     Command,
+    add_pixel_limit_option,
     check_device,
     check_output_file,
+    check_output_folder,
+    in_range,
     parse_direction,
-    parse_size,
-    parse_triple,
+    pixel_limit,
+    size_option,
+    triple_option,
 )
 
 __all__ = ["COMMANDS", "print_evaluation_table", "write_evaluation"]
+
+RELIT_BYTES_PER_PIXEL = 48
+"""Memory one relit pixel takes at most, for the up-front check: the full image (3 float32) and the
+highlights (1 float32) on the device and again on the host, plus the 8-bit or EXR encoding."""
 
 
 
@@ -38,8 +46,8 @@ def _animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file")
     parser.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
     parser.add_argument("-o", "--output", type=Path, required=True, help=".gif, .mp4 (needs ffmpeg) or a folder of frames")
-    parser.add_argument("--frames", type=int, default=96, help="number of frames (default 96)")
-    parser.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
+    parser.add_argument("--frames", type=in_range(int, 1, 100_000), default=96, help="number of frames, 1..100000 (default 96)")
+    parser.add_argument("--fps", type=in_range(float, 0.01, 1000.0), default=24.0, help="frames per second, 0.01..1000 (default 24; GIF up to 50)")
     parser.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
     parser.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
     parser.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
@@ -54,37 +62,42 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
     parser.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
     parser.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
-    parser.add_argument("--steps", type=int, default=10, help="barycentric grid steps for that plot (default 10: 66 points)")
+    parser.add_argument("--steps", type=in_range(int, 1, 100), default=10, help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    add_pixel_limit_option(parser)
 
 
 def _add_relight_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular", help="interpolation (default circular; alpha needs --dataset)")
-    parser.add_argument("--size", help="output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--size", type=size_option("output size"), help="output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
     parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto: stored images, else the Lambertian model)")
     parser.add_argument("--specular-only", action="store_true", help="write the highlights S' alone")
-    parser.add_argument("--specular-colour", help="colour of the highlights R,G,B (default 1,1,1: white light)")
+    parser.add_argument("--specular-colour", type=triple_option("specular colour"), help="colour of the highlights R,G,B, each >= 0 (default 1,1,1: white light)")
     parser.add_argument("--dataset", type=Path, help="the dataset the field was fitted to (for --method alpha)")
     parser.add_argument("--linear", action="store_true", help="the dataset's PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    add_pixel_limit_option(parser)
 
 
 def _make_relighter(args, field, *, methods: tuple[str, ...]):
     """A Relighter for the command's options; loads the dataset when a method needs it."""
+    from ..io.memory import check_memory
     from ..relight.relighter import Relighter, alpha_inputs
 
     device = check_device(args.device)
-    size = parse_size(args.size) if args.size else None
-    colour = parse_triple(args.specular_colour, "specular colour") if args.specular_colour else (1.0, 1.0, 1.0)
+    size = args.size
+    width, height = size or (field.width, field.height)
+    check_memory(RELIT_BYTES_PER_PIXEL * width * height, f"relighting at {width}x{height}", "use a smaller --size")
+    colour = args.specular_colour or (1.0, 1.0, 1.0)
     alpha_specular = alpha_images = None
     if "alpha" in methods:
         if args.dataset is None:
             raise InputError("--method alpha blends the captured images: pass --dataset DATASET (the folder the field was fitted to)")
         from ..io.dataset import ReflectanceField
 
-        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet)
+        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
         alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
     exposure = field.exposure
     return Relighter(
@@ -118,43 +131,55 @@ def _run_relight(args) -> int:
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
     if several:
-        from ..io.images import check_replaceable_folder
-
-        check_replaceable_folder(output, overwrite=args.overwrite, owned=_relit_folder_entry)
+        check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry)
     else:
         check_output_file(output, overwrite=args.overwrite)
     field = load_field(args.field)
     relighter = _make_relighter(args, field, methods=(args.method,))
     exposure = field.exposure
     started = time.perf_counter()
-    relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
-    seconds = time.perf_counter() - started
     if not several:
+        relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
+        seconds = time.perf_counter() - started
         write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure))
         clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
         print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
         return 0
-    _write_image_folder(output, relit, np.asarray(directions), specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite)
+    _write_image_folder(output, relighter, np.asarray(directions, dtype=np.float64), method=args.method,
+                        specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite, progress=not args.quiet)
+    seconds = time.perf_counter() - started
     print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, {args.method}, "
-          f"{1000 * seconds / len(directions):.2f} ms per light)")
+          f"{1000 * seconds / len(directions):.2f} ms per light with writing)")
     return 0
 
 
-def _relit_folder_entry(name: str) -> bool:
-    return name == "lights.lp" or (name.startswith("relit_") and name.endswith(".exr"))
+def _relit_folder_entry(relative: str) -> bool:
+    """A file of a relit-images folder (how one written before manifests existed is recognised)."""
+    return relative == "lights.lp" or (relative.startswith("relit_") and relative.endswith(".exr") and "/" not in relative)
 
 
-def _write_image_folder(folder: Path, relit, directions: np.ndarray, *, specular_only: bool, exposure: float, overwrite: bool) -> None:
-    """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself."""
-    from ..io.images import atomic_folder, write_image
+def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, method: str, specular_only: bool, exposure: float,
+                        overwrite: bool, progress: bool) -> None:
+    """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself. Relit in
+    batches of ``relighter.max_batch``, so memory stays bounded whatever the number of lights."""
+    from tqdm import tqdm
+
+    from ..io.atomic import atomic_folder
+    from ..io.images import write_image
     from ..io.lightfile import write_lp
     from ..model.lights import LightSet
 
-    with atomic_folder(folder, overwrite=overwrite, owned=_relit_folder_entry) as temporary:
+    with atomic_folder(folder, kind="relit images", overwrite=overwrite, legacy=_relit_folder_entry) as temporary, tqdm(
+        total=len(directions), unit="light", desc="relight", disable=not progress, leave=False
+    ) as bar:
         digits = max(4, len(str(len(directions) - 1)))
         names = [f"relit_{i:0{digits}d}.exr" for i in range(len(directions))]
-        for i, name in enumerate(names):
-            write_image(temporary / name, _output_image(relit, i, specular_only=specular_only, exposure=exposure))
+        for start in range(0, len(directions), relighter.max_batch):
+            chunk = directions[start : start + relighter.max_batch]
+            relit = relighter.relight(chunk, method=method, full=not specular_only)
+            for i in range(len(chunk)):
+                write_image(temporary / names[start + i], _output_image(relit, i, specular_only=specular_only, exposure=exposure))
+            bar.update(len(chunk))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         write_lp(LightSet(unit), temporary / "lights.lp", filenames=names)
 
@@ -173,8 +198,6 @@ def _run_animate(args) -> int:
     from ..io.fieldfile import load_field
     from ..view.animation import check_animation_output, parse_light_path, write_animation
 
-    if args.frames < 1:
-        raise InputError(f"--frames must be at least 1, got {args.frames}")
     frames_format = "exr" if args.exr else "png"
     check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
@@ -205,7 +228,6 @@ def _run_animate(args) -> int:
 def _run_evaluate(args) -> int:
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import load_field
-    from ..io.images import check_replaceable_folder
     from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)
@@ -216,14 +238,13 @@ def _run_evaluate(args) -> int:
         except ValueError:
             raise InputError(f"--triangle '{args.triangle}' must be a face index, 'auto' or 'none'") from None
     output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
-    check_replaceable_folder(output, overwrite=args.overwrite, owned=evaluation_folder_entry)
-    if args.steps < 1:
-        raise InputError(f"--steps must be at least 1, got {args.steps}")
+    check_output_folder(output, overwrite=args.overwrite, legacy=evaluation_folder_entry)
     device = check_device(args.device)
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
-    dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet)
+    dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
+                                    max_pixels=pixel_limit(args))
     say = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
                                 barycentric_steps=args.steps, progress=say)
@@ -236,17 +257,18 @@ def _run_evaluate(args) -> int:
     return 0
 
 
-def evaluation_folder_entry(name: str) -> bool:
-    """What ``write_evaluation`` writes: report.json and PNG plots."""
-    return name == "report.json" or name.endswith(".png")
+def evaluation_folder_entry(relative: str) -> bool:
+    """What ``write_evaluation`` writes: report.json and PNG plots (how a folder written before
+    manifests existed is recognised)."""
+    return "/" not in relative and (relative == "report.json" or relative.endswith(".png"))
 
 
 def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool, title: str) -> list[str]:
     """report.json and the plots into ``folder`` (written beside it, then swapped in); returns the file names."""
-    from ..io.images import atomic_folder
+    from ..io.atomic import atomic_folder
     from ..view import plots
 
-    with atomic_folder(folder, overwrite=overwrite, owned=evaluation_folder_entry) as temporary:
+    with atomic_folder(folder, kind="evaluation", overwrite=overwrite, legacy=evaluation_folder_entry) as temporary:
         for kind, scores in (("specular", evaluation.specular_psnr), ("full", evaluation.full_psnr)):
             if scores:
                 excluded = max(int(np.isnan(v).sum()) for v in scores.values())

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from ..model.errors import InputError
-from .args import Command, check_device, check_output_file, parse_direction, parse_size
+from .args import Command, check_device, check_output_file, parse_direction, size_option
 
 __all__ = ["COMMANDS"]
 
@@ -18,11 +18,11 @@ def _view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("--light", metavar="X,Y,Z", help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
     parser.add_argument("--method", choices=["circular", "straight"], default="circular", help="interpolation (default circular)")
-    parser.add_argument("--size", help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--size", type=size_option("relit image size"), help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
     parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto)")
     parser.add_argument("--specular-only", action="store_true", help="show the highlights S' alone")
     parser.add_argument("--panels", default=",".join(PANELS), help=f"panels left to right, comma-separated (default {','.join(PANELS)})")
-    parser.add_argument("--window-size", help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
+    parser.add_argument("--window-size", type=size_option("window size"), help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
     parser.add_argument("--screenshot", type=Path, metavar="PNG", help="render off screen into this PNG and exit")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing screenshot")
     parser.add_argument("--device", default=None, help="Warp device for relighting: cpu, cuda, cuda:N (default: CUDA when present)")
@@ -34,8 +34,7 @@ def _run_view(args) -> int:
     from ..view.viz import has_display
 
     direction = parse_direction(args.light) if args.light else None
-    size = parse_size(args.size) if args.size else None
-    window_size = parse_size(args.window_size, "window size") if args.window_size else None
+    size, window_size = args.size, args.window_size
     panels = check_panels(p.strip() for p in args.panels.split(",") if p.strip())
     screenshot = args.screenshot
     if screenshot is not None:

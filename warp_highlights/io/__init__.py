@@ -1,4 +1,5 @@
-"""Files in and out: light files, images, dataset folders, resampling, the highlight field's file.
+"""Files in and out: light files, images, dataset folders, resampling, the highlight field's file, and
+the atomic writing every output goes through.
 
 Imports the model only (ARCHITECTURE.md).
 
@@ -7,6 +8,8 @@ Imports the model only (ARCHITECTURE.md).
 - ``read_image``: one EXR (linear), PNG or JPEG (sRGB, decoded to linear) file as float32.
 - ``write_image``: the same formats out, atomically; refuses non-finite images.
 - ``image_size``: an image file's size from its header, without decoding it.
+- ``image_shape``: the array shape ``read_image`` would return, from the header alone.
+- ``DEFAULT_MAX_PIXELS``: the largest image the readers decode unless told otherwise (160 megapixels).
 - ``IMAGE_EXTENSIONS``: the file endings ``read_image`` and ``write_image`` take.
 - ``srgb_to_linear``: sRGB-encoded values in [0, 1] -> linear radiance.
 - ``linear_to_srgb``: linear radiance -> sRGB-encoded values in [0, 1].
@@ -21,6 +24,8 @@ Imports the model only (ARCHITECTURE.md).
 - ``field_size_report``: compressed bytes per part of a field's file.
 - ``FORMAT_VERSION``: the field-file format version ``save_field`` writes.
 - ``MAGIC``: the string that marks a field file's header.
+- ``atomic_file``: write a file under a temporary name, renamed into place when complete.
+- ``atomic_folder``: build a folder beside its target, swapped in when complete; replaces only ours.
 """
 
 from .._api import lazy_exports
@@ -31,13 +36,14 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["read_lp", "write_lp"], "lightfile"),
         **dict.fromkeys(
             [
-                "read_image", "write_image", "image_size", "IMAGE_EXTENSIONS", "srgb_to_linear",
-                "linear_to_srgb", "display_rgb8"
+                "read_image", "write_image", "image_size", "image_shape", "DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS",
+                "srgb_to_linear", "linear_to_srgb", "display_rgb8"
             ],
             "images",
         ),
         **dict.fromkeys(["ReflectanceField", "DatasetWriter"], "dataset"),
         **dict.fromkeys(["resize_stack", "resample_image", "working_size"], "resample"),
         **dict.fromkeys(["save_field", "load_field", "field_size_report", "FORMAT_VERSION", "MAGIC"], "fieldfile"),
+        **dict.fromkeys(["atomic_file", "atomic_folder"], "atomic"),
     },
 )

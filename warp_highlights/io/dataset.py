@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import uuid
+import re
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -20,10 +19,12 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from .images import read_image, write_image
+from .atomic import FolderTransaction, deferred_signals
+from .images import DEFAULT_MAX_PIXELS, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
+from .memory import available_memory, bytes_text
 
-__all__ = ["DatasetWriter", "ReflectanceField"]
+__all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
 _COMPONENTS = ("specular", "diffuse")
 _GROUP_FOLDERS = {"lights": ("images", ""), "heldout": ("heldout", "h")}  # group -> (folder, stem prefix)
@@ -102,7 +103,10 @@ class ReflectanceField:
         from ..model.triangulation import SphericalTriangulation
 
         directions = self.lights.directions
-        triangulation = SphericalTriangulation(directions)
+        try:
+            triangulation = SphericalTriangulation(directions)
+        except InputError as error:
+            raise InputError(f"{self.root}: {error}" if self.root is not None else str(error)) from None
         elevation = np.degrees(np.arcsin(np.clip(directions[:, 2], -1.0, 1.0)))
         summary = {
             "folder": str(self.root) if self.root is not None else None,
@@ -131,8 +135,13 @@ class ReflectanceField:
         linear: bool = False,
         replace_nonfinite: bool = False,
         progress: bool = True,
+        max_pixels: int | None = DEFAULT_MAX_PIXELS,
     ) -> ReflectanceField:
         """Load a dataset folder into memory (one preallocated float32 array per image stack).
+
+        Before any pixel is decoded, every image's header is read: sizes and channel counts must agree,
+        no image may exceed ``max_pixels``, and the float32 stacks must fit in the memory available
+        (see ``_check_memory``). A capture whose images are all black, or all white (PNG/JPEG), is refused.
 
         Args:
             folder: Dataset folder with ``lights.lp`` (or exactly one other ``.lp``) and its images.
@@ -141,11 +150,14 @@ class ReflectanceField:
             linear: PNG/JPEG values are linear already; skip the sRGB decode.
             replace_nonfinite: Replace NaN/inf pixels by 0 (with a warning) instead of failing.
             progress: Show a progress bar on stderr (only when it is a terminal).
+            max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit
+                (see ``warp_highlights.io.images.DEFAULT_MAX_PIXELS``).
 
         Raises:
             InputError: One line on any bad input: missing folder, image or light file, several
-                ``.lp`` files, images of different sizes or channel counts, a partial ground-truth
-                set, non-finite pixels, a bad mask or ``meta.json``.
+                ``.lp`` files, an image listed twice, images of different sizes or channel counts,
+                an image over ``max_pixels``, not enough memory, a partial ground-truth set,
+                non-finite pixels, all images black or all white, a bad mask or ``meta.json``.
         """
         from tqdm import tqdm
 
@@ -153,14 +165,17 @@ class ReflectanceField:
         main = _ImageGroup.plan(_find_light_file(folder))
         extra = _heldout_group(folder, heldout)
         groups = [main] if extra is None else [main, extra]
+        shape = _planned_shape(groups, max_pixels)
+        _check_memory(folder, sum(g.file_count for g in groups), shape)
         with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                   disable=None if progress else True, leave=False) as bar:
-            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar)
+            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels)
             fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         reader.report_nonfinite()
+        _check_not_blank(main, fields[0].images)
         result = fields[0]
         result.heldout = fields[1] if extra is not None else None
-        result.mask = _read_mask(folder / "mask.png", (result.height, result.width))
+        result.mask = _read_mask(folder / "mask.png", (result.height, result.width), max_pixels)
         result.meta = _read_meta(folder / "meta.json")
         return result
 
@@ -206,19 +221,20 @@ class DatasetWriter:
 
         Args:
             folder: Final dataset folder.
-            overwrite: Allow replacing an existing non-empty folder (at commit).
+            overwrite: Allow replacing an existing dataset folder (at commit): one this project wrote
+                (its manifest lists every file in it), never a folder holding other files.
             half: Store 16-bit half floats instead of float32.
 
         Raises:
-            InputError: ``folder`` is a file, or exists non-empty without ``overwrite``.
+            InputError: ``folder`` is a file, exists non-empty without ``overwrite``, holds files
+                this project did not write, or cannot be written.
         """
         self.folder = Path(folder)
         self.overwrite = overwrite
         self.half = half
-        _check_target(self.folder, overwrite=overwrite)
         self.folder.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.folder.parent / f".{self.folder.name}.partial-{uuid.uuid4().hex[:12]}"
-        self._tmp.mkdir()
+        self._transaction = FolderTransaction(self.folder, kind="dataset", overwrite=overwrite, legacy=dataset_folder_entry)
+        self._tmp = self._transaction.temporary
         self._written = {group: {kind: set() for kind in ("full", *_COMPONENTS)} for group in _GROUP_FOLDERS}
         self._shape: tuple[int, ...] | None = None
         self._state = "open"
@@ -248,9 +264,13 @@ class DatasetWriter:
             for offset, image in enumerate(stack)
         ]
         # EXR compression runs in C++ without the GIL: a few threads keep every core and the disk busy.
-        with ThreadPoolExecutor(max_workers=min(len(jobs), 2 * (os.cpu_count() or 1)) or 1) as pool:
+        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * (os.cpu_count() or 1)) or 1)
+        try:
             for future in [pool.submit(write_image, path, image, half=self.half) for path, image in jobs]:
                 future.result()
+        finally:  # on an error or a signal: no thread may still write once the folder is removed
+            with deferred_signals():
+                pool.shutdown(wait=True, cancel_futures=True)
         for kind, stack in stacks.items():
             self._written[group][kind].update(range(start_index, start_index + len(stack)))
 
@@ -289,25 +309,14 @@ class DatasetWriter:
             The dataset folder.
         """
         self._require_state("finished", "commit")
-        _check_target(self.folder, overwrite=self.overwrite)
-        if self.folder.exists():
-            old = self.folder.parent / f".{self.folder.name}.old-{uuid.uuid4().hex[:12]}"
-            os.rename(self.folder, old)
-            try:
-                os.rename(self._tmp, self.folder)
-            except OSError:
-                os.rename(old, self.folder)
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(self._tmp, self.folder)
+        self._transaction.commit()
         self._state = "committed"
         return self.folder
 
     def abort(self) -> None:
         """Remove the temporary folder; the target folder is left as it was. Safe to call twice."""
         if self._state != "committed":
-            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._transaction.abort()
             self._state = "aborted"
 
     def __enter__(self) -> DatasetWriter:
@@ -377,14 +386,82 @@ class _ImageGroup:
         return sum(len(paths) for paths in (self.images, self.specular, self.diffuse) if paths)
 
 
+class _ShapeCheck:
+    """Checks that every image shares the first one's size and channel count."""
+
+    def __init__(self):
+        self.first: tuple[Path, tuple[int, ...]] | None = None
+
+    def check(self, path: Path, shape: tuple[int, ...]) -> None:
+        if self.first is None:
+            self.first = (path, shape)
+            return
+        first_path, first_shape = self.first
+        if shape[:2] != first_shape[:2]:
+            raise InputError(
+                f"{path}: image is {shape[1]}x{shape[0]} but the first image {first_path} is "
+                f"{first_shape[1]}x{first_shape[0]}; all images must share one size"
+            )
+        if len(shape) != len(first_shape):
+            raise InputError(
+                f"{path}: image has {_channel_count(shape)} channel(s) but the first image {first_path} "
+                f"has {_channel_count(first_shape)}; use all grayscale or all RGB"
+            )
+
+
+def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[int, ...]:
+    """The common image shape, ``(H, W)`` or ``(H, W, 3)``, from every image's header (no pixel decoded)."""
+    shapes = _ShapeCheck()
+    for group in groups:
+        for paths in (group.images, group.specular, group.diffuse):
+            for path in paths or ():
+                shapes.check(path, image_shape(path, max_pixels=max_pixels))
+    return shapes.first[1]
+
+
+def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...]) -> None:
+    """Refuse a load whose float32 stacks, plus room to decode two images, exceed the available memory.
+
+    The estimate is ``(file_count + 2) x H x W x channels x 4`` bytes; nothing is refused when the
+    available memory is unknown.
+    """
+    needed = (file_count + 2) * int(np.prod(shape)) * 4
+    available = available_memory()
+    if available is not None and needed > available:
+        size = "x".join(str(n) for n in (shape[1], shape[0], *shape[2:]))
+        raise InputError(
+            f"{folder}: loading needs about {bytes_text(needed)} of memory ({file_count} images of {size} "
+            f"as float32) but {bytes_text(available)} is available; free memory, use a machine with more, "
+            "or downscale the images"
+        )
+
+
+def _check_not_blank(group: _ImageGroup, images: np.ndarray) -> None:
+    """Refuse a capture whose images are all black, or all at the white level 1 (PNG and JPEG only:
+    an EXR's values may lie above 1 everywhere); a few black images among good ones are fine."""
+    count = len(images)
+    if float(images.max()) <= 0.0:
+        raise InputError(
+            f"{group.light_file}: all {count} images are entirely black (every pixel 0); the capture holds "
+            "no light: check the exposure, the lens cap and the file names"
+        )
+    integer_coded = all(path.suffix.lower() != ".exr" for path in group.images)
+    if integer_coded and float(images.min()) >= 1.0:
+        raise InputError(
+            f"{group.light_file}: all {count} images are entirely white (every pixel at the white level); "
+            "the capture is over-exposed: shoot again with a shorter exposure or a dimmer light"
+        )
+
+
 class _StackReader:
     """Reads image stacks into preallocated float32 arrays, checking size, channels and finiteness."""
 
-    def __init__(self, *, linear: bool, replace_nonfinite: bool, bar):
+    def __init__(self, *, linear: bool, replace_nonfinite: bool, bar, max_pixels: int | None = DEFAULT_MAX_PIXELS):
         self.linear = linear
         self.replace_nonfinite = replace_nonfinite
         self.bar = bar
-        self.first: tuple[Path, tuple[int, ...]] | None = None
+        self.max_pixels = max_pixels
+        self.shapes = _ShapeCheck()
         self.nonfinite_count = 0
         self.nonfinite_file: Path | None = None
 
@@ -397,8 +474,8 @@ class _StackReader:
     def read_stack(self, paths: list[Path]) -> np.ndarray:
         stack = None
         for index, path in enumerate(paths):
-            image = read_image(path, linear=self.linear)
-            self._check_shape(path, image)
+            image = read_image(path, linear=self.linear, max_pixels=self.max_pixels)
+            self.shapes.check(path, image.shape)
             self._check_finite(path, image)
             if stack is None:
                 stack = np.empty((len(paths), *image.shape), dtype=np.float32)
@@ -414,22 +491,6 @@ class _StackReader:
         if not self.replace_nonfinite:
             raise InputError(f"{what}; fix the images or pass replace_nonfinite=True to replace them by 0")
         warnings.warn(f"{what}; replaced by 0", stacklevel=3)
-
-    def _check_shape(self, path: Path, image: np.ndarray) -> None:
-        if self.first is None:
-            self.first = (path, image.shape)
-            return
-        first_path, first_shape = self.first
-        if image.shape[:2] != first_shape[:2]:
-            raise InputError(
-                f"{path}: image is {image.shape[1]}x{image.shape[0]} but the first image {first_path} is "
-                f"{first_shape[1]}x{first_shape[0]}; all images must share one size"
-            )
-        if image.ndim != len(first_shape):
-            raise InputError(
-                f"{path}: image has {_channel_count(image.shape)} channel(s) but the first image {first_path} "
-                f"has {_channel_count(first_shape)}; use all grayscale or all RGB"
-            )
 
     def _check_finite(self, path: Path, image: np.ndarray) -> None:
         bad = ~np.isfinite(image)
@@ -488,10 +549,10 @@ def _component_paths(folder: Path, kind: str, images: list[Path]) -> list[Path] 
     return paths
 
 
-def _read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray | None:
+def _read_mask(path: Path, shape: tuple[int, int], max_pixels: int | None = DEFAULT_MAX_PIXELS) -> np.ndarray | None:
     if not path.is_file():
         return None
-    mask = read_image(path, linear=True)
+    mask = read_image(path, linear=True, max_pixels=max_pixels)
     if mask.ndim == 3:
         mask = mask.mean(axis=2)
     if mask.shape != shape:
@@ -510,6 +571,8 @@ def _read_meta(path: Path) -> dict:
         raise InputError(f"{path}:{exc.lineno}: invalid JSON ({exc.msg})") from exc
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not UTF-8 text ({exc.reason})") from exc
+    except RecursionError:
+        raise InputError(f"{path}: JSON nested too deeply to read; it is damaged or not a dataset's meta.json") from None
     if not isinstance(meta, dict):
         raise InputError(f"{path}: expected a JSON object {{...}}, got {type(meta).__name__}")
     return meta
@@ -524,11 +587,14 @@ def _image_name(group: str, kind: str, index: int) -> str:
     return f"{folder if kind == 'full' else kind}/{prefix}{index:04d}.exr"
 
 
-def _check_target(folder: Path, *, overwrite: bool) -> None:
-    if folder.exists() and not folder.is_dir():
-        raise InputError(f"{folder} exists and is not a folder; choose another folder")
-    if folder.is_dir() and not overwrite and any(folder.iterdir()):
-        raise InputError(f"{folder} exists; pass --overwrite or choose another folder")
+_DATASET_FILES = frozenset({"lights.lp", "heldout.lp", "mask.png", "meta.json"})
+_DATASET_IMAGE = re.compile(r"^(images/\d{4,}|heldout/h\d{4,}|(specular|diffuse)/h?\d{4,})\.exr$")
+
+
+def dataset_folder_entry(relative: str) -> bool:
+    """Whether ``relative`` (a path inside the folder, ``images/0007.exr``) is a file a dataset folder
+    holds: a folder written before manifests existed is replaceable when every file is one of these."""
+    return relative in _DATASET_FILES or bool(_DATASET_IMAGE.match(relative))
 
 
 def _json_default(value):

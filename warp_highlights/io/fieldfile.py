@@ -43,7 +43,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import uuid
 import zipfile
 from pathlib import Path
 
@@ -55,6 +54,7 @@ from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
 from ..model.lights import LightSet
 from ..model.triangulation import SphericalTriangulation
+from .atomic import atomic_file, describe_os_error
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
 
@@ -109,25 +109,12 @@ def save_field(field: HighlightField, path, *, lambert_half: bool = True) -> int
     path = Path(path)
     if path.is_dir():
         raise InputError(f"{path} is a folder; give a file name such as field.whf")
-    folder = path.parent
-    tmp = folder / f".{path.name}.{uuid.uuid4().hex[:12]}.tmp"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "xb") as stream:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_file(path, checked=False, durable=True) as tmp, open(tmp, "xb") as stream:
             sizes = _write_archive(field, stream, lambert_half=lambert_half)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
     except OSError as exc:
-        raise InputError(
-            f"{path}: cannot write the field file ({exc.strerror or exc})"
-        ) from None
-    finally:
-        try:
-            tmp.unlink(missing_ok=True)
-        except OSError:
-            pass
-    _fsync_folder(folder)
+        raise InputError(describe_os_error(exc, path=path)) from None
     field.file_sizes, field.file_path = sizes, path
     return sizes["total"]
 
@@ -141,6 +128,8 @@ def load_field(path) -> HighlightField:
             shape, out-of-range index, non-finite value, inconsistent counts).
     """
     path = Path(path)
+    if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or a device would block or never end
+        raise InputError(f"{path} is not a regular file (a pipe or a device?); give a field file written by warp-highlights fit")
     try:
         stream = open(path, "rb")  # noqa: SIM115 (closed below; open errors reported apart from read errors)
     except FileNotFoundError:
@@ -312,22 +301,6 @@ class _CountingSink:
         pass
 
 
-def _fsync_folder(folder: Path) -> None:
-    """Make the rename durable where the platform allows (POSIX); best effort."""
-    if os.name != "posix":
-        return
-    try:
-        descriptor = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
-
-
 # --- reading ---------------------------------------------------------------------------------------
 
 
@@ -397,8 +370,8 @@ def _read_header(path: Path, archive: zipfile.ZipFile) -> dict:
         raw = entry.read(_MAX_HEADER_BYTES + 1)
     try:
         header = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise _corrupt(path, f"{_HEADER} is not valid JSON ({exc})") from None
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # RecursionError: absurdly deep nesting
+        raise _corrupt(path, f"{_HEADER} is not valid JSON ({type(exc).__name__})") from None
     if not isinstance(header, dict) or header.get("magic") != MAGIC:
         raise _not_a_field(path, f"{_HEADER} lacks the magic string {MAGIC!r}")
     version = header.get("format_version")

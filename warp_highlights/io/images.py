@@ -5,6 +5,10 @@ values are linear radiance (EXR as stored; PNG and JPEG decoded with the sRGB tr
 the caller says the file holds linear values). Every write goes to a temporary file in the target
 folder, then replaces the target, so a failed write never leaves half a file.
 
+The readers refuse, in one line naming the file, an image over a pixel budget (``max_pixels``,
+default :data:`DEFAULT_MAX_PIXELS`), checked from the header before any pixel is decoded, and a damaged
+or truncated file (never a grey-filled guess).
+
 Pillow and OpenEXR are imported inside the functions that use them. Pillow cannot hold 16-bit colour
 images (it reads a 16-bit RGB PNG as 8-bit and cannot write one), so 16-bit colour PNGs go through
 VTK's PNG codec instead.
@@ -13,26 +17,31 @@ VTK's PNG codec instead.
 from __future__ import annotations
 
 import contextlib
+import errno
+import math
 import os
-import shutil
 import struct
-import uuid
+import sys
+import threading
+import warnings
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from ..model.errors import InputError
+from .atomic import atomic_file
 
 __all__ = [
+    "DEFAULT_MAX_PIXELS",
     "IMAGE_EXTENSIONS",
-    "atomic_folder",
-    "check_replaceable_folder",
     "display_rgb8",
+    "image_shape",
     "image_size",
     "linear_to_srgb",
+    "quiet_native_stderr",
     "read_image",
     "srgb_to_linear",
     "write_image",
@@ -45,6 +54,18 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PIL_GRAY16_MODES = {"I;16", "I;16B", "I;16L", "I;16N", "I"}
 _PIL_GRAY8_MODES = {"1", "L", "LA", "La"}
 _PIL_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)  # what Pillow raises on bad files
+_PIL_FORMATS = ("PNG", "JPEG")  # what Pillow may take a file for, whatever its extension says
+_READ_LOCK = threading.RLock()  # reads set process-wide state: Pillow's limits, file descriptor 2
+
+DEFAULT_MAX_PIXELS = 160_000_000
+"""Most pixels (width x height) an image may have before the readers refuse it: 160 megapixels.
+
+The largest single-shot camera backs used for RTI and cultural-heritage capture are 150 MP (Phase
+One IQ4 150MP: 14204 x 10652 = 151.3 MP); 160 MP admits them with a margin. An image at the limit
+takes 1.9 GB as float32 RGB once read. A decompression bomb (a few kB of PNG claiming 20000 x 20000 = 400 MP,
+4.8 GB as float32 RGB) is refused from its header. ``max_pixels=None`` lifts the limit; the command
+line raises it with ``--max-megapixels N``.
+"""
 
 
 def srgb_to_linear(x) -> np.ndarray:
@@ -91,31 +112,31 @@ def display_rgb8(image) -> np.ndarray:
     return np.round(encoded * 255.0).astype(np.uint8)
 
 
-def read_image(path, *, linear: bool = False) -> np.ndarray:
+def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """Read an image file as linear float32 values.
 
     Args:
         path: An ``.exr``, ``.png`` (8 or 16 bits per channel) or ``.jpg``/``.jpeg`` file.
         linear: PNG/JPEG only: the stored values are already linear; scale to [0, 1] but skip the
             sRGB decode.
+        max_pixels: Refuse an image of more pixels (width x height) than this, seen in its header
+            before any pixel is decoded; None for no limit.
 
     Returns:
         float32 array ``(H, W)`` for grayscale, ``(H, W, 3)`` for colour. Alpha is dropped; palette
         images are expanded to RGB.
 
     Raises:
-        InputError: Missing file, unsupported extension, or a file that cannot be decoded.
+        InputError: Missing file, unsupported extension, more than ``max_pixels`` pixels, or a file
+            that cannot be decoded (damaged or truncated).
     """
-    path = Path(path)
-    suffix = _checked_suffix(path)
-    if not path.is_file():
-        raise InputError(f"{path}: image file not found")
+    path, suffix = _existing_image(path)
     if suffix == ".exr":
-        return _read_exr(path)
+        return _read_exr(path, max_pixels)
     if suffix == ".png" and _png_is_16bit_colour(path):
-        levels = _read_png16_colour(path)
+        levels = _read_png16_colour(path, max_pixels)
     else:
-        levels = _read_with_pillow(path)
+        levels = _read_with_pillow(path, max_pixels)
     return _decode_levels(levels, linear=linear)
 
 
@@ -141,7 +162,7 @@ def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool 
     if bits not in (8, 16) or (bits == 16 and suffix != ".png"):
         raise InputError(f"{path}: bits={bits} is not possible; PNG takes 8 or 16, JPEG only 8, EXR none")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_target(path) as tmp:
+    with atomic_file(path, checked=False) as tmp:
         if suffix == ".exr":
             _write_exr(tmp, image, half=half)
         elif bits == 16 and image.ndim == 3:
@@ -150,97 +171,44 @@ def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool 
             _write_with_pillow(tmp, suffix, _encode_levels(image, 2**bits - 1, linear=linear))
 
 
-def image_size(path) -> tuple[int, int]:
+def image_size(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[int, int]:
     """Size of an image file from its header, without decoding the pixels.
 
     Args:
         path: An ``.exr``, ``.png``, ``.jpg`` or ``.jpeg`` file.
+        max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit.
 
     Returns:
         ``(width, height)`` in pixels.
 
     Raises:
-        InputError: Missing file, unsupported extension, or an unreadable header.
+        InputError: Missing file, unsupported extension, an unreadable header, or more than
+            ``max_pixels`` pixels.
     """
-    path = Path(path)
-    suffix = _checked_suffix(path)
-    if not path.is_file():
-        raise InputError(f"{path}: image file not found")
+    path, suffix = _existing_image(path)
+    header = _exr_header if suffix == ".exr" else _pillow_header
+    width, height, _ = header(path, max_pixels)
+    return width, height
+
+
+def image_shape(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[int, ...]:
+    """The shape :func:`read_image` returns, ``(H, W)`` or ``(H, W, 3)``, from the header alone.
+
+    Args:
+        path: An ``.exr``, ``.png``, ``.jpg`` or ``.jpeg`` file.
+        max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit.
+
+    Raises:
+        InputError: As :func:`image_size`, and an EXR with neither R, G, B nor Y channels.
+    """
+    path, suffix = _existing_image(path)
     if suffix == ".exr":
-        import OpenEXR
-
-        try:
-            lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
-        except Exception as exc:  # OpenEXR raises RuntimeError/ValueError/KeyError on bad files
-            raise _unreadable(path, exc) from exc
-        return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except _PIL_ERRORS as exc:
-        raise _unreadable(path, exc) from exc
-
-
-@contextlib.contextmanager
-def atomic_target(path: Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success it replaces ``path``, on error it is removed.
-
-    Shared by the writers of this package (images here, light files in ``lights``).
-    """
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def check_replaceable_folder(path: Path, *, overwrite: bool, owned: Callable[[str], bool]) -> None:
-    """Raise ``InputError`` unless ``atomic_folder`` may write ``path``.
-
-    A missing or empty folder is fine; an existing one needs ``overwrite`` and may hold only entries
-    for which ``owned(name)`` is true (what the writer itself makes), so other files are never deleted.
-    """
-    if not path.exists():
-        parent = path.parent if str(path.parent) else Path(".")
-        if not parent.is_dir():
-            raise InputError(f"folder {parent} for the output {path.name} does not exist; create it first")
-        return
-    if not path.is_dir():
-        raise InputError(f"output {path} is a file; give a folder name")
-    entries = [entry.name for entry in path.iterdir()]
-    if entries and not overwrite:
-        raise InputError(f"output folder {path} exists; pass --overwrite to replace it")
-    foreign = sorted(name for name in entries if not owned(name))
-    if foreign:
-        raise InputError(f"output folder {path} holds other files ({foreign[0]}, ...); choose another folder, it is not replaced")
-
-
-@contextlib.contextmanager
-def atomic_folder(path: Path, *, overwrite: bool, owned: Callable[[str], bool]) -> Iterator[Path]:
-    """Yield a new temporary folder beside ``path``; on success it takes ``path``'s place.
-
-    ``check_replaceable_folder`` runs first. The old folder is moved aside before the new one is
-    renamed in and removed after, so a failure at any point leaves either the old or the new output.
-    """
-    check_replaceable_folder(path, overwrite=overwrite, owned=owned)
-    tag = uuid.uuid4().hex[:12]
-    tmp = path.with_name(f".{path.name}.{tag}.tmp")
-    old = path.with_name(f".{path.name}.{tag}.old")
-    tmp.mkdir(parents=True)
-    try:
-        yield tmp
-        check_replaceable_folder(path, overwrite=overwrite, owned=owned)  # nothing appeared meanwhile
-        if path.exists():
-            os.replace(path, old)
-        os.replace(tmp, path)
-    finally:
-        for leftover in (tmp, old):
-            if leftover.exists():
-                shutil.rmtree(leftover)
+        width, height, names = _exr_header(path, max_pixels)
+        colour = len(_exr_channels_to_keep(path, names)) == 3
+    else:
+        width, height, mode = _pillow_header(path, max_pixels)
+        colour = mode not in _PIL_GRAY8_MODES | _PIL_GRAY16_MODES
+    return (height, width, 3) if colour else (height, width)
 
 
 # --- helpers -----------------------------------------------------------------------------------
@@ -274,6 +242,123 @@ def _unreadable(path: Path, exc: Exception) -> InputError:
     return InputError(f"{path}: cannot read image ({reason}); the file is damaged or not an image")
 
 
+def _existing_image(path) -> tuple[Path, str]:
+    """``(Path, lower-case suffix)`` of an existing image file of a supported type."""
+    path = Path(path)
+    suffix = _checked_suffix(path)
+    if not path.is_file():
+        raise InputError(f"{path}: image file not found")
+    return path, suffix
+
+
+def _check_pixels(path: Path, size: str, pixels: int, max_pixels: int | None) -> None:
+    """Refuse an image of ``pixels`` pixels (``size`` says how, e.g. ``'20000x20000'``) over ``max_pixels``."""
+    if max_pixels is not None and pixels > max_pixels:
+        raise InputError(
+            f"{path}: image is {size} ({pixels / 1e6:.1f} megapixels), over the limit of {max_pixels / 1e6:g} "
+            f"megapixels; if it is a genuine capture, pass --max-megapixels {math.ceil(pixels / 1e6)} "
+            "(max_pixels in Python) to read it"
+        )
+
+
+@contextlib.contextmanager
+def _pillow_image(path: Path, max_pixels: int | None) -> Iterator:
+    """Open a PNG or JPEG with Pillow under this module's limits; yields it with its pixels not decoded.
+
+    Pillow's own decompression-bomb check is off for the read (``_check_pixels`` takes its place,
+    from the header size) and truncated files are refused (``LOAD_TRUNCATED_IMAGES`` is False: a cut
+    JPEG is not filled with grey). Both are process-wide settings, so reads take a lock and restore them.
+    Errors raised inside the ``with`` block by Pillow become one-line ``InputError``s naming the file.
+    """
+    from PIL import Image, ImageFile
+
+    with _READ_LOCK:
+        saved = Image.MAX_IMAGE_PIXELS, ImageFile.LOAD_TRUNCATED_IMAGES
+        Image.MAX_IMAGE_PIXELS, ImageFile.LOAD_TRUNCATED_IMAGES = None, False
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path, formats=_PIL_FORMATS) as im:
+                    width, height = im.size
+                    _check_pixels(path, f"{width}x{height}", width * height, max_pixels)
+                    yield im
+        except InputError:
+            raise
+        except (*_PIL_ERRORS, Image.DecompressionBombError) as exc:
+            raise _unreadable(path, exc) from exc
+        finally:
+            Image.MAX_IMAGE_PIXELS, ImageFile.LOAD_TRUNCATED_IMAGES = saved
+
+
+def _pillow_header(path: Path, max_pixels: int | None) -> tuple[int, int, str]:
+    """``(width, height, Pillow mode)`` of a PNG or JPEG, from its header."""
+    with _pillow_image(path, max_pixels) as im:
+        return im.size[0], im.size[1], im.mode
+
+
+@contextlib.contextmanager
+def quiet_native_stderr() -> Iterator[None]:
+    """Discard what C/C++ code prints on file descriptor 2 meanwhile (OpenEXR prints its errors there
+    too, Warp its CUDA-driver warning).
+
+    The errors still arrive as exceptions. Python's ``sys.stderr`` is flushed first; output of other
+    threads in the same moment is lost, which is why the EXR reads hold ``_READ_LOCK``.
+    """
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no file descriptor 2 (embedded interpreters)
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            try:
+                yield
+            finally:
+                os.dup2(saved, 2)
+    finally:
+        os.close(saved)
+
+
+def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]]:
+    """``(width, height, channel names)`` of an EXR's first part, from the headers alone.
+
+    The pixel budget counts every part (OpenEXR reads them all). Deep images and empty or inverted
+    data windows are refused: none of them allocates anything.
+    """
+    import OpenEXR
+
+    try:
+        with _READ_LOCK, quiet_native_stderr():
+            headers = [part.header for part in OpenEXR.File(str(path), header_only=True).parts]
+        windows = [tuple(int(v) for corner in header["dataWindow"] for v in corner) for header in headers]
+        names = [channel.name for channel in headers[0]["channels"]]
+        deep = any(header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile) for header in headers)
+    except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, KeyError, UnicodeError, ...)
+        raise _unreadable(path, exc) from exc
+    if deep:
+        raise InputError(f"{path}: deep EXR images are not supported; save a flat (scanline or tiled) EXR")
+    sizes = [(x1 - x0 + 1, y1 - y0 + 1) for x0, y0, x1, y1 in windows]
+    if any(width < 1 or height < 1 for width, height in sizes):
+        raise _unreadable(path, ValueError(f"empty or inverted dataWindow {windows[0]}"))
+    width, height = sizes[0]
+    described = f"{width}x{height}" if len(sizes) == 1 else f"{len(sizes)} parts, the first {width}x{height}"
+    _check_pixels(path, described, sum(w * h for w, h in sizes), max_pixels)
+    return width, height, names
+
+
+def _exr_channels_to_keep(path: Path, names) -> tuple[str, ...]:
+    """The channels ``read_image`` keeps: R, G, B; else Y; else the only one."""
+    if {"R", "G", "B"} <= set(names):
+        return ("R", "G", "B")
+    if "Y" in names:
+        return ("Y",)
+    if len(names) == 1:
+        return (names[0],)
+    raise InputError(f"{path}: EXR channels {sorted(names)} are neither R,G,B nor Y; cannot pick the image")
+
+
 @lru_cache(maxsize=2)
 def _srgb_table(levels: int) -> np.ndarray:
     """float32 linear value of every code 0..levels-1 of an sRGB-encoded channel."""
@@ -296,21 +381,25 @@ def _encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
     return np.rint(values * top).astype(np.uint8 if top == 255 else np.uint16)
 
 
-def _read_exr(path: Path) -> np.ndarray:
+def _read_exr(path: Path, max_pixels: int | None) -> np.ndarray:
+    """EXR -> float32 (H, W) or (H, W, 3); the header is checked first, so nothing oversized is allocated."""
     import OpenEXR
 
+    width, height, names = _exr_header(path, max_pixels)
+    keep = _exr_channels_to_keep(path, names)
     try:
-        exr = OpenEXR.File(str(path), separate_channels=True)
-        channels = {name: channel.pixels for name, channel in exr.channels().items()}
-    except Exception as exc:  # OpenEXR raises RuntimeError/ValueError on bad files
+        with _READ_LOCK, quiet_native_stderr():
+            exr = OpenEXR.File(str(path), separate_channels=True)
+            channels = {name: channel.pixels for name, channel in exr.channels().items()}
+    except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, UnicodeError, ...)
         raise _unreadable(path, exc) from exc
-    if {"R", "G", "B"} <= channels.keys():
-        return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32)
-    if "Y" in channels:
-        return channels["Y"].astype(np.float32)
-    if len(channels) == 1:
-        return next(iter(channels.values())).astype(np.float32)
-    raise InputError(f"{path}: EXR channels {sorted(channels)} are neither R,G,B nor Y; cannot pick the image")
+    planes = [channels.get(name) for name in keep]
+    for name, plane in zip(keep, planes):
+        if not isinstance(plane, np.ndarray) or plane.shape != (height, width):
+            raise _unreadable(path, ValueError(f"channel {name} is missing, subsampled or not {width}x{height}"))
+    if len(planes) == 1:
+        return planes[0].astype(np.float32)
+    return np.stack(planes, axis=-1).astype(np.float32)
 
 
 def _write_exr(path: Path, image: np.ndarray, *, half: bool) -> None:
@@ -322,21 +411,32 @@ def _write_exr(path: Path, image: np.ndarray, *, half: bool) -> None:
     else:
         channels = {c: np.ascontiguousarray(image[:, :, i]) for i, c in enumerate("RGB")}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    OpenEXR.File(header, channels).write(str(path))
-
-
-def _read_with_pillow(path: Path) -> np.ndarray:
-    """8-bit (any mode) or 16-bit grayscale image -> uint8/uint16 codes, (H, W) or (H, W, 3)."""
-    from PIL import Image
-
     try:
-        with Image.open(path) as im:
-            im.load()
-            if im.mode in _PIL_GRAY16_MODES:
-                return np.asarray(im).astype(np.uint16)
-            return np.asarray(im.convert("L" if im.mode in _PIL_GRAY8_MODES else "RGB"))
-    except _PIL_ERRORS as exc:
-        raise _unreadable(path, exc) from exc
+        OpenEXR.File(header, channels).write(str(path))
+    except RuntimeError as error:  # OpenEXR reports file-system failures as RuntimeError with the C message
+        raise _as_os_error(error, path) from None
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT, errno.ENOTDIR,
+                 errno.ENAMETOOLONG, errno.EIO)
+
+
+def _as_os_error(error: Exception, path: Path) -> Exception:
+    """A library's write failure -> OSError with the errno its message names (else the error itself)."""
+    message = str(error)
+    for code in _WRITE_ERRNOS:
+        if os.strerror(code) in message:
+            return OSError(code, os.strerror(code), str(path))
+    return error
+
+
+def _read_with_pillow(path: Path, max_pixels: int | None) -> np.ndarray:
+    """8-bit (any mode) or 16-bit grayscale image -> uint8/uint16 codes, (H, W) or (H, W, 3)."""
+    with _pillow_image(path, max_pixels) as im:
+        im.load()
+        if im.mode in _PIL_GRAY16_MODES:
+            return np.asarray(im).astype(np.uint16)
+        return np.asarray(im.convert("L" if im.mode in _PIL_GRAY8_MODES else "RGB"))
 
 
 def _write_with_pillow(path: Path, suffix: str, levels: np.ndarray) -> None:
@@ -380,10 +480,11 @@ def _check_png_chunks(path: Path) -> None:
     raise InputError(f"{path}: cannot read image (file is truncated); the file is damaged")
 
 
-def _read_png16_colour(path: Path) -> np.ndarray:
+def _read_png16_colour(path: Path, max_pixels: int | None) -> np.ndarray:
     """16-bit RGB/RGBA/gray+alpha PNG -> uint16 codes, (H, W, 3) or (H, W) with alpha dropped."""
+    _pillow_header(path, max_pixels)
     _check_png_chunks(path)
-    _read_with_pillow(path)  # decodes every row at 8 bits: reports damaged image data cleanly
+    _read_with_pillow(path, max_pixels)  # decodes every row at 8 bits: reports damaged image data cleanly
     from vtkmodules.util.numpy_support import vtk_to_numpy
     from vtkmodules.vtkIOImage import vtkPNGReader
 

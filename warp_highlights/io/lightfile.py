@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import codecs
 import math
+import os
 import re
 from pathlib import Path
 
@@ -16,12 +17,11 @@ from scipy.spatial import cKDTree
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from .images import atomic_target
+from .atomic import atomic_file
 
 __all__ = ["read_lp", "write_lp"]
 
 _DUPLICATE_CHORD = 1e-6  # unit vectors closer than this (about 0.2 arc seconds) count as one direction
-_ENTRY = re.compile(r"^\s*(?P<name>\S.*?)\s+(?P<x>\S+)\s+(?P<y>\S+)\s+(?P<z>\S+)\s*$")
 _DOT_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
 _COMMA_NUMBER = re.compile(r"^[+-]?(\d+,?\d*|,\d+)([eE][+-]?\d+)?$")
 _COUNT = re.compile(r"^[+-]?\d+$")
@@ -36,11 +36,12 @@ def read_lp(path, *, check_files: bool = True) -> LightSet:
 
     Args:
         path: The ``.lp`` file.
-        check_files: Require every listed image to exist, relative to the file's folder.
+        check_files: Require every listed image to exist, relative to the file's folder, and to be
+            listed once.
 
     Raises:
         InputError: One line naming the file and line: unreadable or empty file, bad count,
-            malformed line, zero vector, count mismatch, duplicate direction, missing image.
+            malformed line, zero vector, count mismatch, duplicate direction, missing or repeated image.
     """
     path = Path(path)
     lines = _numbered_lines(path)
@@ -57,6 +58,7 @@ def read_lp(path, *, check_files: bool = True) -> LightSet:
     lights = LightSet(np.array([vector for _, vector in entries]), [name for name, _ in entries])
     _check_duplicates(path, lights.directions, line_numbers)
     if check_files:
+        _check_repeated_names(path, lights.filenames, line_numbers)
         _check_files(path, lights.filenames, line_numbers)
     return lights
 
@@ -81,7 +83,7 @@ def write_lp(lights: LightSet, path, filenames: list[str] | None = None) -> None
         if not str(name).strip() or "\n" in str(name) or "\r" in str(name):
             raise InputError(f"{path}: image file name {str(name)!r} cannot be written to a light file")
         rows.append(f"{name} {float(x)!r} {float(y)!r} {float(z)!r}")
-    with atomic_target(path) as tmp:
+    with atomic_file(path, checked=False) as tmp:
         tmp.write_text("\n".join(rows) + "\n", encoding="utf-8")
 
 
@@ -94,7 +96,10 @@ def _numbered_lines(path: Path) -> list[tuple[int, str]]:
     except OSError as exc:
         raise InputError(f"{path}: cannot read light file ({exc.strerror})") from exc
     if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
-        text = raw.decode("utf-16")
+        try:
+            text = raw.decode("utf-16")
+        except UnicodeDecodeError as exc:
+            raise InputError(f"{path}: not valid UTF-16 text ({exc.reason}); save the light file as UTF-8") from None
     else:
         try:
             text = raw.decode("utf-8-sig")
@@ -107,17 +112,20 @@ def _parse_count(path: Path, number: int, text: str) -> int:
     token = text.split()[0]
     if not _COUNT.match(token):
         raise InputError(f"{path}:{number}: the first line must be the light count, got {_clip(text)!r}")
+    if len(token.lstrip("+-0")) > 18:  # int() refuses over 4300 digits; no capture has 10**18 lights
+        raise InputError(f"{path}:{number}: the light count {_clip(token)} is absurdly large; give the number of lights")
     if int(token) < 1:
         raise InputError(f"{path}:{number}: the light count must be positive, got {int(token)}")
     return int(token)
 
 
 def _parse_entry(path: Path, number: int, text: str) -> tuple[str, tuple[float, float, float]]:
-    """One ``<file> <x> <y> <z>`` line -> (file name with '/' separators, vector)."""
-    match = _ENTRY.match(text)
-    if match is None:
+    """One ``<file> <x> <y> <z>`` line -> (file name with '/' separators, vector scaled by a power of two
+    to a largest component in [0.5, 1), so that normalising it can neither overflow nor underflow)."""
+    fields = text.strip().rsplit(None, 3)  # the name may hold spaces; the numbers are the last 3 fields
+    if len(fields) < 4:
         raise InputError(f"{path}:{number}: expected '<image file> <x> <y> <z>', got {_clip(text)!r}")
-    tokens = match.group("x", "y", "z")
+    name, *tokens = fields
     commas = any("," in t for t in tokens) and not any("." in t for t in tokens)
     pattern = _COMMA_NUMBER if commas else _DOT_NUMBER
     for token in tokens:
@@ -128,7 +136,8 @@ def _parse_entry(path: Path, number: int, text: str) -> tuple[str, tuple[float, 
         raise InputError(
             f"{path}:{number}: the light direction {vector} is zero or not finite; give the direction towards the light"
         )
-    return match.group("name").replace("\\", "/"), vector
+    exponent = math.frexp(max(abs(v) for v in vector))[1]
+    return name.replace("\\", "/"), tuple(math.ldexp(v, -exponent) for v in vector)
 
 
 def _check_duplicates(path: Path, directions: np.ndarray, line_numbers: list[int]) -> None:
@@ -140,10 +149,30 @@ def _check_duplicates(path: Path, directions: np.ndarray, line_numbers: list[int
         )
 
 
+def _check_repeated_names(path: Path, filenames: list[str], line_numbers: list[int]) -> None:
+    """Refuse an image listed twice (compared as paths: ``a.jpg`` and ``./a.jpg`` are one file)."""
+    first_line: dict[str, int] = {}
+    for name, number in zip(filenames, line_numbers):
+        key = os.path.normpath(name)
+        if key in first_line:
+            raise InputError(
+                f"{path}:{number}: image {name!r} is listed again (first on line {first_line[key]}); "
+                "each light needs its own image"
+            )
+        first_line[key] = number
+
+
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except (OSError, ValueError):  # a name too long or holding a NUL byte names no file
+        return False
+
+
 def _check_files(path: Path, filenames: list[str], line_numbers: list[int]) -> None:
     folder = path.parent
     for name, number in zip(filenames, line_numbers):
-        if not (folder / name).is_file():
+        if not _is_file(folder / name):
             raise InputError(f"{path}:{number}: image {name!r} not found in {folder}; fix the name or add the image")
 
 

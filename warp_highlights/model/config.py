@@ -53,6 +53,11 @@ def pixel_area_rpx2(height_px: int) -> float:
     return (REFERENCE_HEIGHT_PX / float(height_px)) ** 2
 
 
+MAX_ITERATIONS = 100_000
+"""Most optimiser iterations a stage accepts (about 100x the defaults: hours on a laptop CPU); more is
+a typing mistake rather than a fit."""
+
+
 def _require(condition: bool, message: str) -> None:
     if not condition:
         raise InputError(message)
@@ -234,9 +239,10 @@ class EstimationSettings:
     adam: AdamSettings = AdamSettings()
 
     def __post_init__(self):
-        _require(int(self.iterations) >= 1, f"iterations must be >= 1, got {self.iterations}")
-        _require(int(self.densify_every) >= 1, f"densify_every must be >= 1, got {self.densify_every}")
-        _require(int(self.densify_until) >= 1, f"densify_until must be >= 1 (no add round means no Gaussians), got {self.densify_until}")
+        _require(1 <= int(self.iterations) <= MAX_ITERATIONS, f"iterations must be in [1, {MAX_ITERATIONS}], got {self.iterations}")
+        _require(1 <= int(self.densify_every) <= MAX_ITERATIONS, f"densify_every must be in [1, {MAX_ITERATIONS}], got {self.densify_every}")
+        _require(1 <= int(self.densify_until) <= MAX_ITERATIONS,
+                 f"densify_until must be in [1, {MAX_ITERATIONS}] (no add round means no Gaussians), got {self.densify_until}")
         _require(math.isfinite(self.residual_threshold) and self.residual_threshold > 0, f"residual_threshold must be > 0, got {self.residual_threshold}")
         _require(math.isfinite(self.min_region_area_rpx2) and self.min_region_area_rpx2 >= 0, f"min_region_area_rpx2 must be >= 0, got {self.min_region_area_rpx2}")
         _require(int(self.max_new_per_round) >= 1, f"max_new_per_round must be >= 1, got {self.max_new_per_round}")
@@ -300,8 +306,8 @@ class RetargetSettings:
     components: ComponentSettings = ComponentSettings()
 
     def __post_init__(self):
-        _require(int(self.rigid_iterations) >= 0, f"rigid_iterations must be >= 0, got {self.rigid_iterations}")
-        _require(int(self.iterations) >= 0, f"iterations must be >= 0, got {self.iterations}")
+        _require(0 <= int(self.rigid_iterations) <= MAX_ITERATIONS, f"rigid_iterations must be in [0, {MAX_ITERATIONS}], got {self.rigid_iterations}")
+        _require(0 <= int(self.iterations) <= MAX_ITERATIONS, f"iterations must be in [0, {MAX_ITERATIONS}], got {self.iterations}")
         for name in ("c_fit", "c_str", "c_ene", "lr_translation_rpx", "lr_rotation"):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0, f"{name} must be a finite number >= 0, got {value}")

@@ -26,6 +26,10 @@ _PLANE_OFFSET_TOLERANCE = 1e-9
 _INSIDE_TOLERANCE = 1e-12
 # locate() works on blocks of queries x faces of about this many entries, to bound its memory.
 _BLOCK_ENTRIES = 1 << 20
+# Lights whose spread out of their best-fitting plane (RMS) is below this fraction of their spread within
+# it (RMS) lie on one circle of the sphere: a .lp file's ~6 decimals put a single ring ~1e-6 off its plane,
+# while two rings even one degree of elevation apart are ~1e-2 off it.
+_FLATNESS = 1e-3
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,12 +80,13 @@ class SphericalTriangulation:
 
     def __init__(self, directions: np.ndarray):
         self.directions = _light_directions(directions)
+        _check_spread(self.directions)
         try:
             hull = ConvexHull(self.directions)
-        except QhullError as error:
-            first_line = str(error).strip().splitlines()[0] if str(error).strip() else "degenerate input"
+        except QhullError:  # its message is pages of Qhull internals: say what it means instead
             raise InputError(
-                f"cannot triangulate the light directions (all on one great circle or too few?): {first_line}"
+                f"the {self.light_count} lights cannot be triangulated: they lie too close to one circle of the "
+                "sphere or to each other; RTI needs lights spread over several elevations"
             ) from None
         faces = _wind_outwards(self.directions, hull.simplices)
         faces, self.is_dome = _drop_closing_faces(self.directions, faces)
@@ -249,6 +254,22 @@ def _light_directions(directions: np.ndarray) -> np.ndarray:
     if bad.size:
         raise InputError(f"light direction {bad[0]} is zero or not finite: {directions[bad[0]].tolist()}")
     return directions / norms[:, None]
+
+
+def _check_spread(directions: np.ndarray) -> None:
+    """Refuse lights whose convex hull has no volume: fewer than 4, or all on one plane (one circle)."""
+    count = len(directions)
+    if count < 4:
+        raise InputError(
+            f"{count} lights cannot be triangulated: the light sphere needs at least 4, not all on one circle; "
+            "RTI needs lights at several elevations"
+        )
+    spread = np.linalg.svd(directions - directions.mean(axis=0), compute_uv=False)  # RMS extent per axis, x sqrt(n)
+    if spread[2] <= _FLATNESS * spread[0]:
+        raise InputError(
+            f"the {count} lights lie on one circle of the sphere (one ring at a single elevation, or one great "
+            "circle): the light sphere cannot be triangulated; RTI needs lights at several elevations"
+        )
 
 
 def unit_query_directions(directions: np.ndarray) -> np.ndarray:

@@ -294,39 +294,39 @@ def render_dataset(
     from ..io.dataset import DatasetWriter
 
     started = time.perf_counter()
-    mesh = make_shape(shape)
-    shape_name = mesh.name if Path(shape).suffix == "" else str(shape)
-    material = material or default_material(shape)
-    settings = settings or RenderSettings()
-    if heldout == "centroids":
-        heldout = LightSet(SphericalTriangulation(lights.directions).centroid_directions())
-    elif isinstance(heldout, str):
-        raise InputError(f"held-out lights must be 'centroids', a LightSet or None, got {heldout!r}")
-    renderer = Renderer(mesh, material=material, settings=settings, rotation=view_rotation(shape), device=device)
-    groups = [("lights", lights)] + ([("heldout", heldout)] if heldout is not None and len(heldout) else [])
-    total = sum(len(group) for _, group in groups)
-    with DatasetWriter(folder, overwrite=overwrite, half=half) as writer, tqdm(
-        total=total, unit="light", desc=f"render {shape_name}", disable=not progress, leave=False
-    ) as bar:
-        for group, light_set in groups:
-            for images in renderer.render_chunks(light_set.directions):
-                writer.write_images(group, images.start, images.full, specular=images.specular, diffuse=images.diffuse)
-                bar.update(len(images.full))
-        meta = {
-            "generator": f"warp-highlights {__version__} render",
-            "shape": shape_name,
-            "resolution": [settings.width, settings.height],
-            "light_count": len(lights),
-            "heldout_count": 0 if heldout is None else len(heldout),
-            "heldout_protocol": "triangle centroids of the lights' spherical Delaunay triangulation"
-            if heldout is not None
-            else None,
-            "device": renderer.device,
-            "render_seconds": round(time.perf_counter() - started, 3),
-            **renderer.describe(),
-        }
-        writer.finish(lights, heldout, mask=renderer.mask, meta=meta)
-        return writer.commit()
+    with tqdm(total=len(lights), unit="light", desc=f"render {shape}: preparing", disable=not progress, leave=False) as bar:
+        mesh = make_shape(shape)
+        shape_name = mesh.name if Path(shape).suffix == "" else str(shape)
+        material = material or default_material(shape)
+        settings = settings or RenderSettings()
+        if heldout == "centroids":
+            heldout = LightSet(SphericalTriangulation(lights.directions).centroid_directions())
+        elif isinstance(heldout, str):
+            raise InputError(f"held-out lights must be 'centroids', a LightSet or None, got {heldout!r}")
+        renderer = Renderer(mesh, material=material, settings=settings, rotation=view_rotation(shape), device=device)
+        groups = [("lights", lights)] + ([("heldout", heldout)] if heldout is not None and len(heldout) else [])
+        bar.total = sum(len(group) for _, group in groups)
+        bar.set_description_str(f"render {shape_name}")
+        with DatasetWriter(folder, overwrite=overwrite, half=half) as writer:
+            for group, light_set in groups:
+                for images in renderer.render_chunks(light_set.directions):
+                    writer.write_images(group, images.start, images.full, specular=images.specular, diffuse=images.diffuse)
+                    bar.update(len(images.full))
+            meta = {
+                "generator": f"warp-highlights {__version__} render",
+                "shape": shape_name,
+                "resolution": [settings.width, settings.height],
+                "light_count": len(lights),
+                "heldout_count": 0 if heldout is None else len(heldout),
+                "heldout_protocol": "triangle centroids of the lights' spherical Delaunay triangulation"
+                if heldout is not None
+                else None,
+                "device": renderer.device,
+                "render_seconds": round(time.perf_counter() - started, 3),
+                **renderer.describe(),
+            }
+            writer.finish(lights, heldout, mask=renderer.mask, meta=meta)
+            return writer.commit()
 
 
 def _frame_camera(points: np.ndarray, settings: RenderSettings) -> np.ndarray:

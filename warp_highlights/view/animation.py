@@ -21,18 +21,17 @@ import contextlib
 import itertools
 import math
 import operator
-import os
 import re
 import shutil
 import subprocess
 import tempfile
-import uuid
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
-from ..io.images import _encode_levels, atomic_target, write_image
+from ..io.atomic import atomic_file, atomic_folder, check_file_target, check_folder_target
+from ..io.images import _encode_levels, write_image
 from ..io.lightfile import read_lp
 from ..model.errors import InputError
 
@@ -214,7 +213,8 @@ def animation_kind(path) -> str:
 
 
 def check_animation_output(path, *, overwrite: bool = False, frames_format: str = "png") -> str:
-    """Every check :func:`write_animation` makes before the first frame, for a CLI to run up front.
+    """Every check :func:`write_animation` makes before the first frame, for a CLI to run up front;
+    also that the output's folder exists and takes files (``write_animation`` creates a missing one).
 
     Args:
         path: The output (see :func:`animation_kind`).
@@ -226,7 +226,8 @@ def check_animation_output(path, *, overwrite: bool = False, frames_format: str 
 
     Raises:
         InputError: Unknown output type, an existing output without ``overwrite``, a folder holding
-            other files, a bad ``frames_format``, or MP4 without ffmpeg.
+            files this project did not write, a missing or unwritable folder, a bad ``frames_format``,
+            or MP4 without ffmpeg.
     """
     path = Path(path)
     kind = animation_kind(path)
@@ -266,7 +267,8 @@ def write_animation(
             the frame durations alternate to keep the average rate exact).
         frame_count: Number of frames ``frames`` yields, when known (default ``len(frames)`` where it
             has one); a different count is an error, and it sets the digits of frame file names.
-        overwrite: Replace an existing output (a folder only when it holds nothing but frames).
+        overwrite: Replace an existing output (a folder only when this project wrote it: its manifest
+            lists every file in it, unchanged).
         progress: Called with the number of frames written so far, after each frame.
         frames_format: Folder output only: ``"png"`` or ``"exr"``.
 
@@ -276,9 +278,12 @@ def write_animation(
     Raises:
         InputError: Unknown output type, existing output without ``overwrite``, no frames, a frame of
             another shape or with non-finite values (index named), a bad ``fps``, MP4 without ffmpeg
-            or an ffmpeg failure. Nothing is written then; an existing output stays as it was.
+            or an ffmpeg failure. Nothing is written then (but a missing folder for the output, made
+            first); an existing output stays as it was.
     """
     path = Path(path)
+    animation_kind(path)  # an unknown output type is refused before any folder is made
+    path.parent.mkdir(parents=True, exist_ok=True)
     kind = check_animation_output(path, overwrite=overwrite, frames_format=frames_format)
     fps = _checked_fps(fps, kind)
     if frame_count is None and hasattr(frames, "__len__"):
@@ -287,15 +292,13 @@ def write_animation(
         frame_count = _checked_frame_count(frame_count)
     report = progress if progress is not None else (lambda done: None)
     checked = _checked_frames(frames, frame_count)
-    path.parent.mkdir(parents=True, exist_ok=True)
     if kind == "frames":
-        with _atomic_folder(path, overwrite=overwrite) as tmp:
+        with atomic_folder(path, kind="animation frames", overwrite=overwrite, legacy=_is_frame_name) as tmp:
             _write_frames(checked, tmp, frames_format=frames_format, frame_count=frame_count, progress=report)
     else:
         writer = _write_gif if kind == "gif" else _write_mp4
-        with atomic_target(path) as tmp:
+        with atomic_file(path, overwrite=overwrite) as tmp:
             writer(checked, tmp, fps=fps, progress=report)
-            _check_target(path, kind, overwrite=overwrite)  # nothing appeared there meanwhile
     return path
 
 
@@ -484,23 +487,19 @@ def _checked_fps(fps, kind: str) -> float:
 
 
 def _check_target(path: Path, kind: str, *, overwrite: bool) -> None:
-    """InputError unless ``path`` may be written: new, or replaceable with ``overwrite``."""
-    if kind != "frames":
+    """InputError unless ``path`` may be written: new, or replaceable with ``overwrite`` (a frames
+    folder only when this project wrote it)."""
+    if kind == "frames":
+        check_folder_target(path, overwrite=overwrite, legacy=_is_frame_name)
+    else:
         if path.is_dir():
             raise InputError(f"{path} is a folder; choose a file name for the {kind.upper()} animation")
-        if path.exists() and not overwrite:
-            raise InputError(f"{path} exists; pass --overwrite to replace it or choose another name")
-        return
-    if path.exists() and not path.is_dir():
-        raise InputError(f"{path} exists and is not a folder; choose another folder for the frames")
-    entries = list(path.iterdir()) if path.is_dir() else []
-    others = [e.name for e in entries if not (_FRAME_NAME.match(e.name) and e.is_file())]
-    if others:
-        raise InputError(
-            f"{path} holds files other than animation frames (e.g. {others[0]!r}); choose a new or empty folder"
-        )
-    if entries and not overwrite:
-        raise InputError(f"{path} holds frames already; pass --overwrite to replace them or choose another folder")
+        check_file_target(path, overwrite=overwrite)
+
+
+def _is_frame_name(relative: str) -> bool:
+    """A frame file (``frame_0007.png``): how a frames folder written before manifests existed is recognised."""
+    return bool(_FRAME_NAME.match(relative))
 
 
 def _checked_frames(frames: Iterable, frame_count: int | None) -> Iterator[np.ndarray]:
@@ -524,34 +523,6 @@ def _checked_frames(frames: Iterable, frame_count: int | None) -> Iterator[np.nd
         raise InputError("no frames to write; the light path or the frame source is empty")
     if frame_count is not None and index + 1 != frame_count:
         raise InputError(f"got {index + 1} frames but frame_count says {frame_count}")
-
-
-@contextlib.contextmanager
-def _atomic_folder(path: Path, *, overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary folder beside ``path``; on success it replaces ``path``, on error it is removed."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.tmp")
-    tmp.mkdir()
-    try:
-        yield tmp
-        _check_target(path, "frames", overwrite=overwrite)
-        _replace_folder(tmp, path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _replace_folder(tmp: Path, path: Path) -> None:
-    """Rename ``tmp`` to ``path``; an existing ``path`` is swapped out first and removed after."""
-    if not path.exists():
-        os.rename(tmp, path)
-        return
-    old = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.old")
-    os.rename(path, old)
-    try:
-        os.rename(tmp, path)
-    except BaseException:
-        os.rename(old, path)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def _write_frames(

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.images import atomic_target
+from ..io.atomic import atomic_file
 from ..model.errors import InputError
 from . import viz
 
@@ -231,7 +231,7 @@ class LightDesigner:
             from PIL import Image
 
             path = Path(path)
-            with atomic_target(path) as temporary:
+            with atomic_file(path) as temporary:
                 Image.fromarray(picture).save(temporary, format="PNG")
         return picture
 

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.images import atomic_target, display_rgb8
+from ..io.atomic import atomic_file
+from ..io.images import display_rgb8
 from ..model.errors import InputError
 
 __all__ = [
@@ -415,7 +416,7 @@ def _new_figure(width_in: float, height_in: float, *, layout: str = "constrained
 def _save(fig, path: Path) -> Path:
     """Write ``fig`` as a PNG to ``path`` atomically (temporary file beside it, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_target(path) as tmp:
+    with atomic_file(path) as tmp:
         fig.savefig(tmp, format="png", dpi=_DPI, facecolor="white")
     return path
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.images import atomic_target, display_rgb8
+from ..io.atomic import atomic_file
+from ..io.images import display_rgb8
 from ..model.errors import InputError
 
 __all__ = ["contact_sheet", "save_contact_sheet", "spread_indices"]
@@ -65,6 +66,6 @@ def save_contact_sheet(field, path: str | Path, **options) -> Path:
         raise InputError(f"contact sheet '{path}' must be a .png file")
     path.parent.mkdir(parents=True, exist_ok=True)
     picture = contact_sheet(field, **options)
-    with atomic_target(path) as temporary:
+    with atomic_file(path) as temporary:
         Image.fromarray(picture).save(temporary, format="PNG")
     return path
