@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from warp_highlights.io import dataset as dataset_module
+from warp_highlights.io import memory as memory_module
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.images import DEFAULT_MAX_PIXELS, image_shape, image_size, read_image, write_image
 from warp_highlights.io.lightfile import read_lp, write_lp
@@ -302,7 +303,7 @@ def test_info_on_a_degenerate_capture_exits_2_naming_the_folder(tmp_path, capsys
 
 def test_a_capture_too_big_for_memory_is_refused_before_decoding(tmp_path, monkeypatch):
     folder = _capture(tmp_path / "d", [np.full((30, 40, 3), 0.5)] * 5)
-    monkeypatch.setattr(dataset_module, "available_memory", lambda: 50_000)  # needed: 7 x 30 x 40 x 3 x 4 bytes
+    monkeypatch.setattr(memory_module, "available_memory", lambda: 50_000)  # needed: 7 x 30 x 40 x 3 x 4 bytes
     monkeypatch.setattr(dataset_module, "read_image", lambda *a, **k: pytest.fail("an image was decoded"))
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False)
@@ -312,10 +313,10 @@ def test_a_capture_too_big_for_memory_is_refused_before_decoding(tmp_path, monke
 
 def test_unknown_memory_refuses_nothing(tmp_path, monkeypatch):
     folder = _capture(tmp_path / "d", [np.full((30, 40, 3), 0.5)] * 5)
-    monkeypatch.setattr(dataset_module, "available_memory", lambda: None)
+    monkeypatch.setattr(memory_module, "available_memory", lambda: None)
     assert ReflectanceField.load(folder, progress=False).light_count == 5
     monkeypatch.undo()
-    available = dataset_module.available_memory()
+    available = memory_module.available_memory()
     assert available is None or available > 0
 
 

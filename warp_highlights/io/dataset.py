@@ -22,7 +22,7 @@ from ..model.lights import LightSet
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
-from .memory import available_memory, bytes_text
+from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
@@ -420,20 +420,12 @@ def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[i
 
 
 def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...]) -> None:
-    """Refuse a load whose float32 stacks, plus room to decode two images, exceed the available memory.
-
-    The estimate is ``(file_count + 2) x H x W x channels x 4`` bytes; nothing is refused when the
-    available memory is unknown.
-    """
-    needed = (file_count + 2) * int(np.prod(shape)) * 4
-    available = available_memory()
-    if available is not None and needed > available:
-        size = "x".join(str(n) for n in (shape[1], shape[0], *shape[2:]))
-        raise InputError(
-            f"{folder}: loading needs about {bytes_text(needed)} of memory ({file_count} images of {size} "
-            f"as float32) but {bytes_text(available)} is available; free memory, use a machine with more, "
-            "or downscale the images"
-        )
+    """Refuse a load whose float32 stacks, plus room to decode two images, exceed the available memory:
+    ``(file_count + 2) x H x W x channels x 4`` bytes."""
+    size = "x".join(str(n) for n in (shape[1], shape[0], *shape[2:]))
+    check_memory((file_count + 2) * int(np.prod(shape)) * 4, f"{folder}: loading",
+                 "free memory, use a machine with more, or downscale the images",
+                 detail=f"{file_count} images of {size} as float32")
 
 
 def _check_not_blank(group: _ImageGroup, images: np.ndarray) -> None:

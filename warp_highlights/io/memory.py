@@ -25,17 +25,22 @@ def available_memory() -> int | None:
         return None
 
 
-def check_memory(needed: int, what: str, advice: str) -> None:
-    """Raise ``InputError`` when ``needed`` bytes exceed the available memory, with both figures.
+def check_memory(needed: int, what: str, advice: str, *, detail: str = "") -> None:
+    """Raise ``InputError`` when ``needed`` bytes exceed the available memory, with both figures;
+    nothing is refused when the available memory is unknown.
 
     Args:
         needed: Estimated bytes the request takes.
-        what: What needs it, e.g. ``"relighting 64 images of 8000x8000"``.
+        what: What needs it, e.g. ``"relighting at 8000x4500"``.
         advice: What to do instead, e.g. ``"use a smaller --size"``.
+        detail: How the estimate was made, shown in brackets, e.g. ``"54 images of 640x480x3 as float32"``.
     """
     available = available_memory()
     if available is not None and needed > available:
-        raise InputError(f"{what} needs about {bytes_text(needed)} of memory but {bytes_text(available)} is available; {advice}")
+        how = f" ({detail})" if detail else ""
+        raise InputError(
+            f"{what} needs about {bytes_text(needed)} of memory{how} but {bytes_text(available)} is available; {advice}"
+        )
 
 
 def bytes_text(count: float) -> str:
