@@ -8,8 +8,10 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``losses``: per-problem losses with hand-written adjoints (``LogL1Loss``, ``StructureLoss``, ``EnergyLoss``).
 - ``optim``: batched Adam over every problem and slot, one launch per step (``GaussianAdam``).
 - ``segmentation``: the robust per-pixel diffuse/specular split (``segment``).
+- ``support``: how much of each retargeted Gaussian its target image holds (the move decision).
 - ``retarget``: rigid motions of connected components and the image gather (retargeting phase 1).
 - ``interpolation``: locate queries, interpolate Gaussian sets, compose relit images.
+- ``baselines``: the classic RTI fits (PTM, HSH, RBF) as per-pixel linear maps: project and evaluate.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
 """
 
@@ -19,7 +21,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {},
     modules={
-        "interpolation": "interpolation", "losses": "losses", "optim": "optim", "raster": "raster",
-        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation",
+        "baselines": "baselines", "interpolation": "interpolation", "losses": "losses", "optim": "optim", "raster": "raster",
+        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support",
     },
 )

@@ -8,9 +8,10 @@ Three launches turn Q query directions into Q images, whatever Q is:
    ``SphericalTriangulation.locate``).
 2. ``interpolate_gaussians`` (query x corner x slot): the interpolated set G' of every query, 3N slots
    (corner k's moved set in slots k N .. k N + N - 1), ready for the rasterizer.
-3. ``compose_images`` (query x pixel): I' = scale (D' + c S') with D' the Lambertian model, a
-   barycentric blend of per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of
-   a per-light stack.
+3. ``compose_images`` (query x pixel): I' = scale max(B' + c(x) S', 0) with B' the residual
+   (residual transfer: a barycentric blend of the per-light residual images, or the low-rank
+   residual from per-query weights that ``blend_weights`` blends), the Lambertian model, a blend of
+   per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of a per-light stack.
 
 None of these is differentiated: relighting only renders.
 """
@@ -22,6 +23,7 @@ from __future__ import annotations
 import warp as wp
 
 from warp_highlights.model.gaussians import GaussianArrays
+from warp_highlights.model.residual import LUMINANCE_WEIGHTS
 
 from .retarget import rotate_vec2
 
@@ -30,7 +32,9 @@ __all__ = [
     "DIFFUSE_LAMBERT",
     "DIFFUSE_NONE",
     "arc_position",
+    "DIFFUSE_LOWRANK",
     "blend_images",
+    "blend_weights",
     "compose_images",
     "interpolate_gaussians",
     "locate_directions",
@@ -42,6 +46,13 @@ DIFFUSE_LAMBERT = 1
 """``compose_images`` mode: D' = max(nbar . omega, 0) + k_a per pixel and channel."""
 DIFFUSE_BLEND = 2
 """``compose_images`` mode: D' = barycentric blend of the three corner lights' images."""
+DIFFUSE_LOWRANK = 3
+"""``compose_images`` mode: the low-rank residual (luminance, and chroma for colour)."""
+
+# luminance weights of the opponent colour split, for the chroma decode
+_WR = wp.constant(LUMINANCE_WEIGHTS[0])
+_WG = wp.constant(LUMINANCE_WEIGHTS[1])
+_WB = wp.constant(LUMINANCE_WEIGHTS[2])
 
 
 @wp.func
@@ -139,6 +150,7 @@ def interpolate_gaussians(
     estimated: GaussianArrays,
     retargeted: GaussianArrays,
     path_delta: wp.array2d(dtype=float),
+    moving: wp.array2d(dtype=wp.int32),
     face_vertices: wp.array2d(dtype=wp.int32),
     face_edges: wp.array3d(dtype=wp.int32),
     faces: wp.array(dtype=wp.int32),
@@ -152,7 +164,9 @@ def interpolate_gaussians(
     For corner A = face_vertices[f, k] with weights (lA, lB, lC) rotated so lA is corner k's:
     |a'| = lA |a_A| + lB |a_AB| + lC |a_AC| (likewise |sigma|), theta' = theta_A + lB delta_AB + lC delta_AC,
     mu' = arc(A->B, lB) + arc(A->C, lC) - mu_A (circular) or the barycentric blend (straight); the
-    slot's weight is lA. A slot with lA = 0 is left inactive: it would draw nothing.
+    slot's weight is lA. A slot with lA = 0 is left inactive: it would draw nothing. A Gaussian that
+    does not move (``moving[A, p]`` = 0, decided at fit time) stays where it is in G_A with weight lA:
+    it blends in place, like the alpha baseline.
     ``face_edges[f, k]`` holds the rows of the directed edges A->B and A->C; ``path_delta`` is in
     radians, means and sizes in image heights.
     """
@@ -171,6 +185,14 @@ def interpolate_gaussians(
         out.sigma[q, slot] = wp.vec2(0.0, 0.0)
         out.theta[q, slot] = 0.0
         out.weight[q, slot] = 1.0
+        return
+    if moving[a, p] == 0:
+        out.active[q, slot] = 1
+        out.amplitude[q, slot] = wp.abs(estimated.amplitude[a, p])
+        out.mean[q, slot] = estimated.mean[a, p]
+        out.sigma[q, slot] = wp.vec2(wp.abs(estimated.sigma[a, p][0]), wp.abs(estimated.sigma[a, p][1]))
+        out.theta[q, slot] = estimated.theta[a, p]
+        out.weight[q, slot] = la
         return
     to_b = face_edges[f, k, 0]
     to_c = face_edges[f, k, 1]
@@ -213,13 +235,43 @@ def blend_images(
 
 
 @wp.kernel(enable_backward=False)
+def blend_weights(
+    weights: wp.array2d(dtype=float),
+    face_vertices: wp.array2d(dtype=wp.int32),
+    faces: wp.array(dtype=wp.int32),
+    barycentric: wp.array(dtype=wp.vec3),
+    out: wp.array2d(dtype=float),
+):
+    """out[q, j] = sum_k barycentric[q][k] weights[corner k of q's face, j]: a low-rank stack's blended weights."""
+    q, j = wp.tid()
+    f = faces[q]
+    w = barycentric[q]
+    out[q, j] = w[0] * weights[face_vertices[f, 0], j] + w[1] * weights[face_vertices[f, 1], j] + w[2] * weights[face_vertices[f, 2], j]
+
+
+@wp.func
+def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coefficients: wp.array2d(dtype=float), q: int, i: int, plane: int) -> float:
+    value = mean[i, plane]
+    for j in range(basis.shape[0]):
+        value += coefficients[q, j] * basis[j, i, plane]
+    return value
+
+
+@wp.kernel(enable_backward=False)
 def compose_images(
     specular: wp.array2d(dtype=float),
     specular_colour: wp.vec3,
+    pixel_colour: wp.array2d(dtype=float),
     add_specular: int,
     diffuse_mode: int,
     lambert: wp.array2d(dtype=wp.vec4),
     diffuse_images: wp.array3d(dtype=wp.float16),
+    luminance_mean: wp.array2d(dtype=float),
+    luminance_basis: wp.array3d(dtype=float),
+    luminance_weights: wp.array2d(dtype=float),
+    chroma_mean: wp.array2d(dtype=float),
+    chroma_basis: wp.array3d(dtype=float),
+    chroma_weights: wp.array2d(dtype=float),
     face_vertices: wp.array2d(dtype=wp.int32),
     faces: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=wp.vec3),
@@ -227,17 +279,31 @@ def compose_images(
     scale: float,
     out: wp.array3d(dtype=float),
 ):
-    """out[q, i, c] = scale (D'[q, i, c] + colour[c] S'[q, i]) for pixel i and channel c.
+    """out[q, i, c] = scale max(B'[q, i, c] + colour[c] c_i[c] S'[q, i], 0) for pixel i and channel c.
 
-    D' per ``diffuse_mode``: ``DIFFUSE_NONE`` 0; ``DIFFUSE_LAMBERT`` max(nbar . omega_q, 0) + k_a from
+    B' per ``diffuse_mode``: ``DIFFUSE_NONE`` 0; ``DIFFUSE_LAMBERT`` max(nbar . omega_q, 0) + k_a from
     ``lambert[i, c]`` = (nbar_x, nbar_y, nbar_z, k_a); ``DIFFUSE_BLEND`` the barycentric blend of
-    ``diffuse_images[light, i, c]``. S' is added only when ``add_specular`` is set.
+    ``diffuse_images[light, i, c]`` (the residual images, or diffuse images); ``DIFFUSE_LOWRANK`` the
+    low-rank residual: luminance Y = mean + sum_j coefficient_j basis_j (coefficients: the query's
+    blended per-light weights), chroma (B - Y, R - Y) likewise when there are three channels. S' is
+    added only when ``add_specular`` is set; c_i is ``pixel_colour[i]`` (row 0 when it has one row).
     """
     q, i = wp.tid()
     value = float(0.0)
     f = faces[q]
     w = weights[q]
     omega = directions[q]
+    row = i
+    if pixel_colour.shape[0] == 1:
+        row = 0
+    y = float(0.0)
+    cb = float(0.0)
+    cr = float(0.0)
+    if diffuse_mode == DIFFUSE_LOWRANK:
+        y = _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
+        if out.shape[2] == 3:
+            cb = _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
+            cr = _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
     for c in range(out.shape[2]):
         value = 0.0
         if diffuse_mode == DIFFUSE_LAMBERT:
@@ -246,6 +312,15 @@ def compose_images(
         elif diffuse_mode == DIFFUSE_BLEND:
             for k in range(3):
                 value += w[k] * float(diffuse_images[face_vertices[f, k], i, c])
+        elif diffuse_mode == DIFFUSE_LOWRANK:
+            value = y
+            if out.shape[2] == 3:
+                if c == 0:
+                    value = y + cr
+                elif c == 1:
+                    value = y - (_WR * cr + _WB * cb) / _WG
+                else:
+                    value = y + cb
         if add_specular != 0:
-            value += specular_colour[c] * specular[q, i]
-        out[q, i, c] = scale * value
+            value += specular_colour[c] * pixel_colour[row, c] * specular[q, i]
+        out[q, i, c] = scale * wp.max(value, 0.0)

@@ -23,12 +23,11 @@ import warp as wp
 
 from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
+from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance the Gaussians are fitted to
 
 __all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "luminance", "segment", "segment_pixels"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
-LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
-"""Rec. 709 / sRGB primaries, linear: the luminance the Gaussians are fitted to."""
 
 
 @wp.func

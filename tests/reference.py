@@ -84,3 +84,82 @@ def structure_loss(params: GaussianParams, reference: GaussianParams, gamma: flo
         difference = rho * scale - rho_ref if thesis_form else rho - scale * rho_ref
         losses[b] = np.sum(weight * difference**2)
     return losses
+
+
+# --- the RTI baselines (warp_highlights/relight/baselines.py) -------------------------------------
+
+
+def ptm_terms(direction) -> np.ndarray:
+    """(6,) PTM terms of one light direction (Malzbender et al. 2001): lu^2, lv^2, lu lv, lu, lv, 1."""
+    x, y, z = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    return np.array([x**2, y**2, x * y, x, y, 1.0])
+
+
+def hsh_terms(direction, order: int) -> np.ndarray:
+    """(order^2,) hemispherical harmonics of one light direction, from its angles (theta at most pi / 2)."""
+    x, y, z = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    theta = min(np.arccos(np.clip(z, -1.0, 1.0)), np.pi / 2)
+    phi = np.arctan2(y, x)
+    ct = np.cos(theta) if theta < np.pi / 2 else 0.0
+    root = np.sqrt(max(ct - ct**2, 0.0))
+    terms = [
+        1 / np.sqrt(2 * np.pi),
+        np.sqrt(6 / np.pi) * np.cos(phi) * root,
+        np.sqrt(3 / (2 * np.pi)) * (-1 + 2 * ct),
+        np.sqrt(6 / np.pi) * root * np.sin(phi),
+        np.sqrt(30 / np.pi) * np.cos(2 * phi) * (-ct + ct**2),
+        np.sqrt(30 / np.pi) * np.cos(phi) * (-1 + 2 * ct) * root,
+        np.sqrt(5 / (2 * np.pi)) * (1 - 6 * ct + 6 * ct**2),
+        np.sqrt(30 / np.pi) * (-1 + 2 * ct) * root * np.sin(phi),
+        np.sqrt(30 / np.pi) * (-ct + ct**2) * np.sin(2 * phi),
+    ]
+    return np.array(terms[: order * order])
+
+
+def baseline_terms(method: str, directions) -> np.ndarray:
+    """(Q, M) basis matrix of ``ptm``, ``hsh2`` or ``hsh3``, one direction at a time."""
+    if method == "ptm":
+        return np.array([ptm_terms(d) for d in directions])
+    return np.array([hsh_terms(d, int(method[-1])) for d in directions])
+
+
+def least_squares_planes(basis: np.ndarray, images: np.ndarray) -> np.ndarray:
+    """(M, ...) coefficients minimising |basis @ c - images|^2 per pixel and channel (lstsq, float64)."""
+    flat = np.asarray(images, dtype=np.float64).reshape(len(images), -1)
+    coefficients = np.linalg.lstsq(basis, flat, rcond=None)[0]
+    return coefficients.reshape((basis.shape[1],) + np.shape(images)[1:])
+
+
+def relit_planes(query_basis: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(Q, ...) max(sum_m query_basis[q, m] planes[m], 0), float64."""
+    flat = np.asarray(planes, dtype=np.float64).reshape(len(planes), -1)
+    return np.maximum(query_basis @ flat, 0.0).reshape((len(query_basis),) + np.shape(planes)[1:])
+
+
+def gaussian_rbf(a, b, sigma: float) -> np.ndarray:
+    """(len(a), len(b)) exp(-(|a_i - b_j| / sigma)^2) of unit vectors, by explicit distances."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return np.array([[np.exp(-(np.linalg.norm(p - q) / sigma) ** 2) for q in b] for p in a])
+
+
+def rbf_relit(images, lights, queries, sigma: float, regularisation: float) -> np.ndarray:
+    """(Q, ...) Gaussian RBF interpolation of per-light images at query directions, clamped at 0."""
+    lights = np.asarray(lights, dtype=np.float64)
+    flat = np.asarray(images, dtype=np.float64).reshape(len(images), -1)
+    weights = np.linalg.solve(gaussian_rbf(lights, lights, sigma) + regularisation * np.eye(len(lights)), flat)
+    out = np.maximum(gaussian_rbf(queries, lights, sigma) @ weights, 0.0)
+    return out.reshape((len(queries),) + np.shape(images)[1:])
+
+
+def rbf_loo_brute_force(lights, values, sigma: float, regularisation: float) -> np.ndarray:
+    """(n, S) y_i minus the (unclamped) RBF interpolant of the other n - 1 lights at light i."""
+    lights = np.asarray(lights, dtype=np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    errors = np.empty_like(values)
+    for i in range(len(lights)):
+        rest = np.arange(len(lights)) != i
+        system = gaussian_rbf(lights[rest], lights[rest], sigma) + regularisation * np.eye(rest.sum())
+        weights = np.linalg.solve(system, values[rest])
+        errors[i] = values[i] - gaussian_rbf(lights[i : i + 1], lights[rest], sigma)[0] @ weights
+    return errors

@@ -183,7 +183,7 @@ def test_evaluation_shapes_and_summary(evaluation, donut):
         for values in scores.values():
             assert values.shape == (q,) and np.all(np.isfinite(values))
     summary = evaluation.summary()
-    assert set(summary) == {"specular", "full"}
+    assert set(summary) == {"specular", "full", "full_srgb", "full_ssim"}
     assert set(summary["specular"]) == {"circular", "straight", "alpha", "circular_beats_alpha", "circular_beats_straight", "straight_beats_alpha"}
     assert summary["specular"]["circular"]["count"] == q
     assert summary["specular"]["circular"]["mean"] == pytest.approx(evaluation.specular_psnr["circular"].mean())

@@ -337,7 +337,7 @@ def evaluated(small_field, small_donut, tmp_path_factory):
 def test_evaluate_writes_a_report_and_plots(evaluated, small_field, field):
     status, out, text = evaluated
     assert status == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["report.json", ".warp-highlights.json"])
+    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["worst-lights.png", "report.json", ".warp-highlights.json"])
     report = json.loads((out / "report.json").read_text())
     specular = report["summary"]["specular"]
     for method in ("circular", "straight", "alpha"):
@@ -502,3 +502,55 @@ def test_overwrite_never_deletes_other_files(small_field, small_donut, tmp_path,
         assert f"holds {victim}, which was changed after warp-highlights wrote it" in _error_line(capsys)
         assert (out / victim).read_bytes() == b"edited by the user"
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# --- residual transfer and the capture protocols (issue 15) ------------------------------------------
+
+LEGACY_FIELD = Path(__file__).resolve().parent / "data" / "legacy-v1.whf"
+
+
+def test_relight_residual_of_a_field_from_before_residuals_is_one_line(tmp_path, capsys):
+    out = tmp_path / "x.exr"
+    assert main(["relight", str(LEGACY_FIELD), "--light", LIGHT, "--diffuse", "residual", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    line = _error_line(capsys)
+    assert "residual" in line and "fit" in line
+    assert _tree(tmp_path) == []
+    # the same field still relights with what it has (auto: its diffuse images)
+    assert main(["relight", str(LEGACY_FIELD), "--light", LIGHT, "-o", str(out), "--device", "cpu", "-q"]) == 0
+
+
+def test_fit_and_evaluate_with_every_kth_light_held_out(tiny_sphere, tmp_path, capsys):
+    from conftest import TINY_FIT
+
+    data, _ = tiny_sphere
+    field_path = tmp_path / "fold.whf"
+    assert main(["fit", str(data), "-o", str(field_path), "--holdout-every", "4", "--device", "cpu", "-q", *TINY_FIT]) == 0
+    field = load_field(field_path)
+    assert field.light_count == 12 and field.report["holdout_every"] == 4
+    assert field.residual is not None and field.diffuse is None
+    capsys.readouterr()
+    out = tmp_path / "evaluation"
+    assert main(["evaluate", str(field_path), str(data), "-o", str(out), "--triangle", "none", "--baselines", "ptm,rbf", "--device", "cpu", "-q"]) == 0
+    table = capsys.readouterr().out
+    assert "8-bit sRGB PSNR" in table and "| ptm |" in table and "| rbf |" in table
+    report = json.loads((out / "report.json").read_text())
+    assert report["heldout"] == 4 and report["baselines"] == ["ptm", "rbf"]
+    assert report["heldout_protocol"].startswith("every 4th light")
+    srgb = report["per_query"]["full_srgb_psnr"]
+    assert set(srgb) == {"circular", "straight", "alpha", "ptm", "rbf"} and all(len(v) == 4 for v in srgb.values())
+    assert all(0 <= s <= 1 for values in report["per_query"]["full_ssim"].values() for s in values)
+    assert (out / "worst-lights.png").is_file()
+
+
+@pytest.mark.parametrize(
+    ("arguments", "expected"),
+    [
+        (["--holdout-every", "1"], "--holdout-every"),
+        (["--baselines", "ptm,lol"], "--baselines"),
+    ],
+)
+def test_evaluate_protocol_options_are_checked(tiny_sphere, tmp_path, capsys, arguments, expected):
+    data, field = tiny_sphere
+    assert main(["evaluate", str(field), str(data), "-o", str(tmp_path / "e"), *arguments, "--device", "cpu", "-q"]) == 2
+    assert expected in _error_line(capsys)
+    assert not (tmp_path / "e").exists()

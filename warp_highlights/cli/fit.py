@@ -30,14 +30,21 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
             help="override a hyper-parameter, e.g. --set retarget.c_str=0.01 --set estimation.iterations=600 "
             "(repeatable; --list-settings shows them all)",
         )
+    parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
+                        help="fit without lights 0, K, 2K, ... of the dataset, to score them later (evaluate FIELD DATASET)")
     parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
-    parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="lambert", help="diffuse part to store: per-pixel Lambertian fit (default), that plus the diffuse images, or none")
+    parser.add_argument("--residual", choices=["lowrank", "images", "none"], default="lowrank",
+                        help="what relighting adds the moved highlights to: the images minus their own highlights, compressed to "
+                        "low-rank 8-bit bases (default, about a fifth of the 8-bit capture), uncompressed float16 images "
+                        "(exact at the captured lights), or none (then use --diffuse)")
+    parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
+                        help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
             "--exposure",
             type=_exposure_option,
-            default="1",
+            default=None,
             help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
-            "display white is 1, so dim photographs want 'auto' (default 1: rendered data)",
+            "display white is 1 (default: auto for JPEG/PNG/TIFF photographs, 1 for EXR/HDR radiance); relighting undoes it",
         )
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--workers", type=in_range(int, 1, 4096), help="CPU threads for the fitting stages, 1..4096 (default: one per core)")
@@ -63,7 +70,10 @@ def _exposure_option(text: str):
 def _run_fit(args) -> int:
     from ..model.config import FitSettings
 
-    settings = FitSettings().with_overrides(args.overrides)
+    overrides = list(args.overrides)
+    if args.residual == "images":
+        overrides.insert(0, "residual.compressed=false")
+    settings = FitSettings().with_overrides(overrides)
     if args.list_settings:
         _print_settings(settings.to_dict())
         return 0
@@ -83,12 +93,16 @@ def _run_fit(args) -> int:
 
     started = time.perf_counter()
     dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
+    if args.holdout_every:
+        dataset = dataset.split_every(args.holdout_every)
     load_seconds = time.perf_counter() - started
     log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     field = fit_field(
-        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure, workers=args.workers, progress=not args.quiet, log=log
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet, log=log
     )
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
+    if args.holdout_every:
+        field.report["holdout_every"] = int(args.holdout_every)
     written = save_field(field, output)
     field.report["file_bytes"] = written
     if args.report is not None:
@@ -124,6 +138,12 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
     print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
     print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
+    residual = report.get("residual")
+    if residual:
+        kind = (f"low rank (luminance {residual['luminance_rank']}" + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "") + ")"
+                if residual["compressed"] else "uncompressed images")
+        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} blend in place; "
+              f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
     parts = field_size_report(field)
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 
@@ -131,7 +151,8 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
 COMMANDS = (
     Command("fit", _fit_arguments, _run_fit, help="fit a highlight field to a dataset (segmentation, estimation, retargeting)",
             description="Segment every image into diffuse and specular parts, fit a few Gaussians to each specular image, "
-            "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths, and "
+            "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths and which of them "
+            "move, keep each image's residual (the image minus its own moving highlights, compressed), and "
             "write everything to one highlight-field file."),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -61,6 +61,12 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, help="output folder (default: FIELD's name + '-evaluation' beside it)")
     parser.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
     parser.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
+    parser.add_argument("--baselines", default="ptm,hsh2,hsh3,rbf",
+                        help="classic RTI methods fitted to the same lights and scored on the full images, comma-separated from "
+                        "ptm, hsh2, hsh3, rbf, or 'none' (default ptm,hsh2,hsh3,rbf; RBF's sigma by leave-one-out)")
+    parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
+                        help="for a capture without held-out lights: hold out lights 0, K, 2K, ... of DATASET and score them; FIELD "
+                        "must be fitted to the rest (fit --holdout-every K); default: what FIELD was fitted with")
     parser.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
     parser.add_argument("--steps", type=in_range(int, 1, 100), default=10, help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
@@ -72,7 +78,9 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 def _add_relight_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular", help="interpolation (default circular; alpha needs --dataset)")
     parser.add_argument("--size", type=size_option("output size"), help="output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
-    parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto: stored images, else the Lambertian model)")
+    parser.add_argument("--diffuse", choices=["auto", "residual", "lambert", "images", "none"], default="auto",
+                        help="what the moved highlights are added to: residual transfer (the captured images minus their own highlights, "
+                        "blended), the Lambertian model, the blended diffuse images, or nothing (default auto: the first the field stores)")
     parser.add_argument("--specular-only", action="store_true", help="write the highlights S' alone")
     parser.add_argument("--specular-colour", type=triple_option("specular colour"), help="colour of the highlights R,G,B, each >= 0 (default 1,1,1: white light)")
     parser.add_argument("--dataset", type=Path, help="the dataset the field was fitted to (for --method alpha)")
@@ -243,11 +251,17 @@ def _run_evaluate(args) -> int:
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
+    baselines = _parse_baselines(args.baselines)
+    holdout_every = args.holdout_every or field.report.get("holdout_every")
+    if args.holdout_every and args.heldout:
+        raise InputError("give either --heldout FOLDER or --holdout-every K, not both")
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
+    if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
+        dataset = dataset.split_every(int(holdout_every))
     say = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
-                                barycentric_steps=args.steps, progress=say)
+                                barycentric_steps=args.steps, baselines=baselines, progress=say)
     report = evaluation.to_dict()
     report["field"] = str(args.field)
     report["dataset"] = str(args.dataset)
@@ -255,6 +269,18 @@ def _run_evaluate(args) -> int:
     print_evaluation_table(report)
     print(f"wrote {output}: " + ", ".join(written))
     return 0
+
+
+def _parse_baselines(text: str) -> tuple[str, ...]:
+    from ..relight.baselines import BASELINE_METHODS
+
+    if text.strip().lower() == "none":
+        return ()
+    names = tuple(dict.fromkeys(part.strip().lower() for part in text.split(",") if part.strip()))
+    unknown = [name for name in names if name not in BASELINE_METHODS]
+    if unknown or not names:
+        raise InputError(f"--baselines '{text}': choose from {', '.join(BASELINE_METHODS)}, comma-separated, or 'none'")
+    return names
 
 
 def evaluation_folder_entry(relative: str) -> bool:
@@ -293,6 +319,16 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
                     score = "" if key == "truth" or key not in evaluation.specular_psnr else f" {evaluation.specular_psnr[key][query]:.1f} dB"
                     labels.append(f"#{query} {key}{score}")
             plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order), title=f"{title}: specular highlights at held-out lights")
+        if evaluation.full_examples and evaluation.full_example_queries is not None and len(evaluation.full_example_queries):
+            order = ["truth"] + [k for k in evaluation.full_examples if k != "truth"]
+            images, labels = [], []
+            for row, query in enumerate(evaluation.full_example_queries):
+                for key in order:
+                    images.append(evaluation.full_examples[key][row])
+                    score = "" if key == "truth" else f" {evaluation.full_srgb_psnr[key][query]:.1f} dB"
+                    labels.append(f"#{query} {key}{score}")
+            plots.plot_image_grid(images, labels, temporary / "worst-lights.png", columns=len(order),
+                                  title=f"{title}: full images at the worst held-out lights (8-bit sRGB PSNR)")
         (temporary / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
         names = sorted(p.name for p in temporary.iterdir())
     return names
@@ -301,17 +337,29 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
 def print_evaluation_table(report: dict) -> None:
     """The summary as a Markdown table on stdout."""
     summary = report["summary"]
-    for kind, part in summary.items():
-        print(f"{kind} PSNR (dB) at {report['heldout']} held-out lights, {report['size'][0]}x{report['size'][1]}:")
-        print("| method | mean | p5 | p95 | excluded |")
-        print("|---|---|---|---|---|")
-        for method in report["methods"]:
+    where = f"at {report['heldout']} held-out lights, {report['size'][0]}x{report['size'][1]}"
+    for kind in ("specular", "full"):
+        part = summary.get(kind)
+        if not part:
+            continue
+        methods = report["methods"] + (report.get("baselines") or []) if kind == "full" else report["methods"]
+        srgb, ssim = summary.get("full_srgb", {}), summary.get("full_ssim", {})
+        extra = kind == "full" and bool(srgb)
+        print(f"{kind} {'image' if kind == 'full' else 'highlights'} {where}:")
+        print("| method | linear PSNR mean | p5 | p95 |" + (" 8-bit sRGB PSNR mean | worst | SSIM mean | worst |" if extra else ""))
+        print("|---|---|---|---|" + ("---|---|---|---|" if extra else ""))
+        for method in methods:
             s = part.get(method)
             if s and s["mean"] is not None:
-                print(f"| {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} | {s['excluded']} |")
+                row = f"| {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} |"
+                if extra and method in srgb:
+                    row += f" {srgb[method]['mean']:.2f} | {srgb[method]['min']:.2f} | {ssim[method]['mean']:.3f} | {ssim[method]['min']:.3f} |"
+                print(row)
         share = part.get("circular_beats_alpha")
         if share is not None:
             print(f"circular beats alpha on {100 * share:.0f}% of the held-out lights")
+    if report.get("baselines_left_out"):
+        print(f"left out (more coefficients than the {report['lights']} lights): {', '.join(report['baselines_left_out'])}")
     gaussians = report["gaussians"]["per_light"]
     print(f"Gaussians per light: mean {gaussians['mean']:.1f}, max {gaussians['max']}")
 
@@ -319,7 +367,7 @@ def print_evaluation_table(report: dict) -> None:
 COMMANDS = (
     Command("relight", _relight_arguments, _run_relight, help="render a fitted field for one or more light directions",
             description="Relight a highlight field: locate each light direction in the triangulation, move the Gaussians "
-            "along their paths, rasterize the highlights and add the diffuse part."),
+            "along their paths, rasterize the highlights and add them to the blended residual (the captured images minus their own highlights)."),
     Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, MP4 or a folder of frames",
             description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great circle "
             "between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that elevation), "

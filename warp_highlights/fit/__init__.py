@@ -1,6 +1,7 @@
 """Fitting: a reflectance field -> a highlight field (method.md sections 2-6), stage by stage.
 
-The pipeline is ``segment -> estimate -> retarget -> decide_paths``; ``fit_field`` runs all of it.
+The pipeline is ``segment -> estimate -> retarget -> decide_paths -> decide_moving -> build_residual``;
+``fit_field`` runs all of it.
 Each stage takes and returns a whole batch (every light, every directed edge). Imports the model,
 io and the kernels (ARCHITECTURE.md).
 
@@ -12,6 +13,9 @@ io and the kernels (ARCHITECTURE.md).
 - ``RetargetResult``: the retargeted sets of every directed edge with their losses.
 - ``decide_paths``: stage 4: which way each Gaussian turns along each directed edge.
 - ``PathDecisions``: the chosen rotations and arc centres.
+- ``decide_moving``: stage 5: which Gaussians move (their retargeting lands on the neighbours' highlights).
+- ``MoveDecision``: the move flags and the support of every retargeted Gaussian.
+- ``build_residual``: stage 6: each image minus its own highlights, compressed (``ResidualModel``).
 """
 
 from .._api import lazy_exports
@@ -24,5 +28,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["estimate", "EstimationResult"], "estimation"),
         **dict.fromkeys(["retarget", "RetargetResult"], "retargeting"),
         **dict.fromkeys(["decide_paths", "PathDecisions"], "paths"),
+        **dict.fromkeys(["decide_moving", "MoveDecision", "build_residual"], "residual"),
     },
 )

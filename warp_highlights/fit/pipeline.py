@@ -1,8 +1,9 @@
 """The whole precomputation: reflectance field -> highlight field (method.md sections 2-6 and 8).
 
-segment -> estimate -> triangulate -> retarget (components, phase 1, phase 2) -> decide paths. Each
-stage runs batched over all lights or all directed edges; ``fit_field`` times them and collects the
-figures the ``fit`` command prints.
+segment -> estimate -> triangulate -> retarget (components, phase 1, phase 2) -> decide paths ->
+decide which Gaussians move -> the residual (images minus their moving highlights, for residual
+transfer). Each stage runs batched over all lights or all directed edges; ``fit_field`` times them
+and collects the figures the ``fit`` command prints.
 """
 
 from __future__ import annotations
@@ -25,9 +26,10 @@ from ..model.triangulation import SphericalTriangulation
 from .chunks import problem_chunks
 from .estimation import estimate
 from .paths import decide_paths
+from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, render_own
 from .retargeting import retarget
 
-__all__ = ["DIFFUSE_CHOICES", "fit_field"]
+__all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
 
 DIFFUSE_CHOICES = ("lambert", "images", "none")
 
@@ -38,8 +40,9 @@ def fit_field(
     settings: FitSettings | None = None,
     device=None,
     size: tuple[int, int] | None = None,
-    diffuse: str = "lambert",
-    exposure: float | str = 1.0,
+    diffuse: str = "none",
+    residual: bool = True,
+    exposure: float | str | None = None,
     workers: int | None = None,
     progress: bool = False,
     log=None,
@@ -51,13 +54,15 @@ def fit_field(
         settings: every hyper-parameter (``FitSettings``).
         device: Warp device (default: Warp's default, CUDA when present).
         size: working resolution (width, height) of the same aspect ratio, or None for the images' own.
-        diffuse: what to keep of the diffuse part: "lambert" (per-pixel nbar and k_a), "images"
-            (that plus the diffuse images, float16, for barycentric blending) or "none".
+        diffuse: the optional Lambertian diffuse model: "lambert" (per-pixel nbar and k_a), "images"
+            (that plus the diffuse images, float16) or "none" (default: residual transfer needs none).
+        residual: store the residual images for residual transfer (``settings.residual`` says how).
         exposure: factor applied to the radiance before fitting, or "auto": the factor that maps the
             99.9th percentile of all samples to 1 (display white). The method's thresholds (lit sample
             0.05, new Gaussian 0.2) assume display white is 1, as in rendered data; a dim photographic
             capture needs "auto" (or its own factor) or its highlights stay under the thresholds. The
-            fitted field is in the scaled units and records the factor (``report["exposure"]``).
+            fitted field is in the scaled units and records the factor (``report["exposure"]``);
+            relighting divides by it. None (default): ``default_exposure(dataset)``.
         workers: CPU threads (default: one per core); ignored on CUDA.
         progress: show a progress bar per stage (tqdm, on stderr).
         log: optional callable receiving one line per finished stage.
@@ -74,7 +79,7 @@ def fit_field(
         edges = triangulation.directed_edges()
     with timer.stage("segmentation"):
         images = resize_stack(dataset.images, width, height)
-        factor = exposure_factor(images, exposure)
+        factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
         if factor != 1.0:
             images = images * np.float32(factor)
         seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device)
@@ -86,6 +91,20 @@ def fit_field(
     with timer.stage("paths"):
         source = estimated.params
         decisions = decide_paths(source.take(edges[:, 0]), retargeted.params, settings.paths)
+
+    moving = source.active.copy()
+    residual_model = None
+    support_median = None
+    if residual:
+        with timer.stage("residual"):
+            decision = decide_moving(source, retargeted.params, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
+            moving = decision.moving
+            support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
+            own = render_own(source, height, width, raster=settings.raster, device=device)
+            colour = None
+            if images.ndim == 4 and settings.residual.highlight_colour:
+                colour = highlight_colour(seg.specular.numpy(), own, prior=settings.residual.colour_prior)
+            residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(source, retargeted.params))
 
     diffuse_model = None
     if diffuse != "none":
@@ -123,6 +142,15 @@ def fit_field(
             "improved_share": float(np.mean(retargeted.loss <= retargeted.source_loss + 1e-6)),
             "restored_slots": int(retargeted.restored.sum()),
         },
+        "residual": None if residual_model is None else {
+            "moving_gaussians": int(moving.sum()),
+            "staying_gaussians": int(source.active.sum() - moving.sum()),
+            "median_support": support_median,
+            "compressed": residual_model.compressed,
+            "luminance_rank": residual_model.luminance.rank if residual_model.compressed else None,
+            "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
+            "highlight_colour": residual_model.highlight_colour is not None,
+        },
         "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},
         "per_light": {"gaussians": counts.tolist(), "psnr_db": np.round(estimated.psnr, 3).tolist()},
     }
@@ -139,7 +167,15 @@ def fit_field(
         settings=settings.to_dict(),
         report=report,
         diffuse=diffuse_model,
+        residual=residual_model,
+        moving=moving if residual_model is not None else None,
     )
+
+
+def default_exposure(dataset: ReflectanceField) -> float | str:
+    """"auto" for display-referred captures (every image a JPEG/PNG/TIFF/... file), else 1.0 (linear
+    radiance such as EXR renders, or images made in memory, whose 1 is display white already)."""
+    return "auto" if dataset.display_referred else 1.0
 
 
 def exposure_factor(images: np.ndarray, exposure: float | str) -> float:

@@ -26,6 +26,9 @@ from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
+DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+"""Image files that hold display values (8/16-bit photographs), as opposed to radiance (EXR/HDR)."""
+
 _COMPONENTS = ("specular", "diffuse")
 _GROUP_FOLDERS = {"lights": ("images", ""), "heldout": ("heldout", "h")}  # group -> (folder, stem prefix)
 
@@ -178,6 +181,36 @@ class ReflectanceField:
         result.mask = _read_mask(folder / "mask.png", (result.height, result.width), max_pixels)
         result.meta = _read_meta(folder / "meta.json")
         return result
+
+    @property
+    def display_referred(self) -> bool:
+        """True when every image came from a JPEG/PNG/TIFF/... file (a photograph's display values, whose
+        1 need not be the capture's white), False for EXR/HDR radiance and images made in memory."""
+        names = self.lights.filenames or []
+        return bool(names) and all(str(name).lower().endswith(DISPLAY_REFERRED_SUFFIXES) for name in names)
+
+    def split_every(self, k: int) -> ReflectanceField:
+        """The k-fold hold-out protocol: lights 0, k, 2k, ... held out (``heldout``), the rest kept.
+
+        The result shares no arrays with this field; its ``meta`` records ``heldout_protocol``.
+        """
+        k = int(k)
+        if k < 2:
+            raise InputError(f"--holdout-every must be at least 2 (every k-th light held out), got {k}")
+        held = np.arange(self.light_count) % k == 0
+        if self.light_count - held.sum() < 4:
+            raise InputError(f"holding out every {k}th of {self.light_count} lights leaves {self.light_count - held.sum()}; a fit needs at least 4")
+
+        def part(mask) -> ReflectanceField:
+            names = None if self.lights.filenames is None else [n for n, keep in zip(self.lights.filenames, mask) if keep]
+            pick = lambda a: None if a is None else a[mask].copy()
+            return ReflectanceField(self.images[mask].copy(), LightSet(self.lights.directions[mask], names),
+                                    specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask, root=self.root)
+
+        train = part(~held)
+        train.heldout = part(held)
+        train.meta = {**(self.meta or {}), "heldout_protocol": f"every {k}th light (0, {k}, {2 * k}, ...) held out"}
+        return train
 
     def save(self, folder, *, half: bool = False, overwrite: bool = False) -> Path:
         """Write the field as a dataset folder of EXR images (see :class:`DatasetWriter`).

@@ -2,7 +2,7 @@
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (method.md section 8).
 
-File format (version 1; any file name, ``.whf`` suggested): a zip archive, deflate-compressed, written
+File format (version 2; any file name, ``.whf`` suggested): a zip archive, deflate-compressed, written
 atomically (temporary file in the same folder, fsync, rename). Its first entry is ``header.json``; every
 other entry is a standard little-endian ``.npy`` array, so ``numpy.load`` can open the file too.
 
@@ -24,6 +24,15 @@ entry                           dtype, shape     contents
 ``diffuse/lambert.npy``         <f2 (C, 4, H, W) optional: nbar_x, nbar_y, nbar_z, k_a planes per
                                 or <f4           channel (float16 by default, see ``save_field``)
 ``diffuse/images.npy``          <f2 (n, C, H, W) optional: diffuse image of every light
+``gaussians/moving.npy``        <u1 (K,)         version 2, optional: 1 where an estimated Gaussian
+                                                 moves, 0 where it blends in place
+``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
+``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
+                                (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
+``residual/Y_codes.npy``        <u1 (k, P, H, W) 8-bit basis images of that stack
+``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
+``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
+``residual/colour.npy``         <u1 (C, H, W)    optional: highlight colour c(x), code x COLOUR_STEP
 ==============================  ===============  =================================================
 
 (The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
@@ -33,6 +42,9 @@ The directed edges are not stored: they are ``triangulation.directed_edges()``. 
 a fitted set has weight 1 everywhere. Free slots are not stored: they read back as zeros (weight 1), and
 the constructor clears them in the same way, so a saved and loaded field equals the original exactly
 (except the Lambertian diffuse model, which is stored as float16 unless ``lambert_half=False``).
+
+Version 1 (before residual transfer) has no ``gaussians/moving`` and no ``residual/`` entries; it
+loads with every Gaussian moving and no residual (relighting then uses its diffuse model).
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -53,6 +65,7 @@ from ..model.errors import InputError
 from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
 from ..model.lights import LightSet
+from ..model.residual import COLOUR_STEP, LowRankStack, ResidualModel
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 
@@ -61,7 +74,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_f
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _HEADER = "header.json"
@@ -75,9 +88,13 @@ _PATH_DELTA = "paths/delta.npy"
 _PATH_CENTRE = "paths/centre.npy"
 _LAMBERT = "diffuse/lambert.npy"
 _IMAGES = "diffuse/images.npy"
+_MOVING = "gaussians/moving.npy"
+_RESIDUAL_IMAGES = "residual/images.npy"
+_RESIDUAL_COLOUR = "residual/colour.npy"
+_STACK_PREFIX = {"luminance": "residual/Y_", "chroma": "residual/C_"}
 
 _PARAMETER_COLUMNS = ("amplitude", "mean_x", "mean_y", "sigma_x", "sigma_y", "theta")
-_PARTS = ("header", "lights", "triangulation", "gaussians", "paths", "diffuse")
+_PARTS = ("header", "lights", "triangulation", "gaussians", "paths", "diffuse", "residual")
 _MAX_HEADER_BYTES = 64 * 2**20
 _FLOAT16_MAX = float(np.finfo(np.float16).max)
 _UNIT_TOLERANCE = 1e-6  # stored light directions must be unit vectors to this accuracy
@@ -166,7 +183,7 @@ def field_size_report(field: HighlightField) -> dict:
     return dict(field.file_sizes)
 
 
-def _header(field: HighlightField, diffuse_layout: dict | None) -> dict:
+def _header(field: HighlightField, diffuse_layout: dict | None, residual_layout: dict | None) -> dict:
     return {
         "magic": MAGIC,
         "format_version": FORMAT_VERSION,
@@ -182,6 +199,8 @@ def _header(field: HighlightField, diffuse_layout: dict | None) -> dict:
         "retargeted_gaussian_count": int(field.retargeted.active.sum()),
         "parameter_columns": list(_PARAMETER_COLUMNS),
         "diffuse": diffuse_layout,
+        "residual": residual_layout,
+        "moving": field.moving is not None,
         "light_filenames": field.lights.filenames,
         "settings": field.settings,
         "report": field.report,
@@ -217,8 +236,14 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
         if field.diffuse.images is not None:
             images = field.diffuse.images.transpose(0, 3, 1, 2).astype("<f2")
             arrays.append((_IMAGES, images))
+    if field.moving is not None:
+        arrays.append((_MOVING, field.moving[est_rows, est_slots].astype("<u1")))
+    residual_layout = None
+    if field.residual is not None:
+        residual_layout, residual_arrays = _residual_entries(field.residual)
+        arrays.extend(residual_arrays)
     header = json.dumps(
-        _header(field, diffuse_layout), indent=1, allow_nan=False
+        _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
     with zipfile.ZipFile(stream, "w") as archive:
         with archive.open(_entry_info(_HEADER), "w") as entry:
@@ -230,6 +255,32 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
 
 
 # --- writing helpers -------------------------------------------------------------------------------
+
+
+def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
+    """The header layout and the (name, array) entries of a residual model, planes channel-first."""
+    layout = {"channels": residual.channels, "compressed": residual.compressed, "highlight_colour": residual.highlight_colour is not None}
+    arrays = []
+    if residual.images is not None:
+        arrays.append((_RESIDUAL_IMAGES, residual.images.transpose(0, 3, 1, 2).astype("<f2")))
+    for name in ("luminance", "chroma"):
+        stack = getattr(residual, name)
+        layout[name] = None
+        if stack is None:
+            continue
+        half = bool(np.array_equal(stack.mean.astype(np.float16).astype(np.float32), stack.mean))
+        layout[name] = {"rank": stack.rank, "mean_dtype": "float16" if half else "float32"}
+        prefix = _STACK_PREFIX[name]
+        arrays += [
+            (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
+            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1")),
+            (prefix + "ranges.npy", stack.ranges.astype("<f4")),
+            (prefix + "weights.npy", stack.weights.astype("<f4")),
+        ]
+    if residual.highlight_colour is not None:
+        codes = np.round(residual.highlight_colour / COLOUR_STEP).clip(0, 255).astype("<u1")
+        arrays.append((_RESIDUAL_COLOUR, codes.transpose(2, 0, 1)))
+    return layout, arrays
 
 
 def _pack(params: GaussianParams, rows: np.ndarray, slots: np.ndarray) -> np.ndarray:
@@ -597,6 +648,20 @@ def _build_field(
         except InputError as exc:
             raise _corrupt(path, str(exc)) from None
 
+    moving = None
+    if header.get("moving", False) is not False:
+        if header.get("moving") is not True:
+            raise _corrupt(path, f"header entry 'moving' must be true or false, got {header.get('moving')!r}")
+        flags = read(_MOVING, "<u1", (estimated_total,))
+        if flags.size and flags.max() > 1:
+            raise _corrupt(path, f"entry {_MOVING} must hold 0 or 1")
+        moving = np.zeros((n, capacity), dtype=bool)
+        moving[owners, slots] = flags.astype(bool)
+    residual = None
+    residual_layout = header.get("residual")
+    if residual_layout is not None:
+        residual = _read_residual(path, residual_layout, read, n, height, width)
+
     try:
         field = HighlightField(
             lights=lights,
@@ -611,6 +676,8 @@ def _build_field(
             settings=settings,
             report=report,
             diffuse=diffuse,
+            residual=residual,
+            moving=moving,
         )
     except InputError as exc:
         raise _corrupt(path, str(exc)) from None
@@ -618,6 +685,43 @@ def _build_field(
     field.file_sizes = _size_report(archive.infolist(), stream.tell())
     field.file_path = path
     return field
+
+
+def _read_residual(path: Path, layout, read, n: int, height: int, width: int) -> ResidualModel:
+    """The residual model of a version-2 file, from its header layout and entries."""
+    if not isinstance(layout, dict):
+        raise _corrupt(path, "header entry 'residual' must be null or a JSON object")
+    channels = _header_int(path, layout, "channels", 1, 3)
+    compressed = _header_value(path, layout, "compressed", (bool,), "true or false")
+    with_colour = _header_value(path, layout, "highlight_colour", (bool,), "true or false")
+    images, stacks = None, {}
+    if not compressed:
+        images = read(_RESIDUAL_IMAGES, "<f2", (n, channels, height, width)).transpose(0, 2, 3, 1)
+    else:
+        for name, planes in (("luminance", 1), ("chroma", 2)):
+            part = layout.get(name)
+            if part is None:
+                continue
+            if not isinstance(part, dict) or part.get("mean_dtype") not in ("float16", "float32"):
+                raise _corrupt(path, f"header entry residual.{name} must be null or hold a rank and a mean_dtype")
+            rank = _header_int(path, part, "rank", 0, n)
+            prefix = _STACK_PREFIX[name]
+            mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
+            stacks[name] = LowRankStack(
+                mean=mean.transpose(1, 2, 0).astype(np.float32),
+                codes=read(prefix + "codes.npy", "<u1", (rank, planes, height, width)).transpose(0, 2, 3, 1),
+                ranges=read(prefix + "ranges.npy", "<f4", (rank, 2)),
+                weights=read(prefix + "weights.npy", "<f4", (n, rank)),
+            )
+        if "luminance" not in stacks or (channels == 3) != ("chroma" in stacks):
+            raise _corrupt(path, f"a compressed {channels}-channel residual needs a luminance stack{' and a chroma stack' if channels == 3 else ' only'}")
+    colour = None
+    if with_colour:
+        colour = read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0).astype(np.float32) * np.float32(COLOUR_STEP)
+    try:
+        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour)
+    except InputError as exc:
+        raise _corrupt(path, str(exc)) from None
 
 
 def _unpack(rows: np.ndarray, active: np.ndarray) -> GaussianParams:

@@ -9,6 +9,8 @@
 - ``ConnectedComponents``: overlapping Gaussians of a set grouped, for the rigid retargeting phase.
 - ``HighlightField``: the fitted model: lights, triangulation, Gaussians, paths, settings, report.
 - ``DiffuseModel``: a field's diffuse part: per-pixel Lambertian planes, optionally the diffuse images.
+- ``ResidualModel``: the images minus their moving highlights, for residual transfer; low rank or whole.
+- ``LowRankStack``: n images as a mean plus weighted 8-bit basis images.
 - ``MAX_CAPACITY``: most Gaussian slots per set a field may have.
 - ``rotation_options``: the two signed rotations that turn one orientation into another (radians).
 - ``path_centre``: centre of the arc a Gaussian's mean follows along an edge (image heights).
@@ -22,6 +24,7 @@
 - ``ComponentSettings``: when two Gaussians belong to one connected component.
 - ``RetargetSettings``: loss weights and iterations of retargeting.
 - ``PathSettings``: straight-path threshold and the path-decision length scale.
+- ``ResidualSettings``: residual transfer: compression, move decision, highlight colour.
 - ``REFERENCE_HEIGHT_PX``: the image height that pixel-valued settings refer to ("rpx").
 - ``rpx_to_normalized``: reference pixels -> image heights.
 - ``normalized_to_rpx``: image heights -> reference pixels.
@@ -38,12 +41,13 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["SphericalTriangulation", "Location"], "triangulation"),
         **dict.fromkeys(["GaussianParams", "GaussianBatch", "GaussianArrays"], "gaussians"),
         "ConnectedComponents": "components",
+        **dict.fromkeys(["ResidualModel", "LowRankStack"], "residual"),
         **dict.fromkeys(["HighlightField", "DiffuseModel", "MAX_CAPACITY"], "field"),
         **dict.fromkeys(["rotation_options", "path_centre", "circular_position"], "arcs"),
         **dict.fromkeys(
             [
                 "FitSettings", "RasterSettings", "SegmentationSettings", "EstimationSettings", "AdamSettings",
-                "StructureLossSettings", "ComponentSettings", "RetargetSettings", "PathSettings",
+                "StructureLossSettings", "ComponentSettings", "RetargetSettings", "PathSettings", "ResidualSettings",
                 "REFERENCE_HEIGHT_PX", "rpx_to_normalized", "normalized_to_rpx", "pixel_area_rpx2"
             ],
             "config",

@@ -24,6 +24,7 @@ from .config import FitSettings
 from .errors import InputError
 from .gaussians import GaussianParams
 from .lights import LightSet
+from .residual import ResidualModel
 from .triangulation import SphericalTriangulation
 
 __all__ = ["MAX_CAPACITY", "DiffuseModel", "HighlightField"]
@@ -124,7 +125,11 @@ class HighlightField:
         settings: The fit settings (``FitSettings.to_dict()``), JSON-able.
         report: Fit summary (times, counts, quality), JSON-able; NaN and infinite numbers are
             stored as None (null), in ``settings`` too.
-        diffuse: The diffuse model, or None.
+        diffuse: The diffuse model (per-pixel Lambertian; an option since residual transfer), or None.
+        residual: The ``ResidualModel`` of residual transfer (the default full image), or None.
+        moving: (n, N) bool: the estimated Gaussians that move when relit; the others stay in place
+            and blend like the alpha baseline (decided at fit time from how well their retargeting
+            explains the neighbours). None: every active Gaussian moves (fields before version 2).
 
     The constructor validates everything and raises ``InputError`` (one line) on any inconsistency. It
     stores float32-rounded copies of the Gaussian and path values (the device works in float32; the
@@ -150,6 +155,8 @@ class HighlightField:
     settings: dict
     report: dict
     diffuse: DiffuseModel | None = None
+    residual: ResidualModel | None = None
+    moving: np.ndarray | None = None
 
     FORMAT_VERSION = _MovedFormatVersion()  # deprecated (a class attribute, not a field)
 
@@ -241,6 +248,19 @@ class HighlightField:
                 raise InputError(
                     f"the diffuse model has {len(self.diffuse.images)} images for {n} lights"
                 )
+        if self.residual is not None:
+            if not isinstance(self.residual, ResidualModel):
+                raise InputError(f"residual must be a ResidualModel or None, got {type(self.residual).__name__}")
+            if (self.residual.height, self.residual.width) != (self.height, self.width) or self.residual.light_count != n:
+                raise InputError(
+                    f"the residual model has {self.residual.light_count} lights of {self.residual.width} x {self.residual.height} "
+                    f"pixels but the field has {n} of {self.width} x {self.height}"
+                )
+        if self.moving is not None:
+            moving = np.asarray(self.moving)
+            if moving.shape != (n, capacity) or moving.dtype != bool:
+                raise InputError(f"moving must be a ({n}, {capacity}) bool array, got {moving.shape} {moving.dtype}")
+            self.moving = moving & estimated.active
         self.file_path: Path | None = None
         self.file_sizes: dict | None = None
 
@@ -265,6 +285,11 @@ class HighlightField:
     def counts(self) -> np.ndarray:
         """(n,) int: active Gaussians estimated for each light."""
         return self.estimated.counts
+
+    @property
+    def moving_mask(self) -> np.ndarray:
+        """(n, N) bool: the active estimated Gaussians that move (all of them when ``moving`` is None)."""
+        return self.estimated.active.copy() if self.moving is None else self.moving & self.estimated.active
 
     @property
     def gaussian_count(self) -> int:
@@ -309,6 +334,10 @@ class HighlightField:
             lines.append(
                 f"diffuse: Lambertian, {self.diffuse.channel_count} channel(s){images}"
             )
+        if self.moving is not None:
+            lines.append(f"moving Gaussians: {int(self.moving.sum())} of {int(self.estimated.active.sum())} (the rest blend in place)")
+        if self.residual is not None:
+            lines.append(self.residual.describe())
         if self.file_sizes is not None:
             where = f" ({self.file_path})" if self.file_path is not None else ""
             lines.append(f"file: {_format_bytes(self.file_sizes['total'])}{where}")

@@ -5,8 +5,12 @@ relit with each method and compared with the ground truth:
 
 - ``specular``: S' against the ground-truth specular luminance (when the dataset has it), in the
   field's units (the fit's exposure applied) - the protocol's figure;
-- ``full``: I' = D' + S' against the held-out image, in the dataset's units (when the field has a
-  diffuse model; the alpha method blends the dataset's images).
+- ``full``: I' against the held-out image, in the dataset's units (when the field has a residual
+  or diffuse model; the alpha method blends the dataset's images): linear PSNR, and as RTI users
+  measure it, PSNR of the 8-bit sRGB images and their SSIM (scikit-image), per light and summarised.
+  The classic RTI methods (``baselines``: PTM, HSH, RBF, fitted to the same training lights, on
+  sRGB-encoded values for a photographic capture as RTI viewers do, on radiance otherwise) are scored
+  the same way, and the worst lights' images are kept for a figure.
 
 PSNR has peak 1 on images clipped to [0, 1]. A query whose image and ground truth are both all zero
 is left out and counted (``excluded``). The alpha baseline blends the specular images that the
@@ -25,12 +29,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ..io.images import display_rgb8, linear_to_srgb, srgb_to_linear
 from ..io.resample import resize_stack
-from ..kernels.segmentation import LUMINANCE_WEIGHTS
 from ..model.errors import InputError
+from ..model.residual import LUMINANCE_WEIGHTS
+from .baselines import BASELINE_METHODS, fit_baseline, minimum_lights
 from .relighter import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
 
-__all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "summarize"]
+__all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "srgb_scores", "summarize"]
+
+_WORST_EXAMPLES = 3  # held-out lights (the worst of the first method) whose full images are kept
 
 
 
@@ -42,7 +50,10 @@ class Evaluation:
         directions: (Q, 3) held-out directions.
         faces, barycentric: where each fell in the triangulation.
         specular_psnr: method -> (Q,) dB, NaN where excluded; empty without specular ground truth.
-        full_psnr: method -> (Q,) dB for full images; empty when not measured.
+        full_psnr: method -> (Q,) linear dB for full images; empty when not measured.
+        full_srgb_psnr, full_ssim: method -> (Q,) PSNR (dB) and SSIM of the 8-bit sRGB full images.
+        full_examples: "truth" and method -> (k, H, W, C) linear full images of ``full_example_queries``
+            (the worst lights of the first method), and ``full_example_queries`` (k,).
         gaussians_per_light: (n,) active Gaussians of every estimated set.
         gaussians_per_query: (Q,) active Gaussians of every circular interpolated set.
         barycentric_sweep: None, or a dict with ``face``, ``vertices``, ``weights`` (K, 3) and
@@ -56,6 +67,10 @@ class Evaluation:
     barycentric: np.ndarray
     specular_psnr: dict = field(default_factory=dict)
     full_psnr: dict = field(default_factory=dict)
+    full_srgb_psnr: dict = field(default_factory=dict)
+    full_ssim: dict = field(default_factory=dict)
+    full_examples: dict = field(default_factory=dict)
+    full_example_queries: np.ndarray | None = None
     gaussians_per_light: np.ndarray | None = None
     gaussians_per_query: np.ndarray | None = None
     barycentric_sweep: dict | None = None
@@ -67,11 +82,14 @@ class Evaluation:
     def summary(self) -> dict:
         """Per kind (specular, full) and method: mean, p5, p95, ... of the PSNR; and win shares."""
         result = {}
-        for kind, scores in (("specular", self.specular_psnr), ("full", self.full_psnr)):
+        kinds = (("specular", self.specular_psnr), ("full", self.full_psnr), ("full_srgb", self.full_srgb_psnr), ("full_ssim", self.full_ssim))
+        for kind, scores in kinds:
             if not scores:
                 continue
             part = {method: summarize(values) for method, values in scores.items()}
-            for first, second in (("circular", "alpha"), ("circular", "straight"), ("straight", "alpha")):
+            pairs = [("circular", "alpha"), ("circular", "straight"), ("straight", "alpha")]
+            pairs += [("circular", method) for method in scores if method in BASELINE_METHODS]
+            for first, second in pairs:
                 if first in scores and second in scores:
                     part[f"{first}_beats_{second}"] = win_share(scores[first], scores[second])
             result[kind] = part
@@ -86,6 +104,8 @@ class Evaluation:
             "gaussians": None if self.gaussians_per_query is None else self.gaussians_per_query.tolist(),
             "specular_psnr": {m: _rounded(v) for m, v in self.specular_psnr.items()},
             "full_psnr": {m: _rounded(v) for m, v in self.full_psnr.items()},
+            "full_srgb_psnr": {m: _rounded(v) for m, v in self.full_srgb_psnr.items()},
+            "full_ssim": {m: _rounded(v, 4) for m, v in self.full_ssim.items()},
         }
         sweep = self.barycentric_sweep
         if sweep is not None and "skipped" not in sweep:
@@ -121,6 +141,25 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
         value = np.minimum(10.0 * np.log10(1.0 / mse), cap)
     black = (a.max(axis=1) <= 0.0) & (b.max(axis=1) <= 0.0)
     return np.where(black, np.nan, value)
+
+
+def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Q,) PSNR (dB, peak 255) and (Q,) SSIM of linear images shown as 8-bit sRGB (``display_rgb8``).
+
+    Works on (Q, H, W) or (Q, H, W, C) stacks; SSIM is scikit-image's (7 x 7 window, over the colour
+    channels), PSNR is capped at 100 dB for identical images.
+    """
+    from skimage.metrics import structural_similarity
+
+    psnr, ssim = np.empty(len(images)), np.empty(len(images))
+    for q, (image, reference) in enumerate(zip(images, truth)):
+        a, b = display_rgb8(image), display_rgb8(reference)
+        mse = float(np.mean((a.astype(np.float64) - b) ** 2))
+        psnr[q] = 100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse))
+        small = min(a.shape[0], a.shape[1])
+        window = 7 if small >= 7 else max(3, small - 1 + small % 2 - 1) if small >= 3 else None
+        ssim[q] = 1.0 if window is None else structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window)
+    return psnr, ssim
 
 
 def summarize(values) -> dict:
@@ -166,6 +205,7 @@ def evaluate_field(
     barycentric_steps: int = 10,
     example_count: int = 4,
     alpha_stacks: tuple[np.ndarray, np.ndarray] | None = None,
+    baselines: tuple[str, ...] = (),
     progress=None,
 ) -> Evaluation:
     """Relight ``highlight_field`` at the held-out lights of ``dataset`` and score every method.
@@ -180,6 +220,9 @@ def evaluate_field(
         barycentric_steps: grid resolution of that face (weights in steps of 1 / barycentric_steps).
         example_count: held-out queries whose images are kept for a comparison figure.
         alpha_stacks: ``alpha_inputs(highlight_field, dataset)`` when the caller has them already.
+        baselines: any of ``BASELINE_METHODS``, fitted to the dataset's lights at the field's size and
+            scored on the full images (needs full images to compare); one with more coefficients
+            than the dataset has lights is left out and named in ``info["baselines_left_out"]``.
         progress: optional callable(str) told about each step.
     """
     say = progress or (lambda _message: None)
@@ -187,6 +230,10 @@ def evaluate_field(
     for method in methods:
         if method not in RELIGHT_METHODS:
             raise InputError(f"method must be one of {', '.join(RELIGHT_METHODS)}, got '{method}'")
+    baselines = tuple(baselines)
+    for method in baselines:
+        if method not in BASELINE_METHODS:
+            raise InputError(f"baseline must be one of {', '.join(BASELINE_METHODS)}, got '{method}'")
     f = highlight_field
     device = wp.get_device(device)
     check_same_lights(f, dataset)
@@ -213,7 +260,7 @@ def evaluate_field(
     truth_full = resize_stack(heldout.images, f.width, f.height)
     if truth_full.ndim == 3:
         truth_full = truth_full[..., None]
-    compare_full = f.diffuse is not None and truth_full.shape[-1] == relighter.channels
+    compare_full = (f.diffuse is not None or f.residual is not None) and truth_full.shape[-1] == relighter.channels
     examples_at = np.unique(np.linspace(0, len(directions) - 1, min(example_count, len(directions))).round().astype(int))
 
     result = Evaluation(directions=directions, faces=np.zeros(0, int), barycentric=np.zeros((0, 3)))
@@ -221,7 +268,7 @@ def evaluate_field(
         say(f"relighting {len(directions)} held-out directions ({method})")
         t = time.perf_counter()
         want_full = compare_full
-        specular_scores, full_scores, faces, weights, examples = [], [], [], [], []
+        specular_scores, full_scores, srgb_parts, faces, weights, examples = [], [], [], [], [], []
         start = 0
         for chunk in relighter.iter_relight(directions, method=method, full=want_full):  # one chunk in memory at a time
             stop = start + len(chunk.specular)
@@ -230,6 +277,7 @@ def evaluate_field(
                 specular_scores.append(psnr_excluding_black(chunk.specular, truth_specular[start:stop]))
             if want_full:
                 full_scores.append(psnr_excluding_black(chunk.full, truth_full[start:stop]))
+                srgb_parts.append(srgb_scores(chunk.full, truth_full[start:stop]))
             faces.append(chunk.faces)
             weights.append(chunk.barycentric)
             keep = examples_at[(examples_at >= start) & (examples_at < stop)] - start
@@ -241,10 +289,19 @@ def evaluate_field(
             result.specular_psnr[method] = np.concatenate(specular_scores)
         if full_scores:
             result.full_psnr[method] = np.concatenate(full_scores)
+            result.full_srgb_psnr[method] = np.concatenate([p for p, _ in srgb_parts])
+            result.full_ssim[method] = np.concatenate([q for _, q in srgb_parts])
         result.examples[method] = np.concatenate(examples)
     if truth_specular is not None:
         result.examples["truth"] = truth_specular[examples_at]
     result.example_queries = examples_at
+    models = {}
+    left_out = [method for method in baselines if dataset.light_count < minimum_lights(method)]
+    baselines = tuple(method for method in baselines if method not in left_out)
+    if compare_full and baselines:
+        models = _score_baselines(result, baselines, dataset, truth_full, f.width, f.height, device, say, seconds)
+    if compare_full and result.full_srgb_psnr:
+        _keep_worst_examples(result, relighter, models, truth_full, dataset.display_referred)
     result.gaussians_per_light = f.estimated.counts
     if "circular" in methods or "straight" in methods:
         sets = relighter.interpolated_sets(directions, method="circular")
@@ -264,9 +321,51 @@ def evaluate_field(
         "heldout_protocol": dataset.meta.get("heldout_protocol") if dataset.meta else None,
         "exposure": exposure,
         "methods": list(methods),
+        "baselines": list(baselines) if compare_full else [],
+        "baselines_left_out": left_out,
+        "rbf_sigma": float(models["rbf"].sigma) if "rbf" in models else None,
+        "baseline_bytes_per_pixel": {name: int(model.bytes_per_pixel_8bit) for name, model in models.items()},
         "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full", result.full_psnr)) if scores],
     }
     return result
+
+
+def _score_baselines(result: Evaluation, baselines, dataset, truth_full, width: int, height: int, device, say, seconds) -> dict:
+    """Fit each classic RTI method to the dataset's lights and score it like the field's methods."""
+    images = resize_stack(dataset.images, width, height)
+    if images.ndim == 3:
+        images = images[..., None]
+    encoded = dataset.display_referred
+    values = linear_to_srgb(np.clip(images, 0.0, 1.0)) if encoded else images
+    directions = dataset.heldout.lights.directions
+    models = {}
+    for method in baselines:
+        say(f"fitting and relighting the {method.upper()} baseline")
+        t = time.perf_counter()
+        model = fit_baseline(method, values, dataset.lights.directions, device=device)
+        relit = model.relight(directions)
+        relit = srgb_to_linear(np.clip(relit, 0.0, 1.0)) if encoded else relit
+        result.full_psnr[method] = psnr_excluding_black(relit, truth_full)
+        result.full_srgb_psnr[method], result.full_ssim[method] = srgb_scores(relit, truth_full)
+        seconds[f"baseline_{method}"] = time.perf_counter() - t
+        models[method] = (model, encoded)
+    return {name: model for name, (model, _) in models.items()}
+
+
+def _keep_worst_examples(result: Evaluation, relighter, models: dict, truth_full, encoded: bool) -> None:
+    """Full images of the first method's worst held-out lights, for every method and the truth."""
+    first = next(iter(result.full_srgb_psnr))
+    scores = np.nan_to_num(result.full_srgb_psnr[first], nan=np.inf)
+    worst = np.argsort(scores, kind="stable")[: min(_WORST_EXAMPLES, len(scores))]
+    directions = result.directions[worst]
+    result.full_example_queries = worst
+    result.full_examples["truth"] = truth_full[worst]
+    for method in result.full_srgb_psnr:
+        if method in models:
+            relit = models[method].relight(directions)
+            result.full_examples[method] = srgb_to_linear(np.clip(relit, 0.0, 1.0)) if encoded else relit
+        else:
+            result.full_examples[method] = relighter.relight(directions, method=method).full
 
 
 def _check_finite(chunk, method: str) -> None:
@@ -316,8 +415,8 @@ def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposur
     return {"face": face, "vertices": vertices, "weights": weights, "specular_psnr": scores}
 
 
-def _rounded(values) -> list:
-    return [None if not np.isfinite(v) else round(float(v), 3) for v in np.asarray(values, dtype=np.float64)]
+def _rounded(values, digits: int = 3) -> list:
+    return [None if not np.isfinite(v) else round(float(v), digits) for v in np.asarray(values, dtype=np.float64)]
 
 
 def _count_stats(counts) -> dict | None:

@@ -1,9 +1,12 @@
 """Relight a fitted highlight field for any light directions (method.md section 6), batched on a device.
 
-A :class:`Relighter` uploads a field once (its Gaussians, paths, triangulation tables and diffuse
-model) and then turns any number of query directions into images with a fixed number of kernel
-launches: locate -> interpolate the Gaussian sets -> rasterize S' -> compose I' = D' + S'. Large
-batches run in chunks that bound the device memory.
+A :class:`Relighter` uploads a field once (its Gaussians, paths, triangulation tables and residual
+or diffuse model) and then turns any number of query directions into images with a fixed number of
+kernel launches: locate -> interpolate the Gaussian sets -> rasterize S' -> compose I'. By default
+I' is residual transfer, I' = R~ + c(x) S': the captured images minus their own moving highlights,
+blended with the query's barycentric weights, plus the moved highlights in the per-pixel highlight
+colour; so a captured light gives back its image, and what the Gaussians do not model blends like the
+alpha baseline. Every output is clamped at 0. Large batches run in chunks that bound the device memory.
 
 Methods:
 
@@ -46,8 +49,10 @@ __all__ = [
 ]
 
 RELIGHT_METHODS = ("circular", "straight", "alpha")
-DIFFUSE_MODES = ("auto", "lambert", "images", "none")
-"""``auto``: the blended diffuse images when the field stores them, else the Lambertian model, else none."""
+DIFFUSE_MODES = ("auto", "residual", "lambert", "images", "none")
+"""What I' adds S' to. ``residual``: residual transfer (the field's residual model); ``lambert``: the
+per-pixel Lambertian model; ``images``: the blended diffuse images; ``none``: nothing. ``auto``: the
+first of residual, images, lambert that the field stores."""
 
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
@@ -90,6 +95,7 @@ class _DeviceQueries:
         self.sets = GaussianBatch(count, 3 * capacity, device=device, requires_grad=False)
         self.specular = wp.empty((count, height, width), dtype=float, device=device)
         self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
+        self.coefficients: dict[str, wp.array] = {}  # per-query blended low-rank weights, by stack
         self.staging_specular = self.staging_full = None  # pinned host copies (CUDA), made on first use
 
 
@@ -102,7 +108,8 @@ class Relighter:
         size: output (width, height) in pixels; default the field's size. Must keep the field's aspect
             ratio (to within a pixel); the diffuse model is resampled to it.
         diffuse: one of ``DIFFUSE_MODES``.
-        specular_colour: colour c of the highlights in I' = D' + c S' per channel (white by default).
+        specular_colour: colour of the light per channel, multiplying the highlights c(x) S' (white
+            by default; c(x) is the field's per-pixel highlight colour, white when it has none).
         scale: factor applied to I' (e.g. 1 / exposure to return to the input's units).
         alpha_specular: (n, H, W) specular luminance per light, for the ``alpha`` method's S'.
         alpha_images: (n, H, W[, C]) full images per light, for the ``alpha`` method's I' (field
@@ -133,8 +140,8 @@ class Relighter:
         settings = field.fit_settings()
         self.straight_below = float(settings.paths.straight_below)
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
-        self.diffuse = _diffuse_mode(field, diffuse)
-        self.channels = field.diffuse.channel_count if field.diffuse is not None else 1
+        self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
+        self.channels = _field_channels(field)
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
             raise InputError(f"specular colour must be 1 or 3 finite numbers >= 0, got {np.asarray(specular_colour).tolist()}")
@@ -148,9 +155,10 @@ class Relighter:
         self._alpha_specular = self._upload_stack(alpha_specular, "alpha specular", channels=False)
         self._alpha_images = self._upload_stack(alpha_images, "alpha images", channels=True)
         if self._alpha_images is not None and self._alpha_images.shape[2] != self.channels:
-            if field.diffuse is not None:
-                raise InputError(f"alpha images have {self._alpha_images.shape[2]} channels, the field's diffuse model {self.channels}")
+            if field.diffuse is not None or field.residual is not None:
+                raise InputError(f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
             self.channels = self._alpha_images.shape[2]
+            self._upload_colour()
         pixel_bytes = 4 * self.height * self.width * (1 + self.channels)
         default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
@@ -164,6 +172,7 @@ class Relighter:
         field, device = self.field, self.device
         self.capacity = field.capacity
         self._estimated = GaussianBatch.from_numpy(field.estimated, device=device, requires_grad=False)
+        self._moving = wp.array(field.moving_mask.astype(np.int32), dtype=wp.int32, device=device)
         self._retargeted = GaussianBatch.from_numpy(field.retargeted, device=device, requires_grad=False)
         self._path_delta = wp.array(field.path_delta.astype(np.float32), dtype=float, device=device)
         tri = field.triangulation
@@ -190,18 +199,33 @@ class Relighter:
         ]
 
     def _upload_diffuse(self) -> None:
-        device, model = self.device, self.field.diffuse
+        device, model, residual = self.device, self.field.diffuse, self.field.residual
         lambert = np.zeros((1, 1, 4), dtype=np.float32)
         images = np.zeros((1, 1, 1), dtype=np.float16)
-        if model is not None and self.diffuse == kernels.DIFFUSE_LAMBERT:
+        self._stacks = {name: _LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
+        if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
             lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
-        if model is not None and self.diffuse == kernels.DIFFUSE_BLEND:
-            stack = model.images.astype(np.float32)
-            stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
-            images = stack.reshape(len(stack), self.height * self.width, model.channel_count).astype(np.float16)
+        elif self.diffuse == kernels.DIFFUSE_BLEND:
+            source = residual.images if self._residual_images else model.images
+            stack = np.stack([resample_image(image.astype(np.float32), self.width, self.height) for image in source])
+            images = stack.reshape(len(stack), self.height * self.width, source.shape[3]).astype(np.float16)
+        elif self.diffuse == kernels.DIFFUSE_LOWRANK:
+            self._stacks["luminance"] = _LowRankArrays.upload(residual.luminance, self.width, self.height, device)
+            if residual.chroma is not None:
+                self._stacks["chroma"] = _LowRankArrays.upload(residual.chroma, self.width, self.height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
         self._diffuse_images = wp.array(np.ascontiguousarray(images), dtype=wp.float16, device=device)
+        self._upload_colour()
+
+    def _upload_colour(self) -> None:
+        """c(x) per output pixel and channel, (H W, C) float32, or one white row."""
+        residual = self.field.residual
+        colour = np.ones((1, self.channels), dtype=np.float32)
+        if residual is not None and residual.highlight_colour is not None and residual.channels == self.channels:
+            colour = resample_image(residual.highlight_colour, self.width, self.height).reshape(-1, self.channels)
+            colour = np.maximum(colour, 0.0)
+        self._pixel_colour = wp.array(np.ascontiguousarray(colour, dtype=np.float32), dtype=float, device=self.device)
 
     def _upload_stack(self, stack, what: str, *, channels: bool):
         if stack is None:
@@ -256,7 +280,7 @@ class Relighter:
         wp.launch(
             kernels.interpolate_gaussians,
             dim=(buffers.count, 3, self.capacity),
-            inputs=[self._estimated.arrays, self._retargeted.arrays, self._path_delta, self._face_vertices, self._face_edges,
+            inputs=[self._estimated.arrays, self._retargeted.arrays, self._path_delta, self._moving, self._face_vertices, self._face_edges,
                     buffers.faces, buffers.weights, int(method == "circular"), self.straight_below],
             outputs=[buffers.sets.arrays],
             device=self.device,
@@ -294,10 +318,22 @@ class Relighter:
 
     def _compose(self, buffers: _DeviceQueries, specular: wp.array, *, add_specular: bool, mode: int, images: wp.array) -> None:
         pixels = self.height * self.width
+        coefficients = []
+        for name in ("luminance", "chroma"):
+            stack = self._stacks[name]
+            out = buffers.coefficients.get(name)
+            if out is None or out.shape != (buffers.count, stack.rank_or_one):
+                out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank_or_one), dtype=float, device=self.device)
+            if mode == kernels.DIFFUSE_LOWRANK and stack.rank:
+                wp.launch(kernels.blend_weights, dim=(buffers.count, stack.rank),
+                          inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out], device=self.device)
+            coefficients.append(out)
+        lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
         wp.launch(
             kernels.compose_images,
             dim=(buffers.count, pixels),
-            inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, int(add_specular), mode, self._lambert, images,
+            inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour, int(add_specular), mode, self._lambert, images,
+                    lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1],
                     self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale],
             outputs=[buffers.full],
             device=self.device,
@@ -453,16 +489,58 @@ def _output_size(field, size) -> tuple[int, int]:
     return width, height
 
 
-def _diffuse_mode(field, diffuse: str) -> int:
-    model = field.diffuse
+def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
+    """The compose mode for ``diffuse``, and whether its image stack is the residual's."""
+    model, residual = field.diffuse, field.residual
     if diffuse == "auto":
-        if model is None:
-            return kernels.DIFFUSE_NONE
-        return kernels.DIFFUSE_BLEND if model.images is not None else kernels.DIFFUSE_LAMBERT
+        diffuse = "residual" if residual is not None else "images" if model is not None and model.images is not None else "lambert" if model is not None else "none"
     if diffuse == "none":
-        return kernels.DIFFUSE_NONE
+        return kernels.DIFFUSE_NONE, False
+    if diffuse == "residual":
+        if residual is None:
+            raise InputError("diffuse 'residual' needs a field fitted with a residual (fit --residual lowrank or images; fields before version 0.2 have none)")
+        return (kernels.DIFFUSE_LOWRANK, False) if residual.compressed else (kernels.DIFFUSE_BLEND, True)
     if model is None:
         raise InputError(f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")
     if diffuse == "images" and model.images is None:
         raise InputError("diffuse 'images' needs a field fitted with --diffuse images (this one stores only the Lambertian model)")
-    return kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND
+    return (kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND), False
+
+
+def _field_channels(field) -> int:
+    if field.residual is not None:
+        return field.residual.channels
+    return field.diffuse.channel_count if field.diffuse is not None else 1
+
+
+@dataclass(frozen=True)
+class _LowRankArrays:
+    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (k, P, planes), weights (n, k)."""
+
+    mean: wp.array
+    basis: wp.array
+    weights: wp.array
+    rank: int
+
+    @property
+    def rank_or_one(self) -> int:
+        return max(self.rank, 1)
+
+    @classmethod
+    def empty(cls, device, planes: int) -> _LowRankArrays:
+        return cls(wp.zeros((1, planes), dtype=float, device=device), wp.zeros((1, 1, planes), dtype=float, device=device),
+                   wp.zeros((1, 1), dtype=float, device=device), 0)
+
+    @classmethod
+    def upload(cls, stack, width: int, height: int, device) -> _LowRankArrays:
+        planes = stack.mean.shape[2]
+        mean = resample_image(stack.mean, width, height).reshape(height * width, planes)
+        basis = stack.basis
+        if stack.rank:
+            basis = np.stack([resample_image(image, width, height) for image in basis]).reshape(stack.rank, height * width, planes)
+            weights = stack.weights
+        else:
+            basis = np.zeros((1, height * width, planes), np.float32)
+            weights = np.zeros((len(stack.weights), 1), np.float32)
+        array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
+        return cls(array(mean), array(basis), array(weights), stack.rank)

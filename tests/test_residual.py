@@ -1,0 +1,283 @@
+"""Residual transfer (method.md section 6): the residual model, its compression, the move decision,
+the highlight colour, the compose kernel against a float64 reference, exactness at captured lights,
+the field file's version 2, and non-negative outputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from conftest import FAST_FIT
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from reference import render as render_reference
+from warp_highlights.kernels.support import support_fractions
+
+from warp_highlights.fit.pipeline import fit_field
+from warp_highlights.fit.residual import build_residual, decide_moving, deflated_bytes, highlight_colour
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
+from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSettings
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
+from warp_highlights.model.residual import LowRankStack, ResidualModel, from_opponent, to_opponent
+from warp_highlights.relight.relighter import Relighter
+
+RNG = np.random.default_rng(15)
+
+
+# --- the model ------------------------------------------------------------------------------------
+
+
+def test_opponent_colour_round_trip():
+    rgb = RNG.normal(size=(5, 4, 3))
+    y, chroma = to_opponent(rgb)
+    np.testing.assert_allclose(y, rgb @ [0.2126, 0.7152, 0.0722])
+    np.testing.assert_allclose(from_opponent(y, chroma), rgb, atol=1e-12)
+
+
+def test_low_rank_stack_is_exact_for_a_stack_of_that_rank_up_to_8_bit_codes():
+    n, h, w = 12, 9, 7
+    basis = RNG.normal(size=(3, h * w))
+    stack = (RNG.normal(size=(n, 3)) @ basis + 0.5).reshape(n, h, w, 1)
+    model = LowRankStack.fit(stack, 3)
+    assert model.rank == 3 and model.codes.dtype == np.uint8
+    error = np.abs(model.images(model.weights) - stack).max()
+    # each basis image is off by at most half a code step; the weights are refitted to the codes
+    step = (model.ranges[:, 1] - model.ranges[:, 0]).max() / 255
+    assert error <= 0.5 * step * np.abs(model.weights).sum(axis=1).max() + 1e-3
+    assert np.abs(model.images(model.weights) - stack).mean() < 0.25 * step * np.abs(model.weights).max()
+
+
+def test_low_rank_error_falls_with_rank_and_the_mean_is_kept_as_float16():
+    n, h, w = 20, 16, 12
+    stack = RNG.random((n, h, w, 2)).astype(np.float32)
+    errors = [float(np.sqrt(((LowRankStack.fit(stack, k).images(LowRankStack.fit(stack, k).weights) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
+    assert errors == sorted(errors, reverse=True)
+    model = LowRankStack.fit(stack, 4)
+    np.testing.assert_array_equal(model.mean, model.mean.astype(np.float16).astype(np.float32))
+
+
+def test_residual_model_refuses_inconsistent_parts():
+    stack = LowRankStack.fit(RNG.random((6, 4, 5, 1)), 2)
+    with pytest.raises(InputError, match="either"):
+        ResidualModel()
+    with pytest.raises(InputError, match="either"):
+        ResidualModel(images=np.zeros((6, 4, 5, 1)), luminance=stack)
+    with pytest.raises(InputError, match="chroma"):
+        ResidualModel(luminance=stack, chroma=LowRankStack.fit(RNG.random((6, 4, 5, 1)), 2))
+    with pytest.raises(InputError, match="highlight colour"):
+        ResidualModel(luminance=stack, highlight_colour=-np.ones((4, 5, 1)))
+    with pytest.raises(InputError, match="non-finite"):
+        ResidualModel(images=np.full((6, 4, 5, 1), np.nan))
+
+
+def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
+    n, h, w = 30, 36, 48
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    patterns = np.stack([np.sin((i + 1) * xx + i) * np.cos((i % 5 + 1) * yy) for i in range(20)])
+    images = np.einsum("nk,khw->nhw", RNG.normal(size=(n, 20)), patterns)[..., None] * [0.3, 0.2, 0.1] + 0.5
+    images = images.astype(np.float32)
+    own = np.zeros((n, h, w), np.float32)
+    capture = n * h * w * 3
+    ranks = []
+    for budget in (0.03, 0.06, 0.12, 0.5):
+        model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget), other_bytes=500)
+        stored = 500 + deflated_bytes(model.luminance.mean.astype(np.float16)) + sum(deflated_bytes(c) + 8 + 4 * n for c in model.luminance.codes)
+        stored += deflated_bytes(model.chroma.mean.astype(np.float16)) + sum(deflated_bytes(c) for c in model.chroma.codes) + model.chroma.weights.nbytes
+        assert stored <= budget * capture or model.luminance.rank == 1
+        ranks.append(model.luminance.rank)
+    assert ranks == sorted(ranks) and ranks[0] < ranks[-1] <= ResidualSettings().max_luminance_rank
+    fixed = build_residual(images, own, None, settings=ResidualSettings(luminance_rank=5))
+    assert fixed.luminance.rank == 5
+
+
+def test_the_default_field_is_at_most_a_quarter_of_the_8_bit_capture(donut_fields, tmp_path):
+    dataset, fits = donut_fields
+    field = fits["lowrank"]
+    written = save_field(field, tmp_path / "f.whf")
+    capture = dataset.light_count * field.width * field.height * dataset.channels
+    assert written <= 0.25 * capture, (written, capture)
+
+
+# --- fit-time decisions ---------------------------------------------------------------------------
+
+
+def _support_reference(params: GaussianParams, targets, images, raster: RasterSettings) -> np.ndarray:
+    """float64: sum min(g, S) / sum g per slot, each Gaussian drawn alone at weight 1."""
+    out = np.full(params.active.shape, -1.0)
+    for b, p in zip(*np.nonzero(params.active)):
+        one = params.take([b])
+        one.active[:] = False
+        one.active[0, p] = True
+        g = render_reference(one, images.shape[1], images.shape[2], raster)[0]
+        if g.sum() > 0:
+            out[b, p] = np.minimum(g, np.maximum(images[targets[b]], 0)).sum() / g.sum()
+    return out
+
+
+def test_support_matches_the_float64_reference(device):
+    h, w = 30, 40
+    params = GaussianParams.empty(3, 4)
+    params.active[:, :3] = True
+    params.amplitude[:, :3] = RNG.uniform(0.5, 1.2, (3, 3))
+    params.mean[:, :3] = RNG.uniform([0.2, 0.2], [1.1, 0.8], (3, 3, 2))
+    params.sigma[:, :3] = RNG.uniform(0.02, 0.08, (3, 3, 2))
+    params.theta[:, :3] = RNG.uniform(0, np.pi, (3, 3))
+    images = RNG.uniform(0, 0.8, (2, h, w)).astype(np.float32)
+    targets = np.array([1, 0, 1])
+    raster = RasterSettings()
+    batch = GaussianBatch.from_numpy(params, device=device, requires_grad=False)
+    got = support_fractions(batch, targets, wp.array(images, dtype=float, device=device), settings=raster)
+    expected = _support_reference(params, targets, images.astype(np.float64), raster)
+    np.testing.assert_allclose(got, expected, atol=2e-5)
+    assert np.all(got[~params.active] == -1)
+
+
+def test_a_gaussian_whose_retargeting_lands_on_nothing_stays_in_the_residual():
+    """Light 0 has two Gaussians; on both of its edges one lands on the neighbour's highlight, the other on black."""
+    h, w = 40, 40
+    edges = np.array([[0, 1], [0, 2], [1, 0], [2, 0]], dtype=np.int32)
+    estimated = GaussianParams.empty(3, 2)
+    estimated.active[0] = True
+    estimated.amplitude[0] = 1.0
+    estimated.mean[0] = [[0.3, 0.3], [0.7, 0.7]]
+    estimated.sigma[0] = 0.05
+    retargeted = estimated.take(edges[:, 0])
+    retargeted.mean[:2, 1] = [0.75, 0.72]
+    specular = np.zeros((3, h, w), np.float32)
+    for target in (1, 2):  # each neighbour holds a highlight where Gaussian 0 goes, nothing where 1 goes
+        specular[target] = render_reference(estimated.take([0]), h, w, RasterSettings())[0] * (np.arange(w)[None, :] < 20)
+    decision = decide_moving(estimated, retargeted, edges, wp.array(specular, dtype=float, device="cpu"), settings=ResidualSettings(), raster=RasterSettings())
+    assert decision.moving[0].tolist() == [True, False]
+    everything = decide_moving(estimated, retargeted, edges, wp.array(specular, dtype=float, device="cpu"),
+                               settings=ResidualSettings(move_support=0.0), raster=RasterSettings())
+    assert everything.moving[0].tolist() == [True, True]
+
+
+def test_highlight_colour_recovers_a_tint_and_stays_white_without_highlights():
+    n, h, w = 6, 5, 8
+    own = np.zeros((n, h, w), np.float32)
+    own[:, :, :4] = RNG.uniform(0.2, 1.0, (n, h, 4))
+    tint = np.array([1.3, 0.9, 0.6])
+    tint = tint / (tint @ [0.2126, 0.7152, 0.0722])
+    specular = own[..., None] * tint
+    colour = highlight_colour(specular, own, prior=1e-4)
+    np.testing.assert_allclose(colour[:, :4], np.broadcast_to(tint, (h, 4, 3)), atol=0.02)
+    np.testing.assert_allclose(colour[:, 4:], 1.0, atol=0.02)
+
+
+# --- relighting: compose against a float64 reference, exactness, non-negativity --------------------
+
+
+@pytest.fixture(scope="module")
+def donut_fields(small_donut, tmp_path_factory):
+    """The small donut fitted twice: low-rank residual (default) and uncompressed; with its dataset."""
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    fits = {}
+    for name, extra in (("lowrank", []), ("images", ["residual.compressed=false"])):
+        fits[name] = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT + extra), device="cpu", progress=False)
+    return dataset, fits
+
+
+def _reference_full(field, directions, scale) -> np.ndarray:
+    """float64 residual transfer: blended residual + c(x) S', S' from the relighter's own interpolated sets."""
+    tri = field.triangulation
+    location = tri.locate(directions)
+    weights = np.zeros((len(directions), field.light_count))
+    for k in range(3):
+        np.add.at(weights, (np.arange(len(directions)), tri.faces[location.faces, k]), location.barycentric[:, k])
+    residual = field.residual.light_images(weights)
+    relighter = Relighter(field, device="cpu")
+    sets = relighter.interpolated_sets(directions)
+    specular = render_reference(sets, field.height, field.width, field.fit_settings().raster)
+    colour = 1.0 if field.residual.highlight_colour is None else field.residual.highlight_colour.astype(np.float64)
+    return scale * np.maximum(residual + colour * specular[..., None], 0.0)
+
+
+@pytest.mark.parametrize("kind", ["lowrank", "images"])
+def test_compose_matches_the_float64_reference(donut_fields, kind, device):
+    _, fits = donut_fields
+    field = fits[kind]
+    directions = np.array([[0.3, 0.2, 0.9], [-0.6, 0.1, 0.5], [0.1, -0.9, -0.3]])
+    got = Relighter(field, device=device, scale=2.0).relight(directions).full
+    expected = _reference_full(field, directions, 2.0)
+    tolerance = 2e-3 if kind == "images" else 1e-4  # float16 residual images on the device
+    np.testing.assert_allclose(got, expected, atol=tolerance * max(1.0, np.abs(expected).max()))
+
+
+def test_residual_transfer_gives_back_the_captured_images(donut_fields):
+    dataset, fits = donut_fields
+    field = fits["images"]
+    relit = Relighter(field, device="cpu").relight(dataset.lights.directions).full
+    truth = np.maximum(dataset.images, 0.0)
+    mse = ((np.clip(relit, 0, 1) - np.clip(truth, 0, 1)) ** 2).mean(axis=(1, 2, 3))
+    psnr = 10 * np.log10(1.0 / np.maximum(mse, 1e-20))
+    assert psnr.min() >= 45.0, psnr.min()
+
+
+def test_the_default_field_relights_every_captured_light_close_to_its_image(donut_fields):
+    dataset, fits = donut_fields
+    field = fits["lowrank"]
+    assert field.residual.compressed and field.report["residual"]["luminance_rank"] >= 1
+    relit = Relighter(field, device="cpu").relight(dataset.lights.directions).full
+    mse = ((np.clip(relit, 0, 1) - np.clip(dataset.images, 0, 1)) ** 2).mean(axis=(1, 2, 3))
+    assert 10 * np.log10(1.0 / mse.max()) >= 30.0
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.floats(-1, 1, allow_nan=False), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-3))
+def test_no_output_pixel_is_negative_or_non_finite(donut_fields, direction):
+    _, fits = donut_fields
+    for field in fits.values():
+        relit = Relighter(field, device="cpu").relight(np.asarray(direction))
+        assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0.0
+        assert np.all(np.isfinite(relit.specular))
+
+
+# --- the field file ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["lowrank", "images"])
+def test_version_2_file_round_trip(donut_fields, kind, tmp_path):
+    _, fits = donut_fields
+    field = fits[kind]
+    path = tmp_path / "f.whf"
+    save_field(field, path)
+    back = load_field(path)
+    assert FORMAT_VERSION == 2
+    np.testing.assert_array_equal(back.moving, field.moving)
+    a, b = field.residual, back.residual
+    assert a.compressed == b.compressed and a.channels == b.channels
+    if a.compressed:
+        for name in ("luminance", "chroma"):
+            for part in ("mean", "codes", "ranges", "weights"):
+                np.testing.assert_array_equal(getattr(getattr(a, name), part), getattr(getattr(b, name), part))
+    else:
+        np.testing.assert_array_equal(a.images, b.images)
+    np.testing.assert_array_equal(a.highlight_colour, b.highlight_colour)
+    directions = np.array([[0.2, 0.4, 0.8]])
+    np.testing.assert_array_equal(Relighter(field, device="cpu").relight(directions).full, Relighter(back, device="cpu").relight(directions).full)
+    assert back.file_sizes["residual"] > 0
+
+
+def test_a_residual_entry_of_the_wrong_shape_is_one_line(donut_fields, tmp_path):
+    import zipfile
+
+    _, fits = donut_fields
+    path = tmp_path / "f.whf"
+    save_field(fits["lowrank"], path)
+    damaged = tmp_path / "damaged.whf"
+    with zipfile.ZipFile(path) as source, zipfile.ZipFile(damaged, "w") as target:
+        for info in source.infolist():
+            data = source.read(info)
+            if info.filename == "residual/Y_weights.npy":
+                import io
+
+                buffer = io.BytesIO()
+                np.save(buffer, np.zeros((3, 1), "<f4"))
+                data = buffer.getvalue()
+            target.writestr(info, data)
+    with pytest.raises(InputError, match=r"Y_weights.*shape") as error:
+        load_field(damaged)
+    assert "\n" not in str(error.value)

@@ -1,0 +1,144 @@
+"""The fit's last stages: which Gaussians move, the highlight colour, and the residual (method.md section 6).
+
+- ``decide_moving``: a Gaussian moves when its retargeted selves land on the neighbours' specular
+  images (the median over its outgoing edges of ``kernels.support``); otherwise it stays where it
+  is and blends with the barycentric weight, like the alpha baseline.
+- ``highlight_colour``: c(x), the colour of the specular part under the Gaussians, of luminance 1,
+  pulled towards white where they draw little.
+- ``build_residual``: R_i = I_i - c(x) R(x; G_i) for every light (all of its Gaussians: a static one
+  blended in place adds back exactly what its light's residual lacks), compressed to low-rank
+  luminance and chroma stacks (``ResidualModel``) or kept whole.
+
+Units: images in the field's units (the fit's exposure applied); Gaussians in image heights.
+"""
+
+from __future__ import annotations
+
+import warnings
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from ..kernels.raster import Rasterizer
+from ..kernels.support import support_fractions
+from ..model.config import RasterSettings, ResidualSettings
+from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.residual import COLOUR_STEP, LUMINANCE_WEIGHTS, LowRankStack, ResidualModel, to_opponent
+
+__all__ = ["MoveDecision", "build_residual", "choose_luminance_rank", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "render_own"]
+
+_DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
+_PARAMETER_BYTES = 24  # six float32 per Gaussian
+_PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
+
+
+@dataclass(frozen=True)
+class MoveDecision:
+    """Attributes: moving (n, N) bool; support (E, N) float64 per directed edge (-1 where a slot draws nothing)."""
+
+    moving: np.ndarray
+    support: np.ndarray
+
+
+def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray, specular_luminance: wp.array,
+                  *, settings: ResidualSettings, raster: RasterSettings) -> MoveDecision:
+    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``."""
+    n, capacity = estimated.active.shape
+    device = specular_luminance.device
+    batch = GaussianBatch.from_numpy(retargeted, device=device, requires_grad=False)
+    values = support_fractions(batch, edges[:, 1], specular_luminance, settings=raster)
+    values = np.where(retargeted.active, values, np.nan)
+    values[values < 0] = 0.0  # a retargeted Gaussian that draws nothing explains nothing
+    if settings.move_support <= 0:
+        return MoveDecision(estimated.active.copy(), values)
+    order = np.argsort(edges[:, 0], kind="stable")
+    sources = edges[order, 0]
+    starts = np.searchsorted(sources, np.arange(n + 1))
+    for_light = values[order]
+    # median over each light's outgoing edges, per slot: lights have 3..~8 edges, so pad to the most
+    most = int(np.diff(starts).max()) if len(edges) else 0
+    padded = np.full((n, max(most, 1), capacity), np.nan)
+    position = np.arange(len(edges)) - np.repeat(starts[:-1], np.diff(starts))
+    padded[sources, position] = for_light
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: free slots
+        median = np.nanmedian(padded, axis=1)
+    moving = estimated.active & (np.nan_to_num(median, nan=0.0) >= settings.move_support)
+    return MoveDecision(moving, values)
+
+
+def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:
+    """(n, H, W) float32: R(x; G_i), every light's own Gaussians drawn as the relighter draws them."""
+    batch = GaussianBatch.from_numpy(estimated, device=device, requires_grad=False)
+    return Rasterizer(height, width, settings=raster, device=device).render(batch).numpy()
+
+
+def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:
+    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 255 COLOUR_STEP].
+
+    ``specular``: (n, H, W, 3) the segmentation's specular part; ``own``: (n, H, W) the moving
+    Gaussians' images. The luminance of c is 1 up to the clip, so c G keeps G's luminance.
+    """
+    n = len(own)
+    own64 = own.astype(np.float64)
+    numerator = np.einsum("nhw,nhwc->hwc", own64, specular.astype(np.float64))
+    denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)
+    weight = prior * n
+    colour = (numerator + weight) / (denominator[..., None] + weight)
+    codes = np.round(colour / COLOUR_STEP).clip(0, 255)  # kept as the file keeps it: 8 bits per channel
+    return codes.astype(np.float32) * np.float32(COLOUR_STEP)
+
+
+def deflated_bytes(array: np.ndarray) -> int:
+    """Bytes of ``array`` deflated as the field file deflates its entries (zlib's default level)."""
+    return len(zlib.compress(np.ascontiguousarray(array).tobytes(), _DEFLATE_LEVEL))
+
+
+def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int:
+    """Stored bytes of a field's Gaussians and paths before deflate (an upper bound of what they take)."""
+    return int(estimated.active.sum()) * (_PARAMETER_BYTES + 2) + int(retargeted.active.sum()) * (_PARAMETER_BYTES + _PATH_BYTES) + 2 * len(estimated.active)
+
+
+def choose_luminance_rank(stack: LowRankStack, fixed_bytes: int, budget_bytes: float) -> int:
+    """The largest rank k <= ``stack.rank`` whose first k basis images, deflated, fit ``budget_bytes``
+    beside ``fixed_bytes`` (everything else the field stores); at least 1."""
+    costs = np.cumsum([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes])
+    fits = np.flatnonzero(fixed_bytes + costs <= budget_bytes)
+    return int(max(1, fits[-1] + 1 if fits.size else 1))
+
+
+def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0) -> ResidualModel:
+    """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
+
+    Compressed, the luminance rank is ``settings.luminance_rank``, or else the largest (up to
+    ``max_luminance_rank``) that keeps the whole field within ``size_budget`` of the 8-bit capture,
+    counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array.
+    """
+    images = np.asarray(images, dtype=np.float32)
+    if images.ndim == 3:
+        images = images[..., None]
+    n, height, width, channels = images.shape
+    tint = np.ones((1, 1, channels), np.float32) if colour is None else colour
+    residual = images - own[..., None] * tint[None]
+    if not settings.compressed:
+        return ResidualModel(images=residual.astype(np.float16), highlight_colour=colour)
+    if channels == 1:
+        luminance, chroma = residual, None
+    else:
+        y, opponent = to_opponent(residual)
+        luminance = y[..., None]
+        chroma = LowRankStack.fit(opponent, min(settings.chroma_rank, n - 1))
+    most = min(settings.luminance_rank or settings.max_luminance_rank, n - 1)
+    stack = LowRankStack.fit(luminance, most)
+    if not settings.luminance_rank:
+        fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16))
+        if chroma is not None:
+            fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
+        if colour is not None:
+            fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
+        rank = choose_luminance_rank(stack, fixed, settings.size_budget * n * height * width * channels)
+        if rank < stack.rank:
+            stack = LowRankStack.fit(luminance, rank)
+    return ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour)
