@@ -251,8 +251,10 @@ def blend_weights(
 
 @wp.func
 def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coefficients: wp.array2d(dtype=float), q: int, i: int, plane: int) -> float:
-    value = mean[i, plane]
-    for j in range(basis.shape[0]):
+    # coefficients[q] = (basis weights..., mean weight): the query's blend of the per-light rows
+    rank = coefficients.shape[1] - 1
+    value = coefficients[q, rank] * mean[i, plane]
+    for j in range(rank):
         value += coefficients[q, j] * basis[j, i, plane]
     return value
 
@@ -272,6 +274,7 @@ def compose_images(
     chroma_mean: wp.array2d(dtype=float),
     chroma_basis: wp.array3d(dtype=float),
     chroma_weights: wp.array2d(dtype=float),
+    residual_scale: wp.array(dtype=float),
     face_vertices: wp.array2d(dtype=wp.int32),
     faces: wp.array(dtype=wp.int32),
     weights: wp.array(dtype=wp.vec3),
@@ -284,8 +287,9 @@ def compose_images(
     B' per ``diffuse_mode``: ``DIFFUSE_NONE`` 0; ``DIFFUSE_LAMBERT`` max(nbar . omega_q, 0) + k_a from
     ``lambert[i, c]`` = (nbar_x, nbar_y, nbar_z, k_a); ``DIFFUSE_BLEND`` the barycentric blend of
     ``diffuse_images[light, i, c]`` (the residual images, or diffuse images); ``DIFFUSE_LOWRANK`` the
-    low-rank residual: luminance Y = mean + sum_j coefficient_j basis_j (coefficients: the query's
-    blended per-light weights), chroma (B - Y, R - Y) likewise when there are three channels. S' is
+    low-rank residual: luminance Y = m mean + sum_j coefficient_j basis_j (m and the coefficients:
+    the query's blend of the per-light weights, ``luminance_weights[q]`` = (coefficients..., m)), chroma (B - Y, R - Y) likewise when there are three channels, both
+    times ``residual_scale[i]`` (one entry: 1 everywhere). S' is
     added only when ``add_specular`` is set; c_i is ``pixel_colour[i]`` (row 0 when it has one row).
     """
     q, i = wp.tid()
@@ -300,10 +304,13 @@ def compose_images(
     cb = float(0.0)
     cr = float(0.0)
     if diffuse_mode == DIFFUSE_LOWRANK:
-        y = _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
+        s = residual_scale[0]
+        if residual_scale.shape[0] > 1:
+            s = residual_scale[i]
+        y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
         if out.shape[2] == 3:
-            cb = _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
-            cr = _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
+            cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
+            cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
     for c in range(out.shape[2]):
         value = 0.0
         if diffuse_mode == DIFFUSE_LAMBERT:

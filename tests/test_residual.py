@@ -37,22 +37,23 @@ def test_opponent_colour_round_trip():
 
 
 def test_low_rank_stack_is_exact_for_a_stack_of_that_rank_up_to_8_bit_codes():
+    """Rank 3 plus a constant image: a mean image and 3 basis images span it."""
     n, h, w = 12, 9, 7
     basis = RNG.normal(size=(3, h * w))
     stack = (RNG.normal(size=(n, 3)) @ basis + 0.5).reshape(n, h, w, 1)
     model = LowRankStack.fit(stack, 3)
     assert model.rank == 3 and model.codes.dtype == np.uint8
-    error = np.abs(model.images(model.weights) - stack).max()
+    error = np.abs(model.light_images(np.eye(n)) - stack).max()
     # each basis image is off by at most half a code step; the weights are refitted to the codes
     step = (model.ranges[:, 1] - model.ranges[:, 0]).max() / 255
     assert error <= 0.5 * step * np.abs(model.weights).sum(axis=1).max() + 1e-3
-    assert np.abs(model.images(model.weights) - stack).mean() < 0.25 * step * np.abs(model.weights).max()
+    assert np.abs(model.light_images(np.eye(n)) - stack).mean() < 0.25 * step * np.abs(model.weights).max()
 
 
 def test_low_rank_error_falls_with_rank_and_the_mean_is_kept_as_float16():
     n, h, w = 20, 16, 12
     stack = RNG.random((n, h, w, 2)).astype(np.float32)
-    errors = [float(np.sqrt(((LowRankStack.fit(stack, k).images(LowRankStack.fit(stack, k).weights) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
+    errors = [float(np.sqrt(((LowRankStack.fit(stack, k).light_images(np.eye(n)) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
     assert errors == sorted(errors, reverse=True)
     model = LowRankStack.fit(stack, 4)
     np.testing.assert_array_equal(model.mean, model.mean.astype(np.float16).astype(np.float32))
@@ -256,6 +257,9 @@ def test_version_2_file_round_trip(donut_fields, kind, tmp_path):
     else:
         np.testing.assert_array_equal(a.images, b.images)
     np.testing.assert_array_equal(a.highlight_colour, b.highlight_colour)
+    if a.compressed:
+        assert a.scale is not None and a.scale.min() > 0
+        np.testing.assert_array_equal(a.scale, b.scale)
     directions = np.array([[0.2, 0.4, 0.8]])
     np.testing.assert_array_equal(Relighter(field, device="cpu").relight(directions).full, Relighter(back, device="cpu").relight(directions).full)
     assert back.file_sizes["residual"] > 0

@@ -140,7 +140,8 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
     residual = report.get("residual")
     if residual:
-        kind = (f"low rank (luminance {residual['luminance_rank']}" + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "") + ")"
+        kind = (f"low rank (luminance {residual['luminance_rank']}" + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
+                + f", {residual['basis_bits']}-bit)"
                 if residual["compressed"] else "uncompressed images")
         print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")

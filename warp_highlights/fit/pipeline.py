@@ -149,6 +149,7 @@ def fit_field(
             "compressed": residual_model.compressed,
             "luminance_rank": residual_model.luminance.rank if residual_model.compressed else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
+            "basis_bits": residual_model.luminance.bits if residual_model.compressed else None,
             "highlight_colour": residual_model.highlight_colour is not None,
         },
         "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},

@@ -21,14 +21,22 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..io.images import linear_to_srgb
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.residual import COLOUR_STEP, LUMINANCE_WEIGHTS, LowRankStack, ResidualModel, to_opponent
 
-__all__ = ["MoveDecision", "build_residual", "choose_luminance_rank", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "render_own"]
+__all__ = ["MoveDecision", "build_residual", "choose_luminance_rank", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "render_own", "residual_scale"]
 
+SCALE_FLOOR = 2.0**-10
+"""Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
+near black, so a black background is approximated to well under one step."""
+AUTO_CHROMA_RANKS = (3, 6)
+"""Chroma ranks tried when ``ResidualSettings.chroma_rank`` is 0: 3 suits captures whose colour varies
+little with the light (the samples), 6 the 64-light donut, whose back-lit images are grey (+1.2 dB)."""
+_ERROR_PIXEL_STEP = 4  # display_error samples 1 pixel in 16
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
@@ -104,7 +112,7 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 def choose_luminance_rank(stack: LowRankStack, fixed_bytes: int, budget_bytes: float) -> int:
     """The largest rank k <= ``stack.rank`` whose first k basis images, deflated, fit ``budget_bytes``
     beside ``fixed_bytes`` (everything else the field stores); at least 1."""
-    costs = np.cumsum([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes])
+    costs = np.cumsum([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes])  # codes, range, weights
     fits = np.flatnonzero(fixed_bytes + costs <= budget_bytes)
     return int(max(1, fits[-1] + 1 if fits.size else 1))
 
@@ -115,30 +123,71 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     Compressed, the luminance rank is ``settings.luminance_rank``, or else the largest (up to
     ``max_luminance_rank``) that keeps the whole field within ``size_budget`` of the 8-bit capture,
     counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array.
+    The basis bits and the chroma rank are the settings', or else the pair of 8/16 bits and
+    ``AUTO_CHROMA_RANKS`` (each at the luminance rank the budget leaves it) that reproduces the
+    captured images best as 8-bit sRGB (``display_error``).
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
         images = images[..., None]
     n, height, width, channels = images.shape
     tint = np.ones((1, 1, channels), np.float32) if colour is None else colour
-    residual = images - own[..., None] * tint[None]
+    highlights = own[..., None] * tint[None]
+    residual = images - highlights
     if not settings.compressed:
         return ResidualModel(images=residual.astype(np.float16), highlight_colour=colour)
     if channels == 1:
-        luminance, chroma = residual, None
+        y, opponent = residual[..., 0].astype(np.float64), None
     else:
         y, opponent = to_opponent(residual)
-        luminance = y[..., None]
-        chroma = LowRankStack.fit(opponent, min(settings.chroma_rank, n - 1))
-    most = min(settings.luminance_rank or settings.max_luminance_rank, n - 1)
-    stack = LowRankStack.fit(luminance, most)
-    if not settings.luminance_rank:
-        fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16))
-        if chroma is not None:
-            fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
-        if colour is not None:
-            fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
-        rank = choose_luminance_rank(stack, fixed, settings.size_budget * n * height * width * channels)
-        if rank < stack.rank:
-            stack = LowRankStack.fit(luminance, rank)
-    return ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour)
+    scale = residual_scale(y)
+    luminance = (y / scale)[..., None]
+    light_scale = np.sqrt(np.mean(luminance.reshape(n, -1) ** 2, axis=1))  # both stacks weigh each light by its brightness
+    candidates = []
+    bit_choices = (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,)
+    chroma_choices = (None,) if opponent is None else tuple(dict.fromkeys(min(rank, n - 1) for rank in ((settings.chroma_rank,) if settings.chroma_rank else AUTO_CHROMA_RANKS)))
+    for bits, chroma_rank in ((b, c) for b in bit_choices for c in chroma_choices):
+        chroma = None
+        if opponent is not None:
+            chroma = LowRankStack.fit(opponent / scale[..., None], chroma_rank, light_scale=light_scale, bits=bits)
+        stack = LowRankStack.fit(luminance, min(settings.luminance_rank or settings.max_luminance_rank, n - 1), light_scale=light_scale, bits=bits)
+        if not settings.luminance_rank:
+            fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16)) + 8 * n
+            if chroma is not None:
+                fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
+            if colour is not None:
+                fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
+            rank = choose_luminance_rank(stack, fixed, settings.size_budget * n * height * width * channels)
+            if rank < stack.rank:
+                stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
+        candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
+    if len(candidates) == 1:
+        return candidates[0]
+    errors = [display_error(model, images, highlights) for model in candidates]
+    return candidates[int(np.argmin(errors))]
+
+
+def display_error(model: ResidualModel, images: np.ndarray, highlights: np.ndarray, *, step: int = _ERROR_PIXEL_STEP) -> float:
+    """Mean squared difference, in 8-bit sRGB levels, between the (n, H, W, C) images and what ``model``
+    plus their (n, H, W, C) own highlights gives back at the captured lights, on every ``step``-th
+    pixel of every ``step``-th row (the choice of the basis bits needs no more)."""
+    n = len(images)
+    picked = ResidualModel(
+        luminance=_sub_stack(model.luminance, step), chroma=None if model.chroma is None else _sub_stack(model.chroma, step),
+        scale=model.scale[::step, ::step], highlight_colour=None,
+    )
+    back = picked.light_images(np.eye(n)) + highlights[:, ::step, ::step]
+    truth = images[:, ::step, ::step].astype(np.float64)
+    encode = lambda a: linear_to_srgb(np.clip(a, 0.0, 1.0)) * 255.0
+    return float(np.mean((encode(back) - encode(truth)) ** 2))
+
+
+def _sub_stack(stack: LowRankStack, step: int) -> LowRankStack:
+    return LowRankStack(stack.mean[::step, ::step], stack.codes[:, ::step, ::step], stack.ranges, stack.weights, stack.mean_weights)
+
+
+def residual_scale(luminance: np.ndarray) -> np.ndarray:
+    """(H, W) float32 s(x): the RMS over the lights of a pixel's (n, H, W) residual luminance, at least
+    ``SCALE_FLOOR``, rounded to float16 as the file keeps it."""
+    rms = np.sqrt(np.mean(np.square(luminance, dtype=np.float64), axis=0))
+    return np.maximum(rms, SCALE_FLOOR).astype(np.float16).astype(np.float32)

@@ -29,10 +29,13 @@ entry                           dtype, shape     contents
 ``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
 ``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
                                 (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
-``residual/Y_codes.npy``        <u1 (k, P, H, W) 8-bit basis images of that stack
+``residual/Y_codes.npy``        <u1 or <u2       8- or 16-bit basis images of that stack
+                                (k, P, H, W)
 ``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
 ``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
+``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
 ``residual/colour.npy``         <u1 (C, H, W)    optional: highlight colour c(x), code x COLOUR_STEP
+``residual/scale.npy``          <f2 (H, W)       optional: per-pixel scale s(x) of the low-rank stacks
 ==============================  ===============  =================================================
 
 (The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
@@ -91,6 +94,7 @@ _IMAGES = "diffuse/images.npy"
 _MOVING = "gaussians/moving.npy"
 _RESIDUAL_IMAGES = "residual/images.npy"
 _RESIDUAL_COLOUR = "residual/colour.npy"
+_RESIDUAL_SCALE = "residual/scale.npy"
 _STACK_PREFIX = {"luminance": "residual/Y_", "chroma": "residual/C_"}
 
 _PARAMETER_COLUMNS = ("amplitude", "mean_x", "mean_y", "sigma_x", "sigma_y", "theta")
@@ -259,7 +263,8 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
 
 def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     """The header layout and the (name, array) entries of a residual model, planes channel-first."""
-    layout = {"channels": residual.channels, "compressed": residual.compressed, "highlight_colour": residual.highlight_colour is not None}
+    layout = {"channels": residual.channels, "compressed": residual.compressed, "highlight_colour": residual.highlight_colour is not None,
+              "scale": residual.scale is not None}
     arrays = []
     if residual.images is not None:
         arrays.append((_RESIDUAL_IMAGES, residual.images.transpose(0, 3, 1, 2).astype("<f2")))
@@ -269,14 +274,17 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         if stack is None:
             continue
         half = bool(np.array_equal(stack.mean.astype(np.float16).astype(np.float32), stack.mean))
-        layout[name] = {"rank": stack.rank, "mean_dtype": "float16" if half else "float32"}
+        layout[name] = {"rank": stack.rank, "mean_dtype": "float16" if half else "float32", "bits": stack.bits}
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1")),
+            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1" if stack.bits == 8 else "<u2")),
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
+            (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
         ]
+    if residual.scale is not None:
+        arrays.append((_RESIDUAL_SCALE, residual.scale.astype("<f2")))
     if residual.highlight_colour is not None:
         codes = np.round(residual.highlight_colour / COLOUR_STEP).clip(0, 255).astype("<u1")
         arrays.append((_RESIDUAL_COLOUR, codes.transpose(2, 0, 1)))
@@ -705,21 +713,30 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int) ->
             if not isinstance(part, dict) or part.get("mean_dtype") not in ("float16", "float32"):
                 raise _corrupt(path, f"header entry residual.{name} must be null or hold a rank and a mean_dtype")
             rank = _header_int(path, part, "rank", 0, n)
+            bits = part.get("bits", 8)
+            if bits not in (8, 16):
+                raise _corrupt(path, f"header entry residual.{name}.bits must be 8 or 16, got {bits!r}")
             prefix = _STACK_PREFIX[name]
             mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
             stacks[name] = LowRankStack(
                 mean=mean.transpose(1, 2, 0).astype(np.float32),
-                codes=read(prefix + "codes.npy", "<u1", (rank, planes, height, width)).transpose(0, 2, 3, 1),
+                codes=read(prefix + "codes.npy", "<u1" if bits == 8 else "<u2", (rank, planes, height, width)).transpose(0, 2, 3, 1),
                 ranges=read(prefix + "ranges.npy", "<f4", (rank, 2)),
                 weights=read(prefix + "weights.npy", "<f4", (n, rank)),
+                mean_weights=read(prefix + "mean_weights.npy", "<f4", (n,)),
             )
         if "luminance" not in stacks or (channels == 3) != ("chroma" in stacks):
             raise _corrupt(path, f"a compressed {channels}-channel residual needs a luminance stack{' and a chroma stack' if channels == 3 else ' only'}")
+    scale = None
+    if layout.get("scale", False) is not False:
+        if layout.get("scale") is not True:
+            raise _corrupt(path, f"header entry residual.scale must be true or false, got {layout.get('scale')!r}")
+        scale = read(_RESIDUAL_SCALE, "<f2", (height, width)).astype(np.float32)
     colour = None
     if with_colour:
         colour = read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0).astype(np.float32) * np.float32(COLOUR_STEP)
     try:
-        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour)
+        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
     except InputError as exc:
         raise _corrupt(path, str(exc)) from None
 

@@ -355,10 +355,17 @@ class ResidualSettings:
             under the 25% the project aims at (issue 15). On the two samples the full image gains
             0.4-1.4 dB from rank 8 to rank 24 and under 0.2 dB beyond (README, "Residual transfer").
         luminance_rank: basis images of the luminance; 0 (default) picks the most the budget allows.
-        max_luminance_rank: cap on the automatic rank: at 32 the dome sample is within 0.05 dB of
-            the uncompressed residual, and each rank costs the relight one multiply-add per pixel.
-        chroma_rank: basis images of the chroma (B - Y, R - Y); 3 measured as good as 4 at 2/3 of the
-            bytes on both samples, 2 lost up to 0.3 dB on the statue.
+        max_luminance_rank: cap on the automatic rank (each rank costs the relight one multiply-add
+            per pixel): at 32 the dome sample is within 0.05 dB of its uncompressed residual, but the
+            64-light full-sphere donut gained 1 dB more up to 58.
+        basis_bits: bits of the stored basis images, 8 or 16; 0 (default) fits both, each at the rank the
+            budget allows, and keeps the one that gives the captured images back better as 8-bit
+            sRGB (``fit.residual.display_error``): 8 bits buys more rank, 16 bits less quantisation
+            noise (the 64-light donut's lights came back at 35 dB from 8-bit bases at full rank).
+        chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) tries 3 and 6 and keeps
+            the better (like ``basis_bits``). On the statue 4 instead of 3 lost 0.3 dB (fewer
+            luminance ranks fit); on the 64-light donut, whose back-lit images are grey, 6 instead
+            of 3 gained 1.2 dB (no colour speckle).
         move_support: a Gaussian moves only where, on the median outgoing edge, at least this share
             of its retargeted self lies on the neighbour's specular image (``kernels.support``);
             otherwise it stays where it is and blends like the alpha baseline. 0 lets every Gaussian move.
@@ -371,8 +378,9 @@ class ResidualSettings:
     compressed: bool = True
     size_budget: float = 0.24
     luminance_rank: int = 0
-    max_luminance_rank: int = 32
-    chroma_rank: int = 3
+    max_luminance_rank: int = 64
+    basis_bits: int = 0
+    chroma_rank: int = 0
     move_support: float = 0.5
     highlight_colour: bool = True
     colour_prior: float = 0.01
@@ -382,6 +390,7 @@ class ResidualSettings:
         _require(0 <= int(self.luminance_rank) <= 1024, f"luminance_rank must be in [0, 1024], got {self.luminance_rank}")
         _require(1 <= int(self.max_luminance_rank) <= 1024, f"max_luminance_rank must be in [1, 1024], got {self.max_luminance_rank}")
         _require(0 <= int(self.chroma_rank) <= 1024, f"chroma_rank must be in [0, 1024], got {self.chroma_rank}")
+        _require(int(self.basis_bits) in (0, 8, 16), f"basis_bits must be 0 (choose), 8 or 16, got {self.basis_bits}")
         _require(math.isfinite(self.move_support) and 0 <= self.move_support <= 1, f"move_support must be in [0, 1], got {self.move_support}")
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0, f"colour_prior must be > 0, got {self.colour_prior}")
 

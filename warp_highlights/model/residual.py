@@ -7,11 +7,15 @@ Relighting by residual transfer (method.md section 6) composes ``I'(w) = R~(w) +
 two ways:
 
 - **uncompressed**: the n residual images, float16 (what the alpha blend needs too);
-- **low rank** (the default): an opponent colour split, luminance Y = 0.2126 R + 0.7152 G + 0.0722 B
-  and chroma (B - Y, R - Y), each a :class:`LowRankStack`: a mean image plus k basis images with
-  per-light weights. Blending the weights barycentrically blends the images exactly, so a query costs
-  k multiply-adds per pixel and plane. The basis images are kept as 8-bit codes with a per-image
-  range, exactly as the field file stores them.
+- **low rank** (the default): R_i(x) = s(x) N_i(x), with s(x) a per-pixel scale (the RMS of the
+  pixel's residual luminance over the lights) and N the normalised residual in an opponent colour
+  split, luminance Y = 0.2126 R + 0.7152 G + 0.0722 B and chroma (B - Y, R - Y), each a
+  :class:`LowRankStack`: a mean image plus k basis images with per-light weights. Blending the
+  weights barycentrically blends the images exactly, so a query costs k multiply-adds per pixel and
+  plane. Normalising by s(x) spreads the approximation error in proportion to each pixel's
+  brightness, as the eye (and 8-bit sRGB) sees it, instead of letting bright pixels take all of it;
+  dark backgrounds stay dark. The basis images are kept as 8- or 16-bit codes with a per-image range, and
+  s(x) as float16, exactly as the field file stores them.
 
 All values are in the field's units (the fit's exposure applied).
 """
@@ -29,8 +33,8 @@ __all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
 
-_CODE_LEVELS = 255
 _FLOAT16_SAFE = 6.0e4
+_LIGHT_SCALE_FLOOR = 1e-3  # of the brightest image's RMS: a black image is not divided by zero
 COLOUR_STEP = 4.0 / 255
 """Resolution of the stored highlight colour c(x): 8 bits over [0, 4] per channel (4: a highlight four
 times brighter in one channel than its luminance, beyond any metal's tint)."""
@@ -53,25 +57,28 @@ def from_opponent(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class LowRankStack:
-    """n images of P planes as mean + weights @ basis.
+    """n images of P planes: image i = mean_weights[i] mean + weights[i] @ basis.
 
     Attributes:
         mean: (H, W, P) float32.
-        codes: (k, H, W, P) uint8: basis image j is ``low[j] + codes[j] * (high[j] - low[j]) / 255``.
+        codes: (k, H, W, P) uint8 or uint16: basis image j is ``low[j] + codes[j] * (high[j] - low[j]) / L``
+            with L = 255 or 65535.
         ranges: (k, 2) float32 (low, high) per basis image.
         weights: (n, k) float32 per-light weights.
+        mean_weights: (n,) float32 per-light weight of the mean image (None: all 1).
     """
 
     mean: np.ndarray
     codes: np.ndarray
     ranges: np.ndarray
     weights: np.ndarray
+    mean_weights: np.ndarray | None = None
 
     def __post_init__(self):
         mean = _finite(self.mean, np.float32, "residual mean")
         codes = np.ascontiguousarray(self.codes)
-        if codes.dtype != np.uint8:
-            raise InputError(f"residual basis codes must be uint8, got {codes.dtype}")
+        if codes.dtype not in (np.uint8, np.uint16):
+            raise InputError(f"residual basis codes must be uint8 or uint16, got {codes.dtype}")
         ranges = _finite(self.ranges, np.float32, "residual basis ranges")
         weights = _finite(self.weights, np.float32, "residual weights")
         if mean.ndim != 3 or codes.ndim != 4 or codes.shape[1:] != mean.shape:
@@ -79,64 +86,89 @@ class LowRankStack:
         k = len(codes)
         if ranges.shape != (k, 2) or weights.ndim != 2 or weights.shape[1] != k:
             raise InputError(f"residual ranges {ranges.shape} and weights {weights.shape} must be ({k}, 2) and (n, {k})")
+        mean_weights = np.ones(len(weights), np.float32) if self.mean_weights is None else _finite(self.mean_weights, np.float32, "residual mean weights")
+        if mean_weights.shape != (len(weights),):
+            raise InputError(f"residual mean weights must have shape ({len(weights)},), got {mean_weights.shape}")
         object.__setattr__(self, "mean", mean)
         object.__setattr__(self, "codes", codes)
         object.__setattr__(self, "ranges", ranges)
         object.__setattr__(self, "weights", weights)
+        object.__setattr__(self, "mean_weights", mean_weights)
 
     @classmethod
-    def fit(cls, stack: np.ndarray, rank: int) -> LowRankStack:
-        """The best rank-``rank`` approximation (PCA) of an (n, H, W, P) stack, basis quantised to 8 bits.
+    def fit(cls, stack: np.ndarray, rank: int, *, light_scale: np.ndarray | None = None, bits: int = 8) -> LowRankStack:
+        """A rank-``rank`` approximation of an (n, H, W, P) stack (a mean image and ``rank`` basis images
+        of ``bits`` = 8 or 16 bits).
 
-        The weights are refitted to the quantised basis by least squares, so quantisation only
-        costs what the 8-bit basis cannot represent.
+        The mean and basis are the leading ``rank + 1`` principal directions of the images divided
+        by ``light_scale`` (default: each image's RMS), uncentred, so a dark light's image counts as
+        much as a bright one's; then every image's mean weight and basis weights are fitted to it by
+        least squares against the stored (float16 and 8/16-bit) planes, so quantisation only costs what
+        they cannot represent. A stack that spans ``rank + 1`` dimensions is kept up to that.
         """
+        if bits not in (8, 16):
+            raise InputError(f"residual basis bits must be 8 or 16, got {bits}")
+        levels, code_type = (255, np.uint8) if bits == 8 else (65535, np.uint16)
         stack = np.asarray(stack, dtype=np.float64)
         n = len(stack)
         flat = stack.reshape(n, -1)
-        mean = flat.mean(axis=0)
-        centred = flat - mean
+        if light_scale is None:
+            light_scale = np.sqrt(np.mean(flat**2, axis=1))
+        light_scale = np.asarray(light_scale, dtype=np.float64).reshape(n)
+        light_scale = np.maximum(light_scale, max(float(light_scale.max(initial=0.0)) * _LIGHT_SCALE_FLOOR, 1e-30))
+        normalised = flat / light_scale[:, None]
+        # the leading rank + 1 principal directions of the uncentred images: a linear subspace, whose
+        # first direction (the "mean" image, kept at float16) every light weighs freely
         rank = int(max(0, min(rank, n - 1)))
-        if rank:
-            # eigenvectors of the n x n Gram matrix: cheap for n << pixels
-            gram = centred @ centred.T
-            values, vectors = np.linalg.eigh(gram)
-            order = np.argsort(values)[::-1][:rank]
-            keep = values[order] > 1e-12 * max(float(values.max()), 1e-300)
-            order = order[keep]
-            basis = (vectors[:, order].T @ centred) / np.sqrt(values[order])[:, None]
-        else:
-            basis = np.zeros((0, flat.shape[1]))
+        values, vectors = np.linalg.eigh(normalised @ normalised.T)  # n x n: cheap for n << pixels
+        order = np.argsort(values)[::-1][: rank + 1]
+        order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
+        directions = (vectors[:, order].T @ normalised) / np.sqrt(values[order])[:, None]
+        if len(directions) == 0:  # every image is black
+            directions = np.zeros((1, flat.shape[1]))
+        mean = directions[0] * np.sign(directions[0].sum() or 1.0) * np.sqrt(np.mean(normalised**2) * flat.shape[1]) / max(np.linalg.norm(directions[0]), 1e-300)
+        basis = directions[1:]
         low = basis.min(axis=1) if len(basis) else np.zeros(0)
         high = basis.max(axis=1) if len(basis) else np.zeros(0)
         span = np.where(high > low, high - low, 1.0)
-        codes = np.round((basis - low[:, None]) / span[:, None] * _CODE_LEVELS).clip(0, _CODE_LEVELS).astype(np.uint8)
+        codes = np.round((basis - low[:, None]) / span[:, None] * levels).clip(0, levels).astype(code_type)
         ranges = np.stack([low, low + span], axis=1).astype(np.float32)
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
-        model = cls(mean32.reshape(stack.shape[1:]), codes.reshape((len(codes),) + stack.shape[1:]), ranges, np.zeros((n, len(codes)), np.float32))
-        dequantised = model.basis.reshape(len(codes), -1).astype(np.float64)
-        if len(codes):
-            weights, *_ = np.linalg.lstsq(dequantised.T, (flat - mean32.astype(np.float64)).T, rcond=None)
-            model = cls(model.mean, model.codes, model.ranges, weights.T.astype(np.float32))
-        return model
+        shape = stack.shape[1:]
+        model = cls(mean32.reshape(shape), codes.reshape((len(codes),) + shape), ranges, np.zeros((n, len(codes)), np.float32))
+        design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(len(codes), -1).astype(np.float64)])
+        solution, *_ = np.linalg.lstsq(design.T, flat.T, rcond=None)
+        return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
 
     @property
     def rank(self) -> int:
         return len(self.codes)
 
     @property
+    def bits(self) -> int:
+        """8 or 16: the basis codes' bits."""
+        return 8 * self.codes.dtype.itemsize
+
+    @property
     def basis(self) -> np.ndarray:
         """(k, H, W, P) float32 dequantised basis images."""
         low = self.ranges[:, 0].reshape(-1, 1, 1, 1)
-        step = ((self.ranges[:, 1] - self.ranges[:, 0]) / np.float32(_CODE_LEVELS)).reshape(-1, 1, 1, 1)
+        levels = np.float32(255 if self.bits == 8 else 65535)
+        step = ((self.ranges[:, 1] - self.ranges[:, 0]) / levels).reshape(-1, 1, 1, 1)
         return (low + self.codes.astype(np.float32) * step).astype(np.float32)
 
-    def images(self, weights: np.ndarray) -> np.ndarray:
-        """(Q, H, W, P) float64 images for (Q, k) weight rows (e.g. blended per-light weights)."""
+    def images(self, weights: np.ndarray, mean_weights=1.0) -> np.ndarray:
+        """(Q, H, W, P) float64 images for (Q, k) weight rows and (Q,) mean weights (e.g. blended per-light ones)."""
         weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
         flat = weights @ self.basis.reshape(self.rank, -1).astype(np.float64)
-        return flat.reshape((len(weights),) + self.mean.shape) + self.mean.astype(np.float64)
+        mean_weights = np.broadcast_to(np.asarray(mean_weights, dtype=np.float64).reshape(-1), (len(weights),))
+        return flat.reshape((len(weights),) + self.mean.shape) + mean_weights[:, None, None, None] * self.mean.astype(np.float64)
+
+    def light_images(self, blend: np.ndarray) -> np.ndarray:
+        """(Q, H, W, P) float64 images for (Q, n) per-light blend weights."""
+        blend = np.atleast_2d(np.asarray(blend, dtype=np.float64))
+        return self.images(blend @ self.weights.astype(np.float64), blend @ self.mean_weights.astype(np.float64))
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,6 +180,7 @@ class ResidualModel:
         luminance: ``LowRankStack`` of Y (P = 1), or None when uncompressed.
         chroma: ``LowRankStack`` of (B - Y, R - Y) (P = 2) for colour fields, else None.
         highlight_colour: (H, W, C) float32 c(x) >= 0 (luminance 1 for a grey highlight), or None (white).
+        scale: (H, W) float32 s(x) > 0 multiplying the low-rank stacks, or None (1).
         channels: C, 1 or 3.
     """
 
@@ -155,6 +188,7 @@ class ResidualModel:
     luminance: LowRankStack | None = None
     chroma: LowRankStack | None = None
     highlight_colour: np.ndarray | None = None
+    scale: np.ndarray | None = None
 
     def __post_init__(self):
         if (self.images is None) == (self.luminance is None):
@@ -173,6 +207,11 @@ class ResidualModel:
             if self.chroma is not None:
                 if self.chroma.mean.shape != lum.mean.shape[:2] + (2,) or len(self.chroma.weights) != len(lum.weights):
                     raise InputError("the residual chroma stack must have 2 planes of the luminance's size and the same light count")
+        if self.scale is not None:
+            scale = _finite(self.scale, np.float32, "residual scale")
+            if self.images is not None or scale.shape != (self.height, self.width) or np.any(scale <= 0):
+                raise InputError(f"a residual scale goes with low-rank stacks and must be ({self.height}, {self.width}) values > 0, got {scale.shape}")
+            object.__setattr__(self, "scale", scale)
         if self.highlight_colour is not None:
             colour = _finite(self.highlight_colour, np.float32, "highlight colour")
             if colour.shape != (self.height, self.width, self.channels) or np.any(colour < 0):
@@ -206,7 +245,7 @@ class ResidualModel:
             kind = f"{self.light_count} residual images (float16)"
         else:
             chroma = f" + chroma rank {self.chroma.rank}" if self.chroma is not None else ""
-            kind = f"low rank: luminance rank {self.luminance.rank}{chroma} (8-bit bases)"
+            kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"
         colour = "per-pixel" if self.highlight_colour is not None else "white"
         return f"residual: {kind}; highlight colour {colour}"
 
@@ -215,10 +254,11 @@ class ResidualModel:
         weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
         if self.images is not None:
             return np.einsum("qn,nhwc->qhwc", weights, self.images.astype(np.float64))
-        y = self.luminance.images(weights @ self.luminance.weights.astype(np.float64))[..., 0]
+        scale = 1.0 if self.scale is None else self.scale.astype(np.float64)
+        y = self.luminance.light_images(weights)[..., 0] * scale
         if self.chroma is None:
             return y[..., None]
-        chroma = self.chroma.images(weights @ self.chroma.weights.astype(np.float64))
+        chroma = self.chroma.light_images(weights) * np.asarray(scale)[..., None]
         return from_opponent(y, chroma)
 
 

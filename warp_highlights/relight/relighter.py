@@ -3,7 +3,7 @@
 A :class:`Relighter` uploads a field once (its Gaussians, paths, triangulation tables and residual
 or diffuse model) and then turns any number of query directions into images with a fixed number of
 kernel launches: locate -> interpolate the Gaussian sets -> rasterize S' -> compose I'. By default
-I' is residual transfer, I' = R~ + c(x) S': the captured images minus their own moving highlights,
+I' is residual transfer, I' = R~ + c(x) S': the captured images minus their own fitted highlights,
 blended with the query's barycentric weights, plus the moved highlights in the per-pixel highlight
 colour; so a captured light gives back its image, and what the Gaussians do not model blends like the
 alpha baseline. Every output is clamped at 0. Large batches run in chunks that bound the device memory.
@@ -203,6 +203,7 @@ class Relighter:
         lambert = np.zeros((1, 1, 4), dtype=np.float32)
         images = np.zeros((1, 1, 1), dtype=np.float16)
         self._stacks = {name: _LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
+        residual_scale = np.ones(1, np.float32)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
             lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
@@ -212,10 +213,13 @@ class Relighter:
             images = stack.reshape(len(stack), self.height * self.width, source.shape[3]).astype(np.float16)
         elif self.diffuse == kernels.DIFFUSE_LOWRANK:
             self._stacks["luminance"] = _LowRankArrays.upload(residual.luminance, self.width, self.height, device)
+            if residual.scale is not None:
+                residual_scale = resample_image(residual.scale, self.width, self.height).reshape(-1)
             if residual.chroma is not None:
                 self._stacks["chroma"] = _LowRankArrays.upload(residual.chroma, self.width, self.height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
         self._diffuse_images = wp.array(np.ascontiguousarray(images), dtype=wp.float16, device=device)
+        self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float, device=device)
         self._upload_colour()
 
     def _upload_colour(self) -> None:
@@ -322,10 +326,10 @@ class Relighter:
         for name in ("luminance", "chroma"):
             stack = self._stacks[name]
             out = buffers.coefficients.get(name)
-            if out is None or out.shape != (buffers.count, stack.rank_or_one):
-                out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank_or_one), dtype=float, device=self.device)
-            if mode == kernels.DIFFUSE_LOWRANK and stack.rank:
-                wp.launch(kernels.blend_weights, dim=(buffers.count, stack.rank),
+            if out is None or out.shape != (buffers.count, stack.rank + 1):
+                out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank + 1), dtype=float, device=self.device)
+            if mode == kernels.DIFFUSE_LOWRANK and stack.uploaded:
+                wp.launch(kernels.blend_weights, dim=(buffers.count, stack.rank + 1),
                           inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out], device=self.device)
             coefficients.append(out)
         lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
@@ -333,7 +337,7 @@ class Relighter:
             kernels.compose_images,
             dim=(buffers.count, pixels),
             inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour, int(add_specular), mode, self._lambert, images,
-                    lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1],
+                    lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1], self._residual_scale,
                     self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale],
             outputs=[buffers.full],
             device=self.device,
@@ -515,32 +519,28 @@ def _field_channels(field) -> int:
 
 @dataclass(frozen=True)
 class _LowRankArrays:
-    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (k, P, planes), weights (n, k)."""
+    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (max(k, 1), P, planes),
+    weights (n, k + 1): each light's basis weights, then its mean weight."""
 
     mean: wp.array
     basis: wp.array
     weights: wp.array
     rank: int
-
-    @property
-    def rank_or_one(self) -> int:
-        return max(self.rank, 1)
+    uploaded: bool = True
 
     @classmethod
     def empty(cls, device, planes: int) -> _LowRankArrays:
         return cls(wp.zeros((1, planes), dtype=float, device=device), wp.zeros((1, 1, planes), dtype=float, device=device),
-                   wp.zeros((1, 1), dtype=float, device=device), 0)
+                   wp.zeros((1, 1), dtype=float, device=device), 0, uploaded=False)
 
     @classmethod
     def upload(cls, stack, width: int, height: int, device) -> _LowRankArrays:
         planes = stack.mean.shape[2]
         mean = resample_image(stack.mean, width, height).reshape(height * width, planes)
-        basis = stack.basis
         if stack.rank:
-            basis = np.stack([resample_image(image, width, height) for image in basis]).reshape(stack.rank, height * width, planes)
-            weights = stack.weights
+            basis = np.stack([resample_image(image, width, height) for image in stack.basis]).reshape(stack.rank, height * width, planes)
         else:
             basis = np.zeros((1, height * width, planes), np.float32)
-            weights = np.zeros((len(stack.weights), 1), np.float32)
+        weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
         array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
         return cls(array(mean), array(basis), array(weights), stack.rank)
