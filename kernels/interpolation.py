@@ -252,10 +252,11 @@ def blend_weights(
 @wp.func
 def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coefficients: wp.array2d(dtype=float), q: int, i: int, plane: int) -> float:
     # coefficients[q] = (basis weights..., mean weight): the query's blend of the per-light rows
+    # basis is pixel-major, (pixels, k, planes): one pixel's basis values are contiguous
     rank = coefficients.shape[1] - 1
     value = coefficients[q, rank] * mean[i, plane]
     for j in range(rank):
-        value += coefficients[q, j] * basis[j, i, plane]
+        value += coefficients[q, j] * basis[i, j, plane]
     return value
 
 

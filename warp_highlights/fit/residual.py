@@ -146,21 +146,23 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     candidates = []
     bit_choices = (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,)
     chroma_choices = (None,) if opponent is None else tuple(dict.fromkeys(min(rank, n - 1) for rank in ((settings.chroma_rank,) if settings.chroma_rank else AUTO_CHROMA_RANKS)))
-    for bits, chroma_rank in ((b, c) for b in bit_choices for c in chroma_choices):
-        chroma = None
-        if opponent is not None:
-            chroma = LowRankStack.fit(opponent / scale[..., None], chroma_rank, light_scale=light_scale, bits=bits)
-        stack = LowRankStack.fit(luminance, min(settings.luminance_rank or settings.max_luminance_rank, n - 1), light_scale=light_scale, bits=bits)
-        if not settings.luminance_rank:
-            fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16)) + 8 * n
-            if chroma is not None:
-                fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
-            if colour is not None:
-                fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
-            rank = choose_luminance_rank(stack, fixed, settings.size_budget * n * height * width * channels)
-            if rank < stack.rank:
-                stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
-        candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
+    for bits in bit_choices:
+        widest = LowRankStack.fit(luminance, min(settings.luminance_rank or settings.max_luminance_rank, n - 1), light_scale=light_scale, bits=bits)
+        for rank_of_chroma in chroma_choices:
+            chroma = None
+            if opponent is not None:
+                chroma = LowRankStack.fit(opponent / scale[..., None], rank_of_chroma, light_scale=light_scale, bits=bits)
+            stack = widest
+            if not settings.luminance_rank:
+                fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16)) + 8 * n
+                if chroma is not None:
+                    fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
+                if colour is not None:
+                    fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
+                rank = choose_luminance_rank(widest, fixed, settings.size_budget * n * height * width * channels)
+                if rank < widest.rank:
+                    stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
+            candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
     if len(candidates) == 1:
         return candidates[0]
     errors = [display_error(model, images, highlights) for model in candidates]

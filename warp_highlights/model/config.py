@@ -356,8 +356,10 @@ class ResidualSettings:
             0.4-1.4 dB from rank 8 to rank 24 and under 0.2 dB beyond (README, "Residual transfer").
         luminance_rank: basis images of the luminance; 0 (default) picks the most the budget allows.
         max_luminance_rank: cap on the automatic rank (each rank costs the relight one multiply-add
-            per pixel): at 32 the dome sample is within 0.05 dB of its uncompressed residual, but the
-            64-light full-sphere donut gained 1 dB more up to 58.
+            per pixel and plane). 255, so that the size budget decides: at 32 the dome sample is
+            within 0.05 dB of its uncompressed residual, but the 64-light full-sphere donut gained
+            1 dB more up to 58, and with a cap of 64 the 250-light donut scored 4 dB under the alpha
+            blend (its dark back-lit images need the rank).
         basis_bits: bits of the stored basis images, 8 or 16; 0 (default) fits both, each at the rank the
             budget allows, and keeps the one that gives the captured images back better as 8-bit
             sRGB (``fit.residual.display_error``): 8 bits buys more rank, 16 bits less quantisation
@@ -378,7 +380,7 @@ class ResidualSettings:
     compressed: bool = True
     size_budget: float = 0.24
     luminance_rank: int = 0
-    max_luminance_rank: int = 64
+    max_luminance_rank: int = 255
     basis_bits: int = 0
     chroma_rank: int = 0
     move_support: float = 0.5

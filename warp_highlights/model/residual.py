@@ -138,7 +138,10 @@ class LowRankStack:
         shape = stack.shape[1:]
         model = cls(mean32.reshape(shape), codes.reshape((len(codes),) + shape), ranges, np.zeros((n, len(codes)), np.float32))
         design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(len(codes), -1).astype(np.float64)])
-        solution, *_ = np.linalg.lstsq(design.T, flat.T, rcond=None)
+        # least squares by the (k + 1)-square normal equations: the planes are nearly orthogonal
+        normal = design @ design.T
+        normal[np.diag_indices_from(normal)] += 1e-12 * max(float(np.trace(normal)), 1e-300)
+        solution = np.linalg.solve(normal, design @ flat.T)
         return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
 
     @property

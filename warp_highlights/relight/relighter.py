@@ -519,8 +519,8 @@ def _field_channels(field) -> int:
 
 @dataclass(frozen=True)
 class _LowRankArrays:
-    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (max(k, 1), P, planes),
-    weights (n, k + 1): each light's basis weights, then its mean weight."""
+    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (P, max(k, 1), planes),
+    pixel-major, weights (n, k + 1): each light's basis weights, then its mean weight."""
 
     mean: wp.array
     basis: wp.array
@@ -539,8 +539,9 @@ class _LowRankArrays:
         mean = resample_image(stack.mean, width, height).reshape(height * width, planes)
         if stack.rank:
             basis = np.stack([resample_image(image, width, height) for image in stack.basis]).reshape(stack.rank, height * width, planes)
+            basis = basis.transpose(1, 0, 2)  # pixel-major: a pixel's k values are contiguous
         else:
-            basis = np.zeros((1, height * width, planes), np.float32)
+            basis = np.zeros((height * width, 1, planes), np.float32)
         weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
         array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
         return cls(array(mean), array(basis), array(weights), stack.rank)
