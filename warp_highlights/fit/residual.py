@@ -159,7 +159,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                     fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
                 if colour is not None:
                     fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
-                rank = choose_luminance_rank(widest, fixed, settings.size_budget * n * height * width * channels)
+                rank = max(choose_luminance_rank(widest, fixed, settings.size_budget * n * height * width * channels), settings.min_luminance_rank)
                 if rank < widest.rank:
                     stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
             candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
