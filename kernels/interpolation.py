@@ -10,7 +10,7 @@ Three launches turn Q query directions into Q images, whatever Q is:
    (corner k's moved set in slots k N .. k N + N - 1), ready for the rasterizer.
 3. ``compose_images`` (query x pixel): I' = scale max(B' + c(x) S', 0) with B' the residual
    (residual transfer: a barycentric blend of the per-light residual images, or the low-rank
-   residual from per-query weights that ``blend_weights`` blends), the Lambertian model, a blend of
+   residual from per-query weights that ``blend_images`` blends), the Lambertian model, a blend of
    per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of a per-light stack.
 
 None of these is differentiated: relighting only renders.
@@ -34,7 +34,6 @@ __all__ = [
     "arc_position",
     "DIFFUSE_LOWRANK",
     "blend_images",
-    "blend_weights",
     "compose_images",
     "interpolate_gaussians",
     "locate_directions",
@@ -227,26 +226,12 @@ def blend_images(
     weights: wp.array(dtype=wp.vec3),
     out: wp.array2d(dtype=float),
 ):
-    """out[q, i] = sum_k weights[q][k] stack[corner k of q's face, i]: the alpha blend of flattened images."""
+    """out[q, i] = sum_k weights[q][k] stack[corner k of q's face, i]: the alpha blend of flattened images
+    (or of any per-light rows, such as a low-rank residual's weights)."""
     q, i = wp.tid()
     f = faces[q]
     w = weights[q]
     out[q, i] = w[0] * stack[face_vertices[f, 0], i] + w[1] * stack[face_vertices[f, 1], i] + w[2] * stack[face_vertices[f, 2], i]
-
-
-@wp.kernel(enable_backward=False)
-def blend_weights(
-    weights: wp.array2d(dtype=float),
-    face_vertices: wp.array2d(dtype=wp.int32),
-    faces: wp.array(dtype=wp.int32),
-    barycentric: wp.array(dtype=wp.vec3),
-    out: wp.array2d(dtype=float),
-):
-    """out[q, j] = sum_k barycentric[q][k] weights[corner k of q's face, j]: a low-rank stack's blended weights."""
-    q, j = wp.tid()
-    f = faces[q]
-    w = barycentric[q]
-    out[q, j] = w[0] * weights[face_vertices[f, 0], j] + w[1] * weights[face_vertices[f, 1], j] + w[2] * weights[face_vertices[f, 2], j]
 
 
 @wp.func

@@ -21,7 +21,7 @@ import numpy as np
 
 from .._api import warn_moved
 from .config import FitSettings
-from .errors import InputError
+from .errors import InputError, finite_array
 from .gaussians import GaussianParams
 from .lights import LightSet
 from .residual import ResidualModel
@@ -51,14 +51,14 @@ class DiffuseModel:
     images: np.ndarray | None = None
 
     def __post_init__(self):
-        lambert = _finite_array(self.lambert, np.float32, "diffuse lambert")
+        lambert = finite_array(self.lambert, np.float32, "diffuse lambert")
         if lambert.ndim != 4 or lambert.shape[3] != 4 or min(lambert.shape) < 1:
             raise InputError(
                 f"diffuse lambert must have shape (H, W, C, 4), got {lambert.shape}"
             )
         object.__setattr__(self, "lambert", lambert)
         if self.images is not None:
-            images = _finite_array(self.images, np.float16, "diffuse images")
+            images = finite_array(self.images, np.float16, "diffuse images")
             if (
                 images.ndim != 4
                 or images.shape[1:] != lambert.shape[:3]
@@ -396,28 +396,6 @@ def _positive_int(value, name: str) -> int:
     return int(value)
 
 
-def _finite_array(value, dtype, name: str) -> np.ndarray:
-    """``value`` as a C-contiguous array of ``dtype``; every element finite after the conversion."""
-    try:
-        array = np.asarray(value)
-        if not (
-            np.issubdtype(array.dtype, np.number) or array.dtype == bool
-        ) or np.iscomplexobj(array):
-            raise TypeError(array.dtype)
-        with np.errstate(over="ignore", invalid="ignore"):
-            array = np.ascontiguousarray(array, dtype=dtype)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a real numeric array") from None
-    if not np.all(np.isfinite(array)):
-        limit = (
-            ""
-            if dtype == np.float64
-            else f" or beyond the {np.dtype(dtype).name} range"
-        )
-        raise InputError(f"{name} has non-finite values{limit}")
-    return array
-
-
 def _canonical_params(params, name: str) -> GaussianParams:
     """A float32-rounded copy of ``params`` with free slots cleared; active weights must be 1."""
     if not isinstance(params, GaussianParams):
@@ -435,7 +413,7 @@ def _canonical_params(params, name: str) -> GaussianParams:
         )
     values = {}
     for key in ("amplitude", "mean", "sigma", "theta"):
-        value = _finite_array(
+        value = finite_array(
             getattr(checked, key), np.float32, f"{name} {key}"
         ).astype(np.float64)
         values[key] = np.where(

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, finite_array
 
 __all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "from_opponent", "to_opponent"]
 
@@ -75,18 +75,18 @@ class LowRankStack:
     mean_weights: np.ndarray | None = None
 
     def __post_init__(self):
-        mean = _finite(self.mean, np.float32, "residual mean")
+        mean = finite_array(self.mean, np.float32, "residual mean")
         codes = np.ascontiguousarray(self.codes)
         if codes.dtype not in (np.uint8, np.uint16):
             raise InputError(f"residual basis codes must be uint8 or uint16, got {codes.dtype}")
-        ranges = _finite(self.ranges, np.float32, "residual basis ranges")
-        weights = _finite(self.weights, np.float32, "residual weights")
+        ranges = finite_array(self.ranges, np.float32, "residual basis ranges")
+        weights = finite_array(self.weights, np.float32, "residual weights")
         if mean.ndim != 3 or codes.ndim != 4 or codes.shape[1:] != mean.shape:
             raise InputError(f"residual basis {codes.shape} does not match its mean image {mean.shape}: expected (k, H, W, P)")
         k = len(codes)
         if ranges.shape != (k, 2) or weights.ndim != 2 or weights.shape[1] != k:
             raise InputError(f"residual ranges {ranges.shape} and weights {weights.shape} must be ({k}, 2) and (n, {k})")
-        mean_weights = np.ones(len(weights), np.float32) if self.mean_weights is None else _finite(self.mean_weights, np.float32, "residual mean weights")
+        mean_weights = np.ones(len(weights), np.float32) if self.mean_weights is None else finite_array(self.mean_weights, np.float32, "residual mean weights")
         if mean_weights.shape != (len(weights),):
             raise InputError(f"residual mean weights must have shape ({len(weights)},), got {mean_weights.shape}")
         object.__setattr__(self, "mean", mean)
@@ -197,7 +197,7 @@ class ResidualModel:
         if (self.images is None) == (self.luminance is None):
             raise InputError("a residual model holds either the residual images or a low-rank luminance stack")
         if self.images is not None:
-            images = _finite(self.images, np.float16, "residual images")
+            images = finite_array(self.images, np.float16, "residual images")
             if images.ndim != 4 or images.shape[3] not in (1, 3):
                 raise InputError(f"residual images must have shape (n, H, W, C) with C 1 or 3, got {images.shape}")
             object.__setattr__(self, "images", images)
@@ -211,12 +211,12 @@ class ResidualModel:
                 if self.chroma.mean.shape != lum.mean.shape[:2] + (2,) or len(self.chroma.weights) != len(lum.weights):
                     raise InputError("the residual chroma stack must have 2 planes of the luminance's size and the same light count")
         if self.scale is not None:
-            scale = _finite(self.scale, np.float32, "residual scale")
+            scale = finite_array(self.scale, np.float32, "residual scale")
             if self.images is not None or scale.shape != (self.height, self.width) or np.any(scale <= 0):
                 raise InputError(f"a residual scale goes with low-rank stacks and must be ({self.height}, {self.width}) values > 0, got {scale.shape}")
             object.__setattr__(self, "scale", scale)
         if self.highlight_colour is not None:
-            colour = _finite(self.highlight_colour, np.float32, "highlight colour")
+            colour = finite_array(self.highlight_colour, np.float32, "highlight colour")
             if colour.shape != (self.height, self.width, self.channels) or np.any(colour < 0):
                 raise InputError(f"highlight colour must be ({self.height}, {self.width}, {self.channels}) values >= 0, got {colour.shape}")
             object.__setattr__(self, "highlight_colour", colour)
@@ -263,17 +263,3 @@ class ResidualModel:
             return y[..., None]
         chroma = self.chroma.light_images(weights) * np.asarray(scale)[..., None]
         return from_opponent(y, chroma)
-
-
-def _finite(value, dtype, name: str) -> np.ndarray:
-    try:
-        array = np.asarray(value)
-        if not np.issubdtype(array.dtype, np.number):
-            raise TypeError(array.dtype)
-        with np.errstate(over="ignore", invalid="ignore"):
-            array = np.ascontiguousarray(array, dtype=dtype)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a real numeric array") from None
-    if not np.all(np.isfinite(array)):
-        raise InputError(f"{name} has non-finite values or values beyond the {np.dtype(dtype).name} range")
-    return array

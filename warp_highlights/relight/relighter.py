@@ -329,7 +329,7 @@ class Relighter:
             if out is None or out.shape != (buffers.count, stack.rank + 1):
                 out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank + 1), dtype=float, device=self.device)
             if mode == kernels.DIFFUSE_LOWRANK and stack.uploaded:
-                wp.launch(kernels.blend_weights, dim=(buffers.count, stack.rank + 1),
+                wp.launch(kernels.blend_images, dim=(buffers.count, stack.rank + 1),
                           inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out], device=self.device)
             coefficients.append(out)
         lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
