@@ -152,7 +152,7 @@ def _on_signal(signum, frame) -> None:
     if _deferring or (_hold_after_output and _output_committed):
         _pending_signal = signum
         return
-    if _import_retries < _MAX_IMPORT_RETRIES and _inside_import(frame):  # again shortly, once imported
+    if _import_retries < _MAX_IMPORT_RETRIES and _swallowing(frame):  # again shortly, where it can propagate
         _import_retries += 1
         timer = threading.Timer(_IMPORT_RETRY_SECONDS, os.kill, (os.getpid(), signum))
         timer.daemon = True
@@ -163,12 +163,18 @@ def _on_signal(signum, frame) -> None:
     raise _interruption(signum)
 
 
-def _inside_import(frame) -> bool:
+def _swallowing(frame) -> bool:
+    """Whether an exception raised in ``frame`` would be lost or half-done: inside an import, or in a
+    weakref callback or ``__del__``, which the interpreter runs with errors printed and ignored."""
     while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib"):
+        code = frame.f_code
+        if code.co_filename.startswith("<frozen importlib") or code.co_name == "__del__" or code.co_filename.endswith(_WEAKREF_FILE):
             return True
         frame = frame.f_back
     return False
+
+
+_WEAKREF_FILE = f"{os.sep}weakref.py"
 
 
 def _interruption(signum: int) -> KeyboardInterrupt:

@@ -157,7 +157,7 @@ def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.n
         mse = float(np.mean((a.astype(np.float64) - b) ** 2))
         psnr[q] = 100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse))
         small = min(a.shape[0], a.shape[1])
-        window = 7 if small >= 7 else max(3, small - 1 + small % 2 - 1) if small >= 3 else None
+        window = min(7, small if small % 2 else small - 1) if small >= 3 else None  # odd, as SSIM needs
         ssim[q] = 1.0 if window is None else structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window)
     return psnr, ssim
 
