@@ -327,3 +327,29 @@ def test_the_samples_relit_at_their_held_out_lights_beat_the_per_pixel_fits(samp
         srgb = summary["full_srgb"]
         assert srgb["circular"]["mean"] > srgb["ptm"]["mean"]
         assert srgb["circular"]["mean"] > srgb["alpha"]["mean"] - 2.5
+
+
+def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_fields, tmp_path):
+    from dataclasses import replace as replaced
+
+    n, h, w = 12, 9, 7
+    stack = (RNG.normal(size=(n, 3)) @ RNG.normal(size=(3, h * w)) + 0.5).reshape(n, h, w, 1)
+    errors = {bits: np.abs(LowRankStack.fit(stack, 3, bits=bits).light_images(np.eye(n)) - stack).max() for bits in (8, 16)}
+    # 16-bit codes leave the float16 mean image as the larger error (about 1e-3 here)
+    assert LowRankStack.fit(stack, 3, bits=16).codes.dtype == np.uint16 and errors[16] < errors[8] / 8
+    with pytest.raises(InputError, match="8 or 16"):
+        LowRankStack.fit(stack, 3, bits=12)
+    _, fits = donut_fields
+    field = fits["lowrank"]
+    residual = field.residual
+    sixteen = ResidualModel(
+        luminance=LowRankStack.fit(residual.luminance.light_images(np.eye(field.light_count)), 4, bits=16),
+        chroma=LowRankStack.fit(residual.chroma.light_images(np.eye(field.light_count)), 2, bits=16),
+        highlight_colour=residual.highlight_colour, scale=residual.scale,
+    )
+    path = tmp_path / "sixteen.whf"
+    save_field(replaced(field, residual=sixteen), path)
+    back = load_field(path).residual
+    assert back.luminance.bits == 16 and back.chroma.bits == 16
+    np.testing.assert_array_equal(back.luminance.codes, sixteen.luminance.codes)
+    np.testing.assert_array_equal(back.chroma.mean_weights, sixteen.chroma.mean_weights)
