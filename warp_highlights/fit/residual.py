@@ -26,7 +26,7 @@ from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
 from ..model.gaussians import GaussianBatch, GaussianParams
-from ..model.residual import COLOUR_STEP, LUMINANCE_WEIGHTS, LowRankStack, ResidualModel, to_opponent
+from ..model.residual import LUMINANCE_WEIGHTS, LowRankStack, ResidualModel, colour_codes, colour_from_codes, to_opponent
 
 __all__ = ["MoveDecision", "build_residual", "choose_luminance_rank", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "render_own", "residual_scale"]
 
@@ -84,7 +84,7 @@ def render_own(estimated: GaussianParams, height: int, width: int, *, raster: Ra
 
 
 def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:
-    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 255 COLOUR_STEP].
+    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 4] in steps of ``COLOUR_STEP``.
 
     ``specular``: (n, H, W, 3) the segmentation's specular part; ``own``: (n, H, W) the moving
     Gaussians' images. The luminance of c is 1 up to the clip, so c G keeps G's luminance.
@@ -95,8 +95,7 @@ def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> 
     denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)
     weight = prior * n
     colour = (numerator + weight) / (denominator[..., None] + weight)
-    codes = np.round(colour / COLOUR_STEP).clip(0, 255)  # kept as the file keeps it: 8 bits per channel
-    return codes.astype(np.float32) * np.float32(COLOUR_STEP)
+    return colour_from_codes(colour_codes(colour))  # kept as the file keeps it: 8 bits per channel
 
 
 def deflated_bytes(array: np.ndarray) -> int:
@@ -158,7 +157,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                 if chroma is not None:
                     fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
                 if colour is not None:
-                    fixed += deflated_bytes(np.round(colour / COLOUR_STEP).astype(np.uint8))
+                    fixed += deflated_bytes(colour_codes(colour))
                 rank = max(choose_luminance_rank(widest, fixed, settings.size_budget * n * height * width * channels), settings.min_luminance_rank)
                 if rank < widest.rank:
                     stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)

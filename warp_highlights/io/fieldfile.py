@@ -68,7 +68,7 @@ from ..model.errors import InputError
 from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
 from ..model.lights import LightSet
-from ..model.residual import COLOUR_STEP, LowRankStack, ResidualModel
+from ..model.residual import LowRankStack, ResidualModel, colour_codes, colour_from_codes
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 
@@ -286,7 +286,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     if residual.scale is not None:
         arrays.append((_RESIDUAL_SCALE, residual.scale.astype("<f2")))
     if residual.highlight_colour is not None:
-        codes = np.round(residual.highlight_colour / COLOUR_STEP).clip(0, 255).astype("<u1")
+        codes = colour_codes(residual.highlight_colour)
         arrays.append((_RESIDUAL_COLOUR, codes.transpose(2, 0, 1)))
     return layout, arrays
 
@@ -734,7 +734,7 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int) ->
         scale = read(_RESIDUAL_SCALE, "<f2", (height, width)).astype(np.float32)
     colour = None
     if with_colour:
-        colour = read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0).astype(np.float32) * np.float32(COLOUR_STEP)
+        colour = colour_from_codes(read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0))
     try:
         return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
     except InputError as exc:

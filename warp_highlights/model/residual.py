@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "from_opponent", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -38,6 +38,16 @@ _LIGHT_SCALE_FLOOR = 1e-3  # of the brightest image's RMS: a black image is not 
 COLOUR_STEP = 4.0 / 255
 """Resolution of the stored highlight colour c(x): 8 bits over [0, 4] per channel (4: a highlight four
 times brighter in one channel than its luminance, beyond any metal's tint)."""
+
+
+def colour_codes(colour: np.ndarray) -> np.ndarray:
+    """A highlight colour c(x) as the file keeps it: uint8 codes of ``COLOUR_STEP``."""
+    return np.round(np.asarray(colour, dtype=np.float64) / COLOUR_STEP).clip(0, 255).astype(np.uint8)
+
+
+def colour_from_codes(codes: np.ndarray) -> np.ndarray:
+    """Inverse of ``colour_codes``: float32 c(x)."""
+    return np.asarray(codes).astype(np.float32) * np.float32(COLOUR_STEP)
 
 
 def to_opponent(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
