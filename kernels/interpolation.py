@@ -8,7 +8,7 @@ Three launches turn Q query directions into Q images, whatever Q is:
    ``SphericalTriangulation.locate``).
 2. ``interpolate_gaussians`` (query x corner x slot): the interpolated set G' of every query, 3N slots
    (corner k's moved set in slots k N .. k N + N - 1), ready for the rasterizer.
-3. ``compose_images`` (query x pixel): I' = scale max(B' + c(x) S', 0) with B' the residual
+3. ``compose_images`` (query x pixel, or query x row on the CPU): I' = scale max(B' + c(x) S', 0) with B' the residual
    (residual transfer: a barycentric blend of the per-light residual images, or the low-rank
    residual from per-query weights that ``blend_images`` blends), the Lambertian model, a blend of
    per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of a per-light stack.
@@ -266,9 +266,12 @@ def compose_images(
     weights: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     scale: float,
+    pixels_per_thread: int,
     out: wp.array3d(dtype=float),
 ):
-    """out[q, i, c] = scale max(B'[q, i, c] + colour[c] c_i[c] S'[q, i], 0) for pixel i and channel c.
+    """out[q, i, c] = scale max(B'[q, i, c] + colour[c] c_i[c] S'[q, i], 0) for pixel i and channel c;
+    thread (q, t) does pixels t p .. t p + p - 1 (p = ``pixels_per_thread``: 1 on CUDA, a row's worth on
+    the CPU, where each thread's start costs about as much as a pixel).
 
     B' per ``diffuse_mode``: ``DIFFUSE_NONE`` 0; ``DIFFUSE_LAMBERT`` max(nbar . omega_q, 0) + k_a from
     ``lambert[i, c]`` = (nbar_x, nbar_y, nbar_z, k_a); ``DIFFUSE_BLEND`` the barycentric blend of
@@ -278,42 +281,48 @@ def compose_images(
     times ``residual_scale[i]`` (one entry: 1 everywhere). S' is
     added only when ``add_specular`` is set; c_i is ``pixel_colour[i]`` (row 0 when it has one row).
     """
-    q, i = wp.tid()
-    value = float(0.0)
+    q, t = wp.tid()
     f = faces[q]
     w = weights[q]
     omega = directions[q]
-    row = i
-    if pixel_colour.shape[0] == 1:
-        row = 0
-    y = float(0.0)
-    cb = float(0.0)
-    cr = float(0.0)
-    if diffuse_mode == DIFFUSE_LOWRANK:
-        s = residual_scale[0]
-        if residual_scale.shape[0] > 1:
-            s = residual_scale[i]
-        y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
-        if out.shape[2] == 3:
-            cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
-            cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
-    for c in range(out.shape[2]):
-        value = 0.0
-        if diffuse_mode == DIFFUSE_LAMBERT:
-            m = lambert[i, c]
-            value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
-        elif diffuse_mode == DIFFUSE_BLEND:
-            for k in range(3):
-                value += w[k] * float(diffuse_images[face_vertices[f, k], i, c])
-        elif diffuse_mode == DIFFUSE_LOWRANK:
-            value = y
-            if out.shape[2] == 3:
-                if c == 0:
-                    value = y + cr
-                elif c == 1:
-                    value = y - (_WR * cr + _WB * cb) / _WG
-                else:
-                    value = y + cb
-        if add_specular != 0:
-            value += specular_colour[c] * pixel_colour[row, c] * specular[q, i]
-        out[q, i, c] = scale * wp.max(value, 0.0)
+    corner0 = face_vertices[f, 0]
+    corner1 = face_vertices[f, 1]
+    corner2 = face_vertices[f, 2]
+    channels = out.shape[2]
+    one_colour = pixel_colour.shape[0] == 1
+    first = t * pixels_per_thread
+    for i in range(first, wp.min(first + pixels_per_thread, out.shape[1])):
+        value = float(0.0)
+        row = i
+        if one_colour:
+            row = 0
+        y = float(0.0)
+        cb = float(0.0)
+        cr = float(0.0)
+        if diffuse_mode == DIFFUSE_LOWRANK:
+            s = residual_scale[0]
+            if residual_scale.shape[0] > 1:
+                s = residual_scale[i]
+            y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
+            if channels == 3:
+                cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
+                cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
+        for c in range(channels):
+            value = 0.0
+            if diffuse_mode == DIFFUSE_LAMBERT:
+                m = lambert[i, c]
+                value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
+            elif diffuse_mode == DIFFUSE_BLEND:
+                value = w[0] * float(diffuse_images[corner0, i, c]) + w[1] * float(diffuse_images[corner1, i, c]) + w[2] * float(diffuse_images[corner2, i, c])
+            elif diffuse_mode == DIFFUSE_LOWRANK:
+                value = y
+                if channels == 3:
+                    if c == 0:
+                        value = y + cr
+                    elif c == 1:
+                        value = y - (_WR * cr + _WB * cb) / _WG
+                    else:
+                        value = y + cb
+            if add_specular != 0:
+                value += specular_colour[c] * pixel_colour[row, c] * specular[q, i]
+            out[q, i, c] = scale * wp.max(value, 0.0)

@@ -4,6 +4,8 @@ the field file's version 2, and non-negative outputs."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -14,13 +16,21 @@ from reference import render as render_reference
 from warp_highlights.kernels.support import support_fractions
 
 from warp_highlights.fit.pipeline import fit_field
-from warp_highlights.fit.residual import build_residual, decide_moving, deflated_bytes, highlight_colour
+from warp_highlights.fit.residual import (
+    CHROMA_GAIN,
+    LUMINANCE_GAIN,
+    build_residual,
+    decide_moving,
+    deflated_bytes,
+    highlight_colour,
+    split_ranks,
+)
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
 from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
-from warp_highlights.model.residual import LowRankStack, ResidualModel, from_opponent, to_opponent
+from warp_highlights.model.residual import LowRankStack, ResidualModel, from_opponent, principal_energies, to_opponent
 from warp_highlights.relight.relighter import Relighter
 
 RNG = np.random.default_rng(15)
@@ -93,6 +103,62 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     assert floored.luminance.rank == ResidualSettings().min_luminance_rank  # the floor holds whatever the budget
     fixed = build_residual(images, own, None, settings=ResidualSettings(luminance_rank=5))
     assert fixed.luminance.rank == 5
+
+
+def test_split_ranks_takes_the_most_error_per_byte_within_the_budget():
+    luminance_gain, luminance_bytes = np.array([90.0, 30.0, 8.0, 1.0]), np.full(4, 10.0)
+    chroma_gain, chroma_bytes = np.array([40.0, 12.0, 3.0]), 20.0
+    # rates: Y 9, 3, 0.8, 0.1; C 2, 0.6, 0.15 -> Y, Y, C, Y, C, C, Y
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 0.0) == (0, 0)
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 25.0) == (2, 0)
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 40.0) == (2, 1)
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 55.0) == (3, 1)
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 1e9) == (4, 3)
+    # what does not fit is skipped for what still does
+    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 35.0) == (3, 0)
+
+
+def test_principal_energies_are_what_each_further_basis_image_removes():
+    n, h, w = 10, 8, 6
+    stack = RNG.normal(size=(n, h, w, 2))
+    scale = RNG.uniform(0.5, 2.0, size=n)
+    energies = principal_energies(stack, scale)
+    normalised = stack.reshape(n, -1) / scale[:, None]
+    assert np.all(np.diff(energies) <= 1e-9) and np.isclose(energies.sum(), (normalised**2).sum())
+    singular = np.linalg.svd(normalised, compute_uv=False)
+    np.testing.assert_allclose(energies, singular**2, rtol=1e-9, atol=1e-9)
+    assert LUMINANCE_GAIN == 3.0 and 1.0 < CHROMA_GAIN < 1.1
+
+
+def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light():
+    """A stack whose colour swings with the light gets chroma rank; a grey one (chroma 0) none."""
+    n, h, w = 24, 32, 40
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    patterns = np.stack([np.sin((i + 1) * xx + i) * np.cos((i % 4 + 1) * yy) for i in range(12)])
+    grey = 0.5 + 0.2 * np.einsum("nk,khw->nhw", RNG.normal(size=(n, 12)), patterns)
+    tint = np.einsum("nk,khw->nhw", RNG.normal(size=(n, 12)), patterns[::-1]) * 0.15
+    coloured = np.stack([grey + tint, grey - 0.3 * tint, grey - tint], axis=-1).astype(np.float32)
+    own = np.zeros((n, h, w), np.float32)
+    settings = ResidualSettings(size_budget=2.0, basis_bits=16)
+    model = build_residual(coloured, own, None, settings=settings)
+    assert model.chroma.rank >= 8, model.chroma.rank
+    back = model.light_images(np.eye(n))
+    assert np.abs(back - coloured).max() < 5e-3
+    flat = build_residual(np.repeat(grey[..., None], 3, axis=-1).astype(np.float32), own, None, settings=settings)
+    assert flat.chroma.rank <= 1 and flat.luminance.rank >= 8
+
+
+def test_decoded_images_match_the_float64_reference():
+    n, h, w = 9, 10, 12
+    images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
+    model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2))
+    decoded = model.decoded_images(block=4)
+    assert decoded.dtype == np.float16 and decoded.shape == (n, h, w, 3)
+    np.testing.assert_allclose(decoded, model.light_images(np.eye(n)), atol=2e-3)
+    grey = build_residual(images[..., :1], np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=3))
+    np.testing.assert_allclose(grey.decoded_images(), grey.light_images(np.eye(n)), atol=2e-3)
+    whole = ResidualModel(images=images)
+    assert whole.decoded_images() is whole.images
 
 
 def test_the_default_field_is_at_most_a_quarter_of_the_8_bit_capture(donut_fields, tmp_path):
@@ -198,14 +264,14 @@ def _reference_full(field, directions, scale) -> np.ndarray:
     return scale * np.maximum(residual + colour * specular[..., None], 0.0)
 
 
-@pytest.mark.parametrize("kind", ["lowrank", "images"])
-def test_compose_matches_the_float64_reference(donut_fields, kind, device):
+@pytest.mark.parametrize("kind, decode", [("lowrank", "query"), ("lowrank", "load"), ("lowrank", "auto"), ("images", "auto")])
+def test_compose_matches_the_float64_reference(donut_fields, kind, decode, device):
     _, fits = donut_fields
     field = fits[kind]
     directions = np.array([[0.3, 0.2, 0.9], [-0.6, 0.1, 0.5], [0.1, -0.9, -0.3]])
-    got = Relighter(field, device=device, scale=2.0).relight(directions).full
+    got = Relighter(field, device=device, scale=2.0, residual_decode=decode).relight(directions).full
     expected = _reference_full(field, directions, 2.0)
-    tolerance = 2e-3 if kind == "images" else 1e-4  # float16 residual images on the device
+    tolerance = 1e-4 if decode == "query" else 2e-3  # else float16 residual images on the device
     np.testing.assert_allclose(got, expected, atol=tolerance * max(1.0, np.abs(expected).max()))
 
 
@@ -265,6 +331,30 @@ def test_version_2_file_round_trip(donut_fields, kind, tmp_path):
     directions = np.array([[0.2, 0.4, 0.8]])
     np.testing.assert_array_equal(Relighter(field, device="cpu").relight(directions).full, Relighter(back, device="cpu").relight(directions).full)
     assert back.file_sizes["residual"] > 0
+
+
+def test_a_field_without_chroma_basis_images_round_trips_and_relights(donut_fields, tmp_path):
+    """The budget may leave the chroma its mean image alone (rank 0)."""
+    dataset, fits = donut_fields
+    field = fits["lowrank"]
+    residual = field.residual
+    _, opponent = to_opponent(residual.light_images(np.eye(field.light_count)))
+    chroma = LowRankStack.fit(opponent / residual.scale[..., None], 0)
+    assert chroma.rank == 0 and chroma.codes.shape == (0, field.height, field.width, 2)
+    plain = dataclasses.replace(field, residual=dataclasses.replace(residual, chroma=chroma))
+    save_field(plain, tmp_path / "f.whf")
+    back = load_field(tmp_path / "f.whf")
+    assert back.residual.chroma.rank == 0
+    directions = np.array([[0.2, 0.4, 0.8], [-0.5, 0.3, 0.4]])
+    for decode in ("query", "load"):
+        relit = Relighter(back, device="cpu", residual_decode=decode).relight(directions).full
+        np.testing.assert_allclose(relit, _reference_full(plain, directions, 1.0), atol=2e-3 * max(1.0, float(relit.max())))
+
+
+def test_an_unknown_residual_decode_is_refused(donut_fields):
+    _, fits = donut_fields
+    with pytest.raises(InputError, match="residual_decode must be one of auto, query, load"):
+        Relighter(fits["lowrank"], device="cpu", residual_decode="lazy")
 
 
 def test_a_residual_entry_of_the_wrong_shape_is_one_line(donut_fields, tmp_path):

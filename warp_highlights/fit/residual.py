@@ -26,20 +26,31 @@ from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
 from ..model.gaussians import GaussianBatch, GaussianParams
-from ..model.residual import LUMINANCE_WEIGHTS, LowRankStack, ResidualModel, colour_codes, colour_from_codes, to_opponent
+from ..model.residual import (
+    LUMINANCE_WEIGHTS,
+    LowRankStack,
+    ResidualModel,
+    colour_codes,
+    colour_from_codes,
+    principal_energies,
+    to_opponent,
+)
 
-__all__ = ["MoveDecision", "build_residual", "choose_luminance_rank", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "render_own", "residual_scale"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "build_residual", "choose_luminance_rank", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "render_own", "residual_scale", "split_ranks"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
 near black, so a black background is approximated to well under one step."""
-AUTO_CHROMA_RANKS = (3, 6)
-"""Chroma ranks tried when ``ResidualSettings.chroma_rank`` is 0: 3 suits captures whose colour varies
-little with the light (the samples), 6 the 64-light donut, whose back-lit images are grey (+1.2 dB)."""
+LUMINANCE_GAIN = 3.0
+"""Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
+CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
+"""The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
 _ERROR_PIXEL_STEP = 4  # display_error samples 1 pixel in 16
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
+_FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
+_LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 
 
 @dataclass(frozen=True)
@@ -108,23 +119,52 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
     return int(estimated.active.sum()) * (_PARAMETER_BYTES + 2) + int(retargeted.active.sum()) * (_PARAMETER_BYTES + _PATH_BYTES) + 2 * len(estimated.active)
 
 
+def component_bytes(stack: LowRankStack) -> np.ndarray:
+    """(k,) stored bytes of each basis image of ``stack``: its deflated codes, its range and its per-light weights."""
+    return np.array([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
+
+
 def choose_luminance_rank(stack: LowRankStack, fixed_bytes: int, budget_bytes: float) -> int:
     """The largest rank k <= ``stack.rank`` whose first k basis images, deflated, fit ``budget_bytes``
     beside ``fixed_bytes`` (everything else the field stores); at least 1."""
-    costs = np.cumsum([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes])  # codes, range, weights
+    costs = np.cumsum(component_bytes(stack))
     fits = np.flatnonzero(fixed_bytes + costs <= budget_bytes)
     return int(max(1, fits[-1] + 1 if fits.size else 1))
+
+
+def split_ranks(luminance_gain: np.ndarray, luminance_bytes: np.ndarray, chroma_gain: np.ndarray, chroma_bytes: float, budget_bytes: float) -> tuple[int, int]:
+    """How many luminance and chroma basis images to keep within ``budget_bytes``: greedily the next
+    image of either stack that removes the most squared RGB error per byte (gains: the energies
+    ``principal_energies`` gives, times ``LUMINANCE_GAIN`` or ``CHROMA_GAIN``; bytes: each luminance
+    image's own, one estimate for a chroma image); an image that removes nothing (1e-9 of the total)
+    is not taken. Returns (luminance rank, chroma rank)."""
+    luminance_count = chroma_count = 0
+    spent = 0.0
+    least = 1e-9 * (float(np.sum(luminance_gain)) + float(np.sum(chroma_gain)))  # below this an image removes rounding noise only
+    while True:
+        take_luminance = luminance_count < len(luminance_gain) and spent + luminance_bytes[luminance_count] <= budget_bytes and luminance_gain[luminance_count] > least
+        take_chroma = chroma_count < len(chroma_gain) and spent + chroma_bytes <= budget_bytes and chroma_gain[chroma_count] > least
+        if not (take_luminance or take_chroma):
+            return luminance_count, chroma_count
+        luminance_rate = luminance_gain[luminance_count] / max(luminance_bytes[luminance_count], 1.0) if take_luminance else -1.0
+        chroma_rate = chroma_gain[chroma_count] / max(chroma_bytes, 1.0) if take_chroma else -1.0
+        if luminance_rate >= chroma_rate:
+            spent += luminance_bytes[luminance_count]
+            luminance_count += 1
+        else:
+            spent += chroma_bytes
+            chroma_count += 1
 
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
 
-    Compressed, the luminance rank is ``settings.luminance_rank``, or else the largest (up to
-    ``max_luminance_rank``) that keeps the whole field within ``size_budget`` of the 8-bit capture,
-    counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array.
-    The basis bits and the chroma rank are the settings', or else the pair of 8/16 bits and
-    ``AUTO_CHROMA_RANKS`` (each at the luminance rank the budget leaves it) that reproduces the
-    captured images best as 8-bit sRGB (``display_error``).
+    Compressed, the ranks are the settings' where given; otherwise the whole field is kept within
+    ``size_budget`` of the 8-bit capture, counting ``other_bytes`` (the Gaussians and paths) and the
+    deflated size of every stored array: the budget goes to luminance and chroma basis images by
+    ``split_ranks`` (the error each removes per byte), then the luminance takes what the chroma left
+    (up to ``max_luminance_rank``, at least ``min_luminance_rank``). The basis bits are the settings',
+    or else 8 or 16, whichever reproduces the captured images better as 8-bit sRGB (``display_error``).
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
@@ -141,27 +181,44 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         y, opponent = to_opponent(residual)
     scale = residual_scale(y)
     luminance = (y / scale)[..., None]
+    chroma_stack = None if opponent is None else opponent / scale[..., None]
     light_scale = np.sqrt(np.mean(luminance.reshape(n, -1) ** 2, axis=1))  # both stacks weigh each light by its brightness
+    budget = settings.size_budget * n * height * width * channels
+    most = min(settings.luminance_rank or settings.max_luminance_rank, n - 1)
+    energies = None
+    if chroma_stack is not None and not settings.chroma_rank:
+        energies = (principal_energies(luminance, light_scale), principal_energies(chroma_stack, light_scale))
     candidates = []
-    bit_choices = (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,)
-    chroma_choices = (None,) if opponent is None else tuple(dict.fromkeys(min(rank, n - 1) for rank in ((settings.chroma_rank,) if settings.chroma_rank else AUTO_CHROMA_RANKS)))
-    for bits in bit_choices:
-        widest = LowRankStack.fit(luminance, min(settings.luminance_rank or settings.max_luminance_rank, n - 1), light_scale=light_scale, bits=bits)
-        for rank_of_chroma in chroma_choices:
-            chroma = None
-            if opponent is not None:
-                chroma = LowRankStack.fit(opponent / scale[..., None], rank_of_chroma, light_scale=light_scale, bits=bits)
-            stack = widest
-            if not settings.luminance_rank:
-                fixed = other_bytes + deflated_bytes(stack.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16)) + 8 * n
-                if chroma is not None:
-                    fixed += deflated_bytes(chroma.mean.astype(np.float16)) + sum(deflated_bytes(code) for code in chroma.codes) + chroma.weights.nbytes
-                if colour is not None:
-                    fixed += deflated_bytes(colour_codes(colour))
-                rank = max(choose_luminance_rank(widest, fixed, settings.size_budget * n * height * width * channels), settings.min_luminance_rank)
-                if rank < widest.rank:
-                    stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
-            candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
+    for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
+        widest = LowRankStack.fit(luminance, most, light_scale=light_scale, bits=bits)
+        fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(widest.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
+        if colour is not None:
+            fixed += deflated_bytes(colour_codes(colour))
+        chroma = None
+        if chroma_stack is not None:
+            if settings.chroma_rank:
+                chroma_rank = min(settings.chroma_rank, n - 1)
+            else:
+                costs = component_bytes(widest)
+                chroma_bytes = 2.0 * float(np.median(costs)) if costs.size else 1.0  # two planes, each about a luminance image
+                floor = min(settings.min_luminance_rank, widest.rank)  # the luminance's floor is paid for first
+                left = budget - fixed - 2 * deflated_bytes(widest.mean.astype(np.float16)) - costs[:floor].sum()
+                _, chroma_rank = split_ranks(LUMINANCE_GAIN * energies[0][1 + floor : widest.rank + 1], costs[floor:], CHROMA_GAIN * energies[1][1 : most + 1], chroma_bytes, left)
+            chroma = LowRankStack.fit(chroma_stack, chroma_rank, light_scale=light_scale, bits=bits)
+            chroma_costs = component_bytes(chroma)
+            if not settings.chroma_rank and chroma.rank:  # the estimate was low: keep what leaves the luminance its floor
+                room = budget - fixed - deflated_bytes(chroma.mean.astype(np.float16)) - component_bytes(widest)[: settings.min_luminance_rank].sum()
+                keep = int(np.searchsorted(np.cumsum(chroma_costs), room, side="right"))
+                if keep < chroma.rank:
+                    chroma = LowRankStack.fit(chroma_stack, keep, light_scale=light_scale, bits=bits)
+                    chroma_costs = chroma_costs[:keep]
+            fixed += deflated_bytes(chroma.mean.astype(np.float16)) + int(chroma_costs.sum())
+        stack = widest
+        if not settings.luminance_rank:
+            rank = max(choose_luminance_rank(widest, fixed, budget), settings.min_luminance_rank)
+            if rank < widest.rank:
+                stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
+        candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
     if len(candidates) == 1:
         return candidates[0]
     errors = [display_error(model, images, highlights) for model in candidates]

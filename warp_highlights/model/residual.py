@@ -28,7 +28,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "principal_energies", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -122,11 +122,7 @@ class LowRankStack:
         stack = np.asarray(stack, dtype=np.float64)
         n = len(stack)
         flat = stack.reshape(n, -1)
-        if light_scale is None:
-            light_scale = np.sqrt(np.mean(flat**2, axis=1))
-        light_scale = np.asarray(light_scale, dtype=np.float64).reshape(n)
-        light_scale = np.maximum(light_scale, max(float(light_scale.max(initial=0.0)) * _LIGHT_SCALE_FLOOR, 1e-30))
-        normalised = flat / light_scale[:, None]
+        normalised = _normalised(flat, light_scale)
         # the leading rank + 1 principal directions of the uncentred images: a linear subspace, whose
         # first direction (the "mean" image, kept at float16) every light weighs freely
         rank = int(max(0, min(rank, n - 1)))
@@ -147,10 +143,10 @@ class LowRankStack:
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
         shape = stack.shape[1:]
         model = cls(mean32.reshape(shape), codes.reshape((len(codes),) + shape), ranges, np.zeros((n, len(codes)), np.float32))
-        design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(len(codes), -1).astype(np.float64)])
+        design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(len(codes), flat.shape[1]).astype(np.float64)])
         # least squares by the (k + 1)-square normal equations: the planes are nearly orthogonal
         normal = design @ design.T
-        normal[np.diag_indices_from(normal)] += 1e-12 * max(float(np.trace(normal)), 1e-300)
+        normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
         solution = np.linalg.solve(normal, design @ flat.T)
         return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
 
@@ -174,7 +170,7 @@ class LowRankStack:
     def images(self, weights: np.ndarray, mean_weights=1.0) -> np.ndarray:
         """(Q, H, W, P) float64 images for (Q, k) weight rows and (Q,) mean weights (e.g. blended per-light ones)."""
         weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
-        flat = weights @ self.basis.reshape(self.rank, -1).astype(np.float64)
+        flat = weights @ self.basis.reshape(self.rank, self.mean.size).astype(np.float64)
         mean_weights = np.broadcast_to(np.asarray(mean_weights, dtype=np.float64).reshape(-1), (len(weights),))
         return flat.reshape((len(weights),) + self.mean.shape) + mean_weights[:, None, None, None] * self.mean.astype(np.float64)
 
@@ -182,6 +178,25 @@ class LowRankStack:
         """(Q, H, W, P) float64 images for (Q, n) per-light blend weights."""
         blend = np.atleast_2d(np.asarray(blend, dtype=np.float64))
         return self.images(blend @ self.weights.astype(np.float64), blend @ self.mean_weights.astype(np.float64))
+
+
+def principal_energies(stack: np.ndarray, light_scale: np.ndarray | None = None) -> np.ndarray:
+    """(n,) descending energies (sums of squares over the normalised images) of the principal
+    directions ``LowRankStack.fit`` draws from an (n, H, W, P) stack: what each further basis image
+    can remove of the squared error, in the same units for every stack normalised by one ``light_scale``."""
+    flat = np.asarray(stack, dtype=np.float64).reshape(len(stack), -1)
+    normalised = _normalised(flat, light_scale)
+    return np.clip(np.linalg.eigvalsh(normalised @ normalised.T)[::-1], 0.0, None)
+
+
+def _normalised(flat: np.ndarray, light_scale: np.ndarray | None) -> np.ndarray:
+    """(n, M) rows divided by their light scale (default: each row's RMS), floored above 0."""
+    n = len(flat)
+    if light_scale is None:
+        light_scale = np.sqrt(np.mean(flat**2, axis=1))
+    light_scale = np.asarray(light_scale, dtype=np.float64).reshape(n)
+    light_scale = np.maximum(light_scale, max(float(light_scale.max(initial=0.0)) * _LIGHT_SCALE_FLOOR, 1e-30))
+    return flat / light_scale[:, None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -261,6 +276,25 @@ class ResidualModel:
             kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"
         colour = "per-pixel" if self.highlight_colour is not None else "white"
         return f"residual: {kind}; highlight colour {colour}"
+
+    def decoded_images(self, *, block: int = 16) -> np.ndarray:
+        """(n, H, W, C) float16: every captured light's residual image R_i (the stored images when
+        uncompressed; else decoded once, in float32, ``block`` lights at a time), for relighting by
+        blending them as the alpha blend does (values beyond float16's range are clipped to it)."""
+        if self.images is not None:
+            return self.images
+        n, height, width = self.light_count, self.height, self.width
+        out = np.empty((n, height, width, self.channels), np.float16)
+        scale = np.ones((height, width), np.float32) if self.scale is None else self.scale
+        planes = [(stack, stack.basis.reshape(stack.rank, stack.mean.size), stack.mean.reshape(1, -1)) for stack in (self.luminance, self.chroma) if stack is not None]
+        for start in range(0, n, block):
+            stop = min(n, start + block)
+            parts = [(stack.weights[start:stop] @ basis + stack.mean_weights[start:stop, None] * mean).reshape((stop - start,) + stack.mean.shape)
+                     for stack, basis, mean in planes]
+            y = parts[0][..., 0] * scale
+            rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[..., None])
+            out[start:stop] = np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE)
+        return out
 
     def light_images(self, weights: np.ndarray) -> np.ndarray:
         """R~ for (Q, n) per-light blend weights: (Q, H, W, C) float64 (the float64 reference)."""

@@ -38,8 +38,10 @@ from ..model.triangulation import unit_query_directions
 from .interpolation import edge_rows
 
 __all__ = [
+    "DECODED_RESIDUAL_BYTES",
     "DIFFUSE_MODES",
     "RELIGHT_METHODS",
+    "RESIDUAL_DECODES",
     "Relighter",
     "RelitImages",
     "alpha_inputs",
@@ -53,6 +55,12 @@ DIFFUSE_MODES = ("auto", "residual", "lambert", "images", "none")
 """What I' adds S' to. ``residual``: residual transfer (the field's residual model); ``lambert``: the
 per-pixel Lambertian model; ``images``: the blended diffuse images; ``none``: nothing. ``auto``: the
 first of residual, images, lambert that the field stores."""
+
+RESIDUAL_DECODES = ("auto", "query", "load")
+"""How a ``Relighter`` decodes a low-rank residual (its ``residual_decode`` argument)."""
+DECODED_RESIDUAL_BYTES = 512 * 2**20
+"""Most device memory "auto" gives a low-rank residual decoded once into float16 images: 250 lights of
+480x270 RGB take 194 MB; a larger field is decoded per query instead (slower on the CPU, no memory)."""
 
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
@@ -116,6 +124,11 @@ class Relighter:
             units, like ``alpha_specular``: ``scale`` applies to them too).
         raster: rasterizer settings (default: the field's).
         max_batch: queries per launch (default: as many as fit in about 256 MB of images).
+        residual_decode: how a low-rank residual is decoded (``RESIDUAL_DECODES``): "query" in every
+            query's compose pass (k multiply-adds per pixel and plane, nothing more held), "load" once
+            here into n float16 residual images that queries blend like the alpha blend (3 per pixel
+            and channel; n x pixels x channels x 2 bytes held on the device), "auto" (default): "load"
+            when those images take at most ``DECODED_RESIDUAL_BYTES`` and save work, else "query".
     """
 
     def __init__(
@@ -131,9 +144,12 @@ class Relighter:
         alpha_images: np.ndarray | None = None,
         raster: RasterSettings | None = None,
         max_batch: int | None = None,
+        residual_decode: str = "auto",
     ):
         if diffuse not in DIFFUSE_MODES:
             raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_MODES)}, got '{diffuse}'")
+        if residual_decode not in RESIDUAL_DECODES:
+            raise InputError(f"residual_decode must be one of {', '.join(RESIDUAL_DECODES)}, got '{residual_decode}'")
         self.field = field
         self.device = wp.get_device(device)
         self.width, self.height = _output_size(field, size)
@@ -142,6 +158,8 @@ class Relighter:
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
+        if self.diffuse == kernels.DIFFUSE_LOWRANK and _decode_on_load(field.residual, self.width * self.height, residual_decode):
+            self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
             raise InputError(f"specular colour must be 1 or 3 finite numbers >= 0, got {np.asarray(specular_colour).tolist()}")
@@ -208,7 +226,7 @@ class Relighter:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
             lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
         elif self.diffuse == kernels.DIFFUSE_BLEND:
-            source = residual.images if self._residual_images else model.images
+            source = residual.decoded_images() if self._residual_images else model.images
             stack = np.stack([resample_image(image.astype(np.float32), self.width, self.height) for image in source])
             images = stack.reshape(len(stack), self.height * self.width, source.shape[3]).astype(np.float16)
         elif self.diffuse == kernels.DIFFUSE_LOWRANK:
@@ -333,12 +351,13 @@ class Relighter:
                           inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out], device=self.device)
             coefficients.append(out)
         lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
+        per_thread = 1 if self.device.is_cuda else self.width  # a CPU thread's start costs about a pixel: one per row
         wp.launch(
             kernels.compose_images,
-            dim=(buffers.count, pixels),
+            dim=(buffers.count, (pixels + per_thread - 1) // per_thread),
             inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour, int(add_specular), mode, self._lambert, images,
                     lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1], self._residual_scale,
-                    self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale],
+                    self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale, per_thread],
             outputs=[buffers.full],
             device=self.device,
         )
@@ -509,6 +528,15 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
     if diffuse == "images" and model.images is None:
         raise InputError("diffuse 'images' needs a field fitted with --diffuse images (this one stores only the Lambertian model)")
     return (kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND), False
+
+
+def _decode_on_load(residual, output_pixels: int, decode: str) -> bool:
+    """Whether a low-rank ``residual`` is decoded once into images (see ``Relighter``'s ``residual_decode``)."""
+    if decode != "auto":
+        return decode == "load"
+    held = residual.light_count * output_pixels * residual.channels * 2
+    per_query = residual.luminance.rank + 1 + (0 if residual.chroma is None else 2 * (residual.chroma.rank + 1))
+    return held <= DECODED_RESIDUAL_BYTES and per_query > 3 * residual.channels
 
 
 def _field_channels(field) -> int:
