@@ -156,6 +156,7 @@ def main() -> None:
     print("thesis (RTX 3080, 480x270): 12 ms per interpolated image (donut), 11 ms (teapot)")
     if os.environ.get("OUT"):
         out = Path(os.environ["OUT"]) / "bench_relight.json"
+        out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps({
             "source": source, "device": str(device), "device_name": name, "cpu_count": cores, "warp": wp.config.version,
             "size": [width, height], "batch": args.batch, "repeat": args.repeat, "lights": field.light_count,
