@@ -207,7 +207,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
             chroma = LowRankStack.fit(chroma_stack, chroma_rank, light_scale=light_scale, bits=bits)
             chroma_costs = component_bytes(chroma)
             if not settings.chroma_rank and chroma.rank:  # the estimate was low: keep what leaves the luminance its floor
-                room = budget - fixed - deflated_bytes(chroma.mean.astype(np.float16)) - component_bytes(widest)[: settings.min_luminance_rank].sum()
+                room = budget - fixed - deflated_bytes(chroma.mean.astype(np.float16)) - costs[:floor].sum()
                 keep = int(np.searchsorted(np.cumsum(chroma_costs), room, side="right"))
                 if keep < chroma.rank:
                     chroma = LowRankStack.fit(chroma_stack, keep, light_scale=light_scale, bits=bits)
