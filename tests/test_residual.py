@@ -19,18 +19,20 @@ from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.fit.residual import (
     CHROMA_GAIN,
     LUMINANCE_GAIN,
+    StackPlan,
+    allocate_steps,
     build_residual,
+    component_bytes,
     decide_moving,
     deflated_bytes,
     highlight_colour,
-    split_ranks,
 )
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
 from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
-from warp_highlights.model.residual import LowRankStack, ResidualModel, from_opponent, principal_energies, to_opponent
+from warp_highlights.model.residual import LowRankStack, PrincipalImages, ResidualModel, from_opponent, to_opponent
 from warp_highlights.relight.relighter import Relighter
 
 RNG = np.random.default_rng(15)
@@ -94,8 +96,8 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     ranks = []
     for budget in (0.03, 0.06, 0.12, 0.5):
         model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget, min_luminance_rank=1), other_bytes=500)
-        stored = 500 + deflated_bytes(model.luminance.mean.astype(np.float16)) + sum(deflated_bytes(c) + 8 + 4 * n for c in model.luminance.codes)
-        stored += deflated_bytes(model.chroma.mean.astype(np.float16)) + sum(deflated_bytes(c) for c in model.chroma.codes) + model.chroma.weights.nbytes
+        stored = 500 + deflated_bytes(model.luminance.mean.astype(np.float16)) + component_bytes(model.luminance).sum()
+        stored += deflated_bytes(model.chroma.mean.astype(np.float16)) + component_bytes(model.chroma).sum()
         assert stored <= budget * capture or model.luminance.rank == 1
         ranks.append(model.luminance.rank)
     assert ranks == sorted(ranks) and ranks[0] < ranks[-1] <= ResidualSettings().max_luminance_rank
@@ -105,29 +107,89 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     assert fixed.luminance.rank == 5
 
 
-def test_split_ranks_takes_the_most_error_per_byte_within_the_budget():
-    luminance_gain, luminance_bytes = np.array([90.0, 30.0, 8.0, 1.0]), np.full(4, 10.0)
-    chroma_gain, chroma_bytes = np.array([40.0, 12.0, 3.0]), 20.0
-    # rates: Y 9, 3, 0.8, 0.1; C 2, 0.6, 0.15 -> Y, Y, C, Y, C, C, Y
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 0.0) == (0, 0)
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 25.0) == (2, 0)
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 40.0) == (2, 1)
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 55.0) == (3, 1)
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 1e9) == (4, 3)
-    # what does not fit is skipped for what still does
-    assert split_ranks(luminance_gain, luminance_bytes, chroma_gain, chroma_bytes, 35.0) == (3, 0)
+def _patterned_stack(n, h, w, planes, rank, decay):
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    patterns = np.stack([np.sin((i + 1) * xx + i) * np.cos((i % 5 + 1) * yy) for i in range(rank)])
+    weights = RNG.normal(size=(n, rank)) * decay ** np.arange(rank)
+    stack = np.einsum("nk,khw->nhw", weights, patterns)[..., None] * np.linspace(1.0, 0.5, planes) + 1.0
+    return stack + 1e-3 * RNG.normal(size=stack.shape)
 
 
-def test_principal_energies_are_what_each_further_basis_image_removes():
+def test_quantisation_step_gives_the_distortion_it_was_chosen_for():
+    """Each kept basis image, quantised with StackPlan's step, adds gain E M step^2 / 12 of squared
+    error (float64 reference: the quantised stack against the unquantised projection)."""
+    n, h, w = 24, 40, 48
+    principal = PrincipalImages.of(_patterned_stack(n, h, w, 1, 10, 0.7))
+    plan = StackPlan(principal, 1.0, principal.count - 1)
+    distortion = 1e-4 * principal.energies[1]
+    steps = plan.steps(distortion, 65535)
+    energies = principal.energies[1 : len(steps) + 1]
+    assert np.all(energies > distortion) and principal.energies[len(steps) + 1] <= distortion  # kept: exactly those above it
+    pixels = principal.flat.shape[1]
+    np.testing.assert_allclose(energies * pixels * steps**2 / 12, distortion, rtol=1e-9)
+    basis = principal.directions[1 : len(steps) + 1]
+    quantised = np.round(basis / steps[:, None]) * steps[:, None]
+    noise = (quantised - basis) ** 2
+    added = energies * noise.sum(axis=1)  # what each image's noise costs the images weighing it
+    assert np.all(np.abs(added / distortion - 1) < 0.15), added / distortion
+    floored = StackPlan(principal, 1.0, principal.count - 1, floor=len(steps) + 3).steps(distortion, 65535)
+    assert len(floored) == len(steps) + 3 and np.allclose(floored[: len(steps)], steps)
+    assert len(StackPlan(principal, 1.0, 2).steps(distortion, 65535)) == 2  # the cap holds
+
+
+def test_allocation_fits_the_budget_and_spends_it_where_the_energy_is():
+    n, h, w = 30, 36, 48
+    strong = PrincipalImages.of(_patterned_stack(n, h, w, 1, 16, 0.8))
+    weak = PrincipalImages.of(1.0 + 0.05 * (_patterned_stack(n, h, w, 2, 16, 0.8) - 1.0))
+    plans = [StackPlan(strong, LUMINANCE_GAIN, strong.count - 1), StackPlan(weak, CHROMA_GAIN, weak.count - 1)]
+    spent = []
+    for budget in (2e3, 8e3, 3e4, 1e5):
+        steps = allocate_steps(plans, budget, bits=8)
+        stacks = [LowRankStack.quantised(plan.principal, step, bits=8) for plan, step in zip(plans, steps)]
+        stored = sum(float(component_bytes(stack).sum()) for stack in stacks)
+        assert stored <= budget
+        assert stacks[0].rank >= stacks[1].rank  # the luminance's images remove more per byte
+        spent.append((stored, stacks[0].rank + stacks[1].rank))
+    assert [s for s, _ in spent] == sorted(s for s, _ in spent) and spent[0][1] < spent[-1][1]
+    assert spent[-2][0] > 0.9 * 3e4  # a budget that binds is nearly spent
+    nothing = allocate_steps(plans, 0.0, bits=8)
+    assert all(len(step) == 0 for step in nothing)
+
+
+def test_allocation_beats_keeping_whole_8_bit_images_at_the_same_bytes():
+    """The rate-distortion choice gives the stack back at least as well as the best rank whose
+    images, 8 bits over their range, fit the same bytes, and better (float64 error at the captured lights)."""
+    n, h, w = 32, 40, 48
+    stack = _patterned_stack(n, h, w, 1, 24, 0.85)
+    principal = PrincipalImages.of(stack)
+    plan = StackPlan(principal, 1.0, principal.count - 1)
+    whole = [LowRankStack.fit(stack, rank) for rank in range(principal.count)]
+    whole_bytes = [float(component_bytes(model).sum()) for model in whole]
+
+    def error(model):
+        return float(np.mean((model.light_images(np.eye(n)) - stack) ** 2))
+
+    for budget in (3e3, 1e4, 3e4):
+        allocated = LowRankStack.quantised(principal, allocate_steps([plan], budget, bits=8)[0], bits=8)
+        best_whole = min(error(model) for model, size in zip(whole, whole_bytes) if size <= budget)
+        assert float(component_bytes(allocated).sum()) <= budget
+        assert error(allocated) <= 0.5 * best_whole, (budget, error(allocated), best_whole)  # 6-50 times lower here
+
+
+def test_principal_images_are_the_stack_s_principal_directions():
     n, h, w = 10, 8, 6
     stack = RNG.normal(size=(n, h, w, 2))
     scale = RNG.uniform(0.5, 2.0, size=n)
-    energies = principal_energies(stack, scale)
+    principal = PrincipalImages.of(stack, scale)
     normalised = stack.reshape(n, -1) / scale[:, None]
-    assert np.all(np.diff(energies) <= 1e-9) and np.isclose(energies.sum(), (normalised**2).sum())
     singular = np.linalg.svd(normalised, compute_uv=False)
-    np.testing.assert_allclose(energies, singular**2, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(principal.energies, singular**2, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(principal.directions @ principal.directions.T, np.eye(n), atol=1e-9)
+    np.testing.assert_allclose(principal.spans, np.ptp(principal.directions[1:], axis=1))
+    assert principal.count == n and principal.basis_images(3, slice(None, None, 2)).shape == (3, 4, 6, 2)
     assert LUMINANCE_GAIN == 3.0 and 1.0 < CHROMA_GAIN < 1.1
+    black = PrincipalImages.of(np.zeros((4, 3, 3, 1)))
+    assert black.count == 1 and np.all(black.mean == 0)
 
 
 def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light():

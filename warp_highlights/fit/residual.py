@@ -14,8 +14,10 @@ Units: images in the field's units (the fit's exposure applied); Gaussians in im
 
 from __future__ import annotations
 
+import os
 import warnings
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,14 +31,14 @@ from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.residual import (
     LUMINANCE_WEIGHTS,
     LowRankStack,
+    PrincipalImages,
     ResidualModel,
     colour_codes,
     colour_from_codes,
-    principal_energies,
     to_opponent,
 )
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "build_residual", "choose_luminance_rank", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "render_own", "residual_scale", "split_ranks"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "quantised_bytes", "render_own", "residual_scale"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -51,6 +53,9 @@ _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
 _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
+_LEVELS = {8: 255, 16: 65535}  # code levels of the basis bits
+_BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
+_BISECTIONS = 14  # of the log distortion over e^35: to 0.2% of the distortion
 
 
 @dataclass(frozen=True)
@@ -120,51 +125,96 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
-    """(k,) stored bytes of each basis image of ``stack``: its deflated codes, its range and its per-light weights."""
-    return np.array([deflated_bytes(code) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
+    """(k,) stored bytes of each basis image of ``stack``: its deflated codes (planes first, as the file
+    keeps them), its range and its per-light weights."""
+    return np.array([deflated_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
 
 
-def choose_luminance_rank(stack: LowRankStack, fixed_bytes: int, budget_bytes: float) -> int:
-    """The largest rank k <= ``stack.rank`` whose first k basis images, deflated, fit ``budget_bytes``
-    beside ``fixed_bytes`` (everything else the field stores); at least 1."""
-    costs = np.cumsum(component_bytes(stack))
-    fits = np.flatnonzero(fixed_bytes + costs <= budget_bytes)
-    return int(max(1, fits[-1] + 1 if fits.size else 1))
+@dataclass(frozen=True)
+class StackPlan:
+    """One stack's share of the rate-distortion allocation: its principal images, the squared RGB
+    error per unit of its energy (``gain``), and how many basis images it may and must keep."""
+
+    principal: PrincipalImages
+    gain: float
+    most: int
+    floor: int = 0
+
+    def steps(self, distortion: float, levels: int) -> np.ndarray:
+        """Quantisation steps of the basis images kept at ``distortion`` (squared RGB error, normalised
+        units, that each kept image may add; an image of energy below it is dropped, which removes
+        less): ``step = sqrt(12 D / (gain E M))``, uniform noise of variance step^2 / 12 over its M
+        values costing gain E M step^2 / 12 = D. The floor's images, kept whatever D, at 8 bits over their range."""
+        energies = self.gain * self.principal.energies[1 : self.most + 1]
+        chosen = int(np.count_nonzero(energies > distortion))
+        kept = max(chosen, min(self.floor, len(energies)))
+        pixels = self.principal.flat.shape[1]
+        steps = np.sqrt(12.0 * distortion / np.maximum(energies[:kept] * pixels, 1e-300))
+        steps[chosen:] = self.principal.spans[chosen:kept] / 255  # the floor's: 8 bits over the whole range
+        return np.maximum(steps, self.principal.spans[:kept] / levels)
 
 
-def split_ranks(luminance_gain: np.ndarray, luminance_bytes: np.ndarray, chroma_gain: np.ndarray, chroma_bytes: float, budget_bytes: float) -> tuple[int, int]:
-    """How many luminance and chroma basis images to keep within ``budget_bytes``: greedily the next
-    image of either stack that removes the most squared RGB error per byte (gains: the energies
-    ``principal_energies`` gives, times ``LUMINANCE_GAIN`` or ``CHROMA_GAIN``; bytes: each luminance
-    image's own, one estimate for a chroma image); an image that removes nothing (1e-9 of the total)
-    is not taken. Returns (luminance rank, chroma rank)."""
-    luminance_count = chroma_count = 0
-    spent = 0.0
-    least = 1e-9 * (float(np.sum(luminance_gain)) + float(np.sum(chroma_gain)))  # below this an image removes rounding noise only
-    while True:
-        take_luminance = luminance_count < len(luminance_gain) and spent + luminance_bytes[luminance_count] <= budget_bytes and luminance_gain[luminance_count] > least
-        take_chroma = chroma_count < len(chroma_gain) and spent + chroma_bytes <= budget_bytes and chroma_gain[chroma_count] > least
-        if not (take_luminance or take_chroma):
-            return luminance_count, chroma_count
-        luminance_rate = luminance_gain[luminance_count] / max(luminance_bytes[luminance_count], 1.0) if take_luminance else -1.0
-        chroma_rate = chroma_gain[chroma_count] / max(chroma_bytes, 1.0) if take_chroma else -1.0
-        if luminance_rate >= chroma_rate:
-            spent += luminance_bytes[luminance_count]
-            luminance_count += 1
+def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int) -> float:
+    """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
+    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights); deflated in threads."""
+    if not len(steps):
+        return 0.0
+    levels = _LEVELS[bits]
+    code_type = np.uint8 if bits == 8 else np.uint16
+    steps = np.maximum(steps, np.maximum(principal.spans[: len(steps)], 1e-300) / levels)
+
+    def one(index: int) -> int:
+        image = principal.basis_images(index + 1)[index]
+        codes = np.round((image - image.min()) / steps[index]).clip(0, levels).astype(code_type)
+        return deflated_bytes(codes.transpose(2, 0, 1)) + 8 + 4 * len(principal.flat)
+
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # zlib lets go of the GIL
+        return float(sum(pool.map(one, range(len(steps)))))
+
+
+def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> list[np.ndarray]:
+    """Quantisation steps of every plan's basis images within ``budget_bytes``: the smallest common
+    distortion whose images fit (reverse water-filling: every kept image adds the same squared RGB
+    error, so the bytes go where they remove the most error), by bisection on the log distortion
+    with the deflated bytes themselves (``quantised_bytes``), stopping once within 1% of the budget."""
+    levels = _LEVELS[bits]
+    energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
+    top = max((float(e.max()) for e in energies if e.size), default=0.0)
+
+    def spent(log_distortion: float) -> tuple[float, list[np.ndarray]]:
+        steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
+        return sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps)), steps
+
+    if top <= 0:
+        return [plan.steps(np.inf, levels) for plan in plans]
+    high, low = np.log(top) + 1.0, np.log(top) - 35.0  # from nothing kept (but the floor) to far below any 16-bit quantisation noise
+    total, steps = spent(low)
+    if total <= budget_bytes:
+        return steps
+    best = spent(high)[1]  # the floor alone, if even that does not fit
+    for _ in range(_BISECTIONS):
+        middle = 0.5 * (low + high)
+        total, steps = spent(middle)
+        if total <= budget_bytes:
+            high, best = middle, steps
+            if total >= (1.0 - _BUDGET_SLACK) * budget_bytes:
+                break
         else:
-            spent += chroma_bytes
-            chroma_count += 1
+            low = middle
+    return best
 
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
 
-    Compressed, the ranks are the settings' where given; otherwise the whole field is kept within
-    ``size_budget`` of the 8-bit capture, counting ``other_bytes`` (the Gaussians and paths) and the
-    deflated size of every stored array: the budget goes to luminance and chroma basis images by
-    ``split_ranks`` (the error each removes per byte), then the luminance takes what the chroma left
-    (up to ``max_luminance_rank``, at least ``min_luminance_rank``). The basis bits are the settings',
-    or else 8 or 16, whichever reproduces the captured images better as 8-bit sRGB (``display_error``).
+    Compressed, a stack whose rank the settings fix keeps that many basis images, each quantised over
+    its whole range. Otherwise the whole field is kept within ``size_budget`` of the 8-bit capture,
+    counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array:
+    ``allocate_steps`` chooses, for the luminance and chroma together, how many basis images to keep
+    and how finely to quantise each, so that each adds the same squared RGB error (at most
+    ``max_luminance_rank`` luminance images, at least ``min_luminance_rank``). The codes are 8 or 16
+    bits as the settings say, or else whichever gives the captured images back better as 8-bit sRGB
+    (``display_error``).
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
@@ -180,45 +230,35 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     else:
         y, opponent = to_opponent(residual)
     scale = residual_scale(y)
-    luminance = (y / scale)[..., None]
-    chroma_stack = None if opponent is None else opponent / scale[..., None]
-    light_scale = np.sqrt(np.mean(luminance.reshape(n, -1) ** 2, axis=1))  # both stacks weigh each light by its brightness
+    light_scale = np.sqrt(np.mean((y / scale).reshape(n, -1) ** 2, axis=1))  # both stacks weigh each light by its brightness
+    luminance = PrincipalImages.of((y / scale)[..., None], light_scale)
+    chroma = None if opponent is None else PrincipalImages.of(opponent / scale[..., None], light_scale)
+    del y, opponent
     budget = settings.size_budget * n * height * width * channels
-    most = min(settings.luminance_rank or settings.max_luminance_rank, n - 1)
-    energies = None
-    if chroma_stack is not None and not settings.chroma_rank:
-        energies = (principal_energies(luminance, light_scale), principal_energies(chroma_stack, light_scale))
+    fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
+    if colour is not None:
+        fixed += deflated_bytes(colour_codes(colour))
+    if chroma is not None:
+        fixed += deflated_bytes(chroma.mean.astype(np.float16)) + 4 * n
     candidates = []
     for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        widest = LowRankStack.fit(luminance, most, light_scale=light_scale, bits=bits)
-        fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(widest.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
-        if colour is not None:
-            fixed += deflated_bytes(colour_codes(colour))
-        chroma = None
-        if chroma_stack is not None:
-            if settings.chroma_rank:
-                chroma_rank = min(settings.chroma_rank, n - 1)
+        levels = _LEVELS[bits]
+        stacks = {}
+        plans = {}
+        for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
+            if principal is None:
+                continue
+            if fixed_rank:
+                rank = min(fixed_rank, principal.count - 1)
+                stacks[name] = LowRankStack.quantised(principal, principal.spans[:rank] / levels, bits=bits)
             else:
-                costs = component_bytes(widest)
-                chroma_bytes = 2.0 * float(np.median(costs)) if costs.size else 1.0  # two planes, each about a luminance image
-                floor = min(settings.min_luminance_rank, widest.rank)  # the luminance's floor is paid for first
-                left = budget - fixed - 2 * deflated_bytes(widest.mean.astype(np.float16)) - costs[:floor].sum()
-                _, chroma_rank = split_ranks(LUMINANCE_GAIN * energies[0][1 + floor : widest.rank + 1], costs[floor:], CHROMA_GAIN * energies[1][1 : most + 1], chroma_bytes, left)
-            chroma = LowRankStack.fit(chroma_stack, chroma_rank, light_scale=light_scale, bits=bits)
-            chroma_costs = component_bytes(chroma)
-            if not settings.chroma_rank and chroma.rank:  # the estimate was low: keep what leaves the luminance its floor
-                room = budget - fixed - deflated_bytes(chroma.mean.astype(np.float16)) - costs[:floor].sum()
-                keep = int(np.searchsorted(np.cumsum(chroma_costs), room, side="right"))
-                if keep < chroma.rank:
-                    chroma = LowRankStack.fit(chroma_stack, keep, light_scale=light_scale, bits=bits)
-                    chroma_costs = chroma_costs[:keep]
-            fixed += deflated_bytes(chroma.mean.astype(np.float16)) + int(chroma_costs.sum())
-        stack = widest
-        if not settings.luminance_rank:
-            rank = max(choose_luminance_rank(widest, fixed, budget), settings.min_luminance_rank)
-            if rank < widest.rank:
-                stack = LowRankStack.fit(luminance, rank, light_scale=light_scale, bits=bits)
-        candidates.append(ResidualModel(luminance=stack, chroma=chroma, highlight_colour=colour, scale=scale))
+                most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
+                plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
+        if plans:
+            left = budget - fixed - sum(float(component_bytes(stack).sum()) for stack in stacks.values())
+            for name, steps in zip(plans, allocate_steps(list(plans.values()), left, bits=bits)):
+                stacks[name] = LowRankStack.quantised(plans[name].principal, steps, bits=bits)
+        candidates.append(ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale))
     if len(candidates) == 1:
         return candidates[0]
     errors = [display_error(model, images, highlights) for model in candidates]

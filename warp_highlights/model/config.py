@@ -346,17 +346,21 @@ class ResidualSettings:
     """What a field keeps of the images beyond its moving highlights: residual transfer (method.md section 6).
 
     Attributes:
-        compressed: store the residual images as low-rank luminance and chroma stacks with 8-bit
-            bases (True, default) or uncompressed as float16 images (False: exact at the captured
+        compressed: store the residual images as low-rank luminance and chroma stacks with 8- or
+            16-bit bases (True, default) or uncompressed as float16 images (False: exact at the captured
             lights, as large as the alpha blend's input).
         size_budget: the largest share of the 8-bit capture (lights x pixels x channels bytes) the
-            whole field file may take when ``luminance_rank`` is 0: the rank is the largest whose
-            deflated basis images, with the Gaussians, paths and the rest, fit. The project aims at
-            25% (issue 15); 0.24 gave the dome sample at 320x320 a field of 25.3% (the estimate
-            misses the zip's and the header's bytes), so 0.23. On the two samples the full image
-            gains 0.4-1.4 dB from rank 8 to rank 24 and under 0.2 dB beyond (README, "Residual transfer").
-        luminance_rank: basis images of the luminance; 0 (default) picks the most the budget allows.
-        min_luminance_rank: the automatic rank's floor, whatever the budget: at small working sizes
+            whole field file may take: the residual's basis images, their number and their
+            quantisation (``fit.residual.allocate_steps``) are chosen to fill what the Gaussians,
+            paths and the rest leave. The project aims at 25% (issue 15); the estimate counts the
+            deflated basis images as the file stores them and the file's own overhead, and came
+            within 0.5% of the capture of the written file on the samples and renders, so 0.24. On
+            the statue (192x181) the full image gains 0.25 dB from a share of 0.19 to 0.24 and 0.1 dB more
+            at 0.33 (README, "Residual transfer").
+        luminance_rank: basis images of the luminance, each quantised over its whole range; 0
+            (default) lets the budget decide.
+        min_luminance_rank: the automatic rank's floor, whatever the budget (those beyond what it
+            allows at 8 bits over their range): at small working sizes
             the Gaussians alone can take most of it (the statue at 68x64: rank 1 scored 26.1 dB
             against 34.8 for the alpha blend), and 8 basis images cost little there.
         max_luminance_rank: cap on the automatic rank (each rank costs the relight one multiply-add
@@ -364,14 +368,15 @@ class ResidualSettings:
             within 0.05 dB of its uncompressed residual, but the 64-light full-sphere donut gained
             1 dB more up to 58, and with a cap of 64 the 250-light donut scored 4 dB under the alpha
             blend (its dark back-lit images need the rank).
-        basis_bits: bits of the stored basis images, 8 or 16; 0 (default) fits both, each at the rank the
-            budget allows, and keeps the one that gives the captured images back better as 8-bit
-            sRGB (``fit.residual.display_error``): 8 bits buys more rank, 16 bits less quantisation
-            noise (the 64-light donut's lights came back at 35 dB from 8-bit bases at full rank).
-        chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) lets the budget decide
-            (``fit.residual.split_ranks``: the images of either stack that remove the most squared
-            RGB error per byte). A fixed 3 or 6 cost the 250-light donut, whose colour changes with
-            the light, 4.5 dB (34.02 against 38.58 dB with the residual uncompressed; split: 38.10).
+        basis_bits: bits of the stored basis images' codes, 8 or 16; 0 (default) fits both within
+            the budget and keeps the one that gives the captured images back better as 8-bit sRGB
+            (``fit.residual.display_error``): 16 bits let the leading images be quantised finer than
+            their range over 255 (the 64-light donut's lights came back at 35 dB from 8-bit bases
+            quantised over their range at full rank), 8 bits cost less where they need not be.
+        chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) lets the budget decide,
+            with the luminance's (``fit.residual.allocate_steps``: every kept image of either stack
+            adds the same squared RGB error). A fixed 3 or 6 cost the 250-light donut, whose colour
+            changes with the light, 4.5 dB (34.02 against 38.58 dB with the residual uncompressed).
         move_support: a Gaussian moves only where, on the median outgoing edge, at least this share
             of its retargeted self lies on the neighbour's specular image (``kernels.support``);
             otherwise it stays where it is and blends like the alpha baseline. 0 lets every Gaussian move.
@@ -382,7 +387,7 @@ class ResidualSettings:
     """
 
     compressed: bool = True
-    size_budget: float = 0.23
+    size_budget: float = 0.24
     luminance_rank: int = 0
     max_luminance_rank: int = 255
     min_luminance_rank: int = 8

@@ -23,12 +23,13 @@ All values are in the field's units (the fit's exposure applied).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "principal_energies", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "PrincipalImages", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -63,6 +64,69 @@ def from_opponent(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
     y = np.asarray(luminance, dtype=np.float64)
     cb, cr = chroma[..., 0], chroma[..., 1]
     return np.stack([y + cr, y - (wr * cr + wb * cb) / wg, y + cb], axis=-1)
+
+
+def _levels(bits: int) -> int:
+    if bits not in (8, 16):
+        raise InputError(f"residual basis bits must be 8 or 16, got {bits}")
+    return 255 if bits == 8 else 65535
+
+
+@dataclass(frozen=True, eq=False)
+class PrincipalImages:
+    """The principal images of an (n, H, W, P) stack, from which ``LowRankStack`` keeps a few.
+
+    The images divided by a light scale (default: each image's RMS), uncentred, so a dark light's
+    image counts as much as a bright one's; their principal directions come from the n x n Gram
+    matrix (cheap for n << pixels). The first direction, scaled to the images' RMS, is the mean image
+    every light weighs freely; the others are the basis images, unit norm, in descending energy.
+
+    Attributes:
+        flat: (n, M) float64 the stack, M = H W P.
+        shape: (H, W, P).
+        energies: (r,) descending sums of squares of the normalised images along each direction
+            (r <= n: the directions of non-zero energy; at least 1): what keeping it removes.
+        directions: (r, M) float64 unit rows.
+        mean: (M,) float64 the first direction at the images' scale.
+    """
+
+    flat: np.ndarray
+    shape: tuple
+    energies: np.ndarray
+    directions: np.ndarray
+    mean: np.ndarray
+
+    @classmethod
+    def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None) -> PrincipalImages:
+        stack = np.asarray(stack, dtype=np.float64)
+        n = len(stack)
+        flat = stack.reshape(n, -1)
+        normalised = _normalised(flat, light_scale)
+        values, vectors = np.linalg.eigh(normalised @ normalised.T)
+        order = np.argsort(values)[::-1]
+        order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
+        directions = (vectors[:, order].T @ normalised) / np.sqrt(values[order])[:, None]
+        energies = values[order]
+        if len(directions) == 0:  # every image is black
+            directions, energies = np.zeros((1, flat.shape[1])), np.zeros(1)
+        first = directions[0]
+        mean = first * np.sign(first.sum() or 1.0) * np.sqrt(np.mean(normalised**2) * flat.shape[1]) / max(np.linalg.norm(first), 1e-300)
+        return cls(flat, tuple(stack.shape[1:]), energies, directions, mean)
+
+    @property
+    def count(self) -> int:
+        """Directions held: the mean image and ``count - 1`` basis images."""
+        return len(self.directions)
+
+    @cached_property
+    def spans(self) -> np.ndarray:
+        """(count - 1,) max - min of each basis image (direction 1 on)."""
+        basis = self.directions[1:]
+        return basis.max(axis=1) - basis.min(axis=1) if len(basis) else np.zeros(0)
+
+    def basis_images(self, count: int, rows: slice = slice(None)) -> np.ndarray:
+        """(count, h, W, P) the first ``count`` basis images, on ``rows`` only."""
+        return self.directions[1 : count + 1].reshape((count,) + self.shape)[:, rows]
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,42 +172,38 @@ class LowRankStack:
     @classmethod
     def fit(cls, stack: np.ndarray, rank: int, *, light_scale: np.ndarray | None = None, bits: int = 8) -> LowRankStack:
         """A rank-``rank`` approximation of an (n, H, W, P) stack (a mean image and ``rank`` basis images
-        of ``bits`` = 8 or 16 bits).
+        of ``bits`` = 8 or 16 bits, each quantised over its whole range): ``quantised`` of the stack's
+        ``PrincipalImages`` (normalised by ``light_scale``, default each image's RMS). A stack that spans
+        fewer than ``rank + 1`` dimensions is kept up to that."""
+        principal = PrincipalImages.of(stack, light_scale)
+        rank = int(max(0, min(rank, principal.count - 1)))
+        levels = _levels(bits)
+        return cls.quantised(principal, principal.spans[:rank] / levels, bits=bits)
 
-        The mean and basis are the leading ``rank + 1`` principal directions of the images divided
-        by ``light_scale`` (default: each image's RMS), uncentred, so a dark light's image counts as
-        much as a bright one's; then every image's mean weight and basis weights are fitted to it by
-        least squares against the stored (float16 and 8/16-bit) planes, so quantisation only costs what
-        they cannot represent. A stack that spans ``rank + 1`` dimensions is kept up to that.
-        """
-        if bits not in (8, 16):
-            raise InputError(f"residual basis bits must be 8 or 16, got {bits}")
-        levels, code_type = (255, np.uint8) if bits == 8 else (65535, np.uint16)
-        stack = np.asarray(stack, dtype=np.float64)
-        n = len(stack)
-        flat = stack.reshape(n, -1)
-        normalised = _normalised(flat, light_scale)
-        # the leading rank + 1 principal directions of the uncentred images: a linear subspace, whose
-        # first direction (the "mean" image, kept at float16) every light weighs freely
-        rank = int(max(0, min(rank, n - 1)))
-        values, vectors = np.linalg.eigh(normalised @ normalised.T)  # n x n: cheap for n << pixels
-        order = np.argsort(values)[::-1][: rank + 1]
-        order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
-        directions = (vectors[:, order].T @ normalised) / np.sqrt(values[order])[:, None]
-        if len(directions) == 0:  # every image is black
-            directions = np.zeros((1, flat.shape[1]))
-        mean = directions[0] * np.sign(directions[0].sum() or 1.0) * np.sqrt(np.mean(normalised**2) * flat.shape[1]) / max(np.linalg.norm(directions[0]), 1e-300)
-        basis = directions[1:]
-        low = basis.min(axis=1) if len(basis) else np.zeros(0)
-        high = basis.max(axis=1) if len(basis) else np.zeros(0)
-        span = np.where(high > low, high - low, 1.0)
-        codes = np.round((basis - low[:, None]) / span[:, None] * levels).clip(0, levels).astype(code_type)
-        ranges = np.stack([low, low + span], axis=1).astype(np.float32)
+    @classmethod
+    def quantised(cls, principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8) -> LowRankStack:
+        """The stack of ``principal``'s mean image (float16) and its first k = len(``steps``) further
+        principal images, basis image j quantised with step ``steps[j]`` (in the units of a unit-norm
+        image; at least its span over the ``bits``' levels, so its codes fit). Then every image's mean
+        weight and basis weights are fitted to it by least squares against the stored planes, so
+        quantisation only costs what they cannot represent."""
+        levels = _levels(bits)
+        code_type = np.uint8 if bits == 8 else np.uint16
+        k = len(steps)
+        if k > principal.count - 1:
+            raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
+        basis = principal.directions[1 : k + 1]
+        low = basis.min(axis=1) if k else np.zeros(0)
+        steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(principal.spans[:k], 1e-300) / levels)
+        codes = np.round((basis - low[:, None]) / steps[:, None]).clip(0, levels).astype(code_type)
+        ranges = np.stack([low, low + steps * levels], axis=1).astype(np.float32)
+        mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
-        shape = stack.shape[1:]
-        model = cls(mean32.reshape(shape), codes.reshape((len(codes),) + shape), ranges, np.zeros((n, len(codes)), np.float32))
-        design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(len(codes), flat.shape[1]).astype(np.float64)])
+        shape = principal.shape
+        flat = principal.flat
+        model = cls(mean32.reshape(shape), codes.reshape((k,) + shape), ranges, np.zeros((len(flat), k), np.float32))
+        design = np.concatenate([mean32.reshape(1, -1).astype(np.float64), model.basis.reshape(k, flat.shape[1]).astype(np.float64)])
         # least squares by the (k + 1)-square normal equations: the planes are nearly orthogonal
         normal = design @ design.T
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
@@ -178,15 +238,6 @@ class LowRankStack:
         """(Q, H, W, P) float64 images for (Q, n) per-light blend weights."""
         blend = np.atleast_2d(np.asarray(blend, dtype=np.float64))
         return self.images(blend @ self.weights.astype(np.float64), blend @ self.mean_weights.astype(np.float64))
-
-
-def principal_energies(stack: np.ndarray, light_scale: np.ndarray | None = None) -> np.ndarray:
-    """(n,) descending energies (sums of squares over the normalised images) of the principal
-    directions ``LowRankStack.fit`` draws from an (n, H, W, P) stack: what each further basis image
-    can remove of the squared error, in the same units for every stack normalised by one ``light_scale``."""
-    flat = np.asarray(stack, dtype=np.float64).reshape(len(stack), -1)
-    normalised = _normalised(flat, light_scale)
-    return np.clip(np.linalg.eigvalsh(normalised @ normalised.T)[::-1], 0.0, None)
 
 
 def _normalised(flat: np.ndarray, light_scale: np.ndarray | None) -> np.ndarray:
