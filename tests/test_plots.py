@@ -161,6 +161,23 @@ def test_image_grid_of_comparisons(tmp_path):
     _png(plots.plot_image_grid(images, labels, tmp_path / "grid.png", columns=4, title="query 3"))
 
 
+def test_captions_of_a_wide_grid_fit_their_panels(tmp_path):
+    """The worst-lights grid has 8 panels a row: every caption line, drawn at the chosen size, is
+    narrower than its panel (measured with matplotlib's own text layout)."""
+    from matplotlib.font_manager import FontProperties
+    from matplotlib.textpath import TextPath
+
+    labels = [f"#{i} {key}\n{20 + i:.1f} dB" for i in range(3) for key in ("truth", "circular", "straight", "alpha", "ptm", "hsh2", "hsh3", "rbf")]
+    panel = plots._WIDTH_IN / 8
+    size = plots.caption_fontsize(labels, panel)
+    assert 4.0 < size <= 10.0
+    widest = max(TextPath((0, 0), line, size=size, prop=FontProperties(family="DejaVu Sans")).get_extents().width
+                 for label in labels for line in label.split("\n"))
+    assert widest <= panel * 72.0, (widest, panel * 72.0)
+    assert plots.caption_fontsize(["a"], panel) == 10.0  # short captions keep the full size
+    _png(plots.plot_image_grid([np.full((20, 30), 0.5)] * len(labels), labels, tmp_path / "wide.png", columns=8, title="worst"))
+
+
 # --- atomic writes --------------------------------------------------------------------------------
 
 

@@ -325,8 +325,8 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
             for row, query in enumerate(evaluation.full_example_queries):
                 for key in order:
                     images.append(evaluation.full_examples[key][row])
-                    score = "" if key == "truth" else f" {evaluation.full_srgb_psnr[key][query]:.1f} dB"
-                    labels.append(f"#{query} {key}{score}")
+                    score = "" if key == "truth" else f"{evaluation.full_srgb_psnr[key][query]:.1f} dB"
+                    labels.append(f"#{query} {key}\n{score}")
             plots.plot_image_grid(images, labels, temporary / "worst-lights.png", columns=len(order),
                                   title=f"{title}: full images at the worst held-out lights (8-bit sRGB PSNR)")
         (temporary / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))

@@ -25,6 +25,7 @@ from ..model.errors import InputError
 
 __all__ = [
     "barycentric_to_plane",
+    "caption_fontsize",
     "plot_barycentric_psnr",
     "plot_gaussian_counts",
     "plot_image_grid",
@@ -36,6 +37,7 @@ _DPI = 120
 """Dots per inch of every figure; with :data:`_WIDTH_IN` the PNGs are about 1000 pixels wide."""
 _WIDTH_IN = 8.5
 _FOOTNOTE_PT = 8.0
+_CHAR_WIDTH_EM = 0.6  # mean width of a caption character, in ems of its font (DejaVu Sans, digits and lower case)
 _METHOD_COLOURS = {"circular": "#1f77b4", "straight": "#ff7f0e", "alpha": "#2ca02c"}
 _OTHER_COLOURS = ("#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22", "#17becf")
 _SQRT3_2 = math.sqrt(3.0) / 2.0
@@ -357,7 +359,8 @@ def plot_image_grid(
 
     Args:
         images: Linear float images, each ``(H, W)`` (grey) or ``(H, W, 3)`` (RGB); sizes may differ.
-        labels: One caption per image.
+        labels: One caption per image ("\n" breaks it into lines); the font shrinks so that the
+            longest line fits its panel.
         path: Target ``.png`` file; missing parent folders are made.
         columns: Images per row.
         title: Figure title; none by default.
@@ -384,17 +387,25 @@ def plot_image_grid(
     rows = math.ceil(len(images) / cols)
     aspect = max(image.shape[0] / image.shape[1] for image in images)
     panel_width = _WIDTH_IN / cols
-    height = rows * (panel_width * aspect + 0.35) + (0.45 if title else 0.1)
+    fontsize = caption_fontsize(labels, panel_width)
+    caption = max(label.count("\n") + 1 for label in labels) * fontsize * 1.3 / 72.0 + 0.1
+    height = rows * (panel_width * aspect + caption) + (0.45 if title else 0.1)
     fig = _new_figure(_WIDTH_IN, min(height, 40.0), layout="compressed")
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax in axes:
         ax.set_axis_off()
     for ax, image, label in zip(axes, images, labels, strict=False):
         ax.imshow(display_rgb8(image), interpolation="nearest")
-        ax.set_title(label, fontsize=10)
+        ax.set_title(label, fontsize=fontsize)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
+
+
+def caption_fontsize(labels: Sequence[str], panel_width_in: float, *, largest: float = 10.0) -> float:
+    """Font size (points) at which the longest line of ``labels`` fits ``panel_width_in`` inches, at most ``largest``."""
+    longest = max((len(line) for label in labels for line in str(label).split("\n")), default=1)
+    return min(largest, panel_width_in * 72.0 / (_CHAR_WIDTH_EM * max(longest, 1)))
 
 
 # --- helpers -----------------------------------------------------------------------------------
