@@ -353,8 +353,9 @@ class ResidualSettings:
             whole field file may take: the residual's basis images, their number and their
             quantisation (``fit.residual.allocate_steps``) are chosen to fill what the Gaussians,
             paths and the rest leave. The project aims at 25% (issue 15); the estimate counts the
-            deflated basis images as the file stores them and the file's own overhead, and came
-            within 0.5% of the capture of the written file on the samples and renders, so 0.24. On
+            deflated basis images as the file stores them and the file's own overhead, and the
+            eight benchmark fields (samples and renders, CPU and H100 sizes) were written at
+            23.2-24.0% of their captures with 0.24. On
             the statue (192x181) the full image gains 0.25 dB from a share of 0.19 to 0.24 and 0.1 dB more
             at 0.33 (README, "Residual transfer").
         luminance_rank: basis images of the luminance, each quantised over its whole range; 0
