@@ -33,8 +33,10 @@ from ..model.residual import (
     LowRankStack,
     PrincipalImages,
     ResidualModel,
+    code_levels,
     colour_codes,
     colour_from_codes,
+    quantise_basis,
     to_opponent,
 )
 
@@ -53,7 +55,6 @@ _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
 _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
-_LEVELS = {8: 255, 16: 65535}  # code levels of the basis bits
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _BISECTIONS = 14  # of the log distortion over e^35: to 0.2% of the distortion
 
@@ -159,14 +160,10 @@ def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int)
     ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights); deflated in threads."""
     if not len(steps):
         return 0.0
-    levels = _LEVELS[bits]
-    code_type = np.uint8 if bits == 8 else np.uint16
-    steps = np.maximum(steps, np.maximum(principal.spans[: len(steps)], 1e-300) / levels)
 
     def one(index: int) -> int:
-        image = principal.basis_images(index + 1)[index]
-        codes = np.round((image - image.min()) / steps[index]).clip(0, levels).astype(code_type)
-        return deflated_bytes(codes.transpose(2, 0, 1)) + 8 + 4 * len(principal.flat)
+        codes, _ = quantise_basis(principal.directions[1 + index : 2 + index], steps[index : index + 1], bits=bits)
+        return deflated_bytes(codes.reshape(principal.shape).transpose(2, 0, 1)) + 8 + 4 * len(principal.flat)
 
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # zlib lets go of the GIL
         return float(sum(pool.map(one, range(len(steps)))))
@@ -177,7 +174,7 @@ def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) ->
     distortion whose images fit (reverse water-filling: every kept image adds the same squared RGB
     error, so the bytes go where they remove the most error), by bisection on the log distortion
     with the deflated bytes themselves (``quantised_bytes``), stopping once within 1% of the budget."""
-    levels = _LEVELS[bits]
+    levels = code_levels(bits)
     energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
     top = max((float(e.max()) for e in energies if e.size), default=0.0)
 
@@ -242,7 +239,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         fixed += deflated_bytes(chroma.mean.astype(np.float16)) + 4 * n
     candidates = []
     for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        levels = _LEVELS[bits]
+        levels = code_levels(bits)
         stacks = {}
         plans = {}
         for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):

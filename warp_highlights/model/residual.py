@@ -29,7 +29,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "PrincipalImages", "ResidualModel", "colour_codes", "colour_from_codes", "from_opponent", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -66,7 +66,8 @@ def from_opponent(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
     return np.stack([y + cr, y - (wr * cr + wb * cb) / wg, y + cb], axis=-1)
 
 
-def _levels(bits: int) -> int:
+def code_levels(bits: int) -> int:
+    """Highest code of ``bits``-bit basis codes: 255 or 65535 (other bits: ``InputError``)."""
     if bits not in (8, 16):
         raise InputError(f"residual basis bits must be 8 or 16, got {bits}")
     return 255 if bits == 8 else 65535
@@ -124,9 +125,20 @@ class PrincipalImages:
         basis = self.directions[1:]
         return basis.max(axis=1) - basis.min(axis=1) if len(basis) else np.zeros(0)
 
-    def basis_images(self, count: int, rows: slice = slice(None)) -> np.ndarray:
-        """(count, h, W, P) the first ``count`` basis images, on ``rows`` only."""
-        return self.directions[1 : count + 1].reshape((count,) + self.shape)[:, rows]
+
+
+def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
+    levels, so its codes fit), from each image's minimum: (codes (k, M) uint8 or uint16, ranges (k, 2)
+    float32 (low, low + step x levels)), as ``LowRankStack`` stores them."""
+    levels = code_levels(bits)
+    basis = np.asarray(basis, dtype=np.float64)
+    k = len(basis)
+    low = basis.min(axis=1) if k else np.zeros(0)
+    span = basis.max(axis=1) - low if k else np.zeros(0)
+    steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
+    codes = np.round((basis - low[:, None]) / steps[:, None]).clip(0, levels).astype(np.uint8 if bits == 8 else np.uint16)
+    return codes, np.stack([low, low + steps * levels], axis=1).astype(np.float32)
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,7 +189,7 @@ class LowRankStack:
         fewer than ``rank + 1`` dimensions is kept up to that."""
         principal = PrincipalImages.of(stack, light_scale)
         rank = int(max(0, min(rank, principal.count - 1)))
-        levels = _levels(bits)
+        levels = code_levels(bits)
         return cls.quantised(principal, principal.spans[:rank] / levels, bits=bits)
 
     @classmethod
@@ -187,16 +199,10 @@ class LowRankStack:
         image; at least its span over the ``bits``' levels, so its codes fit). Then every image's mean
         weight and basis weights are fitted to it by least squares against the stored planes, so
         quantisation only costs what they cannot represent."""
-        levels = _levels(bits)
-        code_type = np.uint8 if bits == 8 else np.uint16
         k = len(steps)
         if k > principal.count - 1:
             raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
-        basis = principal.directions[1 : k + 1]
-        low = basis.min(axis=1) if k else np.zeros(0)
-        steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(principal.spans[:k], 1e-300) / levels)
-        codes = np.round((basis - low[:, None]) / steps[:, None]).clip(0, levels).astype(code_type)
-        ranges = np.stack([low, low + steps * levels], axis=1).astype(np.float32)
+        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits)
         mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
@@ -223,7 +229,7 @@ class LowRankStack:
     def basis(self) -> np.ndarray:
         """(k, H, W, P) float32 dequantised basis images."""
         low = self.ranges[:, 0].reshape(-1, 1, 1, 1)
-        levels = np.float32(255 if self.bits == 8 else 65535)
+        levels = np.float32(code_levels(self.bits))
         step = ((self.ranges[:, 1] - self.ranges[:, 0]) / levels).reshape(-1, 1, 1, 1)
         return (low + self.codes.astype(np.float32) * step).astype(np.float32)
 
