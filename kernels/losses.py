@@ -98,30 +98,32 @@ def add_row_sums(row_sums: wp.array2d(dtype=float), scale: float, out: wp.array(
 @wp.kernel(enable_backward=False)
 def log_l1_backward(
     image: wp.array(dtype=float),
-    log_target: wp.array(dtype=float),
+    target: wp.array(dtype=float),
     out_grad: wp.array(dtype=float),
     pixels_per_problem: int,
     scale: float,
     pixels_per_thread: int,
     image_grad: wp.array(dtype=float),
 ):
-    """image_grad += d(scale |log2(1 + R) - T|)/dR * out_grad[problem], over flattened (B H W) arrays.
+    """image_grad += d(scale |log2(1 + R) - log2(1 + S)|)/dR * out_grad[problem], over flattened (B H W) arrays.
 
+    log2(1 + x) rises with x, so the sign of the difference is that of R - max(S, 0): no logarithm.
     1D so each thread spends one 32-bit division on its index rather than a 3D launch's 64-bit ones.
     A thread handles ``pixels_per_thread`` consecutive pixels (1 on CUDA, an image row on the CPU,
     where a thread per pixel costs more in call overhead than the pixel's work).
     """
     first = wp.tid() * pixels_per_thread
     # a thread's pixels lie in one problem (a row never straddles two images)
-    factor = out_grad[first // pixels_per_problem] * scale
+    factor = out_grad[first // pixels_per_problem] * scale / _LN2
     for j in range(pixels_per_thread):
         i = first + j
         r = image[i]
-        difference = -log_target[i]
-        if r != 0.0:  # log2(1 + 0) = 0: empty pixels (most of a highlight image) skip the logarithm
-            difference += wp.log2(1.0 + r)
-        if difference != 0.0:
-            image_grad[i] = image_grad[i] + factor * wp.sign(difference) / ((1.0 + r) * _LN2)
+        s = wp.max(target[i], 0.0)
+        if r != s:
+            step = factor * wp.sign(r - s)
+            if r != 0.0:  # empty pixels (most of a highlight image) skip the division
+                step = step / (1.0 + r)
+            image_grad[i] = image_grad[i] + step
 
 
 class LogL1Loss:
@@ -138,6 +140,7 @@ class LogL1Loss:
         if target.ndim != 3:
             raise InputError(f"targets must have shape (problems, height, width), got {target.shape}")
         self.shape = target.shape
+        self.target = target  # the adjoint compares with S itself
         self.log_target = wp.empty(self.shape, dtype=float, device=self.device)
         non_finite = wp.zeros(1, dtype=wp.int32, device=self.device)
         wp.launch(log_transform, dim=self.shape, inputs=[target], outputs=[self.log_target, non_finite], device=self.device, record_tape=False)
@@ -149,20 +152,25 @@ class LogL1Loss:
         lanes = 32 if self.device.is_cuda else 1
         self._partials = wp.empty((*self.shape[:2], lanes), dtype=float, device=self.device)
 
-    def __call__(self, image: wp.array, *, out: wp.array | None = None, weight: float = 1.0) -> wp.array:
-        """Per-problem loss of ``image`` (B, H, W); adds weight x loss to ``out`` (B,) and returns it."""
+    def __call__(self, image: wp.array, *, out: wp.array | None = None, weight: float = 1.0, value: bool = True) -> wp.array:
+        """Per-problem loss of ``image`` (B, H, W); adds weight x loss to ``out`` (B,) and returns it.
+
+        ``value=False`` records only the gradient and leaves ``out`` as it is: for optimisation steps
+        whose loss value nobody reads (the gradient does not depend on it).
+        """
         if image.shape != self.shape:
             raise InputError(f"image shape {image.shape} does not match the targets' {self.shape}")
         out = _output(out, self.shape[0], self.device)
         scale = float(weight) * self.pixel_area
-        wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target], outputs=[self._partials], device=self.device, record_tape=False)
-        wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums], device=self.device, record_tape=False)
-        wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out], device=self.device, record_tape=False)
+        if value:
+            wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target], outputs=[self._partials], device=self.device, record_tape=False)
+            wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums], device=self.device, record_tape=False)
+            wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out], device=self.device, record_tape=False)
 
         def backward():
             pixels = self.shape[1] * self.shape[2]
             per_thread = 1 if self.device.is_cuda else self.shape[2]
-            inputs = [image.flatten(), self.log_target.flatten(), out.grad, pixels, scale, per_thread]
+            inputs = [image.flatten(), self.target.flatten(), out.grad, pixels, scale, per_thread]
             wp.launch(log_l1_backward, dim=image.size // per_thread, inputs=inputs, outputs=[image.grad.flatten()], device=self.device, record_tape=False)
 
         _record(backward, [out, image])

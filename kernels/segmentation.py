@@ -25,6 +25,8 @@ from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance the Gaussians are fitted to
 
+from .chunks import map_chunks, problem_chunks
+
 __all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "luminance", "segment", "segment_pixels"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
@@ -210,14 +212,18 @@ class Segmentation:
         self.few_light_pixels = int(np.count_nonzero(valid_lights < min_valid))
 
 
-def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None) -> Segmentation:
+def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None, workers: int | None = None) -> Segmentation:
     """Split every image into diffuse and specular parts in one launch over all pixels and channels.
+
+    On the CPU the launch is split into one range of pixels per thread (Warp runs a CPU launch on one
+    thread); every pixel is independent, so the result is the same for any split.
 
     Args:
         images: (n, H, W) or (n, H, W, C) linear radiance, NumPy or a float32 Warp array.
         directions: (n, 3) unit light directions (towards the light, camera space).
         settings: thresholds and iteration cap (``SegmentationSettings``).
         device: Warp device (default: the images' device, else Warp's default).
+        workers: CPU threads (default: one per core); ignored on CUDA.
     """
     s = settings or SegmentationSettings()
     device = wp.get_device(device if device is not None else getattr(images, "device", None))
@@ -244,13 +250,14 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     specular = wp.empty((n, columns), dtype=float, device=device)
     lambert = wp.empty(columns, dtype=wp.vec4, device=device)
     status = wp.empty(columns, dtype=wp.vec2i, device=device)
-    wp.launch(
-        segment_pixels,
-        dim=columns,
-        inputs=[flat, wp.array(directions, dtype=wp.vec3, device=device), s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset],
-        outputs=[diffuse, specular, lambert, status],
-        device=device,
-    )
+    light_directions = wp.array(directions, dtype=wp.vec3, device=device)
+    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset]
+
+    def run(part: slice, _stop) -> None:
+        outputs = [diffuse[:, part], specular[:, part], lambert[part], status[part]]
+        wp.launch(segment_pixels, dim=part.stop - part.start, inputs=[flat[:, part], light_directions, *constants], outputs=outputs, device=device)
+
+    map_chunks(run, problem_chunks(columns, device, workers))
     target = wp.empty((n, height * width), dtype=float, device=device)
     wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*LUMINANCE_WEIGHTS), channels], outputs=[target], device=device)
     counts = status.numpy().reshape(height, width, channels, 2)

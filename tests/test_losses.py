@@ -80,6 +80,31 @@ def test_log_l1_image_gradient_takes_each_problems_own_upstream_gradient(device)
     np.testing.assert_allclose(pixels.grad.numpy(), expected, rtol=1e-5, atol=1e-6)
 
 
+def test_log_l1_without_its_value_records_the_same_gradient(device):
+    rng = np.random.default_rng(6)
+    image = rng.uniform(0, 3, (2, 6, 9)).astype(np.float32)
+    image[:, 2, :] = 0.0
+    target = rng.uniform(-0.5, 3, (2, 6, 9)).astype(np.float32)
+    target[:, 3, :4] = image[:, 3, :4]  # R = S: no gradient
+    fit = losses.LogL1Loss(target, device=device)
+    gradients = []
+    for value in (True, False):
+        pixels = wp.array(image, device=device, requires_grad=True)
+        out = wp.array([5.0, 7.0], dtype=float, device=device, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            fit(pixels, out=out, weight=0.5, value=value)
+        tape.backward(grads={out: wp.array([1.0, -3.0], dtype=float, device=device)})
+        if not value:
+            np.testing.assert_array_equal(out.numpy(), [5.0, 7.0])  # left as it was
+        gradients.append(pixels.grad.numpy())
+    np.testing.assert_array_equal(gradients[0], gradients[1])
+    r, s = image.astype(np.float64), np.maximum(target, 0.0).astype(np.float64)
+    expected = np.array([1.0, -3.0])[:, None, None] * 0.5 * reference.pixel_area(6) * np.sign(r - s) / ((1 + r) * np.log(2))
+    np.testing.assert_allclose(gradients[0], expected, rtol=1e-5, atol=1e-6)
+    assert np.all(gradients[0][:, 3, :4] == 0.0)
+
+
 def test_fit_loss_gradient_through_the_rasterizer(device):
     height, width = 21, 27
     _, batch = _pair(device, seed=2, height=height, width=width)

@@ -69,6 +69,19 @@ def test_kernel_matches_float64_reference(device):
     assert agree >= 196, f"only {agree} of 200 columns match the float64 reference"
 
 
+def test_any_split_over_cpu_threads_gives_the_same_result():
+    rng = np.random.default_rng(5)
+    columns, directions = synthetic_columns(rng, 3 * 77, 40)
+    images = columns.reshape(40, 11, 7, 3)
+    one = segment(images, directions, device="cpu", workers=1)
+    for workers in (2, 5):
+        split = segment(images, directions, device="cpu", workers=workers)
+        for name in ("diffuse", "specular", "specular_luminance"):
+            np.testing.assert_array_equal(getattr(split, name).numpy(), getattr(one, name).numpy(), err_msg=name)
+        for name in ("lambert", "valid_lights", "iterations"):
+            np.testing.assert_array_equal(getattr(split, name), getattr(one, name), err_msg=name)
+
+
 def test_pure_lambertian_pixels_have_no_specular_and_recover_the_normal():
     directions = LightSet.fibonacci_sphere(50).directions
     normal = np.array([0.3, -0.2, 0.93])

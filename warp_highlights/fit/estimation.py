@@ -17,6 +17,7 @@ import warp as wp
 from scipy import ndimage
 
 from ..kernels._tape import recording
+from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer
@@ -28,7 +29,6 @@ from ..model.config import (
 )
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
-from .chunks import Cancelled, map_chunks, problem_chunks
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 
@@ -151,7 +151,7 @@ class _Estimator:
             self.loss.zero_()
             with recording(tape):
                 self.raster.render(self.batch, out=self.image)
-                self.fit(self.image, out=self.loss)
+                self.fit(self.image, out=self.loss, value=False)
             tape.backward(grads={self.loss: self.ones})
             self.adam.step()
             tape.zero()

@@ -18,12 +18,12 @@ import warp as wp
 from .. import __version__
 from ..io.dataset import ReflectanceField
 from ..io.resample import resize_stack, working_size
+from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import segment
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.field import DiffuseModel, HighlightField
 from ..model.triangulation import SphericalTriangulation
-from .chunks import problem_chunks
 from .estimation import estimate
 from .paths import decide_paths
 from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, render_own
@@ -82,7 +82,7 @@ def fit_field(
         factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
         if factor != 1.0:
             images = images * np.float32(factor)
-        seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device)
+        seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
         estimated = estimate(seg.specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)

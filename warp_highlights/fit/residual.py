@@ -56,7 +56,8 @@ _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
 _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
-_BISECTIONS = 14  # of the log distortion over e^35: to 0.2% of the distortion
+_SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
+_SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
 
 
 @dataclass(frozen=True)
@@ -172,32 +173,47 @@ def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int)
 def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> list[np.ndarray]:
     """Quantisation steps of every plan's basis images within ``budget_bytes``: the smallest common
     distortion whose images fit (reverse water-filling: every kept image adds the same squared RGB
-    error, so the bytes go where they remove the most error), by bisection on the log distortion
-    with the deflated bytes themselves (``quantised_bytes``), stopping once within 1% of the budget."""
+    error, so the bytes go where they remove the most error). The deflated bytes themselves
+    (``quantised_bytes``) fall with the log distortion, nearly linearly in log scale: the search
+    brackets the budget and takes Illinois regula falsi steps on log bytes (bisecting where a step
+    would land too close to an end), stopping once within 1% under the budget."""
     levels = code_levels(bits)
     energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
     top = max((float(e.max()) for e in energies if e.size), default=0.0)
 
-    def spent(log_distortion: float) -> tuple[float, list[np.ndarray]]:
+    def excess(log_distortion: float) -> tuple[float, float, list[np.ndarray]]:
         steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
-        return sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps)), steps
+        total = sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps))
+        return np.log(max(total, 1.0) / budget_bytes), total, steps
 
-    if top <= 0:
+    if top <= 0 or budget_bytes <= 0:  # the floor alone
         return [plan.steps(np.inf, levels) for plan in plans]
     high, low = np.log(top) + 1.0, np.log(top) - 35.0  # from nothing kept (but the floor) to far below any 16-bit quantisation noise
-    total, steps = spent(low)
+    f_low, total, steps = excess(low)
     if total <= budget_bytes:
         return steps
-    best = spent(high)[1]  # the floor alone, if even that does not fit
-    for _ in range(_BISECTIONS):
-        middle = 0.5 * (low + high)
-        total, steps = spent(middle)
+    f_high, _, best = excess(high)  # the floor alone, if even that does not fit
+    if f_high > 0:
+        return best
+    side = 0
+    for _ in range(_SEARCH_STEPS):
+        width = high - low
+        middle = high - f_high * width / (f_high - f_low) if f_high != f_low else 0.5 * (low + high)
+        if not low + _SEARCH_GUARD * width < middle < high - _SEARCH_GUARD * width:
+            middle = 0.5 * (low + high)
+        f_middle, total, steps = excess(middle)
         if total <= budget_bytes:
-            high, best = middle, steps
+            high, f_high, best = middle, f_middle, steps
             if total >= (1.0 - _BUDGET_SLACK) * budget_bytes:
                 break
+            if side == 1:
+                f_low *= 0.5  # Illinois: the other end has stayed twice; halve its weight
+            side = 1
         else:
-            low = middle
+            low, f_low = middle, f_middle
+            if side == -1:
+                f_high *= 0.5
+            side = -1
     return best
 
 

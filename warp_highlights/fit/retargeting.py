@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels._tape import recording
+from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer
@@ -27,7 +28,6 @@ from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
-from .chunks import Cancelled, map_chunks, problem_chunks
 
 __all__ = ["RetargetResult", "retarget"]
 
@@ -156,7 +156,7 @@ class _Retargeting:
         def rigid_losses():
             self.rigid.apply(self.moving)
             self.raster.render(self.moving, out=self.image)
-            self.fit(self.image, out=self.loss)
+            self.fit(self.image, out=self.loss, value=False)
 
         rigid_adam = RigidAdam(self.rigid, lr_translation_rpx=s.lr_translation_rpx, lr_rotation=s.lr_rotation, beta1=s.adam.beta1, beta2=s.adam.beta2, epsilon=s.adam.epsilon)
         iterate(s.rigid_iterations, rigid_losses, rigid_adam)
@@ -165,7 +165,7 @@ class _Retargeting:
 
         def full_losses():
             self.raster.render(self.moving, out=self.image)
-            self.fit(self.image, out=self.loss, weight=s.c_fit)
+            self.fit(self.image, out=self.loss, weight=s.c_fit, value=False)
             if s.c_str > 0:
                 self.structure(self.moving, out=self.loss, weight=s.c_str)
             if s.c_ene > 0:
