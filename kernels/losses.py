@@ -95,6 +95,25 @@ def add_row_sums(row_sums: wp.array2d(dtype=float), scale: float, out: wp.array(
     out[b] = out[b] + scale * total
 
 
+@wp.func
+def log_l1_factor(out_grad: float, scale: float) -> float:
+    """d(scale |log2(1 + R) - log2(1 + S)|)/dR without its sign and 1 / (1 + R), times the upstream gradient."""
+    return out_grad * scale / _LN2
+
+
+@wp.func
+def log_l1_gradient(r: float, target: float, factor: float) -> float:
+    """d(scale |log2(1 + R) - log2(1 + S)|)/dR at one pixel times the upstream gradient (``factor`` from
+    ``log_l1_factor``): log2(1 + x) rises with x, so the sign is that of R - max(S, 0), no logarithm."""
+    s = wp.max(target, 0.0)
+    step = float(0.0)
+    if r != s:
+        step = factor * wp.sign(r - s)
+        if r != 0.0:  # empty pixels (most of a highlight image) skip the division
+            step = step / (1.0 + r)
+    return step
+
+
 @wp.kernel(enable_backward=False)
 def log_l1_backward(
     image: wp.array(dtype=float),
@@ -107,22 +126,17 @@ def log_l1_backward(
 ):
     """image_grad += d(scale |log2(1 + R) - log2(1 + S)|)/dR * out_grad[problem], over flattened (B H W) arrays.
 
-    log2(1 + x) rises with x, so the sign of the difference is that of R - max(S, 0): no logarithm.
     1D so each thread spends one 32-bit division on its index rather than a 3D launch's 64-bit ones.
     A thread handles ``pixels_per_thread`` consecutive pixels (1 on CUDA, an image row on the CPU,
     where a thread per pixel costs more in call overhead than the pixel's work).
     """
     first = wp.tid() * pixels_per_thread
     # a thread's pixels lie in one problem (a row never straddles two images)
-    factor = out_grad[first // pixels_per_problem] * scale / _LN2
+    factor = log_l1_factor(out_grad[first // pixels_per_problem], scale)
     for j in range(pixels_per_thread):
         i = first + j
-        r = image[i]
-        s = wp.max(target[i], 0.0)
-        if r != s:
-            step = factor * wp.sign(r - s)
-            if r != 0.0:  # empty pixels (most of a highlight image) skip the division
-                step = step / (1.0 + r)
+        step = log_l1_gradient(image[i], target[i], factor)
+        if step != 0.0:
             image_grad[i] = image_grad[i] + step
 
 
@@ -158,14 +172,7 @@ class LogL1Loss:
         ``value=False`` records only the gradient and leaves ``out`` as it is: for optimisation steps
         whose loss value nobody reads (the gradient does not depend on it).
         """
-        if image.shape != self.shape:
-            raise InputError(f"image shape {image.shape} does not match the targets' {self.shape}")
-        out = _output(out, self.shape[0], self.device)
-        scale = float(weight) * self.pixel_area
-        if value:
-            wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target], outputs=[self._partials], device=self.device, record_tape=False)
-            wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums], device=self.device, record_tape=False)
-            wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out], device=self.device, record_tape=False)
+        out, scale = self._value(image, out, weight, value)
 
         def backward():
             pixels = self.shape[1] * self.shape[2]
@@ -175,6 +182,35 @@ class LogL1Loss:
 
         _record(backward, [out, image])
         return out
+
+    def of_render(self, raster, batch: GaussianBatch, *, image: wp.array, out: wp.array | None = None, weight: float = 1.0, value: bool = True) -> wp.array:
+        """The loss of ``raster.render(batch, out=image)``, with one adjoint for both on the active tape.
+
+        The same values and parameter gradients as ``self(raster.render(batch, out=image), ...)``,
+        but the backward pass never stores d(loss)/d(image): the rasterizer's adjoint computes it at
+        each pixel of a Gaussian's footprint (``Rasterizer.backward(fit=...)``), which saves a pass
+        over every pixel and the zeroing of the image gradient.
+        """
+        raster.render(batch, out=image, record=False)
+        out, scale = self._value(image, out, weight, value)
+        tape = active_tape()
+        if tape is not None and batch.requires_grad:
+            if not out.requires_grad:
+                raise InputError("inside a wp.Tape the loss output needs requires_grad=True, or no gradient flows back")
+            tape.record_func(backward=lambda: raster.backward(batch, None, fit=(image, self.target, out.grad, scale)), arrays=[out, *batch.parameters()])
+        return out
+
+    def _value(self, image: wp.array, out: wp.array | None, weight: float, value: bool) -> tuple[wp.array, float]:
+        """Checks ``image``, adds weight x its loss to ``out`` when ``value``; returns ``out`` and the loss scale."""
+        if image.shape != self.shape:
+            raise InputError(f"image shape {image.shape} does not match the targets' {self.shape}")
+        out = _output(out, self.shape[0], self.device)
+        scale = float(weight) * self.pixel_area
+        if value:
+            wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target], outputs=[self._partials], device=self.device, record_tape=False)
+            wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums], device=self.device, record_tape=False)
+            wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out], device=self.device, record_tape=False)
+        return out, scale
 
 
 # --- structure loss --------------------------------------------------------------------------------

@@ -24,6 +24,8 @@ lanes striding over the columns of the Gaussian's footprint and, per column, ove
 ellipse. Each thread sums its pixels' contributions to six image moments in registers and adds seven
 numbers to the parameter gradients at the end, so no pixel-level atomics pile onto a parameter.
 Forward and backward apply the same per-pixel test d^2 < c^2, computed the same way.
+``LogL1Loss.of_render`` records render and fit loss as one step: the adjoint then computes the loss's
+image gradient at each pixel it visits instead of reading a stored image gradient.
 """
 
 # ruff: noqa: UP018  (Warp declares a mutable kernel local with float(0.0) / int(0))
@@ -37,6 +39,7 @@ from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 from ._tape import active_tape
+from .losses import log_l1_factor, log_l1_gradient
 
 __all__ = [
     "Rasterizer",
@@ -307,19 +310,38 @@ def rasterize_tiles(
 def rasterize_backward(
     g: GaussianArrays,
     image_grad: wp.array3d(dtype=float),
+    fused: int,
+    image: wp.array3d(dtype=float),
+    target: wp.array3d(dtype=float),
+    loss_grad: wp.array(dtype=float),
+    loss_scale: float,
     eps: float,
     cutoff: float,
     tau: float,
     lanes: int,
     grad: GaussianArrays,
 ):
-    """Adjoint of ``rasterize_tiles``: adds d(loss)/d(parameters) given d(loss)/d(image)."""
+    """Adjoint of ``rasterize_tiles``: adds d(loss)/d(parameters) given d(loss)/d(image).
+
+    With ``fused`` = 0 d(loss)/d(image) is read from ``image_grad``; with 1 it is the fit loss's
+    (``losses.log_l1_gradient`` of the rendered ``image``, ``target``, the upstream ``loss_grad`` per
+    problem and the loss's ``loss_scale``), computed at each pixel where it is needed.
+    """
     b, n, lane = wp.tid()
     peak_scale = 1.0 / (1.0 - tau)
     if not slot_is_drawn(g, b, n, peak_scale):
         return
-    height = image_grad.shape[1]
-    width = image_grad.shape[2]
+    factor = float(0.0)
+    if fused != 0:
+        factor = log_l1_factor(loss_grad[b], loss_scale)
+    height = int(0)
+    width = int(0)
+    if fused != 0:  # no image gradient array then
+        height = image.shape[1]
+        width = image.shape[2]
+    else:
+        height = image_grad.shape[1]
+        width = image_grad.shape[2]
     h = float(height)
     a = g.amplitude[b, n]
     w = g.weight[b, n]
@@ -357,7 +379,11 @@ def rasterize_backward(
                 dy = (float(row) + 0.5) / h - mu[1]
                 d2 = frame_distance2(frame, dx, dy)
                 if d2 < cutoff2:
-                    incoming = image_grad[b, row, col]
+                    incoming = float(0.0)
+                    if fused != 0:
+                        incoming = log_l1_gradient(image[b, row, col], target[b, row, col], factor)
+                    else:
+                        incoming = image_grad[b, row, col]
                     e = wp.exp(-0.5 * d2)
                     m0 += incoming * (e - tau)
                     ge = incoming * e
@@ -434,11 +460,12 @@ class Rasterizer:
         """A zeroed (B, H, W) image array with a gradient, for ``render(out=...)``."""
         return wp.zeros((problem_count, self.height, self.width), dtype=float, device=self.device, requires_grad=True)
 
-    def render(self, batch: GaussianBatch, *, out: wp.array | None = None) -> wp.array:
+    def render(self, batch: GaussianBatch, *, out: wp.array | None = None, record: bool = True) -> wp.array:
         """Rasterize every problem of ``batch``; returns (B, H, W) float32 (``out`` when given).
 
         Inside a ``wp.Tape``, ``tape.backward`` adds the parameter gradients to ``batch``'s
-        ``.grad`` arrays (when the batch has them).
+        ``.grad`` arrays (when the batch has them). ``record=False`` leaves the tape alone (for a
+        caller that records its own adjoint, e.g. ``LogL1Loss.of_render``).
         """
         if batch.device != self.device:
             raise InputError(f"the batch is on {batch.device} but the rasterizer on {self.device}")
@@ -477,21 +504,26 @@ class Rasterizer:
             device=self.device,
             record_tape=False,
         )
-        tape = active_tape()
+        tape = active_tape() if record else None
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:
                 raise InputError("inside a wp.Tape the output image needs requires_grad=True (use Rasterizer.new_image) or no gradient reaches the Gaussians")
             tape.record_func(backward=lambda: self.backward(batch, out.grad), arrays=[out, *batch.parameters()])
         return out
 
-    def backward(self, batch: GaussianBatch, image_grad: wp.array) -> None:
-        """Add the parameter gradients for the incoming image gradient (B, H, W) to ``batch``'s grads."""
+    def backward(self, batch: GaussianBatch, image_grad: wp.array | None, *, fit: tuple | None = None) -> None:
+        """Add the parameter gradients for the incoming image gradient (B, H, W) to ``batch``'s grads.
+
+        ``fit`` = (image, target, loss_grad, loss_scale) takes the incoming gradient from the fit loss
+        instead (``LogL1Loss.of_render``); ``image_grad`` is then None.
+        """
         problems, capacity = batch.shape
         s = self.settings
+        image, target, loss_grad, loss_scale = fit if fit is not None else (None, None, None, 0.0)
         wp.launch(
             rasterize_backward,
             dim=(problems, capacity, self.backward_lanes),
-            inputs=[batch.arrays, image_grad, s.sigma_eps, s.cutoff, s.cutoff_level, self.backward_lanes],
+            inputs=[batch.arrays, image_grad, int(fit is not None), image, target, loss_grad, float(loss_scale), s.sigma_eps, s.cutoff, s.cutoff_level, self.backward_lanes],
             outputs=[batch.grad_arrays],
             device=self.device,
             record_tape=False,

@@ -150,8 +150,7 @@ class _Estimator:
                 self._densify(self._residual())
             self.loss.zero_()
             with recording(tape):
-                self.raster.render(self.batch, out=self.image)
-                self.fit(self.image, out=self.loss, value=False)
+                self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
             tape.backward(grads={self.loss: self.ones})
             self.adam.step()
             tape.zero()

@@ -155,8 +155,7 @@ class _Retargeting:
 
         def rigid_losses():
             self.rigid.apply(self.moving)
-            self.raster.render(self.moving, out=self.image)
-            self.fit(self.image, out=self.loss, value=False)
+            self.fit.of_render(self.raster, self.moving, image=self.image, out=self.loss, value=False)
 
         rigid_adam = RigidAdam(self.rigid, lr_translation_rpx=s.lr_translation_rpx, lr_rotation=s.lr_rotation, beta1=s.adam.beta1, beta2=s.adam.beta2, epsilon=s.adam.epsilon)
         iterate(s.rigid_iterations, rigid_losses, rigid_adam)
@@ -164,8 +163,7 @@ class _Retargeting:
         rigid_loss = self._fit_loss(self.moving)
 
         def full_losses():
-            self.raster.render(self.moving, out=self.image)
-            self.fit(self.image, out=self.loss, weight=s.c_fit, value=False)
+            self.fit.of_render(self.raster, self.moving, image=self.image, out=self.loss, weight=s.c_fit, value=False)
             if s.c_str > 0:
                 self.structure(self.moving, out=self.loss, weight=s.c_str)
             if s.c_ene > 0:
