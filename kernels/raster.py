@@ -332,11 +332,10 @@ def rasterize_backward(
     if not slot_is_drawn(g, b, n, peak_scale):
         return
     factor = float(0.0)
-    if fused != 0:
-        factor = log_l1_factor(loss_grad[b], loss_scale)
     height = int(0)
     width = int(0)
     if fused != 0:  # no image gradient array then
+        factor = log_l1_factor(loss_grad[b], loss_scale)
         height = image.shape[1]
         width = image.shape[2]
     else:
