@@ -347,6 +347,41 @@ def test_residual_transfer_gives_back_the_captured_images(donut_fields):
     assert psnr.min() >= 45.0, psnr.min()
 
 
+def test_the_fit_reports_its_move_check_and_obeys_it(donut_fields):
+    dataset, fits = donut_fields
+    for field in fits.values():
+        residual = field.report["residual"]
+        check = residual["move_check"]
+        assert 0 < check["lights"] <= min(48, dataset.light_count)
+        if abs(check["moving_psnr_db"] - check["blend_psnr_db"]) > 0.001:  # the report rounds to 0.001 dB
+            assert check["moves"] == (check["moving_psnr_db"] > check["blend_psnr_db"])
+        assert (residual["moving_gaussians"] > 0) == check["moves"]
+        assert int(field.moving_mask.sum()) == residual["moving_gaussians"]
+
+
+def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_back_the_images(donut_fields, monkeypatch, tmp_path):
+    """The move check's verdict is obeyed: no Gaussian kept, no highlight colour, the residual is the images."""
+    import warp_highlights.fit.pipeline as pipeline
+    from warp_highlights.fit.validation import MoveCheck
+
+    dataset, _ = donut_fields
+    lost = MoveCheck(np.arange(3), np.full(3, 30.0), np.full(3, 31.0), 0)
+    monkeypatch.setattr(pipeline, "check_moving", lambda *args, **kwargs: lost)
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.compressed=false"])
+    field = fit_field(dataset, settings=settings, device="cpu", progress=False)
+    residual = field.report["residual"]
+    assert residual["move_check"]["moves"] is False and residual["moving_gaussians"] == residual["staying_gaussians"] == 0
+    assert not field.estimated.active.any() and not field.retargeted.active.any() and not field.moving_mask.any()
+    assert field.residual.highlight_colour is None
+    np.testing.assert_allclose(field.residual.images.astype(np.float32), dataset.images.astype(np.float16).astype(np.float32))
+    relit = Relighter(field, device="cpu").relight(dataset.lights.directions[:4]).full
+    np.testing.assert_allclose(relit, np.maximum(field.residual.images[:4].astype(np.float32), 0.0), atol=1e-6)
+    save_field(field, tmp_path / "blend.whf")
+    back = load_field(tmp_path / "blend.whf")
+    assert not back.estimated.active.any() and not back.moving_mask.any()
+    np.testing.assert_array_equal(Relighter(back, device="cpu").relight(dataset.lights.directions[:4]).full, relit)
+
+
 def test_the_default_field_relights_every_captured_light_close_to_its_image(donut_fields):
     dataset, fits = donut_fields
     field = fits["lowrank"]

@@ -134,7 +134,9 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
         f"working size {report['size'][0]}x{report['size'][1]}, exposure x{report['exposure']:.3g}"
     )
     print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
-    print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}")
+    kept = (report.get("residual") or {}).get("kept_gaussians")
+    print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}"
+          + (" (estimated; the field keeps none, see the move check)" if kept == 0 else ""))
     print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
     print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
     print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
@@ -145,6 +147,11 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
                 if residual["compressed"] else "uncompressed images")
         print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
+        check = residual.get("move_check") or {}
+        if check.get("lights"):
+            verdict = "the Gaussians move" if check["moves"] else "the highlights stay in the residual (the field keeps no Gaussians)"
+            print(f"  move check at {check['lights']} left-out lights: moving {check['moving_psnr_db']:.2f} dB, "
+                  f"blending {check['blend_psnr_db']:.2f} dB (8-bit sRGB): {verdict}")
     parts = field_size_report(field)
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 

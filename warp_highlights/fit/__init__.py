@@ -1,6 +1,6 @@
 """Fitting: a reflectance field -> a highlight field (method.md sections 2-6), stage by stage.
 
-The pipeline is ``segment -> estimate -> retarget -> decide_paths -> decide_moving -> build_residual``;
+The pipeline is ``segment -> estimate -> retarget -> decide_paths -> decide_moving -> check_moving -> build_residual``;
 ``fit_field`` runs all of it.
 Each stage takes and returns a whole batch (every light, every directed edge). Imports the model,
 io and the kernels (ARCHITECTURE.md).
@@ -15,6 +15,9 @@ io and the kernels (ARCHITECTURE.md).
 - ``PathDecisions``: the chosen rotations and arc centres.
 - ``decide_moving``: stage 5: which Gaussians move (their retargeting lands on the neighbours' highlights).
 - ``MoveDecision``: the move flags and the support of every retargeted Gaussian.
+- ``plan_check``: the captured lights left out to check that moving pays, and the edges they need.
+- ``check_moving``: stage 5b: moving against blending at those lights (``MoveCheck``).
+- ``MoveCheck``: both predictions' 8-bit sRGB PSNR per left-out light and the verdict.
 - ``build_residual``: stage 6: each image minus its own highlights, compressed (``ResidualModel``).
 """
 
@@ -29,5 +32,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["retarget", "RetargetResult"], "retargeting"),
         **dict.fromkeys(["decide_paths", "PathDecisions"], "paths"),
         **dict.fromkeys(["decide_moving", "MoveDecision", "build_residual"], "residual"),
+        **dict.fromkeys(["plan_check", "check_moving", "MoveCheck"], "validation"),
     },
 )

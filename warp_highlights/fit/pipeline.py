@@ -1,9 +1,10 @@
 """The whole precomputation: reflectance field -> highlight field (method.md sections 2-6 and 8).
 
 segment -> estimate -> triangulate -> retarget (components, phase 1, phase 2) -> decide paths ->
-decide which Gaussians move -> the residual (images minus their moving highlights, for residual
-transfer). Each stage runs batched over all lights or all directed edges; ``fit_field`` times them
-and collects the figures the ``fit`` command prints.
+decide which Gaussians move -> check at left-out captured lights that moving beats blending (else the
+field keeps no Gaussians) -> the residual (images minus their highlights, for residual transfer).
+Each stage runs batched over all lights or all directed edges; ``fit_field`` times them and collects
+the figures the ``fit`` command prints.
 """
 
 from __future__ import annotations
@@ -23,11 +24,13 @@ from ..kernels.segmentation import segment
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.field import DiffuseModel, HighlightField
+from ..model.gaussians import GaussianParams
 from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
 from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, render_own
 from .retargeting import retarget
+from .validation import check_moving, plan_check
 
 __all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
 
@@ -93,8 +96,11 @@ def fit_field(
         decisions = decide_paths(source.take(edges[:, 0]), retargeted.params, settings.paths)
 
     moving = source.active.copy()
+    kept, kept_retargeted = source, retargeted.params  # the Gaussians the field keeps
+    path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
     residual_model = None
     support_median = None
+    check = None
     if residual:
         with timer.stage("residual"):
             decision = decide_moving(source, retargeted.params, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
@@ -104,7 +110,21 @@ def fit_field(
             colour = None
             if images.ndim == 4 and settings.residual.highlight_colour:
                 colour = highlight_colour(seg.specular.numpy(), own, prior=settings.residual.colour_prior)
-            residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(source, retargeted.params))
+        with timer.stage("move check"):
+            plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
+            iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
+            with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
+                check = check_moving(plan, source, retargeted.params, edges, path_delta, moving, seg.specular_luminance, images, own, colour,
+                                     factor=factor, settings=settings, device=device, workers=workers, progress=advance)
+        if not check.moves:
+            # blending beat moving at the left-out lights: the highlights stay in the residual (the images
+            # themselves) and the field keeps no Gaussians, which leaves their bytes to the residual
+            kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)  # one free slot each
+            moving = np.zeros((len(source.active), 1), dtype=bool)
+            path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
+            own, colour = np.zeros_like(own), None
+        with timer.stage("residual compression"):
+            residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
 
     diffuse_model = None
     if diffuse != "none":
@@ -144,8 +164,10 @@ def fit_field(
         },
         "residual": None if residual_model is None else {
             "moving_gaussians": int(moving.sum()),
-            "staying_gaussians": int(source.active.sum() - moving.sum()),
+            "staying_gaussians": int(kept.active.sum() - moving.sum()),
+            "kept_gaussians": int(kept.active.sum()),
             "median_support": support_median,
+            "move_check": check.report() if check is not None else None,
             "compressed": residual_model.compressed,
             "luminance_rank": residual_model.luminance.rank if residual_model.compressed else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
@@ -160,11 +182,11 @@ def fit_field(
         triangulation=triangulation,
         width=width,
         height=height,
-        estimated=estimated.params,
+        estimated=kept,
         directed_edges=edges,
-        retargeted=retargeted.params,
-        path_delta=decisions.delta.astype(np.float32),
-        path_centre=decisions.centre.astype(np.float32),
+        retargeted=kept_retargeted,
+        path_delta=path_delta,
+        path_centre=path_centre,
         settings=settings.to_dict(),
         report=report,
         diffuse=diffuse_model,

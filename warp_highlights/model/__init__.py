@@ -15,6 +15,7 @@
 - ``rotation_options``: the two signed rotations that turn one orientation into another (radians).
 - ``path_centre``: centre of the arc a Gaussian's mean follows along an edge (image heights).
 - ``circular_position``: a point a fraction of the way along that arc (image heights).
+- ``move_sets``: Gaussian sets moved to query directions inside their triangles (float64, plain arrays).
 - ``FitSettings``: every hyper-parameter of a fit, by stage; ``--set STAGE.NAME=VALUE`` edits it.
 - ``RasterSettings``: Gaussian footprint cutoff, size floor and tile size of the rasterizer.
 - ``SegmentationSettings``: the diffuse/specular split of the images.
@@ -44,6 +45,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["ResidualModel", "LowRankStack"], "residual"),
         **dict.fromkeys(["HighlightField", "DiffuseModel", "MAX_CAPACITY"], "field"),
         **dict.fromkeys(["rotation_options", "path_centre", "circular_position"], "arcs"),
+        "move_sets": "interpolation",
         **dict.fromkeys(
             [
                 "FitSettings", "RasterSettings", "SegmentationSettings", "EstimationSettings", "AdamSettings",

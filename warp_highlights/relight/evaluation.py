@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..io.images import display_rgb8, linear_to_srgb, srgb_to_linear
+from ..io.images import display_rgb8, linear_to_srgb, psnr_8bit, srgb_to_linear
 from ..io.resample import resize_stack
 from ..model.errors import InputError
 from ..model.residual import LUMINANCE_WEIGHTS
@@ -154,8 +154,7 @@ def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.n
     psnr, ssim = np.empty(len(images)), np.empty(len(images))
     for q, (image, reference) in enumerate(zip(images, truth)):
         a, b = display_rgb8(image), display_rgb8(reference)
-        mse = float(np.mean((a.astype(np.float64) - b) ** 2))
-        psnr[q] = 100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse))
+        psnr[q] = psnr_8bit(a, b)
         small = min(a.shape[0], a.shape[1])
         window = min(7, small if small % 2 else small - 1) if small >= 3 else None  # odd, as SSIM needs
         ssim[q] = 1.0 if window is None else structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window)

@@ -1,0 +1,192 @@
+"""The fit's leave-one-out check of moving against blending (``fit.validation``): the left-out lights and
+their triangles against brute force, the edges it retargets, and its verdict on scenes where moving must
+win and must lose."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import warp as wp
+from reference import render as render_reference
+
+from warp_highlights.fit.validation import check_moving, leave_one_out, plan_check, spread_lights
+from warp_highlights.model.config import FitSettings, RasterSettings, RetargetSettings
+from warp_highlights.model.gaussians import GaussianParams
+from warp_highlights.model.lights import LightSet
+from warp_highlights.model.triangulation import SphericalTriangulation
+
+
+def _greedy_reference(directions: np.ndarray, count: int) -> list[int]:
+    """Farthest-point sampling by explicit loops: each pick has the largest angle to its nearest pick."""
+    centre = directions.sum(axis=0)
+    chosen = [int(np.argmax([d @ centre for d in directions]))]
+    while len(chosen) < count:
+        best, best_angle = None, -1.0
+        for index, direction in enumerate(directions):
+            nearest = min(np.arccos(np.clip(direction @ directions[c], -1, 1)) for c in chosen)
+            if nearest > best_angle + 1e-12:
+                best, best_angle = index, nearest
+        chosen.append(best)
+    return sorted(chosen)
+
+
+def test_spread_lights_is_farthest_point_sampling():
+    directions = LightSet.fibonacci_dome(40).directions
+    assert spread_lights(directions, 12).tolist() == _greedy_reference(directions, 12)
+    assert spread_lights(directions, 40).tolist() == list(range(40))
+    assert spread_lights(directions, 99).tolist() == list(range(40))
+    assert spread_lights(directions, 0).size == 0
+
+
+def test_each_left_out_light_lies_in_a_face_of_the_other_lights_triangulation():
+    directions = LightSet.fibonacci_sphere(24).directions
+    loo = leave_one_out(directions, np.arange(24))
+    assert loo.lights.tolist() == list(range(24))
+    for light, corners, weights in zip(loo.lights, loo.vertices, loo.barycentric):
+        others = np.delete(np.arange(24), light)
+        assert light not in corners
+        faces = {tuple(sorted(others[face])) for face in SphericalTriangulation(directions[others]).faces}
+        assert tuple(sorted(corners)) in faces
+        assert np.all(weights >= -1e-12) and abs(weights.sum() - 1) < 1e-12
+        point = weights @ directions[corners]  # on the face's plane, along the left-out direction
+        np.testing.assert_allclose(point / np.linalg.norm(point), directions[light], atol=1e-9)
+
+
+def test_the_plan_retargets_exactly_the_triangle_edges_the_capture_lacks():
+    directions = LightSet.fibonacci_dome(30).directions
+    edges = SphericalTriangulation(directions).directed_edges()
+    plan = plan_check(directions, edges, 10)
+    assert len(plan.loo.lights) == 10
+    needed = {(int(a), int(b)) for corners in plan.loo.vertices for a in corners for b in corners if a != b}
+    expected = sorted(needed - {tuple(e) for e in edges.tolist()})
+    assert [tuple(e) for e in plan.missing.tolist()] == expected
+    assert len(plan_check(directions, edges, 0).loo.lights) == 0
+
+
+# --- the verdict on scenes built by hand ------------------------------------------------------------
+
+SIZE = 40
+RASTER = RasterSettings()
+
+
+def _highlight_at(direction: np.ndarray) -> np.ndarray:
+    """Where the scene's one highlight sits under a light (image heights): it follows the light."""
+    return 0.5 + 0.3 * direction[:2]
+
+
+def _one_gaussian_sets(means: np.ndarray) -> GaussianParams:
+    sets = GaussianParams.empty(len(means), 1)
+    sets.active[:] = True
+    sets.amplitude[:] = 1.0
+    sets.mean[:, 0] = means
+    sets.sigma[:] = 0.06
+    return sets
+
+
+def _scene():
+    """A dome of 16 lights over a grey plane whose one highlight moves with the light; every directed
+    edge between two lights given (nothing to retarget), each light's Gaussian exactly on its highlight."""
+    directions = LightSet.fibonacci_dome(16, min_elevation_deg=30).directions
+    n = len(directions)
+    edges = np.array([(a, b) for a in range(n) for b in range(n) if a != b], dtype=np.int32)
+    estimated = _one_gaussian_sets(np.array([_highlight_at(d) for d in directions]))
+    own = render_reference(estimated, SIZE, SIZE, RASTER).astype(np.float32)
+    images = (0.2 + own)[..., None].repeat(3, axis=3).astype(np.float32)
+    return directions, edges, estimated, own, images
+
+
+def _check(directions, edges, estimated, retargeted, own, images, *, moving=None):
+    settings = dataclasses.replace(FitSettings(), retarget=RetargetSettings(rigid_iterations=0, iterations=0))
+    plan = plan_check(directions, edges, 16)
+    assert len(plan.missing) == 0
+    return check_moving(plan, estimated, retargeted, edges, np.zeros(retargeted.active.shape, np.float32),
+                        estimated.active.copy() if moving is None else moving, wp.array(own, dtype=float, device="cpu"),
+                        images, own, None, factor=1.0, settings=settings, device="cpu")
+
+
+def test_moving_wins_where_the_gaussians_follow_the_highlight():
+    directions, edges, estimated, own, images = _scene()
+    retargeted = _one_gaussian_sets(np.array([_highlight_at(directions[b]) for b in edges[:, 1]]))
+    check = _check(directions, edges, estimated, retargeted, own, images)
+    assert len(check.lights) == 16 and check.moves
+    assert check.moving_psnr.mean() > check.blend_psnr.mean() + 3.0
+    assert check.report()["moves"] is True and check.report()["lights"] == 16
+
+
+def test_blending_wins_where_the_retargeted_gaussians_go_astray():
+    directions, edges, estimated, own, images = _scene()
+    astray = np.array([_highlight_at(directions[b]) + [0.35, -0.3] for b in edges[:, 1]])
+    check = _check(directions, edges, estimated, _one_gaussian_sets(astray), own, images)
+    assert not check.moves
+    assert check.moving_psnr.mean() < check.blend_psnr.mean()
+
+
+def test_gaussians_that_stay_predict_what_blending_predicts():
+    """Nothing moves on its path (every retargeted set is its source set) or nothing is allowed to move:
+    both predictions are the blend of the corners' images."""
+    directions, edges, estimated, own, images = _scene()
+    still = estimated.take(edges[:, 0])
+    check = _check(directions, edges, estimated, still, own, images)
+    np.testing.assert_allclose(check.moving_psnr, check.blend_psnr, atol=0.05)
+    retargeted = _one_gaussian_sets(np.array([_highlight_at(directions[b]) for b in edges[:, 1]]))
+    frozen = _check(directions, edges, estimated, retargeted, own, images, moving=np.zeros((16, 1), bool))
+    assert len(frozen.lights) == 0 and frozen.moves  # nothing moves: nothing to check
+
+
+def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights(small_donut, monkeypatch):
+    """For left-out lights of a real fit (retargeted missing edges, Gaussians that stay, highlight colour),
+    the check's moving prediction scores what the Relighter gives for a field built over the other lights."""
+    from conftest import FAST_FIT
+
+    import warp_highlights.fit.pipeline as pipeline
+    from warp_highlights.fit.paths import decide_paths
+    from warp_highlights.fit.retargeting import retarget
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.io.images import srgb_psnr
+    from warp_highlights.model.field import HighlightField
+    from warp_highlights.model.residual import ResidualModel
+    from warp_highlights.relight.relighter import Relighter
+
+    calls = {}
+    original = pipeline.check_moving
+
+    def recorded(*args, **kwargs):
+        calls["args"], calls["kwargs"] = args, kwargs
+        calls["check"] = original(*args, **kwargs)
+        return calls["check"]
+
+    monkeypatch.setattr(pipeline, "check_moving", recorded)
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.check_lights=5", "residual.move_support=0.7"])
+    pipeline.fit_field(dataset, settings=settings, device="cpu", progress=False)
+    plan, estimated, retargeted, edges, _, moving, specular, images, own, colour = calls["args"]
+    check, factor = calls["check"], calls["kwargs"]["factor"]
+    assert len(plan.missing) > 0 and len(check.lights) == 5
+    assert colour is not None and moving.sum() < estimated.active.sum()  # some Gaussians stay in place
+
+    directions = dataset.lights.directions
+    n = len(directions)
+    triangulations = {j: SphericalTriangulation(directions[np.delete(np.arange(n), j)]) for j in check.lights}
+    wanted = {(int(a), int(b)) for j, tri in triangulations.items() for a, b in np.delete(np.arange(n), j)[tri.directed_edges()]}
+    extra = np.array(sorted(wanted - {tuple(e) for e in edges.tolist()}), dtype=np.int32)
+    more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu").params
+    every_edge = np.concatenate([edges, extra])
+    every_set = GaussianParams.concatenate([retargeted, more], axis=0)
+    paths = decide_paths(estimated.take(every_edge[:, 0]), every_set, settings.paths)
+    row_of = {tuple(e): i for i, e in enumerate(every_edge.tolist())}
+    residual = images - own[..., None] * colour
+    for light, moving_psnr in zip(check.lights, check.moving_psnr):
+        others = np.delete(np.arange(n), light)
+        tri = triangulations[light]
+        local = tri.directed_edges()
+        rows = [row_of[(int(a), int(b))] for a, b in others[local]]
+        field = HighlightField(
+            lights=LightSet(directions[others]), triangulation=tri, width=images.shape[2], height=images.shape[1],
+            estimated=estimated.take(others), directed_edges=local, retargeted=every_set.take(rows),
+            path_delta=paths.delta[rows].astype(np.float32), path_centre=paths.centre[rows].astype(np.float32),
+            settings=settings.to_dict(), report={}, residual=ResidualModel(images=residual[others].astype(np.float16), highlight_colour=colour),
+            moving=moving[others],
+        )
+        relit = Relighter(field, device="cpu", scale=1.0 / factor).relight(directions[light][None]).full[0]
+        assert abs(srgb_psnr(relit, images[light] / factor) - moving_psnr) < 0.05
