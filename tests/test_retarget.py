@@ -13,7 +13,7 @@ from warp_highlights.kernels.segmentation import segment
 from warp_highlights.fit.estimation import estimate
 from warp_highlights.fit.retargeting import retarget
 from warp_highlights.io.dataset import ReflectanceField
-from warp_highlights.model.config import RetargetSettings
+from warp_highlights.model.config import RasterSettings, RetargetSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 from warp_highlights.model.triangulation import SphericalTriangulation
@@ -157,3 +157,29 @@ def test_bad_edges():
         retarget(params, np.zeros((1, 8, 8), np.float32), np.array([[0, 1]]), device="cpu")
     with pytest.raises(InputError, match="targets"):
         retarget(params, np.zeros((2, 8, 8), np.float32), np.array([[0, 0]]), device="cpu")
+
+
+def test_a_retargeted_gaussian_that_lost_its_energy_is_put_back_at_its_source():
+    """Slot 0 follows its highlight; slot 1 collapsed to a point (its highlight is missing on the target)."""
+    from warp_highlights.fit.retargeting import restore_vanished
+
+    sources = GaussianParams.empty(2, 2)
+    sources.active[:] = True
+    sources.amplitude[:] = 1.5
+    sources.mean[:] = [[0.3, 0.3], [0.7, 0.4]]
+    sources.sigma[:] = [0.05, 0.02]
+    retargeted = sources.take([0, 1])
+    retargeted.mean[:, 0] += 0.05  # moved, same energy: kept
+    retargeted.sigma[0, 1] = [1e-3, 1e-4]  # collapsed: energy share ~1e-4
+    retargeted.amplitude[1, 1] = 1.0  # dimmer (share 0.44): kept
+    eps = RasterSettings().sigma_eps
+    energy = lambda p: p.amplitude**2 * np.sqrt((p.sigma[..., 0] ** 2 + eps) * (p.sigma[..., 1] ** 2 + eps))
+    assert (energy(retargeted) / energy(sources))[0, 1] < RetargetSettings().vanish_share < (energy(retargeted) / energy(sources))[1, 1]
+    restored, vanished = restore_vanished(sources, retargeted, RetargetSettings().vanish_share, sigma_eps=eps)
+    assert vanished.tolist() == [[False, True], [False, False]]
+    for name in ("amplitude", "mean", "sigma", "theta", "weight"):
+        np.testing.assert_array_equal(getattr(restored, name)[0, 1], getattr(sources, name)[0, 1])
+        np.testing.assert_array_equal(getattr(restored, name)[1], getattr(retargeted, name)[1])
+        np.testing.assert_array_equal(getattr(restored, name)[0, 0], getattr(retargeted, name)[0, 0])
+    unchanged, none = restore_vanished(sources, retargeted, 0.0, sigma_eps=eps)
+    assert unchanged is retargeted and not none.any()

@@ -141,7 +141,7 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
 
     import warp_highlights.fit.pipeline as pipeline
     from warp_highlights.fit.paths import decide_paths
-    from warp_highlights.fit.retargeting import retarget
+    from warp_highlights.fit.retargeting import restore_vanished, retarget
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.io.images import srgb_psnr
     from warp_highlights.model.field import HighlightField
@@ -171,6 +171,7 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     wanted = {(int(a), int(b)) for j, tri in triangulations.items() for a, b in np.delete(np.arange(n), j)[tri.directed_edges()]}
     extra = np.array(sorted(wanted - {tuple(e) for e in edges.tolist()}), dtype=np.int32)
     more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu").params
+    more, _ = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
     every_edge = np.concatenate([edges, extra])
     every_set = GaussianParams.concatenate([retargeted, more], axis=0)
     paths = decide_paths(estimated.take(every_edge[:, 0]), every_set, settings.paths)

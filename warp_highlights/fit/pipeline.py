@@ -29,7 +29,7 @@ from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
 from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, render_own
-from .retargeting import retarget
+from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
 __all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
@@ -93,17 +93,18 @@ def fit_field(
         retargeted = retarget(estimated.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
     with timer.stage("paths"):
         source = estimated.params
-        decisions = decide_paths(source.take(edges[:, 0]), retargeted.params, settings.paths)
+        sets, vanished = restore_vanished(source.take(edges[:, 0]), retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+        decisions = decide_paths(source.take(edges[:, 0]), sets, settings.paths)
 
     moving = source.active.copy()
-    kept, kept_retargeted = source, retargeted.params  # the Gaussians the field keeps
+    kept, kept_retargeted = source, sets  # the Gaussians the field keeps
     path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
     residual_model = None
     support_median = None
     check = None
     if residual:
         with timer.stage("residual"):
-            decision = decide_moving(source, retargeted.params, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
+            decision = decide_moving(source, sets, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
             moving = decision.moving
             support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
             own = render_own(source, height, width, raster=settings.raster, device=device)
@@ -114,7 +115,7 @@ def fit_field(
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
             iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
             with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
-                check = check_moving(plan, source, retargeted.params, edges, path_delta, moving, seg.specular_luminance, images, own, colour,
+                check = check_moving(plan, source, sets, edges, path_delta, moving, seg.specular_luminance, images, own, colour,
                                      factor=factor, settings=settings, device=device, workers=workers, progress=advance)
         if not check.moves:
             # blending beat moving at the left-out lights: the highlights stay in the residual (the images
@@ -161,6 +162,7 @@ def fit_field(
             "structure_loss": _stats(retargeted.structure_loss),
             "improved_share": float(np.mean(retargeted.loss <= retargeted.source_loss + 1e-6)),
             "restored_slots": int(retargeted.restored.sum()),
+            "vanished_slots": int(vanished.sum()),
         },
         "residual": None if residual_model is None else {
             "moving_gaussians": int(moving.sum()),

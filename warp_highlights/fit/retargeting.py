@@ -29,7 +29,7 @@ from ..model.config import RasterSettings, RetargetSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 
-__all__ = ["RetargetResult", "retarget"]
+__all__ = ["RetargetResult", "restore_vanished", "retarget"]
 
 
 @dataclass
@@ -182,3 +182,24 @@ class _Retargeting:
         structure = wp.zeros(self.source.problem_count, dtype=float, device=self.source.device)
         self.structure(self.moving, out=structure)
         return params, source_loss, rigid_loss, loss, structure.numpy().astype(np.float64), restored
+
+
+def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share: float, *, sigma_eps: float) -> tuple[GaussianParams, np.ndarray]:
+    """Retargeted slots that kept less than ``share`` of their source's energy (a^2 sqrt((sx^2 + eps)
+    (sy^2 + eps))) put back at their source: the Gaussian found nothing to follow on the target (its
+    highlight vanishes there, e.g. into a shadow) and keeps its shape along that edge instead of
+    shrinking to a point. ``sources``: (E, N) each edge's source set. Returns the sets and the (E, N)
+    mask of restored slots (``RetargetSettings.vanish_share``; 0 restores none)."""
+    if share <= 0:
+        return retargeted, np.zeros_like(retargeted.active)
+
+    def energy(p: GaussianParams) -> np.ndarray:
+        return p.amplitude**2 * np.sqrt((p.sigma[..., 0] ** 2 + sigma_eps) * (p.sigma[..., 1] ** 2 + sigma_eps))
+
+    vanished = retargeted.active & sources.active & (energy(retargeted) < share * energy(sources))
+    if not vanished.any():
+        return retargeted, vanished
+    kept = GaussianParams(**{name: np.where(vanished.reshape(vanished.shape + (1,) * (getattr(retargeted, name).ndim - 2)),
+                                            getattr(sources, name), getattr(retargeted, name))
+                             for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
+    return kept, vanished

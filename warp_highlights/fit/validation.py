@@ -33,7 +33,7 @@ from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.interpolation import move_sets
 from ..model.triangulation import SphericalTriangulation
 from .paths import decide_paths
-from .retargeting import retarget
+from .retargeting import restore_vanished, retarget
 
 __all__ = ["CheckPlan", "LeaveOneOut", "MoveCheck", "check_moving", "leave_one_out", "plan_check", "spread_lights"]
 
@@ -183,11 +183,12 @@ def check_moving(
     if len(missing):
         extra = retarget(estimated, specular_luminance, missing, settings=settings.retarget, raster=settings.raster, device=device,
                          workers=workers, progress=progress)
-        extra_delta = decide_paths(estimated.take(missing[:, 0]), extra.params, settings.paths).delta.astype(np.float32)
+        extra_sets, _ = restore_vanished(estimated.take(missing[:, 0]), extra.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+        extra_delta = decide_paths(estimated.take(missing[:, 0]), extra_sets, settings.paths).delta.astype(np.float32)
         joined = np.concatenate([edges, missing])
         order = np.lexsort((joined[:, 1], joined[:, 0]))
         all_edges = joined[order]
-        all_sets = GaussianParams.concatenate([retargeted, extra.params], axis=0).take(order)
+        all_sets = GaussianParams.concatenate([retargeted, extra_sets], axis=0).take(order)
         all_delta = np.concatenate([all_delta, extra_delta.astype(np.float64)])[order]
     corners = loo.vertices
     sets = move_sets(estimated, all_sets, all_edges, all_delta, corners, loo.barycentric,
