@@ -402,7 +402,7 @@ class ResidualSettings:
             blending at the left-out lights (and 0.07-0.1 dB at the held-out ones, the fourth
             session's fields), and 48 spread lights of larger captures (the dome sample and the
             250-light renders: moving ahead by 0.9-2.4 dB); each costs the fit about 3-4 retargeted
-            edges (the statue's CPU fit at 283x267: 20 s of 102 s). 0 skips the check.
+            edges (the statue's CPU fit at 283x267: 20 s of 102-106 s). 0 skips the check.
         highlight_colour: estimate a per-pixel highlight colour c(x) from the specular part
             (metals, coloured plastics); False keeps white highlights.
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
