@@ -93,8 +93,9 @@ def fit_field(
         retargeted = retarget(estimated.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
     with timer.stage("paths"):
         source = estimated.params
-        sets, vanished = restore_vanished(source.take(edges[:, 0]), retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
-        decisions = decide_paths(source.take(edges[:, 0]), sets, settings.paths)
+        edge_sources = source.take(edges[:, 0])
+        sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+        decisions = decide_paths(edge_sources, sets, settings.paths)
 
     moving = source.active.copy()
     kept, kept_retargeted = source, sets  # the Gaussians the field keeps

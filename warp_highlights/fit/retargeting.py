@@ -28,6 +28,7 @@ from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from .estimation import gaussian_energy_rpx
 
 __all__ = ["RetargetResult", "restore_vanished", "retarget"]
 
@@ -185,18 +186,15 @@ class _Retargeting:
 
 
 def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share: float, *, sigma_eps: float) -> tuple[GaussianParams, np.ndarray]:
-    """Retargeted slots that kept less than ``share`` of their source's energy (a^2 sqrt((sx^2 + eps)
-    (sy^2 + eps))) put back at their source: the Gaussian found nothing to follow on the target (its
-    highlight vanishes there, e.g. into a shadow) and keeps its shape along that edge instead of
-    shrinking to a point. ``sources``: (E, N) each edge's source set. Returns the sets and the (E, N)
-    mask of restored slots (``RetargetSettings.vanish_share``; 0 restores none)."""
+    """Retargeted slots that kept less than ``share`` of their source's energy (``gaussian_energy_rpx``)
+    put back at their source: the Gaussian found nothing to follow on the target (its highlight
+    vanishes there, e.g. into a shadow) and keeps its shape along that edge instead of shrinking to a
+    point. ``sources``: (E, N) each edge's source set. Returns the sets and the (E, N) mask of restored
+    slots (``RetargetSettings.vanish_share``; 0 restores none)."""
     if share <= 0:
         return retargeted, np.zeros_like(retargeted.active)
-
-    def energy(p: GaussianParams) -> np.ndarray:
-        return p.amplitude**2 * np.sqrt((p.sigma[..., 0] ** 2 + sigma_eps) * (p.sigma[..., 1] ** 2 + sigma_eps))
-
-    vanished = retargeted.active & sources.active & (energy(retargeted) < share * energy(sources))
+    before, after = gaussian_energy_rpx(sources, sigma_eps), gaussian_energy_rpx(retargeted, sigma_eps)
+    vanished = retargeted.active & sources.active & (after < share * before)
     if not vanished.any():
         return retargeted, vanished
     kept = GaussianParams(**{name: np.where(vanished.reshape(vanished.shape + (1,) * (getattr(retargeted, name).ndim - 2)),

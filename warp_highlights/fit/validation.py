@@ -178,13 +178,14 @@ def check_moving(
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
         return MoveCheck(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), 0)
-    n, height, width = own.shape
+    _, height, width = own.shape
     all_edges, all_sets, all_delta = edges, retargeted, np.asarray(path_delta, np.float64)
     if len(missing):
         extra = retarget(estimated, specular_luminance, missing, settings=settings.retarget, raster=settings.raster, device=device,
                          workers=workers, progress=progress)
-        extra_sets, _ = restore_vanished(estimated.take(missing[:, 0]), extra.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
-        extra_delta = decide_paths(estimated.take(missing[:, 0]), extra_sets, settings.paths).delta.astype(np.float32)
+        extra_sources = estimated.take(missing[:, 0])
+        extra_sets, _ = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+        extra_delta = decide_paths(extra_sources, extra_sets, settings.paths).delta.astype(np.float32)
         joined = np.concatenate([edges, missing])
         order = np.lexsort((joined[:, 1], joined[:, 0]))
         all_edges = joined[order]
