@@ -12,6 +12,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``retarget``: rigid motions of connected components and the image gather (retargeting phase 1).
 - ``interpolation``: locate queries, interpolate Gaussian sets, compose relit images.
 - ``baselines``: the classic RTI fits (PTM, HSH, RBF) as per-pixel linear maps: project and evaluate.
+- ``neural``: a learned per-pixel residual (code + MLP, NeuralRTI-style) trained with tiles and the tape.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
 - ``chunks``: a batch of independent problems split over CPU threads (Warp runs a CPU launch on one).
 """
@@ -22,7 +23,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {},
     modules={
-        "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "optim": "optim", "raster": "raster",
+        "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support",
     },
 )

@@ -163,3 +163,20 @@ def rbf_loo_brute_force(lights, values, sigma: float, regularisation: float) -> 
         weights = np.linalg.solve(system, values[rest])
         errors[i] = values[i] - gaussian_rbf(lights[i : i + 1], lights[rest], sigma)[0] @ weights
     return errors
+
+
+def neural_decoder(codes: np.ndarray, weights: list, lights) -> np.ndarray:
+    """(L, P, 3) float64: the learned residual's MLP (``kernels.neural``) at (L, 3) lights for (P, 9) codes,
+    y = W3 elu(W2 elu(W1 elu(W0 [z, w] + b0) + b1) + b2) + b3."""
+    w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, dtype=np.float64) for w in weights)
+    codes = np.asarray(codes, dtype=np.float64)
+
+    def elu(v):
+        return np.where(v > 0, v, np.expm1(np.minimum(v, 0.0)))
+
+    out = []
+    for light in np.asarray(lights, dtype=np.float64).reshape(-1, 3):
+        x = np.concatenate([codes, np.tile(light, (len(codes), 1))], axis=1).T
+        hidden = elu(w2 @ elu(w1 @ elu(w0 @ x + b0) + b1) + b2)
+        out.append((w3 @ hidden + b3).T)
+    return np.stack(out)

@@ -1,0 +1,228 @@
+"""A learned per-pixel residual (NeuralRTI-style): a code per pixel and a small MLP that decodes code +
+light direction to RGB, trained with Warp tiles and the tape (issue 15, point 2: a candidate for the
+compact residual, measured on the PSNR-size curve by ``benchmarks/bench_neural_residual.py``).
+
+Model: ``y(p, w) = W3 elu(W2 elu(W1 elu(W0 [z_p, w] + b0) + b1) + b2) + b3``, z_p the pixel's
+``CODE_SIZE`` numbers, w the unit light direction; y in display units (signed sRGB encoding of the
+target, so that the squared error is the one 8-bit sRGB PSNR measures). Codes start as the pixels'
+leading principal components over all lights (a linear encoder), the weights at random.
+
+One launch covers a batch of (light, pixel) samples, ``BLOCK`` per tile block; the tape gives the
+gradients of the codes and of every weight; ``warp.optim.Adam`` steps them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+import warp.optim
+
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "decode", "decode_display", "encode_display", "initial_model", "train_decoder"]
+
+CODE_SIZE = wp.constant(9)
+"""Numbers per pixel: NeuralRTI's code size."""
+HIDDEN = wp.constant(48)
+"""Units of each of the three hidden layers (NeuralRTI: 50)."""
+INPUTS = wp.constant(12)  # code + light direction
+OUTPUTS = wp.constant(3)
+BLOCK = wp.constant(64)
+"""Samples per tile block."""
+
+
+@wp.func
+def elu(x: float):
+    return wp.where(x > 0.0, x, wp.exp(wp.min(x, 0.0)) - 1.0)
+
+
+@wp.kernel
+def gather_features(samples: wp.array[wp.int32], count: int, pixels: int, codes: wp.array2d[float], lights: wp.array[wp.vec3],
+                    features: wp.array2d[float]):
+    """Column i of ``features`` (INPUTS, padded batch): sample s = samples[i] = light * pixels + pixel as
+    [code of the pixel, light direction]; padding columns (i >= count) repeat the last sample."""
+    i = wp.tid()
+    s = samples[wp.min(i, count - 1)]
+    light = s / pixels
+    pixel = s - light * pixels
+    for k in range(CODE_SIZE):
+        features[k, i] = codes[pixel, k]
+    direction = lights[light]
+    for k in range(3):
+        features[CODE_SIZE + k, i] = direction[k]
+
+
+@wp.kernel
+def decoder_tiles(features: wp.array2d[float], w0: wp.array2d[float], b0: wp.array2d[float], w1: wp.array2d[float], b1: wp.array2d[float],
+                  w2: wp.array2d[float], b2: wp.array2d[float], w3: wp.array2d[float], b3: wp.array2d[float], out: wp.array2d[float]):
+    """The MLP on BLOCK columns of ``features`` per block: (OUTPUTS, BLOCK) values into ``out``."""
+    block = wp.tid()
+    x = wp.tile_load(features, shape=(INPUTS, BLOCK), offset=(0, block * BLOCK))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w0, shape=(HIDDEN, INPUTS)), x) + wp.tile_broadcast(wp.tile_load(b0, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w1, shape=(HIDDEN, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b1, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w2, shape=(HIDDEN, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b2, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    y = wp.tile_matmul(wp.tile_load(w3, shape=(OUTPUTS, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b3, shape=(OUTPUTS, 1)), shape=(OUTPUTS, BLOCK))
+    wp.tile_store(out, y, offset=(0, block * BLOCK))
+
+
+@wp.kernel
+def squared_error(samples: wp.array[wp.int32], count: int, pixels: int, values: wp.array2d[float], targets: wp.array2d[wp.vec3],
+                  weight: float, loss: wp.array[float]):
+    """loss += weight |values[:, i] - targets[light, pixel]|^2 over the batch's first ``count`` columns."""
+    i = wp.tid()
+    if i < count:
+        s = samples[i]
+        light = s / pixels
+        pixel = s - light * pixels
+        error = wp.vec3(values[0, i], values[1, i], values[2, i]) - targets[light, pixel]
+        wp.atomic_add(loss, 0, wp.dot(error, error) * weight)
+
+
+@dataclass
+class NeuralDecoder:
+    """Codes (P, CODE_SIZE) and the MLP's weights, NumPy float32 (``weights``: w0 (HIDDEN, 12), b0 (HIDDEN, 1),
+    w1, b1, w2, b2 (HIDDEN, HIDDEN), (HIDDEN, 1), w3 (3, HIDDEN), b3 (3, 1))."""
+
+    codes: np.ndarray
+    weights: list[np.ndarray]
+
+    @property
+    def stored_bytes_per_pixel(self) -> float:
+        """Codes as float16 per pixel, plus the weights (float32) spread over the pixels."""
+        return 2.0 * CODE_SIZE + 4.0 * sum(w.size for w in self.weights) / len(self.codes)
+
+
+def encode_display(linear: np.ndarray) -> np.ndarray:
+    """Signed sRGB encoding (display units, 1 = white): sign(x) srgb(|x|), |x| clipped at 1."""
+    x = np.abs(linear)
+    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.minimum(x, 1.0), 1 / 2.4) - 0.055)
+    return (np.sign(linear) * encoded).astype(np.float32)
+
+
+def decode_display(encoded: np.ndarray) -> np.ndarray:
+    """Inverse of ``encode_display`` (values beyond 1 extrapolate the curve)."""
+    x = np.abs(encoded)
+    linear = np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+    return np.sign(encoded) * linear
+
+
+def _padded(count: int) -> int:
+    return max(BLOCK, -(-count // BLOCK) * BLOCK)
+
+
+def _arrays(model: NeuralDecoder, device, requires_grad: bool):
+    codes = wp.array(np.ascontiguousarray(model.codes, np.float32), dtype=float, device=device, requires_grad=requires_grad)
+    weights = [wp.array(np.ascontiguousarray(w, np.float32), dtype=float, device=device, requires_grad=requires_grad) for w in model.weights]
+    return codes, weights
+
+
+class _Batch:
+    """Device buffers of one padded batch of samples."""
+
+    def __init__(self, size: int, device, requires_grad: bool):
+        self.size = size
+        self.features = wp.zeros((INPUTS, size), dtype=float, device=device, requires_grad=requires_grad)
+        self.values = wp.zeros((OUTPUTS, size), dtype=float, device=device, requires_grad=requires_grad)
+
+    def run(self, samples, count: int, pixels: int, codes, lights, weights, device) -> None:
+        wp.launch(gather_features, dim=self.size, inputs=[samples, count, pixels, codes, lights], outputs=[self.features], device=device)
+        wp.launch_tiled(decoder_tiles, dim=[self.size // BLOCK], inputs=[self.features, *weights], outputs=[self.values], block_dim=BLOCK, device=device)
+
+
+def decode(model: NeuralDecoder, lights: np.ndarray, *, device=None, batch: int = 1 << 20) -> np.ndarray:
+    """(L, P, 3) float32 decoded values for (L, 3) light directions, on ``device``."""
+    device = wp.get_device(device)
+    codes, weights = _arrays(model, device, False)
+    pixels = len(model.codes)
+    lights = np.asarray(lights, np.float32).reshape(-1, 3)
+    light_array = wp.array(lights, dtype=wp.vec3, device=device)
+    total = len(lights) * pixels
+    out = np.empty((total, 3), np.float32)
+    buffers = _Batch(_padded(min(batch, total)), device, False)
+    for start in range(0, total, batch):
+        count = min(batch, total - start)
+        samples = wp.array(np.arange(start, start + count, dtype=np.int32), dtype=wp.int32, device=device)
+        buffers.run(samples, count, pixels, codes, light_array, weights, device)
+        out[start : start + count] = buffers.values.numpy()[:, :count].T
+    return out.reshape(len(lights), pixels, 3)
+
+
+def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:
+    """Codes from the leading principal components of the (n, P, 3) targets (unit variance), weights
+    uniform in +-1/sqrt(fan-in)."""
+    n, pixels, _ = targets.shape
+    flat = targets.transpose(1, 0, 2).reshape(pixels, -1).astype(np.float64)
+    flat = flat - flat.mean(axis=0)
+    gram = flat.T @ flat
+    values, vectors = np.linalg.eigh(gram)
+    leading = vectors[:, ::-1][:, :CODE_SIZE]
+    codes = flat @ leading
+    codes /= np.maximum(codes.std(axis=0), 1e-12)
+    if codes.shape[1] < CODE_SIZE:
+        codes = np.concatenate([codes, np.zeros((pixels, CODE_SIZE - codes.shape[1]))], axis=1)
+    rng = np.random.default_rng(seed)
+    shapes = [(HIDDEN, INPUTS), (HIDDEN, HIDDEN), (HIDDEN, HIDDEN), (OUTPUTS, HIDDEN)]
+    weights = []
+    for rows, cols in shapes:
+        bound = 1.0 / np.sqrt(cols)
+        weights += [rng.uniform(-bound, bound, (rows, cols)).astype(np.float32), rng.uniform(-bound, bound, (rows, 1)).astype(np.float32)]
+    return NeuralDecoder(codes.astype(np.float32), weights)
+
+
+def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16, lr: float = 3e-3,
+                  final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None) -> tuple[NeuralDecoder, list[float]]:
+    """Fit codes and weights to (n, P, 3) display-unit targets at (n, 3) lights: Adam on the mean
+    squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
+    geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` have passed).
+    Returns the model and the mean loss of each epoch."""
+    device = wp.get_device(device)
+    targets = np.ascontiguousarray(targets, np.float32)
+    n, pixels, _ = targets.shape
+    model = initial_model(targets, seed=seed)
+    codes, weights = _arrays(model, device, True)
+    params = [codes, *weights]
+    target_array = wp.array(targets, dtype=wp.vec3, device=device)
+    light_array = wp.array(np.asarray(lights, np.float32), dtype=wp.vec3, device=device)
+    optimizer = warp.optim.Adam([p.flatten() for p in params], lr=lr)
+    grads = [p.grad.flatten() for p in params]
+    loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
+    total = n * pixels
+    buffers = _Batch(_padded(min(batch, total)), device, True)
+    rng = np.random.default_rng(seed)
+    history = []
+    started = time.perf_counter()
+    for epoch in range(epochs):
+        optimizer.lr = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
+        order = wp.array(rng.permutation(total).astype(np.int32), dtype=wp.int32, device=device)
+        epoch_loss = wp.zeros(1, dtype=float, device=device)
+        for start in range(0, total, batch):
+            count = min(batch, total - start)
+            loss.zero_()
+            tape = wp.Tape()
+            with tape:
+                samples = order[start : start + count]
+                buffers.run(samples, count, pixels, codes, light_array, weights, device)
+                wp.launch(squared_error, dim=count, inputs=[samples, count, pixels, buffers.values, target_array, 1.0 / count], outputs=[loss], device=device)
+            tape.backward(loss)
+            optimizer.step(grads)
+            tape.zero()
+            _accumulate(epoch_loss, loss, device)
+        steps = -(-total // batch)
+        history.append(float(epoch_loss.numpy()[0]) / steps)
+        if log:
+            log(f"epoch {epoch + 1}/{epochs}: mse {history[-1]:.3e} (lr {optimizer.lr:.1e}, {time.perf_counter() - started:.1f} s)")
+        if seconds is not None and time.perf_counter() - started > seconds:
+            break
+    model = NeuralDecoder(codes.numpy().copy(), [w.numpy().copy() for w in weights])
+    return model, history
+
+
+@wp.kernel
+def _add(total: wp.array[float], value: wp.array[float]):
+    """total += value (one thread): an epoch's loss summed on the device, read once an epoch."""
+    total[0] = total[0] + value[0]
+
+
+def _accumulate(total, value, device) -> None:
+    wp.launch(_add, dim=1, inputs=[total, value], device=device)

@@ -1,0 +1,99 @@
+"""The learned residual's kernels (``kernels.neural``) against float64 NumPy: values, tape gradients
+against central differences, and training that lowers the loss."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import reference
+import warp as wp
+from warp_highlights.kernels import neural
+
+
+def _problem(seed=0, lights=6, pixels=70):
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(lights, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    targets = rng.uniform(0.0, 1.0, (lights, pixels, 3)).astype(np.float32)
+    return directions, targets
+
+
+def test_decode_matches_reference(device):
+    directions, targets = _problem()
+    model = neural.initial_model(targets, seed=3)
+    got = neural.decode(model, directions, device=device, batch=100)  # several batches, the last one padded
+    want = reference.neural_decoder(model.codes, model.weights, directions)
+    np.testing.assert_allclose(got, want, atol=2e-5, rtol=1e-4)
+
+
+def test_initial_codes_are_the_leading_components():
+    directions, targets = _problem(pixels=200)
+    codes = neural.initial_model(targets).codes
+    assert codes.shape == (200, neural.CODE_SIZE)
+    np.testing.assert_allclose(codes.std(axis=0), 1.0, rtol=1e-4)
+    np.testing.assert_allclose(codes.T @ codes / 200, np.eye(neural.CODE_SIZE), atol=1e-4)  # uncorrelated: principal components
+
+
+def test_tape_gradients_match_central_differences(device):
+    directions, targets = _problem(seed=1, lights=5, pixels=40)
+    model = neural.initial_model(targets, seed=2)
+    codes, weights = neural._arrays(model, device, True)
+    pixels = len(model.codes)
+    total = len(directions) * pixels
+    batch = neural._Batch(neural._padded(total), device, True)
+    samples = wp.array(np.arange(total, dtype=np.int32), dtype=wp.int32, device=device)
+    loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
+    target_array = wp.array(targets, dtype=wp.vec3, device=device)
+    light_array = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device)
+    tape = wp.Tape()
+    with tape:
+        batch.run(samples, total, pixels, codes, light_array, weights, device)
+        wp.launch(neural.squared_error, dim=total, inputs=[samples, total, pixels, batch.values, target_array, 1.0 / total], outputs=[loss], device=device)
+    tape.backward(loss)
+
+    params = [model.codes.astype(np.float64)] + [w.astype(np.float64) for w in model.weights]
+
+    def mse(values):
+        return np.mean(np.sum((reference.neural_decoder(values[0], values[1:], directions) - targets) ** 2, axis=-1))
+
+    assert loss.numpy()[0] == pytest.approx(mse(params), rel=1e-5)
+    arrays = [codes, *weights]
+    rng = np.random.default_rng(0)
+    for which in range(len(params)):
+        gradient = arrays[which].grad.numpy()
+        for _ in range(2):
+            index = tuple(rng.integers(0, s) for s in params[which].shape)
+            step = 1e-4
+            plus = [p.copy() for p in params]
+            minus = [p.copy() for p in params]
+            plus[which][index] += step
+            minus[which][index] -= step
+            numeric = (mse(plus) - mse(minus)) / (2 * step)
+            assert gradient[index] == pytest.approx(numeric, rel=2e-3, abs=2e-6), (which, index)
+
+
+def test_training_learns_a_smooth_reflectance(device):
+    """Lambertian pixels with random normals and albedos: 150 epochs fit them far below their variance."""
+    rng = np.random.default_rng(4)
+    lights = rng.normal(size=(12, 3))
+    lights[:, 2] = np.abs(lights[:, 2]) + 0.3
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    normals = rng.normal(size=(64, 3)) * [0.4, 0.4, 1.0]
+    normals[:, 2] = np.abs(normals[:, 2])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    albedo = rng.uniform(0.2, 0.9, (64, 3))
+    targets = neural.encode_display(np.clip(lights @ normals.T, 0.0, None)[..., None] * albedo[None]).astype(np.float32)
+    model, history = neural.train_decoder(targets, lights, device=device, epochs=150, batch=192, lr=1e-2, final_lr=1e-3)
+    assert len(history) == 150 and np.all(np.isfinite(history))
+    variance = float(np.mean(np.sum((targets - targets.mean(axis=(0, 1))) ** 2, axis=-1)))
+    assert history[-1] < 0.05 * variance
+    decoded = neural.decode(model, lights, device=device)
+    assert np.mean(np.sum((decoded - targets) ** 2, axis=-1)) < 0.05 * variance
+
+
+def test_display_encoding_round_trips():
+    values = np.array([-2.0, -0.5, -1e-3, 0.0, 1e-4, 0.002, 0.2, 0.9])
+    encoded = neural.encode_display(values)
+    assert np.all(np.diff(encoded) > 0) and encoded[3] == 0.0
+    inside = np.abs(values) <= 1
+    np.testing.assert_allclose(neural.decode_display(encoded)[inside], values[inside], rtol=1e-5, atol=1e-7)
