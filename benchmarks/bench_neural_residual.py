@@ -35,6 +35,7 @@ from warp_highlights.fit.pipeline import fit_field  # noqa: E402
 from warp_highlights.fit.residual import gaussian_bytes, render_own  # noqa: E402
 from warp_highlights.io.fieldfile import save_field  # noqa: E402
 from warp_highlights.io.images import linear_to_srgb, srgb_to_linear  # noqa: E402
+from warp_highlights.model.residual import decode_display as neural_decode_display  # noqa: E402
 from warp_highlights.relight.baselines import fit_baseline  # noqa: E402
 from warp_highlights.relight.evaluation import resize_stack, srgb_scores  # noqa: E402
 from warp_highlights.relight.relighter import Relighter  # noqa: E402
@@ -93,7 +94,7 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
         t = time.perf_counter()
         decoded = neural.decode(model, queries, device=device)
         decode_seconds = (time.perf_counter() - t) / len(queries)
-        stack = neural.decode_display(decoded).reshape(len(queries), height, width, 3) + add
+        stack = neural_decode_display(decoded).reshape(len(queries), height, width, 3) + add
         extra = {"train_seconds": train_seconds, "epochs": len(history), "final_mse": history[-1], "decode_seconds_per_image": decode_seconds}
         gaussians = gaussian_bytes(field.estimated, field.retargeted) / pixels if label.startswith("neural residual") else 0.0
         score(label, stack, model.stored_bytes_per_pixel + gaussians, extra)

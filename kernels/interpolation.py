@@ -33,6 +33,7 @@ __all__ = [
     "DIFFUSE_NONE",
     "arc_position",
     "DIFFUSE_LOWRANK",
+    "DIFFUSE_DECODED",
     "blend_images",
     "compose_images",
     "interpolate_gaussians",
@@ -47,6 +48,8 @@ DIFFUSE_BLEND = 2
 """``compose_images`` mode: D' = barycentric blend of the three corner lights' images."""
 DIFFUSE_LOWRANK = 3
 """``compose_images`` mode: the low-rank residual (luminance, and chroma for colour)."""
+DIFFUSE_DECODED = 4
+"""``compose_images`` mode: a residual already decoded per query (the learned residual), ``diffuse_images[q]``."""
 
 # luminance weights of the opponent colour split, for the chroma decode
 _WR = wp.constant(LUMINANCE_WEIGHTS[0])
@@ -278,7 +281,7 @@ def compose_images(
     ``diffuse_images[light, i, c]`` (the residual images, or diffuse images); ``DIFFUSE_LOWRANK`` the
     low-rank residual: luminance Y = m mean + sum_j coefficient_j basis_j (m and the coefficients:
     the query's blend of the per-light weights, ``luminance_weights[q]`` = (coefficients..., m)), chroma (B - Y, R - Y) likewise when there are three channels, both
-    times ``residual_scale[i]`` (one entry: 1 everywhere). S' is
+    times ``residual_scale[i]`` (one entry: 1 everywhere); ``DIFFUSE_DECODED`` ``diffuse_images[q, i, c]``. S' is
     added only when ``add_specular`` is set; c_i is ``pixel_colour[i]`` (row 0 when it has one row).
     """
     q, t = wp.tid()
@@ -314,6 +317,8 @@ def compose_images(
                 value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
             elif diffuse_mode == DIFFUSE_BLEND:
                 value = w[0] * float(diffuse_images[corner0, i, c]) + w[1] * float(diffuse_images[corner1, i, c]) + w[2] * float(diffuse_images[corner2, i, c])
+            elif diffuse_mode == DIFFUSE_DECODED:
+                value = float(diffuse_images[q, i, c])
             elif diffuse_mode == DIFFUSE_LOWRANK:
                 value = y
                 if channels == 3:

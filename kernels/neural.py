@@ -20,11 +20,13 @@ import numpy as np
 import warp as wp
 import warp.optim
 
-__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "decode", "decode_display", "encode_display", "initial_model", "train_decoder"]
+from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 
-CODE_SIZE = wp.constant(9)
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "QueryDecoder", "decode", "encode_display", "initial_model", "train_decoder"]
+
+CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
-HIDDEN = wp.constant(48)
+HIDDEN = wp.constant(NEURAL_LAYER_SHAPES[0][0])
 """Units of each of the three hidden layers (NeuralRTI: 50)."""
 INPUTS = wp.constant(12)  # code + light direction
 OUTPUTS = wp.constant(3)
@@ -38,12 +40,15 @@ def elu(x: float):
 
 
 @wp.kernel
-def gather_features(samples: wp.array[wp.int32], count: int, pixels: int, codes: wp.array2d[float], lights: wp.array[wp.vec3],
+def gather_features(samples: wp.array[wp.int32], first: int, count: int, pixels: int, codes: wp.array2d[float], lights: wp.array[wp.vec3],
                     features: wp.array2d[float]):
-    """Column i of ``features`` (INPUTS, padded batch): sample s = samples[i] = light * pixels + pixel as
-    [code of the pixel, light direction]; padding columns (i >= count) repeat the last sample."""
+    """Column i of ``features`` (INPUTS, padded batch): sample s = samples[i] (or first + i when
+    ``samples`` is empty) = light * pixels + pixel as [code of the pixel, light direction]; padding
+    columns (i >= count) repeat the last sample."""
     i = wp.tid()
-    s = samples[wp.min(i, count - 1)]
+    s = first + wp.min(i, count - 1)
+    if samples.shape[0] > 0:
+        s = samples[wp.min(i, count - 1)]
     light = s / pixels
     pixel = s - light * pixels
     for k in range(CODE_SIZE):
@@ -100,13 +105,6 @@ def encode_display(linear: np.ndarray) -> np.ndarray:
     return (np.sign(linear) * encoded).astype(np.float32)
 
 
-def decode_display(encoded: np.ndarray) -> np.ndarray:
-    """Inverse of ``encode_display`` (values beyond 1 extrapolate the curve)."""
-    x = np.abs(encoded)
-    linear = np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
-    return np.sign(encoded) * linear
-
-
 def _padded(count: int) -> int:
     return max(BLOCK, -(-count // BLOCK) * BLOCK)
 
@@ -125,8 +123,8 @@ class _Batch:
         self.features = wp.zeros((INPUTS, size), dtype=float, device=device, requires_grad=requires_grad)
         self.values = wp.zeros((OUTPUTS, size), dtype=float, device=device, requires_grad=requires_grad)
 
-    def run(self, samples, count: int, pixels: int, codes, lights, weights, device) -> None:
-        wp.launch(gather_features, dim=self.size, inputs=[samples, count, pixels, codes, lights], outputs=[self.features], device=device)
+    def run(self, samples, count: int, pixels: int, codes, lights, weights, device, first: int = 0) -> None:
+        wp.launch(gather_features, dim=self.size, inputs=[samples, first, count, pixels, codes, lights], outputs=[self.features], device=device)
         wp.launch_tiled(decoder_tiles, dim=[self.size // BLOCK], inputs=[self.features, *weights], outputs=[self.values], block_dim=BLOCK, device=device)
 
 
@@ -140,12 +138,60 @@ def decode(model: NeuralDecoder, lights: np.ndarray, *, device=None, batch: int 
     total = len(lights) * pixels
     out = np.empty((total, 3), np.float32)
     buffers = _Batch(_padded(min(batch, total)), device, False)
+    no_samples = wp.empty(0, dtype=wp.int32, device=device)
     for start in range(0, total, batch):
         count = min(batch, total - start)
-        samples = wp.array(np.arange(start, start + count, dtype=np.int32), dtype=wp.int32, device=device)
-        buffers.run(samples, count, pixels, codes, light_array, weights, device)
+        buffers.run(no_samples, count, pixels, codes, light_array, weights, device, first=start)
         out[start : start + count] = buffers.values.numpy()[:, :count].T
     return out.reshape(len(lights), pixels, 3)
+
+
+@wp.kernel
+def store_decoded(values: wp.array2d[float], first: int, count: int, pixels: int, unit: float, out: wp.array3d[wp.float16]):
+    """out[q, pixel, c] = unit * decoded sRGB of values[c, i] for sample first + i = q * pixels + pixel,
+    clipped to float16's range: the learned residual in the field's units for the compose kernel."""
+    i = wp.tid()
+    if i < count:
+        s = first + i
+        q = s / pixels
+        pixel = s - q * pixels
+        for c in range(3):
+            v = values[c, i]
+            x = wp.abs(v)
+            linear = x / 12.92
+            if x > 0.04045:
+                linear = wp.pow((x + 0.055) / 1.055, 2.4)
+            out[q, pixel, c] = wp.float16(wp.clamp(wp.sign(v) * linear * unit, -6.0e4, 6.0e4))
+
+
+class QueryDecoder:
+    """A learned residual on one device, decoded for batches of query directions into float16 images.
+
+    Args:
+        codes: (P, CODE_SIZE) float32 per output pixel; weights: the eight arrays; unit: field units per
+        display unit; batch: samples per launch (bounds the working memory: 60 bytes a sample).
+    """
+
+    def __init__(self, codes: np.ndarray, weights, unit: float, *, device=None, batch: int = 1 << 20):
+        self.device = wp.get_device(device)
+        self.pixels = len(codes)
+        self.unit = float(unit)
+        self.batch = int(batch)
+        self.codes = wp.array(np.ascontiguousarray(codes, np.float32), dtype=float, device=self.device)
+        self.weights = [wp.array(np.ascontiguousarray(w, np.float32), dtype=float, device=self.device) for w in weights]
+        self._buffers = None
+        self._no_samples = wp.empty(0, dtype=wp.int32, device=self.device)
+
+    def decode(self, directions: wp.array, out: wp.array) -> None:
+        """(Q,) vec3 unit directions -> out (Q, P, 3) float16, field units."""
+        total = directions.shape[0] * self.pixels
+        size = _padded(min(self.batch, total))
+        if self._buffers is None or self._buffers.size < size:
+            self._buffers = _Batch(size, self.device, False)
+        for start in range(0, total, self.batch):
+            count = min(self.batch, total - start)
+            self._buffers.run(self._no_samples, count, self.pixels, self.codes, directions, self.weights, self.device, first=start)
+            wp.launch(store_decoded, dim=count, inputs=[self._buffers.values, start, count, self.pixels, self.unit], outputs=[out], device=self.device)
 
 
 def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:

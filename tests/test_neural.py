@@ -1,5 +1,6 @@
-"""The learned residual's kernels (``kernels.neural``) against float64 NumPy: values, tape gradients
-against central differences, and training that lowers the loss."""
+"""The learned residual (``kernels.neural``, ``fit --residual learned``) against float64 NumPy: values,
+tape gradients against central differences, training that lowers the loss, and a learned field fitted,
+saved, loaded and relit as the reference says."""
 
 from __future__ import annotations
 
@@ -7,7 +8,12 @@ import numpy as np
 import pytest
 import reference
 import warp as wp
+from conftest import FAST_FIT
 from warp_highlights.kernels import neural
+
+from warp_highlights.fit.residual import learn_residual
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, ResidualModel, decode_display
 
 
 def _problem(seed=0, lights=6, pixels=70):
@@ -96,4 +102,58 @@ def test_display_encoding_round_trips():
     encoded = neural.encode_display(values)
     assert np.all(np.diff(encoded) > 0) and encoded[3] == 0.0
     inside = np.abs(values) <= 1
-    np.testing.assert_allclose(neural.decode_display(encoded)[inside], values[inside], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(decode_display(encoded)[inside], values[inside], rtol=1e-5, atol=1e-7)
+
+
+def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp_path):
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.io.fieldfile import load_field, save_field
+    from warp_highlights.model.config import FitSettings
+    from warp_highlights.relight.relighter import Relighter
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.learned=true", "residual.learned_epochs=2"])
+    field = fit_field(dataset, device="cpu", settings=settings, progress=False)
+    learned = field.residual.learned
+    assert learned is not None and field.residual.images is None and field.residual.luminance is None
+    assert field.report["residual"]["learned"]["epochs"] == 2
+    assert learned.unit == pytest.approx(field.exposure) and learned.codes.shape == (field.height, field.width, neural.CODE_SIZE)
+    path = tmp_path / "learned.whf"
+    save_field(field, path)
+    loaded = load_field(path)
+    np.testing.assert_array_equal(loaded.residual.learned.codes, learned.codes)
+    for got, want in zip(loaded.residual.learned.weights, learned.weights):
+        np.testing.assert_array_equal(got, want)
+    directions = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86], [0.0, -0.7, 0.71]])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    relit = Relighter(loaded, device="cpu").relight(directions)
+    highlights = Relighter(loaded, device="cpu", diffuse="none").relight(directions).full
+    want = np.clip(loaded.residual.learned.images(directions) + highlights, 0.0, None)
+    assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0
+    np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))  # the decoded residual passes through float16
+
+
+def test_learned_residual_needs_colour_images():
+    from warp_highlights.model.config import ResidualSettings
+
+    with pytest.raises(InputError, match="colour"):
+        learn_residual(np.zeros((4, 8, 8, 1), np.float32), np.zeros((4, 8, 8), np.float32), None, np.eye(3)[[0, 1, 2, 2]], factor=1.0,
+                       settings=ResidualSettings(learned=True), device="cpu")
+
+
+def test_learned_residual_checks_its_arrays():
+    weights = tuple(np.zeros(shape, np.float32) for shape in NEURAL_LAYER_SHAPES)
+    good = NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, 2.0, 7)
+    model = ResidualModel(learned=good)
+    assert (model.height, model.width, model.channels, model.light_count, model.compressed) == (4, 5, 3, 7, False)
+    with pytest.raises(InputError, match="codes"):
+        NeuralResidual(np.zeros((4, 5, 8), np.float16), weights, 2.0, 7)
+    with pytest.raises(InputError, match="weight arrays"):
+        NeuralResidual(np.zeros((4, 5, 9), np.float16), weights[:-1], 2.0, 7)
+    with pytest.raises(InputError, match="unit"):
+        NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, -1.0, 7)
+    with pytest.raises(InputError, match="exactly one"):
+        ResidualModel(images=np.zeros((7, 4, 5, 3), np.float16), learned=good)
+    with pytest.raises(InputError, match="per query"):
+        model.light_images(np.eye(7)[:1])

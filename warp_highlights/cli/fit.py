@@ -33,10 +33,11 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
                         help="fit without lights 0, K, 2K, ... of the dataset, to score them later (evaluate FIELD DATASET)")
     parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
-    parser.add_argument("--residual", choices=["lowrank", "images", "none"], default="lowrank",
+    parser.add_argument("--residual", choices=["lowrank", "images", "learned", "none"], default="lowrank",
                         help="what relighting adds the moved highlights to: the images minus their own highlights, compressed to "
                         "low-rank 8-bit bases (default, about a fifth of the 8-bit capture), uncompressed float16 images "
-                        "(exact at the captured lights), or none (then use --diffuse)")
+                        "(exact at the captured lights), learned (9 numbers per pixel and an MLP, trained for up to "
+                        "residual.learned_seconds: for a GPU), or none (then use --diffuse)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
@@ -73,6 +74,8 @@ def _run_fit(args) -> int:
     overrides = list(args.overrides)
     if args.residual == "images":
         overrides.insert(0, "residual.compressed=false")
+    elif args.residual == "learned":
+        overrides.insert(0, "residual.learned=true")
     settings = FitSettings().with_overrides(overrides)
     if args.list_settings:
         _print_settings(settings.to_dict())
@@ -144,7 +147,7 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     if residual:
         kind = (f"low rank (luminance {residual['luminance_rank']}" + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
                 + f", {residual['basis_bits']}-bit)"
-                if residual["compressed"] else "uncompressed images")
+                if residual["compressed"] else f"learned ({residual['learned']['epochs']} epochs)" if residual.get("learned") else "uncompressed images")
         print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
         check = residual.get("move_check") or {}

@@ -28,7 +28,7 @@ from ..model.gaussians import GaussianParams
 from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
-from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, render_own
+from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
@@ -101,6 +101,7 @@ def fit_field(
     kept, kept_retargeted = source, sets  # the Gaussians the field keeps
     path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
     residual_model = None
+    learned_history = None
     support_median = None
     check = None
     if residual:
@@ -125,8 +126,13 @@ def fit_field(
             moving = np.zeros((len(source.active), 1), dtype=bool)
             path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
             own, colour = np.zeros_like(own), None
-        with timer.stage("residual compression"):
-            residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
+        if settings.residual.learned:
+            with timer.stage("learned residual"):
+                residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
+                                                                 settings=settings.residual, device=device, log=log)
+        else:
+            with timer.stage("residual compression"):
+                residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
 
     diffuse_model = None
     if diffuse != "none":
@@ -176,6 +182,7 @@ def fit_field(
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if residual_model.compressed else None,
             "highlight_colour": residual_model.highlight_colour is not None,
+            "learned": None if learned_history is None else {"epochs": len(learned_history), "final_mse": float(learned_history[-1])},
         },
         "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},
         "per_light": {"gaussians": counts.tolist(), "psnr_db": np.round(estimated.psnr, 3).tolist()},

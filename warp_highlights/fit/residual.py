@@ -24,13 +24,16 @@ import numpy as np
 import warp as wp
 
 from ..io.images import linear_to_srgb
+from ..kernels.neural import encode_display, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
+from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.residual import (
     LUMINANCE_WEIGHTS,
     LowRankStack,
+    NeuralResidual,
     PrincipalImages,
     ResidualModel,
     code_levels,
@@ -40,7 +43,7 @@ from ..model.residual import (
     to_opponent,
 )
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "quantised_bytes", "render_own", "residual_scale"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "render_own", "residual_scale"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -57,6 +60,7 @@ _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field 
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
+_EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
 
 
@@ -302,3 +306,21 @@ def residual_scale(luminance: np.ndarray) -> np.ndarray:
     ``SCALE_FLOOR``, rounded to float16 as the file keeps it."""
     rms = np.sqrt(np.mean(np.square(luminance, dtype=np.float64), axis=0))
     return np.maximum(rms, SCALE_FLOOR).astype(np.float16).astype(np.float32)
+
+
+def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,
+                   settings: ResidualSettings, device, log=None) -> tuple[ResidualModel, list[float]]:
+    """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
+    own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
+    display units (the field's units over ``factor``) at the (n, 3) light directions, for
+    ``settings.learned_seconds`` or ``learned_epochs`` at most. Returns it and the loss per epoch."""
+    images = np.asarray(images, dtype=np.float32)
+    if images.ndim != 4 or images.shape[3] != 3:
+        raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
+    n, height, width, _ = images.shape
+    tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
+    targets = encode_display((images - own[..., None] * tint[None]) / np.float32(factor)).reshape(n, height * width, 3)
+    say = (lambda message: log(f"learned residual: {message}") if message.startswith(_EVERY_FEW_EPOCHS) else None) if log else None
+    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), seconds=float(settings.learned_seconds), log=say)
+    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
+    return ResidualModel(learned=learned, highlight_colour=colour), history

@@ -36,6 +36,10 @@ entry                           dtype, shape     contents
 ``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
 ``residual/colour.npy``         <u1 (C, H, W)    optional: highlight colour c(x), code x COLOUR_STEP
 ``residual/scale.npy``          <f2 (H, W)       optional: per-pixel scale s(x) of the low-rank stacks
+``residual/learned_codes.npy``  <f2 (9, H, W)    version 3, optional: a learned residual's per-pixel
+                                                 codes (header ``residual.learned``: unit, lights)
+``residual/learned_w0.npy``,    <f4              its MLP's weights and biases (``model.residual.
+``..._b0``, ... ``..._b3``                       NEURAL_LAYER_SHAPES``)
 ==============================  ===============  =================================================
 
 (The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
@@ -48,6 +52,8 @@ the constructor clears them in the same way, so a saved and loaded field equals 
 
 Version 1 (before residual transfer) has no ``gaussians/moving`` and no ``residual/`` entries; it
 loads with every Gaussian moving and no residual (relighting then uses its diffuse model).
+
+Version 2 files have no learned residual; they load unchanged.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -68,7 +74,15 @@ from ..model.errors import InputError
 from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
 from ..model.lights import LightSet
-from ..model.residual import LowRankStack, ResidualModel, colour_codes, colour_from_codes
+from ..model.residual import (
+    NEURAL_CODE_SIZE,
+    NEURAL_LAYER_SHAPES,
+    LowRankStack,
+    NeuralResidual,
+    ResidualModel,
+    colour_codes,
+    colour_from_codes,
+)
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 
@@ -77,7 +91,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_f
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _HEADER = "header.json"
@@ -95,6 +109,8 @@ _MOVING = "gaussians/moving.npy"
 _RESIDUAL_IMAGES = "residual/images.npy"
 _RESIDUAL_COLOUR = "residual/colour.npy"
 _RESIDUAL_SCALE = "residual/scale.npy"
+_LEARNED_CODES = "residual/learned_codes.npy"
+_LEARNED_WEIGHTS = tuple(f"residual/learned_{kind}{layer}.npy" for layer in range(4) for kind in ("w", "b"))
 _STACK_PREFIX = {"luminance": "residual/Y_", "chroma": "residual/C_"}
 
 _PARAMETER_COLUMNS = ("amplitude", "mean_x", "mean_y", "sigma_x", "sigma_y", "theta")
@@ -266,6 +282,12 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     layout = {"channels": residual.channels, "compressed": residual.compressed, "highlight_colour": residual.highlight_colour is not None,
               "scale": residual.scale is not None}
     arrays = []
+    layout["learned"] = None
+    if residual.learned is not None:
+        learned = residual.learned
+        layout["learned"] = {"unit": learned.unit, "lights": learned.light_count}
+        arrays.append((_LEARNED_CODES, learned.codes.transpose(2, 0, 1).astype("<f2")))
+        arrays += [(name, weight.astype("<f4")) for name, weight in zip(_LEARNED_WEIGHTS, learned.weights)]
     if residual.images is not None:
         arrays.append((_RESIDUAL_IMAGES, residual.images.transpose(0, 3, 1, 2).astype("<f2")))
     for name in ("luminance", "chroma"):
@@ -696,14 +718,25 @@ def _build_field(
 
 
 def _read_residual(path: Path, layout, read, n: int, height: int, width: int) -> ResidualModel:
-    """The residual model of a version-2 file, from its header layout and entries."""
+    """The residual model of a version-2 or -3 file, from its header layout and entries."""
     if not isinstance(layout, dict):
         raise _corrupt(path, "header entry 'residual' must be null or a JSON object")
     channels = _header_int(path, layout, "channels", 1, 3)
     compressed = _header_value(path, layout, "compressed", (bool,), "true or false")
     with_colour = _header_value(path, layout, "highlight_colour", (bool,), "true or false")
-    images, stacks = None, {}
-    if not compressed:
+    images, stacks, learned = None, {}, None
+    if layout.get("learned") is not None:
+        part = layout["learned"]
+        if not isinstance(part, dict) or not isinstance(part.get("unit"), (int, float)) or not math.isfinite(part["unit"]) or part["unit"] <= 0:
+            raise _corrupt(path, "header entry residual.learned must be null or hold a unit > 0 and a light count")
+        lights = _header_int(path, part, "lights", 1, 10**7)
+        codes = read(_LEARNED_CODES, "<f2", (NEURAL_CODE_SIZE, height, width)).transpose(1, 2, 0)
+        weights = tuple(read(name, "<f4", shape) for name, shape in zip(_LEARNED_WEIGHTS, NEURAL_LAYER_SHAPES))
+        try:
+            learned = NeuralResidual(codes, weights, float(part["unit"]), lights)
+        except InputError as exc:
+            raise _corrupt(path, str(exc)) from None
+    elif not compressed:
         images = read(_RESIDUAL_IMAGES, "<f2", (n, channels, height, width)).transpose(0, 2, 3, 1)
     else:
         for name, planes in (("luminance", 1), ("chroma", 2)):
@@ -736,7 +769,8 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int) ->
     if with_colour:
         colour = colour_from_codes(read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0))
     try:
-        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
+        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale,
+                             learned=learned)
     except InputError as exc:
         raise _corrupt(path, str(exc)) from None
 

@@ -407,6 +407,16 @@ class ResidualSettings:
             (metals, coloured plastics); False keeps white highlights.
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
+        learned: learn the residual (``kernels.neural``: 9 numbers per pixel and an MLP of code +
+            direction, NeuralRTI's model) instead of compressing it; for a GPU (an epoch of the
+            statue sample at 567x534 takes 1.3 s on an H100, its 283x267 about 20 s on a 2-core CPU).
+            On the H100 (benchmarks/README.md): statue 32.92 dB against the alpha blend's 32.06, the
+            250-light donut 41.35 against 38.54 with the low-rank residual, the dome sample 41.02
+            against 41.69 (with its Gaussians; learned alone, 48.00). Off by default.
+        learned_seconds: the learned residual's training time at most, seconds: 120 took the donut
+            and the dome to 41.35 and 41.02 dB, the statue scored 32.92 after 300.
+        learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them);
+            400, so that ``learned_seconds`` ends training on any capture bigger than the dome.
     """
 
     compressed: bool = True
@@ -420,6 +430,9 @@ class ResidualSettings:
     check_lights: int = 48
     highlight_colour: bool = True
     colour_prior: float = 0.01
+    learned: bool = False
+    learned_seconds: float = 120.0
+    learned_epochs: int = 400
 
     def __post_init__(self):
         _require(math.isfinite(self.size_budget) and 0 < self.size_budget <= 10, f"size_budget must be in (0, 10], got {self.size_budget}")
@@ -431,6 +444,8 @@ class ResidualSettings:
         _require(math.isfinite(self.move_support) and 0 <= self.move_support <= 1, f"move_support must be in [0, 1], got {self.move_support}")
         _require(0 <= int(self.check_lights) <= 100000, f"check_lights must be in [0, 100000], got {self.check_lights}")
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0, f"colour_prior must be > 0, got {self.colour_prior}")
+        _require(math.isfinite(self.learned_seconds) and self.learned_seconds > 0, f"learned_seconds must be > 0, got {self.learned_seconds}")
+        _require(1 <= int(self.learned_epochs) <= 100000, f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
 
 
 @dataclass(frozen=True)

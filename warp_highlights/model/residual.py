@@ -16,6 +16,10 @@ two ways:
   brightness, as the eye (and 8-bit sRGB) sees it, instead of letting bright pixels take all of it;
   dark backgrounds stay dark. The basis images are kept as 8- or 16-bit codes with a per-image range, and
   s(x) as float16, exactly as the field file stores them.
+- **learned** (``fit --residual neural``, for a GPU): a :class:`NeuralResidual`, a code of 9 numbers
+  per pixel and a small MLP that decodes code + query direction to the residual directly (NeuralRTI's
+  model, ``kernels.neural``); no barycentric blend of residuals, so a captured light is given back
+  only as well as the model learned it.
 
 All values are in the field's units (the fit's exposure applied).
 """
@@ -29,7 +33,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "NeuralResidual", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -256,6 +260,65 @@ def _normalised(flat: np.ndarray, light_scale: np.ndarray | None) -> np.ndarray:
     return flat / light_scale[:, None]
 
 
+NEURAL_CODE_SIZE = 9
+"""Numbers per pixel of a learned residual (``kernels.neural.CODE_SIZE``)."""
+NEURAL_LAYER_SHAPES = ((48, 12), (48, 1), (48, 48), (48, 1), (48, 48), (48, 1), (3, 48), (3, 1))
+"""Shapes of a learned residual's weights w0, b0, ..., w3, b3 (``kernels.neural``)."""
+
+
+def decode_display(encoded: np.ndarray) -> np.ndarray:
+    """Linear values of signed-sRGB-encoded ones: sign(v) srgb^-1(|v|) (the learned residual's output)."""
+    x = np.abs(encoded)
+    return np.sign(encoded) * np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+
+
+@dataclass(frozen=True, eq=False)
+class NeuralResidual:
+    """A learned residual: R(x, w) = unit * decode_display(MLP(code(x), w)), field units, RGB.
+
+    Attributes:
+        codes: (H, W, 9) float16 per-pixel codes.
+        weights: the MLP's eight float32 arrays (``NEURAL_LAYER_SHAPES``).
+        unit: field units per display unit (the fit's exposure factor).
+        light_count: lights it was trained on.
+    """
+
+    codes: np.ndarray
+    weights: tuple
+    unit: float
+    light_count: int
+
+    def __post_init__(self):
+        codes = finite_array(self.codes, np.float16, "learned residual codes")
+        if codes.ndim != 3 or codes.shape[2] != NEURAL_CODE_SIZE:
+            raise InputError(f"learned residual codes must have shape (H, W, {NEURAL_CODE_SIZE}), got {codes.shape}")
+        if len(self.weights) != len(NEURAL_LAYER_SHAPES):
+            raise InputError(f"a learned residual has {len(NEURAL_LAYER_SHAPES)} weight arrays, got {len(self.weights)}")
+        weights = tuple(finite_array(w, np.float32, "learned residual weights") for w in self.weights)
+        for w, shape in zip(weights, NEURAL_LAYER_SHAPES):
+            if w.shape != shape:
+                raise InputError(f"learned residual weights must have shapes {list(NEURAL_LAYER_SHAPES)}, got {[x.shape for x in weights]}")
+        if not (np.isfinite(self.unit) and self.unit > 0) or int(self.light_count) < 1:
+            raise InputError(f"a learned residual needs a unit > 0 and at least one light, got {self.unit} and {self.light_count}")
+        object.__setattr__(self, "codes", codes)
+        object.__setattr__(self, "weights", weights)
+        object.__setattr__(self, "unit", float(self.unit))
+        object.__setattr__(self, "light_count", int(self.light_count))
+
+    def images(self, directions) -> np.ndarray:
+        """(Q, H, W, 3) float64 residuals at (Q, 3) unit directions (the float64 reference of the relighter's decode)."""
+        w0, b0, w1, b1, w2, b2, w3, b3 = (w.astype(np.float64) for w in self.weights)
+        height, width, _ = self.codes.shape
+        codes = self.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float64)
+        elu = lambda v: np.where(v > 0, v, np.expm1(np.minimum(v, 0.0)))
+        out = []
+        for direction in np.asarray(directions, dtype=np.float64).reshape(-1, 3):
+            x = np.concatenate([codes, np.broadcast_to(direction, (len(codes), 3))], axis=1).T
+            y = w3 @ elu(w2 @ elu(w1 @ elu(w0 @ x + b0) + b1) + b2) + b3
+            out.append(self.unit * decode_display(y.T).reshape(height, width, 3))
+        return np.stack(out)
+
+
 @dataclass(frozen=True, eq=False)
 class ResidualModel:
     """The residual images R_i of a field's n lights (see the module docstring).
@@ -274,10 +337,13 @@ class ResidualModel:
     chroma: LowRankStack | None = None
     highlight_colour: np.ndarray | None = None
     scale: np.ndarray | None = None
+    learned: NeuralResidual | None = None
 
     def __post_init__(self):
-        if (self.images is None) == (self.luminance is None):
-            raise InputError("a residual model holds either the residual images or a low-rank luminance stack")
+        if sum(part is not None for part in (self.images, self.luminance, self.learned)) != 1:
+            raise InputError("a residual model holds exactly one of: the residual images, a low-rank luminance stack, a learned residual")
+        if self.learned is not None and (self.chroma is not None or self.scale is not None):
+            raise InputError("a learned residual takes no chroma stack and no scale")
         if self.images is not None:
             images = finite_array(self.images, np.float16, "residual images")
             if images.ndim != 4 or images.shape[3] not in (1, 3):
@@ -285,7 +351,7 @@ class ResidualModel:
             object.__setattr__(self, "images", images)
             if self.chroma is not None:
                 raise InputError("uncompressed residual images take no chroma stack")
-        else:
+        elif self.luminance is not None:
             lum = self.luminance
             if lum.mean.shape[2] != 1:
                 raise InputError(f"the residual luminance stack must have 1 plane, got {lum.mean.shape[2]}")
@@ -305,29 +371,40 @@ class ResidualModel:
 
     @property
     def compressed(self) -> bool:
-        return self.images is None
+        """True for a low-rank stack (not for uncompressed images, nor for a learned residual)."""
+        return self.luminance is not None
 
     @property
     def light_count(self) -> int:
+        if self.learned is not None:
+            return self.learned.light_count
         return len(self.images) if self.images is not None else len(self.luminance.weights)
 
     @property
     def height(self) -> int:
+        if self.learned is not None:
+            return self.learned.codes.shape[0]
         return (self.images.shape[1] if self.images is not None else self.luminance.mean.shape[0])
 
     @property
     def width(self) -> int:
+        if self.learned is not None:
+            return self.learned.codes.shape[1]
         return (self.images.shape[2] if self.images is not None else self.luminance.mean.shape[1])
 
     @property
     def channels(self) -> int:
         if self.images is not None:
             return self.images.shape[3]
+        if self.learned is not None:
+            return 3
         return 3 if self.chroma is not None else 1
 
     def describe(self) -> str:
         if self.images is not None:
             kind = f"{self.light_count} residual images (float16)"
+        elif self.learned is not None:
+            kind = f"learned ({NEURAL_CODE_SIZE} numbers per pixel and an MLP)"
         else:
             chroma = f" + chroma rank {self.chroma.rank}" if self.chroma is not None else ""
             kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"
@@ -340,6 +417,8 @@ class ResidualModel:
         blending them as the alpha blend does (values beyond float16's range are clipped to it)."""
         if self.images is not None:
             return self.images
+        if self.learned is not None:
+            raise InputError("a learned residual is decoded per query direction, not per captured light")
         n, height, width = self.light_count, self.height, self.width
         out = np.empty((n, height, width, self.channels), np.float16)
         scale = np.ones((height, width), np.float32) if self.scale is None else self.scale
@@ -356,6 +435,8 @@ class ResidualModel:
     def light_images(self, weights: np.ndarray) -> np.ndarray:
         """R~ for (Q, n) per-light blend weights: (Q, H, W, C) float64 (the float64 reference)."""
         weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+        if self.learned is not None:
+            raise InputError("a learned residual is decoded per query direction (learned.images), not blended from light weights")
         if self.images is not None:
             return np.einsum("qn,nhwc->qhwc", weights, self.images.astype(np.float64))
         scale = 1.0 if self.scale is None else self.scale.astype(np.float64)

@@ -30,6 +30,7 @@ import warp as wp
 
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
+from ..kernels.neural import QueryDecoder
 from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
@@ -104,6 +105,7 @@ class _DeviceQueries:
         self.specular = wp.empty((count, height, width), dtype=float, device=device)
         self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
         self.coefficients: dict[str, wp.array] = {}  # per-query blended low-rank weights, by stack
+        self.decoded = None  # (count, H W, 3) float16: a learned residual decoded for these queries, made on first use
         self.staging_specular = self.staging_full = None  # pinned host copies (CUDA), made on first use
 
 
@@ -177,7 +179,7 @@ class Relighter:
                 raise InputError(f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
             self.channels = self._alpha_images.shape[2]
             self._upload_colour()
-        pixel_bytes = 4 * self.height * self.width * (1 + self.channels)
+        pixel_bytes = 4 * self.height * self.width * (1 + self.channels) + (2 * 3 * self.height * self.width if self._learned is not None else 0)
         default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
@@ -222,6 +224,11 @@ class Relighter:
         images = np.zeros((1, 1, 1), dtype=np.float16)
         self._stacks = {name: _LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
         residual_scale = np.ones(1, np.float32)
+        self._learned = None
+        if self.diffuse == kernels.DIFFUSE_DECODED:
+            learned = residual.learned
+            codes = resample_image(learned.codes.astype(np.float32), self.width, self.height).reshape(-1, learned.codes.shape[2])
+            self._learned = QueryDecoder(codes, learned.weights, learned.unit, device=device)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
             lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
@@ -311,7 +318,13 @@ class Relighter:
             return buffers
         self.raster.render(buffers.sets, out=buffers.specular)
         if full:
-            self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=self._diffuse_images)
+            images = self._diffuse_images
+            if self._learned is not None:
+                if buffers.decoded is None:
+                    buffers.decoded = wp.empty((buffers.count, self.height * self.width, 3), dtype=wp.float16, device=self.device)
+                self._learned.decode(buffers.located, buffers.decoded)  # at the direction as located: clamped to a dome's rim
+                images = buffers.decoded
+            self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=images)
         return buffers
 
     def _locate(self, buffers: _DeviceQueries) -> None:
@@ -522,6 +535,8 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
     if diffuse == "residual":
         if residual is None:
             raise InputError("diffuse 'residual' needs a field fitted with a residual (fit --residual lowrank or images; fields before version 0.2 have none)")
+        if residual.learned is not None:
+            return kernels.DIFFUSE_DECODED, False
         return (kernels.DIFFUSE_LOWRANK, False) if residual.compressed else (kernels.DIFFUSE_BLEND, True)
     if model is None:
         raise InputError(f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")
