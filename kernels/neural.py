@@ -220,7 +220,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
                   final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None) -> tuple[NeuralDecoder, list[float]]:
     """Fit codes and weights to (n, P, 3) display-unit targets at (n, 3) lights: Adam on the mean
     squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
-    geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` have passed).
+    geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` have passed since
+    the first step, which compiles the kernels).
     Returns the model and the mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
@@ -237,7 +238,7 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     buffers = _Batch(_padded(min(batch, total)), device, True)
     rng = np.random.default_rng(seed)
     history = []
-    started = time.perf_counter()
+    started = None  # the clock starts once the first step has run: compiling the kernels (minutes on a fresh CUDA machine) is not training
     for epoch in range(epochs):
         optimizer.lr = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
         order = wp.array(rng.permutation(total).astype(np.int32), dtype=wp.int32, device=device)
@@ -254,6 +255,9 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
             optimizer.step(grads)
             tape.zero()
             _accumulate(epoch_loss, loss, device)
+            if started is None:
+                wp.synchronize_device(device)
+                started = time.perf_counter()
         steps = -(-total // batch)
         history.append(float(epoch_loss.numpy()[0]) / steps)
         if log:

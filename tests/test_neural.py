@@ -157,3 +157,10 @@ def test_learned_residual_checks_its_arrays():
         ResidualModel(images=np.zeros((7, 4, 5, 3), np.float16), learned=good)
     with pytest.raises(InputError, match="per query"):
         model.light_images(np.eye(7)[:1])
+
+
+def test_training_time_counts_from_the_first_step():
+    """``seconds`` bounds training after the first step (which compiles the kernels): a tiny bound runs one epoch."""
+    directions, targets = _problem(seed=5)
+    _, history = neural.train_decoder(targets, directions, device="cpu", epochs=50, batch=128, seconds=1e-9)
+    assert len(history) == 1

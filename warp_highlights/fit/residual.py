@@ -60,8 +60,8 @@ _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field 
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
-_EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
+_EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
 
 @dataclass(frozen=True)

@@ -329,6 +329,7 @@ class ResidualModel:
         chroma: ``LowRankStack`` of (B - Y, R - Y) (P = 2) for colour fields, else None.
         highlight_colour: (H, W, C) float32 c(x) >= 0 (luminance 1 for a grey highlight), or None (white).
         scale: (H, W) float32 s(x) > 0 multiplying the low-rank stacks, or None (1).
+        learned: a ``NeuralResidual`` instead of images or stacks, or None.
         channels: C, 1 or 3.
     """
 

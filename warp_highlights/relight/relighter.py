@@ -6,7 +6,8 @@ kernel launches: locate -> interpolate the Gaussian sets -> rasterize S' -> comp
 I' is residual transfer, I' = R~ + c(x) S': the captured images minus their own fitted highlights,
 blended with the query's barycentric weights, plus the moved highlights in the per-pixel highlight
 colour; so a captured light gives back its image, and what the Gaussians do not model blends like the
-alpha baseline. Every output is clamped at 0. Large batches run in chunks that bound the device memory.
+alpha baseline. A learned residual (``fit --residual learned``) is decoded instead for each query at its
+located direction (``kernels.neural.QueryDecoder``). Every output is clamped at 0. Large batches run in chunks that bound the device memory.
 
 Methods:
 
