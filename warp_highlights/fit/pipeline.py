@@ -127,9 +127,9 @@ def fit_field(
             path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
             own, colour = np.zeros_like(own), None
         if settings.residual.learned:
-            with timer.stage("learned residual"):
+            with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, 1, "cpu", 1) as advance:
                 residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
-                                                                 settings=settings.residual, device=device, log=log)
+                                                                 settings=settings.residual, device=device, log=log, progress=advance)
         else:
             with timer.stage("residual compression"):
                 residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
@@ -269,7 +269,8 @@ def _bar(enabled: bool, name: str, iterations: int, workers, device, problems: i
 
     chunk_count = len(problem_chunks(problems, device, workers))
     lock = threading.Lock()
-    with tqdm(total=iterations * chunk_count, desc=f"{name} ({problems} sets)", unit="step", leave=False, mininterval=0.5) as bar:
+    desc = f"{name} ({problems} sets)" if problems > 1 else name
+    with tqdm(total=iterations * chunk_count, desc=desc, unit="step", leave=False, mininterval=0.5) as bar:
 
         def advance(steps: int) -> None:
             with lock:

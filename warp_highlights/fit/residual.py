@@ -309,18 +309,25 @@ def residual_scale(luminance: np.ndarray) -> np.ndarray:
 
 
 def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,
-                   settings: ResidualSettings, device, log=None) -> tuple[ResidualModel, list[float]]:
+                   settings: ResidualSettings, device, log=None, progress=None) -> tuple[ResidualModel, list[float]]:
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most. Returns it and the loss per epoch."""
+    ``settings.learned_seconds`` or ``learned_epochs`` at most; ``progress(1)`` after each epoch, ``log``
+    a line now and then. Returns it and the loss per epoch."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[3] != 3:
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
     n, height, width, _ = images.shape
     tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
     targets = encode_display((images - own[..., None] * tint[None]) / np.float32(factor)).reshape(n, height * width, 3)
-    say = (lambda message: log(f"learned residual: {message}") if message.startswith(_EVERY_FEW_EPOCHS) else None) if log else None
+
+    def say(message: str) -> None:  # once an epoch
+        if progress is not None:
+            progress(1)
+        if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
+            log(f"learned residual: {message}")
+
     model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), seconds=float(settings.learned_seconds), log=say)
     learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
     return ResidualModel(learned=learned, highlight_colour=colour), history
