@@ -133,6 +133,15 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0
     np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))  # the decoded residual passes through float16
 
+    from test_field import load_error, rewrite
+
+    data = path.read_bytes()
+    broken = tmp_path / "broken.whf"
+    rewrite(data, broken, header=lambda h: {**h, "residual": {**h["residual"], "learned": {"unit": -1.0, "lights": 32}}})
+    assert "residual.learned" in load_error(broken)
+    rewrite(data, broken, drop=("residual/learned_w2.npy",))
+    assert "learned_w2" in load_error(broken)
+
 
 def test_learned_residual_needs_colour_images():
     from warp_highlights.model.config import ResidualSettings
