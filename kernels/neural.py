@@ -8,7 +8,8 @@ target, so that the squared error is the one 8-bit sRGB PSNR measures). Codes st
 leading principal components over all lights (a linear encoder), the weights at random.
 
 One launch covers a batch of (light, pixel) samples, ``BLOCK`` per tile block; the tape gives the
-gradients of the codes and of every weight; ``warp.optim.Adam`` steps them.
+gradients of the codes and of every weight; ``warp.optim.Adam`` steps them (``train_decoder``, used by
+``fit --residual learned``). ``QueryDecoder`` decodes a field's learned residual for the relighter.
 """
 
 from __future__ import annotations
