@@ -1,14 +1,15 @@
 """A learned residual (NeuralRTI-style, ``kernels.neural``) on the samples, next to the field's compressed
-residual, the alpha blend and RBF: full images at the held-out lights, and size per pixel.
+residual, the alpha blend, PTM, HSH and RBF: full images at the held-out lights, and size per pixel.
 
     python benchmarks/bench_neural_residual.py --device cuda:0 --seconds 90     # full-size samples
     python benchmarks/bench_neural_residual.py --scale cpu --seconds 60          # reduced sizes (slow)
 
-Per case the field is fitted with the defaults. Its residual's exact images R_i = I_i - c G_i (the
-captured images minus their own highlights, before compression) are learned as a code of 9 numbers
-per pixel and an MLP of code + light direction (``kernels.neural``, trained for ``--seconds``); the
-relit image is the decoded residual plus the field's moved highlights. "neural images" learns the
-captured images themselves (NeuralRTI on its own, no Gaussians). Scores: 8-bit sRGB PSNR and SSIM.
+Per case the field is fitted with the defaults and scored by ``evaluate_field`` with the baselines.
+Its residual's exact images R_i = I_i - c G_i (the captured images minus their own highlights, before
+compression) are then learned as ``fit --residual learned`` learns them (``fit.residual.learn_residual``:
+a code of 9 numbers per pixel and an MLP of code + light direction, trained for ``--seconds``) and
+relit by the relighter with the field's moving highlights. "learned images" learns the captured
+images themselves (NeuralRTI on its own, no Gaussians). Scores: 8-bit sRGB PSNR and SSIM.
 Writes $OUT/bench_neural_residual.json when OUT is set.
 """
 
@@ -20,6 +21,7 @@ import os
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,16 +30,13 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_quality import SIZES, load_case  # noqa: E402
+from bench_quality import BASELINES, SIZES, load_case  # noqa: E402
 from warp_highlights.kernels import neural  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
-from warp_highlights.fit.residual import gaussian_bytes, render_own  # noqa: E402
+from warp_highlights.fit.residual import gaussian_bytes, learn_residual, render_own  # noqa: E402
 from warp_highlights.io.fieldfile import save_field  # noqa: E402
-from warp_highlights.io.images import linear_to_srgb, srgb_to_linear  # noqa: E402
-from warp_highlights.model.residual import decode_display as neural_decode_display  # noqa: E402
-from warp_highlights.relight.baselines import fit_baseline  # noqa: E402
-from warp_highlights.relight.evaluation import resize_stack, srgb_scores  # noqa: E402
+from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
 from warp_highlights.relight.relighter import Relighter  # noqa: E402
 
 
@@ -52,52 +51,47 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
     field_bytes = save_field(field, scratch / f"{name}.whf")
     queries = dataset.heldout.lights.directions
     truth = resize_stack(dataset.heldout.images, width, height)
-    images = resize_stack(dataset.images, width, height).astype(np.float32)
-    lights = dataset.lights.directions
-
-    relit = Relighter(field, device=device, scale=1.0 / exposure).relight(queries, method="circular", full=True)
-    highlights = Relighter(field, device=device, scale=1.0 / exposure, diffuse="none").relight(queries, method="circular", full=True).full
-    blend = np.zeros((len(queries), field.light_count))
-    np.put_along_axis(blend, field.triangulation.faces[relit.faces], relit.barycentric, axis=1)
-    alpha = np.einsum("qn,nhwc->qhwc", blend, images)
-    values = linear_to_srgb(np.clip(images, 0.0, 1.0)) if dataset.display_referred else images
-    rbf = fit_baseline("rbf", values, lights, device=device).relight(queries)
-    rbf = srgb_to_linear(np.clip(rbf, 0.0, 1.0)) if dataset.display_referred else rbf
-
-    own = render_own(field.estimated, height, width, raster=field.fit_settings().raster, device=device)
-    colour = field.residual.highlight_colour if field.residual.highlight_colour is not None else np.ones((1, 1, 3), np.float32)
-    residual = images - own[..., None] * colour[None] / exposure  # display units
+    evaluation = evaluate_field(field, dataset, device=device, methods=("circular", "alpha"), barycentric_face=None, baselines=BASELINES)
     rows = {}
 
-    def score(label: str, stack: np.ndarray, bytes_per_pixel: float, extra: dict | None = None) -> None:
-        psnr, ssim = srgb_scores(np.clip(stack, 0.0, None).astype(np.float32), truth)
+    def add_row(label: str, psnr: np.ndarray, ssim: np.ndarray, bytes_per_pixel: float, extra: dict | None = None) -> None:
         rows[label] = {"psnr_srgb_mean": float(psnr.mean()), "psnr_srgb_worst": float(psnr.min()), "ssim_mean": float(ssim.mean()),
                        "ssim_worst": float(ssim.min()), "bytes_per_pixel": bytes_per_pixel, **(extra or {})}
         print(f"  {name} {label}: {psnr.mean():.2f} dB (worst {psnr.min():.2f}), SSIM {ssim.mean():.4f}", file=sys.stderr, flush=True)
 
-    capture = field.light_count * 3
-    score("circular (field)", relit.full, field_bytes / pixels)
-    score("alpha", alpha, float(capture))
-    score("rbf", rbf, float(3 * field.light_count))
-    learned = [("neural images", images, 0.0)] if "images" in models else []
+    capture = field.light_count * dataset.channels
+    sizes = {"circular": field_bytes / pixels, "alpha": float(capture), **evaluation.info["baseline_bytes_per_pixel"]}
+    for method in ("circular", "alpha", *BASELINES):
+        add_row(method, evaluation.full_srgb_psnr[method], evaluation.full_ssim[method], float(sizes[method]))
+
+    # the learned residual exactly as ``fit --residual learned`` makes it (fit.residual.learn_residual), relit by the relighter
+    images = resize_stack(dataset.images, width, height).astype(np.float32) * np.float32(exposure)
+    own = render_own(field.estimated, height, width, raster=field.fit_settings().raster, device=device)
+    settings = replace(field.fit_settings().residual, learned=True, learned_seconds=seconds)
+    strips = [truth, Relighter(field, device=device, scale=1.0 / exposure).relight(queries).full]
+    learned = [("learned images", np.zeros_like(own), None)] if "images" in models else []
     if field.estimated.active.any() and "residual" in models:  # else the residual is the images
-        learned.insert(0, ("neural residual + circular", residual, highlights))
-    strips = [truth, relit.full]
-    for label, target, add in learned:
-        encoded = neural.encode_display(target.reshape(field.light_count, pixels, 3))
+        learned.insert(0, ("learned residual + circular", own, field.residual.highlight_colour))
+    for label, highlights, colour in learned:
         t = time.perf_counter()
-        model, history = neural.train_decoder(encoded, lights, device=device, epochs=400, seconds=seconds,
-                                              log=lambda m: print(f"    {label}: {m}", file=sys.stderr, flush=True) if "0/" in m else None)
-        wp.synchronize_device(device)
+        residual, history = learn_residual(images, highlights, colour, dataset.lights.directions, factor=exposure, settings=settings, device=device,
+                                           log=lambda m: print(f"    {label}: {m}", file=sys.stderr, flush=True))
         train_seconds = time.perf_counter() - t
-        model.codes = model.codes.astype(np.float16).astype(np.float32)  # as stored
-        t = time.perf_counter()
-        decoded = neural.decode(model, queries, device=device)
+        if label.startswith("learned residual"):
+            relighter = Relighter(replace(field, residual=residual), device=device, scale=1.0 / exposure)
+            relighter.relight(queries[:1])
+            t = time.perf_counter()
+            stack = relighter.relight(queries).full
+            gaussians = gaussian_bytes(field.estimated, field.retargeted) / pixels
+        else:  # no Gaussians: the decoded residual is the image (float64 reference decode)
+            t = time.perf_counter()
+            stack = np.clip(residual.learned.images(queries) / exposure, 0.0, None).astype(np.float32)
+            gaussians = 0.0
         decode_seconds = (time.perf_counter() - t) / len(queries)
-        stack = neural_decode_display(decoded).reshape(len(queries), height, width, 3) + add
-        extra = {"train_seconds": train_seconds, "epochs": len(history), "final_mse": history[-1], "decode_seconds_per_image": decode_seconds}
-        gaussians = gaussian_bytes(field.estimated, field.retargeted) / pixels if label.startswith("neural residual") else 0.0
-        score(label, stack, model.stored_bytes_per_pixel + gaussians, extra)
+        psnr, ssim = srgb_scores(stack, truth)
+        code_bytes = 2.0 * residual.learned.codes.shape[2] + 4.0 * sum(w.size for w in residual.learned.weights) / pixels
+        add_row(label, psnr, ssim, code_bytes + gaussians,
+                {"train_seconds": train_seconds, "epochs": len(history), "final_mse": history[-1], "decode_seconds_per_image": decode_seconds})
         strips.append(stack)
     _save_worst(name, strips, truth)
     return {"case": name, "size": [width, height], "lights": field.light_count, "heldout": len(queries), "fit_seconds": fit_seconds,

@@ -23,7 +23,7 @@ import warp.optim
 
 from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 
-__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "QueryDecoder", "decode", "encode_display", "initial_model", "train_decoder"]
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "QueryDecoder", "decode", "initial_model", "train_decoder"]
 
 CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
@@ -97,13 +97,6 @@ class NeuralDecoder:
     def stored_bytes_per_pixel(self) -> float:
         """Codes as float16 per pixel, plus the weights (float32) spread over the pixels."""
         return 2.0 * CODE_SIZE + 4.0 * sum(w.size for w in self.weights) / len(self.codes)
-
-
-def encode_display(linear: np.ndarray) -> np.ndarray:
-    """Signed sRGB encoding (display units, 1 = white): sign(x) srgb(|x|), |x| clipped at 1."""
-    x = np.abs(linear)
-    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.minimum(x, 1.0), 1 / 2.4) - 0.055)
-    return (np.sign(linear) * encoded).astype(np.float32)
 
 
 def _padded(count: int) -> int:

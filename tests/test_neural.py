@@ -13,7 +13,7 @@ from warp_highlights.kernels import neural
 
 from warp_highlights.fit.residual import learn_residual
 from warp_highlights.model.errors import InputError
-from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, ResidualModel, decode_display
+from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, ResidualModel, decode_display, encode_display
 
 
 def _problem(seed=0, lights=6, pixels=70):
@@ -88,7 +88,7 @@ def test_training_learns_a_smooth_reflectance(device):
     normals[:, 2] = np.abs(normals[:, 2])
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     albedo = rng.uniform(0.2, 0.9, (64, 3))
-    targets = neural.encode_display(np.clip(lights @ normals.T, 0.0, None)[..., None] * albedo[None]).astype(np.float32)
+    targets = encode_display(np.clip(lights @ normals.T, 0.0, None)[..., None] * albedo[None]).astype(np.float32)
     model, history = neural.train_decoder(targets, lights, device=device, epochs=150, batch=192, lr=1e-2, final_lr=1e-3)
     assert len(history) == 150 and np.all(np.isfinite(history))
     variance = float(np.mean(np.sum((targets - targets.mean(axis=(0, 1))) ** 2, axis=-1)))
@@ -99,7 +99,7 @@ def test_training_learns_a_smooth_reflectance(device):
 
 def test_display_encoding_round_trips():
     values = np.array([-2.0, -0.5, -1e-3, 0.0, 1e-4, 0.002, 0.2, 0.9])
-    encoded = neural.encode_display(values)
+    encoded = encode_display(values)
     assert np.all(np.diff(encoded) > 0) and encoded[3] == 0.0
     inside = np.abs(values) <= 1
     np.testing.assert_allclose(decode_display(encoded)[inside], values[inside], rtol=1e-5, atol=1e-7)

@@ -127,7 +127,7 @@ def fit_field(
             path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
             own, colour = np.zeros_like(own), None
         if settings.residual.learned:
-            with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, 1, "cpu", 1) as advance:
+            with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, workers, device, 1) as advance:
                 residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
                                                                  settings=settings.residual, device=device, log=log, progress=advance)
         else:

@@ -24,7 +24,7 @@ import numpy as np
 import warp as wp
 
 from ..io.images import linear_to_srgb
-from ..kernels.neural import encode_display, train_decoder
+from ..kernels.neural import train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
@@ -39,6 +39,7 @@ from ..model.residual import (
     code_levels,
     colour_codes,
     colour_from_codes,
+    encode_display,
     quantise_basis,
     to_opponent,
 )

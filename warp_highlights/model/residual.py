@@ -33,7 +33,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "NeuralResidual", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
+__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -264,6 +264,14 @@ NEURAL_CODE_SIZE = 9
 """Numbers per pixel of a learned residual (``kernels.neural.CODE_SIZE``)."""
 NEURAL_LAYER_SHAPES = ((48, 12), (48, 1), (48, 48), (48, 1), (48, 48), (48, 1), (3, 48), (3, 1))
 """Shapes of a learned residual's weights w0, b0, ..., w3, b3 (``kernels.neural``)."""
+
+
+def encode_display(linear: np.ndarray) -> np.ndarray:
+    """Signed sRGB encoding, float32 (display units, 1 = white): sign(x) srgb(|x|), |x| clipped at 1:
+    what the learned residual is trained on, so that its squared error is the one 8-bit sRGB PSNR measures."""
+    x = np.minimum(np.abs(linear), 1.0)
+    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return (np.sign(linear) * encoded).astype(np.float32)
 
 
 def decode_display(encoded: np.ndarray) -> np.ndarray:
