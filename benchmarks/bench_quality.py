@@ -3,6 +3,7 @@
     python benchmarks/bench_quality.py                          # CPU sizes: samples reduced, 64-light donut/teapot
     python benchmarks/bench_quality.py --scale gpu --device cuda:0   # full-size samples, 250-light donut/teapot
     python benchmarks/bench_quality.py --cases synth,statue     # a subset
+    python benchmarks/bench_quality.py --set residual.learned=true   # any fit setting, as `fit --set` takes it
 
 Per case: fit a field with the defaults (timed), save it (bytes), then ``evaluate_field`` at the
 held-out lights: the field (circular, and the alpha blend of the same triangulation) next to PTM,
@@ -37,6 +38,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import save_field
+from warp_highlights.model.config import FitSettings
 from warp_highlights.model.lights import LightSet
 from warp_highlights.model.triangulation import SphericalTriangulation
 from warp_highlights.relight.evaluation import evaluate_field
@@ -72,11 +74,11 @@ def load_case(name: str, scale: str, device) -> ReflectanceField:
                             meta={"heldout_protocol": "triangle centroids"})
 
 
-def run_case(name: str, scale: str, device, scratch: Path) -> dict:
+def run_case(name: str, scale: str, device, scratch: Path, settings: FitSettings | None = None) -> dict:
     dataset = load_case(name, scale, device)
     size = SIZES[name][1 if scale == "gpu" else 0]
     started = time.perf_counter()
-    field = fit_field(dataset, device=device, size=size, progress=False)
+    field = fit_field(dataset, device=device, size=size, progress=False, settings=settings)
     wp.synchronize_device(device)
     fit_seconds = time.perf_counter() - started
     field_bytes = save_field(field, scratch / f"{name}.whf")
@@ -111,7 +113,9 @@ def main() -> None:
     parser.add_argument("--cases", default="synth,statue,donut,teapot")
     parser.add_argument("--scale", choices=["cpu", "gpu"], default="cpu", help="cpu: reduced sizes, 64 rendered lights; gpu: full sizes, 250")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE", help="fit setting, repeatable")
     args = parser.parse_args()
+    settings = FitSettings().with_overrides(args.set)
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
@@ -121,11 +125,11 @@ def main() -> None:
             if name not in SIZES:
                 raise SystemExit(f"unknown case '{name}'; choose from {', '.join(SIZES)}")
             print(f"{name}: fitting and evaluating on {device} ...", file=sys.stderr, flush=True)
-            results.append(run_case(name, args.scale, device, Path(scratch)))
+            results.append(run_case(name, args.scale, device, Path(scratch), settings))
     out = os.environ.get("OUT")
     if out:
         Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "bench_quality.json").write_text(json.dumps({"device": str(device), "scale": args.scale, "cases": results}, indent=1))
+        (Path(out) / "bench_quality.json").write_text(json.dumps({"device": str(device), "scale": args.scale, "settings": args.set, "cases": results}, indent=1))
     print(f"\nfull images at held-out lights, {device} ({args.scale} sizes)\n")
     print("| case | method | 8-bit PSNR mean | worst | SSIM mean | worst | linear PSNR | bytes/pixel | share of 8-bit capture | fit (s) |")
     print("|---|---|---|---|---|---|---|---|---|---|")

@@ -211,16 +211,25 @@ def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:
 
 
 def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16, lr: float = 3e-3,
-                  final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None) -> tuple[NeuralDecoder, list[float]]:
+                  final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
+                  used: np.ndarray | None = None, initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
     """Fit codes and weights to (n, P, 3) display-unit targets at (n, 3) lights: Adam on the mean
     squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
     geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` have passed since
-    the first step, which compiles the kernels).
+    the first step, which compiles the kernels). ``used``: indices of the lights to learn from (default
+    all); the others' targets are never read, neither by the codes' start nor by a step, so they can
+    score the model as held-out lights. ``initial``: a model to go on training (default: ``initial_model``
+    of the used lights' targets).
     Returns the model and the mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     n, pixels, _ = targets.shape
-    model = initial_model(targets, seed=seed)
+    used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
+    if not len(used) or used[0] < 0 or used[-1] >= n:
+        raise ValueError(f"used must name some of the {n} lights")
+    model = initial_model(targets[used], seed=seed) if initial is None else initial
+    if model.codes.shape != (pixels, CODE_SIZE):
+        raise ValueError(f"initial codes {model.codes.shape} do not match {pixels} pixels")
     codes, weights = _arrays(model, device, True)
     params = [codes, *weights]
     target_array = wp.array(targets, dtype=wp.vec3, device=device)
@@ -228,14 +237,17 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     optimizer = warp.optim.Adam([p.flatten() for p in params], lr=lr)
     grads = [p.grad.flatten() for p in params]
     loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
-    total = n * pixels
+    total = len(used) * pixels
     buffers = _Batch(_padded(min(batch, total)), device, True)
     rng = np.random.default_rng(seed)
     history = []
     started = None  # the clock starts once the first step has run: compiling the kernels (minutes on a fresh CUDA machine) is not training
     for epoch in range(epochs):
         optimizer.lr = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
-        order = wp.array(rng.permutation(total).astype(np.int32), dtype=wp.int32, device=device)
+        shuffled = rng.permutation(total)
+        if len(used) < n:  # sample index = light * pixels + pixel, over the used lights only
+            shuffled = used[shuffled // pixels] * pixels + shuffled % pixels
+        order = wp.array(shuffled.astype(np.int32), dtype=wp.int32, device=device)
         epoch_loss = wp.zeros(1, dtype=float, device=device)
         for start in range(0, total, batch):
             count = min(batch, total - start)

@@ -56,6 +56,18 @@ def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
     assert (field.width, field.height) == (48, 27) and field.diffuse is None
 
 
+def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, capsys):
+    """``fit --residual learned`` says what the learned check measured and what it chose."""
+    out = tmp_path / "learned.whf"
+    settings = ["residual.learned_epochs=2", "residual.learned_check=3"]
+    assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--residual", "learned", "-q", *_overrides(),
+                 *[arg for item in settings for arg in ("--set", item)]]) == 0
+    text = capsys.readouterr().out
+    verdict = load_field(out).report["residual"]["learned_check"]
+    assert "learned check at 3 left-out lights" in text and f"images alone {verdict['images_alone_psnr_db']:.2f} dB" in text
+    assert ("the learned residual keeps them" in text) == verdict["keeps_gaussians"]
+
+
 def test_a_field_with_invalid_stored_settings_is_refused(fitted, tmp_path):
     from warp_highlights.model.errors import InputError
 

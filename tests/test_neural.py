@@ -118,6 +118,10 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None
     assert field.report["residual"]["learned"]["epochs"] == 2
+    verdict = field.report["residual"]["learned_check"]  # the move check let the Gaussians move, so the learned check ran
+    assert field.report["residual"]["move_check"]["moves"] and verdict["lights"] == 6
+    keeps = verdict["with_gaussians_psnr_db"] >= verdict["images_alone_psnr_db"]
+    assert verdict["keeps_gaussians"] == keeps and bool(field.estimated.active.any()) == keeps
     assert learned.unit == pytest.approx(field.exposure) and learned.codes.shape == (field.height, field.width, neural.CODE_SIZE)
     path = tmp_path / "learned.whf"
     save_field(field, path)
@@ -166,6 +170,61 @@ def test_learned_residual_checks_its_arrays():
         ResidualModel(images=np.zeros((7, 4, 5, 3), np.float16), learned=good)
     with pytest.raises(InputError, match="per query"):
         model.light_images(np.eye(7)[:1])
+
+
+def test_training_never_reads_the_lights_left_out(device):
+    """``used`` leaves lights out of the codes' start and of every step: other targets there change nothing."""
+    directions, targets = _problem(seed=6, lights=7, pixels=50)
+    used = np.array([0, 2, 3, 5, 6])
+    first, history = neural.train_decoder(targets, directions, device=device, epochs=3, batch=64, used=used)
+    changed = targets.copy()
+    changed[[1, 4]] = np.random.default_rng(1).uniform(-3.0, 3.0, changed[[1, 4]].shape)
+    second, again = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64, used=used)
+    np.testing.assert_allclose(second.codes, first.codes, rtol=1e-5, atol=1e-6)
+    for got, want in zip(second.weights, first.weights):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(again, history, rtol=1e-5)
+    whole, _ = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64)  # all lights: the changed ones count
+    assert not np.allclose(whole.codes, first.codes, atol=1e-3)
+    with pytest.raises(ValueError, match="used"):
+        neural.train_decoder(targets, directions, device=device, epochs=1, used=np.array([7]))
+    _, fresh = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64)
+    _, going_on = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64, initial=first, lr=3e-4, final_lr=3e-4)
+    assert going_on[0] < fresh[0]  # ``initial`` goes on from the trained model
+    with pytest.raises(ValueError, match="initial codes"):
+        neural.train_decoder(targets[:, :40], directions, device=device, epochs=1, initial=first)
+
+
+def test_learned_check_scores_both_models_at_the_left_out_lights():
+    """No highlights: the residual is the images, so both models learn the same and score the same
+    (the Gaussians kept); moved highlights that add a wrong bright blob lose to the images alone, whose
+    model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
+    from warp_highlights.fit.residual import check_learned
+    from warp_highlights.io.images import srgb_psnr
+    from warp_highlights.model.config import ResidualSettings
+
+    rng = np.random.default_rng(7)
+    directions = rng.normal(size=(9, 3))
+    directions[:, 2] = np.abs(directions[:, 2]) + 0.2
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    normals = np.dstack([rng.normal(0, 0.3, (6, 8)), rng.normal(0, 0.3, (6, 8)), np.ones((6, 8))])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    images = (0.6 * np.clip(np.einsum("nc,hwc->nhw", directions, normals), 0, None)[..., None] * [1.0, 0.8, 0.6]).astype(np.float32)
+    own = np.zeros(images.shape[:3], np.float32)
+    left_out = np.array([2, 6])
+    settings = ResidualSettings(learned=True, learned_epochs=4, learned_seconds=60.0)
+    same = check_learned(images, own, None, directions, left_out, np.zeros((2, 6, 8, 3), np.float32), factor=2.0, settings=settings, device="cpu")
+    np.testing.assert_array_equal(same.lights, left_out)
+    np.testing.assert_allclose(same.with_gaussians, same.images_alone)
+    assert same.keeps_gaussians and same.report()["keeps_gaussians"]
+    model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu", used=np.array([0, 1, 3, 4, 5, 7, 8]))
+    want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0) for p, t in zip(model.learned.images(directions[left_out]), images[left_out])]
+    np.testing.assert_allclose(same.images_alone, want, rtol=1e-6)
+    blob = np.zeros((2, 6, 8, 3), np.float32)
+    blob[:, 2:4, 3:6] = 1.5
+    wrong = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings, device="cpu")
+    assert np.all(wrong.with_gaussians < wrong.images_alone) and not wrong.keeps_gaussians
+    np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)  # the images alone, learned without the left-out lights
 
 
 def test_training_time_counts_from_the_first_step():

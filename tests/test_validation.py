@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import warp as wp
 from reference import render as render_reference
 
@@ -96,13 +97,13 @@ def _scene():
     return directions, edges, estimated, own, images
 
 
-def _check(directions, edges, estimated, retargeted, own, images, *, moving=None):
+def _check(directions, edges, estimated, retargeted, own, images, *, moving=None, keep=0):
     settings = dataclasses.replace(FitSettings(), retarget=RetargetSettings(rigid_iterations=0, iterations=0))
     plan = plan_check(directions, edges, 16)
     assert len(plan.missing) == 0
     return check_moving(plan, estimated, retargeted, edges, np.zeros(retargeted.active.shape, np.float32),
                         estimated.active.copy() if moving is None else moving, wp.array(own, dtype=float, device="cpu"),
-                        images, own, None, factor=1.0, settings=settings, device="cpu")
+                        images, own, None, factor=1.0, settings=settings, device="cpu", keep=keep)
 
 
 def test_moving_wins_where_the_gaussians_follow_the_highlight():
@@ -112,6 +113,22 @@ def test_moving_wins_where_the_gaussians_follow_the_highlight():
     assert len(check.lights) == 16 and check.moves
     assert check.moving_psnr.mean() > check.blend_psnr.mean() + 3.0
     assert check.report()["moves"] is True and check.report()["lights"] == 16
+
+
+def test_the_check_keeps_the_moved_highlights_it_is_asked_for():
+    """``keep``: the moved highlights of that many checked lights, spread over them; over the plane's
+    flat 0.2 (every corner's residual), they give the moving prediction's score back."""
+    from warp_highlights.io.images import srgb_psnr
+
+    directions, edges, estimated, own, images = _scene()
+    retargeted = _one_gaussian_sets(np.array([_highlight_at(directions[b]) for b in edges[:, 1]]))
+    check = _check(directions, edges, estimated, retargeted, own, images, keep=4)
+    assert len(check.kept_lights) == 4 and set(check.kept_lights) <= set(check.lights)
+    assert check.kept_highlights.shape == (4, SIZE, SIZE, 3) and check.kept_highlights.max() > 0.5
+    for light, drawn in zip(check.kept_lights, check.kept_highlights):
+        row = int(np.flatnonzero(check.lights == light)[0])
+        assert srgb_psnr(0.2 + drawn, images[light]) == pytest.approx(check.moving_psnr[row], abs=1e-3)
+    assert len(_check(directions, edges, estimated, retargeted, own, images).kept_lights) == 0
 
 
 def test_blending_wins_where_the_retargeted_gaussians_go_astray():

@@ -37,7 +37,8 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="what relighting adds the moved highlights to: the images minus their own highlights, compressed to "
                         "low-rank 8-bit bases (default, about a fifth of the 8-bit capture), uncompressed float16 images "
                         "(exact at the captured lights), learned (9 numbers per pixel and an MLP, trained for up to "
-                        "residual.learned_seconds: for a GPU), or none (then use --diffuse)")
+                        "residual.learned_seconds, twice where a check decides whether it keeps the moving Gaussians or "
+                        "learns the images alone: for a GPU), or none (then use --diffuse)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
@@ -139,7 +140,7 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
     kept = (report.get("residual") or {}).get("kept_gaussians")
     print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}"
-          + (" (estimated; the field keeps none, see the move check)" if kept == 0 else ""))
+          + (" (estimated; the field keeps none, see the checks below)" if kept == 0 else ""))
     print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
     print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
     print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
@@ -155,6 +156,11 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             verdict = "the Gaussians move" if check["moves"] else "the highlights stay in the residual (the field keeps no Gaussians)"
             print(f"  move check at {check['lights']} left-out lights: moving {check['moving_psnr_db']:.2f} dB, "
                   f"blending {check['blend_psnr_db']:.2f} dB (8-bit sRGB): {verdict}")
+        learned = residual.get("learned_check") or {}
+        if learned.get("lights"):
+            verdict = "the learned residual keeps them" if learned["keeps_gaussians"] else "the images are learned alone (the field keeps no Gaussians)"
+            print(f"  learned check at {learned['lights']} left-out lights: residual + moved Gaussians {learned['with_gaussians_psnr_db']:.2f} dB, "
+                  f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
     parts = field_size_report(field)
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 

@@ -28,7 +28,7 @@ from ..model.gaussians import GaussianParams
 from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
-from .residual import build_residual, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
+from .residual import build_residual, check_learned, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
@@ -103,7 +103,7 @@ def fit_field(
     residual_model = None
     learned_history = None
     support_median = None
-    check = None
+    check = learned_check = None
     if residual:
         with timer.stage("residual"):
             decision = decide_moving(source, sets, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
@@ -113,23 +113,34 @@ def fit_field(
             colour = None
             if images.ndim == 4 and settings.residual.highlight_colour:
                 colour = highlight_colour(seg.specular.numpy(), own, prior=settings.residual.colour_prior)
+        learned = settings.residual.learned
         with timer.stage("move check"):
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
             iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
             with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
                 check = check_moving(plan, source, sets, edges, path_delta, moving, seg.specular_luminance, images, own, colour,
-                                     factor=factor, settings=settings, device=device, workers=workers, progress=advance)
-        if not check.moves:
-            # blending beat moving at the left-out lights: the highlights stay in the residual (the images
-            # themselves) and the field keeps no Gaussians, which leaves their bytes to the residual
+                                     factor=factor, settings=settings, device=device, workers=workers, progress=advance,
+                                     keep=settings.residual.learned_check if learned else 0)
+        if learned and check.moves and len(check.kept_lights):
+            with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, workers, device, 1) as advance:
+                learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
+                                              factor=factor, settings=settings.residual, device=device, progress=advance)
+        if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
+            # blending beat moving at the left-out lights (or the images learned alone beat the learned
+            # residual with its Gaussians): the highlights stay in the residual (the images themselves)
+            # and the field keeps no Gaussians, which leaves their bytes to the residual
             kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)  # one free slot each
             moving = np.zeros((len(source.active), 1), dtype=bool)
             path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
             own, colour = np.zeros_like(own), None
-        if settings.residual.learned:
+        if learned:
+            # the learned check's winner goes on learning from every light (the ones it left out too);
+            # without a check, one model learns from every light
+            winner = None if learned_check is None else learned_check.winner.learned
             with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, workers, device, 1) as advance:
                 residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
-                                                                 settings=settings.residual, device=device, log=log, progress=advance)
+                                                                 settings=settings.residual, device=device, log=log, progress=advance,
+                                                                 initial=winner, tune=winner is not None)
         else:
             with timer.stage("residual compression"):
                 residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
@@ -177,12 +188,14 @@ def fit_field(
             "kept_gaussians": int(kept.active.sum()),
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
+            "learned_check": learned_check.report() if learned_check is not None else None,
             "compressed": residual_model.compressed,
             "luminance_rank": residual_model.luminance.rank if residual_model.compressed else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if residual_model.compressed else None,
             "highlight_colour": residual_model.highlight_colour is not None,
-            "learned": None if learned_history is None else {"epochs": len(learned_history), "final_mse": float(learned_history[-1])},
+            "learned": None if learned_history is None else {"epochs": len(learned_history), "final_mse": float(learned_history[-1]),
+                                                             "continued_from_check": learned_check is not None},
         },
         "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},
         "per_light": {"gaussians": counts.tolist(), "psnr_db": np.round(estimated.psnr, 3).tolist()},

@@ -8,12 +8,15 @@
 - ``build_residual``: R_i = I_i - c(x) R(x; G_i) for every light (all of its Gaussians: a static one
   blended in place adds back exactly what its light's residual lacks), compressed to low-rank
   luminance and chroma stacks (``ResidualModel``) or kept whole.
+- ``learn_residual``: the residual learned instead (``kernels.neural``); ``check_learned`` decides
+  whether the learned residual keeps the moving Gaussians or learns the images alone.
 
 Units: images in the field's units (the fit's exposure applied); Gaussians in image heights.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 import zlib
@@ -23,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.images import linear_to_srgb
-from ..kernels.neural import train_decoder
+from ..io.images import linear_to_srgb, srgb_psnr
+from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
 from ..model.config import RasterSettings, ResidualSettings
@@ -44,7 +47,7 @@ from ..model.residual import (
     to_opponent,
 )
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "render_own", "residual_scale"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "render_own", "residual_scale"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -62,6 +65,7 @@ _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
+_TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
 
@@ -310,12 +314,15 @@ def residual_scale(luminance: np.ndarray) -> np.ndarray:
 
 
 def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,
-                   settings: ResidualSettings, device, log=None, progress=None) -> tuple[ResidualModel, list[float]]:
+                   settings: ResidualSettings, device, log=None, progress=None, used: np.ndarray | None = None,
+                   initial: NeuralResidual | None = None, tune: bool = False) -> tuple[ResidualModel, list[float]]:
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
     ``settings.learned_seconds`` or ``learned_epochs`` at most; ``progress(1)`` after each epoch, ``log``
-    a line now and then. Returns it and the loss per epoch."""
+    a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to go on
+    training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
+    check's winner learning the lights it left out). Returns it and the loss per epoch."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[3] != 3:
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
@@ -329,6 +336,62 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
             log(f"learned residual: {message}")
 
-    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), seconds=float(settings.learned_seconds), log=say)
+    rates = {"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune else {"seconds": float(settings.learned_seconds)}
+    start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32), [np.asarray(w, np.float32) for w in initial.weights])
+    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), log=say, used=used, initial=start, **rates)
     learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
     return ResidualModel(learned=learned, highlight_colour=colour), history
+
+
+@dataclass(frozen=True)
+class LearnedCheck:
+    """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the learned
+    residual plus the moved highlights (``with_gaussians``) and of the images learned alone, and the
+    winner's model (learned without those lights)."""
+
+    lights: np.ndarray
+    with_gaussians: np.ndarray
+    images_alone: np.ndarray
+    winner: ResidualModel | None = None
+
+    @property
+    def keeps_gaussians(self) -> bool:
+        """True unless the images learned alone scored higher on average (no light checked: True)."""
+        return not len(self.lights) or float(np.mean(self.with_gaussians)) >= float(np.mean(self.images_alone))
+
+    def report(self) -> dict:
+        """Plain figures for the fit report."""
+        if not len(self.lights):
+            return {"lights": 0, "keeps_gaussians": True}
+        return {
+            "lights": int(len(self.lights)),
+            "with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
+            "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3),
+            "keeps_gaussians": self.keeps_gaussians,
+        }
+
+
+def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, lights: np.ndarray,
+                  highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device, progress=None) -> LearnedCheck:
+    """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
+    ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
+    images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
+    (NeuralRTI). At each left-out light the first plus ``highlights`` (m, H, W, 3), the Gaussians moved
+    there from the other lights' triangle (``MoveCheck.kept_highlights``), and the second are scored
+    against the image in 8-bit sRGB. Both train in full because the ranking changes with training
+    (a short run favours the residual, whose Gaussians carry the highlights from the start).
+    ``progress(1)`` after each epoch."""
+    lights = np.asarray(lights, dtype=np.int64)
+    if not len(lights):
+        return LearnedCheck(lights, np.zeros(0), np.zeros(0))
+    used = np.setdiff1d(np.arange(len(images)), lights)
+    scale = np.float32(1.0 / factor)
+    truth = np.asarray(images[lights], np.float32) * scale
+    scores, models = [], []
+    for own_images, tint, added in ((own, colour, highlights), (np.zeros_like(own), None, np.zeros_like(highlights))):
+        model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device, progress=progress, used=used)
+        predicted = np.maximum(model.learned.images(directions[lights]) + added, 0.0)  # as the relighter clamps
+        scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
+        models.append(model)
+    check = LearnedCheck(lights, scores[0], scores[1])
+    return dataclasses.replace(check, winner=models[0] if check.keeps_gaussians else models[1])

@@ -14,13 +14,15 @@ The directed edges of those triangles that the capture's own triangulation lacks
 (one batch). Both predictions are scored against image j in 8-bit sRGB (``srgb_psnr``); if moving's mean
 is lower, no Gaussian moves. Only the prediction leaves j out: the Gaussians, their move decisions, the
 highlight colour and the segmentation were fitted with image j among the others, which favours moving
-a little (the check is conservative about blending). Units: images in the field's units (``factor``
-divides them back to display units, 1 = white).
+a little (the check is conservative about blending). For a learned residual, the moved highlights of
+a few checked lights are kept (``keep``): ``fit.residual.check_learned`` scores the learned residual
+with them there. Units: images in the field's units (``factor`` divides them back to display units,
+1 = white).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -57,12 +59,16 @@ class LeaveOneOut:
 
 @dataclass(frozen=True)
 class MoveCheck:
-    """What ``check_moving`` measured: (m,) 8-bit sRGB PSNR (dB) of both predictions per checked light."""
+    """What ``check_moving`` measured: (m,) 8-bit sRGB PSNR (dB) of both predictions per checked light,
+    and where asked (``keep``), the moved highlights c(x) G'(l_j) drawn at some of them: (h, H, W, C)
+    field units at the lights ``kept_lights`` (h,) (indices into all lights)."""
 
     lights: np.ndarray
     moving_psnr: np.ndarray
     blend_psnr: np.ndarray
     extra_edges: int
+    kept_lights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    kept_highlights: np.ndarray | None = None
 
     @property
     def moves(self) -> bool:
@@ -161,6 +167,7 @@ def check_moving(
     device=None,
     workers: int | None = None,
     progress=None,
+    keep: int = 0,
 ) -> MoveCheck:
     """Score moving against blending at the left-out lights of ``plan``.
 
@@ -174,6 +181,8 @@ def check_moving(
         colour: (H, W, C) the highlight colour c(x), or None for white.
         factor: the fit's exposure factor (field units per display unit).
         progress: optional ``advance(steps)`` for the retargeting of the missing edges.
+        keep: keep the moved highlights of this many checked lights, spread over them (for the
+            learned residual's check, ``fit.residual.check_learned``).
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
@@ -201,6 +210,8 @@ def check_moving(
     tint = np.ones((1, 1, images.shape[-1]), np.float32) if colour is None else np.asarray(colour, np.float32)
     scale = np.float32(1.0 / factor)
     moving_psnr, blend_psnr = np.empty(len(loo.lights)), np.empty(len(loo.lights))
+    kept_rows = np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64)) if keep > 0 else np.zeros(0, np.int64)
+    kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
@@ -213,4 +224,6 @@ def check_moving(
             truth = images[loo.lights[q]] * scale
             moving_psnr[q] = srgb_psnr(moved * scale, truth)
             blend_psnr[q] = srgb_psnr(blend * scale, truth)
-    return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing))
+            if q in kept_rows:
+                kept[np.searchsorted(kept_rows, q)] = drawn_q[..., None] * tint
+    return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows], kept if len(kept_rows) else None)

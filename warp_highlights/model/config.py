@@ -412,11 +412,27 @@ class ResidualSettings:
             statue sample at 567x534 takes 1.3 s on an H100, its 283x267 about 20 s on a 2-core CPU).
             On the H100 (benchmarks/README.md): statue 32.92 dB against the alpha blend's 32.06, the
             250-light donut 41.35 against 38.54 with the low-rank residual, the dome sample 41.02
-            against 41.69 (with its Gaussians; learned alone, 48.00). Off by default.
-        learned_seconds: the learned residual's training time at most, seconds: 120 took the donut
-            and the dome to 41.35 and 41.02 dB, the statue scored 32.92 after 300.
+            against 41.69 (with its Gaussians; learned alone, 48.00: ``learned_check`` chooses).
+            Off by default: the fit trains for minutes on a GPU, and a CPU cannot decode it per query.
+        learned_seconds: the learned residual's training time at most, seconds (each of the learned
+            check's two models, or the one model without it): 120 took the donut and the dome to
+            41.35 and 41.02 dB, the statue scored 32.92 after 300.
         learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them);
             400, so that ``learned_seconds`` ends training on any capture bigger than the dome.
+        learned_check: where the move check keeps the Gaussians, this many of its left-out lights
+            (spread) decide whether the learned residual keeps them too (``fit.residual.check_learned``):
+            two models learn without those lights, each for ``learned_seconds``, the residual (scored
+            with the Gaussians moved there) and the images alone (NeuralRTI); the better one goes on
+            learning from every light. 6, an eighth of the dome sample's 49 lights, spread like the
+            move check's; on the H100 the two kinds differed by 7 dB there (41.02 with the Gaussians,
+            48.00 alone) and by 2.3 dB the other way on the 250-light donut, far more than 6 lights'
+            spread. Both models train in full because the ranking turns with training: on the 2-core
+            CPU the dome at 80x80 scored 32.19 with the Gaussians and 27.97 alone after 30 s (tens of
+            steps), 33.13 and 32.20 at 64x64 after 200 epochs (about 600 steps), against 48.00 alone
+            after 9,000 steps on the H100. 0 keeps the Gaussians unchecked (one model, trained once).
+        learned_tune_seconds: how long the check's winner goes on learning from every light, the
+            left-out ones included, at the final learning rate (3e-4), seconds: a quarter of ``learned_seconds``, for 6 lights
+            out of 43-250 (not yet measured on a GPU: no device was lent when it was added).
     """
 
     compressed: bool = True
@@ -433,6 +449,8 @@ class ResidualSettings:
     learned: bool = False
     learned_seconds: float = 120.0
     learned_epochs: int = 400
+    learned_check: int = 6
+    learned_tune_seconds: float = 30.0
 
     def __post_init__(self):
         _require(math.isfinite(self.size_budget) and 0 < self.size_budget <= 10, f"size_budget must be in (0, 10], got {self.size_budget}")
@@ -446,6 +464,9 @@ class ResidualSettings:
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0, f"colour_prior must be > 0, got {self.colour_prior}")
         _require(math.isfinite(self.learned_seconds) and self.learned_seconds > 0, f"learned_seconds must be > 0, got {self.learned_seconds}")
         _require(1 <= int(self.learned_epochs) <= 100000, f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
+        _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
+        _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds > 0,
+                 f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
 
 
 @dataclass(frozen=True)
