@@ -30,7 +30,7 @@ from ..io.images import linear_to_srgb, srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
-from ..model.config import RasterSettings, ResidualSettings
+from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.residual import (
@@ -319,7 +319,7 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most; ``progress(1)`` after each epoch, ``log``
+    ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after each epoch, ``log``
     a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to go on
     training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
     check's winner learning the lights it left out). Returns it and the loss per epoch."""
@@ -338,7 +338,9 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
     rates = {"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune else {"seconds": float(settings.learned_seconds)}
     start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32), [np.asarray(w, np.float32) for w in initial.weights])
-    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), log=say, used=used, initial=start, **rates)
+    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if wp.get_device(device).is_cuda else LEARNED_BATCH_CPU)
+    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), batch=batch, log=say, used=used,
+                                   initial=start, **rates)
     learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
     return ResidualModel(learned=learned, highlight_colour=colour), history
 
