@@ -127,6 +127,18 @@ def test_list_settings(capsys):
     assert "retarget.c_str=0.1" in text and "estimation.iterations=1000" in text
 
 
+@pytest.mark.parametrize("choice, learned, learned_on_cuda, compressed", [
+    ("auto", False, True, True), ("lowrank", False, False, True), ("learned", True, True, True), ("images", False, True, False)])
+def test_residual_choice_sets_the_residual_settings(choice, learned, learned_on_cuda, compressed, capsys):
+    """``--residual`` stands for settings (``--list-settings`` shows them) and ``--set`` still overrides it."""
+    assert main(["fit", "--residual", choice, "--list-settings"]) == 0
+    text = capsys.readouterr().out
+    for name, value in (("learned", learned), ("learned_on_cuda", learned_on_cuda), ("compressed", compressed)):
+        assert f"residual.{name}={value}\n" in text
+    assert main(["fit", "--residual", "lowrank", "--set", "residual.learned_on_cuda=true", "--list-settings"]) == 0
+    assert "residual.learned_on_cuda=True\n" in capsys.readouterr().out
+
+
 def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatch, capsys):
     import warp_highlights.fit.pipeline as fit_module
 

@@ -105,7 +105,7 @@ def test_display_encoding_round_trips():
     np.testing.assert_allclose(decode_display(encoded)[inside], values[inside], rtol=1e-5, atol=1e-7)
 
 
-def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp_path):
+def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp_path, capsys):
     from warp_highlights.fit.pipeline import fit_field
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.io.fieldfile import load_field, save_field
@@ -136,6 +136,14 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     want = np.clip(loaded.residual.learned.images(directions) + highlights, 0.0, None)
     assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0
     np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))  # the decoded residual passes through float16
+
+    from warp_highlights.cli import main  # relit on the CPU, the command says once that a lowrank field would be faster here
+
+    capsys.readouterr()
+    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu"]) == 0
+    assert capsys.readouterr().err.count("--residual lowrank") == 1
+    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu", "-q", "--overwrite"]) == 0
+    assert "--residual lowrank" not in capsys.readouterr().err
 
     from test_field import load_error, rewrite
 
@@ -232,3 +240,18 @@ def test_training_time_counts_from_the_first_step():
     directions, targets = _problem(seed=5)
     _, history = neural.train_decoder(targets, directions, device="cpu", epochs=50, batch=128, seconds=1e-9)
     assert len(history) == 1
+
+
+def test_default_fit_learns_on_cuda_only():
+    """By default a fit learns its residual on CUDA and compresses it elsewhere; ``learned`` learns anywhere,
+    an uncompressed residual or ``learned_on_cuda=False`` never learns unless ``learned`` says so."""
+    from types import SimpleNamespace
+
+    from warp_highlights.model.config import ResidualSettings
+
+    cuda, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
+    default = ResidualSettings()
+    assert default.learns_on(cuda) and not default.learns_on(cpu) and not default.learns_on("cpu")
+    assert ResidualSettings(learned=True).learns_on(cpu)
+    assert not ResidualSettings(learned_on_cuda=False).learns_on(cuda)
+    assert not ResidualSettings(compressed=False).learns_on(cuda)

@@ -25,17 +25,24 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=size_option(), default="240x135", help="image size WIDTHxHEIGHT (default 240x135)")
     parser.add_argument("--frames", type=in_range(int, 2, 10_000), default=72, help="frames of each animation, 2..10000 (default 72)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--residual", choices=["auto", "lowrank", "learned"], default="auto",
+                        help="the fit's residual, as fit --residual takes it (default auto: learned on CUDA, minutes; lowrank elsewhere, seconds)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
 
 def _run_demo(args) -> int:
+    from ..model.config import FitSettings
+    from .fit import RESIDUAL_CHOICES
+
     width, height = args.size
     device = check_device(args.device)
     out = Path(args.out)
     check_output_folder(out, overwrite=args.overwrite, legacy=demo_folder_entry)
+    settings = FitSettings().with_overrides(RESIDUAL_CHOICES[args.residual])
     started = time.perf_counter()
     index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
-                     log=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr)), overwrite=args.overwrite)
+                     log=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr)), overwrite=args.overwrite,
+                     settings=settings)
     print(f"demo finished in {time.perf_counter() - started:.0f} s: see {index}")
     return 0
 
@@ -60,7 +67,7 @@ def demo_folder_entry(relative: str) -> bool:
 
 
 def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135), frames: int = 72, device=None, progress: bool = True,
-             log=print, overwrite: bool = False) -> Path:
+             log=print, overwrite: bool = False, settings=None) -> Path:
     """Render, fit, evaluate and animate the donut into ``out``; returns the index file.
 
     Everything is made in a temporary folder beside ``out`` that takes ``out``'s place at the end, so
@@ -75,6 +82,7 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
         progress: progress bars on stderr.
         log: receives one line per finished step.
         overwrite: replace an earlier demo folder (never a folder holding other files).
+        settings: the fit's ``FitSettings`` (default: the defaults, which learn the residual on CUDA).
     """
     from ..io.atomic import FolderTransaction
 
@@ -85,14 +93,15 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     out.parent.mkdir(parents=True, exist_ok=True)
     transaction = FolderTransaction(out, kind="demo", overwrite=overwrite, legacy=demo_folder_entry)
     try:
-        _make_demo(transaction.temporary, out, lights=lights, size=size, frames=frames, device=device, progress=progress, log=log)
+        _make_demo(transaction.temporary, out, lights=lights, size=size, frames=frames, device=device, progress=progress, log=log,
+                   settings=settings)
         transaction.commit()
     finally:
         transaction.abort()
     return out / "index.md"
 
 
-def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], frames: int, device, progress: bool, log) -> None:
+def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], frames: int, device, progress: bool, log, settings) -> None:
     """The demo's files into ``work`` (the temporary folder that becomes ``out``)."""
     from ..fit.pipeline import fit_field
     from ..io.atomic import atomic_file
@@ -126,7 +135,7 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     step("render", t, f"{out / folder.name}")
 
     t = time.perf_counter()
-    field = fit_field(dataset, device=device, progress=progress)
+    field = fit_field(dataset, settings=settings, device=device, progress=progress)
     field_path = work / "donut.whf"
     save_field(field, field_path)
     made.append((field_path.name, f"the fitted highlight field ({field_path.stat().st_size / 1e6:.2f} MB; warp-highlights relight/animate/evaluate read it)"))

@@ -33,12 +33,12 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
                         help="fit without lights 0, K, 2K, ... of the dataset, to score them later (evaluate FIELD DATASET)")
     parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
-    parser.add_argument("--residual", choices=["lowrank", "images", "learned", "none"], default="lowrank",
+    parser.add_argument("--residual", choices=list(RESIDUAL_CHOICES), default="auto",
                         help="what relighting adds the moved highlights to: the images minus their own highlights, compressed to "
-                        "low-rank 8-bit bases (default, about a fifth of the 8-bit capture), uncompressed float16 images "
-                        "(exact at the captured lights), learned (9 numbers per pixel and an MLP, trained for up to "
-                        "residual.learned_seconds, twice where a check decides whether it keeps the moving Gaussians or "
-                        "learns the images alone: for a GPU), or none (then use --diffuse)")
+                        "low-rank 8-bit bases (lowrank, about a quarter of the 8-bit capture; seconds), learned (9 numbers per pixel "
+                        "and an MLP, trained for up to residual.learned_seconds, twice where a check decides whether it keeps the "
+                        "moving Gaussians or learns the images alone; minutes, for a GPU), auto (default: learned on CUDA, "
+                        "lowrank elsewhere), uncompressed float16 images (images: exact at the captured lights), or none (then use --diffuse)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
@@ -54,6 +54,15 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--report", type=Path, help="also write the fit report as JSON to this file")
     parser.add_argument("--overwrite", action="store_true", help="replace existing output files (the field and the report)")
     add_pixel_limit_option(parser)
+
+
+RESIDUAL_CHOICES = {  # --residual -> the settings it stands for (put before any --set, which can still change them)
+    "auto": [],
+    "lowrank": ["residual.learned=false", "residual.learned_on_cuda=false"],
+    "learned": ["residual.learned=true"],
+    "images": ["residual.compressed=false", "residual.learned=false"],
+    "none": [],
+}
 
 
 def _exposure_option(text: str):
@@ -73,10 +82,7 @@ def _run_fit(args) -> int:
     from ..model.config import FitSettings
 
     overrides = list(args.overrides)
-    if args.residual == "images":
-        overrides.insert(0, "residual.compressed=false")
-    elif args.residual == "learned":
-        overrides.insert(0, "residual.learned=true")
+    overrides[:0] = RESIDUAL_CHOICES[args.residual]
     settings = FitSettings().with_overrides(overrides)
     if args.list_settings:
         _print_settings(settings.to_dict())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -32,6 +33,7 @@ def _run_view(args) -> int:
     from ..io.fieldfile import load_field
     from ..view.designer import LightDesigner, check_panels
     from ..view.viz import has_display
+    from .relight import learned_on_cpu_note
 
     direction = parse_direction(args.light) if args.light else None
     size, window_size = args.size, args.window_size
@@ -45,6 +47,9 @@ def _run_view(args) -> int:
         raise InputError("there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")
     device = check_device(args.device)
     field = load_field(args.field)
+    note = learned_on_cpu_note(field, device)
+    if note and not args.quiet:
+        print(note, file=sys.stderr)
     started = time.perf_counter()
     designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size, diffuse=args.diffuse,
                              specular_only=args.specular_only, panels=panels, window_size=window_size, off_screen=screenshot is not None)

@@ -113,7 +113,7 @@ def fit_field(
             colour = None
             if images.ndim == 4 and settings.residual.highlight_colour:
                 colour = highlight_colour(seg.specular.numpy(), own, prior=settings.residual.colour_prior)
-        learned = settings.residual.learned
+        learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
         with timer.stage("move check"):
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
             iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
