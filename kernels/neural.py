@@ -118,8 +118,13 @@ class _Batch:
         self.values = wp.zeros((OUTPUTS, size), dtype=float, device=device, requires_grad=requires_grad)
 
     def run(self, samples, count: int, pixels: int, codes, lights, weights, device, first: int = 0) -> None:
-        wp.launch(gather_features, dim=self.size, inputs=[samples, first, count, pixels, codes, lights], outputs=[self.features], device=device)
-        wp.launch_tiled(decoder_tiles, dim=[self.size // BLOCK], inputs=[self.features, *weights], outputs=[self.values], block_dim=BLOCK, device=device)
+        """Decode ``count`` samples into the first columns of ``values`` (the blocks that hold them only:
+        a buffer sized for a batch of queries decodes one query at the cost of one)."""
+        size = _padded(count)
+        if size > self.size:
+            raise ValueError(f"{count} samples do not fit a batch of {self.size}")
+        wp.launch(gather_features, dim=size, inputs=[samples, first, count, pixels, codes, lights], outputs=[self.features], device=device)
+        wp.launch_tiled(decoder_tiles, dim=[size // BLOCK], inputs=[self.features, *weights], outputs=[self.values], block_dim=BLOCK, device=device)
 
 
 def decode(model: NeuralDecoder, lights: np.ndarray, *, device=None, batch: int = 1 << 20) -> np.ndarray:

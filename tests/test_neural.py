@@ -32,6 +32,34 @@ def test_decode_matches_reference(device):
     np.testing.assert_allclose(got, want, atol=2e-5, rtol=1e-4)
 
 
+def test_query_decoder_decodes_fewer_queries_than_its_buffers_hold(device, monkeypatch):
+    """After a batch of queries, one query launches the blocks of its own samples only (not the whole
+    buffer: a 480x270 query on the CPU went from 1.77 s to 0.16 s), with the same values (float16 store)."""
+    directions, targets = _problem(lights=5, pixels=300)
+    model = neural.initial_model(targets, seed=4)
+    decoder = neural.QueryDecoder(model.codes, model.weights, 2.0, device=device)
+    blocks = []
+    launch_tiled = wp.launch_tiled
+
+    def counting(kernel, *args, dim, **kwargs):
+        blocks.append(dim[0])
+        return launch_tiled(kernel, *args, dim=dim, **kwargs)
+
+    monkeypatch.setattr(neural.wp, "launch_tiled", counting)
+    results = []
+    for rows in (directions, directions[2:3]):
+        out = wp.empty((len(rows), 300, 3), dtype=wp.float16, device=device)
+        decoder.decode(wp.array(rows.astype(np.float32), dtype=wp.vec3, device=device), out)
+        results.append(out.numpy().astype(np.float32))
+    assert blocks == [neural._padded(5 * 300) // neural.BLOCK, neural._padded(300) // neural.BLOCK]
+    assert decoder._buffers.size == neural._padded(5 * 300)
+    np.testing.assert_array_equal(results[1][0], results[0][2])
+    want = reference.neural_decoder(model.codes, model.weights, directions[2:3])[0]
+    srgb = np.abs(want)
+    linear = np.where(srgb > 0.04045, ((srgb + 0.055) / 1.055) ** 2.4, srgb / 12.92) * np.sign(want) * 2.0
+    np.testing.assert_allclose(results[1][0], linear, rtol=2e-3, atol=1e-4)
+
+
 def test_initial_codes_are_the_leading_components():
     directions, targets = _problem(pixels=200)
     codes = neural.initial_model(targets).codes

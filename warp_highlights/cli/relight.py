@@ -96,7 +96,7 @@ def learned_on_cpu_note(field, device) -> str | None:
     if field.residual is None or field.residual.learned is None or wp.get_device(device).is_cuda:
         return None
     return ("note: this field's residual is learned, which the CPU decodes slowly (about 1.3 GFLOP per 480x270 image: "
-            "1.7 s on 2 cores); a field fitted with 'fit --residual lowrank' relights in milliseconds here")
+            "0.23 s on 2 cores); a field fitted with 'fit --residual lowrank' relights in milliseconds here")
 
 
 def _make_relighter(args, field, *, methods: tuple[str, ...]):
