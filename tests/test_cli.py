@@ -51,6 +51,14 @@ def test_info_summarises_a_dataset(tmp_path, capsys):
     assert main(["info", str(out), "--json", "-q"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["lights"] == 6 and summary["size"] == "24x16" and summary["heldout_lights"] == 8
+    assert main(["info", str(out), "-q"]) == 0  # for people: words, short numbers, no Python reprs
+    lines = capsys.readouterr().out.splitlines()
+    fields = dict(line.strip().split(": ", 1) for line in lines)
+    assert fields["lights"] == "6" and fields["held-out lights"] == "8" and fields["mask"].endswith(" pixels")
+    low, high = summary["elevation_deg"]
+    assert fields["elevation"] == f"{low:.4g} to {high:.4g} deg"
+    assert not any(token in line for line in lines for token in ("None", "[", "]"))
+    assert fields["values"] == "{:.4g} to {:.4g}".format(*summary["value_range"]) and fields["mean value"] == f"{summary['mean_value']:.4g}"
 
 
 def test_demo_renders_and_draws_a_contact_sheet(tmp_path):
@@ -192,3 +200,15 @@ def test_render_accepts_a_mesh_file(tmp_path):
     field = ReflectanceField.load(out, progress=False)
     assert field.mask.mean() > 0.2 and field.specular.max() > 1.0
     assert json.loads((out / "meta.json").read_text())["shape"] == str(mesh_path)
+
+
+@pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"], ["fit", "x", "-o", "y.whf", "--size", "big"]])
+def test_help_and_usage_errors_do_not_start_warp(arguments):
+    """``--help`` and argument errors are answered before Warp, SciPy or pyvista are imported (they cost
+    1 s on the 2-core CPU; benchmarks/bench_startup.py times it); importing the package prints nothing."""
+    probe = ("import sys; from warp_highlights.cli import main; status = main(sys.argv[1:]); "
+             "print('HEAVY', [m for m in ('warp', 'scipy', 'pyvista') if m in sys.modules], status)")
+    run = subprocess.run([sys.executable, "-c", probe, *arguments], capture_output=True, text=True, timeout=120)
+    assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
+    quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
+    assert quiet.stdout == "" and quiet.stderr == ""

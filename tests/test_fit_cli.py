@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -214,3 +215,30 @@ def test_fit_real_dome_captures(data_root, folder, size, tmp_path):
     assert (field.counts.sum() > 0) == report["residual"]["move_check"]["moves"]
     assert report["retargeting"]["improved_share"] > 0.9
     assert report["estimation"]["psnr_db"]["mean"] > 30.0
+
+
+def test_fit_messages_go_through_logging(small_donut, tmp_path, capsys, caplog):
+    """The fit's stage lines are records of the ``warp_highlights`` logger (INFO): a program sees them
+    only if it configures logging; the command line shows them on stderr unless ``-q``, and leaves the
+    logger as it found it."""
+    import logging
+
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.config import FitSettings
+
+    quick = FAST_FIT + ["residual.check_lights=0"]
+    with caplog.at_level(logging.INFO, logger="warp_highlights"):
+        fit_field(ReflectanceField.load(small_donut, progress=False), settings=FitSettings().with_overrides(quick), device="cpu", progress=False)
+    stages = [r.getMessage().split(":")[0] for r in caplog.records if r.name == "warp_highlights.fit.pipeline"]
+    assert stages[:5] == ["triangulation", "segmentation", "estimation", "retargeting", "paths"]
+    logger = logging.getLogger("warp_highlights")
+    handlers, level = list(logger.handlers), logger.level
+    settings = [part for item in quick for part in ("--set", item)]
+    capsys.readouterr()
+    for quiet, shown in ((False, True), (True, False)):
+        out = tmp_path / f"quiet-{quiet}.whf"
+        assert main(["fit", str(small_donut), "-o", str(out), "--device", "cpu", *settings, *(["-q"] if quiet else [])]) == 0
+        err = capsys.readouterr().err
+        assert bool(re.search(r"  estimation: \d+\.\d s", err)) == shown, err
+        assert logger.handlers == handlers and logger.level == level

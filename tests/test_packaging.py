@@ -83,3 +83,18 @@ def test_importing_the_package_loads_nothing_heavy():
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
+
+
+def test_distribution_ships_its_licence_and_type_marker():
+    """The wheel carries LICENSE (``license-files``) and ``py.typed`` (PEP 561), both present in the tree."""
+    from pathlib import Path
+
+    import pytest
+
+    tomllib = pytest.importorskip("tomllib")
+    root = Path(__file__).resolve().parents[1]
+    project = tomllib.loads((root / "pyproject.toml").read_text())
+    assert project["project"]["license"] == "MIT" and project["project"]["license-files"] == ["LICENSE"]
+    assert "MIT License" in (root / "LICENSE").read_text()
+    assert "py.typed" in project["tool"]["setuptools"]["package-data"]["warp_highlights"]
+    assert (root / "warp_highlights" / "py.typed").is_file()

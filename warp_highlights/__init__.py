@@ -9,10 +9,16 @@ everyday API; each sub-package's ``__init__`` lists what else it offers.
 from __future__ import annotations
 
 import importlib.util as _importlib_util
+import logging as _logging
 import sys as _sys
 from pathlib import Path as _Path
 
 __version__ = "0.1.0"
+
+# Library messages (stage timings, training progress) go to the "warp_highlights" logger at INFO; an
+# application that configures logging sees them, one that does not sees nothing (the command line
+# shows them on stderr, -q hides them, -v adds DEBUG).
+_logging.getLogger(__name__).addHandler(_logging.NullHandler())
 
 
 def _attach_checkout_kernels() -> None:

@@ -10,6 +10,8 @@ command had started is removed (``io.atomic``).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import signal
 import sys
 import threading
@@ -39,7 +41,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         parser = _build_parser()
         argv = _attach_negative_values(sys.argv[1:] if argv is None else list(argv), _value_options(parser))
-        _quiet_warp(verbose="-v" in argv or "--verbose" in argv)
         try:
             args, unknown = parser.parse_known_args(argv)
             if unknown:  # reported by the command's own parser, so the line names the command
@@ -52,8 +53,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help(sys.stdout)
             print("warp-highlights: error: no command given; choose one of those listed above", file=sys.stderr)
             return EXIT_INPUT_ERROR
+        _quiet_warp(verbose=args.verbose)  # after parsing: --help and usage errors never import Warp
         _init_warp(verbose=args.verbose)
-        return _run(args)
+        with messages_to_stderr(quiet=args.quiet, verbose=args.verbose):
+            return _run(args)
     except KeyboardInterrupt as interruption:  # before the command started: nothing was written
         print("warp-highlights: interrupted while starting; nothing was written", file=sys.stderr)
         return EXIT_TERMINATED if isinstance(interruption, Terminated) else EXIT_INTERRUPTED
@@ -206,6 +209,24 @@ def _cuda_driver_present() -> bool:
         except OSError:
             continue
     return False
+
+
+@contextlib.contextmanager
+def messages_to_stderr(*, quiet: bool, verbose: bool):
+    """Show the library's messages (the ``warp_highlights`` logger) on stderr while a command runs,
+    indented under its progress bars: INFO by default, only warnings with ``-q``, DEBUG with ``-v``."""
+    logger = logging.getLogger("warp_highlights")
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("  %(message)s"))
+    level = logging.WARNING if quiet else logging.DEBUG if verbose else logging.INFO
+    previous = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(previous)
 
 
 def _quiet_warp(*, verbose: bool) -> None:

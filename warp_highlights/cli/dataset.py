@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -29,7 +29,7 @@ __all__ = ["COMMANDS"]
 
 
 def _render_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..synth.render import Material, RenderSettings
+    from ..synth.settings import Material, RenderSettings
 
     parser.add_argument("shape", help="donut, teapot, sphere, or a mesh file pyvista reads (PLY/OBJ/STL)")
     parser.add_argument("out", type=Path, help="dataset folder to create")
@@ -176,8 +176,8 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
             f"but the disk has {bytes_text(free)} free; choose fewer lights, a smaller --size, --half, or another disk"
         )
     if not quiet and images * settings.width * settings.height > 2e8:
-        print(f"render: {images} images of {settings.width}x{settings.height} (about {bytes_text(needed)}); this takes a while",
-              file=sys.stderr)
+        logging.getLogger(__name__).info(f"render: {images} images of {settings.width}x{settings.height} (about {bytes_text(needed)}); "
+                                         "this takes a while")
 
 
 def _run_info(args) -> int:
@@ -189,9 +189,33 @@ def _run_info(args) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        for key, value in summary.items():
-            print(f"{key:>18}: {value}")
+        print("\n".join(format_summary(summary)))
     return 0
+
+
+_SUMMARY_LABELS = {"elevation_deg": "elevation", "value_range": "values", "mean_value": "mean value", "ground_truth": "ground truth",
+                   "mask_pixels": "mask", "heldout_lights": "held-out lights"}
+_SUMMARY_UNITS = {"elevation_deg": " deg", "mask_pixels": " pixels"}
+
+
+def format_summary(summary: dict) -> list[str]:
+    """``info``'s lines for people: labels in words, numbers to 4 significant digits, ranges as
+    'a to b', nothing as 'none' (``--json`` gives the values as they are)."""
+    def text(key, value) -> str:
+        if value is None or value == []:
+            return "none"
+        unit = _SUMMARY_UNITS.get(key, "")
+        if isinstance(value, float):
+            return f"{value:.4g}{unit}"
+        if isinstance(value, list) and len(value) == 2 and all(isinstance(v, (int, float)) for v in value):
+            return f"{value[0]:.4g} to {value[1]:.4g}{unit}"
+        if isinstance(value, list):
+            return ", ".join(str(v) for v in value)
+        return f"{value}{unit}"
+
+    labels = {key: _SUMMARY_LABELS.get(key, key.replace("_", " ")) for key in summary}
+    width = max(map(len, labels.values()))
+    return [f"{labels[key]:>{width}}: {text(key, value)}" for key, value in summary.items()]
 
 
 def _run_sheet(args) -> int:

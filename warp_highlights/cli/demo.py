@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -41,8 +41,7 @@ def _run_demo(args) -> int:
     settings = FitSettings().with_overrides(RESIDUAL_CHOICES[args.residual])
     started = time.perf_counter()
     index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
-                     log=(lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr)), overwrite=args.overwrite,
-                     settings=settings)
+                     overwrite=args.overwrite, settings=settings)
     print(f"demo finished in {time.perf_counter() - started:.0f} s: see {index}")
     return 0
 
@@ -67,7 +66,7 @@ def demo_folder_entry(relative: str) -> bool:
 
 
 def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135), frames: int = 72, device=None, progress: bool = True,
-             log=print, overwrite: bool = False, settings=None) -> Path:
+             log=None, overwrite: bool = False, settings=None) -> Path:
     """Render, fit, evaluate and animate the donut into ``out``; returns the index file.
 
     Everything is made in a temporary folder beside ``out`` that takes ``out``'s place at the end, so
@@ -80,12 +79,13 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
         frames: frames of each animation.
         device: Warp device.
         progress: progress bars on stderr.
-        log: receives one line per finished step.
+        log: receives one line per finished step (default: this module's logger, at INFO).
         overwrite: replace an earlier demo folder (never a folder holding other files).
         settings: the fit's ``FitSettings`` (default: the defaults, which learn the residual on CUDA).
     """
     from ..io.atomic import FolderTransaction
 
+    log = log or logging.getLogger(__name__).info
     width, height = size
     if lights < 4:
         raise InputError(f"the demo needs at least 4 lights, got {lights}")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -106,9 +105,8 @@ def _run_fit(args) -> int:
     if args.holdout_every:
         dataset = dataset.split_every(args.holdout_every)
     load_seconds = time.perf_counter() - started
-    log = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
-    field = fit_field(
-        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet, log=log
+    field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet
     )
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
     if args.holdout_every:

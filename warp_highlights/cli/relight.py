@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -106,8 +106,8 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
 
     device = check_device(args.device)
     note = learned_on_cpu_note(field, device)
-    if note and not args.quiet:
-        print(note, file=sys.stderr)
+    if note:
+        logging.getLogger(__name__).info(note)
     size = args.size
     width, height = size or (field.width, field.height)
     check_memory(RELIT_BYTES_PER_PIXEL * width * height, f"relighting at {width}x{height}", "use a smaller --size")
@@ -272,9 +272,8 @@ def _run_evaluate(args) -> int:
                                     max_pixels=pixel_limit(args))
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
-    say = None if args.quiet else (lambda line: print(f"  {line}", file=sys.stderr))
     evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
-                                barycentric_steps=args.steps, baselines=baselines, progress=say)
+                                barycentric_steps=args.steps, baselines=baselines)  # its steps reach stderr through the logger
     report = evaluation.to_dict()
     report["field"] = str(args.field)
     report["dataset"] = str(args.dataset)

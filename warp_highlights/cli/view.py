@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import sys
+import logging
 import time
 from pathlib import Path
 
@@ -14,7 +14,7 @@ __all__ = ["COMMANDS"]
 
 
 def _view_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..view.designer import PANELS
+    from ..view.panels import PANELS
 
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("--light", metavar="X,Y,Z", help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
@@ -48,8 +48,8 @@ def _run_view(args) -> int:
     device = check_device(args.device)
     field = load_field(args.field)
     note = learned_on_cpu_note(field, device)
-    if note and not args.quiet:
-        print(note, file=sys.stderr)
+    if note:
+        logging.getLogger(__name__).info(note)
     started = time.perf_counter()
     designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size, diffuse=args.diffuse,
                              specular_only=args.specular_only, panels=panels, window_size=window_size, off_screen=screenshot is not None)

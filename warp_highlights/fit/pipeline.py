@@ -9,6 +9,7 @@ the figures the ``fit`` command prints.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from contextlib import contextmanager
@@ -30,6 +31,8 @@ from .estimation import estimate
 from .paths import decide_paths
 from .residual import build_residual, check_learned, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
 from .retargeting import restore_vanished, retarget
+
+_LOG = logging.getLogger(__name__)
 from .validation import check_moving, plan_check
 
 __all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
@@ -68,12 +71,13 @@ def fit_field(
             relighting divides by it. None (default): ``default_exposure(dataset)``.
         workers: CPU threads (default: one per core); ignored on CUDA.
         progress: show a progress bar per stage (tqdm, on stderr).
-        log: optional callable receiving one line per finished stage.
+        log: callable receiving one line per finished stage (default: this module's logger, at INFO).
     """
     settings = settings or FitSettings()
     if diffuse not in DIFFUSE_CHOICES:
         raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_CHOICES)}, got '{diffuse}'")
     device = wp.get_device(device)
+    log = log or _LOG.info
     timer = _StageTimer(log)
     width, height = working_size(dataset.width, dataset.height, size)
 

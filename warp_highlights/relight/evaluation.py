@@ -23,6 +23,7 @@ over the position inside a triangle (the thesis' Fig. 4.12).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -222,9 +223,9 @@ def evaluate_field(
         baselines: any of ``BASELINE_METHODS``, fitted to the dataset's lights at the field's size and
             scored on the full images (needs full images to compare); one with more coefficients
             than the dataset has lights is left out and named in ``info["baselines_left_out"]``.
-        progress: optional callable(str) told about each step.
+        progress: callable(str) told about each step (default: this module's logger, at INFO).
     """
-    say = progress or (lambda _message: None)
+    say = progress or logging.getLogger(__name__).info
     methods = tuple(methods)
     for method in methods:
         if method not in RELIGHT_METHODS:

@@ -19,13 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import atomic_file
-from ..model.errors import InputError
 from . import viz
+from .panels import PANELS, check_panels
 
 __all__ = ["PANELS", "LightDesigner", "check_panels", "default_direction", "describe_direction", "sphere_camera"]
-
-PANELS = ("sphere", "image", "paths")
-"""Panel names, in their default left-to-right order."""
 
 _PANEL_SIZE = (560, 520)  # default pixels per panel (width, height)
 _BACKGROUND = "#1f2329"
@@ -38,14 +35,6 @@ def default_direction(triangulation) -> np.ndarray:
     every corner weighs the same, so all three corners' Gaussians are visible."""
     location = triangulation.locate(np.array([0.3, 0.4, 1.0]) / math.sqrt(1.25))
     return triangulation.centroid_directions()[int(location.faces)]
-
-
-def check_panels(panels) -> tuple[str, ...]:
-    """``panels`` as a tuple of distinct names from ``PANELS``; ``InputError`` otherwise."""
-    panels = tuple(panels)
-    if not panels or any(p not in PANELS for p in panels) or len(set(panels)) != len(panels):
-        raise InputError(f"panels must be distinct names from {', '.join(PANELS)}, got {', '.join(panels) or 'none'}")
-    return panels
 
 
 def sphere_camera(direction) -> list[tuple[float, float, float]]:
