@@ -1859,7 +1859,7 @@ def machine() -> str:
                 cpu = line.split(":", 1)[1].strip()
                 break
     versions = []
-    for package in ("warp-lang", "numpy", "Pillow", "OpenEXR", "vtk", "pyvista"):
+    for package in ("warp-lang", "numpy", "Pillow", "OpenEXR", "OpenImageIO", "vtk", "pyvista"):
         with contextlib.suppress(metadata.PackageNotFoundError):
             versions.append(f"{'warp' if package == 'warp-lang' else package} {metadata.version(package)}")
     return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, Python {platform.python_version()}, " + ", ".join(versions)

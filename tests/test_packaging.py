@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-OPTIONAL = ("PIL", "OpenEXR", "pyvista", "vtk", "tqdm")
+OPTIONAL = ("PIL", "OpenEXR", "OpenImageIO", "pyvista", "vtk", "tqdm")
 
 SCRIPT = f"""
 import importlib.abc, sys

@@ -37,7 +37,10 @@ def _relight_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. --light -0.5,0.2,1; repeatable")
     parser.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
-    parser.add_argument("-o", "--output", type=Path, required=True, help="image file (.exr linear, .png sRGB) for one light; a folder for several (images + lights.lp)")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="image file (.exr linear; .png, .tif or .jpg sRGB) for one light; a folder for several (EXR images + lights.lp)")
+    parser.add_argument("--bits", choices=["auto", "8", "16"], default="auto",
+                        help="bits per channel of a PNG or TIFF output (default auto: 16 where the field was fitted to a capture of more than 8 bits)")
     _add_relight_options(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace existing output")
 
@@ -150,7 +153,7 @@ def _run_relight(args) -> int:
     if several and output.suffix.lower() in IMAGE_EXTENSIONS:
         raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
-        raise InputError(f"output {output} needs an image suffix: .exr (linear radiance) or .png (sRGB)")
+        raise InputError(f"output {output} needs an image suffix: .exr (linear radiance), .png, .tif or .jpg (sRGB)")
     if several:
         check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry)
     else:
@@ -162,7 +165,7 @@ def _run_relight(args) -> int:
     if not several:
         relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
         seconds = time.perf_counter() - started
-        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure))
+        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure), bits=_output_bits(args, field, output))
         clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
         print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
         return 0
@@ -172,6 +175,18 @@ def _run_relight(args) -> int:
     print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, {args.method}, "
           f"{1000 * seconds / len(directions):.2f} ms per light with writing)")
     return 0
+
+
+def _output_bits(args, field, output: Path) -> int:
+    """``--bits`` for this output: 16 or 8 for PNG/TIFF (auto: 16 after a capture of more than 8 bits), else 8."""
+    if output.suffix.lower() not in (".png", ".tif", ".tiff"):
+        if args.bits == "16":
+            raise InputError(f"--bits 16 is for PNG and TIFF outputs; {output.name} is {output.suffix} (EXR keeps floats, JPEG has 8 bits)")
+        return 8
+    if args.bits != "auto":
+        return int(args.bits)
+    source = (field.report or {}).get("input") or {}
+    return 16 if int(source.get("bits", 8)) > 8 else 8
 
 
 def _relit_folder_entry(relative: str) -> bool:

@@ -163,6 +163,7 @@ def fit_field(
         "version": __version__,
         "device": str(device),
         "source_size": [dataset.width, dataset.height],
+        "input": dataset.source,  # format, bits per channel, sRGB or linear, ICC profile of the capture's files
         "size": [width, height],
         "lights": dataset.light_count,
         "exposure": factor,

@@ -20,7 +20,7 @@ import numpy as np
 from ..model.errors import InputError
 from ..model.lights import LightSet
 from .atomic import FolderTransaction, deferred_signals
-from .images import DEFAULT_MAX_PIXELS, image_shape, read_image, write_image
+from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
 from .memory import check_memory
 
@@ -46,6 +46,8 @@ class ReflectanceField:
         heldout: Ground truth at other light directions (same image size), or None.
         meta: Free-form metadata (generator, shape, material, resolution, colour space).
         root: Folder the field was loaded from, or None.
+        source: How the loaded files stored their values (``io.images.image_encoding`` of the first
+            image: format, bits per channel, sRGB or linear, ICC profile), or None (made in memory).
     """
 
     images: np.ndarray
@@ -56,6 +58,7 @@ class ReflectanceField:
     heldout: ReflectanceField | None = None
     meta: dict = field(default_factory=dict)
     root: Path | None = None
+    source: dict | None = None
 
     def __post_init__(self) -> None:
         self.images = np.asarray(self.images, dtype=np.float32)
@@ -125,6 +128,10 @@ class ReflectanceField:
             "mask_pixels": None if self.mask is None else int(self.mask.sum()),
             "heldout_lights": 0 if self.heldout is None else self.heldout.light_count,
         }
+        if self.source:
+            profile = self.source["profile"]
+            summary["source"] = (f"{self.source['bits']}-bit {self.source['format']}, {self.source['values']} values"
+                                 + (f", ICC profile '{profile}'" if profile else ""))
         if self.meta:
             summary["generator"] = self.meta.get("generator")
         return summary
@@ -180,6 +187,7 @@ class ReflectanceField:
         result.heldout = fields[1] if extra is not None else None
         result.mask = _read_mask(folder / "mask.png", (result.height, result.width), max_pixels)
         result.meta = _read_meta(folder / "meta.json")
+        result.source = image_encoding(main.images[0], linear=linear)
         return result
 
     @property
@@ -205,7 +213,8 @@ class ReflectanceField:
             names = None if self.lights.filenames is None else [n for n, keep in zip(self.lights.filenames, mask) if keep]
             pick = lambda a: None if a is None else a[mask].copy()
             return ReflectanceField(self.images[mask].copy(), LightSet(self.lights.directions[mask], names),
-                                    specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask, root=self.root)
+                                    specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask, root=self.root,
+                                    source=self.source)
 
         train = part(~held)
         train.heldout = part(held)

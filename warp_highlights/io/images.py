@@ -1,4 +1,5 @@
-"""Image files in and out: OpenEXR (linear), PNG 8/16-bit and JPEG (sRGB), as float32 NumPy arrays.
+"""Image files in and out: OpenEXR (linear), PNG and TIFF 8/16-bit, JPEG (sRGB), float TIFF (linear),
+as float32 NumPy arrays.
 
 Arrays are ``(H, W)`` for grayscale or ``(H, W, 3)`` for RGB, row 0 at the top of the image. Pixel
 values are linear radiance (EXR as stored; PNG and JPEG decoded with the sRGB transfer function unless
@@ -9,22 +10,27 @@ The readers refuse, in one line naming the file, an image over a pixel budget (`
 default :data:`DEFAULT_MAX_PIXELS`), checked from the header before any pixel is decoded, and a damaged
 or truncated file (never a grey-filled guess).
 
-Pillow and OpenEXR are imported inside the functions that use them. Pillow cannot hold 16-bit colour
-images (it reads a 16-bit RGB PNG as 8-bit and cannot write one), so 16-bit colour PNGs go through
-VTK's PNG codec instead.
+PNG, JPEG and TIFF pixels are decoded by OpenImageIO (8 and 16 bits per channel, grey, RGB, palette,
+with or without alpha; float TIFF), which also writes 16-bit PNG and TIFF; EXIF orientation is applied
+(a camera's portrait JPEG comes out upright), and an embedded ICC profile other than sRGB is named
+once per profile in the ``warp_highlights`` log and converted to sRGB by Pillow's ImageCms where it
+can (8-bit RGB; otherwise the values are read as sRGB). Headers of PNG and JPEG
+files are read with Pillow, whose parser sees a decompression bomb's size without decoding it; EXR goes
+through OpenEXR. Each library is imported inside the functions that use it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import io
+import logging
 import math
 import os
 import struct
 import sys
 import threading
 import warnings
-import zlib
 from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
@@ -40,6 +46,7 @@ __all__ = [
     "display_rgb8",
     "psnr_8bit",
     "srgb_psnr",
+    "image_encoding",
     "image_shape",
     "image_size",
     "linear_to_srgb",
@@ -49,14 +56,26 @@ __all__ = [
     "write_image",
 ]
 
-IMAGE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg")
+IMAGE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
 """File extensions :func:`read_image` and :func:`write_image` accept (case-insensitive)."""
 
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_TIFF_SUFFIXES = (".tif", ".tiff")
+_EXIF_ORIENTATIONS = {  # EXIF Orientation -> what turns the stored rows upright (numpy, rows down)
+    1: lambda a: a,
+    2: lambda a: a[:, ::-1],
+    3: lambda a: a[::-1, ::-1],
+    4: lambda a: a[::-1],
+    5: lambda a: a.swapaxes(0, 1),
+    6: lambda a: a.swapaxes(0, 1)[:, ::-1],
+    7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
+    8: lambda a: a.swapaxes(0, 1)[::-1],
+}
+_REPORTED_PROFILES: set[str] = set()  # ICC profiles already named in the log (once per profile and process)
 _PIL_GRAY16_MODES = {"I;16", "I;16B", "I;16L", "I;16N", "I"}
 _PIL_GRAY8_MODES = {"1", "L", "LA", "La"}
 _PIL_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)  # what Pillow raises on bad files
 _PIL_FORMATS = ("PNG", "JPEG")  # what Pillow may take a file for, whatever its extension says
+_EXIF_ORIENTATION_TAG = 0x0112
 _READ_LOCK = threading.RLock()  # reads set process-wide state: Pillow's limits, file descriptor 2
 
 DEFAULT_MAX_PIXELS = 160_000_000
@@ -129,15 +148,16 @@ def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_M
     """Read an image file as linear float32 values.
 
     Args:
-        path: An ``.exr``, ``.png`` (8 or 16 bits per channel) or ``.jpg``/``.jpeg`` file.
-        linear: PNG/JPEG only: the stored values are already linear; scale to [0, 1] but skip the
-            sRGB decode.
+        path: An ``.exr``, ``.png`` or ``.tif``/``.tiff`` (8 or 16 bits per channel; a float TIFF
+            holds linear values, as EXR does) or ``.jpg``/``.jpeg`` file.
+        linear: integer PNG/JPEG/TIFF only: the stored values are already linear; scale to [0, 1]
+            but skip the sRGB decode.
         max_pixels: Refuse an image of more pixels (width x height) than this, seen in its header
             before any pixel is decoded; None for no limit.
 
     Returns:
-        float32 array ``(H, W)`` for grayscale, ``(H, W, 3)`` for colour. Alpha is dropped; palette
-        images are expanded to RGB.
+        float32 array ``(H, W)`` for grayscale, ``(H, W, 3)`` for colour, upright (EXIF orientation
+        applied). Alpha is dropped; palette images are expanded to RGB.
 
     Raises:
         InputError: Missing file, unsupported extension, more than ``max_pixels`` pixels, or a file
@@ -146,22 +166,23 @@ def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_M
     path, suffix = _existing_image(path)
     if suffix == ".exr":
         return _read_exr(path, max_pixels)
-    if suffix == ".png" and _png_is_16bit_colour(path):
-        levels = _read_png16_colour(path, max_pixels)
-    else:
-        levels = _read_with_pillow(path, max_pixels)
-    return _decode_levels(levels, linear=linear)
+    _header(path, suffix, max_pixels)  # the pixel budget, before anything is decoded
+    pixels = _read_with_oiio(path)
+    if pixels.dtype == np.float32:
+        return pixels
+    return _decode_levels(pixels, linear=linear)
 
 
 def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool = False) -> None:
     """Write an image, choosing the format from the file extension; atomic (temp file + rename).
 
     Args:
-        path: Target ``.exr``, ``.png``, ``.jpg`` or ``.jpeg`` file; missing parent folders are made.
+        path: Target ``.exr``, ``.png``, ``.tif``/``.tiff``, ``.jpg`` or ``.jpeg`` file; missing parent
+            folders are made.
         image: Linear values, ``(H, W)`` (written as one channel, ``Y`` in EXR) or ``(H, W, 3)``.
         half: EXR only: store 16-bit half floats instead of float32.
-        bits: PNG only: 8 or 16 bits per channel. JPEG is always 8-bit.
-        linear: PNG/JPEG only: store the values as they are (clipped to [0, 1]) instead of
+        bits: PNG and TIFF: 8 or 16 bits per channel. JPEG is always 8-bit.
+        linear: PNG/JPEG/TIFF only: store the values as they are (clipped to [0, 1]) instead of
             sRGB-encoding them.
 
     Raises:
@@ -172,14 +193,14 @@ def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool 
     image = _checked_image(path, image)
     if half and suffix != ".exr":
         raise InputError(f"{path}: half floats are an EXR option; use a .exr file or drop half")
-    if bits not in (8, 16) or (bits == 16 and suffix != ".png"):
-        raise InputError(f"{path}: bits={bits} is not possible; PNG takes 8 or 16, JPEG only 8, EXR none")
+    if bits not in (8, 16) or (bits == 16 and suffix not in (".png", *_TIFF_SUFFIXES)):
+        raise InputError(f"{path}: bits={bits} is not possible; PNG and TIFF take 8 or 16, JPEG only 8, EXR none")
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_file(path, checked=False) as tmp:
         if suffix == ".exr":
             _write_exr(tmp, image, half=half)
-        elif bits == 16 and image.ndim == 3:
-            _write_png16_colour(tmp, _encode_levels(image, 65535, linear=linear))
+        elif bits == 16 or suffix in _TIFF_SUFFIXES:
+            _write_with_oiio(tmp, "tiff" if suffix in _TIFF_SUFFIXES else "png", _encode_levels(image, 2**bits - 1, linear=linear))
         else:
             _write_with_pillow(tmp, suffix, _encode_levels(image, 2**bits - 1, linear=linear))
 
@@ -188,19 +209,21 @@ def image_size(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[in
     """Size of an image file from its header, without decoding the pixels.
 
     Args:
-        path: An ``.exr``, ``.png``, ``.jpg`` or ``.jpeg`` file.
+        path: An ``.exr``, ``.png``, ``.tif``/``.tiff``, ``.jpg`` or ``.jpeg`` file.
         max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit.
 
     Returns:
-        ``(width, height)`` in pixels.
+        ``(width, height)`` in pixels, upright (EXIF orientation applied).
 
     Raises:
         InputError: Missing file, unsupported extension, an unreadable header, or more than
             ``max_pixels`` pixels.
     """
     path, suffix = _existing_image(path)
-    header = _exr_header if suffix == ".exr" else _pillow_header
-    width, height, _ = header(path, max_pixels)
+    if suffix == ".exr":
+        width, height, _ = _exr_header(path, max_pixels)
+        return width, height
+    width, height, _ = _header(path, suffix, max_pixels)
     return width, height
 
 
@@ -208,7 +231,7 @@ def image_shape(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[i
     """The shape :func:`read_image` returns, ``(H, W)`` or ``(H, W, 3)``, from the header alone.
 
     Args:
-        path: An ``.exr``, ``.png``, ``.jpg`` or ``.jpeg`` file.
+        path: An ``.exr``, ``.png``, ``.tif``/``.tiff``, ``.jpg`` or ``.jpeg`` file.
         max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit.
 
     Raises:
@@ -219,9 +242,47 @@ def image_shape(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[i
         width, height, names = _exr_header(path, max_pixels)
         colour = len(_exr_channels_to_keep(path, names)) == 3
     else:
-        width, height, mode = _pillow_header(path, max_pixels)
-        colour = mode not in _PIL_GRAY8_MODES | _PIL_GRAY16_MODES
+        width, height, colour = _header(path, suffix, max_pixels)
     return (height, width, 3) if colour else (height, width)
+
+
+def image_encoding(path, *, linear: bool = False) -> dict:
+    """How an image file stores its values, from its header: ``{"format": "PNG" | "JPEG" | "TIFF" |
+    "EXR", "bits": bits per channel, "values": "sRGB" | "linear", "profile": ICC profile name or None}``
+    (``linear`` as :func:`read_image` takes it; EXR and float TIFF hold linear values)."""
+    path, suffix = _existing_image(path)
+    if suffix == ".exr":
+        import OpenEXR
+
+        try:
+            with _READ_LOCK, quiet_native_stderr():
+                channel = next(iter(OpenEXR.File(str(path), header_only=True).parts[0].header["channels"]))
+            bits = 16 if "HALF" in str(channel.type).upper() else 32
+        except Exception as exc:  # noqa: BLE001 (OpenEXR raises many kinds)
+            raise _unreadable(path, exc) from exc
+        return {"format": "EXR", "bits": bits, "values": "linear", "profile": None}
+    import OpenImageIO as oiio
+
+    with _READ_LOCK, quiet_native_stderr():
+        image = oiio.ImageInput.open(str(path))
+        if image is None:
+            raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
+        spec = image.spec()
+        image.close()
+    stored = str(spec.format)
+    floating = stored in ("half", "float", "double")
+    bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or {"uint8": 8, "uint16": 16, "half": 16, "float": 32, "double": 64}.get(stored, 16)
+    icc = spec.getattribute("ICCProfile")
+    profile = None
+    if icc is not None and len(icc):
+        from PIL import ImageCms
+
+        try:
+            profile = ImageCms.getProfileDescription(ImageCms.ImageCmsProfile(io.BytesIO(bytes(np.asarray(icc, dtype=np.uint8))))).strip()
+        except (OSError, ImageCms.PyCMSError):
+            profile = "unreadable"
+    name = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(suffix, "TIFF")
+    return {"format": name, "bits": int(bits), "values": "linear" if floating or linear else "sRGB", "profile": profile}
 
 
 # --- helpers -----------------------------------------------------------------------------------
@@ -303,10 +364,33 @@ def _pillow_image(path: Path, max_pixels: int | None) -> Iterator:
             Image.MAX_IMAGE_PIXELS, ImageFile.LOAD_TRUNCATED_IMAGES = saved
 
 
-def _pillow_header(path: Path, max_pixels: int | None) -> tuple[int, int, str]:
-    """``(width, height, Pillow mode)`` of a PNG or JPEG, from its header."""
-    with _pillow_image(path, max_pixels) as im:
-        return im.size[0], im.size[1], im.mode
+def _header(path: Path, suffix: str, max_pixels: int | None) -> tuple[int, int, bool]:
+    """``(width, height, colour)`` of a PNG, JPEG or TIFF as :func:`read_image` returns it (upright),
+    from its header; refuses more than ``max_pixels`` pixels."""
+    if suffix in _TIFF_SUFFIXES:
+        width, height, channels, orientation = _oiio_header(path, max_pixels)
+        colour = channels >= 3
+    else:
+        with _pillow_image(path, max_pixels) as im:
+            (width, height), colour = im.size, im.mode not in _PIL_GRAY8_MODES | _PIL_GRAY16_MODES
+            orientation = im.getexif().get(_EXIF_ORIENTATION_TAG, 1) if suffix != ".png" else 1
+    return (height, width, colour) if orientation in (5, 6, 7, 8) else (width, height, colour)
+
+
+def _oiio_header(path: Path, max_pixels: int | None) -> tuple[int, int, int, int]:
+    """``(stored width, stored height, channels other than alpha, EXIF orientation)`` from a TIFF's
+    header (OpenImageIO); refuses more than ``max_pixels`` pixels."""
+    import OpenImageIO as oiio
+
+    with _READ_LOCK, quiet_native_stderr():
+        image = oiio.ImageInput.open(str(path))
+        if image is None:
+            raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
+        spec = image.spec()
+        image.close()
+    _check_pixels(path, f"{spec.width}x{spec.height}", spec.width * spec.height, max_pixels)
+    channels = spec.nchannels - (spec.alpha_channel >= 0)
+    return spec.width, spec.height, channels, spec.get_int_attribute("Orientation", 1)
 
 
 @contextlib.contextmanager
@@ -443,13 +527,113 @@ def _as_os_error(error: Exception, path: Path) -> Exception:
     return error
 
 
-def _read_with_pillow(path: Path, max_pixels: int | None) -> np.ndarray:
-    """8-bit (any mode) or 16-bit grayscale image -> uint8/uint16 codes, (H, W) or (H, W, 3)."""
-    with _pillow_image(path, max_pixels) as im:
-        im.load()
-        if im.mode in _PIL_GRAY16_MODES:
-            return np.asarray(im).astype(np.uint16)
-        return np.asarray(im.convert("L" if im.mode in _PIL_GRAY8_MODES else "RGB"))
+def _read_with_oiio(path: Path) -> np.ndarray:
+    """A PNG, JPEG or TIFF's pixels through OpenImageIO, upright: uint8 or uint16 codes (other integer
+    depths as uint16, bilevel and palette images expanded), or float32 for a float TIFF; (H, W) or
+    (H, W, 3), alpha dropped. A damaged or truncated file raises (never a partly grey image)."""
+    import OpenImageIO as oiio
+
+    with _READ_LOCK, quiet_native_stderr():  # libpng and libjpeg print their complaints on fd 2
+        config = oiio.ImageSpec()
+        config.attribute("oiio:UnassociatedAlpha", 1)  # colour as stored, not multiplied by alpha (which is dropped)
+        image = oiio.ImageInput.open(str(path), config)
+        if image is None:
+            raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
+        try:
+            spec = image.spec()
+            stored = str(spec.format)
+            kind = "uint8" if stored == "uint8" else "float" if stored in ("half", "float", "double") else "uint16"
+            pixels = image.read_image(0, 0, 0, spec.nchannels, kind)
+            error = image.geterror()
+        finally:
+            image.close()
+    if pixels is None or error:
+        raise _unreadable(path, RuntimeError(error or "no pixels"))
+    pixels = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
+    keep = [c for c in range(spec.nchannels) if c != spec.alpha_channel]
+    pixels = pixels[:, :, keep[:3]] if len(keep) >= 3 else pixels[:, :, keep[0]]
+    pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)
+    icc = spec.getattribute("ICCProfile")
+    if icc is not None and len(icc) and pixels.ndim == 3 and kind != "float":
+        pixels = _to_srgb(path, pixels, bytes(np.asarray(icc, dtype=np.uint8)))
+    return np.ascontiguousarray(pixels, dtype=np.float32 if kind == "float" else None)
+
+
+def _to_srgb(path: Path, levels: np.ndarray, icc: bytes) -> np.ndarray:
+    """8-bit RGB codes in the colour space of the ICC profile ``icc`` -> sRGB codes (Pillow's
+    ImageCms); 16-bit codes, which ImageCms cannot convert, are kept. A profile other than sRGB is
+    named once per process in the ``warp_highlights`` log."""
+    from PIL import Image, ImageCms
+
+    try:
+        source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        name = ImageCms.getProfileDescription(source).strip()
+    except (OSError, ImageCms.PyCMSError) as exc:
+        name = f"unreadable ({exc})"
+        source = None
+    if "srgb" in name.lower().replace(" ", ""):
+        return levels
+    converted = source is not None and levels.dtype == np.uint8
+    if converted:
+        try:
+            levels = np.asarray(ImageCms.profileToProfile(Image.fromarray(levels), source, ImageCms.createProfile("sRGB"), outputMode="RGB"))
+        except ImageCms.PyCMSError:
+            converted = False
+    if name not in _REPORTED_PROFILES:
+        _REPORTED_PROFILES.add(name)
+        done = "converted to sRGB" if converted else "read as sRGB (convert the capture to sRGB for exact colours)"
+        logging.getLogger(__name__).warning(f"{path}: colour profile '{name}', not sRGB: {done}")
+    return levels
+
+
+def _write_with_oiio(path: Path, format_name: str, levels: np.ndarray) -> None:
+    """uint8 or uint16 codes -> a PNG or TIFF (``format_name`` 'png' or 'tiff'; zip-compressed TIFF)."""
+    import OpenImageIO as oiio
+
+    height, width = levels.shape[:2]
+    channels = 1 if levels.ndim == 2 else levels.shape[2]
+    spec = oiio.ImageSpec(width, height, channels, "uint8" if levels.dtype == np.uint8 else "uint16")
+    spec.attribute("oiio:UnassociatedAlpha", 1)  # any alpha channel is stored as given
+    if format_name == "tiff":
+        spec.attribute("compression", "zip")
+        spec.attribute("tiff:write_exif", 0)  # no EXIF to write; with it on, OpenImageIO 3.2 reports a failed EXIF directory
+    pixels = np.ascontiguousarray(levels.reshape(height, width, channels))  # OpenImageIO misreads a 2-D array
+    output = oiio.ImageOutput.create(format_name)
+    if output is None:
+        raise InputError(f"{path}: OpenImageIO has no {format_name} writer ({oiio.geterror()})")
+    if not output.open(str(path), spec):  # (closing an output that failed to open crashes OpenImageIO's TIFF writer)
+        raise _write_failure(path, output.geterror())
+    written = output.write_image(pixels)
+    closed = output.close()
+    error = output.geterror()  # a short write (disk full) leaves write and close True and says so only here
+    if not (written and closed) or error:
+        raise _write_failure(path, error)
+    # ... or not at all: a small PNG on a full disk ends as an empty file with no error. So the file
+    # must read back as written before it may take the target's place.
+    check = oiio.ImageInput.open(str(path), spec)  # (its oiio:UnassociatedAlpha: any alpha as stored)
+    back = None if check is None else check.read_image(0, 0, 0, channels, spec.format)
+    if check is None:
+        oiio.geterror()  # taken, or OpenImageIO prints it at exit
+    else:
+        check.close()
+    if back is None or not np.array_equal(np.asarray(back).reshape(pixels.shape), pixels):
+        raise _write_failure(path, "the written file does not read back as written")
+
+
+def _write_failure(path: Path, message: str) -> OSError:
+    """OpenImageIO's write complaint -> an OSError with the errno it names, or ENOSPC when the disk
+    holding ``path`` is full, else EIO (its messages carry no errno)."""
+    error = _as_os_error(RuntimeError(message), path)
+    if isinstance(error, OSError):
+        return error
+    import shutil
+
+    try:
+        full = shutil.disk_usage(path.parent).free < 64 * 1024
+    except OSError:
+        full = False
+    code = errno.ENOSPC if full else errno.EIO
+    return OSError(code, f"{os.strerror(code)} ({message.strip().splitlines()[0] if message.strip() else 'write failed'})", str(path))
 
 
 def _write_with_pillow(path: Path, suffix: str, levels: np.ndarray) -> None:
@@ -459,74 +643,3 @@ def _write_with_pillow(path: Path, suffix: str, levels: np.ndarray) -> None:
         Image.fromarray(levels).save(path, format="PNG")
     else:
         Image.fromarray(levels).save(path, format="JPEG", quality=95)
-
-
-def _png_is_16bit_colour(path: Path) -> bool:
-    """True for a PNG whose header says 16 bits per channel and colour or alpha (types 2, 4, 6)."""
-    with open(path, "rb") as f:
-        head = f.read(29)
-    if len(head) < 29 or not head.startswith(_PNG_SIGNATURE) or head[12:16] != b"IHDR":
-        return False  # let Pillow identify it or report the damage
-    return head[24] == 16 and head[25] in (2, 4, 6)
-
-
-def _check_png_chunks(path: Path) -> None:
-    """Raise InputError unless every chunk is complete with a valid CRC and the file ends with IEND.
-
-    libpng inside VTK kills the process on a damaged file instead of reporting it, so 16-bit colour
-    PNGs are checked here (chunk framing) and by a full Pillow decode (image data) before VTK reads them.
-    """
-    data = path.read_bytes()
-    pos = len(_PNG_SIGNATURE)
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
-        end = pos + 12 + length
-        if end > len(data):
-            break
-        (crc,) = struct.unpack(">I", data[end - 4 : end])
-        if zlib.crc32(data[pos + 4 : end - 4]) != crc:
-            name = kind.decode("latin-1")
-            raise InputError(f"{path}: cannot read image (CRC error in chunk {name}); the file is damaged")
-        if kind == b"IEND":
-            return
-        pos = end
-    raise InputError(f"{path}: cannot read image (file is truncated); the file is damaged")
-
-
-def _read_png16_colour(path: Path, max_pixels: int | None) -> np.ndarray:
-    """16-bit RGB/RGBA/gray+alpha PNG -> uint16 codes, (H, W, 3) or (H, W) with alpha dropped."""
-    _pillow_header(path, max_pixels)
-    _check_png_chunks(path)
-    _read_with_pillow(path, max_pixels)  # decodes every row at 8 bits: reports damaged image data cleanly
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-    from vtkmodules.vtkIOImage import vtkPNGReader
-
-    reader = vtkPNGReader()
-    reader.SetFileName(str(path))
-    reader.Update()
-    output = reader.GetOutput()
-    width, height, _ = output.GetDimensions()
-    scalars = output.GetPointData().GetScalars()
-    if reader.GetErrorCode() or scalars is None:
-        raise InputError(f"{path}: cannot read image (VTK PNG reader failed); the file is damaged")
-    levels = vtk_to_numpy(scalars).reshape(height, width, -1)[::-1]  # VTK rows run bottom-up
-    levels = levels[:, :, 0] if levels.shape[2] <= 2 else levels[:, :, :3]
-    return np.ascontiguousarray(levels, dtype=np.uint16)
-
-
-def _write_png16_colour(path: Path, levels: np.ndarray) -> None:
-    from vtkmodules.util.numpy_support import numpy_to_vtk
-    from vtkmodules.vtkCommonDataModel import vtkImageData
-    from vtkmodules.vtkIOImage import vtkPNGWriter
-
-    height, width, channels = levels.shape
-    data = vtkImageData()
-    data.SetDimensions(width, height, 1)
-    rows_bottom_up = np.ascontiguousarray(levels[::-1]).reshape(-1, channels)
-    data.GetPointData().SetScalars(numpy_to_vtk(rows_bottom_up, deep=True))
-    writer = vtkPNGWriter()
-    writer.SetFileName(str(path))
-    writer.SetInputData(data)
-    writer.Write()
-    if writer.GetErrorCode() or not path.is_file():
-        raise InputError(f"{path}: VTK could not write the 16-bit PNG (error code {writer.GetErrorCode()})")
