@@ -135,3 +135,5 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
     capsys.readouterr()
     assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "-o", str(tmp_path / "relit.exr"), "--bits", "16", "-q"]) == 2
     assert "--bits 16 is for PNG and TIFF" in capsys.readouterr().err
+    assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "--light", "0.1,0,1", "-o", str(tmp_path / "many"), "--bits", "8", "-q"]) == 2
+    assert "folder of EXR images" in capsys.readouterr().err and not (tmp_path / "many").exists()

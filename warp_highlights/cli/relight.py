@@ -154,6 +154,8 @@ def _run_relight(args) -> int:
         raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance), .png, .tif or .jpg (sRGB)")
+    if several and args.bits != "auto":
+        raise InputError(f"--bits {args.bits} is for one PNG or TIFF image; {len(directions)} lights make a folder of EXR images (floats)")
     if several:
         check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry)
     else:
