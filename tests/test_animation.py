@@ -391,6 +391,29 @@ def test_gif_keeps_identical_frames(tmp_path):
         assert im.n_frames == 5  # not merged: the frame count and timing stay as asked
 
 
+@pytest.mark.parametrize("name", ["anim.webp", "anim.apng"])
+@pytest.mark.parametrize("colour", [True, False])
+def test_webp_and_apng_keep_every_colour_and_the_timing(tmp_path, name, colour):
+    """Lossless WebP and APNG (Pillow) give every 8-bit sRGB frame back exactly, loop forever, and last
+    1 s at 24 frames per second; identical neighbours become one frame of their summed duration."""
+    frames = list(_frames(24, colour=colour))
+    frames[10] = frames[9]
+    target = tmp_path / name
+    done = []
+    assert write_animation(frames, target, fps=24.0, progress=done.append) == target and done == list(range(1, 25))
+    with Image.open(target) as im:
+        assert im.format == ("WEBP" if name.endswith(".webp") else "PNG") and im.n_frames == 23 and im.info["loop"] == 0
+        durations = []
+        for k in range(im.n_frames):
+            im.seek(k)
+            got = np.asarray(im.convert("RGB" if colour else "L"))  # (decoding the frame sets its duration)
+            durations.append(im.info["duration"])
+            want = _srgb8(frames[k if k < 10 else k + 1])
+            np.testing.assert_array_equal(got, want if colour or got.ndim == 2 else want[..., None])
+    assert sum(durations) == 1000 and durations[9] in (83, 84)
+    assert animation_module.animation_kind(target) == name.split(".")[1]
+
+
 @pytest.mark.parametrize("fps", [60.0, 0.0, -1.0, math.nan])
 def test_gif_fps_limits(tmp_path, fps):
     with pytest.raises(InputError) as excinfo:
@@ -493,7 +516,7 @@ def test_mp4_without_ffmpeg_is_a_clear_error(tmp_path, monkeypatch):
 
 # --- atomicity and errors ---------------------------------------------------------------------------
 
-KINDS = ["anim.gif", "frames", "anim.mp4"]
+KINDS = ["anim.gif", "anim.webp", "anim.apng", "frames", "anim.mp4"]
 
 
 def _target(tmp_path, name):

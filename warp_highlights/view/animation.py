@@ -1,4 +1,5 @@
-"""Light paths and animation writers: relight a highlight field along a path, write GIF, MP4 or frames.
+"""Light paths and animation writers: relight a highlight field along a path, write GIF, animated
+WebP or PNG (APNG), MP4 or frames.
 
 Light directions are float64 unit vectors from the object towards the light, in camera space: x to
 the right of the image, y towards the top, z towards the camera (method.md section 0). Angles taken
@@ -7,7 +8,9 @@ side), azimuth from +x towards +y.
 
 The writers stream: frames come from any iterable (a generator of relit images) and at most a few
 are held at a time. Frames are linear float images ``(H, W)`` or ``(H, W, 3)``, 1.0 = display white;
-they are clipped to [0, 1] and sRGB-encoded for GIF, MP4 and PNG, kept linear for EXR. Every output
+they are clipped to [0, 1] and sRGB-encoded for GIF, WebP, APNG, MP4 and PNG, kept linear for EXR.
+WebP and APNG hold every frame in memory until the file is written (Pillow's encoders take them all
+at once), which is checked against the memory available when the frame count is known. Every output
 is written to a temporary sibling (file or folder) and renamed into place when complete, so a failed
 or interrupted write leaves nothing behind and an existing output untouched.
 
@@ -47,7 +50,7 @@ __all__ = [
     "write_animation",
 ]
 
-ANIMATION_OUTPUTS = ".gif, .mp4, or a folder (a name without suffix, or an existing folder) of PNG/EXR frames"
+ANIMATION_OUTPUTS = ".gif, .webp, .apng, .mp4, or a folder (a name without suffix, or an existing folder) of PNG/EXR frames"
 """What :func:`write_animation` can write, for messages and help texts."""
 
 LIGHT_PATH_FORMS = "great:x,y,z:x,y,z, orbit:ELEVATION_DEG[:START_AZIMUTH_DEG] or list:FILE"
@@ -195,17 +198,18 @@ def animation_kind(path) -> str:
     """What :func:`write_animation` writes to ``path``, from its suffix.
 
     Args:
-        path: ``*.gif``, ``*.mp4``, or a folder: an existing folder or a name without suffix.
+        path: ``*.gif``, ``*.webp``, ``*.apng``, ``*.mp4``, or a folder: an existing folder or a name
+            without suffix.
 
     Returns:
-        ``"gif"``, ``"mp4"`` or ``"frames"``.
+        ``"gif"``, ``"webp"``, ``"apng"``, ``"mp4"`` or ``"frames"``.
 
     Raises:
         InputError: Any other suffix (e.g. ``.avi``); the message lists the supported outputs.
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix in (".gif", ".mp4"):
+    if suffix in (".gif", ".webp", ".apng", ".mp4"):
         return suffix[1:]
     if suffix == "" or path.is_dir():
         return "frames"
@@ -255,14 +259,15 @@ def write_animation(
 
     GIF: one 256-colour palette for every frame (adaptive, from the first 8 frames, plus a gray
     ramp; exact gray levels for grayscale frames), no dithering, so still regions never flicker; loops
-    forever; every frame is kept, identical ones too. MP4: H.264 (libx264, yuv420p, BT.709), odd sizes padded to even by repeating the last
+    forever; every frame is kept, identical ones too. WebP (lossless) and APNG: every 8-bit sRGB
+    colour exactly, looping forever, through Pillow. MP4: H.264 (libx264, yuv420p, BT.709), odd sizes padded to even by repeating the last
     row/column. Folder: ``frame_0000.png`` ... (8-bit sRGB) or ``frame_0000.exr`` (linear float32).
 
     Args:
         frames: Iterable of linear float images, ``(H, W)`` or ``(H, W, 3)``, all the same shape;
             1.0 = display white, values outside [0, 1] are clipped (except in EXR). Consumed once,
             streamed: a generator is fine.
-        path: Output: ``*.gif``, ``*.mp4``, or a folder (see :func:`animation_kind`).
+        path: Output: ``*.gif``, ``*.webp``, ``*.apng``, ``*.mp4``, or a folder (see :func:`animation_kind`).
         fps: Frames per second; GIF takes at most 50 (its clock counts hundredths of a second, and
             the frame durations alternate to keep the average rate exact).
         frame_count: Number of frames ``frames`` yields, when known (default ``len(frames)`` where it
@@ -296,7 +301,11 @@ def write_animation(
         with atomic_folder(path, kind="animation frames", overwrite=overwrite, legacy=_is_frame_name) as tmp:
             _write_frames(checked, tmp, frames_format=frames_format, frame_count=frame_count, progress=report)
     else:
-        writer = _write_gif if kind == "gif" else _write_mp4
+        writer = {"gif": _write_gif, "mp4": _write_mp4, "webp": _write_webp, "apng": _write_apng}[kind]
+        if kind in ("webp", "apng") and frame_count is not None:  # they hold every frame: sized from the first
+            first = next(checked)
+            _check_held_frames(frame_count, first.shape, kind)
+            checked = itertools.chain([first], checked)
         with atomic_file(path, overwrite=overwrite) as tmp:
             writer(checked, tmp, fps=fps, progress=report)
     return path
@@ -616,6 +625,46 @@ def _write_gif(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
             fp.writelines(GifImagePlugin.getdata(image, duration=10 * next(durations)))
             progress(done)
         fp.write(b";")
+
+
+def _check_held_frames(frame_count: int, shape: tuple[int, ...], kind: str) -> None:
+    """InputError when ``frame_count`` 8-bit frames of ``shape`` would not fit in the memory available."""
+    from ..io.memory import check_memory
+
+    frame_bytes = int(np.prod(shape[:2])) * (3 if len(shape) == 3 else 1)
+    check_memory(2 * frame_count * frame_bytes, f"a {kind.upper()} of {frame_count} frames", "write fewer frames, a .gif, an .mp4 or a frames folder",
+                 detail=f"{frame_count} frames of {shape[1]}x{shape[0]}, held twice by the encoder")
+
+
+def _pillow_frames(frames: Iterator[np.ndarray], progress) -> list:
+    """Every frame as a Pillow image of 8-bit sRGB codes (RGB or L)."""
+    from PIL import Image
+
+    images = []
+    for done, image in enumerate(frames, start=1):
+        images.append(Image.fromarray(_srgb8(image)))
+        progress(done)
+    return images
+
+
+def _frame_milliseconds(fps: float, count: int) -> list[int]:
+    """Frame durations in ms whose running sum tracks ``k / fps`` (e.g. 41, 42, 42 at 24 fps)."""
+    return [round(1000.0 * (k + 1) / fps) - round(1000.0 * k / fps) for k in range(count)]
+
+
+def _write_webp(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
+    """Animated lossless WebP through Pillow, looping forever."""
+    images = _pillow_frames(frames, progress)
+    images = [image if image.mode == "RGB" else image.convert("RGB") for image in images]  # WebP has no grey mode
+    images[0].save(path, format="WEBP", save_all=True, append_images=images[1:], lossless=True, quality=100, method=4,
+                   duration=_frame_milliseconds(fps, len(images)), loop=0)
+
+
+def _write_apng(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
+    """Animated PNG through Pillow, looping forever (every frame kept, identical ones too)."""
+    images = _pillow_frames(frames, progress)
+    images[0].save(path, format="PNG", save_all=True, append_images=images[1:], duration=_frame_milliseconds(fps, len(images)),
+                   loop=0, default_image=False, disposal=0, blend=0)
 
 
 def _ffmpeg_executable() -> str:
