@@ -16,6 +16,7 @@ import numpy as np
 import warp as wp
 from scipy import ndimage
 
+from ..io.metrics import psnr
 from ..kernels._tape import recording
 from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss
@@ -57,16 +58,6 @@ class EstimationResult:
     def counts(self) -> np.ndarray:
         """Gaussians per light."""
         return self.params.counts
-
-
-def psnr(image, reference, *, cap: float = 100.0) -> np.ndarray:
-    """PSNR in dB with peak 1 over the last two axes, both clipped to [0, 1]; identical images give ``cap``."""
-    a = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
-    b = np.clip(np.asarray(reference, dtype=np.float64), 0.0, 1.0)
-    mse = ((a - b) ** 2).mean(axis=(-2, -1))
-    with np.errstate(divide="ignore"):
-        value = 10.0 * np.log10(1.0 / mse)
-    return np.minimum(value, cap)
 
 
 def gaussian_energy_rpx(params: GaussianParams, sigma_eps: float) -> np.ndarray:

@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.images import linear_to_srgb, srgb_psnr
+from ..io.images import linear_to_srgb
+from ..io.metrics import srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions

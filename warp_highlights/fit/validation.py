@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..io.images import srgb_psnr
+from ..io.metrics import srgb_psnr
 from ..kernels.raster import Rasterizer
 from ..model.config import FitSettings
 from ..model.errors import InputError

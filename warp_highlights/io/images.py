@@ -44,8 +44,6 @@ __all__ = [
     "DEFAULT_MAX_PIXELS",
     "IMAGE_EXTENSIONS",
     "display_rgb8",
-    "psnr_8bit",
-    "srgb_psnr",
     "image_encoding",
     "image_shape",
     "image_size",
@@ -131,17 +129,6 @@ def display_rgb8(image) -> np.ndarray:
         raise InputError(f"a displayed image must be (H, W), (H, W, 1) or (H, W, 3), got {image.shape}")
     encoded = linear_to_srgb(np.clip(np.nan_to_num(image, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0))
     return np.round(encoded * 255.0).astype(np.uint8)
-
-
-def srgb_psnr(image, reference) -> float:
-    """PSNR in dB (peak 255, at most 100 for identical images) of two linear images as shown in 8-bit sRGB (``display_rgb8``)."""
-    return psnr_8bit(display_rgb8(image), display_rgb8(reference))
-
-
-def psnr_8bit(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR in dB (peak 255, at most 100 for identical images) of two 8-bit images of one shape."""
-    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
-    return 100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse))
 
 
 def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> np.ndarray:

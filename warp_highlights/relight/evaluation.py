@@ -30,7 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..io.images import display_rgb8, linear_to_srgb, psnr_8bit, srgb_to_linear
+from ..io.images import linear_to_srgb, srgb_to_linear
+from ..io.metrics import psnr_excluding_black, srgb_scores
 from ..io.resample import resize_stack
 from ..model.errors import InputError
 from ..model.residual import LUMINANCE_WEIGHTS
@@ -128,38 +129,6 @@ class Evaluation:
             "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
             "per_query": per_query,
         }
-
-
-def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 100.0) -> np.ndarray:
-    """(Q,) PSNR in dB (peak 1, both clipped to [0, 1], at most ``cap``); NaN where both are all zero.
-
-    Works on (Q, H, W) or (Q, H, W, C) stacks.
-    """
-    a = np.clip(np.asarray(images, dtype=np.float64), 0.0, 1.0).reshape(len(images), -1)
-    b = np.clip(np.asarray(truth, dtype=np.float64), 0.0, 1.0).reshape(len(truth), -1)
-    mse = ((a - b) ** 2).mean(axis=1)
-    with np.errstate(divide="ignore"):
-        value = np.minimum(10.0 * np.log10(1.0 / mse), cap)
-    black = (a.max(axis=1) <= 0.0) & (b.max(axis=1) <= 0.0)
-    return np.where(black, np.nan, value)
-
-
-def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Q,) PSNR (dB, peak 255) and (Q,) SSIM of linear images shown as 8-bit sRGB (``display_rgb8``).
-
-    Works on (Q, H, W) or (Q, H, W, C) stacks; SSIM is scikit-image's (7 x 7 window, over the colour
-    channels), PSNR is capped at 100 dB for identical images.
-    """
-    from skimage.metrics import structural_similarity
-
-    psnr, ssim = np.empty(len(images)), np.empty(len(images))
-    for q, (image, reference) in enumerate(zip(images, truth)):
-        a, b = display_rgb8(image), display_rgb8(reference)
-        psnr[q] = psnr_8bit(a, b)
-        small = min(a.shape[0], a.shape[1])
-        window = min(7, small if small % 2 else small - 1) if small >= 3 else None  # odd, as SSIM needs
-        ssim[q] = 1.0 if window is None else structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window)
-    return psnr, ssim
 
 
 def summarize(values) -> dict:

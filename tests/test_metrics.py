@@ -1,0 +1,55 @@
+"""``io.metrics``, the one place image quality is computed, against direct computations; and no other
+module computes PSNR or SSIM itself."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warp_highlights.io.images import display_rgb8
+from warp_highlights.io.metrics import psnr, psnr_8bit, psnr_excluding_black, srgb_psnr, srgb_scores, ssim_8bit
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_psnr_values():
+    rng = np.random.default_rng(0)
+    a, b = rng.uniform(0, 1, (3, 8, 9)), rng.uniform(0, 1, (3, 8, 9))
+    want = 10 * np.log10(1 / ((a - b) ** 2).mean(axis=(1, 2)))
+    np.testing.assert_allclose(psnr(a, b), want)
+    assert psnr(a[0], a[0]) == 100.0 and psnr(a[0] + 5, np.ones_like(a[0])) == 100.0  # clipped to [0, 1] first
+    stack = np.concatenate([a, np.zeros((1, 8, 9))])
+    got = psnr_excluding_black(stack, np.concatenate([b, np.zeros((1, 8, 9))]))
+    np.testing.assert_allclose(got[:3], want)
+    assert np.isnan(got[3])  # both black: no score
+    x, y = rng.integers(0, 256, (2, 6, 7, 3)).astype(np.uint8)
+    assert psnr_8bit(x, y) == pytest.approx(10 * np.log10(255**2 / ((x.astype(float) - y) ** 2).mean()))
+    assert psnr_8bit(x, x) == 100.0
+    assert srgb_psnr(a[0], b[0]) == psnr_8bit(display_rgb8(a[0]), display_rgb8(b[0]))
+
+
+def test_ssim_is_scikit_images():
+    from skimage.metrics import structural_similarity
+
+    rng = np.random.default_rng(1)
+    x, y = rng.integers(0, 256, (2, 20, 30, 3)).astype(np.uint8)
+    assert ssim_8bit(x, y) == pytest.approx(structural_similarity(y, x, channel_axis=-1, data_range=255, win_size=7))
+    assert ssim_8bit(x[:5, :5], y[:5, :5]) == pytest.approx(structural_similarity(y[:5, :5], x[:5, :5], channel_axis=-1, data_range=255, win_size=5))
+    assert ssim_8bit(x[:2, :2], y[:2, :2]) == 1.0  # too small for any window
+    images, truth = rng.uniform(0, 1, (2, 3, 20, 30, 3))
+    p, s = srgb_scores(images, truth)
+    assert p[1] == srgb_psnr(images[1], truth[1]) and s[1] == ssim_8bit(display_rgb8(images[1]), display_rgb8(truth[1]))
+
+
+def test_quality_is_computed_in_one_module():
+    """No module but ``io/metrics.py`` takes a logarithm of an error or calls scikit-image's SSIM."""
+    found = []
+    for folder in ("warp_highlights", "kernels", "benchmarks"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            if path.relative_to(ROOT).as_posix() == "warp_highlights/io/metrics.py":
+                continue
+            text = path.read_text()
+            found += [f"{path.relative_to(ROOT)}: {needle}" for needle in ("log10(", "structural_similarity", "peak_signal_noise_ratio") if needle in text]
+    assert found == []
