@@ -248,26 +248,12 @@ def image_encoding(path, *, linear: bool = False) -> dict:
         except Exception as exc:  # noqa: BLE001 (OpenEXR raises many kinds)
             raise _unreadable(path, exc) from exc
         return {"format": "EXR", "bits": bits, "values": "linear", "profile": None}
-    import OpenImageIO as oiio
-
-    with _READ_LOCK, quiet_native_stderr():
-        image = oiio.ImageInput.open(str(path))
-        if image is None:
-            raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
-        spec = image.spec()
-        image.close()
+    spec = _oiio_spec(path)
     stored = str(spec.format)
     floating = stored in ("half", "float", "double")
     bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or {"uint8": 8, "uint16": 16, "half": 16, "float": 32, "double": 64}.get(stored, 16)
     icc = spec.getattribute("ICCProfile")
-    profile = None
-    if icc is not None and len(icc):
-        from PIL import ImageCms
-
-        try:
-            profile = ImageCms.getProfileDescription(ImageCms.ImageCmsProfile(io.BytesIO(bytes(np.asarray(icc, dtype=np.uint8))))).strip()
-        except (OSError, ImageCms.PyCMSError):
-            profile = "unreadable"
+    profile = _icc_profile(bytes(np.asarray(icc, dtype=np.uint8)))[0] if icc is not None and len(icc) else None
     name = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(suffix, "TIFF")
     return {"format": name, "bits": int(bits), "values": "linear" if floating or linear else "sRGB", "profile": profile}
 
@@ -364,9 +350,8 @@ def _header(path: Path, suffix: str, max_pixels: int | None) -> tuple[int, int, 
     return (height, width, colour) if orientation in (5, 6, 7, 8) else (width, height, colour)
 
 
-def _oiio_header(path: Path, max_pixels: int | None) -> tuple[int, int, int, int]:
-    """``(stored width, stored height, channels other than alpha, EXIF orientation)`` from a TIFF's
-    header (OpenImageIO); refuses more than ``max_pixels`` pixels."""
+def _oiio_spec(path: Path):
+    """OpenImageIO's header (``ImageSpec``) of a PNG, JPEG or TIFF; one line naming the file when it cannot be read."""
     import OpenImageIO as oiio
 
     with _READ_LOCK, quiet_native_stderr():
@@ -375,6 +360,24 @@ def _oiio_header(path: Path, max_pixels: int | None) -> tuple[int, int, int, int
             raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
         spec = image.spec()
         image.close()
+    return spec
+
+
+def _icc_profile(icc: bytes):
+    """(name, Pillow ``ImageCmsProfile`` or None) of an embedded ICC profile ('unreadable (...)' when it is not one)."""
+    from PIL import ImageCms
+
+    try:
+        profile = ImageCms.ImageCmsProfile(io.BytesIO(icc))
+        return ImageCms.getProfileDescription(profile).strip(), profile
+    except (OSError, ImageCms.PyCMSError) as exc:
+        return f"unreadable ({exc})", None
+
+
+def _oiio_header(path: Path, max_pixels: int | None) -> tuple[int, int, int, int]:
+    """``(stored width, stored height, channels other than alpha, EXIF orientation)`` from a TIFF's
+    header (OpenImageIO); refuses more than ``max_pixels`` pixels."""
+    spec = _oiio_spec(path)
     _check_pixels(path, f"{spec.width}x{spec.height}", spec.width * spec.height, max_pixels)
     channels = spec.nchannels - (spec.alpha_channel >= 0)
     return spec.width, spec.height, channels, spec.get_int_attribute("Orientation", 1)
@@ -552,12 +555,7 @@ def _to_srgb(path: Path, levels: np.ndarray, icc: bytes) -> np.ndarray:
     named once per process in the ``warp_highlights`` log."""
     from PIL import Image, ImageCms
 
-    try:
-        source = ImageCms.ImageCmsProfile(io.BytesIO(icc))
-        name = ImageCms.getProfileDescription(source).strip()
-    except (OSError, ImageCms.PyCMSError) as exc:
-        name = f"unreadable ({exc})"
-        source = None
+    name, source = _icc_profile(icc)
     if "srgb" in name.lower().replace(" ", ""):
         return levels
     converted = source is not None and levels.dtype == np.uint8
