@@ -137,3 +137,16 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
     assert "--bits 16 is for PNG and TIFF" in capsys.readouterr().err
     assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "--light", "0.1,0,1", "-o", str(tmp_path / "many"), "--bits", "8", "-q"]) == 2
     assert "folder of EXR images" in capsys.readouterr().err and not (tmp_path / "many").exists()
+
+
+def test_png_exif_orientation_is_applied_too(tmp_path):
+    """A PNG's eXIf orientation turns it as Pillow's ``exif_transpose`` does, and its header size agrees."""
+    picture = np.random.default_rng(5).integers(0, 256, (6, 10, 3)).astype(np.uint8)
+    stored = Image.fromarray(picture)
+    exif = stored.getexif()
+    exif[0x0112] = 6
+    path = tmp_path / "tagged.png"
+    stored.save(path, exif=exif.tobytes())
+    got = np.rint(read_image(path, linear=True) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(got, np.asarray(ImageOps.exif_transpose(Image.open(path))))
+    assert got.shape == (10, 6, 3) and image_shape(path) == got.shape and image_size(path) == (6, 10)

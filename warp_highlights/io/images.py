@@ -346,7 +346,7 @@ def _header(path: Path, suffix: str, max_pixels: int | None) -> tuple[int, int, 
     else:
         with _pillow_image(path, max_pixels) as im:
             (width, height), colour = im.size, im.mode not in _PIL_GRAY8_MODES | _PIL_GRAY16_MODES
-            orientation = im.getexif().get(_EXIF_ORIENTATION_TAG, 1) if suffix != ".png" else 1
+            orientation = im.getexif().get(_EXIF_ORIENTATION_TAG, 1)  # JPEG's APP1 or PNG's eXIf chunk
     return (height, width, colour) if orientation in (5, 6, 7, 8) else (width, height, colour)
 
 
@@ -542,7 +542,7 @@ def _read_with_oiio(path: Path) -> np.ndarray:
     pixels = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
     keep = [c for c in range(spec.nchannels) if c != spec.alpha_channel]
     pixels = pixels[:, :, keep[:3]] if len(keep) >= 3 else pixels[:, :, keep[0]]
-    pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)
+    pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)  # as ``_header`` counts it
     icc = spec.getattribute("ICCProfile")
     if icc is not None and len(icc) and pixels.ndim == 3 and kind != "float":
         pixels = _to_srgb(path, pixels, bytes(np.asarray(icc, dtype=np.uint8)))
