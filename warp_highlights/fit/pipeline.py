@@ -31,11 +31,11 @@ from .estimation import estimate
 from .paths import decide_paths
 from .residual import build_residual, check_learned, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
 from .retargeting import restore_vanished, retarget
-
-_LOG = logging.getLogger(__name__)
 from .validation import check_moving, plan_check
 
 __all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
+
+_LOG = logging.getLogger(__name__)
 
 DIFFUSE_CHOICES = ("lambert", "images", "none")
 

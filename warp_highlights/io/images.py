@@ -58,6 +58,7 @@ IMAGE_EXTENSIONS = (".exr", ".png", ".jpg", ".jpeg", ".tif", ".tiff")
 """File extensions :func:`read_image` and :func:`write_image` accept (case-insensitive)."""
 
 _TIFF_SUFFIXES = (".tif", ".tiff")
+_OIIO_FLOATS = ("half", "float", "double")  # OpenImageIO's stored formats that hold linear floats
 _EXIF_ORIENTATIONS = {  # EXIF Orientation -> what turns the stored rows upright (numpy, rows down)
     1: lambda a: a,
     2: lambda a: a[:, ::-1],
@@ -250,7 +251,7 @@ def image_encoding(path, *, linear: bool = False) -> dict:
         return {"format": "EXR", "bits": bits, "values": "linear", "profile": None}
     spec = _oiio_spec(path)
     stored = str(spec.format)
-    floating = stored in ("half", "float", "double")
+    floating = stored in _OIIO_FLOATS
     bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or {"uint8": 8, "uint16": 16, "half": 16, "float": 32, "double": 64}.get(stored, 16)
     icc = spec.getattribute("ICCProfile")
     profile = _icc_profile(bytes(np.asarray(icc, dtype=np.uint8)))[0] if icc is not None and len(icc) else None
@@ -532,7 +533,7 @@ def _read_with_oiio(path: Path) -> np.ndarray:
         try:
             spec = image.spec()
             stored = str(spec.format)
-            kind = "uint8" if stored == "uint8" else "float" if stored in ("half", "float", "double") else "uint16"
+            kind = "uint8" if stored == "uint8" else "float" if stored in _OIIO_FLOATS else "uint16"
             pixels = image.read_image(0, 0, 0, spec.nchannels, kind)
             error = image.geterror()
         finally:

@@ -555,10 +555,11 @@ def _srgb8(image: np.ndarray) -> np.ndarray:
     return _encode_levels(image, 255, linear=False)
 
 
-def _gif_centiseconds(fps: float) -> Iterator[int]:
-    """GIF frame durations in 1/100 s whose running sum tracks ``k / fps`` (e.g. 4, 4, 5 at 24 fps)."""
+def _frame_durations(fps: float, ticks_per_second: float) -> Iterator[int]:
+    """Frame durations in ticks (1/100 s for GIF, ms for WebP and APNG) whose running sum tracks
+    ``k / fps`` (e.g. 4, 4, 5 centiseconds, or 42, 41, 42 ms, at 24 fps)."""
     for k in itertools.count():
-        yield round(100.0 * (k + 1) / fps) - round(100.0 * k / fps)
+        yield round(ticks_per_second * (k + 1) / fps) - round(ticks_per_second * k / fps)
 
 
 def _gif_palette(samples: list[np.ndarray]):
@@ -615,7 +616,7 @@ def _write_gif(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
 
     head = [_srgb8(image) for image in itertools.islice(frames, _GIF_PALETTE_FRAMES)]
     palette = _gif_palette(head)
-    durations = _gif_centiseconds(fps)
+    durations = _frame_durations(fps, 100.0)
     with open(path, "wb") as fp:
         for done, levels in enumerate(itertools.chain(head, map(_srgb8, frames)), start=1):
             image = _gif_image(levels, palette)
@@ -647,23 +648,18 @@ def _pillow_frames(frames: Iterator[np.ndarray], progress) -> list:
     return images
 
 
-def _frame_milliseconds(fps: float, count: int) -> list[int]:
-    """Frame durations in ms whose running sum tracks ``k / fps`` (e.g. 41, 42, 42 at 24 fps)."""
-    return [round(1000.0 * (k + 1) / fps) - round(1000.0 * k / fps) for k in range(count)]
-
-
 def _write_webp(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
-    """Animated lossless WebP through Pillow, looping forever."""
+    """Animated lossless WebP through Pillow, looping forever (identical neighbours become one frame of their summed duration)."""
     images = _pillow_frames(frames, progress)
     images = [image if image.mode == "RGB" else image.convert("RGB") for image in images]  # WebP has no grey mode
     images[0].save(path, format="WEBP", save_all=True, append_images=images[1:], lossless=True, quality=100, method=4,
-                   duration=_frame_milliseconds(fps, len(images)), loop=0)
+                   duration=list(itertools.islice(_frame_durations(fps, 1000.0), len(images))), loop=0)
 
 
 def _write_apng(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
-    """Animated PNG through Pillow, looping forever (every frame kept, identical ones too)."""
+    """Animated PNG through Pillow, looping forever (identical neighbours become one frame of their summed duration)."""
     images = _pillow_frames(frames, progress)
-    images[0].save(path, format="PNG", save_all=True, append_images=images[1:], duration=_frame_milliseconds(fps, len(images)),
+    images[0].save(path, format="PNG", save_all=True, append_images=images[1:], duration=list(itertools.islice(_frame_durations(fps, 1000.0), len(images))),
                    loop=0, default_image=False, disposal=0, blend=0)
 
 
