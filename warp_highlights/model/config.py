@@ -422,7 +422,8 @@ class ResidualSettings:
             session, ``residual.learned_check`` deciding, 120 s per model): the dome sample 48.88 dB /
             SSIM 0.993 against 41.69 / 0.982 low-rank (alpha 38.63, RBF 38.89 / 0.987), the statue
             32.16 / 0.924 against 32.03 / 0.925 (alpha 32.06), the 250-light teapot 36.52 / 0.984
-            against 35.70 / 0.986 (alpha 35.18), at 11-13% of the 8-bit capture against 24%; the fit
+            against 35.70 / 0.986 (alpha 35.18), the 250-light donut 41.93 / 0.993 against 38.54 /
+            0.988 (alpha 37.11; ninth session), at 2-13% of the 8-bit capture against 24%; the fit
             takes 2-5 minutes instead of seconds (plus 6.5 minutes compiling the tile kernels once
             per machine). Not on the CPU: the statue's fit at 283x267 must stay under 2 minutes
             there, and decoding costs about 1.3 GFLOP per 480x270 query.
