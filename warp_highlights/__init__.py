@@ -91,6 +91,8 @@ __getattr__, __dir__, _exported = _lazy_exports(
         "relight_field": "relight.relighter",
         "Evaluation": "relight.evaluation",
         "evaluate_field": "relight.evaluation",
+        "surface_maps": "relight.maps",
+        "SurfaceMaps": "relight.maps",
         # synthetic data
         "Renderer": "synth.render",
     },

@@ -26,6 +26,7 @@
 - ``RetargetSettings``: loss weights and iterations of retargeting.
 - ``PathSettings``: straight-path threshold and the path-decision length scale.
 - ``ResidualSettings``: residual transfer: compression, move decision, highlight colour.
+- ``MapSettings``: which lights light a pixel for its normal and albedo (``warp-highlights maps``).
 - ``REFERENCE_HEIGHT_PX``: the image height that pixel-valued settings refer to ("rpx").
 - ``rpx_to_normalized``: reference pixels -> image heights.
 - ``normalized_to_rpx``: image heights -> reference pixels.
@@ -50,7 +51,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
             [
                 "FitSettings", "RasterSettings", "SegmentationSettings", "EstimationSettings", "AdamSettings",
                 "StructureLossSettings", "ComponentSettings", "RetargetSettings", "PathSettings", "ResidualSettings",
-                "REFERENCE_HEIGHT_PX", "rpx_to_normalized", "normalized_to_rpx", "pixel_area_rpx2"
+                "MapSettings", "REFERENCE_HEIGHT_PX", "rpx_to_normalized", "normalized_to_rpx", "pixel_area_rpx2"
             ],
             "config",
         ),

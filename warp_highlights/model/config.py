@@ -21,6 +21,7 @@ __all__ = [
     "ComponentSettings",
     "EstimationSettings",
     "FitSettings",
+    "MapSettings",
     "PathSettings",
     "RasterSettings",
     "ResidualSettings",
@@ -503,6 +504,54 @@ class ResidualSettings:
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
         _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds > 0,
                  f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """Surface maps of a fitted field (``relight.maps``, ``warp-highlights maps``): which lights count
+    in a pixel's photometric-stereo fit of its normal and albedo.
+
+    Chosen on the dome sample (against the normal map its renderer wrote, flattened) and the rendered
+    sphere (against the analytic normals), from the captured images themselves: with one threshold
+    for the whole image, segmentation's 0.05, the dark dome sample (median pixel 0.025) kept too few
+    lights and scored 1.75 degrees (median) with segmentation's fit, 0.31 with its threshold relative.
+
+    Attributes:
+        lit_percentile: a pixel's typical lit value is this percentile of its luminance over the lights
+            (75: a quarter of the lights may be highlights, three quarters shadow).
+        lit_fraction: a light lights the pixel when its value is at least this share of the typical
+            one (0.1: the rendered sphere's ambient 0.02 under an albedo of 0.6 is 3%; at 5% of the
+            75th percentile, shadowed samples counted and its normals erred by 1.26 degrees).
+        black_level: a pixel whose typical lit value is below this (linear, the field's units, where
+            display white is about 1) is black: no normal. 0.001 is 8-bit sRGB level 4; below it an
+            8-bit capture holds no shading to fit, and a compressed residual's noise on a black
+            background made "normals" there.
+        outlier_factor: after each fit, lit lights whose residual exceeds this many times the median
+            one leave the next fit (highlights); segmentation's rule (thesis: 2).
+        outlier_floor: the outlier limit is never below this share of the typical lit value (an
+            exactly Lambertian pixel's residuals are rounding noise, as in segmentation's floor).
+        iterations: fits per pixel at most, the first included (the sets stop changing in 2-4 on the
+            samples).
+        min_lit_lights: pixels lit by fewer lights have no normal (3 unknowns; one more lets an
+            outlier show).
+    """
+
+    lit_percentile: float = 75.0
+    lit_fraction: float = 0.1
+    black_level: float = 0.001
+    outlier_factor: float = 2.0
+    outlier_floor: float = 1e-3
+    iterations: int = 5
+    min_lit_lights: int = 4
+
+    def __post_init__(self):
+        _require(math.isfinite(self.lit_percentile) and 0 <= self.lit_percentile <= 100, f"lit_percentile must be in [0, 100], got {self.lit_percentile}")
+        _require(math.isfinite(self.lit_fraction) and 0 <= self.lit_fraction < 1, f"lit_fraction must be in [0, 1), got {self.lit_fraction}")
+        _require(math.isfinite(self.black_level) and self.black_level >= 0, f"black_level must be >= 0, got {self.black_level}")
+        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1, f"outlier_factor must be >= 1, got {self.outlier_factor}")
+        _require(math.isfinite(self.outlier_floor) and self.outlier_floor >= 0, f"outlier_floor must be >= 0, got {self.outlier_floor}")
+        _require(1 <= int(self.iterations) <= 100, f"iterations must be in [1, 100], got {self.iterations}")
+        _require(int(self.min_lit_lights) >= 3, f"min_lit_lights must be >= 3 (a normal and an albedo), got {self.min_lit_lights}")
 
 
 @dataclass(frozen=True)

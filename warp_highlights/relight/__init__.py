@@ -21,6 +21,8 @@ truth for an evaluation), never fit (ARCHITECTURE.md).
 - ``BASELINE_METHODS``: ``ptm``, ``hsh2``, ``hsh3`` (hemispherical harmonics), ``rbf`` (Gaussian RBF).
 - ``baseline_basis``: the PTM or HSH basis values of light directions, float64 NumPy.
 - ``choose_rbf_sigma``: the RBF width with the least leave-one-out error (Rippa's closed form).
+- ``surface_maps``: per-pixel normals, albedo and highlight colour of a field (``warp-highlights maps``).
+- ``SurfaceMaps``: what ``surface_maps`` returns, with the mask of estimated pixels.
 """
 
 from .._api import lazy_exports
@@ -32,5 +34,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["interpolate_sets", "INTERPOLATION_METHODS"], "interpolation"),
         **dict.fromkeys(["evaluate_field", "Evaluation", "psnr_excluding_black", "srgb_scores"], "evaluation"),
         **dict.fromkeys(["fit_baseline", "BaselineModel", "BASELINE_METHODS", "baseline_basis", "choose_rbf_sigma"], "baselines"),
+        **dict.fromkeys(["surface_maps", "SurfaceMaps"], "maps"),
     },
 )
