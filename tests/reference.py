@@ -180,3 +180,24 @@ def neural_decoder(codes: np.ndarray, weights: list, lights) -> np.ndarray:
         hidden = elu(w2 @ elu(w1 @ elu(w0 @ x + b0) + b1) + b2)
         out.append((w3 @ hidden + b3).T)
     return np.stack(out)
+
+
+def area_resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W[, C]) -> (height, width[, C]) float64: each output pixel the mean of the input area it
+    covers, every input pixel weighted by the area of its overlap (pixel by pixel, by brute force)."""
+    image = np.asarray(image, dtype=np.float64)
+    rows, cols = image.shape[:2]
+    out = np.zeros((height, width) + image.shape[2:])
+    for i in range(height):
+        top, bottom = i * rows / height, (i + 1) * rows / height
+        for j in range(width):
+            left, right = j * cols / width, (j + 1) * cols / width
+            total, area = 0.0, 0.0
+            for r in range(int(np.floor(top)), min(int(np.ceil(bottom)), rows)):
+                for c in range(int(np.floor(left)), min(int(np.ceil(right)), cols)):
+                    overlap = (min(bottom, r + 1) - max(top, r)) * (min(right, c + 1) - max(left, c))
+                    if overlap > 0:
+                        total = total + overlap * image[r, c]
+                        area += overlap
+            out[i, j] = total / area
+    return out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import reference
 import warp as wp
 from gaussian_cases import inside_params
 from reference import render as reference_render
@@ -12,8 +13,6 @@ from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.fit.paths import decide_paths
 from warp_highlights.io.fieldfile import load_field, save_field
 from warp_highlights.io.resample import (
-    area_weights,
-    linear_weights,
     resample_image,
     resize_stack,
 )
@@ -327,9 +326,24 @@ def test_resample_image_shrinks_by_area_and_grows_linearly():
     cols = (np.arange(32) + 0.5) / 2 - 0.5
     expected = np.add.outer(np.clip(rows, 0, 9), 2.0 * np.clip(cols, 0, 15))
     np.testing.assert_allclose(grown, expected, atol=1e-5)  # a ramp is reproduced exactly inside
-    for weights in (area_weights(7, 3), linear_weights(3, 7), linear_weights(1, 4)):
-        np.testing.assert_allclose(weights.sum(axis=1), 1.0)
     assert resample_image(np.ones((5, 8)), 16, 10).shape == (10, 16)
+    np.testing.assert_allclose(resample_image(np.full((1, 1, 3), 0.25), 4, 3), 0.25)  # one pixel grows into a flat image
+    mixed = resample_image(ramp, 12, 20)  # grows down the rows, shrinks across the columns
+    np.testing.assert_allclose(mixed, resample_image(resample_image(ramp, 12, 10), 12, 20), atol=1e-5)
+
+
+@pytest.mark.parametrize(("source", "target"), [((30, 40), (15, 20)), ((29, 41), (7, 10)), ((17, 23), (16, 22)), ((9, 13), (1, 1))])
+def test_resize_stack_is_the_exact_area_average(source, target):
+    """Against a brute-force float64 overlap integral, integer and fractional factors, grey and colour."""
+    rng = np.random.default_rng(sum(source))
+    stack = rng.uniform(size=(2, *source, 3)).astype(np.float32)
+    height, width = target
+    resized = resize_stack(stack, width, height)
+    assert resized.dtype == np.float32 and resized.shape == (2, height, width, 3)
+    for image, got in zip(stack, resized):
+        np.testing.assert_allclose(got, reference.area_resize(image, width, height), rtol=1e-5, atol=1e-6)
+    grey = resize_stack(stack[..., 0], width, height)
+    np.testing.assert_allclose(grey, resized[..., 0], rtol=1e-6)
 
 
 def test_field_relight_shortcut_matches_the_relighter(sphere_field):

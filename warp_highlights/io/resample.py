@@ -1,4 +1,6 @@
-"""Area resampling of image stacks to a working resolution (NumPy only)."""
+"""Resampling of images and image stacks to a working or output resolution, through scikit-image:
+area averaging (``resize_local_mean``, what OpenCV calls ``INTER_AREA``) along an axis that shrinks,
+linear interpolation (``resize`` of order 1, edges clamped) along one that grows."""
 
 from __future__ import annotations
 
@@ -6,43 +8,36 @@ import numpy as np
 
 from ..model.errors import InputError
 
-__all__ = ["area_weights", "linear_weights", "resample_image", "resize_stack", "working_size"]
+__all__ = ["resample_image", "resize_stack", "working_size"]
 
 
-def area_weights(source: int, target: int) -> np.ndarray:
-    """(target, source) matrix averaging the source pixels each target pixel covers (box filter, rows sum to 1)."""
-    edges_out = np.arange(target + 1) * (source / target)
-    lo = np.maximum(edges_out[:-1, None], np.arange(source)[None, :])
-    hi = np.minimum(edges_out[1:, None], np.arange(1, source + 1)[None, :])
-    overlap = np.clip(hi - lo, 0.0, None)
-    return overlap / overlap.sum(axis=1, keepdims=True)
-
-
-def linear_weights(source: int, target: int) -> np.ndarray:
-    """(target, source) matrix of linear interpolation at the target pixel centres (edges clamped, rows sum to 1)."""
-    centres = (np.arange(target) + 0.5) * (source / target) - 0.5
-    centres = np.clip(centres, 0.0, source - 1)
-    lower = np.minimum(np.floor(centres).astype(np.int64), max(source - 2, 0))
-    frac = centres - lower
-    weights = np.zeros((target, source))
-    rows = np.arange(target)
-    weights[rows, lower] += 1.0 - frac
-    weights[rows, np.minimum(lower + 1, source - 1)] += frac
-    return weights
+def resize_stack(images: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(n, H, W[, C]) -> (n, height, width[, C]) float32, each image as ``resample_image`` does it: to a
+    working size, an area average (each output pixel the mean of the input area it covers)."""
+    images = np.asarray(images, dtype=np.float32)
+    return _resample(images, 1, (height, width))
 
 
 def resample_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(H, W, ...) -> (height, width, ...) float32: area average along an axis that shrinks, linear along one that grows."""
-    image = np.asarray(image, dtype=np.float32)
-    source_height, source_width = image.shape[:2]
-    if (source_height, source_width) == (height, width):
-        return image
-    pick = lambda s, t: area_weights(s, t) if t <= s else linear_weights(s, t)
-    rows = pick(source_height, height).astype(np.float32)
-    cols = pick(source_width, width).astype(np.float32)
-    flat = image.reshape(source_height, source_width, -1)
-    out = np.einsum("ij,jkc,lk->ilc", rows, flat, cols, optimize=True)
-    return out.reshape((height, width) + image.shape[2:])
+    """(H, W, ...) -> (height, width, ...) float32: area average along an axis that shrinks, linear
+    interpolation at the output pixel centres (edges clamped) along one that grows."""
+    return _resample(np.asarray(image, dtype=np.float32), 0, (height, width))
+
+
+def _resample(array: np.ndarray, first: int, size: tuple[int, int]) -> np.ndarray:
+    """``array`` with its axes ``first`` and ``first + 1`` resampled to ``size``, the others kept."""
+    from skimage.transform import resize, resize_local_mean
+
+    now = array.shape[first : first + 2]
+    if now == size:
+        return array
+    shape = lambda rows_cols: array.shape[:first] + rows_cols + array.shape[first + 2 :]
+    shrunk = (min(now[0], size[0]), min(now[1], size[1]))
+    if shrunk != now:
+        array = resize_local_mean(array, shape(shrunk), grid_mode=True, preserve_range=True)
+    if shrunk != size:
+        array = resize(array, shape(size), order=1, mode="edge", anti_aliasing=False, preserve_range=True)
+    return np.ascontiguousarray(array, dtype=np.float32)
 
 
 def working_size(width: int, height: int, requested: tuple[int, int] | None) -> tuple[int, int]:
@@ -61,14 +56,3 @@ def working_size(width: int, height: int, requested: tuple[int, int] | None) -> 
         raise InputError(f"working size {new_width}x{new_height} is larger than the {width}x{height} images; only downsampling is supported")
     return new_width, new_height
 
-
-def resize_stack(images: np.ndarray, width: int, height: int) -> np.ndarray:
-    """(n, H, W[, C]) -> (n, height, width[, C]) float32 by area averaging (energy preserving per pixel area)."""
-    images = np.asarray(images, dtype=np.float32)
-    if images.shape[1:3] == (height, width):
-        return images
-    rows = area_weights(images.shape[1], height).astype(np.float32)
-    cols = area_weights(images.shape[2], width).astype(np.float32)
-    if images.ndim == 3:
-        return np.einsum("ij,njk,lk->nil", rows, images, cols, optimize=True)
-    return np.einsum("ij,njkc,lk->nilc", rows, images, cols, optimize=True)
