@@ -228,3 +228,13 @@ def test_dome_sample_normals_against_its_rendered_normal_map(data_root):
     assert flat_error < 1.0, f"median {flat_error:.2f} degrees"
     assert flat_error < np.median(_angles_deg(leaning.normals, truth)) / 4
     np.testing.assert_allclose(flat.albedo, leaning.albedo, rtol=0.1, atol=1e-3)  # flattening turns the normals only a little
+
+
+def test_maps_that_would_not_fit_in_memory_are_refused_before_any_work(sphere_fits, monkeypatch):
+    from warp_highlights.io import memory
+    from warp_highlights.model.errors import InputError
+    from warp_highlights.relight.maps import surface_maps
+
+    monkeypatch.setattr(memory, "available_memory", lambda: 1000)
+    with pytest.raises(InputError, match=r"surface maps of 48 lights at 64x64 needs about .* smaller --size"):
+        surface_maps(sphere_fits["sphere"][1], device="cpu")

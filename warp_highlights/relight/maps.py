@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.memory import check_memory
 from ..model.config import MapSettings
 from ..model.errors import InputError
 from ..model.residual import LUMINANCE_WEIGHTS
@@ -85,6 +86,10 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
         raise InputError("the field holds only highlights (no residual or diffuse model), so it has no normals or albedo; "
                          "fit it again without --residual none")
     settings = settings or MapSettings()
+    channels = field.residual.channels if field.residual is not None else field.diffuse.channel_count
+    pixels = field.width * field.height
+    check_memory(field.light_count * pixels * (4 * channels + 9), f"surface maps of {field.light_count} lights at {field.width}x{field.height}",
+                 "fit the field at a smaller --size", detail="the captured images as float32, their luminance as float64")
     relighter = Relighter(field, device=device, scale=1.0)  # field units; the albedo leaves them below
     directions = field.lights.directions
     captured = relighter.relight(directions, progress=progress).full  # (n, H, W, C): the captured images, as the field keeps them
@@ -175,7 +180,6 @@ def _fit_block(values: np.ndarray, directions: np.ndarray, settings: MapSettings
     lit = values >= settings.lit_fraction * typical[None, :]
     lit[:, black] = False
     used = lit
-    scaled = None
     for _ in range(settings.iterations):
         scaled = _solve(values, directions, used)
         residual = np.abs(values - directions @ scaled.T)
@@ -213,8 +217,14 @@ def _solve(values: np.ndarray, directions: np.ndarray, used: np.ndarray) -> np.n
 
 def channel_albedo(images: np.ndarray, directions: np.ndarray, normals: np.ndarray, inliers: np.ndarray) -> np.ndarray:
     """(P, C) least-squares rho_c >= 0 of (n, P, C) images = rho_c n . omega over each pixel's (n, P)
-    ``inliers``, for (P, 3) unit ``normals``; 0 where no inlier lights it."""
-    shading = np.maximum(np.asarray(directions, dtype=np.float64) @ np.asarray(normals, dtype=np.float64).T, 0.0) * inliers  # (n, P)
-    energy = np.sum(shading**2, axis=0)
-    albedo = np.einsum("np,npc->pc", shading, np.asarray(images, dtype=np.float64))
-    return np.where(energy[:, None] > 0, np.maximum(albedo, 0.0) / np.where(energy > 0, energy, 1.0)[:, None], 0.0)
+    ``inliers``, for (P, 3) unit ``normals``; 0 where no inlier lights it (float64, block by block)."""
+    directions = np.asarray(directions, dtype=np.float64)
+    pixels, channels = images.shape[1], images.shape[2]
+    albedo = np.zeros((pixels, channels))
+    for start in range(0, pixels, _PIXELS_PER_BLOCK):
+        block = slice(start, min(start + _PIXELS_PER_BLOCK, pixels))
+        shading = np.maximum(directions @ np.asarray(normals[block], dtype=np.float64).T, 0.0) * inliers[:, block]  # (n, p)
+        energy = np.sum(shading**2, axis=0)
+        sums = np.einsum("np,npc->pc", shading, np.asarray(images[:, block], dtype=np.float64))
+        albedo[block] = np.where(energy[:, None] > 0, np.maximum(sums, 0.0) / np.where(energy > 0, energy, 1.0)[:, None], 0.0)
+    return albedo
