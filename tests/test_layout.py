@@ -25,7 +25,8 @@ ALLOWED = {
     "synth": {"io", "kernels", "model"},
     "relight": {"synth", "io", "kernels", "model"},
     "view": {"relight", "io", "kernels", "model"},
-    "cli": {"view", "relight", "fit", "synth", "io", "kernels", "model"},
+    "web": {"relight", "io", "kernels", "model"},
+    "cli": {"view", "web", "relight", "fit", "synth", "io", "kernels", "model"},
 }
 """Which sub-packages each sub-package may import (ARCHITECTURE.md draws the same table)."""
 

@@ -1,0 +1,68 @@
+"""``warp-highlights export`` and ``serve``: a fitted field as a static web page, and serving it locally."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .args import Command, check_output_folder, in_range
+
+__all__ = ["COMMANDS"]
+
+
+def _export_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output folder: index.html, viewer.js, manifest.json and the field's arrays")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder written by warp-highlights")
+
+
+def _viewer_entry(relative: str) -> bool:
+    """A file of an exported viewer (how one written before manifests existed is recognised)."""
+    return "/" not in relative and relative.endswith((".bin", ".html", ".js", ".json"))
+
+
+def _run_export(args) -> int:
+    from ..io.atomic import atomic_folder
+    from ..io.fieldfile import load_field
+    from ..io.memory import bytes_text
+    from ..web.export import export_viewer
+
+    output = Path(args.output)
+    check_output_folder(output, overwrite=args.overwrite, legacy=_viewer_entry)
+    field = load_field(args.field)
+    with atomic_folder(output, kind="web viewer", overwrite=args.overwrite, legacy=_viewer_entry) as temporary:
+        export_viewer(field, temporary)
+        size = sum(p.stat().st_size for p in temporary.iterdir())
+    print(f"wrote the viewer of {args.field} to {output} ({bytes_text(size)}; the field file: {bytes_text(Path(args.field).stat().st_size)}); "
+          f"open it with: warp-highlights serve {output}")
+    return 0
+
+
+def _serve_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("folder", type=Path, help="a folder written by warp-highlights export")
+    parser.add_argument("--port", type=in_range(int, 0, 65535), default=8000, help="port on 127.0.0.1 (default 8000; 0: any free one)")
+
+
+def _run_serve(args) -> int:
+    from ..web.serve import HOST, make_server
+
+    server = make_server(args.folder, args.port)
+    port = server.server_address[1]
+    print(f"serving {args.folder} at http://{HOST}:{port}/ (this computer only); Ctrl-C stops", flush=True)
+    try:
+        server.serve_forever()
+    finally:
+        server.server_close()
+    return 0
+
+
+COMMANDS = (
+    Command("export", _export_arguments, _run_export, help="write a fitted field as a static web page that relights it in the browser (WebGL2)",
+            description="Write a viewer of the field into a folder: index.html, viewer.js, manifest.json and the field's arrays "
+            "(little-endian binaries). The page locates the light in the triangulation, moves the Gaussians along their "
+            "circular paths and adds the residual, as relight does. Browsers refuse to load it from file://: serve it with "
+            "warp-highlights serve. For now low-rank residual fields (fit --residual lowrank, the CPU default)."),
+    Command("serve", _serve_arguments, _run_serve, help="serve an exported viewer on 127.0.0.1 (this computer only)",
+            description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable from other hosts."),
+)
+"""The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

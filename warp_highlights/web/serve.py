@@ -1,0 +1,31 @@
+"""``serve_folder``: an exported viewer over HTTP on 127.0.0.1 only (browsers refuse ``fetch`` from file://)."""
+
+from __future__ import annotations
+
+import functools
+import http.server
+from pathlib import Path
+
+from ..model.errors import InputError
+
+__all__ = ["HOST", "make_server"]
+
+HOST = "127.0.0.1"
+"""The only address served: the page is never reachable from other hosts."""
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, format, *args) -> None:  # noqa: A002 (the standard library's name)
+        pass
+
+
+def make_server(folder, port: int = 0) -> http.server.ThreadingHTTPServer:
+    """A server of ``folder`` on ``HOST``:``port`` (0: any free port); call ``serve_forever``."""
+    folder = Path(folder)
+    if not (folder / "manifest.json").is_file() or not (folder / "index.html").is_file():
+        raise InputError(f"{folder} is not an exported viewer (no manifest.json and index.html); make one with warp-highlights export")
+    handler = functools.partial(_QuietHandler, directory=str(folder))
+    try:
+        return http.server.ThreadingHTTPServer((HOST, port), handler)
+    except OSError as error:
+        raise InputError(f"cannot listen on {HOST}:{port} ({error.strerror or error}); choose another --port") from None
