@@ -126,7 +126,7 @@ uniform sampler2D gaussians; uniform int count;
 uniform sampler2DArray planes; uniform sampler2D factors;
 uniform usampler2DArray lumaCodes; uniform int lumaLayers; uniform float lumaMean; uniform float lumaConst;
 ${chroma ? "uniform usampler2DArray chromaCodes; uniform int chromaRank; uniform float chromaMean; uniform vec2 chromaConst;" : ""}
-uniform vec3 specularColour; uniform float scale; uniform int mode;
+uniform vec3 specularColour; uniform float scale;
 out vec4 colour;
 const float CUTOFF2 = ${(m.cutoff * m.cutoff).toFixed(8)};
 const float TAU = ${Math.exp(-m.cutoff * m.cutoff / 2).toExponential(10)};
@@ -154,7 +154,6 @@ ${chroma ? `  vec2 C = chromaMean * vec2(texelFetch(planes, ivec3(pixel, ${m.sta
   C *= s;
   rgb = vec3(Y + C.y, Y - (0.2126 * C.y + 0.0722 * C.x) / 0.7152, Y + C.x);` : ""}
   vec3 tint = ${m.channels === 3 ? "vec3(texelFetch(planes, ivec3(pixel, 1), 0).r, texelFetch(planes, ivec3(pixel, 2), 0).r, texelFetch(planes, ivec3(pixel, 3), 0).r)" : "vec3(texelFetch(planes, ivec3(pixel, 1), 0).r)"};
-  if (mode == 1) rgb = vec3(0.0);
   rgb = scale * max(rgb + specularColour * tint * S, 0.0);
   colour = vec4(encode(rgb.r), encode(rgb.g), encode(rgb.b), 1.0);
 }`;
@@ -277,7 +276,6 @@ export class Viewer {
     }
     this.upload(this.factorsTexture, { internal: gl.R32F, format: gl.RED, values: new Float32Array(factors.length ? factors : [0]) }, Math.max(factors.length, 1));
     gl.uniform3f(gl.getUniformLocation(this.program, "specularColour"), ...this.specularColour);
-    gl.uniform1i(gl.getUniformLocation(this.program, "mode"), 0);
     gl.viewport(0, 0, m.width, m.height);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     return performance.now() - started;
