@@ -180,8 +180,9 @@ def _fit_block(values: np.ndarray, directions: np.ndarray, settings: MapSettings
     lit = values >= settings.lit_fraction * typical[None, :]
     lit[:, black] = False
     used = lit
+    scaled, current = None, False  # current: ``scaled`` is the fit over ``used``
     for _ in range(settings.iterations):
-        scaled = _solve(values, directions, used)
+        scaled, current = _solve(values, directions, used), True
         residual = np.abs(values - directions @ scaled.T)
         median = np.zeros(values.shape[1])
         some = lit.any(axis=0)
@@ -192,8 +193,9 @@ def _fit_block(values: np.ndarray, directions: np.ndarray, settings: MapSettings
         kept[:, ~enough] = used[:, ~enough]  # too few left: keep the previous set
         if np.array_equal(kept, used):
             break
-        used = kept
-    scaled = _solve(values, directions, used)
+        used, current = kept, False
+    if not current:
+        scaled = _solve(values, directions, used)
     length = np.linalg.norm(scaled, axis=1)
     mask = ~black & (used.sum(axis=0) >= settings.min_lit_lights) & np.isfinite(length) & (length > _MIN_NBAR)
     normals = np.where(mask[:, None], scaled / np.where(length > 0, length, 1.0)[:, None], _FLAT)

@@ -203,14 +203,10 @@ class Relighter:
         vec3d = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.vec3d, device=device)
         self._edge_normals = vec3d(tables.edge_normals.transpose(1, 0, 2))
         self._inverses = wp.array(tables.inverses.astype(np.float64), dtype=wp.mat33d, device=device)
-        rim_count = len(tables.rim_face)
-        self._is_dome = int(tri.is_dome and rim_count > 0)
-        if rim_count:
-            along = np.cross(tables.rim_normal, tables.rim_start)
-            back = np.cross(tables.rim_end, tables.rim_normal)
-            opposite = 3 - tables.rim_corner.sum(axis=1)
-            rims = (tables.rim_start, tables.rim_end, tables.rim_normal, along, back)
-            faces = tables.rim_face
+        rim = rim_tables(tri)
+        self._is_dome = int(rim is not None)
+        if rim is not None:
+            *rims, faces, opposite = rim
         else:  # a closed sphere: one dummy rim edge keeps the launch's arrays non-empty
             rims = (np.zeros((1, 3)),) * 5
             faces, opposite = np.zeros(1), np.zeros(1)
@@ -443,6 +439,19 @@ def relight_field(
         cache.clear()
         cache[key] = Relighter(field, device=device, size=size, diffuse=diffuse, scale=1.0 / field.exposure)
     return cache[key].relight(directions, method=method)
+
+
+def rim_tables(triangulation) -> tuple[np.ndarray, ...] | None:
+    """A dome's rim edges as the locate kernel (and the web viewer) take them: (R, 3) float64 start,
+    end, great-circle normal, along (normal x start) and back (end x normal), then (R,) face and the
+    face's corner opposite the edge; None for a closed sphere."""
+    tables = triangulation._locate_tables
+    if not (triangulation.is_dome and len(tables.rim_face)):
+        return None
+    along = np.cross(tables.rim_normal, tables.rim_start)
+    back = np.cross(tables.rim_end, tables.rim_normal)
+    opposite = 3 - tables.rim_corner.sum(axis=1)
+    return tables.rim_start, tables.rim_end, tables.rim_normal, along, back, tables.rim_face, opposite
 
 
 def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.errors import InputError
-from ..relight.relighter import face_edge_rows
+from ..relight.relighter import face_edge_rows, rim_tables
 
 __all__ = ["MANIFEST", "WEB_FORMAT", "export_viewer"]
 
@@ -36,13 +36,11 @@ def export_viewer(field, folder) -> dict:
     tables = tri._locate_tables
     arrays["edge_normals"] = np.ascontiguousarray(tables.edge_normals.transpose(1, 0, 2), dtype="<f8")  # (F, 3, 3)
     arrays["inverses"] = tables.inverses.astype("<f8")
-    rim_count = len(tables.rim_face) if tri.is_dome else 0
-    if rim_count:
-        along = np.cross(tables.rim_normal, tables.rim_start)
-        back = np.cross(tables.rim_end, tables.rim_normal)
-        arrays["rims"] = np.stack([tables.rim_start, tables.rim_end, tables.rim_normal, along, back], axis=1).astype("<f8")  # (R, 5, 3)
-        arrays["rim_face"] = np.asarray(tables.rim_face, dtype="<i4")
-        arrays["rim_opposite"] = (3 - tables.rim_corner.sum(axis=1)).astype("<i4")
+    rim = rim_tables(tri)
+    if rim is not None:
+        arrays["rims"] = np.stack(rim[:5], axis=1).astype("<f8")  # (R, 5, 3): start, end, normal, along, back
+        arrays["rim_face"] = np.asarray(rim[5], dtype="<i4")
+        arrays["rim_opposite"] = np.asarray(rim[6], dtype="<i4")
     arrays["estimated"] = _gaussian_table(field.estimated)
     arrays["estimated_active"] = field.estimated.active.astype("u1")
     arrays["moving"] = field.moving_mask.astype("u1")
@@ -72,7 +70,7 @@ def export_viewer(field, folder) -> dict:
     manifest = {
         "format": "warp-highlights web viewer", "version": WEB_FORMAT,
         "width": field.width, "height": field.height, "channels": channels, "lights": field.light_count,
-        "faces": int(tri.face_count), "capacity": field.capacity, "is_dome": bool(rim_count),
+        "faces": int(tri.face_count), "capacity": field.capacity, "is_dome": rim is not None,
         "exposure": float(field.exposure), "cutoff": float(settings.raster.cutoff), "sigma_eps": float(settings.raster.sigma_eps),
         "straight_below": float(settings.paths.straight_below), "stacks": stacks,
         "arrays": {name: {"file": f"{name}.bin", "dtype": array.dtype.str, "shape": list(array.shape)} for name, array in arrays.items()},

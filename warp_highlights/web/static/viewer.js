@@ -239,17 +239,17 @@ export class Viewer {
     const m = this.manifest, a = this.arrays, stack = m.stacks[name], face = this.location.face;
     const V = [0, 1, 2].map((k) => a.faces[face * 3 + k]);
     const rank = stack.rank, L = stack.bits === 8 ? 255 : 65535;
-    const factors = [], constant = [0, 0];
-    let mean = 0;
+    const factors = [];
+    let mean = 0, constant = 0;
     for (let k = 0; k < 3; k++) mean += weights[k] * a[`${name}_mean_weights`][V[k]];
     for (let j = 0; j < rank; j++) {
       let coef = 0;
       for (let k = 0; k < 3; k++) coef += weights[k] * a[`${name}_weights`][V[k] * rank + j];
       const low = a[`${name}_ranges`][2 * j], high = a[`${name}_ranges`][2 * j + 1];
       factors.push(coef * ((high - low) / L));
-      constant[0] += coef * low;
+      constant += coef * low;
     }
-    return { factors, constant: constant[0], mean };
+    return { factors, constant, mean };
   }
 
   setLight(direction, method = this.method) {
