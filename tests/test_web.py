@@ -1,11 +1,16 @@
 """The web viewer (``warp-highlights export``/``serve``): the page in a real headless Chromium against
-``Relighter``, interaction, and bad input. Page tests skip where Chromium or Playwright is absent."""
+``Relighter`` (every residual kind, both decode paths, the three methods, exposure), the statue sample,
+``view``, interaction, the single-file page, and bad input. Page tests skip where Chromium or
+Playwright is absent."""
 
 from __future__ import annotations
 
 import dataclasses
+import gzip
+import json
 import shutil
 import threading
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -13,97 +18,351 @@ import pytest
 DIRECTIONS = [(0.3, 0.5, 1.0), (-0.5, 0.2, 1.0), (0.1, -0.7, 0.4), (0.9, 0.1, 0.1), (-0.2, -0.3, -1.0)]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+READY = "window.whReady === true || document.getElementById('status').textContent.startsWith('error')"
 
 
 @pytest.fixture(scope="module")
-def exported(small_field, tmp_path_factory):
-    from warp_highlights.cli import main
-
-    folder = tmp_path_factory.mktemp("web") / "viewer"
-    assert main(["export", str(small_field), "-o", str(folder), "-q"]) == 0
-    return folder
-
-
-@pytest.fixture(scope="module")
-def page(exported):
-    """The exported viewer of the fitted small donut, open in headless Chromium; console errors collected."""
+def browser():
+    """Headless Chromium (software GL) through Playwright, for the module."""
     if CHROMIUM is None:
         pytest.skip("no chromium on the PATH (apt install chromium)")
     playwright = pytest.importorskip("playwright.sync_api", reason="Playwright for Python is not installed (pip install playwright)")
+    with playwright.sync_playwright() as driver:
+        launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
+        yield launched
+        launched.close()
+
+
+@contextmanager
+def opened(browser, url: str):
+    """A tab at ``url``, ready (every light decoded), with its console errors in ``tab.errors``."""
+    tab = browser.new_page()
+    tab.errors = []
+    tab.on("console", lambda message: tab.errors.append(message.text) if message.type == "error" else None)
+    tab.on("pageerror", lambda error: tab.errors.append(str(error)))
+    try:
+        tab.goto(url)
+        tab.wait_for_function(READY, timeout=120_000)
+        yield tab
+    finally:
+        tab.close()
+
+
+@contextmanager
+def served(folder):
+    """``folder`` served on 127.0.0.1; yields the page's URL."""
     from warp_highlights.web.serve import make_server
 
-    server = make_server(exported, 0)
+    server = make_server(folder, 0)
     threading.Thread(target=server.serve_forever, daemon=True).start()
-    with playwright.sync_playwright() as driver:
-        browser = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
-        tab = browser.new_page()
-        tab.errors = []
-        tab.on("console", lambda message: tab.errors.append(message.text) if message.type == "error" else None)
-        tab.on("pageerror", lambda error: tab.errors.append(str(error)))
-        tab.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
-        tab.wait_for_function("window.whViewer !== undefined || document.getElementById('status').textContent.startsWith('error')", timeout=60_000)
-        yield tab
-        browser.close()
-    server.shutdown()
-    server.server_close()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/index.html"
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def _export(field_path, folder) -> None:
+    from warp_highlights.cli import main
+
+    assert main(["export", str(field_path), "-o", str(folder), "-q"]) == 0
+
+
+@pytest.fixture(scope="module")
+def fields(small_field, tmp_path_factory):
+    """The fitted small donut (low-rank residual) and two variants of it, saved: its residual
+    uncompressed, and a learned residual of random weights (the page's decoder against the reference)."""
+    from warp_highlights.io.fieldfile import load_field, save_field
+    from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual
+
+    field = load_field(small_field)
+    residual = field.residual
+    assert residual.compressed and residual.learned is None
+    rng = np.random.default_rng(7)
+    weights = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32) for shape in NEURAL_LAYER_SHAPES)
+    codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)
+    variants = {
+        "images": dataclasses.replace(residual, images=residual.decoded_images(), luminance=None, chroma=None, scale=None),
+        "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count), luminance=None, chroma=None, scale=None),
+    }
+    root = tmp_path_factory.mktemp("web-fields")
+    paths = {"lowrank": small_field}
+    for name, variant in variants.items():
+        paths[name] = root / f"{name}.whf"
+        save_field(dataclasses.replace(field, residual=variant), paths[name])
+    return paths
+
+
+@pytest.fixture(scope="module")
+def exported(fields, tmp_path_factory):
+    """name -> exported viewer folder of each of ``fields``."""
+    root = tmp_path_factory.mktemp("web")
+    folders = {}
+    for name, path in fields.items():
+        folders[name] = root / name
+        _export(path, folders[name])
+    return folders
 
 
 def _canvas(tab, width: int, height: int) -> np.ndarray:
     return np.array(tab.evaluate("Array.from(whViewer.pixels())"), dtype=np.uint8).reshape(height, width, 4)[..., :3]
 
 
-@pytest.mark.parametrize("method", ["circular", "straight"])
-def test_the_page_relights_as_relight_does(page, small_field, method):
-    from warp_highlights.io.fieldfile import load_field
+def _rgb8(image) -> np.ndarray:
     from warp_highlights.io.images import display_rgb8
+
+    shown = display_rgb8(np.asarray(image, dtype=np.float32))
+    return np.repeat(shown[..., None], 3, axis=2) if shown.ndim == 2 else np.broadcast_to(shown, shown.shape[:2] + (3,))
+
+
+def _expected(field, relighter, direction, method: str) -> np.ndarray:
+    """What the page must show: relight's image, or for alpha the blend of the field's own images of the
+    corner lights (relight at those lights gives them back)."""
+    if method != "alpha":
+        return _rgb8(relighter.relight(np.asarray(direction, dtype=np.float64), method=method).full)
+    location = field.triangulation.locate(np.asarray(direction, dtype=np.float64))
+    corners = relighter.relight(field.lights.directions[np.asarray(location.vertices).reshape(3)], method="circular").full
+    return _rgb8(np.tensordot(np.asarray(location.barycentric, dtype=np.float64).reshape(3), corners.astype(np.float64), axes=1))
+
+
+def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float = 0.0) -> list[float]:
+    from warp_highlights.io.fieldfile import load_field
     from warp_highlights.io.metrics import psnr_8bit
     from warp_highlights.relight.relighter import Relighter
 
-    field = load_field(small_field)
-    relighter = Relighter(field, device="cpu", scale=1.0 / field.exposure, residual_decode="query")
-    assert page.errors == []
-    for direction in DIRECTIONS:
-        page.evaluate(f"whSetLight({direction[0]}, {direction[1]}, {direction[2]}, '{method}')")
-        shown = _canvas(page, field.width, field.height)
-        expected = display_rgb8(relighter.relight(np.asarray(direction), method=method).full)
-        assert psnr_8bit(shown, expected) >= 40.0
-        assert np.mean(shown != expected) < 0.001  # the same image, but for a rare rounding of the last level
-    assert page.errors == []
+    field = load_field(field_path)
+    relighter = Relighter(field, device="cpu", scale=2.0**stops / field.exposure)
+    scores = []
+    for method in methods:
+        for direction in directions:
+            tab.evaluate(f"whSetLight({direction[0]}, {direction[1]}, {direction[2]}, '{method}', {stops})")
+            shown = _canvas(tab, field.width, field.height).astype(int)
+            expected = _expected(field, relighter, direction, method).astype(int)
+            scores.append(psnr_8bit(shown.astype(np.uint8), expected.astype(np.uint8)))
+            assert scores[-1] >= 40.0, (method, direction)
+            # the same image but for rounding; alpha's reference clamps each corner's image at 0 before blending, the page after
+            assert np.mean(np.abs(shown - expected) > 1) < (0.002 if method != "alpha" else 0.05), (method, direction)
+    assert tab.errors == []
+    return scores
 
 
-def test_dragging_on_the_light_disc_moves_the_light_and_changes_the_image(page, small_field):
+@pytest.mark.parametrize(("kind", "decode", "methods"), [
+    ("lowrank", "auto", ["circular", "straight", "alpha"]),
+    ("lowrank", "query", ["circular", "straight", "alpha"]),
+    ("images", "auto", ["circular", "straight", "alpha"]),
+    ("learned", "auto", ["circular", "straight"]),
+])  # fmt: skip
+def test_the_page_relights_as_relight_does(browser, exported, fields, kind, decode, methods):
+    with served(exported[kind]) as url, opened(browser, f"{url}?decode={decode}") as tab:
+        mode = tab.evaluate("whViewer.mode")
+        assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images", "learned": "learned"}[kind]
+        assert tab.evaluate("whViewer.decodedCount()") == tab.evaluate("whViewer.manifest.lights")
+        _check_page(tab, fields[kind], methods)
+        assert tab.evaluate("whViewer.drawnWith") == {"decoded": "layers"}.get(mode, mode)
+
+
+def test_frames_before_the_lights_are_decoded_decode_the_stack(browser, exported, fields):
+    """A fresh viewer draws from the low-rank stack until a triangle's corners are decoded, then from the layers."""
+    with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+        tab.evaluate("""async () => { const { Viewer } = await import('./viewer.js');
+          window.fresh = await Viewer.load(document.createElement('canvas'), new URL('manifest.json', location.href)); }""")
+        assert tab.evaluate("fresh.decodedCount()") == 0
+        tab.evaluate("fresh.setLight([0.3, 0.5, 1.0])")
+        assert tab.evaluate("fresh.drawnWith") == "stack"
+        stacked = tab.evaluate("Array.from(fresh.pixels())")
+        tab.evaluate("fresh.decodeRest()")
+        assert tab.evaluate("fresh.decodedCount()") == tab.evaluate("fresh.manifest.lights")
+        tab.evaluate("fresh.setLight([0.3, 0.5, 1.0])")
+        assert tab.evaluate("fresh.drawnWith") == "layers"
+        layered = np.array(tab.evaluate("Array.from(fresh.pixels())"))
+        assert np.mean(np.abs(layered - np.array(stacked)) > 1) < 0.002
+        assert tab.errors == []
+
+
+def test_a_field_with_an_empty_chroma_stack_relights_as_relight_does(browser, tiny_sphere, tmp_path):
+    """Rank 0 (the tiny sphere's chroma): empty arrays are written raw, never as gzip."""
     from warp_highlights.io.fieldfile import load_field
 
-    field = load_field(small_field)
-    page.evaluate("whSetLight(0.0, 0.0, 1.0, 'circular')")
-    before, text = _canvas(page, field.width, field.height), page.inner_text("#direction")
-    box = page.locator("#disc").bounding_box()
-    page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
-    page.mouse.down()
-    page.mouse.move(box["x"] + 0.85 * box["width"], box["y"] + 0.3 * box["height"], steps=5)
-    page.mouse.up()
-    x, y, z = (float(v) for v in page.inner_text("#direction").split(","))
-    assert page.inner_text("#direction") != text and x > 0.5 and y > 0.2 and z > 0
-    assert np.mean(_canvas(page, field.width, field.height) != before) > 0.01
-    page.keyboard.press("ArrowLeft")
-    assert float(page.inner_text("#direction").split(",")[0]) < x
-    assert page.errors == []
+    _, field_path = tiny_sphere
+    assert load_field(field_path).residual.chroma.rank == 0
+    folder = tmp_path / "sphere"
+    _export(field_path, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["arrays"]["chroma_ranges"]["shape"] == [0, 2] and "encoding" not in manifest["arrays"]["chroma_ranges"]
+    with served(folder) as url, opened(browser, url) as tab:
+        _check_page(tab, field_path, ["circular", "alpha"], DIRECTIONS[:3])
 
 
-def test_export_writes_the_manifest_and_arrays_it_names(exported):
-    import json
+def test_the_exposure_slider_scales_the_linear_image(browser, exported, fields):
+    with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+        _check_page(tab, fields["lowrank"], ["circular"], DIRECTIONS[:2], stops=1.0)
+        brighter = tab.evaluate("Array.from(whViewer.pixels()).reduce((a, b) => a + b, 0)")
+        tab.evaluate("() => { const e = document.getElementById('exposure'); e.value = '-1.5'; e.dispatchEvent(new Event('input')); }")
+        tab.wait_for_function("whViewer.exposureStops === -1.5 && document.getElementById('stops').textContent === '-1.5 EV'")
+        assert tab.evaluate("Array.from(whViewer.pixels()).reduce((a, b) => a + b, 0)") < 0.8 * brighter
 
-    manifest = json.loads((exported / "manifest.json").read_text())
-    assert manifest["format"] == "warp-highlights web viewer" and manifest["version"] == 1
-    for name, spec in manifest["arrays"].items():
-        size = np.dtype(spec["dtype"]).itemsize * int(np.prod(spec["shape"]))
-        assert (exported / spec["file"]).stat().st_size == size, name
-    assert (exported / "index.html").is_file() and (exported / "viewer.js").is_file()
+
+def test_a_learned_field_offers_no_alpha_blend(browser, exported):
+    with served(exported["learned"]) as url, opened(browser, url) as tab:
+        assert tab.eval_on_selector("#method option[value=alpha]", "o => o.disabled")
+        with pytest.raises(Exception, match="learned residual has none"):
+            tab.evaluate("whViewer.setLight([0, 0, 1], 'alpha')")
+
+
+@pytest.fixture(scope="module")
+def statue_field(data_root, tmp_path_factory):
+    """The real statue sample, fitted small and fast through the command line (71 x 67)."""
+    from conftest import TINY_FIT
+
+    from warp_highlights.cli import main
+
+    folder = data_root / "realrti-item11"
+    if not folder.is_dir():
+        pytest.skip(f"sample realrti-item11 not found under {data_root} (set WARP_HIGHLIGHTS_DATA)")
+    path = tmp_path_factory.mktemp("statue") / "statue.whf"
+    assert main(["fit", str(folder), "-o", str(path), "--size", "71x67", "--device", "cpu", "-q", *TINY_FIT]) == 0
+    return path
+
+
+@pytest.mark.realdata
+def test_the_statue_page_relights_as_relight_does(browser, statue_field, tmp_path):
+    """The real capture (a dome: directions below its rim clamp to it, as relight does)."""
+    folder = tmp_path / "statue"
+    _export(statue_field, folder)
+    with served(folder) as url, opened(browser, url) as tab:
+        assert tab.evaluate("whViewer.manifest.is_dome")
+        _check_page(tab, statue_field, ["circular", "alpha"])
+        tab.evaluate("whSetLight(0.2, 0.3, -1.0, 'circular')")
+        assert tab.evaluate("whViewer.location.clamped")
+
+
+def test_view_and_the_page_show_the_same_direction_and_image(browser, exported, fields):
+    """``view``'s designer (off screen) and the page, moved to the same directions: the same unit
+    direction text, the same triangle and the same 8-bit image."""
+    from warp_highlights.io.fieldfile import load_field
+    from warp_highlights.io.metrics import psnr_8bit
+    from warp_highlights.view.designer import LightDesigner
+
+    field = load_field(fields["lowrank"])
+    designer = LightDesigner(field, device="cpu", panels=("image",), off_screen=True, window_size=(200, 150))
+    try:
+        with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+            for direction in [None] + DIRECTIONS[:3]:  # None: the first light both show
+                if direction is not None:
+                    designer.set_direction(direction)
+                    tab.evaluate(f"whSetLight({direction[0]}, {direction[1]}, {direction[2]}, 'circular')")
+                shown = [float(v) for v in tab.inner_text("#direction").split(",")]
+                np.testing.assert_allclose(shown, designer.direction, atol=5e-4)
+                location = field.triangulation.locate(designer.direction)
+                face = tab.evaluate("whViewer.location.face")
+                assert sorted(field.triangulation.faces[face]) == sorted(np.asarray(location.vertices).reshape(3).tolist())
+                assert psnr_8bit(_canvas(tab, field.width, field.height), _rgb8(designer.image)) >= 40.0
+            assert tab.errors == []
+    finally:
+        designer.plotter.close()
+
+
+def test_dragging_moves_the_light_and_changes_the_image(browser, exported, fields):
+    from warp_highlights.io.fieldfile import load_field
+
+    field = load_field(fields["lowrank"])
+    with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+        tab.evaluate("whSetLight(0.0, 0.0, 1.0, 'circular')")
+        before, text = _canvas(tab, field.width, field.height), tab.inner_text("#direction")
+        box = tab.locator("#disc").bounding_box()
+        tab.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        tab.mouse.down()
+        tab.mouse.move(box["x"] + 0.85 * box["width"], box["y"] + 0.3 * box["height"], steps=5)
+        tab.mouse.up()
+        x, y, z = (float(v) for v in tab.inner_text("#direction").split(","))
+        assert tab.inner_text("#direction") != text and x > 0.5 and y > 0.2 and z > 0
+        assert np.mean(_canvas(tab, field.width, field.height) != before) > 0.01
+        tab.keyboard.press("ArrowLeft")
+        assert float(tab.inner_text("#direction").split(",")[0]) < x
+        # a finger drags on the image itself (no shift key); a mouse there needs shift
+        image = tab.locator("#image").bounding_box()
+        text = tab.inner_text("#direction")
+        tab.mouse.move(image["x"] + 0.2 * image["width"], image["y"] + 0.5 * image["height"])
+        tab.mouse.down()
+        tab.mouse.up()
+        assert tab.inner_text("#direction") == text
+        tab.evaluate("""([x, y]) => {
+          const image = document.getElementById('image'), at = (type, u, v) => image.dispatchEvent(new PointerEvent(type, {
+            pointerId: 7, pointerType: 'touch', isPrimary: true, bubbles: true, clientX: u, clientY: v}));
+          at('pointerdown', x, y); at('pointermove', x + 5, y - 5); at('pointerup', x + 5, y - 5);
+        }""", [image["x"] + 0.1 * image["width"], image["y"] + 0.5 * image["height"]])
+        assert float(tab.inner_text("#direction").split(",")[0]) < -0.5
+        assert tab.errors == []
+
+
+def test_the_triangulation_overlay_shows_the_current_triangle(browser, exported):
+    with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+        tab.evaluate("whSetLight(0.3, 0.5, 1.0, 'circular')")
+        plain = tab.evaluate("document.getElementById('disc').toDataURL()")
+        tab.check("#mesh")
+        meshed = tab.evaluate("document.getElementById('disc').toDataURL()")
+        assert meshed != plain
+        tab.evaluate("whSetLight(-0.5, -0.2, 1.0, 'circular')")
+        assert tab.evaluate("document.getElementById('disc').toDataURL()") != meshed  # the highlighted triangle moved
+        assert tab.errors == []
+
+
+def test_the_single_file_page_opens_from_disk(browser, fields, tmp_path):
+    from warp_highlights.cli import main
+
+    page_file = tmp_path / "donut.html"
+    assert main(["export", str(fields["lowrank"]), "-o", str(page_file), "--single-file", "-q"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["donut.html"]
+    with opened(browser, page_file.as_uri()) as tab:
+        _check_page(tab, fields["lowrank"], ["circular"], DIRECTIONS[:2])
+
+
+def test_the_single_file_page_has_a_size_limit(fields, tmp_path, capsys, monkeypatch):
+    from warp_highlights.cli import main
+    from warp_highlights.web import export
+
+    monkeypatch.setattr(export, "SINGLE_FILE_LIMIT", 1000)
+    assert main(["export", str(fields["lowrank"]), "-o", str(tmp_path / "big.html"), "--single-file", "-q"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "MiB" in line and "without --single-file" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def _read_array(folder, spec) -> np.ndarray:
+    data = (folder / spec["file"]).read_bytes()
+    data = gzip.decompress(data) if spec.get("encoding") == "gzip" else data
+    return np.frombuffer(data, dtype=spec["dtype"]).reshape(spec["shape"])
+
+
+def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
+    from warp_highlights.io.fieldfile import load_field
+    from warp_highlights.web.export import WEB_FORMAT
+
+    for kind, folder in exported.items():
+        manifest = json.loads((folder / "manifest.json").read_text())
+        assert manifest["format"] == "warp-highlights web viewer" and manifest["version"] == WEB_FORMAT
+        assert manifest["residual"]["kind"] == kind
+        for name, spec in manifest["arrays"].items():
+            size = np.dtype(spec["dtype"]).itemsize * int(np.prod(spec["shape"]))
+            assert _read_array(folder, spec).nbytes == size, name
+        assert (folder / "index.html").is_file() and (folder / "viewer.js").is_file()
+    # float16 where the field keeps float16; the colour as its uint8 codes
+    manifest = json.loads((exported["images"] / "manifest.json").read_text())
+    assert manifest["arrays"]["images"]["dtype"] == "<f2" and manifest["arrays"]["colour"]["dtype"] == "|u1"
+    assert json.loads((exported["learned"] / "manifest.json").read_text())["arrays"]["learned_codes"]["dtype"] == "<f2"
+    # the packed low-rank codes give back the field's codes
+    field, manifest = load_field(fields["lowrank"]), json.loads((exported["lowrank"] / "manifest.json").read_text())
+    stack, spec = field.residual.chroma, manifest["arrays"]["chroma_codes"]
+    packed = _read_array(exported["lowrank"], spec)  # (G, H, W, 4)
+    items = packed.transpose(1, 2, 0, 3).reshape(field.height, field.width, -1)[..., : stack.rank * 2]
+    np.testing.assert_array_equal(items.reshape(field.height, field.width, stack.rank, 2), stack.codes.transpose(1, 2, 0, 3))
 
 
 def test_export_refuses_bad_output_and_fields_it_cannot_show(small_field, tmp_path, capsys):
+    import zipfile
+
     from warp_highlights.cli import main
-    from warp_highlights.io.fieldfile import load_field
+    from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field
     from warp_highlights.model.errors import InputError
     from warp_highlights.web.export import export_viewer
 
@@ -114,11 +373,21 @@ def test_export_refuses_bad_output_and_fields_it_cannot_show(small_field, tmp_pa
     assert sorted(p.name for p in taken.iterdir()) == ["mine.txt"]
     assert main(["export", str(small_field), "-o", str(tmp_path / "missing" / "viewer"), "-q"]) == 2
     assert main(["export", str(tmp_path / "nothing.whf"), "-o", str(tmp_path / "viewer"), "-q"]) == 2
-    assert not (tmp_path / "viewer").exists()
+    newer = tmp_path / "newer.whf"  # a field from a later version of warp-highlights
+    with zipfile.ZipFile(small_field) as source, zipfile.ZipFile(newer, "w") as target:
+        for info in source.infolist():
+            data = source.read(info)
+            if info.filename == "header.json":
+                data = json.dumps({**json.loads(data), "format_version": FORMAT_VERSION + 1}).encode()
+            target.writestr(info, data)
+    assert main(["export", str(newer), "-o", str(tmp_path / "viewer"), "-q"]) == 2
+    assert main(["export", str(newer), "-o", str(tmp_path / "viewer.html"), "--single-file", "-q"]) == 2
+    assert not (tmp_path / "viewer").exists() and not (tmp_path / "viewer.html").exists()
     lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 3 and all(line.startswith("warp-highlights export: error:") for line in lines)
+    assert len(lines) == 5 and all(line.startswith("warp-highlights export: error:") for line in lines)
+    assert "newer" in lines[3]
     field = load_field(small_field)
-    with pytest.raises(InputError, match="low-rank residual"):
+    with pytest.raises(InputError, match="needs a field with a residual"):
         export_viewer(dataclasses.replace(field, residual=None), tmp_path)
 
 
@@ -126,7 +395,7 @@ def test_serve_listens_on_this_computer_only(exported, tmp_path):
     from warp_highlights.model.errors import InputError
     from warp_highlights.web.serve import HOST, make_server
 
-    server = make_server(exported, 0)
+    server = make_server(exported["lowrank"], 0)
     try:
         assert HOST == "127.0.0.1" and server.server_address[0] == "127.0.0.1"
     finally:

@@ -5,29 +5,41 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .args import Command, check_output_folder, in_range
+from .args import Command, check_output_file, check_output_folder, in_range
 
 __all__ = ["COMMANDS"]
 
 
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    parser.add_argument("-o", "--output", type=Path, required=True, help="output folder: index.html, viewer.js, manifest.json and the field's arrays")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder written by warp-highlights")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with --single-file the HTML file")
+    parser.add_argument("--single-file", action="store_true",
+                        help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: mail services cap a "
+                        "message at 20-25 MB and mailing adds a third)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output written by warp-highlights")
 
 
 def _viewer_entry(relative: str) -> bool:
     """A file of an exported viewer (how one written before manifests existed is recognised)."""
-    return "/" not in relative and relative.endswith((".bin", ".html", ".js", ".json"))
+    return "/" not in relative and relative.endswith((".bin", ".bin.gz", ".html", ".js", ".json"))
 
 
 def _run_export(args) -> int:
-    from ..io.atomic import atomic_folder
+    from ..io.atomic import atomic_file, atomic_folder
     from ..io.fieldfile import load_field
     from ..io.memory import bytes_text
-    from ..web.export import export_viewer
+    from ..web.export import export_viewer, single_file_page
 
     output = Path(args.output)
+    if args.single_file:
+        check_output_file(output, overwrite=args.overwrite)
+        field = load_field(args.field)
+        page = single_file_page(field)
+        with atomic_file(output, overwrite=args.overwrite) as temporary:
+            temporary.write_bytes(page)
+        print(f"wrote the viewer of {args.field} to {output} ({bytes_text(len(page))}, one file: open it in a browser)")
+        return 0
     check_output_folder(output, overwrite=args.overwrite, legacy=_viewer_entry)
     field = load_field(args.field)
     with atomic_folder(output, kind="web viewer", overwrite=args.overwrite, legacy=_viewer_entry) as temporary:
@@ -61,7 +73,8 @@ COMMANDS = (
             description="Write a viewer of the field into a folder: index.html, viewer.js, manifest.json and the field's arrays "
             "(little-endian binaries). The page locates the light in the triangulation, moves the Gaussians along their "
             "circular paths and adds the residual, as relight does. Browsers refuse to load it from file://: serve it with "
-            "warp-highlights serve. For now low-rank residual fields (fit --residual lowrank, the CPU default)."),
+            "warp-highlights serve, or write one file that opens from disk with --single-file. Every residual kind (low rank, "
+            "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights."),
     Command("serve", _serve_arguments, _run_serve, help="serve an exported viewer on 127.0.0.1 (this computer only)",
             description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable from other hosts."),
 )

@@ -78,6 +78,8 @@ class LightDesigner:
     Attributes:
         plotter: the ``pyvista.Plotter``.
         direction: the current unit light direction (3,).
+        image: the image shown for it, linear, (H, W[, C]) float32 (the full image times 1/exposure, or
+            the highlights alone; what ``relight`` writes, and the web viewer draws, for that direction).
         timings: milliseconds of the last update: ``relight`` (relit image to the host) and ``scene``
             (meshes refilled and texts set, plus the draw when :meth:`set_direction` draws).
     """
@@ -141,6 +143,7 @@ class LightDesigner:
         started = time.perf_counter()
         relit = self.relighter.relight(self.direction, method=self.method, full=not self.specular_only)
         relight_ms = 1e3 * (time.perf_counter() - started)
+        self.image = relit.specular / self.field.exposure if self.specular_only or relit.full is None else relit.full
         started = time.perf_counter()
         # One location for the sphere and the paths (float64, on the host). On a shared edge the
         # device's float32 locate may name the neighbouring triangle; the image is the same there.
@@ -171,8 +174,7 @@ class LightDesigner:
     def _draw_image(self, relit, relight_ms: float) -> None:
         if not self._panel("image"):
             return
-        shown = relit.specular / self.field.exposure if self.specular_only or relit.full is None else relit.full
-        viz.plot_image(shown, plotter=self.plotter, frame=False)
+        viz.plot_image(self.image, plotter=self.plotter, frame=False)
         what = "highlights S'" if self.specular_only else "full image"
         viz.put_text(self.plotter, f"{self.method} paths, {what}, {self.relighter.width}x{self.relighter.height}\n"
                      f"relit in {relight_ms:.1f} ms on {self.relighter.device}", "image text", color=_TEXT)

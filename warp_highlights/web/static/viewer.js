@@ -1,19 +1,44 @@
 // warp-highlights web viewer: relights an exported field as Relighter does (warp_highlights/web/PORTING.md).
-// The light is located and the Gaussians are moved on the CPU (float64); the fragment shader draws
-// them, decodes the low-rank residual and writes sRGB.
+// The light is located and the Gaussians are moved on the CPU (float64); fragment shaders draw them and
+// add the residual: each captured light's residual decoded once into a float16 texture layer and
+// blended from the three corner lights (low-rank and uncompressed fields), or the learned residual's
+// decoder run per pixel at the located direction.
 
-const TYPES = { "<f8": Float64Array, "<f4": Float32Array, "<i4": Int32Array, "|u1": Uint8Array, "<u2": Uint16Array };
+const TYPES = { "<f8": Float64Array, "<f4": Float32Array, "<f2": Uint16Array, "<i4": Int32Array, "|u1": Uint8Array, "<u2": Uint16Array };
+export const FORMAT_VERSION = 2;
+const DECODED_BYTES = 512 * 1024 * 1024; // largest decoded residual stack (as Relighter's DECODED_RESIDUAL_BYTES)
+const FLOAT16_SAFE = "6.0e4";
 
 async function fetchArrays(base, manifest) {
   const arrays = {};
   await Promise.all(Object.entries(manifest.arrays).map(async ([name, spec]) => {
     const response = await fetch(new URL(spec.file, base));
     if (!response.ok) throw new Error(`${spec.file}: ${response.status} ${response.statusText}`);
-    const Type = TYPES[spec.dtype];
-    if (!Type) throw new Error(`${spec.file}: unsupported dtype ${spec.dtype}`);
-    arrays[name] = new Type(await response.arrayBuffer());
+    arrays[name] = typed(spec, await inflated(spec, spec.encoding === "gzip" ? response.body : await response.arrayBuffer()));
   }));
   return arrays;
+}
+
+async function inflated(spec, body) {
+  // an array's bytes: a gzip stream inflated by the browser, or the raw bytes as they are
+  if (spec.encoding !== "gzip") return body instanceof ArrayBuffer ? body : new Response(body).arrayBuffer();
+  const stream = body instanceof ReadableStream ? body : new Blob([body]).stream();
+  return new Response(stream.pipeThrough(new DecompressionStream("gzip"))).arrayBuffer();
+}
+
+function typed(spec, buffer) {
+  const Type = TYPES[spec.dtype];
+  if (!Type) throw new Error(`${spec.file}: unsupported dtype ${spec.dtype}`);
+  const expected = spec.shape.reduce((a, b) => a * b, 1) * Type.BYTES_PER_ELEMENT;
+  if (buffer.byteLength !== expected) throw new Error(`${spec.file}: ${buffer.byteLength} bytes, the manifest says ${expected}`);
+  return new Type(buffer);
+}
+
+function checkManifest(manifest) {
+  if (manifest.format !== "warp-highlights web viewer" || manifest.version !== FORMAT_VERSION) {
+    throw new Error(`manifest.json is not a warp-highlights viewer of version ${FORMAT_VERSION}: export the field again with this version`);
+  }
+  return manifest;
 }
 
 const dot = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
@@ -78,7 +103,8 @@ function arc(mA, mB, delta, t, straightBelow) {
 }
 
 export function movedGaussians(m, a, location, method) {
-  // the Gaussians of the query, 8 floats each: mu.x, mu.y, peak, cos, sin, 1/(sx^2+eps), 1/(sy^2+eps), 0
+  // the Gaussians of the query, 8 floats each: mu.x, mu.y, peak, cos, sin, 1/(sx^2+eps), 1/(sy^2+eps), reach^2;
+  // "alpha" keeps every corner's own Gaussians in place (the blend of the captured lights' images)
   const N = m.capacity, out = [];
   const tau = Math.exp(-m.cutoff * m.cutoff / 2);
   const f = location.face, w = location.weights;
@@ -90,7 +116,7 @@ export function movedGaussians(m, a, location, method) {
       if (!a.estimated_active[A * N + p] || lA <= 0) continue;
       const G = g(a.estimated, A, p);
       let amp, mu, sx, sy, theta;
-      if (!a.moving[A * N + p]) {
+      if (!a.moving[A * N + p] || method === "alpha") {
         [amp, mu, sx, sy, theta] = [G[0], [G[1], G[2]], G[3], G[4], G[5]];
       } else {
         const Gb = g(a.retargeted, eB, p), Gc = g(a.retargeted, eC, p);
@@ -109,71 +135,224 @@ export function movedGaussians(m, a, location, method) {
       }
       const peak = lA * amp * amp / (1 - tau);
       if (![peak, mu[0], mu[1], sx, sy, theta].every(Number.isFinite)) continue;
-      out.push(mu[0], mu[1], peak, Math.cos(theta), Math.sin(theta), 1 / (sx * sx + m.sigma_eps), 1 / (sy * sy + m.sigma_eps), 0);
+      const vx = sx * sx + m.sigma_eps, vy = sy * sy + m.sigma_eps;  // beyond cutoff * the larger sigma a pixel gets nothing
+      out.push(mu[0], mu[1], peak, Math.cos(theta), Math.sin(theta), 1 / vx, 1 / vy, m.cutoff * m.cutoff * Math.max(vx, vy));
     }
   }
   return new Float32Array(out);
 }
 
+// --- shaders ------------------------------------------------------------------------------------
+
 const VERTEX = `#version 300 es
 in vec2 corner; void main() { gl_Position = vec4(corner, 0.0, 1.0); }`;
 
-function fragmentShader(m) {
-  const chroma = m.stacks.chroma !== undefined && m.channels === 3;
-  return `#version 300 es
-precision highp float; precision highp int; precision highp usampler2DArray; precision highp sampler2DArray;
-uniform sampler2D gaussians; uniform int count;
-uniform sampler2DArray planes; uniform sampler2D factors;
-uniform usampler2DArray lumaCodes; uniform int lumaLayers; uniform float lumaMean; uniform float lumaConst;
-${chroma ? "uniform usampler2DArray chromaCodes; uniform int chromaRank; uniform float chromaMean; uniform vec2 chromaConst;" : ""}
-uniform vec3 specularColour; uniform float scale;
+const HEADER = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp sampler2DArray;
+precision highp usampler2D; precision highp usampler2DArray;`;
+
+function pixelOf(m) { return `ivec2 pixel = ivec2(int(gl_FragCoord.x), ${m.height} - 1 - int(gl_FragCoord.y));`; }
+
+function stackSource(m) {
+  // R(x) of a low-rank residual for the blended coefficients in the factors texture (PORTING.md 5.2)
+  const r = m.residual, Y = r.luminance, C = m.channels === 3 ? r.chroma : undefined;
+  const scale = m.arrays.scale ? "texelFetch(scaleMap, pixel, 0).r" : "1.0";
+  return `
+uniform highp usampler2DArray luminanceCodes; uniform sampler2D luminanceMean; uniform sampler2D factors;
+uniform float luminanceWeight; uniform float luminanceConstant;
+${C ? "uniform highp usampler2DArray chromaCodes; uniform sampler2D chromaMean; uniform float chromaWeight; uniform float chromaConstant;" : ""}
+${m.arrays.scale ? "uniform sampler2D scaleMap;" : ""}
+vec3 residual(ivec2 pixel) {
+  float s = ${scale};
+  float Y = luminanceWeight * texelFetch(luminanceMean, pixel, 0).r + luminanceConstant;
+  for (int g = 0; g < ${Y.groups}; g++) Y += dot(texelFetch(factors, ivec2(g, 0), 0), vec4(texelFetch(luminanceCodes, ivec3(pixel, g), 0)));
+  Y *= s;
+${C ? `  vec2 C = chromaWeight * texelFetch(chromaMean, pixel, 0).rg + vec2(chromaConstant);
+  for (int g = 0; g < ${C.groups}; g++) {
+    vec4 code = vec4(texelFetch(chromaCodes, ivec3(pixel, g), 0));
+    C += vec2(dot(texelFetch(factors, ivec2(${Y.groups} + g, 0), 0), code), dot(texelFetch(factors, ivec2(${Y.groups + C.groups} + g, 0), 0), code));
+  }
+  C *= s;
+  return vec3(Y + C.y, Y - (0.2126 * C.y + 0.0722 * C.x) / 0.7152, Y + C.x);` : "  return vec3(Y);"}
+}`;
+}
+
+function layersSource(m) {
+  // R~(x) = the corners' decoded (or stored) residual images, blended
+  const take = m.channels === 3 ? ".rgb" : ".rrr";
+  return `
+uniform sampler2DArray residualImages; uniform ivec3 corners; uniform vec3 weights;
+vec3 residual(ivec2 pixel) {
+  return weights.x * texelFetch(residualImages, ivec3(pixel, corners.x), 0)${take} + weights.y * texelFetch(residualImages, ivec3(pixel, corners.y), 0)${take}
+       + weights.z * texelFetch(residualImages, ivec3(pixel, corners.z), 0)${take};
+}`;
+}
+
+function learnedSource() {
+  // R(x, d) = unit * decode_display(MLP(z(x), d)), the direction folded into the first bias (PORTING.md 1.5c)
+  const layer = (out, weights, bias, input, width) => {
+    const dots = (row) => Array.from({ length: width }, (_, q) => `dot(${weights}[${row} * ${width} + ${q}], ${input}[${q}])`).join(" + ");
+    return `  for (int r = 0; r < 12; r++) {
+    vec4 v = vec4(${[0, 1, 2, 3].map((t) => dots(`(4 * r + ${t})`)).join(",\n                  ")}) + ${bias}[r];
+    ${out}[r] = max(v, 0.0) + exp(min(v, 0.0)) - 1.0;
+  }`;
+  };
+  return `
+uniform sampler2DArray learnedCodes;
+layout(std140) uniform Decoder { vec4 w0[144]; vec4 b0[12]; vec4 b1[12]; vec4 b2[12]; vec4 w3[36]; vec4 b3; float unit; };
+layout(std140) uniform Hidden1 { vec4 w1[576]; };
+layout(std140) uniform Hidden2 { vec4 w2[576]; };
+float decodeDisplay(float y) { float t = abs(y); return sign(y) * (t <= 0.04045 ? t / 12.92 : pow((t + 0.055) / 1.055, 2.4)); }
+vec3 residual(ivec2 pixel) {
+  vec3 c0 = texelFetch(learnedCodes, ivec3(pixel, 0), 0).rgb, c1 = texelFetch(learnedCodes, ivec3(pixel, 1), 0).rgb, c2 = texelFetch(learnedCodes, ivec3(pixel, 2), 0).rgb;
+  vec4 z[3] = vec4[3](vec4(c0, c1.r), vec4(c1.gb, c2.rg), vec4(c2.b, 0.0, 0.0, 0.0));
+  vec4 h0[12]; vec4 h1[12]; vec4 h2[12];
+${layer("h0", "w0", "b0", "z", 3)}
+${layer("h1", "w1", "b1", "h0", 12)}
+${layer("h2", "w2", "b2", "h1", 12)}
+  vec3 y = b3.xyz;
+  for (int q = 0; q < 12; q++) y += vec3(dot(w3[q], h2[q]), dot(w3[12 + q], h2[q]), dot(w3[24 + q], h2[q]));
+  return clamp(unit * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
+}`;
+}
+
+function mainShader(m, source) {
+  const colour = m.arrays.colour;
+  const integer = colour && colour.dtype === "|u1";
+  const take = m.channels === 3 ? ".rgb" : ".rrr";
+  const tint = !colour ? "vec3(1.0)" : integer ? `vec3(texelFetch(colourMap, pixel, 0)${take}) * ${m.colour_step.toExponential(12)}` : `texelFetch(colourMap, pixel, 0)${take}`;
+  return `${HEADER}
+layout(std140) uniform Gaussians { vec4 gaussians[${2 * m.max_gaussians}]; };
+uniform int count; uniform vec3 specularColour; uniform float scale;
+${colour ? `uniform ${integer ? "highp usampler2D" : "sampler2D"} colourMap;` : ""}
+${source}
 out vec4 colour;
 const float CUTOFF2 = ${(m.cutoff * m.cutoff).toFixed(8)};
 const float TAU = ${Math.exp(-m.cutoff * m.cutoff / 2).toExponential(10)};
 float encode(float v) { v = clamp(v, 0.0, 1.0); return v <= 0.0031308 ? 12.92 * v : 1.055 * pow(v, 1.0 / 2.4) - 0.055; }
 void main() {
-  ivec2 pixel = ivec2(int(gl_FragCoord.x), ${m.height} - 1 - int(gl_FragCoord.y));
+  ${pixelOf(m)}
   vec2 x = (vec2(pixel) + 0.5) / float(${m.height});
   float S = 0.0;
   for (int i = 0; i < count; i++) {
-    vec4 g0 = texelFetch(gaussians, ivec2(2 * i, 0), 0), g1 = texelFetch(gaussians, ivec2(2 * i + 1, 0), 0);
-    vec2 d = x - g0.xy; float u = g0.w * d.x + g1.x * d.y; float v = g0.w * d.y - g1.x * d.x;
+    vec4 g0 = gaussians[2 * i], g1 = gaussians[2 * i + 1];
+    vec2 d = x - g0.xy;
+    if (dot(d, d) > g1.w) continue;
+    float u = g0.w * d.x + g1.x * d.y; float v = g0.w * d.y - g1.x * d.x;
     float d2 = u * u * g1.y + v * v * g1.z;
     if (d2 < CUTOFF2) S += g0.z * (exp(-0.5 * d2) - TAU);
   }
-  float s = texelFetch(planes, ivec3(pixel, 0), 0).r;
-  float Y = lumaMean * texelFetch(planes, ivec3(pixel, ${m.stacks.luminance.mean_layer}), 0).r + lumaConst;
-  for (int j = 0; j < lumaLayers; j++) Y += texelFetch(factors, ivec2(j, 0), 0).r * float(texelFetch(lumaCodes, ivec3(pixel, j), 0).r);
-  Y *= s;
-  vec3 rgb = vec3(Y);
-${chroma ? `  vec2 C = chromaMean * vec2(texelFetch(planes, ivec3(pixel, ${m.stacks.chroma.mean_layer}), 0).r, texelFetch(planes, ivec3(pixel, ${m.stacks.chroma.mean_layer + 1}), 0).r) + chromaConst;
-  for (int j = 0; j < chromaRank; j++) {
-    float f = texelFetch(factors, ivec2(lumaLayers + j, 0), 0).r;
-    C += f * vec2(float(texelFetch(chromaCodes, ivec3(pixel, 2 * j), 0).r), float(texelFetch(chromaCodes, ivec3(pixel, 2 * j + 1), 0).r));
-  }
-  C *= s;
-  rgb = vec3(Y + C.y, Y - (0.2126 * C.y + 0.0722 * C.x) / 0.7152, Y + C.x);` : ""}
-  vec3 tint = ${m.channels === 3 ? "vec3(texelFetch(planes, ivec3(pixel, 1), 0).r, texelFetch(planes, ivec3(pixel, 2), 0).r, texelFetch(planes, ivec3(pixel, 3), 0).r)" : "vec3(texelFetch(planes, ivec3(pixel, 1), 0).r)"};
-  rgb = scale * max(rgb + specularColour * tint * S, 0.0);
+  vec3 tint = ${tint};
+  vec3 rgb = scale * max(residual(pixel) + ${m.channels === 3 ? "specularColour" : "vec3(specularColour.x)"} * tint * S, 0.0);
   colour = vec4(encode(rgb.r), encode(rgb.g), encode(rgb.b), 1.0);
 }`;
 }
 
+function decodeShader(m) {
+  // one captured light's residual R_i(x), clipped to float16's range, into a texture layer (batching
+  // several lights a pass with multiple render targets saved nothing on SwiftShader: its cost is per light)
+  return `${HEADER}
+${stackSource(m)}
+out vec4 colour;
+void main() {
+  ivec2 pixel = ivec2(gl_FragCoord.xy);  // texel (x, y) of the layer holds pixel (x, y): rows top first, as uploaded images
+  colour = vec4(clamp(residual(pixel), -${FLOAT16_SAFE}, ${FLOAT16_SAFE}), 1.0);
+}`;
+}
+
+// --- textures -----------------------------------------------------------------------------------
+
+function textureFormat(gl, dtype, channels) {
+  const i = channels - 1;
+  const formats = {
+    "|u1": [[gl.R8UI, gl.RG8UI, gl.RGB8UI, gl.RGBA8UI], true, gl.UNSIGNED_BYTE],
+    "<u2": [[gl.R16UI, gl.RG16UI, gl.RGB16UI, gl.RGBA16UI], true, gl.UNSIGNED_SHORT],
+    "<f2": [[gl.R16F, gl.RG16F, gl.RGB16F, gl.RGBA16F], false, gl.HALF_FLOAT],
+    "<f4": [[gl.R32F, gl.RG32F, gl.RGB32F, gl.RGBA32F], false, gl.FLOAT],
+  }[dtype];
+  if (!formats) throw new Error(`no texture format for ${dtype}`);
+  const [internal, integer, type] = formats;
+  const format = integer ? [gl.RED_INTEGER, gl.RG_INTEGER, gl.RGB_INTEGER, gl.RGBA_INTEGER][i] : [gl.RED, gl.RG, gl.RGB, gl.RGBA][i];
+  return { internal: internal[i], format, type };
+}
+
+// --- the viewer ---------------------------------------------------------------------------------
+
 export class Viewer {
-  static async load(canvas, manifestUrl) {
+  static async load(canvas, manifestUrl, options = {}) {
     const response = await fetch(manifestUrl);
     if (!response.ok) throw new Error(`manifest.json: ${response.status} ${response.statusText}`);
-    const manifest = await response.json();
-    if (manifest.format !== "warp-highlights web viewer" || manifest.version !== 1) throw new Error("manifest.json is not a warp-highlights viewer of version 1");
-    return new Viewer(canvas, manifest, await fetchArrays(manifestUrl, manifest));
+    const manifest = checkManifest(await response.json());
+    const started = performance.now(), arrays = await fetchArrays(manifestUrl, manifest);
+    return new Viewer(canvas, manifest, arrays, { ...options, fetchMs: performance.now() - started });
   }
 
-  constructor(canvas, manifest, arrays) {
-    this.manifest = manifest; this.arrays = arrays; this.method = "circular"; this.specularColour = [1, 1, 1];
+  static async fromEmbedded(canvas, embedded, options = {}) {
+    // a --single-file page: the manifest and the arrays (base64) in the page itself
+    const manifest = checkManifest(embedded.manifest), arrays = {}, started = performance.now();
+    await Promise.all(Object.entries(manifest.arrays).map(async ([name, spec]) => {
+      const text = atob(embedded.arrays[name]), bytes = new Uint8Array(text.length);
+      for (let i = 0; i < text.length; i++) bytes[i] = text.charCodeAt(i);
+      arrays[name] = typed(spec, await inflated(spec, bytes.buffer));
+    }));
+    return new Viewer(canvas, manifest, arrays, { ...options, fetchMs: performance.now() - started });
+  }
+
+  constructor(canvas, manifest, arrays, { decode = "auto", fetchMs = 0 } = {}) {
+    // decode (low-rank fields): "load" each light's residual into a float16 layer once (decodeRest; until
+    // a triangle's corners are, its frames decode the stack per pixel), "query" the stack every frame,
+    // or "auto": load where the browser can render to float16 textures and the layers fit
+    if (!["auto", "load", "query"].includes(decode)) throw new Error(`decode must be auto, load or query, got ${decode}`);
+    const started = performance.now();
+    this.timings = { fetch: fetchMs };  // ms: fetch, set-up (textures, shaders), decode (all lights decoded so far)
+    this.manifest = manifest; this.arrays = arrays; this.method = "circular";
+    this.specularColour = [1, 1, 1]; this.exposureStops = 0;
     canvas.width = manifest.width; canvas.height = manifest.height;
     const gl = canvas.getContext("webgl2", { preserveDrawingBuffer: true, premultipliedAlpha: false, antialias: false });
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    this.unit = 0; this.units = {}; this.blocks = {};
+    const { width, height, channels } = manifest, kind = manifest.residual.kind, n = manifest.lights;
+    for (const name of ["colour", "scale"]) if (arrays[name]) this.texture(name, false);
+    if (kind === "lowrank") {
+      for (const name of ["luminance", "chroma"]) {
+        if (!manifest.residual[name]) continue;
+        this.texture(`${name}_mean`, false);
+        this.texture(`${name}_codes`, true);
+      }
+      this.factorsTexture = this.emptyTexture("factors");
+      // decode each light once into a float16 layer when the browser can render to one, else per frame
+      const layerBytes = width * height * (channels === 3 ? 8 : 2);
+      const canDecode = gl.getExtension("EXT_color_buffer_float") && n <= gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS) && n * layerBytes <= DECODED_BYTES;
+      if (decode === "load" && !canDecode) throw new Error("this browser cannot hold the decoded residual images (float16 render targets)");
+      this.mode = canDecode && decode !== "query" ? "decoded" : "stack";
+    } else if (kind === "images") {
+      if (n > gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS)) throw new Error(`this browser holds ${gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS)} images per texture, the field has ${n} lights`);
+      this.texture("images", true, "residualImages");
+      this.mode = "images";
+    } else if (kind === "learned") {
+      this.texture("learned_codes", true);
+      this.mode = "learned";
+    } else {
+      throw new Error(`unknown residual kind ${kind}`);
+    }
+    this.decoded = new Uint8Array(n);
+    if (this.mode !== "decoded") this.decoded.fill(1);
+    // one program a way of drawing; a decoded field starts with "stack" and adds "layers" (prepareLayers)
+    const way = this.mode === "decoded" ? "stack" : this.mode;
+    const source = { images: layersSource, stack: stackSource, learned: learnedSource }[way](manifest);
+    this.programs = { [way]: this.program(mainShader(manifest, source)) };
+    this.gaussianBuffer = this.uniformBlock(this.programs[way], "Gaussians", new Float32Array(8 * manifest.max_gaussians));
+    if (this.mode === "learned") this.uploadDecoder();
+    this.timings.setup = performance.now() - started;
+    this.timings.decode = 0;
+  }
+
+  // --- set-up -----------------------------------------------------------------------------------
+
+  program(fragment) {
+    const gl = this.gl;
     const compile = (type, source) => {
       const shader = gl.createShader(type); gl.shaderSource(shader, source); gl.compileShader(shader);
       if (!gl.getShaderParameter(shader, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(shader));
@@ -181,101 +360,244 @@ export class Viewer {
     };
     const program = gl.createProgram();
     gl.attachShader(program, compile(gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(program, compile(gl.FRAGMENT_SHADER, fragmentShader(manifest)));
+    gl.attachShader(program, compile(gl.FRAGMENT_SHADER, fragment));
+    gl.bindAttribLocation(program, 0, "corner");
     gl.linkProgram(program);
     if (!gl.getProgramParameter(program, gl.LINK_STATUS)) throw new Error(gl.getProgramInfoLog(program));
     gl.useProgram(program);
-    this.program = program;
-    const buffer = gl.createBuffer();
-    gl.bindBuffer(gl.ARRAY_BUFFER, buffer);
-    gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 3, -1, -1, 3]), gl.STATIC_DRAW);
-    const corner = gl.getAttribLocation(program, "corner");
-    gl.enableVertexAttribArray(corner); gl.vertexAttribPointer(corner, 2, gl.FLOAT, false, 0, 0);
-    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
-    const { width, height } = manifest;
-    const layers = (name) => manifest.arrays[name].shape[0];
-    this.unit = 0;
-    this.bindArray("planes", gl.R32F, gl.RED, gl.FLOAT, arrays.planes, width, height, layers("planes"));
-    for (const name of ["luminance", "chroma"]) {
-      const stack = manifest.stacks[name];
-      if (!stack) continue;
-      const codes = arrays[`${name}_codes`], count = Math.max(layers(`${name}_codes`), 1);
-      const data = codes.length ? codes : (stack.bits === 8 ? new Uint8Array(width * height) : new Uint16Array(width * height));
-      this.bindArray(name === "luminance" ? "lumaCodes" : "chromaCodes", stack.bits === 8 ? gl.R8UI : gl.R16UI, gl.RED_INTEGER,
-                     stack.bits === 8 ? gl.UNSIGNED_BYTE : gl.UNSIGNED_SHORT, data, width, height, count);
+    for (const [uniform, unit] of Object.entries(this.units)) {
+      const location = gl.getUniformLocation(program, uniform);
+      if (location) gl.uniform1i(location, unit);
     }
-    this.factorsTexture = this.texture2d("factors");
-    this.gaussiansTexture = this.texture2d("gaussians");
-    gl.uniform1f(gl.getUniformLocation(program, "scale"), 1 / manifest.exposure);
+    if (!this.triangle) {
+      this.triangle = gl.createBuffer();
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.triangle);
+      gl.bufferData(gl.ARRAY_BUFFER, new Float32Array([-1, -1, 3, -1, -1, 3]), gl.STATIC_DRAW);
+      gl.enableVertexAttribArray(0); gl.vertexAttribPointer(0, 2, gl.FLOAT, false, 0, 0);
+    }
+    program.uniforms = {};
+    program.set = (name, kind, ...values) => {
+      if (!(name in program.uniforms)) program.uniforms[name] = gl.getUniformLocation(program, name);
+      if (program.uniforms[name]) gl[`uniform${kind}`](program.uniforms[name], ...values);
+    };
+    return program;
   }
 
-  bindArray(uniform, internal, format, type, data, width, height, depth) {
-    const gl = this.gl, texture = gl.createTexture();
-    gl.activeTexture(gl.TEXTURE0 + this.unit);
-    gl.bindTexture(gl.TEXTURE_2D_ARRAY, texture);
-    gl.texImage3D(gl.TEXTURE_2D_ARRAY, 0, internal, width, height, depth, 0, format, type, data);
-    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
-    gl.uniform1i(gl.getUniformLocation(this.program, uniform), this.unit++);
+  nearest(target) {
+    const gl = this.gl;
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(target, p, gl.NEAREST);
+    for (const p of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T]) gl.texParameteri(target, p, gl.CLAMP_TO_EDGE);
   }
 
-  texture2d(uniform) {
+  texture(name, layered, uniform = undefined) {
+    // an exported array as a texture: (H, W[, C]) -> 2D, (L, H, W[, C]) -> 2D array; channels last
+    const gl = this.gl, spec = this.manifest.arrays[name], data = this.arrays[name];
+    const { width, height } = this.manifest, shape = spec.shape;
+    const lead = layered ? 1 : 0, channels = shape.length > lead + 2 ? shape[lead + 2] : 1;
+    const { internal, format, type } = textureFormat(gl, spec.dtype, channels);
+    const texture = gl.createTexture(), unit = this.unit++;
+    this.units[uniform || camel(name)] = unit;
+    gl.activeTexture(gl.TEXTURE0 + unit);
+    const target = layered ? gl.TEXTURE_2D_ARRAY : gl.TEXTURE_2D;
+    gl.bindTexture(target, texture);
+    if (layered) gl.texImage3D(target, 0, internal, width, height, shape[0], 0, format, type, data);
+    else gl.texImage2D(target, 0, internal, width, height, 0, format, type, data);
+    this.nearest(target);
+    return texture;
+  }
+
+  emptyTexture(uniform) {
     const gl = this.gl, texture = gl.createTexture(), unit = this.unit++;
+    this.units[uniform] = unit;
     gl.activeTexture(gl.TEXTURE0 + unit);
     gl.bindTexture(gl.TEXTURE_2D, texture);
-    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
-    gl.uniform1i(gl.getUniformLocation(this.program, uniform), unit);
+    this.nearest(gl.TEXTURE_2D);
     return { texture, unit };
   }
 
-  upload(target, data, width) {
-    const gl = this.gl;
-    gl.activeTexture(gl.TEXTURE0 + target.unit);
-    gl.bindTexture(gl.TEXTURE_2D, target.texture);
-    gl.texImage2D(gl.TEXTURE_2D, 0, data.internal, width, 1, 0, data.format, gl.FLOAT, data.values);
+  uniformBlock(program, name, values) {
+    // program's uniform block name backed by a new buffer of values, or by the block's buffer already made
+    const gl = this.gl, index = gl.getUniformBlockIndex(program, name);
+    if (index === gl.INVALID_INDEX) throw new Error(`the shader has no uniform block ${name}`);
+    if (gl.getActiveUniformBlockParameter(program, index, gl.UNIFORM_BLOCK_DATA_SIZE) > gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE)) {
+      throw new Error(`${name} is larger than this browser's uniform blocks`);
+    }
+    if (!(name in this.blocks)) {
+      const buffer = gl.createBuffer();
+      gl.bindBuffer(gl.UNIFORM_BUFFER, buffer);
+      gl.bufferData(gl.UNIFORM_BUFFER, values, gl.DYNAMIC_DRAW);
+      gl.bindBufferBase(gl.UNIFORM_BUFFER, Object.keys(this.blocks).length, buffer);
+      this.blocks[name] = { buffer, binding: Object.keys(this.blocks).length };
+    }
+    gl.uniformBlockBinding(program, index, this.blocks[name].binding);
+    return this.blocks[name].buffer;
   }
 
-  stackTerms(name, weights) {
-    // per-layer factors coef_j * step_j, the constant sum_j coef_j * low_j and the mean's weight m
-    const m = this.manifest, a = this.arrays, stack = m.stacks[name], face = this.location.face;
-    const V = [0, 1, 2].map((k) => a.faces[face * 3 + k]);
-    const rank = stack.rank, L = stack.bits === 8 ? 255 : 65535;
-    const factors = [];
-    let mean = 0, constant = 0;
-    for (let k = 0; k < 3; k++) mean += weights[k] * a[`${name}_mean_weights`][V[k]];
-    for (let j = 0; j < rank; j++) {
-      let coef = 0;
-      for (let k = 0; k < 3; k++) coef += weights[k] * a[`${name}_weights`][V[k] * rank + j];
-      const low = a[`${name}_ranges`][2 * j], high = a[`${name}_ranges`][2 * j + 1];
-      factors.push(coef * ((high - low) / L));
-      constant += coef * low;
+  uploadDecoder() {
+    // the learned residual's weights in std140 blocks: rows of vec4, the code columns of w0 padded to 12
+    const a = this.arrays, decoder = new Float32Array(217 * 4 + 4);
+    decoder.set(a.learned_w0);
+    for (let i = 0; i < 48; i++) for (let j = 9; j < 12; j++) decoder[i * 12 + j] = 0;
+    decoder.set(a.learned_b0, 144 * 4); decoder.set(a.learned_b1, 156 * 4); decoder.set(a.learned_b2, 168 * 4);
+    decoder.set(a.learned_w3, 180 * 4); decoder.set(a.learned_b3, 216 * 4); decoder[217 * 4] = this.manifest.residual.unit;
+    this.decoderValues = decoder;
+    const program = this.programs.learned;
+    this.uniformBlock(program, "Decoder", decoder);
+    this.uniformBlock(program, "Hidden1", new Float32Array(a.learned_w1));
+    this.uniformBlock(program, "Hidden2", new Float32Array(a.learned_w2));
+  }
+
+  // --- per light and per frame --------------------------------------------------------------------
+
+  stackFactors(weights, lights) {
+    // the factors texture's values (a vec4 per group of four packed codes: coef_j * step_j of each item's
+    // basis j, luminance then chroma Cb then Cr) and the constants; weights[k] of light lights[k]
+    const m = this.manifest, a = this.arrays, values = [], terms = {};
+    const plane = (name, keep) => {
+      const stack = m.residual[name], rank = stack.rank, L = stack.bits === 8 ? 255 : 65535;
+      const W = a[`${name}_weights`], R = a[`${name}_ranges`], MW = a[`${name}_mean_weights`];
+      let mean = 0, constant = 0;
+      const factor = new Float64Array(rank);
+      for (let k = 0; k < lights.length; k++) mean += weights[k] * MW[lights[k]];
+      for (let j = 0; j < rank; j++) {
+        let coef = 0;
+        for (let k = 0; k < lights.length; k++) coef += weights[k] * W[lights[k] * rank + j];
+        factor[j] = coef * ((R[2 * j + 1] - R[2 * j]) / L);
+        constant += coef * R[2 * j];
+      }
+      for (let i = 0; i < 4 * stack.groups; i++) {
+        const j = Math.floor(i / stack.planes), p = i % stack.planes;
+        values.push(j < rank && (keep < 0 || p === keep) ? factor[j] : 0);
+      }
+      terms[name] = { mean, constant };
+    };
+    plane("luminance", -1);
+    if (m.residual.chroma && m.channels === 3) { plane("chroma", 0); plane("chroma", 1); }
+    return { values: new Float32Array(values), terms };
+  }
+
+  setStack(program, weights, lights) {
+    const gl = this.gl, { values, terms } = this.stackFactors(weights, lights);
+    gl.activeTexture(gl.TEXTURE0 + this.factorsTexture.unit);
+    gl.bindTexture(gl.TEXTURE_2D, this.factorsTexture.texture);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, values.length / 4, 1, 0, gl.RGBA, gl.FLOAT, values);
+    for (const [name, term] of Object.entries(terms)) {
+      program.set(`${name}Weight`, "1f", term.mean);
+      program.set(`${name}Constant`, "1f", term.constant);
     }
-    return { factors, constant, mean };
+  }
+
+  prepareLayers() {
+    // the float16 layers of the decoded residuals, the decoder, and the program that blends three layers
+    if (this.layers) return;
+    const gl = this.gl, m = this.manifest;
+    this.layers = gl.createTexture();
+    this.units.residualImages = this.unit++;
+    gl.activeTexture(gl.TEXTURE0 + this.units.residualImages);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.layers);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, m.channels === 3 ? gl.RGBA16F : gl.R16F, m.width, m.height, m.lights);
+    this.nearest(gl.TEXTURE_2D_ARRAY);
+    this.framebuffer = gl.createFramebuffer();
+    this.decoder = this.program(decodeShader(m));
+    this.programs.layers = this.program(mainShader(m, layersSource(m)));
+    this.uniformBlock(this.programs.layers, "Gaussians", this.gaussianBuffer);
+  }
+
+  decodeLights(lights) {
+    // the residual images R_i of those of lights not decoded yet into their float16 layers (once)
+    const todo = [...new Set(lights)].filter((light) => !this.decoded[light]);
+    if (!todo.length) return;
+    this.prepareLayers();
+    const gl = this.gl, { width, height } = this.manifest, started = performance.now();
+    gl.useProgram(this.decoder);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.framebuffer);
+    gl.viewport(0, 0, width, height);
+    for (const light of todo) {
+      this.setStack(this.decoder, [1], [light]);
+      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.layers, 0, light);
+      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("this browser cannot render into float16 textures");
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+      this.decoded[light] = 1;
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.timings.decode += performance.now() - started;
+  }
+
+  defaultDirection() {
+    // the first light, as view's: the centroid of the triangle that (0.3, 0.4, 1) falls in (every corner weighs the same)
+    const face = locate(this.manifest, this.arrays, [0.3, 0.4, 1]).face, d = [0, 0, 0];
+    for (let k = 0; k < 3; k++) for (let i = 0; i < 3; i++) d[i] += this.arrays.directions[3 * this.arrays.faces[3 * face + k] + i];
+    const length = Math.hypot(...d);
+    return d.map((v) => v / length);
+  }
+
+  nextToDecode() {
+    // the light not decoded yet that is nearest the current light (-1: none left)
+    const d = this.location ? this.location.located : [0, 0, 1], a = this.arrays.directions;
+    let best = -1, closest = -Infinity;
+    for (let light = 0; light < this.decoded.length; light++) {
+      const near = a[3 * light] * d[0] + a[3 * light + 1] * d[1] + a[3 * light + 2] * d[2];
+      if (!this.decoded[light] && near > closest) { closest = near; best = light; }
+    }
+    return best;
+  }
+
+  decodedCount() { return this.decoded.reduce((a, b) => a + b, 0); }
+
+  decodeRest(onProgress = () => {}) {
+    // decode the lights not decoded yet, one at a time: the next is queued only when the GPU has
+    // finished the last (a fence), so that a frame asked for meanwhile waits for one decode at most
+    const gl = this.gl;
+    return new Promise((resolve) => {
+      const step = () => {
+        const light = this.nextToDecode();
+        onProgress(this.decodedCount(), this.manifest.lights);
+        if (light < 0) { resolve(); return; }
+        this.decodeLights([light]);
+        const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
+        gl.flush();
+        const done = () => {
+          if (gl.clientWaitSync(fence, 0, 0) === gl.TIMEOUT_EXPIRED) { setTimeout(done, 1); return; }
+          gl.deleteSync(fence);
+          setTimeout(step, 0);
+        };
+        done();
+      };
+      setTimeout(step, 0);  // after the frame being drawn
+    });
   }
 
   setLight(direction, method = this.method) {
+    // relight for direction (x, y, z; any length) with method circular, straight or alpha; returns ms
     const started = performance.now();
     const gl = this.gl, m = this.manifest;
+    if (!["circular", "straight", "alpha"].includes(method)) throw new Error(`method must be circular, straight or alpha, got ${method}`);
+    if (method === "alpha" && this.mode === "learned") throw new Error("the alpha blend needs per-light residual images; a learned residual has none");
     this.method = method;
     this.location = locate(m, this.arrays, direction);
-    const moved = method === "alpha" ? new Float32Array(0) : movedGaussians(m, this.arrays, this.location, method);
-    const count = moved.length / 8;
-    this.upload(this.gaussiansTexture, { internal: gl.RGBA32F, format: gl.RGBA, values: count ? moved : new Float32Array(8) }, Math.max(2 * count, 2));
-    gl.uniform1i(gl.getUniformLocation(this.program, "count"), count);
-    const w = this.location.weights;
-    const luma = this.stackTerms("luminance", w);
-    let factors = luma.factors;
-    gl.uniform1i(gl.getUniformLocation(this.program, "lumaLayers"), m.stacks.luminance.rank);
-    gl.uniform1f(gl.getUniformLocation(this.program, "lumaMean"), luma.mean);
-    gl.uniform1f(gl.getUniformLocation(this.program, "lumaConst"), luma.constant);
-    if (m.stacks.chroma && m.channels === 3) {
-      const chroma = this.stackTerms("chroma", w);
-      factors = factors.concat(chroma.factors);
-      gl.uniform1i(gl.getUniformLocation(this.program, "chromaRank"), m.stacks.chroma.rank);
-      gl.uniform1f(gl.getUniformLocation(this.program, "chromaMean"), chroma.mean);
-      gl.uniform2f(gl.getUniformLocation(this.program, "chromaConst"), chroma.constant, chroma.constant);
+    const corners = [0, 1, 2].map((k) => this.arrays.faces[this.location.face * 3 + k]), w = this.location.weights;
+    // the decoded layers once every corner that weighs is decoded (decodeRest), the stack per pixel before
+    const layered = this.layers && corners.every((light, k) => w[k] <= 0 || this.decoded[light]);
+    this.drawnWith = this.mode === "decoded" ? (layered ? "layers" : "stack") : this.mode;
+    const program = this.programs[this.drawnWith];
+    gl.useProgram(program);
+    const moved = movedGaussians(m, this.arrays, this.location, method);
+    gl.bindBuffer(gl.UNIFORM_BUFFER, this.gaussianBuffer);
+    gl.bufferSubData(gl.UNIFORM_BUFFER, 0, moved);
+    program.set("count", "1i", moved.length / 8);
+    if (this.drawnWith === "layers" || this.drawnWith === "images") {
+      program.set("corners", "3i", ...corners);
+      program.set("weights", "3f", ...w);
+    } else if (this.drawnWith === "stack") {
+      this.setStack(program, w, corners);
+    } else {
+      const d = this.location.located, v = this.decoderValues, w0 = this.arrays.learned_w0, b0 = this.arrays.learned_b0;
+      for (let i = 0; i < 48; i++) v[144 * 4 + i] = b0[i] + w0[i * 12 + 9] * d[0] + w0[i * 12 + 10] * d[1] + w0[i * 12 + 11] * d[2];
+      gl.bindBuffer(gl.UNIFORM_BUFFER, this.blocks.Decoder.buffer);
+      gl.bufferSubData(gl.UNIFORM_BUFFER, 144 * 16, v.subarray(144 * 4, 156 * 4));
     }
-    this.upload(this.factorsTexture, { internal: gl.R32F, format: gl.RED, values: new Float32Array(factors.length ? factors : [0]) }, Math.max(factors.length, 1));
-    gl.uniform3f(gl.getUniformLocation(this.program, "specularColour"), ...this.specularColour);
+    program.set("specularColour", "3f", ...this.specularColour);
+    program.set("scale", "1f", Math.pow(2, this.exposureStops) / m.exposure);
     gl.viewport(0, 0, m.width, m.height);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     return performance.now() - started;
@@ -289,4 +611,9 @@ export class Viewer {
     for (let y = 0; y < height; y++) out.set(raw.subarray((height - 1 - y) * row, (height - y) * row), y * row);
     return out;
   }
+}
+
+function camel(name) {
+  // the sampler of an exported array: luminance_codes -> luminanceCodes; colour, scale -> colourMap, scaleMap
+  return { colour: "colourMap", scale: "scaleMap" }[name] || name.replace(/_(.)/g, (_, c) => c.toUpperCase());
 }
