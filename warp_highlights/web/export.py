@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import gzip
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -118,24 +119,24 @@ def export_viewer(field, folder) -> dict:
 
 
 def single_file_page(field, *, limit: int | None = None) -> bytes:
-    """The viewer of ``field`` as one self-contained HTML page (viewer.js inlined, the arrays in
-    base64), UTF-8; raises ``InputError`` when its arrays would take more than ``limit`` bytes
+    """The viewer of ``field`` as one self-contained HTML page (viewer.js inlined into the page's module,
+    the arrays in base64), UTF-8; raises ``InputError`` when it would be larger than ``limit`` bytes
     (default ``SINGLE_FILE_LIMIT``)."""
     limit = SINGLE_FILE_LIMIT if limit is None else limit
     manifest, arrays = export_arrays(field)
     encoded = encoded_arrays(manifest, arrays)
-    size = int(sum(4 * ((len(data) + 2) // 3) for data in encoded.values()))
-    if size > limit:
-        raise InputError(f"a single-file viewer of this field would be {size / 2**20:.1f} MiB, over the {limit / 2**20:.0f} MiB that mail "
-                         f"services take; export it as a folder (without --single-file) and serve it")
     embedded = {"manifest": manifest, "arrays": {name: base64.b64encode(data).decode("ascii") for name, data in encoded.items()}}
     page = (_STATIC / "index.html").read_text()
     viewer = (_STATIC / "viewer.js").read_text()
-    if _IMPORT_LINE not in page or _EMBED_MARK not in page or "</script" in viewer:
+    if _IMPORT_LINE not in page or _EMBED_MARK not in page or re.search(r"</script|<!--", viewer, re.IGNORECASE):
         raise RuntimeError("web/static/index.html or viewer.js changed: single_file_page cannot inline them")
     page = page.replace(_IMPORT_LINE, viewer)
     page = page.replace(_EMBED_MARK, f'<script type="application/json" id="embedded-field">{json.dumps(embedded)}</script>')
-    return page.encode("utf-8")
+    data = page.encode("utf-8")
+    if len(data) > limit:
+        raise InputError(f"a single-file viewer of this field would be {len(data) / 2**20:.1f} MiB, over the {limit / 2**20:.0f} MiB that mail "
+                         f"services take; export it as a folder (without --single-file) and serve it")
+    return data
 
 
 def _gaussian_table(params) -> np.ndarray:

@@ -15,6 +15,10 @@ HOST = "127.0.0.1"
 
 
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    # not from the system's registry (Windows often maps .js to text/plain, and browsers refuse such a module)
+    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".js": "text/javascript", ".json": "application/json",
+                      ".html": "text/html", ".gz": "application/gzip", ".bin": "application/octet-stream"}
+
     def log_message(self, format, *args) -> None:  # noqa: A002 (the standard library's name)
         pass
 

@@ -14,16 +14,18 @@ async function fetchArrays(base, manifest) {
   await Promise.all(Object.entries(manifest.arrays).map(async ([name, spec]) => {
     const response = await fetch(new URL(spec.file, base));
     if (!response.ok) throw new Error(`${spec.file}: ${response.status} ${response.statusText}`);
-    arrays[name] = typed(spec, await inflated(spec, spec.encoding === "gzip" ? response.body : await response.arrayBuffer()));
+    arrays[name] = typed(spec, await inflated(spec, await response.arrayBuffer()));
   }));
   return arrays;
 }
 
-async function inflated(spec, body) {
-  // an array's bytes: a gzip stream inflated by the browser, or the raw bytes as they are
-  if (spec.encoding !== "gzip") return body instanceof ArrayBuffer ? body : new Response(body).arrayBuffer();
-  const stream = body instanceof ReadableStream ? body : new Blob([body]).stream();
-  return new Response(stream.pipeThrough(new DecompressionStream("gzip"))).arrayBuffer();
+async function inflated(spec, bytes) {
+  // an array's bytes: gzip inflated by the browser, or as they are (also where a server sent the .gz
+  // with Content-Encoding: gzip, so that the browser has inflated it already: no gzip magic number)
+  const head = new Uint8Array(bytes, 0, Math.min(2, bytes.byteLength));
+  if (spec.encoding !== "gzip" || head[0] !== 0x1f || head[1] !== 0x8b) return bytes;
+  if (typeof DecompressionStream === "undefined") throw new Error("this browser cannot inflate gzip (no DecompressionStream): use a current browser");
+  return new Response(new Blob([bytes]).stream().pipeThrough(new DecompressionStream("gzip"))).arrayBuffer();
 }
 
 function typed(spec, buffer) {
@@ -212,7 +214,8 @@ ${layer("h1", "w1", "b1", "h0", 12)}
 ${layer("h2", "w2", "b2", "h1", 12)}
   vec3 y = b3.xyz;
   for (int q = 0; q < 12; q++) y += vec3(dot(w3[q], h2[q]), dot(w3[12 + q], h2[q]), dot(w3[24 + q], h2[q]));
-  return clamp(unit * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
+  vec3 r = clamp(unit * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
+  return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);  // float16, as Relighter keeps it
 }`;
 }
 
@@ -311,6 +314,10 @@ export class Viewer {
     const gl = canvas.getContext("webgl2", { preserveDrawingBuffer: true, premultipliedAlpha: false, antialias: false });
     if (!gl) throw new Error("this browser has no WebGL2");
     this.gl = gl;
+    const largest = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    if (manifest.width > largest || manifest.height > largest) {
+      throw new Error(`the field is ${manifest.width}x${manifest.height}; this browser's textures hold at most ${largest} pixels a side: export a smaller field (fit --size)`);
+    }
     gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
     this.unit = 0; this.units = {}; this.blocks = {};
     const { width, height, channels } = manifest, kind = manifest.residual.kind, n = manifest.lights;
@@ -345,6 +352,7 @@ export class Viewer {
     this.programs = { [way]: this.program(mainShader(manifest, source)) };
     this.gaussianBuffer = this.uniformBlock(this.programs[way], "Gaussians", new Float32Array(8 * manifest.max_gaussians));
     if (this.mode === "learned") this.uploadDecoder();
+    this.checkErrors("loading the field");
     this.timings.setup = performance.now() - started;
     this.timings.decode = 0;
   }
@@ -381,6 +389,12 @@ export class Viewer {
       if (program.uniforms[name]) gl[`uniform${kind}`](program.uniforms[name], ...values);
     };
     return program;
+  }
+
+  checkErrors(what) {
+    const error = this.gl.getError();
+    if (error === this.gl.OUT_OF_MEMORY) throw new Error(`${what}: the GPU is out of memory`);
+    if (error !== this.gl.NO_ERROR) throw new Error(`${what}: WebGL error 0x${error.toString(16)}`);
   }
 
   nearest(target) {
@@ -497,6 +511,7 @@ export class Viewer {
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.layers);
     gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, m.channels === 3 ? gl.RGBA16F : gl.R16F, m.width, m.height, m.lights);
     this.nearest(gl.TEXTURE_2D_ARRAY);
+    this.checkErrors("making the decoded layers");
     this.framebuffer = gl.createFramebuffer();
     this.decoder = this.program(decodeShader(m));
     this.programs.layers = this.program(mainShader(m, layersSource(m)));
@@ -507,20 +522,26 @@ export class Viewer {
     // the residual images R_i of those of lights not decoded yet into their float16 layers (once)
     const todo = [...new Set(lights)].filter((light) => !this.decoded[light]);
     if (!todo.length) return;
-    this.prepareLayers();
     const gl = this.gl, { width, height } = this.manifest, started = performance.now();
-    gl.useProgram(this.decoder);
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.framebuffer);
-    gl.viewport(0, 0, width, height);
-    for (const light of todo) {
-      this.setStack(this.decoder, [1], [light]);
-      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.layers, 0, light);
-      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("this browser cannot render into float16 textures");
-      gl.drawArrays(gl.TRIANGLES, 0, 3);
-      this.decoded[light] = 1;
+    try {
+      this.prepareLayers();
+      gl.useProgram(this.decoder);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.framebuffer);
+      gl.viewport(0, 0, width, height);
+      for (const light of todo) {
+        this.setStack(this.decoder, [1], [light]);
+        gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.layers, 0, light);
+        if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("this browser cannot render into float16 textures");
+        gl.drawArrays(gl.TRIANGLES, 0, 3);
+        this.decoded[light] = 1;
+      }
+    } catch (error) {  // no layers then: every frame decodes the stack per pixel
+      this.layers = null; this.decoded.fill(0); this.mode = "stack"; this.decodeError = error.message;
+      throw error;
+    } finally {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      this.timings.decode += performance.now() - started;
     }
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    this.timings.decode += performance.now() - started;
   }
 
   defaultDirection() {
@@ -546,14 +567,15 @@ export class Viewer {
 
   decodeRest(onProgress = () => {}) {
     // decode the lights not decoded yet, one at a time: the next is queued only when the GPU has
-    // finished the last (a fence), so that a frame asked for meanwhile waits for one decode at most
+    // finished the last (a fence), so that a frame asked for meanwhile waits for one decode at most;
+    // resolves when all are, or when decoding failed (decodeError says why; frames then decode per pixel)
     const gl = this.gl;
     return new Promise((resolve) => {
       const step = () => {
-        const light = this.nextToDecode();
+        const light = this.mode === "decoded" ? this.nextToDecode() : -1;
         onProgress(this.decodedCount(), this.manifest.lights);
         if (light < 0) { resolve(); return; }
-        this.decodeLights([light]);
+        try { this.decodeLights([light]); } catch { resolve(); return; }
         const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
         gl.flush();
         const done = () => {
@@ -598,6 +620,7 @@ export class Viewer {
     }
     program.set("specularColour", "3f", ...this.specularColour);
     program.set("scale", "1f", Math.pow(2, this.exposureStops) / m.exposure);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.viewport(0, 0, m.width, m.height);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     return performance.now() - started;
