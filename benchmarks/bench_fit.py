@@ -61,7 +61,7 @@ def main() -> None:
                            settings=RenderSettings(width=width, height=height), device=str(device), progress=False)
             print(f"rendered {args.shape}: {args.lights} lights {width}x{height} in {time.perf_counter() - started:.1f} s")
         started = time.perf_counter()
-        data = ReflectanceField.load(folder, progress=False)
+        data = ReflectanceField.load(folder, progress=False, heldout=False, components=False)  # what fit loads
         load_seconds = time.perf_counter() - started
 
         # warm-up: compiles every kernel (cached on disk afterwards) with a very short fit

@@ -10,7 +10,7 @@ import pytest
 
 from warp_highlights.io.dataset import DatasetWriter, ReflectanceField
 from warp_highlights.io.images import read_image, srgb_to_linear, write_image
-from warp_highlights.io.lightfile import write_lp
+from warp_highlights.io.lightfile import read_lp, write_lp
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
 
@@ -417,3 +417,63 @@ def test_realrti_sample_loads(data_root):
     assert field.light_count == 54 and field.channels == 3
     assert (field.width, field.height) == (567, 534)
     assert field.heldout is None
+
+
+# --- loading in threads, at the working size, only what fit uses ----------------------------------
+
+
+def test_threads_load_the_same_stack_in_file_order(small_donut):
+    one = ReflectanceField.load(small_donut, progress=False, workers=1)
+    four = ReflectanceField.load(small_donut, progress=False, workers=4)
+    np.testing.assert_array_equal(four.images, one.images)
+    np.testing.assert_array_equal(four.heldout.images, one.heldout.images)
+    np.testing.assert_array_equal(four.specular, one.specular)
+    assert four.lights.filenames == one.lights.filenames
+    with pytest.raises(InputError, match="workers"):
+        ReflectanceField.load(small_donut, progress=False, workers=0)
+
+
+def test_loading_at_a_working_size_is_the_area_average_of_each_image(small_donut):
+    from warp_highlights.io.resample import resample_image, resize_stack
+
+    full = ReflectanceField.load(small_donut, progress=False)
+    small = ReflectanceField.load(small_donut, progress=False, size=(48, 27))
+    assert (small.width, small.height) == (48, 27) and small.source["size"] == [96, 54] == full.source["size"]
+    np.testing.assert_array_equal(small.images, resize_stack(full.images, 48, 27))
+    np.testing.assert_array_equal(small.heldout.images, resize_stack(full.heldout.images, 48, 27))
+    if full.mask is not None:
+        np.testing.assert_array_equal(small.mask, resample_image(full.mask.astype(np.float32), 48, 27) >= 0.5)
+    with pytest.raises(InputError, match="aspect ratio"):
+        ReflectanceField.load(small_donut, progress=False, size=(48, 48))
+
+
+def test_fit_loads_only_what_it_uses_at_its_working_size(small_donut, tmp_path, monkeypatch):
+    """``fit`` skips the held-out ground truth and shrinks each image as it is decoded; the report
+    keeps the files' size."""
+    from conftest import TINY_FIT
+
+    from warp_highlights.cli import main
+    from warp_highlights.io import dataset as dataset_module
+    from warp_highlights.io.fieldfile import load_field
+
+    decoded = []
+    real = dataset_module.read_image
+    monkeypatch.setattr(dataset_module, "read_image", lambda path, **k: decoded.append(path.name) or real(path, **k))
+    out = tmp_path / "field.whf"
+    assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--device", "cpu", "-q", *TINY_FIT]) == 0
+    lights = read_lp(small_donut / "lights.lp")
+    assert sorted(decoded) == sorted([name.split("/")[-1] for name in lights.filenames] + ["mask.png"])  # no held-out image, no ground truth
+    field = load_field(out)
+    assert (field.width, field.height) == (48, 27) and field.report["source_size"] == [96, 54]
+
+
+def test_a_bad_image_among_many_stops_the_threaded_load_with_one_line(small_donut, tmp_path):
+    import shutil
+
+    folder = tmp_path / "donut"
+    shutil.copytree(small_donut, folder)
+    victim = folder / read_lp(folder / "lights.lp").filenames[17]
+    victim.write_bytes(victim.read_bytes()[:200])  # truncated
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False, workers=4)
+    assert victim.name in str(excinfo.value) and "\n" not in str(excinfo.value)

@@ -119,7 +119,7 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
     back = np.rint(dataset.images * 65535.0).astype(np.uint16)
     np.testing.assert_array_equal(back, np.stack(codes))
     assert np.any(np.stack(codes) % 257 != 0)  # not an 8-bit image in disguise
-    assert dataset.source == {"format": "TIFF" if suffix == ".tif" else "PNG", "bits": 16, "values": "linear", "profile": None}
+    assert dataset.source == {"format": "TIFF" if suffix == ".tif" else "PNG", "bits": 16, "values": "linear", "profile": None, "size": [32, 24]}
     field_path = tmp_path / "capture.whf"
     settings = [part for item in FAST_FIT + ["residual.check_lights=0"] for part in ("--set", item)]
     assert main(["fit", str(folder), "-o", str(field_path), "--linear", "--device", "cpu", "-q", *settings]) == 0

@@ -101,7 +101,9 @@ def _run_fit(args) -> int:
     from ..io.fieldfile import save_field
 
     started = time.perf_counter()
-    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
+    # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded
+    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
+                                    heldout=False, components=False)
     if args.holdout_every:
         dataset = dataset.split_every(args.holdout_every)
     load_seconds = time.perf_counter() - started

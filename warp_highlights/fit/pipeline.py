@@ -162,7 +162,7 @@ def fit_field(
     report = {
         "version": __version__,
         "device": str(device),
-        "source_size": [dataset.width, dataset.height],
+        "source_size": (dataset.source or {}).get("size", [dataset.width, dataset.height]),  # the files' size, before any shrink at load
         "input": dataset.source,  # format, bits per channel, sRGB or linear, ICC profile of the capture's files
         "size": [width, height],
         "lights": dataset.light_count,

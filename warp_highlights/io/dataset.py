@@ -7,6 +7,7 @@ held-out lights (``heldout.lp``), ``mask.png`` and ``meta.json``.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -26,6 +27,9 @@ from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
+LOAD_WORKERS = min(8, os.cpu_count() or 1)
+"""Threads that decode a dataset's images (Pillow, tifffile and OpenEXR release the GIL): the cores,
+at most 8 (measured: see benchmarks/README.md, bench_load.py)."""
 DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 """Image files that hold display values (8/16-bit photographs), as opposed to radiance (EXR/HDR)."""
 
@@ -47,7 +51,8 @@ class ReflectanceField:
         meta: Free-form metadata (generator, shape, material, resolution, colour space).
         root: Folder the field was loaded from, or None.
         source: How the loaded files stored their values (``io.images.image_encoding`` of the first
-            image: format, bits per channel, sRGB or linear, ICC profile), or None (made in memory).
+            image: format, bits per channel, sRGB or linear, ICC profile, and ``size``: the files'
+            [width, height], which ``load(size=...)`` shrinks from), or None (made in memory).
     """
 
     images: np.ndarray
@@ -146,22 +151,32 @@ class ReflectanceField:
         replace_nonfinite: bool = False,
         progress: bool = True,
         max_pixels: int | None = DEFAULT_MAX_PIXELS,
+        size: tuple[int, int] | None = None,
+        workers: int | None = None,
+        components: bool = True,
     ) -> ReflectanceField:
         """Load a dataset folder into memory (one preallocated float32 array per image stack).
 
         Before any pixel is decoded, every image's header is read: sizes and channel counts must agree,
         no image may exceed ``max_pixels``, and the float32 stacks must fit in the memory available
         (see ``_check_memory``). A capture whose images are all black, or all white (PNG/JPEG), is refused.
+        Images are decoded by ``workers`` threads (the decoders release the GIL), each straight into
+        the working ``size``.
 
         Args:
             folder: Dataset folder with ``lights.lp`` (or exactly one other ``.lp``) and its images.
             heldout: Another dataset folder holding the held-out lights and images; by default
-                ``heldout.lp`` in ``folder``, when present.
+                ``heldout.lp`` in ``folder``, when present; False loads none (what ``fit`` does).
             linear: PNG/JPEG values are linear already; skip the sRGB decode.
             replace_nonfinite: Replace NaN/inf pixels by 0 (with a warning) instead of failing.
             progress: Show a progress bar on stderr (only when it is a terminal).
             max_pixels: Refuse an image of more pixels (width x height) than this; None for no limit
                 (see ``warp_highlights.io.images.DEFAULT_MAX_PIXELS``).
+            size: (width, height) to shrink every image (and the mask) to as it is read, an area
+                average (``io.resample``); None keeps the images' size. Same aspect ratio.
+            workers: decoding threads; default ``LOAD_WORKERS``.
+            components: also load the ground-truth ``specular/`` and ``diffuse/`` images, when present
+                (``fit`` does not use them).
 
         Raises:
             InputError: One line on any bad input: missing folder, image or light file, several
@@ -171,23 +186,32 @@ class ReflectanceField:
         """
         from tqdm import tqdm
 
+        from .resample import working_size
+
         folder = _existing_folder(folder)
         main = _ImageGroup.plan(_find_light_file(folder))
-        extra = _heldout_group(folder, heldout)
+        extra = None if heldout is False else _heldout_group(folder, heldout)
         groups = [main] if extra is None else [main, extra]
+        if not components:
+            groups = [dataclasses.replace(group, specular=None, diffuse=None) for group in groups]
         shape = _planned_shape(groups, max_pixels)
-        _check_memory(folder, sum(g.file_count for g in groups), shape)
+        width, height = working_size(shape[1], shape[0], size)
+        workers = LOAD_WORKERS if workers is None else int(workers)
+        if workers < 1:
+            raise InputError(f"workers must be >= 1, got {workers}")
+        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=(min(workers, 8) + 1) * int(np.prod(shape)))
         with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                   disable=None if progress else True, leave=False) as bar:
-            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels)
+            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
+                                  size=(width, height), workers=workers)
             fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         reader.report_nonfinite()
-        _check_not_blank(main, fields[0].images)
+        _check_not_blank(groups[0], fields[0].images)
         result = fields[0]
         result.heldout = fields[1] if extra is not None else None
-        result.mask = _read_mask(folder / "mask.png", (result.height, result.width), max_pixels)
+        result.mask = _read_mask(folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))
         result.meta = _read_meta(folder / "meta.json")
-        result.source = image_encoding(main.images[0], linear=linear)
+        result.source = {**image_encoding(main.images[0], linear=linear), "size": [int(shape[1]), int(shape[0])]}
         return result
 
     @property
@@ -461,11 +485,11 @@ def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[i
     return shapes.first[1]
 
 
-def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...]) -> None:
-    """Refuse a load whose float32 stacks, plus room to decode two images, exceed the available memory:
-    ``(file_count + 2) x H x W x channels x 4`` bytes."""
+def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...], *, decoding: int = 0) -> None:
+    """Refuse a load whose float32 stacks of ``shape`` (the working size), plus ``decoding`` float32
+    values of images being decoded at their own size, exceed the available memory."""
     size = "x".join(str(n) for n in (shape[1], shape[0], *shape[2:]))
-    check_memory((file_count + 2) * int(np.prod(shape)) * 4, f"{folder}: loading",
+    check_memory((file_count * int(np.prod(shape)) + max(decoding, 2 * int(np.prod(shape)))) * 4, f"{folder}: loading",
                  "free memory, use a machine with more, or downscale the images",
                  detail=f"{file_count} images of {size} as float32")
 
@@ -490,11 +514,14 @@ def _check_not_blank(group: _ImageGroup, images: np.ndarray) -> None:
 class _StackReader:
     """Reads image stacks into preallocated float32 arrays, checking size, channels and finiteness."""
 
-    def __init__(self, *, linear: bool, replace_nonfinite: bool, bar, max_pixels: int | None = DEFAULT_MAX_PIXELS):
+    def __init__(self, *, linear: bool, replace_nonfinite: bool, bar, max_pixels: int | None = DEFAULT_MAX_PIXELS,
+                 size: tuple[int, int] | None = None, workers: int = 1):
         self.linear = linear
         self.replace_nonfinite = replace_nonfinite
         self.bar = bar
         self.max_pixels = max_pixels
+        self.size = size
+        self.workers = workers
         self.shapes = _ShapeCheck()
         self.nonfinite_count = 0
         self.nonfinite_file: Path | None = None
@@ -506,16 +533,36 @@ class _StackReader:
         return images, group.lights, specular, diffuse
 
     def read_stack(self, paths: list[Path]) -> np.ndarray:
+        """The images at ``paths``, decoded by ``workers`` threads, checked in file order."""
         stack = None
-        for index, path in enumerate(paths):
-            image = read_image(path, linear=self.linear, max_pixels=self.max_pixels)
-            self.shapes.check(path, image.shape)
-            self._check_finite(path, image)
-            if stack is None:
-                stack = np.empty((len(paths), *image.shape), dtype=np.float32)
-            stack[index] = image
-            self.bar.update()
+        pool = ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(paths))), thread_name_prefix="load")
+        try:
+            for index, (path, shape, bad, image) in enumerate(pool.map(self._decode, paths)):
+                self.shapes.check(path, shape)
+                if bad:
+                    self.nonfinite_count += bad
+                    self.nonfinite_file = self.nonfinite_file or path
+                if stack is None:
+                    stack = np.empty((len(paths), *image.shape), dtype=np.float32)
+                stack[index] = image
+                self.bar.update()
+        finally:  # an error or Ctrl-C: drop the images not started yet
+            pool.shutdown(wait=True, cancel_futures=True)
         return stack
+
+    def _decode(self, path: Path) -> tuple:
+        """(path, shape as stored, non-finite values, image at the working size): one thread's work."""
+        from .resample import resample_image
+
+        image = read_image(path, linear=self.linear, max_pixels=self.max_pixels)
+        shape = image.shape
+        bad = ~np.isfinite(image)
+        count = int(bad.sum())
+        if count and self.replace_nonfinite:
+            image[bad] = 0.0
+        if self.size is not None and (image.shape[1], image.shape[0]) != tuple(self.size):
+            image = resample_image(image, *self.size)
+        return path, shape, count, image
 
     def report_nonfinite(self) -> None:
         """Raise (or warn, when replacing) about the non-finite pixels seen so far."""
@@ -525,15 +572,6 @@ class _StackReader:
         if not self.replace_nonfinite:
             raise InputError(f"{what}; fix the images or pass replace_nonfinite=True to replace them by 0")
         warnings.warn(f"{what}; replaced by 0", stacklevel=3)
-
-    def _check_finite(self, path: Path, image: np.ndarray) -> None:
-        bad = ~np.isfinite(image)
-        count = int(bad.sum())
-        if count:
-            self.nonfinite_count += count
-            self.nonfinite_file = self.nonfinite_file or path
-            if self.replace_nonfinite:
-                image[bad] = 0.0
 
 
 def _channel_count(shape: tuple[int, ...]) -> int:
@@ -583,7 +621,11 @@ def _component_paths(folder: Path, kind: str, images: list[Path]) -> list[Path] 
     return paths
 
 
-def _read_mask(path: Path, shape: tuple[int, int], max_pixels: int | None = DEFAULT_MAX_PIXELS) -> np.ndarray | None:
+def _read_mask(path: Path, shape: tuple[int, int], max_pixels: int | None = DEFAULT_MAX_PIXELS, *,
+               size: tuple[int, int] | None = None) -> np.ndarray | None:
+    """The object mask (images' ``shape``), at the working ``size`` when given: pixels at least half inside."""
+    from .resample import resample_image
+
     if not path.is_file():
         return None
     mask = read_image(path, linear=True, max_pixels=max_pixels)
@@ -593,6 +635,8 @@ def _read_mask(path: Path, shape: tuple[int, int], max_pixels: int | None = DEFA
         raise InputError(
             f"{path}: mask is {mask.shape[1]}x{mask.shape[0]} but the images are {shape[1]}x{shape[0]}"
         )
+    if size is not None and (mask.shape[1], mask.shape[0]) != tuple(size):
+        mask = resample_image(mask, *size)
     return mask >= 0.5
 
 

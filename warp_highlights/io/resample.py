@@ -33,7 +33,11 @@ def _resample(array: np.ndarray, first: int, size: tuple[int, int]) -> np.ndarra
         return array
     shape = lambda rows_cols: array.shape[:first] + rows_cols + array.shape[first + 2 :]
     shrunk = (min(now[0], size[0]), min(now[1], size[1]))
-    if shrunk != now:
+    if shrunk != now and now[0] % shrunk[0] == 0 and now[1] % shrunk[1] == 0:
+        # whole blocks (e.g. half size): their means are the area average, several times faster than skimage's
+        blocks = array.reshape(shape((shrunk[0], now[0] // shrunk[0], shrunk[1], now[1] // shrunk[1])))
+        array = blocks.mean(axis=(first + 1, first + 3), dtype=np.float64)
+    elif shrunk != now:
         array = resize_local_mean(array, shape(shrunk), grid_mode=True, preserve_range=True)
     if shrunk != size:
         array = resize(array, shape(size), order=1, mode="edge", anti_aliasing=False, preserve_range=True)
