@@ -64,6 +64,26 @@ def test_chunks_on_threads_give_the_same_result_as_one_batch():
     np.testing.assert_array_equal(one.loss, three.loss)
 
 
+def test_graph_replay_gives_the_eager_result_bit_for_bit():
+    """On CUDA, one iteration captured as a graph and replayed (across the add/prune rounds) against
+    the same iterations launched one by one; on the CPU, graphs are refused in one line."""
+    import warp as wp
+
+    rng = np.random.default_rng(3)
+    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]], "theta": [rng.uniform(0, 3)]} for _ in range(4)]
+    target = _render(sets)
+    short = EstimationSettings(iterations=120, densify_every=30, densify_until=100)
+    with pytest.raises(InputError, match="CUDA graphs need a CUDA device"):
+        estimate(target, settings=short, device="cpu", graphs=True)
+    if not wp.is_cuda_available():
+        pytest.skip("CUDA graphs need a CUDA device (the CPU refusal above was checked)")
+    eager = estimate(target, settings=short, device="cuda:0", graphs=False)
+    replayed = estimate(target, settings=short, device="cuda:0", graphs=True)
+    for name in ("amplitude", "mean", "sigma", "theta", "active"):
+        np.testing.assert_array_equal(getattr(replayed.params, name), getattr(eager.params, name))
+    np.testing.assert_array_equal(replayed.loss, eager.loss)
+
+
 def test_densify_places_a_gaussian_on_a_curved_highlight():
     """The centroid of a ring-arc region lies off the highlight; the new Gaussian must start on it."""
     height, width = 54, 96

@@ -76,6 +76,7 @@ def estimate(
     device=None,
     workers: int | None = None,
     progress=None,
+    graphs: bool | None = None,
 ) -> EstimationResult:
     """Fit Gaussians to every specular image.
 
@@ -86,6 +87,8 @@ def estimate(
         device: Warp device (default: the targets' device, else Warp's default).
         workers: CPU threads (default: one per core); ignored on CUDA.
         progress: optional callable ``advance(iterations)`` called as the fit goes.
+        graphs: replay one iteration captured as a CUDA graph instead of launching its kernels one by
+            one from Python (the same kernels in the same order: the same result); default: on CUDA.
     """
     s = settings or EstimationSettings()
     raster = raster or RasterSettings()
@@ -96,13 +99,16 @@ def estimate(
     if not np.all(np.isfinite(host_targets)):
         raise InputError("the specular images have non-finite pixels")
     chunks = problem_chunks(len(host_targets), device, workers)
+    graphs = device.is_cuda if graphs is None else bool(graphs)
+    if graphs and not device.is_cuda:
+        raise InputError("CUDA graphs need a CUDA device; estimate on the CPU with graphs=False")
 
     def run(chunk: slice, stop) -> tuple:
         if isinstance(targets, wp.array) and targets.device == device and len(chunks) == 1:
             device_targets = targets
         else:
             device_targets = wp.array(np.ascontiguousarray(host_targets[chunk]), dtype=float, device=device)
-        return _Estimator(device_targets, host_targets[chunk], s, raster, device).run(stop, progress)
+        return _Estimator(device_targets, host_targets[chunk], s, raster, device).run(stop, progress, graphs=graphs)
 
     parts = map_chunks(run, chunks)
     params = GaussianParams.concatenate([p[0] for p in parts])
@@ -129,16 +135,11 @@ class _Estimator:
         self.added = np.zeros(problems, dtype=np.int64)
         self.pruned = np.zeros(problems, dtype=np.int64)
 
-    def run(self, stop, progress) -> tuple:
+    def run(self, stop, progress, *, graphs: bool = False) -> tuple:
         s = self.s
         tape = wp.Tape()
-        for iteration in range(s.iterations):
-            if stop.is_set():
-                raise Cancelled
-            if iteration % s.densify_every == 0 and iteration < s.densify_until:
-                if iteration > 0:
-                    self._prune()
-                self._densify(self._residual())
+
+        def step() -> None:  # one Adam iteration, all on the device: fixed arrays, no copy to the host
             self.loss.zero_()
             with recording(tape):
                 self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
@@ -146,6 +147,23 @@ class _Estimator:
             self.adam.step()
             tape.zero()
             tape.reset()
+
+        graph = None
+        for iteration in range(s.iterations):
+            if stop.is_set():
+                raise Cancelled
+            if iteration % s.densify_every == 0 and iteration < s.densify_until:
+                if iteration > 0:
+                    self._prune()
+                self._densify(self._residual())  # in place: the captured graph stays valid
+            if graphs and iteration > 0:  # the first iteration eagerly, which loads every kernel it needs
+                if graph is None:
+                    with wp.ScopedCapture(device=self.batch.device, force_module_load=False) as capture:
+                        step()
+                    graph = capture.graph
+                wp.capture_launch(graph)
+            else:
+                step()
             if progress is not None and (iteration + 1) % 10 == 0:
                 progress(10)
         if progress is not None:
