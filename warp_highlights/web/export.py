@@ -135,7 +135,7 @@ def single_file_page(field, *, limit: int | None = None) -> bytes:
     data = page.encode("utf-8")
     if len(data) > limit:
         raise InputError(f"a single-file viewer of this field would be {len(data) / 2**20:.1f} MiB, over the {limit / 2**20:.0f} MiB that mail "
-                         f"services take; export it as a folder (without --single-file) and serve it")
+                         f"services take; export it as a folder (without --single-file) and serve it, or fit a smaller --size")
     return data
 
 

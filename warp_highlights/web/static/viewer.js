@@ -36,6 +36,17 @@ function typed(spec, buffer) {
   return new Type(buffer);
 }
 
+async function fromBase64(text) {
+  // the browser's own decoder through a data: URL (native, fast), else atob byte by byte
+  try {
+    return await (await fetch(`data:application/octet-stream;base64,${text}`)).arrayBuffer();
+  } catch {
+    const binary = atob(text), bytes = new Uint8Array(binary.length);
+    for (let i = 0; i < binary.length; i++) bytes[i] = binary.charCodeAt(i);
+    return bytes.buffer;
+  }
+}
+
 function checkManifest(manifest) {
   if (manifest.format !== "warp-highlights web viewer" || manifest.version !== FORMAT_VERSION) {
     throw new Error(`manifest.json is not a warp-highlights viewer of version ${FORMAT_VERSION}: export the field again with this version`);
@@ -294,9 +305,7 @@ export class Viewer {
     // a --single-file page: the manifest and the arrays (base64) in the page itself
     const manifest = checkManifest(embedded.manifest), arrays = {}, started = performance.now();
     await Promise.all(Object.entries(manifest.arrays).map(async ([name, spec]) => {
-      const text = atob(embedded.arrays[name]), bytes = new Uint8Array(text.length);
-      for (let i = 0; i < text.length; i++) bytes[i] = text.charCodeAt(i);
-      arrays[name] = typed(spec, await inflated(spec, bytes.buffer));
+      arrays[name] = typed(spec, await inflated(spec, await fromBase64(embedded.arrays[name])));
     }));
     return new Viewer(canvas, manifest, arrays, { ...options, fetchMs: performance.now() - started });
   }
