@@ -7,7 +7,9 @@ Without ``--field`` it renders and fits the demo's donut (64 lights, 240x135) fi
 
 - ``one, on device``: locate + interpolate + rasterize + compose I' for one new direction, then
   synchronize (what an interactive viewer waits for before drawing);
-- ``one, to host``: the same plus copying I' to NumPy;
+- ``one, to host``: the same plus copying I' to NumPy (``relight(direction)``: on CUDA one captured
+  graph launch, the direction in and the images out through page-locked memory; ``--no-graphs``:
+  the separate launches);
 - ``batch``: ``--batch`` directions (default 496) in as few launches as memory allows, per query,
   on the device and with the copy to the host.
 
@@ -118,6 +120,7 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=200, help="single queries timed per method (default 200)")
     parser.add_argument("--methods", default="circular,straight,alpha")
     parser.add_argument("--diffuse", default="auto", help="diffuse part of I' (default auto)")
+    parser.add_argument("--no-graphs", action="store_true", help="single queries as separate launches, not one captured CUDA graph")
     args = parser.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -138,7 +141,7 @@ def main() -> None:
             methods.remove("alpha")
         else:
             alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
-    relighter = Relighter(field, device=device, size=(width, height), diffuse=args.diffuse,
+    relighter = Relighter(field, device=device, size=(width, height), diffuse=args.diffuse, graphs=False if args.no_graphs else None,
                           alpha_specular=alpha_specular, alpha_images=alpha_images)
     results = {m: bench_method(relighter, m, repeat=args.repeat, batch=args.batch) for m in methods}
 

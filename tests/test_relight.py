@@ -384,3 +384,23 @@ def test_kept_results_survive_later_calls(sphere_field):
     relighter.relight(random_directions(np.random.default_rng(20), 1))
     assert np.array_equal(first.full, kept[0]) and np.array_equal(first.specular, kept[1])
     assert np.array_equal(relighter.relight(first_queries).full, kept[0])
+
+
+def test_one_query_as_a_cuda_graph_is_the_launches_bit_for_bit(sphere_field):
+    """A single direction replayed from a captured graph (the interactive path) against the launches,
+    also after a batch of another size has run on the same relighter; the CPU refuses graphs."""
+    with pytest.raises(InputError, match="CUDA graphs need a CUDA device"):
+        Relighter(sphere_field, device="cpu", graphs=True)
+    if not wp.is_cuda_available():
+        pytest.skip("CUDA graphs need a CUDA device (the CPU refusal above was checked)")
+    eager = Relighter(sphere_field, device="cuda:0", graphs=False)
+    graphed = Relighter(sphere_field, device="cuda:0")
+    assert graphed.graphs and not eager.graphs
+    queries = random_directions(np.random.default_rng(5), 4)
+    for method in ("circular", "straight"):
+        for round_ in range(2):
+            for direction in queries:
+                got, want = graphed.relight(direction, method=method), eager.relight(direction, method=method)
+                for name in ("specular", "full", "faces", "barycentric", "clamped"):
+                    np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+            graphed.relight(queries[:3], method=method)  # a batch between: the graph keeps its own buffers

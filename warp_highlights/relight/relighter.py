@@ -132,6 +132,9 @@ class Relighter:
             here into n float16 residual images that queries blend like the alpha blend (3 per pixel
             and channel; n x pixels x channels x 2 bytes held on the device), "auto" (default): "load"
             when those images take at most ``DECODED_RESIDUAL_BYTES`` and save work, else "query".
+        graphs: relight a single direction (``relight(direction)``) as one captured CUDA graph launch,
+            with its input and results through page-locked memory (default: on CUDA, for fields
+            without a learned residual, whose decoder's buffers grow with the batch).
     """
 
     def __init__(
@@ -148,6 +151,7 @@ class Relighter:
         raster: RasterSettings | None = None,
         max_batch: int | None = None,
         residual_decode: str = "auto",
+        graphs: bool | None = None,
     ):
         if diffuse not in DIFFUSE_MODES:
             raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_MODES)}, got '{diffuse}'")
@@ -186,6 +190,12 @@ class Relighter:
         if self.max_batch < 1:
             raise InputError(f"max_batch must be >= 1, got {max_batch}")
         self._buffers: dict[int, _DeviceQueries] = {}
+        self.graphs = self.device.is_cuda and self._learned is None if graphs is None else bool(graphs)
+        if self.graphs and not self.device.is_cuda:
+            raise InputError("CUDA graphs need a CUDA device; relight on the CPU with graphs=False")
+        if self.graphs and self._learned is not None:
+            raise InputError("a learned residual's decoder grows its buffers with the batch: relight it with graphs=False")
+        self._graphs: dict[tuple[str, bool], _SingleQuery] = {}
 
     # --- set-up ------------------------------------------------------------------------------------
 
@@ -299,6 +309,10 @@ class Relighter:
         buffers = self._chunk_buffers(len(directions))
         buffers.directions.assign(directions)
         buffers.unit.assign(directions.astype(np.float32))
+        return self._run(buffers, self.raster, method=method, full=full, render=render)
+
+    def _run(self, buffers: _DeviceQueries, raster: Rasterizer, *, method: str, full: bool, render: bool = True) -> _DeviceQueries:
+        """The kernels of ``launch`` on buffers whose directions are set: device work only (capturable)."""
         self._locate(buffers)
         if method == "alpha":
             self._alpha(buffers, full=full)
@@ -313,7 +327,7 @@ class Relighter:
         )
         if not render:
             return buffers
-        self.raster.render(buffers.sets, out=buffers.specular)
+        raster.render(buffers.sets, out=buffers.specular)
         if full:
             images = self._diffuse_images
             if self._learned is not None:
@@ -386,6 +400,8 @@ class Relighter:
         single = np.ndim(directions) == 1
         queries = unit_query_directions(directions)
         count = len(queries)
+        if single and self.graphs:
+            return self._single_query(queries[0], _checked_method(method), bool(full))
         specular = np.empty((count, self.height, self.width), dtype=np.float32)
         images = np.empty((count, self.height, self.width, self.channels), dtype=np.float32) if full else None
         faces = np.empty(count, dtype=np.int32)
@@ -404,6 +420,14 @@ class Relighter:
         if single:
             result = RelitImages(specular[0], None if images is None else images[0], faces[0], barycentric[0], clamped[0])
         return result
+
+    def _single_query(self, direction: np.ndarray, method: str, full: bool) -> RelitImages:
+        """One query as one graph launch: the direction in and the images out through page-locked
+        memory, everything between on the device (captured on the first query of each method)."""
+        query = self._graphs.get((method, full))
+        if query is None:
+            query = self._graphs[(method, full)] = _SingleQuery(self, method, full)
+        return query.run(direction)
 
     def iter_relight(self, directions, *, method: str = "circular", full: bool = True):
         """Yield ``RelitImages`` chunk by chunk (at most ``max_batch`` queries each, new arrays), for streaming."""
@@ -492,6 +516,48 @@ def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: i
         for j, step in enumerate((1, 2)):
             rows[:, k, j] = edge_rows(directed_edges, light_count, faces[:, k], faces[:, (k + step) % 3])
     return rows.astype(np.int32)
+
+
+class _SingleQuery:
+    """A captured CUDA graph of one query: copies of the direction from page-locked memory, the
+    relight kernels on buffers and a rasterizer of its own (a batch elsewhere cannot move them), and
+    copies of the results back to page-locked memory."""
+
+    def __init__(self, relighter: Relighter, method: str, full: bool):
+        device = relighter.device
+        self.full = full
+        self.buffers = _DeviceQueries(1, relighter.capacity, relighter.height, relighter.width, relighter.channels, device)
+        self.raster = Rasterizer(relighter.height, relighter.width, settings=relighter.raster.settings, device=device)
+        pinned = lambda array: wp.empty_like(array, device="cpu", pinned=True)
+        b = self.buffers
+        self.inputs = [(b.directions, pinned(b.directions)), (b.unit, pinned(b.unit))]
+        self.outputs = {name: (pinned(array), array) for name, array in
+                        (("specular", b.specular), ("faces", b.faces), ("weights", b.weights), ("clamped", b.clamped)) + ((("full", b.full),) if full else ())}
+        run = lambda: relighter._run(b, self.raster, method=method, full=full)
+        self._set(np.array([0.0, 0.0, 1.0]))
+        for target, source in self.inputs:
+            wp.copy(target, source)
+        run()  # eagerly once: loads the kernels and makes the arrays made on first use
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            for target, source in self.inputs:
+                wp.copy(target, source)
+            run()
+            for target, source in self.outputs.values():
+                wp.copy(target, source)
+        self.graph = capture.graph
+        self.device = device
+
+    def _set(self, direction: np.ndarray) -> None:
+        self.inputs[0][1].numpy()[0] = direction
+        self.inputs[1][1].numpy()[0] = direction.astype(np.float32)
+
+    def run(self, direction: np.ndarray) -> RelitImages:
+        self._set(direction)
+        wp.capture_launch(self.graph)
+        wp.synchronize_device(self.device)
+        host = {name: pinned.numpy() for name, (pinned, _) in self.outputs.items()}
+        images = host["full"][0].reshape(self.buffers.specular.shape[1:] + (host["full"].shape[2],)).copy() if self.full else None
+        return RelitImages(host["specular"][0].copy(), images, host["faces"][0].copy(), host["weights"][0].astype(np.float64), host["clamped"][0] != 0)
 
 
 def _copy_to_host(chunk: _DeviceQueries, specular: np.ndarray, images: np.ndarray | None) -> None:
