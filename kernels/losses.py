@@ -312,11 +312,24 @@ def structure_backward(
 
 
 class StructureLoss:
-    """Keeps the local layout of the means close to the reference's, up to one common scale."""
+    """Keeps the local layout of the means close to the reference's, up to one common scale.
+
+    Its per-problem sums are kept between calls (zeroed on the device each time, so that a fitting
+    step can be captured in a CUDA graph): run one call's backward before the next call.
+    """
 
     def __init__(self, reference: GaussianBatch, settings: StructureLossSettings | None = None):
         self.reference = reference
         self.settings = settings or StructureLossSettings()
+        self._scratch: tuple | None = None
+
+    def _sums(self, problems: int, device) -> tuple[wp.array, wp.array]:
+        if self._scratch is None or self._scratch[0] != (problems, str(device)):
+            self._scratch = ((problems, str(device)), wp.zeros(problems, dtype=wp.vec2, device=device), wp.zeros(problems, dtype=float, device=device))
+        _, sums, scale_terms = self._scratch
+        sums.zero_()
+        scale_terms.zero_()
+        return sums, scale_terms
 
     def __call__(self, batch: GaussianBatch, *, out: wp.array | None = None, weight: float = 1.0) -> wp.array:
         _check_reference(batch, self.reference)
@@ -324,8 +337,7 @@ class StructureLoss:
         device = batch.device
         out = _output(out, problems, device)
         s = self.settings
-        sums = wp.zeros(problems, dtype=wp.vec2, device=device)
-        scale_terms = wp.zeros(problems, dtype=float, device=device)
+        sums, scale_terms = self._sums(problems, device)
         common = [batch.arrays, self.reference.arrays]
         to_rpx = normalized_to_rpx(1.0)
         wp.launch(structure_sums, dim=(problems, capacity), inputs=[*common, to_rpx], outputs=[sums], device=device, record_tape=False)

@@ -116,6 +116,27 @@ def test_rigid_phase_recovers_a_moved_component():
     assert result.rigid_loss[0] < 0.05 * result.source_loss[0]
 
 
+def test_graph_replay_gives_the_eager_result_bit_for_bit():
+    """On CUDA, each phase's iteration captured as a graph and replayed (rigid, then with the structure
+    and energy terms) against the launches; on the CPU, graphs are refused in one line."""
+    params = _two_component_set()
+    raster = Rasterizer(54, 96, device="cpu")
+    moved = params.copy()
+    moved.mean = moved.mean + np.array([5 / 270, -3 / 270])
+    targets = np.stack([raster.render(GaussianBatch.from_numpy(p, device="cpu", requires_grad=False)).numpy()[0] for p in (params, moved)])
+    two = params.take([0, 0])
+    edges, settings = np.array([[0, 1], [1, 0]]), RetargetSettings(rigid_iterations=30, iterations=40)
+    with pytest.raises(InputError, match="CUDA graphs need a CUDA device"):
+        retarget(two, targets, edges, settings=settings, device="cpu", graphs=True)
+    if not wp.is_cuda_available():
+        pytest.skip("CUDA graphs need a CUDA device (the CPU refusal above was checked)")
+    eager = retarget(two, targets, edges, settings=settings, device="cuda:0", graphs=False)
+    replayed = retarget(two, targets, edges, settings=settings, device="cuda:0", graphs=True)
+    for name in ("amplitude", "mean", "sigma", "theta", "active"):
+        np.testing.assert_array_equal(getattr(replayed.params, name), getattr(eager.params, name))
+    np.testing.assert_array_equal(replayed.loss, eager.loss)
+
+
 @pytest.fixture(scope="module")
 def donut_retargeting(small_donut):
     data = ReflectanceField.load(small_donut, progress=False)

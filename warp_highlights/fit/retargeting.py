@@ -64,6 +64,7 @@ def retarget(
     device=None,
     workers: int | None = None,
     progress=None,
+    graphs: bool | None = None,
 ) -> RetargetResult:
     """Fit every source set ``estimated[i]`` to the target image ``targets[j]`` for each edge (i, j).
 
@@ -76,10 +77,15 @@ def retarget(
         device: Warp device (default: the targets' device, else Warp's default).
         workers: CPU threads (default: one per core); ignored on CUDA.
         progress: optional callable ``advance(iterations)``.
+        graphs: replay each phase's iteration captured as a CUDA graph (the same kernels in the same
+            order); default: on CUDA.
     """
     s = settings or RetargetSettings()
     raster = raster or RasterSettings()
     device = wp.get_device(device if device is not None else getattr(targets, "device", None))
+    graphs = device.is_cuda if graphs is None else bool(graphs)
+    if graphs and not device.is_cuda:
+        raise InputError("CUDA graphs need a CUDA device; retarget on the CPU with graphs=False")
     edges = np.asarray(edges)
     n = estimated.problem_count
     if edges.ndim != 2 or edges.shape[1] != 2 or len(edges) == 0 or edges.min() < 0 or edges.max() >= n:
@@ -98,7 +104,7 @@ def retarget(
     def run(chunk: slice, stop) -> tuple:
         source = estimated.take(edges[chunk, 0])
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
-        return job.run(stop, progress)
+        return job.run(stop, progress, graphs=graphs)
 
     parts = map_chunks(run, chunks)
     params = GaussianParams.concatenate([p[0] for p in parts])
@@ -133,15 +139,13 @@ class _Retargeting:
         self.fit(self.image, out=self.loss)
         return self.loss.numpy().astype(np.float64)
 
-    def run(self, stop, progress) -> tuple:
+    def run(self, stop, progress, *, graphs: bool = False) -> tuple:
         s = self.s
         source_loss = self._fit_loss(self.source)
         tape = wp.Tape()
 
         def iterate(step_count: int, losses, optimiser) -> None:
-            for iteration in range(step_count):
-                if stop.is_set():
-                    raise Cancelled
+            def step() -> None:  # one Adam iteration, all on the device
                 self.loss.zero_()
                 with recording(tape):
                     losses()
@@ -149,6 +153,19 @@ class _Retargeting:
                 optimiser.step()
                 tape.zero()
                 tape.reset()
+
+            graph = None
+            for iteration in range(step_count):
+                if stop.is_set():
+                    raise Cancelled
+                if graphs and iteration > 0:  # the first iteration eagerly: it loads the kernels and makes the scratch arrays
+                    if graph is None:
+                        with wp.ScopedCapture(device=self.moving.device, force_module_load=False) as capture:
+                            step()
+                        graph = capture.graph
+                    wp.capture_launch(graph)
+                else:
+                    step()
                 if progress is not None and (iteration + 1) % 10 == 0:
                     progress(10)
             if progress is not None:
