@@ -7,7 +7,7 @@ from contextlib import contextmanager
 
 import warp as wp
 
-__all__ = ["active_tape", "recording"]
+__all__ = ["ReplayedStep", "active_tape", "adam_iteration", "recording"]
 
 _local = threading.local()
 
@@ -43,3 +43,41 @@ def active_tape() -> wp.Tape | None:
         wp.init()
         runtime = wp._src.context.runtime
     return runtime.tape
+
+
+def adam_iteration(tape: wp.Tape, loss: wp.array, seed: wp.array, losses, optimiser):
+    """One fitting iteration as a function, all on the device (fixed arrays, no copy to the host):
+    zero ``loss``, record ``losses()`` on ``tape``, back-propagate ``seed`` from ``loss``, step
+    ``optimiser``, zero the gradients."""
+
+    def step() -> None:
+        loss.zero_()
+        with recording(tape):
+            losses()
+        tape.backward(grads={loss: seed})
+        optimiser.step()
+        tape.zero()
+        tape.reset()
+
+    return step
+
+
+class ReplayedStep:
+    """Calls ``step`` (device work only, on arrays that stay in place); with ``graphs``, the first call
+    runs it (loading its kernels and making its scratch arrays), the second captures it as a CUDA graph,
+    and every call from then on replays that graph: the same kernels in the same order."""
+
+    def __init__(self, step, device, *, graphs: bool):
+        self.step, self.device, self.graphs = step, device, graphs
+        self.calls, self.graph = 0, None
+
+    def __call__(self) -> None:
+        self.calls += 1
+        if not self.graphs or self.calls == 1:
+            self.step()
+            return
+        if self.graph is None:
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self.step()
+            self.graph = capture.graph
+        wp.capture_launch(self.graph)

@@ -17,7 +17,7 @@ import warp as wp
 from scipy import ndimage
 
 from ..io.metrics import psnr
-from ..kernels._tape import recording
+from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss
 from ..kernels.optim import GaussianAdam
@@ -137,33 +137,15 @@ class _Estimator:
 
     def run(self, stop, progress, *, graphs: bool = False) -> tuple:
         s = self.s
-        tape = wp.Tape()
-
-        def step() -> None:  # one Adam iteration, all on the device: fixed arrays, no copy to the host
-            self.loss.zero_()
-            with recording(tape):
-                self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
-            tape.backward(grads={self.loss: self.ones})
-            self.adam.step()
-            tape.zero()
-            tape.reset()
-
-        graph = None
+        step = ReplayedStep(adam_iteration(wp.Tape(), self.loss, self.ones, self._losses, self.adam), self.batch.device, graphs=graphs)
         for iteration in range(s.iterations):
             if stop.is_set():
                 raise Cancelled
             if iteration % s.densify_every == 0 and iteration < s.densify_until:
                 if iteration > 0:
                     self._prune()
-                self._densify(self._residual())  # in place: the captured graph stays valid
-            if graphs and iteration > 0:  # the first iteration eagerly, which loads every kernel it needs
-                if graph is None:
-                    with wp.ScopedCapture(device=self.batch.device, force_module_load=False) as capture:
-                        step()
-                    graph = capture.graph
-                wp.capture_launch(graph)
-            else:
-                step()
+                self._densify(self._residual())  # in place: a captured graph stays valid
+            step()
             if progress is not None and (iteration + 1) % 10 == 0:
                 progress(10)
         if progress is not None:
@@ -173,6 +155,9 @@ class _Estimator:
         self.raster.render(self.batch, out=self.image)
         self.fit(self.image, out=self.loss)
         return self.batch.numpy(), self.loss.numpy().astype(np.float64), self.image.numpy().copy(), self.added, self.pruned
+
+    def _losses(self) -> None:
+        self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
 
     def _residual(self) -> np.ndarray:
         self.raster.render(self.batch, out=self.image)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels._tape import recording
+from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
@@ -145,27 +145,11 @@ class _Retargeting:
         tape = wp.Tape()
 
         def iterate(step_count: int, losses, optimiser) -> None:
-            def step() -> None:  # one Adam iteration, all on the device
-                self.loss.zero_()
-                with recording(tape):
-                    losses()
-                tape.backward(grads={self.loss: self.ones})
-                optimiser.step()
-                tape.zero()
-                tape.reset()
-
-            graph = None
+            step = ReplayedStep(adam_iteration(tape, self.loss, self.ones, losses, optimiser), self.moving.device, graphs=graphs)
             for iteration in range(step_count):
                 if stop.is_set():
                     raise Cancelled
-                if graphs and iteration > 0:  # the first iteration eagerly: it loads the kernels and makes the scratch arrays
-                    if graph is None:
-                        with wp.ScopedCapture(device=self.moving.device, force_module_load=False) as capture:
-                            step()
-                        graph = capture.graph
-                    wp.capture_launch(graph)
-                else:
-                    step()
+                step()
                 if progress is not None and (iteration + 1) % 10 == 0:
                     progress(10)
             if progress is not None:
