@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.errors import InputError
-from ..model.residual import COLOUR_STEP, NEURAL_CODE_SIZE
+from ..model.residual import COLOUR_STEP, NEURAL_CODE_SIZE, colour_codes, colour_from_codes
 from ..relight.relighter import face_edge_rows, rim_tables
 
 __all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays", "export_viewer", "single_file_page"]
@@ -153,10 +153,8 @@ def _compact(values: np.ndarray) -> np.ndarray:
 
 def _colour_codes(colour: np.ndarray) -> np.ndarray:
     """c(x) as the field file's uint8 codes of ``COLOUR_STEP`` where it is exactly that, else compact floats."""
-    codes = np.rint(colour / np.float32(COLOUR_STEP))
-    if codes.min(initial=0) >= 0 and codes.max(initial=0) <= 255 and np.array_equal(codes.astype(np.float32) * np.float32(COLOUR_STEP), colour):
-        return codes.astype("u1")
-    return _compact(colour)
+    codes = colour_codes(colour)
+    return codes if np.array_equal(colour_from_codes(codes), colour) else _compact(colour)
 
 
 def _stack_arrays(name: str, stack, arrays: dict) -> dict:

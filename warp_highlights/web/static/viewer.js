@@ -297,26 +297,23 @@ export class Viewer {
     const response = await fetch(manifestUrl);
     if (!response.ok) throw new Error(`manifest.json: ${response.status} ${response.statusText}`);
     const manifest = checkManifest(await response.json());
-    const started = performance.now(), arrays = await fetchArrays(manifestUrl, manifest);
-    return new Viewer(canvas, manifest, arrays, { ...options, fetchMs: performance.now() - started });
+    return new Viewer(canvas, manifest, await fetchArrays(manifestUrl, manifest), options);
   }
 
   static async fromEmbedded(canvas, embedded, options = {}) {
     // a --single-file page: the manifest and the arrays (base64) in the page itself
-    const manifest = checkManifest(embedded.manifest), arrays = {}, started = performance.now();
+    const manifest = checkManifest(embedded.manifest), arrays = {};
     await Promise.all(Object.entries(manifest.arrays).map(async ([name, spec]) => {
       arrays[name] = typed(spec, await inflated(spec, await fromBase64(embedded.arrays[name])));
     }));
-    return new Viewer(canvas, manifest, arrays, { ...options, fetchMs: performance.now() - started });
+    return new Viewer(canvas, manifest, arrays, options);
   }
 
-  constructor(canvas, manifest, arrays, { decode = "auto", fetchMs = 0 } = {}) {
+  constructor(canvas, manifest, arrays, { decode = "auto" } = {}) {
     // decode (low-rank fields): "load" each light's residual into a float16 layer once (decodeRest; until
     // a triangle's corners are, its frames decode the stack per pixel), "query" the stack every frame,
     // or "auto": load where the browser can render to float16 textures and the layers fit
     if (!["auto", "load", "query"].includes(decode)) throw new Error(`decode must be auto, load or query, got ${decode}`);
-    const started = performance.now();
-    this.timings = { fetch: fetchMs };  // ms: fetch, set-up (textures, shaders), decode (all lights decoded so far)
     this.manifest = manifest; this.arrays = arrays; this.method = "circular";
     this.specularColour = [1, 1, 1]; this.exposureStops = 0;
     canvas.width = manifest.width; canvas.height = manifest.height;
@@ -362,8 +359,6 @@ export class Viewer {
     this.gaussianBuffer = this.uniformBlock(this.programs[way], "Gaussians", new Float32Array(8 * manifest.max_gaussians));
     if (this.mode === "learned") this.uploadDecoder();
     this.checkErrors("loading the field");
-    this.timings.setup = performance.now() - started;
-    this.timings.decode = 0;
   }
 
   // --- set-up -----------------------------------------------------------------------------------
@@ -527,31 +522,27 @@ export class Viewer {
     this.uniformBlock(this.programs.layers, "Gaussians", this.gaussianBuffer);
   }
 
-  decodeLights(lights) {
-    // the residual images R_i of those of lights not decoded yet into their float16 layers (once)
-    const todo = [...new Set(lights)].filter((light) => !this.decoded[light]);
-    if (!todo.length) return;
-    const gl = this.gl, { width, height } = this.manifest, started = performance.now();
+  decodeLight(light) {
+    // light's residual image R_i into its float16 layer; on failure no layers: frames decode per pixel
+    const gl = this.gl, { width, height } = this.manifest;
     try {
       this.prepareLayers();
       gl.useProgram(this.decoder);
       gl.bindFramebuffer(gl.FRAMEBUFFER, this.framebuffer);
       gl.viewport(0, 0, width, height);
-      for (const light of todo) {
-        this.setStack(this.decoder, [1], [light]);
-        gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.layers, 0, light);
-        if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("this browser cannot render into float16 textures");
-        gl.drawArrays(gl.TRIANGLES, 0, 3);
-        this.decoded[light] = 1;
-      }
-    } catch (error) {  // no layers then: every frame decodes the stack per pixel
+      this.setStack(this.decoder, [1], [light]);
+      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.layers, 0, light);
+      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) throw new Error("this browser cannot render into float16 textures");
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+      this.decoded[light] = 1;
+    } catch (error) {
       this.layers = null; this.decoded.fill(0); this.mode = "stack"; this.decodeError = error.message;
       throw error;
     } finally {
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-      this.timings.decode += performance.now() - started;
     }
   }
+
 
   defaultDirection() {
     // the first light, as view's: the centroid of the triangle that (0.3, 0.4, 1) falls in (every corner weighs the same)
@@ -584,7 +575,7 @@ export class Viewer {
         const light = this.mode === "decoded" ? this.nextToDecode() : -1;
         onProgress(this.decodedCount(), this.manifest.lights);
         if (light < 0) { resolve(); return; }
-        try { this.decodeLights([light]); } catch { resolve(); return; }
+        try { this.decodeLight(light); } catch { resolve(); return; }
         const fence = gl.fenceSync(gl.SYNC_GPU_COMMANDS_COMPLETE, 0);
         gl.flush();
         const done = () => {
