@@ -42,6 +42,9 @@ def test_fit_writes_a_field_and_a_report(fitted, capsys):
     report = json.loads(report_path.read_text())
     assert set(report["seconds"]) >= {"loading", "segmentation", "estimation", "retargeting", "paths"}
     assert report["file_bytes"] == out.stat().st_size
+    assert list(report["memory"]) == list(report["seconds"])  # every stage's peak memory, loading and saving included
+    for peaks in report["memory"].values():
+        assert peaks["host_peak_bytes"] > 10_000_000 and peaks["device_peak_bytes"] is None  # a CPU fit: no device pool
     assert report["estimation"]["gaussians_per_light"]["mean"] == pytest.approx(field.counts.mean())
     assert report["retargeting"]["improved_share"] > 0.9
     assert field.fit_settings().estimation.iterations == 300  # the overrides are stored
@@ -51,7 +54,7 @@ def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
     out = tmp_path / "half.whf"
     assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--diffuse", "none", "--workers", "1", "-q", *_overrides()]) == 0
     text = capsys.readouterr().out
-    for expected in ("stage times", "segmentation", "estimation", "retargeting", "Gaussians per light", "estimation PSNR", "MB"):
+    for expected in ("stage times", "segmentation", "estimation", "retargeting", "peak memory: host", "Gaussians per light", "estimation PSNR", "MB"):
         assert expected in text
     field = load_field(out)
     assert (field.width, field.height) == (48, 27) and field.diffuse is None
@@ -242,3 +245,37 @@ def test_fit_messages_go_through_logging(small_donut, tmp_path, capsys, caplog):
         err = capsys.readouterr().err
         assert bool(re.search(r"  estimation: \d+\.\d s", err)) == shown, err
         assert logger.handlers == handlers and logger.level == level
+
+
+def test_gaussian_size_shrinks_by_whole_factors_to_the_row_limit():
+    from warp_highlights.model.config import EstimationSettings
+
+    default = EstimationSettings()
+    assert default.gaussian_size(480, 270) == (480, 270) and default.gaussian_size(567, 534) == (567, 534)  # the renders, the statue
+    assert default.gaussian_size(1920, 1080) == (960, 540) and default.gaussian_size(3840, 2160) == (960, 540)
+    assert default.gaussian_size(4000, 6000) == (333, 500)  # a 24-megapixel portrait: a factor of 12
+    assert EstimationSettings(max_pixels_per_rpx=0).gaussian_size(3840, 2160) == (3840, 2160)
+    for height in range(1, 3000, 7):
+        width, rows = default.gaussian_size(2 * height, height)
+        assert rows <= 540 and (rows == height or rows > 270 or height <= 540)
+
+
+def test_a_large_capture_fits_its_gaussians_at_a_shrunk_size(small_donut, small_field, tmp_path, capsys):
+    """With a row limit of 27 (0.1 pixel per rpx) the 96x54 donut's Gaussians are fitted at 48x27 and
+    the field keeps 96x54; the moved highlights score at the held-out lights close to a full-size fit's."""
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.relight.evaluation import evaluate_field
+
+    out, report = tmp_path / "shrunk.whf", tmp_path / "shrunk.json"
+    assert main(["fit", str(small_donut), "-o", str(out), "--report", str(report), "--diffuse", "images", "-q",
+                 *_overrides(), "--set", "estimation.max_pixels_per_rpx=0.1"]) == 0
+    assert "working size 96x54 (Gaussians fitted at 48x27)" in capsys.readouterr().out
+    values = json.loads(report.read_text())
+    assert values["size"] == [96, 54] and values["gaussian_size"] == [48, 27]
+    shrunk, full = load_field(out), load_field(small_field)
+    assert (shrunk.width, shrunk.height) == (96, 54) and shrunk.residual.light_images(np.eye(32)[:1]).shape[1:3] == (54, 96)
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    scores = [evaluate_field(field, dataset, device="cpu", methods=("circular", "alpha"), barycentric_face=None, example_count=0).specular_psnr
+              for field in (shrunk, full)]
+    assert np.nanmean(scores[0]["circular"]) > np.nanmean(scores[1]["circular"]) - 1.5, (np.nanmean(scores[0]["circular"]), np.nanmean(scores[1]["circular"]))
+    assert np.nanmean(scores[0]["circular"]) > np.nanmean(scores[0]["alpha"])

@@ -15,10 +15,12 @@ from hypothesis import strategies as st
 from reference import render as render_reference
 from warp_highlights.kernels.support import support_fractions
 
+import warp_highlights.fit.residual as residual_module
 from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.fit.residual import (
     CHROMA_GAIN,
     LUMINANCE_GAIN,
+    RateSample,
     StackPlan,
     allocate_steps,
     build_residual,
@@ -26,6 +28,8 @@ from warp_highlights.fit.residual import (
     decide_moving,
     deflated_bytes,
     highlight_colour,
+    quantised_bytes,
+    sampled_rows,
 )
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
@@ -548,3 +552,37 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
     assert back.luminance.bits == 16 and back.chroma.bits == 16
     np.testing.assert_array_equal(back.luminance.codes, sixteen.luminance.codes)
     np.testing.assert_array_equal(back.chroma.mean_weights, sixteen.chroma.mean_weights)
+
+
+def test_sampled_rows_are_spread_bands_or_every_row():
+    assert np.array_equal(sampled_rows(54, 96, 1), np.arange(54))  # a small image is deflated whole
+    rows = sampled_rows(1080, 1920, 1)
+    assert len(rows) % 8 == 0 and len(rows) >= 0.125 * 1080 and len(np.unique(rows)) == len(rows)
+    bands = rows.reshape(-1, 8)
+    assert np.all(np.diff(bands, axis=1) == 1) and rows.min() > 0 and rows.max() < 1079  # whole bands, none at the very edges
+    strips = np.floor(bands.mean(axis=1) / (1080 / len(bands)))
+    assert np.array_equal(strips, np.arange(len(bands)))  # one band in each equal strip
+
+
+def test_the_sampled_rate_search_keeps_the_exact_budget(monkeypatch):
+    """On images large enough for the rate search to deflate a sample of rows, the exact bytes of its
+    choice stay within the budget and spend as much of it as a search on exact bytes does."""
+    n, h, w = 40, 320, 256
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy) * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
+                         for i in range(24)])
+    stack = np.einsum("nk,khw->nhw", RNG.normal(size=(n, 24)) * 0.85 ** np.arange(24), patterns)[..., None] + 1.0
+    stack = stack + 1e-3 * RNG.normal(size=stack.shape)
+    principal = PrincipalImages.of(stack)
+    plan = StackPlan(principal, 1.0, principal.count - 1)
+    assert not RateSample(principal, 4).exact
+    for bits in (8, 16):
+        for budget in (2e4, 6e4, 2e5):
+            steps = allocate_steps([plan], budget, bits=bits)[0]
+            stored = quantised_bytes(principal, steps, bits=bits)
+            with monkeypatch.context() as patch:
+                patch.setattr(residual_module, "_RATE_MIN_VALUES", 1 << 40)  # every row: the exact search
+                assert RateSample(principal, 4).exact
+                exact = quantised_bytes(principal, allocate_steps([plan], budget, bits=bits)[0], bits=bits)
+            assert exact <= stored <= budget or 0.99 * exact <= stored <= budget, (bits, budget, stored, exact)
+            assert stored == float(component_bytes(LowRankStack.quantised(principal, steps, bits=bits)).sum())

@@ -99,21 +99,28 @@ def _run_fit(args) -> int:
     from ..fit.pipeline import fit_field
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import save_field
+    from ..io.memory import PeakMemory
 
     started = time.perf_counter()
     # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded
-    dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
-                                    heldout=False, components=False)
+    with PeakMemory(device) as loading:
+        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
+                                        heldout=False, components=False)
     if args.holdout_every:
         dataset = dataset.split_every(args.holdout_every)
     load_seconds = time.perf_counter() - started
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
         dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet
     )
+    del dataset
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
     if args.holdout_every:
         field.report["holdout_every"] = int(args.holdout_every)
-    written = save_field(field, output)
+    saving_started = time.perf_counter()
+    with PeakMemory(device) as saving:
+        written = save_field(field, output)
+    field.report["seconds"]["saving"] = round(time.perf_counter() - saving_started, 3)
+    field.report["memory"] = {"loading": _peaks(loading), **field.report["memory"], "saving": _peaks(saving)}
     field.report["file_bytes"] = written
     if args.report is not None:
         from ..io.atomic import atomic_file
@@ -122,6 +129,28 @@ def _run_fit(args) -> int:
             temporary.write_text(json.dumps(field.report, indent=2))
     _print_fit_summary(field, output, written, time.perf_counter() - started)
     return 0
+
+
+def _gaussian_size_text(report: dict) -> str:
+    size = report.get("gaussian_size")
+    return "" if size is None or list(size) == list(report["size"]) else f" (Gaussians fitted at {size[0]}x{size[1]})"
+
+
+def _peaks(peak) -> dict:
+    return {"host_peak_bytes": peak.host, "device_peak_bytes": peak.device}
+
+
+def _peak_text(memory: dict) -> str:
+    """'host 1.2 GB (residual compression), device 3.4 GB (estimation)': each kind's largest stage."""
+    from ..io.memory import bytes_text
+
+    parts = []
+    for kind in ("host", "device"):
+        peaks = {stage: values[f"{kind}_peak_bytes"] for stage, values in memory.items() if values.get(f"{kind}_peak_bytes") is not None}
+        if peaks:
+            stage = max(peaks, key=peaks.get)
+            parts.append(f"{kind} {bytes_text(peaks[stage])} ({stage})")
+    return ", ".join(parts) or "not known on this system"
 
 
 def _print_settings(values: dict, prefix: str = "") -> None:
@@ -141,9 +170,10 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     print(f"wrote {output} ({written / 1e6:.2f} MB) in {seconds:.1f} s on {report['device']}")
     print(
         f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, "
-        f"working size {report['size'][0]}x{report['size'][1]}, exposure x{report['exposure']:.3g}"
+        f"working size {report['size'][0]}x{report['size'][1]}{_gaussian_size_text(report)}, exposure x{report['exposure']:.3g}"
     )
     print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
+    print("  peak memory: " + _peak_text(report["memory"]))
     kept = (report.get("residual") or {}).get("kept_gaussians")
     print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}"
           + (" (estimated; the field keeps none, see the checks below)" if kept == 0 else ""))

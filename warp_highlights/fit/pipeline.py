@@ -19,6 +19,7 @@ import warp as wp
 
 from .. import __version__
 from ..io.dataset import ReflectanceField
+from ..io.memory import PeakMemory
 from ..io.resample import resize_stack, working_size
 from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import segment
@@ -78,7 +79,7 @@ def fit_field(
         raise InputError(f"diffuse must be one of {', '.join(DIFFUSE_CHOICES)}, got '{diffuse}'")
     device = wp.get_device(device)
     log = log or _LOG.info
-    timer = _StageTimer(log)
+    timer = _StageTimer(log, device)
     width, height = working_size(dataset.width, dataset.height, size)
 
     with timer.stage("triangulation"):
@@ -90,11 +91,15 @@ def fit_field(
         if factor != 1.0:
             images = images * np.float32(factor)
         seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
+        gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
+        specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
+        if (gaussian_width, gaussian_height) != (width, height):
+            specular_luminance = wp.array(resize_stack(seg.specular_luminance.numpy(), gaussian_width, gaussian_height), dtype=float, device=device)
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
-        estimated = estimate(seg.specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
+        estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
     with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, workers, device, len(edges)) as advance:
-        retargeted = retarget(estimated.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
+        retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
     with timer.stage("paths"):
         source = estimated.params
         edge_sources = source.take(edges[:, 0])
@@ -110,7 +115,7 @@ def fit_field(
     check = learned_check = None
     if residual:
         with timer.stage("residual"):
-            decision = decide_moving(source, sets, edges, seg.specular_luminance, settings=settings.residual, raster=settings.raster)
+            decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual, raster=settings.raster)
             moving = decision.moving
             support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
             own = render_own(source, height, width, raster=settings.raster, device=device)
@@ -122,7 +127,7 @@ def fit_field(
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
             iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
             with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
-                check = check_moving(plan, source, sets, edges, path_delta, moving, seg.specular_luminance, images, own, colour,
+                check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, images, own, colour,
                                      factor=factor, settings=settings, device=device, workers=workers, progress=advance,
                                      keep=settings.residual.learned_check if learned else 0)
         if learned and check.moves and len(check.kept_lights):
@@ -165,11 +170,13 @@ def fit_field(
         "source_size": (dataset.source or {}).get("size", [dataset.width, dataset.height]),  # the files' size, before any shrink at load
         "input": dataset.source,  # format, bits per channel, sRGB or linear, ICC profile of the capture's files
         "size": [width, height],
+        "gaussian_size": [gaussian_width, gaussian_height],  # where the Gaussians were estimated and retargeted
         "lights": dataset.light_count,
         "exposure": factor,
         "directed_edges": len(edges),
         "dome": bool(triangulation.is_dome),
         "seconds": timer.seconds,
+        "memory": timer.memory,  # per stage: peak resident host bytes and peak bytes of Warp's CUDA memory pool (None off CUDA)
         "segmentation": {"few_light_pixels": seg.few_light_pixels, "mean_iterations": float(seg.iterations.mean())},
         "estimation": {
             "gaussians_per_light": _stats(counts),
@@ -261,15 +268,21 @@ def _stats(values) -> dict:
 
 
 class _StageTimer:
-    def __init__(self, log):
+    """Each stage's seconds and peak host and device memory (``PeakMemory``), and a log line per stage."""
+
+    def __init__(self, log, device=None):
         self.log = log
+        self.device = device
         self.seconds: dict[str, float] = {}
+        self.memory: dict[str, dict] = {}
 
     @contextmanager
     def stage(self, name: str):
         started = time.perf_counter()
-        yield
+        with PeakMemory(self.device) as peak:
+            yield
         self.seconds[name] = round(time.perf_counter() - started, 3)
+        self.memory[name] = {"host_peak_bytes": peak.host, "device_peak_bytes": peak.device}
         if self.log is not None:
             self.log(f"{name}: {self.seconds[name]:.1f} s")
 

@@ -44,11 +44,10 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
     encode_display,
-    quantise_basis,
     to_opponent,
 )
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "render_own", "residual_scale"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -66,6 +65,10 @@ _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
+_RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
+_RATE_SHARE = 0.125  # ... together this share of the rows ...
+_RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
+_RATE_ROUNDS = 3  # searches on the sampled bytes, each aimed by the exact bytes of the one before, before an exact search
 _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
@@ -166,41 +169,115 @@ class StackPlan:
         return np.maximum(steps, self.principal.spans[:kept] / levels)
 
 
+def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
+    """Rows of an (H, W, P) basis image that the rate search deflates: bands of ``_RATE_BAND_ROWS``
+    whole rows, one in the middle of each of equal strips of the image, ``_RATE_SHARE`` of the rows and at least ``_RATE_MIN_VALUES`` values;
+    every row where that is half of them or more."""
+    wanted = max(int(np.ceil(_RATE_SHARE * height)), int(np.ceil(_RATE_MIN_VALUES / max(width * planes, 1))))
+    bands = int(np.ceil(wanted / _RATE_BAND_ROWS))
+    if 2 * bands * _RATE_BAND_ROWS >= height:
+        return np.arange(height)
+    centres = (np.arange(bands) + 0.5) * height / bands  # one band in the middle of each of ``bands`` equal strips
+    starts = np.clip(np.round(centres - 0.5 * _RATE_BAND_ROWS), 0, height - _RATE_BAND_ROWS).astype(np.int64)
+    return (starts[:, None] + np.arange(_RATE_BAND_ROWS)).ravel()
+
+
+class RateSample:
+    """What the rate search deflates of a ``PrincipalImages``' first ``count`` basis images: their
+    ``sampled_rows`` (every row where ``whole``), planes first as the file keeps them, quantised from
+    the whole images' minima and spans as ``quantise_basis`` does. ``bytes`` estimates a quantisation's
+    stored bytes from them; on every row it is exactly ``component_bytes`` of ``LowRankStack.quantised``."""
+
+    def __init__(self, principal: PrincipalImages, count: int, *, whole: bool = False):
+        height, width, planes = principal.shape
+        basis = principal.directions[1 : 1 + count]
+        self.images = basis.reshape((count,) + tuple(principal.shape))
+        self.low = basis.min(axis=1) if count else np.zeros(0)
+        self.span = principal.spans[:count]
+        self.rows = slice(None) if whole else sampled_rows(height, width, planes)
+        self.scale = 1.0 if whole else height / len(self.rows)  # whole image bytes per sampled byte
+        self.per_image = 8 + 4 * len(principal.flat)  # the range and the per-light weights
+
+    @property
+    def exact(self) -> bool:
+        return self.scale == 1.0
+
+    def bytes(self, steps: np.ndarray, *, bits: int) -> float:
+        """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
+        (deflated in threads: zlib lets go of the GIL)."""
+        if not len(steps):
+            return 0.0
+        levels = code_levels(bits)
+        steps = np.maximum(np.asarray(steps, np.float64), np.maximum(self.span[: len(steps)], 1e-300) / levels)
+        kind = np.uint8 if bits == 8 else np.uint16
+
+        def one(index: int) -> int:
+            image = self.images[index][self.rows].transpose(2, 0, 1)  # (P, rows, W)
+            codes = np.round((image - self.low[index]) / steps[index]).clip(0, levels).astype(kind)
+            return deflated_bytes(codes)
+
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            deflated = float(sum(pool.map(one, range(len(steps)))))
+        return deflated * self.scale + self.per_image * len(steps)
+
+
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
-    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights); deflated in threads."""
-    if not len(steps):
-        return 0.0
-
-    def one(index: int) -> int:
-        codes, _ = quantise_basis(principal.directions[1 + index : 2 + index], steps[index : index + 1], bits=bits)
-        return deflated_bytes(codes.reshape(principal.shape).transpose(2, 0, 1)) + 8 + 4 * len(principal.flat)
-
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:  # zlib lets go of the GIL
-        return float(sum(pool.map(one, range(len(steps)))))
+    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights): every row deflated."""
+    return RateSample(principal, len(steps), whole=True).bytes(steps, bits=bits)
 
 
 def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> list[np.ndarray]:
     """Quantisation steps of every plan's basis images within ``budget_bytes``: the smallest common
     distortion whose images fit (reverse water-filling: every kept image adds the same squared RGB
-    error, so the bytes go where they remove the most error). The deflated bytes themselves
-    (``quantised_bytes``) fall with the log distortion, nearly linearly in log scale: the search
-    brackets the budget and takes Illinois regula falsi steps on log bytes (bisecting where a step
-    would land too close to an end), stopping once within 1% under the budget."""
+    error, so the bytes go where they remove the most error).
+
+    The deflated bytes fall with the log distortion, nearly linearly in log scale: ``_search`` brackets
+    the budget and takes Illinois regula falsi steps on log bytes. It runs on bytes estimated from
+    ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the next
+    search (the budget scaled by exact over sampled), until the exact bytes are within 1% under the
+    budget or ``_RATE_ROUNDS`` searches have run, and then the search runs on the exact bytes. The
+    budget always holds for the exact bytes."""
     levels = code_levels(bits)
     energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
     top = max((float(e.max()) for e in energies if e.size), default=0.0)
+    if top <= 0 or budget_bytes <= 0:  # the floor alone
+        return [plan.steps(np.inf, levels) for plan in plans]
+    counts = [max(int(np.count_nonzero(e > 0)), min(plan.floor, len(e))) for plan, e in zip(plans, energies)]
+    samples = [RateSample(plan.principal, count) for plan, count in zip(plans, counts)]
+
+    def sampled(steps: list[np.ndarray]) -> float:
+        return sum(sample.bytes(step, bits=bits) for sample, step in zip(samples, steps))
+
+    def exact(steps: list[np.ndarray]) -> float:
+        return sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps))
+
+    if all(sample.exact for sample in samples):
+        return _search(plans, budget_bytes, levels, top, sampled, budget_bytes)
+    aim = budget_bytes
+    for _ in range(_RATE_ROUNDS):
+        steps = _search(plans, aim, levels, top, sampled, aim)
+        estimate, stored = sampled(steps), exact(steps)
+        if (1.0 - _BUDGET_SLACK) * budget_bytes <= stored <= budget_bytes:
+            return steps
+        if stored <= 0 or estimate <= 0 or (stored < budget_bytes and estimate < (1.0 - _BUDGET_SLACK) * aim):
+            return steps  # under the budget with nothing more to buy (everything kept, or the floor alone)
+        aim *= estimate / stored * (1.0 - 0.25 * _BUDGET_SLACK)
+    return _search(plans, budget_bytes, levels, top, exact, budget_bytes)
+
+
+def _search(plans: list[StackPlan], budget_bytes: float, levels: int, top: float, measure, limit: float) -> list[np.ndarray]:
+    """The steps of the smallest common distortion whose ``measure``d bytes are at most ``limit``
+    (regula falsi on log bytes, Illinois-weighted, bisecting near the bracket's ends)."""
 
     def excess(log_distortion: float) -> tuple[float, float, list[np.ndarray]]:
         steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
-        total = sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps))
+        total = measure(steps)
         return np.log(max(total, 1.0) / budget_bytes), total, steps
 
-    if top <= 0 or budget_bytes <= 0:  # the floor alone
-        return [plan.steps(np.inf, levels) for plan in plans]
     high, low = np.log(top) + 1.0, np.log(top) - 35.0  # from nothing kept (but the floor) to far below any 16-bit quantisation noise
     f_low, total, steps = excess(low)
-    if total <= budget_bytes:
+    if total <= limit:
         return steps
     f_high, _, best = excess(high)  # the floor alone, if even that does not fit
     if f_high > 0:
@@ -212,9 +289,9 @@ def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) ->
         if not low + _SEARCH_GUARD * width < middle < high - _SEARCH_GUARD * width:
             middle = 0.5 * (low + high)
         f_middle, total, steps = excess(middle)
-        if total <= budget_bytes:
+        if total <= limit:
             high, f_high, best = middle, f_middle, steps
-            if total >= (1.0 - _BUDGET_SLACK) * budget_bytes:
+            if total >= (1.0 - _BUDGET_SLACK) * limit:
                 break
             if side == 1:
                 f_low *= 0.5  # Illinois: the other end has stayed twice; halve its weight

@@ -3,10 +3,17 @@
 from __future__ import annotations
 
 import os
+import resource
+import sys
+import threading
 
 from ..model.errors import InputError
 
-__all__ = ["available_memory", "bytes_text", "check_memory"]
+__all__ = ["PeakMemory", "available_memory", "bytes_text", "check_memory", "resident_memory"]
+
+PEAK_SAMPLE_SECONDS = 0.01
+"""How often ``PeakMemory`` reads the current use between the exact high-water marks (10 ms: a stage's
+peak is a held array, not a moment's)."""
 
 
 def available_memory() -> int | None:
@@ -49,3 +56,80 @@ def bytes_text(count: float) -> str:
         if count >= size:
             return f"{count / size:.1f} {unit}"
     return f"{int(count)} bytes"
+
+
+def resident_memory() -> int | None:
+    """Bytes of physical memory this process holds now (Linux's ``/proc/self/statm``), None elsewhere."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as statm:
+            return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def _maximum_resident() -> int:
+    """The process's resident high-water mark in bytes (``getrusage``: kB on Linux, bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return int(peak) if sys.platform == "darwin" else int(peak) * 1024
+
+
+class PeakMemory:
+    """The most host (resident) and device (Warp's CUDA memory pool) memory used while inside ``with``.
+
+    Exact where a high-water mark rose inside (the process's ``ru_maxrss``, the pool's
+    ``get_mempool_used_mem_high``); otherwise the largest use read every ``PEAK_SAMPLE_SECONDS`` by a
+    thread. ``host`` and ``device`` are bytes after the block; ``device`` is None off CUDA (or without a
+    memory pool), ``host`` None where the process's memory cannot be read."""
+
+    def __init__(self, device=None):
+        self._device = None
+        if device is not None:
+            import warp as wp
+
+            device = wp.get_device(device)
+            if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled:
+                self._device = device
+        self.host: int | None = None
+        self.device: int | None = None
+        self._stop = threading.Event()
+
+    def _device_now(self) -> int:
+        import warp as wp
+
+        return int(wp.get_mempool_used_mem_current(self._device))
+
+    def _device_high(self) -> int:
+        import warp as wp
+
+        return int(wp.get_mempool_used_mem_high(self._device))
+
+    def _watch(self) -> None:
+        while not self._stop.wait(PEAK_SAMPLE_SECONDS):
+            self._sample()
+
+    def _sample(self) -> None:
+        now = resident_memory()
+        if now is not None:
+            self.host = max(self.host or 0, now)
+        if self._device is not None:
+            self.device = max(self.device or 0, self._device_now())
+
+    def __enter__(self) -> PeakMemory:
+        self._host_high = _maximum_resident()
+        self._device_start_high = self._device_high() if self._device is not None else 0
+        self._sample()
+        self._thread = threading.Thread(target=self._watch, name="peak-memory", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+        high = _maximum_resident()
+        if high > self._host_high and self.host is not None:
+            self.host = max(self.host, high)  # the process's peak was set inside
+        if self._device is not None:
+            device_high = self._device_high()
+            if device_high > self._device_start_high:
+                self.device = max(self.device or 0, device_high)

@@ -226,6 +226,13 @@ class EstimationSettings:
             Gaussians narrower than 0.05 pixel across (they reach almost no pixel centre, so they
             neither draw nor learn) and Gaussians with non-finite parameters.
         capacity: slots per set (padding; a set never holds more Gaussians).
+        max_pixels_per_rpx: the Gaussians are estimated and retargeted on the specular images shrunk
+            by a whole factor (area average) until a reference pixel is at most this many pixels
+            across, i.e. at most this x 270 rows; the residual keeps the working size. The method's
+            lengths are in rpx and its finest (the 0.1 rpx sigma floor, regions of 4 rpx^2) are
+            resolved at 2, so larger images only cost time and memory: 1920x1080 and 3840x2160
+            captures are fitted at 960x540. 0: never shrink. Every capture up to 540 rows (the
+            samples, the 480x270 renders) is fitted as before.
         adam: learning rates (AdamSettings).
     """
 
@@ -238,6 +245,7 @@ class EstimationSettings:
     prune_energy: float = 1.0
     prune_outside_sigmas: float = 2.0
     capacity: int = 64
+    max_pixels_per_rpx: float = 2.0
     adam: AdamSettings = AdamSettings()
 
     def __post_init__(self):
@@ -251,6 +259,16 @@ class EstimationSettings:
         _require(math.isfinite(self.prune_energy) and self.prune_energy >= 0, f"prune_energy must be >= 0, got {self.prune_energy}")
         _require(math.isfinite(self.prune_outside_sigmas) and self.prune_outside_sigmas >= 0, f"prune_outside_sigmas must be >= 0, got {self.prune_outside_sigmas}")
         _require(1 <= int(self.capacity) <= 1024, f"capacity must be in [1, 1024], got {self.capacity}")
+        _require(math.isfinite(self.max_pixels_per_rpx) and self.max_pixels_per_rpx >= 0, f"max_pixels_per_rpx must be >= 0 (0: never shrink), got {self.max_pixels_per_rpx}")
+
+    def gaussian_size(self, width: int, height: int) -> tuple[int, int]:
+        """(width, height) the Gaussians are fitted at for a ``width`` x ``height`` working size: shrunk
+        by the smallest whole factor that leaves at most ``max_pixels_per_rpx`` x 270 rows."""
+        rows = self.max_pixels_per_rpx * REFERENCE_HEIGHT_PX
+        if self.max_pixels_per_rpx <= 0 or height <= rows:
+            return width, height
+        factor = math.ceil(height / rows)
+        return max(1, round(width / factor)), max(1, round(height / factor))
 
 
 @dataclass(frozen=True)

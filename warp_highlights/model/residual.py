@@ -57,9 +57,13 @@ def colour_from_codes(codes: np.ndarray) -> np.ndarray:
 
 def to_opponent(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(..., 3) linear RGB -> luminance (...,) and chroma (..., 2) = (B - Y, R - Y), float64."""
-    rgb = np.asarray(rgb, dtype=np.float64)
-    y = rgb @ np.asarray(LUMINANCE_WEIGHTS)
-    return y, np.stack([rgb[..., 2] - y, rgb[..., 0] - y], axis=-1)
+    rgb = np.asarray(rgb)
+    red, green, blue = (rgb[..., c].astype(np.float64) for c in range(3))  # plane by plane: no float64 copy of the whole stack
+    y = LUMINANCE_WEIGHTS[0] * red + LUMINANCE_WEIGHTS[1] * green + LUMINANCE_WEIGHTS[2] * blue
+    chroma = np.empty(y.shape + (2,), np.float64)
+    np.subtract(blue, y, out=chroma[..., 0])
+    np.subtract(red, y, out=chroma[..., 1])
+    return y, chroma
 
 
 def from_opponent(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
