@@ -27,7 +27,11 @@ from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance th
 
 from .chunks import map_chunks, problem_chunks
 
-__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "luminance", "segment", "segment_pixels"]
+__all__ = ["DEVICE_SHARE", "LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels"]
+
+DEVICE_SHARE = 0.5
+"""``band_rows``: the share of the device's free memory one segmentation launch may take (the rest is the
+estimation's, the retargeting's and other programs'); a stack whose arrays need more is segmented in row bands."""
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
 
@@ -190,10 +194,12 @@ def luminance(
 
 
 class Segmentation:
-    """Result of ``segment``: device arrays shaped like the input stack, plus the per-pixel fit.
+    """Result of ``segment``: device arrays shaped like the input stack, plus the per-pixel fit
+    (``segment_in_bands``: NumPy arrays; ``host_array`` gives either as NumPy).
 
     Attributes:
-        diffuse, specular: (n, H, W) or (n, H, W, C) float32 Warp arrays, D and S (D + S = I).
+        diffuse, specular: (n, H, W) or (n, H, W, C) float32 Warp arrays, D and S (D + S = I); diffuse
+            None where ``segment_in_bands`` was told not to keep it.
         specular_luminance: (n, H, W) float32 Warp array, the fitting target of estimation.
         lambert: (H, W, C, 4) float32 NumPy: nbar_x, nbar_y, nbar_z, k_a per pixel and channel.
         valid_lights: (H, W) int32 NumPy, the fewest valid lights over the pixel's channels.
@@ -270,3 +276,53 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
         iterations=counts[..., 1].max(axis=2),
         min_valid=int(s.min_valid_lights),
     )
+
+
+def host_array(array) -> np.ndarray:
+    """A ``Segmentation`` array as NumPy (banded segmentations already hold NumPy arrays)."""
+    return array.numpy() if isinstance(array, wp.array) else array
+
+
+def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE) -> int:
+    """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
+    the images, the specular part, the diffuse part and the specular luminance (float32) take at most
+    ``share`` of the device's free memory, else as many as do (at least one). On the CPU: all of them
+    (the arrays are host memory either way)."""
+    n, height, width = shape[:3]
+    channels = shape[3] if len(shape) == 4 else 1
+    device = wp.get_device(device)
+    if not device.is_cuda:
+        return height
+    row_bytes = 4 * n * width * (3 * channels + 1)  # images, diffuse, specular; luminance
+    budget = share * device.free_memory
+    return int(max(1, min(height, budget // row_bytes)))
+
+
+def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
+                     workers: int | None = None, keep_diffuse: bool = True) -> Segmentation:
+    """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
+    do not fit the device at once (``band_rows``): the same values (every pixel is independent), in
+    host NumPy arrays; ``keep_diffuse=False`` keeps no diffuse images (``diffuse`` is None)."""
+    images = np.asarray(images)
+    shape = images.shape
+    if len(shape) not in (3, 4):
+        raise InputError(f"images must have shape (n, H, W) or (n, H, W, C), got {shape}")
+    n, height, width = shape[:3]
+    rows = max(1, int(rows))
+    specular = np.empty(shape, np.float32)
+    diffuse = np.empty(shape, np.float32) if keep_diffuse else None
+    target = np.empty((n, height, width), np.float32)
+    lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
+    minimum = int((settings or SegmentationSettings()).min_valid_lights)
+    for top in range(0, height, rows):
+        band = slice(top, min(top + rows, height))
+        part = segment(images[:, band], directions, settings=settings, device=device, workers=workers)
+        specular[:, band] = part.specular.numpy()
+        if diffuse is not None:
+            diffuse[:, band] = part.diffuse.numpy()
+        target[:, band] = part.specular_luminance.numpy()
+        if lambert is None:
+            lambert = np.empty((height,) + part.lambert.shape[1:], np.float32)
+        lambert[band], valid[band], iterations[band] = part.lambert, part.valid_lights, part.iterations
+        del part
+    return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum)

@@ -279,3 +279,24 @@ def test_a_large_capture_fits_its_gaussians_at_a_shrunk_size(small_donut, small_
               for field in (shrunk, full)]
     assert np.nanmean(scores[0]["circular"]) > np.nanmean(scores[1]["circular"]) - 1.5, (np.nanmean(scores[0]["circular"]), np.nanmean(scores[1]["circular"]))
     assert np.nanmean(scores[0]["circular"]) > np.nanmean(scores[0]["alpha"])
+
+
+def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch):
+    """When the stack does not fit the device at once (forced here: bands of 7 rows on the CPU), the
+    fit segments it in row bands; the field is the untiled fit's, bit for bit."""
+    import warp_highlights.fit.pipeline as pipeline
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.config import FitSettings
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT)
+    fields = [pipeline.fit_field(dataset, settings=settings, device="cpu", diffuse="images", workers=2)]
+    monkeypatch.setattr(pipeline, "band_rows", lambda shape, device: 7)
+    fields.append(pipeline.fit_field(dataset, settings=settings, device="cpu", diffuse="images", workers=2))
+    assert fields[0].report["estimation"] == fields[1].report["estimation"]
+    for name in ("estimated", "retargeted"):
+        for part in ("mean", "sigma", "theta", "amplitude", "active"):
+            np.testing.assert_array_equal(getattr(getattr(fields[1], name), part), getattr(getattr(fields[0], name), part), err_msg=f"{name}.{part}")
+    np.testing.assert_array_equal(fields[1].diffuse.images, fields[0].diffuse.images)
+    np.testing.assert_array_equal(fields[1].residual.luminance.codes, fields[0].residual.luminance.codes)
+    np.testing.assert_array_equal(fields[1].residual.highlight_colour, fields[0].residual.highlight_colour)

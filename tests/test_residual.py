@@ -185,15 +185,43 @@ def test_principal_images_are_the_stack_s_principal_directions():
     stack = RNG.normal(size=(n, h, w, 2))
     scale = RNG.uniform(0.5, 2.0, size=n)
     principal = PrincipalImages.of(stack, scale)
-    normalised = stack.reshape(n, -1) / scale[:, None]
+    normalised = stack.reshape(n, -1).astype(np.float32) / scale[:, None]  # the stack is kept as float32
     singular = np.linalg.svd(normalised, compute_uv=False)
     np.testing.assert_allclose(principal.energies, singular**2, rtol=1e-9, atol=1e-9)
-    np.testing.assert_allclose(principal.directions @ principal.directions.T, np.eye(n), atol=1e-9)
-    np.testing.assert_allclose(principal.spans, np.ptp(principal.directions[1:], axis=1))
+    directions = principal.directions.astype(np.float64)
+    np.testing.assert_allclose(directions @ directions.T, np.eye(n), atol=1e-6)  # float32 directions
+    np.testing.assert_allclose(principal.spans, np.ptp(directions[1:], axis=1))
     assert principal.count == n and principal.shape == (8, 6, 2)
     assert LUMINANCE_GAIN == 3.0 and 1.0 < CHROMA_GAIN < 1.1
     black = PrincipalImages.of(np.zeros((4, 3, 3, 1)))
     assert black.count == 1 and np.all(black.mean == 0)
+
+
+def test_principal_images_and_quantisation_in_blocks_match_a_float64_reference(monkeypatch):
+    """With blocks of a few columns (the stack's products a block at a time), the principal images,
+    the codes and the fitted weights are those of one float64 product over the whole stack."""
+    import warp_highlights.model.residual as model_residual
+
+    n, h, w = 12, 9, 11
+    stack = _patterned_stack(n, h, w, 2, 8, 0.7).astype(np.float32)
+    monkeypatch.setattr(model_residual, "_BLOCK_VALUES", 3 * n)  # 3 columns a block, the last one shorter
+    principal = PrincipalImages.of(stack)
+    flat = stack.reshape(n, -1).astype(np.float64)
+    scale = np.sqrt(np.mean(flat**2, axis=1))
+    normalised = flat / scale[:, None]
+    values, vectors = np.linalg.eigh(normalised @ normalised.T)
+    order = np.argsort(values)[::-1]
+    np.testing.assert_allclose(principal.energies, values[order], rtol=1e-8)  # the Gram matrix summed block by block
+    reference = (vectors[:, order].T @ normalised) / np.sqrt(values[order])[:, None]
+    np.testing.assert_allclose(principal.directions, reference, atol=1e-6)
+    steps = principal.spans[:5] / 255
+    stack_model = LowRankStack.quantised(principal, steps, bits=8)
+    codes = np.round((principal.directions[1:6].astype(np.float64) - principal.directions[1:6].min(axis=1, keepdims=True)) / steps[:, None])
+    np.testing.assert_array_equal(stack_model.codes.reshape(5, -1), codes.clip(0, 255))
+    design = np.concatenate([stack_model.mean.reshape(1, -1), stack_model.basis.reshape(5, -1)]).astype(np.float64)
+    solution = np.linalg.solve(design @ design.T + 1e-12 * np.trace(design @ design.T) * np.eye(6), design @ flat.T)
+    np.testing.assert_allclose(stack_model.weights, solution[1:].T, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(stack_model.mean_weights, solution[0], rtol=1e-5)
 
 
 def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light():

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from warp_highlights.kernels.segmentation import segment
+from warp_highlights.kernels.segmentation import band_rows, host_array, segment, segment_in_bands
 
 from warp_highlights.fit.estimation import psnr
 from warp_highlights.io.dataset import ReflectanceField
@@ -80,6 +80,34 @@ def test_any_split_over_cpu_threads_gives_the_same_result():
             np.testing.assert_array_equal(getattr(split, name).numpy(), getattr(one, name).numpy(), err_msg=name)
         for name in ("lambert", "valid_lights", "iterations"):
             np.testing.assert_array_equal(getattr(split, name), getattr(one, name), err_msg=name)
+
+
+def test_row_bands_give_the_whole_stack_s_segmentation(device):
+    """``segment_in_bands`` (any band height, the last band shorter) = ``segment`` of the whole stack,
+    bit for bit, in host arrays; without the diffuse part when not asked to keep it."""
+    rng = np.random.default_rng(6)
+    columns, directions = synthetic_columns(rng, 3 * 13 * 9, 40)
+    images = columns.reshape(40, 13, 9, 3)
+    whole = segment(images, directions, device=device)
+    for rows in (1, 4, 13, 50):
+        banded = segment_in_bands(images, directions, rows=rows, device=device)
+        for name in ("diffuse", "specular", "specular_luminance"):
+            assert isinstance(getattr(banded, name), np.ndarray)
+            np.testing.assert_array_equal(getattr(banded, name), host_array(getattr(whole, name)), err_msg=f"{name}, {rows} rows")
+        for name in ("lambert", "valid_lights", "iterations"):
+            np.testing.assert_array_equal(getattr(banded, name), getattr(whole, name), err_msg=name)
+        assert banded.few_light_pixels == whole.few_light_pixels
+    assert segment_in_bands(images, directions, rows=5, device=device, keep_diffuse=False).diffuse is None
+
+
+def test_band_rows_fit_the_device_s_free_memory():
+    import warp as wp
+
+    assert band_rows((1000, 1080, 1920, 3), "cpu") == 1080  # host memory either way: no bands
+    if wp.is_cuda_available():
+        free = wp.get_device("cuda:0").free_memory
+        rows = band_rows((1000, 1080, 1920, 3), "cuda:0", share=0.5)
+        assert rows * 4 * 1000 * 1920 * 10 <= 0.5 * free < (rows + 1) * 4 * 1000 * 1920 * 10 or rows == 1080
 
 
 def test_pure_lambertian_pixels_have_no_specular_and_recover_the_normal():

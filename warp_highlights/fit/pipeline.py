@@ -22,7 +22,7 @@ from ..io.dataset import ReflectanceField
 from ..io.memory import PeakMemory
 from ..io.resample import resize_stack, working_size
 from ..kernels.chunks import problem_chunks
-from ..kernels.segmentation import segment
+from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.field import DiffuseModel, HighlightField
@@ -90,11 +90,18 @@ def fit_field(
         factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
         if factor != 1.0:
             images = images * np.float32(factor)
-        seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
+        rows = band_rows(images.shape, device)
+        if rows < height:  # the arrays would not fit the device at once: row bands, results in host memory
+            seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
+                                   keep_diffuse=diffuse == "images")
+        else:
+            seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
         gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
         specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
         if (gaussian_width, gaussian_height) != (width, height):
-            specular_luminance = wp.array(resize_stack(seg.specular_luminance.numpy(), gaussian_width, gaussian_height), dtype=float, device=device)
+            specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
+        if not isinstance(specular_luminance, wp.array):
+            specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
         estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
@@ -121,7 +128,7 @@ def fit_field(
             own = render_own(source, height, width, raster=settings.raster, device=device)
             colour = None
             if images.ndim == 4 and settings.residual.highlight_colour:
-                colour = highlight_colour(seg.specular.numpy(), own, prior=settings.residual.colour_prior)
+                colour = highlight_colour(host_array(seg.specular), own, prior=settings.residual.colour_prior)
         learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
         with timer.stage("move check"):
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
@@ -159,7 +166,7 @@ def fit_field(
         lambert = np.nan_to_num(seg.lambert, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
         diffuse_images = None
         if diffuse == "images":
-            stack = seg.diffuse.numpy()
+            stack = host_array(seg.diffuse)
             diffuse_images = (stack if stack.ndim == 4 else stack[..., None]).astype(np.float16)
         diffuse_model = DiffuseModel(lambert=lambert, images=diffuse_images)
 

@@ -56,6 +56,7 @@ LUMINANCE_GAIN = 3.0
 """Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
 CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
 """The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
+_COLOUR_BAND_VALUES = 1 << 24  # highlight_colour's and build_residual's float64 copies: this many values of the stack at a time (128 MB)
 _ERROR_PIXEL_STEP = 4  # display_error samples 1 pixel in 16
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
@@ -121,8 +122,9 @@ def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> 
     Gaussians' images. The luminance of c is 1 up to the clip, so c G keeps G's luminance.
     """
     n = len(own)
-    own64 = own.astype(np.float64)
-    numerator = np.einsum("nhw,nhwc->hwc", own64, specular.astype(np.float64))
+    numerator = np.empty(specular.shape[1:], np.float64)
+    for band in _row_bands(specular):  # float64 sums a band of rows at a time: no float64 copy of the whole stack
+        numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64), specular[:, band].astype(np.float64))
     denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)
     weight = prior * n
     colour = (numerator + weight) / (denominator[..., None] + weight)
@@ -254,16 +256,19 @@ def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) ->
 
     if all(sample.exact for sample in samples):
         return _search(plans, budget_bytes, levels, top, sampled, budget_bytes)
+    finest = [plan.steps(np.exp(np.log(top) - 35.0), levels) for plan in plans]  # everything kept, as finely as the codes go
     aim = budget_bytes
     for _ in range(_RATE_ROUNDS):
         steps = _search(plans, aim, levels, top, sampled, aim)
         estimate, stored = sampled(steps), exact(steps)
         if (1.0 - _BUDGET_SLACK) * budget_bytes <= stored <= budget_bytes:
             return steps
-        if stored <= 0 or estimate <= 0 or (stored < budget_bytes and estimate < (1.0 - _BUDGET_SLACK) * aim):
-            return steps  # under the budget with nothing more to buy (everything kept, or the floor alone)
+        if stored <= budget_bytes and all(len(a) == len(b) and np.array_equal(a, b) for a, b in zip(steps, finest)):
+            return steps  # nothing more to buy
+        if stored <= 0 or estimate <= 0:
+            break
         aim *= estimate / stored * (1.0 - 0.25 * _BUDGET_SLACK)
-    return _search(plans, budget_bytes, levels, top, exact, budget_bytes)
+    return _search(plans, budget_bytes, levels, top, exact, budget_bytes)  # the sample misled the search (a rare image's bytes): search on exact bytes
 
 
 def _search(plans: list[StackPlan], budget_bytes: float, levels: int, top: float, measure, limit: float) -> list[np.ndarray]:
@@ -321,19 +326,27 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         images = images[..., None]
     n, height, width, channels = images.shape
     tint = np.ones((1, 1, channels), np.float32) if colour is None else colour
-    highlights = own[..., None] * tint[None]
-    residual = images - highlights
     if not settings.compressed:
-        return ResidualModel(images=residual.astype(np.float16), highlight_colour=colour)
-    if channels == 1:
-        y, opponent = residual[..., 0].astype(np.float64), None
-    else:
-        y, opponent = to_opponent(residual)
-    scale = residual_scale(y)
-    light_scale = np.sqrt(np.mean((y / scale).reshape(n, -1) ** 2, axis=1))  # both stacks weigh each light by its brightness
-    luminance = PrincipalImages.of((y / scale)[..., None], light_scale)
-    chroma = None if opponent is None else PrincipalImages.of(opponent / scale[..., None], light_scale)
-    del y, opponent
+        stored = np.empty(images.shape, np.float16)
+        for band in _row_bands(images):
+            stored[:, band] = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
+        return ResidualModel(images=stored, highlight_colour=colour)
+    # s(x) and the normalised luminance and chroma, float32, a band of rows at a time (float64 inside)
+    scale = np.empty((height, width), np.float32)
+    luminance_stack = np.empty((n, height, width, 1), np.float32)
+    chroma_stack = np.empty((n, height, width, 2), np.float32) if channels == 3 else None
+    for band in _row_bands(images):
+        residual = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
+        y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual)
+        scale[band] = residual_scale(y)
+        luminance_stack[:, band, :, 0] = y / scale[band]
+        if chroma_stack is not None:
+            chroma_stack[:, band] = opponent / scale[band, :, None]
+        del residual, y, opponent
+    light_scale = np.sqrt(np.mean(np.square(luminance_stack.reshape(n, -1), dtype=np.float64), axis=1))  # both stacks weigh each light by its brightness
+    luminance = PrincipalImages.of(luminance_stack, light_scale)
+    chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
+    del luminance_stack, chroma_stack
     budget = settings.size_budget * n * height * width * channels
     fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
     if colour is not None:
@@ -361,20 +374,28 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         candidates.append(ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale))
     if len(candidates) == 1:
         return candidates[0]
-    errors = [display_error(model, images, highlights) for model in candidates]
+    errors = [display_error(model, images, own, tint) for model in candidates]
     return candidates[int(np.argmin(errors))]
 
 
-def display_error(model: ResidualModel, images: np.ndarray, highlights: np.ndarray, *, step: int = _ERROR_PIXEL_STEP) -> float:
+def _row_bands(images: np.ndarray) -> list[slice]:
+    """Bands of rows of an (n, H, W, C) stack of about ``_COLOUR_BAND_VALUES`` values each."""
+    n, height = images.shape[:2]
+    rows = max(1, _COLOUR_BAND_VALUES // max(1, images[0, 0].size * n))
+    return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
+
+
+def display_error(model: ResidualModel, images: np.ndarray, own: np.ndarray, tint: np.ndarray, *, step: int = _ERROR_PIXEL_STEP) -> float:
     """Mean squared difference, in 8-bit sRGB levels, between the (n, H, W, C) images and what ``model``
-    plus their (n, H, W, C) own highlights gives back at the captured lights, on every ``step``-th
-    pixel of every ``step``-th row (the choice of the basis bits needs no more)."""
+    plus their own (n, H, W) highlights in the (H, W, C) colour ``tint`` gives back at the captured
+    lights, on every ``step``-th pixel of every ``step``-th row (the choice of the basis bits needs no more)."""
     n = len(images)
     picked = ResidualModel(
         luminance=_sub_stack(model.luminance, step), chroma=None if model.chroma is None else _sub_stack(model.chroma, step),
         scale=model.scale[::step, ::step], highlight_colour=None,
     )
-    back = picked.light_images(np.eye(n)) + highlights[:, ::step, ::step]
+    highlights = own[:, ::step, ::step, None].astype(np.float64) * np.asarray(tint, np.float64)[None, ::step, ::step]
+    back = picked.light_images(np.eye(n)) + highlights
     truth = images[:, ::step, ::step].astype(np.float64)
     encode = lambda a: linear_to_srgb(np.clip(a, 0.0, 1.0)) * 255.0
     return float(np.mean((encode(back) - encode(truth)) ** 2))
