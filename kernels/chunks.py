@@ -13,7 +13,11 @@ from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 import warp as wp
 
-__all__ = ["Cancelled", "map_chunks", "problem_chunks"]
+__all__ = ["DEVICE_SHARE", "Cancelled", "map_chunks", "memory_chunks", "problem_chunks"]
+
+DEVICE_SHARE = 0.5
+"""The share of a CUDA device's free memory one batch's arrays may take (the rest is for the stage's
+smaller arrays, the fit's other stages and other programs); a batch that needs more runs in parts."""
 
 
 class Cancelled(Exception):
@@ -74,3 +78,15 @@ def map_chunks(function, chunks: list[slice]) -> list:
         real = [e for e in errors if not isinstance(e, Cancelled)]
         raise (real or errors)[0]
     return [f.result() for f in futures]
+
+
+def memory_chunks(count: int, device, workers: int | None = None, *, bytes_each: float, share: float = DEVICE_SHARE) -> list[slice]:
+    """``problem_chunks``; on CUDA, as many equal contiguous parts (run one after the other) as keep each
+    part's ``bytes_each`` per problem within ``share`` of the device's free memory."""
+    device = wp.get_device(device)
+    if not device.is_cuda or count == 0:
+        return problem_chunks(count, device, workers)
+    fits = max(1, int(share * device.free_memory // max(bytes_each, 1)))
+    parts = -(-count // fits)
+    bounds = [round(k * count / parts) for k in range(parts + 1)]
+    return [slice(bounds[k], bounds[k + 1]) for k in range(parts) if bounds[k + 1] > bounds[k]]

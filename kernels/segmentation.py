@@ -25,13 +25,9 @@ from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance the Gaussians are fitted to
 
-from .chunks import map_chunks, problem_chunks
+from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
 
-__all__ = ["DEVICE_SHARE", "LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels"]
-
-DEVICE_SHARE = 0.5
-"""``band_rows``: the share of the device's free memory one segmentation launch may take (the rest is the
-estimation's, the retargeting's and other programs'); a stack whose arrays need more is segmented in row bands."""
+__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution
 

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.chunks import Cancelled, map_chunks, problem_chunks
+from warp_highlights.kernels.chunks import Cancelled, map_chunks, memory_chunks, problem_chunks
 
 
 def test_chunks_cover_every_problem_once():
@@ -50,3 +50,14 @@ def test_threaded_cpu_fit_leaves_the_default_device_alone():
     target[:, 6:9, 6:9] = 1.0
     estimate(target, settings=EstimationSettings(iterations=30, densify_every=10, densify_until=20), device="cpu", workers=4)
     assert wp.get_device() == before
+
+
+def test_memory_chunks_split_a_cuda_batch_to_fit_the_free_memory():
+    assert memory_chunks(10, "cpu", 3, bytes_each=1e15) == problem_chunks(10, "cpu", 3)  # host memory: the threads' chunks
+    if not wp.is_cuda_available():
+        pytest.skip("the split by device memory needs a CUDA device")
+    free = wp.get_device("cuda:0").free_memory
+    assert memory_chunks(1000, "cuda:0", bytes_each=1.0) == [slice(0, 1000)]
+    parts = memory_chunks(1000, "cuda:0", bytes_each=free / 7, share=1.0)
+    assert parts[0].start == 0 and parts[-1].stop == 1000 and all(a.stop == b.start for a, b in zip(parts, parts[1:]))
+    assert len(parts) >= 143 and max(p.stop - p.start for p in parts) <= 7

@@ -137,6 +137,26 @@ def test_graph_replay_gives_the_eager_result_bit_for_bit():
     np.testing.assert_array_equal(replayed.loss, eager.loss)
 
 
+def test_retargeting_in_parts_that_fit_the_device_gives_the_same_sets(donut_retargeting, small_donut, monkeypatch):
+    """On CUDA, edges whose arrays do not fit half the free memory at once are retargeted in parts, one
+    after the other (forced here by claiming each edge needs a tenth of it): the same sets as one launch."""
+    if not wp.is_cuda_available():
+        pytest.skip("the split by device memory needs a CUDA device")
+    import warp_highlights.fit.retargeting as retargeting_module
+
+    est, edges, _ = donut_retargeting
+    data = ReflectanceField.load(small_donut, progress=False)
+    targets = segment(data.images, data.lights.directions, device="cuda:0").specular_luminance
+    whole = retarget(est.params, targets, edges, device="cuda:0")
+    image_bytes = 4 * targets.shape[1] * targets.shape[2]
+    monkeypatch.setattr(retargeting_module, "_IMAGES_PER_EDGE", 0.1 * wp.get_device("cuda:0").free_memory / image_bytes)
+    parts = retarget(est.params, targets, edges, device="cuda:0")
+    np.testing.assert_array_equal(parts.params.active, whole.params.active)
+    for name in ("amplitude", "mean", "sigma", "theta"):
+        np.testing.assert_allclose(getattr(parts.params, name), getattr(whole.params, name), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(parts.loss, whole.loss, rtol=1e-3, atol=1e-3)
+
+
 @pytest.fixture(scope="module")
 def donut_retargeting(small_donut):
     data = ReflectanceField.load(small_donut, progress=False)

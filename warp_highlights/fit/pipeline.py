@@ -102,6 +102,10 @@ def fit_field(
             specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
         if not isinstance(specular_luminance, wp.array):
             specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
+        # what the later stages need of the full-size parts, in host memory; the device keeps none of them
+        specular = host_array(seg.specular) if residual and images.ndim == 4 and settings.residual.highlight_colour else None
+        diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
+        seg.diffuse = seg.specular = seg.specular_luminance = None
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
         estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
@@ -127,8 +131,9 @@ def fit_field(
             support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
             own = render_own(source, height, width, raster=settings.raster, device=device)
             colour = None
-            if images.ndim == 4 and settings.residual.highlight_colour:
-                colour = highlight_colour(host_array(seg.specular), own, prior=settings.residual.colour_prior)
+            if specular is not None:
+                colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
+                del specular
         learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
         with timer.stage("move check"):
             plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
@@ -164,10 +169,8 @@ def fit_field(
     diffuse_model = None
     if diffuse != "none":
         lambert = np.nan_to_num(seg.lambert, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
-        diffuse_images = None
-        if diffuse == "images":
-            stack = host_array(seg.diffuse)
-            diffuse_images = (stack if stack.ndim == 4 else stack[..., None]).astype(np.float16)
+        if diffuse_images is not None:
+            diffuse_images = diffuse_images if diffuse_images.ndim == 4 else diffuse_images[..., None]
         diffuse_model = DiffuseModel(lambert=lambert, images=diffuse_images)
 
     counts = estimated.counts

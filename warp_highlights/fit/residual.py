@@ -17,10 +17,8 @@ Units: images in the field's units (the fit's exposure applied); Gaussians in im
 from __future__ import annotations
 
 import dataclasses
-import os
 import warnings
 import zlib
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +44,7 @@ from ..model.residual import (
     encode_display,
     to_opponent,
 )
+from ..model.threads import parallel_map
 
 __all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
 
@@ -56,7 +55,7 @@ LUMINANCE_GAIN = 3.0
 """Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
 CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
 """The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
-_COLOUR_BAND_VALUES = 1 << 24  # highlight_colour's and build_residual's float64 copies: this many values of the stack at a time (128 MB)
+_BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _ERROR_PIXEL_STEP = 4  # display_error samples 1 pixel in 16
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
@@ -123,8 +122,11 @@ def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> 
     """
     n = len(own)
     numerator = np.empty(specular.shape[1:], np.float64)
-    for band in _row_bands(specular):  # float64 sums a band of rows at a time: no float64 copy of the whole stack
+
+    def sums(band: slice) -> None:  # float64 a band of rows at a time (no float64 copy of the whole stack), the bands in threads
         numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64), specular[:, band].astype(np.float64))
+
+    parallel_map(sums, _row_bands(specular))
     denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)
     weight = prior * n
     colour = (numerator + weight) / (denominator[..., None] + weight)
@@ -218,8 +220,7 @@ class RateSample:
             codes = np.round((image - self.low[index]) / steps[index]).clip(0, levels).astype(kind)
             return deflated_bytes(codes)
 
-        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-            deflated = float(sum(pool.map(one, range(len(steps)))))
+        deflated = float(sum(parallel_map(one, range(len(steps)))))
         return deflated * self.scale + self.per_image * len(steps)
 
 
@@ -328,25 +329,30 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     tint = np.ones((1, 1, channels), np.float32) if colour is None else colour
     if not settings.compressed:
         stored = np.empty(images.shape, np.float16)
-        for band in _row_bands(images):
+
+        def subtract(band: slice) -> None:
             stored[:, band] = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
+
+        parallel_map(subtract, _row_bands(images))
         return ResidualModel(images=stored, highlight_colour=colour)
     # s(x) and the normalised luminance and chroma, float32, a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
     luminance_stack = np.empty((n, height, width, 1), np.float32)
     chroma_stack = np.empty((n, height, width, 2), np.float32) if channels == 3 else None
-    for band in _row_bands(images):
+
+    def normalise(band: slice) -> None:  # the bands in threads
         residual = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
         y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual)
         scale[band] = residual_scale(y)
         luminance_stack[:, band, :, 0] = y / scale[band]
         if chroma_stack is not None:
             chroma_stack[:, band] = opponent / scale[band, :, None]
-        del residual, y, opponent
+
+    parallel_map(normalise, _row_bands(images))
     light_scale = np.sqrt(np.mean(np.square(luminance_stack.reshape(n, -1), dtype=np.float64), axis=1))  # both stacks weigh each light by its brightness
     luminance = PrincipalImages.of(luminance_stack, light_scale)
     chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
-    del luminance_stack, chroma_stack
+    luminance_stack = chroma_stack = None  # the principal images hold them now
     budget = settings.size_budget * n * height * width * channels
     fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
     if colour is not None:
@@ -379,9 +385,9 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
 
 def _row_bands(images: np.ndarray) -> list[slice]:
-    """Bands of rows of an (n, H, W, C) stack of about ``_COLOUR_BAND_VALUES`` values each."""
+    """Bands of rows of an (n, H, W, C) stack of about ``_BAND_VALUES`` values each."""
     n, height = images.shape[:2]
-    rows = max(1, _COLOUR_BAND_VALUES // max(1, images[0, 0].size * n))
+    rows = max(1, _BAND_VALUES // max(1, images[0, 0].size * n))
     return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
 
 
@@ -396,9 +402,12 @@ def display_error(model: ResidualModel, images: np.ndarray, own: np.ndarray, tin
     )
     highlights = own[:, ::step, ::step, None].astype(np.float64) * np.asarray(tint, np.float64)[None, ::step, ::step]
     back = picked.light_images(np.eye(n)) + highlights
-    truth = images[:, ::step, ::step].astype(np.float64)
     encode = lambda a: linear_to_srgb(np.clip(a, 0.0, 1.0)) * 255.0
-    return float(np.mean((encode(back) - encode(truth)) ** 2))
+
+    def light(i: int) -> float:  # the lights in threads
+        return float(np.sum((encode(back[i]) - encode(images[i, ::step, ::step].astype(np.float64))) ** 2))
+
+    return float(sum(parallel_map(light, range(n)))) / back.size
 
 
 def _sub_stack(stack: LowRankStack, step: int) -> LowRankStack:

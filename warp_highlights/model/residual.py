@@ -32,6 +32,7 @@ from functools import cached_property
 import numpy as np
 
 from .errors import InputError, finite_array
+from .threads import NUMPY_THREADS, parallel_map
 
 __all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
 
@@ -116,11 +117,12 @@ class PrincipalImages:
         flat = np.ascontiguousarray(stack.reshape(n, -1), dtype=np.float32)
         pixels = flat.shape[1]
         if light_scale is None:
-            light_scale = np.sqrt(sum(np.sum(block**2, axis=1) for block in _blocks(flat)) / max(pixels, 1))
+            light_scale = np.sqrt(sum(parallel_map(lambda columns: np.sum(np.square(flat[:, columns], dtype=np.float64), axis=1),
+                                                   _column_slices(n, pixels))) / max(pixels, 1))
         light_scale = _floored(light_scale, n)
         gram = np.zeros((n, n))
         for block in _blocks(flat, light_scale):
-            gram += block @ block.T
+            gram += block @ block.T  # BLAS's own threads
         values, vectors = np.linalg.eigh(gram)
         order = np.argsort(values)[::-1]
         order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
@@ -161,9 +163,12 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int) -> tuple[
     span = basis.max(axis=1).astype(np.float64) - low if k else np.zeros(0)
     steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
     codes = np.empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
-    for columns in _column_slices(*basis.shape):  # float64 a block at a time
+
+    def part(columns: slice) -> None:  # float64 a block at a time, the blocks in threads
         block = basis[:, columns].astype(np.float64)
         codes[:, columns] = np.round((block - low[:, None]) / steps[:, None]).clip(0, levels)
+
+    parallel_map(part, _column_slices(k * NUMPY_THREADS, basis.shape[1]) if k else [])
     return codes, np.stack([low, low + steps * levels], axis=1).astype(np.float32)
 
 
@@ -241,10 +246,15 @@ class LowRankStack:
         low, step = model.ranges[:, 0], (model.ranges[:, 1] - model.ranges[:, 0]) / np.float32(code_levels(bits))
         normal, right = np.zeros((k + 1, k + 1)), np.zeros((k + 1, n))
         for columns in _column_slices(max(k + 1, n), pixels):
-            planes = low[:, None] + codes[:, columns].astype(np.float32) * step[:, None]
-            design = np.concatenate([mean32[None, columns], planes]).astype(np.float64)
-            normal += design @ design.T
-            right += design @ flat[:, columns].T.astype(np.float64)
+            design = np.empty((k + 1, columns.stop - columns.start), np.float64)
+            design[0] = mean32[columns]
+
+            def planes(rows: slice, columns=columns, design=design) -> None:  # threads, a few basis images each
+                design[1:][rows] = low[rows, None] + codes[rows, columns].astype(np.float32) * step[rows, None]
+
+            parallel_map(planes, [slice(a, min(a + 8, k)) for a in range(0, k, 8)])
+            normal += design @ design.T  # BLAS's own threads
+            right += design @ _as_float64(flat[:, columns]).T
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
         solution = np.linalg.solve(normal, right)
         return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
@@ -290,10 +300,25 @@ def _column_slices(rows: int, columns: int) -> list[slice]:
 
 
 def _blocks(flat: np.ndarray, light_scale: np.ndarray | None = None):
-    """Column blocks of an (n, M) stack as float64, each row divided by ``light_scale`` when given."""
+    """Column blocks of an (n, M) stack as float64, each row divided by ``light_scale`` when given
+    (each block converted in ``parallel_map``'s threads)."""
     for columns in _column_slices(*flat.shape):
-        block = flat[:, columns].astype(np.float64)
-        yield block if light_scale is None else block / light_scale[:, None]
+        yield _as_float64(flat[:, columns], None if light_scale is None else 1.0 / light_scale)
+
+
+def _as_float64(array: np.ndarray, row_factor: np.ndarray | None = None) -> np.ndarray:
+    """(rows, width) ``array`` as float64 (rows times ``row_factor``), converted in threads a few columns each."""
+    out = np.empty(array.shape, np.float64)
+
+    def part(columns: slice) -> None:
+        np.copyto(out[:, columns], array[:, columns], casting="unsafe")
+        if row_factor is not None:
+            out[:, columns] *= row_factor[:, None]
+
+    width = array.shape[1]
+    step = max(1, -(-width // (4 * NUMPY_THREADS)))
+    parallel_map(part, [slice(start, min(start + step, width)) for start in range(0, width, step)])
+    return out
 
 
 def _floored(light_scale, n: int) -> np.ndarray:

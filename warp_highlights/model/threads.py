@@ -1,0 +1,22 @@
+"""NumPy work spread over the cores: NumPy's array loops and zlib let go of the GIL, so threads run a
+large array operation split into independent parts in parallel (the residual's compression)."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+__all__ = ["NUMPY_THREADS", "parallel_map"]
+
+NUMPY_THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+"""Threads ``parallel_map`` uses: the cores this process may run on."""
+
+
+def parallel_map(function, items) -> list:
+    """``[function(item) for item in items]``, the calls spread over ``NUMPY_THREADS`` threads (in
+    order; the first exception is raised once every call has finished). One item: no thread."""
+    items = list(items)
+    if len(items) <= 1 or NUMPY_THREADS == 1:
+        return [function(item) for item in items]
+    with ThreadPoolExecutor(max_workers=min(NUMPY_THREADS, len(items)), thread_name_prefix="numpy") as pool:
+        return list(pool.map(function, items))
