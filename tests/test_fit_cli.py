@@ -272,6 +272,7 @@ def test_a_large_capture_fits_its_gaussians_at_a_shrunk_size(small_donut, small_
     assert "working size 96x54 (Gaussians fitted at 48x27)" in capsys.readouterr().out
     values = json.loads(report.read_text())
     assert values["size"] == [96, 54] and values["gaussian_size"] == [48, 27]
+    assert values["residual"]["move_check"]["lights"] == 32  # the check ran, at the Gaussians' size
     shrunk, full = load_field(out), load_field(small_field)
     assert (shrunk.width, shrunk.height) == (96, 54) and shrunk.residual.light_images(np.eye(32)[:1]).shape[1:3] == (54, 96)
     dataset = ReflectanceField.load(small_donut, progress=False)
