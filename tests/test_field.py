@@ -7,13 +7,18 @@ import json
 import os
 import re
 import zipfile
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+import warp_highlights.io.deflate as deflate_module
 from warp_highlights.io import fieldfile
+from warp_highlights.io.deflate import ParallelDeflate
 from warp_highlights.io.fieldfile import FORMAT_VERSION, MAGIC, field_size_report, load_field, save_field
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.field import DiffuseModel, HighlightField
@@ -991,3 +996,48 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
     # version 2 adds the residual layout and the moving flag; a version-1 field has neither
     assert new_header == {**old_header, "format_version": FORMAT_VERSION, "residual": None, "moving": False}
     assert new == old  # every array entry byte for byte
+
+
+# --- deflate in threads ---------------------------------------------------------------------------
+
+
+@given(data=st.binary(min_size=0, max_size=20_000), repeat=st.integers(1, 6), split=st.integers(1, 7_000), threads=st.integers(1, 4))
+@settings(max_examples=60, deadline=None)
+def test_parallel_deflate_inflates_to_its_input_however_it_is_fed(data, repeat, split, threads, monkeypatch_module):
+    """Pieces of 1,000 bytes (forced) deflated in threads, each primed with the 32 KiB before it: one
+    raw deflate stream that inflates to the input, whatever the compress() calls' sizes."""
+    data = data * repeat
+    compressor = ParallelDeflate(6, threads=threads)
+    stream = b"".join(compressor.compress(data[i : i + split]) for i in range(0, len(data), split)) + compressor.flush()
+    whole = ParallelDeflate(6, threads=threads)
+    assert whole.compress(data) + whole.flush() == stream  # the same bytes, however it was fed
+    inflate = zlib.decompressobj(-15)
+    assert inflate.decompress(stream) + inflate.flush() == data and inflate.eof
+
+
+@pytest.fixture(scope="module")
+def monkeypatch_module():
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(deflate_module, "PIECE_BYTES", 1_000)
+        yield patch
+
+
+def test_a_field_deflated_in_threads_loads_the_same_and_is_as_small(small_field, tmp_path, monkeypatch):
+    field = load_field(small_field)
+    serial = tmp_path / "serial.whf"
+    monkeypatch.setattr(fieldfile, "_PARALLEL_BYTES", 1 << 60)
+    save_field(field, serial)
+    threaded = tmp_path / "threaded.whf"
+    monkeypatch.setattr(fieldfile, "_PARALLEL_BYTES", 1)  # every array
+    monkeypatch.setattr(fieldfile, "NUMPY_THREADS", 4)
+    monkeypatch.setattr(deflate_module, "PIECE_BYTES", 1 << 16)  # the larger arrays (diffuse images: 1 MB) in 16 pieces
+    save_field(field, threaded)
+    with zipfile.ZipFile(threaded) as archive:
+        assert archive.testzip() is None  # every entry inflates and its CRC holds
+        with zipfile.ZipFile(serial) as reference:
+            for name in reference.namelist():
+                assert archive.read(name) == reference.read(name), name
+    assert abs(threaded.stat().st_size - serial.stat().st_size) < 0.01 * serial.stat().st_size
+    again = load_field(threaded)
+    np.testing.assert_array_equal(again.residual.luminance.codes, field.residual.luminance.codes)
+    np.testing.assert_array_equal(again.estimated.mean, field.estimated.mean)

@@ -65,6 +65,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -83,8 +84,10 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
 )
+from ..model.threads import NUMPY_THREADS
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
+from .deflate import ParallelDeflate
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
 
@@ -92,6 +95,9 @@ MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
 FORMAT_VERSION = 3
+
+_PARALLEL_BYTES = 1 << 24
+"""Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's basis codes) are deflated in threads."""
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _HEADER = "header.json"
@@ -334,10 +340,14 @@ def _entry_info(name: str) -> zipfile.ZipInfo:
 
 
 def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
-    """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip)."""
+    """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
+    ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
+    about the same size), where the zip writer has the compressor this replaces."""
     with archive.open(
         _entry_info(name), "w", force_zip64=array.nbytes > 2**30
     ) as entry:
+        if array.nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1 and type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
+            entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)  # what zipfile's own would be: level 6, raw deflate
         np.lib.format.write_array(
             entry, np.ascontiguousarray(array), allow_pickle=False
         )
