@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.errors import InputError
+from ..model.threads import NUMPY_THREADS, parallel_map
 
 __all__ = ["resample_image", "resize_stack", "working_size"]
 
@@ -15,7 +16,16 @@ def resize_stack(images: np.ndarray, width: int, height: int) -> np.ndarray:
     """(n, H, W[, C]) -> (n, height, width[, C]) float32, each image as ``resample_image`` does it: to a
     working size, an area average (each output pixel the mean of the input area it covers)."""
     images = np.asarray(images, dtype=np.float32)
-    return _resample(images, 1, (height, width))
+    if tuple(images.shape[1:3]) == (height, width):
+        return images
+    out = np.empty((len(images), height, width) + images.shape[3:], np.float32)
+
+    def part(lights: slice) -> None:  # a few images a thread: each is resampled alone, so the split changes nothing
+        out[lights] = _resample(images[lights], 1, (height, width))
+
+    step = max(1, -(-len(images) // (4 * NUMPY_THREADS)))
+    parallel_map(part, [slice(start, start + step) for start in range(0, len(images), step)])
+    return out
 
 
 def resample_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
