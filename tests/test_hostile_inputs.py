@@ -336,3 +336,29 @@ def test_meta_json_nested_absurdly_deep_is_one_line(tmp_path):
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False)
     _one_line(excinfo, "meta.json", "nested too deeply")
+
+
+def test_peak_memory_sees_an_array_held_for_a_moment():
+    """``PeakMemory`` reports the resident peak of its block: an array of 300 MB touched and freed
+    inside it shows; device None off CUDA."""
+    import numpy as np
+    import warp as wp
+
+    from warp_highlights.io.memory import PeakMemory, resident_memory
+
+    before = resident_memory()
+    if before is None:
+        pytest.skip("this system does not report the process's resident memory")
+    with PeakMemory("cpu") as peak:
+        block = np.ones(300_000_000 // 8)
+        del block
+    assert peak.host >= before + 250_000_000 and peak.device is None
+    with PeakMemory("cpu") as quiet:
+        pass
+    assert quiet.host < peak.host
+    if wp.is_cuda_available():
+        with PeakMemory("cuda:0") as gpu:
+            array = wp.zeros(50_000_000, dtype=float, device="cuda:0")
+            wp.synchronize_device("cuda:0")
+            del array
+        assert gpu.device >= 200_000_000

@@ -78,17 +78,15 @@ class PeakMemory:
 
     Exact where a high-water mark rose inside (the process's ``ru_maxrss``, the pool's
     ``get_mempool_used_mem_high``); otherwise the largest use read every ``PEAK_SAMPLE_SECONDS`` by a
-    thread. ``host`` and ``device`` are bytes after the block; ``device`` is None off CUDA (or without a
-    memory pool), ``host`` None where the process's memory cannot be read."""
+    thread. ``device``: a Warp device (None: Warp's default). ``host`` and ``device`` are bytes after
+    the block; ``device`` is None off CUDA (or without a memory pool), ``host`` None where the
+    process's memory cannot be read."""
 
     def __init__(self, device=None):
-        self._device = None
-        if device is not None:
-            import warp as wp
+        import warp as wp
 
-            device = wp.get_device(device)
-            if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled:
-                self._device = device
+        device = wp.get_device(device)  # None: Warp's default device
+        self._device = device if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled else None
         self.host: int | None = None
         self.device: int | None = None
         self._stop = threading.Event()
