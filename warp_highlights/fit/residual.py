@@ -175,8 +175,8 @@ class StackPlan:
 
 def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
     """Rows of an (H, W, P) basis image that the rate search deflates: bands of ``_RATE_BAND_ROWS``
-    whole rows, one in the middle of each of equal strips of the image, ``_RATE_SHARE`` of the rows and at least ``_RATE_MIN_VALUES`` values;
-    every row where that is half of them or more."""
+    whole rows, one in the middle of each of equal strips of the image, together ``_RATE_SHARE`` of
+    the rows and at least ``_RATE_MIN_VALUES`` values; every row where that is half of them or more."""
     wanted = max(int(np.ceil(_RATE_SHARE * height)), int(np.ceil(_RATE_MIN_VALUES / max(width * planes, 1))))
     bands = int(np.ceil(wanted / _RATE_BAND_ROWS))
     if 2 * bands * _RATE_BAND_ROWS >= height:
@@ -340,16 +340,18 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     luminance_stack = np.empty((n, height, width, 1), np.float32)
     chroma_stack = np.empty((n, height, width, 2), np.float32) if channels == 3 else None
 
-    def normalise(band: slice) -> None:  # the bands in threads
+    def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
         residual = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
         y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual)
         scale[band] = residual_scale(y)
-        luminance_stack[:, band, :, 0] = y / scale[band]
+        normalised = y / scale[band]
+        luminance_stack[:, band, :, 0] = normalised
         if chroma_stack is not None:
             chroma_stack[:, band] = opponent / scale[band, :, None]
+        return np.sum(normalised**2, axis=(1, 2))
 
-    parallel_map(normalise, _row_bands(images))
-    light_scale = np.sqrt(np.mean(np.square(luminance_stack.reshape(n, -1), dtype=np.float64), axis=1))  # both stacks weigh each light by its brightness
+    squares = sum(parallel_map(normalise, _row_bands(images)))
+    light_scale = np.sqrt(squares / (height * width))  # both stacks weigh each light by its brightness
     luminance = PrincipalImages.of(luminance_stack, light_scale)
     chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
     luminance_stack = chroma_stack = None  # the principal images hold them now
