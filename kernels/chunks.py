@@ -7,11 +7,12 @@ one launch already fills the GPU: one chunk.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 import warp as wp
+
+from warp_highlights.model.threads import core_count
 
 __all__ = ["DEVICE_SHARE", "Cancelled", "map_chunks", "memory_chunks", "problem_chunks"]
 
@@ -24,28 +25,21 @@ class Cancelled(Exception):
     """Raised inside a chunk's thread when another chunk failed or the user interrupted."""
 
 
-def _core_count() -> int:
-    """CPU cores this process may use (affinity and container limits where the OS reports them)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
-
-
 def problem_chunks(count: int, device, workers: int | None = None) -> list[slice]:
     """Contiguous slices of ``range(count)``: one on CUDA, up to ``workers`` (default: CPU cores) on the CPU."""
     device = wp.get_device(device)
     if device.is_cuda:
         parts = 1
     else:
-        parts = workers if workers is not None else _core_count()
+        parts = workers if workers is not None else core_count()
     parts = max(1, min(int(parts), count))
     bounds = [round(k * count / parts) for k in range(parts + 1)]
     return [slice(bounds[k], bounds[k + 1]) for k in range(parts) if bounds[k + 1] > bounds[k]]
 
 
-def map_chunks(function, chunks: list[slice]) -> list:
-    """``[function(chunk, stop) for chunk in chunks]``, on one thread per chunk when there are several.
+def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
+    """``[function(chunk, stop) for chunk in chunks]``, on one thread per chunk when there are several
+    (``parallel=False``: one after the other on this thread, for parts that share one device's memory).
 
     ``stop`` is a ``threading.Event`` that long loops should poll (and raise ``Cancelled``): it is set
     as soon as any chunk fails or the caller is interrupted (Ctrl-C), so no thread keeps fitting after
@@ -53,8 +47,8 @@ def map_chunks(function, chunks: list[slice]) -> list:
     stopped.
     """
     stop = threading.Event()
-    if len(chunks) == 1:
-        return [function(chunks[0], stop)]
+    if len(chunks) == 1 or not parallel:  # parallel=False: one after the other (``memory_chunks``' parts of one device)
+        return [function(chunk, stop) for chunk in chunks]
 
     def guarded(chunk: slice):
         try:

@@ -61,3 +61,13 @@ def test_memory_chunks_split_a_cuda_batch_to_fit_the_free_memory():
     parts = memory_chunks(1000, "cuda:0", bytes_each=free / 7, share=1.0)
     assert parts[0].start == 0 and parts[-1].stop == 1000 and all(a.stop == b.start for a, b in zip(parts, parts[1:]))
     assert len(parts) >= 143 and max(p.stop - p.start for p in parts) <= 7
+
+
+def test_chunks_not_in_parallel_run_in_order_on_this_thread():
+    import threading
+
+    seen = []
+    results = map_chunks(lambda chunk, stop: seen.append((chunk.start, threading.get_ident())) or chunk.start,
+                         problem_chunks(9, "cpu", 3), parallel=False)
+    assert results == [0, 3, 6] and [s for s, _ in seen] == [0, 3, 6]
+    assert {t for _, t in seen} == {threading.get_ident()}

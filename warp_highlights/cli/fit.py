@@ -120,7 +120,7 @@ def _run_fit(args) -> int:
     with PeakMemory(device) as saving:
         written = save_field(field, output)
     field.report["seconds"]["saving"] = round(time.perf_counter() - saving_started, 3)
-    field.report["memory"] = {"loading": _peaks(loading), **field.report["memory"], "saving": _peaks(saving)}
+    field.report["memory"] = {"loading": loading.report(), **field.report["memory"], "saving": saving.report()}
     field.report["file_bytes"] = written
     if args.report is not None:
         from ..io.atomic import atomic_file
@@ -134,10 +134,6 @@ def _run_fit(args) -> int:
 def _gaussian_size_text(report: dict) -> str:
     size = report.get("gaussian_size")
     return "" if size is None or list(size) == list(report["size"]) else f" (Gaussians fitted at {size[0]}x{size[1]})"
-
-
-def _peaks(peak) -> dict:
-    return {"host_peak_bytes": peak.host, "device_peak_bytes": peak.device}
 
 
 def _peak_text(memory: dict) -> str:

@@ -298,7 +298,7 @@ class _StageTimer:
         with PeakMemory(self.device) as peak:
             yield
         self.seconds[name] = round(time.perf_counter() - started, 3)
-        self.memory[name] = {"host_peak_bytes": peak.host, "device_peak_bytes": peak.device}
+        self.memory[name] = peak.report()
         if self.log is not None:
             self.log(f"{name}: {self.seconds[name]:.1f} s")
 

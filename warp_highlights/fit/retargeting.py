@@ -13,7 +13,6 @@ Slot p of the result is slot p of G_i moved, so the correspondence the interpola
 
 from __future__ import annotations
 
-import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,11 +111,7 @@ def retarget(
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
         return job.run(stop, progress, graphs=graphs)
 
-    if device.is_cuda:  # parts that do not fit the device together run one after the other
-        stop = threading.Event()
-        parts = [run(chunk, stop) for chunk in chunks]
-    else:
-        parts = map_chunks(run, chunks)
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda)  # a device's parts do not fit it together
     params = GaussianParams.concatenate([p[0] for p in parts])
     losses = [np.concatenate([p[k] for p in parts]) for k in range(1, 6)]
     return RetargetResult(params, *losses)

@@ -91,6 +91,10 @@ class PeakMemory:
         self.device: int | None = None
         self._stop = threading.Event()
 
+    def report(self) -> dict:
+        """The figures as the fit report keeps them: ``host_peak_bytes`` and ``device_peak_bytes``."""
+        return {"host_peak_bytes": self.host, "device_peak_bytes": self.device}
+
     def _device_now(self) -> int:
         import warp as wp
 

@@ -6,9 +6,18 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["NUMPY_THREADS", "parallel_map"]
+__all__ = ["NUMPY_THREADS", "core_count", "parallel_map"]
 
-NUMPY_THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+def core_count() -> int:
+    """CPU cores this process may use (affinity and container limits where the OS reports them)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+NUMPY_THREADS = core_count()
 """Threads ``parallel_map`` uses: the cores this process may run on."""
 
 
