@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -20,6 +19,7 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
+from ..model.threads import core_count
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
@@ -27,7 +27,7 @@ from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
-LOAD_WORKERS = min(8, os.cpu_count() or 1)
+LOAD_WORKERS = min(8, core_count())
 """Threads that decode a dataset's images (Pillow, tifffile and OpenEXR release the GIL): the cores,
 at most 8 (measured: see benchmarks/README.md, bench_load.py)."""
 DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
@@ -330,7 +330,7 @@ class DatasetWriter:
             for offset, image in enumerate(stack)
         ]
         # EXR compression runs in C++ without the GIL: a few threads keep every core and the disk busy.
-        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * (os.cpu_count() or 1)) or 1)
+        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * core_count()) or 1)
         try:
             for future in [pool.submit(write_image, path, image, half=self.half) for path, image in jobs]:
                 future.result()
