@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
+import time
 import warnings
 
 import numpy as np
@@ -477,3 +481,42 @@ def test_a_bad_image_among_many_stops_the_threaded_load_with_one_line(small_donu
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False, workers=4)
     assert victim.name in str(excinfo.value) and "\n" not in str(excinfo.value)
+
+
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals need the main thread")
+def test_a_signal_while_a_writer_thread_starts_leaves_no_thread_writing(tmp_path, monkeypatch):
+    """SIGINT handled between a worker thread's start and the pool's record of it (CI saw this once):
+    that thread must not go on writing images into the dataset's temporary folder once it is removed."""
+    import warp_highlights.io.dataset as dataset_module
+    from warp_highlights.io import atomic
+
+    real_start, real_write = threading.Thread.start, dataset_module.write_image
+    signalled = []
+
+    def start(thread):
+        real_start(thread)
+        if thread.name.startswith(dataset_module.WRITER_THREAD_PREFIX) and not signalled:
+            signalled.append(thread)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)  # the handler runs here: inside Thread.start, as a signal during its wait would
+
+    def slow_write(*args, **kwargs):
+        time.sleep(0.2)  # still writing after the folder is removed, if it was left running
+        real_write(*args, **kwargs)
+
+    monkeypatch.setattr(threading.Thread, "start", start)
+    monkeypatch.setattr(dataset_module, "write_image", slow_write)
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    atomic.handle_termination()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with DatasetWriter(tmp_path / "out") as writer:
+                writer.write_images("lights", 0, np.full((6, 4, 8), 0.5, np.float32))
+        for thread in signalled:
+            thread.join(timeout=10)
+    finally:
+        atomic.end_of_command()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    assert signalled, "no writer thread was started"
+    assert os.listdir(tmp_path) == [], "the interrupted dataset left something behind"

@@ -36,6 +36,9 @@ DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", "
 _COMPONENTS = ("specular", "diffuse")
 _GROUP_FOLDERS = {"lights": ("images", ""), "heldout": ("heldout", "h")}  # group -> (folder, stem prefix)
 
+WRITER_THREAD_PREFIX = "write"
+"""Name prefix of the threads that write a dataset's images."""
+
 
 @dataclass(eq=False)
 class ReflectanceField:
@@ -330,9 +333,13 @@ class DatasetWriter:
             for offset, image in enumerate(stack)
         ]
         # EXR compression runs in C++ without the GIL: a few threads keep every core and the disk busy.
-        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * core_count()) or 1)
+        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * core_count()) or 1, thread_name_prefix=WRITER_THREAD_PREFIX)
         try:
-            for future in [pool.submit(write_image, path, image, half=self.half) for path, image in jobs]:
+            # Signals held while threads start: one raised inside Thread.start (it waits for the thread)
+            # leaves that thread out of the pool's records, so shutdown() would not wait for it to stop writing.
+            with deferred_signals():
+                futures = [pool.submit(write_image, path, image, half=self.half) for path, image in jobs]
+            for future in futures:
                 future.result()
         finally:  # on an error or a signal: no thread may still write once the folder is removed
             with deferred_signals():
