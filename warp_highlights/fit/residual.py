@@ -24,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.images import linear_to_srgb
 from ..io.metrics import srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
@@ -46,7 +45,7 @@ from ..model.residual import (
 )
 from ..model.threads import parallel_map
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "display_error", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
+__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -56,15 +55,20 @@ LUMINANCE_GAIN = 3.0
 CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
 """The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
-_ERROR_PIXEL_STEP = 4  # display_error samples 1 pixel in 16
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
 _FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
 _LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
-_SEARCH_STEPS = 14  # allocate_steps' evaluations at most (bisection alone: to 0.2% of the distortion over e^35)
+_SEARCH_STEPS = 16  # _search's evaluations at most
+_SEARCH_DEPTH = 35.0  # the search's finest distortion: this far (natural log) under the top energy, far below any 16-bit quantisation noise
+_SEARCH_START = 12.0  # a first search starts this far under the top energy (the samples' and renders' budgets ended 9-16 under)
+_SEARCH_STRIDE = 8.0  # a secant step moves the log distortion at most this far ...
+_SEARCH_MIN_STEP = 0.05  # ... and at least this far
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
+_BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope
+_SLOPE_FLOOR = 0.02  # the smallest fall of log bytes per unit of log distortion a secant step assumes
 _RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
 _RATE_SHARE = 0.125  # ... together this share of the rows ...
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
@@ -172,6 +176,20 @@ class StackPlan:
         steps[chosen:] = self.principal.spans[chosen:kept] / 255  # the floor's: 8 bits over the whole range
         return np.maximum(steps, self.principal.spans[:kept] / levels)
 
+    def distortion(self, steps: np.ndarray) -> float:
+        """Squared RGB error (normalised units) the model of ``steps`` predicts for this stack: each kept
+        image's quantisation noise, ``gain E M step^2 / 12``, plus the energy of every image left out."""
+        energies = self.gain * self.principal.energies[1:]
+        kept = len(steps)
+        pixels = self.principal.flat.shape[1]
+        return float(np.sum(energies[:kept] * pixels * np.square(steps) / 12.0) + np.sum(energies[kept:]))
+
+    def changing_values(self, steps: np.ndarray, levels: int) -> int:
+        """Values of the kept images whose step follows the distortion (not held at the codes' finest,
+        ``span / levels``): what a change of the distortion re-quantises."""
+        floors = self.principal.spans[: len(steps)] / levels
+        return int(np.count_nonzero(steps > floors * (1.0 + 1e-9))) * self.principal.flat.shape[1]
+
 
 def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
     """Rows of an (H, W, P) basis image that the rate search deflates: bands of ``_RATE_BAND_ROWS``
@@ -196,8 +214,8 @@ class RateSample:
         height, width, planes = principal.shape
         basis = principal.directions[1 : 1 + count]
         self.images = basis.reshape((count,) + tuple(principal.shape))
-        self.low = basis.min(axis=1) if count else np.zeros(0)
-        self.span = principal.spans[:count]
+        self.low = basis.min(axis=1).astype(np.float64) if count else np.zeros(0)  # float64, as quantise_basis has them
+        self.span = basis.max(axis=1).astype(np.float64) - self.low if count else np.zeros(0)
         self.rows = slice(None) if whole else sampled_rows(height, width, planes)
         self.scale = 1.0 if whole else height / len(self.rows)  # whole image bytes per sampled byte
         self.per_image = 8 + 4 * len(principal.flat)  # the range and the per-light weights
@@ -216,7 +234,7 @@ class RateSample:
         kind = np.uint8 if bits == 8 else np.uint16
 
         def one(index: int) -> int:
-            image = self.images[index][self.rows].transpose(2, 0, 1)  # (P, rows, W)
+            image = self.images[index][self.rows].transpose(2, 0, 1).astype(np.float64)  # (P, rows, W), float64 as quantise_basis rounds
             codes = np.round((image - self.low[index]) / steps[index]).clip(0, levels).astype(kind)
             return deflated_bytes(codes)
 
@@ -233,19 +251,25 @@ def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int)
 def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> list[np.ndarray]:
     """Quantisation steps of every plan's basis images within ``budget_bytes``: the smallest common
     distortion whose images fit (reverse water-filling: every kept image adds the same squared RGB
-    error, so the bytes go where they remove the most error).
+    error, so the bytes go where they remove the most error). See :func:`allocate`."""
+    return allocate(plans, budget_bytes, bits=bits)[1]
 
-    The deflated bytes fall with the log distortion, nearly linearly in log scale: ``_search`` brackets
-    the budget and takes Illinois regula falsi steps on log bytes. It runs on bytes estimated from
-    ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the next
-    search (the budget scaled by exact over sampled), until the exact bytes are within 1% under the
-    budget or ``_RATE_ROUNDS`` searches have run, and then the search runs on the exact bytes. The
-    budget always holds for the exact bytes."""
+
+def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple[float, list[np.ndarray]]:
+    """``allocate_steps``' choice and its common distortion (squared RGB error per kept image,
+    normalised units; ``inf`` for the floor alone).
+
+    The deflated bytes fall with the log distortion, nearly linearly: ``_search`` takes secant steps
+    on log bytes, then Illinois regula falsi once the budget is bracketed. It runs on bytes estimated
+    from ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the
+    next search (the budget scaled by exact over sampled), which starts where the last one ended,
+    until the exact bytes are within 1% under the budget or ``_RATE_ROUNDS`` searches have run, and
+    then the search runs on the exact bytes. The budget always holds for the exact bytes."""
     levels = code_levels(bits)
     energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
     top = max((float(e.max()) for e in energies if e.size), default=0.0)
     if top <= 0 or budget_bytes <= 0:  # the floor alone
-        return [plan.steps(np.inf, levels) for plan in plans]
+        return np.inf, [plan.steps(np.inf, levels) for plan in plans]
     counts = [max(int(np.count_nonzero(e > 0)), min(plan.floor, len(e))) for plan, e in zip(plans, energies)]
     samples = [RateSample(plan.principal, count) for plan, count in zip(plans, counts)]
 
@@ -256,57 +280,82 @@ def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) ->
         return sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps))
 
     if all(sample.exact for sample in samples):
-        return _search(plans, budget_bytes, levels, top, sampled, budget_bytes)
-    finest = [plan.steps(np.exp(np.log(top) - 35.0), levels) for plan in plans]  # everything kept, as finely as the codes go
-    aim = budget_bytes
+        return _search(plans, budget_bytes, levels, top, sampled)[:2]
+    finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]  # everything kept, as finely as the codes go
+    aim, start = budget_bytes, None
     for _ in range(_RATE_ROUNDS):
-        steps = _search(plans, aim, levels, top, sampled, aim)
-        estimate, stored = sampled(steps), exact(steps)
+        log_distortion, steps, estimate = _search(plans, aim, levels, top, sampled, start=start)
+        stored = exact(steps)
         if (1.0 - _BUDGET_SLACK) * budget_bytes <= stored <= budget_bytes:
-            return steps
+            return log_distortion, steps
         if stored <= budget_bytes and all(len(a) == len(b) and np.array_equal(a, b) for a, b in zip(steps, finest)):
-            return steps  # nothing more to buy
+            return log_distortion, steps  # nothing more to buy
         if stored <= 0 or estimate <= 0:
             break
-        aim *= estimate / stored * (1.0 - 0.25 * _BUDGET_SLACK)
-    return _search(plans, budget_bytes, levels, top, exact, budget_bytes)  # the sample misled the search (a rare image's bytes): search on exact bytes
+        aim *= estimate / stored * (1.0 - 0.5 * _BUDGET_SLACK)  # the middle of the window
+        start = log_distortion
+    return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
 
 
-def _search(plans: list[StackPlan], budget_bytes: float, levels: int, top: float, measure, limit: float) -> list[np.ndarray]:
-    """The steps of the smallest common distortion whose ``measure``d bytes are at most ``limit``
-    (regula falsi on log bytes, Illinois-weighted, bisecting near the bracket's ends)."""
+def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measure, *,
+            start: float | None = None) -> tuple[float, list[np.ndarray], float]:
+    """(log distortion, steps, their measured bytes) of the smallest common distortion whose ``measure``d bytes are at most
+    ``limit``, stopping within ``_BUDGET_SLACK`` under it: secant steps on log bytes from ``start``
+    (default ``_SEARCH_START`` under the top energy; the first step's slope from ``_BYTES_PER_HALVING``),
+    Illinois regula falsi once the limit is bracketed. Everything kept as finely as the codes go, when
+    that fits; the floor alone when even that does not."""
+    lowest, highest = np.log(top) - _SEARCH_DEPTH, np.log(top) + 1.0  # from far below any 16-bit quantisation noise to nothing kept (but the floor)
+    target = np.log(1.0 - 0.5 * _BUDGET_SLACK)  # log(bytes / limit) in the middle of the window
 
     def excess(log_distortion: float) -> tuple[float, float, list[np.ndarray]]:
         steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
         total = measure(steps)
-        return np.log(max(total, 1.0) / budget_bytes), total, steps
+        return np.log(max(total, 1.0) / limit) - target, total, steps
 
-    high, low = np.log(top) + 1.0, np.log(top) - 35.0  # from nothing kept (but the floor) to far below any 16-bit quantisation noise
-    f_low, total, steps = excess(low)
-    if total <= limit:
-        return steps
-    f_high, _, best = excess(high)  # the floor alone, if even that does not fit
-    if f_high > 0:
-        return best
+    x = float(np.clip(np.log(top) - _SEARCH_START if start is None else start, lowest, highest))
+    fits = over = None  # (x, excess) of the bracket's ends: bytes within the limit / over it
+    best: tuple[float, list[np.ndarray], float] | None = None
+    previous = None
     side = 0
     for _ in range(_SEARCH_STEPS):
-        width = high - low
-        middle = high - f_high * width / (f_high - f_low) if f_high != f_low else 0.5 * (low + high)
-        if not low + _SEARCH_GUARD * width < middle < high - _SEARCH_GUARD * width:
-            middle = 0.5 * (low + high)
-        f_middle, total, steps = excess(middle)
+        f, total, steps = excess(x)
         if total <= limit:
-            high, f_high, best = middle, f_middle, steps
-            if total >= (1.0 - _BUDGET_SLACK) * limit:
+            if best is None or x < best[0]:
+                best = (x, steps, total)
+            if total >= (1.0 - _BUDGET_SLACK) * limit or x <= lowest:
                 break
-            if side == 1:
-                f_low *= 0.5  # Illinois: the other end has stayed twice; halve its weight
+            fits = (x, f)
+            if side == 1 and over is not None:
+                over = (over[0], 0.5 * over[1])  # Illinois: the other end has stayed twice; halve its weight
             side = 1
         else:
-            low, f_low = middle, f_middle
-            if side == -1:
-                f_high *= 0.5
+            if x >= highest:
+                break  # even the floor alone does not fit
+            over = (x, f)
+            if side == -1 and fits is not None:
+                fits = (fits[0], 0.5 * fits[1])
             side = -1
+        if fits is not None and over is not None:  # bracketed: regula falsi, bisecting near the ends
+            (a, fa), (b, fb) = over, fits
+            width = b - a
+            middle = b - fb * width / (fb - fa) if fb != fa else 0.5 * (a + b)
+            x = middle if a + _SEARCH_GUARD * width < middle < b - _SEARCH_GUARD * width else 0.5 * (a + b)
+        else:
+            if previous is not None and previous[0] != x and previous[1] != f:
+                slope = (f - previous[1]) / (x - previous[0])
+            else:  # bytes fall by _BYTES_PER_HALVING a value that follows the distortion, per halving of the step
+                values = sum(plan.changing_values(step, levels) for plan, step in zip(plans, steps))
+                slope = -_BYTES_PER_HALVING / (2.0 * np.log(2.0)) * values / max(total, 1.0)  # the step goes as sqrt(distortion)
+            step = -f / min(slope, -_SLOPE_FLOOR)
+            step = float(np.clip(step, -_SEARCH_STRIDE, _SEARCH_STRIDE))
+            step = step if abs(step) >= _SEARCH_MIN_STEP else np.copysign(_SEARCH_MIN_STEP, step)
+            previous = (x, f)
+            x = float(np.clip(x + step, lowest, highest))
+            if x == previous[0]:
+                break
+    if best is None:  # nothing measured fits: the floor alone, if even that does not fit
+        _, total, steps = excess(highest)
+        return highest, steps, total
     return best
 
 
@@ -319,8 +368,9 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     ``allocate_steps`` chooses, for the luminance and chroma together, how many basis images to keep
     and how finely to quantise each, so that each adds the same squared RGB error (at most
     ``max_luminance_rank`` luminance images, at least ``min_luminance_rank``). The codes are 8 or 16
-    bits as the settings say, or else whichever gives the captured images back better as 8-bit sRGB
-    (``display_error``).
+    bits as the settings say, or else those of the lower squared error the rate-distortion model
+    predicts (``StackPlan.distortion``); 16 bits are not tried where 8-bit codes already hold every
+    kept image's step (16-bit codes would store the same quantisation in more bytes).
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
@@ -361,29 +411,55 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         fixed += deflated_bytes(colour_codes(colour))
     if chroma is not None:
         fixed += deflated_bytes(chroma.mean.astype(np.float16)) + 4 * n
-    candidates = []
+    choice = None
     for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        levels = code_levels(bits)
-        stacks = {}
-        plans = {}
-        for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
-            if principal is None:
-                continue
-            if fixed_rank:
-                rank = min(fixed_rank, principal.count - 1)
-                stacks[name] = LowRankStack.quantised(principal, principal.spans[:rank] / levels, bits=bits)
-            else:
-                most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
-                plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
-        if plans:
-            left = budget - fixed - sum(float(component_bytes(stack).sum()) for stack in stacks.values())
-            for name, steps in zip(plans, allocate_steps(list(plans.values()), left, bits=bits)):
-                stacks[name] = LowRankStack.quantised(plans[name].principal, steps, bits=bits)
-        candidates.append(ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale))
-    if len(candidates) == 1:
-        return candidates[0]
-    errors = [display_error(model, images, own, tint) for model in candidates]
-    return candidates[int(np.argmin(errors))]
+        option = _quantisation(luminance, chroma, settings, bits, budget - fixed)
+        if choice is None or option.distortion < choice.distortion:
+            choice = option
+        if bits == 8 and settings.basis_bits == 0 and not option.finer_with_16_bits:
+            break  # 16-bit codes would hold the same quantisation in more bytes
+    stacks = {name: LowRankStack.quantised(principal, choice.steps[name], bits=choice.bits)
+              for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
+    return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
+
+
+@dataclass(frozen=True)
+class _Quantisation:
+    """One bit depth's choice for the stacks: their steps by name, the squared RGB error the model
+    predicts (``StackPlan.distortion``), and whether 16-bit codes would quantise any kept image finer
+    at the same distortion."""
+
+    bits: int
+    steps: dict
+    distortion: float
+    finer_with_16_bits: bool
+
+
+def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float) -> _Quantisation:
+    """The steps of both stacks at ``bits`` within ``left`` bytes: a stack whose rank the settings fix,
+    each image over its whole range; the others by ``allocate``."""
+    levels = code_levels(bits)
+    steps, plans, distortion, finer = {}, {}, 0.0, False
+    for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
+        if principal is None:
+            continue
+        if fixed_rank:
+            rank = min(fixed_rank, principal.count - 1)
+            steps[name] = principal.spans[:rank] / levels
+            distortion += StackPlan(principal, gain, rank).distortion(steps[name])
+            left -= quantised_bytes(principal, steps[name], bits=bits)
+            finer = finer or rank > 0
+        else:
+            most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
+            plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
+    if plans:
+        log_distortion, chosen = allocate(list(plans.values()), left, bits=bits)
+        for (name, plan), plan_steps in zip(plans.items(), chosen):
+            steps[name] = plan_steps
+            distortion += plan.distortion(plan_steps)
+            fine = plan.steps(np.exp(log_distortion), code_levels(16))
+            finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
+    return _Quantisation(bits, steps, distortion, finer)
 
 
 def _row_bands(images: np.ndarray) -> list[slice]:
@@ -391,29 +467,6 @@ def _row_bands(images: np.ndarray) -> list[slice]:
     n, height = images.shape[:2]
     rows = max(1, _BAND_VALUES // max(1, images[0, 0].size * n))
     return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
-
-
-def display_error(model: ResidualModel, images: np.ndarray, own: np.ndarray, tint: np.ndarray, *, step: int = _ERROR_PIXEL_STEP) -> float:
-    """Mean squared difference, in 8-bit sRGB levels, between the (n, H, W, C) images and what ``model``
-    plus their own (n, H, W) highlights in the (H, W, C) colour ``tint`` gives back at the captured
-    lights, on every ``step``-th pixel of every ``step``-th row (the choice of the basis bits needs no more)."""
-    n = len(images)
-    picked = ResidualModel(
-        luminance=_sub_stack(model.luminance, step), chroma=None if model.chroma is None else _sub_stack(model.chroma, step),
-        scale=model.scale[::step, ::step], highlight_colour=None,
-    )
-    highlights = own[:, ::step, ::step, None].astype(np.float64) * np.asarray(tint, np.float64)[None, ::step, ::step]
-    back = picked.light_images(np.eye(n)) + highlights
-    encode = lambda a: linear_to_srgb(np.clip(a, 0.0, 1.0)) * 255.0
-
-    def light(i: int) -> float:  # the lights in threads
-        return float(np.sum((encode(back[i]) - encode(images[i, ::step, ::step].astype(np.float64))) ** 2))
-
-    return float(sum(parallel_map(light, range(n)))) / back.size
-
-
-def _sub_stack(stack: LowRankStack, step: int) -> LowRankStack:
-    return LowRankStack(stack.mean[::step, ::step], stack.codes[:, ::step, ::step], stack.ranges, stack.weights, stack.mean_weights)
 
 
 def residual_scale(luminance: np.ndarray) -> np.ndarray:

@@ -38,9 +38,15 @@ class ParallelDeflate:
         data = bytes(self.pending[:end])
         del self.pending[:end]
         starts = range(0, len(data), PIECE_BYTES)
-        jobs = [(data[start : start + PIECE_BYTES], (self.before + data[:start])[-_WINDOW:] if start else self.before[-_WINDOW:]) for start in starts]
+        jobs = [(data[start : start + PIECE_BYTES], self._window(data, start)) for start in starts]
         self.before = (self.before + data)[-_WINDOW:]
         return b"".join(parallel_map(self._piece, jobs))
+
+    def _window(self, data: bytes, start: int) -> bytes:
+        """The 32 KiB of input before ``data[start]`` (reaching back into ``before``): copies no more than that."""
+        if start >= _WINDOW:
+            return data[start - _WINDOW : start]
+        return (self.before + data[:start])[-_WINDOW:]
 
     def compress(self, data) -> bytes:
         self.pending += data

@@ -407,10 +407,14 @@ class ResidualSettings:
             1 dB more up to 58, and with a cap of 64 the 250-light donut scored 4 dB under the alpha
             blend (its dark back-lit images need the rank).
         basis_bits: bits of the stored basis images' codes, 8 or 16; 0 (default) fits both within
-            the budget and keeps the one that gives the captured images back better as 8-bit sRGB
-            (``fit.residual.display_error``): 16 bits let the leading images be quantised finer than
-            their range over 255 (the 64-light donut's lights came back at 35 dB from 8-bit bases
-            quantised over their range at full rank), 8 bits cost less where they need not be.
+            the budget and keeps the one of lower predicted squared error (``StackPlan.distortion``),
+            and fits only 8 where their steps are all coarser than the codes' finest (16-bit codes
+            would store the same quantisation in more bytes): 16 bits let the leading images be
+            quantised finer than their range over 255 (the 64-light donut's lights came back at 35 dB
+            from 8-bit bases quantised over their range at full rank), 8 bits cost less where they
+            need not be. The prediction chose as the 8-bit sRGB error of both candidates did on both
+            samples and the 64-light donut at budgets 0.08, 0.24, 0.5 and 1 (12 of 12) and on the
+            250-light donut.
         chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) lets the budget decide,
             with the luminance's (``fit.residual.allocate_steps``: every kept image of either stack
             adds the same squared RGB error). A fixed 3 or 6 cost the 250-light donut, whose colour
