@@ -20,6 +20,7 @@ from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.fit.residual import (
     CHROMA_GAIN,
     LUMINANCE_GAIN,
+    NormalisedResidual,
     RateSample,
     StackPlan,
     allocate,
@@ -198,6 +199,44 @@ def test_the_search_lands_in_the_window_under_the_budget():
             stored = quantised_bytes(principal, steps, bits=bits)
             assert 0.97 * share * finest <= stored <= share * finest, (bits, share, stored / (share * finest))
             np.testing.assert_array_equal(steps, plan.steps(np.exp(log_distortion), levels))
+
+
+def test_the_normalised_residual_read_block_by_block_is_the_held_stack():
+    """NormalisedResidual's blocks, at any columns (pixel boundaries or not), are the float32 values
+    of the normalised luminance and chroma a held stack keeps."""
+    n, h, w = 7, 5, 6
+    images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
+    own = RNG.uniform(0.0, 0.5, size=(n, h, w)).astype(np.float32)
+    tint = RNG.uniform(0.5, 1.5, size=(h, w, 3)).astype(np.float32)
+    scale = RNG.uniform(0.2, 1.0, size=(h, w)).astype(np.float32)
+    y, chroma = to_opponent(images - own[..., None] * tint[None])
+    held = {"luminance": (y / scale).astype(np.float32).reshape(n, -1), "chroma": (chroma / scale[..., None]).astype(np.float32).reshape(n, -1)}
+    for kind, flat in held.items():
+        source = NormalisedResidual(images, own, tint, scale, kind)
+        assert source.light_count == n and source.shape == (h, w, 1 if kind == "luminance" else 2)
+        for start, stop in ((0, flat.shape[1]), (3, 4), (1, 18), (5, flat.shape[1] - 1)):
+            np.testing.assert_array_equal(source.block(slice(start, stop)), flat[:, start:stop].astype(np.float64))
+
+
+@pytest.mark.parametrize("channels", [3, 1])
+def test_a_residual_too_large_to_hold_is_compressed_from_the_images_bit_for_bit(monkeypatch, channels):
+    """Where the normalised stacks would take too much of the memory (HELD_STACK_SHARE), the principal
+    images, the codes and the weights are exactly those of the held stacks."""
+    n, h, w = 20, 24, 30
+    stack = _patterned_stack(n, h, w, channels, 10, 0.8).astype(np.float32)
+    own = np.clip(RNG.normal(0.1, 0.05, size=(n, h, w)), 0, None).astype(np.float32)
+    colour = RNG.uniform(0.8, 1.2, size=(h, w, channels)).astype(np.float32) if channels == 3 else None
+    settings = ResidualSettings(size_budget=0.5)
+    held = build_residual(stack, own, colour, settings=settings)
+    monkeypatch.setattr(residual_module, "HELD_STACK_SHARE", 0.0)
+    streamed = build_residual(stack, own, colour, settings=settings)
+    for a, b in ((held.luminance, streamed.luminance), (held.chroma, streamed.chroma)):
+        if a is None:
+            assert b is None
+            continue
+        for name in ("mean", "codes", "ranges", "weights", "mean_weights"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(held.scale, streamed.scale)
 
 
 def test_allocation_fits_the_budget_and_spends_it_where_the_energy_is():

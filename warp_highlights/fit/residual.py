@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
@@ -41,11 +42,12 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
     encode_display,
+    luminance_of,
     to_opponent,
 )
-from ..model.threads import parallel_map
+from ..model.threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["CHROMA_GAIN", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
+__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -54,6 +56,11 @@ LUMINANCE_GAIN = 3.0
 """Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
 CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
 """The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
+HELD_STACK_SHARE = 0.25
+"""The normalised luminance and chroma stacks (float32, as large as the images) are held while they take
+at most this share of the available memory; beyond it they are computed from the images a block at a
+time in each of their three passes (the 250-light 480x270 donut: 0.42 GB less at the peak, 2.2 s more on
+the 2-core CPU; a 100-light 3840x2160 capture's stacks are 10 GB)."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
@@ -171,7 +178,7 @@ class StackPlan:
         energies = self.gain * self.principal.energies[1 : self.most + 1]
         chosen = int(np.count_nonzero(energies > distortion))
         kept = max(chosen, min(self.floor, len(energies)))
-        pixels = self.principal.flat.shape[1]
+        pixels = self.principal.values
         steps = np.sqrt(12.0 * distortion / np.maximum(energies[:kept] * pixels, 1e-300))
         steps[chosen:] = self.principal.spans[chosen:kept] / 255  # the floor's: 8 bits over the whole range
         return np.maximum(steps, self.principal.spans[:kept] / levels)
@@ -181,14 +188,14 @@ class StackPlan:
         image's quantisation noise, ``gain E M step^2 / 12``, plus the energy of every image left out."""
         energies = self.gain * self.principal.energies[1:]
         kept = len(steps)
-        pixels = self.principal.flat.shape[1]
+        pixels = self.principal.values
         return float(np.sum(energies[:kept] * pixels * np.square(steps) / 12.0) + np.sum(energies[kept:]))
 
     def changing_values(self, steps: np.ndarray, levels: int) -> int:
         """Values of the kept images whose step follows the distortion (not held at the codes' finest,
         ``span / levels``): what a change of the distortion re-quantises."""
         floors = self.principal.spans[: len(steps)] / levels
-        return int(np.count_nonzero(steps > floors * (1.0 + 1e-9))) * self.principal.flat.shape[1]
+        return int(np.count_nonzero(steps > floors * (1.0 + 1e-9))) * self.principal.values
 
 
 def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
@@ -218,7 +225,7 @@ class RateSample:
         self.span = basis.max(axis=1).astype(np.float64) - self.low if count else np.zeros(0)
         self.rows = slice(None) if whole else sampled_rows(height, width, planes)
         self.scale = 1.0 if whole else height / len(self.rows)  # whole image bytes per sampled byte
-        self.per_image = 8 + 4 * len(principal.flat)  # the range and the per-light weights
+        self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
 
     @property
     def exact(self) -> bool:
@@ -385,25 +392,33 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
         parallel_map(subtract, _row_bands(images))
         return ResidualModel(images=stored, highlight_colour=colour)
-    # s(x) and the normalised luminance and chroma, float32, a band of rows at a time (float64 inside)
+    # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
+    # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
-    luminance_stack = np.empty((n, height, width, 1), np.float32)
-    chroma_stack = np.empty((n, height, width, 2), np.float32) if channels == 3 else None
+    available = available_memory()
+    held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
+    luminance_stack = np.empty((n, height, width, 1), np.float32) if held else None
+    chroma_stack = np.empty((n, height, width, 2), np.float32) if held and channels == 3 else None
 
     def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
         residual = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
-        y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual)
+        y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual, with_chroma=chroma_stack is not None)
         scale[band] = residual_scale(y)
         normalised = y / scale[band]
-        luminance_stack[:, band, :, 0] = normalised
+        if luminance_stack is not None:
+            luminance_stack[:, band, :, 0] = normalised
         if chroma_stack is not None:
             chroma_stack[:, band] = opponent / scale[band, :, None]
         return np.sum(normalised**2, axis=(1, 2))
 
     squares = sum(parallel_map(normalise, _row_bands(images)))
     light_scale = np.sqrt(squares / (height * width))  # both stacks weigh each light by its brightness
-    luminance = PrincipalImages.of(luminance_stack, light_scale)
-    chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
+    if held:
+        luminance = PrincipalImages.of(luminance_stack, light_scale)
+        chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
+    else:  # read from the images a block at a time (three passes each instead of one), never held whole
+        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale)
+        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     budget = settings.size_budget * n * height * width * channels
     fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
@@ -460,6 +475,50 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             fine = plan.steps(np.exp(log_distortion), code_levels(16))
             finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
     return _Quantisation(bits, steps, distortion, finer)
+
+
+class NormalisedResidual:
+    """The normalised residual N = (I - c(x) R(x; G)) / s(x) of (n, H, W, C) images as a ``StackSource``:
+    its luminance (P = 1) or its chroma (P = 2, B - Y and R - Y), computed a block of columns at a
+    time (the lights in threads), float32 values as a held stack would keep them.
+
+    Args:
+        images: (n, H, W, C) float32 images, field units.
+        own: (n, H, W) float32 their own highlights.
+        tint: (H, W, C) or (1, 1, C) float32 highlight colour.
+        scale: (H, W) float32 s(x).
+        kind: ``"luminance"`` or ``"chroma"``.
+    """
+
+    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, scale: np.ndarray, kind: str):
+        n, height, width, channels = images.shape
+        self.planes = 1 if kind == "luminance" else 2
+        self.kind = kind
+        self.light_count = n
+        self.shape = (height, width, self.planes)
+        self.images = images.reshape(n, height * width, channels)
+        self.own = own.reshape(n, height * width)
+        self.tint = np.broadcast_to(tint, (height, width, channels)).reshape(height * width, channels)
+        self.scale = scale.reshape(height * width)
+
+    def block(self, columns: slice) -> np.ndarray:
+        first, last = columns.start // self.planes, -(-columns.stop // self.planes)  # the pixels the columns cover
+        pixels = slice(first, last)
+        out = np.empty((self.light_count, (last - first) * self.planes), np.float64)
+
+        def part(lights: slice) -> None:
+            residual = self.images[lights, pixels] - self.own[lights, pixels, None] * self.tint[None, pixels]
+            if residual.shape[-1] == 1:
+                out[lights] = (residual[..., 0].astype(np.float64) / self.scale[pixels]).astype(np.float32)
+            elif self.kind == "luminance":
+                out[lights] = (luminance_of(residual) / self.scale[pixels]).astype(np.float32)
+            else:
+                out[lights] = (to_opponent(residual)[1] / self.scale[pixels, None]).astype(np.float32).reshape(len(residual), -1)
+
+        step = max(1, -(-self.light_count // (2 * NUMPY_THREADS)))
+        parallel_map(part, [slice(start, min(start + step, self.light_count)) for start in range(0, self.light_count, step)])
+        offset = first * self.planes
+        return out[:, columns.start - offset : columns.stop - offset]
 
 
 def _row_bands(images: np.ndarray) -> list[slice]:

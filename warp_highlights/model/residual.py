@@ -28,13 +28,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Protocol
 
 import numpy as np
 
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "quantise_basis", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -56,11 +57,19 @@ def colour_from_codes(codes: np.ndarray) -> np.ndarray:
     return np.asarray(codes).astype(np.float32) * np.float32(COLOUR_STEP)
 
 
-def to_opponent(rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) linear RGB -> luminance (...,) and chroma (..., 2) = (B - Y, R - Y), float64."""
+def luminance_of(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) linear RGB -> luminance Y (...,), float64 (``to_opponent``'s, bit for bit)."""
+    return to_opponent(rgb, with_chroma=False)[0]
+
+
+def to_opponent(rgb: np.ndarray, *, with_chroma: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """(..., 3) linear RGB -> luminance (...,) and chroma (..., 2) = (B - Y, R - Y), float64 (chroma
+    None when not asked for)."""
     rgb = np.asarray(rgb)
     red, green, blue = (rgb[..., c].astype(np.float64) for c in range(3))  # plane by plane: no float64 copy of the whole stack
     y = LUMINANCE_WEIGHTS[0] * red + LUMINANCE_WEIGHTS[1] * green + LUMINANCE_WEIGHTS[2] * blue
+    if not with_chroma:
+        return y, None
     chroma = np.empty(y.shape + (2,), np.float64)
     np.subtract(blue, y, out=chroma[..., 0])
     np.subtract(red, y, out=chroma[..., 1])
@@ -82,6 +91,33 @@ def code_levels(bits: int) -> int:
     return 255 if bits == 8 else 65535
 
 
+class StackSource(Protocol):
+    """An (n, H, W, P) stack read a block of columns at a time, so that it need not be held whole
+    (``fit.residual`` computes the normalised residual's blocks from the images)."""
+
+    light_count: int
+    shape: tuple  # (H, W, P)
+
+    def block(self, columns: slice) -> np.ndarray:
+        """(n, len(columns)) float64 values of the flattened stack (H W P values an image, planes last)."""
+        ...
+
+
+@dataclass(frozen=True, eq=False)
+class ArraySource:
+    """A stack held whole as an (n, M) float32 array (M = H W P)."""
+
+    flat: np.ndarray
+    shape: tuple
+
+    @property
+    def light_count(self) -> int:
+        return len(self.flat)
+
+    def block(self, columns: slice) -> np.ndarray:
+        return _as_float64(self.flat[:, columns])
+
+
 @dataclass(frozen=True, eq=False)
 class PrincipalImages:
     """The principal images of an (n, H, W, P) stack, from which ``LowRankStack`` keeps a few.
@@ -91,12 +127,13 @@ class PrincipalImages:
     matrix (cheap for n << pixels). The first direction, scaled to the images' RMS, is the mean image
     every light weighs freely; the others are the basis images, unit norm, in descending energy.
 
-    Every product runs over a block of ``_BLOCK_VALUES`` values of the stack at a time in float64, so
-    the only copies of the stack are ``flat`` and ``directions``, both float32 (a 1,000-light 1920x1080
-    luminance stack: 8.3 GB each).
+    The stack is read from a ``StackSource`` a block of ``_BLOCK_VALUES`` values at a time, in
+    float64; the only full-size copy made here is ``directions`` (float32: a 1,000-light 1920x1080
+    luminance stack's are 8.3 GB). A stack computed block by block (``fit.residual``'s normalised
+    residual) is never held whole.
 
     Attributes:
-        flat: (n, M) float32 the stack, M = H W P.
+        source: the stack.
         shape: (H, W, P).
         energies: (r,) float64 descending sums of squares of the normalised images along each direction
             (r <= n: the directions of non-zero energy; at least 1): what keeping it removes.
@@ -104,7 +141,7 @@ class PrincipalImages:
         mean: (M,) float64 the first direction at the images' scale.
     """
 
-    flat: np.ndarray
+    source: StackSource
     shape: tuple
     energies: np.ndarray
     directions: np.ndarray
@@ -112,16 +149,22 @@ class PrincipalImages:
 
     @classmethod
     def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None) -> PrincipalImages:
+        """The principal images of an (n, H, W, P) array (kept as float32)."""
         stack = np.asarray(stack)
-        n = len(stack)
-        flat = np.ascontiguousarray(stack.reshape(n, -1), dtype=np.float32)
-        pixels = flat.shape[1]
+        flat = np.ascontiguousarray(stack.reshape(len(stack), -1), dtype=np.float32)
+        return cls.of_source(ArraySource(flat, tuple(stack.shape[1:])), light_scale)
+
+    @classmethod
+    def of_source(cls, source: StackSource, light_scale: np.ndarray | None = None) -> PrincipalImages:
+        """The principal images of the stack ``source`` gives, normalised by ``light_scale`` (default:
+        each image's RMS, one more pass over the source)."""
+        n = source.light_count
+        pixels = int(np.prod(source.shape))
         if light_scale is None:
-            light_scale = np.sqrt(sum(parallel_map(lambda columns: np.sum(np.square(flat[:, columns], dtype=np.float64), axis=1),
-                                                   _column_slices(n, pixels))) / max(pixels, 1))
+            light_scale = np.sqrt(sum((np.sum(np.square(block), axis=1) for block in _blocks(source)), np.zeros(n)) / max(pixels, 1))
         light_scale = _floored(light_scale, n)
         gram = np.zeros((n, n))
-        for block in _blocks(flat, light_scale):
+        for block in _blocks(source, light_scale):
             gram += block @ block.T  # BLAS's own threads
         values, vectors = np.linalg.eigh(gram)
         order = np.argsort(values)[::-1]
@@ -132,12 +175,32 @@ class PrincipalImages:
         else:
             directions = np.empty((len(order), pixels), np.float32)
             projection = vectors[:, order].T / np.sqrt(energies)[:, None]
-            for columns, block in zip(_column_slices(n, pixels), _blocks(flat, light_scale)):
+            for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
                 directions[:, columns] = projection @ block
         first = directions[0].astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
-        return cls(flat, tuple(stack.shape[1:]), energies, directions, mean)
+        return cls(source, tuple(source.shape), energies, directions, mean)
+
+    @property
+    def light_count(self) -> int:
+        """n: the stack's images."""
+        return self.source.light_count
+
+    @property
+    def values(self) -> int:
+        """M = H W P: values an image."""
+        return int(np.prod(self.shape))
+
+    @property
+    def flat(self) -> np.ndarray:
+        """(n, M) float32 the stack (held, or gathered from its source block by block)."""
+        if isinstance(self.source, ArraySource):
+            return self.source.flat
+        flat = np.empty((self.light_count, self.values), np.float32)
+        for columns in _column_slices(self.light_count, self.values):
+            flat[:, columns] = self.source.block(columns)
+        return flat
 
     @property
     def count(self) -> int:
@@ -238,8 +301,7 @@ class LowRankStack:
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
         shape = principal.shape
-        flat = principal.flat
-        n, pixels = flat.shape
+        n, pixels = principal.light_count, principal.values
         model = cls(mean32.reshape(shape), codes.reshape((k,) + shape), ranges, np.zeros((n, k), np.float32))
         # least squares by the (k + 1)-square normal equations (the planes are nearly orthogonal),
         # summed over blocks of the stored planes (float32 as the relighter decodes them)
@@ -254,7 +316,7 @@ class LowRankStack:
 
             parallel_map(planes, [slice(a, min(a + 8, k)) for a in range(0, k, 8)])
             normal += design @ design.T  # BLAS's own threads
-            right += design @ _as_float64(flat[:, columns]).T
+            right += design @ principal.source.block(columns).T
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
         solution = np.linalg.solve(normal, right)
         return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
@@ -299,26 +361,40 @@ def _column_slices(rows: int, columns: int) -> list[slice]:
     return [slice(start, min(start + width, columns)) for start in range(0, max(columns, 1), width)]
 
 
-def _blocks(flat: np.ndarray, light_scale: np.ndarray | None = None):
-    """Column blocks of an (n, M) stack as float64, each row divided by ``light_scale`` when given
-    (each block converted in ``parallel_map``'s threads)."""
-    for columns in _column_slices(*flat.shape):
-        yield _as_float64(flat[:, columns], None if light_scale is None else 1.0 / light_scale)
+def _blocks(source: StackSource, light_scale: np.ndarray | None = None):
+    """Column blocks of a stack as float64, each row divided by ``light_scale`` when given."""
+    factor = None if light_scale is None else 1.0 / light_scale
+    for columns in _column_slices(source.light_count, int(np.prod(source.shape))):
+        block = source.block(columns)
+        if factor is not None:
+            _scale_rows(block, factor)
+        yield block
 
 
-def _as_float64(array: np.ndarray, row_factor: np.ndarray | None = None) -> np.ndarray:
-    """(rows, width) ``array`` as float64 (rows times ``row_factor``), converted in threads a few columns each."""
+def _scale_rows(block: np.ndarray, factor: np.ndarray) -> None:
+    """``block *= factor[:, None]`` in place, a few columns a thread."""
+
+    def part(columns: slice) -> None:
+        block[:, columns] *= factor[:, None]
+
+    parallel_map(part, _column_parts(block.shape[1]))
+
+
+def _as_float64(array: np.ndarray) -> np.ndarray:
+    """(rows, width) ``array`` as float64, converted in threads a few columns each."""
     out = np.empty(array.shape, np.float64)
 
     def part(columns: slice) -> None:
         np.copyto(out[:, columns], array[:, columns], casting="unsafe")
-        if row_factor is not None:
-            out[:, columns] *= row_factor[:, None]
 
-    width = array.shape[1]
-    step = max(1, -(-width // (4 * NUMPY_THREADS)))
-    parallel_map(part, [slice(start, min(start + step, width)) for start in range(0, width, step)])
+    parallel_map(part, _column_parts(array.shape[1]))
     return out
+
+
+def _column_parts(width: int) -> list[slice]:
+    """``width`` columns in 4 parts a thread (elementwise work spread over ``parallel_map``'s threads)."""
+    step = max(1, -(-width // (4 * NUMPY_THREADS)))
+    return [slice(start, min(start + step, width)) for start in range(0, width, step)]
 
 
 def _floored(light_scale, n: int) -> np.ndarray:
