@@ -279,33 +279,41 @@ def host_array(array) -> np.ndarray:
     return array.numpy() if isinstance(array, wp.array) else array
 
 
-def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE) -> int:
+def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None, keep_specular: bool = True,
+              keep_diffuse: bool = True) -> int:
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
     the images, the specular part, the diffuse part and the specular luminance (float32) take at most
-    ``share`` of the device's free memory, else as many as do (at least one). On the CPU: all of them
-    (the arrays are host memory either way)."""
+    ``share`` of the free memory, else as many as do (at least one). On CUDA: the device's free memory.
+    On the CPU: ``host_free`` bytes (the host's available memory; None: all rows), less what
+    ``segment_in_bands`` holds whole (the specular part and the diffuse part where kept, and the
+    specular luminance)."""
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     device = wp.get_device(device)
-    if not device.is_cuda:
-        return height
     row_bytes = 4 * n * width * (3 * channels + 1)  # images, diffuse, specular; luminance
-    budget = share * device.free_memory
+    if device.is_cuda:
+        budget = share * device.free_memory
+    elif host_free is None or row_bytes * height <= share * host_free:
+        return height
+    else:
+        held = 4 * n * height * width * (channels * (int(keep_specular) + int(keep_diffuse)) + 1)
+        budget = share * max(host_free - held, 0)
     return int(max(1, min(height, budget // row_bytes)))
 
 
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
-                     workers: int | None = None, keep_diffuse: bool = True) -> Segmentation:
+                     workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
-    do not fit the device at once (``band_rows``): the same values (every pixel is independent), in
-    host NumPy arrays; ``keep_diffuse=False`` keeps no diffuse images (``diffuse`` is None)."""
+    do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
+    independent), in host NumPy arrays; ``keep_specular=False`` / ``keep_diffuse=False`` keep no
+    specular / diffuse images (None; the specular luminance is always kept)."""
     images = np.asarray(images)
     shape = images.shape
     if len(shape) not in (3, 4):
         raise InputError(f"images must have shape (n, H, W) or (n, H, W, C), got {shape}")
     n, height, width = shape[:3]
     rows = max(1, int(rows))
-    specular = np.empty(shape, np.float32)
+    specular = np.empty(shape, np.float32) if keep_specular else None
     diffuse = np.empty(shape, np.float32) if keep_diffuse else None
     target = np.empty((n, height, width), np.float32)
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
@@ -313,7 +321,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
         part = segment(images[:, band], directions, settings=settings, device=device, workers=workers)
-        specular[:, band] = part.specular.numpy()
+        if specular is not None:
+            specular[:, band] = part.specular.numpy()
         if diffuse is not None:
             diffuse[:, band] = part.diffuse.numpy()
         target[:, band] = part.specular_luminance.numpy()

@@ -283,8 +283,11 @@ def test_a_large_capture_fits_its_gaussians_at_a_shrunk_size(small_donut, small_
 
 
 def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch):
-    """When the stack does not fit the device at once (forced here: bands of 7 rows on the CPU), the
-    fit segments it in row bands; the field is the untiled fit's, bit for bit."""
+    """When the stack does not fit the memory at once (here: the host's available memory made just
+    enough for bands of 7 rows beside the parts held whole), the fit segments it in row bands; the
+    field is the untiled fit's, bit for bit."""
+    from warp_highlights.kernels.chunks import DEVICE_SHARE
+
     import warp_highlights.fit.pipeline as pipeline
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.model.config import FitSettings
@@ -292,8 +295,15 @@ def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch)
     dataset = ReflectanceField.load(small_donut, progress=False)
     settings = FitSettings().with_overrides(FAST_FIT)
     fields = [pipeline.fit_field(dataset, settings=settings, device="cpu", diffuse="images", workers=2)]
-    monkeypatch.setattr(pipeline, "band_rows", lambda shape, device: 7)
+    n, height, width, channels = dataset.images.shape
+    row_bytes = 4 * n * width * (3 * channels + 1)
+    held = 4 * n * height * width * (2 * channels + 1)  # the specular and diffuse parts and the luminance
+    monkeypatch.setattr(pipeline, "available_memory", lambda: held + 7.5 * row_bytes / DEVICE_SHARE)
+    bands = []
+    real = pipeline.segment_in_bands
+    monkeypatch.setattr(pipeline, "segment_in_bands", lambda *args, rows, **kwargs: bands.append(rows) or real(*args, rows=rows, **kwargs))
     fields.append(pipeline.fit_field(dataset, settings=settings, device="cpu", diffuse="images", workers=2))
+    assert bands == [7]
     assert fields[0].report["estimation"] == fields[1].report["estimation"]
     for name in ("estimated", "retargeted"):
         for part in ("mean", "sigma", "theta", "amplitude", "active"):

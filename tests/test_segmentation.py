@@ -103,7 +103,12 @@ def test_row_bands_give_the_whole_stack_s_segmentation(device):
 def test_band_rows_fit_the_device_s_free_memory():
     import warp as wp
 
-    assert band_rows((1000, 1080, 1920, 3), "cpu") == 1080  # host memory either way: no bands
+    assert band_rows((1000, 1080, 1920, 3), "cpu") == 1080  # the host's free memory not given: no bands
+    row_bytes, held = 4 * 100 * 3840 * 10, 4 * 100 * 2160 * 3840 * 4  # images, diffuse, specular, luminance a row; specular and luminance whole
+    assert band_rows((100, 2160, 3840, 3), "cpu", host_free=2160 * row_bytes * 2) == 2160  # fits in half of it
+    rows = band_rows((100, 2160, 3840, 3), "cpu", host_free=24 << 30, keep_diffuse=False)  # a 100-light 4K capture on a 24 GiB machine
+    assert rows * row_bytes <= 0.5 * ((24 << 30) - held) < (rows + 1) * row_bytes
+    assert band_rows((100, 2160, 3840, 3), "cpu", host_free=held // 2) == 1  # at least one row
     if wp.is_cuda_available():
         free = wp.get_device("cuda:0").free_memory
         rows = band_rows((1000, 1080, 1920, 3), "cuda:0", share=0.5)

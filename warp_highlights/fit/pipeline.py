@@ -19,7 +19,7 @@ import warp as wp
 
 from .. import __version__
 from ..io.dataset import ReflectanceField
-from ..io.memory import PeakMemory
+from ..io.memory import PeakMemory, available_memory
 from ..io.resample import resample_image, resize_stack, working_size
 from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
@@ -90,10 +90,12 @@ def fit_field(
         factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
         if factor != 1.0:
             images = images * np.float32(factor)
-        rows = band_rows(images.shape, device)
-        if rows < height:  # the arrays would not fit the device at once: row bands, results in host memory
+        keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
+        rows = band_rows(images.shape, device, host_free=None if device.is_cuda else available_memory(), keep_specular=keep_specular,
+                         keep_diffuse=diffuse == "images")
+        if rows < height:  # the arrays would not fit the device (or the host) at once: row bands, results in host memory
             seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
-                                   keep_diffuse=diffuse == "images")
+                                   keep_specular=keep_specular, keep_diffuse=diffuse == "images")
         else:
             seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
         gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
@@ -103,7 +105,7 @@ def fit_field(
         if not isinstance(specular_luminance, wp.array):
             specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
         # what the later stages need of the full-size parts, in host memory; the device keeps none of them
-        specular = host_array(seg.specular) if residual and images.ndim == 4 and settings.residual.highlight_colour else None
+        specular = host_array(seg.specular) if keep_specular else None
         diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
         seg.diffuse = seg.specular = seg.specular_luminance = None
         wp.synchronize_device(device)
