@@ -18,6 +18,8 @@ scratch memory), accurate to float32 resolution.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import warp as wp
 
@@ -280,13 +282,13 @@ def host_array(array) -> np.ndarray:
 
 
 def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None, keep_specular: bool = True,
-              keep_diffuse: bool = True) -> int:
+              keep_diffuse: bool = True, specular_bytes: int = 4, target_share: float = 1.0) -> int:
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
     the images, the specular part, the diffuse part and the specular luminance (float32) take at most
     ``share`` of the free memory, else as many as do (at least one). On CUDA: the device's free memory.
     On the CPU: ``host_free`` bytes (the host's available memory; None: all rows), less what
-    ``segment_in_bands`` holds whole (the specular part and the diffuse part where kept, and the
-    specular luminance)."""
+    ``segment_in_bands`` holds whole: the specular part (``specular_bytes`` a value) and the diffuse
+    part where kept, and the specular luminance (``target_share`` of it where it is kept shrunk)."""
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     device = wp.get_device(device)
@@ -296,26 +298,41 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
     elif host_free is None or row_bytes * height <= share * host_free:
         return height
     else:
-        held = 4 * n * height * width * (channels * (int(keep_specular) + int(keep_diffuse)) + 1)
+        held = n * height * width * (channels * (specular_bytes * int(keep_specular) + 4 * int(keep_diffuse)) + 4 * target_share)
         budget = share * max(host_free - held, 0)
     return int(max(1, min(height, budget // row_bytes)))
 
 
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
-                     workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True) -> Segmentation:
+                     workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
+                     specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
+                     target_rows: int = 1) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
-    independent), in host NumPy arrays; ``keep_specular=False`` / ``keep_diffuse=False`` keep no
-    specular / diffuse images (None; the specular luminance is always kept)."""
+    independent), in host NumPy arrays.
+
+    Args:
+        keep_specular, keep_diffuse: False keeps no specular / diffuse images (None).
+        specular_dtype: The kept specular images' type (float16 halves them; the luminance the
+            Gaussians are fitted to is computed from the float32 values either way).
+        shrink_target: Shrinks a band's (n, rows, W) specular luminance to (n, rows / target_rows, w):
+            an area average whose output rows each cover ``target_rows`` input rows, so that the
+            bands (made a multiple of ``target_rows``) shrink to exactly the whole stack's shrunk rows.
+            The specular luminance is then held only shrunk.
+    """
     images = np.asarray(images)
     shape = images.shape
     if len(shape) not in (3, 4):
         raise InputError(f"images must have shape (n, H, W) or (n, H, W, C), got {shape}")
     n, height, width = shape[:3]
     rows = max(1, int(rows))
-    specular = np.empty(shape, np.float32) if keep_specular else None
+    if shrink_target is not None:
+        if height % target_rows:
+            raise ValueError(f"{height} rows do not shrink by whole bands of {target_rows}")
+        rows = max(target_rows, rows // target_rows * target_rows)
+    specular = np.empty(shape, specular_dtype) if keep_specular else None
     diffuse = np.empty(shape, np.float32) if keep_diffuse else None
-    target = np.empty((n, height, width), np.float32)
+    target = np.empty((n, height, width), np.float32) if shrink_target is None else None
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
     for top in range(0, height, rows):
@@ -325,7 +342,13 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             specular[:, band] = part.specular.numpy()
         if diffuse is not None:
             diffuse[:, band] = part.diffuse.numpy()
-        target[:, band] = part.specular_luminance.numpy()
+        if shrink_target is None:
+            target[:, band] = part.specular_luminance.numpy()
+        else:
+            shrunk = shrink_target(part.specular_luminance.numpy())
+            if target is None:
+                target = np.empty((n, height // target_rows, shrunk.shape[2]), np.float32)
+            target[:, top // target_rows : band.stop // target_rows] = shrunk
         if lambert is None:
             lambert = np.empty((height,) + part.lambert.shape[1:], np.float32)
         lambert[band], valid[band], iterations[band] = part.lambert, part.valid_lights, part.iterations

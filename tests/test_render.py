@@ -158,6 +158,24 @@ def test_render_is_deterministic_and_chunking_changes_nothing():
     np.testing.assert_array_equal(whole.full, chunked.full)
 
 
+def test_the_light_chunk_fits_the_available_memory(monkeypatch):
+    """Short of memory, fewer lights are shaded per launch (a quarter of the available memory for
+    their three images; at least one), with the same images."""
+    import warp_highlights.io.memory as memory
+
+    lights = LightSet.fibonacci_sphere(7).directions
+    renderer = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=64), device="cpu")
+    per_light = 3 * 4 * 64 * 36 * 3
+    whole = renderer.render(lights)
+    monkeypatch.setattr(memory, "available_memory", lambda: 4 * 2.5 * per_light)
+    assert renderer.light_chunk() == 2
+    np.testing.assert_array_equal(renderer.render(lights).full, whole.full)
+    monkeypatch.setattr(memory, "available_memory", lambda: 10)
+    assert renderer.light_chunk() == 1
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
+    assert renderer.light_chunk() == 64
+
+
 def test_device_variants_agree(device):
     lights = LightSet.fibonacci_sphere(5).directions
     settings = RenderSettings(width=64, height=36)

@@ -100,6 +100,28 @@ def test_row_bands_give_the_whole_stack_s_segmentation(device):
     assert segment_in_bands(images, directions, rows=5, device=device, keep_diffuse=False).diffuse is None
 
 
+def test_bands_short_of_memory_keep_float16_specular_parts_and_shrink_the_luminance_band_by_band():
+    """With the specular part kept as float16 and the specular luminance shrunk band by band (bands made
+    whole multiples of the shrink), the parts are the whole stack's: the luminance shrunk as a whole,
+    the specular part rounded to float16."""
+    from warp_highlights.io.resample import resize_stack
+
+    rng = np.random.default_rng(7)
+    columns, directions = synthetic_columns(rng, 3 * 16 * 10, 40)
+    images = columns.reshape(40, 16, 10, 3)
+    whole = segment(images, directions, device="cpu")
+    shrunk = resize_stack(host_array(whole.specular_luminance), 5, 4)
+    for rows in (1, 5, 8, 16):
+        banded = segment_in_bands(images, directions, rows=rows, device="cpu", keep_diffuse=False, specular_dtype=np.float16,
+                                  shrink_target=lambda band: resize_stack(band, 5, band.shape[1] // 4), target_rows=4)
+        np.testing.assert_array_equal(banded.specular_luminance, shrunk, err_msg=f"{rows} rows")
+        assert banded.specular.dtype == np.float16
+        np.testing.assert_array_equal(banded.specular, host_array(whole.specular).astype(np.float16))
+    with pytest.raises(ValueError, match="whole bands"):
+        segment_in_bands(images, directions, rows=4, device="cpu", shrink_target=lambda band: band, target_rows=3)
+    assert segment_in_bands(images, directions, rows=4, device="cpu", keep_specular=False).specular is None
+
+
 def test_band_rows_fit_the_device_s_free_memory():
     import warp as wp
 

@@ -91,16 +91,22 @@ def fit_field(
         if factor != 1.0:
             images = images * np.float32(factor)
         keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
-        rows = band_rows(images.shape, device, host_free=None if device.is_cuda else available_memory(), keep_specular=keep_specular,
-                         keep_diffuse=diffuse == "images")
+        gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
+        # short of host memory (CPU): bands whose specular part is kept as float16 (for the highlight colour alone)
+        # and whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
+        on_host = not device.is_cuda
+        shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
+        rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
+                         keep_diffuse=diffuse == "images", specular_bytes=2 if on_host else 4, target_share=1.0 / shrink_rows**2)
         if rows < height:  # the arrays would not fit the device (or the host) at once: row bands, results in host memory
+            shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
             seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
-                                   keep_specular=keep_specular, keep_diffuse=diffuse == "images")
+                                   keep_specular=keep_specular, keep_diffuse=diffuse == "images",
+                                   specular_dtype=np.float16 if on_host else np.float32, shrink_target=shrink, target_rows=shrink_rows)
         else:
             seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers)
-        gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
         specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
-        if (gaussian_width, gaussian_height) != (width, height):
+        if tuple(specular_luminance.shape[1:3]) != (gaussian_height, gaussian_width):  # not shrunk band by band already
             specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
         if not isinstance(specular_luminance, wp.array):
             specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
@@ -254,6 +260,11 @@ def default_exposure(dataset: ReflectanceField) -> float | str:
     return "auto" if dataset.display_referred else 1.0
 
 
+_EXPOSURE_VALUES = 1 << 27
+"""Values the automatic exposure's percentile reads at most (512 MB of float32 copied; a 54-image 567x534
+capture is 49 million, a 100-image 3840x2160 one 2.5 billion: every 5th pixel of every 5th row)."""
+
+
 def exposure_factor(images: np.ndarray, exposure: float | str) -> float:
     """The radiance factor for ``exposure``: a positive number as it is, or "auto" (99.9th percentile -> 1)."""
     if isinstance(exposure, str):
@@ -263,7 +274,11 @@ def exposure_factor(images: np.ndarray, exposure: float | str) -> float:
             except ValueError:
                 raise InputError(f"exposure must be a positive number or 'auto', got '{exposure}'") from None
         else:
-            level = float(np.percentile(images[:: max(1, len(images) // 64)], 99.9))
+            sample = images[:: max(1, len(images) // 64)]  # at most about 64 images ...
+            stride = 1
+            while sample[:, ::stride, ::stride].size > _EXPOSURE_VALUES:  # ... and values: the percentile copies them
+                stride += 1
+            level = float(np.percentile(sample[:, ::stride, ::stride], 99.9))
             if not np.isfinite(level) or level <= 0:
                 raise InputError("cannot pick an exposure automatically: the images are black; pass --exposure with a factor")
             return 1.0 / level

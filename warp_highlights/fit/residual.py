@@ -59,8 +59,9 @@ CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + 
 HELD_STACK_SHARE = 0.25
 """The normalised luminance and chroma stacks (float32, as large as the images) are held while they take
 at most this share of the available memory; beyond it they are computed from the images a block at a
-time in each of their three passes (the 250-light 480x270 donut: 0.42 GB less at the peak, 2.2 s more on
-the 2-core CPU; a 100-light 3840x2160 capture's stacks are 10 GB)."""
+time in each of their three passes, and their principal directions (as large) are kept in a temporary
+file mapped into memory (``spilled_empty``). The 250-light 480x270 donut: 0.5 GB less at the peak, 3.8 s
+more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160 capture's stacks are 10 GB."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
@@ -416,9 +417,10 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     if held:
         luminance = PrincipalImages.of(luminance_stack, light_scale)
         chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
-    else:  # read from the images a block at a time (three passes each instead of one), never held whole
-        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale)
-        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale)
+    else:  # read from the images a block at a time (three passes each instead of one), never held whole; the principal
+        # directions, as large, in a file mapped into memory (paged out as memory runs short)
+        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True)
+        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     budget = settings.size_budget * n * height * width * channels
     fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))

@@ -306,7 +306,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1" if stack.bits == 8 else "<u2")),
+            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1" if stack.bits == 8 else "<u2", copy=False)),  # a view: written in chunks
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -343,14 +343,15 @@ def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None
     """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
     ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
     about the same size), where the zip writer has the compressor this replaces."""
+    array = np.asarray(array)
+    if array.flags.f_contiguous and not array.flags.c_contiguous:
+        array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
     with archive.open(
         _entry_info(name), "w", force_zip64=array.nbytes > 2**30
     ) as entry:
         if array.nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1 and type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
             entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)  # what zipfile's own would be: level 6, raw deflate
-        np.lib.format.write_array(
-            entry, np.ascontiguousarray(array), allow_pickle=False
-        )
+        np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:

@@ -35,7 +35,7 @@ import numpy as np
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -155,9 +155,10 @@ class PrincipalImages:
         return cls.of_source(ArraySource(flat, tuple(stack.shape[1:])), light_scale)
 
     @classmethod
-    def of_source(cls, source: StackSource, light_scale: np.ndarray | None = None) -> PrincipalImages:
+    def of_source(cls, source: StackSource, light_scale: np.ndarray | None = None, *, spill: bool = False) -> PrincipalImages:
         """The principal images of the stack ``source`` gives, normalised by ``light_scale`` (default:
-        each image's RMS, one more pass over the source)."""
+        each image's RMS, one more pass over the source). ``spill``: ``directions`` in a temporary
+        file mapped into memory (``spilled_empty``) rather than in memory alone."""
         n = source.light_count
         pixels = int(np.prod(source.shape))
         if light_scale is None:
@@ -173,7 +174,7 @@ class PrincipalImages:
         if len(order) == 0:  # every image is black
             directions, energies = np.zeros((1, pixels), np.float32), np.zeros(1)
         else:
-            directions = np.empty((len(order), pixels), np.float32)
+            directions = spilled_empty((len(order), pixels), np.float32) if spill else np.empty((len(order), pixels), np.float32)
             projection = vectors[:, order].T / np.sqrt(energies)[:, None]
             for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
                 directions[:, columns] = projection @ block
@@ -369,6 +370,17 @@ def _blocks(source: StackSource, light_scale: np.ndarray | None = None):
         if factor is not None:
             _scale_rows(block, factor)
         yield block
+
+
+def spilled_empty(shape: tuple, dtype) -> np.ndarray:
+    """An uninitialised array backed by a temporary file (``tempfile``'s folder) mapped into memory: the
+    system writes its pages out and reads them back as memory runs short, instead of running out.
+    The file has no name from the start (``TemporaryFile``), so nothing is left behind, whatever
+    ends the process."""
+    import tempfile
+
+    with tempfile.TemporaryFile(prefix="warp-highlights-") as handle:  # the mapping keeps the file open
+        return np.memmap(handle, dtype=dtype, mode="w+", shape=shape)
 
 
 def _scale_rows(block: np.ndarray, factor: np.ndarray) -> None:

@@ -28,6 +28,10 @@ from .shapes import TriangleMesh, make_shape
 
 __all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "renderer_from_meta", "view_rotation"]
 
+CHUNK_MEMORY_SHARE = 0.25
+"""Share of the free memory one launch's images may take (the images are copied out and written in
+threads beside them)."""
+
 
 
 def view_rotation(shape: str) -> np.ndarray:
@@ -148,12 +152,25 @@ class Renderer:
     def render_chunks(self, directions: np.ndarray) -> Iterator[RenderedImages]:
         """Yield the images of ``directions`` ((L, 3) unit vectors) chunk by chunk, in order."""
         directions = _unit_directions(directions)
-        chunk = self.settings.light_chunk
+        chunk = self.light_chunk()
         for start in range(0, len(directions), chunk):
             images = [a.numpy() for a in self.shade_on_device(directions[start : start + chunk])]
             if not self.settings.colour:
                 images = [a[..., 0] for a in images]
             yield RenderedImages(start, *images)
+
+    def light_chunk(self) -> int:
+        """Lights shaded per launch: ``settings.light_chunk``, fewer where their three images would take
+        more than ``CHUNK_MEMORY_SHARE`` of the free device memory (the host's available memory on the
+        CPU): 64 lights of 3840x2160 RGB are 19 GB."""
+        from ..io.memory import available_memory
+
+        device = wp.get_device(self.device)
+        free = device.free_memory if device.is_cuda else available_memory()
+        per_light = 3 * 4 * self.settings.width * self.settings.height * (3 if self.settings.colour else 1)
+        if free is None:
+            return self.settings.light_chunk
+        return int(max(1, min(self.settings.light_chunk, CHUNK_MEMORY_SHARE * free // per_light)))
 
     def render(self, directions: np.ndarray) -> RenderedImages:
         """All images of ``directions`` at once (for tests and small sets; use render_chunks for many)."""
