@@ -33,7 +33,6 @@ CHUNK_MEMORY_SHARE = 0.25
 threads beside them)."""
 
 
-
 def view_rotation(shape: str) -> np.ndarray:
     """3x3 rotation that shows ``shape`` from a pleasant three-quarter view (identity for mesh files)."""
     shape = shape.lower()
