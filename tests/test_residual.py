@@ -131,7 +131,7 @@ def test_quantisation_step_gives_the_distortion_it_was_chosen_for():
     steps = plan.steps(distortion, 65535)
     energies = principal.energies[1 : len(steps) + 1]
     assert np.all(energies > distortion) and principal.energies[len(steps) + 1] <= distortion  # kept: exactly those above it
-    pixels = principal.flat.shape[1]
+    pixels = principal.values
     np.testing.assert_allclose(energies * pixels * steps**2 / 12, distortion, rtol=1e-9)
     basis = principal.directions[1 : len(steps) + 1]
     quantised = np.round(basis / steps[:, None]) * steps[:, None]

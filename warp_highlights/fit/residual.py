@@ -47,7 +47,7 @@ from ..model.residual import (
 )
 from ..model.threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_scale", "sampled_rows"]
+__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -384,12 +384,12 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     if images.ndim == 3:
         images = images[..., None]
     n, height, width, channels = images.shape
-    tint = np.ones((1, 1, channels), np.float32) if colour is None else colour
+    tint = np.broadcast_to(np.ones((1, 1, channels), np.float32) if colour is None else colour, (height, width, channels))
     if not settings.compressed:
         stored = np.empty(images.shape, np.float16)
 
         def subtract(band: slice) -> None:
-            stored[:, band] = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
+            stored[:, band] = residual_of(images[:, band], own[:, band], tint[band])
 
         parallel_map(subtract, _row_bands(images))
         return ResidualModel(images=stored, highlight_colour=colour)
@@ -402,7 +402,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     chroma_stack = np.empty((n, height, width, 2), np.float32) if held and channels == 3 else None
 
     def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
-        residual = images[:, band] - own[:, band, :, None] * tint[None, band if colour is not None else slice(None)]
+        residual = residual_of(images[:, band], own[:, band], tint[band])
         y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual, with_chroma=chroma_stack is not None)
         scale[band] = residual_scale(y)
         normalised = y / scale[band]
@@ -509,7 +509,7 @@ class NormalisedResidual:
         out = np.empty((self.light_count, (last - first) * self.planes), np.float64)
 
         def part(lights: slice) -> None:
-            residual = self.images[lights, pixels] - self.own[lights, pixels, None] * self.tint[None, pixels]
+            residual = residual_of(self.images[lights, pixels], self.own[lights, pixels], self.tint[pixels])
             if residual.shape[-1] == 1:
                 out[lights] = (residual[..., 0].astype(np.float64) / self.scale[pixels]).astype(np.float32)
             elif self.kind == "luminance":
@@ -521,6 +521,12 @@ class NormalisedResidual:
         parallel_map(part, [slice(start, min(start + step, self.light_count)) for start in range(0, self.light_count, step)])
         offset = first * self.planes
         return out[:, columns.start - offset : columns.stop - offset]
+
+
+def residual_of(images: np.ndarray, own: np.ndarray, tint: np.ndarray) -> np.ndarray:
+    """R = I - c(x) R(x; G): (..., C) images less their own (...) highlights in the (..., C) colour
+    ``tint`` (broadcast from the right: pixels, rows or whole images), float32."""
+    return images - own[..., None] * tint
 
 
 def _row_bands(images: np.ndarray) -> list[slice]:
@@ -552,7 +558,7 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
     n, height, width, _ = images.shape
     tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
-    targets = encode_display((images - own[..., None] * tint[None]) / np.float32(factor)).reshape(n, height * width, 3)
+    targets = encode_display(residual_of(images, own, tint) / np.float32(factor)).reshape(n, height * width, 3)
 
     def say(message: str) -> None:  # once an epoch
         if progress is not None:

@@ -100,7 +100,6 @@ class StackSource(Protocol):
 
     def block(self, columns: slice) -> np.ndarray:
         """(n, len(columns)) float64 values of the flattened stack (H W P values an image, planes last)."""
-        ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -192,16 +191,6 @@ class PrincipalImages:
     def values(self) -> int:
         """M = H W P: values an image."""
         return int(np.prod(self.shape))
-
-    @property
-    def flat(self) -> np.ndarray:
-        """(n, M) float32 the stack (held, or gathered from its source block by block)."""
-        if isinstance(self.source, ArraySource):
-            return self.source.flat
-        flat = np.empty((self.light_count, self.values), np.float32)
-        for columns in _column_slices(self.light_count, self.values):
-            flat[:, columns] = self.source.block(columns)
-        return flat
 
     @property
     def count(self) -> int:
