@@ -2,14 +2,17 @@
 
     python benchmarks/bench_relight.py [--field FIELD --dataset DATASET] [--device cuda:0] [--size 480x270]
 
-Without ``--field`` it renders and fits the demo's donut (64 lights, 240x135) first, and relights it at
-``--size`` (Gaussians are resolution-independent; the diffuse model is resampled). Per method it times:
+Without ``--field`` it renders and fits the demo's donut (64 lights, 240x135, low-rank residual) first,
+and relights it at ``--size`` (Gaussians are resolution-independent; the diffuse model is resampled).
+Per method it times:
 
 - ``one, on device``: locate + interpolate + rasterize + compose I' for one new direction, then
   synchronize (what an interactive viewer waits for before drawing);
 - ``one, to host``: the same plus copying I' to NumPy (``relight(direction)``: on CUDA one captured
   graph launch, the direction in and the images out through page-locked memory; ``--no-graphs``:
   the separate launches);
+- on CUDA with graphs, the device time of one query by CUDA events: the single-query graph with its
+  copies into page-locked memory, and its kernels alone;
 - ``batch``: ``--batch`` directions (default 496) in as few launches as memory allows, per query,
   on the device and with the copy to the host.
 
@@ -41,6 +44,7 @@ from warp_highlights.relight.relighter import Relighter, alpha_inputs
 def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     """Render (in memory: no EXR writer needed) and fit the demo's donut: 64 lights, 240x135."""
     from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.model.config import FitSettings
     from warp_highlights.model.lights import LightSet
     from warp_highlights.synth.render import (
         Renderer,
@@ -54,7 +58,8 @@ def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     renderer = Renderer(make_shape("donut"), material=default_material("donut"), settings=RenderSettings(width=240, height=135),
                         rotation=view_rotation("donut"), device=str(device))
     dataset = ReflectanceField(images=renderer.render(lights.directions).full, lights=lights)
-    return fit_field(dataset, device=device, progress=False), dataset
+    settings = FitSettings().with_overrides(["residual.learned_on_cuda=false"])  # the low-rank residual: a learned one trains for minutes on CUDA
+    return fit_field(dataset, settings=settings, device=device, progress=False), dataset
 
 
 def random_directions(count: int, seed: int) -> np.ndarray:
@@ -72,6 +77,33 @@ def time_calls(function, count: int) -> np.ndarray:
         function(i)
         seconds[i] = time.perf_counter() - started
     return seconds
+
+
+def graph_device_ms(relighter: Relighter, directions: np.ndarray, method: str = "circular") -> dict[str, float]:
+    """Median device milliseconds of one query as the designer replays it, timed by CUDA events around
+    the replay (no host overhead): ``graph``, the single-query graph (direction in, locate, interpolate,
+    rasterize, compose, both images out to page-locked memory); ``kernels``, the same kernels captured
+    without the copies. Empty on the CPU or without graphs."""
+    if not (relighter.device.is_cuda and relighter.graphs):
+        return {}
+    device = relighter.device
+    relighter.relight(directions[0], method=method)  # captures the single-query graph
+    single = relighter._graphs[(method, True)].slots[0].graph  # private: the graph relight(direction) replays
+    buffers = relighter.launch(directions[:1], method=method)
+    with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+        relighter._run(buffers, relighter.raster, method=method, full=True)
+    start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
+    medians = {}
+    for name, graph in (("graph", single), ("kernels", capture.graph)):
+        times = []
+        for _ in range(len(directions)):
+            wp.record_event(start)
+            wp.capture_launch(graph)
+            wp.record_event(end)
+            wp.synchronize_event(end)
+            times.append(wp.get_event_elapsed_time(start, end))
+        medians[name] = float(np.median(times))
+    return medians
 
 
 def bench_method(relighter: Relighter, method: str, *, repeat: int, batch: int) -> dict:
@@ -104,8 +136,10 @@ def bench_method(relighter: Relighter, method: str, *, repeat: int, batch: int) 
         "batch_to_host_ms_per_query": 1e3 * time_calls(batch_to_host, batch_repeat) / batch,
     }
     sets = relighter.interpolated_sets(queries[: min(batch, 64)]) if method != "alpha" else None
+    events = graph_device_ms(relighter, singles, method)
     return {
         **{k: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))} for k, v in figures.items()},
+        **{f"one_{k}_device_events_ms": v for k, v in events.items()},
         "gaussians_per_query": None if sets is None else float(sets.counts.mean()),
     }
 
@@ -150,11 +184,12 @@ def main() -> None:
     print(f"relight {source}: {field.light_count} lights, {field.estimated.counts.mean():.1f} Gaussians per light, "
           f"output {width}x{height} x {relighter.channels} channels, {device} ({name}, {cores} cores), warp {wp.config.version}")
     print(f"max batch per launch {relighter.max_batch}; medians in ms per query")
-    print(f"| method | Gaussians / query | one (device) | one (to host) | batch of {args.batch} (device) | batch (to host) |")
-    print("|---|---|---|---|---|---|")
+    print(f"| method | Gaussians / query | one (launches, device) | one graph: kernels / with copies (CUDA events) | one (to host) | batch of {args.batch} (device) | batch (to host) |")
+    print("|---|---|---|---|---|---|---|")
     for method, r in results.items():
         g = "-" if r["gaussians_per_query"] is None else f"{r['gaussians_per_query']:.1f}"
-        print(f"| {method} | {g} | {r['one_on_device_ms']['median']:.3f} | {r['one_to_host_ms']['median']:.3f} | "
+        events = f"{r['one_kernels_device_events_ms']:.3f} / {r['one_graph_device_events_ms']:.3f}" if "one_graph_device_events_ms" in r else "-"
+        print(f"| {method} | {g} | {r['one_on_device_ms']['median']:.3f} | {events} | {r['one_to_host_ms']['median']:.3f} | "
               f"{r['batch_on_device_ms_per_query']['median']:.3f} | {r['batch_to_host_ms_per_query']['median']:.3f} |")
     print("thesis (RTX 3080, 480x270): 12 ms per interpolated image (donut), 11 ms (teapot)")
     if os.environ.get("OUT"):

@@ -9,7 +9,8 @@ held-out lights; rendered once into ``--work`` and reused), then ``warp-highligh
 separate process, as a user runs it (Python start, Warp's start and the kernel cache warm from the
 first case). Peak memory is the largest stage's (``fit --report``: resident host memory, Warp's CUDA
 memory pool). The query is one relit image of the field at its own size, the median of ``--repeat``
-random directions, on the device (launch to synchronise) and into host memory.
+random directions, on the device (CUDA: the single-query graph with its copies into page-locked memory,
+timed by CUDA events; CPU: launch to synchronise) and into host memory (``relight(direction)``).
 
 Prints a Markdown table (and ``--json`` the figures).
 """
@@ -64,7 +65,7 @@ def query_times(field_path: Path, device: str | None, repeat: int) -> tuple[floa
     import numpy as np
     import warp as wp
 
-    from benchmarks.bench_relight import random_directions, time_calls
+    from benchmarks.bench_relight import graph_device_ms, random_directions, time_calls
     from warp_highlights.io.fieldfile import load_field
     from warp_highlights.relight.relighter import Relighter
 
@@ -81,7 +82,10 @@ def query_times(field_path: Path, device: str | None, repeat: int) -> tuple[floa
 
     on_device(0)
     to_host(0)
-    return float(np.median(time_calls(on_device, repeat))) * 1e3, float(np.median(time_calls(to_host, repeat))) * 1e3
+    host = float(np.median(time_calls(to_host, repeat))) * 1e3
+    events = graph_device_ms(relighter, directions)
+    device = events["graph"] if events else float(np.median(time_calls(on_device, repeat))) * 1e3
+    return device, host
 
 
 def main() -> None:

@@ -404,3 +404,63 @@ def test_one_query_as_a_cuda_graph_is_the_launches_bit_for_bit(sphere_field):
                 for name in ("specular", "full", "faces", "barycentric", "clamped"):
                     np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
             graphed.relight(queries[:3], method=method)  # a batch between: the graph keeps its own buffers
+
+
+@pytest.mark.parametrize("copies", [(9, 40, 70), (40, 70, 3)])
+def test_the_sliced_face_search_keeps_the_first_deepest_face(copies, device):
+    """``deepest_faces`` splits the faces over threads; ``locate_directions`` must still pick the first
+    face of the largest margin, as one loop would (here several faces in different slices tie
+    exactly), and the float64 NumPy argmax where nothing ties."""
+    from warp_highlights.kernels import interpolation as kernels
+
+    rng = np.random.default_rng(22)
+    face_count = 75
+    normals = rng.normal(size=(face_count, 3, 3))
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    queries = random_directions(rng, 40)
+    normals[list(copies)] = queries[0]  # margin 1 in each copy: the largest any face can have
+    depths = wp.empty((len(queries), kernels.FACE_SLICES), dtype=wp.float64, device=device)
+    best = wp.empty((len(queries), kernels.FACE_SLICES), dtype=wp.int32, device=device)
+    as_vec3d = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.vec3d, device=device)
+    directions = as_vec3d(queries)
+    wp.launch(kernels.deepest_faces, dim=depths.shape, inputs=[directions, as_vec3d(normals)], outputs=[depths, best], device=device)
+    rims = [as_vec3d(np.zeros((1, 3)))] * 5 + [wp.zeros(1, dtype=wp.int32, device=device)] * 2
+    inverses = wp.array(np.tile(np.eye(3), (face_count, 1, 1)), dtype=wp.mat33d, device=device)
+    out = [wp.empty(len(queries), dtype=t, device=device) for t in (wp.int32, wp.vec3, wp.vec3, wp.int32)]
+    wp.launch(kernels.locate_directions, dim=len(queries), inputs=[directions, depths, best, inverses, *rims, 0, 1e-12], outputs=out, device=device)
+    faces = out[0].numpy()
+    assert faces[0] == min(copies)
+    margins = np.einsum("qc,fkc->qfk", queries, normals).min(axis=2)
+    top_two = np.sort(margins, axis=1)[:, -2:]
+    clear = top_two[:, 1] - top_two[:, 0] > 1e-9
+    expected = np.argmax(margins, axis=1)  # the first face on ties
+    assert np.all(clear | np.isin(expected, copies)) and (~clear).sum() > 3  # ties only among the copies
+    np.testing.assert_array_equal(faces, expected)
+
+
+def test_single_query_results_on_page_locked_memory_are_not_overwritten_while_held(sphere_field):
+    """A graph query's images view page-locked buffers: a later query writes only a slot whose arrays
+    are all gone (a slice of one keeps its slot), and once every slot is held, results are copies."""
+    from warp_highlights.relight.relighter import RESULT_SLOTS
+
+    if not wp.is_cuda_available():
+        pytest.skip("page-locked single-query results need CUDA graphs")
+    eager = Relighter(sphere_field, device="cuda:0", graphs=False)
+    graphed = Relighter(sphere_field, device="cuda:0")
+    queries = random_directions(np.random.default_rng(21), RESULT_SLOTS + 3)
+    want = [eager.relight(direction) for direction in queries]
+    held = [graphed.relight(direction) for direction in queries]  # every slot held, then copies
+    for got, expected in zip(held, want):
+        np.testing.assert_array_equal(got.full, expected.full)
+        np.testing.assert_array_equal(got.specular, expected.specular)
+    query = graphed._graphs[("circular", True)]
+    assert len(query.slots) == RESULT_SLOTS and query._copying is not None
+    height, width = want[0].specular.shape
+    middle = np.s_[height // 2 - 3 : height // 2 + 3, width // 2 - 3 : width // 2 + 3]
+    assert not np.array_equal(want[0].full[middle], want[-1].full[middle])  # an overwrite would show
+    kept = held[0].full[middle]  # a view of the first result only
+    del held, got
+    for direction in queries[::-1]:
+        graphed.relight(direction)  # reuses the free slots
+    np.testing.assert_array_equal(kept, want[0].full[middle])
+    assert len(query.slots) == RESULT_SLOTS

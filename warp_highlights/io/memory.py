@@ -9,7 +9,7 @@ import threading
 
 from ..model.errors import InputError
 
-__all__ = ["PeakMemory", "available_memory", "bytes_text", "check_memory", "resident_memory"]
+__all__ = ["PeakMemory", "available_memory", "bytes_text", "check_memory", "device_free_memory", "resident_memory"]
 
 PEAK_SAMPLE_SECONDS = 0.01
 """How often ``PeakMemory`` reads the current use between the exact high-water marks (10 ms: a stage's
@@ -30,6 +30,12 @@ def available_memory() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (AttributeError, ValueError, OSError):
         return None
+
+
+def device_free_memory(device) -> int | None:
+    """Bytes a new allocation on a Warp ``device`` can get: the free device memory on CUDA, the host's
+    ``available_memory`` on the CPU (None when unknown)."""
+    return int(device.free_memory) if device.is_cuda else available_memory()
 
 
 def check_memory(needed: int, what: str, advice: str, *, detail: str = "") -> None:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Protocol
+from typing import Iterator, Protocol
 
 import numpy as np
 
@@ -570,11 +570,22 @@ class ResidualModel:
         blending them as the alpha blend does (values beyond float16's range are clipped to it)."""
         if self.images is not None:
             return self.images
+        out = np.empty((self.light_count, self.height, self.width, self.channels), np.float16)
+        for start, images in self.decoded_blocks(block=block):
+            out[start : start + len(images)] = images
+        return out
+
+    def decoded_blocks(self, *, block: int = 16) -> Iterator[tuple[int, np.ndarray]]:
+        """The residual images of ``decoded_images`` as (first light, (b, H, W, C) float16) for blocks of
+        ``block`` lights in order: a consumer holds one block of the decoded stack at a time."""
         if self.learned is not None:
             raise InputError("a learned residual is decoded per query direction, not per captured light")
-        n, height, width = self.light_count, self.height, self.width
-        out = np.empty((n, height, width, self.channels), np.float16)
-        scale = np.ones((height, width), np.float32) if self.scale is None else self.scale
+        n = self.light_count
+        if self.images is not None:
+            for start in range(0, n, block):
+                yield start, self.images[start : start + block]
+            return
+        scale = np.ones((self.height, self.width), np.float32) if self.scale is None else self.scale
         planes = [(stack, stack.basis.reshape(stack.rank, stack.mean.size), stack.mean.reshape(1, -1)) for stack in (self.luminance, self.chroma) if stack is not None]
         for start in range(0, n, block):
             stop = min(n, start + block)
@@ -582,8 +593,7 @@ class ResidualModel:
                      for stack, basis, mean in planes]
             y = parts[0][..., 0] * scale
             rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[..., None])
-            out[start:stop] = np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE)
-        return out
+            yield start, np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE).astype(np.float16)
 
     def light_images(self, weights: np.ndarray) -> np.ndarray:
         """R~ for (Q, n) per-light blend weights: (Q, H, W, C) float64 (the float64 reference)."""

@@ -24,11 +24,13 @@ works.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
 
+from ..io.memory import device_free_memory
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
 from ..kernels.neural import QueryDecoder
@@ -60,9 +62,15 @@ first of residual, images, lambert that the field stores."""
 
 RESIDUAL_DECODES = ("auto", "query", "load")
 """How a ``Relighter`` decodes a low-rank residual (its ``residual_decode`` argument)."""
+DECODED_RESIDUAL_SHARE = 0.25
+"""Share of the free device memory that "auto" gives a low-rank residual decoded once into float16 images
+on CUDA: 250 lights of 1920x1080 RGB take 3.1 GB of an 80 GB card, and a query then blends three images
+instead of reading every basis image (6.3 -> below 1 ms at 1080p on an H100, benchmarks/README.md)."""
 DECODED_RESIDUAL_BYTES = 512 * 2**20
-"""Most device memory "auto" gives a low-rank residual decoded once into float16 images: 250 lights of
-480x270 RGB take 194 MB; a larger field is decoded per query instead (slower on the CPU, no memory)."""
+"""Most memory "auto" gives the decoded residual on the CPU (and on CUDA where the free memory is
+unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, about 12 s per 3 GB
+on 2 cores, which a single query would wait for; a larger field is decoded per query instead."""
+_DECODE_BLOCK = 16  # lights decoded, resampled and uploaded at a time: the host holds one block
 
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
@@ -98,6 +106,8 @@ class _DeviceQueries:
         self.count = count
         self.directions = wp.empty(count, dtype=wp.vec3d, device=device)
         self.faces = wp.empty(count, dtype=wp.int32, device=device)
+        self.depths = wp.empty((count, kernels.FACE_SLICES), dtype=wp.float64, device=device)  # each face slice's best (deepest_faces)
+        self.best_faces = wp.empty((count, kernels.FACE_SLICES), dtype=wp.int32, device=device)
         self.weights = wp.empty(count, dtype=wp.vec3, device=device)
         self.located = wp.empty(count, dtype=wp.vec3, device=device)
         self.unit = wp.empty(count, dtype=wp.vec3, device=device)
@@ -165,7 +175,7 @@ class Relighter:
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
-        if self.diffuse == kernels.DIFFUSE_LOWRANK and _decode_on_load(field.residual, self.width * self.height, residual_decode):
+        if self.diffuse == kernels.DIFFUSE_LOWRANK and _decode_on_load(field.residual, self.width * self.height, residual_decode, self.device):
             self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
@@ -240,9 +250,7 @@ class Relighter:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
             lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
         elif self.diffuse == kernels.DIFFUSE_BLEND:
-            source = residual.decoded_images() if self._residual_images else model.images
-            stack = np.stack([resample_image(image.astype(np.float32), self.width, self.height) for image in source])
-            images = stack.reshape(len(stack), self.height * self.width, source.shape[3]).astype(np.float16)
+            images = self._upload_images(residual if self._residual_images else model)
         elif self.diffuse == kernels.DIFFUSE_LOWRANK:
             self._stacks["luminance"] = _LowRankArrays.upload(residual.luminance, self.width, self.height, device)
             if residual.scale is not None:
@@ -250,9 +258,25 @@ class Relighter:
             if residual.chroma is not None:
                 self._stacks["chroma"] = _LowRankArrays.upload(residual.chroma, self.width, self.height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
-        self._diffuse_images = wp.array(np.ascontiguousarray(images), dtype=wp.float16, device=device)
+        self._diffuse_images = images if isinstance(images, wp.array) else wp.array(images, dtype=wp.float16, device=device)
         self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float, device=device)
         self._upload_colour()
+
+    def _upload_images(self, source) -> wp.array:
+        """The per-light images of ``source`` (a residual, decoded here, or a diffuse model's images) at the
+        output size on the device, (n, H W, C) float16, made ``_DECODE_BLOCK`` lights at a time."""
+        if source is self.field.residual:
+            blocks, count, channels = source.decoded_blocks(block=_DECODE_BLOCK), source.light_count, source.channels
+        else:
+            images = source.images
+            blocks = ((start, images[start : start + _DECODE_BLOCK]) for start in range(0, len(images), _DECODE_BLOCK))
+            count, channels = len(images), images.shape[3]
+        pixels = self.height * self.width
+        out = wp.empty((count, pixels, channels), dtype=wp.float16, device=self.device)
+        for start, block in blocks:
+            shrunk = np.stack([resample_image(image, self.width, self.height) for image in block]) if block.shape[1:3] != (self.height, self.width) else block
+            out[start : start + len(block)].assign(np.ascontiguousarray(shrunk, dtype=np.float16).reshape(len(block), pixels, channels))
+        return out
 
     def _upload_colour(self) -> None:
         """c(x) per output pixel and channel, (H W, C) float32, or one white row."""
@@ -339,10 +363,12 @@ class Relighter:
         return buffers
 
     def _locate(self, buffers: _DeviceQueries) -> None:
+        wp.launch(kernels.deepest_faces, dim=buffers.depths.shape, inputs=[buffers.directions, self._edge_normals],
+                  outputs=[buffers.depths, buffers.best_faces], device=self.device)
         wp.launch(
             kernels.locate_directions,
             dim=buffers.count,
-            inputs=[buffers.directions, self._edge_normals, self._inverses, *self._rims, self._is_dome, _INSIDE_TOLERANCE],
+            inputs=[buffers.directions, buffers.depths, buffers.best_faces, self._inverses, *self._rims, self._is_dome, _INSIDE_TOLERANCE],
             outputs=[buffers.faces, buffers.weights, buffers.located, buffers.clamped],
             device=self.device,
         )
@@ -389,7 +415,9 @@ class Relighter:
     # --- host-facing API ---------------------------------------------------------------------------
 
     def relight(self, directions, *, method: str = "circular", full: bool = True, progress=None) -> RelitImages:
-        """Images for (Q, 3) or (3,) light directions (any non-zero length), as new host arrays.
+        """Images for (Q, 3) or (3,) light directions (any non-zero length), as new host arrays (one
+        direction on CUDA with graphs: arrays on page-locked memory that no later query writes while
+        any view of them is alive).
 
         Args:
             directions: towards the lights, camera space (method.md section 0).
@@ -519,45 +547,111 @@ def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: i
 
 
 class _SingleQuery:
-    """A captured CUDA graph of one query: copies of the direction from page-locked memory, the
-    relight kernels on buffers and a rasterizer of its own (a batch elsewhere cannot move them), and
-    copies of the results back to page-locked memory."""
+    """One query as one captured CUDA graph: the direction copied in from page-locked memory, the relight
+    kernels on buffers and a rasterizer of its own (a batch elsewhere cannot move them), and the results
+    copied out to page-locked memory.
+
+    The images are handed out without a host copy: as arrays viewing a ``_ResultSlot``'s page-locked
+    buffers, which are written again only once no array of them is alive. Each slot has its own graph
+    (a graph's copies have fixed addresses); while ``RESULT_SLOTS`` results are held, a query is copied
+    out of one more slot as before.
+    """
 
     def __init__(self, relighter: Relighter, method: str, full: bool):
         device = relighter.device
+        self.device = device
         self.full = full
         self.buffers = _DeviceQueries(1, relighter.capacity, relighter.height, relighter.width, relighter.channels, device)
         self.raster = Rasterizer(relighter.height, relighter.width, settings=relighter.raster.settings, device=device)
-        pinned = lambda array: wp.empty_like(array, device="cpu", pinned=True)
         b = self.buffers
-        self.inputs = [(b.directions, pinned(b.directions)), (b.unit, pinned(b.unit))]
-        self.outputs = {name: (pinned(array), array) for name, array in
-                        (("specular", b.specular), ("faces", b.faces), ("weights", b.weights), ("clamped", b.clamped)) + ((("full", b.full),) if full else ())}
-        run = lambda: relighter._run(b, self.raster, method=method, full=full)
+        self.inputs = [(b.directions, _pinned_like(b.directions)), (b.unit, _pinned_like(b.unit))]
+        self._kernels = lambda: relighter._run(b, self.raster, method=method, full=full)
         self._set(np.array([0.0, 0.0, 1.0]))
         for target, source in self.inputs:
             wp.copy(target, source)
-        run()  # eagerly once: loads the kernels and makes the arrays made on first use
-        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+        self._kernels()  # eagerly once: loads the kernels and makes the arrays made on first use
+        self.slots: list[_ResultSlot] = []
+        self._copying: _ResultSlot | None = None  # the slot results are copied out of when every slot is held
+
+    def _capture(self) -> _ResultSlot:
+        b = self.buffers
+        outputs = {name: (_pinned_like(array), array) for name, array in
+                   (("specular", b.specular), ("faces", b.faces), ("weights", b.weights), ("clamped", b.clamped)) + ((("full", b.full),) if self.full else ())}
+        with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
             for target, source in self.inputs:
                 wp.copy(target, source)
-            run()
-            for target, source in self.outputs.values():
+            self._kernels()
+            for target, source in outputs.values():
                 wp.copy(target, source)
-        self.graph = capture.graph
-        self.device = device
+        return _ResultSlot(capture.graph, outputs)
 
     def _set(self, direction: np.ndarray) -> None:
         self.inputs[0][1].numpy()[0] = direction
         self.inputs[1][1].numpy()[0] = direction.astype(np.float32)
 
+    def _free_slot(self) -> tuple[_ResultSlot, bool]:
+        """A slot whose results nobody holds (made when fewer than ``RESULT_SLOTS`` exist), and False;
+        else the copying slot and True."""
+        for slot in self.slots:
+            if not slot.held():
+                return slot, False
+        if len(self.slots) < RESULT_SLOTS:
+            self.slots.append(self._capture())
+            return self.slots[-1], False
+        if self._copying is None:
+            self._copying = self._capture()
+        return self._copying, True
+
     def run(self, direction: np.ndarray) -> RelitImages:
+        slot, copy = self._free_slot()
         self._set(direction)
-        wp.capture_launch(self.graph)
+        wp.capture_launch(slot.graph)
         wp.synchronize_device(self.device)
+        return slot.results(self.buffers.specular.shape[1:], copy=copy)
+
+
+RESULT_SLOTS = 4
+"""Results of single CUDA queries held at once without a host copy (each slot is one query's page-locked
+images: 2 MB at 480x270 RGB, 33 MB at 1920x1080); more held results are copied out."""
+
+
+def _pinned_like(array: wp.array) -> wp.array:
+    return wp.empty_like(array, device="cpu", pinned=True)
+
+
+class _Lease:
+    """The owner of the host arrays handed out from one page-locked buffer. NumPy makes the owner the
+    base of every view and slice of them, so the lease stays alive exactly while any of them does."""
+
+    def __init__(self, buffer: np.ndarray):
+        self._buffer = buffer  # keeps the page-locked memory alive
+        self.__array_interface__ = buffer.__array_interface__
+
+
+class _ResultSlot:
+    """One captured graph of a single query and the page-locked buffers its results land in, with weak
+    references to the leases of the images last handed out from them."""
+
+    def __init__(self, graph, outputs: dict[str, tuple[wp.array, wp.array]]):
+        self.graph = graph
+        self.outputs = outputs
+        self.leases: list[weakref.ref] = []
+
+    def held(self) -> bool:
+        return any(lease() is not None for lease in self.leases)
+
+    def results(self, image_shape: tuple[int, int], *, copy: bool) -> RelitImages:
+        """The last query's results: the images as arrays on the buffers (copies when ``copy``)."""
         host = {name: pinned.numpy() for name, (pinned, _) in self.outputs.items()}
-        images = host["full"][0].reshape(self.buffers.specular.shape[1:] + (host["full"].shape[2],)).copy() if self.full else None
-        return RelitImages(host["specular"][0].copy(), images, host["faces"][0].copy(), host["weights"][0].astype(np.float64), host["clamped"][0] != 0)
+        specular, images = host["specular"][0], host["full"][0].reshape(image_shape + (-1,)) if "full" in host else None
+        if copy:
+            specular, images = specular.copy(), None if images is None else images.copy()
+        else:
+            leases = [_Lease(array) for array in (specular, images) if array is not None]
+            self.leases = [weakref.ref(lease) for lease in leases]
+            specular = np.asarray(leases[0])
+            images = None if images is None else np.asarray(leases[1])
+        return RelitImages(specular, images, host["faces"][0].copy(), host["weights"][0].astype(np.float64), host["clamped"][0] != 0)
 
 
 def _copy_to_host(chunk: _DeviceQueries, specular: np.ndarray, images: np.ndarray | None) -> None:
@@ -621,13 +715,17 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
     return (kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND), False
 
 
-def _decode_on_load(residual, output_pixels: int, decode: str) -> bool:
-    """Whether a low-rank ``residual`` is decoded once into images (see ``Relighter``'s ``residual_decode``)."""
+def _decode_on_load(residual, output_pixels: int, decode: str, device) -> bool:
+    """Whether a low-rank ``residual`` is decoded once into images (see ``Relighter``'s ``residual_decode``):
+    for "auto", where its float16 images fit ``DECODED_RESIDUAL_SHARE`` of the free memory of a CUDA
+    ``device`` (else ``DECODED_RESIDUAL_BYTES``) and blending three of them reads less than the basis."""
     if decode != "auto":
         return decode == "load"
     held = residual.light_count * output_pixels * residual.channels * 2
     per_query = residual.luminance.rank + 1 + (0 if residual.chroma is None else 2 * (residual.chroma.rank + 1))
-    return held <= DECODED_RESIDUAL_BYTES and per_query > 3 * residual.channels
+    free = device_free_memory(device) if device.is_cuda else None
+    budget = DECODED_RESIDUAL_SHARE * free if free is not None else DECODED_RESIDUAL_BYTES
+    return held <= budget and per_query > 3 * residual.channels
 
 
 def _field_channels(field) -> int:
