@@ -553,7 +553,7 @@ class _SingleQuery:
 
     The images are handed out without a host copy: as arrays viewing a ``_ResultSlot``'s page-locked
     buffers, which are written again only once no array of them is alive. Each slot has its own graph
-    (a graph's copies have fixed addresses); while ``RESULT_SLOTS`` results are held, a query is copied
+    (a graph's copies have fixed addresses); while ``result_slots`` results are held, a query is copied
     out of one more slot as before.
     """
 
@@ -571,6 +571,7 @@ class _SingleQuery:
             wp.copy(target, source)
         self._kernels()  # eagerly once: loads the kernels and makes the arrays made on first use
         self.slots: list[_ResultSlot] = []
+        self.slot_count = result_slots(relighter.height, relighter.width, relighter.channels)
         self._copying: _ResultSlot | None = None  # the slot results are copied out of when every slot is held
 
     def _capture(self) -> _ResultSlot:
@@ -590,12 +591,12 @@ class _SingleQuery:
         self.inputs[1][1].numpy()[0] = direction.astype(np.float32)
 
     def _free_slot(self) -> tuple[_ResultSlot, bool]:
-        """A slot whose results nobody holds (made when fewer than ``RESULT_SLOTS`` exist), and False;
+        """A slot whose results nobody holds (made when fewer than ``slot_count`` exist), and False;
         else the copying slot and True."""
         for slot in self.slots:
             if not slot.held():
                 return slot, False
-        if len(self.slots) < RESULT_SLOTS:
+        if len(self.slots) < self.slot_count:
             self.slots.append(self._capture())
             return self.slots[-1], False
         if self._copying is None:
@@ -613,6 +614,15 @@ class _SingleQuery:
 RESULT_SLOTS = 4
 """Results of single CUDA queries held at once without a host copy (each slot is one query's page-locked
 images: 2 MB at 480x270 RGB, 33 MB at 1920x1080); more held results are copied out."""
+RESULT_SLOT_BYTES = 256 * 2**20
+"""Page-locked memory the slots take at most together (at least one slot): two at 3840x2160 RGB, where
+one query's images are 133 MB. Page-locked memory cannot be paged out, so it is kept small."""
+
+
+def result_slots(height: int, width: int, channels: int) -> int:
+    """How many ``_ResultSlot``s a single query of this size keeps: ``RESULT_SLOTS`` within ``RESULT_SLOT_BYTES``."""
+    images = 4 * height * width * (1 + channels)  # S' and I', float32
+    return int(max(1, min(RESULT_SLOTS, RESULT_SLOT_BYTES // images)))
 
 
 def _pinned_like(array: wp.array) -> wp.array:
