@@ -88,18 +88,27 @@ def graph_device_ms(relighter: Relighter, directions: np.ndarray, method: str = 
         return {}
     device = relighter.device
     relighter.relight(directions[0], method=method)  # captures the single-query graph
-    single = relighter._graphs[(method, True)].slots[0].graph  # private: the graph relight(direction) replays
+    query = relighter._graphs[(method, True)]  # private: the graph relight(direction) replays, and how it sets its direction
     buffers = relighter.launch(directions[:1], method=method)
     with wp.ScopedCapture(device=device, force_module_load=False) as capture:
         relighter._run(buffers, relighter.raster, method=method, full=True)
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+    def set_kernels_direction(direction: np.ndarray) -> None:
+        buffers.directions.assign(direction[None])
+        buffers.unit.assign(direction[None].astype(np.float32))
+
+    stream = device.stream
     start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
     medians = {}
-    for name, graph in (("graph", single), ("kernels", capture.graph)):
+    for name, graph, set_direction in (("graph", query.slots[0].graph, query._set), ("kernels", capture.graph, set_kernels_direction)):
         times = []
-        for _ in range(len(directions)):
-            wp.record_event(start)
-            wp.capture_launch(graph)
-            wp.record_event(end)
+        for direction in unit:
+            set_direction(direction)  # each replay at a new direction, set outside the timed span
+            wp.synchronize_device(device)
+            stream.record_event(start)
+            wp.capture_launch(graph, stream=stream)
+            stream.record_event(end)
             wp.synchronize_event(end)
             times.append(wp.get_event_elapsed_time(start, end))
         medians[name] = float(np.median(times))

@@ -1,6 +1,7 @@
 """Kernels of relighting (method.md section 6): locate queries, interpolate Gaussian sets, compose images.
 
-Three launches turn Q query directions into Q images, whatever Q is:
+The kernels that turn Q query directions into Q images, whatever Q is (the rasterizer draws S'
+between steps 2 and 3):
 
 1. ``deepest_faces`` (query x slice of the faces) then ``locate_directions`` (one thread per query,
    float64): the face of the triangulation the query's ray crosses and its planar barycentric
@@ -126,10 +127,10 @@ def locate_directions(
     """Face and barycentric weights of each unit query (float64 geometry, float32 results).
 
     The face is the one the query lies deepest inside (largest smallest edge-plane margin, first on
-    ties), from the slices' best of ``deepest_faces``. On a dome, a query more than ``inside_tolerance`` outside every face moves to the nearest
-    point of the rim arcs (``rim_*``: per boundary edge its ends, great-circle normal, the in-plane
-    directions along the arc at its start and back at its end, its face and that face's opposite
-    corner, whose weight is then 0).
+    ties), from the slices' best of ``deepest_faces``. On a dome, a query more than
+    ``inside_tolerance`` outside every face moves to the nearest point of the rim arcs (``rim_*``: per
+    boundary edge its ends, great-circle normal, the in-plane directions along the arc at its start
+    and back at its end, its face and that face's opposite corner, whose weight is then 0).
     """
     q = wp.tid()
     query = queries[q]

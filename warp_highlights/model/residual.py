@@ -570,6 +570,8 @@ class ResidualModel:
         blending them as the alpha blend does (values beyond float16's range are clipped to it)."""
         if self.images is not None:
             return self.images
+        if self.learned is not None:
+            raise InputError("a learned residual is decoded per query direction, not per captured light")
         out = np.empty((self.light_count, self.height, self.width, self.channels), np.float16)
         for start, images in self.decoded_blocks(block=block):
             out[start : start + len(images)] = images

@@ -451,9 +451,12 @@ class Relighter:
 
     def _single_query(self, direction: np.ndarray, method: str, full: bool) -> RelitImages:
         """One query as one graph launch: the direction in and the images out through page-locked
-        memory, everything between on the device (captured on the first query of each method)."""
+        memory, everything between on the device. The graphs are captured on the first query of a
+        method and kept for one method at a time, so their page-locked buffers stay within
+        ``RESULT_SLOT_BYTES`` (results already handed out keep their own buffers)."""
         query = self._graphs.get((method, full))
         if query is None:
+            self._graphs.clear()
             query = self._graphs[(method, full)] = _SingleQuery(self, method, full)
         return query.run(direction)
 
@@ -613,16 +616,18 @@ class _SingleQuery:
 
 RESULT_SLOTS = 4
 """Results of single CUDA queries held at once without a host copy (each slot is one query's page-locked
-images: 2 MB at 480x270 RGB, 33 MB at 1920x1080); more held results are copied out."""
+images: 2 MB at 480x270 RGB, 33 MB at 1920x1080); more held results are copied out of one more slot."""
 RESULT_SLOT_BYTES = 256 * 2**20
-"""Page-locked memory the slots take at most together (at least one slot): two at 3840x2160 RGB, where
-one query's images are 133 MB. Page-locked memory cannot be paged out, so it is kept small."""
+"""Page-locked memory a relighter's single queries take at most, the copying slot included (but at
+least one slot besides it): one slot and the copying one at 3840x2160 RGB, where one query's images
+are 133 MB. Page-locked memory cannot be paged out, so it is kept small."""
 
 
 def result_slots(height: int, width: int, channels: int) -> int:
-    """How many ``_ResultSlot``s a single query of this size keeps: ``RESULT_SLOTS`` within ``RESULT_SLOT_BYTES``."""
+    """How many ``_ResultSlot``s whose results are handed out without a copy a single query of this size
+    keeps: ``RESULT_SLOTS``, fewer where they and the copying slot would exceed ``RESULT_SLOT_BYTES``."""
     images = 4 * height * width * (1 + channels)  # S' and I', float32
-    return int(max(1, min(RESULT_SLOTS, RESULT_SLOT_BYTES // images)))
+    return int(max(1, min(RESULT_SLOTS, RESULT_SLOT_BYTES // images - 1)))
 
 
 def _pinned_like(array: wp.array) -> wp.array:
