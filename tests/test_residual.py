@@ -713,3 +713,23 @@ def test_the_sampled_rate_search_keeps_the_exact_budget(monkeypatch):
                 exact = quantised_bytes(principal, allocate_steps([plan], budget, bits=bits)[0], bits=bits)
             assert exact <= stored <= budget or 0.99 * exact <= stored <= budget, (bits, budget, stored, exact)
             assert stored == float(component_bytes(LowRankStack.quantised(principal, steps, bits=bits)).sum())
+
+
+def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_the_result_is_the_same(monkeypatch):
+    """On images large enough for a sampled rate search, a generous budget holds every basis image at the
+    finest 8-bit step by the sampled bytes alone: the 8-bit search and its deflate of every row are
+    skipped (16-bit codes beat them), and the residual is bit for bit the one with both searches."""
+    n, h, w = 16, 256, 1024
+    own = np.zeros((n, h, w), np.float32)
+    smooth = _patterned_stack(n, h, w, 1, 10, 0.8).astype(np.float32)
+    searched = []
+    real = residual_module.allocate
+    monkeypatch.setattr(residual_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
+    settings = ResidualSettings(size_budget=1.0)
+    quick = build_residual(smooth, own, None, settings=settings)
+    assert searched == [16] and quick.luminance.bits == 16
+    searched.clear()
+    monkeypatch.setattr(residual_module, "finest_within", lambda plans, budget, *, bits: None)
+    both = build_residual(smooth, own, None, settings=settings)
+    assert searched == [8, 16]
+    assert np.array_equal(quick.luminance.codes, both.luminance.codes) and np.array_equal(quick.luminance.weights, both.luminance.weights)

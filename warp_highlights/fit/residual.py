@@ -81,6 +81,7 @@ _RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ..
 _RATE_SHARE = 0.125  # ... together this share of the rows ...
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
 _RATE_ROUNDS = 3  # searches on the sampled bytes, each aimed by the exact bytes of the one before, before an exact search
+_FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (the samples were 0-4% off the whole images)
 _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
@@ -274,12 +275,10 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     until the exact bytes are within 1% under the budget or ``_RATE_ROUNDS`` searches have run, and
     then the search runs on the exact bytes. The budget always holds for the exact bytes."""
     levels = code_levels(bits)
-    energies = [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
-    top = max((float(e.max()) for e in energies if e.size), default=0.0)
+    top = _top_energy(plans)
     if top <= 0 or budget_bytes <= 0:  # the floor alone
         return np.inf, [plan.steps(np.inf, levels) for plan in plans]
-    counts = [max(int(np.count_nonzero(e > 0)), min(plan.floor, len(e))) for plan, e in zip(plans, energies)]
-    samples = [RateSample(plan.principal, count) for plan, count in zip(plans, counts)]
+    samples = _rate_samples(plans)
 
     def sampled(steps: list[np.ndarray]) -> float:
         return sum(sample.bytes(step, bits=bits) for sample, step in zip(samples, steps))
@@ -303,6 +302,38 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
         aim *= estimate / stored * (1.0 - 0.5 * _BUDGET_SLACK)  # the middle of the window
         start = log_distortion
     return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
+
+
+def _weighted_energies(plans: list[StackPlan]) -> list[np.ndarray]:
+    return [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
+
+
+def _top_energy(plans: list[StackPlan]) -> float:
+    """The largest weighted energy of any basis image the plans may keep (0 when none)."""
+    return max((float(e.max()) for e in _weighted_energies(plans) if e.size), default=0.0)
+
+
+def _rate_samples(plans: list[StackPlan]) -> list[RateSample]:
+    """The ``RateSample`` of each plan's images that any distortion may keep."""
+    counts = [max(int(np.count_nonzero(e > 0)), min(plan.floor, len(e))) for plan, e in zip(plans, _weighted_energies(plans))]
+    return [RateSample(plan.principal, count) for plan, count in zip(plans, counts)]
+
+
+def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple[float, list[np.ndarray]] | None:
+    """``allocate``'s choice where it is plain from the sampled bytes alone: every image kept as finely as
+    ``bits``-bit codes go, when those bytes are at least ``_FINEST_MARGIN`` under the budget (then
+    ``allocate`` ends there too, unless the sample misjudges the whole images by that much); else None.
+    Checked on every row only by ``allocate``: for a caller that may not keep this choice. Small images,
+    which the rate search deflates whole, are left to ``allocate`` (nothing to save, one deflate to lose)."""
+    levels = code_levels(bits)
+    top = _top_energy(plans)
+    samples = _rate_samples(plans)
+    if top <= 0 or budget_bytes <= 0 or all(sample.exact for sample in samples):
+        return None
+    log_distortion = np.log(top) - _SEARCH_DEPTH
+    steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
+    sampled = sum(sample.bytes(step, bits=bits) for sample, step in zip(samples, steps))
+    return (log_distortion, steps) if sampled <= (1.0 - _FINEST_MARGIN) * budget_bytes else None
 
 
 def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measure, *,
@@ -428,13 +459,18 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         fixed += deflated_bytes(colour_codes(colour))
     if chroma is not None:
         fixed += deflated_bytes(chroma.mean.astype(np.float16)) + 4 * n
-    choice = None
+    # both widths when the settings leave it open: 8-bit first, measured on every row only if 16 bits do
+    # not beat it (its every image at the finest 8-bit step is plain from the sampled bytes alone, and
+    # the whole images' bytes can only make it coarser)
+    options = []
     for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        option = _quantisation(luminance, chroma, settings, bits, budget - fixed)
-        if choice is None or option.distortion < choice.distortion:
-            choice = option
-        if bits == 8 and settings.basis_bits == 0 and not option.finer_with_16_bits:
+        options.append(_quantisation(luminance, chroma, settings, bits, budget - fixed, plain_finest=bits == 8 and settings.basis_bits == 0))
+        if bits == 8 and settings.basis_bits == 0 and not options[-1].finer_with_16_bits:
             break  # 16-bit codes would hold the same quantisation in more bytes
+    choice = min(options, key=lambda option: option.distortion)  # the first on ties: 8 bits
+    if not choice.checked:
+        options[0] = _quantisation(luminance, chroma, settings, 8, budget - fixed)
+        choice = min(options, key=lambda option: option.distortion)
     stacks = {name: LowRankStack.quantised(principal, choice.steps[name], bits=choice.bits)
               for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
     return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
@@ -450,11 +486,14 @@ class _Quantisation:
     steps: dict
     distortion: float
     finer_with_16_bits: bool
+    checked: bool = True  # False: ``finest_within``'s choice, its bytes not yet measured on every row
 
 
-def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float) -> _Quantisation:
+def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float,
+                  *, plain_finest: bool = False) -> _Quantisation:
     """The steps of both stacks at ``bits`` within ``left`` bytes: a stack whose rank the settings fix,
-    each image over its whole range; the others by ``allocate``."""
+    each image over its whole range; the others by ``allocate``, or by ``finest_within`` where
+    ``plain_finest`` is set, no rank is fixed and the sampled bytes make the choice plain (unchecked)."""
     levels = code_levels(bits)
     steps, plans, distortion, finer = {}, {}, 0.0, False
     for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
@@ -469,14 +508,17 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
         else:
             most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
             plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
+    checked = True
     if plans:
-        log_distortion, chosen = allocate(list(plans.values()), left, bits=bits)
+        plain = finest_within(list(plans.values()), left, bits=bits) if plain_finest and not steps else None
+        checked = plain is None
+        log_distortion, chosen = plain if plain is not None else allocate(list(plans.values()), left, bits=bits)
         for (name, plan), plan_steps in zip(plans.items(), chosen):
             steps[name] = plan_steps
             distortion += plan.distortion(plan_steps)
             fine = plan.steps(np.exp(log_distortion), code_levels(16))
             finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
-    return _Quantisation(bits, steps, distortion, finer)
+    return _Quantisation(bits, steps, distortion, finer, checked)
 
 
 class NormalisedResidual:
