@@ -172,12 +172,17 @@ class StackPlan:
     most: int
     floor: int = 0
 
+    @property
+    def energies(self) -> np.ndarray:
+        """(most,) the weighted energies (``gain`` E) of the basis images the plan may keep."""
+        return self.gain * self.principal.energies[1 : self.most + 1]
+
     def steps(self, distortion: float, levels: int) -> np.ndarray:
         """Quantisation steps of the basis images kept at ``distortion`` (squared RGB error, normalised
         units, that each kept image may add; an image of energy below it is dropped, which removes
         less): ``step = sqrt(12 D / (gain E M))``, uniform noise of variance step^2 / 12 over its M
         values costing gain E M step^2 / 12 = D. The floor's images, kept whatever D, at 8 bits over their range."""
-        energies = self.gain * self.principal.energies[1 : self.most + 1]
+        energies = self.energies
         chosen = int(np.count_nonzero(energies > distortion))
         kept = max(chosen, min(self.floor, len(energies)))
         pixels = self.principal.values
@@ -304,19 +309,14 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
 
 
-def _weighted_energies(plans: list[StackPlan]) -> list[np.ndarray]:
-    return [plan.gain * plan.principal.energies[1 : plan.most + 1] for plan in plans]
-
-
 def _top_energy(plans: list[StackPlan]) -> float:
     """The largest weighted energy of any basis image the plans may keep (0 when none)."""
-    return max((float(e.max()) for e in _weighted_energies(plans) if e.size), default=0.0)
+    return max((float(plan.energies.max()) for plan in plans if plan.energies.size), default=0.0)
 
 
 def _rate_samples(plans: list[StackPlan]) -> list[RateSample]:
     """The ``RateSample`` of each plan's images that any distortion may keep."""
-    counts = [max(int(np.count_nonzero(e > 0)), min(plan.floor, len(e))) for plan, e in zip(plans, _weighted_energies(plans))]
-    return [RateSample(plan.principal, count) for plan, count in zip(plans, counts)]
+    return [RateSample(plan.principal, max(int(np.count_nonzero(plan.energies > 0)), min(plan.floor, len(plan.energies)))) for plan in plans]
 
 
 def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple[float, list[np.ndarray]] | None:
