@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..io.codes import deflated_size, stored_bytes, stored_codes
 from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
@@ -158,8 +159,8 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
     """(k,) stored bytes of each basis image of ``stack``: its deflated codes (planes first, as the file
-    keeps them), its range and its per-light weights."""
-    return np.array([deflated_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
+    stores them: ``io.codes``), its range and its per-light weights."""
+    return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -228,10 +229,16 @@ class RateSample:
         height, width, planes = principal.shape
         basis = principal.directions[1 : 1 + count]
         self.images = basis.reshape((count,) + tuple(principal.shape))
-        self.low = basis.min(axis=1).astype(np.float64) if count else np.zeros(0)  # float64, as quantise_basis has them
-        self.span = basis.max(axis=1).astype(np.float64) - self.low if count else np.zeros(0)
-        self.rows = slice(None) if whole else sampled_rows(height, width, planes)
-        self.scale = 1.0 if whole else height / len(self.rows)  # whole image bytes per sampled byte
+        self.low = principal.lows[:count].astype(np.float64)  # float64, as quantise_basis has them
+        self.span = principal.highs[:count].astype(np.float64) - self.low
+        if whole:
+            self.rows, self.counted = slice(None), slice(None)
+        else:  # each band quantised with the row above it, which its first row's stored difference needs
+            counted = sampled_rows(height, width, planes)
+            above = np.setdiff1d(counted - 1, counted)
+            self.rows = np.union1d(counted, above[above >= 0])
+            self.counted = np.isin(self.rows, counted)
+        self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))  # whole image bytes per sampled byte
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
 
     @property
@@ -247,13 +254,18 @@ class RateSample:
         steps = np.maximum(np.asarray(steps, np.float64), np.maximum(self.span[: len(steps)], 1e-300) / levels)
         kind = np.uint8 if bits == 8 else np.uint16
 
-        def one(index: int) -> int:
-            image = self.images[index][self.rows].transpose(2, 0, 1).astype(np.float64)  # (P, rows, W), float64 as quantise_basis rounds
-            codes = np.round((image - self.low[index]) / steps[index]).clip(0, levels).astype(kind)
-            return deflated_bytes(codes)
+        def group(images: slice) -> int:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
+            rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2).astype(np.float64)  # (c, P, rows, W), float64 as quantise_basis rounds
+            low, step = self.low[images, None, None, None], steps[images, None, None, None]
+            codes = np.round((rows - low) / step).clip(0, levels).astype(kind)
+            stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
+            return sum(deflated_size(image) for image in stored)
 
-        deflated = float(sum(parallel_map(one, range(len(steps)))))
-        return deflated * self.scale + self.per_image * len(steps)
+        count = len(steps)
+        values = self.images[0][self.rows].size
+        size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(values, 1)))
+        deflated = float(sum(parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])))
+        return deflated * self.scale + self.per_image * count
 
 
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int) -> float:
@@ -304,7 +316,7 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
             return log_distortion, steps  # nothing more to buy
         if stored <= 0 or estimate <= 0:
             break
-        aim *= estimate / stored * (1.0 - 0.5 * _BUDGET_SLACK)  # the middle of the window
+        aim = budget_bytes * estimate / stored  # the search aims at the middle of its window under ``aim``: the exact bytes then at the budget's
         start = log_distortion
     return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
 

@@ -17,21 +17,27 @@ _WINDOW = 1 << 15  # deflate's window: a piece may refer this far back into the 
 
 
 class ParallelDeflate:
-    """A stand-in for ``zlib.compressobj(level, zlib.DEFLATED, -15)``: ``compress(data)`` returns the
+    """A stand-in for ``zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)``: ``compress(data)`` returns the
     deflated bytes of every whole group of pieces gathered so far, ``flush()`` the rest and the final
     block. The output inflates (``zlib.decompressobj(-15)``) to the input, bit for bit, and does not
     depend on how the input was split into ``compress`` calls."""
 
-    def __init__(self, level: int = zlib.Z_DEFAULT_COMPRESSION, *, threads: int = NUMPY_THREADS):
+    def __init__(self, level: int = zlib.Z_DEFAULT_COMPRESSION, *, strategy: int = zlib.Z_DEFAULT_STRATEGY, threads: int = NUMPY_THREADS):
         self.level = level
+        self.strategy = strategy
         self.threads = max(1, int(threads))
         self.pending = bytearray()
         self.before = b""  # the 32 KiB of input before the pending bytes
 
     def _piece(self, job: tuple) -> bytes:
         data, dictionary = job
-        compressor = zlib.compressobj(self.level, zlib.DEFLATED, -15, zdict=dictionary) if dictionary else zlib.compressobj(self.level, zlib.DEFLATED, -15)
+        compressor = self._compressor(dictionary)
         return compressor.compress(data) + compressor.flush(zlib.Z_SYNC_FLUSH)  # byte-aligned, not the last block
+
+    def _compressor(self, dictionary: bytes = b""):
+        if dictionary:
+            return zlib.compressobj(self.level, zlib.DEFLATED, -15, 8, self.strategy, zdict=dictionary)
+        return zlib.compressobj(self.level, zlib.DEFLATED, -15, 8, self.strategy)
 
     def _deflate(self, end: int) -> bytes:
         """Deflate ``pending[:end]`` in pieces of ``PIECE_BYTES``, in threads."""
@@ -56,4 +62,4 @@ class ParallelDeflate:
 
     def flush(self) -> bytes:
         tail = self._deflate(len(self.pending)) if self.pending else b""
-        return tail + zlib.compressobj(self.level, zlib.DEFLATED, -15).flush()  # an empty final block ends the stream
+        return tail + self._compressor().flush()  # an empty final block ends the stream

@@ -29,8 +29,12 @@ entry                           dtype, shape     contents
 ``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
 ``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
                                 (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
-``residual/Y_codes.npy``        <u1 or <u2       8- or 16-bit basis images of that stack
-                                (k, P, H, W)
+``residual/Y_codes.npy``        <u1              version 4: the 8- or 16-bit basis images of that
+                                (k, P, H, W) or  stack as ``io.codes`` stores them: each row less the
+                                (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits; 16-bit
+                                                 differences as high and low byte planes; deflated
+                                                 run-length only (zlib's ``Z_RLE``). Versions 2 and
+                                                 3: the codes themselves, <u1 or <u2 (k, P, H, W)
 ``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
 ``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
 ``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
@@ -54,6 +58,8 @@ Version 1 (before residual transfer) has no ``gaussians/moving`` and no ``residu
 loads with every Gaussian moving and no residual (relighting then uses its diffuse model).
 
 Version 2 files have no learned residual; they load unchanged.
+
+Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy``); they load unchanged.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -84,9 +90,10 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
 )
-from ..model.threads import NUMPY_THREADS
+from ..model.threads import NUMPY_THREADS, parallel_map
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
+from .codes import CODES_LEVEL, CODES_STRATEGY, codes_from_stored, stored_codes, stored_shape
 from .deflate import ParallelDeflate
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
@@ -94,7 +101,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_f
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 _PARALLEL_BYTES = 1 << 24
 """Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's basis codes) are deflated in threads."""
@@ -306,7 +313,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", stack.codes.transpose(0, 3, 1, 2).astype("<u1" if stack.bits == 8 else "<u2", copy=False)),  # a view: written in chunks
+            (prefix + "codes.npy", _StoredCodes(stack.codes)),  # row differences in byte planes, an image at a time
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -339,10 +346,44 @@ def _entry_info(name: str) -> zipfile.ZipInfo:
     return info
 
 
-def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+class _StoredCodes:
+    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: one uint8
+    ``.npy`` entry of ``stored_shape``, deflated with the codes' strategy, made an image at a time."""
+
+    def __init__(self, codes: np.ndarray):
+        self.codes = codes
+        rank, height, width, planes = codes.shape
+        self.shape = stored_shape(rank, planes, height, width, 8 if codes.dtype == np.uint8 else 16)
+        self.nbytes = math.prod(self.shape)
+
+    def images(self):
+        """Each basis image's stored bytes, in order (a few images at a time in threads)."""
+        block = max(1, NUMPY_THREADS)
+        for start in range(0, len(self.codes), block):
+            yield from parallel_map(lambda code: stored_codes(code.transpose(2, 0, 1)), self.codes[start : start + block])
+
+
+def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> None:
+    """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
+    image's stored codes, deflated with ``CODES_STRATEGY`` (in threads where large)."""
+    with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
+        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):  # else the zip writer's own (zlib's default strategy)
+            if stored.nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
+                entry._compressor = ParallelDeflate(CODES_LEVEL, strategy=CODES_STRATEGY)
+            else:
+                entry._compressor = zlib.compressobj(CODES_LEVEL, zlib.DEFLATED, -15, 8, CODES_STRATEGY)
+        np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
+        for image in stored.images():
+            entry.write(image.reshape(-1))
+
+
+def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
     """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
     ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
     about the same size), where the zip writer has the compressor this replaces."""
+    if isinstance(array, _StoredCodes):
+        _write_codes(archive, name, array)
+        return
     array = np.asarray(array)
     if array.flags.f_contiguous and not array.flags.c_contiguous:
         array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
@@ -701,7 +742,7 @@ def _build_field(
     residual = None
     residual_layout = header.get("residual")
     if residual_layout is not None:
-        residual = _read_residual(path, residual_layout, read, n, height, width)
+        residual = _read_residual(path, residual_layout, read, n, height, width, header["format_version"])
 
     try:
         field = HighlightField(
@@ -728,8 +769,8 @@ def _build_field(
     return field
 
 
-def _read_residual(path: Path, layout, read, n: int, height: int, width: int) -> ResidualModel:
-    """The residual model of a version-2 or -3 file, from its header layout and entries."""
+def _read_residual(path: Path, layout, read, n: int, height: int, width: int, version: int) -> ResidualModel:
+    """The residual model of a version-2, -3 or -4 file, from its header layout and entries."""
     if not isinstance(layout, dict):
         raise _corrupt(path, "header entry 'residual' must be null or a JSON object")
     channels = _header_int(path, layout, "channels", 1, 3)
@@ -762,9 +803,13 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int) ->
                 raise _corrupt(path, f"header entry residual.{name}.bits must be 8 or 16, got {bits!r}")
             prefix = _STACK_PREFIX[name]
             mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
+            if version >= 4:
+                codes = codes_from_stored(read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits)), bits)
+            else:
+                codes = read(prefix + "codes.npy", "<u1" if bits == 8 else "<u2", (rank, planes, height, width))
             stacks[name] = LowRankStack(
                 mean=mean.transpose(1, 2, 0).astype(np.float32),
-                codes=read(prefix + "codes.npy", "<u1" if bits == 8 else "<u2", (rank, planes, height, width)).transpose(0, 2, 3, 1),
+                codes=codes.transpose(0, 2, 3, 1),
                 ranges=read(prefix + "ranges.npy", "<f4", (rank, 2)),
                 weights=read(prefix + "weights.npy", "<f4", (n, rank)),
                 mean_weights=read(prefix + "mean_weights.npy", "<f4", (n,)),

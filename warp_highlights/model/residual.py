@@ -199,21 +199,48 @@ class PrincipalImages:
 
     @cached_property
     def spans(self) -> np.ndarray:
-        """(count - 1,) max - min of each basis image (direction 1 on)."""
+        """(count - 1,) max - min of each basis image (direction 1 on), float32."""
+        return self._extremes[1] - self._extremes[0]
+
+    @property
+    def lows(self) -> np.ndarray:
+        """(count - 1,) min of each basis image (direction 1 on), float32."""
+        return self._extremes[0]
+
+    @property
+    def highs(self) -> np.ndarray:
+        """(count - 1,) max of each basis image (direction 1 on), float32."""
+        return self._extremes[1]
+
+    @cached_property
+    def _extremes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) of each basis image, float32, a few images a thread."""
         basis = self.directions[1:]
-        return basis.max(axis=1) - basis.min(axis=1) if len(basis) else np.zeros(0)
+        if not len(basis):
+            return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        lows, highs = np.empty(len(basis), basis.dtype), np.empty(len(basis), basis.dtype)
+
+        def part(rows: slice) -> None:
+            lows[rows], highs[rows] = basis[rows].min(axis=1), basis[rows].max(axis=1)
+
+        parallel_map(part, [slice(start, min(start + 4, len(basis))) for start in range(0, len(basis), 4)])
+        return lows, highs
 
 
 
-def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int) -> tuple[np.ndarray, np.ndarray]:
+def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
+                   highs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
     levels, so its codes fit), from each image's minimum: (codes (k, M) uint8 or uint16, ranges (k, 2)
-    float32 (low, low + step x levels)), as ``LowRankStack`` stores them."""
+    float32 (low, low + step x levels)), as ``LowRankStack`` stores them. ``lows``, ``highs``: the
+    images' minima and maxima where known (else found here)."""
     levels = code_levels(bits)
     basis = np.asarray(basis)
     k = len(basis)
-    low = basis.min(axis=1).astype(np.float64) if k else np.zeros(0)
-    span = basis.max(axis=1).astype(np.float64) - low if k else np.zeros(0)
+    lows = basis.min(axis=1) if lows is None and k else lows
+    highs = basis.max(axis=1) if highs is None and k else highs
+    low = np.asarray(lows, np.float64) if k else np.zeros(0)
+    span = np.asarray(highs, np.float64) - low if k else np.zeros(0)
     steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
     codes = np.empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
 
@@ -286,7 +313,7 @@ class LowRankStack:
         k = len(steps)
         if k > principal.count - 1:
             raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
-        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits)
+        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k])
         mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
