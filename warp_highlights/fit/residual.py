@@ -221,7 +221,8 @@ def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
 
 class RateSample:
     """What the rate search deflates of a ``PrincipalImages``' first ``count`` basis images: their
-    ``sampled_rows`` (every row where ``whole``), planes first as the file keeps them, quantised from
+    ``sampled_rows`` (every row where ``whole``), planes first and stored as the file stores them
+    (``io.codes``: a band's first row less the row above it, quantised for that), quantised from
     the whole images' minima and spans as ``quantise_basis`` does. ``bytes`` estimates a quantisation's
     stored bytes from them; on every row it is exactly ``component_bytes`` of ``LowRankStack.quantised``."""
 
@@ -288,7 +289,7 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     The deflated bytes fall with the log distortion, nearly linearly: ``_search`` takes secant steps
     on log bytes, then Illinois regula falsi once the budget is bracketed. It runs on bytes estimated
     from ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the
-    next search (the budget scaled by exact over sampled), which starts where the last one ended,
+    next search (the budget scaled by sampled over exact), which starts where the last one ended,
     until the exact bytes are within 1% under the budget or ``_RATE_ROUNDS`` searches have run, and
     then the search runs on the exact bytes. The budget always holds for the exact bytes."""
     levels = code_levels(bits)
