@@ -240,6 +240,7 @@ class RateSample:
             self.rows = np.union1d(counted, above[above >= 0])
             self.counted = np.isin(self.rows, counted)
         self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))  # whole image bytes per sampled byte
+        self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
 
     @property
@@ -263,8 +264,7 @@ class RateSample:
             return sum(deflated_size(image) for image in stored)
 
         count = len(steps)
-        values = self.images[0][self.rows].size
-        size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(values, 1)))
+        size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
         deflated = float(sum(parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])))
         return deflated * self.scale + self.per_image * count
 

@@ -7,8 +7,8 @@ high bytes first: (P, H, W) uint8 or (P, 2, H, W) uint8. The deflate stream uses
 strategy (``Z_RLE``: matches only at distance one).
 
 Against the version-3 layout (the codes as they are, 16 bits little-endian, zlib level 6), on the
-basis codes of the 250-light 480x270 donut and the dome (16-bit) and the statue (8-bit): 82-96% of
-the bytes, deflated 2.4-7.9 times faster (``benchmarks/bench_codes.py``). Level 6 spends its time
+basis codes of the 250-light 480x270 donut and the dome (16-bit) and the statue (8-bit): 82-98% of
+the bytes, deflated 4-9 times faster (``benchmarks/bench_codes.py``). Level 6 spends its time
 searching long match chains in noisy low bytes for matches that run-length coding finds at once; the
 row differences make smooth images' high bytes runs of zeros.
 """

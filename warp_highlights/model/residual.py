@@ -239,6 +239,8 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.
     k = len(basis)
     lows = basis.min(axis=1) if lows is None and k else lows
     highs = basis.max(axis=1) if highs is None and k else highs
+    if k and (np.shape(lows) != (k,) or np.shape(highs) != (k,)):
+        raise InputError(f"quantise_basis needs one minimum and maximum per basis image ({k}), got {np.shape(lows)} and {np.shape(highs)}")
     low = np.asarray(lows, np.float64) if k else np.zeros(0)
     span = np.asarray(highs, np.float64) - low if k else np.zeros(0)
     steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
