@@ -10,6 +10,8 @@ import signal
 import subprocess
 import sys
 import threading
+import time
+import weakref
 
 import pytest
 
@@ -24,6 +26,7 @@ from warp_highlights.io.atomic import (
     clean_stale_partials,
     deferred_signals,
     describe_os_error,
+    end_of_command,
     handle_termination,
     remove_partials,
 )
@@ -259,6 +262,34 @@ def test_signals_wait_for_the_end_of_a_deferred_block():
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
+
+
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals need the main thread")
+def test_an_interrupt_raised_inside_a_library_s_weakref_callback_is_delivered_again_without_a_traceback(capfd):
+    """A signal that lands in a weakref callback defined as a lambda (matplotlib's transforms have
+    them, and frames cannot tell it for a callback): the interpreter would print the interruption and
+    drop it. It is delivered again a moment later and stops the work, and nothing is printed."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    hook = sys.unraisablehook
+    handle_termination()
+    try:
+        class Thing:
+            pass
+
+        thing = Thing()
+        reference = weakref.ref(thing, lambda _: signal.raise_signal(signal.SIGINT))  # the handler runs inside the callback
+        started = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            del thing
+            while time.monotonic() - started < 5.0:
+                time.sleep(0.005)
+        assert reference() is None and time.monotonic() - started < 1.0
+    finally:
+        end_of_command()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        sys.unraisablehook = hook
+    assert "Traceback" not in capfd.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -107,6 +107,9 @@ def handle_termination(*, hold_after_output: bool = False) -> None:
     _import_retries = 0
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
+    if sys.unraisablehook is not _unraisable:
+        global _previous_unraisable
+        _previous_unraisable, sys.unraisablehook = sys.unraisablehook, _unraisable
 
 
 def end_of_command() -> int | None:
@@ -153,14 +156,33 @@ def _on_signal(signum, frame) -> None:
         _pending_signal = signum
         return
     if _import_retries < _MAX_IMPORT_RETRIES and _swallowing(frame):  # again shortly, where it can propagate
-        _import_retries += 1
-        timer = threading.Timer(_IMPORT_RETRY_SECONDS, os.kill, (os.getpid(), signum))
-        timer.daemon = True
-        _retry_timers.append(timer)
-        timer.start()
+        _deliver_again(signum)
         return
     _import_retries = 0
     raise _interruption(signum)
+
+
+def _deliver_again(signum: int) -> None:
+    """Send ``signum`` to this process again in ``_IMPORT_RETRY_SECONDS`` (``end_of_command`` cancels it)."""
+    global _import_retries
+    _import_retries += 1
+    timer = threading.Timer(_IMPORT_RETRY_SECONDS, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    _retry_timers.append(timer)
+    timer.start()
+
+
+def _unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` while the handlers are installed: an interruption the handler raised in
+    a callback the interpreter runs with errors printed and ignored (a weakref callback or finaliser
+    that ``_swallowing`` cannot tell from its frames, such as a library's lambda) is not printed as a
+    traceback but delivered again shortly, where it can stop the work; anything else goes to the
+    hook there was before."""
+    signum = _received_signal
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and signum is not None and _import_retries < _MAX_IMPORT_RETRIES:
+        _deliver_again(signum)
+        return
+    _previous_unraisable(unraisable)
 
 
 def _swallowing(frame) -> bool:
@@ -175,6 +197,7 @@ def _swallowing(frame) -> bool:
 
 
 _WEAKREF_FILE = f"{os.sep}weakref.py"
+_previous_unraisable = sys.unraisablehook
 
 
 def _interruption(signum: int) -> KeyboardInterrupt:
