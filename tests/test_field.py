@@ -1001,15 +1001,17 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
 # --- deflate in threads ---------------------------------------------------------------------------
 
 
-@given(data=st.binary(min_size=0, max_size=20_000), repeat=st.integers(1, 6), split=st.integers(1, 7_000), threads=st.integers(1, 4))
+@given(data=st.binary(min_size=0, max_size=20_000), repeat=st.integers(1, 6), split=st.integers(1, 7_000), threads=st.integers(1, 4),
+       strategy=st.sampled_from([zlib.Z_DEFAULT_STRATEGY, zlib.Z_RLE]))
 @settings(max_examples=60, deadline=None)
-def test_parallel_deflate_inflates_to_its_input_however_it_is_fed(data, repeat, split, threads, monkeypatch_module):
+def test_parallel_deflate_inflates_to_its_input_however_it_is_fed(data, repeat, split, threads, strategy, monkeypatch_module):
     """Pieces of 1,000 bytes (forced) deflated in threads, each primed with the 32 KiB before it: one
-    raw deflate stream that inflates to the input, whatever the compress() calls' sizes."""
+    raw deflate stream that inflates to the input, whatever the compress() calls' sizes (zlib's default
+    strategy, and run-length only as the basis codes use)."""
     data = data * repeat
-    compressor = ParallelDeflate(6, threads=threads)
+    compressor = ParallelDeflate(6, strategy=strategy, threads=threads)
     stream = b"".join(compressor.compress(data[i : i + split]) for i in range(0, len(data), split)) + compressor.flush()
-    whole = ParallelDeflate(6, threads=threads)
+    whole = ParallelDeflate(6, strategy=strategy, threads=threads)
     assert whole.compress(data) + whole.flush() == stream  # the same bytes, however it was fed
     inflate = zlib.decompressobj(-15)
     assert inflate.decompress(stream) + inflate.flush() == data and inflate.eof

@@ -40,12 +40,15 @@ class ParallelDeflate:
         return zlib.compressobj(self.level, zlib.DEFLATED, -15, 8, self.strategy)
 
     def _deflate(self, end: int) -> bytes:
-        """Deflate ``pending[:end]`` in pieces of ``PIECE_BYTES``, in threads."""
-        data = bytes(self.pending[:end])
+        """Deflate ``pending[:end]`` in pieces of ``PIECE_BYTES``, in threads (one copy of the input:
+        the pieces are views of it)."""
+        with memoryview(self.pending) as pending:
+            data = bytes(pending[:end])
         del self.pending[:end]
+        view = memoryview(data)
         starts = range(0, len(data), PIECE_BYTES)
-        jobs = [(data[start : start + PIECE_BYTES], self._window(data, start)) for start in starts]
-        self.before = (self.before + data)[-_WINDOW:]
+        jobs = [(view[start : start + PIECE_BYTES], self._window(data, start)) for start in starts]
+        self.before = (self.before + data[-_WINDOW:])[-_WINDOW:]
         return b"".join(parallel_map(self._piece, jobs))
 
     def _window(self, data: bytes, start: int) -> bytes:
