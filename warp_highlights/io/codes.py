@@ -34,19 +34,17 @@ def stored_shape(rank: int, planes: int, height: int, width: int, bits: int) -> 
     return (rank, planes, height, width) if bits == 8 else (rank, planes, 2, height, width)
 
 
-def stored_codes(codes: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
+def stored_codes(codes: np.ndarray) -> np.ndarray:
     """The stored form of (..., R, W) uint8 or uint16 codes: each row less the row above, modulo
-    2^bits (the first row less ``previous``, the (..., W) row above it, or as it is without one);
-    uint16 differences split into (..., 2, R, W) byte planes, high bytes first. Returns uint8."""
+    2^bits (the first row as it is); uint16 differences split into (..., 2, R, W) byte planes, high
+    bytes first. Returns uint8. (A band of rows taken with the row above it gives, from its second
+    row on, the whole image's stored rows: the rate search samples bands so.)"""
     codes = np.asarray(codes)
     if codes.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"basis codes must be uint8 or uint16, got {codes.dtype}")
     difference = np.empty(codes.shape, codes.dtype)
     np.subtract(codes[..., 1:, :], codes[..., :-1, :], out=difference[..., 1:, :])  # unsigned: wraps
-    if previous is None:
-        difference[..., :1, :] = codes[..., :1, :]
-    else:
-        np.subtract(codes[..., :1, :], np.asarray(previous, codes.dtype)[..., None, :], out=difference[..., :1, :])
+    difference[..., :1, :] = codes[..., :1, :]
     if codes.dtype == np.uint8:
         return difference
     stored = np.empty(codes.shape[:-2] + (2,) + codes.shape[-2:], np.uint8)
@@ -72,9 +70,9 @@ def codes_from_stored(stored: np.ndarray, bits: int) -> np.ndarray:
     return codes
 
 
-def stored_bytes(codes: np.ndarray, previous: np.ndarray | None = None) -> int:
+def stored_bytes(codes: np.ndarray) -> int:
     """Bytes of (..., R, W) codes as the field file deflates them: ``deflated_size`` of ``stored_codes``."""
-    return deflated_size(stored_codes(codes, previous))
+    return deflated_size(stored_codes(codes))
 
 
 def deflated_size(stored: np.ndarray) -> int:

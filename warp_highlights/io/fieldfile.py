@@ -367,11 +367,7 @@ def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> N
     """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
     image's stored codes, deflated with ``CODES_STRATEGY`` (in threads where large)."""
     with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
-        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):  # else the zip writer's own (zlib's default strategy)
-            if stored.nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
-                entry._compressor = ParallelDeflate(CODES_LEVEL, strategy=CODES_STRATEGY)
-            else:
-                entry._compressor = zlib.compressobj(CODES_LEVEL, zlib.DEFLATED, -15, 8, CODES_STRATEGY)
+        _set_compressor(entry, stored.nbytes, CODES_LEVEL, CODES_STRATEGY)
         np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
         for image in stored.images():
             entry.write(image.reshape(-1))
@@ -390,9 +386,20 @@ def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
     with archive.open(
         _entry_info(name), "w", force_zip64=array.nbytes > 2**30
     ) as entry:
-        if array.nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1 and type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
-            entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)  # what zipfile's own would be: level 6, raw deflate
+        _set_compressor(entry, array.nbytes, zlib.Z_DEFAULT_COMPRESSION, zlib.Z_DEFAULT_STRATEGY)  # what zipfile's own is: level 6, raw deflate
         np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
+
+
+def _set_compressor(entry, nbytes: int, level: int, strategy: int) -> None:
+    """Give a zip entry being written a raw deflate of ``level`` and ``strategy``: ``ParallelDeflate``
+    for ``_PARALLEL_BYTES`` or more (with more than one core), else zlib's own compressor (kept as it
+    is where it already is that). Only where the zip writer has the compressor this replaces."""
+    if type(getattr(entry, "_compressor", None)) is not type(zlib.compressobj()):
+        return
+    if nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
+        entry._compressor = ParallelDeflate(level, strategy=strategy)
+    elif strategy != zlib.Z_DEFAULT_STRATEGY:
+        entry._compressor = zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:
