@@ -178,7 +178,8 @@ def fit_field(
                                                                  initial=winner, tune=winner is not None)
         else:
             with timer.stage("residual compression"):
-                residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted))
+                residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted),
+                                                device=device)
 
     diffuse_model = None
     if diffuse != "none":

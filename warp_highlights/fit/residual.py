@@ -27,6 +27,7 @@ import warp as wp
 from ..io.codes import deflated_size, stored_bytes, stored_codes
 from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
+from ..kernels.gram import DeviceProducts
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
@@ -411,8 +412,11 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
     return best
 
 
-def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0) -> ResidualModel:
+def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,
+                   device=None) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
+    On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
+    equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS.
 
     Compressed, a stack whose rank the settings fix keeps that many basis images, each quantised over
     its whole range. Otherwise the whole field is kept within ``size_budget`` of the 8-bit capture,
@@ -458,13 +462,15 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
     squares = sum(parallel_map(normalise, _row_bands(images)))
     light_scale = np.sqrt(squares / (height * width))  # both stacks weigh each light by its brightness
+    products = DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
     if held:
-        luminance = PrincipalImages.of(luminance_stack, light_scale)
-        chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale)
+        luminance = PrincipalImages.of(luminance_stack, light_scale, products=products)
+        chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale, products=products)
     else:  # read from the images a block at a time (three passes each instead of one), never held whole; the principal
         # directions, as large, in a file mapped into memory (paged out as memory runs short)
-        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True)
-        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True)
+        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True, products=products)
+        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True,
+                                                                      products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     budget = settings.size_budget * n * height * width * channels
     fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))

@@ -102,6 +102,19 @@ class StackSource(Protocol):
         """(n, len(columns)) float64 values of the flattened stack (H W P values an image, planes last)."""
 
 
+class StackProducts(Protocol):
+    """Where the stack's products are summed instead of the host's BLAS (``kernels.gram.DeviceProducts``
+    on CUDA): ``upload`` a (rows, w) float32 block; ``cross_sum(rows, columns)`` a running float64 sum
+    of a b^T over uploaded blocks (``add(a, b=None)``, ``value()``); ``project(matrix, block)`` a
+    float64 (r, n) matrix times an (n, w) float32 block, as float32."""
+
+    def upload(self, block: np.ndarray): ...
+
+    def cross_sum(self, rows: int, columns: int): ...
+
+    def project(self, matrix: np.ndarray, block: np.ndarray) -> np.ndarray: ...
+
+
 @dataclass(frozen=True, eq=False)
 class ArraySource:
     """A stack held whole as an (n, M) float32 array (M = H W P)."""
@@ -115,6 +128,10 @@ class ArraySource:
 
     def block(self, columns: slice) -> np.ndarray:
         return _as_float64(self.flat[:, columns])
+
+    def block32(self, columns: slice) -> np.ndarray:
+        """The same block as float32 (the stored values, copied contiguous)."""
+        return np.ascontiguousarray(self.flat[:, columns])
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,6 +155,8 @@ class PrincipalImages:
             (r <= n: the directions of non-zero energy; at least 1): what keeping it removes.
         directions: (r, M) float32 unit rows.
         mean: (M,) float64 the first direction at the images' scale.
+        products: where the stack's products were summed (None: the host's BLAS); ``LowRankStack.quantised``
+            sums its weights' there too.
     """
 
     source: StackSource
@@ -145,27 +164,38 @@ class PrincipalImages:
     energies: np.ndarray
     directions: np.ndarray
     mean: np.ndarray
+    products: StackProducts | None = None
 
     @classmethod
-    def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None) -> PrincipalImages:
+    def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None, *, products: StackProducts | None = None) -> PrincipalImages:
         """The principal images of an (n, H, W, P) array (kept as float32)."""
         stack = np.asarray(stack)
         flat = np.ascontiguousarray(stack.reshape(len(stack), -1), dtype=np.float32)
-        return cls.of_source(ArraySource(flat, tuple(stack.shape[1:])), light_scale)
+        return cls.of_source(ArraySource(flat, tuple(stack.shape[1:])), light_scale, products=products)
 
     @classmethod
-    def of_source(cls, source: StackSource, light_scale: np.ndarray | None = None, *, spill: bool = False) -> PrincipalImages:
+    def of_source(cls, source: StackSource, light_scale: np.ndarray | None = None, *, spill: bool = False,
+                  products: StackProducts | None = None) -> PrincipalImages:
         """The principal images of the stack ``source`` gives, normalised by ``light_scale`` (default:
         each image's RMS, one more pass over the source). ``spill``: ``directions`` in a temporary
-        file mapped into memory (``spilled_empty``) rather than in memory alone."""
+        file mapped into memory (``spilled_empty``) rather than in memory alone. ``products``: the Gram
+        matrix and the projections summed there (the stack's float32 blocks, unscaled: the scale is
+        applied to the n x n matrices), else by the host's BLAS on float64 blocks."""
         n = source.light_count
         pixels = int(np.prod(source.shape))
         if light_scale is None:
             light_scale = np.sqrt(sum((np.sum(np.square(block), axis=1) for block in _blocks(source)), np.zeros(n)) / max(pixels, 1))
         light_scale = _floored(light_scale, n)
-        gram = np.zeros((n, n))
-        for block in _blocks(source, light_scale):
-            gram += block @ block.T  # BLAS's own threads
+        factor = 1.0 / light_scale
+        if products is None:
+            gram = np.zeros((n, n))
+            for block in _blocks(source, light_scale):
+                gram += block @ block.T  # BLAS's own threads
+        else:
+            total = products.cross_sum(n, n)
+            for block in _blocks32(source):
+                total.add(products.upload(block))
+            gram = total.value() * np.outer(factor, factor)
         values, vectors = np.linalg.eigh(gram)
         order = np.argsort(values)[::-1]
         order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
@@ -175,12 +205,17 @@ class PrincipalImages:
         else:
             directions = spilled_empty((len(order), pixels), np.float32) if spill else np.empty((len(order), pixels), np.float32)
             projection = vectors[:, order].T / np.sqrt(energies)[:, None]
-            for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
-                directions[:, columns] = projection @ block
+            if products is None:
+                for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
+                    directions[:, columns] = projection @ block
+            else:
+                scaled = projection * factor[None, :]
+                for columns, block in zip(_column_slices(n, pixels), _blocks32(source)):
+                    directions[:, columns] = products.project(scaled, block)
         first = directions[0].astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
-        return cls(source, tuple(source.shape), energies, directions, mean)
+        return cls(source, tuple(source.shape), energies, directions, mean, products)
 
     @property
     def light_count(self) -> int:
@@ -325,17 +360,28 @@ class LowRankStack:
         # least squares by the (k + 1)-square normal equations (the planes are nearly orthogonal),
         # summed over blocks of the stored planes (float32 as the relighter decodes them)
         low, step = model.ranges[:, 0], (model.ranges[:, 1] - model.ranges[:, 0]) / np.float32(code_levels(bits))
+        products = principal.products
         normal, right = np.zeros((k + 1, k + 1)), np.zeros((k + 1, n))
+        normal_sum = right_sum = None
+        if products is not None:  # float32 design and stack blocks, summed in float64 there: the same products
+            normal_sum, right_sum = products.cross_sum(k + 1, k + 1), products.cross_sum(k + 1, n)
         for columns in _column_slices(max(k + 1, n), pixels):
-            design = np.empty((k + 1, columns.stop - columns.start), np.float64)
+            design = np.empty((k + 1, columns.stop - columns.start), np.float64 if products is None else np.float32)
             design[0] = mean32[columns]
 
             def planes(rows: slice, columns=columns, design=design) -> None:  # threads, a few basis images each
                 design[1:][rows] = low[rows, None] + codes[rows, columns].astype(np.float32) * step[rows, None]
 
             parallel_map(planes, [slice(a, min(a + 8, k)) for a in range(0, k, 8)])
-            normal += design @ design.T  # BLAS's own threads
-            right += design @ principal.source.block(columns).T
+            if products is None:
+                normal += design @ design.T  # BLAS's own threads
+                right += design @ principal.source.block(columns).T
+            else:
+                uploaded = products.upload(design)
+                normal_sum.add(uploaded)
+                right_sum.add(uploaded, products.upload(_block32(principal.source, columns)))
+        if products is not None:
+            normal, right = normal_sum.value(), right_sum.value()
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
         solution = np.linalg.solve(normal, right)
         return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
@@ -388,6 +434,18 @@ def _blocks(source: StackSource, light_scale: np.ndarray | None = None):
         if factor is not None:
             _scale_rows(block, factor)
         yield block
+
+
+def _block32(source: StackSource, columns: slice) -> np.ndarray:
+    """A block of columns as float32 (the stack's values are float32: exact)."""
+    block32 = getattr(source, "block32", None)
+    return block32(columns) if block32 is not None else source.block(columns).astype(np.float32)
+
+
+def _blocks32(source: StackSource):
+    """Column blocks of a stack as float32, unscaled."""
+    for columns in _column_slices(source.light_count, int(np.prod(source.shape))):
+        yield _block32(source, columns)
 
 
 def spilled_empty(shape: tuple, dtype) -> np.ndarray:
