@@ -4,7 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from warp_highlights.kernels.segmentation import band_rows, host_array, segment, segment_in_bands
+import warp as wp
+from warp_highlights.kernels.segmentation import (
+    _MEDIAN_BISECTIONS,
+    _lambert,
+    _median_residual,
+    band_rows,
+    host_array,
+    segment,
+    segment_in_bands,
+)
 
 from warp_highlights.fit.estimation import psnr
 from warp_highlights.io.dataset import ReflectanceField
@@ -67,6 +76,69 @@ def test_kernel_matches_float64_reference(device):
                 np.testing.assert_allclose(lambert[q], ref_fit, atol=2e-3)
     # the median is a float32 bisection: a residual within float32 resolution of the limit may flip
     assert agree >= 196, f"only {agree} of 200 columns match the float64 reference"
+
+
+@wp.func
+def _bisected_rank(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, rank: int,
+                   largest: float) -> float:
+    """The rank-th smallest residual by one halving a pass (the kernel's former median, kept as the reference)."""
+    lo = float(0.0)
+    hi = largest
+    for _ in range(_MEDIAN_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        below = int(0)
+        for i in range(images.shape[0]):
+            value = images[i, q]
+            if value >= threshold and wp.abs(value - _lambert(directions[i], fit)) <= mid:
+                below += 1
+        if below > rank:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+@wp.kernel
+def _medians(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), fits: wp.array(dtype=wp.vec4), threshold: float,
+             together: wp.array(dtype=float), apart: wp.array(dtype=float), residuals: wp.array2d(dtype=float), valid: wp.array(dtype=int)):
+    q = wp.tid()
+    fit = fits[q]
+    count = int(0)
+    largest = float(0.0)
+    for i in range(images.shape[0]):
+        value = images[i, q]
+        residual = wp.abs(value - _lambert(directions[i], fit))
+        residuals[i, q] = residual
+        if value >= threshold:
+            count += 1
+            largest = wp.max(largest, residual)
+    valid[q] = count
+    together[q] = _median_residual(images, directions, q, threshold, fit, count, largest)
+    apart[q] = 0.5 * (_bisected_rank(images, directions, q, threshold, fit, (count - 1) // 2, largest)
+                      + _bisected_rank(images, directions, q, threshold, fit, count // 2, largest))
+
+
+def test_median_two_halvings_a_pass_equals_one_a_pass_and_the_exact_median(device):
+    """The kernel's median (both ranks, two halvings a pass) is bit for bit the one-halving-a-pass bisection,
+    and within float32 resolution of NumPy's median of the same residuals."""
+    rng = np.random.default_rng(11)
+    columns, directions = synthetic_columns(rng, 500, 61)
+    columns[:, :40] = np.where(rng.random((61, 40)) < 0.5, 0.0, columns[:, :40])  # odd and even valid counts, ties at zero
+    fits = np.concatenate([rng.normal(size=(500, 3)) * 0.5, rng.uniform(0.0, 0.1, (500, 1))], axis=1).astype(np.float32)
+    threshold = SegmentationSettings().valid_threshold
+    together, apart = wp.zeros(500, dtype=float, device=device), wp.zeros(500, dtype=float, device=device)
+    residuals, valid = wp.zeros((61, 500), dtype=float, device=device), wp.zeros(500, dtype=int, device=device)
+    wp.launch(_medians, dim=500, inputs=[wp.array(columns, dtype=float, device=device), wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device),
+                                         wp.array(fits, dtype=wp.vec4, device=device), threshold],
+              outputs=[together, apart, residuals, valid], device=device)
+    assert together.numpy().tobytes() == apart.numpy().tobytes()
+    counts = valid.numpy()
+    assert len(set(counts % 2)) == 2  # both parities of the valid count were tried
+    residual, kept = residuals.numpy(), columns >= threshold
+    exact = np.array([np.median(residual[kept[:, q], q].astype(np.float64)) if counts[q] else 0.0 for q in range(500)])
+    largest = np.array([residual[kept[:, q], q].max() if counts[q] else 0.0 for q in range(500)])
+    error = np.abs(together.numpy() - exact)
+    assert np.all(error <= 2.0 * 2.0**-_MEDIAN_BISECTIONS * largest + 2e-7 * exact), error.max()  # each rank within one final interval
 
 
 def test_any_split_over_cpu_threads_gives_the_same_result():
