@@ -28,6 +28,7 @@ import warp as wp
 from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance the Gaussians are fitted to
+from warp_highlights.model.threads import all_finite
 
 from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
 
@@ -295,7 +296,7 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     channels = shape[3] if len(shape) == 4 else 1
     if channels not in (1, 3):
         raise InputError(f"images must have 1 or 3 channels, got {channels}")
-    if not np.all(np.isfinite(stack.numpy() if stack is images else host)):
+    if not all_finite(stack.numpy() if stack is images else host):
         raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
     columns = height * width * channels
     flat = stack.reshape((n, columns))

@@ -30,6 +30,7 @@ from ..model.config import (
 )
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.threads import all_finite
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 
@@ -96,7 +97,7 @@ def estimate(
     host_targets = targets.numpy() if isinstance(targets, wp.array) else np.asarray(targets, dtype=np.float32)
     if host_targets.ndim != 3:
         raise InputError(f"estimation targets must have shape (lights, height, width), got {host_targets.shape}")
-    if not np.all(np.isfinite(host_targets)):
+    if not all_finite(host_targets):
         raise InputError("the specular images have non-finite pixels")
     chunks = problem_chunks(len(host_targets), device, workers)
     graphs = device.is_cuda if graphs is None else bool(graphs)

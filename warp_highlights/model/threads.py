@@ -6,7 +6,9 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-__all__ = ["NUMPY_THREADS", "core_count", "parallel_map"]
+import numpy as np
+
+__all__ = ["NUMPY_THREADS", "all_finite", "core_count", "parallel_map"]
 
 
 def core_count() -> int:
@@ -29,3 +31,13 @@ def parallel_map(function, items) -> list:
         return [function(item) for item in items]
     with ThreadPoolExecutor(max_workers=min(NUMPY_THREADS, len(items)), thread_name_prefix="numpy") as pool:
         return list(pool.map(function, items))
+
+
+def all_finite(array) -> bool:
+    """``np.isfinite(array).all()``, bands of the first axis in threads: a stack of images is checked at
+    the cores' speed and with a band's mask at a time, not one the size of the stack."""
+    array = np.asarray(array)
+    if array.ndim == 0 or len(array) < 2 or NUMPY_THREADS == 1:
+        return bool(np.isfinite(array).all())
+    step = -(-len(array) // (4 * NUMPY_THREADS))
+    return all(parallel_map(lambda start: bool(np.isfinite(array[start : start + step]).all()), range(0, len(array), step)))

@@ -1,0 +1,30 @@
+"""model.threads: the threaded finite check against NumPy's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from warp_highlights.model import threads
+from warp_highlights.model.threads import all_finite
+
+
+@settings(max_examples=60, deadline=None)
+@given(length=st.integers(0, 70), bad=st.sampled_from([np.nan, np.inf, -np.inf, None]), where=st.floats(0, 1), dtype=st.sampled_from([np.float16, np.float32, np.float64]))
+def test_all_finite_is_numpy_s_check_wherever_the_bad_value_is(length, bad, where, dtype):
+    array = np.ones((length, 3, 2), dtype)
+    if bad is not None and length:
+        array.reshape(-1)[min(int(where * array.size), array.size - 1)] = bad
+    assert all_finite(array) == bool(np.isfinite(array).all())
+
+
+@pytest.mark.parametrize("cores", [1, 3])
+def test_all_finite_on_one_core_and_a_few(monkeypatch, cores):
+    monkeypatch.setattr(threads, "NUMPY_THREADS", cores)
+    array = np.zeros((25, 4), np.float32)
+    assert all_finite(array) and all_finite(np.float32(1.0)) and all_finite(array[:1])
+    array[24, 3] = np.nan
+    assert not all_finite(array)
+    assert not all_finite(np.float64(np.inf))
