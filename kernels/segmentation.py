@@ -31,6 +31,7 @@ from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance th
 from warp_highlights.model.threads import all_finite
 
 from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
+from .transfer import to_host
 
 __all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels"]
 
@@ -328,7 +329,7 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
 
 def host_array(array) -> np.ndarray:
     """A ``Segmentation`` array as NumPy (banded segmentations already hold NumPy arrays)."""
-    return array.numpy() if isinstance(array, wp.array) else array
+    return to_host(array)
 
 
 def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None, keep_specular: bool = True,

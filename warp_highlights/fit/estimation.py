@@ -22,6 +22,7 @@ from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer
+from ..kernels.transfer import to_host
 from ..model.config import (
     REFERENCE_HEIGHT_PX,
     EstimationSettings,
@@ -94,7 +95,7 @@ def estimate(
     s = settings or EstimationSettings()
     raster = raster or RasterSettings()
     device = wp.get_device(device if device is not None else getattr(targets, "device", None))
-    host_targets = targets.numpy() if isinstance(targets, wp.array) else np.asarray(targets, dtype=np.float32)
+    host_targets = to_host(targets) if isinstance(targets, wp.array) else np.asarray(targets, dtype=np.float32)
     if host_targets.ndim != 3:
         raise InputError(f"estimation targets must have shape (lights, height, width), got {host_targets.shape}")
     if not all_finite(host_targets):

@@ -31,6 +31,7 @@ from ..kernels.gram import DeviceProducts
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.support import support_fractions
+from ..kernels.transfer import to_host
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
@@ -126,7 +127,7 @@ def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: 
 def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:
     """(n, H, W) float32: R(x; G_i), every light's own Gaussians drawn as the relighter draws them."""
     batch = GaussianBatch.from_numpy(estimated, device=device, requires_grad=False)
-    return Rasterizer(height, width, settings=raster, device=device).render(batch).numpy()
+    return to_host(Rasterizer(height, width, settings=raster, device=device).render(batch))
 
 
 def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:

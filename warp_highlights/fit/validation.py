@@ -29,6 +29,7 @@ import warp as wp
 
 from ..io.metrics import srgb_psnr
 from ..kernels.raster import Rasterizer
+from ..kernels.transfer import to_host
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
@@ -215,7 +216,7 @@ def check_moving(
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
-        drawn = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False)).numpy()
+        drawn = to_host(raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False)))
         for q, drawn_q in zip(rows, drawn):
             weights = loo.barycentric[q].astype(np.float32)
             blend = sum(w * images[v] for v, w in zip(corners[q], weights))

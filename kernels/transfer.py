@@ -1,0 +1,36 @@
+"""Large device arrays to host memory at the copy's speed.
+
+``wp.array.numpy()`` copies a CUDA array into a fresh NumPy array, and the copy then stops at every
+page of it the first time it writes there (the kernel maps the page): on the lent H100's host, 6.2 GB
+of a 250-light 1920x1080 specular stack came down in 5.0 s. ``to_host`` first writes every page of
+the new array from threads, which the kernel maps in parallel, then copies into it: 0.17 + 0.59 s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from warp_highlights.model.threads import NUMPY_THREADS, parallel_map
+
+__all__ = ["PREFAULT_BYTES", "to_host"]
+
+PREFAULT_BYTES = 1 << 26
+"""Arrays from this size (64 MiB) have their host pages written in threads before the copy; smaller
+ones are copied by ``numpy()`` (the threads would cost more than the pages)."""
+
+
+def to_host(array) -> np.ndarray:
+    """A Warp array as a NumPy array in host memory (a CPU array's own view, as ``numpy()`` gives it).
+    A large contiguous CUDA array of a scalar type is copied into pages written from threads first."""
+    if not isinstance(array, wp.array):
+        return np.asarray(array)
+    if not array.device.is_cuda or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous or array.capacity < PREFAULT_BYTES \
+            or NUMPY_THREADS == 1:
+        return array.numpy()
+    host = np.empty(array.shape, dtype=wp.dtype_to_numpy(array.dtype))
+    flat = host.reshape(-1)
+    step = -(-flat.size // (4 * NUMPY_THREADS))
+    parallel_map(lambda start: flat[start : start + step].fill(0), range(0, flat.size, step))
+    wp.copy(wp.array(host, dtype=array.dtype, device="cpu", copy=False), array)
+    return host
