@@ -42,6 +42,7 @@ from ..model.residual import (
     PrincipalImages,
     ResidualModel,
     code_levels,
+    codes_in_place,
     colour_codes,
     colour_from_codes,
     encode_display,
@@ -260,8 +261,7 @@ class RateSample:
 
         def group(images: slice) -> int:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
             rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2).astype(np.float64)  # (c, P, rows, W), float64 as quantise_basis rounds
-            low, step = self.low[images, None, None, None], steps[images, None, None, None]
-            codes = np.round((rows - low) / step).clip(0, levels).astype(kind)
+            codes = codes_in_place(rows, self.low[images, None, None, None], steps[images, None, None, None], levels).astype(kind)
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
             return sum(deflated_size(image) for image in stored)
 

@@ -35,7 +35,7 @@ import numpy as np
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -282,11 +282,20 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.
     codes = np.empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
 
     def part(columns: slice) -> None:  # float64 a block at a time, the blocks in threads
-        block = basis[:, columns].astype(np.float64)
-        codes[:, columns] = np.round((block - low[:, None]) / steps[:, None]).clip(0, levels)
+        codes[:, columns] = codes_in_place(basis[:, columns].astype(np.float64), low[:, None], steps[:, None], levels)
 
     parallel_map(part, _column_slices(k * NUMPY_THREADS, basis.shape[1]) if k else [])
     return codes, np.stack([low, low + steps * levels], axis=1).astype(np.float32)
+
+
+def codes_in_place(values: np.ndarray, low: np.ndarray, step: np.ndarray, levels: int) -> np.ndarray:
+    """round((values - low) / step) clipped to [0, levels], computed in ``values`` (float64, overwritten:
+    no temporaries the size of the block) and returned as it (float64 codes). The one rounding of
+    ``quantise_basis`` and of the rate search's sampled codes (``fit.residual.RateSample``)."""
+    np.subtract(values, low, out=values)
+    np.divide(values, step, out=values)
+    np.round(values, out=values)
+    return np.clip(values, 0, levels, out=values)
 
 
 @dataclass(frozen=True, eq=False)
