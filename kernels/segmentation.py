@@ -287,13 +287,13 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     if isinstance(images, wp.array) and images.device == device and images.dtype == wp.float32:
         stack = images
     else:
-        host = images.numpy() if isinstance(images, wp.array) else images
+        host = to_host(images)
         stack = wp.array(np.ascontiguousarray(host, dtype=np.float32), dtype=float, device=device)
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     if channels not in (1, 3):
         raise InputError(f"images must have 1 or 3 channels, got {channels}")
-    if not all_finite(stack.numpy() if stack is images else host):
+    if not all_finite(to_host(stack) if stack is images else host):
         raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
     columns = height * width * channels
     flat = stack.reshape((n, columns))
@@ -386,13 +386,13 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
         band = slice(top, min(top + rows, height))
         part = segment(images[:, band], directions, settings=settings, device=device, workers=workers)
         if specular is not None:
-            specular[:, band] = part.specular.numpy()
+            specular[:, band] = to_host(part.specular)
         if diffuse is not None:
-            diffuse[:, band] = part.diffuse.numpy()
+            diffuse[:, band] = to_host(part.diffuse)
         if shrink_target is None:
-            target[:, band] = part.specular_luminance.numpy()
+            target[:, band] = to_host(part.specular_luminance)
         else:
-            shrunk = shrink_target(part.specular_luminance.numpy())
+            shrunk = shrink_target(to_host(part.specular_luminance))
             if target is None:
                 target = np.empty((n, height // target_rows, shrunk.shape[2]), np.float32)
             target[:, top // target_rows : band.stop // target_rows] = shrunk
