@@ -16,12 +16,18 @@ between steps 2 and 3):
    residual from per-query weights that ``blend_images`` blends), the Lambertian model, a blend of
    per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of a per-light stack.
 
+A low-rank residual reaches the device as its codes: ``dequantise_basis`` makes the pixel-major
+float32 basis that ``compose_images`` reads, and ``decode_low_rank`` decodes every captured light's
+residual image from it once (the images a query then blends).
+
 None of these is differentiated: relighting only renders.
 """
 
 # ruff: noqa: UP018, RUF046  (Warp declares a mutable kernel local with float(0.0) / int(0))
 
 from __future__ import annotations
+
+from typing import Any
 
 import warp as wp
 
@@ -39,7 +45,9 @@ __all__ = [
     "DIFFUSE_DECODED",
     "blend_images",
     "compose_images",
+    "decode_low_rank",
     "deepest_faces",
+    "dequantise_basis",
     "FACE_SLICES",
     "interpolate_gaussians",
     "locate_directions",
@@ -60,6 +68,7 @@ DIFFUSE_DECODED = 4
 _WR = wp.constant(LUMINANCE_WEIGHTS[0])
 _WG = wp.constant(LUMINANCE_WEIGHTS[1])
 _WB = wp.constant(LUMINANCE_WEIGHTS[2])
+_FLOAT16_SAFE = wp.constant(6.0e4)  # decoded images are clipped to this, as ``ResidualModel.decoded_images`` clips them
 
 
 @wp.func
@@ -364,3 +373,42 @@ def compose_images(
             if add_specular != 0:
                 value += specular_colour[c] * pixel_colour[row, c] * specular[q, i]
             out[q, i, c] = scale * wp.max(value, 0.0)
+
+
+@wp.kernel(enable_backward=False)
+def dequantise_basis(codes: wp.array3d(dtype=Any), low: wp.array(dtype=float), step: wp.array(dtype=float), basis: wp.array3d(dtype=float)):
+    """basis[i, j, p] = low[j] + codes[j, i, p] step[j]: basis image j's (pixels, planes) codes (uint8 or
+    uint16) as float32 values, pixel-major (``compose_images``' layout), as ``LowRankStack.basis`` decodes them."""
+    j, i = wp.tid()
+    for p in range(codes.shape[2]):
+        basis[i, j, p] = low[j] + float(codes[j, i, p]) * step[j]
+
+
+@wp.kernel(enable_backward=False)
+def decode_low_rank(
+    luminance_mean: wp.array2d(dtype=float),
+    luminance_basis: wp.array3d(dtype=float),
+    luminance_weights: wp.array2d(dtype=float),
+    chroma_mean: wp.array2d(dtype=float),
+    chroma_basis: wp.array3d(dtype=float),
+    chroma_weights: wp.array2d(dtype=float),
+    residual_scale: wp.array(dtype=float),
+    out: wp.array3d(dtype=wp.float16),
+):
+    """out[l, i, c] = light l's residual image at pixel i and channel c: the low-rank luminance (and chroma
+    for colour) from the light's own weights (``compose_images``' ``DIFFUSE_LOWRANK`` without the blend,
+    the clamp at 0 or the exposure), times ``residual_scale``, clipped to float16's range: what
+    ``ResidualModel.decoded_images`` gives."""
+    light, i = wp.tid()
+    s = residual_scale[0]
+    if residual_scale.shape[0] > 1:
+        s = residual_scale[i]
+    y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, light, i, 0)
+    if out.shape[2] == 3:
+        cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, light, i, 0)
+        cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, light, i, 1)
+        out[light, i, 0] = wp.float16(wp.clamp(y + cr, -_FLOAT16_SAFE, _FLOAT16_SAFE))
+        out[light, i, 1] = wp.float16(wp.clamp(y - (_WR * cr + _WB * cb) / _WG, -_FLOAT16_SAFE, _FLOAT16_SAFE))
+        out[light, i, 2] = wp.float16(wp.clamp(y + cb, -_FLOAT16_SAFE, _FLOAT16_SAFE))
+    else:
+        out[light, i, 0] = wp.float16(wp.clamp(y, -_FLOAT16_SAFE, _FLOAT16_SAFE))

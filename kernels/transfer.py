@@ -11,26 +11,20 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_highlights.model.threads import NUMPY_THREADS, parallel_map
+from warp_highlights.model.threads import NUMPY_THREADS, PREFAULT_BYTES, mapped_empty
 
 __all__ = ["PREFAULT_BYTES", "to_host"]
-
-PREFAULT_BYTES = 1 << 26
-"""Arrays from this size (64 MiB) have their host pages written in threads before the copy; smaller
-ones are copied by ``numpy()`` (the threads would cost more than the pages)."""
 
 
 def to_host(array) -> np.ndarray:
     """A Warp array as a NumPy array in host memory (a CPU array's own view, as ``numpy()`` gives it).
-    A large contiguous CUDA array of a scalar type is copied into pages written from threads first."""
+    A large contiguous CUDA array of a scalar type is copied into pages written from threads first
+    (``mapped_empty``)."""
     if not isinstance(array, wp.array):
         return np.asarray(array)
     if not array.device.is_cuda or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous or array.capacity < PREFAULT_BYTES \
             or NUMPY_THREADS == 1:
         return array.numpy()
-    host = np.empty(array.shape, dtype=wp.dtype_to_numpy(array.dtype))
-    flat = host.reshape(-1)
-    step = -(-flat.size // (4 * NUMPY_THREADS))
-    parallel_map(lambda start: flat[start : start + step].fill(0), range(0, flat.size, step))
+    host = mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
     wp.copy(wp.array(host, dtype=array.dtype, device="cpu", copy=False), array)
     return host

@@ -16,9 +16,10 @@ from hypothesis.extra import numpy as hnp
 
 from warp_highlights.fit.residual import RateSample, component_bytes
 from warp_highlights.io.codes import (
-    CODES_LEVEL,
-    CODES_STRATEGY,
+    STREAM_END,
+    DeflatedCodes,
     codes_from_stored,
+    deflated_piece,
     deflated_size,
     stored_bytes,
     stored_codes,
@@ -92,29 +93,91 @@ def test_the_sampled_bytes_are_the_whole_images_stored_bytes_at_the_sampled_rows
     counted = sample.rows[sample.counted]
     stack = LowRankStack.quantised(principal, steps, bits=bits)
     expected = sum(deflated_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes)
-    assert sample.bytes(steps, bits=bits) == expected * 320 / len(counted) + sample.per_image * 3
+    assert sample.bytes(steps, bits=bits) == pytest.approx(expected * 320 / len(counted) + sample.per_image * 3, rel=1e-12)
     assert RateSample(principal, 3, whole=True).bytes(steps, bits=bits) == float(component_bytes(stack).sum())
+
+
+def _codes_entry(field, stack, path):
+    """(ZipInfo, raw bytes, the stored array numpy reads) of the luminance codes entry of ``field``
+    with ``stack`` as its residual, written to ``path``."""
+    field = dataclasses.replace(field, residual=ResidualModel(luminance=stack))
+    save_field(field, path)
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo("residual/Y_codes.npy")
+        raw = archive.read(info)
+    return info, raw, np.load(io.BytesIO(raw))
 
 
 @pytest.mark.parametrize("bits", [8, 16])
 def test_the_file_holds_the_stored_codes_in_the_bytes_the_budget_counted(bits, tmp_path):
-    """``numpy.load`` reads the codes entry as the stored form, deflated as one run-length stream; and its compressed size is at most what ``component_bytes`` counts
-    (and close to it); the field loads the same codes back."""
+    """``numpy.load`` reads the codes entry as the stored form: the ``.npy`` header's deflated piece,
+    each image's (``deflated_piece``, run-length), then the stream's end. Its compressed size is what
+    ``component_bytes`` counts and those two; the field loads the same codes back."""
     from test_field import make_field
 
     field = make_field()
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
     stack = LowRankStack.quantised(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
-    field = dataclasses.replace(field, residual=ResidualModel(luminance=stack))
     path = tmp_path / "f.whf"
-    save_field(field, path)
-    with zipfile.ZipFile(path) as archive:
-        info = archive.getinfo("residual/Y_codes.npy")
-        raw = archive.read(info)
-        stored = np.load(io.BytesIO(raw))
-    compressor = zlib.compressobj(CODES_LEVEL, zlib.DEFLATED, -15, 8, CODES_STRATEGY)
-    assert info.compress_size == len(compressor.compress(raw) + compressor.flush())  # one run-length stream (small: no threads)
+    info, raw, stored = _codes_entry(field, stack, path)
     np.testing.assert_array_equal(stored, np.stack([stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]))
+    header = raw[: len(raw) - stored.nbytes]
     counted = float(component_bytes(stack).sum()) - stack.rank * (8 + 4 * len(stack.weights))
-    assert 0.95 * counted <= info.compress_size <= counted + 64  # one stream shares its code tables between these tiny images
+    assert info.compress_size == len(deflated_piece(header)) + counted + len(STREAM_END)
+    assert zlib.decompressobj(-15).decompress(deflated_piece(header) + b"".join(deflated_piece(image) for image in stored) + STREAM_END) == raw
     np.testing.assert_array_equal(load_field(path).residual.luminance.codes, stack.codes)
+
+
+@pytest.mark.parametrize("whole", [False, True])
+def test_the_rate_search_keeps_the_pieces_the_file_then_stores(whole, tmp_path, monkeypatch):
+    """``allocate``'s last measurement on every row keeps each image's deflated piece (the small image
+    here is measured whole; the larger one in samples, then on every row); the writer stores those
+    pieces without deflating the images again, and the file is the one written without them."""
+    from test_field import make_field
+
+    import warp_highlights.io.codes as codes_module
+    from warp_highlights.fit.residual import StackPlan, allocate
+
+    field = make_field() if whole else make_field(size=(160, 240))
+    principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
+    assert RateSample(principal, 1).exact == whole
+    plan = StackPlan(principal, 1.0, principal.count - 1)
+    budget = 0.5 * float(component_bytes(LowRankStack.quantised(principal, principal.spans / code_levels(16), bits=16)).sum())
+    _, (steps,) = allocate([plan], budget, bits=16)
+    assert len(plan.deflated) == len(steps) > 0
+    kept = LowRankStack.quantised(principal, steps, bits=16, deflated=plan.deflated)
+    plain = LowRankStack.quantised(principal, steps, bits=16)
+    assert plain.deflated is None
+    for name in ("codes", "ranges", "weights", "mean_weights"):  # the pieces change nothing of the model
+        np.testing.assert_array_equal(getattr(kept, name), getattr(plain, name))
+    deflated = []
+    real = codes_module.deflated_piece
+    monkeypatch.setattr(codes_module, "deflated_piece", lambda data: deflated.append(len(data)) or real(data))
+    _, kept_raw, _ = _codes_entry(field, kept, tmp_path / "kept.whf")
+    assert deflated == []  # every image's piece was found
+    _, plain_raw, _ = _codes_entry(field, plain, tmp_path / "plain.whf")
+    assert len(deflated) == len(steps)  # without them, each image deflated here
+    assert (tmp_path / "kept.whf").read_bytes() == (tmp_path / "plain.whf").read_bytes()
+
+
+def test_pieces_kept_for_other_codes_are_not_used(tmp_path):
+    """Pieces are found by content: a stack whose kept pieces are another quantisation's writes its own."""
+    from test_field import make_field
+
+    field = make_field()
+    principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
+    coarse, fine = (principal.spans / code_levels(16) * factor for factor in (40.0, 2.0))
+    store = DeflatedCodes()
+    RateSample(principal, len(coarse), whole=True).bytes(coarse, bits=16, keep=store)
+    stale = LowRankStack.quantised(principal, fine, bits=16, deflated=store)
+    fresh = LowRankStack.quantised(principal, fine, bits=16)
+    _codes_entry(field, stale, tmp_path / "stale.whf")
+    _codes_entry(field, fresh, tmp_path / "fresh.whf")
+    assert (tmp_path / "stale.whf").read_bytes() == (tmp_path / "fresh.whf").read_bytes()
+    np.testing.assert_array_equal(load_field(tmp_path / "stale.whf").residual.luminance.codes, fresh.codes)
+
+
+def test_only_a_sample_of_every_row_keeps_pieces():
+    principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
+    with pytest.raises(ValueError, match="every row"):
+        RateSample(principal, 3).bytes(principal.spans[:3] / 255, bits=8, keep=DeflatedCodes())

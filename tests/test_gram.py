@@ -58,6 +58,28 @@ def test_projections_are_float64_sums_kept_as_float32(device):
     np.testing.assert_allclose(projected, reference, rtol=1e-6, atol=1e-6 * np.abs(reference).max())
 
 
+def test_strided_blocks_in_turn_and_projections_into_views(device):
+    """Column blocks of a held stack (strided views) uploaded one after another, through the two
+    staging buffers in turn (each refilled while the other's copy may still run), and projections
+    written into column views of a larger array: the products of the whole stack."""
+    products = DeviceProducts(device)
+    stack = RNG.normal(size=(19, 9000)).astype(np.float32)
+    edges = [0, 700, 2100, 2150, 4000, 6500, 8999, 9000]
+    gram = products.cross_sum(19, 19)
+    for start, stop in zip(edges, edges[1:]):
+        gram.add(products.upload(stack[:, start:stop]))
+    reference = stack.astype(np.float64) @ stack.astype(np.float64).T
+    np.testing.assert_allclose(gram.value(), reference, rtol=1e-13, atol=1e-10)
+    matrix = RNG.normal(size=(6, 19))
+    out = np.full((6, 9000), np.nan, np.float32)
+    for start, stop in zip(edges, edges[1:]):
+        assert products.project(matrix, stack[:, start:stop], out=out[:, start:stop]) is not None
+    expected = matrix @ stack.astype(np.float64)
+    np.testing.assert_allclose(out, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+    with pytest.raises(ValueError, match="cannot go into"):
+        products.project(matrix, stack[:, :10], out=out[:, :11])
+
+
 def _stack(n: int, h: int, w: int, planes: int) -> np.ndarray:
     yy, xx = np.mgrid[0:h, 0:w] / h
     patterns = np.stack([np.sin((i + 1) * 2 * xx + i) * np.cos((i % 4 + 1) * yy) for i in range(12)])

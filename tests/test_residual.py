@@ -341,7 +341,30 @@ def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light
     assert flat.chroma.rank <= 1 and flat.luminance.rank >= 8
 
 
-def test_decoded_images_match_the_float64_reference():
+@pytest.mark.parametrize("bits", [8, 16])
+def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
+    """``decode_residual`` (the codes dequantised and every light decoded by kernels) gives the images
+    ``decoded_images`` gives on the host, to float16 rounding: colour (luminance and chroma) and grey."""
+    from warp_highlights.relight.relighter import decode_residual
+
+    n, h, w = 9, 10, 12
+    images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
+    for planes in (3, 1):
+        settings = ResidualSettings(luminance_rank=4, chroma_rank=2, basis_bits=bits)
+        model = build_residual(images[..., :planes], np.zeros((n, h, w), np.float32), None, settings=settings)
+        assert model.scale is not None and model.luminance.bits == bits
+        decoded = decode_residual(model, device).numpy()
+        host = model.decoded_images().reshape(n, h * w, planes)
+        assert decoded.dtype == np.float16 and decoded.shape == host.shape
+        np.testing.assert_allclose(decoded.astype(np.float32), host.astype(np.float32), rtol=2e-3, atol=2e-3)
+
+
+@pytest.mark.parametrize("band_values", [1 << 20, 96])
+def test_decoded_images_match_the_float64_reference(band_values, monkeypatch):
+    """Decoded a block of lights at a time, in bands of rows (one band; bands of 2 rows here)."""
+    import warp_highlights.model.residual as residual_module
+
+    monkeypatch.setattr(residual_module, "_DECODE_BAND_VALUES", band_values)
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
     model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2))

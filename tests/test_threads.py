@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from warp_highlights.model import threads
-from warp_highlights.model.threads import all_finite
+from warp_highlights.model.threads import all_finite, mapped_empty
 
 
 @settings(max_examples=60, deadline=None)
@@ -28,3 +28,18 @@ def test_all_finite_on_one_core_and_a_few(monkeypatch, cores):
     array[24, 3] = np.nan
     assert not all_finite(array)
     assert not all_finite(np.float64(np.inf))
+
+
+@pytest.mark.parametrize("cores", [1, 3])
+@pytest.mark.parametrize("limit", [1 << 40, 64])
+def test_mapped_empty_is_an_empty_array_of_the_shape_and_type(monkeypatch, cores, limit):
+    """Pages written from threads (a small limit here: every part's fill runs) or left as they are; the
+    array is writable and whole either way (odd sizes: the last part is short)."""
+    monkeypatch.setattr(threads, "NUMPY_THREADS", cores)
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", limit)
+    array = mapped_empty((7, 13, 3), np.uint16)
+    assert array.shape == (7, 13, 3) and array.dtype == np.uint16 and array.flags.c_contiguous and array.flags.writeable
+    if limit == 64 and cores > 1:
+        assert not array.any()  # every part was filled
+    array[...] = 5
+    assert int(array.sum()) == 5 * array.size

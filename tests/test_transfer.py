@@ -15,6 +15,7 @@ from warp_highlights.model import threads
 @pytest.mark.parametrize("cores", [1, 4])
 def test_to_host_gives_numpy_s_values(device, monkeypatch, dtype, cores):
     monkeypatch.setattr(transfer, "PREFAULT_BYTES", 1024)  # the threaded path for a small array too
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", 1024)
     monkeypatch.setattr(transfer, "NUMPY_THREADS", cores)
     monkeypatch.setattr(threads, "NUMPY_THREADS", cores)
     values = np.random.default_rng(2).normal(size=(7, 33, 5)) * 100

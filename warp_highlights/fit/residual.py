@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.codes import deflated_size, stored_bytes, stored_codes
+from ..io.codes import DeflatedCodes, deflated_piece, stored_bytes, stored_codes
 from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
 from ..kernels.gram import DeviceProducts
@@ -49,7 +49,7 @@ from ..model.residual import (
     luminance_of,
     to_opponent,
 )
-from ..model.threads import NUMPY_THREADS, parallel_map
+from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
 
 __all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
 
@@ -175,6 +175,7 @@ class StackPlan:
     gain: float
     most: int
     floor: int = 0
+    deflated: DeflatedCodes = dataclasses.field(default_factory=DeflatedCodes, repr=False, compare=False)  # the last exact measurement's pieces
 
     @property
     def energies(self) -> np.ndarray:
@@ -250,31 +251,41 @@ class RateSample:
     def exact(self) -> bool:
         return self.scale == 1.0
 
-    def bytes(self, steps: np.ndarray, *, bits: int) -> float:
+    def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
-        (deflated in threads: zlib lets go of the GIL)."""
+        (deflated in threads: zlib lets go of the GIL). ``keep`` (an ``exact`` sample only): hold the
+        images' deflated pieces there, in place of what it held, for the field writer."""
+        if keep is not None and not self.exact:
+            raise ValueError("only a sample of every row can keep its deflated pieces")
         if not len(steps):
+            if keep is not None:
+                keep.keep({})
             return 0.0
         levels = code_levels(bits)
         steps = np.maximum(np.asarray(steps, np.float64), np.maximum(self.span[: len(steps)], 1e-300) / levels)
         kind = np.uint8 if bits == 8 else np.uint16
 
-        def group(images: slice) -> int:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
+        def group(images: slice) -> tuple[int, list]:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
             rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2).astype(np.float64)  # (c, P, rows, W), float64 as quantise_basis rounds
             codes = codes_in_place(rows, self.low[images, None, None, None], steps[images, None, None, None], levels).astype(kind)
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
-            return sum(deflated_size(image) for image in stored)
+            pieces = [(DeflatedCodes.key(image) if keep is not None else None, deflated_piece(image)) for image in stored]
+            return sum(len(piece) for _, piece in pieces), pieces if keep is not None else []
 
         count = len(steps)
         size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
-        deflated = float(sum(parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])))
+        groups = parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])
+        if keep is not None:
+            keep.keep({key: piece for _, pieces in groups for key, piece in pieces})
+        deflated = float(sum(total for total, _ in groups))
         return deflated * self.scale + self.per_image * count
 
 
-def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int) -> float:
+def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
-    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights): every row deflated."""
-    return RateSample(principal, len(steps), whole=True).bytes(steps, bits=bits)
+    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights): every row
+    deflated (the pieces held in ``keep`` when given)."""
+    return RateSample(principal, len(steps), whole=True).bytes(steps, bits=bits, keep=keep)
 
 
 def allocate_steps(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> list[np.ndarray]:
@@ -288,7 +299,8 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     """``allocate_steps``' choice and its common distortion (squared RGB error per kept image,
     normalised units; ``inf`` for the floor alone).
 
-    The deflated bytes fall with the log distortion, nearly linearly: ``_search`` takes secant steps
+    Each plan's ``deflated`` keeps the pieces of the last measurement made on every row (the field
+    writer stores them rather than deflating the same codes again). The deflated bytes fall with the log distortion, nearly linearly: ``_search`` takes secant steps
     on log bytes, then Illinois regula falsi once the budget is bracketed. It runs on bytes estimated
     from ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the
     next search (the budget scaled by sampled over exact), which starts where the last one ended,
@@ -300,11 +312,11 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
         return np.inf, [plan.steps(np.inf, levels) for plan in plans]
     samples = _rate_samples(plans)
 
-    def sampled(steps: list[np.ndarray]) -> float:
-        return sum(sample.bytes(step, bits=bits) for sample, step in zip(samples, steps))
+    def sampled(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
+        return sum(sample.bytes(step, bits=bits, keep=plan.deflated if sample.exact else None) for plan, sample, step in zip(plans, samples, steps))
 
     def exact(steps: list[np.ndarray]) -> float:
-        return sum(quantised_bytes(plan.principal, step, bits=bits) for plan, step in zip(plans, steps))
+        return sum(quantised_bytes(plan.principal, step, bits=bits, keep=plan.deflated) for plan, step in zip(plans, steps))
 
     if all(sample.exact for sample in samples):
         return _search(plans, budget_bytes, levels, top, sampled)[:2]
@@ -447,8 +459,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     scale = np.empty((height, width), np.float32)
     available = available_memory()
     held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
-    luminance_stack = np.empty((n, height, width, 1), np.float32) if held else None
-    chroma_stack = np.empty((n, height, width, 2), np.float32) if held and channels == 3 else None
+    luminance_stack = mapped_empty((n, height, width, 1), np.float32) if held else None
+    chroma_stack = mapped_empty((n, height, width, 2), np.float32) if held and channels == 3 else None
 
     def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
         residual = residual_of(images[:, band], own[:, band], tint[band])
@@ -491,7 +503,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     if not choice.checked:
         options[0] = _quantisation(luminance, chroma, settings, 8, budget - fixed)
         choice = min(options, key=lambda option: option.distortion)
-    stacks = {name: LowRankStack.quantised(principal, choice.steps[name], bits=choice.bits)
+    stacks = {name: LowRankStack.quantised(principal, choice.steps[name], bits=choice.bits, deflated=choice.deflated.get(name))
               for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
     return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
 
@@ -507,6 +519,7 @@ class _Quantisation:
     distortion: float
     finer_with_16_bits: bool
     checked: bool = True  # False: ``finest_within``'s choice, its bytes not yet measured on every row
+    deflated: dict = dataclasses.field(default_factory=dict)  # by name: the pieces its last measurement on every row deflated
 
 
 def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float,
@@ -515,7 +528,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
     each image over its whole range; the others by ``allocate``, or by ``finest_within`` where
     ``plain_finest`` is set, no rank is fixed and the sampled bytes make the choice plain (unchecked)."""
     levels = code_levels(bits)
-    steps, plans, distortion, finer = {}, {}, 0.0, False
+    steps, plans, distortion, finer, deflated = {}, {}, 0.0, False, {}
     for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
         if principal is None:
             continue
@@ -523,11 +536,13 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             rank = min(fixed_rank, principal.count - 1)
             steps[name] = principal.spans[:rank] / levels
             distortion += StackPlan(principal, gain, rank).distortion(steps[name])
-            left -= quantised_bytes(principal, steps[name], bits=bits)
+            deflated[name] = DeflatedCodes()
+            left -= quantised_bytes(principal, steps[name], bits=bits, keep=deflated[name])
             finer = finer or rank > 0
         else:
             most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
             plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
+            deflated[name] = plans[name].deflated
     checked = True
     if plans:
         plain = finest_within(list(plans.values()), left, bits=bits) if plain_finest and not steps else None
@@ -538,7 +553,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             distortion += plan.distortion(plan_steps)
             fine = plan.steps(np.exp(log_distortion), code_levels(16))
             finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
-    return _Quantisation(bits, steps, distortion, finer, checked)
+    return _Quantisation(bits, steps, distortion, finer, checked, deflated)
 
 
 class NormalisedResidual:

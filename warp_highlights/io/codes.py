@@ -4,7 +4,11 @@ planes, deflated run-length only. The rate search counts a basis image's bytes w
 A basis image's (P, H, W) codes of 8 or 16 bits are stored as the difference of each row from the row
 above (the first row as it is), wrapping modulo 2^bits, and 16-bit differences as two byte planes, the
 high bytes first: (P, H, W) uint8 or (P, 2, H, W) uint8. The deflate stream uses zlib's run-length
-strategy (``Z_RLE``: matches only at distance one).
+strategy (``Z_RLE``: matches only at distance one), and is made of pieces: the ``.npy`` header's, then
+each image's, each deflated on its own and ended by a sync flush (``deflated_piece``), then an empty
+final block (``STREAM_END``). A match never reaches back further than one byte, so the pieces lose
+nothing against one stream; they let each image be deflated in its own thread, and once: the rate
+search's last exact measurement keeps its pieces (``DeflatedCodes``) and the field writer stores them.
 
 Against the version-3 layout (the codes as they are, 16 bits little-endian, zlib level 6), on the
 basis codes of the 250-light 480x270 donut and the dome (16-bit) and the statue (8-bit): 82-98% of
@@ -15,13 +19,15 @@ row differences make smooth images' high bytes runs of zeros.
 
 from __future__ import annotations
 
+import hashlib
 import zlib
 
 import numpy as np
 
 from ..model.threads import parallel_map
 
-__all__ = ["CODES_LEVEL", "CODES_STRATEGY", "codes_from_stored", "deflated_size", "stored_bytes", "stored_codes", "stored_shape"]
+__all__ = ["CODES_LEVEL", "CODES_STRATEGY", "STREAM_END", "DeflatedCodes", "codes_from_stored", "deflated_piece", "deflated_size", "stored_bytes",
+           "stored_codes", "stored_shape"]
 
 CODES_LEVEL = 6
 """zlib level of the codes' deflate stream (with ``Z_RLE`` the level hardly matters: matches are runs)."""
@@ -75,8 +81,44 @@ def stored_bytes(codes: np.ndarray) -> int:
     return deflated_size(stored_codes(codes))
 
 
-def deflated_size(stored: np.ndarray) -> int:
-    """Bytes of stored codes deflated as the codes' entry deflates them (raw deflate with
-    ``CODES_STRATEGY``, the stream ended)."""
+def deflated_piece(stored) -> bytes:
+    """Stored codes (or any bytes) deflated as one piece of the codes' entry: raw deflate with
+    ``CODES_STRATEGY``, ended by a sync flush (byte-aligned, the stream left open)."""
     compressor = zlib.compressobj(CODES_LEVEL, zlib.DEFLATED, -15, 8, CODES_STRATEGY)
-    return len(compressor.compress(np.ascontiguousarray(stored))) + len(compressor.flush())
+    return compressor.compress(np.ascontiguousarray(stored)) + compressor.flush(zlib.Z_SYNC_FLUSH)
+
+
+def deflated_size(stored: np.ndarray) -> int:
+    """Bytes of stored codes in the codes' entry: the length of their ``deflated_piece``."""
+    return len(deflated_piece(stored))
+
+
+STREAM_END = zlib.compressobj(CODES_LEVEL, zlib.DEFLATED, -15, 8, CODES_STRATEGY).flush()
+"""The empty final block that ends the codes' deflate stream after its pieces (2 bytes)."""
+
+
+class DeflatedCodes:
+    """Deflated pieces of stored basis images (``deflated_piece``), found by their content (a SHA-1
+    digest and the length of the stored bytes): what the rate search deflated last, kept for the field
+    writer, which deflates an image it does not find here. Holds the latest ``keep`` only."""
+
+    def __init__(self):
+        self._pieces: dict[tuple, bytes] = {}
+
+    @staticmethod
+    def key(stored: np.ndarray) -> tuple:
+        """The content key of stored codes (hashlib lets go of the GIL: callable from threads)."""
+        data = np.ascontiguousarray(stored)
+        return hashlib.sha1(data, usedforsecurity=False).digest(), data.nbytes
+
+    def keep(self, pieces: dict[tuple, bytes]) -> None:
+        """Hold ``pieces`` (key -> deflated piece) in place of what was held."""
+        self._pieces = dict(pieces)
+
+    def piece(self, stored: np.ndarray) -> bytes:
+        """The deflated piece of ``stored``: the one held for its content, else deflated now."""
+        found = self._pieces.get(self.key(stored))
+        return found if found is not None else deflated_piece(stored)
+
+    def __len__(self) -> int:
+        return len(self._pieces)

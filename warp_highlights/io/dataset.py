@@ -19,7 +19,7 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from ..model.threads import core_count
+from ..model.threads import core_count, mapped_empty
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
@@ -550,7 +550,7 @@ class _StackReader:
                     self.nonfinite_count += bad
                     self.nonfinite_file = self.nonfinite_file or path
                 if stack is None:
-                    stack = np.empty((len(paths), *image.shape), dtype=np.float32)
+                    stack = mapped_empty((len(paths), *image.shape), np.float32)  # each image copied in at the copy's speed
                 stack[index] = image
                 self.bar.update()
         finally:  # an error or Ctrl-C: drop the images not started yet

@@ -33,8 +33,9 @@ entry                           dtype, shape     contents
                                 (k, P, H, W) or  stack as ``io.codes`` stores them: each row less the
                                 (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits; 16-bit
                                                  differences as high and low byte planes; deflated
-                                                 run-length only (zlib's ``Z_RLE``). Versions 2 and
-                                                 3: the codes themselves, <u1 or <u2 (k, P, H, W)
+                                                 run-length only (zlib's ``Z_RLE``), a flushed piece
+                                                 an image. Versions 2 and 3: the codes themselves,
+                                                 <u1 or <u2 (k, P, H, W)
 ``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
 ``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
 ``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
@@ -93,7 +94,7 @@ from ..model.residual import (
 from ..model.threads import NUMPY_THREADS, parallel_map
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
-from .codes import CODES_LEVEL, CODES_STRATEGY, codes_from_stored, stored_codes, stored_shape
+from .codes import STREAM_END, DeflatedCodes, codes_from_stored, deflated_piece, stored_codes, stored_shape
 from .deflate import ParallelDeflate
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
@@ -313,7 +314,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", _StoredCodes(stack.codes)),  # row differences in byte planes, an image at a time
+            (prefix + "codes.npy", _StoredCodes(stack)),  # row differences in byte planes, an image at a time
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -348,28 +349,55 @@ def _entry_info(name: str) -> zipfile.ZipInfo:
 
 class _StoredCodes:
     """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: one uint8
-    ``.npy`` entry of ``stored_shape``, deflated with the codes' strategy, made an image at a time."""
+    ``.npy`` entry of ``stored_shape``, an image at a time, each image's deflated piece taken from the
+    stack's ``deflated`` (what the fit's rate search deflated) or deflated here."""
 
-    def __init__(self, codes: np.ndarray):
-        self.codes = codes
-        rank, height, width, planes = codes.shape
-        self.shape = stored_shape(rank, planes, height, width, 8 if codes.dtype == np.uint8 else 16)
+    def __init__(self, stack: LowRankStack):
+        self.codes = stack.codes
+        self.deflated = stack.deflated if stack.deflated is not None else DeflatedCodes()
+        rank, height, width, planes = self.codes.shape
+        self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
 
     def images(self):
-        """Each basis image's stored bytes, in order (a few images at a time in threads)."""
+        """(stored codes, deflated piece) of each basis image, in order (a few images at a time in threads)."""
+
+        def one(code: np.ndarray) -> tuple[np.ndarray, bytes]:
+            stored = stored_codes(code.transpose(2, 0, 1))
+            return stored, self.deflated.piece(stored)
+
         block = max(1, NUMPY_THREADS)
         for start in range(0, len(self.codes), block):
-            yield from parallel_map(lambda code: stored_codes(code.transpose(2, 0, 1)), self.codes[start : start + block])
+            yield from parallel_map(one, self.codes[start : start + block])
+
+
+class _GivenPieces:
+    """The codes entry's compressor: ``compress`` returns the piece ``given`` for the data it is handed
+    (the zip writer still sums the data's CRC), or deflates the data as a piece of its own (the
+    ``.npy`` header); ``flush`` ends the stream (``io.codes``)."""
+
+    def __init__(self):
+        self.given: bytes | None = None
+
+    def compress(self, data) -> bytes:
+        piece, self.given = self.given, None
+        return piece if piece is not None else deflated_piece(data)
+
+    def flush(self) -> bytes:
+        return STREAM_END
 
 
 def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> None:
     """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
-    image's stored codes, deflated with ``CODES_STRATEGY`` (in threads where large)."""
+    image's stored codes, as deflated pieces (``io.codes``)."""
     with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
-        _set_compressor(entry, stored.nbytes, CODES_LEVEL, CODES_STRATEGY)
+        compressor = None  # where the zip writer has no compressor of its own to replace, it deflates the entry itself
+        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
+            compressor = entry._compressor = _GivenPieces()
         np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-        for image in stored.images():
+        for image, piece in stored.images():
+            if compressor is not None:
+                compressor.given = piece
             entry.write(image.reshape(-1))
 
 

@@ -26,16 +26,16 @@ All values are in the field's units (the fit's exposure applied).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Iterator, Protocol
 
 import numpy as np
 
 from .errors import InputError, finite_array
-from .threads import NUMPY_THREADS, parallel_map
+from .threads import NUMPY_THREADS, mapped_empty, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -106,13 +106,23 @@ class StackProducts(Protocol):
     """Where the stack's products are summed instead of the host's BLAS (``kernels.gram.DeviceProducts``
     on CUDA): ``upload`` a (rows, w) float32 block; ``cross_sum(rows, columns)`` a running float64 sum
     of a b^T over uploaded blocks (``add(a, b=None)``, ``value()``); ``project(matrix, block)`` a
-    float64 (r, n) matrix times an (n, w) float32 block, as float32."""
+    float64 (r, n) matrix times an (n, w) float32 block, as float32, into ``out`` where given. A block
+    may be a strided view; ``staging(shape)`` a float32 host array to fill and upload (from where the
+    upload reads it)."""
+
+    def staging(self, shape: tuple) -> np.ndarray: ...
 
     def upload(self, block: np.ndarray): ...
 
     def cross_sum(self, rows: int, columns: int): ...
 
-    def project(self, matrix: np.ndarray, block: np.ndarray) -> np.ndarray: ...
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
+
+
+class DeflatedPieces(Protocol):
+    """Where the field writer finds a basis image's stored codes already deflated (``io.codes.DeflatedCodes``)."""
+
+    def piece(self, stored: np.ndarray) -> bytes: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,8 +140,8 @@ class ArraySource:
         return _as_float64(self.flat[:, columns])
 
     def block32(self, columns: slice) -> np.ndarray:
-        """The same block as float32 (the stored values, copied contiguous)."""
-        return np.ascontiguousarray(self.flat[:, columns])
+        """The same block as float32: a view of the stored values (``StackProducts`` copy it on)."""
+        return self.flat[:, columns]
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,7 +213,7 @@ class PrincipalImages:
         if len(order) == 0:  # every image is black
             directions, energies = np.zeros((1, pixels), np.float32), np.zeros(1)
         else:
-            directions = spilled_empty((len(order), pixels), np.float32) if spill else np.empty((len(order), pixels), np.float32)
+            directions = spilled_empty((len(order), pixels), np.float32) if spill else mapped_empty((len(order), pixels), np.float32)
             projection = vectors[:, order].T / np.sqrt(energies)[:, None]
             if products is None:
                 for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
@@ -211,7 +221,7 @@ class PrincipalImages:
             else:
                 scaled = projection * factor[None, :]
                 for columns, block in zip(_column_slices(n, pixels), _blocks32(source)):
-                    directions[:, columns] = products.project(scaled, block)
+                    products.project(scaled, block, out=directions[:, columns])
         first = directions[0].astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
@@ -279,7 +289,7 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.
     low = np.asarray(lows, np.float64) if k else np.zeros(0)
     span = np.asarray(highs, np.float64) - low if k else np.zeros(0)
     steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
-    codes = np.empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
+    codes = mapped_empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
 
     def part(columns: slice) -> None:  # float64 a block at a time, the blocks in threads
         codes[:, columns] = codes_in_place(basis[:, columns].astype(np.float64), low[:, None], steps[:, None], levels)
@@ -309,6 +319,9 @@ class LowRankStack:
         ranges: (k, 2) float32 (low, high) per basis image.
         weights: (n, k) float32 per-light weights.
         mean_weights: (n,) float32 per-light weight of the mean image (None: all 1).
+        deflated: the basis images' codes deflated as the field file stores them (``io.codes.DeflatedCodes``,
+            found by content), where the fit's rate search measured them; the field writer deflates
+            what it does not find there. Not part of the model (never compared, never stored).
     """
 
     mean: np.ndarray
@@ -316,6 +329,7 @@ class LowRankStack:
     ranges: np.ndarray
     weights: np.ndarray
     mean_weights: np.ndarray | None = None
+    deflated: DeflatedPieces | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         mean = finite_array(self.mean, np.float32, "residual mean")
@@ -350,12 +364,13 @@ class LowRankStack:
         return cls.quantised(principal, principal.spans[:rank] / levels, bits=bits)
 
     @classmethod
-    def quantised(cls, principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8) -> LowRankStack:
+    def quantised(cls, principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8, deflated: DeflatedPieces | None = None) -> LowRankStack:
         """The stack of ``principal``'s mean image (float16) and its first k = len(``steps``) further
         principal images, basis image j quantised with step ``steps[j]`` (in the units of a unit-norm
         image; at least its span over the ``bits``' levels, so its codes fit). Then every image's mean
         weight and basis weights are fitted to it by least squares against the stored planes, so
-        quantisation only costs what they cannot represent."""
+        quantisation only costs what they cannot represent. ``deflated``: kept as the stack's (see the
+        class)."""
         k = len(steps)
         if k > principal.count - 1:
             raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
@@ -375,11 +390,14 @@ class LowRankStack:
         if products is not None:  # float32 design and stack blocks, summed in float64 there: the same products
             normal_sum, right_sum = products.cross_sum(k + 1, k + 1), products.cross_sum(k + 1, n)
         for columns in _column_slices(max(k + 1, n), pixels):
-            design = np.empty((k + 1, columns.stop - columns.start), np.float64 if products is None else np.float32)
+            shape = (k + 1, columns.stop - columns.start)
+            design = np.empty(shape, np.float64) if products is None else products.staging(shape)  # there: filled where the upload reads it
             design[0] = mean32[columns]
 
-            def planes(rows: slice, columns=columns, design=design) -> None:  # threads, a few basis images each
-                design[1:][rows] = low[rows, None] + codes[rows, columns].astype(np.float32) * step[rows, None]
+            def planes(rows: slice, columns=columns, design=design) -> None:  # threads, a few basis images each, in float32 (as decoded)
+                part = design[1:][rows]
+                np.multiply(codes[rows, columns], step[rows, None], out=part, dtype=np.float32, casting="unsafe")
+                np.add(part, low[rows, None], out=part, dtype=np.float32, casting="unsafe")
 
             parallel_map(planes, [slice(a, min(a + 8, k)) for a in range(0, k, 8)])
             if products is None:
@@ -393,7 +411,7 @@ class LowRankStack:
             normal, right = normal_sum.value(), right_sum.value()
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
         solution = np.linalg.solve(normal, right)
-        return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32))
+        return cls(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32), deflated=deflated)
 
     @property
     def rank(self) -> int:
@@ -407,10 +425,14 @@ class LowRankStack:
     @property
     def basis(self) -> np.ndarray:
         """(k, H, W, P) float32 dequantised basis images."""
+        return self.band_basis(slice(None))
+
+    def band_basis(self, rows: slice) -> np.ndarray:
+        """(k, rows, W, P) float32 dequantised basis images over a band of ``rows``."""
         low = self.ranges[:, 0].reshape(-1, 1, 1, 1)
         levels = np.float32(code_levels(self.bits))
         step = ((self.ranges[:, 1] - self.ranges[:, 0]) / levels).reshape(-1, 1, 1, 1)
-        return (low + self.codes.astype(np.float32) * step).astype(np.float32)
+        return (low + self.codes[:, rows].astype(np.float32) * step).astype(np.float32)
 
     def images(self, weights: np.ndarray, mean_weights=1.0) -> np.ndarray:
         """(Q, H, W, P) float64 images for (Q, k) weight rows and (Q,) mean weights (e.g. blended per-light ones)."""
@@ -425,6 +447,8 @@ class LowRankStack:
         return self.images(blend @ self.weights.astype(np.float64), blend @ self.mean_weights.astype(np.float64))
 
 
+_DECODE_BAND_VALUES = 1 << 20
+"""Basis values (rows x width x rank) ``ResidualModel.decoded_blocks`` dequantises in a thread at a time (4 MB of float32)."""
 _BLOCK_VALUES = 1 << 23
 """Values of a stack ``PrincipalImages`` and ``LowRankStack.quantised`` take into float64 at a time (64 MB)."""
 
@@ -684,14 +708,26 @@ class ResidualModel:
                 yield start, self.images[start : start + block]
             return
         scale = np.ones((self.height, self.width), np.float32) if self.scale is None else self.scale
-        planes = [(stack, stack.basis.reshape(stack.rank, stack.mean.size), stack.mean.reshape(1, -1)) for stack in (self.luminance, self.chroma) if stack is not None]
+        stacks = [stack for stack in (self.luminance, self.chroma) if stack is not None]
+        rows_a_band = max(1, _DECODE_BAND_VALUES // max(self.width * max(stack.rank for stack in stacks), 1))
+        bands = [slice(top, min(top + rows_a_band, self.height)) for top in range(0, self.height, rows_a_band)]
         for start in range(0, n, block):
             stop = min(n, start + block)
-            parts = [(stack.weights[start:stop] @ basis + stack.mean_weights[start:stop, None] * mean).reshape((stop - start,) + stack.mean.shape)
-                     for stack, basis, mean in planes]
-            y = parts[0][..., 0] * scale
-            rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[..., None])
-            yield start, np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE).astype(np.float16)
+            out = np.empty((stop - start, self.height, self.width, self.channels), np.float16)
+
+            def band(rows: slice, start=start, stop=stop, out=out) -> None:  # the bands in threads: the basis dequantised a band at a time, never whole
+                parts = []
+                for stack in stacks:
+                    basis = stack.band_basis(rows)
+                    light = np.tensordot(stack.weights[start:stop], basis, axes=1)
+                    light += stack.mean_weights[start:stop, None, None, None] * stack.mean[rows]
+                    parts.append(light)
+                y = parts[0][..., 0] * scale[rows]
+                rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[rows, :, None])
+                out[:, rows] = np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE)
+
+            parallel_map(band, bands)
+            yield start, out
 
     def light_images(self, weights: np.ndarray) -> np.ndarray:
         """R~ for (Q, n) per-light blend weights: (Q, H, W, C) float64 (the float64 reference)."""

@@ -8,7 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "all_finite", "core_count", "parallel_map"]
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "core_count", "mapped_empty", "parallel_map"]
 
 
 def core_count() -> int:
@@ -41,3 +41,22 @@ def all_finite(array) -> bool:
         return bool(np.isfinite(array).all())
     step = -(-len(array) // (4 * NUMPY_THREADS))
     return all(parallel_map(lambda start: bool(np.isfinite(array[start : start + step]).all()), range(0, len(array), step)))
+
+
+PREFAULT_BYTES = 1 << 26
+"""Arrays from this size (64 MiB) are made by ``mapped_empty`` with their pages written from threads;
+smaller ones are left to be mapped as they are first written (the threads would cost more)."""
+
+
+def mapped_empty(shape, dtype) -> np.ndarray:
+    """``np.empty(shape, dtype)`` whose memory is mapped already: a large array's pages are written
+    (zeros) from threads first. A fresh array's first writes stop at each of its pages while the
+    system maps it, one page at a time even from many threads; on the lent H100's host a copy into
+    fresh pages ran at 2.9 GB/s, the threaded zero fill at tens of GB/s (``kernels.transfer``)."""
+    array = np.empty(shape, dtype)
+    if array.nbytes < PREFAULT_BYTES or NUMPY_THREADS == 1:
+        return array
+    flat = array.reshape(-1)
+    step = -(-flat.size // (4 * NUMPY_THREADS))
+    parallel_map(lambda start: flat[start : start + step].fill(0), range(0, flat.size, step))
+    return array

@@ -38,6 +38,7 @@ from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.residual import code_levels
 from ..model.triangulation import unit_query_directions
 from .interpolation import edge_rows
 
@@ -50,6 +51,7 @@ __all__ = [
     "RelitImages",
     "alpha_inputs",
     "check_same_lights",
+    "decode_residual",
     "face_edge_rows",
     "relight_field",
 ]
@@ -71,6 +73,7 @@ DECODED_RESIDUAL_BYTES = 512 * 2**20
 unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, about 12 s per 3 GB
 on 2 cores, which a single query would wait for; a larger field is decoded per query instead."""
 _DECODE_BLOCK = 16  # lights decoded, resampled and uploaded at a time: the host holds one block
+_DEVICE_DECODE_SHARE = 0.75  # of the free device memory that decoding on the device may hold at once (basis, codes, images)
 
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
@@ -264,7 +267,10 @@ class Relighter:
 
     def _upload_images(self, source) -> wp.array:
         """The per-light images of ``source`` (a residual, decoded here, or a diffuse model's images) at the
-        output size on the device, (n, H W, C) float16, made ``_DECODE_BLOCK`` lights at a time."""
+        output size on the device, (n, H W, C) float16: a low-rank residual decoded on a CUDA device
+        where it can be (``decode_residual``), else made on the host ``_DECODE_BLOCK`` lights at a time."""
+        if source is self.field.residual and self.device.is_cuda and _decodes_on_device(source, self.width, self.height, self.device):
+            return decode_residual(source, self.device)
         if source is self.field.residual:
             blocks, count, channels = source.decoded_blocks(block=_DECODE_BLOCK), source.light_count, source.channels
         else:
@@ -767,13 +773,53 @@ class _LowRankArrays:
 
     @classmethod
     def upload(cls, stack, width: int, height: int, device) -> _LowRankArrays:
+        """The stack at ``width`` x ``height``: at its own size its codes go to the device and are dequantised
+        there (``dequantise_basis``: half the bytes of the float32 basis, no host pass over it), else
+        the dequantised basis is resampled on the host."""
         planes = stack.mean.shape[2]
         mean = resample_image(stack.mean, width, height).reshape(height * width, planes)
+        weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
+        array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
+        if stack.rank and stack.mean.shape[:2] == (height, width):
+            codes = wp.array(stack.codes.reshape(stack.rank, height * width, planes), dtype=wp.uint16 if stack.bits == 16 else wp.uint8, device=device)
+            low = stack.ranges[:, 0]
+            step = (stack.ranges[:, 1] - stack.ranges[:, 0]) / np.float32(code_levels(stack.bits))  # float32, as LowRankStack.basis
+            basis = wp.empty((height * width, stack.rank, planes), dtype=float, device=device)
+            wp.launch(kernels.dequantise_basis, dim=(stack.rank, height * width), inputs=[codes, array(low), array(step)], outputs=[basis], device=device)
+            return cls(array(mean), basis, array(weights), stack.rank)
         if stack.rank:
             basis = np.stack([resample_image(image, width, height) for image in stack.basis]).reshape(stack.rank, height * width, planes)
             basis = basis.transpose(1, 0, 2)  # pixel-major: a pixel's k values are contiguous
         else:
             basis = np.zeros((height * width, 1, planes), np.float32)
-        weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
-        array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
         return cls(array(mean), array(basis), array(weights), stack.rank)
+
+
+def decode_residual(residual, device) -> wp.array:
+    """Every captured light's image of a low-rank ``residual`` at its own size, decoded on a Warp
+    ``device`` (``decode_low_rank``): (n, H W, C) float16, what ``ResidualModel.decoded_images`` gives
+    (to float32 rounding). The basis is held on the device meanwhile (``_decodes_on_device``)."""
+    pixels = residual.height * residual.width
+    stacks = [_LowRankArrays.upload(residual.luminance, residual.width, residual.height, device)]
+    stacks.append(_LowRankArrays.upload(residual.chroma, residual.width, residual.height, device) if residual.chroma is not None else _LowRankArrays.empty(device, 2))
+    scale = np.ones(1, np.float32) if residual.scale is None else residual.scale.reshape(-1)
+    out = wp.empty((residual.light_count, pixels, residual.channels), dtype=wp.float16, device=device)
+    (lum, chroma) = stacks
+    wp.launch(kernels.decode_low_rank, dim=(residual.light_count, pixels),
+              inputs=[lum.mean, lum.basis, lum.weights, chroma.mean, chroma.basis, chroma.weights,
+                      wp.array(np.ascontiguousarray(scale, np.float32), dtype=float, device=device)], outputs=[out], device=device)
+    return out
+
+
+def _decodes_on_device(residual, width: int, height: int, device) -> bool:
+    """Whether ``decode_residual`` serves a ``Relighter`` at ``width`` x ``height``: the residual's own size,
+    and its float32 basis, codes and decoded images within ``_DEVICE_DECODE_SHARE`` of the free memory."""
+    if residual.luminance is None or (residual.height, residual.width) != (height, width):
+        return False
+    pixels = height * width
+    stacks = [stack for stack in (residual.luminance, residual.chroma) if stack is not None]
+    basis = sum(4 * pixels * max(stack.rank, 1) * stack.mean.shape[2] for stack in stacks)
+    codes = max(stack.codes.nbytes for stack in stacks)
+    images = 2 * residual.light_count * pixels * residual.channels
+    free = device_free_memory(device)
+    return free is not None and basis + codes + images <= _DEVICE_DECODE_SHARE * free
