@@ -283,3 +283,55 @@ def test_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
         write_image(path, np.zeros((2, 2), dtype=np.float32))
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["a.exr"]
+
+
+def test_quiet_native_stderr_is_shared_by_threads_and_restored_after_the_last():
+    """fd 2 points at the null device while any thread is inside; the first one out leaves it so for
+    the others, the last one out restores it (the reads decode in threads at once)."""
+    import os
+    import threading
+
+    from warp_highlights.io.images import quiet_native_stderr
+
+    real = os.fstat(2)
+    null = os.stat(os.devnull)
+    inside, release = threading.Barrier(3), threading.Event()
+    seen = []
+
+    def reader():
+        with quiet_native_stderr():
+            inside.wait()
+            seen.append(os.fstat(2).st_rdev == null.st_rdev)
+            release.wait()
+
+    threads = [threading.Thread(target=reader) for _ in range(2)]
+    for thread in threads:
+        thread.start()
+    inside.wait()
+    assert os.fstat(2).st_rdev == null.st_rdev
+    with quiet_native_stderr():  # a third, nested in time, leaves first
+        pass
+    assert os.fstat(2).st_rdev == null.st_rdev
+    release.set()
+    for thread in threads:
+        thread.join()
+    assert seen == [True, True]
+    after = os.fstat(2)
+    assert (after.st_dev, after.st_ino) == (real.st_dev, real.st_ino)
+
+
+def test_exr_images_decode_in_threads_to_the_same_values(tmp_path):
+    """EXR reads hold no lock while they decode; read in threads they give what serial reads give."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    rng = np.random.default_rng(4)
+    paths = []
+    for index in range(6):
+        path = tmp_path / f"{index}.exr"
+        write_image(path, rng.uniform(0.0, 2.0, size=(40, 56, 3)).astype(np.float32))
+        paths.append(path)
+    serial = [read_image(path) for path in paths]
+    with ThreadPoolExecutor(4) as pool:
+        threaded = list(pool.map(read_image, paths * 3))
+    for index, image in enumerate(threaded):
+        np.testing.assert_array_equal(image, serial[index % len(paths)])

@@ -75,7 +75,7 @@ _PIL_GRAY8_MODES = {"1", "L", "LA", "La"}
 _PIL_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error)  # what Pillow raises on bad files
 _PIL_FORMATS = ("PNG", "JPEG")  # what Pillow may take a file for, whatever its extension says
 _EXIF_ORIENTATION_TAG = 0x0112
-_READ_LOCK = threading.RLock()  # reads set process-wide state: Pillow's limits, file descriptor 2
+_READ_LOCK = threading.RLock()  # Pillow's reads set process-wide limits
 
 DEFAULT_MAX_PIXELS = 160_000_000
 """Most pixels (width x height) an image may have before the readers refuse it: 160 megapixels.
@@ -243,7 +243,7 @@ def image_encoding(path, *, linear: bool = False) -> dict:
         import OpenEXR
 
         try:
-            with _READ_LOCK, quiet_native_stderr():
+            with quiet_native_stderr():
                 channel = next(iter(OpenEXR.File(str(path), header_only=True).parts[0].header["channels"]))
             bits = 16 if "HALF" in str(channel.type).upper() else 32
         except Exception as exc:  # noqa: BLE001 (OpenEXR raises many kinds)
@@ -355,7 +355,7 @@ def _oiio_spec(path: Path):
     """OpenImageIO's header (``ImageSpec``) of a PNG, JPEG or TIFF; one line naming the file when it cannot be read."""
     import OpenImageIO as oiio
 
-    with _READ_LOCK, quiet_native_stderr():
+    with quiet_native_stderr():
         image = oiio.ImageInput.open(str(path))
         if image is None:
             raise _unreadable(path, RuntimeError(oiio.geterror() or "unknown format"))
@@ -384,29 +384,43 @@ def _oiio_header(path: Path, max_pixels: int | None) -> tuple[int, int, int, int
     return spec.width, spec.height, channels, spec.get_int_attribute("Orientation", 1)
 
 
+_QUIET_LOCK = threading.Lock()
+_quiet = {"depth": 0, "saved": None}  # readers inside quiet_native_stderr now, and the real fd 2 meanwhile
+
+
 @contextlib.contextmanager
 def quiet_native_stderr() -> Iterator[None]:
-    """Discard what C/C++ code prints on file descriptor 2 meanwhile (OpenEXR prints its errors there
-    too, Warp its CUDA-driver warning).
+    """Discard what C/C++ code prints on file descriptor 2 meanwhile (OpenEXR, libpng and libjpeg print
+    their errors there too, Warp its CUDA-driver warning).
 
-    The errors still arrive as exceptions. Python's ``sys.stderr`` is flushed first; output of other
-    threads in the same moment is lost, which is why the EXR reads hold ``_READ_LOCK``.
-    """
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError, AttributeError):  # no file descriptor 2 (embedded interpreters)
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
+    The errors still arrive as exceptions. Python's ``sys.stderr`` is flushed first. Threads share the
+    redirection: the first one in points fd 2 at the null device, the last one out points it back, so
+    readers in threads decode at once (output of other threads in that time is lost)."""
+    with _QUIET_LOCK:
+        if _quiet["depth"] == 0:
             try:
-                yield
-            finally:
-                os.dup2(saved, 2)
+                sys.stderr.flush()
+                saved = os.dup(2)
+            except (OSError, ValueError, AttributeError):  # no file descriptor 2 (embedded interpreters)
+                saved = None
+            if saved is not None:
+                null = os.open(os.devnull, os.O_WRONLY)
+                try:
+                    os.dup2(null, 2)
+                finally:
+                    os.close(null)
+            _quiet["saved"] = saved
+        _quiet["depth"] += 1
+    try:
+        yield
     finally:
-        os.close(saved)
+        with _QUIET_LOCK:
+            _quiet["depth"] -= 1
+            saved = _quiet["saved"]
+            if _quiet["depth"] == 0 and saved is not None:
+                os.dup2(saved, 2)
+                os.close(saved)
+                _quiet["saved"] = None
 
 
 def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]]:
@@ -418,7 +432,7 @@ def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]
     import OpenEXR
 
     try:
-        with _READ_LOCK, quiet_native_stderr():
+        with quiet_native_stderr():
             headers = [part.header for part in OpenEXR.File(str(path), header_only=True).parts]
         windows = [tuple(int(v) for corner in header["dataWindow"] for v in corner) for header in headers]
         names = [channel.name for channel in headers[0]["channels"]]
@@ -476,7 +490,7 @@ def _read_exr(path: Path, max_pixels: int | None) -> np.ndarray:
     width, height, names = _exr_header(path, max_pixels)
     keep = _exr_channels_to_keep(path, names)
     try:
-        with _READ_LOCK, quiet_native_stderr():
+        with quiet_native_stderr():
             exr = OpenEXR.File(str(path), separate_channels=True)
             channels = {name: channel.pixels for name, channel in exr.channels().items()}
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, UnicodeError, ...)
@@ -524,7 +538,7 @@ def _read_with_oiio(path: Path) -> np.ndarray:
     (H, W, 3), alpha dropped. A damaged or truncated file raises (never a partly grey image)."""
     import OpenImageIO as oiio
 
-    with _READ_LOCK, quiet_native_stderr():  # libpng and libjpeg print their complaints on fd 2
+    with quiet_native_stderr():  # libpng and libjpeg print their complaints on fd 2
         config = oiio.ImageSpec()
         config.attribute("oiio:UnassociatedAlpha", 1)  # colour as stored, not multiplied by alpha (which is dropped)
         image = oiio.ImageInput.open(str(path), config)
