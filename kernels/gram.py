@@ -123,21 +123,23 @@ class DeviceProducts:
         self._buffers: list[wp.array | None] = [None, None]
         self._copied: list[wp.Event | None] = [None, None]  # recorded after a buffer's last copy to the device
         self._turn = 0
-        self._staged: tuple[int, np.ndarray] | None = None  # the last ``staging`` array, not yet uploaded
+        self._staged: tuple[int, wp.array, np.ndarray] | None = None  # the ``staging`` array not yet uploaded, and its buffer
 
     def staging(self, shape: tuple) -> np.ndarray:
-        """A float32 host array of ``shape`` to fill and then ``upload``: on CUDA in the next page-locked
-        buffer, so that the upload copies nothing on the host."""
+        """A float32 host array of ``shape`` to fill and then ``upload``, before any other upload or
+        projection: on CUDA in the next page-locked buffer, so that the upload copies nothing on the host."""
         rows, width = shape
         if not self.device.is_cuda or rows * width == 0:
             return np.empty(shape, np.float32)
         which, buffer = self._buffer(rows * width)
         array = buffer.numpy()[: rows * width].reshape(rows, width)
-        self._staged = (which, array)
+        self._staged = (which, buffer, array)
         return array
 
     def _buffer(self, values: int) -> tuple[int, wp.array]:
         """(which, buffer): the next page-locked float32 buffer of at least ``values``, its last copy done."""
+        if self._staged is not None:
+            raise RuntimeError("a staging array must be uploaded before the next upload or projection")
         which, self._turn = self._turn, self._turn ^ 1
         if self._copied[which] is not None:
             wp.synchronize_event(self._copied[which])
@@ -152,8 +154,10 @@ class DeviceProducts:
             return wp.array(np.ascontiguousarray(block, np.float32), dtype=wp.float32, device=self.device)
         rows, width = block.shape
         staged, self._staged = self._staged, None
-        if staged is not None and block is staged[1]:
-            which, buffer = staged[0], self._buffers[staged[0]]  # filled in place
+        if staged is not None and block is staged[2]:
+            which, buffer = staged[0], staged[1]  # filled in place
+        elif staged is not None:
+            raise RuntimeError("a staging array must be uploaded before the next upload or projection")
         else:
             which, buffer = self._buffer(block.size)
             np.copyto(buffer.numpy()[: block.size].reshape(rows, width), block, casting="unsafe")

@@ -32,7 +32,7 @@ from typing import Any
 import warp as wp
 
 from warp_highlights.model.gaussians import GaussianArrays
-from warp_highlights.model.residual import LUMINANCE_WEIGHTS
+from warp_highlights.model.residual import FLOAT16_SAFE, LUMINANCE_WEIGHTS
 
 from .retarget import rotate_vec2
 
@@ -68,7 +68,7 @@ DIFFUSE_DECODED = 4
 _WR = wp.constant(LUMINANCE_WEIGHTS[0])
 _WG = wp.constant(LUMINANCE_WEIGHTS[1])
 _WB = wp.constant(LUMINANCE_WEIGHTS[2])
-_FLOAT16_SAFE = wp.constant(6.0e4)  # decoded images are clipped to this, as ``ResidualModel.decoded_images`` clips them
+_FLOAT16_SAFE = wp.constant(FLOAT16_SAFE)  # decoded images are clipped to this, as ``ResidualModel.decoded_images`` clips them
 
 
 @wp.func
@@ -290,6 +290,36 @@ def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coe
     return value
 
 
+@wp.func
+def _low_rank_opponent(luminance_mean: wp.array2d(dtype=float), luminance_basis: wp.array3d(dtype=float), luminance_weights: wp.array2d(dtype=float),
+                       chroma_mean: wp.array2d(dtype=float), chroma_basis: wp.array3d(dtype=float), chroma_weights: wp.array2d(dtype=float),
+                       residual_scale: wp.array(dtype=float), q: int, i: int, channels: int) -> wp.vec3:
+    # (Y, B - Y, R - Y) of the low-rank residual at pixel i for coefficient row q, times the residual scale; chroma 0 for grey
+    s = residual_scale[0]
+    if residual_scale.shape[0] > 1:
+        s = residual_scale[i]
+    y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
+    cb = float(0.0)
+    cr = float(0.0)
+    if channels == 3:
+        cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
+        cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
+    return wp.vec3(y, cb, cr)
+
+
+@wp.func
+def _opponent_channel(opponent: wp.vec3, c: int, channels: int) -> float:
+    # channel c of the colour (Y, B - Y, R - Y) splits into (``model.residual.from_opponent``); Y alone for grey
+    y = opponent[0]
+    if channels != 3:
+        return y
+    if c == 0:
+        return y + opponent[2]
+    if c == 1:
+        return y - (_WR * opponent[2] + _WB * opponent[1]) / _WG
+    return y + opponent[1]
+
+
 @wp.kernel(enable_backward=False)
 def compose_images(
     specular: wp.array2d(dtype=float),
@@ -341,17 +371,10 @@ def compose_images(
         row = i
         if one_colour:
             row = 0
-        y = float(0.0)
-        cb = float(0.0)
-        cr = float(0.0)
+        opponent = wp.vec3(0.0)
         if diffuse_mode == DIFFUSE_LOWRANK:
-            s = residual_scale[0]
-            if residual_scale.shape[0] > 1:
-                s = residual_scale[i]
-            y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, q, i, 0)
-            if channels == 3:
-                cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 0)
-                cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, q, i, 1)
+            opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis, chroma_weights,
+                                          residual_scale, q, i, channels)
         for c in range(channels):
             value = 0.0
             if diffuse_mode == DIFFUSE_LAMBERT:
@@ -362,14 +385,7 @@ def compose_images(
             elif diffuse_mode == DIFFUSE_DECODED:
                 value = float(diffuse_images[q, i, c])
             elif diffuse_mode == DIFFUSE_LOWRANK:
-                value = y
-                if channels == 3:
-                    if c == 0:
-                        value = y + cr
-                    elif c == 1:
-                        value = y - (_WR * cr + _WB * cb) / _WG
-                    else:
-                        value = y + cb
+                value = _opponent_channel(opponent, c, channels)
             if add_specular != 0:
                 value += specular_colour[c] * pixel_colour[row, c] * specular[q, i]
             out[q, i, c] = scale * wp.max(value, 0.0)
@@ -400,15 +416,8 @@ def decode_low_rank(
     the clamp at 0 or the exposure), times ``residual_scale``, clipped to float16's range: what
     ``ResidualModel.decoded_images`` gives."""
     light, i = wp.tid()
-    s = residual_scale[0]
-    if residual_scale.shape[0] > 1:
-        s = residual_scale[i]
-    y = s * _low_rank(luminance_mean, luminance_basis, luminance_weights, light, i, 0)
-    if out.shape[2] == 3:
-        cb = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, light, i, 0)
-        cr = s * _low_rank(chroma_mean, chroma_basis, chroma_weights, light, i, 1)
-        out[light, i, 0] = wp.float16(wp.clamp(y + cr, -_FLOAT16_SAFE, _FLOAT16_SAFE))
-        out[light, i, 1] = wp.float16(wp.clamp(y - (_WR * cr + _WB * cb) / _WG, -_FLOAT16_SAFE, _FLOAT16_SAFE))
-        out[light, i, 2] = wp.float16(wp.clamp(y + cb, -_FLOAT16_SAFE, _FLOAT16_SAFE))
-    else:
-        out[light, i, 0] = wp.float16(wp.clamp(y, -_FLOAT16_SAFE, _FLOAT16_SAFE))
+    channels = out.shape[2]
+    opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis, chroma_weights, residual_scale,
+                                  light, i, channels)
+    for c in range(channels):
+        out[light, i, c] = wp.float16(wp.clamp(_opponent_channel(opponent, c, channels), -_FLOAT16_SAFE, _FLOAT16_SAFE))

@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from warp_highlights.model.threads import NUMPY_THREADS, PREFAULT_BYTES, mapped_empty
+from warp_highlights.model import threads
 
-__all__ = ["PREFAULT_BYTES", "to_host"]
+__all__ = ["to_host"]
 
 
 def to_host(array) -> np.ndarray:
@@ -22,9 +22,9 @@ def to_host(array) -> np.ndarray:
     (``mapped_empty``)."""
     if not isinstance(array, wp.array):
         return np.asarray(array)
-    if not array.device.is_cuda or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous or array.capacity < PREFAULT_BYTES \
-            or NUMPY_THREADS == 1:
+    if not array.device.is_cuda or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
+            or array.capacity < threads.PREFAULT_BYTES or threads.NUMPY_THREADS == 1:
         return array.numpy()
-    host = mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
+    host = threads.mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
     wp.copy(wp.array(host, dtype=array.dtype, device="cpu", copy=False), array)
     return host

@@ -212,3 +212,24 @@ def test_help_and_usage_errors_do_not_start_warp(arguments):
     assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
     quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
     assert quiet.stdout == "" and quiet.stderr == ""
+
+
+def test_python_messages_show_while_the_readers_quiet_descriptor_2(capfd):
+    """Under ``python_stderr_apart`` (the console command's stderr), what Python writes to stderr still
+    shows while an image reader points fd 2 at the null device; native output there is dropped."""
+    import os
+    import sys
+
+    from warp_highlights.cli.app import python_stderr_apart
+    from warp_highlights.io.images import quiet_native_stderr
+
+    original = sys.stderr
+    with python_stderr_apart():
+        assert sys.stderr is not original
+        with quiet_native_stderr():
+            os.write(2, b"native noise\n")
+            print("python line", file=sys.stderr)
+    assert sys.stderr is original
+    os.write(2, b"after\n")
+    err = capfd.readouterr().err
+    assert "python line" in err and "after" in err and "native noise" not in err

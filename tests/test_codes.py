@@ -181,3 +181,16 @@ def test_only_a_sample_of_every_row_keeps_pieces():
     principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
     with pytest.raises(ValueError, match="every row"):
         RateSample(principal, 3).bytes(principal.spans[:3] / 255, bits=8, keep=DeflatedCodes())
+
+
+def test_the_latest_two_measurements_are_kept():
+    """A search's answer is its last measurement or the one before: pieces of both are found, older
+    ones are deflated again (and are the same bytes)."""
+    rng = np.random.default_rng(8)
+    images = [rng.integers(0, 4, size=(2, 9, 11), dtype=np.uint8) for _ in range(3)]
+    store = DeflatedCodes()
+    for image in images:
+        store.keep({DeflatedCodes.key(image): b"kept"})
+    assert len(store) == 1
+    assert store.piece(images[2]) == b"kept" and store.piece(images[1]) == b"kept"
+    assert store.piece(images[0]) == deflated_piece(images[0])  # dropped: deflated now

@@ -127,3 +127,18 @@ def dataclass_with(principal: PrincipalImages, **changes) -> PrincipalImages:
     import dataclasses
 
     return dataclasses.replace(principal, **changes)
+
+
+def test_a_staging_array_is_uploaded_before_anything_else(device):
+    """``staging`` fills a page-locked buffer on CUDA: another upload or a projection before its own
+    upload is refused (it would take that buffer); on the CPU it is a plain array."""
+    products = DeviceProducts(device)
+    block = RNG.normal(size=(5, 40)).astype(np.float32)
+    staged = products.staging((5, 40))
+    staged[...] = block
+    np.testing.assert_array_equal(products.upload(staged).numpy(), block)
+    if not products.device.is_cuda:
+        return
+    products.staging((5, 40))
+    with pytest.raises(RuntimeError, match="uploaded before"):
+        products.upload(block)

@@ -359,6 +359,24 @@ def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
         np.testing.assert_allclose(decoded.astype(np.float32), host.astype(np.float32), rtol=2e-3, atol=2e-3)
 
 
+def test_a_relighter_decodes_on_the_device_where_the_basis_fits_beside_the_images(monkeypatch):
+    """``_decodes_on_device``: the residual's own size, and its float32 basis, codes and float16 images
+    within the share of the free device memory; else the host decodes."""
+    import warp_highlights.relight.relighter as relighter_module
+
+    n, h, w = 9, 10, 12
+    images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
+    model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2, basis_bits=16))
+    pixels = h * w
+    needed = 4 * pixels * (4 * 1 + 2 * 2) + model.chroma.codes.nbytes + 2 * n * pixels * 3
+    for free, expected in ((None, False), (needed / 0.75 - 1, False), (needed / 0.75 + 1, True)):
+        monkeypatch.setattr(relighter_module, "device_free_memory", lambda device, free=free: free)
+        assert relighter_module._decodes_on_device(model, w, h, "cuda:0") == expected, free
+    monkeypatch.setattr(relighter_module, "device_free_memory", lambda device: 1 << 40)
+    assert not relighter_module._decodes_on_device(model, w // 2, h // 2, "cuda:0")  # another size: resampled on the host
+    assert not relighter_module._decodes_on_device(ResidualModel(images=images), w, h, "cuda:0")
+
+
 @pytest.mark.parametrize("band_values", [1 << 20, 96])
 def test_decoded_images_match_the_float64_reference(band_values, monkeypatch):
     """Decoded a block of lights at a time, in bands of rows (one band; bands of 2 rows here)."""

@@ -37,9 +37,13 @@ def test_mapped_empty_is_an_empty_array_of_the_shape_and_type(monkeypatch, cores
     array is writable and whole either way (odd sizes: the last part is short)."""
     monkeypatch.setattr(threads, "NUMPY_THREADS", cores)
     monkeypatch.setattr(threads, "PREFAULT_BYTES", limit)
+    monkeypatch.setattr(threads.np, "empty", lambda shape, dtype: np.full(shape, 0xAB, dtype))  # memory that is not zero already
+    filled = []
+    real_map = threads.parallel_map
+    monkeypatch.setattr(threads, "parallel_map", lambda function, items: filled.extend(items) or real_map(function, items))
     array = mapped_empty((7, 13, 3), np.uint16)
     assert array.shape == (7, 13, 3) and array.dtype == np.uint16 and array.flags.c_contiguous and array.flags.writeable
-    if limit == 64 and cores > 1:
-        assert not array.any()  # every part was filled
+    threaded = limit == 64 and cores > 1
+    assert bool(filled) == threaded and (not array.any()) == threaded  # every part written from the threads, or none
     array[...] = 5
     assert int(array.sum()) == 5 * array.size

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import io
 import logging
+import os
 import signal
 import sys
 import threading
@@ -53,10 +55,11 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help(sys.stdout)
             print("warp-highlights: error: no command given; choose one of those listed above", file=sys.stderr)
             return EXIT_INPUT_ERROR
-        _quiet_warp(verbose=args.verbose)  # after parsing: --help and usage errors never import Warp
-        _init_warp(verbose=args.verbose)
-        with messages_to_stderr(quiet=args.quiet, verbose=args.verbose):
-            return _run(args)
+        with python_stderr_apart() if console else contextlib.nullcontext():
+            _quiet_warp(verbose=args.verbose)  # after parsing: --help and usage errors never import Warp
+            _init_warp(verbose=args.verbose)
+            with messages_to_stderr(quiet=args.quiet, verbose=args.verbose):
+                return _run(args)
     except KeyboardInterrupt as interruption:  # before the command started: nothing was written
         print("warp-highlights: interrupted while starting; nothing was written", file=sys.stderr)
         return EXIT_TERMINATED if isinstance(interruption, Terminated) else EXIT_INTERRUPTED
@@ -209,6 +212,29 @@ def _cuda_driver_present() -> bool:
         except OSError:
             continue
     return False
+
+
+@contextlib.contextmanager
+def python_stderr_apart():
+    """Python's ``sys.stderr`` (progress bars, messages, warnings, the last error line) written through a
+    copy of file descriptor 2 while a command runs: the image readers point fd 2 itself at the null
+    device while native decoders run in threads (``io.images.quiet_native_stderr``), which would hide them."""
+    original = sys.stderr
+    try:
+        original.flush()
+        copy = os.dup(original.fileno())
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):  # no descriptor behind it (captured, embedded)
+        yield
+        return
+    stream = io.TextIOWrapper(io.FileIO(copy, "w"), encoding=original.encoding or "utf-8", errors="backslashreplace", line_buffering=True,
+                              write_through=True)
+    sys.stderr = stream
+    try:
+        yield
+    finally:
+        sys.stderr = original
+        with contextlib.suppress(OSError, ValueError):
+            stream.close()
 
 
 @contextlib.contextmanager

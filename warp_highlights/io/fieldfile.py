@@ -359,12 +359,12 @@ class _StoredCodes:
         self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
 
-    def images(self):
-        """(stored codes, deflated piece) of each basis image, in order (a few images at a time in threads)."""
+    def images(self, *, pieces: bool = True):
+        """(stored codes, deflated piece or None) of each basis image, in order (a few images at a time in threads)."""
 
-        def one(code: np.ndarray) -> tuple[np.ndarray, bytes]:
+        def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None]:
             stored = stored_codes(code.transpose(2, 0, 1))
-            return stored, self.deflated.piece(stored)
+            return stored, self.deflated.piece(stored) if pieces else None
 
         block = max(1, NUMPY_THREADS)
         for start in range(0, len(self.codes), block):
@@ -395,7 +395,7 @@ def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> N
         if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
             compressor = entry._compressor = _GivenPieces()
         np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-        for image, piece in stored.images():
+        for image, piece in stored.images(pieces=compressor is not None):
             if compressor is not None:
                 compressor.given = piece
             entry.write(image.reshape(-1))
@@ -414,20 +414,16 @@ def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
     with archive.open(
         _entry_info(name), "w", force_zip64=array.nbytes > 2**30
     ) as entry:
-        _set_compressor(entry, array.nbytes, zlib.Z_DEFAULT_COMPRESSION, zlib.Z_DEFAULT_STRATEGY)  # what zipfile's own is: level 6, raw deflate
+        _set_compressor(entry, array.nbytes)
         np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
 
 
-def _set_compressor(entry, nbytes: int, level: int, strategy: int) -> None:
-    """Give a zip entry being written a raw deflate of ``level`` and ``strategy``: ``ParallelDeflate``
-    for ``_PARALLEL_BYTES`` or more (with more than one core), else zlib's own compressor (kept as it
-    is where it already is that). Only where the zip writer has the compressor this replaces."""
-    if type(getattr(entry, "_compressor", None)) is not type(zlib.compressobj()):
-        return
-    if nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
-        entry._compressor = ParallelDeflate(level, strategy=strategy)
-    elif strategy != zlib.Z_DEFAULT_STRATEGY:
-        entry._compressor = zlib.compressobj(level, zlib.DEFLATED, -15, 8, strategy)
+def _set_compressor(entry, nbytes: int) -> None:
+    """Give a zip entry being written ``ParallelDeflate`` (zipfile's own raw deflate, level 6, in threads)
+    for ``_PARALLEL_BYTES`` or more, with more than one core; only where the zip writer has the
+    compressor this replaces."""
+    if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()) and nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
+        entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:

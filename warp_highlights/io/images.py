@@ -404,11 +404,15 @@ def quiet_native_stderr() -> Iterator[None]:
             except (OSError, ValueError, AttributeError):  # no file descriptor 2 (embedded interpreters)
                 saved = None
             if saved is not None:
-                null = os.open(os.devnull, os.O_WRONLY)
                 try:
-                    os.dup2(null, 2)
-                finally:
-                    os.close(null)
+                    null = os.open(os.devnull, os.O_WRONLY)
+                    try:
+                        os.dup2(null, 2)
+                    finally:
+                        os.close(null)
+                except OSError:  # no null device or no descriptor left: fd 2 stays as it is
+                    os.close(saved)
+                    saved = None
             _quiet["saved"] = saved
         _quiet["depth"] += 1
     try:

@@ -35,12 +35,13 @@ import numpy as np
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, mapped_empty, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
 
-_FLOAT16_SAFE = 6.0e4
+FLOAT16_SAFE = 6.0e4
+"""Decoded residual images are clipped to +-this (float16's largest finite value is 65504)."""
 _LIGHT_SCALE_FLOOR = 1e-3  # of the brightest image's RMS: a black image is not divided by zero
 COLOUR_STEP = 4.0 / 255
 """Resolution of the stored highlight colour c(x): 8 bits over [0, 4] per channel (4: a highlight four
@@ -377,7 +378,7 @@ class LowRankStack:
         codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k])
         mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
-        mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < _FLOAT16_SAFE else mean.astype(np.float32)
+        mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < FLOAT16_SAFE else mean.astype(np.float32)
         shape = principal.shape
         n, pixels = principal.light_count, principal.values
         model = cls(mean32.reshape(shape), codes.reshape((k,) + shape), ranges, np.zeros((n, k), np.float32))
@@ -724,7 +725,7 @@ class ResidualModel:
                     parts.append(light)
                 y = parts[0][..., 0] * scale[rows]
                 rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[rows, :, None])
-                out[:, rows] = np.clip(rgb, -_FLOAT16_SAFE, _FLOAT16_SAFE)
+                out[:, rows] = np.clip(rgb, -FLOAT16_SAFE, FLOAT16_SAFE)
 
             parallel_map(band, bands)
             yield start, out
