@@ -194,3 +194,25 @@ def test_the_latest_two_measurements_are_kept():
     assert len(store) == 1
     assert store.piece(images[2]) == b"kept" and store.piece(images[1]) == b"kept"
     assert store.piece(images[0]) == deflated_piece(images[0])  # dropped: deflated now
+
+
+@pytest.mark.parametrize("chunk", [1 << 15, 7, 1])
+@pytest.mark.parametrize("bits", [8, 16])
+def test_codes_rounded_a_chunk_at_a_time_are_those_of_the_whole(monkeypatch, chunk, bits):
+    """``quantised_codes`` (float64 a chunk at a time, from any strides) gives ``codes_in_place``'s codes
+    on the whole images, ties and clipping included: flat images, and (P, R, W) views planes first."""
+    import warp_highlights.model.residual as residual_module
+    from warp_highlights.model.residual import codes_in_place, quantised_codes
+
+    monkeypatch.setattr(residual_module, "_QUANTISE_CHUNK", chunk)
+    levels = code_levels(bits)
+    kind = np.uint8 if bits == 8 else np.uint16
+    images = RNG.normal(size=(3, 9, 13, 2)).astype(np.float32)
+    images[0, 0, 0, 0] = 0.5  # a tie of the rounding: (0.5 - 0) / 1 = 0.5 rounds to even
+    low = np.array([0.0, -1.5, -3.0])
+    step = np.array([1.0, 3.0 / levels * 2.0, 6.0 / levels])  # the second image clips at both ends
+    for values in (images.reshape(3, -1), images.transpose(0, 3, 1, 2)):
+        expected = codes_in_place(values.astype(np.float64), low.reshape((3,) + (1,) * (values.ndim - 1)),
+                                  step.reshape((3,) + (1,) * (values.ndim - 1)), levels).astype(kind)
+        got = quantised_codes(values, low, step, levels, out=np.empty(values.shape, kind))
+        np.testing.assert_array_equal(got, expected)

@@ -42,11 +42,11 @@ from ..model.residual import (
     PrincipalImages,
     ResidualModel,
     code_levels,
-    codes_in_place,
     colour_codes,
     colour_from_codes,
     encode_display,
     luminance_of,
+    quantised_codes,
     to_opponent,
 )
 from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
@@ -266,8 +266,8 @@ class RateSample:
         kind = np.uint8 if bits == 8 else np.uint16
 
         def group(images: slice) -> tuple[int, list]:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
-            rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2).astype(np.float64)  # (c, P, rows, W), float64 as quantise_basis rounds
-            codes = codes_in_place(rows, self.low[images, None, None, None], steps[images, None, None, None], levels).astype(kind)
+            rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2)  # (c, P, rows, W), rounded in float64 as quantise_basis rounds
+            codes = quantised_codes(rows, self.low[images], steps[images], levels, out=np.empty(rows.shape, kind))
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
             pieces = [(DeflatedCodes.key(image) if keep is not None else None, deflated_piece(image)) for image in stored]
             return sum(len(piece) for _, piece in pieces), pieces if keep is not None else []
