@@ -120,7 +120,10 @@ class DeflatedCodes:
         self._kept = [dict(pieces), *self._kept][: self.KEPT]
 
     def piece(self, stored: np.ndarray) -> bytes:
-        """The deflated piece of ``stored``: the one held for its content, else deflated now."""
+        """The deflated piece of ``stored``: the one held for its content, else deflated now (nothing
+        hashed where nothing is held: a field loaded and saved again)."""
+        if not self._kept:
+            return deflated_piece(stored)
         key = self.key(stored)
         for pieces in self._kept:
             if key in pieces:

@@ -800,11 +800,10 @@ def decode_residual(residual, device) -> wp.array:
     ``device`` (``decode_low_rank``): (n, H W, C) float16, what ``ResidualModel.decoded_images`` gives
     (to float32 rounding). The basis is held on the device meanwhile (``_decodes_on_device``)."""
     pixels = residual.height * residual.width
-    stacks = [_LowRankArrays.upload(residual.luminance, residual.width, residual.height, device)]
-    stacks.append(_LowRankArrays.upload(residual.chroma, residual.width, residual.height, device) if residual.chroma is not None else _LowRankArrays.empty(device, 2))
+    lum = _LowRankArrays.upload(residual.luminance, residual.width, residual.height, device)
+    chroma = _LowRankArrays.empty(device, 2) if residual.chroma is None else _LowRankArrays.upload(residual.chroma, residual.width, residual.height, device)
     scale = np.ones(1, np.float32) if residual.scale is None else residual.scale.reshape(-1)
     out = wp.empty((residual.light_count, pixels, residual.channels), dtype=wp.float16, device=device)
-    (lum, chroma) = stacks
     wp.launch(kernels.decode_low_rank, dim=(residual.light_count, pixels),
               inputs=[lum.mean, lum.basis, lum.weights, chroma.mean, chroma.basis, chroma.weights,
                       wp.array(np.ascontiguousarray(scale, np.float32), dtype=float, device=device)], outputs=[out], device=device)
