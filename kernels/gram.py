@@ -19,7 +19,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-__all__ = ["PARTS", "TILE_DEPTH", "TILE_ROWS", "CrossSum", "DeviceProducts"]
+from .quantise import DeviceBasis
+
+__all__ = ["HELD_SHARE", "PARTS", "TILE_DEPTH", "TILE_ROWS", "CrossSum", "DeviceProducts"]
 
 wp.set_module_options({"enable_backward": False, "enable_mathdx_gemm": False})
 
@@ -31,6 +33,10 @@ PARTS = 32
 """Partial sums a product keeps per output tile: thread blocks along the depth (8 x 8 x 32 for a
 250-light Gram matrix, enough to fill an H100's 132 multiprocessors)."""
 _BLOCK_DIM = 64
+HELD_SHARE = 0.5
+"""``held_directions`` keeps a stack's principal images on a CUDA device while they take at most this
+share of its free memory (a 3840x2160 capture of 100 lights: 10 GB for both stacks; 1,000 lights at
+1920x1080: 25 GB), so that the rate search quantises there; else they are quantised on the host."""
 
 
 @wp.func
@@ -169,9 +175,17 @@ class DeviceProducts:
     def cross_sum(self, rows: int, columns: int) -> CrossSum:
         return CrossSum(rows, columns, self.device)
 
-    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    def held_directions(self, count: int, shape: tuple) -> DeviceBasis | None:
+        """A ``DeviceBasis`` for ``count`` principal images of ``shape`` (H, W, P), which ``project`` fills
+        through ``keep``; None on CUDA where they would take more than ``HELD_SHARE`` of the free memory."""
+        if self.device.is_cuda and DeviceBasis.nbytes(count, shape) > HELD_SHARE * self.device.free_memory:
+            return None
+        return DeviceBasis(count, shape, self.device)
+
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep: DeviceBasis | None = None,
+                columns: slice | None = None) -> np.ndarray:
         """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32, summed in float64; written
-        into ``out`` (a view will do) when given."""
+        into ``out`` (a view will do) when given, and into ``keep``'s images at ``columns`` when given."""
         left = wp.array(np.ascontiguousarray(matrix, np.float64), dtype=wp.float64, device=self.device)
         right = self.upload(block)
         if left.shape[1] != right.shape[0]:
@@ -182,6 +196,8 @@ class DeviceProducts:
         product = wp.empty(shape, dtype=wp.float32, device=self.device)
         wp.launch_tiled(project_tiles, dim=[_tiles(left.shape[0], TILE_ROWS), _tiles(right.shape[1], TILE_DEPTH)],
                         inputs=[left, right, _tiles(left.shape[1], TILE_ROWS)], outputs=[product], block_dim=_BLOCK_DIM, device=self.device)
+        if keep is not None:
+            keep.place(product, columns)
         if not self.device.is_cuda or product.size == 0:
             result = product.numpy()
         else:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import warnings
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,7 @@ from ..model.residual import (
     NeuralResidual,
     PrincipalImages,
     ResidualModel,
+    clamped_steps,
     code_levels,
     colour_codes,
     colour_from_codes,
@@ -228,7 +230,9 @@ class RateSample:
     ``sampled_rows`` (every row where ``whole``), planes first and stored as the file stores them
     (``io.codes``: a band's first row less the row above it, quantised for that), quantised from
     the whole images' minima and spans as ``quantise_basis`` does. ``bytes`` estimates a quantisation's
-    stored bytes from them; on every row it is exactly ``component_bytes`` of ``LowRankStack.quantised``."""
+    stored bytes from them; on every row it is exactly ``component_bytes`` of ``LowRankStack.quantised``.
+    Where the principal images are held on a device (``PrincipalImages.held``), they are quantised
+    and stored there, and the host deflates what comes back."""
 
     def __init__(self, principal: PrincipalImages, count: int, *, whole: bool = False):
         height, width, planes = principal.shape
@@ -238,14 +242,21 @@ class RateSample:
         self.span = principal.highs[:count].astype(np.float64) - self.low
         if whole:
             self.rows, self.counted = slice(None), slice(None)
+            self.stored_rows = np.arange(height)
+            self.above = self.stored_rows - 1
         else:  # each band quantised with the row above it, which its first row's stored difference needs
             counted = sampled_rows(height, width, planes)
             above = np.setdiff1d(counted - 1, counted)
             self.rows = np.union1d(counted, above[above >= 0])
             self.counted = np.isin(self.rows, counted)
+            positions = np.flatnonzero(self.counted)
+            self.stored_rows = self.rows[positions]  # the rows the sample counts, each less the row before it in ``rows``
+            self.above = np.where(positions > 0, self.rows[np.maximum(positions - 1, 0)], -1)
         self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))  # whole image bytes per sampled byte
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
+        self.held = principal.held
+        self._stored: np.ndarray | None = None  # the held images' stored codes, host memory used again by each measurement
 
     @property
     def exact(self) -> bool:
@@ -262,7 +273,7 @@ class RateSample:
                 keep.keep({})
             return 0.0
         levels = code_levels(bits)
-        steps = np.maximum(np.asarray(steps, np.float64), np.maximum(self.span[: len(steps)], 1e-300) / levels)
+        steps = clamped_steps(steps, self.span[: len(steps)], levels)
         kind = np.uint8 if bits == 8 else np.uint16
 
         def group(images: slice) -> tuple[int, list]:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
@@ -273,12 +284,39 @@ class RateSample:
             return sum(len(piece) for _, piece in pieces), pieces if keep is not None else []
 
         count = len(steps)
-        size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
-        groups = parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])
+        if self.held is not None:
+            def piece(image: np.ndarray) -> tuple[int, list]:
+                deflated = deflated_piece(image)
+                return len(deflated), [(DeflatedCodes.key(image), deflated)] if keep is not None else []
+
+            groups = self._deflated_from_device(steps, bits, piece)
+        else:
+            size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
+            groups = parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])
         if keep is not None:
             keep.keep({key: piece for _, pieces in groups for key, piece in pieces})
         deflated = float(sum(total for total, _ in groups))
         return deflated * self.scale + self.per_image * count
+
+    def _deflated_from_device(self, steps: np.ndarray, bits: int, piece) -> list:
+        """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a few
+        images at a time made there (``HeldDirections.stored``) into host memory kept for the next
+        measurement, deflated in threads while the next few are made and copied."""
+        count = len(steps)
+        _, width, planes = self.images.shape[1:]
+        shape = (count, planes) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
+        size = int(np.prod(shape))
+        if self._stored is None or self._stored.size < size:
+            self._stored = None
+            self._stored = mapped_empty(size, np.uint8)
+        stored = self._stored[:size].reshape(shape)
+        with ThreadPoolExecutor(max_workers=NUMPY_THREADS, thread_name_prefix="deflate") as pool:
+            futures = []
+            for start in range(0, count, NUMPY_THREADS):
+                group = slice(start, min(start + NUMPY_THREADS, count))
+                self.held.stored(1 + start, self.low[group], steps[group], bits, self.stored_rows, self.above, out=stored[group])
+                futures += [pool.submit(piece, image) for image in stored[group]]
+            return [future.result() for future in futures]
 
 
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
@@ -486,11 +524,10 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                                                                       products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     budget = settings.size_budget * n * height * width * channels
-    fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + deflated_bytes(luminance.mean.astype(np.float16)) + deflated_bytes(scale.astype(np.float16))
-    if colour is not None:
-        fixed += deflated_bytes(colour_codes(colour))
-    if chroma is not None:
-        fixed += deflated_bytes(chroma.mean.astype(np.float16)) + 4 * n
+    stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]  # the other planes the file deflates, in threads (4K: 1.7 s on one)
+    stored += [colour_codes(colour)] if colour is not None else []
+    stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
+    fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + sum(parallel_map(deflated_bytes, stored)) + (4 * n if chroma is not None else 0)
     # both widths when the settings leave it open: 8-bit first, measured on every row only if 16 bits do
     # not beat it (its every image at the finest 8-bit step is plain from the sampled bytes alone, and
     # the whole images' bytes can only make it coarser)

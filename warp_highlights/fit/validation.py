@@ -34,6 +34,7 @@ from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.interpolation import move_sets
+from ..model.threads import NUMPY_THREADS, parallel_map
 from ..model.triangulation import SphericalTriangulation
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
@@ -41,6 +42,8 @@ from .retargeting import restore_vanished, retarget
 __all__ = ["CheckPlan", "LeaveOneOut", "MoveCheck", "check_moving", "leave_one_out", "plan_check", "spread_lights"]
 
 _RENDER_BYTES = 256 * 2**20  # the left-out lights' highlights are drawn in batches of at most this many bytes
+_SCORE_BYTES = 2 * 2**30  # the lights scored at once take at most this much memory for their images ...
+_SCORE_COPIES = 8  # ... each about this many image-sized temporaries (the blend, the moved image, the truth, sRGB)
 
 
 @dataclass(frozen=True)
@@ -214,10 +217,12 @@ def check_moving(
     kept_rows = np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64)) if keep > 0 else np.zeros(0, np.int64)
     kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
+    at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))  # lights scored at once, in threads
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn = to_host(raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False)))
-        for q, drawn_q in zip(rows, drawn):
+
+        def score(q: int, drawn_q: np.ndarray) -> None:  # the lights in threads (NumPy lets go of the GIL)
             weights = loo.barycentric[q].astype(np.float32)
             blend = sum(w * images[v] for v, w in zip(corners[q], weights))
             highlights = sum(w * own[v] for v, w in zip(corners[q], weights))
@@ -227,4 +232,7 @@ def check_moving(
             blend_psnr[q] = srgb_psnr(blend * scale, truth)
             if q in kept_rows:
                 kept[np.searchsorted(kept_rows, q)] = drawn_q[..., None] * tint
+
+        for group in range(0, len(rows), at_once):
+            parallel_map(lambda q: score(q, drawn[q - start]), rows[group : group + at_once])
     return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows], kept if len(kept_rows) else None)

@@ -35,7 +35,7 @@ import numpy as np
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, mapped_empty, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "quantised_codes", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "HeldDirections", "clamped_steps", "quantised_codes", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -117,7 +117,28 @@ class StackProducts(Protocol):
 
     def cross_sum(self, rows: int, columns: int): ...
 
-    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None) -> np.ndarray: ...
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep=None, columns: slice | None = None) -> np.ndarray: ...
+
+    def held_directions(self, count: int, shape: tuple) -> HeldDirections | None:
+        """Room on the device for ``count`` principal images of ``shape`` (``project`` fills it through
+        ``keep``, at ``columns``), or None where they would not fit."""
+
+
+class HeldDirections(Protocol):
+    """Principal images held on a device as well (``kernels.quantise.DeviceBasis``), quantised there with
+    ``codes_in_place``'s rounding: ``codes`` of images first .. first + len(step) into a (c, M) host
+    array; ``stored`` their codes as ``io.codes`` stores them, at ``rows`` (each less its row ``above``,
+    -1: none), into a (c, P, [2,] R, W) uint8 host array; ``design`` a block of the weights' design
+    matrix there (``LowRankStack.quantised``)."""
+
+    def codes(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, out: np.ndarray) -> np.ndarray: ...
+
+    def stored(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, rows: np.ndarray, above: np.ndarray,
+               out: np.ndarray) -> np.ndarray: ...
+
+    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray, decoded_step: np.ndarray,
+               mean: np.ndarray, columns: slice):
+        """The weights' (1 + c, w) design block there: ``mean`` and the images' decoded codes at ``columns``."""
 
 
 class DeflatedPieces(Protocol):
@@ -168,6 +189,8 @@ class PrincipalImages:
         mean: (M,) float64 the first direction at the images' scale.
         products: where the stack's products were summed (None: the host's BLAS); ``LowRankStack.quantised``
             sums its weights' there too.
+        held: the directions held there as well, where they fit (``StackProducts.held_directions``):
+            the rate search's codes and ``quantise_basis``' are made there.
     """
 
     source: StackSource
@@ -176,6 +199,7 @@ class PrincipalImages:
     directions: np.ndarray
     mean: np.ndarray
     products: StackProducts | None = None
+    held: HeldDirections | None = None
 
     @classmethod
     def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None, *, products: StackProducts | None = None) -> PrincipalImages:
@@ -211,6 +235,7 @@ class PrincipalImages:
         order = np.argsort(values)[::-1]
         order = order[values[order] > 1e-12 * max(float(values.max()), 1e-300)]
         energies = values[order]
+        held = None
         if len(order) == 0:  # every image is black
             directions, energies = np.zeros((1, pixels), np.float32), np.zeros(1)
         else:
@@ -221,12 +246,13 @@ class PrincipalImages:
                     directions[:, columns] = projection @ block
             else:
                 scaled = projection * factor[None, :]
+                held = products.held_directions(len(order), tuple(source.shape))
                 for columns, block in zip(_column_slices(n, pixels), _blocks32(source)):
-                    products.project(scaled, block, out=directions[:, columns])
+                    products.project(scaled, block, out=directions[:, columns], keep=held, columns=columns)
         first = directions[0].astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
-        return cls(source, tuple(source.shape), energies, directions, mean, products)
+        return cls(source, tuple(source.shape), energies, directions, mean, products, held)
 
     @property
     def light_count(self) -> int:
@@ -274,12 +300,18 @@ class PrincipalImages:
 
 
 
+def clamped_steps(steps: np.ndarray, span: np.ndarray, levels: int) -> np.ndarray:
+    """float64 quantisation steps: each at least its image's ``span`` over the ``levels``, so that its codes fit."""
+    return np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(np.asarray(span, np.float64), 1e-300) / levels)
+
+
 def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
-                   highs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   highs: np.ndarray | None = None, held: HeldDirections | None = None, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
     levels, so its codes fit), from each image's minimum: (codes (k, M) uint8 or uint16, ranges (k, 2)
     float32 (low, low + step x levels)), as ``LowRankStack`` stores them. ``lows``, ``highs``: the
-    images' minima and maxima where known (else found here)."""
+    images' minima and maxima where known (else found here). ``held``: the same images held on a
+    device from its image ``first`` on, quantised there (the same codes)."""
     levels = code_levels(bits)
     basis = np.asarray(basis)
     k = len(basis)
@@ -289,8 +321,11 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.
         raise InputError(f"quantise_basis needs one minimum and maximum per basis image ({k}), got {np.shape(lows)} and {np.shape(highs)}")
     low = np.asarray(lows, np.float64) if k else np.zeros(0)
     span = np.asarray(highs, np.float64) - low if k else np.zeros(0)
-    steps = np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(span, 1e-300) / levels)
+    steps = clamped_steps(steps, span, levels)
     codes = mapped_empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
+    if held is not None and k:
+        held.codes(first, low, steps, bits, out=codes)
+        return codes, np.stack([low, low + steps * levels], axis=1).astype(np.float32)
 
     def part(columns: slice) -> None:  # float64 a block at a time, the blocks in threads
         codes[:, columns] = codes_in_place(basis[:, columns].astype(np.float64), low[:, None], steps[:, None], levels)
@@ -417,7 +452,8 @@ class LowRankStack:
         k = len(steps)
         if k > principal.count - 1:
             raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
-        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k])
+        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k],
+                                       held=principal.held, first=1)
         mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < FLOAT16_SAFE else mean.astype(np.float32)
@@ -428,11 +464,20 @@ class LowRankStack:
         # summed over blocks of the stored planes (float32 as the relighter decodes them)
         low, step = model.ranges[:, 0], (model.ranges[:, 1] - model.ranges[:, 0]) / np.float32(code_levels(bits))
         products = principal.products
+        held = principal.held if products is not None else None
+        if held is not None:  # the design's planes decoded where the images are held: no host pass, no upload
+            quantised_low = principal.lows[:k].astype(np.float64)
+            quantised_step = clamped_steps(steps, principal.highs[:k].astype(np.float64) - quantised_low, code_levels(bits))
         normal, right = np.zeros((k + 1, k + 1)), np.zeros((k + 1, n))
         normal_sum = right_sum = None
         if products is not None:  # float32 design and stack blocks, summed in float64 there: the same products
             normal_sum, right_sum = products.cross_sum(k + 1, k + 1), products.cross_sum(k + 1, n)
         for columns in _column_slices(max(k + 1, n), pixels):
+            if held is not None:
+                uploaded = held.design(1, quantised_low, quantised_step, bits, low, step, mean32[columns], columns)
+                normal_sum.add(uploaded)
+                right_sum.add(uploaded, products.upload(_block32(principal.source, columns)))
+                continue
             shape = (k + 1, columns.stop - columns.start)
             design = np.empty(shape, np.float64) if products is None else products.staging(shape)  # there: filled where the upload reads it
             design[0] = mean32[columns]

@@ -1,0 +1,186 @@
+"""The residual's basis images held and quantised on a Warp device: the codes of ``model.residual``'s
+rounding (``codes_in_place``: ``round((v - low) / step)`` in float64, halves to even, clipped to
+[0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, 16-bit
+differences as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
+principal images, so that only the codes come to the host.
+
+The arithmetic is the host's (a float32 value is exact in float64, the subtraction and the division
+are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), so the codes are the
+host's bit for bit (``tests/test_quantise.py``). On the lent H100 a 3840x2160 capture's rate search
+quantised its 297 basis planes (2.5 G values) twice on the host's 16 threads, about 8 s of its 36 s
+compression; here it is a launch, and the host only deflates.
+
+Images are held in parts of at most ``PART_BYTES`` (a part's byte offsets stay within 32 bits).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+__all__ = ["PART_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "place_rows", "stored_rows"]
+
+wp.set_module_options({"enable_backward": False})
+
+PART_BYTES = (1 << 31) - 1
+"""The most bytes one device array of ``DeviceBasis`` holds: Warp's strides are 32-bit."""
+
+
+@wp.func
+def _code(value: wp.float32, low: wp.float64, step: wp.float64, levels: wp.float64) -> wp.int32:
+    """The code of ``value``: round((value - low) / step) in float64, halves to even, clipped to [0, levels]."""
+    return wp.int32(wp.clamp(wp.rint((wp.float64(value) - low) / step), wp.float64(0.0), levels))
+
+
+@wp.kernel
+def place_rows(block: wp.array2d(dtype=wp.float32), first_row: int, column: int, out: wp.array2d(dtype=wp.float32)):
+    """out[i, column + x] = block[first_row + i, x]: a column block of projected images into a part."""
+    i, x = wp.tid()
+    out[i, column + x] = block[first_row + i, x]
+
+
+@wp.kernel
+def stored_rows(basis: wp.array2d(dtype=wp.float32), width: int, planes: int, rows: wp.array(dtype=wp.int32),
+                above: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
+                levels: wp.float64, wide: int, out: wp.array(dtype=wp.uint8)):
+    """Thread (j, p, r, x): image j's plane p at row ``rows[r]``, column x, stored as the file stores it:
+    its code less the code at row ``above[r]`` (-1: none), modulo 2^bits; ``out`` is (images, P, R, W),
+    or (images, P, 2, R, W) with the high bytes first where ``wide`` (16 bits)."""
+    j, p, r, x = wp.tid()
+    count = rows.shape[0]
+    value = _code(basis[j, (rows[r] * width + x) * planes + p], low[j], step[j], levels)
+    if above[r] >= 0:
+        value = value - _code(basis[j, (above[r] * width + x) * planes + p], low[j], step[j], levels)
+    if wide != 0:
+        difference = (value + 65536) % 65536
+        at = ((j * planes + p) * 2 * count + r) * width + x
+        out[at] = wp.uint8(difference / 256)
+        out[at + count * width] = wp.uint8(difference % 256)
+    else:
+        out[((j * planes + p) * count + r) * width + x] = wp.uint8((value + 256) % 256)
+
+
+@wp.kernel
+def basis_codes8(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
+                 levels: wp.float64, out: wp.array2d(dtype=wp.uint8)):
+    """out[j, m]: the 8-bit code of basis[j, m]."""
+    j, m = wp.tid()
+    out[j, m] = wp.uint8(_code(basis[j, m], low[j], step[j], levels))
+
+
+@wp.kernel
+def basis_codes16(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
+                  levels: wp.float64, out: wp.array2d(dtype=wp.uint16)):
+    """out[j, m]: the 16-bit code of basis[j, m]."""
+    j, m = wp.tid()
+    out[j, m] = wp.uint16(_code(basis[j, m], low[j], step[j], levels))
+
+
+@wp.kernel
+def decoded_rows(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64), levels: wp.float64,
+                 decoded_low: wp.array(dtype=wp.float32), decoded_step: wp.array(dtype=wp.float32), column: int, row: int,
+                 out: wp.array2d(dtype=wp.float32)):
+    """out[row + j, x]: basis[j, column + x] quantised and decoded as the relighter decodes it,
+    ``decoded_low[j] + code * decoded_step[j]`` in float32."""
+    j, x = wp.tid()
+    code = _code(basis[j, column + x], low[j], step[j], levels)
+    out[row + j, x] = decoded_low[j] + wp.float32(code) * decoded_step[j]
+
+
+class DeviceBasis:
+    """(count, M) float32 principal images of shape (H, W, P) (M = H W P) held on ``device``, in parts of
+    whole images of at most ``PART_BYTES``: filled a column block at a time (``place``, from
+    ``DeviceProducts.project``), quantised there (``codes``, ``stored``)."""
+
+    def __init__(self, count: int, shape: tuple, device):
+        self.device = wp.get_device(device)
+        self.shape = tuple(int(v) for v in shape)
+        self.count = int(count)
+        values = int(np.prod(self.shape))
+        self.part_images = max(1, PART_BYTES // max(4 * values, 1))
+        self.parts = [wp.empty((min(self.part_images, self.count - start), values), dtype=wp.float32, device=self.device)
+                      for start in range(0, self.count, self.part_images)]
+
+    @staticmethod
+    def nbytes(count: int, shape: tuple) -> int:
+        """Device bytes that ``count`` images of ``shape`` take."""
+        return 4 * int(count) * int(np.prod(shape))
+
+    def place(self, block: wp.array, columns: slice) -> None:
+        """Write a (count, w) device block of every image's values ``columns`` into the parts."""
+        for index, part in enumerate(self.parts):
+            first = index * self.part_images
+            wp.launch(place_rows, dim=(part.shape[0], block.shape[1]), inputs=[block, first, columns.start], outputs=[part], device=self.device)
+
+    def _pieces(self, first: int, count: int, most: int):
+        """(part, its first image, images, offset into the request) covering images first .. first + count,
+        at most ``most`` images a launch."""
+        done = 0
+        while done < count:
+            image = first + done
+            index, local = divmod(image, self.part_images)
+            part = self.parts[index]
+            take = min(count - done, part.shape[0] - local, max(1, most))
+            yield part[local : local + take], take, done
+            done += take
+
+    def stored(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, rows: np.ndarray, above: np.ndarray,
+               out: np.ndarray) -> np.ndarray:
+        """Images ``first`` .. ``first + len(step)`` quantised (float64 ``low``, ``step``, ``bits``) and stored as
+        ``io.codes`` stores them at rows ``rows`` (each less its row ``above``, -1: none), into the host
+        uint8 ``out`` of shape (c, P, R, W), or (c, P, 2, R, W) for 16 bits."""
+        count = len(step)
+        height, width, planes = self.shape
+        wide = 1 if bits == 16 else 0
+        per_image = planes * (1 + wide) * len(rows) * width
+        if out.shape[0] != count or out.size != count * per_image or out.dtype != np.uint8:
+            raise ValueError(f"stored codes of {count} images need a ({count}, ...) uint8 array of {count * per_image} values, got {out.shape} {out.dtype}")
+        rows_on = wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=self.device)
+        above_on = wp.array(np.asarray(above, np.int32), dtype=wp.int32, device=self.device)
+        levels = wp.float64((1 << bits) - 1)
+        flat = out.reshape(count, per_image)
+        for part, take, done in self._pieces(first, count, PART_BYTES // max(per_image, 1)):
+            result = wp.empty(take * per_image, dtype=wp.uint8, device=self.device)
+            wp.launch(stored_rows, dim=(take, planes, len(rows), width),
+                      inputs=[part, width, planes, rows_on, above_on, self._array(low[done : done + take]), self._array(step[done : done + take]),
+                              levels, wide], outputs=[result], device=self.device)
+            wp.copy(wp.array(flat[done : done + take].reshape(-1), dtype=wp.uint8, device="cpu", copy=False), result)
+        wp.synchronize_device(self.device)
+        return out
+
+    def codes(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, out: np.ndarray) -> np.ndarray:
+        """Images ``first`` .. ``first + len(step)`` as ``bits``-bit codes into the host (c, M) ``out``
+        (uint8 or uint16)."""
+        count = len(step)
+        values = int(np.prod(self.shape))
+        kind, kernel = (wp.uint8, basis_codes8) if bits == 8 else (wp.uint16, basis_codes16)
+        if out.shape != (count, values) or out.dtype != wp.dtype_to_numpy(kind):
+            raise ValueError(f"{bits}-bit codes of {count} images need a ({count}, {values}) array, got {out.shape} {out.dtype}")
+        levels = wp.float64((1 << bits) - 1)
+        for part, take, done in self._pieces(first, count, PART_BYTES // max(values * out.itemsize, 1)):
+            result = wp.empty((take, values), dtype=kind, device=self.device)
+            wp.launch(kernel, dim=(take, values), inputs=[part, self._array(low[done : done + take]), self._array(step[done : done + take]), levels],
+                      outputs=[result], device=self.device)
+            wp.copy(wp.array(out[done : done + take], dtype=kind, device="cpu", copy=False), result)
+        wp.synchronize_device(self.device)
+        return out
+
+    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray, decoded_step: np.ndarray,
+               mean: np.ndarray, columns: slice) -> wp.array:
+        """(1 + c, w) float32 on the device, for the stack's weights: row 0 the (w,) ``mean``, row 1 + j
+        image ``first + j``'s values at ``columns`` quantised (float64 ``low``, ``step``, ``bits``) and
+        decoded (float32 ``decoded_low + code * decoded_step``, the multiply-add possibly fused: within
+        a rounding of the host's two)."""
+        count, width = len(step), columns.stop - columns.start
+        out = wp.empty((count + 1, width), dtype=wp.float32, device=self.device)
+        wp.copy(out, wp.array(np.ascontiguousarray(mean, np.float32), dtype=wp.float32, device=self.device), count=width)
+        levels = wp.float64((1 << bits) - 1)
+        for part, take, done in self._pieces(first, count, count):
+            wp.launch(decoded_rows, dim=(take, width),
+                      inputs=[part, self._array(low[done : done + take]), self._array(step[done : done + take]), levels,
+                              self._array(decoded_low[done : done + take], wp.float32), self._array(decoded_step[done : done + take], wp.float32),
+                              columns.start, 1 + done], outputs=[out], device=self.device)
+        return out
+
+    def _array(self, values: np.ndarray, kind=wp.float64) -> wp.array:
+        return wp.array(np.ascontiguousarray(values, wp.dtype_to_numpy(kind)), dtype=kind, device=self.device)
