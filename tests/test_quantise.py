@@ -9,12 +9,12 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-
 import warp_highlights.kernels.quantise as quantise
-from warp_highlights.fit.residual import RateSample, quantised_bytes
-from warp_highlights.io.codes import DeflatedCodes, stored_codes
 from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.kernels.quantise import DeviceBasis
+
+from warp_highlights.fit.residual import RateSample, quantised_bytes
+from warp_highlights.io.codes import DeflatedCodes, stored_codes
 from warp_highlights.model.residual import LowRankStack, PrincipalImages, code_levels, codes_in_place
 
 RNG = np.random.default_rng(33)
