@@ -34,9 +34,11 @@ PARTS = 32
 250-light Gram matrix, enough to fill an H100's 132 multiprocessors)."""
 _BLOCK_DIM = 64
 HELD_SHARE = 0.5
-"""``held_directions`` keeps a stack's principal images on a CUDA device while they take at most this
-share of its free memory (a 3840x2160 capture of 100 lights: 10 GB for both stacks; 1,000 lights at
-1920x1080: 25 GB), so that the rate search quantises there; else they are quantised on the host."""
+"""``holds``: the residual's normalised stacks (``kernels.stacks``) and then each stack's principal images
+(``held_directions``) are kept on a CUDA device while each takes at most this share of its free memory
+(a 3840x2160 capture of 100 lights: 10 GB for both stacks, as much for their principal images; 1,000
+lights at 1920x1080: 25 GB each), so that the products read them there and the rate search
+quantises there; else they are uploaded a block at a time and quantised on the host."""
 
 
 @wp.func
@@ -175,19 +177,23 @@ class DeviceProducts:
     def cross_sum(self, rows: int, columns: int) -> CrossSum:
         return CrossSum(rows, columns, self.device)
 
+    def holds(self, nbytes: int) -> bool:
+        """Whether ``nbytes`` more may be held on the device: at most ``HELD_SHARE`` of a CUDA device's free
+        memory (the CPU device, the tests' reference, holds anything)."""
+        return not self.device.is_cuda or nbytes <= HELD_SHARE * self.device.free_memory
+
     def held_directions(self, count: int, shape: tuple) -> DeviceBasis | None:
         """A ``DeviceBasis`` for ``count`` principal images of ``shape`` (H, W, P), which ``project`` fills
-        through ``keep``; None on CUDA where they would take more than ``HELD_SHARE`` of the free memory."""
-        if self.device.is_cuda and DeviceBasis.nbytes(count, shape) > HELD_SHARE * self.device.free_memory:
-            return None
-        return DeviceBasis(count, shape, self.device)
+        through ``keep``; None where they may not be held (``holds``)."""
+        return DeviceBasis(count, shape, self.device) if self.holds(DeviceBasis.nbytes(count, int(np.prod(shape)))) else None
 
     def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep: DeviceBasis | None = None,
                 columns: slice | None = None) -> np.ndarray:
-        """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32, summed in float64; written
+        """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32 (on the host, or on the device
+        already), summed in float64; written
         into ``out`` (a view will do) when given, and into ``keep``'s images at ``columns`` when given."""
         left = wp.array(np.ascontiguousarray(matrix, np.float64), dtype=wp.float64, device=self.device)
-        right = self.upload(block)
+        right = block if isinstance(block, wp.array) else self.upload(block)
         if left.shape[1] != right.shape[0]:
             raise ValueError(f"a ({left.shape[0]}, {left.shape[1]}) matrix cannot map a block of {right.shape[0]} rows")
         shape = (left.shape[0], right.shape[1])

@@ -9,8 +9,6 @@ are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), 
 host's bit for bit (``tests/test_quantise.py``). On the lent H100 a 3840x2160 capture's rate search
 quantised its 297 basis planes (2.5 G values) twice on the host's 16 threads, about 8 s of its 36 s
 compression; here it is a launch, and the host only deflates.
-
-Images are held in parts of at most ``PART_BYTES`` (a part's byte offsets stay within 32 bits).
 """
 
 from __future__ import annotations
@@ -18,25 +16,17 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-__all__ = ["PART_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "place_rows", "stored_rows"]
+from .rows import PART_BYTES, DeviceRows
+
+__all__ = ["DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "stored_rows"]
 
 wp.set_module_options({"enable_backward": False})
-
-PART_BYTES = (1 << 31) - 1
-"""The most bytes one device array of ``DeviceBasis`` holds: Warp's strides are 32-bit."""
 
 
 @wp.func
 def _code(value: wp.float32, low: wp.float64, step: wp.float64, levels: wp.float64) -> wp.int32:
     """The code of ``value``: round((value - low) / step) in float64, halves to even, clipped to [0, levels]."""
     return wp.int32(wp.clamp(wp.rint((wp.float64(value) - low) / step), wp.float64(0.0), levels))
-
-
-@wp.kernel
-def place_rows(block: wp.array2d(dtype=wp.float32), first_row: int, column: int, out: wp.array2d(dtype=wp.float32)):
-    """out[i, column + x] = block[first_row + i, x]: a column block of projected images into a part."""
-    i, x = wp.tid()
-    out[i, column + x] = block[first_row + i, x]
 
 
 @wp.kernel
@@ -87,42 +77,14 @@ def decoded_rows(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.flo
     out[row + j, x] = decoded_low[j] + wp.float32(code) * decoded_step[j]
 
 
-class DeviceBasis:
-    """(count, M) float32 principal images of shape (H, W, P) (M = H W P) held on ``device``, in parts of
-    whole images of at most ``PART_BYTES``: filled a column block at a time (``place``, from
-    ``DeviceProducts.project``), quantised there (``codes``, ``stored``)."""
+class DeviceBasis(DeviceRows):
+    """(count, M) float32 principal images of shape (H, W, P) (M = H W P) held on ``device`` (``DeviceRows``):
+    filled a column block at a time (``place``, from ``DeviceProducts.project``), quantised there
+    (``codes``, ``stored``, ``design``)."""
 
     def __init__(self, count: int, shape: tuple, device):
-        self.device = wp.get_device(device)
         self.shape = tuple(int(v) for v in shape)
-        self.count = int(count)
-        values = int(np.prod(self.shape))
-        self.part_images = max(1, PART_BYTES // max(4 * values, 1))
-        self.parts = [wp.empty((min(self.part_images, self.count - start), values), dtype=wp.float32, device=self.device)
-                      for start in range(0, self.count, self.part_images)]
-
-    @staticmethod
-    def nbytes(count: int, shape: tuple) -> int:
-        """Device bytes that ``count`` images of ``shape`` take."""
-        return 4 * int(count) * int(np.prod(shape))
-
-    def place(self, block: wp.array, columns: slice) -> None:
-        """Write a (count, w) device block of every image's values ``columns`` into the parts."""
-        for index, part in enumerate(self.parts):
-            first = index * self.part_images
-            wp.launch(place_rows, dim=(part.shape[0], block.shape[1]), inputs=[block, first, columns.start], outputs=[part], device=self.device)
-
-    def _pieces(self, first: int, count: int, most: int):
-        """(part, its first image, images, offset into the request) covering images first .. first + count,
-        at most ``most`` images a launch."""
-        done = 0
-        while done < count:
-            image = first + done
-            index, local = divmod(image, self.part_images)
-            part = self.parts[index]
-            take = min(count - done, part.shape[0] - local, max(1, most))
-            yield part[local : local + take], take, done
-            done += take
+        super().__init__(count, int(np.prod(self.shape)), device)
 
     def stored(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, rows: np.ndarray, above: np.ndarray,
                out: np.ndarray) -> np.ndarray:
@@ -139,10 +101,10 @@ class DeviceBasis:
         above_on = wp.array(np.asarray(above, np.int32), dtype=wp.int32, device=self.device)
         levels = wp.float64((1 << bits) - 1)
         flat = out.reshape(count, per_image)
-        for part, take, done in self._pieces(first, count, PART_BYTES // max(per_image, 1)):
+        for part, take, done in self.pieces(first, count, PART_BYTES // max(per_image, 1)):
             result = wp.empty(take * per_image, dtype=wp.uint8, device=self.device)
             wp.launch(stored_rows, dim=(take, planes, len(rows), width),
-                      inputs=[part, width, planes, rows_on, above_on, self._array(low[done : done + take]), self._array(step[done : done + take]),
+                      inputs=[part, width, planes, rows_on, above_on, self.float64(low[done : done + take]), self.float64(step[done : done + take]),
                               levels, wide], outputs=[result], device=self.device)
             wp.copy(wp.array(flat[done : done + take].reshape(-1), dtype=wp.uint8, device="cpu", copy=False), result)
         wp.synchronize_device(self.device)
@@ -157,9 +119,9 @@ class DeviceBasis:
         if out.shape != (count, values) or out.dtype != wp.dtype_to_numpy(kind):
             raise ValueError(f"{bits}-bit codes of {count} images need a ({count}, {values}) array, got {out.shape} {out.dtype}")
         levels = wp.float64((1 << bits) - 1)
-        for part, take, done in self._pieces(first, count, PART_BYTES // max(values * out.itemsize, 1)):
+        for part, take, done in self.pieces(first, count, PART_BYTES // max(values * out.itemsize, 1)):
             result = wp.empty((take, values), dtype=kind, device=self.device)
-            wp.launch(kernel, dim=(take, values), inputs=[part, self._array(low[done : done + take]), self._array(step[done : done + take]), levels],
+            wp.launch(kernel, dim=(take, values), inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]), levels],
                       outputs=[result], device=self.device)
             wp.copy(wp.array(out[done : done + take], dtype=kind, device="cpu", copy=False), result)
         wp.synchronize_device(self.device)
@@ -175,12 +137,9 @@ class DeviceBasis:
         out = wp.empty((count + 1, width), dtype=wp.float32, device=self.device)
         wp.copy(out, wp.array(np.ascontiguousarray(mean, np.float32), dtype=wp.float32, device=self.device), count=width)
         levels = wp.float64((1 << bits) - 1)
-        for part, take, done in self._pieces(first, count, count):
+        for part, take, done in self.pieces(first, count, count):
             wp.launch(decoded_rows, dim=(take, width),
-                      inputs=[part, self._array(low[done : done + take]), self._array(step[done : done + take]), levels,
-                              self._array(decoded_low[done : done + take], wp.float32), self._array(decoded_step[done : done + take], wp.float32),
+                      inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]), levels,
+                              self.float32(decoded_low[done : done + take]), self.float32(decoded_step[done : done + take]),
                               columns.start, 1 + done], outputs=[out], device=self.device)
         return out
-
-    def _array(self, values: np.ndarray, kind=wp.float64) -> wp.array:
-        return wp.array(np.ascontiguousarray(values, wp.dtype_to_numpy(kind)), dtype=kind, device=self.device)

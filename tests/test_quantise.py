@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-import warp_highlights.kernels.quantise as quantise
+import warp_highlights.kernels.rows as rows_module
 from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.kernels.quantise import DeviceBasis
 
@@ -48,7 +48,7 @@ def test_device_codes_and_stored_rows_are_the_host_s_bit_for_bit(device, bits, m
     shape = (9, 7, 2)
     count = 5
     images, low, step = _basis_with_ties(count + 1, shape, bits)
-    monkeypatch.setattr(quantise, "PART_BYTES", 2 * 4 * int(np.prod(shape)))  # two images a part
+    monkeypatch.setattr(rows_module, "PART_BYTES", 2 * 4 * int(np.prod(shape)))  # two images a part
     held = DeviceBasis(count + 1, shape, device)
     assert len(held.parts) == 3
     for start in range(0, images.shape[1], 40):  # the projection's column blocks

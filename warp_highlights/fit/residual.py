@@ -31,6 +31,7 @@ from ..io.metrics import srgb_psnr
 from ..kernels.gram import DeviceProducts
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
+from ..kernels.stacks import NormalisedStacks
 from ..kernels.support import support_fractions
 from ..kernels.transfer import to_host
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
@@ -492,6 +493,14 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
         parallel_map(subtract, _row_bands(images))
         return ResidualModel(images=stored, highlight_colour=colour)
+    products = DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
+    if products is not None and products.holds(NormalisedStacks.nbytes(images.shape)):
+        # on the device: the stacks made there from the images' bands, and read there by every product
+        stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square)
+        light_scale = np.sqrt(stacks.squares / (height * width))
+        luminance = PrincipalImages.of_source(stacks.luminance, light_scale, products=products)
+        chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, products=products)
+        return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes, n * height * width * channels)
     # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
     # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
@@ -513,7 +522,6 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
     squares = sum(parallel_map(normalise, _row_bands(images)))
     light_scale = np.sqrt(squares / (height * width))  # both stacks weigh each light by its brightness
-    products = DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
     if held:
         luminance = PrincipalImages.of(luminance_stack, light_scale, products=products)
         chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale, products=products)
@@ -523,7 +531,15 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True,
                                                                       products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
-    budget = settings.size_budget * n * height * width * channels
+    return _compressed(luminance, chroma, scale, colour, settings, other_bytes, n * height * width * channels)
+
+
+def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray, colour: np.ndarray | None,
+                settings: ResidualSettings, other_bytes: int, capture_values: int) -> ResidualModel:
+    """``build_residual``'s model from the stacks' principal images: the bits and steps chosen within the
+    size budget (of ``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
+    n = luminance.light_count
+    budget = settings.size_budget * capture_values
     stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]  # the other planes the file deflates, in threads (4K: 1.7 s on one)
     stored += [colour_codes(colour)] if colour is not None else []
     stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
@@ -653,8 +669,12 @@ def _row_bands(images: np.ndarray) -> list[slice]:
 def residual_scale(luminance: np.ndarray) -> np.ndarray:
     """(H, W) float32 s(x): the RMS over the lights of a pixel's (n, H, W) residual luminance, at least
     ``SCALE_FLOOR``, rounded to float16 as the file keeps it."""
-    rms = np.sqrt(np.mean(np.square(luminance, dtype=np.float64), axis=0))
-    return np.maximum(rms, SCALE_FLOOR).astype(np.float16).astype(np.float32)
+    return _scale_of_mean_square(np.mean(np.square(luminance, dtype=np.float64), axis=0))
+
+
+def _scale_of_mean_square(mean_square: np.ndarray) -> np.ndarray:
+    """``residual_scale`` from each pixel's float64 mean over the lights of its squared residual luminance."""
+    return np.maximum(np.sqrt(mean_square), SCALE_FLOOR).astype(np.float16).astype(np.float32)
 
 
 def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,

@@ -94,7 +94,8 @@ def code_levels(bits: int) -> int:
 
 class StackSource(Protocol):
     """An (n, H, W, P) stack read a block of columns at a time, so that it need not be held whole
-    (``fit.residual`` computes the normalised residual's blocks from the images)."""
+    (``fit.residual`` computes the normalised residual's blocks from the images). A source held on the
+    products' device (``kernels.stacks.HeldStack``) also has ``on_device(columns)``: the block there."""
 
     light_count: int
     shape: tuple  # (H, W, P)
@@ -228,8 +229,8 @@ class PrincipalImages:
                 gram += block @ block.T  # BLAS's own threads
         else:
             total = products.cross_sum(n, n)
-            for block in _blocks32(source):
-                total.add(products.upload(block))
+            for columns in _column_slices(n, pixels):
+                total.add(_uploaded(products, source, columns))
             gram = total.value() * np.outer(factor, factor)
         values, vectors = np.linalg.eigh(gram)
         order = np.argsort(values)[::-1]
@@ -247,8 +248,8 @@ class PrincipalImages:
             else:
                 scaled = projection * factor[None, :]
                 held = products.held_directions(len(order), tuple(source.shape))
-                for columns, block in zip(_column_slices(n, pixels), _blocks32(source)):
-                    products.project(scaled, block, out=directions[:, columns], keep=held, columns=columns)
+                for columns in _column_slices(n, pixels):
+                    products.project(scaled, _uploaded(products, source, columns), out=directions[:, columns], keep=held, columns=columns)
         first = directions[0].astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
@@ -476,7 +477,7 @@ class LowRankStack:
             if held is not None:
                 uploaded = held.design(1, quantised_low, quantised_step, bits, low, step, mean32[columns], columns)
                 normal_sum.add(uploaded)
-                right_sum.add(uploaded, products.upload(_block32(principal.source, columns)))
+                right_sum.add(uploaded, _uploaded(products, principal.source, columns))
                 continue
             shape = (k + 1, columns.stop - columns.start)
             design = np.empty(shape, np.float64) if products is None else products.staging(shape)  # there: filled where the upload reads it
@@ -494,7 +495,7 @@ class LowRankStack:
             else:
                 uploaded = products.upload(design)
                 normal_sum.add(uploaded)
-                right_sum.add(uploaded, products.upload(_block32(principal.source, columns)))
+                right_sum.add(uploaded, _uploaded(products, principal.source, columns))
         if products is not None:
             normal, right = normal_sum.value(), right_sum.value()
         normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
@@ -563,10 +564,11 @@ def _block32(source: StackSource, columns: slice) -> np.ndarray:
     return block32(columns) if block32 is not None else source.block(columns).astype(np.float32)
 
 
-def _blocks32(source: StackSource):
-    """Column blocks of a stack as float32, unscaled."""
-    for columns in _column_slices(source.light_count, int(np.prod(source.shape))):
-        yield _block32(source, columns)
+def _uploaded(products: StackProducts, source: StackSource, columns: slice):
+    """A column block of the stack on the products' device: the source's own copy there where it holds
+    one (``on_device``: ``kernels.stacks.HeldStack``), else its float32 block uploaded."""
+    on_device = getattr(source, "on_device", None)
+    return on_device(columns) if on_device is not None else products.upload(_block32(source, columns))
 
 
 def spilled_empty(shape: tuple, dtype) -> np.ndarray:
