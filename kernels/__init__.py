@@ -15,6 +15,11 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``neural``: a learned per-pixel residual (code + MLP, NeuralRTI-style) trained with tiles and the tape.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
 - ``chunks``: a batch of independent problems split over CPU threads (Warp runs a CPU launch on one).
+- ``gram``: the residual's Gram matrices, projections and weight sums on a device (``DeviceProducts``).
+- ``rows``: long float32 rows held on a device in parts of at most 2 GiB (``DeviceRows``).
+- ``stacks``: the residual's normalised luminance and chroma stacks made and held on a device (``NormalisedStacks``).
+- ``quantise``: principal images held on a device, quantised and stored there (``DeviceBasis``).
+- ``transfer``: large device arrays into host pages mapped first (``to_host``).
 """
 
 from warp_highlights._api import lazy_exports
@@ -24,6 +29,7 @@ __getattr__, __dir__, __all__ = lazy_exports(
     {},
     modules={
         "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
-        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support",
+        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer",
     },
 )
