@@ -203,6 +203,8 @@ class DeviceProducts:
         wp.launch_tiled(project_tiles, dim=[_tiles(left.shape[0], TILE_ROWS), _tiles(right.shape[1], TILE_DEPTH)],
                         inputs=[left, right, _tiles(left.shape[1], TILE_ROWS)], outputs=[product], block_dim=_BLOCK_DIM, device=self.device)
         if keep is not None:
+            if columns is None:
+                raise ValueError("a projection kept on the device needs its columns")
             keep.place(product, columns)
         if not self.device.is_cuda or product.size == 0:
             result = product.numpy()

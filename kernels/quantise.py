@@ -2,7 +2,8 @@
 rounding (``codes_in_place``: ``round((v - low) / step)`` in float64, halves to even, clipped to
 [0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, 16-bit
 differences as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
-principal images, so that only the codes come to the host.
+principal images. The host keeps its own copy of those (their extremes, the mean image, the host
+fallback) but makes no codes: only the codes come down.
 
 The arithmetic is the host's (a float32 value is exact in float64, the subtraction and the division
 are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), so the codes are the
@@ -16,11 +17,15 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .rows import PART_BYTES, DeviceRows
+from .rows import DeviceRows
 
-__all__ = ["DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "stored_rows"]
+__all__ = ["LAUNCH_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "stored_rows"]
 
 wp.set_module_options({"enable_backward": False})
+
+LAUNCH_BYTES = 1 << 28
+"""The most bytes of codes one launch makes on the device before they are copied down (256 MiB: a
+few 3840x2160 basis images; the device's headroom beside the held stacks and images stays small)."""
 
 
 @wp.func
@@ -92,16 +97,17 @@ class DeviceBasis(DeviceRows):
         ``io.codes`` stores them at rows ``rows`` (each less its row ``above``, -1: none), into the host
         uint8 ``out`` of shape (c, P, R, W), or (c, P, 2, R, W) for 16 bits."""
         count = len(step)
-        height, width, planes = self.shape
+        _, width, planes = self.shape
         wide = 1 if bits == 16 else 0
         per_image = planes * (1 + wide) * len(rows) * width
-        if out.shape[0] != count or out.size != count * per_image or out.dtype != np.uint8:
-            raise ValueError(f"stored codes of {count} images need a ({count}, ...) uint8 array of {count * per_image} values, got {out.shape} {out.dtype}")
+        if out.shape[0] != count or out.size != count * per_image or out.dtype != np.uint8 or not out.flags.c_contiguous:
+            raise ValueError(f"stored codes of {count} images need a contiguous ({count}, ...) uint8 array of {count * per_image} values, "
+                             f"got {out.shape} {out.dtype}")
         rows_on = wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=self.device)
         above_on = wp.array(np.asarray(above, np.int32), dtype=wp.int32, device=self.device)
         levels = wp.float64((1 << bits) - 1)
         flat = out.reshape(count, per_image)
-        for part, take, done in self.pieces(first, count, PART_BYTES // max(per_image, 1)):
+        for part, take, done in self.pieces(first, count, LAUNCH_BYTES // max(per_image, 1)):
             result = wp.empty(take * per_image, dtype=wp.uint8, device=self.device)
             wp.launch(stored_rows, dim=(take, planes, len(rows), width),
                       inputs=[part, width, planes, rows_on, above_on, self.float64(low[done : done + take]), self.float64(step[done : done + take]),
@@ -116,10 +122,10 @@ class DeviceBasis(DeviceRows):
         count = len(step)
         values = int(np.prod(self.shape))
         kind, kernel = (wp.uint8, basis_codes8) if bits == 8 else (wp.uint16, basis_codes16)
-        if out.shape != (count, values) or out.dtype != wp.dtype_to_numpy(kind):
-            raise ValueError(f"{bits}-bit codes of {count} images need a ({count}, {values}) array, got {out.shape} {out.dtype}")
+        if out.shape != (count, values) or out.dtype != wp.dtype_to_numpy(kind) or not out.flags.c_contiguous:
+            raise ValueError(f"{bits}-bit codes of {count} images need a contiguous ({count}, {values}) array, got {out.shape} {out.dtype}")
         levels = wp.float64((1 << bits) - 1)
-        for part, take, done in self.pieces(first, count, PART_BYTES // max(values * out.itemsize, 1)):
+        for part, take, done in self.pieces(first, count, LAUNCH_BYTES // max(values * out.itemsize, 1)):
             result = wp.empty((take, values), dtype=kind, device=self.device)
             wp.launch(kernel, dim=(take, values), inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]), levels],
                       outputs=[result], device=self.device)

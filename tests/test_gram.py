@@ -121,7 +121,8 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
     np.testing.assert_allclose(a.mean_weights, b.mean_weights, rtol=1e-5)
     same = LowRankStack.quantised(dataclass_with(there, products=None, held=None), steps, bits=16)  # the same codes: the sums differ, and
     np.testing.assert_array_equal(b.codes, same.codes)  # the decoded planes by a rounding where the device fuses their multiply-add
-    np.testing.assert_allclose(b.weights, same.weights, rtol=0, atol=1e-6 * np.abs(same.weights).max())
+    fused = 1e-6 if products.device.is_cuda else 1e-9  # CUDA may fuse the decoded planes' multiply-add
+    np.testing.assert_allclose(b.weights, same.weights, rtol=0, atol=fused * np.abs(same.weights).max())
 
 
 def dataclass_with(principal: PrincipalImages, **changes) -> PrincipalImages:

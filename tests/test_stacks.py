@@ -55,10 +55,14 @@ def test_device_stacks_are_the_host_s_to_a_float32_rounding(device, channels, mo
     monkeypatch.setattr(rows_module, "PART_BYTES", 3 * 4 * height * width * 2)  # three lights a part
     made = NormalisedStacks.make(images, own, tint, DeviceProducts(device), scale_of=_scale_of_mean_square)
     scale, squares, luminance, chroma = _host_planes(images, own, tint)
+    held = made.luminance.block(slice(0, height * width)).reshape(n, height, width, 1)
+    exact = not wp.get_device(device).is_cuda  # the CPU device: the host's arithmetic in the host's order but for the sums
+    if exact:
+        np.testing.assert_array_equal(made.scale, scale)
+        np.testing.assert_array_equal(held, luminance)
     assert np.mean(made.scale == scale) > 0.99
     np.testing.assert_allclose(made.scale, scale, rtol=2**-10)  # at most a float16 step where a tie flipped
     same = made.scale == scale  # compare the planes where the scales agree
-    held = made.luminance.block(slice(0, height * width)).reshape(n, height, width, 1)
     np.testing.assert_allclose(held[:, same], luminance[:, same], rtol=2e-6, atol=1e-6)
     np.testing.assert_allclose(made.squares, squares, rtol=1e-5)
     assert made.luminance.shape == (height, width, 1) and made.luminance.light_count == n and len(made.luminance.rows.parts) == (3 if channels == 3 else 2)  # the lights split as the chroma rows split
@@ -66,6 +70,8 @@ def test_device_stacks_are_the_host_s_to_a_float32_rounding(device, channels, mo
         assert made.chroma is None
         return
     held_chroma = made.chroma.block(slice(0, height * width * 2)).reshape(n, height, width, 2)
+    if exact:
+        np.testing.assert_array_equal(held_chroma, chroma)
     np.testing.assert_allclose(held_chroma[:, same], chroma[:, same], rtol=2e-6, atol=1e-6)
     part = made.chroma.on_device(slice(10, 50))  # a column block there, as the products read it
     assert isinstance(part, wp.array) and part.shape == (n, 40)
@@ -78,7 +84,7 @@ def test_principal_images_of_device_stacks_are_those_of_the_host_stacks(device):
     images, own, tint = _capture(n, height, width, 3)
     products = DeviceProducts(device)
     made = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square)
-    scale, squares, luminance, _ = _host_planes(images, own, tint)
+    _, squares, luminance, _ = _host_planes(images, own, tint)
     light_scale = np.sqrt(squares / (height * width))
     there = PrincipalImages.of_source(made.luminance, np.sqrt(made.squares / (height * width)), products=products)
     host = PrincipalImages.of(luminance, light_scale)
@@ -90,6 +96,40 @@ def test_principal_images_of_device_stacks_are_those_of_the_host_stacks(device):
     reference = LowRankStack.quantised(host, steps, bits=8)
     assert np.mean(stack.codes == reference.codes) > 0.99
     np.testing.assert_allclose(stack.light_images(np.eye(n)), reference.light_images(np.eye(n)), atol=2e-2 * np.abs(reference.light_images(np.eye(n))).max())
+
+
+@pytest.mark.parametrize("what_is_held", ["stacks and principal images", "stacks"])
+def test_build_residual_with_held_stacks_is_the_host_path_on_the_cpu_device(monkeypatch, what_is_held):
+    """``build_residual`` with its products on the CPU device (where CUDA would hold them): the stacks
+    and principal images held there, or the stacks alone (no room left for their principal images),
+    against the same products with nothing held (no room at all: the host's stacks, uploaded a block
+    at a time): the same scale bit for bit, and the same model but for the lights' sums of squares,
+    which the held path takes of the float32 planes (1e-8 of each light's scale: the principal
+    images and their ranges a float32 rounding apart, a code here and there)."""
+    import warp_highlights.fit.residual as residual_module
+
+    n, height, width = 10, 26, 31
+    images, own, tint = _capture(n, height, width, 3)
+    settings = ResidualSettings()
+    made = []
+    original = NormalisedStacks.make
+    monkeypatch.setattr(residual_module, "_device_products", lambda device: DeviceProducts("cpu"))
+    monkeypatch.setattr(NormalisedStacks, "make", classmethod(lambda cls, *a, **k: made.append(1) or original(*a, **k)))
+    with monkeypatch.context() as nothing:
+        nothing.setattr(DeviceProducts, "holds", lambda self, nbytes: False)
+        reference = build_residual(images, own, tint, settings=settings, device="cpu")
+    assert not made
+    if what_is_held == "stacks":
+        monkeypatch.setattr(DeviceProducts, "held_directions", lambda self, count, shape: None)
+    there = build_residual(images, own, tint, settings=settings, device="cpu")
+    assert made == [1]
+    np.testing.assert_array_equal(there.scale, reference.scale)
+    for name in ("luminance", "chroma"):
+        a, b = getattr(there, name), getattr(reference, name)
+        assert a.codes.shape == b.codes.shape and np.count_nonzero(a.codes != b.codes) <= 1e-3 * a.codes.size
+        np.testing.assert_allclose(a.ranges, b.ranges, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(a.weights, b.weights, rtol=0, atol=1e-5 * np.abs(b.weights).max(initial=1.0))
+        np.testing.assert_allclose(a.mean_weights, b.mean_weights, rtol=1e-5)
 
 
 def test_build_residual_on_cuda_matches_the_host(device):

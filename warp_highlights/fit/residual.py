@@ -68,7 +68,9 @@ HELD_STACK_SHARE = 0.25
 at most this share of the available memory; beyond it they are computed from the images a block at a
 time in each of their three passes, and their principal directions (as large) are kept in a temporary
 file mapped into memory (``spilled_empty``). The 250-light 480x270 donut: 0.5 GB less at the peak, 3.8 s
-more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160 capture's stacks are 10 GB."""
+more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160 capture's stacks are 10 GB.
+Where a CUDA device holds the stacks instead (``kernels.stacks``), the same share decides whether the
+principal images' host copy goes to that mapped file."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
@@ -257,7 +259,7 @@ class RateSample:
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
         self.held = principal.held
-        self._stored: np.ndarray | None = None  # the held images' stored codes, host memory used again by each measurement
+        self._stored: np.ndarray | None = None  # two groups of the held images' stored codes, host memory used again
 
     @property
     def exact(self) -> bool:
@@ -300,24 +302,28 @@ class RateSample:
         return deflated * self.scale + self.per_image * count
 
     def _deflated_from_device(self, steps: np.ndarray, bits: int, piece) -> list:
-        """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a few
-        images at a time made there (``HeldDirections.stored``) into host memory kept for the next
-        measurement, deflated in threads while the next few are made and copied."""
+        """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a group of
+        ``NUMPY_THREADS`` images at a time made there (``HeldDirections.stored``) into one of two slots
+        of host memory, deflated in threads while the next group is made and copied into the other."""
         count = len(steps)
         _, width, planes = self.images.shape[1:]
-        shape = (count, planes) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
-        size = int(np.prod(shape))
-        if self._stored is None or self._stored.size < size:
+        tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
+        per_image, group = int(np.prod(tail)), max(1, NUMPY_THREADS)
+        if self._stored is None or self._stored.size < 2 * group * per_image:
             self._stored = None
-            self._stored = mapped_empty(size, np.uint8)
-        stored = self._stored[:size].reshape(shape)
+            self._stored = mapped_empty(2 * group * per_image, np.uint8)
+        results, pending = [], [[], []]
         with ThreadPoolExecutor(max_workers=NUMPY_THREADS, thread_name_prefix="deflate") as pool:
-            futures = []
-            for start in range(0, count, NUMPY_THREADS):
-                group = slice(start, min(start + NUMPY_THREADS, count))
-                self.held.stored(1 + start, self.low[group], steps[group], bits, self.stored_rows, self.above, out=stored[group])
-                futures += [pool.submit(piece, image) for image in stored[group]]
-            return [future.result() for future in futures]
+            for index, start in enumerate(range(0, count, group)):
+                stop, slot = min(start + group, count), index % 2
+                for future in pending[slot]:  # the slot's last group deflated: free to fill again
+                    future.result()
+                offset = slot * group * per_image
+                stored = self._stored[offset : offset + (stop - start) * per_image].reshape((stop - start,) + tail)
+                self.held.stored(1 + start, self.low[start:stop], steps[start:stop], bits, self.stored_rows, self.above, out=stored)
+                pending[slot] = [pool.submit(piece, image) for image in stored]
+                results += pending[slot]
+            return [future.result() for future in results]
 
 
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
@@ -468,7 +474,10 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                    device=None) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
     On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
-    equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS.
+    equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS. There too, where they
+    fit (``kernels.gram.HELD_SHARE`` of its free memory), the normalised stacks are made and held
+    there (``kernels.stacks``), and then the principal images, which are quantised there
+    (``kernels.quantise``).
 
     Compressed, a stack whose rank the settings fix keeps that many basis images, each quantised over
     its whole range. Otherwise the whole field is kept within ``size_budget`` of the 8-bit capture,
@@ -493,19 +502,20 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
         parallel_map(subtract, _row_bands(images))
         return ResidualModel(images=stored, highlight_colour=colour)
-    products = DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
+    products = _device_products(device)
+    available = available_memory()
+    held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
     if products is not None and products.holds(NormalisedStacks.nbytes(images.shape)):
-        # on the device: the stacks made there from the images' bands, and read there by every product
+        # on the device: the stacks made there from the images' bands, and read there by every product; the
+        # principal images' host copy in a file mapped into memory where the host's stacks would not be held
         stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square)
         light_scale = np.sqrt(stacks.squares / (height * width))
-        luminance = PrincipalImages.of_source(stacks.luminance, light_scale, products=products)
-        chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, products=products)
+        luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
+        chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products)
         return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes, n * height * width * channels)
     # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
     # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
-    available = available_memory()
-    held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
     luminance_stack = mapped_empty((n, height, width, 1), np.float32) if held else None
     chroma_stack = mapped_empty((n, height, width, 2), np.float32) if held and channels == 3 else None
 
@@ -532,6 +542,12 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                                                                       products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     return _compressed(luminance, chroma, scale, colour, settings, other_bytes, n * height * width * channels)
+
+
+def _device_products(device) -> DeviceProducts | None:
+    """Where ``build_residual`` sums its stacks' products and holds them: a CUDA device's
+    ``DeviceProducts``; None elsewhere (the host's BLAS, the host's stacks)."""
+    return DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
 
 
 def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray, colour: np.ndarray | None,

@@ -234,5 +234,5 @@ def check_moving(
                 kept[np.searchsorted(kept_rows, q)] = drawn_q[..., None] * tint
 
         for group in range(0, len(rows), at_once):
-            parallel_map(lambda q: score(q, drawn[q - start]), rows[group : group + at_once])
+            parallel_map(lambda q, drawn=drawn, start=start: score(q, drawn[q - start]), rows[group : group + at_once])
     return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows], kept if len(kept_rows) else None)

@@ -45,7 +45,8 @@ def stored_codes(codes: np.ndarray) -> np.ndarray:
     """The stored form of (..., R, W) uint8 or uint16 codes: each row less the row above, modulo
     2^bits (the first row as it is); uint16 differences split into (..., 2, R, W) byte planes, high
     bytes first. Returns uint8. (A band of rows taken with the row above it gives, from its second
-    row on, the whole image's stored rows: the rate search samples bands so.)"""
+    row on, the whole image's stored rows: the rate search samples bands so.) ``kernels.quantise``'s
+    ``stored_rows`` makes the same bytes on a device: a change of this layout changes both."""
     codes = np.asarray(codes)
     if codes.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"basis codes must be uint8 or uint16, got {codes.dtype}")

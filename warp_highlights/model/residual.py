@@ -35,7 +35,7 @@ import numpy as np
 from .errors import InputError, finite_array
 from .threads import NUMPY_THREADS, mapped_empty, parallel_map
 
-__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "HeldDirections", "clamped_steps", "quantised_codes", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
+__all__ = ["ArraySource", "COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "HeldDirections", "clamped_steps", "quantisation_grid", "quantised_codes", "LUMINANCE_WEIGHTS", "LowRankStack", "StackSource", "NeuralResidual", "decode_display", "encode_display", "PrincipalImages", "ResidualModel", "code_levels", "codes_in_place", "colour_codes", "colour_from_codes", "from_opponent", "luminance_of", "quantise_basis", "spilled_empty", "to_opponent"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -177,9 +177,10 @@ class PrincipalImages:
     every light weighs freely; the others are the basis images, unit norm, in descending energy.
 
     The stack is read from a ``StackSource`` a block of ``_BLOCK_VALUES`` values at a time, in
-    float64; the only full-size copy made here is ``directions`` (float32: a 1,000-light 1920x1080
-    luminance stack's are 8.3 GB). A stack computed block by block (``fit.residual``'s normalised
-    residual) is never held whole.
+    float64; the only full-size copy made here on the host is ``directions`` (float32: a 1,000-light
+    1920x1080 luminance stack's are 8.3 GB), and where the products are summed on a device that holds
+    them, a second one there (``held``). A stack computed block by block (``fit.residual``'s normalised
+    residual) is never held whole on the host.
 
     Attributes:
         source: the stack.
@@ -306,6 +307,12 @@ def clamped_steps(steps: np.ndarray, span: np.ndarray, levels: int) -> np.ndarra
     return np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(np.asarray(span, np.float64), 1e-300) / levels)
 
 
+def quantisation_grid(lows: np.ndarray, highs: np.ndarray, steps: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """(low, step) float64 of each basis image's codes: from its minimum, ``clamped_steps`` apart."""
+    low = np.asarray(lows, np.float64)
+    return low, clamped_steps(steps, np.asarray(highs, np.float64) - low, levels)
+
+
 def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
                    highs: np.ndarray | None = None, held: HeldDirections | None = None, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
@@ -320,9 +327,7 @@ def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.
     highs = basis.max(axis=1) if highs is None and k else highs
     if k and (np.shape(lows) != (k,) or np.shape(highs) != (k,)):
         raise InputError(f"quantise_basis needs one minimum and maximum per basis image ({k}), got {np.shape(lows)} and {np.shape(highs)}")
-    low = np.asarray(lows, np.float64) if k else np.zeros(0)
-    span = np.asarray(highs, np.float64) - low if k else np.zeros(0)
-    steps = clamped_steps(steps, span, levels)
+    low, steps = quantisation_grid(lows, highs, steps, levels) if k else (np.zeros(0), np.zeros(0))
     codes = mapped_empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
     if held is not None and k:
         held.codes(first, low, steps, bits, out=codes)
@@ -467,8 +472,7 @@ class LowRankStack:
         products = principal.products
         held = principal.held if products is not None else None
         if held is not None:  # the design's planes decoded where the images are held: no host pass, no upload
-            quantised_low = principal.lows[:k].astype(np.float64)
-            quantised_step = clamped_steps(steps, principal.highs[:k].astype(np.float64) - quantised_low, code_levels(bits))
+            quantised_low, quantised_step = quantisation_grid(principal.lows[:k], principal.highs[:k], steps, code_levels(bits))
         normal, right = np.zeros((k + 1, k + 1)), np.zeros((k + 1, n))
         normal_sum = right_sum = None
         if products is not None:  # float32 design and stack blocks, summed in float64 there: the same products
