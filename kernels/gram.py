@@ -190,8 +190,8 @@ class DeviceProducts:
     def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep: DeviceBasis | None = None,
                 columns: slice | None = None) -> np.ndarray:
         """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32 (on the host, or on the device
-        already), summed in float64; written
-        into ``out`` (a view will do) when given, and into ``keep``'s images at ``columns`` when given."""
+        already), summed in float64; written into ``out`` (a view will do) when given, and into
+        ``keep``'s images at ``columns`` when given."""
         left = wp.array(np.ascontiguousarray(matrix, np.float64), dtype=wp.float64, device=self.device)
         right = block if isinstance(block, wp.array) else self.upload(block)
         if left.shape[1] != right.shape[0]:
