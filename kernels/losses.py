@@ -36,7 +36,7 @@ from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 from ._tape import active_tape
 
-__all__ = ["EnergyLoss", "LogL1Loss", "StructureLoss", "total"]
+__all__ = ["EnergyLoss", "LogL1Loss", "StructureLoss", "clipped_mse", "total"]
 
 _LN2 = math.log(2.0)
 
@@ -140,6 +140,27 @@ def log_l1_backward(
             image_grad[i] = image_grad[i] + step
 
 
+@wp.kernel(enable_backward=False)
+def clipped_square_error_rows(image: wp.array3d(dtype=float), target: wp.array3d(dtype=float), rows: wp.array2d(dtype=wp.float64)):
+    """rows[b, row] = sum over the row of (clip(R, 0, 1) - clip(S, 0, 1))^2, in float64."""
+    b, row = wp.tid()
+    total = wp.float64(0.0)
+    for col in range(image.shape[2]):
+        d = wp.float64(wp.clamp(image[b, row, col], 0.0, 1.0)) - wp.float64(wp.clamp(target[b, row, col], 0.0, 1.0))
+        total += d * d
+    rows[b, row] = total
+
+
+def clipped_mse(image: wp.array, target: wp.array) -> np.ndarray:
+    """(B,) float64 mean of (clip(R, 0, 1) - clip(S, 0, 1))^2 over (B, H, W) float32 device images: the
+    error of ``io.metrics.psnr``, summed there; only one float64 per row comes to the host."""
+    if image.shape != target.shape or image.ndim != 3:
+        raise InputError(f"image {image.shape} and target {target.shape} must be two (B, H, W) arrays of one shape")
+    rows = wp.empty(image.shape[:2], dtype=wp.float64, device=image.device)
+    wp.launch(clipped_square_error_rows, dim=image.shape[:2], inputs=[image, target], outputs=[rows], device=image.device, record_tape=False)
+    return rows.numpy().sum(axis=1) / (image.shape[1] * image.shape[2])
+
+
 class LogL1Loss:
     """The fit loss against fixed targets S (B, H, W); log2(1 + S) is computed once here.
 
@@ -189,9 +210,11 @@ class LogL1Loss:
         The same values and parameter gradients as ``self(raster.render(batch, out=image), ...)``,
         but the backward pass never stores d(loss)/d(image): the rasterizer's adjoint computes it at
         each pixel of a Gaussian's footprint (``Rasterizer.backward(fit=...)``), which saves a pass
-        over every pixel and the zeroing of the image gradient.
+        over every pixel and the zeroing of the image gradient. With ``value=False`` only the tiles
+        the Gaussians reach are drawn (``render(drawn_only=True)``): ``image`` holds R(G) there and
+        stale pixels elsewhere, so render it again before reading it whole.
         """
-        raster.render(batch, out=image, record=False)
+        raster.render(batch, out=image, record=False, drawn_only=not value)  # the adjoint reads only where Gaussians draw
         out, scale = self._value(image, out, weight, value)
         tape = active_tape()
         if tape is not None and batch.requires_grad:

@@ -90,8 +90,8 @@ def test_densify_places_a_gaussian_on_a_curved_highlight():
     rows, cols = np.mgrid[0:height, 0:width]
     radius = np.hypot(cols - 48.0, rows - 50.0)
     arc = np.where((np.abs(radius - 30.0) < 2.0) & (rows < 50), 1.5, 0.0).astype(np.float32)[None]
-    estimator = _Estimator(_device_array(arc), arc, EstimationSettings(), QUICK_RASTER, "cpu")
-    estimator._densify(estimator._residual())
+    estimator = _Estimator(_device_array(arc), EstimationSettings(), QUICK_RASTER, "cpu")
+    estimator._densify(estimator._regions())
     params = estimator.batch.numpy()
     assert params.counts[0] == 1
     col, row = params.mean[0, params.active[0]][0] * height - 0.5
@@ -103,8 +103,8 @@ def test_densify_places_a_gaussian_on_a_rendered_one():
     """Pixel centres sit at (col + 0.5) / H: the moments of a rendered Gaussian give back its parameters."""
     truth = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
     image = _render([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
-    estimator = _Estimator(_device_array(image), image, EstimationSettings(residual_threshold=0.01), QUICK_RASTER, "cpu")
-    estimator._densify(estimator._residual())
+    estimator = _Estimator(_device_array(image), EstimationSettings(residual_threshold=0.01), QUICK_RASTER, "cpu")
+    estimator._densify(estimator._regions())
     placed = estimator.batch.numpy()
     slot = np.flatnonzero(placed.active[0])
     assert len(slot) == 1
@@ -118,8 +118,8 @@ def test_densify_serves_the_largest_regions_first():
     image[0, 5:8, 5:8] = 1.0  # 9 pixels
     image[0, 20:40, 50:70] = 1.0  # 400 pixels
     image[0, 40:45, 10:15] = 1.0  # 25 pixels
-    estimator = _Estimator(_device_array(image), image, EstimationSettings(max_new_per_round=2), QUICK_RASTER, "cpu")
-    estimator._densify(estimator._residual())
+    estimator = _Estimator(_device_array(image), EstimationSettings(max_new_per_round=2), QUICK_RASTER, "cpu")
+    estimator._densify(estimator._regions())
     placed = estimator.batch.numpy()
     means = placed.mean[0, placed.active[0]] * 54 - 0.5
     assert len(means) == 2
@@ -128,7 +128,7 @@ def test_densify_serves_the_largest_regions_first():
 
 def test_prune_drops_dim_offscreen_and_nonfinite_gaussians():
     target = np.zeros((1, 54, 96), dtype=np.float32)
-    estimator = _Estimator(_device_array(target), target, EstimationSettings(prune_energy=1.0), QUICK_RASTER, "cpu")
+    estimator = _Estimator(_device_array(target), EstimationSettings(prune_energy=1.0), QUICK_RASTER, "cpu")
     estimator.batch.add(
         np.zeros(5, dtype=int),
         amplitude=[1.0, 0.01, 1.0, 1.0, 1.0],

@@ -3,8 +3,9 @@
 All sets are fitted together: one rasterizer launch, one loss and one Adam step per iteration cover
 every light. The number of Gaussians changes in add/prune rounds (every ``densify_every`` iterations
 until ``densify_until``, plus a final prune): the residual S - R of every image is labelled into
-connected regions above ``residual_threshold`` at once (one ``scipy.ndimage.label`` call over the
-stack), and each large region gets one Gaussian placed from its residual-weighted moments.
+connected regions above ``residual_threshold`` on the device (``kernels.regions``: a union-find over
+the whole stack at once; only the regions' sizes and moments come to the host), and each large region
+gets one Gaussian placed from its residual-weighted moments. The images never leave the device.
 """
 
 from __future__ import annotations
@@ -14,15 +15,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from scipy import ndimage
 
-from ..io.metrics import psnr
+from ..io.metrics import psnr, psnr_of_mse
 from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
-from ..kernels.losses import LogL1Loss
+from ..kernels.losses import LogL1Loss, clipped_mse
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer
-from ..kernels.transfer import to_host
+from ..kernels.regions import Regions, ResidualRegions
 from ..model.config import (
     REFERENCE_HEIGHT_PX,
     EstimationSettings,
@@ -31,7 +31,6 @@ from ..model.config import (
 )
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
-from ..model.threads import all_finite
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 
@@ -95,41 +94,41 @@ def estimate(
     s = settings or EstimationSettings()
     raster = raster or RasterSettings()
     device = wp.get_device(device if device is not None else getattr(targets, "device", None))
-    host_targets = to_host(targets) if isinstance(targets, wp.array) else np.asarray(targets, dtype=np.float32)
-    if host_targets.ndim != 3:
-        raise InputError(f"estimation targets must have shape (lights, height, width), got {host_targets.shape}")
-    if not all_finite(host_targets):
-        raise InputError("the specular images have non-finite pixels")
-    chunks = problem_chunks(len(host_targets), device, workers)
+    if isinstance(targets, wp.array) and targets.device == device and targets.dtype == wp.float32:
+        source = targets  # used where it is (sliced per CPU chunk); LogL1Loss checks it is finite
+    else:
+        source = np.ascontiguousarray(targets.numpy() if isinstance(targets, wp.array) else targets, dtype=np.float32)
+    if source.ndim != 3:
+        raise InputError(f"estimation targets must have shape (lights, height, width), got {tuple(source.shape)}")
+    chunks = problem_chunks(source.shape[0], device, workers)
     graphs = device.is_cuda if graphs is None else bool(graphs)
     if graphs and not device.is_cuda:
         raise InputError("CUDA graphs need a CUDA device; estimate on the CPU with graphs=False")
 
     def run(chunk: slice, stop) -> tuple:
-        if isinstance(targets, wp.array) and targets.device == device and len(chunks) == 1:
-            device_targets = targets
+        if isinstance(source, wp.array):
+            device_targets = source if len(chunks) == 1 else source[chunk]
         else:
-            device_targets = wp.array(np.ascontiguousarray(host_targets[chunk]), dtype=float, device=device)
-        return _Estimator(device_targets, host_targets[chunk], s, raster, device).run(stop, progress, graphs=graphs)
+            device_targets = wp.array(source[chunk], dtype=float, device=device)
+        return _Estimator(device_targets, s, raster, device).run(stop, progress, graphs=graphs)
 
     parts = map_chunks(run, chunks)
     params = GaussianParams.concatenate([p[0] for p in parts])
-    loss, images, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
-    return EstimationResult(params=params, loss=loss, psnr=psnr(images, host_targets), added=added, pruned=pruned)
-
+    loss, psnr_db, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
+    return EstimationResult(params=params, loss=loss, psnr=psnr_db, added=added, pruned=pruned)
 
 
 class _Estimator:
     """One batch of estimation problems on one device (a chunk of the lights)."""
 
-    def __init__(self, targets: wp.array, host_targets: np.ndarray, settings: EstimationSettings, raster: RasterSettings, device):
+    def __init__(self, targets: wp.array, settings: EstimationSettings, raster: RasterSettings, device):
         self.s = settings
         self.raster_settings = raster
-        self.host_targets = host_targets
-        problems, self.height, self.width = host_targets.shape
+        problems, self.height, self.width = targets.shape
+        self.fit = LogL1Loss(targets, device=device)  # refuses non-finite targets
         self.batch = GaussianBatch(problems, settings.capacity, device=device)
         self.raster = Rasterizer(self.height, self.width, settings=raster, device=device)
-        self.fit = LogL1Loss(targets)
+        self.regions = ResidualRegions(targets.shape, device)
         self.adam = GaussianAdam(self.batch, settings.adam)
         self.image = self.raster.new_image(problems)
         self.loss = wp.zeros(problems, dtype=float, device=device, requires_grad=True)
@@ -146,7 +145,7 @@ class _Estimator:
             if iteration % s.densify_every == 0 and iteration < s.densify_until:
                 if iteration > 0:
                     self._prune()
-                self._densify(self._residual())  # in place: a captured graph stays valid
+                self._densify(self._regions())  # in place: a captured graph stays valid
             step()
             if progress is not None and (iteration + 1) % 10 == 0:
                 progress(10)
@@ -156,14 +155,15 @@ class _Estimator:
         self.loss.zero_()
         self.raster.render(self.batch, out=self.image)
         self.fit(self.image, out=self.loss)
-        return self.batch.numpy(), self.loss.numpy().astype(np.float64), self.image.numpy().copy(), self.added, self.pruned
+        return self.batch.numpy(), self.loss.numpy().astype(np.float64), psnr_of_mse(clipped_mse(self.image, self.fit.target)), self.added, self.pruned
 
     def _losses(self) -> None:
         self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
 
-    def _residual(self) -> np.ndarray:
+    def _regions(self) -> Regions:
+        """The regions where S - R(G) exceeds the residual threshold, R drawn now."""
         self.raster.render(self.batch, out=self.image)
-        return self.host_targets - self.image.numpy()
+        return self.regions.label(self.fit.target, self.image, self.s.residual_threshold)
 
     def _prune(self) -> None:
         """Remove Gaussians with too little energy, collapsed to a line, far off the image, or non-finite."""
@@ -182,35 +182,13 @@ class _Estimator:
             self.pruned += drop.sum(axis=1)
             self.batch.remove(drop)
 
-    def _densify(self, residual: np.ndarray) -> None:
+    def _densify(self, regions: Regions) -> None:
         """Add one Gaussian per large region where the residual exceeds the threshold, largest first."""
         s = self.s
-        above = residual > s.residual_threshold
-        # 8-connected within an image, never across images
-        structure = np.zeros((3, 3, 3), dtype=bool)
-        structure[1] = True
-        labels, count = ndimage.label(above, structure=structure)
+        count = len(regions)
         if count == 0:
             return
-        problem, row, col = np.nonzero(labels)
-        label = labels[problem, row, col] - 1
-        weight = residual[problem, row, col].astype(np.float64)
-        area = np.bincount(label, minlength=count)
-        mass = np.bincount(label, weights=weight, minlength=count)
-        region_problem = np.zeros(count, dtype=np.int64)
-        region_problem[label] = problem
-        peak = np.zeros(count)
-        np.maximum.at(peak, label, weight)
-        # pixel centres in image heights
-        x = (col + 0.5) / self.height
-        y = (row + 0.5) / self.height
-        mx = np.bincount(label, weights=weight * x, minlength=count) / mass
-        my = np.bincount(label, weights=weight * y, minlength=count) / mass
-        dx, dy = x - mx[label], y - my[label]
-        cxx = np.bincount(label, weights=weight * dx * dx, minlength=count) / mass
-        cxy = np.bincount(label, weights=weight * dx * dy, minlength=count) / mass
-        cyy = np.bincount(label, weights=weight * dy * dy, minlength=count) / mass
-
+        area, mass, region_problem = regions.area, regions.mass, regions.problem
         min_pixels = s.min_region_area_rpx2 / pixel_area_rpx2(self.height)
         free = self.batch.capacity - self.batch.counts()
         allowed = np.minimum(free, s.max_new_per_round)
@@ -225,31 +203,30 @@ class _Estimator:
             return
 
         # principal axes of the weighted second moments: sigma_x along theta (the major axis)
-        half_trace = 0.5 * (cxx[chosen] + cyy[chosen])
-        root = np.sqrt((0.5 * (cxx[chosen] - cyy[chosen])) ** 2 + cxy[chosen] ** 2)
+        mx, my = regions.centroid[chosen, 0], regions.centroid[chosen, 1]
+        cxx, cxy, cyy = (regions.covariance[chosen, k] for k in range(3))
+        half_trace = 0.5 * (cxx + cyy)
+        root = np.sqrt((0.5 * (cxx - cyy)) ** 2 + cxy**2)
         major, minor = half_trace + root, np.maximum(half_trace - root, 0.0)
-        theta = 0.5 * np.arctan2(2.0 * cxy[chosen], cxx[chosen] - cyy[chosen])
+        theta = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
         floor = _MIN_SIGMA_PX / self.height
         sigma = np.stack([np.maximum(np.sqrt(major), floor), np.maximum(np.sqrt(minor), floor)], axis=1)
-        mean = np.stack([mx[chosen], my[chosen]], axis=1)
+        mean = np.stack([mx, my], axis=1)
         # A curved region (the arc of a ring highlight) has its centroid off the highlight, where a
         # Gaussian would only fade away: there, start a round Gaussian at the region's peak, as wide
         # as the band is thick (area / length for a band whose length is sqrt(12) x its spread along
         # the major axis; a uniform band of thickness t has a standard deviation of t / sqrt(12)
         # across it). Later rounds cover the rest of the arc.
-        centre_row = np.clip(np.floor(my[chosen] * self.height).astype(np.int64), 0, self.height - 1)
-        centre_col = np.clip(np.floor(mx[chosen] * self.height).astype(np.int64), 0, self.width - 1)
-        off_region = labels[region_problem[chosen], centre_row, centre_col] != chosen + 1
+        centre_row = np.clip(np.floor(my * self.height).astype(np.int64), 0, self.height - 1)
+        centre_col = np.clip(np.floor(mx * self.height).astype(np.int64), 0, self.width - 1)
+        centre = (region_problem[chosen] * self.height + centre_row) * self.width + centre_col
+        off_region = self.regions.regions_at(centre) != chosen
         if off_region.any():
-            by_value = np.lexsort((weight, label))  # grouped by label, ascending residual
-            last = np.flatnonzero(np.r_[np.diff(label[by_value]) != 0, True])  # each group's peak
-            peak_pixel = np.zeros(count, dtype=np.int64)
-            peak_pixel[label[by_value[last]]] = by_value[last]
-            at = peak_pixel[chosen[off_region]]
-            mean[off_region] = np.stack([x[at], y[at]], axis=1)
+            at = regions.peak_pixel[chosen[off_region]]
+            row, col = (at // self.width) % self.height, at % self.width
+            mean[off_region] = np.stack([(col + 0.5) / self.height, (row + 0.5) / self.height], axis=1)
             pixel = 1.0 / self.height
             thickness = area[chosen[off_region]] * pixel**2 / (np.sqrt(12.0) * np.sqrt(major[off_region]) + pixel)
             sigma[off_region] = np.maximum(thickness / np.sqrt(12.0), floor)[:, None]
-        self.batch.add(region_problem[chosen], amplitude=np.sqrt(peak[chosen]), mean=mean, sigma=sigma, theta=theta)
+        self.batch.add(region_problem[chosen], amplitude=np.sqrt(regions.peak[chosen]), mean=mean, sigma=sigma, theta=theta)
         self.added += np.bincount(region_problem[chosen], minlength=self.batch.problem_count)
-

@@ -16,17 +16,20 @@ import numpy as np
 
 from .images import display_rgb8
 
-__all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "srgb_psnr", "srgb_scores", "ssim_8bit"]
+__all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "psnr_of_mse", "srgb_psnr", "srgb_scores", "ssim_8bit"]
 
 
 def psnr(image, reference, *, cap: float = 100.0) -> np.ndarray:
     """PSNR in dB with peak 1 over the last two axes, both clipped to [0, 1]; identical images give ``cap``."""
     a = np.clip(np.asarray(image, dtype=np.float64), 0.0, 1.0)
     b = np.clip(np.asarray(reference, dtype=np.float64), 0.0, 1.0)
-    mse = ((a - b) ** 2).mean(axis=(-2, -1))
+    return psnr_of_mse(((a - b) ** 2).mean(axis=(-2, -1)), cap=cap)
+
+
+def psnr_of_mse(mse, *, cap: float = 100.0) -> np.ndarray:
+    """PSNR in dB, peak 1, of mean squared errors (e.g. ``kernels.losses.clipped_mse``'s); 0 gives ``cap``."""
     with np.errstate(divide="ignore"):
-        value = 10.0 * np.log10(1.0 / mse)
-    return np.minimum(value, cap)
+        return np.minimum(10.0 * np.log10(1.0 / np.asarray(mse, dtype=np.float64)), cap)
 
 
 def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 100.0) -> np.ndarray:
