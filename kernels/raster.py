@@ -50,10 +50,15 @@ __all__ = [
     "gaussian_frame",
     "prepare_gaussians",
     "rasterize_backward",
+    "rasterize_drawn_tiles",
     "rasterize_tiles",
 ]
 
 _BOX_MARGIN = 1  # pixels added around computed ranges; the per-pixel test decides membership
+
+DRAWN_TILES_PER_SWEEP = 8192
+"""Tiles one sweep of ``rasterize_drawn_tiles`` covers (2M threads at 16 x 16 tiles: more than an H100
+holds at once); more listed tiles take more sweeps of the same threads."""
 
 
 @wp.func
@@ -186,8 +191,11 @@ def bin_tiles(
     cull: int,
     tile_lists: wp.array3d(dtype=wp.int32),
     tile_counts: wp.array2d(dtype=wp.int32),
+    drawn_tiles: wp.array(dtype=wp.int32),
+    drawn_count: wp.array(dtype=wp.int32),
 ):
-    """Per (problem, tile): the slots whose cut-off ellipse reaches a pixel centre of the tile, ascending."""
+    """Per (problem, tile): the slots whose cut-off ellipse reaches a pixel centre of the tile, ascending;
+    a tile with any is appended (as b x tiles + t, in any order) to ``drawn_tiles`` when that has room."""
     b, t = wp.tid()
     tx = t % tiles_x
     ty = t // tiles_x
@@ -211,6 +219,9 @@ def bin_tiles(
                 tile_lists[b, t, count] = n
                 count += 1
     tile_counts[b, t] = count
+    if count > 0 and drawn_tiles.shape[0] > 0:
+        k = wp.atomic_add(drawn_count, 0, 1)
+        drawn_tiles[k] = b * tile_counts.shape[1] + t
 
 
 @wp.func
@@ -260,7 +271,8 @@ def rasterize_tiles(
 
     A 1D launch in tile-major order (problem, tile, pixel of the tile): the threads of a warp share a
     tile's list, and the index arithmetic is 32-bit shifts instead of the 64-bit divisions a 3D
-    launch spends on every thread. On the CPU (``whole_tile`` = 1) a thread draws a whole tile instead,
+    launch spends on every thread. On the CPU (``whole_tile`` = 1, or 2 to skip the tiles no Gaussian
+    reaches) a thread draws a whole tile instead,
     one launch index per tile: the per-pixel index divisions would cost more than the drawing of the
     mostly empty tiles of a highlight image. That thread clears the tile, then adds the listed Gaussians
     one after the other (the same sums in the same order as a pixel's loop), each over the part of its
@@ -283,6 +295,8 @@ def rasterize_tiles(
         i = wp.tid()
         b = i // tile_counts.shape[1]
         t = i - b * tile_counts.shape[1]
+        if whole_tile == 2 and tile_counts[b, t] == 0:
+            return  # drawn_only: a tile no Gaussian reaches keeps its pixels
         ty = t // tiles_x
         size = 1 << tile_shift
         row0 = ty << tile_shift
@@ -304,6 +318,44 @@ def rasterize_tiles(
                     d2 = frame_distance2(frame, (float(col) + 0.5) / h - mu[0], dy)
                     if d2 < cutoff2:
                         image[b, row, col] = image[b, row, col] + scale * (wp.exp(-0.5 * d2) - tau)
+
+
+@wp.kernel(enable_backward=False)
+def rasterize_drawn_tiles(
+    frames: wp.array2d(dtype=wp.vec4),
+    means: wp.array2d(dtype=wp.vec2),
+    scales: wp.array2d(dtype=float),
+    tile_lists: wp.array3d(dtype=wp.int32),
+    tile_counts: wp.array2d(dtype=wp.int32),
+    drawn_tiles: wp.array(dtype=wp.int32),
+    drawn_count: wp.array(dtype=wp.int32),
+    tile_shift: int,
+    tiles_x: int,
+    cutoff2: float,
+    tau: float,
+    launched: int,
+    image: wp.array3d(dtype=float),
+):
+    """``rasterize_tiles`` (CUDA) over the listed tiles only: a fixed grid of threads strides over the
+    ``drawn_count`` tiles of ``drawn_tiles``, one thread per pixel of a tile. Pixels of unlisted tiles
+    keep what they held. The launch size (``launched``) does not depend on the count, so a captured graph replays it."""
+    i = wp.tid()
+    tile_pixels = 1 << (2 * tile_shift)
+    p = i & (tile_pixels - 1)
+    stride = launched >> (2 * tile_shift)  # ``launched`` threads: a whole number of tiles
+    count = drawn_count[0]
+    per_problem = tile_counts.shape[1]
+    k = i >> (2 * tile_shift)
+    while k < count:
+        flat = drawn_tiles[k]
+        b = flat // per_problem
+        t = flat - b * per_problem
+        ty = t // tiles_x
+        row = (ty << tile_shift) + (p >> tile_shift)
+        col = ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1))
+        if row < image.shape[1] and col < image.shape[2]:
+            image[b, row, col] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], row, col, float(image.shape[1]), cutoff2, tau)
+        k += stride
 
 
 @wp.kernel(enable_backward=False)
@@ -453,18 +505,24 @@ class Rasterizer:
         self.boxes = wp.empty(shape, dtype=wp.vec4i, device=self.device)
         self.tile_lists = wp.empty((problems, self.tile_count, capacity), dtype=wp.int32, device=self.device)
         self.tile_counts = wp.empty((problems, self.tile_count), dtype=wp.int32, device=self.device)
+        self.drawn_tiles = wp.empty(problems * self.tile_count if self.device.is_cuda else 0, dtype=wp.int32, device=self.device)
+        self.drawn_count = wp.zeros(1, dtype=wp.int32, device=self.device)
+        self._no_tiles = wp.empty(0, dtype=wp.int32, device=self.device)
         self._shape = shape
 
     def new_image(self, problem_count: int) -> wp.array:
         """A zeroed (B, H, W) image array with a gradient, for ``render(out=...)``."""
         return wp.zeros((problem_count, self.height, self.width), dtype=float, device=self.device, requires_grad=True)
 
-    def render(self, batch: GaussianBatch, *, out: wp.array | None = None, record: bool = True) -> wp.array:
+    def render(self, batch: GaussianBatch, *, out: wp.array | None = None, record: bool = True, drawn_only: bool = False) -> wp.array:
         """Rasterize every problem of ``batch``; returns (B, H, W) float32 (``out`` when given).
 
         Inside a ``wp.Tape``, ``tape.backward`` adds the parameter gradients to ``batch``'s
         ``.grad`` arrays (when the batch has them). ``record=False`` leaves the tape alone (for a
-        caller that records its own adjoint, e.g. ``LogL1Loss.of_render``).
+        caller that records its own adjoint, e.g. ``LogL1Loss.of_render``). ``drawn_only`` writes
+        only the tiles some Gaussian reaches and leaves every other pixel of ``out`` as it was: for a
+        caller that reads the image only where the Gaussians draw (the fit loss's fused adjoint), at
+        a cost that follows the Gaussians' area rather than the images'.
         """
         if batch.device != self.device:
             raise InputError(f"the batch is on {batch.device} but the rasterizer on {self.device}")
@@ -486,23 +544,38 @@ class Rasterizer:
             device=self.device,
             record_tape=False,
         )
+        listed = drawn_only and self.device.is_cuda
+        if listed:
+            self.drawn_count.zero_()
         wp.launch(
             bin_tiles,
             dim=(problems, self.tile_count),
             inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2, int(self.culling)],
-            outputs=[self.tile_lists, self.tile_counts],
+            outputs=[self.tile_lists, self.tile_counts, self.drawn_tiles if listed else self._no_tiles, self.drawn_count],
             device=self.device,
             record_tape=False,
         )
-        whole_tile = 0 if self.device.is_cuda else 1
-        wp.launch(
-            rasterize_tiles,
-            dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
-            inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts, s.tile_size.bit_length() - 1, self.tiles_x, s.cutoff**2, tau, whole_tile],
-            outputs=[out],
-            device=self.device,
-            record_tape=False,
-        )
+        shift = s.tile_size.bit_length() - 1
+        if listed:
+            launched = min(problems * self.tile_count, DRAWN_TILES_PER_SWEEP) * s.tile_size**2
+            wp.launch(
+                rasterize_drawn_tiles,
+                dim=launched,
+                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, self.drawn_tiles, self.drawn_count, shift, self.tiles_x, s.cutoff**2, tau, launched],
+                outputs=[out],
+                device=self.device,
+                record_tape=False,
+            )
+        else:
+            whole_tile = 0 if self.device.is_cuda else (2 if drawn_only else 1)
+            wp.launch(
+                rasterize_tiles,
+                dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
+                inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts, shift, self.tiles_x, s.cutoff**2, tau, whole_tile],
+                outputs=[out],
+                device=self.device,
+                record_tape=False,
+            )
         tape = active_tape() if record else None
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:

@@ -56,6 +56,36 @@ def test_culling_changes_nothing(device, tile_size):
     np.testing.assert_array_equal(culled, everything)
 
 
+@pytest.mark.parametrize("tile_size", [8, 16])
+def test_drawn_only_redraws_the_reached_tiles_and_keeps_the_rest(device, tile_size):
+    """``render(drawn_only=True)``: every pixel of a tile some Gaussian reaches as a full render draws it
+    (so every pixel a Gaussian draws), every other pixel as it was; the launch covers more listed
+    tiles than one sweep holds."""
+    import warp_highlights.kernels.raster as raster_module
+
+    height, width = 45, 70
+    params = random_params(np.random.default_rng(tile_size + 1), 5, 6, height, width, sigma_px=(0.3, 6), inactive=0.5)
+    settings = RasterSettings(tile_size=tile_size)
+    batch = GaussianBatch.from_numpy(params, device=device)
+    raster = Rasterizer(height, width, settings=settings, device=device)
+    full = raster.render(batch).numpy()
+    counts = raster.tile_counts.numpy().reshape(5, raster.tiles_y, raster.tiles_x)
+    reached = np.repeat(np.repeat(counts > 0, tile_size, axis=1), tile_size, axis=2)[:, :height, :width]
+    assert reached.any() and not reached.all()
+    stale = np.random.default_rng(0).uniform(5.0, 6.0, full.shape).astype(np.float32)
+    sweep = raster_module.DRAWN_TILES_PER_SWEEP
+    for per_sweep in (sweep, 3):  # one sweep, and several sweeps of 3 tiles
+        raster_module.DRAWN_TILES_PER_SWEEP = per_sweep
+        try:
+            out = wp.array(stale, device=device, requires_grad=True)
+            drawn = raster.render(batch, out=out, drawn_only=True).numpy()
+        finally:
+            raster_module.DRAWN_TILES_PER_SWEEP = sweep
+        np.testing.assert_array_equal(drawn[reached], full[reached])
+        np.testing.assert_array_equal(drawn[~reached], stale[~reached])
+        assert (full[~reached] == 0).all()
+
+
 def test_truncation_error_is_bounded_by_the_documented_cutoff_level(device):
     params = random_params(np.random.default_rng(3), 2, 12, 40, 60, sigma_px=(0.5, 20))
     settings = RasterSettings(cutoff=3.0)
