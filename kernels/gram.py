@@ -130,6 +130,7 @@ class DeviceProducts:
         self.device = wp.get_device(device)
         self._buffers: list[wp.array | None] = [None, None]
         self._copied: list[wp.Event | None] = [None, None]  # recorded after a buffer's last copy to the device
+        self._matrix: tuple = (None, None)  # the last projection matrix (a host copy) and its device copy
         self._turn = 0
         self._staged: tuple[int, wp.array, np.ndarray] | None = None  # the ``staging`` array not yet uploaded, and its buffer
 
@@ -188,11 +189,17 @@ class DeviceProducts:
         return DeviceBasis(count, shape, self.device) if self.holds(DeviceBasis.nbytes(count, int(np.prod(shape)))) else None
 
     def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep: DeviceBasis | None = None,
-                columns: slice | None = None) -> np.ndarray:
+                columns: slice | None = None, host: bool = True) -> np.ndarray | None:
         """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32 (on the host, or on the device
         already), summed in float64; written into ``out`` (a view will do) when given, and into
-        ``keep``'s images at ``columns`` when given."""
-        left = wp.array(np.ascontiguousarray(matrix, np.float64), dtype=wp.float64, device=self.device)
+        ``keep``'s images at ``columns`` when given. ``host=False`` (with ``keep``): nothing comes back.
+        The matrix is uploaded once for a run of calls with equal matrices (the blocks of one projection)."""
+        if not host and keep is None:
+            raise ValueError("a projection that does not come back to the host must be kept on the device")
+        matrix = np.asarray(matrix, np.float64)
+        if self._matrix[0] is None or self._matrix[0].shape != matrix.shape or not np.array_equal(self._matrix[0], matrix):
+            self._matrix = (matrix.copy(), wp.array(np.ascontiguousarray(matrix), dtype=wp.float64, device=self.device))
+        left = self._matrix[1]
         right = block if isinstance(block, wp.array) else self.upload(block)
         if left.shape[1] != right.shape[0]:
             raise ValueError(f"a ({left.shape[0]}, {left.shape[1]}) matrix cannot map a block of {right.shape[0]} rows")
@@ -206,6 +213,8 @@ class DeviceProducts:
             if columns is None:
                 raise ValueError("a projection kept on the device needs its columns")
             keep.place(product, columns)
+        if not host:
+            return None
         if not self.device.is_cuda or product.size == 0:
             result = product.numpy()
         else:

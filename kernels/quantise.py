@@ -2,8 +2,8 @@
 rounding (``codes_in_place``: ``round((v - low) / step)`` in float64, halves to even, clipped to
 [0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, 16-bit
 differences as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
-principal images. The host keeps its own copy of those (their extremes, the mean image, the host
-fallback) but makes no codes: only the codes come down.
+principal images. The host keeps no copy of those: their extremes (``extremes``) and the mean image
+(``rows``) come down, and the codes; nothing else.
 
 The arithmetic is the host's (a float32 value is exact in float64, the subtraction and the division
 are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), so the codes are the
@@ -19,7 +19,7 @@ import warp as wp
 
 from .rows import DeviceRows
 
-__all__ = ["LAUNCH_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "stored_rows"]
+__all__ = ["LAUNCH_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "row_extremes", "stored_rows"]
 
 wp.set_module_options({"enable_backward": False})
 
@@ -82,6 +82,27 @@ def decoded_rows(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.flo
     out[row + j, x] = decoded_low[j] + wp.float32(code) * decoded_step[j]
 
 
+@wp.kernel
+def row_extremes(part: wp.array2d(dtype=wp.float32), lanes: int, first_row: int, lows: wp.array(dtype=wp.float32),
+                 highs: wp.array(dtype=wp.float32)):
+    """lows[first_row + i], highs[first_row + i]: min and max of the part's row i, ``lanes`` threads a row
+    striding over its values (min and max are exact in any order)."""
+    i, lane = wp.tid()
+    low = part[i, lane % part.shape[1]]
+    high = low
+    x = lane + lanes
+    while x < part.shape[1]:
+        value = part[i, x]
+        low = wp.min(low, value)
+        high = wp.max(high, value)
+        x += lanes
+    wp.atomic_min(lows, first_row + i, low)
+    wp.atomic_max(highs, first_row + i, high)
+
+
+_EXTREME_LANES = 256  # threads a row in ``row_extremes``: coalesced reads, few enough atomics
+
+
 class DeviceBasis(DeviceRows):
     """(count, M) float32 principal images of shape (H, W, P) (M = H W P) held on ``device`` (``DeviceRows``):
     filled a column block at a time (``place``, from ``DeviceProducts.project``), quantised there
@@ -90,6 +111,24 @@ class DeviceBasis(DeviceRows):
     def __init__(self, count: int, shape: tuple, device):
         self.shape = tuple(int(v) for v in shape)
         super().__init__(count, int(np.prod(self.shape)), device)
+
+    def rows(self, first: int, count: int) -> np.ndarray:
+        """(count, M) float32 host copy of images ``first`` .. ``first + count``."""
+        out = np.empty((count, self.values), np.float32)
+        for part, take, done in self.pieces(first, count, count):
+            wp.copy(wp.array(out[done : done + take], dtype=wp.float32, device="cpu", copy=False), part)
+        wp.synchronize_device(self.device)
+        return out
+
+    def extremes(self, first: int) -> tuple[np.ndarray, np.ndarray]:
+        """(min, max) float32 of each image from ``first`` on, found there (the host's values: exact)."""
+        count = self.count - first
+        lows = wp.full(max(count, 1), np.inf, dtype=wp.float32, device=self.device)
+        highs = wp.full(max(count, 1), -np.inf, dtype=wp.float32, device=self.device)
+        for part, take, done in self.pieces(first, count, count):
+            wp.launch(row_extremes, dim=(take, min(_EXTREME_LANES, self.values)), inputs=[part, min(_EXTREME_LANES, self.values), done],
+                      outputs=[lows, highs], device=self.device)
+        return lows.numpy()[:count].copy(), highs.numpy()[:count].copy()
 
     def stored(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, rows: np.ndarray, above: np.ndarray,
                out: np.ndarray) -> np.ndarray:

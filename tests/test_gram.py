@@ -56,6 +56,12 @@ def test_projections_are_float64_sums_kept_as_float32(device):
     reference = matrix @ block.astype(np.float64)
     assert projected.dtype == np.float32 and projected.shape == (33, 700)
     np.testing.assert_allclose(projected, reference, rtol=1e-6, atol=1e-6 * np.abs(reference).max())
+    # the matrix is uploaded once for equal matrices, again when it changes (even in place)
+    np.testing.assert_array_equal(products.project(matrix.copy(), block), projected)
+    matrix[3, 7] += 1.0
+    np.testing.assert_allclose(products.project(matrix, block)[3], matrix[3] @ block.astype(np.float64), rtol=1e-6, atol=1e-5)
+    with pytest.raises(ValueError, match="kept on the device"):
+        products.project(matrix, block, host=False)
 
 
 def test_strided_blocks_in_turn_and_projections_into_views(device):
@@ -90,7 +96,7 @@ def _stack(n: int, h: int, w: int, planes: int) -> np.ndarray:
 
 def _same_images(a: PrincipalImages, b: PrincipalImages, count: int) -> None:
     np.testing.assert_allclose(a.energies, b.energies, rtol=1e-9, atol=1e-12 * a.energies[0])
-    for x, y in zip(a.directions[:count], b.directions[:count]):  # a direction's sign is the eigensolver's choice
+    for x, y in zip(a.host_directions()[:count], b.host_directions()[:count]):  # a direction's sign is the eigensolver's choice
         np.testing.assert_allclose(x * np.sign(float(x @ y)), y, atol=2e-6)
 
 
@@ -128,6 +134,8 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
 def dataclass_with(principal: PrincipalImages, **changes) -> PrincipalImages:
     import dataclasses
 
+    if changes.get("held", principal.held) is None:  # without its device copy: the directions on the host
+        changes.setdefault("directions", principal.host_directions())
     return dataclasses.replace(principal, **changes)
 
 

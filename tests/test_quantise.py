@@ -80,6 +80,11 @@ def test_device_codes_and_stored_rows_are_the_host_s_bit_for_bit(device, bits, m
         np.testing.assert_allclose(design, reference, rtol=2**-23, atol=0)  # within a rounding: CUDA may fuse the multiply-add
     else:
         np.testing.assert_array_equal(design, reference)
+    np.testing.assert_array_equal(held.rows(0, count + 1), images)  # every part copied down
+    np.testing.assert_array_equal(held.rows(2, 2), images[2:4])  # across a part's end
+    lows, highs = held.extremes(1)  # min and max are exact in any order
+    np.testing.assert_array_equal(lows, images[1:].min(axis=1))
+    np.testing.assert_array_equal(highs, images[1:].max(axis=1))
     with pytest.raises(ValueError, match="uint8 array"):
         held.stored(1, low[1:], step[1:], bits, band, above, out=np.empty((count, 3), np.uint8))
     with pytest.raises(ValueError, match="contiguous"):  # a copy would be written, not ``out``
@@ -93,8 +98,21 @@ def _principal_pair(device) -> tuple[PrincipalImages, PrincipalImages]:
     smooth = np.cumsum(np.cumsum(RNG.normal(size=(n, height, width, planes)), axis=1), axis=2)
     stack = (smooth / np.abs(smooth).max()).astype(np.float32)
     there = PrincipalImages.of(stack, products=DeviceProducts(device))
-    assert there.held is not None
-    return there, dataclasses.replace(there, held=None)
+    assert there.held is not None and there.directions is None, "held there, no host copy"
+    host = dataclasses.replace(there, held=None, directions=there.host_directions())
+    np.testing.assert_array_equal(there.lows, host.lows)  # the extremes found there are the host's
+    np.testing.assert_array_equal(there.highs, host.highs)
+    np.testing.assert_allclose(there.mean, _mean_image(host), rtol=1e-12)  # the first direction came down
+    return there, host
+
+
+def _mean_image(principal: PrincipalImages) -> np.ndarray:
+    """``PrincipalImages.of_source``'s mean: the first direction at the images' RMS (float64 on the host;
+    the RMS from the energies here, from the Gram matrix's trace there)."""
+    first = principal.directions[0].astype(np.float64)
+    pixels = principal.values
+    rms = np.sqrt(principal.energies.sum() / (principal.light_count * pixels))
+    return first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / np.linalg.norm(first)
 
 
 @pytest.mark.parametrize("bits", [8, 16])
@@ -105,6 +123,7 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
     a group (three groups in two slots of host memory used in turn)."""
     monkeypatch.setattr(residual_module, "_RATE_MIN_VALUES", 64)
     monkeypatch.setattr(residual_module, "NUMPY_THREADS", 2)
+    monkeypatch.setattr(residual_module, "_STORED_GROUP_BYTES", 1)  # groups of NUMPY_THREADS images
     there, host = _principal_pair(device)
     levels = code_levels(bits)
     steps = host.spans[:6] / levels * np.array([1.0, 3.0, 7.5, 20.0, 60.0, 1.0])

@@ -70,8 +70,12 @@ time in each of their three passes, and their principal directions (as large) ar
 file mapped into memory (``spilled_empty``). The 250-light 480x270 donut: 0.5 GB less at the peak, 3.8 s
 more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160 capture's stacks are 10 GB.
 Where a CUDA device holds the stacks instead (``kernels.stacks``), the same share decides whether the
-principal images' host copy goes to that mapped file."""
+principal images' host copy goes to that mapped file, where the device has no room for them (else they
+stay there, and the host keeps no copy)."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
+_STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: at least this much a group (64 MiB; two groups held), so
+# small images come in a few launches and copies rather than one round of them per NUMPY_THREADS images (at 480x270 a round cost
+# about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group, one per deflating thread
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
@@ -239,8 +243,9 @@ class RateSample:
 
     def __init__(self, principal: PrincipalImages, count: int, *, whole: bool = False):
         height, width, planes = principal.shape
-        basis = principal.directions[1 : 1 + count]
-        self.images = basis.reshape((count,) + tuple(principal.shape))
+        self.shape = (count,) + tuple(principal.shape)
+        self.held = principal.held  # the images quantised there; else the host's copy, here:
+        self.images = None if self.held is not None else principal.directions[1 : 1 + count].reshape(self.shape)
         self.low = principal.lows[:count].astype(np.float64)  # float64, as quantise_basis has them
         self.span = principal.highs[:count].astype(np.float64) - self.low
         if whole:
@@ -258,7 +263,6 @@ class RateSample:
         self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))  # whole image bytes per sampled byte
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
-        self.held = principal.held
         self._stored: np.ndarray | None = None  # two groups of the held images' stored codes, host memory used again
 
     @property
@@ -303,12 +307,14 @@ class RateSample:
 
     def _deflated_from_device(self, steps: np.ndarray, bits: int, piece) -> list:
         """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a group of
-        ``NUMPY_THREADS`` images at a time made there (``HeldDirections.stored``) into one of two slots
-        of host memory, deflated in threads while the next group is made and copied into the other."""
+        at least ``NUMPY_THREADS`` images (and about ``_STORED_GROUP_BYTES``) at a time made there
+        (``HeldDirections.stored``) into one of two slots of host memory, deflated in threads while the
+        next group is made and copied into the other."""
         count = len(steps)
-        _, width, planes = self.images.shape[1:]
+        _, width, planes = self.shape[1:]
         tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
-        per_image, group = int(np.prod(tail)), max(1, NUMPY_THREADS)
+        per_image = int(np.prod(tail))
+        group = min(count, max(1, NUMPY_THREADS, _STORED_GROUP_BYTES // max(per_image, 1)))
         if self._stored is None or self._stored.size < 2 * group * per_image:
             self._stored = None
             self._stored = mapped_empty(2 * group * per_image, np.uint8)
@@ -507,7 +513,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
     if products is not None and products.holds(NormalisedStacks.nbytes(images.shape)):
         # on the device: the stacks made there from the images' bands, and read there by every product; the
-        # principal images' host copy in a file mapped into memory where the host's stacks would not be held
+        # principal images there too where they fit, else on the host (in a file mapped into memory where
+        # the host's stacks would not be held)
         stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square)
         light_scale = np.sqrt(stacks.squares / (height * width))
         luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)

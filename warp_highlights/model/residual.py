@@ -118,7 +118,8 @@ class StackProducts(Protocol):
 
     def cross_sum(self, rows: int, columns: int): ...
 
-    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep=None, columns: slice | None = None) -> np.ndarray: ...
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep=None, columns: slice | None = None,
+                host: bool = True) -> np.ndarray | None: ...
 
     def held_directions(self, count: int, shape: tuple) -> HeldDirections | None:
         """Room on the device for ``count`` principal images of ``shape`` (``project`` fills it through
@@ -130,7 +131,14 @@ class HeldDirections(Protocol):
     ``codes_in_place``'s rounding: ``codes`` of images first .. first + len(step) into a (c, M) host
     array; ``stored`` their codes as ``io.codes`` stores them, at ``rows`` (each less its row ``above``,
     -1: none), into a (c, P, [2,] R, W) uint8 host array; ``design`` a block of the weights' design
-    matrix there (``LowRankStack.quantised``)."""
+    matrix there (``LowRankStack.quantised``); ``rows`` a (count, M) float32 host copy, ``extremes``
+    each image's float32 (min, max) from ``first`` on. ``values``: M."""
+
+    values: int
+
+    def rows(self, first: int, count: int) -> np.ndarray: ...
+
+    def extremes(self, first: int) -> tuple[np.ndarray, np.ndarray]: ...
 
     def codes(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, out: np.ndarray) -> np.ndarray: ...
 
@@ -177,28 +185,30 @@ class PrincipalImages:
     every light weighs freely; the others are the basis images, unit norm, in descending energy.
 
     The stack is read from a ``StackSource`` a block of ``_BLOCK_VALUES`` values at a time, in
-    float64; the only full-size copy made here on the host is ``directions`` (float32: a 1,000-light
-    1920x1080 luminance stack's are 8.3 GB), and where the products are summed on a device that holds
-    them, a second one there (``held``). A stack computed block by block (``fit.residual``'s normalised
-    residual) is never held whole on the host.
+    float64; the only full-size copy made here is ``directions`` (float32: a 1,000-light 1920x1080
+    luminance stack's are 8.3 GB), on the host, or on the device where the products are summed and
+    the device has room for them (``held``; ``directions`` is then None and nothing full-size comes
+    back: the extremes and the mean image are found there). A stack computed block by block
+    (``fit.residual``'s normalised residual) is never held whole on the host.
 
     Attributes:
         source: the stack.
         shape: (H, W, P).
         energies: (r,) float64 descending sums of squares of the normalised images along each direction
             (r <= n: the directions of non-zero energy; at least 1): what keeping it removes.
-        directions: (r, M) float32 unit rows.
+        directions: (r, M) float32 unit rows on the host; None where ``held`` has them
+            (``host_directions`` copies them down).
         mean: (M,) float64 the first direction at the images' scale.
         products: where the stack's products were summed (None: the host's BLAS); ``LowRankStack.quantised``
             sums its weights' there too.
-        held: the directions held there as well, where they fit (``StackProducts.held_directions``):
+        held: the directions held there instead, where they fit (``StackProducts.held_directions``):
             the rate search's codes and ``quantise_basis``' are made there.
     """
 
     source: StackSource
     shape: tuple
     energies: np.ndarray
-    directions: np.ndarray
+    directions: np.ndarray | None
     mean: np.ndarray
     products: StackProducts | None = None
     held: HeldDirections | None = None
@@ -215,7 +225,8 @@ class PrincipalImages:
                   products: StackProducts | None = None) -> PrincipalImages:
         """The principal images of the stack ``source`` gives, normalised by ``light_scale`` (default:
         each image's RMS, one more pass over the source). ``spill``: ``directions`` in a temporary
-        file mapped into memory (``spilled_empty``) rather than in memory alone. ``products``: the Gram
+        file mapped into memory (``spilled_empty``) rather than in memory alone (where they are made on
+        the host). ``products``: the Gram
         matrix and the projections summed there (the stack's float32 blocks, unscaled: the scale is
         applied to the n x n matrices), else by the host's BLAS on float64 blocks."""
         n = source.light_count
@@ -241,17 +252,21 @@ class PrincipalImages:
         if len(order) == 0:  # every image is black
             directions, energies = np.zeros((1, pixels), np.float32), np.zeros(1)
         else:
-            directions = spilled_empty((len(order), pixels), np.float32) if spill else mapped_empty((len(order), pixels), np.float32)
             projection = vectors[:, order].T / np.sqrt(energies)[:, None]
+            if products is not None:
+                held = products.held_directions(len(order), tuple(source.shape))
+            directions = None
+            if held is None:
+                directions = spilled_empty((len(order), pixels), np.float32) if spill else mapped_empty((len(order), pixels), np.float32)
             if products is None:
                 for columns, block in zip(_column_slices(n, pixels), _blocks(source, light_scale)):
                     directions[:, columns] = projection @ block
             else:
                 scaled = projection * factor[None, :]
-                held = products.held_directions(len(order), tuple(source.shape))
                 for columns in _column_slices(n, pixels):
-                    products.project(scaled, _uploaded(products, source, columns), out=directions[:, columns], keep=held, columns=columns)
-        first = directions[0].astype(np.float64)
+                    products.project(scaled, _uploaded(products, source, columns), out=None if held is not None else directions[:, columns], keep=held,
+                                     columns=columns, host=held is None)
+        first = (held.rows(0, 1)[0] if directions is None else directions[0]).astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images
         mean = first * np.sign(first.sum() or 1.0) * rms * np.sqrt(pixels) / max(np.linalg.norm(first), 1e-300)
         return cls(source, tuple(source.shape), energies, directions, mean, products, held)
@@ -269,7 +284,11 @@ class PrincipalImages:
     @property
     def count(self) -> int:
         """Directions held: the mean image and ``count - 1`` basis images."""
-        return len(self.directions)
+        return len(self.energies)
+
+    def host_directions(self) -> np.ndarray:
+        """(count, M) float32 ``directions`` on the host, copied down from ``held`` where they are only there."""
+        return self.directions if self.directions is not None else self.held.rows(0, self.count)
 
     @cached_property
     def spans(self) -> np.ndarray:
@@ -288,7 +307,9 @@ class PrincipalImages:
 
     @cached_property
     def _extremes(self) -> tuple[np.ndarray, np.ndarray]:
-        """(min, max) of each basis image, float32, a few images a thread."""
+        """(min, max) of each basis image, float32, a few images a thread (found where ``held`` has them)."""
+        if self.directions is None:
+            return self.held.extremes(1)
         basis = self.directions[1:]
         if not len(basis):
             return np.zeros(0, np.float32), np.zeros(0, np.float32)
@@ -313,14 +334,19 @@ def quantisation_grid(lows: np.ndarray, highs: np.ndarray, steps: np.ndarray, le
     return low, clamped_steps(steps, np.asarray(highs, np.float64) - low, levels)
 
 
-def quantise_basis(basis: np.ndarray, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
+def quantise_basis(basis: np.ndarray | None, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
                    highs: np.ndarray | None = None, held: HeldDirections | None = None, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
     levels, so its codes fit), from each image's minimum: (codes (k, M) uint8 or uint16, ranges (k, 2)
     float32 (low, low + step x levels)), as ``LowRankStack`` stores them. ``lows``, ``highs``: the
     images' minima and maxima where known (else found here). ``held``: the same images held on a
-    device from its image ``first`` on, quantised there (the same codes)."""
+    device from its image ``first`` on, quantised there (the same codes); ``basis`` may then be None
+    (k = len(``steps``), the extremes given)."""
     levels = code_levels(bits)
+    if basis is None:
+        if held is None or lows is None or highs is None:
+            raise InputError("quantise_basis needs the basis images, or their device copy and their extremes")
+        basis = np.broadcast_to(np.zeros((), np.float32), (len(steps), held.values))  # the shape alone: the device makes the codes
     basis = np.asarray(basis)
     k = len(basis)
     lows = basis.min(axis=1) if lows is None and k else lows
@@ -458,8 +484,8 @@ class LowRankStack:
         k = len(steps)
         if k > principal.count - 1:
             raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
-        codes, ranges = quantise_basis(principal.directions[1 : k + 1], steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k],
-                                       held=principal.held, first=1)
+        basis = None if principal.directions is None else principal.directions[1 : k + 1]
+        codes, ranges = quantise_basis(basis, steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k], held=principal.held, first=1)
         mean = principal.mean
         # the mean as the file keeps it: float16 unless a value is beyond its range
         mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < FLOAT16_SAFE else mean.astype(np.float32)
