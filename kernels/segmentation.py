@@ -28,12 +28,13 @@ import warp as wp
 from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance the Gaussians are fitted to
-from warp_highlights.model.threads import all_finite
+from warp_highlights.model.threads import all_finite, mapped_empty
 
 from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
-from .transfer import to_host
+from .transfer import rows_down, rows_up, to_host
 
-__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels"]
+__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "count_non_finite", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels",
+           "shrink_by"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution (even: two a pass)
 
@@ -152,12 +153,14 @@ def segment_pixels(
     min_valid: int,
     floor: float,
     offset: float,
+    write_diffuse: int,
     diffuse: wp.array2d(dtype=float),
     specular: wp.array2d(dtype=float),
     lambert: wp.array(dtype=wp.vec4),
     status: wp.array(dtype=wp.vec2i),
 ):
-    """One (pixel, channel) column q of ``images`` (lights, columns): D, S, the fit, and (valid lights, iterations)."""
+    """One (pixel, channel) column q of ``images`` (lights, columns): D (where ``write_diffuse``: D = I - S),
+    S, the fit, and (valid lights, iterations)."""
     q = wp.tid()
     lights = images.shape[0]
     valid = int(0)
@@ -169,7 +172,8 @@ def segment_pixels(
             valid += 1
     if valid < min_valid:
         for i in range(lights):
-            diffuse[i, q] = images[i, q]
+            if write_diffuse != 0:
+                diffuse[i, q] = images[i, q]
             specular[i, q] = 0.0
         lambert[q] = wp.vec4(0.0, 0.0, 0.0, total / float(lights))
         status[q] = wp.vec2i(valid, 0)
@@ -208,7 +212,8 @@ def segment_pixels(
 
     if wp.isnan(fit[0]):  # no usable fit: all diffuse, like a pixel with too few lights
         for i in range(lights):
-            diffuse[i, q] = images[i, q]
+            if write_diffuse != 0:
+                diffuse[i, q] = images[i, q]
             specular[i, q] = 0.0
         lambert[q] = wp.vec4(0.0, 0.0, 0.0, total / float(lights))
         status[q] = wp.vec2i(0, iterations)
@@ -217,7 +222,8 @@ def segment_pixels(
         value = images[i, q]
         model = wp.max(_lambert(directions[i], fit), floor) + offset
         d = wp.min(value, model)
-        diffuse[i, q] = d
+        if write_diffuse != 0:
+            diffuse[i, q] = d
         specular[i, q] = value - d
     lambert[q] = fit
     status[q] = wp.vec2i(valid, iterations)
@@ -236,6 +242,26 @@ def luminance(
         out[light, pixel] = specular[light, pixel, 0]
     else:
         out[light, pixel] = weights[0] * specular[light, pixel, 0] + weights[1] * specular[light, pixel, 1] + weights[2] * specular[light, pixel, 2]
+
+
+@wp.kernel
+def count_non_finite(values: wp.array2d(dtype=float), count: wp.array(dtype=wp.int32)):
+    """count[0] += the values that are not finite."""
+    i, j = wp.tid()
+    if not wp.isfinite(values[i, j]):
+        wp.atomic_add(count, 0, 1)
+
+
+@wp.kernel
+def shrink_by(images: wp.array3d(dtype=float), factor: int, first_row: int, out: wp.array3d(dtype=float)):
+    """out[i, first_row + r, c]: the mean of images[i]'s ``factor`` x ``factor`` pixels from (r f, c f)
+    (an area average by a whole factor, summed in float64)."""
+    i, r, c = wp.tid()
+    total = wp.float64(0.0)
+    for dy in range(factor):
+        for dx in range(factor):
+            total += wp.float64(images[i, r * factor + dy, c * factor + dx])
+    out[i, first_row + r, c] = wp.float32(total / wp.float64(factor * factor))
 
 
 class Segmentation:
@@ -263,18 +289,21 @@ class Segmentation:
         self.few_light_pixels = int(np.count_nonzero(valid_lights < min_valid))
 
 
-def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None, workers: int | None = None) -> Segmentation:
+def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None, workers: int | None = None,
+            keep_diffuse: bool = True) -> Segmentation:
     """Split every image into diffuse and specular parts in one launch over all pixels and channels.
 
     On the CPU the launch is split into one range of pixels per thread (Warp runs a CPU launch on one
     thread); every pixel is independent, so the result is the same for any split.
 
     Args:
-        images: (n, H, W) or (n, H, W, C) linear radiance, NumPy or a float32 Warp array.
+        images: (n, H, W) or (n, H, W, C) linear radiance, NumPy (a band of rows of a stack will do:
+            on CUDA each image's rows go up straight from host memory) or a float32 Warp array.
         directions: (n, 3) unit light directions (towards the light, camera space).
         settings: thresholds and iteration cap (``SegmentationSettings``).
         device: Warp device (default: the images' device, else Warp's default).
         workers: CPU threads (default: one per core); ignored on CUDA.
+        keep_diffuse: False makes no diffuse images (``diffuse`` None; D = I - S where needed).
     """
     s = settings or SegmentationSettings()
     device = wp.get_device(device if device is not None else getattr(images, "device", None))
@@ -284,28 +313,36 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     directions = np.asarray(directions, dtype=np.float32)
     if directions.shape != (shape[0], 3):
         raise InputError(f"{shape[0]} images need ({shape[0]}, 3) light directions, got {directions.shape}")
-    if isinstance(images, wp.array) and images.device == device and images.dtype == wp.float32:
-        stack = images
-    else:
-        host = to_host(images)
-        stack = wp.array(np.ascontiguousarray(host, dtype=np.float32), dtype=float, device=device)
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     if channels not in (1, 3):
         raise InputError(f"images must have 1 or 3 channels, got {channels}")
-    if not all_finite(to_host(stack) if stack is images else host):
-        raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
     columns = height * width * channels
+    if isinstance(images, wp.array) and images.device == device and images.dtype == wp.float32:
+        stack = images
+    elif device.is_cuda and not isinstance(images, wp.array):
+        stack = rows_up(np.asarray(images, dtype=np.float32), device)
+    else:
+        stack = wp.array(np.ascontiguousarray(to_host(images), dtype=np.float32), dtype=float, device=device)
     flat = stack.reshape((n, columns))
-    diffuse = wp.empty((n, columns), dtype=float, device=device)
+    if device.is_cuda:  # counted there: the images need not come down
+        bad = wp.zeros(1, dtype=wp.int32, device=device)
+        wp.launch(count_non_finite, dim=(n, columns), inputs=[flat], outputs=[bad], device=device)
+        finite = int(bad.numpy()[0]) == 0
+    else:  # host memory already: NumPy's threads
+        finite = all_finite(flat.numpy())
+    if not finite:
+        raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
+    diffuse = wp.empty((n, columns) if keep_diffuse else (0, 0), dtype=float, device=device)
     specular = wp.empty((n, columns), dtype=float, device=device)
     lambert = wp.empty(columns, dtype=wp.vec4, device=device)
     status = wp.empty(columns, dtype=wp.vec2i, device=device)
     light_directions = wp.array(directions, dtype=wp.vec3, device=device)
-    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset]
+    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset,
+                 int(keep_diffuse)]
 
     def run(part: slice, _stop) -> None:
-        outputs = [diffuse[:, part], specular[:, part], lambert[part], status[part]]
+        outputs = [diffuse[:, part] if keep_diffuse else diffuse, specular[:, part], lambert[part], status[part]]
         wp.launch(segment_pixels, dim=part.stop - part.start, inputs=[flat[:, part], light_directions, *constants], outputs=outputs, device=device)
 
     map_chunks(run, problem_chunks(columns, device, workers))
@@ -313,7 +350,7 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*LUMINANCE_WEIGHTS), channels], outputs=[target], device=device)
     counts = status.numpy().reshape(height, width, channels, 2)
     return Segmentation(
-        diffuse=diffuse.reshape(shape),
+        diffuse=diffuse.reshape(shape) if keep_diffuse else None,
         specular=specular.reshape(shape),
         specular_luminance=target.reshape((n, height, width)),
         lambert=lambert.numpy().reshape(height, width, channels, 4),
@@ -331,15 +368,16 @@ def host_array(array) -> np.ndarray:
 def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None, keep_specular: bool = True,
               keep_diffuse: bool = True, specular_bytes: int = 4, target_share: float = 1.0) -> int:
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
-    the images, the specular part, the diffuse part and the specular luminance (float32) take at most
-    ``share`` of the free memory, else as many as do (at least one). On CUDA: the device's free memory.
-    On the CPU: ``host_free`` bytes (the host's available memory; None: all rows), less what
-    ``segment_in_bands`` holds whole: the specular part (``specular_bytes`` a value) and the diffuse
-    part where kept, and the specular luminance (``target_share`` of it where it is kept shrunk)."""
+    the images, the specular part, the diffuse part where kept and the specular luminance (float32)
+    take at most ``share`` of the free memory, else as many as do (at least one). On CUDA: the
+    device's free memory. On the CPU: ``host_free`` bytes (the host's available memory; None: all
+    rows), less what ``segment_in_bands`` holds whole: the specular part (``specular_bytes`` a value)
+    and the diffuse part where kept, and the specular luminance (``target_share`` of it where it is
+    kept shrunk)."""
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     device = wp.get_device(device)
-    row_bytes = 4 * n * width * (3 * channels + 1)  # images, diffuse, specular; luminance
+    row_bytes = 4 * n * width * (channels * (2 + int(keep_diffuse)) + 1)  # images, specular, diffuse; luminance
     if device.is_cuda:
         budget = share * device.free_memory
     elif host_free is None or row_bytes * height <= share * host_free:
@@ -353,10 +391,11 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
                      workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
                      specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
-                     target_rows: int = 1) -> Segmentation:
+                     target_rows: int = 1, shrink_factor: int = 1) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
-    independent), in host NumPy arrays.
+    independent), in host NumPy arrays. On CUDA each band goes up and its parts come down an image's
+    rows at a time, straight between the stack and the device (``rows_up``, ``rows_down``).
 
     Args:
         keep_specular, keep_diffuse: False keeps no specular / diffuse images (None).
@@ -366,31 +405,47 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             an area average whose output rows each cover ``target_rows`` input rows, so that the
             bands (made a multiple of ``target_rows``) shrink to exactly the whole stack's shrunk rows.
             The specular luminance is then held only shrunk.
+        shrink_factor: On CUDA: the specular luminance shrunk there by this whole factor of both
+            sides (an area average, ``shrink_by``) band by band, and kept there: ``specular_luminance``
+            is then an (n, H / f, W / f) device array (bands a multiple of f rows).
     """
     images = np.asarray(images)
     shape = images.shape
     if len(shape) not in (3, 4):
         raise InputError(f"images must have shape (n, H, W) or (n, H, W, C), got {shape}")
     n, height, width = shape[:3]
+    device = wp.get_device(device)
     rows = max(1, int(rows))
+    factor = int(shrink_factor)
+    if factor > 1 and (not device.is_cuda or shrink_target is not None or height % factor or width % factor):
+        raise ValueError(f"a {width}x{height} stack does not shrink by {factor} on {device} (CUDA, whole factors, no shrink_target)")
     if shrink_target is not None:
         if height % target_rows:
             raise ValueError(f"{height} rows do not shrink by whole bands of {target_rows}")
         rows = max(target_rows, rows // target_rows * target_rows)
-    specular = np.empty(shape, specular_dtype) if keep_specular else None
-    diffuse = np.empty(shape, np.float32) if keep_diffuse else None
-    target = np.empty((n, height, width), np.float32) if shrink_target is None else None
+    if factor > 1:
+        rows = max(factor, rows // factor * factor)
+    specular = mapped_empty(shape, specular_dtype) if keep_specular else None
+    diffuse = mapped_empty(shape, np.float32) if keep_diffuse else None
+    if factor > 1:
+        target = wp.empty((n, height // factor, width // factor), dtype=float, device=device)
+    else:
+        target = mapped_empty((n, height, width), np.float32) if shrink_target is None else None
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
-        part = segment(images[:, band], directions, settings=settings, device=device, workers=workers)
+        part = segment(images[:, band], directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
         if specular is not None:
-            specular[:, band] = to_host(part.specular)
+            _down(part.specular, specular[:, band])
         if diffuse is not None:
-            diffuse[:, band] = to_host(part.diffuse)
-        if shrink_target is None:
-            target[:, band] = to_host(part.specular_luminance)
+            _down(part.diffuse, diffuse[:, band])
+        if factor > 1:
+            band_target = part.specular_luminance
+            wp.launch(shrink_by, dim=(n, band_target.shape[1] // factor, width // factor), inputs=[band_target, factor, top // factor], outputs=[target],
+                      device=device)
+        elif shrink_target is None:
+            _down(part.specular_luminance, target[:, band])
         else:
             shrunk = shrink_target(to_host(part.specular_luminance))
             if target is None:
@@ -401,3 +456,12 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
         lambert[band], valid[band], iterations[band] = part.lambert, part.valid_lights, part.iterations
         del part
     return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum)
+
+
+def _down(array: wp.array, out: np.ndarray) -> None:
+    """A band's part into its rows of a host stack: straight from a CUDA device, an image's rows at a time,
+    where the types agree; else through a host copy."""
+    if array.device.is_cuda and out.dtype == wp.dtype_to_numpy(array.dtype):
+        rows_down(array, out)
+    else:
+        out[...] = to_host(array)

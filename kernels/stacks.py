@@ -23,6 +23,7 @@ import warp as wp
 from warp_highlights.model.residual import LUMINANCE_WEIGHTS
 
 from .rows import DeviceRows
+from .transfer import rows_up
 
 __all__ = ["BAND_VALUES", "HeldStack", "NormalisedStacks", "luminance_squares", "normalised_planes", "row_squares"]
 
@@ -93,10 +94,7 @@ def _rows_up(block: np.ndarray, products) -> wp.array:
     first, then 48 GB/s up), else through ``products.upload``."""
     if block.dtype != np.float32 or not products.device.is_cuda or block.strides[1] != 4:
         return products.upload(block)
-    out = wp.empty(block.shape, dtype=wp.float32, device=products.device)
-    for row in range(len(block)):
-        wp.copy(out[row], wp.array(block[row], dtype=wp.float32, device="cpu", copy=False))
-    return out
+    return rows_up(block, products.device)
 
 
 class HeldStack:

@@ -172,6 +172,50 @@ def test_row_bands_give_the_whole_stack_s_segmentation(device):
     assert segment_in_bands(images, directions, rows=5, device=device, keep_diffuse=False).diffuse is None
 
 
+def test_no_diffuse_part_made_leaves_the_rest_as_it_was(device):
+    rng = np.random.default_rng(5)
+    columns, directions = synthetic_columns(rng, 3 * 6 * 7, 30)
+    images = columns.reshape(30, 6, 7, 3)
+    whole, lean = segment(images, directions, device=device), segment(images, directions, device=device, keep_diffuse=False)
+    assert lean.diffuse is None
+    for name in ("specular", "specular_luminance"):
+        np.testing.assert_array_equal(host_array(getattr(lean, name)), host_array(getattr(whole, name)))
+    np.testing.assert_array_equal(lean.lambert, whole.lambert)
+
+
+def test_shrink_by_is_the_float64_mean_of_each_block(device):
+    import warp as wp
+    from warp_highlights.kernels.segmentation import shrink_by
+
+    values = np.random.default_rng(8).uniform(0, 3, (3, 12, 18)).astype(np.float32)
+    out = wp.zeros((3, 8, 6), dtype=float, device=device)
+    wp.launch(shrink_by, dim=(3, 4, 6), inputs=[wp.array(values[:, 4:], device=device), 2, 0], outputs=[out], device=device)  # rows 0..3 only
+    wp.launch(shrink_by, dim=(3, 4, 6), inputs=[wp.array(values[:, :12], device=device), 3, 4], outputs=[out], device=device)
+    reference = values.astype(np.float64)
+    np.testing.assert_allclose(out.numpy()[:, :4], reference[:, 4:12, :12].reshape(3, 4, 2, 6, 2).mean(axis=(2, 4)), rtol=1e-7)
+    np.testing.assert_allclose(out.numpy()[:, 4:], reference[:, :12, :18].reshape(3, 4, 3, 6, 3).mean(axis=(2, 4)), rtol=1e-7)
+
+
+def test_bands_shrink_the_luminance_on_a_cuda_device(device):
+    """``shrink_factor``: on CUDA the luminance is shrunk there band by band (bands of whole factors) to the
+    whole stack's luminance shrunk by ``shrink_by``; the CPU refuses (it shrinks with ``shrink_target``)."""
+    import warp as wp
+
+    rng = np.random.default_rng(9)
+    columns, directions = synthetic_columns(rng, 3 * 12 * 8, 30)
+    images = columns.reshape(30, 12, 8, 3)
+    if not wp.get_device(device).is_cuda:
+        with pytest.raises(ValueError, match="does not shrink"):
+            segment_in_bands(images, directions, rows=4, device=device, shrink_factor=2)
+        return
+    whole = host_array(segment(images, directions, device=device).specular_luminance).astype(np.float64)
+    expected = whole.reshape(30, 6, 2, 4, 2).mean(axis=(2, 4)).astype(np.float32)
+    for rows in (1, 5, 12):
+        banded = segment_in_bands(images, directions, rows=rows, device=device, shrink_factor=2)
+        assert isinstance(banded.specular_luminance, wp.array)
+        np.testing.assert_allclose(banded.specular_luminance.numpy(), expected, rtol=1e-6, atol=1e-7)
+
+
 def test_bands_short_of_memory_keep_float16_specular_parts_and_shrink_the_luminance_band_by_band():
     """With the specular part kept as float16 and the specular luminance shrunk band by band (bands made
     whole multiples of the shrink), the parts are the whole stack's: the luminance shrunk as a whole,
@@ -201,6 +245,7 @@ def test_band_rows_fit_the_device_s_free_memory():
     row_bytes, held = 4 * 100 * 3840 * 10, 4 * 100 * 2160 * 3840 * 4  # images, diffuse, specular, luminance a row; specular and luminance whole
     assert band_rows((100, 2160, 3840, 3), "cpu", host_free=2160 * row_bytes * 2) == 2160  # fits in half of it
     rows = band_rows((100, 2160, 3840, 3), "cpu", host_free=24 << 30, keep_diffuse=False)  # a 100-light 4K capture on a 24 GiB machine
+    row_bytes = 4 * 100 * 3840 * 7  # no diffuse part made: images, specular, luminance
     assert rows * row_bytes <= 0.5 * ((24 << 30) - held) < (rows + 1) * row_bytes
     assert band_rows((100, 2160, 3840, 3), "cpu", host_free=held // 2) == 1  # at least one row
     if wp.is_cuda_available():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.transfer import to_host
+from warp_highlights.kernels.transfer import rows_down, rows_up, to_host
 
 from warp_highlights.model import threads
 
@@ -31,3 +31,24 @@ def test_to_host_of_vectors_views_and_numpy_input(device, monkeypatch):
     np.testing.assert_array_equal(to_host(strided), strided.numpy())  # not contiguous: numpy() as it is
     plain = np.ones(3)
     assert to_host(plain) is plain
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float16])
+def test_rows_up_and_down_a_band_of_a_stack(device, dtype):
+    """A band of rows of an (n, H, W, C) stack (each image's rows one run of memory) up to a contiguous
+    device array and back into another stack's band, value for value; the whole stack in one copy."""
+    stack = np.random.default_rng(4).normal(size=(5, 9, 4, 3)).astype(dtype)
+    band = stack[:, 2:6]
+    assert not band.flags.c_contiguous
+    there = rows_up(band, device)
+    assert there.shape == band.shape and there.is_contiguous
+    np.testing.assert_array_equal(there.numpy(), band)
+    back = np.zeros_like(stack)
+    rows_down(there, back[:, 2:6])
+    np.testing.assert_array_equal(back[:, 2:6], band)
+    assert not back[:, :2].any() and not back[:, 6:].any()
+    np.testing.assert_array_equal(rows_down(rows_up(stack, device), np.empty_like(stack)), stack)
+    with pytest.raises(ValueError, match="cannot come down"):
+        rows_down(there, np.empty((5, 3, 4, 3), dtype))
+    with pytest.raises(ValueError, match="contiguous"):
+        rows_down(rows_up(stack[:, :, :2], device), np.empty_like(stack)[:, :, :2])
