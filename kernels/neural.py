@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-import warp.optim
 
 from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 
@@ -239,6 +238,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     params = [codes, *weights]
     target_array = wp.array(targets, dtype=wp.vec3, device=device)
     light_array = wp.array(np.asarray(lights, np.float32), dtype=wp.vec3, device=device)
+    import warp.optim  # here, not at the top: it imports Warp's sparse and solver kernels (0.25 s), which only training needs
+
     optimizer = warp.optim.Adam([p.flatten() for p in params], lr=lr)
     grads = [p.grad.flatten() for p in params]
     loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
