@@ -253,15 +253,23 @@ def count_non_finite(values: wp.array2d(dtype=float), count: wp.array(dtype=wp.i
 
 
 @wp.kernel
-def shrink_by(images: wp.array3d(dtype=float), factor: int, first_row: int, out: wp.array3d(dtype=float)):
-    """out[i, first_row + r, c]: the mean of images[i]'s ``factor`` x ``factor`` pixels from (r f, c f)
-    (an area average by a whole factor, summed in float64)."""
-    i, r, c = wp.tid()
+def shrink_by(images: wp.array4d(dtype=float), factor: int, first_row: int, out: wp.array4d(dtype=float)):
+    """out[i, first_row + r, c, k]: the mean of channel k of images[i]'s ``factor`` x ``factor`` pixels
+    from (r f, c f) (an area average by a whole factor, summed in float64)."""
+    i, r, c, k = wp.tid()
     total = wp.float64(0.0)
     for dy in range(factor):
         for dx in range(factor):
-            total += wp.float64(images[i, r * factor + dy, c * factor + dx])
-    out[i, first_row + r, c] = wp.float32(total / wp.float64(factor * factor))
+            total += wp.float64(images[i, r * factor + dy, c * factor + dx, k])
+    out[i, first_row + r, c, k] = wp.float32(total / wp.float64(factor * factor))
+
+
+def _shrunk_into(band: wp.array, factor: int, first_row: int, out: wp.array) -> None:
+    """``shrink_by`` of an (n, rows, W[, C]) device band into rows ``first_row`` on of ``out`` (n, H / f, W / f[, C])."""
+    four = band if band.ndim == 4 else band.reshape(band.shape + (1,))
+    target = out if out.ndim == 4 else out.reshape(out.shape + (1,))
+    wp.launch(shrink_by, dim=(four.shape[0], four.shape[1] // factor, four.shape[2] // factor, four.shape[3]), inputs=[four, factor, first_row],
+              outputs=[target], device=band.device)
 
 
 class Segmentation:
@@ -277,9 +285,12 @@ class Segmentation:
         iterations: (H, W) int32 NumPy, the most refits over the pixel's channels.
         few_light_pixels: pixels left all diffuse because a channel had too few valid lights (or, rarely,
             no solvable fit).
+        shrunk_images: (n, H / f, W / f[, C]) float32 NumPy, the images themselves shrunk on the device
+            where ``segment_in_bands`` was asked to (``shrink_images``), else None.
     """
 
-    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid):
+    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid, shrunk_images=None):
+        self.shrunk_images = shrunk_images
         self.diffuse = diffuse
         self.specular = specular
         self.specular_luminance = specular_luminance
@@ -391,7 +402,7 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
                      workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
                      specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
-                     target_rows: int = 1, shrink_factor: int = 1) -> Segmentation:
+                     target_rows: int = 1, shrink_factor: int = 1, shrink_images: bool = False) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
     independent), in host NumPy arrays. On CUDA each band goes up and its parts come down an image's
@@ -408,6 +419,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
         shrink_factor: On CUDA: the specular luminance shrunk there by this whole factor of both
             sides (an area average, ``shrink_by``) band by band, and kept there: ``specular_luminance``
             is then an (n, H / f, W / f) device array (bands a multiple of f rows).
+        shrink_images: With ``shrink_factor``: the images themselves shrunk there too, as each band is
+            up, into the host array ``shrunk_images`` (no pass over the whole stack on the host).
     """
     images = np.asarray(images)
     shape = images.shape
@@ -427,23 +440,32 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
         rows = max(factor, rows // factor * factor)
     specular = mapped_empty(shape, specular_dtype) if keep_specular else None
     diffuse = mapped_empty(shape, np.float32) if keep_diffuse else None
+    shrunk_images = shrunk_band = None
     if factor > 1:
         target = wp.empty((n, height // factor, width // factor), dtype=float, device=device)
+        if shrink_images:
+            shrunk_images = mapped_empty((n, height // factor, width // factor) + shape[3:], np.float32)
     else:
         target = mapped_empty((n, height, width), np.float32) if shrink_target is None else None
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
-        part = segment(images[:, band], directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
+        band_images = rows_up(np.asarray(images[:, band], np.float32), device) if device.is_cuda else images[:, band]
+        part = segment(band_images, directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
+        if shrunk_images is not None:
+            low = slice(top // factor, band.stop // factor)
+            if shrunk_band is None or shrunk_band.shape[1] != low.stop - low.start:
+                shrunk_band = wp.empty((n, low.stop - low.start) + shrunk_images.shape[2:], dtype=float, device=device)
+            _shrunk_into(band_images, factor, 0, shrunk_band)
+            rows_down(shrunk_band, shrunk_images[:, low])
+        del band_images
         if specular is not None:
             _down(part.specular, specular[:, band])
         if diffuse is not None:
             _down(part.diffuse, diffuse[:, band])
         if factor > 1:
-            band_target = part.specular_luminance
-            wp.launch(shrink_by, dim=(n, band_target.shape[1] // factor, width // factor), inputs=[band_target, factor, top // factor], outputs=[target],
-                      device=device)
+            _shrunk_into(part.specular_luminance, factor, top // factor, target)
         elif shrink_target is None:
             _down(part.specular_luminance, target[:, band])
         else:
@@ -455,7 +477,7 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             lambert = np.empty((height,) + part.lambert.shape[1:], np.float32)
         lambert[band], valid[band], iterations[band] = part.lambert, part.valid_lights, part.iterations
         del part
-    return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum)
+    return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum, shrunk_images)
 
 
 def _down(array: wp.array, out: np.ndarray) -> None:

@@ -189,16 +189,18 @@ def test_shrink_by_is_the_float64_mean_of_each_block(device):
 
     values = np.random.default_rng(8).uniform(0, 3, (3, 12, 18)).astype(np.float32)
     out = wp.zeros((3, 8, 6), dtype=float, device=device)
-    wp.launch(shrink_by, dim=(3, 4, 6), inputs=[wp.array(values[:, 4:], device=device), 2, 0], outputs=[out], device=device)  # rows 0..3 only
-    wp.launch(shrink_by, dim=(3, 4, 6), inputs=[wp.array(values[:, :12], device=device), 3, 4], outputs=[out], device=device)
+    four = out.reshape((3, 8, 6, 1))
+    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, 4:, :, None], device=device), 2, 0], outputs=[four], device=device)  # rows 0..3
+    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, :12, :, None], device=device), 3, 4], outputs=[four], device=device)
     reference = values.astype(np.float64)
     np.testing.assert_allclose(out.numpy()[:, :4], reference[:, 4:12, :12].reshape(3, 4, 2, 6, 2).mean(axis=(2, 4)), rtol=1e-7)
     np.testing.assert_allclose(out.numpy()[:, 4:], reference[:, :12, :18].reshape(3, 4, 3, 6, 3).mean(axis=(2, 4)), rtol=1e-7)
 
 
 def test_bands_shrink_the_luminance_on_a_cuda_device(device):
-    """``shrink_factor``: on CUDA the luminance is shrunk there band by band (bands of whole factors) to the
-    whole stack's luminance shrunk by ``shrink_by``; the CPU refuses (it shrinks with ``shrink_target``)."""
+    """``shrink_factor``: on CUDA the luminance (and with ``shrink_images`` the images) is shrunk there band
+    by band (bands of whole factors) to the whole stack's block means; the CPU refuses (it shrinks with
+    ``shrink_target``)."""
     import warp as wp
 
     rng = np.random.default_rng(9)
@@ -210,10 +212,15 @@ def test_bands_shrink_the_luminance_on_a_cuda_device(device):
         return
     whole = host_array(segment(images, directions, device=device).specular_luminance).astype(np.float64)
     expected = whole.reshape(30, 6, 2, 4, 2).mean(axis=(2, 4)).astype(np.float32)
+    shrunk = images.astype(np.float64).reshape(30, 6, 2, 4, 2, 3).mean(axis=(2, 4))
     for rows in (1, 5, 12):
-        banded = segment_in_bands(images, directions, rows=rows, device=device, shrink_factor=2)
+        banded = segment_in_bands(images, directions, rows=rows, device=device, shrink_factor=2, shrink_images=rows == 5)
         assert isinstance(banded.specular_luminance, wp.array)
         np.testing.assert_allclose(banded.specular_luminance.numpy(), expected, rtol=1e-6, atol=1e-7)
+        if rows == 5:  # the images themselves, shrunk as each band went up
+            np.testing.assert_allclose(banded.shrunk_images, shrunk, rtol=1e-6)
+        else:
+            assert banded.shrunk_images is None
 
 
 def test_bands_short_of_memory_keep_float16_specular_parts_and_shrink_the_luminance_band_by_band():

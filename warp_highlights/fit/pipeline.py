@@ -106,7 +106,7 @@ def fit_field(
             seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                    keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                    specular_dtype=np.float16 if on_host else np.float32, shrink_target=shrink, target_rows=shrink_rows,
-                                   shrink_factor=shrink_factor)
+                                   shrink_factor=shrink_factor, shrink_images=shrink_factor > 1 and residual)  # the move check's images
         else:
             seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
         specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
@@ -117,7 +117,8 @@ def fit_field(
         # what the later stages need of the full-size parts, in host memory; the device keeps none of them
         specular = host_array(seg.specular) if keep_specular else None
         diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
-        seg.diffuse = seg.specular = seg.specular_luminance = None
+        shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device
+        seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = None
         wp.synchronize_device(device)
     with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
         estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
@@ -153,7 +154,7 @@ def fit_field(
             check_images, check_own, check_colour = images, own, colour
             if (gaussian_width, gaussian_height) != (width, height) and not learned:
                 # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer pixels)
-                check_images = resize_stack(images, gaussian_width, gaussian_height)
+                check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
                 check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
                 check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
             with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
