@@ -19,7 +19,9 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``rows``: long float32 rows held on a device in parts of at most 2 GiB (``DeviceRows``).
 - ``stacks``: the residual's normalised luminance and chroma stacks made and held on a device (``NormalisedStacks``).
 - ``quantise``: principal images held on a device, quantised and stored there (``DeviceBasis``).
-- ``transfer``: large device arrays into host pages mapped first (``to_host``).
+- ``regions``: the residual's connected regions labelled and measured on a device (``ResidualRegions``).
+- ``transfer``: large device arrays into host pages mapped first (``to_host``); bands of a stack up and
+  down an image's rows at a time (``rows_up``, ``rows_down``).
 """
 
 from warp_highlights._api import lazy_exports
@@ -30,6 +32,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
     modules={
         "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
-        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions",
     },
 )

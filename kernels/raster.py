@@ -16,7 +16,10 @@ Forward, three launches:
 2. ``bin_tiles`` (problem x tile): the list of Gaussians whose cut-off ellipse reaches the tile's
    pixel centres (exact ellipse/rectangle test), in slot order so sums are deterministic.
 3. ``rasterize_tiles`` (tile-major 1D launch; one thread per pixel on CUDA, per tile on the CPU): each
-   pixel sums its tile's list.
+   pixel sums its tile's list. ``render(drawn_only=True)`` draws only the tiles whose list is not
+   empty (``bin_tiles`` lists them; on CUDA ``rasterize_drawn_tiles``, a fixed grid of threads over
+   that list) and leaves the other pixels as they were: what a fitting step needs, since its adjoint
+   reads the image only inside the Gaussians' cut-off.
 
 Steps 1-2 build an index and stay off the tape. Step 3 is recorded on the active ``wp.Tape`` with a
 hand-written adjoint, ``rasterize_backward``: Gaussian-major, one thread per (problem, slot, lane),
