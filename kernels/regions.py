@@ -36,6 +36,10 @@ from warp_highlights.model.errors import InputError
 __all__ = ["ResidualRegions", "Regions", "flatten_roots", "mark_above", "number_regions", "region_at", "region_moments", "region_sums", "unite_neighbours"]
 
 
+_FIRST_ROOTS = 1024
+"""Regions the first listing has room for (a guess: a few a light; more are listed again with room for all)."""
+
+
 @wp.func
 def _root(parent: wp.array(dtype=wp.int32), i: int) -> int:
     """Follow parent links from i to its root (links only point to smaller indices, so this ends)."""
@@ -123,6 +127,13 @@ def number_regions(roots: wp.array(dtype=wp.int32), parent: wp.array(dtype=wp.in
 
 
 @wp.func
+def _centre_of(col: int, row: int, height: int) -> wp.vec2d:
+    """Pixel (col, row)'s centre in image heights, float64."""
+    h = wp.float64(height)
+    return wp.vec2d((wp.float64(col) + wp.float64(0.5)) / h, (wp.float64(row) + wp.float64(0.5)) / h)
+
+
+@wp.func
 def _region(parent: wp.array(dtype=wp.int32), i: int) -> int:
     """Region number of pixel i after ``number_regions``; -1 when unmarked."""
     p = parent[i]
@@ -145,19 +156,13 @@ def region_sums(
 ):
     """Per region: pixel count, sum of w, sum of w (x, y) and max w, with w = target - image."""
     b, row, col = wp.tid()
-    height = target.shape[1]
-    i = (b * height + row) * target.shape[2] + col
-    r = _region(parent, i)
+    r = _region(parent, (b * target.shape[1] + row) * target.shape[2] + col)
     if r < 0:
         return
     w32 = target[b, row, col] - image[b, row, col]
-    w = wp.float64(w32)
-    h = wp.float64(height)
-    x = (wp.float64(col) + wp.float64(0.5)) / h
-    y = (wp.float64(row) + wp.float64(0.5)) / h
     wp.atomic_add(area, r, 1)
-    wp.atomic_add(mass, r, w)
-    wp.atomic_add(first, r, wp.vec2d(w * x, w * y))
+    wp.atomic_add(mass, r, wp.float64(w32))
+    wp.atomic_add(first, r, wp.float64(w32) * _centre_of(col, row, target.shape[1]))
     wp.atomic_max(peak, r, w32)
 
 
@@ -174,8 +179,7 @@ def region_moments(
 ):
     """Per region: sum of w (dx^2, dx dy, dy^2) about the weighted centroid, and the last pixel holding the peak."""
     b, row, col = wp.tid()
-    height = target.shape[1]
-    i = (b * height + row) * target.shape[2] + col
+    i = (b * target.shape[1] + row) * target.shape[2] + col
     r = _region(parent, i)
     if r < 0:
         return
@@ -183,10 +187,8 @@ def region_moments(
     if w32 == peak[r]:
         wp.atomic_max(peak_pixel, r, i)
     w = wp.float64(w32)
-    h = wp.float64(height)
-    dx = (wp.float64(col) + wp.float64(0.5)) / h - first[r][0] / mass[r]
-    dy = (wp.float64(row) + wp.float64(0.5)) / h - first[r][1] / mass[r]
-    wp.atomic_add(second, r, wp.vec3d(w * dx * dx, w * dx * dy, w * dy * dy))
+    d = _centre_of(col, row, target.shape[1]) - first[r] / mass[r]
+    wp.atomic_add(second, r, wp.vec3d(w * d[0] * d[0], w * d[0] * d[1], w * d[1] * d[1]))
 
 
 @wp.kernel(enable_backward=False)
@@ -238,7 +240,7 @@ class ResidualRegions:
         self.device = wp.get_device(device)
         self.parent = wp.empty(pixels, dtype=wp.int32, device=self.device)
         self._count = wp.zeros(1, dtype=wp.int32, device=self.device)
-        self._roots = wp.empty(1024, dtype=wp.int32, device=self.device)
+        self._roots = wp.empty(_FIRST_ROOTS, dtype=wp.int32, device=self.device)
 
     def label(self, target: wp.array, image: wp.array, threshold: float) -> Regions:
         """Label the regions where target - image > ``threshold`` (both (B, H, W) float32 here) and measure them."""

@@ -278,8 +278,10 @@ class Segmentation:
 
     Attributes:
         diffuse, specular: (n, H, W) or (n, H, W, C) float32 Warp arrays, D and S (D + S = I); diffuse
-            None where ``segment_in_bands`` was told not to keep it.
-        specular_luminance: (n, H, W) float32 Warp array, the fitting target of estimation.
+            None where not kept (``keep_diffuse``).
+        specular_luminance: (n, H, W) float32, the fitting target of estimation: a Warp array from
+            ``segment``; from ``segment_in_bands`` NumPy, shrunk where it was given ``shrink_target``,
+            or an (n, H / f, W / f) Warp array on the device where it was told to keep it there.
         lambert: (H, W, C, 4) float32 NumPy: nbar_x, nbar_y, nbar_z, k_a per pixel and channel.
         valid_lights: (H, W) int32 NumPy, the fewest valid lights over the pixel's channels.
         iterations: (H, W) int32 NumPy, the most refits over the pixel's channels.
@@ -381,16 +383,17 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
     the images, the specular part, the diffuse part where kept and the specular luminance (float32)
     take at most ``share`` of the free memory, else as many as do (at least one). On CUDA: the
-    device's free memory. On the CPU: ``host_free`` bytes (the host's available memory; None: all
-    rows), less what ``segment_in_bands`` holds whole: the specular part (``specular_bytes`` a value)
-    and the diffuse part where kept, and the specular luminance (``target_share`` of it where it is
-    kept shrunk)."""
+    device's free memory, less the specular luminance ``segment_in_bands`` keeps there whole
+    (``target_share`` of it: 1 / f^2 shrunk by f). On the CPU: ``host_free`` bytes (the host's
+    available memory; None: all rows), less what ``segment_in_bands`` holds whole: the specular part
+    (``specular_bytes`` a value) and the diffuse part where kept, and the specular luminance
+    (``target_share`` of it where it is kept shrunk)."""
     n, height, width = shape[:3]
     channels = shape[3] if len(shape) == 4 else 1
     device = wp.get_device(device)
     row_bytes = 4 * n * width * (channels * (2 + int(keep_diffuse)) + 1)  # images, specular, diffuse; luminance
     if device.is_cuda:
-        budget = share * device.free_memory
+        budget = share * max(device.free_memory - 4 * n * height * width * target_share, 0)
     elif host_free is None or row_bytes * height <= share * host_free:
         return height
     else:
@@ -402,11 +405,11 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
                      workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
                      specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
-                     target_rows: int = 1, shrink_factor: int = 1, shrink_images: bool = False) -> Segmentation:
+                     target_rows: int = 1, shrink_factor: int = 1, target_on_device: bool = False, shrink_images: bool = False) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
-    independent), in host NumPy arrays. On CUDA each band goes up and its parts come down an image's
-    rows at a time, straight between the stack and the device (``rows_up``, ``rows_down``).
+    independent), in host NumPy arrays. Each band goes up and its parts come down an image's rows at
+    a time, straight between the stack and the device (``rows_up``, ``rows_down``).
 
     Args:
         keep_specular, keep_diffuse: False keeps no specular / diffuse images (None).
@@ -416,9 +419,10 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             an area average whose output rows each cover ``target_rows`` input rows, so that the
             bands (made a multiple of ``target_rows``) shrink to exactly the whole stack's shrunk rows.
             The specular luminance is then held only shrunk.
-        shrink_factor: On CUDA: the specular luminance shrunk there by this whole factor of both
-            sides (an area average, ``shrink_by``) band by band, and kept there: ``specular_luminance``
-            is then an (n, H / f, W / f) device array (bands a multiple of f rows).
+        shrink_factor, target_on_device: The specular luminance kept on the device, shrunk there by
+            this whole factor of both sides (an area average, ``shrink_by``; 1 keeps it as it is) band by
+            band: ``specular_luminance`` is then an (n, H / f, W / f) device array (bands a multiple of
+            f rows). A factor above 1 keeps it there without ``target_on_device``.
         shrink_images: With ``shrink_factor``: the images themselves shrunk there too, as each band is
             up, into the host array ``shrunk_images`` (no pass over the whole stack on the host).
     """
@@ -430,8 +434,9 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     device = wp.get_device(device)
     rows = max(1, int(rows))
     factor = int(shrink_factor)
-    if factor > 1 and (not device.is_cuda or shrink_target is not None or height % factor or width % factor):
-        raise ValueError(f"a {width}x{height} stack does not shrink by {factor} on {device} (CUDA, whole factors, no shrink_target)")
+    on_device = target_on_device or factor > 1
+    if factor < 1 or (on_device and (shrink_target is not None or height % factor or width % factor)):
+        raise ValueError(f"a {width}x{height} stack does not shrink by {factor} on the device (whole factors, not with shrink_target)")
     if shrink_target is not None:
         if height % target_rows:
             raise ValueError(f"{height} rows do not shrink by whole bands of {target_rows}")
@@ -441,9 +446,9 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     specular = mapped_empty(shape, specular_dtype) if keep_specular else None
     diffuse = mapped_empty(shape, np.float32) if keep_diffuse else None
     shrunk_images = shrunk_band = None
-    if factor > 1:
+    if on_device:
         target = wp.empty((n, height // factor, width // factor), dtype=float, device=device)
-        if shrink_images:
+        if shrink_images and factor > 1:
             shrunk_images = mapped_empty((n, height // factor, width // factor) + shape[3:], np.float32)
     else:
         target = mapped_empty((n, height, width), np.float32) if shrink_target is None else None
@@ -451,7 +456,7 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
-        band_images = rows_up(np.asarray(images[:, band], np.float32), device) if device.is_cuda else images[:, band]
+        band_images = rows_up(np.asarray(images[:, band], np.float32), device)
         part = segment(band_images, directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
         if shrunk_images is not None:
             low = slice(top // factor, band.stop // factor)
@@ -464,7 +469,7 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             _down(part.specular, specular[:, band])
         if diffuse is not None:
             _down(part.diffuse, diffuse[:, band])
-        if factor > 1:
+        if on_device:
             _shrunk_into(part.specular_luminance, factor, top // factor, target)
         elif shrink_target is None:
             _down(part.specular_luminance, target[:, band])

@@ -59,9 +59,9 @@ def rows_down(array: wp.array, out: np.ndarray) -> np.ndarray:
         wp.copy(wp.array(out, dtype=array.dtype, device="cpu", copy=False), array)
         wp.synchronize_device(array.device)
         return out
+    if not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
+        raise ValueError("each row of the host array must be contiguous")
     for i in range(len(out)):
-        if not out[i].flags.c_contiguous:
-            raise ValueError("each row of the host array must be contiguous")
         wp.copy(wp.array(out[i], dtype=array.dtype, device="cpu", copy=False), array[i])
     wp.synchronize_device(array.device)
     return out

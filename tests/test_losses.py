@@ -152,6 +152,41 @@ def test_fit_loss_of_a_render_has_one_adjoint_with_the_same_gradients(device):
             np.testing.assert_array_equal(fused_gradients[name], plain[name], err_msg=name)
 
 
+def test_a_fitting_step_reads_the_image_only_where_gaussians_draw(device):
+    """``of_render(value=False)`` draws only the tiles Gaussians reach and leaves stale pixels elsewhere
+    (here 7.0): the parameter gradients, the weight's of a slot of weight 0 among them, are those of a
+    step that drew every pixel (bit for bit on the CPU)."""
+    height, width = 40, 90  # most tiles empty
+    _, batch = _pair(device, seed=8, height=height, width=width)
+    params = batch.numpy()
+    params.weight[0, 0] = 0.0  # drawn, scale 0: its tiles are listed all the same, though no other Gaussian reaches them
+    params.active[0, 2:] = False
+    params.mean[0, 0], params.mean[0, 1] = (0.3, 0.3), (1.9, 0.7)
+    params.sigma[0, :2] = 3.0 / height
+    target = np.random.default_rng(9).uniform(0, 2, (3, height, width)).astype(np.float32)
+    raster = Rasterizer(height, width, device=device)
+    fit = losses.LogL1Loss(target, device=device)
+    results = []
+    for value in (True, False):
+        moving = GaussianBatch.from_numpy(params, device=device)
+        image = wp.array(np.full((3, height, width), 7.0, np.float32), device=device, requires_grad=True)
+        out = wp.zeros(3, dtype=float, device=device, requires_grad=True)
+        tape = wp.Tape()
+        with tape:
+            fit.of_render(raster, moving, image=image, out=out, value=value)
+        tape.backward(grads={out: wp.array([1.0, -2.0, 0.5], dtype=float, device=device)})
+        results.append(moving.gradients())
+        if not value:
+            assert (image.numpy() == 7.0).any(), "some tiles were left as they were"
+    full, drawn = results
+    assert full["weight"][0, 0] != 0.0
+    for name in (*PARAMETERS, "weight"):
+        if wp.get_device(device).is_cuda:
+            np.testing.assert_allclose(drawn[name], full[name], rtol=1e-5, atol=1e-6 * np.abs(full[name]).max(), err_msg=name)
+        else:
+            np.testing.assert_array_equal(drawn[name], full[name], err_msg=name)
+
+
 def test_structure_loss_value_and_gradient(device):
     fixed, batch = _pair(device, seed=4, spread_rpx=15)
     settings = StructureLossSettings(gamma_per_rpx=0.4, threshold_rpx=40.0)  # smooth h: exercise every pair

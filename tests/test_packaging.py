@@ -85,6 +85,18 @@ def test_importing_the_package_loads_nothing_heavy():
     assert result.stdout.strip() == "[]"
 
 
+def test_a_fit_does_not_load_what_only_training_needs():
+    """The fit and the relighter load ``warp.optim`` (Warp's sparse and solver kernels, 0.25 s of a start)
+    only where a learned residual is trained."""
+    script = (
+        "import sys, warp_highlights.fit.pipeline, warp_highlights.relight.relighter, warp_highlights.cli.fit;"
+        "print(sorted({'warp.optim', 'warp.sparse'} & set(sys.modules)))"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
 def test_distribution_ships_its_licence_and_type_marker():
     """The wheel carries LICENSE (``license-files``) and ``py.typed`` (PEP 561), both present in the tree."""
     from pathlib import Path

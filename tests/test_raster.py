@@ -86,6 +86,34 @@ def test_drawn_only_redraws_the_reached_tiles_and_keeps_the_rest(device, tile_si
         assert (full[~reached] == 0).all()
 
 
+def test_the_drawn_tiles_kernel_sweeps_its_list_on_any_device(device):
+    """``rasterize_drawn_tiles`` launched as the CUDA path launches it, on this device too: a list of
+    tiles in any order, fewer threads than listed tiles (several sweeps), a count below the list's length."""
+    from warp_highlights.kernels.raster import rasterize_drawn_tiles
+
+    height, width = 45, 70
+    params = random_params(np.random.default_rng(4), 3, 6, height, width, sigma_px=(0.3, 6), inactive=0.3)
+    settings = RasterSettings(tile_size=8)
+    batch = GaussianBatch.from_numpy(params, device=device)
+    raster = Rasterizer(height, width, settings=settings, device=device)
+    full = raster.render(batch).numpy()
+    counts = raster.tile_counts.numpy()
+    listed = np.flatnonzero(counts.reshape(-1) > 0)[::-1].astype(np.int32)  # reversed: any order
+    drawn = listed[:-2]  # the count leaves the last two out
+    stale = np.full(full.shape, 9.0, np.float32)
+    out = wp.array(stale, device=device)
+    launched = 3 * 64  # three tiles of 8 x 8 a sweep
+    wp.launch(rasterize_drawn_tiles, dim=launched,
+              inputs=[raster.frames, batch.mean, raster.scales, raster.tile_lists, raster.tile_counts, wp.array(listed, dtype=wp.int32, device=device),
+                      wp.array([len(drawn)], dtype=wp.int32, device=device), 3, raster.tiles_x, settings.cutoff**2, settings.cutoff_level, launched],
+              outputs=[out], device=device)
+    tiles = np.zeros(counts.size, bool)
+    tiles[drawn] = True
+    per_pixel = np.repeat(np.repeat(tiles.reshape(3, raster.tiles_y, raster.tiles_x), 8, axis=1), 8, axis=2)[:, :height, :width]
+    np.testing.assert_array_equal(out.numpy()[per_pixel], full[per_pixel])
+    np.testing.assert_array_equal(out.numpy()[~per_pixel], stale[~per_pixel])
+
+
 def test_truncation_error_is_bounded_by_the_documented_cutoff_level(device):
     params = random_params(np.random.default_rng(3), 2, 12, 40, 60, sigma_px=(0.5, 20))
     settings = RasterSettings(cutoff=3.0)

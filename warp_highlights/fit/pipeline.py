@@ -100,13 +100,14 @@ def fit_field(
         whole = height // gaussian_height
         shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
         rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
-                         keep_diffuse=diffuse == "images", specular_bytes=2 if on_host else 4, target_share=1.0 / shrink_rows**2)
+                         keep_diffuse=diffuse == "images", specular_bytes=2 if on_host else 4, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
         if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
             shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
             seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                    keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                    specular_dtype=np.float16 if on_host else np.float32, shrink_target=shrink, target_rows=shrink_rows,
-                                   shrink_factor=shrink_factor, shrink_images=shrink_factor > 1 and residual)  # the move check's images
+                                   shrink_factor=shrink_factor, target_on_device=not on_host,
+                                   shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device))  # the move check's images
         else:
             seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
         specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large

@@ -73,9 +73,9 @@ Where a CUDA device holds the stacks instead (``kernels.stacks``), the same shar
 principal images' host copy goes to that mapped file, where the device has no room for them (else they
 stay there, and the host keeps no copy)."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
-_STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: at least this much a group (64 MiB; two groups held), so
+_STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: up to this much a group (64 MiB; two groups held), so
 # small images come in a few launches and copies rather than one round of them per NUMPY_THREADS images (at 480x270 a round cost
-# about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group, one per deflating thread
+# about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group (one per deflating thread) whatever their size
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
@@ -307,7 +307,7 @@ class RateSample:
 
     def _deflated_from_device(self, steps: np.ndarray, bits: int, piece) -> list:
         """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a group of
-        at least ``NUMPY_THREADS`` images (and about ``_STORED_GROUP_BYTES``) at a time made there
+        at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are small) at a time made there
         (``HeldDirections.stored``) into one of two slots of host memory, deflated in threads while the
         next group is made and copied into the other."""
         count = len(steps)
@@ -543,7 +543,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         luminance = PrincipalImages.of(luminance_stack, light_scale, products=products)
         chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale, products=products)
     else:  # read from the images a block at a time (three passes each instead of one), never held whole; the principal
-        # directions, as large, in a file mapped into memory (paged out as memory runs short)
+        # directions, as large, in a file mapped into memory (paged out as memory runs short), or on the device where the
+        # products are summed there and it has room for them (no host copy then)
         luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True, products=products)
         chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True,
                                                                       products=products)

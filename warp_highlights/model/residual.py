@@ -213,6 +213,10 @@ class PrincipalImages:
     products: StackProducts | None = None
     held: HeldDirections | None = None
 
+    def __post_init__(self):
+        if self.directions is None and self.held is None:
+            raise InputError("principal images need their directions on the host or held on a device (host_directions() copies them down)")
+
     @classmethod
     def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None, *, products: StackProducts | None = None) -> PrincipalImages:
         """The principal images of an (n, H, W, P) array (kept as float32)."""
