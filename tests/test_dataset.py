@@ -520,3 +520,42 @@ def test_a_signal_while_a_writer_thread_starts_leaves_no_thread_writing(tmp_path
             signal.signal(signum, handler)
     assert signalled, "no writer thread was started"
     assert os.listdir(tmp_path) == [], "the interrupted dataset left something behind"
+
+
+# --- threaded decoding -------------------------------------------------------------------------------
+
+
+def test_images_decoded_out_of_order_land_in_their_places(tmp_path, monkeypatch):
+    """Each decoding thread copies its image into the stack: the first images finish last here."""
+    from warp_highlights.io import dataset as dataset_module
+
+    field = _field(count=9)
+    folder = field.save(tmp_path / "capture")
+    real = dataset_module.read_image
+
+    def slow_first(path, **kwargs):
+        index = int(path.stem) if path.stem.isdigit() else 0
+        time.sleep(0.02 * max(0, 4 - index))  # images 0..3 decode last
+        return real(path, **kwargs)
+
+    monkeypatch.setattr(dataset_module, "read_image", slow_first)
+    loaded = ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=4)
+    np.testing.assert_array_equal(loaded.images, field.images)
+
+
+def test_an_image_decoded_to_another_shape_than_the_first_is_named(tmp_path, monkeypatch):
+    from warp_highlights.io import dataset as dataset_module
+
+    field = _field(count=6)
+    folder = field.save(tmp_path / "capture")
+    real = dataset_module.read_image
+
+    def odd_one(path, **kwargs):
+        image = real(path, **kwargs)
+        return image[..., :1] if path.stem == "0003" else image  # passed the header check, decoded otherwise
+
+    monkeypatch.setattr(dataset_module, "read_image", odd_one)
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=3)
+    message = _single_line_error(excinfo, "0003", "0000")
+    assert "first image" in message

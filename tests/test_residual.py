@@ -778,3 +778,19 @@ def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_
     both = build_residual(smooth, own, None, settings=settings)
     assert searched == [8, 16]
     assert np.array_equal(quick.luminance.codes, both.luminance.codes) and np.array_equal(quick.luminance.weights, both.luminance.weights)
+
+
+@settings(max_examples=80, deadline=None)
+@given(lights=st.integers(1, 6), edges=st.integers(1, 9), slots=st.integers(1, 5), seed=st.integers(0, 2**31 - 1),
+       empty=st.floats(0.0, 1.0))
+def test_the_move_decision_s_median_is_numpy_s_nanmedian(lights, edges, slots, seed, empty):
+    """``_nan_median`` (sorted, NaN last) gives np.nanmedian's values bit for bit, NaN where a column is empty."""
+    import warnings
+
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=(lights, edges, slots)).round(2)  # ties too
+    values[rng.random(values.shape) < empty] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected = np.nanmedian(values, axis=1)
+    np.testing.assert_array_equal(residual_module._nan_median(values), expected)

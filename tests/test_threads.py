@@ -47,3 +47,45 @@ def test_mapped_empty_is_an_empty_array_of_the_shape_and_type(monkeypatch, cores
     assert bool(filled) == threaded and (not array.any()) == threaded  # every part written from the threads, or none
     array[...] = 5
     assert int(array.sum()) == 5 * array.size
+
+
+def test_parallel_map_keeps_order_and_raises_the_first_error_once_all_have_finished():
+    import threading
+    import time
+
+    finished = []
+    lock = threading.Lock()
+
+    def work(item):
+        if item == 2:
+            raise ValueError("two")
+        if item == 5:
+            raise KeyError("five")
+        time.sleep(0.01 * (item % 3))
+        with lock:
+            finished.append(item)
+        return item * item
+
+    assert threads.parallel_map(lambda item: item * item, range(40)) == [item * item for item in range(40)]
+    with pytest.raises(ValueError, match="two"):
+        threads.parallel_map(work, range(12))
+    assert sorted(finished) == [item for item in range(12) if item not in (2, 5)]  # every other call ran to its end
+
+
+def test_nested_parallel_maps_run_in_place_on_a_worker_and_do_not_wait_for_ever(monkeypatch):
+    """Outer calls fill every worker; their inner maps must not queue behind them."""
+    monkeypatch.setattr(threads, "NUMPY_THREADS", max(threads.NUMPY_THREADS, 2))
+    outer = 4 * threads.shared_pool()._max_workers
+
+    def inner(item):
+        assert threads.in_worker()
+        return sum(threads.parallel_map(lambda x: x + item, range(5)))
+
+    assert threads.parallel_map(inner, range(outer)) == [10 + 5 * item for item in range(outer)]
+    assert not threads.in_worker()
+    done = threads.submit(lambda: threads.submit(lambda: 7).result() + 1)  # a worker's submit runs in place
+    assert done.result(timeout=10) == 8
+
+
+def test_the_shared_pool_is_made_once():
+    assert threads.shared_pool() is threads.shared_pool()

@@ -307,3 +307,19 @@ def test_zero_light_direction_is_an_input_error():
     directions[4] = np.nan
     with pytest.raises(InputError):
         SphericalTriangulation(directions)
+
+
+def test_locating_inside_the_faces_builds_no_rim_tables_and_a_dome_s_outside_query_does():
+    """``locate`` needs the rim's tables (a sort of every edge) only for a query outside a dome; the
+    weights are the same whichever tables were built first."""
+    sphere = SphericalTriangulation(LightSet.fibonacci_sphere(40).directions)
+    inside = sphere.locate(np.array([0.3, -0.2, 0.9]))
+    assert "_locate_tables" not in sphere.__dict__ and "_face_tables" in sphere.__dict__
+    again = SphericalTriangulation(LightSet.fibonacci_sphere(40).directions)
+    again._locate_tables  # noqa: B018 (both tables first)
+    np.testing.assert_array_equal(again.locate(np.array([0.3, -0.2, 0.9])).barycentric, inside.barycentric)
+    dome = SphericalTriangulation(LightSet.fibonacci_dome(30, min_elevation_deg=20.0).directions)
+    dome.locate(np.array([0.1, 0.2, 0.95]))
+    assert "_locate_tables" not in dome.__dict__
+    below = dome.locate(np.array([1.0, 0.0, -0.5]))
+    assert bool(below.clamped) and "_locate_tables" in dome.__dict__

@@ -26,7 +26,7 @@ PARITY_MODES = ("orientation", "rotation")
 """What phi_pq compares (``decide_paths(parity=...)``): the orientations theta_A of the two
 Gaussians (method.md, thesis eq. 3.27 as written) or their positive rotation options delta+."""
 
-# Pairs of Gaussians handled at once by the propagation (bounds the (edges, N, N) temporaries).
+# Pairs of Gaussians handled at once by the propagation (bounds the (edges, K, K) temporaries of K packed slots).
 _PAIR_BLOCK = 1 << 22
 
 
@@ -79,29 +79,40 @@ def _negative_option_weight(mean_a, mean_b, sigma_a, theta_a, delta_neg) -> np.n
 def _propagate(
     weight, mean_a, mean_b, parity_angle, active, length_scale
 ) -> np.ndarray:
-    """w' = M (M w) per edge over its active Gaussians (method.md section 6, thesis eq. 3.25-3.29)."""
+    """w' = M (M w) per edge over its active Gaussians (method.md section 6, thesis eq. 3.25-3.29).
+
+    Only active Gaussians take part, so each edge's are packed first and the edges grouped by how many
+    they have (rounded up to a power of two, the group's width): a set holds a few Gaussians in 64
+    slots, and (E, 64, 64) pair arrays would be mostly padding."""
     edges, slots = weight.shape
     inv_scale2 = 1.0 / (length_scale * length_scale)
     propagated = np.zeros_like(weight)
-    block = max(1, _PAIR_BLOCK // (slots * slots))
-    for start in range(0, edges, block):  # blocks of edges, each fully vectorised
-        rows = slice(start, start + block)
-        on = active[rows]
-        pair = on[:, :, None] & on[:, None, :]
-        distance2 = np.zeros(pair.shape)
-        for means in (mean_a[rows], mean_b[rows]):
-            for axis in (0, 1):
-                difference = means[:, :, None, axis] - means[:, None, :, axis]
-                distance2 += difference * difference
-        xi = np.where(pair, 1.0 / (1.0 + distance2 * inv_scale2), 0.0)
-        # eta includes xi_pp = 1, so every active row of |M| sums to 1
-        eta = xi.sum(axis=-1)
-        angle = parity_angle[rows]
-        phi = np.sign(0.5 * np.pi - np.abs(angle[:, :, None] - angle[:, None, :]))
-        # phi_pp = 1 and xi_pp = 1 give M_pp = 1 / eta_p; free rows and columns are 0
-        matrix = phi * xi / np.where(eta > 0, eta, 1.0)[..., None]
-        once = matrix @ np.where(on, weight[rows], 0.0)[..., None]
-        propagated[rows] = (matrix @ once)[..., 0]
+    counts = np.count_nonzero(active, axis=1)
+    order = np.argsort(~active, axis=1, kind="stable")  # each edge's active slots first, in slot order
+    widths = np.where(counts > 0, 1 << np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64), 0)
+    for width in np.unique(widths[widths > 0]):
+        group = np.flatnonzero(widths == width)
+        width = min(int(width), slots)
+        block = max(1, _PAIR_BLOCK // (width * width))
+        for start in range(0, len(group), block):  # blocks of edges, each fully vectorised
+            rows = group[start : start + block, None]
+            packed = order[rows[:, 0], :width]  # (e, width) slots, the active ones first
+            on = active[rows, packed]
+            pair = on[:, :, None] & on[:, None, :]
+            distance2 = np.zeros(pair.shape)
+            for means in (mean_a[rows, packed], mean_b[rows, packed]):
+                for axis in (0, 1):
+                    difference = means[:, :, None, axis] - means[:, None, :, axis]
+                    distance2 += difference * difference
+            xi = np.where(pair, 1.0 / (1.0 + distance2 * inv_scale2), 0.0)
+            # eta includes xi_pp = 1, so every active row of |M| sums to 1
+            eta = xi.sum(axis=-1)
+            angle = parity_angle[rows, packed]
+            phi = np.sign(0.5 * np.pi - np.abs(angle[:, :, None] - angle[:, None, :]))
+            # phi_pp = 1 and xi_pp = 1 give M_pp = 1 / eta_p; free rows and columns are 0
+            matrix = phi * xi / np.where(eta > 0, eta, 1.0)[..., None]
+            once = np.einsum("epq,eq->ep", matrix, np.where(on, weight[rows, packed], 0.0))
+            propagated[rows, packed] = np.where(on, np.einsum("epq,eq->ep", matrix, once), 0.0)
     return propagated
 
 

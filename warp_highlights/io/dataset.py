@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -19,7 +20,7 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from ..model.threads import core_count, mapped_empty
+from ..model.threads import core_count, mapped_empty, submit
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
@@ -27,9 +28,10 @@ from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
-LOAD_WORKERS = min(8, core_count())
-"""Threads that decode a dataset's images (Pillow, tifffile and OpenEXR release the GIL): the cores,
-at most 8 (measured: see benchmarks/README.md, bench_load.py)."""
+LOAD_WORKERS = core_count()
+"""Threads that decode a dataset's images (the decoders release the GIL): one per core. Measured on
+the lent H100's 16-core host (benchmarks/README.md): the 1,000-image 1920x1080 float16 EXR capture
+loads in 6.0 s with 16 threads, 7.2 s with 12 and 9.8-10.9 s with 8 (the earlier cap)."""
 DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 """Image files that hold display values (8/16-bit photographs), as opposed to radiance (EXR/HDR)."""
 
@@ -202,17 +204,18 @@ class ReflectanceField:
         workers = LOAD_WORKERS if workers is None else int(workers)
         if workers < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
-        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=(min(workers, 8) + 1) * int(np.prod(shape)))
+        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=(workers + 1) * int(np.prod(shape)))
+        mask = submit(_read_mask, folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))  # while the images decode
         with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                   disable=None if progress else True, leave=False) as bar:
             reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
                                   size=(width, height), workers=workers)
             fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         reader.report_nonfinite()
-        _check_not_blank(groups[0], fields[0].images)
+        _check_not_blank(groups[0], len(fields[0].images), *reader.ranges[groups[0].light_file])
         result = fields[0]
         result.heldout = fields[1] if extra is not None else None
-        result.mask = _read_mask(folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))
+        result.mask = mask.result()
         result.meta = _read_meta(folder / "meta.json")
         result.source = {**image_encoding(main.images[0], linear=linear), "size": [int(shape[1]), int(shape[0])]}
         return result
@@ -501,17 +504,17 @@ def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...], *, deco
                  detail=f"{file_count} images of {size} as float32")
 
 
-def _check_not_blank(group: _ImageGroup, images: np.ndarray) -> None:
-    """Refuse a capture whose images are all black, or all at the white level 1 (PNG and JPEG only:
-    an EXR's values may lie above 1 everywhere); a few black images among good ones are fine."""
-    count = len(images)
-    if float(images.max()) <= 0.0:
+def _check_not_blank(group: _ImageGroup, count: int, low: float, high: float) -> None:
+    """Refuse a capture of ``count`` images whose values (``low`` to ``high``) are all black, or all at
+    the white level 1 (PNG and JPEG only: an EXR's values may lie above 1 everywhere); a few black
+    images among good ones are fine."""
+    if high <= 0.0:
         raise InputError(
             f"{group.light_file}: all {count} images are entirely black (every pixel 0); the capture holds "
             "no light: check the exposure, the lens cap and the file names"
         )
     integer_coded = all(path.suffix.lower() != ".exr" for path in group.images)
-    if integer_coded and float(images.min()) >= 1.0:
+    if integer_coded and low >= 1.0:
         raise InputError(
             f"{group.light_file}: all {count} images are entirely white (every pixel at the white level); "
             "the capture is over-exposed: shoot again with a shorter exposure or a dimmer light"
@@ -532,33 +535,54 @@ class _StackReader:
         self.shapes = _ShapeCheck()
         self.nonfinite_count = 0
         self.nonfinite_file: Path | None = None
+        self.ranges: dict[Path, tuple[float, float]] = {}  # by light file: the smallest and largest value of its images
 
     def read_group(self, group: _ImageGroup) -> tuple:
-        """(images, lights, specular, diffuse) of one group, in ``ReflectanceField`` field order."""
-        images = self.read_stack(group.images)
-        specular, diffuse = (self.read_stack(p) if p else None for p in (group.specular, group.diffuse))
+        """(images, lights, specular, diffuse) of one group, in ``ReflectanceField`` field order. The
+        images' smallest and largest values are kept in ``ranges[group.light_file]``."""
+        images, low, high = self.read_stack(group.images)
+        specular, diffuse = (self.read_stack(p)[0] if p else None for p in (group.specular, group.diffuse))
+        self.ranges[group.light_file] = (low, high)
         return images, group.lights, specular, diffuse
 
-    def read_stack(self, paths: list[Path]) -> np.ndarray:
-        """The images at ``paths``, decoded by ``workers`` threads, checked in file order."""
-        stack = None
+    def read_stack(self, paths: list[Path]) -> tuple[np.ndarray, float, float]:
+        """(stack, smallest value, largest value) of the images at ``paths``: decoded by ``workers``
+        threads, each copying its image straight into its place in the stack (one thread copying them
+        all would take as long as the decoding on a 1,000-image capture), checked in file order."""
+        holder: dict = {}
+        lock = threading.Lock()
+
+        def place(index: int, path: Path) -> tuple:  # one thread's work: decode, then copy into the stack
+            path, shape, bad, image = self._decode(path)
+            with lock:  # the first image decoded sizes the stack
+                if "stack" not in holder:
+                    holder["stack"] = mapped_empty((len(paths), *image.shape), np.float32)  # its pages mapped by threads
+            stack = holder["stack"]
+            if image.shape == stack.shape[1:]:  # else the check in file order refuses this image or the one that sized the stack
+                stack[index] = image
+            return path, shape, bad, image.shape, float(image.min()), float(image.max())
+
+        low, high = np.inf, -np.inf
+        first: tuple | None = None  # the first image's path and decoded shape
         pool = ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(paths))), thread_name_prefix="load")
         try:
-            for index, (path, shape, bad, image) in enumerate(pool.map(self._decode, paths)):
+            for path, shape, bad, decoded, image_low, image_high in pool.map(place, range(len(paths)), paths):
                 self.shapes.check(path, shape)
+                first = first or (path, decoded)
+                if decoded != first[1]:  # a stored shape that passed the check but decoded to another one
+                    raise InputError(f"{path}: decoded to shape {decoded} but the first image {first[0]} to {first[1]}; "
+                                     "save both in one format")
                 if bad:
                     self.nonfinite_count += bad
                     self.nonfinite_file = self.nonfinite_file or path
-                if stack is None:
-                    stack = mapped_empty((len(paths), *image.shape), np.float32)  # each image copied in at the copy's speed
-                stack[index] = image
+                low, high = min(low, image_low), max(high, image_high)
                 self.bar.update()
         finally:  # an error or Ctrl-C: drop the images not started yet
             pool.shutdown(wait=True, cancel_futures=True)
-        return stack
+        return holder["stack"], low, high
 
     def _decode(self, path: Path) -> tuple:
-        """(path, shape as stored, non-finite values, image at the working size): one thread's work."""
+        """(path, shape as stored, non-finite values, image at the working size)."""
         from .resample import resample_image
 
         image = read_image(path, linear=self.linear, max_pixels=self.max_pixels)

@@ -4,11 +4,12 @@ large array operation split into independent parts in parallel (the residual's c
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "core_count", "mapped_empty", "parallel_map"]
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
 
 
 def core_count() -> int:
@@ -23,14 +24,64 @@ NUMPY_THREADS = core_count()
 """Threads ``parallel_map`` uses: the cores this process may run on."""
 
 
+_POOL: ThreadPoolExecutor | None = None
+_POOL_LOCK = threading.Lock()
+_IN_POOL = threading.local()
+
+
+def _mark_worker() -> None:
+    _IN_POOL.worker = True
+
+
+def shared_pool() -> ThreadPoolExecutor:
+    """The process's ``NUMPY_THREADS`` worker threads, started once (a pool made for each call started
+    its threads again: hundreds of calls in a fit, a few milliseconds each)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None:
+            _POOL = ThreadPoolExecutor(max_workers=NUMPY_THREADS, thread_name_prefix="numpy", initializer=_mark_worker)
+        return _POOL
+
+
+def in_worker() -> bool:
+    """True on one of ``shared_pool``'s threads (whose work runs its own parts in place: waiting there
+    for parts queued behind it could wait for ever)."""
+    return getattr(_IN_POOL, "worker", False)
+
+
+def submit(function, *args, **kwargs) -> Future:
+    """``shared_pool().submit(function, *args, **kwargs)``; called from a worker, run in place (a done future)."""
+    if not in_worker():
+        return shared_pool().submit(function, *args, **kwargs)
+    future: Future = Future()
+    try:
+        future.set_result(function(*args, **kwargs))
+    except BaseException as error:  # handed to the caller as the pool would hand it
+        future.set_exception(error)
+    return future
+
+
+def gather(futures: list[Future]) -> list:
+    """The futures' results in order, once every one has finished (the first exception raised then);
+    interrupted (Ctrl-C), the ones not started are cancelled and the running ones waited for."""
+    try:
+        wait(futures)
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        wait(futures)
+        raise
+    return [future.result() for future in futures]
+
+
 def parallel_map(function, items) -> list:
-    """``[function(item) for item in items]``, the calls spread over ``NUMPY_THREADS`` threads (in
-    order; the first exception is raised once every call has finished). One item: no thread."""
+    """``[function(item) for item in items]``, the calls spread over ``shared_pool``'s threads (in
+    order; the first exception is raised once every call has finished). One item, one thread, or
+    called from a worker: in place."""
     items = list(items)
-    if len(items) <= 1 or NUMPY_THREADS == 1:
+    if len(items) <= 1 or NUMPY_THREADS == 1 or in_worker():
         return [function(item) for item in items]
-    with ThreadPoolExecutor(max_workers=min(NUMPY_THREADS, len(items)), thread_name_prefix="numpy") as pool:
-        return list(pool.map(function, items))
+    return gather([shared_pool().submit(function, item) for item in items])
 
 
 def all_finite(array) -> bool:

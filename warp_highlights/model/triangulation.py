@@ -54,6 +54,13 @@ class Location:
     directions: np.ndarray
 
 
+class _FaceTables(NamedTuple):
+    """The per-face constants of ``SphericalTriangulation.locate`` (as in ``_LocateTables``)."""
+
+    edge_normals: np.ndarray
+    inverses: np.ndarray
+
+
 class _LocateTables(NamedTuple):
     """Per-face and per-rim-edge constants of ``SphericalTriangulation.locate``."""
 
@@ -180,7 +187,7 @@ class SphericalTriangulation:
             InputError: The shape is not (3,) or (Q, 3), or a direction is zero or not finite.
         """
         queries = unit_query_directions(directions)
-        tables = self._locate_tables
+        tables = self._face_tables  # the rim's tables only where a query lies outside a dome
         count = len(queries)
         faces = np.empty(count, dtype=np.intp)
         depth = np.empty(count, dtype=np.float64)  # sine of the angle inside the face's nearest edge
@@ -201,6 +208,7 @@ class SphericalTriangulation:
         weights = np.einsum("qij,qj->qi", tables.inverses[faces], located)
         if clamped.any():
             outside = np.flatnonzero(clamped)
+            tables = self._locate_tables
             edges, located[outside] = _nearest_rim_points(queries[outside], tables)
             faces[outside] = tables.rim_face[edges]
             weights[outside] = np.einsum("qij,qj->qi", tables.inverses[faces[outside]], located[outside])
@@ -216,13 +224,21 @@ class SphericalTriangulation:
         return Location(*(np.asarray(array) for array in arrays))
 
     @cached_property
-    def _locate_tables(self) -> _LocateTables:
-        """Constants of ``locate``, computed on first use."""
+    def _face_tables(self) -> tuple[np.ndarray, np.ndarray]:
+        """``_LocateTables``' ``edge_normals`` and ``inverses``, computed on first use: all that
+        ``locate`` needs unless a query lies outside a dome (a leave-one-out check builds dozens of
+        triangulations to locate one light in each)."""
         corners = self.directions[self.faces]  # (F, 3 vertices, 3 coordinates)
         a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
         edge_normals = np.stack([np.cross(a, b), np.cross(b, c), np.cross(c, a)])
         edge_normals /= np.linalg.norm(edge_normals, axis=2, keepdims=True)
         inverses = np.linalg.inv(corners.transpose(0, 2, 1))  # columns are the vertices
+        return _FaceTables(edge_normals, inverses)
+
+    @cached_property
+    def _locate_tables(self) -> _LocateTables:
+        """Constants of ``locate`` (the faces' and the rim's), computed on first use."""
+        edge_normals, inverses = self._face_tables
 
         directed = self._directed_face_edges()  # face f's k-th edge is row k * F + f
         owner = np.arange(len(directed)) % self.face_count
