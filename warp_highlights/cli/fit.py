@@ -98,7 +98,7 @@ def _run_fit(args) -> int:
     device = check_device(args.device)
     from ..io.warmup import DeviceWarmup
 
-    warmup = DeviceWarmup(device)  # the device's context and memory pool made ready while the pipeline is imported and the images load
+    warmup = DeviceWarmup(device)  # the device's context made while the pipeline is imported and the images load
     from ..fit.pipeline import fit_field
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import save_field
@@ -106,7 +106,7 @@ def _run_fit(args) -> int:
 
     started = time.perf_counter()
     # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded
-    with PeakMemory("cpu") as loading:  # host memory alone: the loading takes none of the device's (the warm-up's block is not the fit's)
+    with PeakMemory("cpu") as loading:  # host memory alone: loading takes none of the device's
         dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
                                         heldout=False, components=False)
     if args.holdout_every:

@@ -1,55 +1,38 @@
-"""A CUDA device made ready in a thread while the host does other work: its context and a first block of
-its memory pool.
+"""A CUDA device's context made in a thread while the host does other work.
 
-Measured on the lent H100 (250 lights, 480x270, the whole ``fit`` command): the device's context was
-made by the fit's first memory query (about 0.3 s) and the memory pool grew at the segmentation's first
-allocation (about 0.15 s), both while nothing else ran. Made in a thread while the fit command imports
-the pipeline and decodes the images, they cost nothing there (the CUDA driver calls let go of the GIL).
+Warp makes a device's (primary) context on its first use. In the ``fit`` command that was the
+segmentation's first memory query, about 0.13-0.3 s on the lent H100 while nothing else ran (measured
+with py-spy and a micro-benchmark, benchmarks/README.md "Tenth session"). Made in a thread while the
+command imports the pipeline and decodes the images, it costs nothing there: the CUDA driver's calls
+let go of the GIL. (The memory pool needs no such start: its first 400 MB took 0.7 ms.)
 """
 
 from __future__ import annotations
 
 import threading
 
-__all__ = ["DeviceWarmup", "WARM_POOL_SHARE"]
-
-WARM_POOL_SHARE = 0.25
-"""The most of the device's free memory the warm-up takes into its memory pool (as one block, given
-back to the pool at once), where the pool keeps what is given back; the fit's first stages take more."""
+__all__ = ["DeviceWarmup"]
 
 
 class DeviceWarmup:
-    """Starts ``device``'s context and memory pool in a thread (a CUDA device only; elsewhere nothing).
+    """Makes ``device``'s context in a thread (a CUDA device only; elsewhere nothing).
 
-    ``pool_bytes``: the block taken from the pool and given back (at most ``WARM_POOL_SHARE`` of the
-    free memory; nothing where the pool gives its memory back to the system on the next synchronisation).
-    Warp must be started (``wp.init``) first: starting it from two threads at once is not safe. ``join``
-    before the device's work: the warm-up's errors are not raised (the work that needs the device meets
-    and reports them itself)."""
+    Warp must be started (``wp.init``) first: starting it from two threads at once is not safe.
+    ``join`` before the device's work. The warm-up's errors are not raised: the work that needs the
+    device meets them again and reports them in its own line."""
 
-    def __init__(self, device, *, pool_bytes: int = 1 << 30):
+    def __init__(self, device):
         import warp as wp
 
         self.device = wp.get_device(device)
-        self.pool_bytes = int(pool_bytes)
         self._thread = None
         if self.device.is_cuda:
             self._thread = threading.Thread(target=self._warm, name="device-warmup", daemon=True)
             self._thread.start()
 
     def _warm(self) -> None:
-        import warp as wp
-
         try:
-            device = self.device
-            device.context  # noqa: B018 (the primary context, made on first use)
-            if not (device.is_mempool_supported and device.is_mempool_enabled):
-                return
-            size = min(self.pool_bytes, int(WARM_POOL_SHARE * device.free_memory))
-            if size <= 0 or wp.get_mempool_release_threshold(device) < size:
-                return
-            block = wp.empty(size, dtype=wp.uint8, device=device)
-            del block
+            self.device.context  # noqa: B018 (the primary context, made on first use)
         except Exception:  # noqa: BLE001 (the device's own work reports what is wrong)
             return
 
