@@ -12,7 +12,7 @@ from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 import warp as wp
 
-from warp_highlights.model.threads import core_count
+from warp_highlights.model.threads import child_initializer, core_count
 
 __all__ = ["DEVICE_SHARE", "Cancelled", "map_chunks", "memory_chunks", "problem_chunks"]
 
@@ -57,7 +57,7 @@ def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
             stop.set()
             raise
 
-    pool = ThreadPoolExecutor(max_workers=len(chunks), thread_name_prefix="warp-highlights")
+    pool = ThreadPoolExecutor(max_workers=len(chunks), thread_name_prefix="warp-highlights", initializer=child_initializer())
     futures = [pool.submit(guarded, chunk) for chunk in chunks]
     try:
         wait(futures, return_when=FIRST_EXCEPTION)

@@ -15,6 +15,7 @@ import pytest
 from warp_highlights.io.dataset import DatasetWriter, ReflectanceField
 from warp_highlights.io.images import read_image, srgb_to_linear, write_image
 from warp_highlights.io.lightfile import read_lp, write_lp
+from warp_highlights.model import threads
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
 
@@ -539,8 +540,30 @@ def test_images_decoded_out_of_order_land_in_their_places(tmp_path, monkeypatch)
         return real(path, **kwargs)
 
     monkeypatch.setattr(dataset_module, "read_image", slow_first)
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", 0)  # the stack's pages written from threads, as a large capture's are
     loaded = ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=4)
     np.testing.assert_array_equal(loaded.images, field.images)
+
+
+def test_loads_run_from_the_shared_threads_do_not_wait_for_ever(tmp_path, monkeypatch):
+    """A load inside a parallel map: its decoding threads' own maps (the stack's page fill) run in
+    place instead of queueing behind the workers that wait for them."""
+    field = _field(count=4)
+    folder = field.save(tmp_path / "capture")
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", 0)
+    monkeypatch.setattr(threads, "NUMPY_THREADS", max(2, threads.NUMPY_THREADS))
+    outcome = []
+
+    def many_loads():
+        count = 2 * threads.shared_pool()._max_workers
+        outcome.extend(threads.parallel_map(
+            lambda _: ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=2).images, range(count)))
+
+    runner = threading.Thread(target=many_loads, daemon=True)
+    runner.start()
+    runner.join(120)
+    assert not runner.is_alive(), "the loads waited for each other"
+    assert outcome and all(np.array_equal(images, field.images) for images in outcome)
 
 
 def test_an_image_decoded_to_another_shape_than_the_first_is_named(tmp_path, monkeypatch):

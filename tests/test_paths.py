@@ -540,3 +540,36 @@ def test_mismatched_shapes_are_an_input_error():
     _, target = random_edges(rng, 3, 6)
     with pytest.raises(InputError, match="same"):
         decide_paths(source, target)
+
+
+def _dense_propagation(weight, mean_a, mean_b, parity_angle, active, length_scale):
+    """Float64 reference of w' = M (M w): every slot of every edge, free ones zero (no packing)."""
+    pair = active[:, :, None] & active[:, None, :]
+    distance2 = sum((means[:, :, None, axis] - means[:, None, :, axis]) ** 2 for means in (mean_a, mean_b) for axis in (0, 1))
+    xi = np.where(pair, 1.0 / (1.0 + distance2 / length_scale**2), 0.0)
+    eta = xi.sum(axis=-1)
+    phi = np.sign(0.5 * np.pi - np.abs(parity_angle[:, :, None] - parity_angle[:, None, :]))
+    matrix = phi * xi / np.where(eta > 0, eta, 1.0)[..., None]
+    once = np.einsum("epq,eq->ep", matrix, np.where(active, weight, 0.0))
+    return np.einsum("epq,eq->ep", matrix, once)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_packed_propagation_is_the_dense_one(seed):
+    """Edges of 0 to all active slots (groups of 1, 2, 4, ... packed slots) give the dense M (M w) to rounding."""
+    from warp_highlights.fit import paths
+
+    rng = np.random.default_rng(seed)
+    edges, slots = 40, 13
+    source, target = random_edges(rng, edges, slots, inactive=0.0)
+    counts = rng.integers(0, slots + 1, edges)
+    active = np.zeros((edges, slots), bool)
+    for e, count in enumerate(counts):
+        active[e, rng.choice(slots, count, replace=False)] = True
+    weight = rng.uniform(-1, 1, (edges, slots))
+    angle = rng.uniform(0, np.pi, (edges, slots))
+    angle[~active] = np.nan  # garbage in free slots stays out
+    packed = paths._propagate(weight, source.mean, target.mean, angle, active, 0.05)
+    dense = _dense_propagation(weight, source.mean, target.mean, np.nan_to_num(angle), active, 0.05)
+    np.testing.assert_allclose(packed, np.where(active, dense, 0.0), rtol=1e-12, atol=1e-14)
+    assert np.all(packed[~active] == 0)

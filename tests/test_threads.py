@@ -89,3 +89,32 @@ def test_nested_parallel_maps_run_in_place_on_a_worker_and_do_not_wait_for_ever(
 
 def test_the_shared_pool_is_made_once():
     assert threads.shared_pool() is threads.shared_pool()
+
+
+def test_in_place_maps_make_every_call_before_raising_the_first_error(monkeypatch):
+    """One core (or a nested map): the same promise as the threaded map."""
+    monkeypatch.setattr(threads, "NUMPY_THREADS", 1)
+    made = []
+
+    def work(item):
+        made.append(item)
+        if item in (1, 3):
+            raise ValueError(f"bad {item}")
+        return item
+
+    with pytest.raises(ValueError, match="bad 1"):
+        threads.parallel_map(work, range(6))
+    assert made == list(range(6))
+    assert threads.parallel_map(lambda item: 2 * item, range(4)) == [0, 2, 4, 6]
+
+
+def test_a_pool_started_on_a_worker_marks_its_threads_as_workers():
+    from concurrent.futures import ThreadPoolExecutor
+
+    assert threads.child_initializer() is None  # here: not a worker
+
+    def on_worker(_):
+        with ThreadPoolExecutor(2, initializer=threads.child_initializer()) as pool:
+            return pool.submit(threads.in_worker).result()
+
+    assert threads.submit(on_worker, 0).result(timeout=30) is True

@@ -105,13 +105,16 @@ def _run_fit(args) -> int:
     from ..io.memory import PeakMemory
 
     started = time.perf_counter()
-    # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded
-    with PeakMemory("cpu") as loading:  # host memory alone: loading takes none of the device's
-        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
-                                        heldout=False, components=False)
-    if args.holdout_every:
-        dataset = dataset.split_every(args.holdout_every)
-    warmup.join()
+    # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded;
+    # nothing here touches the device before the warm-up's join (Warp's context and streams are made there)
+    try:
+        with PeakMemory("cpu") as loading:  # host memory alone: loading takes none of the device's
+            dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
+                                            heldout=False, components=False)
+        if args.holdout_every:
+            dataset = dataset.split_every(args.holdout_every)
+    finally:
+        warmup.join()
     load_seconds = time.perf_counter() - started
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
         dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet

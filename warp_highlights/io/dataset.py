@@ -12,7 +12,7 @@ import json
 import re
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from ..model.threads import core_count, mapped_empty, submit
+from ..model.threads import child_initializer, core_count, mapped_empty, submit
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
@@ -28,8 +28,9 @@ from .memory import check_memory
 
 __all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
 
-LOAD_WORKERS = core_count()
-"""Threads that decode a dataset's images (the decoders release the GIL): one per core. Measured on
+LOAD_WORKERS = min(32, core_count())
+"""Threads that decode a dataset's images (the decoders release the GIL): one per core, at most 32
+(the most cores measured; each holds an image being decoded, see ``_check_memory``). Measured on
 the lent H100's 16-core host (benchmarks/README.md): the 1,000-image 1920x1080 float16 EXR capture
 loads in 6.0 s with 16 threads, 7.2 s with 12 and 9.8-10.9 s with 8 (the earlier cap)."""
 DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
@@ -204,13 +205,18 @@ class ReflectanceField:
         workers = LOAD_WORKERS if workers is None else int(workers)
         if workers < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
-        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=(workers + 1) * int(np.prod(shape)))
+        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))  # a decoding thread's image, its finite mask, its shrunk copy
         mask = submit(_read_mask, folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))  # while the images decode
-        with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
-                  disable=None if progress else True, leave=False) as bar:
-            reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
-                                  size=(width, height), workers=workers)
-            fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
+        try:
+            with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
+                      disable=None if progress else True, leave=False) as bar:
+                reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
+                                      size=(width, height), workers=workers)
+                fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
+        except BaseException:  # a bad image or Ctrl-C: the mask's read not left running
+            mask.cancel()
+            wait([mask])
+            raise
         reader.report_nonfinite()
         _check_not_blank(groups[0], len(fields[0].images), *reader.ranges[groups[0].light_file])
         result = fields[0]
@@ -564,7 +570,8 @@ class _StackReader:
 
         low, high = np.inf, -np.inf
         first: tuple | None = None  # the first image's path and decoded shape
-        pool = ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(paths))), thread_name_prefix="load")
+        pool = ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(paths))), thread_name_prefix="load",
+                                  initializer=child_initializer())  # loaded from a worker: its threads' maps run in place
         try:
             for path, shape, bad, decoded, image_low, image_high in pool.map(place, range(len(paths)), paths):
                 self.shapes.check(path, shape)

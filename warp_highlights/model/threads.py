@@ -9,7 +9,7 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "child_initializer", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
 
 
 def core_count() -> int:
@@ -44,9 +44,16 @@ def shared_pool() -> ThreadPoolExecutor:
 
 
 def in_worker() -> bool:
-    """True on one of ``shared_pool``'s threads (whose work runs its own parts in place: waiting there
-    for parts queued behind it could wait for ever)."""
+    """True on one of ``shared_pool``'s threads, or on a thread a pool started from one
+    (``child_initializer``): its work runs its own parts in place, as waiting there for parts queued
+    behind it could wait for ever."""
     return getattr(_IN_POOL, "worker", False)
+
+
+def child_initializer():
+    """The ``initializer`` of a thread pool about to be started here: on a worker (``in_worker``), one
+    that marks the new pool's threads as workers too, so that their maps run in place; else None."""
+    return _mark_worker if in_worker() else None
 
 
 def submit(function, *args, **kwargs) -> Future:
@@ -77,11 +84,28 @@ def gather(futures: list[Future]) -> list:
 def parallel_map(function, items) -> list:
     """``[function(item) for item in items]``, the calls spread over ``shared_pool``'s threads (in
     order; the first exception is raised once every call has finished). One item, one thread, or
-    called from a worker: in place."""
+    called from a worker: in place, every call made all the same before the first exception is raised."""
     items = list(items)
     if len(items) <= 1 or NUMPY_THREADS == 1 or in_worker():
-        return [function(item) for item in items]
-    return gather([shared_pool().submit(function, item) for item in items])
+        results, first = [], None
+        for item in items:
+            try:
+                results.append(function(item))
+            except Exception as error:  # noqa: BLE001 (raised once every call has been made)
+                first = first or error
+        if first is not None:
+            raise first
+        return results
+    futures: list[Future] = []
+    try:
+        for item in items:
+            futures.append(shared_pool().submit(function, item))
+    except BaseException:  # Ctrl-C while submitting: the calls not started dropped, the running ones waited for
+        for future in futures:
+            future.cancel()
+        wait(futures)
+        raise
+    return gather(futures)
 
 
 def all_finite(array) -> bool:

@@ -224,7 +224,7 @@ class SphericalTriangulation:
         return Location(*(np.asarray(array) for array in arrays))
 
     @cached_property
-    def _face_tables(self) -> tuple[np.ndarray, np.ndarray]:
+    def _face_tables(self) -> _FaceTables:
         """``_LocateTables``' ``edge_normals`` and ``inverses``, computed on first use: all that
         ``locate`` needs unless a query lies outside a dome (a leave-one-out check builds dozens of
         triangulations to locate one light in each)."""
