@@ -8,16 +8,34 @@ the new array from threads, which the kernel maps in parallel, then copies into 
 A band of rows of an (n, H, W[, C]) stack is n separate runs of host memory: ``rows_up`` and
 ``rows_down`` copy each run straight between host and device memory (no contiguous copy of the band
 on the host first; the lent H100's host copied 9.4 GB/s so from pageable memory).
+
+From ``STAGED_MIN_BYTES`` on (a 250-light 1080p stack and larger), a CUDA transfer goes through a few
+page-locked buffers (``Staging``): threads copy the host memory into one while the device copies
+another, at the page-locked copy's speed. Measured on the lent H100 (``.diag``-style micro-benchmark,
+benchmarks/README.md "Tenth session"): 8 GiB went up at 6.9 GB/s from pageable memory and 52 GB/s from
+page-locked memory, down at 11 and 53 GB/s; but page-locking memory costs 0.7 s per GiB, so only a
+few small buffers are locked, once per process, and a large stack never is.
 """
 
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 import warp as wp
 
 from warp_highlights.model import threads
 
-__all__ = ["rows_down", "rows_up", "to_host"]
+__all__ = ["STAGED_MIN_BYTES", "STAGING_BYTES", "STAGING_SLOTS", "Staging", "as_half", "rows_down", "rows_up", "to_host"]
+
+STAGED_MIN_BYTES = 1 << 30
+"""Transfers of this many bytes or more (1 GiB) go through ``Staging``: below it, the 0.13 s of
+page-locking its buffers once would cost more than it saves (0.09 s a GB at the rates measured)."""
+STAGING_BYTES = 1 << 26
+"""Bytes of each page-locked staging buffer (64 MiB: a copy into it split over the threads is a few MB each)."""
+STAGING_SLOTS = 3
+"""Staging buffers: one filled by the host while the device copies another (and one spare for the lag)."""
+_PART_BYTES = 1 << 22  # a host copy into or out of a buffer is split into parts of this many bytes, one per thread
 
 
 def to_host(array) -> np.ndarray:
@@ -26,10 +44,13 @@ def to_host(array) -> np.ndarray:
     (``mapped_empty``)."""
     if not isinstance(array, wp.array):
         return np.asarray(array)
-    if not array.device.is_cuda or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
+    if not (array.device.is_cuda or STAGE_ON_CPU) or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
             or array.capacity < threads.PREFAULT_BYTES or threads.NUMPY_THREADS == 1:
         return array.numpy()
     host = threads.mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
+    if staged(array.device, host.nbytes):
+        Staging.of(array.device).down([(array.ptr, host.reshape(-1).view(np.uint8))])
+        return host
     wp.copy(wp.array(host, dtype=array.dtype, device="cpu", copy=False), array)
     return host
 
@@ -41,6 +62,10 @@ def rows_up(host: np.ndarray, device) -> wp.array:
     host = np.asarray(host)
     kind = wp.dtype_from_numpy(host.dtype)
     out = wp.empty(host.shape, dtype=kind, device=device)
+    if len(host) and staged(out.device, host.nbytes) and host[0].flags.c_contiguous:
+        run = host[0].nbytes
+        Staging.of(out.device).up([(out.ptr + i * run, _bytes_of(host[i])) for i in range(len(host))])
+        return out
     if host.flags.c_contiguous or len(host) == 0:
         wp.copy(out, wp.array(np.ascontiguousarray(host), dtype=kind, device="cpu", copy=False))
         return out
@@ -55,13 +80,156 @@ def rows_down(array: wp.array, out: np.ndarray) -> np.ndarray:
     pages not written yet stop at each: give ``out`` from ``mapped_empty``."""
     if tuple(out.shape) != tuple(array.shape) or out.dtype != wp.dtype_to_numpy(array.dtype) or not array.is_contiguous:
         raise ValueError(f"a contiguous {array.dtype.__name__} {array.shape} array cannot come down into {out.dtype} {out.shape}")
+    if len(out) and not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
+        raise ValueError("each row of the host array must be contiguous")
+    if len(out) and staged(array.device, out.nbytes):
+        run = out[0].nbytes
+        Staging.of(array.device).down([(array.ptr + i * run, _bytes_of(out[i])) for i in range(len(out))])
+        return out
     if out.flags.c_contiguous or len(out) == 0:
         wp.copy(wp.array(out, dtype=array.dtype, device="cpu", copy=False), array)
         wp.synchronize_device(array.device)
         return out
-    if not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
-        raise ValueError("each row of the host array must be contiguous")
     for i in range(len(out)):
         wp.copy(wp.array(out[i], dtype=array.dtype, device="cpu", copy=False), array[i])
     wp.synchronize_device(array.device)
     return out
+
+
+@wp.kernel
+def _to_half(source: wp.array2d(dtype=float), out: wp.array2d(dtype=wp.float16)):
+    i, j = wp.tid()
+    out[i, j] = wp.float16(source[i, j])
+
+
+def as_half(array: wp.array) -> wp.array:
+    """A contiguous float32 (n, ...) array as a new float16 one on its device (rounded to nearest, as
+    NumPy's ``astype``): half the bytes to bring down. One launch over (n, the rest)."""
+    if array.dtype != wp.float32 or not array.is_contiguous:
+        raise ValueError(f"as_half takes a contiguous float32 array, got {array.dtype.__name__}")
+    out = wp.empty(array.shape, dtype=wp.float16, device=array.device)
+    if array.size:
+        rows = array.shape[0] if array.ndim > 1 else 1
+        flat = (rows, array.size // rows)
+        wp.launch(_to_half, dim=flat, inputs=[array.reshape(flat)], outputs=[out.reshape(flat)], device=array.device)
+    return out
+
+
+def staged(device, nbytes: int) -> bool:
+    """Whether a transfer of ``nbytes`` to or from ``device`` goes through ``Staging`` (on CUDA; the
+    CPU's tests lower ``STAGED_MIN_BYTES`` and set ``STAGE_ON_CPU``)."""
+    return (device.is_cuda or STAGE_ON_CPU) and nbytes >= STAGED_MIN_BYTES
+
+
+STAGE_ON_CPU = False
+"""Tests only: stage CPU transfers too (the same chunking and order, with plain buffers)."""
+
+
+def _bytes_of(host: np.ndarray) -> np.ndarray:
+    """A contiguous host array's bytes as a flat uint8 view."""
+    return host.reshape(-1).view(np.uint8)
+
+
+class Staging:
+    """``STAGING_SLOTS`` page-locked host buffers of ``STAGING_BYTES`` for one device, made on first use
+    and kept for the process (``of``). ``up`` and ``down`` move runs of host bytes to and from device
+    addresses: the host's part of each buffer in threads (``parallel_map``), the device's as
+    asynchronous copies on the device's stream, each buffer reused once its last copy has ended (an
+    event). One transfer at a time per device. On the CPU (tests) the same steps run with plain buffers."""
+
+    _made: dict = {}
+    _made_lock = threading.Lock()
+
+    def __init__(self, device, *, slot_bytes: int | None = None, slots: int | None = None):
+        slot_bytes = STAGING_BYTES if slot_bytes is None else slot_bytes
+        slots = STAGING_SLOTS if slots is None else slots
+        self.device = wp.get_device(device)
+        pinned = self.device.is_cuda
+        self.buffers = [wp.empty(int(slot_bytes), dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(int(slots))]
+        self.views = [buffer.numpy() for buffer in self.buffers]
+        self.slot_bytes = int(slot_bytes)
+        self.lock = threading.Lock()
+
+    @classmethod
+    def of(cls, device) -> Staging:
+        """The device's staging buffers, made on first use."""
+        device = wp.get_device(device)
+        with cls._made_lock:
+            if device.alias not in cls._made:
+                cls._made[device.alias] = cls(device)
+            return cls._made[device.alias]
+
+    def _chunks(self, runs: list) -> list:
+        """[(slot bytes used, [(device address, host bytes, offset in the slot)])]: the runs cut into
+        pieces that fill the buffers one after another."""
+        chunks, pieces, used = [], [], 0
+        for address, data in runs:
+            start = 0
+            while start < data.size:
+                size = min(data.size - start, self.slot_bytes - used)
+                pieces.append((address + start, data[start : start + size], used))
+                used += size
+                start += size
+                if used == self.slot_bytes:
+                    chunks.append((used, pieces))
+                    pieces, used = [], 0
+        if pieces:
+            chunks.append((used, pieces))
+        return chunks
+
+    def _device_view(self, address: int, size: int) -> wp.array:
+        return wp.array(ptr=address, dtype=wp.uint8, shape=(size,), device=self.device)
+
+    def _slot_view(self, slot: int, offset: int, size: int) -> wp.array:
+        return self.buffers[slot][offset : offset + size]
+
+    def _host_copies(self, copies: list) -> None:
+        """(destination, source) byte arrays copied in parts of ``_PART_BYTES``, the parts in threads."""
+        parts = [(out[start : start + _PART_BYTES], data[start : start + _PART_BYTES]) for out, data in copies for start in range(0, data.size, _PART_BYTES)]
+        threads.parallel_map(lambda part: np.copyto(*part), parts)
+
+    def _record(self):
+        return self.device.stream.record_event() if self.device.is_cuda else None
+
+    def _copy(self, destination: wp.array, source: wp.array) -> None:
+        wp.copy(destination, source, stream=self.device.stream if self.device.is_cuda else None)
+
+    @staticmethod
+    def _wait(event) -> None:
+        if event is not None:
+            wp.synchronize_event(event)
+
+    def up(self, runs: list) -> None:
+        """Copy each (device address, host uint8 bytes) run to the device (ordered on its stream before
+        whatever is launched after; the host bytes may change once this returns)."""
+        with self.lock:
+            events = [None] * len(self.buffers)
+            for index, (used, pieces) in enumerate(self._chunks(runs)):
+                slot = index % len(self.buffers)
+                self._wait(events[slot])  # the buffer's last copy up has ended
+                self._host_copies([(self.views[slot][offset : offset + data.size], data) for _, data, offset in pieces])
+                for address, data, offset in pieces:
+                    self._copy(self._device_view(address, data.size), self._slot_view(slot, offset, data.size))
+                events[slot] = self._record()
+            for event in events:  # the buffers free for the next transfer
+                self._wait(event)
+
+    def down(self, runs: list) -> None:
+        """Copy device bytes into each (device address, host uint8 bytes) run's host bytes, waiting for the
+        device's work before them on its stream."""
+        with self.lock:
+            pending = None  # the chunk whose copy down is under way: (slot, pieces, event)
+            for index, (used, pieces) in enumerate(self._chunks(runs)):
+                slot = index % len(self.buffers)
+                for address, data, offset in pieces:
+                    self._copy(self._slot_view(slot, offset, data.size), self._device_view(address, data.size))
+                event = self._record()
+                if pending is not None:
+                    self._drain(*pending)
+                pending = (slot, pieces, event)
+            if pending is not None:
+                self._drain(*pending)
+
+    def _drain(self, slot: int, pieces: list, event) -> None:
+        self._wait(event)
+        self._host_copies([(data, self.views[slot][offset : offset + data.size]) for _, data, offset in pieces])

@@ -52,3 +52,64 @@ def test_rows_up_and_down_a_band_of_a_stack(device, dtype):
         rows_down(there, np.empty((5, 3, 4, 3), dtype))
     with pytest.raises(ValueError, match="contiguous"):
         rows_down(rows_up(stack[:, :, :2], device), np.empty_like(stack)[:, :, :2])
+
+
+@pytest.fixture
+def small_staging(monkeypatch):
+    """Every transfer staged through two or three buffers of a few hundred bytes, copied in parts of 64."""
+    from warp_highlights.kernels import transfer
+
+    monkeypatch.setattr(transfer, "STAGE_ON_CPU", True)
+    monkeypatch.setattr(transfer, "STAGED_MIN_BYTES", 0)
+    monkeypatch.setattr(transfer, "_PART_BYTES", 64)
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", 16)
+    monkeypatch.setattr(transfer.Staging, "_made", {})
+    return transfer
+
+
+@pytest.mark.parametrize("slot_bytes,slots", [(1000, 3), (333, 2), (1 << 16, 3)])
+@pytest.mark.parametrize("dtype", [np.float32, np.float16])
+def test_staged_transfers_move_every_byte_in_place(device, small_staging, monkeypatch, slot_bytes, slots, dtype):
+    """Runs cut across buffers (an image's rows longer and shorter than a buffer), up and down, and
+    to_host: the same bytes as the direct copies."""
+    monkeypatch.setattr(small_staging, "STAGING_BYTES", slot_bytes)
+    monkeypatch.setattr(small_staging, "STAGING_SLOTS", slots)
+    stack = np.random.default_rng(5).normal(size=(6, 11, 7, 3)).astype(dtype)
+    band = stack[:, 3:9]  # each image's rows one run, the band not contiguous
+    up = rows_up(band, device)
+    assert up.shape == band.shape and up.is_contiguous
+    np.testing.assert_array_equal(up.numpy(), band)
+    out = np.zeros_like(stack)
+    assert rows_down(up, out[:, 2:8]) is not None
+    np.testing.assert_array_equal(out[:, 2:8], band)
+    assert not out[:, :2].any() and not out[:, 8:].any()  # nothing outside the band written
+    whole = wp.array(stack, dtype=wp.dtype_from_numpy(dtype), device=device)
+    np.testing.assert_array_equal(to_host(whole), stack)
+    staging = small_staging.Staging.of(device)
+    assert len(staging.buffers) == slots and staging.slot_bytes == slot_bytes
+
+
+def test_staging_chunks_cover_every_run_once_and_fill_each_buffer(device, small_staging):
+    staging = small_staging.Staging(device, slot_bytes=10, slots=2)
+    runs = [(1000, np.arange(25, dtype=np.uint8)), (5000, np.arange(3, dtype=np.uint8)), (7000, np.arange(12, dtype=np.uint8))]
+    chunks = staging._chunks(runs)
+    assert [used for used, _ in chunks] == [10, 10, 10, 10]
+    pieces = [(address, data.size, offset) for _, chunk in chunks for address, data, offset in chunk]
+    assert pieces[0] == (1000, 10, 0) and pieces[2] == (1020, 5, 0) and pieces[3] == (5000, 3, 5) and pieces[4] == (7000, 2, 8)
+    assert sum(size for _, size, _ in pieces) == 40
+
+
+def test_as_half_rounds_as_numpy_does(device):
+    """float32 -> float16 on the device: NumPy's astype (round to nearest even, overflow to inf), any rank."""
+    from warp_highlights.kernels.transfer import as_half
+
+    rng = np.random.default_rng(9)
+    values = np.concatenate([rng.normal(size=500) * 10.0 ** rng.integers(-9, 6, 500), [0.0, -0.0, 65504.0, 65520.0, 1e9, 2.0**-25, 1 + 2.0**-11]])
+    for shape in [(values.size,), (7, values.size // 7)]:
+        part = values[: int(np.prod(shape))].astype(np.float32).reshape(shape)
+        half = as_half(wp.array(part, dtype=float, device=device))
+        assert half.dtype == wp.float16 and half.shape == shape
+        with np.errstate(over="ignore"):  # 1e9 overflows to inf in both
+            np.testing.assert_array_equal(half.numpy(), part.astype(np.float16))
+    with pytest.raises(ValueError, match="float32"):
+        as_half(wp.zeros(3, dtype=wp.float16, device=device))

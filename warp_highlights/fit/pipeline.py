@@ -92,20 +92,20 @@ def fit_field(
             images = images * np.float32(factor)
         keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
         gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
-        # short of host memory (CPU): bands whose specular part is kept as float16 (for the highlight colour alone)
-        # and whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
+        # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half the bytes
+        # to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
         on_host = not device.is_cuda
         shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
         # on CUDA: the Gaussians' targets shrunk there where the sizes divide by one whole factor
         whole = height // gaussian_height
         shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
         rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
-                         keep_diffuse=diffuse == "images", specular_bytes=2 if on_host else 4, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
+                         keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
         if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
             shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
             seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                    keep_specular=keep_specular, keep_diffuse=diffuse == "images",
-                                   specular_dtype=np.float16 if on_host else np.float32, shrink_target=shrink, target_rows=shrink_rows,
+                                   specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
                                    shrink_factor=shrink_factor, target_on_device=not on_host,
                                    shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device))  # the move check's images
         else:
