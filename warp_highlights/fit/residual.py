@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import zlib
-from concurrent.futures import wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,7 +50,7 @@ from ..model.residual import (
     quantised_codes,
     to_opponent,
 )
-from ..model.threads import NUMPY_THREADS, gather, mapped_empty, parallel_map, submit
+from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, mapped_empty, parallel_map, submit
 
 __all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
 
@@ -337,9 +336,7 @@ class RateSample:
                 pending[slot] = [submit(piece, image) for image in stored]  # the shared threads (zlib lets go of the GIL)
                 results += pending[slot]
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
-            for future in results:
-                future.cancel()
-            wait(results)
+            cancel_and_wait(results)
             raise
         return gather(results)
 

@@ -12,7 +12,7 @@ import json
 import re
 import threading
 import warnings
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from ..model.threads import child_initializer, core_count, mapped_empty, submit
+from ..model.threads import cancel_and_wait, child_initializer, core_count, mapped_empty, submit
 from .atomic import FolderTransaction, deferred_signals
 from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
 from .lightfile import read_lp, write_lp
@@ -214,8 +214,7 @@ class ReflectanceField:
                                       size=(width, height), workers=workers)
                 fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         except BaseException:  # a bad image or Ctrl-C: the mask's read not left running
-            mask.cancel()
-            wait([mask])
+            cancel_and_wait([mask])
             raise
         reader.report_nonfinite()
         _check_not_blank(groups[0], len(fields[0].images), *reader.ranges[groups[0].light_file])

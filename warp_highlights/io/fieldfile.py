@@ -91,7 +91,7 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
 )
-from ..model.threads import NUMPY_THREADS, parallel_map
+from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 from .codes import STREAM_END, DeflatedCodes, codes_from_stored, deflated_piece, stored_codes, stored_shape
@@ -360,15 +360,25 @@ class _StoredCodes:
         self.nbytes = math.prod(self.shape)
 
     def images(self, *, pieces: bool = True):
-        """(stored codes, deflated piece or None) of each basis image, in order (a few images at a time in threads)."""
+        """(stored codes, deflated piece or None) of each basis image, in order: a block of images at a time made
+        in threads, the next block made while the caller stores this one."""
 
         def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None]:
             stored = stored_codes(code.transpose(2, 0, 1))
             return stored, self.deflated.piece(stored) if pieces else None
 
         block = max(1, NUMPY_THREADS)
-        for start in range(0, len(self.codes), block):
-            yield from parallel_map(one, self.codes[start : start + block])
+        starts = range(0, len(self.codes), block)
+        made = None  # the next block's images, made by the threads while the writer stores this block's
+        try:
+            for start in starts:
+                current = made if made is not None else [submit(one, code) for code in self.codes[start : start + block]]
+                following = start + block
+                made = [submit(one, code) for code in self.codes[following : following + block]] if following < len(self.codes) else None
+                yield from gather(current)
+        finally:  # an error or Ctrl-C while writing: the block being made waited for, not left running
+            if made is not None:
+                cancel_and_wait(made)
 
 
 class _GivenPieces:

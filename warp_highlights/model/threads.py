@@ -9,7 +9,7 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "child_initializer", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "cancel_and_wait", "child_initializer", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
 
 
 def core_count() -> int:
@@ -74,11 +74,17 @@ def gather(futures: list[Future]) -> list:
     try:
         wait(futures)
     except BaseException:
-        for future in futures:
-            future.cancel()
-        wait(futures)
+        cancel_and_wait(futures)
         raise
     return [future.result() for future in futures]
+
+
+def cancel_and_wait(futures: list[Future]) -> None:
+    """Cancel the futures not started and wait for the running ones, raising nothing (what a caller
+    that is failing or interrupted does, so that no work is left running behind it)."""
+    for future in futures:
+        future.cancel()
+    wait(futures)
 
 
 def parallel_map(function, items) -> list:
@@ -101,9 +107,7 @@ def parallel_map(function, items) -> list:
         for item in items:
             futures.append(shared_pool().submit(function, item))
     except BaseException:  # Ctrl-C while submitting: the calls not started dropped, the running ones waited for
-        for future in futures:
-            future.cancel()
-        wait(futures)
+        cancel_and_wait(futures)
         raise
     return gather(futures)
 
