@@ -31,7 +31,7 @@ from warp_highlights.model.residual import LUMINANCE_WEIGHTS  # the luminance th
 from warp_highlights.model.threads import all_finite, mapped_empty
 
 from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
-from .transfer import as_half, rows_down, rows_up, to_host
+from .transfer import HALF_MAX, as_half, rows_down, rows_up, to_host
 
 __all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "count_non_finite", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels",
            "shrink_by"]
@@ -383,8 +383,8 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
     the images, the specular part, the diffuse part where kept and the specular luminance (float32)
     take at most ``share`` of the free memory, else as many as do (at least one). On CUDA: the
-    device's free memory (each band's float16 copy of its specular part counted, where the host keeps it
-    so: ``specular_bytes`` 2), less the specular luminance ``segment_in_bands`` keeps there whole
+    device's free memory (a band's float16 copy of its specular part, where the host keeps it so, is made
+    after its images are freed), less the specular luminance ``segment_in_bands`` keeps there whole
     (``target_share`` of it: 1 / f^2 shrunk by f). On the CPU: ``host_free`` bytes (the host's
     available memory; None: all rows), less what ``segment_in_bands`` holds whole: the specular part
     (``specular_bytes`` a value) and the diffuse part where kept, and the specular luminance
@@ -394,7 +394,6 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
     device = wp.get_device(device)
     row_bytes = 4 * n * width * (channels * (2 + int(keep_diffuse)) + 1)  # images, specular, diffuse; luminance
     if device.is_cuda:
-        row_bytes += 2 * n * width * channels * int(keep_specular and specular_bytes == 2)  # the float16 copy made there to come down
         budget = share * max(device.free_memory - 4 * n * height * width * target_share, 0)
     elif host_free is None or row_bytes * height <= share * host_free:
         return height
@@ -495,5 +494,8 @@ def _down(array: wp.array, out: np.ndarray) -> None:
         array = as_half(array)
     if array.device.is_cuda and out.dtype == wp.dtype_to_numpy(array.dtype):
         rows_down(array, out)
-    else:
-        out[...] = to_host(array)
+        return
+    values = to_host(array)
+    if out.dtype == np.float16 and values.dtype != np.float16:  # finite, as as_half keeps them (the part is dropped after)
+        values = np.clip(values, -float(HALF_MAX), float(HALF_MAX), out=values if values.flags.writeable else None)
+    out[...] = values

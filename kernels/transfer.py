@@ -11,10 +11,11 @@ on the host first; the lent H100's host copied 9.4 GB/s so from pageable memory)
 
 From ``STAGED_MIN_BYTES`` on (a 250-light 1080p stack and larger), a CUDA transfer goes through a few
 page-locked buffers (``Staging``): threads copy the host memory into one while the device copies
-another, at the page-locked copy's speed. Measured on the lent H100 (``.diag``-style micro-benchmark,
-benchmarks/README.md "Tenth session"): 8 GiB went up at 6.9 GB/s from pageable memory and 52 GB/s from
-page-locked memory, down at 11 and 53 GB/s; but page-locking memory costs 0.7 s per GiB, so only a
-few small buffers are locked, once per process, and a large stack never is.
+another. Measured on the lent H100 (benchmarks/README.md "Tenth session";
+``benchmarks/bench_transfer.py`` takes the same figures): 8 GiB went up at 6.9 GB/s from pageable
+memory and 52 GB/s from page-locked memory, down at 11 and 53 GB/s; but page-locking memory costs
+0.7 s per GiB, so only a few small buffers are locked, once per process, and a large stack never is.
+The whole staged path was measured only inside the fit (segmentation 11.6 -> 6.5 s at 1,000 x 1080p).
 """
 
 from __future__ import annotations
@@ -29,27 +30,30 @@ from warp_highlights.model import threads
 __all__ = ["STAGED_MIN_BYTES", "STAGING_BYTES", "STAGING_SLOTS", "Staging", "as_half", "rows_down", "rows_up", "to_host"]
 
 STAGED_MIN_BYTES = 1 << 30
-"""Transfers of this many bytes or more (1 GiB) go through ``Staging``: below it, the 0.13 s of
-page-locking its buffers once would cost more than it saves (0.09 s a GB at the rates measured)."""
+"""Transfers of this many bytes or more (1 GiB) go through ``Staging``: a process whose transfers are
+all smaller (a 480x270 capture's, 0.4 GB) would pay the buffers' 0.13 s of page-locking for less than
+it saves (about 0.09 s a GB at the rates measured)."""
 STAGING_BYTES = 1 << 26
 """Bytes of each page-locked staging buffer (64 MiB: a copy into it split over the threads is a few MB each)."""
 STAGING_SLOTS = 3
-"""Staging buffers: one filled by the host while the device copies another (and one spare for the lag)."""
+"""Staging buffers (at least 2): going up, the host fills one while the device copies the others;
+coming down, the host empties one while the device fills the next."""
 _PART_BYTES = 1 << 22  # a host copy into or out of a buffer is split into parts of this many bytes, one per thread
 
 
 def to_host(array) -> np.ndarray:
     """A Warp array as a NumPy array in host memory (a CPU array's own view, as ``numpy()`` gives it).
     A large contiguous CUDA array of a scalar type is copied into pages written from threads first
-    (``mapped_empty``)."""
+    (``mapped_empty``), through ``Staging`` from ``STAGED_MIN_BYTES``."""
     if not isinstance(array, wp.array):
         return np.asarray(array)
     if not (array.device.is_cuda or STAGE_ON_CPU) or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
             or array.capacity < threads.PREFAULT_BYTES or threads.NUMPY_THREADS == 1:
         return array.numpy()
     host = threads.mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
-    if staged(array.device, host.nbytes):
-        Staging.of(array.device).down([(array.ptr, host.reshape(-1).view(np.uint8))])
+    staging = Staging.of(array.device) if staged(array.device, host.nbytes) else None
+    if staging is not None:
+        staging.down(_runs(array.ptr, host))
         return host
     wp.copy(wp.array(host, dtype=array.dtype, device="cpu", copy=False), array)
     return host
@@ -58,13 +62,13 @@ def to_host(array) -> np.ndarray:
 def rows_up(host: np.ndarray, device) -> wp.array:
     """An (n, ...) host array (a band of a stack will do: each ``host[i]`` contiguous) as a new
     contiguous array on ``device``, of the same scalar type: one copy per ``host[i]``, or one for all
-    where the whole is contiguous."""
+    where the whole is contiguous; through ``Staging`` from ``STAGED_MIN_BYTES``."""
     host = np.asarray(host)
     kind = wp.dtype_from_numpy(host.dtype)
     out = wp.empty(host.shape, dtype=kind, device=device)
-    if len(host) and staged(out.device, host.nbytes) and host[0].flags.c_contiguous:
-        run = host[0].nbytes
-        Staging.of(out.device).up([(out.ptr + i * run, _bytes_of(host[i])) for i in range(len(host))])
+    staging = Staging.of(out.device) if len(host) and staged(out.device, host.nbytes) else None
+    if staging is not None and (host.flags.c_contiguous or (host.ndim > 1 and host[0].flags.c_contiguous)):
+        staging.up(_runs(out.ptr, host))
         return out
     if host.flags.c_contiguous or len(host) == 0:
         wp.copy(out, wp.array(np.ascontiguousarray(host), dtype=kind, device="cpu", copy=False))
@@ -76,15 +80,16 @@ def rows_up(host: np.ndarray, device) -> wp.array:
 
 def rows_down(array: wp.array, out: np.ndarray) -> np.ndarray:
     """Copy a contiguous (n, ...) device array into the host array ``out`` of its shape and type (a band
-    of a stack will do: each ``out[i]`` contiguous), a copy per ``out[i]``; returns ``out``. Copies into
+    of a stack will do: each ``out[i]`` contiguous), a copy per ``out[i]`` (through ``Staging`` from
+    ``STAGED_MIN_BYTES``); returns ``out``. Copies into
     pages not written yet stop at each: give ``out`` from ``mapped_empty``."""
     if tuple(out.shape) != tuple(array.shape) or out.dtype != wp.dtype_to_numpy(array.dtype) or not array.is_contiguous:
         raise ValueError(f"a contiguous {array.dtype.__name__} {array.shape} array cannot come down into {out.dtype} {out.shape}")
     if len(out) and not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
         raise ValueError("each row of the host array must be contiguous")
-    if len(out) and staged(array.device, out.nbytes):
-        run = out[0].nbytes
-        Staging.of(array.device).down([(array.ptr + i * run, _bytes_of(out[i])) for i in range(len(out))])
+    staging = Staging.of(array.device) if len(out) and staged(array.device, out.nbytes) else None
+    if staging is not None and (out.flags.c_contiguous or out.ndim > 1):
+        staging.down(_runs(array.ptr, out))
         return out
     if out.flags.c_contiguous or len(out) == 0:
         wp.copy(wp.array(out, dtype=array.dtype, device="cpu", copy=False), array)
@@ -96,15 +101,20 @@ def rows_down(array: wp.array, out: np.ndarray) -> np.ndarray:
     return out
 
 
+HALF_MAX = wp.constant(65504.0)
+"""The largest finite float16: ``as_half`` clamps to it (a value beyond stays finite, not inf)."""
+
+
 @wp.kernel
 def _to_half(source: wp.array2d(dtype=float), out: wp.array2d(dtype=wp.float16)):
     i, j = wp.tid()
-    out[i, j] = wp.float16(source[i, j])
+    out[i, j] = wp.float16(wp.clamp(source[i, j], -HALF_MAX, HALF_MAX))
 
 
 def as_half(array: wp.array) -> wp.array:
-    """A contiguous float32 (n, ...) array as a new float16 one on its device (rounded to nearest, as
-    NumPy's ``astype``): half the bytes to bring down. One launch over (n, the rest)."""
+    """A contiguous float32 (n, ...) array as a new float16 one on its device: clamped to +-``HALF_MAX``,
+    then rounded to nearest as NumPy's ``astype`` rounds; half the bytes to bring down. One launch
+    over (n, the rest)."""
     if array.dtype != wp.float32 or not array.is_contiguous:
         raise ValueError(f"as_half takes a contiguous float32 array, got {array.dtype.__name__}")
     out = wp.empty(array.shape, dtype=wp.float16, device=array.device)
@@ -134,29 +144,38 @@ class Staging:
     """``STAGING_SLOTS`` page-locked host buffers of ``STAGING_BYTES`` for one device, made on first use
     and kept for the process (``of``). ``up`` and ``down`` move runs of host bytes to and from device
     addresses: the host's part of each buffer in threads (``parallel_map``), the device's as
-    asynchronous copies on the device's stream, each buffer reused once its last copy has ended (an
-    event). One transfer at a time per device. On the CPU (tests) the same steps run with plain buffers."""
+    asynchronous copies on the device's stream (read once a transfer), each buffer touched again only
+    once its last copy has ended (an event kept per buffer, across transfers and after an error or
+    Ctrl-C). One transfer at a time per device. On the CPU (tests) the same steps run with plain buffers."""
 
     _made: dict = {}
     _made_lock = threading.Lock()
 
     def __init__(self, device, *, slot_bytes: int | None = None, slots: int | None = None):
-        slot_bytes = STAGING_BYTES if slot_bytes is None else slot_bytes
-        slots = STAGING_SLOTS if slots is None else slots
+        slot_bytes = STAGING_BYTES if slot_bytes is None else int(slot_bytes)
+        slots = STAGING_SLOTS if slots is None else int(slots)
+        if slots < 2 or slot_bytes < 1:
+            raise ValueError(f"staging needs at least 2 buffers of at least a byte, got {slots} of {slot_bytes}")
         self.device = wp.get_device(device)
         pinned = self.device.is_cuda
-        self.buffers = [wp.empty(int(slot_bytes), dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(int(slots))]
+        self.buffers = [wp.empty(slot_bytes, dtype=wp.uint8, device="cpu", pinned=pinned) for _ in range(slots)]
         self.views = [buffer.numpy() for buffer in self.buffers]
-        self.slot_bytes = int(slot_bytes)
+        self.events = [None] * slots  # each buffer's last copy
+        self.slot_bytes = slot_bytes
         self.lock = threading.Lock()
+        self._stream = None
 
     @classmethod
-    def of(cls, device) -> Staging:
-        """The device's staging buffers, made on first use."""
+    def of(cls, device) -> Staging | None:
+        """The device's staging buffers, made on first use; None where they cannot be page-locked (a
+        memory-lock limit): the transfers then go as they went without."""
         device = wp.get_device(device)
         with cls._made_lock:
             if device.alias not in cls._made:
-                cls._made[device.alias] = cls(device)
+                try:
+                    cls._made[device.alias] = cls(device)
+                except (RuntimeError, MemoryError):
+                    cls._made[device.alias] = None
             return cls._made[device.alias]
 
     def _chunks(self, runs: list) -> list:
@@ -188,48 +207,75 @@ class Staging:
         parts = [(out[start : start + _PART_BYTES], data[start : start + _PART_BYTES]) for out, data in copies for start in range(0, data.size, _PART_BYTES)]
         threads.parallel_map(lambda part: np.copyto(*part), parts)
 
-    def _record(self):
-        return self.device.stream.record_event() if self.device.is_cuda else None
-
     def _copy(self, destination: wp.array, source: wp.array) -> None:
-        wp.copy(destination, source, stream=self.device.stream if self.device.is_cuda else None)
+        wp.copy(destination, source, stream=self._stream)
 
-    @staticmethod
-    def _wait(event) -> None:
+    def _record(self, slot: int) -> None:
+        self.events[slot] = self._stream.record_event() if self._stream is not None else None
+
+    def _wait(self, slot: int) -> None:
+        """Until the buffer's last copy has ended."""
+        event, self.events[slot] = self.events[slot], None
         if event is not None:
             wp.synchronize_event(event)
 
+    def _settle(self) -> None:
+        """Every buffer's copies ended (also when a transfer stopped midway), the stream let go."""
+        try:
+            for slot in range(len(self.buffers)):
+                self._wait(slot)
+        finally:
+            self._stream = None
+
     def up(self, runs: list) -> None:
-        """Copy each (device address, host uint8 bytes) run to the device (ordered on its stream before
-        whatever is launched after; the host bytes may change once this returns)."""
+        """Copy each (device address, host uint8 bytes) run to the device; returns once the copies have
+        ended (the host bytes may then change, and later launches on the stream see them)."""
         with self.lock:
-            events = [None] * len(self.buffers)
-            for index, (used, pieces) in enumerate(self._chunks(runs)):
-                slot = index % len(self.buffers)
-                self._wait(events[slot])  # the buffer's last copy up has ended
-                self._host_copies([(self.views[slot][offset : offset + data.size], data) for _, data, offset in pieces])
-                for address, data, offset in pieces:
-                    self._copy(self._device_view(address, data.size), self._slot_view(slot, offset, data.size))
-                events[slot] = self._record()
-            for event in events:  # the buffers free for the next transfer
-                self._wait(event)
+            self._stream = self.device.stream if self.device.is_cuda else None
+            try:
+                for index, (_, pieces) in enumerate(self._chunks(runs)):
+                    slot = index % len(self.buffers)
+                    self._wait(slot)  # the buffer's last copy up has ended
+                    self._host_copies([(self.views[slot][offset : offset + data.size], data) for _, data, offset in pieces])
+                    for address, data, offset in pieces:
+                        self._copy(self._device_view(address, data.size), self._slot_view(slot, offset, data.size))
+                    self._record(slot)
+            finally:
+                self._settle()
 
     def down(self, runs: list) -> None:
-        """Copy device bytes into each (device address, host uint8 bytes) run's host bytes, waiting for the
-        device's work before them on its stream."""
+        """Copy device bytes into each (device address, host uint8 bytes) run's host bytes, after the
+        device's work before them on its stream; returns once they are all in host memory."""
         with self.lock:
-            pending = None  # the chunk whose copy down is under way: (slot, pieces, event)
-            for index, (used, pieces) in enumerate(self._chunks(runs)):
-                slot = index % len(self.buffers)
-                for address, data, offset in pieces:
-                    self._copy(self._slot_view(slot, offset, data.size), self._device_view(address, data.size))
-                event = self._record()
+            self._stream = self.device.stream if self.device.is_cuda else None
+            try:
+                pending = None  # the chunk whose copy down is under way: (slot, pieces)
+                for index, (_, pieces) in enumerate(self._chunks(runs)):
+                    slot = index % len(self.buffers)
+                    self._wait(slot)  # emptied already (two buffers at least): nothing of it left to come
+                    for address, data, offset in pieces:
+                        self._copy(self._slot_view(slot, offset, data.size), self._device_view(address, data.size))
+                    self._record(slot)
+                    if pending is not None:
+                        self._drain(*pending)
+                    pending = (slot, pieces)
                 if pending is not None:
                     self._drain(*pending)
-                pending = (slot, pieces, event)
-            if pending is not None:
-                self._drain(*pending)
+            finally:
+                self._settle()
 
-    def _drain(self, slot: int, pieces: list, event) -> None:
-        self._wait(event)
+    def _drain(self, slot: int, pieces: list) -> None:
+        self._wait(slot)
         self._host_copies([(data, self.views[slot][offset : offset + data.size]) for _, data, offset in pieces])
+
+
+def _runs(address: int, host: np.ndarray) -> list:
+    """(device address, host bytes) runs of an (n, ...) host array whose ``host[i]`` are each contiguous,
+    for a contiguous device array at ``address``: one run where the whole is contiguous. The bytes are
+    views (a copy down lands in ``host``): a strided 1-D array is refused."""
+    if host.flags.c_contiguous:
+        return [(address, _bytes_of(host))]
+    if host.ndim < 2:
+        raise ValueError("a strided 1-D host array cannot be staged in place; give a contiguous one")
+    run = host[0].nbytes
+    return [(address + i * run, _bytes_of(host[i])) for i in range(len(host))]

@@ -372,3 +372,18 @@ def test_segmentation_recovers_the_specular_part_of_a_textured_shadowed_scene(ei
     weights = np.array([0.2126, 0.7152, 0.0722])
     no_highlight = truth @ weights < 1e-3
     assert (found @ weights)[no_highlight].sum() / (truth @ weights).sum() < 0.02
+
+
+def test_float16_specular_parts_come_down_finite_and_rounded_as_numpy_rounds(device):
+    """The specular part kept as float16 (on CUDA made so on the device, ``as_half``): the float32 part
+    rounded as NumPy rounds, a value beyond the largest half clamped to it (never inf)."""
+    rng = np.random.default_rng(11)
+    columns, directions = synthetic_columns(rng, 3 * 8 * 6, 30)
+    images = columns.reshape(30, 8, 6, 3)
+    images[3, 2, 1] = 1e6  # a highlight brighter than a half holds
+    whole = segment(images, directions, device=device)
+    banded = segment_in_bands(images, directions, rows=3, device=device, keep_diffuse=False, specular_dtype=np.float16)
+    assert host_array(whole.specular).max() > 65504  # the clamp is exercised
+    expected = np.clip(host_array(whole.specular), -65504, 65504).astype(np.float16)
+    assert banded.specular.dtype == np.float16 and np.isfinite(banded.specular).all()
+    np.testing.assert_array_equal(banded.specular, expected)

@@ -369,16 +369,17 @@ class _StoredCodes:
 
         block = max(1, NUMPY_THREADS)
         starts = range(0, len(self.codes), block)
-        made = None  # the next block's images, made by the threads while the writer stores this block's
+        current: list = []
+        made: list = []  # the next block's images, made by the threads while the writer stores this block's
         try:
             for start in starts:
-                current = made if made is not None else [submit(one, code) for code in self.codes[start : start + block]]
-                following = start + block
-                made = [submit(one, code) for code in self.codes[following : following + block]] if following < len(self.codes) else None
+                if not made:
+                    made.extend(submit(one, code) for code in self.codes[start : start + block])
+                current, made = made, []
+                made.extend(submit(one, code) for code in self.codes[start + block : start + 2 * block])  # seen by ``finally`` as it grows
                 yield from gather(current)
-        finally:  # an error or Ctrl-C while writing: the block being made waited for, not left running
-            if made is not None:
-                cancel_and_wait(made)
+        finally:  # an error or Ctrl-C while writing: what is being made waited for, not left running
+            cancel_and_wait(current + made)
 
 
 class _GivenPieces:

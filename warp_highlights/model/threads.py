@@ -80,8 +80,9 @@ def gather(futures: list[Future]) -> list:
 
 
 def cancel_and_wait(futures: list[Future]) -> None:
-    """Cancel the futures not started and wait for the running ones, raising nothing (what a caller
-    that is failing or interrupted does, so that no work is left running behind it)."""
+    """Cancel the futures not started and wait for the running ones, raising none of their errors
+    (what a caller that is failing or interrupted does, so that no work is left running behind it; a
+    second Ctrl-C still stops the wait)."""
     for future in futures:
         future.cancel()
     wait(futures)
