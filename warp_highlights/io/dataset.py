@@ -585,7 +585,7 @@ class _StackReader:
                 self.bar.update()
         finally:  # an error or Ctrl-C: drop the images not started yet
             pool.shutdown(wait=True, cancel_futures=True)
-        return holder["stack"], low, high
+        return holder.get("stack"), low, high  # no paths: no stack, as before
 
     def _decode(self, path: Path) -> tuple:
         """(path, shape as stored, non-finite values, image at the working size)."""
