@@ -455,25 +455,26 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
         target = mapped_empty((n, height, width), np.float32) if shrink_target is None else None
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
+    whole = int(np.prod(shape)) * 4  # the float32 stack's bytes: each band's transfers staged where the stack's make it pay
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
-        band_images = rows_up(np.asarray(images[:, band], np.float32), device)
+        band_images = rows_up(np.asarray(images[:, band], np.float32), device, whole_bytes=whole)
         part = segment(band_images, directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
         if shrunk_images is not None:
             low = slice(top // factor, band.stop // factor)
             if shrunk_band is None or shrunk_band.shape[1] != low.stop - low.start:
                 shrunk_band = wp.empty((n, low.stop - low.start) + shrunk_images.shape[2:], dtype=float, device=device)
             _shrunk_into(band_images, factor, 0, shrunk_band)
-            rows_down(shrunk_band, shrunk_images[:, low])
+            rows_down(shrunk_band, shrunk_images[:, low], whole_bytes=whole)
         del band_images
         if specular is not None:
-            _down(part.specular, specular[:, band])
+            _down(part.specular, specular[:, band], whole)
         if diffuse is not None:
-            _down(part.diffuse, diffuse[:, band])
+            _down(part.diffuse, diffuse[:, band], whole)
         if on_device:
             _shrunk_into(part.specular_luminance, factor, top // factor, target)
         elif shrink_target is None:
-            _down(part.specular_luminance, target[:, band])
+            _down(part.specular_luminance, target[:, band], whole)
         else:
             shrunk = shrink_target(to_host(part.specular_luminance))
             if target is None:
@@ -486,14 +487,14 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum, shrunk_images)
 
 
-def _down(array: wp.array, out: np.ndarray) -> None:
+def _down(array: wp.array, out: np.ndarray, whole_bytes: int = 0) -> None:
     """A band's part into its rows of a host stack: straight from a CUDA device, an image's rows at a time,
     where the types agree (a float16 stack: the part made float16 there first, half the bytes to bring
-    down); else through a host copy."""
+    down; staged as ``rows_down`` says of ``whole_bytes``, the stack's); else through a host copy."""
     if array.device.is_cuda and out.dtype == np.float16 and array.dtype == wp.float32:
         array = as_half(array)
     if array.device.is_cuda and out.dtype == wp.dtype_to_numpy(array.dtype):
-        rows_down(array, out)
+        rows_down(array, out, whole_bytes=whole_bytes)
         return
     values = to_host(array)
     if out.dtype == np.float16 and values.dtype != np.float16:  # finite, as as_half keeps them (the part is dropped after)

@@ -88,13 +88,13 @@ def row_squares(part: wp.array2d(dtype=wp.float32), chunk: int, first_row: int, 
     partials[first_row + i, k] = total
 
 
-def _rows_up(block: np.ndarray, products) -> wp.array:
-    """An (n, w) float32 host block on the device: row by row straight from host memory where each row
-    is contiguous (the lent H100's host copied 9.4 GB/s so, against 7.0 GB/s into page-locked memory
-    first, then 48 GB/s up), else through ``products.upload``."""
+def _rows_up(block: np.ndarray, products, whole_bytes: int) -> wp.array:
+    """An (n, w) float32 host block on the device: row by row from host memory where each row is
+    contiguous (``rows_up``: through its page-locked buffers where the ``whole_bytes`` uploaded band by
+    band make them pay), else through ``products.upload``."""
     if block.dtype != np.float32 or not products.device.is_cuda or block.strides[1] != 4:
         return products.upload(block)
-    return rows_up(block, products.device)
+    return rows_up(block, products.device, whole_bytes=whole_bytes)
 
 
 class HeldStack:
@@ -142,11 +142,12 @@ class NormalisedStacks:
         scale = np.empty((height, width), np.float32)
         weights = [wp.float64(w) for w in LUMINANCE_WEIGHTS]
         rows = max(1, min(height, BAND_VALUES // max(n * width * channels, 1)))
+        uploaded = images.nbytes + own.nbytes  # the bands together: whether staging pays
         for top in range(0, height, rows):
             band = slice(top, min(top + rows, height))
             pixels = (band.stop - band.start) * width
-            band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products).reshape((n, pixels, channels))
-            band_own = _rows_up(own[:, band].reshape(n, pixels), products)
+            band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products, uploaded).reshape((n, pixels, channels))
+            band_own = _rows_up(own[:, band].reshape(n, pixels), products, uploaded)
             band_tint = wp.array(np.ascontiguousarray(tint[band].reshape(pixels, channels), np.float32), dtype=wp.float32, device=device)
             sums = wp.empty(pixels, dtype=wp.float64, device=device)
             wp.launch(luminance_squares, dim=pixels, inputs=[band_images, band_own, band_tint, *weights], outputs=[sums], device=device)

@@ -59,14 +59,15 @@ def to_host(array) -> np.ndarray:
     return host
 
 
-def rows_up(host: np.ndarray, device) -> wp.array:
+def rows_up(host: np.ndarray, device, *, whole_bytes: int = 0) -> wp.array:
     """An (n, ...) host array (a band of a stack will do: each ``host[i]`` contiguous) as a new
     contiguous array on ``device``, of the same scalar type: one copy per ``host[i]``, or one for all
-    where the whole is contiguous; through ``Staging`` from ``STAGED_MIN_BYTES``."""
+    where the whole is contiguous; through ``Staging`` from ``STAGED_MIN_BYTES`` (of this array, or of
+    ``whole_bytes``: the whole stack whose band this is, which goes up band by band)."""
     host = np.asarray(host)
     kind = wp.dtype_from_numpy(host.dtype)
     out = wp.empty(host.shape, dtype=kind, device=device)
-    staging = Staging.of(out.device) if len(host) and staged(out.device, host.nbytes) else None
+    staging = Staging.of(out.device) if len(host) and staged(out.device, max(host.nbytes, whole_bytes)) else None
     if staging is not None and (host.flags.c_contiguous or (host.ndim > 1 and host[0].flags.c_contiguous)):
         staging.up(_runs(out.ptr, host))
         return out
@@ -78,16 +79,16 @@ def rows_up(host: np.ndarray, device) -> wp.array:
     return out
 
 
-def rows_down(array: wp.array, out: np.ndarray) -> np.ndarray:
+def rows_down(array: wp.array, out: np.ndarray, *, whole_bytes: int = 0) -> np.ndarray:
     """Copy a contiguous (n, ...) device array into the host array ``out`` of its shape and type (a band
     of a stack will do: each ``out[i]`` contiguous), a copy per ``out[i]`` (through ``Staging`` from
-    ``STAGED_MIN_BYTES``); returns ``out``. Copies into
+    ``STAGED_MIN_BYTES`` of ``out`` or of ``whole_bytes``, as ``rows_up``); returns ``out``. Copies into
     pages not written yet stop at each: give ``out`` from ``mapped_empty``."""
     if tuple(out.shape) != tuple(array.shape) or out.dtype != wp.dtype_to_numpy(array.dtype) or not array.is_contiguous:
         raise ValueError(f"a contiguous {array.dtype.__name__} {array.shape} array cannot come down into {out.dtype} {out.shape}")
     if len(out) and not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
         raise ValueError("each row of the host array must be contiguous")
-    staging = Staging.of(array.device) if len(out) and staged(array.device, out.nbytes) else None
+    staging = Staging.of(array.device) if len(out) and staged(array.device, max(out.nbytes, whole_bytes)) else None
     if staging is not None and (out.flags.c_contiguous or out.ndim > 1):
         staging.down(_runs(array.ptr, out))
         return out

@@ -216,3 +216,68 @@ def test_codes_rounded_a_chunk_at_a_time_are_those_of_the_whole(monkeypatch, chu
                                   step.reshape((3,) + (1,) * (values.ndim - 1)), levels).astype(kind)
         got = quantised_codes(values, low, step, levels, out=np.empty(values.shape, kind))
         np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("whole", [False, True])
+def test_a_rate_sample_deflates_each_image_once_per_step(monkeypatch, whole):
+    """``RateSample.deflated``: each image's bytes at the sample's rows (a subset measures only its
+    images, the same bytes, the others 0); an image measured before at the same step and bits is not
+    deflated again, another step or bit depth is."""
+    import warp_highlights.fit.residual as residual_module
+
+    principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
+    steps = principal.spans[:5] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0, 4.0])
+    calls = []
+    real = residual_module.deflated_piece
+    monkeypatch.setattr(residual_module, "deflated_piece", lambda data: calls.append(1) or real(data))
+    sample = RateSample(principal, 5, whole=whole)
+    assert sample.exact == whole
+    subset = sample.deflated(steps, bits=16, images=np.array([3, 1, 3]))
+    assert len(calls) == 2 and not subset[[0, 2, 4]].any() and subset[[1, 3]].all()
+    every = sample.deflated(steps, bits=16)
+    assert len(calls) == 5
+    np.testing.assert_array_equal(every[[1, 3]], subset[[1, 3]])
+    stack = LowRankStack.quantised(principal, steps, bits=16)
+    counted = sample.rows[sample.counted] if not whole else np.arange(320)
+    expected = [deflated_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes]
+    np.testing.assert_array_equal(every, expected)
+    changed = steps.copy()
+    changed[2] *= 2.0
+    sample.deflated(changed, bits=16)
+    assert len(calls) == 6
+    sample.deflated(changed, bits=8)
+    assert len(calls) == 11
+    assert sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image and len(calls) == 11
+
+
+def test_a_kept_measurement_takes_the_pieces_it_holds_and_deflates_nothing_twice():
+    """Measured again at the same steps, a whole sample keeps the same pieces without deflating; an
+    image measured before without keeping its piece is not deflated again either: its bytes are
+    remembered and its piece left to the field writer, which writes the same entry."""
+    principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
+    steps = principal.spans[:4] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0])
+    sample = RateSample(principal, 4, whole=True)
+    store = DeflatedCodes()
+    early = sample.deflated(steps[:2], bits=16)  # images 0 and 1 measured, no pieces kept
+    measured = []
+    real = sample._measured
+    sample._measured = lambda indices, *args, **kwargs: measured.append(indices.tolist()) or real(indices, *args, **kwargs)
+    first = sample.deflated(steps, bits=16, keep=store)
+    assert measured == [[2, 3]] and len(store) == 2 and np.array_equal(first[:2], early)
+    pieces = dict(store._kept[0])
+    assert np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == [] and store._kept[0] == pieces
+    stack = LowRankStack.quantised(principal, steps, bits=16)
+    stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
+    assert list(pieces.values()) == [deflated_piece(image) for image in stored[2:]]
+    np.testing.assert_array_equal(first, [len(deflated_piece(image)) for image in stored])
+
+
+@settings(max_examples=60, deadline=None)
+@given(indices=st.sets(st.integers(0, 60), min_size=1), size=st.integers(1, 7))
+def test_index_runs_cover_every_index_once_in_runs_of_at_most_size(indices, size):
+    from warp_highlights.fit.residual import _index_runs
+
+    ordered = np.array(sorted(indices))
+    runs = _index_runs(ordered, size)
+    assert all(0 < run.stop - run.start <= size for run in runs)
+    assert [i for run in runs for i in range(run.start, run.stop)] == ordered.tolist()

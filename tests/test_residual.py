@@ -794,3 +794,46 @@ def test_the_move_decision_s_median_is_numpy_s_nanmedian(lights, edges, slots, s
         warnings.simplefilter("ignore", RuntimeWarning)
         expected = np.nanmedian(values, axis=1)
     np.testing.assert_array_equal(residual_module._nan_median(values), expected)
+
+
+def test_the_rate_search_deflates_no_image_twice_at_one_step_and_lands_in_the_window(monkeypatch):
+    """On images large enough for a sampled search, ``allocate`` calibrates the sampled bytes on a few
+    whole images and then on its exact measurements: its exact bytes land within 1% under the budget,
+    and no image of any sample is deflated twice at the same step and bits."""
+    n, h, w = 40, 320, 256
+    yy, xx = np.mgrid[0:h, 0:w] / h
+    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy) * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
+                         for i in range(24)])
+    stack = np.einsum("nk,khw->nhw", RNG.normal(size=(n, 24)) * 0.85 ** np.arange(24), patterns)[..., None] + 1.0
+    principal = PrincipalImages.of(stack + 1e-3 * RNG.normal(size=stack.shape))
+    plan = StackPlan(principal, 1.0, principal.count - 1)
+    measured = []
+    real = RateSample._measured
+
+    def recorded(self, indices, steps, bits, *, keyed):
+        measured.extend((id(self), int(i), float(steps[i]), bits) for i in indices)
+        return real(self, indices, steps, bits, keyed=keyed)
+
+    monkeypatch.setattr(RateSample, "_measured", recorded)
+    for bits in (8, 16):
+        for budget in (6e4, 2e5):
+            measured.clear()
+            steps = allocate_steps([plan], budget, bits=bits)[0]
+            assert len(measured) == len(set(measured))
+            stored = quantised_bytes(principal, steps, bits=bits)
+            assert 0.99 * budget <= stored <= budget, (bits, budget, stored / budget)
+
+
+def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
+    """``_modelled_distortion``: for bytes the model itself gives at one distortion, the distortion where
+    it gives the goal (bisections to 1e-9); None where the bytes are under the ranges' and weights' own."""
+    principal = PrincipalImages.of(_patterned_stack(30, 36, 48, 1, 16, 0.8))
+    plans = [StackPlan(principal, 3.0, principal.count - 1)]
+    levels = 65535
+    top = np.log(plans[0].energies.max())
+    lowest, highest = top - 35.0, top + 1.0
+    measured = residual_module._modelled_bytes(plans, levels, top - 6.0, 3.5)
+    for goal_share in (0.5, 2.0, 4.0):
+        x = residual_module._modelled_distortion(plans, levels, top - 6.0, measured, goal_share * measured, lowest, highest)
+        assert residual_module._modelled_bytes(plans, levels, x, 3.5) == pytest.approx(goal_share * measured, rel=1e-6)
+    assert residual_module._modelled_distortion(plans, levels, top - 6.0, 1.0, measured, lowest, highest) is None

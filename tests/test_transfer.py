@@ -204,3 +204,27 @@ def test_staged_transfers_of_vectors(device, small_staging, monkeypatch):
     out = np.zeros_like(values)
     rows_down(up, out)
     np.testing.assert_array_equal(out, values)
+
+
+def test_a_band_is_staged_by_its_whole_stack_s_bytes(device, small_staging, monkeypatch):
+    """A band under ``STAGED_MIN_BYTES`` goes through the buffers when the stack it belongs to does not
+    (``whole_bytes``), up and down, with the same values; without it, the plain copy."""
+    stack = np.random.default_rng(6).normal(size=(4, 10, 5)).astype(np.float32)
+    band = stack[:, 2:5]
+    monkeypatch.setattr(small_staging, "STAGED_MIN_BYTES", stack.nbytes)
+    used = []
+    for name in ("up", "down"):
+        original = getattr(small_staging.Staging, name)
+
+        def counted(self, runs, original=original, name=name):
+            used.append(name)
+            return original(self, runs)
+
+        monkeypatch.setattr(small_staging.Staging, name, counted)
+    out = np.zeros_like(stack)
+    rows_down(rows_up(band, device), out[:, 2:5])
+    assert used == []
+    up = rows_up(band, device, whole_bytes=stack.nbytes)
+    rows_down(up, out[:, 2:5], whole_bytes=stack.nbytes)
+    assert used == ["up", "down"]
+    np.testing.assert_array_equal(out[:, 2:5], band)

@@ -1,4 +1,4 @@
-"""io.warmup: the device's context made in a thread."""
+"""io.warmup: Warp started and the device's context made in a thread."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ import warp as wp
 from warp_highlights.io.warmup import DeviceWarmup
 
 
-def test_the_cpu_needs_no_warm_up():
-    warm = DeviceWarmup("cpu")
-    assert warm._thread is None
+@pytest.mark.parametrize("device", ["cpu", None])
+def test_warp_is_started_and_the_device_resolved(device):
+    warm = DeviceWarmup(device)
+    warm.started()
+    assert warm.device == wp.get_device(device)
     warm.join()
     warm.join()  # twice: nothing to wait for
 
@@ -22,8 +24,16 @@ def test_a_cuda_device_has_its_context_after_the_join():
     assert warm.device._context is not None
 
 
-def test_a_failing_warm_up_is_silent():
-    """Its errors belong to the work that uses the device, which reports them in one line."""
+def test_an_unknown_device_is_left_to_the_caller():
+    """Its errors belong to the caller, which reports them in one line (``check_device``)."""
+    warm = DeviceWarmup("cuda:99")
+    warm.started()
+    warm.join()
+    assert warm.device is None
+
+
+def test_a_failing_context_is_silent(monkeypatch):
+    """The device's own work reports a context that cannot be made."""
 
     class Broken:
         is_cuda = True
@@ -32,6 +42,7 @@ def test_a_failing_warm_up_is_silent():
         def context(self):
             raise RuntimeError("no context")
 
-    warm = DeviceWarmup.__new__(DeviceWarmup)
-    warm.device, warm._thread = Broken(), None
-    warm._warm()  # returns without raising
+    monkeypatch.setattr(wp, "get_device", lambda requested: Broken())
+    warm = DeviceWarmup("cuda:0")
+    warm.join()
+    assert isinstance(warm.device, Broken)

@@ -95,14 +95,17 @@ def _run_fit(args) -> int:
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
         check_output_file(Path(args.report), overwrite=args.overwrite)
     size = args.size
-    device = check_device(args.device)
     from ..io.warmup import DeviceWarmup
 
-    warmup = DeviceWarmup(device)  # the device's context made while the pipeline is imported and the images load
-    from ..fit.pipeline import fit_field
-    from ..io.dataset import ReflectanceField
-    from ..io.fieldfile import save_field
-    from ..io.memory import PeakMemory
+    warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
+    try:
+        from ..fit.pipeline import fit_field
+        from ..io.dataset import ReflectanceField
+        from ..io.fieldfile import save_field
+        from ..io.memory import PeakMemory
+    finally:
+        warmup.started()  # Warp is started once, in one thread at a time
+    device = check_device(args.device)
 
     started = time.perf_counter()
     # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded;

@@ -85,13 +85,18 @@ _SEARCH_DEPTH = 35.0  # the search's finest distortion: this far (natural log) u
 _SEARCH_START = 12.0  # a first search starts this far under the top energy (where the default budget binds, both samples and the 64- and 250-light donuts ended 9.4-16.1 under)
 _SEARCH_STRIDE = 8.0  # a secant step moves the log distortion at most this far ...
 _SEARCH_MIN_STEP = 0.05  # ... and at least this far
+_MODEL_BISECTIONS = 40  # _modelled_distortion's bisections (of a range of at most 80: to within 1e-10)
+_MODEL_OFFSET_RANGE = 40.0  # the model's constant bits a value is sought within this far of none
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
 _BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope
 _SLOPE_FLOOR = 0.02  # the smallest fall of log bytes per unit of log distortion a secant step assumes
 _RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
 _RATE_SHARE = 0.125  # ... together this share of the rows ...
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
-_RATE_ROUNDS = 3  # searches on the sampled bytes, each aimed by the exact bytes of the one before, before an exact search
+_RATE_ROUNDS = 3  # searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes
+_ESTIMATE_SLACK = 0.004  # the searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their errors were 0.1-0.6%)
+_CALIBRATION_EVERY = 8  # the first search's answer: every this many-th kept image deflated whole, to scale the sampled bytes ...
+_CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer)
 _FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (the samples were 0-4% off the whole images)
 _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
@@ -271,6 +276,7 @@ class RateSample:
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
         self._stored: np.ndarray | None = None  # two groups of the held images' stored codes, host memory used again
+        self._memo: dict[tuple, tuple] = {}  # (image, step, bits) -> (deflated bytes, content key or None): what was measured
 
     @property
     def exact(self) -> bool:
@@ -278,67 +284,108 @@ class RateSample:
 
     def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
-        (deflated in threads: zlib lets go of the GIL). ``keep`` (an ``exact`` sample only): hold the
-        images' deflated pieces there, in place of what it held, for the field writer."""
+        (``deflated``, scaled to the whole images, with each image's range and weights). ``keep`` (an
+        ``exact`` sample only): hold the images' deflated pieces there, in place of what it held, for
+        the field writer."""
+        return float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
+
+    def deflated(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
+        """(len(``steps``),) int64 deflated bytes of each of the first len(``steps``) basis images at the
+        sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
+        (the others 0). Deflated in threads (zlib lets go of the GIL). An image is deflated once per
+        step and bits: a measurement remembers each image's bytes, and a later one at the same step
+        takes them instead of deflating it again (and, where ``keep`` is given, its piece where ``keep``
+        still holds it: else the field writer deflates that image, if it is kept)."""
         if keep is not None and not self.exact:
             raise ValueError("only a sample of every row can keep its deflated pieces")
-        if not len(steps):
+        count = len(steps)
+        lengths = np.zeros(count, np.int64)
+        if not count:
             if keep is not None:
                 keep.keep({})
-            return 0.0
+            return lengths
         levels = code_levels(bits)
-        steps = clamped_steps(steps, self.span[: len(steps)], levels)
+        steps = clamped_steps(steps, self.span[:count], levels)
+        wanted = np.arange(count) if images is None else np.unique(np.asarray(images, np.int64))
+        pieces, measure = {}, []
+        for index in wanted.tolist():
+            known = self._memo.get((index, float(steps[index]), bits))
+            if known is None:
+                measure.append(index)
+                continue
+            lengths[index] = known[0]
+            piece = None if keep is None or known[1] is None else keep.held(known[1])
+            if piece is not None:  # else not held (dropped, or never kept): the field writer deflates it, where it is kept
+                pieces[known[1]] = piece
+        for index, length, key, piece in self._measured(np.asarray(measure, np.int64), steps, bits, keyed=keep is not None):
+            lengths[index] = length
+            self._memo[(index, float(steps[index]), bits)] = (length, key)
+            if keep is not None:
+                pieces[key] = piece
+        if keep is not None:
+            keep.keep(pieces)
+        return lengths
+
+    def _measured(self, indices: np.ndarray, steps: np.ndarray, bits: int, *, keyed: bool) -> list:
+        """(index, deflated bytes, content key or None, piece or None) of each image ``indices`` (sorted),
+        the key and piece where ``keyed``; runs of consecutive images a few at a time."""
+        if not len(indices):
+            return []
         kind = np.uint8 if bits == 8 else np.uint16
 
-        def group(images: slice) -> tuple[int, list]:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
+        def deflate(index: int, image: np.ndarray) -> tuple:
+            piece = deflated_piece(image)
+            return (index, len(piece), DeflatedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
+
+        if self.held is not None:
+            return self._deflated_from_device(indices, steps, bits, deflate)
+        levels = code_levels(bits)
+
+        def group(images: slice) -> list:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
             rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2)  # (c, P, rows, W), rounded in float64 as quantise_basis rounds
             codes = quantised_codes(rows, self.low[images], steps[images], levels, out=np.empty(rows.shape, kind))
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
-            pieces = [(DeflatedCodes.key(image) if keep is not None else None, deflated_piece(image)) for image in stored]
-            return sum(len(piece) for _, piece in pieces), pieces if keep is not None else []
+            return [deflate(images.start + offset, image) for offset, image in enumerate(stored)]
 
-        count = len(steps)
-        if self.held is not None:
-            def piece(image: np.ndarray) -> tuple[int, list]:
-                deflated = deflated_piece(image)
-                return len(deflated), [(DeflatedCodes.key(image), deflated)] if keep is not None else []
+        size = max(1, min(-(-len(indices) // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
+        return [entry for part in parallel_map(group, _index_runs(indices, size)) for entry in part]
 
-            groups = self._deflated_from_device(steps, bits, piece)
-        else:
-            size = max(1, min(-(-count // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
-            groups = parallel_map(group, [slice(start, min(start + size, count)) for start in range(0, count, size)])
-        if keep is not None:
-            keep.keep({key: piece for _, pieces in groups for key, piece in pieces})
-        deflated = float(sum(total for total, _ in groups))
-        return deflated * self.scale + self.per_image * count
-
-    def _deflated_from_device(self, steps: np.ndarray, bits: int, piece) -> list:
-        """``piece`` of each held image quantised with ``steps`` and stored at the sample's rows: a group of
-        at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are small) at a time made there
-        (``HeldDirections.stored``) into one of two slots of host memory, deflated in threads while the
-        next group is made and copied into the other."""
-        count = len(steps)
+    def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, piece) -> list:
+        """``piece(index, stored)`` of each held image ``indices`` quantised with ``steps`` and stored at the
+        sample's rows: a group of at least ``NUMPY_THREADS`` consecutive images (more, up to ``_STORED_GROUP_BYTES``, where they
+        are small) at a time made there (``HeldDirections.stored``) into one of two slots of host memory,
+        deflated in threads while the next group is made and copied into the other."""
         _, width, planes = self.shape[1:]
         tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
         per_image = int(np.prod(tail))
-        group = min(count, max(1, NUMPY_THREADS, _STORED_GROUP_BYTES // max(per_image, 1)))
+        group = min(len(indices), max(1, NUMPY_THREADS, _STORED_GROUP_BYTES // max(per_image, 1)))
         if self._stored is None or self._stored.size < 2 * group * per_image:
             self._stored = None
             self._stored = mapped_empty(2 * group * per_image, np.uint8)
         results, pending = [], [[], []]
         try:
-            for index, start in enumerate(range(0, count, group)):
-                stop, slot = min(start + group, count), index % 2
+            for number, images in enumerate(_index_runs(indices, group)):
+                start, stop, slot = images.start, images.stop, number % 2
                 gather(pending[slot])  # the slot's last group deflated: free to fill again
                 offset = slot * group * per_image
                 stored = self._stored[offset : offset + (stop - start) * per_image].reshape((stop - start,) + tail)
                 self.held.stored(1 + start, self.low[start:stop], steps[start:stop], bits, self.stored_rows, self.above, out=stored)
-                pending[slot] = [submit(piece, image) for image in stored]  # the shared threads (zlib lets go of the GIL)
+                pending[slot] = [submit(piece, start + offset, image) for offset, image in enumerate(stored)]  # the shared threads
                 results += pending[slot]
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
             cancel_and_wait(results)
             raise
         return gather(results)
+
+
+def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
+    """Sorted ``indices`` as slices of consecutive indices, each at most ``size`` long."""
+    breaks = np.flatnonzero(np.diff(indices) != 1) + 1
+    runs = []
+    for run in np.split(indices, breaks):
+        first, last = int(run[0]), int(run[-1]) + 1
+        runs += [slice(start, min(start + size, last)) for start in range(first, last, size)]
+    return runs
 
 
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
@@ -360,38 +407,58 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     normalised units; ``inf`` for the floor alone).
 
     Each plan's ``deflated`` keeps the pieces of the last measurement made on every row (the field
-    writer stores them rather than deflating the same codes again). The deflated bytes fall with the log distortion, nearly linearly: ``_search`` takes secant steps
-    on log bytes, then Illinois regula falsi once the budget is bracketed. It runs on bytes estimated
-    from ``sampled_rows`` (an eighth of a large image's rows); the result's exact bytes then aim the
-    next search (the budget scaled by sampled over exact), which starts where the last one ended,
-    until the exact bytes are within 1% under the budget or ``_RATE_ROUNDS`` searches have run, and
-    then the search runs on the exact bytes. The budget always holds for the exact bytes."""
+    writer stores them rather than deflating the same codes again). The deflated bytes fall with the
+    log distortion, nearly linearly: ``_search`` takes secant steps on log bytes, then Illinois regula
+    falsi once the budget is bracketed. It runs on bytes estimated from ``sampled_rows`` (an eighth
+    of a large image's rows), each plan's sampled bytes scaled by its whole images' bytes per sampled
+    byte: first by none, then by those of every ``_CALIBRATION_EVERY``-th kept image deflated whole at
+    that search's answer (the samples' bands run 2-6% over or under whole images, alike for every
+    image of a capture), then by those of the exact bytes of the last answer, until the exact bytes
+    are within 1% under the budget or ``_RATE_ROUNDS`` searches have run; then the search runs on the
+    exact bytes. The budget always holds for the exact bytes. No image is deflated twice at the same
+    step (``RateSample.deflated``)."""
     levels = code_levels(bits)
     top = _top_energy(plans)
     if top <= 0 or budget_bytes <= 0:  # the floor alone
         return np.inf, [plan.steps(np.inf, levels) for plan in plans]
     samples = _rate_samples(plans)
+    if all(sample.exact for sample in samples):
+        return _search(plans, budget_bytes, levels, top, lambda steps: sum(sample.bytes(step, bits=bits, keep=plan.deflated)
+                                                                           for plan, sample, step in zip(plans, samples, steps)))[:2]
+    wholes = [sample if sample.exact else RateSample(plan.principal, sample.shape[0], whole=True) for plan, sample in zip(plans, samples)]
+    ratios = np.ones(len(plans))  # each plan's whole-image bytes per (scaled) sampled byte
 
-    def sampled(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
-        return sum(sample.bytes(step, bits=bits, keep=plan.deflated if sample.exact else None) for plan, sample, step in zip(plans, samples, steps))
+    def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
+        return sum(sample.bytes(step, bits=bits, keep=plan.deflated) if sample.exact else
+                   ratio * sample.scale * float(sample.deflated(step, bits=bits).sum()) + sample.per_image * len(step)
+                   for plan, sample, step, ratio in zip(plans, samples, steps, ratios))
 
     def exact(steps: list[np.ndarray]) -> float:
-        return sum(quantised_bytes(plan.principal, step, bits=bits, keep=plan.deflated) for plan, step in zip(plans, steps))
+        return sum(whole.bytes(step, bits=bits, keep=plan.deflated) for plan, whole, step in zip(plans, wholes, steps))
 
-    if all(sample.exact for sample in samples):
-        return _search(plans, budget_bytes, levels, top, sampled)[:2]
+    def ratio(plan: StackPlan, sample: RateSample, whole: RateSample, step: np.ndarray, images: np.ndarray | None = None) -> float:
+        sampled = float(sample.deflated(step, bits=bits, images=images).sum()) * sample.scale  # remembered: nothing deflated again
+        exact_bytes = float(whole.deflated(step, bits=bits, images=images, keep=plan.deflated).sum())  # pieces kept: not deflated again
+        return exact_bytes / sampled if sampled > 0 else 1.0
+
     finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]  # everything kept, as finely as the codes go
-    aim, start = budget_bytes, None
+    start, _, _ = _search(plans, budget_bytes, levels, top, estimated)
+    steps = [plan.steps(np.exp(start), levels) for plan in plans]
+    for index, (plan, sample, whole, step) in enumerate(zip(plans, samples, wholes, steps)):
+        if not sample.exact and len(step):
+            every = max(1, min(_CALIBRATION_EVERY, len(step) // _CALIBRATION_LEAST))
+            ratios[index] = ratio(plan, sample, whole, step, np.arange(every // 2, len(step), every))
+    aim = (1.0 - 0.5 * (_BUDGET_SLACK - _ESTIMATE_SLACK)) * budget_bytes  # the estimates' window in the middle of the budget's
     for _ in range(_RATE_ROUNDS):
-        log_distortion, steps, estimate = _search(plans, aim, levels, top, sampled, start=start)
+        log_distortion, steps, _ = _search(plans, aim, levels, top, estimated, start=start, slack=_ESTIMATE_SLACK)
         stored = exact(steps)
         if (1.0 - _BUDGET_SLACK) * budget_bytes <= stored <= budget_bytes:
             return log_distortion, steps
         if stored <= budget_bytes and all(len(a) == len(b) and np.array_equal(a, b) for a, b in zip(steps, finest)):
             return log_distortion, steps  # nothing more to buy
-        if stored <= 0 or estimate <= 0:
-            break
-        aim = budget_bytes * estimate / stored  # the search aims at the middle of its window under ``aim``: the exact bytes then at the budget's
+        for index, (plan, sample, whole, step) in enumerate(zip(plans, samples, wholes, steps)):
+            if not sample.exact and len(step):
+                ratios[index] = ratio(plan, sample, whole, step)
         start = log_distortion
     return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
 
@@ -424,14 +491,14 @@ def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> 
 
 
 def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measure, *,
-            start: float | None = None) -> tuple[float, list[np.ndarray], float]:
+            start: float | None = None, slack: float = _BUDGET_SLACK) -> tuple[float, list[np.ndarray], float]:
     """(log distortion, steps, their measured bytes) of the smallest common distortion whose ``measure``d bytes are at most
-    ``limit``, stopping within ``_BUDGET_SLACK`` under it: secant steps on log bytes from ``start``
+    ``limit``, stopping within ``slack`` (a share) under it: secant steps on log bytes from ``start``
     (default ``_SEARCH_START`` under the top energy; the first step's slope from ``_BYTES_PER_HALVING``),
     Illinois regula falsi once the limit is bracketed. Everything kept as finely as the codes go, when
     that fits; the floor alone when even that does not."""
     lowest, highest = np.log(top) - _SEARCH_DEPTH, np.log(top) + 1.0  # from far below any 16-bit quantisation noise to nothing kept (but the floor)
-    target = np.log(1.0 - 0.5 * _BUDGET_SLACK)  # log(bytes / limit) in the middle of the window
+    target = np.log(1.0 - 0.5 * slack)  # log(bytes / limit) in the middle of the window
 
     def excess(log_distortion: float) -> tuple[float, float, list[np.ndarray]]:
         steps = [plan.steps(np.exp(log_distortion), levels) for plan in plans]
@@ -448,7 +515,7 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
         if total <= limit:
             if best is None or x < best[0]:
                 best = (x, steps, total)
-            if total >= (1.0 - _BUDGET_SLACK) * limit or x <= lowest:
+            if total >= (1.0 - slack) * limit or x <= lowest:
                 break
             fits = (x, f)
             if side == 1 and over is not None:
@@ -467,7 +534,10 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
             middle = b - fb * width / (fb - fa) if fb != fa else 0.5 * (a + b)
             x = middle if a + _SEARCH_GUARD * width < middle < b - _SEARCH_GUARD * width else 0.5 * (a + b)
         else:
-            if previous is not None and previous[0] != x and previous[1] != f:
+            modelled = None if previous is not None else _modelled_distortion(plans, levels, x, total, limit * np.exp(target), lowest, highest)
+            if modelled is not None:  # the first step: to where the high-rate model, fitted to this measurement, meets the window's middle
+                slope = -f / (modelled - x) if modelled != x else -_SLOPE_FLOOR
+            elif previous is not None and previous[0] != x and previous[1] != f:
                 slope = (f - previous[1]) / (x - previous[0])
             else:  # bytes fall by _BYTES_PER_HALVING a value that follows the distortion, per halving of the step
                 values = sum(plan.changing_values(step, levels) for plan, step in zip(plans, steps))
@@ -483,6 +553,39 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
         _, total, steps = excess(highest)
         return highest, steps, total
     return best
+
+
+def _modelled_bytes(plans: list[StackPlan], levels: int, log_distortion: float, offset: float) -> float:
+    """Stored bytes the high-rate model gives at ``log_distortion``: each kept image's M values at
+    ``offset - log2(step sqrt(M))`` bits (at least none; a unit image's values have an RMS of
+    1 / sqrt(M), and a smooth density quantised with a step s costs log2(RMS / s) plus a constant
+    bits a value, here ``offset``), with its range and weights."""
+    total = 0.0
+    for plan in plans:
+        steps = plan.steps(np.exp(log_distortion), levels)
+        values = plan.principal.values
+        total += values * float(np.maximum(offset - np.log2(steps * np.sqrt(values)), 0.0).sum()) / 8.0
+        total += (8 + 4 * plan.principal.light_count) * len(steps)
+    return total
+
+
+def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: float, measured: float, goal: float,
+                         lowest: float, highest: float) -> float | None:
+    """The log distortion at which ``_modelled_bytes``, its offset fitted to the ``measured`` bytes at
+    ``log_distortion``, gives ``goal`` bytes (within [``lowest``, ``highest``]); None where no offset
+    fits the measurement (nothing kept, or bytes the ranges and weights alone exceed)."""
+    def bisect(function, low: float, high: float) -> float:  # the root of an increasing function, bracketed
+        for _ in range(_MODEL_BISECTIONS):
+            middle = 0.5 * (low + high)
+            low, high = (middle, high) if function(middle) < 0 else (low, middle)
+        return 0.5 * (low + high)
+
+    low_offset, high_offset = -_MODEL_OFFSET_RANGE, _MODEL_OFFSET_RANGE
+    at = lambda offset: _modelled_bytes(plans, levels, log_distortion, offset) - measured  # noqa: E731
+    if not at(low_offset) < 0 < at(high_offset):
+        return None
+    offset = bisect(at, low_offset, high_offset)
+    return bisect(lambda x: goal - _modelled_bytes(plans, levels, x, offset), lowest, highest)
 
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,

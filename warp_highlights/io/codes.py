@@ -120,16 +120,20 @@ class DeflatedCodes:
         """Hold ``pieces`` (key -> deflated piece), the oldest held measurement dropped."""
         self._kept = [dict(pieces), *self._kept][: self.KEPT]
 
+    def held(self, key: tuple) -> bytes | None:
+        """The held piece of content ``key`` (``key``), or None."""
+        for pieces in self._kept:
+            if key in pieces:
+                return pieces[key]
+        return None
+
     def piece(self, stored: np.ndarray) -> bytes:
         """The deflated piece of ``stored``: the one held for its content, else deflated now (nothing
         hashed where nothing is held: a field loaded and saved again)."""
         if not self._kept:
             return deflated_piece(stored)
-        key = self.key(stored)
-        for pieces in self._kept:
-            if key in pieces:
-                return pieces[key]
-        return deflated_piece(stored)
+        piece = self.held(self.key(stored))
+        return deflated_piece(stored) if piece is None else piece
 
     def __len__(self) -> int:
         """Pieces of the latest measurement."""

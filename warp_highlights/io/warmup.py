@@ -1,10 +1,11 @@
-"""A CUDA device's context made in a thread while the host does other work.
+"""Warp started, and a CUDA device's context made, in a thread while the host does other work.
 
-Warp makes a device's (primary) context on its first use. In the ``fit`` command that was the
-segmentation's first memory query, about 0.13-0.3 s on the lent H100 while nothing else ran (measured
-with py-spy and a micro-benchmark, benchmarks/README.md "Tenth session"). Made in a thread while the
-command imports the pipeline and decodes the images, it costs nothing there: the CUDA driver's calls
-let go of the GIL. (The memory pool needs no such start: its first 400 MB took 0.7 ms.)
+``wp.init`` took 0.43 s on the lent H100 and the device's (primary) context, made on its first use,
+another 0.13-0.3 s, while nothing else ran in the ``fit`` command (measured with py-spy and a
+micro-benchmark, benchmarks/README.md "Tenth session"). Both are mostly the CUDA driver's calls, which
+let go of the GIL: started in a thread, Warp starts while the command imports the pipeline (which
+defines its kernels without starting Warp), and the context is made while the images decode.
+(The memory pool needs no such start: its first 400 MB took 0.7 ms.)
 """
 
 from __future__ import annotations
@@ -15,26 +16,39 @@ __all__ = ["DeviceWarmup"]
 
 
 class DeviceWarmup:
-    """Makes ``device``'s context in a thread (a CUDA device only; elsewhere nothing).
+    """Starts Warp (``wp.init``) and then makes ``device``'s context (a CUDA device only) in a thread.
 
-    Warp must be started (``wp.init``) first: starting it from two threads at once is not safe.
-    ``join`` before the device's work. The warm-up's errors are not raised: the work that needs the
-    device meets them again and reports them in its own line."""
+    Nothing else may start Warp until ``started`` returns (starting it from two threads at once is not
+    safe); ``join`` before the device's work. The warm-up's errors are not raised: Warp's start is
+    tried again by the caller after ``started`` (``cli.args.check_device``), and the device's own
+    work meets any other error again and reports it in its own line."""
 
-    def __init__(self, device):
-        import warp as wp
-
-        self.device = wp.get_device(device)
-        self._thread = None
-        if self.device.is_cuda:
-            self._thread = threading.Thread(target=self._warm, name="device-warmup", daemon=True)
-            self._thread.start()
+    def __init__(self, device: str | None):
+        self.requested = device
+        self.device = None  # the Warp device, once resolved
+        self._started = threading.Event()
+        self._thread = threading.Thread(target=self._warm, name="device-warmup", daemon=True)
+        self._thread.start()
 
     def _warm(self) -> None:
         try:
-            self.device.context  # noqa: B018 (the primary context, made on first use)
-        except Exception:  # noqa: BLE001 (the device's own work reports what is wrong)
+            import warp as wp
+
+            wp.init()
+            self.device = wp.get_device(self.requested)
+        except Exception:  # noqa: BLE001 (the caller starts Warp again and reports what is wrong)
             return
+        finally:
+            self._started.set()
+        if self.device.is_cuda:
+            try:
+                self.device.context  # noqa: B018 (the primary context, made on first use)
+            except Exception:  # noqa: BLE001 (the device's own work reports what is wrong)
+                return
+
+    def started(self) -> None:
+        """Wait for Warp's start (not for the context)."""
+        self._started.wait()
 
     def join(self) -> None:
         """Wait for the warm-up to end."""
