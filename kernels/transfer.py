@@ -204,9 +204,31 @@ class Staging:
         return self.buffers[slot][offset : offset + size]
 
     def _host_copies(self, copies: list) -> None:
-        """(destination, source) byte arrays copied in parts of ``_PART_BYTES``, the parts in threads."""
-        parts = [(out[start : start + _PART_BYTES], data[start : start + _PART_BYTES]) for out, data in copies for start in range(0, data.size, _PART_BYTES)]
-        threads.parallel_map(lambda part: np.copyto(*part), parts)
+        """(destination, source) byte arrays copied in threads, about ``_PART_BYTES`` a task: a large
+        array cut in parts, small ones (a band's rows of a light: a few hundred kB) a few to a task."""
+        tasks, task, size = [], [], 0
+        for out, data in copies:
+            for start in range(0, data.size, _PART_BYTES):
+                task.append((out[start : start + _PART_BYTES], data[start : start + _PART_BYTES]))
+                size += task[-1][1].size
+                if size >= _PART_BYTES:
+                    tasks.append(task)
+                    task, size = [], 0
+        if task:
+            tasks.append(task)
+        threads.parallel_map(lambda parts: [np.copyto(*part) for part in parts], tasks)
+
+    @staticmethod
+    def _device_copies(pieces: list) -> list:
+        """(device address, offset in the slot, bytes) of each copy a chunk's pieces need: pieces next to
+        each other both on the device and in the slot (the rows of a band of consecutive lights) in one."""
+        copies = []
+        for address, data, offset in pieces:
+            if copies and copies[-1][0] + copies[-1][2] == address and copies[-1][1] + copies[-1][2] == offset:
+                copies[-1] = (copies[-1][0], copies[-1][1], copies[-1][2] + data.size)
+            else:
+                copies.append((address, offset, data.size))
+        return copies
 
     def _copy(self, destination: wp.array, source: wp.array) -> None:
         wp.copy(destination, source, stream=self._stream)
@@ -238,8 +260,8 @@ class Staging:
                     slot = index % len(self.buffers)
                     self._wait(slot)  # the buffer's last copy up has ended
                     self._host_copies([(self.views[slot][offset : offset + data.size], data) for _, data, offset in pieces])
-                    for address, data, offset in pieces:
-                        self._copy(self._device_view(address, data.size), self._slot_view(slot, offset, data.size))
+                    for address, offset, size in self._device_copies(pieces):
+                        self._copy(self._device_view(address, size), self._slot_view(slot, offset, size))
                     self._record(slot)
             finally:
                 self._settle()
@@ -254,8 +276,8 @@ class Staging:
                 for index, (_, pieces) in enumerate(self._chunks(runs)):
                     slot = index % len(self.buffers)
                     self._wait(slot)  # emptied already (two buffers at least): nothing of it left to come
-                    for address, data, offset in pieces:
-                        self._copy(self._slot_view(slot, offset, data.size), self._device_view(address, data.size))
+                    for address, offset, size in self._device_copies(pieces):
+                        self._copy(self._slot_view(slot, offset, size), self._device_view(address, size))
                     self._record(slot)
                     if pending is not None:
                         self._drain(*pending)

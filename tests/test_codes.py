@@ -281,3 +281,13 @@ def test_index_runs_cover_every_index_once_in_runs_of_at_most_size(indices, size
     runs = _index_runs(ordered, size)
     assert all(0 < run.stop - run.start <= size for run in runs)
     assert [i for run in runs for i in range(run.start, run.stop)] == ordered.tolist()
+
+
+def test_runs_are_packed_into_groups_of_at_most_size_in_order():
+    from warp_highlights.fit.residual import _index_runs, _packed
+
+    runs = _index_runs(np.array([0, 8, 16, 17, 18, 19, 30, 40, 41]), 3)
+    groups = _packed(runs, 3)
+    assert all(sum(run.stop - run.start for run in group) <= 3 for group in groups)
+    assert [run for group in groups for run in group] == runs
+    assert groups[:2] == [[slice(0, 1), slice(8, 9)], [slice(16, 19)]]

@@ -729,7 +729,7 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
 def test_sampled_rows_are_spread_bands_or_every_row():
     assert np.array_equal(sampled_rows(54, 96, 1), np.arange(54))  # a small image is deflated whole
     rows = sampled_rows(1080, 1920, 1)
-    assert len(rows) % 8 == 0 and len(rows) >= 0.125 * 1080 and len(np.unique(rows)) == len(rows)
+    assert len(rows) % 8 == 0 and len(rows) >= residual_module._RATE_SHARE * 1080 and len(np.unique(rows)) == len(rows)
     bands = rows.reshape(-1, 8)
     assert np.all(np.diff(bands, axis=1) == 1) and rows.min() > 0 and rows.max() < 1079  # whole bands, none at the very edges
     strips = np.floor(bands.mean(axis=1) / (1080 / len(bands)))

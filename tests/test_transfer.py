@@ -228,3 +228,22 @@ def test_a_band_is_staged_by_its_whole_stack_s_bytes(device, small_staging, monk
     rows_down(up, out[:, 2:5], whole_bytes=stack.nbytes)
     assert used == ["up", "down"]
     np.testing.assert_array_equal(out[:, 2:5], band)
+
+
+def test_a_band_s_rows_go_in_one_device_copy_a_buffer(device, small_staging, monkeypatch):
+    """The rows of a band of many lights (runs of a few bytes each, next to each other on the device)
+    cross in one device copy per buffer filled, each way, with the same values."""
+    monkeypatch.setattr(small_staging, "STAGING_BYTES", 1000)
+    stack = np.random.default_rng(7).normal(size=(40, 9, 7)).astype(np.float32)
+    band = stack[:, 2:5]  # 40 runs of 84 bytes: 3360 bytes, 4 buffers' worth
+    copies = []
+    real = small_staging.Staging._copy
+    monkeypatch.setattr(small_staging.Staging, "_copy", lambda self, destination, source: copies.append(source.size) or real(self, destination, source))
+    up = rows_up(band, device)
+    assert copies == [1000, 1000, 1000, 360]
+    copies.clear()
+    out = np.zeros_like(stack)
+    rows_down(up, out[:, 2:5])
+    assert copies == [1000, 1000, 1000, 360]
+    np.testing.assert_array_equal(out[:, 2:5], band)
+    assert not out[:, :2].any() and not out[:, 5:].any()

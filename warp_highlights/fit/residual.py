@@ -91,7 +91,8 @@ _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket fro
 _BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope
 _SLOPE_FLOOR = 0.02  # the smallest fall of log bytes per unit of log distortion a secant step assumes
 _RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
-_RATE_SHARE = 0.125  # ... together this share of the rows ...
+_RATE_SHARE = 0.0625  # ... together this share of the rows (the sampled bytes are calibrated on whole images: they need to follow the bytes' trend, not
+# their level; at 1,000 x 1080p an 8th of the rows ran 2% over the whole images, a 32nd 5%, both within 0.1% once calibrated; a 16th for margin) ...
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
 _RATE_ROUNDS = 3  # searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes
 _ESTIMATE_SLACK = 0.004  # the searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their errors were 0.1-0.6%)
@@ -352,8 +353,8 @@ class RateSample:
 
     def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, piece) -> list:
         """``piece(index, stored)`` of each held image ``indices`` quantised with ``steps`` and stored at the
-        sample's rows: a group of at least ``NUMPY_THREADS`` consecutive images (more, up to ``_STORED_GROUP_BYTES``, where they
-        are small) at a time made there (``HeldDirections.stored``) into one of two slots of host memory,
+        sample's rows: a group of at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are
+        small; a launch for each run of consecutive images) at a time made there (``HeldDirections.stored``) into one of two slots of host memory,
         deflated in threads while the next group is made and copied into the other."""
         _, width, planes = self.shape[1:]
         tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
@@ -364,18 +365,38 @@ class RateSample:
             self._stored = mapped_empty(2 * group * per_image, np.uint8)
         results, pending = [], [[], []]
         try:
-            for number, images in enumerate(_index_runs(indices, group)):
-                start, stop, slot = images.start, images.stop, number % 2
+            for number, runs in enumerate(_packed(_index_runs(indices, group), group)):
+                slot, count = number % 2, sum(run.stop - run.start for run in runs)
                 gather(pending[slot])  # the slot's last group deflated: free to fill again
                 offset = slot * group * per_image
-                stored = self._stored[offset : offset + (stop - start) * per_image].reshape((stop - start,) + tail)
-                self.held.stored(1 + start, self.low[start:stop], steps[start:stop], bits, self.stored_rows, self.above, out=stored)
-                pending[slot] = [submit(piece, start + offset, image) for offset, image in enumerate(stored)]  # the shared threads
+                stored = self._stored[offset : offset + count * per_image].reshape((count,) + tail)
+                at = 0
+                for run in runs:  # a run of consecutive images a launch
+                    size = run.stop - run.start
+                    self.held.stored(1 + run.start, self.low[run], steps[run], bits, self.stored_rows, self.above, out=stored[at : at + size])
+                    at += size
+                images = [index for run in runs for index in range(run.start, run.stop)]
+                pending[slot] = [submit(piece, index, image) for index, image in zip(images, stored)]  # the shared threads
                 results += pending[slot]
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
             cancel_and_wait(results)
             raise
         return gather(results)
+
+
+def _packed(runs: list[slice], size: int) -> list[list[slice]]:
+    """Consecutive ``runs`` (each at most ``size`` long) in groups of at most ``size`` indices together
+    (every 8th image of a stack, one a run, still deflated ``size`` at a time)."""
+    groups, group, count = [], [], 0
+    for run in runs:
+        if group and count + run.stop - run.start > size:
+            groups.append(group)
+            group, count = [], 0
+        group.append(run)
+        count += run.stop - run.start
+    if group:
+        groups.append(group)
+    return groups
 
 
 def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
@@ -409,7 +430,7 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     Each plan's ``deflated`` keeps the pieces of the last measurement made on every row (the field
     writer stores them rather than deflating the same codes again). The deflated bytes fall with the
     log distortion, nearly linearly: ``_search`` takes secant steps on log bytes, then Illinois regula
-    falsi once the budget is bracketed. It runs on bytes estimated from ``sampled_rows`` (an eighth
+    falsi once the budget is bracketed. It runs on bytes estimated from ``sampled_rows`` (a sixteenth
     of a large image's rows), each plan's sampled bytes scaled by its whole images' bytes per sampled
     byte: first by none, then by those of every ``_CALIBRATION_EVERY``-th kept image deflated whole at
     that search's answer (the samples' bands run 2-6% over or under whole images, alike for every
