@@ -71,6 +71,8 @@ Where a CUDA device holds the stacks instead (``kernels.stacks``), the same shar
 principal images' host copy goes to that mapped file, where the device has no room for them (else they
 stay there, and the host keeps no copy)."""
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
+_TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each
+# cost more to hand out than to deflate)
 _STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: up to this much a group (64 MiB; two groups held), so
 # small images come in a few launches and copies rather than one round of them per NUMPY_THREADS images (at 480x270 a round cost
 # about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group (one per deflating thread) whatever their size
@@ -96,6 +98,7 @@ _RATE_SHARE = 0.0625  # ... together this share of the rows (the sampled bytes a
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
 _RATE_ROUNDS = 3  # searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes
 _ESTIMATE_SLACK = 0.004  # the searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their errors were 0.1-0.6%)
+_FIRST_SLACK = 0.05  # the first search, on uncalibrated sampled bytes (2-5% off), stops this far under the budget
 _CALIBRATION_EVERY = 8  # the first search's answer: every this many-th kept image deflated whole, to scale the sampled bytes ...
 _CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer)
 _FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (the samples were 0-4% off the whole images)
@@ -339,7 +342,7 @@ class RateSample:
             return (index, len(piece), DeflatedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
 
         if self.held is not None:
-            return self._deflated_from_device(indices, steps, bits, deflate)
+            return self._deflated_from_device(indices, steps, bits, lambda images: [deflate(index, image) for index, image in images])
         levels = code_levels(bits)
 
         def group(images: slice) -> list:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
@@ -351,11 +354,13 @@ class RateSample:
         size = max(1, min(-(-len(indices) // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
         return [entry for part in parallel_map(group, _index_runs(indices, size)) for entry in part]
 
-    def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, piece) -> list:
-        """``piece(index, stored)`` of each held image ``indices`` quantised with ``steps`` and stored at the
-        sample's rows: a group of at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are
-        small; a launch for each run of consecutive images) at a time made there (``HeldDirections.stored``) into one of two slots of host memory,
-        deflated in threads while the next group is made and copied into the other."""
+    def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, pieces) -> list:
+        """The entries ``pieces`` makes of the held images ``indices`` (it takes a list of (index, stored codes) and
+        returns an entry for each), the images quantised with ``steps`` and stored at the sample's rows: a
+        group of at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are
+        small; a launch for each run of consecutive images) at a time made there (``HeldDirections.stored``)
+        into one of two slots of host memory, deflated in threads (a few images a task) while the next
+        group is made and copied into the other."""
         _, width, planes = self.shape[1:]
         tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
         per_image = int(np.prod(tail))
@@ -375,13 +380,14 @@ class RateSample:
                     size = run.stop - run.start
                     self.held.stored(1 + run.start, self.low[run], steps[run], bits, self.stored_rows, self.above, out=stored[at : at + size])
                     at += size
-                images = [index for run in runs for index in range(run.start, run.stop)]
-                pending[slot] = [submit(piece, index, image) for index, image in zip(images, stored)]  # the shared threads
+                images = list(zip([index for run in runs for index in range(run.start, run.stop)], stored))
+                share = max(1, -(-len(images) // (_TASKS_PER_THREAD * NUMPY_THREADS)))  # a few images a task: small images cost more to hand out than to deflate
+                pending[slot] = [submit(pieces, images[start : start + share]) for start in range(0, len(images), share)]  # the shared threads
                 results += pending[slot]
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
             cancel_and_wait(results)
             raise
-        return gather(results)
+        return [entry for part in gather(results) for entry in part]
 
 
 def _packed(runs: list[slice], size: int) -> list[list[slice]]:
@@ -463,7 +469,7 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
         return exact_bytes / sampled if sampled > 0 else 1.0
 
     finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]  # everything kept, as finely as the codes go
-    start, _, _ = _search(plans, budget_bytes, levels, top, estimated)
+    start, _, _ = _search(plans, budget_bytes, levels, top, estimated, slack=_FIRST_SLACK)  # where to calibrate: near the answer will do
     steps = [plan.steps(np.exp(start), levels) for plan in plans]
     for index, (plan, sample, whole, step) in enumerate(zip(plans, samples, wholes, steps)):
         if not sample.exact and len(step):
