@@ -582,3 +582,23 @@ def test_an_image_decoded_to_another_shape_than_the_first_is_named(tmp_path, mon
         ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=3)
     message = _single_line_error(excinfo, "0003", "0000")
     assert "first image" in message
+
+
+def test_a_set_stop_ends_the_loading_early(tmp_path):
+    """``stop`` (a caller loading in a thread whose own work failed): the loading raises LoadStopped at
+    the first image it checks, and no decoding thread is left running."""
+    import threading
+
+    from warp_highlights.io.dataset import LoadStopped
+
+    field = _field(channels=3)
+    folder = tmp_path / "donut"
+    with DatasetWriter(folder) as writer:
+        writer.write_images("lights", 0, field.images, field.specular, field.diffuse)
+        writer.finish(field.lights, None, mask=field.mask, meta=field.meta)
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(LoadStopped, match="stopped at"):
+        ReflectanceField.load(folder, progress=False, stop=stop)
+    assert not [thread for thread in threading.enumerate() if thread.name.startswith("load")]
+    assert ReflectanceField.load(folder, progress=False, stop=threading.Event()).light_count == field.light_count

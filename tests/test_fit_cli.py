@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 
 import numpy as np
 import pytest
@@ -198,6 +199,7 @@ def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys
     args = [a.format(**names) for a in arguments] + ["-q"]
     assert main(args) == 2
     assert message in _error_line(capsys)
+    assert not [thread.name for thread in threading.enumerate() if thread.name.startswith("load")]  # a loading begun is stopped
     assert existing.read_bytes() == b"keep"
     assert not (tmp_path / "out.whf").exists()
 

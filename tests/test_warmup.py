@@ -46,3 +46,28 @@ def test_a_failing_context_is_silent(monkeypatch):
     warm = DeviceWarmup("cuda:0")
     warm.join()
     assert isinstance(warm.device, Broken)
+
+
+def test_work_in_the_background_returns_raises_or_stops():
+    import threading
+
+    from warp_highlights.io.warmup import InBackground
+
+    assert InBackground(lambda stop: 42, name="answer").result() == 42
+    with pytest.raises(ValueError, match="bad image"):
+        InBackground(lambda stop: (_ for _ in ()).throw(ValueError("bad image")), name="fails").result()
+    started = threading.Event()
+
+    def wait_for_stop(stop):
+        started.set()
+        if not stop.wait(30):
+            raise AssertionError("never asked to stop")
+        raise RuntimeError("stopped")
+
+    with pytest.raises(KeyError):
+        with InBackground(wait_for_stop, name="stoppable") as background:
+            started.wait(5)
+            raise KeyError("the caller's own error")  # the with block cancels the work
+    assert background.stop.is_set() and not background._thread.is_alive()
+    with pytest.raises(RuntimeError, match="stopped"):
+        background.result()  # what the work raised once stopped

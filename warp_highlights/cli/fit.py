@@ -95,30 +95,34 @@ def _run_fit(args) -> int:
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
         check_output_file(Path(args.report), overwrite=args.overwrite)
     size = args.size
-    from ..io.warmup import DeviceWarmup
-
-    warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
-    try:
-        from ..fit.pipeline import fit_field
-        from ..io.dataset import ReflectanceField
-        from ..io.fieldfile import save_field
-        from ..io.memory import PeakMemory
-    finally:
-        warmup.started()  # Warp is started once, in one thread at a time
-    device = check_device(args.device)
+    from ..io.dataset import ReflectanceField
+    from ..io.memory import PeakMemory
+    from ..io.warmup import DeviceWarmup, InBackground
 
     started = time.perf_counter()
-    # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is decoded;
-    # nothing here touches the device before the warm-up's join (Warp's context and streams are made there)
+    warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
+
+    def load(stop) -> tuple:  # in a thread, while the pipeline is imported and Warp starts: the decoding lets go of the GIL
+        # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is
+        # decoded; nothing here touches Warp (the host's peak alone)
+        with PeakMemory("cpu") as peak:
+            loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
+                                           heldout=False, components=False, stop=stop)
+        return loaded, peak, time.perf_counter() - started
+
     try:
-        with PeakMemory("cpu") as loading:  # host memory alone: loading takes none of the device's
-            dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
-                                            heldout=False, components=False)
+        with InBackground(load, name="load") as background:
+            try:
+                from ..fit.pipeline import fit_field
+                from ..io.fieldfile import save_field
+            finally:
+                warmup.started()  # Warp is started once, in one thread at a time
+            device = check_device(args.device)
+            dataset, loading, load_seconds = background.result()
         if args.holdout_every:
             dataset = dataset.split_every(args.holdout_every)
     finally:
         warmup.join()
-    load_seconds = time.perf_counter() - started
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
         dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet
     )

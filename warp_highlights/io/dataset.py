@@ -26,7 +26,11 @@ from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image,
 from .lightfile import read_lp, write_lp
 from .memory import check_memory
 
-__all__ = ["DatasetWriter", "ReflectanceField", "dataset_folder_entry"]
+__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "dataset_folder_entry"]
+
+
+class LoadStopped(Exception):
+    """``ReflectanceField.load`` stopped early because its caller set ``stop``."""
 
 LOAD_WORKERS = min(32, core_count())
 """Threads that decode a dataset's images (the decoders release the GIL): one per core, at most 32
@@ -160,6 +164,7 @@ class ReflectanceField:
         size: tuple[int, int] | None = None,
         workers: int | None = None,
         components: bool = True,
+        stop: threading.Event | None = None,
     ) -> ReflectanceField:
         """Load a dataset folder into memory (one preallocated float32 array per image stack).
 
@@ -181,6 +186,8 @@ class ReflectanceField:
             size: (width, height) to shrink every image (and the mask) to as it is read, an area
                 average (``io.resample``); None keeps the images' size. Same aspect ratio.
             workers: decoding threads; default ``LOAD_WORKERS``.
+            stop: once set, the loading stops after the image it is checking, raising ``LoadStopped``
+                (a caller loading in a thread whose own work failed).
             components: also load the ground-truth ``specular/`` and ``diffuse/`` images, when present
                 (``fit`` does not use them).
 
@@ -211,7 +218,7 @@ class ReflectanceField:
             with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                       disable=None if progress else True, leave=False) as bar:
                 reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
-                                      size=(width, height), workers=workers)
+                                      size=(width, height), workers=workers, stop=stop)
                 fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         except BaseException:  # a bad image or Ctrl-C: the mask's read not left running
             cancel_and_wait([mask])
@@ -530,7 +537,8 @@ class _StackReader:
     """Reads image stacks into preallocated float32 arrays, checking size, channels and finiteness."""
 
     def __init__(self, *, linear: bool, replace_nonfinite: bool, bar, max_pixels: int | None = DEFAULT_MAX_PIXELS,
-                 size: tuple[int, int] | None = None, workers: int = 1):
+                 size: tuple[int, int] | None = None, workers: int = 1, stop: threading.Event | None = None):
+        self.stop = stop
         self.linear = linear
         self.replace_nonfinite = replace_nonfinite
         self.bar = bar
@@ -573,6 +581,8 @@ class _StackReader:
                                   initializer=child_initializer())  # loaded from a worker: its threads' maps run in place
         try:
             for path, shape, bad, decoded, image_low, image_high in pool.map(place, range(len(paths)), paths):
+                if self.stop is not None and self.stop.is_set():
+                    raise LoadStopped(f"loading stopped at {path}")
                 self.shapes.check(path, shape)
                 first = first or (path, decoded)
                 if decoded != first[1]:  # a stored shape that passed the check but decoded to another one

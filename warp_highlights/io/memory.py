@@ -89,10 +89,12 @@ class PeakMemory:
     process's memory cannot be read."""
 
     def __init__(self, device=None):
-        import warp as wp
+        self._device = None
+        if device != "cpu":  # the host alone needs no Warp (usable before Warp has started, as the fit command's loading is)
+            import warp as wp
 
-        device = wp.get_device(device)  # None: Warp's default device
-        self._device = device if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled else None
+            device = wp.get_device(device)  # None: Warp's default device
+            self._device = device if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled else None
         self.host: int | None = None
         self.device: int | None = None
         self._stop = threading.Event()
