@@ -233,3 +233,19 @@ def test_python_messages_show_while_the_readers_quiet_descriptor_2(capfd):
     os.write(2, b"after\n")
     err = capfd.readouterr().err
     assert "python line" in err and "after" in err and "native noise" not in err
+
+
+def test_the_console_ends_without_teardown_after_flushing_everything(tmp_path):
+    """The process ends at once after ``main`` (``console._end``): what it printed and wrote is all there,
+    into a pipe as into files, with ``main``'s status; a closed pipe is not an error of its own."""
+    helped = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True, text=True, timeout=300)
+    parser = subprocess.run([sys.executable, "-c", "from warp_highlights.cli.app import main; main(['render', '--help'])"],
+                            capture_output=True, text=True, timeout=300)
+    assert helped.returncode == 0 and helped.stdout == parser.stdout and len(helped.stdout) > 500
+    out = tmp_path / "tiny"
+    made = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "sphere", str(out), "--lights", "6", "--size", "16x12",
+                           "--heldout", "none", "--device", "cpu"], capture_output=True, text=True, timeout=300)
+    assert made.returncode == 0 and "wrote" in made.stdout + made.stderr
+    assert ReflectanceField.load(out, progress=False).light_count == 6
+    closed = subprocess.run(f"'{sys.executable}' -m warp_highlights render --help | head -c 10", shell=True, capture_output=True, text=True, timeout=300)
+    assert closed.stdout == helped.stdout[:10] and "Traceback" not in closed.stderr
