@@ -245,9 +245,12 @@ def test_a_rate_sample_deflates_each_image_once_per_step(monkeypatch, whole):
     changed[2] *= 2.0
     sample.deflated(changed, bits=16)
     assert len(calls) == 6
-    sample.deflated(changed, bits=8)
+    coarse = principal.spans[:5] / 255 * np.array([2.0, 3.0, 4.0, 5.0, 6.0])  # steps both bit depths keep as they are
+    sample.deflated(coarse, bits=16)
     assert len(calls) == 11
-    assert sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image and len(calls) == 11
+    sample.deflated(coarse, bits=8)
+    assert len(calls) == 16
+    assert sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image and len(calls) == 16
 
 
 def test_a_kept_measurement_takes_the_pieces_it_holds_and_deflates_nothing_twice():

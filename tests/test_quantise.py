@@ -5,6 +5,7 @@ rate search's bytes, pieces and the stacks' codes the same whether the images ar
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
@@ -120,7 +121,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
     """Sampled and whole-image bytes, the kept pieces and the stack's codes: the same whether the
     principal images are quantised on the device or on the host (the same directions: the host's are
     the device's, copied down). The sample is two bands of rows with a gap between them; two images
-    a group (three groups in two slots of host memory used in turn)."""
+    a group (a fresh measurement of six: three groups in two slots of host memory used in turn, each
+    slot's deflates slowed so that one filled again before they end would be caught)."""
     monkeypatch.setattr(residual_module, "_RATE_MIN_VALUES", 64)
     monkeypatch.setattr(residual_module, "_RATE_SHARE", 0.125)  # two bands of these images' rows
     monkeypatch.setattr(residual_module, "NUMPY_THREADS", 2)
@@ -137,6 +139,11 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
         np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset), b.deflated(steps, bits=bits, images=subset))
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)  # fewer images into the memory kept
+        with monkeypatch.context() as slow:  # deflates that read their slot late: a slot filled again too early gives other bytes
+            real = residual_module.deflated_piece
+            slow.setattr(residual_module, "deflated_piece", lambda data: time.sleep(0.02) or real(data))
+            fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
+            np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
     kept_there, kept_host = DeflatedCodes(), DeflatedCodes()
     assert quantised_bytes(there, steps, bits=bits, keep=kept_there) == quantised_bytes(host, steps, bits=bits, keep=kept_host)
     assert kept_there._kept == kept_host._kept

@@ -89,8 +89,10 @@ _SEARCH_STRIDE = 8.0  # a secant step moves the log distortion at most this far 
 _SEARCH_MIN_STEP = 0.05  # ... and at least this far
 _MODEL_BISECTIONS = 40  # _modelled_distortion's bisections (of a range of at most 80: to within 1e-10)
 _MODEL_OFFSET_RANGE = 40.0  # the model's constant bits a value is sought within this far of none
+_SEARCH_NARROWEST = 1e-3  # _search stops once the bracket is narrower than this (log distortion: a 0.1% change of the steps' squares)
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
-_BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope
+_BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope where
+# the high-rate model of the bytes (``_modelled_distortion``) fits no offset
 _SLOPE_FLOOR = 0.02  # the smallest fall of log bytes per unit of log distortion a secant step assumes
 _RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
 _RATE_SHARE = 0.0625  # ... together this share of the rows (the sampled bytes are calibrated on whole images: they need to follow the bytes' trend, not
@@ -98,10 +100,11 @@ _RATE_SHARE = 0.0625  # ... together this share of the rows (the sampled bytes a
 _RATE_MIN_VALUES = 1 << 14  # ... and at least this many values a basis image (else every row: small images are deflated whole)
 _RATE_ROUNDS = 3  # searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes
 _ESTIMATE_SLACK = 0.004  # the searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their errors were 0.1-0.6%)
-_FIRST_SLACK = 0.05  # the first search, on uncalibrated sampled bytes (2-5% off), stops this far under the budget
+_FIRST_SLACK = 0.05  # the first search, on uncalibrated sampled bytes (2-5% off), stops within this share under the budget
 _CALIBRATION_EVERY = 8  # the first search's answer: every this many-th kept image deflated whole, to scale the sampled bytes ...
-_CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer)
-_FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (the samples were 0-4% off the whole images)
+_CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer than twice as many)
+_FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (uncalibrated samples were 0-4% off the whole
+# images with an 8th of the rows, 2% at 1,000 x 1080p with a 16th; a wrong "plain" choice is measured on every row after all)
 _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
@@ -311,6 +314,8 @@ class RateSample:
         levels = code_levels(bits)
         steps = clamped_steps(steps, self.span[:count], levels)
         wanted = np.arange(count) if images is None else np.unique(np.asarray(images, np.int64))
+        if len(wanted) and (wanted[0] < 0 or wanted[-1] >= count):
+            raise IndexError(f"images {wanted.tolist()} are not all among the {count} measured")
         pieces, measure = {}, []
         for index in wanted.tolist():
             known = self._memo.get((index, float(steps[index]), bits))
@@ -329,6 +334,11 @@ class RateSample:
         if keep is not None:
             keep.keep(pieces)
         return lengths
+
+    def release(self) -> None:
+        """Let go of the host memory the device's stored codes come down into (two groups of images: 1 GB
+        for a 4K stack's whole chroma images), made again by the next measurement."""
+        self._stored = None
 
     def _measured(self, indices: np.ndarray, steps: np.ndarray, bits: int, *, keyed: bool) -> list:
         """(index, deflated bytes, content key or None, piece or None) of each image ``indices`` (sorted),
@@ -382,8 +392,10 @@ class RateSample:
                     at += size
                 images = list(zip([index for run in runs for index in range(run.start, run.stop)], stored))
                 share = max(1, -(-len(images) // (_TASKS_PER_THREAD * NUMPY_THREADS)))  # a few images a task: small images cost more to hand out than to deflate
-                pending[slot] = [submit(pieces, images[start : start + share]) for start in range(0, len(images), share)]  # the shared threads
-                results += pending[slot]
+                pending[slot] = []
+                for start in range(0, len(images), share):  # the shared threads; each tracked as it is submitted (Ctrl-C)
+                    pending[slot].append(submit(pieces, images[start : start + share]))
+                    results.append(pending[slot][-1])
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
             cancel_and_wait(results)
             raise
@@ -442,8 +454,9 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     that search's answer (the samples' bands run 2-6% over or under whole images, alike for every
     image of a capture), then by those of the exact bytes of the last answer, until the exact bytes
     are within 1% under the budget or ``_RATE_ROUNDS`` searches have run; then the search runs on the
-    exact bytes. The budget always holds for the exact bytes. No image is deflated twice at the same
-    step (``RateSample.deflated``)."""
+    exact bytes. The budget holds for the exact bytes (unless even the floor alone exceeds it). No
+    image is deflated twice at the same step (``RateSample.deflated``); the whole images' host buffers
+    are let go after each measurement."""
     levels = code_levels(bits)
     top = _top_energy(plans)
     if top <= 0 or budget_bytes <= 0:  # the floor alone
@@ -457,15 +470,24 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
 
     def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
         return sum(sample.bytes(step, bits=bits, keep=plan.deflated) if sample.exact else
-                   ratio * sample.scale * float(sample.deflated(step, bits=bits).sum()) + sample.per_image * len(step)
-                   for plan, sample, step, ratio in zip(plans, samples, steps, ratios))
+                   scale * sample.scale * float(sample.deflated(step, bits=bits).sum()) + sample.per_image * len(step)
+                   for plan, sample, step, scale in zip(plans, samples, steps, ratios))
 
     def exact(steps: list[np.ndarray]) -> float:
-        return sum(whole.bytes(step, bits=bits, keep=plan.deflated) for plan, whole, step in zip(plans, wholes, steps))
+        try:
+            return sum(whole.bytes(step, bits=bits, keep=plan.deflated) for plan, whole, step in zip(plans, wholes, steps))
+        finally:
+            for whole in wholes:
+                whole.release()
 
     def ratio(plan: StackPlan, sample: RateSample, whole: RateSample, step: np.ndarray, images: np.ndarray | None = None) -> float:
+        """Whole bytes per scaled sampled byte of ``images`` (all: an exact measurement's, remembered, nothing deflated or kept again;
+        a subset: deflated whole now, their pieces kept for the exact measurement that follows)."""
         sampled = float(sample.deflated(step, bits=bits, images=images).sum()) * sample.scale  # remembered: nothing deflated again
-        exact_bytes = float(whole.deflated(step, bits=bits, images=images, keep=plan.deflated).sum())  # pieces kept: not deflated again
+        try:
+            exact_bytes = float(whole.deflated(step, bits=bits, images=images, keep=None if images is None else plan.deflated).sum())
+        finally:
+            whole.release()
         return exact_bytes / sampled if sampled > 0 else 1.0
 
     finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]  # everything kept, as finely as the codes go
@@ -521,9 +543,11 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
             start: float | None = None, slack: float = _BUDGET_SLACK) -> tuple[float, list[np.ndarray], float]:
     """(log distortion, steps, their measured bytes) of the smallest common distortion whose ``measure``d bytes are at most
     ``limit``, stopping within ``slack`` (a share) under it: secant steps on log bytes from ``start``
-    (default ``_SEARCH_START`` under the top energy; the first step's slope from ``_BYTES_PER_HALVING``),
-    Illinois regula falsi once the limit is bracketed. Everything kept as finely as the codes go, when
-    that fits; the floor alone when even that does not."""
+    (default ``_SEARCH_START`` under the top energy; the first step to where ``_modelled_distortion`` meets
+    the middle of the window, else its slope from ``_BYTES_PER_HALVING``), Illinois regula falsi once the
+    limit is bracketed, until the bracket is narrower than ``_SEARCH_NARROWEST`` (the bytes jump across
+    it, as where an image enters the kept set: its fitting end is the answer). Everything kept as finely
+    as the codes go, when that fits; the floor alone when even that does not."""
     lowest, highest = np.log(top) - _SEARCH_DEPTH, np.log(top) + 1.0  # from far below any 16-bit quantisation noise to nothing kept (but the floor)
     target = np.log(1.0 - 0.5 * slack)  # log(bytes / limit) in the middle of the window
 
@@ -557,6 +581,8 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
             side = -1
         if fits is not None and over is not None:  # bracketed: regula falsi, bisecting near the ends
             (a, fa), (b, fb) = over, fits
+            if abs(b - a) < _SEARCH_NARROWEST:
+                break  # a jump of the bytes, no distortion between: the fitting end
             width = b - a
             middle = b - fb * width / (fb - fa) if fb != fa else 0.5 * (a + b)
             x = middle if a + _SEARCH_GUARD * width < middle < b - _SEARCH_GUARD * width else 0.5 * (a + b)

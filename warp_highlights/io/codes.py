@@ -121,7 +121,7 @@ class DeflatedCodes:
         self._kept = [dict(pieces), *self._kept][: self.KEPT]
 
     def held(self, key: tuple) -> bytes | None:
-        """The held piece of content ``key`` (``key``), or None."""
+        """The piece held for the content ``key`` (see ``key``), or None."""
         for pieces in self._kept:
             if key in pieces:
                 return pieces[key]
