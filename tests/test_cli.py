@@ -249,3 +249,17 @@ def test_the_console_ends_without_teardown_after_flushing_everything(tmp_path):
     assert ReflectanceField.load(out, progress=False).light_count == 6
     closed = subprocess.run(f"'{sys.executable}' -m warp_highlights render --help | head -c 10", shell=True, capture_output=True, text=True, timeout=300)
     assert closed.stdout == helped.stdout[:10] and "Traceback" not in closed.stderr
+    no_stdout = subprocess.run(f"'{sys.executable}' -m warp_highlights --version >&-", shell=True, capture_output=True, text=True, timeout=300)
+    assert no_stdout.returncode == 0 and "Traceback" not in no_stdout.stderr
+    environment = {key: value for key, value in os.environ.items() if key != "PYTHONUNBUFFERED"}  # buffered output is flushed too
+    buffered = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True, text=True, timeout=300,
+                              env=environment)
+    assert buffered.stdout == helped.stdout
+
+
+def test_a_profiled_command_ends_as_the_profiler_needs(tmp_path):
+    """Under cProfile the console exits through the interpreter, which writes the profile."""
+    profile = tmp_path / "prof.out"
+    run = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "warp_highlights", "--version"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0 and profile.is_file() and profile.stat().st_size > 0

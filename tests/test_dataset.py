@@ -586,7 +586,7 @@ def test_an_image_decoded_to_another_shape_than_the_first_is_named(tmp_path, mon
 
 def test_a_set_stop_ends_the_loading_early(tmp_path):
     """``stop`` (a caller loading in a thread whose own work failed): the loading raises LoadStopped at
-    the first image it checks, and no decoding thread is left running."""
+    the first image it would decode or check, and no decoding thread is left running."""
     import threading
 
     from warp_highlights.io.dataset import LoadStopped
@@ -598,7 +598,7 @@ def test_a_set_stop_ends_the_loading_early(tmp_path):
         writer.finish(field.lights, None, mask=field.mask, meta=field.meta)
     stop = threading.Event()
     stop.set()
-    with pytest.raises(LoadStopped, match="stopped at"):
+    with pytest.raises(LoadStopped, match="loading stopped"):
         ReflectanceField.load(folder, progress=False, stop=stop)
     assert not [thread for thread in threading.enumerate() if thread.name.startswith("load")]
     assert ReflectanceField.load(folder, progress=False, stop=threading.Event()).light_count == field.light_count

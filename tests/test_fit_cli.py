@@ -314,3 +314,15 @@ def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch)
     np.testing.assert_array_equal(fields[1].diffuse.images, fields[0].diffuse.images)
     np.testing.assert_array_equal(fields[1].residual.luminance.codes, fields[0].residual.luminance.codes)
     np.testing.assert_array_equal(fields[1].residual.highlight_colour, fields[0].residual.highlight_colour)
+
+
+def test_a_device_that_is_not_there_is_reported_before_any_image_is_read(small_donut, tmp_path, capsys, monkeypatch):
+    """The images load while the pipeline is imported, but only once Warp has found the device."""
+    from warp_highlights.io.dataset import ReflectanceField
+
+    loads = []
+    real = ReflectanceField.load.__func__
+    monkeypatch.setattr(ReflectanceField, "load", classmethod(lambda cls, *args, **kwargs: loads.append(1) or real(cls, *args, **kwargs)))
+    assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cuda:7", "-q"]) == 2
+    assert "device" in _error_line(capsys) and loads == []
+    assert not (tmp_path / "f.whf").exists()

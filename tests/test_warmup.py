@@ -11,7 +11,7 @@ from warp_highlights.io.warmup import DeviceWarmup
 @pytest.mark.parametrize("device", ["cpu", None])
 def test_warp_is_started_and_the_device_resolved(device):
     warm = DeviceWarmup(device)
-    warm.started()
+    assert warm.started(30)
     assert warm.device == wp.get_device(device)
     warm.join()
     warm.join()  # twice: nothing to wait for
@@ -27,7 +27,7 @@ def test_a_cuda_device_has_its_context_after_the_join():
 def test_an_unknown_device_is_left_to_the_caller():
     """Its errors belong to the caller, which reports them in one line (``check_device``)."""
     warm = DeviceWarmup("cuda:99")
-    warm.started()
+    assert warm.started(30)
     warm.join()
     assert warm.device is None
 

@@ -2,8 +2,9 @@
 
 Ctrl-C or SIGTERM while the program is still loading ends it at once with status 130 or 143 (nothing
 has been written then); once ``main`` runs, its own handlers take over and clean up. Once ``main`` has
-returned, the process ends at once (``_end``): the interpreter's teardown of the modules it loaded
-(Warp, SciPy, NumPy) took 0.2-0.3 s after every command, with nothing left for it to do.
+returned, the process ends at once (``_end``; not under a profiler or coverage tool): the interpreter's
+teardown of the modules it loaded (Warp, SciPy, NumPy) took 0.2-0.3 s after every command, with
+nothing left for it to do.
 """
 
 from __future__ import annotations
@@ -33,10 +34,21 @@ def _end(status: int) -> None:
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):
         try:
-            stream.flush()
+            if stream is not None:  # None: started with the stream closed (``>&-``)
+                stream.flush()
         except (OSError, ValueError):  # a closed pipe (``| head``): nothing more can reach it
             pass
+    if _observed():
+        sys.exit(status)  # a profiler or a coverage tool writes its results at the interpreter's exit
     os._exit(status)
+
+
+def _observed() -> bool:
+    """Whether a profiler, tracer or ``sys.monitoring`` tool (cProfile, coverage) watches the process."""
+    if sys.gettrace() is not None or sys.getprofile() is not None:
+        return True
+    monitoring = getattr(sys, "monitoring", None)
+    return monitoring is not None and any(monitoring.get_tool(tool) is not None for tool in range(6))
 
 
 def _stop_while_loading(signum, frame) -> None:

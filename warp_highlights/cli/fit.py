@@ -99,18 +99,26 @@ def _run_fit(args) -> int:
     from ..io.memory import PeakMemory
     from ..io.warmup import DeviceWarmup, InBackground
 
-    started = time.perf_counter()
-    warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
+    started = time.perf_counter()  # the summary's time includes the pipeline's imports from here on
 
-    def load(stop) -> tuple:  # in a thread, while the pipeline is imported and Warp starts: the decoding lets go of the GIL
-        # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image is
-        # decoded; nothing here touches Warp (the host's peak alone)
+    def load(stop) -> tuple | None:  # in a thread, while the pipeline is imported: the decoding lets go of the GIL
+        # only once Warp has started and found the device (a wrong --device is reported before any image is read)
+        warmup.started()
+        if warmup.device is None or stop.is_set():
+            return None  # check_device reports what is wrong (or, where Warp's start failed there only, the images load after it)
+        return load_images(stop)
+
+    def load_images(stop) -> tuple:  # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working
+        # size as each image is decoded; nothing here touches Warp (the host's peak alone)
+        load_started = time.perf_counter()
         with PeakMemory("cpu") as peak:
             loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
                                            heldout=False, components=False, stop=stop)
-        return loaded, peak, time.perf_counter() - started
+        return loaded, peak, time.perf_counter() - load_started
 
+    warmup = None
     try:
+        warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
         with InBackground(load, name="load") as background:
             try:
                 from ..fit.pipeline import fit_field
@@ -118,11 +126,12 @@ def _run_fit(args) -> int:
             finally:
                 warmup.started()  # Warp is started once, in one thread at a time
             device = check_device(args.device)
-            dataset, loading, load_seconds = background.result()
+            dataset, loading, load_seconds = background.result() or load_images(background.stop)
         if args.holdout_every:
             dataset = dataset.split_every(args.holdout_every)
     finally:
-        warmup.join()
+        if warmup is not None:
+            warmup.join()
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
         dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet
     )

@@ -566,6 +566,8 @@ class _StackReader:
         lock = threading.Lock()
 
         def place(index: int, path: Path) -> tuple:  # one thread's work: decode, then copy into the stack
+            if self.stop is not None and self.stop.is_set():
+                raise LoadStopped(f"loading stopped before {path}")  # not decoded: the caller has given up
             path, shape, bad, image = self._decode(path)
             with lock:  # the first image decoded sizes the stack
                 if "stack" not in holder:

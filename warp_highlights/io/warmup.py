@@ -29,7 +29,7 @@ class DeviceWarmup:
 
     def __init__(self, device: str | None):
         self.requested = device
-        self.device = None  # the Warp device, once resolved
+        self.device = None  # the Warp device, once resolved (set before ``started`` returns; None: not available here)
         self._started = threading.Event()
         self._thread = threading.Thread(target=self._warm, name="device-warmup", daemon=True)
         self._thread.start()
@@ -50,9 +50,9 @@ class DeviceWarmup:
             except Exception:  # noqa: BLE001 (the device's own work reports what is wrong)
                 return
 
-    def started(self) -> None:
-        """Wait for Warp's start (not for the context)."""
-        self._started.wait()
+    def started(self, timeout: float | None = None) -> bool:
+        """Wait for Warp's start (not for the context), at most ``timeout`` seconds; whether it ended."""
+        return self._started.wait(timeout)
 
     def join(self) -> None:
         """Wait for the warm-up to end."""
