@@ -247,3 +247,26 @@ def test_a_band_s_rows_go_in_one_device_copy_a_buffer(device, small_staging, mon
     assert copies == [1000, 1000, 1000, 360]
     np.testing.assert_array_equal(out[:, 2:5], band)
     assert not out[:, :2].any() and not out[:, 5:].any()
+
+
+def test_only_pieces_next_to_each_other_on_both_sides_share_a_copy():
+    """``Staging._device_copies``: a piece joins the copy before it only where it follows it both on the
+    device and in the buffer."""
+    from warp_highlights.kernels.transfer import Staging
+
+    data = np.zeros(10, np.uint8)
+    pieces = [(1000, data[:4], 0), (1004, data[:2], 4), (2000, data[:3], 6), (2003, data[:1], 20), (2004, data[:5], 21)]
+    assert Staging._device_copies(pieces) == [(1000, 0, 6), (2000, 6, 3), (2003, 20, 6)]
+    assert Staging._device_copies([]) == []
+
+
+def test_the_host_s_peak_memory_needs_no_warp():
+    """``PeakMemory("cpu")`` (the fit command's loading thread, before Warp has started) starts no Warp."""
+    import subprocess
+    import sys
+
+    probe = ("from warp_highlights.io.memory import PeakMemory\n"
+             "with PeakMemory('cpu') as peak:\n    x = bytearray(1 << 20)\n"
+             "from warp._src import context\nprint(context.runtime is None, peak.host is not None, peak.device is None)")
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert run.stdout.split() == ["True", "True", "True"], run.stderr
