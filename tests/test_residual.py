@@ -850,9 +850,9 @@ def test_calibration_absorbs_a_sample_s_bias_in_one_exact_measurement(monkeypatc
             return real_deflated(self, steps, bits=bits, keep=keep, images=images)
         return np.rint(real_deflated(whole, steps, bits=bits, images=images) * 1.06 / self.scale).astype(np.int64)
 
-    def counted(self, steps, *, bits, keep=None):
+    def counted(self, steps, *, bits, keep=None, calibration=1.0):
         exact.append(self.exact)
-        return real_bytes(self, steps, bits=bits, keep=keep)
+        return real_bytes(self, steps, bits=bits, keep=keep, calibration=calibration)
 
     monkeypatch.setattr(RateSample, "deflated", biased)
     monkeypatch.setattr(RateSample, "bytes", counted)
@@ -864,7 +864,7 @@ def test_calibration_absorbs_a_sample_s_bias_in_one_exact_measurement(monkeypatc
 
 def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
     """``_modelled_distortion``: for bytes the model itself gives at one distortion, the distortion where
-    it gives the goal (bisections to 1e-9); None where the bytes are under the ranges' and weights' own."""
+    it gives the goal (roots to 1e-9); None where the bytes are under the ranges' and weights' own."""
     principal = PrincipalImages.of(_patterned_stack(30, 36, 48, 1, 16, 0.8))
     plans = [StackPlan(principal, 3.0, principal.count - 1)]
     levels = 65535

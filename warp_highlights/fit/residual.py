@@ -87,7 +87,7 @@ _SEARCH_DEPTH = 35.0  # the search's finest distortion: this far (natural log) u
 _SEARCH_START = 12.0  # a first search starts this far under the top energy (where the default budget binds, both samples and the 64- and 250-light donuts ended 9.4-16.1 under)
 _SEARCH_STRIDE = 8.0  # a secant step moves the log distortion at most this far ...
 _SEARCH_MIN_STEP = 0.05  # ... and at least this far
-_MODEL_BISECTIONS = 40  # _modelled_distortion's bisections (of a range of at most 80: to within 1e-10)
+_MODEL_TOLERANCE = 1e-9  # _modelled_distortion's roots (offset in bits, log distortion) to within this
 _MODEL_OFFSET_RANGE = 40.0  # the model's constant bits a value is sought within this far of none
 _SEARCH_NARROWEST = 1e-3  # _search stops once the bracket is narrower than this (log distortion: a 0.1% change of the steps' squares)
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
@@ -289,12 +289,12 @@ class RateSample:
     def exact(self) -> bool:
         return self.scale == 1.0
 
-    def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
+    def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, calibration: float = 1.0) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
-        (``deflated``, scaled to the whole images, with each image's range and weights). ``keep`` (an
-        ``exact`` sample only): hold the images' deflated pieces there, in place of what it held, for
-        the field writer."""
-        return float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
+        (``deflated``, scaled to the whole images and by ``calibration``, the whole images' bytes per
+        scaled sampled byte, with each image's range and weights). ``keep`` (an ``exact`` sample only):
+        hold the images' deflated pieces there, in place of what it held, for the field writer."""
+        return calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
 
     def deflated(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
         """(len(``steps``),) int64 deflated bytes of each of the first len(``steps``) basis images at the
@@ -469,9 +469,8 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     ratios = np.ones(len(plans))  # each plan's whole-image bytes per (scaled) sampled byte
 
     def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
-        return sum(sample.bytes(step, bits=bits, keep=plan.deflated) if sample.exact else
-                   scale * sample.scale * float(sample.deflated(step, bits=bits).sum()) + sample.per_image * len(step)
-                   for plan, sample, step, scale in zip(plans, samples, steps, ratios))
+        return sum(sample.bytes(step, bits=bits, keep=plan.deflated if sample.exact else None, calibration=calibration)
+                   for plan, sample, step, calibration in zip(plans, samples, steps, ratios))
 
     def exact(steps: list[np.ndarray]) -> float:
         try:
@@ -625,20 +624,27 @@ def _modelled_bytes(plans: list[StackPlan], levels: int, log_distortion: float, 
 def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: float, measured: float, goal: float,
                          lowest: float, highest: float) -> float | None:
     """The log distortion at which ``_modelled_bytes``, its offset fitted to the ``measured`` bytes at
-    ``log_distortion``, gives ``goal`` bytes (within [``lowest``, ``highest``]); None where no offset
-    fits the measurement (nothing kept, or bytes the ranges and weights alone exceed)."""
-    def bisect(function, low: float, high: float) -> float:  # the root of an increasing function, bracketed
-        for _ in range(_MODEL_BISECTIONS):
-            middle = 0.5 * (low + high)
-            low, high = (middle, high) if function(middle) < 0 else (low, middle)
-        return 0.5 * (low + high)
+    ``log_distortion``, gives ``goal`` bytes (within [``lowest``, ``highest``]: an end where the goal
+    lies beyond it); None where no offset fits the measurement (nothing kept, or bytes the ranges and
+    weights alone exceed). Both roots by Brent's method (the model's bytes rise with the offset and
+    fall with the distortion)."""
+    from scipy.optimize import brentq  # only the sampled rate search needs it (0.04 s to import after the pipeline)
 
-    low_offset, high_offset = -_MODEL_OFFSET_RANGE, _MODEL_OFFSET_RANGE
-    at = lambda offset: _modelled_bytes(plans, levels, log_distortion, offset) - measured  # noqa: E731
-    if not at(low_offset) < 0 < at(high_offset):
+    def fitted(offset: float) -> float:
+        return _modelled_bytes(plans, levels, log_distortion, offset) - measured
+
+    if not fitted(-_MODEL_OFFSET_RANGE) < 0 < fitted(_MODEL_OFFSET_RANGE):
         return None
-    offset = bisect(at, low_offset, high_offset)
-    return bisect(lambda x: goal - _modelled_bytes(plans, levels, x, offset), lowest, highest)
+    offset = brentq(fitted, -_MODEL_OFFSET_RANGE, _MODEL_OFFSET_RANGE, xtol=_MODEL_TOLERANCE)
+
+    def short(x: float) -> float:
+        return goal - _modelled_bytes(plans, levels, x, offset)
+
+    if short(lowest) >= 0:
+        return lowest  # even everything kept as finely as the codes go is under the goal
+    if short(highest) <= 0:
+        return highest
+    return brentq(short, lowest, highest, xtol=_MODEL_TOLERANCE)
 
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,
