@@ -14,6 +14,7 @@ lets go of the GIL, while the command imports the rest of the pipeline and Warp 
 from __future__ import annotations
 
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 __all__ = ["DeviceWarmup", "InBackground"]
@@ -62,35 +63,28 @@ class DeviceWarmup:
 
 
 class InBackground:
-    """Runs ``work(stop)`` in a thread from now on: ``result`` waits for it and returns what it returned
-    or raises what it raised; ``cancel`` sets ``stop`` (a ``threading.Event`` the work checks between
-    its steps, stopping early) and waits for it to end. Call one of them before returning: a caller
-    that meets an error or Ctrl-C meanwhile cancels (``with`` does so)."""
+    """Runs ``work(stop)`` in a thread from now on (a one-thread executor's future): ``result`` waits for
+    it and returns what it returned or raises what it raised; ``cancel`` sets ``stop`` (a
+    ``threading.Event`` the work checks between its steps, stopping early) and waits for it to end.
+    Call one of them before returning: a caller that meets an error or Ctrl-C meanwhile cancels
+    (``with`` does so). Either way the thread has ended when they return."""
 
     def __init__(self, work: Callable, *, name: str):
         self.stop = threading.Event()
-        self._outcome: tuple | None = None
-        self._thread = threading.Thread(target=self._run, args=(work,), name=name, daemon=True)
-        self._thread.start()
-
-    def _run(self, work: Callable) -> None:
-        try:
-            self._outcome = (True, work(self.stop))
-        except BaseException as error:  # noqa: BLE001 (raised again in the caller's thread by result)
-            self._outcome = (False, error)
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=name)
+        self._future = self._executor.submit(work, self.stop)
 
     def result(self):
         """Wait for the work; its value, or its error raised here."""
-        self._thread.join()
-        done, value = self._outcome
-        if not done:
-            raise value
-        return value
+        try:
+            return self._future.result()
+        finally:
+            self._executor.shutdown(wait=True)
 
     def cancel(self) -> None:
         """Ask the work to stop and wait until it has."""
         self.stop.set()
-        self._thread.join()
+        self._executor.shutdown(wait=True)
 
     def __enter__(self) -> InBackground:
         return self
