@@ -294,3 +294,27 @@ def test_runs_are_packed_into_groups_of_at_most_size_in_order():
     assert all(sum(run.stop - run.start for run in group) <= 3 for group in groups)
     assert [run for group in groups for run in group] == runs
     assert groups[:2] == [[slice(0, 1), slice(8, 9)], [slice(16, 19)]]
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_pieces_written_past_the_zip_writer_make_the_file_it_would_write(bits, tmp_path, monkeypatch):
+    """The codes' pieces go straight to the file, the entry's CRC summed from each image's (``io.crc``):
+    the file is byte for byte the one the zip writer's own ``write`` makes, and its CRCs check."""
+    from test_field import make_field
+
+    import warp_highlights.io.fieldfile as fieldfile
+
+    field = make_field()
+    principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
+    stack = LowRankStack.quantised(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
+    known = []
+    real_known = fieldfile._known_entry
+    monkeypatch.setattr(fieldfile, "_known_entry", lambda entry: known.append(real_known(entry)) or known[-1])
+    _codes_entry(field, stack, tmp_path / "direct.whf")
+    assert known == [True]  # this Python's zip writer is the one the direct path knows
+    monkeypatch.setattr(fieldfile, "_known_entry", lambda entry: False)
+    _codes_entry(field, stack, tmp_path / "written.whf")
+    assert (tmp_path / "direct.whf").read_bytes() == (tmp_path / "written.whf").read_bytes()
+    with zipfile.ZipFile(tmp_path / "direct.whf") as archive:
+        assert archive.testzip() is None
+    np.testing.assert_array_equal(load_field(tmp_path / "direct.whf").residual.luminance.codes, stack.codes)

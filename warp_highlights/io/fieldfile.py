@@ -95,6 +95,7 @@ from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 from .codes import STREAM_END, DeflatedCodes, codes_from_stored, deflated_piece, stored_codes, stored_shape
+from .crc import Crc32Appender
 from .deflate import ParallelDeflate
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
@@ -360,12 +361,15 @@ class _StoredCodes:
         self.nbytes = math.prod(self.shape)
 
     def images(self, *, pieces: bool = True):
-        """(stored codes, deflated piece or None) of each basis image, in order: a block of images at a time made
-        in threads, the next block made while the caller stores this one."""
+        """(stored codes, deflated piece or None, CRC-32 of the stored codes or None) of each basis image, in
+        order: a block of images at a time made in threads, the next block made while the caller stores
+        this one. The piece and the CRC only where ``pieces``."""
 
-        def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None]:
+        def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None, int | None]:
             stored = stored_codes(code.transpose(2, 0, 1))
-            return stored, self.deflated.piece(stored) if pieces else None
+            if not pieces:
+                return stored, None, None
+            return stored, self.deflated.piece(stored), zlib.crc32(stored)  # zlib lets go of the GIL
 
         block = max(1, NUMPY_THREADS)
         starts = range(0, len(self.codes), block)
@@ -400,16 +404,35 @@ class _GivenPieces:
 
 def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> None:
     """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
-    image's stored codes, as deflated pieces (``io.codes``)."""
+    image's stored codes, as deflated pieces (``io.codes``). Where the zip writer's entry is as this
+    code knows it (``_known_entry``), each piece goes straight to the file, the entry's CRC summed from
+    the CRCs the threads took of the images (``io.crc``): the writer reads no image's bytes again."""
     with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
         compressor = None  # where the zip writer has no compressor of its own to replace, it deflates the entry itself
         if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
             compressor = entry._compressor = _GivenPieces()
         np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-        for image, piece in stored.images(pieces=compressor is not None):
+        appender = Crc32Appender(math.prod(stored.shape[1:])) if compressor is not None and _known_entry(entry) else None
+        for image, piece, crc in stored.images(pieces=compressor is not None):
+            if appender is not None:  # what the entry's ``write`` does, with the image's CRC taken in its thread
+                entry._file_size += appender.length
+                entry._crc = appender.append(entry._crc, crc)
+                entry._compress_size += len(piece)
+                entry._fileobj.write(piece)
+                continue
             if compressor is not None:
                 compressor.given = piece
             entry.write(image.reshape(-1))
+
+
+_ENTRY_FIELDS = ("_file_size", "_crc", "_compress_size", "_fileobj")
+
+
+def _known_entry(entry) -> bool:
+    """Whether a zip entry open for writing keeps its running sizes, CRC and file under the names
+    ``_write_codes`` adds to (``zipfile``'s own writer; a test checks the file is the same byte for byte); else
+    its ``write`` is used."""
+    return all(hasattr(entry, field) for field in _ENTRY_FIELDS) and isinstance(entry._crc, int) and not entry.closed
 
 
 def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
