@@ -316,13 +316,20 @@ def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch)
     np.testing.assert_array_equal(fields[1].residual.highlight_colour, fields[0].residual.highlight_colour)
 
 
-def test_a_device_that_is_not_there_is_reported_before_any_image_is_read(small_donut, tmp_path, capsys, monkeypatch):
-    """The images load while the pipeline is imported, but only once Warp has found the device."""
-    from warp_highlights.io.dataset import ReflectanceField
+@pytest.mark.parametrize("large", [True, False])
+def test_a_device_that_is_not_there_is_reported_before_a_large_capture_is_decoded(large, small_donut, tmp_path, capsys, monkeypatch):
+    """The images load while the pipeline is imported; a capture of more than ``EARLY_LOAD_BYTES`` only
+    once Warp has found the device (a small one may be read first). Either way: one error line."""
+    import warp_highlights.cli.fit as fit_cli
+    import warp_highlights.io.dataset as dataset_module
 
-    loads = []
-    real = ReflectanceField.load.__func__
-    monkeypatch.setattr(ReflectanceField, "load", classmethod(lambda cls, *args, **kwargs: loads.append(1) or real(cls, *args, **kwargs)))
+    decoded = []
+    real = dataset_module.read_image
+    monkeypatch.setattr(dataset_module, "read_image", lambda *args, **kwargs: decoded.append(1) or real(*args, **kwargs))
+    if large:
+        monkeypatch.setattr(fit_cli, "EARLY_LOAD_BYTES", 0)
     assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cuda:7", "-q"]) == 2
-    assert "device" in _error_line(capsys) and loads == []
+    assert "device" in _error_line(capsys)
     assert not (tmp_path / "f.whf").exists()
+    if large:
+        assert decoded == []

@@ -55,6 +55,11 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     add_pixel_limit_option(parser)
 
 
+EARLY_LOAD_BYTES = 1 << 29
+"""``fit`` decodes a capture of at most this many float32 bytes (512 MiB: 250 lights at 480x270 are 389 MB) while Warp
+starts, and a larger one only once Warp has found the device: a wrong ``--device`` then costs at most about 0.5 s of
+reading before its error line; at 480x270 the wait for Warp's start (0.12 s on the lent H100) was on the command's path."""
+
 RESIDUAL_CHOICES = {  # --residual -> the settings it stands for (put before any --set, which can still change them)
     "auto": [],
     "lowrank": ["residual.learned=false", "residual.learned_on_cuda=false"],
@@ -95,25 +100,32 @@ def _run_fit(args) -> int:
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
         check_output_file(Path(args.report), overwrite=args.overwrite)
     size = args.size
-    from ..io.dataset import ReflectanceField
+    from ..io.dataset import LoadStopped, ReflectanceField
     from ..io.memory import PeakMemory
     from ..io.warmup import DeviceWarmup, InBackground
 
     started = time.perf_counter()  # the summary's time includes the pipeline's imports from here on
 
     def load(stop) -> tuple | None:  # in a thread, while the pipeline is imported: the decoding lets go of the GIL
-        # only once Warp has started and found the device (a wrong --device is reported before any image is read)
-        warmup.started()
-        if warmup.device is None or stop.is_set():
-            return None  # check_device reports what is wrong (or, where Warp's start failed there only, the images load after it)
-        return load_images(stop)
+        def device_found(stack_bytes: int) -> None:  # a large capture decodes only once Warp has found the device (a wrong
+            # --device is reported before it is read); a small one at once (reading it first costs less than waiting), unless -v
+            # asks for Warp's own messages (the decoders' quieting of native stderr would hide those of its start)
+            if stack_bytes > EARLY_LOAD_BYTES or getattr(args, "verbose", False):
+                warmup.started()
+                if warmup.device is None:
+                    raise LoadStopped("no device: check_device reports what is wrong")
 
-    def load_images(stop) -> tuple:  # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working
-        # size as each image is decoded; nothing here touches Warp (the host's peak alone)
+        try:
+            return load_images(stop, device_found)
+        except LoadStopped:
+            return None  # check_device reports what is wrong (or, where Warp's start failed there only, the images load after it)
+
+    def load_images(stop, before_decoding=None) -> tuple:  # only what the fit uses (no held-out lights, no ground-truth components),
+        # shrunk to the working size as each image is decoded; nothing here touches Warp (the host's peak alone)
         load_started = time.perf_counter()
         with PeakMemory("cpu") as peak:
             loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
-                                           heldout=False, components=False, stop=stop)
+                                           heldout=False, components=False, stop=stop, before_decoding=before_decoding)
         return loaded, peak, time.perf_counter() - load_started
 
     warmup = None

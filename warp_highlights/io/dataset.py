@@ -12,6 +12,7 @@ import json
 import re
 import threading
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -165,6 +166,7 @@ class ReflectanceField:
         workers: int | None = None,
         components: bool = True,
         stop: threading.Event | None = None,
+        before_decoding: Callable[[int], None] | None = None,
     ) -> ReflectanceField:
         """Load a dataset folder into memory (one preallocated float32 array per image stack).
 
@@ -190,6 +192,8 @@ class ReflectanceField:
                 (a caller loading in a thread whose own work failed).
             components: also load the ground-truth ``specular/`` and ``diffuse/`` images, when present
                 (``fit`` does not use them).
+            before_decoding: called with the float32 bytes the loaded stacks will take, once every
+                header is read and before any image is decoded (it may wait, or raise to stop the loading).
 
         Raises:
             InputError: One line on any bad input: missing folder, image or light file, several
@@ -213,6 +217,8 @@ class ReflectanceField:
         if workers < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
         _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))  # a decoding thread's image, its finite mask, its shrunk copy
+        if before_decoding is not None:
+            before_decoding(sum(g.file_count for g in groups) * height * width * int(np.prod(shape[2:])) * 4)
         mask = submit(_read_mask, folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))  # while the images decode
         try:
             with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
