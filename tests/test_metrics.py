@@ -7,6 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from warp_highlights.io.images import display_rgb8
 from warp_highlights.io.metrics import psnr, psnr_8bit, psnr_excluding_black, srgb_psnr, srgb_scores, ssim_8bit
@@ -53,3 +56,14 @@ def test_quality_is_computed_in_one_module():
             text = path.read_text()
             found += [f"{path.relative_to(ROOT)}: {needle}" for needle in ("log10(", "structural_similarity", "peak_signal_noise_ratio") if needle in text]
     assert found == []
+
+
+@settings(max_examples=50, deadline=None)
+@given(data=st.data())
+def test_8bit_psnr_in_integers_is_the_float64_mean_exactly(data):
+    shape = data.draw(st.tuples(st.integers(1, 40), st.integers(1, 40), st.sampled_from([1, 3])))
+    x = data.draw(hnp.arrays(np.uint8, shape))
+    y = data.draw(hnp.arrays(np.uint8, shape))
+    mse = float(np.mean((x.astype(np.float64) - y) ** 2))
+    assert psnr_8bit(x, y) == (100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse)))
+    assert psnr_8bit(x, y) == psnr_8bit(x.astype(np.float64), y.astype(np.float64))

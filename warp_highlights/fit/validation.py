@@ -11,7 +11,7 @@ predict image j twice,
 - blending: the corners' images blended with the same weights (the alpha blend).
 
 The directed edges of those triangles that the capture's own triangulation lacks are retargeted first
-(one batch). Both predictions are scored against image j in 8-bit sRGB (``srgb_psnr``); if moving's mean
+(one batch). Both predictions are scored against image j in 8-bit sRGB (``srgb_psnr``'s arithmetic); if moving's mean
 is lower, no Gaussian moves. Only the prediction leaves j out: the Gaussians, their move decisions, the
 highlight colour and the segmentation were fitted with image j among the others, which favours moving
 a little (the check is conservative about blending). For a learned residual, the moved highlights of
@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..io.metrics import srgb_psnr
+from ..io.images import display_rgb8
+from ..io.metrics import psnr_8bit
 from ..kernels.raster import Rasterizer
 from ..kernels.transfer import to_host
 from ..model.config import FitSettings
@@ -227,9 +228,9 @@ def check_moving(
             blend = sum(w * images[v] for v, w in zip(corners[q], weights))
             highlights = sum(w * own[v] for v, w in zip(corners[q], weights))
             moved = blend + (drawn_q - highlights)[..., None] * tint  # the blended residual plus the moved highlights
-            truth = images[loo.lights[q]] * scale
-            moving_psnr[q] = srgb_psnr(moved * scale, truth)
-            blend_psnr[q] = srgb_psnr(blend * scale, truth)
+            truth = display_rgb8(images[loo.lights[q]] * scale)  # shown once for both scores (``srgb_psnr`` shows both its images)
+            moving_psnr[q] = psnr_8bit(display_rgb8(moved * scale), truth)
+            blend_psnr[q] = psnr_8bit(display_rgb8(blend * scale), truth)
             if q in kept_rows:
                 kept[np.searchsorted(kept_rows, q)] = drawn_q[..., None] * tint
 

@@ -48,7 +48,12 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
 
 def psnr_8bit(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB (peak 255, at most 100 for identical images) of two 8-bit images of one shape."""
-    mse = float(np.mean((a.astype(np.float64) - b) ** 2))
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype == b.dtype == np.uint8:  # integers throughout (the move check scores 96 images a fit): the sum is exact, as float64's was
+        difference = np.subtract(a, b, dtype=np.int16)
+        mse = int(np.square(difference, dtype=np.int32).sum(dtype=np.int64)) / max(difference.size, 1)
+    else:
+        mse = float(np.mean((a.astype(np.float64) - b) ** 2))
     return 100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse))
 
 
