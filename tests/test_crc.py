@@ -37,3 +37,25 @@ def test_long_parts_and_the_empty_part():
 def test_a_negative_length_is_refused():
     with pytest.raises(ValueError, match=">= 0"):
         Crc32Appender(-1)
+
+
+def _zlib_combine():
+    """zlib's own crc32_combine64 from the C library, where it can be loaded (a reference for lengths no test can hold)."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("z")
+    try:
+        combine = getattr(ctypes.CDLL(name or "libz.so.1"), "crc32_combine64")
+    except (OSError, AttributeError):
+        return None
+    combine.restype, combine.argtypes = ctypes.c_ulong, [ctypes.c_ulong, ctypes.c_ulong, ctypes.c_int64]
+    return combine
+
+
+@pytest.mark.skipif(_zlib_combine() is None, reason="zlib's C library (crc32_combine64) cannot be loaded here")
+@pytest.mark.parametrize("length", [2**31 - 1, 2**31, 2**32 - 1, 2**32, 2**32 + 1, 5 * 2**30 + 12345, 2**40 + 7, 10**18])
+def test_lengths_past_32_bits_as_zlib_combines_them(length):
+    combine = _zlib_combine()
+    for first, second in ((0, 0), (0xFFFFFFFF, 0x80000005), (zlib.crc32(b"head"), zlib.crc32(b"tail"))):
+        assert crc32_combine(first, second, length) == combine(first, second, length)

@@ -333,3 +333,32 @@ def test_a_device_that_is_not_there_is_reported_before_a_large_capture_is_decode
     assert not (tmp_path / "f.whf").exists()
     if large:
         assert decoded == []
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small_donut, tmp_path, monkeypatch):
+    """At most ``EARLY_LOAD_BYTES`` of stacks decode before the warm-up has started Warp (held back here
+    until an image is decoded, or 2 s); under -v the loading waits for it (Warp's own messages)."""
+    import threading
+
+    import warp_highlights.io.dataset as dataset_module
+    import warp_highlights.io.warmup as warmup_module
+
+    order, decoded = [], threading.Event()
+    real_warm, real_read = warmup_module.DeviceWarmup._warm, dataset_module.read_image
+
+    def warm(self):
+        decoded.wait(2.0)
+        order.append("warp")
+        real_warm(self)
+
+    def read(*args, **kwargs):
+        if not decoded.is_set():
+            order.append("decode")
+            decoded.set()
+        return real_read(*args, **kwargs)
+
+    monkeypatch.setattr(warmup_module.DeviceWarmup, "_warm", warm)
+    monkeypatch.setattr(dataset_module, "read_image", read)
+    assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cpu", "-q", *(["-v"] if verbose else [])]) == 0
+    assert order[:2] == (["warp", "decode"] if verbose else ["decode", "warp"])

@@ -67,3 +67,16 @@ def test_8bit_psnr_in_integers_is_the_float64_mean_exactly(data):
     mse = float(np.mean((x.astype(np.float64) - y) ** 2))
     assert psnr_8bit(x, y) == (100.0 if mse == 0 else min(100.0, 10.0 * np.log10(255.0**2 / mse)))
     assert psnr_8bit(x, y) == psnr_8bit(x.astype(np.float64), y.astype(np.float64))
+
+
+def test_8bit_psnr_of_a_large_image_sums_past_32_bits():
+    """A 480x270 colour image all 255 against all 0: 389k squares of 65025 sum past 2^31."""
+    white, black = np.full((270, 480, 3), 255, np.uint8), np.zeros((270, 480, 3), np.uint8)
+    assert psnr_8bit(white, black) == 0.0
+    assert psnr_8bit(black[:, :, :1], white[:, :, :1]) == 0.0
+
+
+def test_8bit_psnr_of_masked_images_keeps_their_mask():
+    a = np.ma.masked_array(np.array([[0, 10]], np.uint8), mask=[[False, True]])
+    b = np.ma.masked_array(np.array([[0, 250]], np.uint8), mask=[[False, True]])
+    assert psnr_8bit(a, b) == 100.0  # the one unmasked value agrees

@@ -48,8 +48,8 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
 
 def psnr_8bit(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB (peak 255, at most 100 for identical images) of two 8-bit images of one shape."""
-    a, b = np.asarray(a), np.asarray(b)
-    if a.dtype == b.dtype == np.uint8:  # integers throughout (the move check scores 96 images a fit): the sum is exact, as float64's was
+    a, b = np.asanyarray(a), np.asanyarray(b)
+    if a.dtype == b.dtype == np.uint8 and not (np.ma.isMaskedArray(a) or np.ma.isMaskedArray(b)):  # integers throughout (the move check scores 96 images a fit): the sum is exact, as float64's was
         difference = np.subtract(a, b, dtype=np.int16)
         mse = int(np.square(difference, dtype=np.int32).sum(dtype=np.int64)) / max(difference.size, 1)
     else:
