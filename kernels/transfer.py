@@ -59,13 +59,27 @@ def to_host(array) -> np.ndarray:
     return host
 
 
-def rows_up(host: np.ndarray, device, *, whole_bytes: int = 0) -> wp.array:
+def rows_up(host: np.ndarray, device, *, whole_bytes: int = 0, rows=None) -> wp.array:
     """An (n, ...) host array (a band of a stack will do: each ``host[i]`` contiguous) as a new
     contiguous array on ``device``, of the same scalar type: one copy per ``host[i]``, or one for all
     where the whole is contiguous; through ``Staging`` from ``STAGED_MIN_BYTES`` (of this array, or of
-    ``whole_bytes``: the whole stack whose band this is, which goes up band by band)."""
+    ``whole_bytes``: the whole stack whose band this is, which goes up band by band). ``rows``: only
+    these ``host[i]``, in their order (never gathered on the host first)."""
     host = np.asarray(host)
     kind = wp.dtype_from_numpy(host.dtype)
+    if rows is not None:
+        rows = np.asarray(rows, np.int64).reshape(-1)
+        out = wp.empty((len(rows),) + host.shape[1:], dtype=kind, device=device)
+        if not len(rows):
+            return out
+        row_bytes = host[0].nbytes
+        staging = Staging.of(out.device) if staged(out.device, max(len(rows) * row_bytes, whole_bytes)) else None
+        if staging is not None and host[0].flags.c_contiguous:
+            staging.up([(out.ptr + i * row_bytes, _bytes_of(host[row])) for i, row in enumerate(rows.tolist())])
+            return out
+        for i, row in enumerate(rows.tolist()):
+            wp.copy(out[i], wp.array(np.ascontiguousarray(host[row]), dtype=kind, device="cpu", copy=False))
+        return out
     out = wp.empty(host.shape, dtype=kind, device=device)
     staging = Staging.of(out.device) if len(host) and staged(out.device, max(host.nbytes, whole_bytes)) else None
     if staging is not None and (host.flags.c_contiguous or (host.ndim > 1 and host[0].flags.c_contiguous)):
