@@ -21,6 +21,7 @@ from .. import __version__
 from ..io.dataset import ReflectanceField
 from ..io.memory import PeakMemory, available_memory
 from ..io.resample import resample_image, resize_stack, working_size
+from ..io.warmup import InBackground
 from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
 from ..model.config import FitSettings
@@ -85,6 +86,10 @@ def fit_field(
     with timer.stage("triangulation"):
         triangulation = SphericalTriangulation(dataset.lights.directions)
         edges = triangulation.directed_edges()
+    planning = None
+    if residual and device.is_cuda:  # the move check's left-out lights, host work that depends on the lights alone, planned in a
+        # thread while the device fits (the fit's thread mostly waits for it): 0.13 s of the 250-light check on the lent H100's host
+        planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, settings.residual.check_lights), name="check-plan")
     with timer.stage("segmentation"):
         images = resize_stack(dataset.images, width, height)
         factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
@@ -150,7 +155,9 @@ def fit_field(
                 del specular
         learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
         with timer.stage("move check"):
-            plan = plan_check(dataset.lights.directions, edges, settings.residual.check_lights if moving.any() else 0)
+            planned = planning.result() if planning is not None else None
+            plan = planned if planned is not None and moving.any() else plan_check(dataset.lights.directions, edges,
+                                                                                    settings.residual.check_lights if moving.any() else 0)
             iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
             check_images, check_own, check_colour = images, own, colour
             if (gaussian_width, gaussian_height) != (width, height) and not learned:
