@@ -373,11 +373,11 @@ def test_failed_save_keeps_the_old_file_and_leaves_no_temp_file(
     calls = []
     real = fieldfile._write_array
 
-    def failing(archive, name, array):
+    def failing(archive, name, array, **kwargs):
         calls.append(name)
         if len(calls) == 4:
             raise error
-        real(archive, name, array)
+        real(archive, name, array, **kwargs)
 
     monkeypatch.setattr(fieldfile, "_write_array", failing)
     with pytest.raises(type(error)):
@@ -1022,6 +1022,22 @@ def monkeypatch_module():
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(deflate_module, "PIECE_BYTES", 1_000)
         yield patch
+
+
+def test_entries_deflated_ahead_in_threads_make_the_file_the_zip_writer_makes(small_field, tmp_path, monkeypatch):
+    """The smaller arrays' entries, made and deflated in threads before the writer stores them, are the bytes the
+    zip writer's own compressor makes of them: the file is the same byte for byte, and its CRCs check."""
+    field = load_field(small_field)
+    made = []
+    real = fieldfile._deflated_npy
+    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(array))
+    save_field(field, tmp_path / "ahead.whf")
+    assert len(made) >= 10  # the Gaussians, the paths, the residual's means, ranges, weights, scale and colour
+    monkeypatch.setattr(fieldfile, "_deflated_ahead", lambda array: False)
+    save_field(field, tmp_path / "written.whf")
+    assert (tmp_path / "ahead.whf").read_bytes() == (tmp_path / "written.whf").read_bytes()
+    with zipfile.ZipFile(tmp_path / "ahead.whf") as archive:
+        assert archive.testzip() is None
 
 
 def test_a_field_deflated_in_threads_loads_the_same_and_is_as_small(small_field, tmp_path, monkeypatch):

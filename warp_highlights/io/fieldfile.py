@@ -68,6 +68,7 @@ version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VE
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -280,12 +281,18 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     header = json.dumps(
         _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
-    with zipfile.ZipFile(stream, "w") as archive:
-        with archive.open(_entry_info(_HEADER), "w") as entry:
-            entry.write(header)
-        for name, array in arrays:
-            _write_array(archive, name, array)
-        infos = archive.infolist()
+    # the smaller arrays' entries deflated in threads from the start, while the writer stores the ones before them
+    ahead = [submit(_deflated_npy, array) if _deflated_ahead(array) else None for _, array in arrays]
+    try:
+        with zipfile.ZipFile(stream, "w") as archive:
+            with archive.open(_entry_info(_HEADER), "w") as entry:
+                entry.write(header)
+            for (name, array), deflated in zip(arrays, ahead):
+                _write_array(archive, name, array, deflated=deflated)
+            infos = archive.infolist()
+    except BaseException:  # an error or Ctrl-C: nothing left deflating behind
+        cancel_and_wait([future for future in ahead if future is not None])
+        raise
     return _size_report(infos, stream.tell())
 
 
@@ -435,10 +442,14 @@ def _known_entry(entry) -> bool:
     return all(hasattr(entry, field) for field in _ENTRY_FIELDS) and isinstance(entry._crc, int) and not entry.closed
 
 
-def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
+def _write_array(archive: zipfile.ZipFile, name: str, array, *, deflated=None) -> None:
     """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
     ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
-    about the same size), where the zip writer has the compressor this replaces."""
+    about the same size), where the zip writer has the compressor this replaces; ``deflated``: a future
+    of the entry made and deflated already (``_deflated_npy``)."""
+    if deflated is not None:
+        _write_deflated(archive, name, *deflated.result())
+        return
     if isinstance(array, _StoredCodes):
         _write_codes(archive, name, array)
         return
@@ -450,6 +461,49 @@ def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
     ) as entry:
         _set_compressor(entry, array.nbytes)
         np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
+
+
+def _deflated_ahead(array) -> bool:
+    """Whether an entry's ``.npy`` is made and deflated in a thread ahead of the writer: an array under
+    ``_PARALLEL_BYTES`` (a larger one is deflated in threads as it is written; the basis codes by image)."""
+    return not isinstance(array, _StoredCodes) and np.asarray(array).nbytes < _PARALLEL_BYTES
+
+
+def _deflated_npy(array) -> tuple[bytes, bytes]:
+    """(the ``.npy`` bytes of ``array`` as ``_write_array`` writes them, those bytes deflated as the zip writer's
+    own compressor deflates an entry: raw deflate at zlib's default level, finished)."""
+    array = np.asarray(array)
+    if array.flags.f_contiguous and not array.flags.c_contiguous:
+        array = np.ascontiguousarray(array)
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, array, allow_pickle=False)
+    raw = buffer.getvalue()
+    compressor = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
+    return raw, compressor.compress(raw) + compressor.flush()
+
+
+class _Deflated:
+    """A zip entry's compressor handing out the entry's data deflated already: all of it for the first
+    ``compress``, nothing after (``flush`` included)."""
+
+    def __init__(self, deflated: bytes):
+        self.deflated = deflated
+
+    def compress(self, data) -> bytes:
+        deflated, self.deflated = self.deflated, b""
+        return deflated
+
+    def flush(self) -> bytes:
+        return b""
+
+
+def _write_deflated(archive: zipfile.ZipFile, name: str, raw: bytes, deflated: bytes) -> None:
+    """One ``.npy`` entry of the ``raw`` bytes, stored as ``deflated`` (``_deflated_npy``) where the zip writer has
+    the compressor this replaces, else deflated by the writer."""
+    with archive.open(_entry_info(name), "w") as entry:
+        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
+            entry._compressor = _Deflated(deflated)
+        entry.write(raw)  # the zip writer sums the CRC (a small entry)
 
 
 def _set_compressor(entry, nbytes: int) -> None:
