@@ -130,10 +130,13 @@ class NormalisedStacks:
         return DeviceRows.nbytes(n, height * width * (1 if channels == 1 else 3))
 
     @classmethod
-    def make(cls, images: np.ndarray, own: np.ndarray, tint: np.ndarray, products, scale_of) -> NormalisedStacks:
+    def make(cls, images: np.ndarray, own: np.ndarray, tint: np.ndarray, products, scale_of, *, held_images: wp.array | None = None,
+             held_own: wp.array | None = None) -> NormalisedStacks:
         """The stacks of float32 ``images`` (n, H, W, C), ``own`` (n, H, W) and ``tint`` (H, W, C), the bands
         uploaded through ``products`` (``kernels.gram.DeviceProducts``); ``scale_of(mean_square)`` turns
-        a band's (rows, W) mean over the lights of Y^2 (float64) into its float32 s(x)."""
+        a band's (rows, W) mean over the lights of Y^2 (float64) into its float32 s(x). ``held_images``
+        (n, H W, C) and ``held_own`` (n, H W): the same values on the device already, read there (a band
+        is a view of them) instead of uploaded."""
         n, height, width, channels = images.shape
         device = products.device
         chroma = DeviceRows(n, height * width * 2, device) if channels == 3 else None
@@ -146,8 +149,12 @@ class NormalisedStacks:
         for top in range(0, height, rows):
             band = slice(top, min(top + rows, height))
             pixels = (band.stop - band.start) * width
-            band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products, uploaded).reshape((n, pixels, channels))
-            band_own = _rows_up(own[:, band].reshape(n, pixels), products, uploaded)
+            columns = slice(top * width, band.stop * width)
+            if held_images is not None:
+                band_images = held_images[:, columns]
+            else:
+                band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products, uploaded).reshape((n, pixels, channels))
+            band_own = held_own[:, columns] if held_own is not None else _rows_up(own[:, band].reshape(n, pixels), products, uploaded)
             band_tint = wp.array(np.ascontiguousarray(tint[band].reshape(pixels, channels), np.float32), dtype=wp.float32, device=device)
             sums = wp.empty(pixels, dtype=wp.float64, device=device)
             wp.launch(luminance_squares, dim=pixels, inputs=[band_images, band_own, band_tint, *weights], outputs=[sums], device=device)

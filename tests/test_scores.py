@@ -140,3 +140,27 @@ def test_the_check_scores_on_the_device_as_on_the_host(monkeypatch):
     np.testing.assert_allclose(checks[0].moving_psnr, checks[1].moving_psnr, atol=0.02)
     np.testing.assert_allclose(checks[0].blend_psnr, checks[1].blend_psnr, atol=0.02)
     assert checks[0].moves == checks[1].moves
+    held = validation_hold(images, own)
+    with_held = validation.check_moving(*args, wp.array(own, dtype=float, device="cuda:0"), images, own, None, factor=1.0, settings=settings,
+                                        device="cuda:0", held=held)
+    np.testing.assert_array_equal(with_held.moving_psnr, checks[0].moving_psnr)  # the same images there: the same scores
+    np.testing.assert_array_equal(with_held.blend_psnr, checks[0].blend_psnr)
+
+
+def validation_hold(images, own):
+    from warp_highlights.fit.residual import hold_images
+
+    held = hold_images(images, own, "cuda:0")
+    assert held is not None and held.images.shape == (len(images), images.shape[1] * images.shape[2], images.shape[3])
+    return held
+
+
+def test_images_are_held_on_cuda_devices_only_and_within_their_bound(monkeypatch):
+    import warp_highlights.fit.residual as residual_module
+
+    images, own = np.zeros((3, 4, 5, 3), np.float32), np.zeros((3, 4, 5), np.float32)
+    assert residual_module.hold_images(images, own, "cpu") is None
+    if wp.is_cuda_available():
+        assert residual_module.hold_images(images, own, "cuda:0") is not None
+        monkeypatch.setattr(residual_module, "HELD_IMAGES_BYTES", images.nbytes)  # the own highlights no longer fit beside
+        assert residual_module.hold_images(images, own, "cuda:0") is None

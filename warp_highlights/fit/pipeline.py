@@ -31,7 +31,16 @@ from ..model.gaussians import GaussianParams
 from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
-from .residual import build_residual, check_learned, decide_moving, gaussian_bytes, highlight_colour, learn_residual, render_own
+from .residual import (
+    build_residual,
+    check_learned,
+    decide_moving,
+    gaussian_bytes,
+    highlight_colour,
+    hold_images,
+    learn_residual,
+    render_own,
+)
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
@@ -155,6 +164,7 @@ def fit_field(
                 del specular
         learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
         with timer.stage("move check"):
+            held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device)  # sent up once, where small
             planned = planning.result() if planning is not None else None
             plan = planned if planned is not None and moving.any() else plan_check(dataset.lights.directions, edges,
                                                                                     settings.residual.check_lights if moving.any() else 0)
@@ -168,7 +178,7 @@ def fit_field(
             with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
                 check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, check_images, check_own, check_colour,
                                      factor=factor, settings=settings, device=device, workers=workers, progress=advance,
-                                     keep=settings.residual.learned_check if learned else 0)
+                                     keep=settings.residual.learned_check if learned else 0, held=held if check_images is images else None)
         if learned and check.moves and len(check.kept_lights):
             with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, workers, device, 1) as advance:
                 learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
@@ -181,6 +191,8 @@ def fit_field(
             moving = np.zeros((len(source.active), 1), dtype=bool)
             path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
             own, colour = np.zeros_like(own), None
+            if held is not None:
+                held.own = None  # the residual's stacks read the zeros from the host
         if learned:
             # the learned check's winner goes on learning from every light (the ones it left out too);
             # without a check, one model learns from every light
@@ -192,7 +204,8 @@ def fit_field(
         else:
             with timer.stage("residual compression"):
                 residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted),
-                                                device=device)
+                                                device=device, held_images=held)
+        held = None
 
     diffuse_model = None
     if diffuse != "none":

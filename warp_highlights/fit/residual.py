@@ -31,7 +31,7 @@ from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
 from ..kernels.stacks import NormalisedStacks
 from ..kernels.support import support_fractions
-from ..kernels.transfer import to_host
+from ..kernels.transfer import rows_up, to_host
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
@@ -52,7 +52,7 @@ from ..model.residual import (
 )
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, mapped_empty, parallel_map, submit
 
-__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
+__all__ = ["CHROMA_GAIN", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HELD_STACK_SHARE", "HeldImages", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "hold_images", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -70,6 +70,11 @@ more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160
 Where a CUDA device holds the stacks instead (``kernels.stacks``), the same share decides whether the
 principal images' host copy goes to that mapped file, where the device has no room for them (else they
 stay there, and the host keeps no copy)."""
+HELD_IMAGES_BYTES = 1 << 30
+"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are sent up
+once for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of the device's free
+memory; larger ones go up band by band where each stage reads them (the stacks: 0.1 s of the 480x270 fit on the lent H100)."""
+HELD_IMAGES_SHARE = 0.1
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each
 # cost more to hand out than to deflate)
@@ -153,6 +158,27 @@ def _nan_median(values: np.ndarray) -> np.ndarray:
     low = np.take_along_axis(ordered, (np.maximum(count - 1, 0) // 2)[:, None], axis=1)[:, 0]
     high = np.take_along_axis(ordered, (count // 2)[:, None], axis=1)[:, 0]  # count // 2 <= k - 1
     return np.where(count > 0, (low + high) / 2.0, np.nan)
+
+
+@dataclass
+class HeldImages:
+    """A fit's images (n, H W, C) and their own highlights (n, H W; None: not held) as float32 device arrays,
+    sent up once for the move check's scores and the residual's stacks (``hold_images``)."""
+
+    images: wp.array
+    own: wp.array | None
+
+
+def hold_images(images: np.ndarray, own: np.ndarray, device) -> HeldImages | None:
+    """``images`` (n, H, W, C) and ``own`` (n, H, W) on a CUDA ``device`` where together they take at most
+    ``HELD_IMAGES_BYTES`` and ``HELD_IMAGES_SHARE`` of its free memory; else None (each stage sends up what it reads)."""
+    device = wp.get_device(device)
+    n, height, width, channels = images.shape
+    nbytes = images.nbytes + own.nbytes
+    if not device.is_cuda or nbytes > HELD_IMAGES_BYTES or nbytes > HELD_IMAGES_SHARE * device.free_memory:
+        return None
+    held = rows_up(np.asarray(images, np.float32).reshape(n, -1), device).reshape((n, height * width, channels))
+    return HeldImages(held, rows_up(np.asarray(own, np.float32).reshape(n, -1), device))
 
 
 def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:
@@ -650,7 +676,7 @@ def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: fl
 
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,
-                   device=None) -> ResidualModel:
+                   device=None, held_images: HeldImages | None = None) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
     On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
     equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS. There too, where they
@@ -666,7 +692,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     ``max_luminance_rank`` luminance images, at least ``min_luminance_rank``). The codes are 8 or 16
     bits as the settings say, or else those of the lower squared error the rate-distortion model
     predicts (``StackPlan.distortion``); 16 bits are not tried where 8-bit codes already hold every
-    kept image's step (16-bit codes would store the same quantisation in more bytes).
+    kept image's step (16-bit codes would store the same quantisation in more bytes). ``held_images``:
+    the images (and, where not None, ``own``) on the device already (``HeldImages``), read there.
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
@@ -688,7 +715,9 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         # on the device: the stacks made there from the images' bands, and read there by every product; the
         # principal images there too where they fit, else on the host (in a file mapped into memory where
         # the host's stacks would not be held)
-        stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square)
+        stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square,
+                                       held_images=None if held_images is None else held_images.images,
+                                       held_own=None if held_images is None else held_images.own)
         light_scale = np.sqrt(stacks.squares / (height * width))
         luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
         chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products)

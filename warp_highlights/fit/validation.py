@@ -176,6 +176,7 @@ def check_moving(
     workers: int | None = None,
     progress=None,
     keep: int = 0,
+    held=None,
 ) -> MoveCheck:
     """Score moving against blending at the left-out lights of ``plan``.
 
@@ -191,6 +192,7 @@ def check_moving(
         progress: optional ``advance(steps)`` for the retargeting of the missing edges.
         keep: keep the moved highlights of this many checked lights, spread over them (for the
             learned residual's check, ``fit.residual.check_learned``).
+        held: ``images`` and ``own`` on the CUDA device already (``fit.residual.HeldImages``), scored there.
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
@@ -223,10 +225,10 @@ def check_moving(
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))  # lights scored at once, in threads
     scored = None
-    if raster.device.is_cuda and not len(kept_rows):  # scored there where the images the lights need fit beside the rest
+    if raster.device.is_cuda and not len(kept_rows):  # scored there where the images the lights need are there or fit beside the rest
         needed = len(np.unique(np.concatenate([corners.ravel(), loo.lights])))
-        if needed * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
-            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device)
+        if (held is not None and held.own is not None) or needed * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
+            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device, held=held)
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn_there = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False))
@@ -256,11 +258,16 @@ class _DeviceScores:
     (their corners and themselves) go up once; ``psnr`` scores a chunk of lights in one launch
     (``kernels.scores.prediction_errors``), to a few thousandths of a dB of the host's ``psnr_8bit``."""
 
-    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, corners: np.ndarray, lights: np.ndarray, scale, device):
+    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, corners: np.ndarray, lights: np.ndarray, scale, device, *,
+                 held=None):
         n, self.height, self.width, _ = images.shape
-        self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)]))
-        self.images = rows_up(images.reshape(n, -1), device, rows=self.needed)
-        self.own = rows_up(np.asarray(own, np.float32).reshape(n, -1), device, rows=self.needed)
+        if held is not None and held.own is not None:  # every image there already
+            self.needed = np.arange(n)
+            self.images, self.own = held.images.reshape((n, -1)), held.own
+        else:
+            self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)]))
+            self.images = rows_up(images.reshape(n, -1), device, rows=self.needed)
+            self.own = rows_up(np.asarray(own, np.float32).reshape(n, -1), device, rows=self.needed)
         self.tint, self.corners, self.lights, self.scale = tint, np.asarray(corners), np.asarray(lights), float(scale)
 
     def psnr(self, rows: np.ndarray, drawn: wp.array, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
