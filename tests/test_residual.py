@@ -864,7 +864,9 @@ def test_calibration_absorbs_a_sample_s_bias_in_one_exact_measurement(monkeypatc
 
 def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
     """``_modelled_distortion``: for bytes the model itself gives at one distortion, the distortion where
-    it gives the goal (roots to 1e-9); None where the bytes are under the ranges' and weights' own."""
+    it gives the goal (roots to 1e-9; where an image enters the kept set, the model's bytes jump by its
+    range and weights, and the goal may lie in the jump: its two sides then bracket it); None where the
+    bytes are under the ranges' and weights' own."""
     principal = PrincipalImages.of(_patterned_stack(30, 36, 48, 1, 16, 0.8))
     plans = [StackPlan(principal, 3.0, principal.count - 1)]
     levels = 65535
@@ -872,6 +874,8 @@ def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
     lowest, highest = top - 35.0, top + 1.0
     measured = residual_module._modelled_bytes(plans, levels, top - 6.0, 3.5)
     for goal_share in (0.5, 2.0, 4.0):
-        x = residual_module._modelled_distortion(plans, levels, top - 6.0, measured, goal_share * measured, lowest, highest)
-        assert residual_module._modelled_bytes(plans, levels, x, 3.5) == pytest.approx(goal_share * measured, rel=1e-6)
+        goal = goal_share * measured
+        x = residual_module._modelled_distortion(plans, levels, top - 6.0, measured, goal, lowest, highest)
+        sides = [residual_module._modelled_bytes(plans, levels, x + dx, 3.5) for dx in (-1e-7, 0.0, 1e-7)]
+        assert min(sides) * (1 - 1e-6) <= goal <= max(sides) * (1 + 1e-6)
     assert residual_module._modelled_distortion(plans, levels, top - 6.0, 1.0, measured, lowest, highest) is None
