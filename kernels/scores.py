@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-__all__ = ["prediction_errors"]
+__all__ = ["device_tint", "prediction_errors"]
 
 # display_rgb8's float32 constants, each rounded from its double as NumPy casts a Python float
 _LINEAR_END = wp.constant(wp.float32(0.0031308))
@@ -70,6 +70,13 @@ def _row_errors(images: wp.array2d(dtype=wp.float32), own: wp.array2d(dtype=wp.f
     errors[q, row, 1] = blend_sum
 
 
+def device_tint(tint: np.ndarray, height: int, width: int, device) -> wp.array:
+    """(H W, C) float32 device array of the highlight colour ``tint`` (H, W, C) or (1, 1, C), broadcast to the image."""
+    channels = int(np.shape(tint)[-1])
+    rows = np.broadcast_to(np.asarray(tint, np.float32), (height, width, channels)).reshape(height * width, channels)
+    return wp.array(np.ascontiguousarray(rows), dtype=wp.float32, device=device)
+
+
 def prediction_errors(images: wp.array, own: wp.array, drawn: wp.array, tint: np.ndarray, corners: np.ndarray, weights: np.ndarray,
                       truth: np.ndarray, *, scale: float, height: int, width: int) -> np.ndarray:
     """(m, 2) float64 sums of squared 8-bit errors of the moved and the blended predictions of m left-out lights.
@@ -77,18 +84,17 @@ def prediction_errors(images: wp.array, own: wp.array, drawn: wp.array, tint: np
     Args:
         images: (k, H W C) float32 device array of the images the lights need (field units);
         own: (k, H W) their own highlights; drawn: (m, H W) each light's moved highlights.
-        tint: (H, W, C) or (1, 1, C) the highlight colour (broadcast to the image).
+        tint: (H, W, C) or (1, 1, C) the highlight colour (broadcast to the image), or ``device_tint`` of it.
         corners: (m, 3) rows of ``images`` / ``own`` blended for each light, ``weights`` (m, 3) theirs.
         truth: (m,) each light's own row of ``images``.
         scale: display units per field unit (1 / the fit's exposure factor).
     """
     device = images.device
     m = len(corners)
-    channels = int(np.shape(tint)[-1])
-    tint_rows = np.ascontiguousarray(np.broadcast_to(np.asarray(tint, np.float32), (height, width, channels)).reshape(height * width, channels))
+    tint_rows = tint if isinstance(tint, wp.array) else device_tint(tint, height, width, device)
     errors = wp.empty((m, height, 2), dtype=wp.float64, device=device)
     wp.launch(_row_errors, dim=(m, height), device=device,
-              inputs=[images, own, drawn, wp.array(tint_rows, dtype=wp.float32, device=device),
+              inputs=[images, own, drawn, tint_rows,
                       wp.array(np.asarray(corners, np.int32), dtype=wp.int32, device=device),
                       wp.array(np.asarray(weights, np.float32), dtype=wp.float32, device=device),
                       wp.array(np.asarray(truth, np.int32), dtype=wp.int32, device=device), wp.float32(scale), width],

@@ -68,6 +68,8 @@ def rows_up(host: np.ndarray, device, *, whole_bytes: int = 0, rows=None) -> wp.
     host = np.asarray(host)
     kind = wp.dtype_from_numpy(host.dtype)
     if rows is not None:
+        if host.ndim < 2:
+            raise ValueError(f"rows of an (n, ...) array of two or more axes are sent up, not of a {host.ndim}-axis one")
         rows = np.asarray(rows, np.int64).reshape(-1)
         out = wp.empty((len(rows),) + host.shape[1:], dtype=kind, device=device)
         if not len(rows):

@@ -1028,11 +1028,13 @@ def test_entries_deflated_ahead_in_threads_make_the_file_the_zip_writer_makes(sm
     """The smaller arrays' entries, made and deflated in threads before the writer stores them, are the bytes the
     zip writer's own compressor makes of them: the file is the same byte for byte, and its CRCs check."""
     field = load_field(small_field)
-    made = []
-    real = fieldfile._deflated_npy
-    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(array))
+    made, stored = [], []
+    real, real_compress = fieldfile._deflated_npy, fieldfile._Deflated.compress
+    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(np.asfortranarray(array)))  # Fortran order too
+    monkeypatch.setattr(fieldfile._Deflated, "compress", lambda self, data: stored.append(len(self.deflated)) or real_compress(self, data))
     save_field(field, tmp_path / "ahead.whf")
     assert len(made) >= 10  # the Gaussians, the paths, the residual's means, ranges, weights, scale and colour
+    assert len(stored) == len(made) and all(stored)  # each stored as deflated ahead, not deflated again
     monkeypatch.setattr(fieldfile, "_deflated_ahead", lambda array: False)
     save_field(field, tmp_path / "written.whf")
     assert (tmp_path / "ahead.whf").read_bytes() == (tmp_path / "written.whf").read_bytes()

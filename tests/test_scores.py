@@ -113,11 +113,52 @@ def test_codes_are_display_rgb8s(device):
     assert np.all(edge < 1e-4)
 
 
-def test_selected_rows_go_up_in_their_order(device):
+def test_exact_halves_round_to_even(device):
+    """Values of the sRGB curve's linear segment (no pow: exact on every device) whose code sits exactly on a half."""
+    low, high = np.float32(1e-5).view(np.int32), np.float32(0.0031308).view(np.int32)
+    values = np.arange(low, high, dtype=np.int32).view(np.float32)
+    halves = values[(values * np.float32(12.92)) * np.float32(255.0) % 1 == 0.5]
+    assert len(halves) >= 4
+    out = wp.zeros(len(halves), dtype=wp.float32, device=device)
+    wp.launch(_codes_of, dim=len(halves), inputs=[wp.array(halves, dtype=wp.float32, device=device)], outputs=[out], device=device)
+    np.testing.assert_array_equal(out.numpy(), display_rgb8(halves.reshape(-1, 1, 1))[:, 0, 0])
+
+
+@pytest.mark.parametrize("held", [False, True])
+@pytest.mark.parametrize("channels", [1, 3])
+def test_the_checks_device_scores_are_the_hosts(device, held, channels):
+    """``fit.validation``'s scorer (the CPU device here: the host's arithmetic) over a chunk of the lights, the images
+    it needs sent up or held there already, against the host's scores."""
+    from warp_highlights.fit.residual import HeldImages
+    from warp_highlights.fit.validation import _DeviceScores
+
+    images, own, drawn, tint, corners, weights, truth = _case(k=9, m=5, channels=channels)
+    tint = np.ones((1, 1, 1), np.float32) if channels == 1 else tint
+    n, height, width, _ = images.shape
+    there = HeldImages(wp.array(images.reshape(n, height * width, channels), dtype=wp.float32, device=device),
+                       wp.array(own.reshape(n, -1), dtype=wp.float32, device=device)) if held else None
+    scorer = _DeviceScores(images, own, tint, corners, truth, np.float32(0.6), wp.get_device(device), held=there)
+    rows = np.array([1, 3, 4])
+    moving, blending = scorer.psnr(rows, wp.array(drawn[rows], dtype=wp.float32, device=device), weights[rows])
+    host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth, np.float32(0.6))
+    tolerance = 0.02 if wp.get_device(device).is_cuda else 1e-9
+    np.testing.assert_allclose(moving, host[0][rows], atol=tolerance)
+    np.testing.assert_allclose(blending, host[1][rows], atol=tolerance)
+
+
+@pytest.mark.parametrize("staged", [False, True])
+def test_selected_rows_go_up_in_their_order(device, staged, monkeypatch):
+    import warp_highlights.kernels.transfer as transfer
+
+    if staged:  # through small page-locked buffers (or the CPU device's stand-ins), a row across two of them
+        monkeypatch.setattr(transfer, "staged", lambda device, nbytes: True)
+        monkeypatch.setattr(transfer.Staging, "of", classmethod(lambda cls, device: cls(device, slot_bytes=37, slots=2)))
     host = RNG.random((6, 5, 3)).astype(np.float32)
     rows = np.array([4, 0, 4, 2])
     np.testing.assert_array_equal(rows_up(host, device, rows=rows).numpy(), host[rows])
     assert rows_up(host, device, rows=np.zeros(0, np.int64)).shape == (0, 5, 3)
+    with pytest.raises(ValueError, match="two or more axes"):
+        rows_up(np.zeros(4, np.float32), device, rows=[1])
 
 
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="the move check scores on CUDA devices only")

@@ -99,113 +99,119 @@ def fit_field(
     if residual and device.is_cuda:  # the move check's left-out lights, host work that depends on the lights alone, planned in a
         # thread while the device fits (the fit's thread mostly waits for it): 0.13 s of the 250-light check on the lent H100's host
         planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, settings.residual.check_lights), name="check-plan")
-    with timer.stage("segmentation"):
-        images = resize_stack(dataset.images, width, height)
-        factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
-        if factor != 1.0:
-            images = images * np.float32(factor)
-        keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
-        gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
-        # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half the bytes
-        # to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
-        on_host = not device.is_cuda
-        shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
-        # on CUDA: the Gaussians' targets shrunk there where the sizes divide by one whole factor
-        whole = height // gaussian_height
-        shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
-        rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
-                         keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
-        if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
-            shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
-            seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
-                                   keep_specular=keep_specular, keep_diffuse=diffuse == "images",
-                                   specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
-                                   shrink_factor=shrink_factor, target_on_device=not on_host,
-                                   shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device))  # the move check's images
-        else:
-            seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
-        specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
-        if tuple(specular_luminance.shape[1:3]) != (gaussian_height, gaussian_width):  # not shrunk band by band already
-            specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
-        if not isinstance(specular_luminance, wp.array):
-            specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
-        # what the later stages need of the full-size parts, in host memory; the device keeps none of them
-        specular = host_array(seg.specular) if keep_specular else None
-        diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
-        shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device
-        seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = None
-        wp.synchronize_device(device)
-    with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
-        estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
-    with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, workers, device, len(edges)) as advance:
-        retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
-    with timer.stage("paths"):
-        source = estimated.params
-        edge_sources = source.take(edges[:, 0])
-        sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
-        decisions = decide_paths(edge_sources, sets, settings.paths)
+    try:
+        with timer.stage("segmentation"):
+            images = resize_stack(dataset.images, width, height)
+            factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
+            if factor != 1.0:
+                images = images * np.float32(factor)
+            keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
+            gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
+            # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half the bytes
+            # to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
+            on_host = not device.is_cuda
+            shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
+            # on CUDA: the Gaussians' targets shrunk there where the sizes divide by one whole factor
+            whole = height // gaussian_height
+            shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
+            rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
+                             keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
+            if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
+                shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
+                seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
+                                       keep_specular=keep_specular, keep_diffuse=diffuse == "images",
+                                       specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
+                                       shrink_factor=shrink_factor, target_on_device=not on_host,
+                                       shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device))  # the move check's images
+            else:
+                seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
+            specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
+            if tuple(specular_luminance.shape[1:3]) != (gaussian_height, gaussian_width):  # not shrunk band by band already
+                specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
+            if not isinstance(specular_luminance, wp.array):
+                specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
+            # what the later stages need of the full-size parts, in host memory; the device keeps none of them
+            specular = host_array(seg.specular) if keep_specular else None
+            diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
+            shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device
+            seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = None
+            wp.synchronize_device(device)
+        with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
+            estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
+        with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, workers, device, len(edges)) as advance:
+            retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
+        with timer.stage("paths"):
+            source = estimated.params
+            edge_sources = source.take(edges[:, 0])
+            sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+            decisions = decide_paths(edge_sources, sets, settings.paths)
 
-    moving = source.active.copy()
-    kept, kept_retargeted = source, sets  # the Gaussians the field keeps
-    path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
-    residual_model = None
-    learned_history = None
-    support_median = None
-    check = learned_check = None
-    if residual:
-        with timer.stage("residual"):
-            decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual, raster=settings.raster)
-            moving = decision.moving
-            support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
-            own = render_own(source, height, width, raster=settings.raster, device=device)
-            colour = None
-            if specular is not None:
-                colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
-                del specular
-        learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
-        with timer.stage("move check"):
-            held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device)  # sent up once, where small
-            planned = planning.result() if planning is not None else None
-            plan = planned if planned is not None and moving.any() else plan_check(dataset.lights.directions, edges,
-                                                                                    settings.residual.check_lights if moving.any() else 0)
-            iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
-            check_images, check_own, check_colour = images, own, colour
-            if (gaussian_width, gaussian_height) != (width, height) and not learned:
-                # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer pixels)
-                check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
-                check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
-                check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
-            with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
-                check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, check_images, check_own, check_colour,
-                                     factor=factor, settings=settings, device=device, workers=workers, progress=advance,
-                                     keep=settings.residual.learned_check if learned else 0, held=held if check_images is images else None)
-        if learned and check.moves and len(check.kept_lights):
-            with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, workers, device, 1) as advance:
-                learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
-                                              factor=factor, settings=settings.residual, device=device, progress=advance)
-        if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
-            # blending beat moving at the left-out lights (or the images learned alone beat the learned
-            # residual with its Gaussians): the highlights stay in the residual (the images themselves)
-            # and the field keeps no Gaussians, which leaves their bytes to the residual
-            kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)  # one free slot each
-            moving = np.zeros((len(source.active), 1), dtype=bool)
-            path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
-            own, colour = np.zeros_like(own), None
-            if held is not None:
-                held.own = None  # the residual's stacks read the zeros from the host
-        if learned:
-            # the learned check's winner goes on learning from every light (the ones it left out too);
-            # without a check, one model learns from every light
-            winner = None if learned_check is None else learned_check.winner.learned
-            with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, workers, device, 1) as advance:
-                residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
-                                                                 settings=settings.residual, device=device, log=log, progress=advance,
-                                                                 initial=winner, tune=winner is not None)
-        else:
-            with timer.stage("residual compression"):
-                residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted),
-                                                device=device, held_images=held)
-        held = None
+        moving = source.active.copy()
+        kept, kept_retargeted = source, sets  # the Gaussians the field keeps
+        path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
+        residual_model = None
+        learned_history = None
+        support_median = None
+        check = learned_check = None
+        if residual:
+            with timer.stage("residual"):
+                decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual, raster=settings.raster)
+                moving = decision.moving
+                support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
+                own = render_own(source, height, width, raster=settings.raster, device=device)
+                colour = None
+                if specular is not None:
+                    colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
+                    del specular
+            learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
+            with timer.stage("move check"):
+                # sent up once, where small, for the check's scores and the compressed residual's stacks
+                held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device)
+                plan = planning.result() if planning is not None and moving.any() else plan_check(dataset.lights.directions, edges,
+                                                                                                      settings.residual.check_lights if moving.any() else 0)
+                iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
+                check_images, check_own, check_colour = images, own, colour
+                if (gaussian_width, gaussian_height) != (width, height) and not learned:
+                    # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer pixels)
+                    check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
+                    check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
+                    check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
+                with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
+                    check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, check_images, check_own, check_colour,
+                                         factor=factor, settings=settings, device=device, workers=workers, progress=advance,
+                                         keep=settings.residual.learned_check if learned else 0, held=held if check_images is images else None)
+            if learned and check.moves and len(check.kept_lights):
+                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, workers, device, 1) as advance:
+                    learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
+                                                  factor=factor, settings=settings.residual, device=device, progress=advance)
+            if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
+                # blending beat moving at the left-out lights (or the images learned alone beat the learned
+                # residual with its Gaussians): the highlights stay in the residual (the images themselves)
+                # and the field keeps no Gaussians, which leaves their bytes to the residual
+                kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)  # one free slot each
+                moving = np.zeros((len(source.active), 1), dtype=bool)
+                path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
+                own, colour = np.zeros_like(own), None
+                if held is not None:
+                    held.own = None  # the residual's stacks read the zeros from the host
+            if not settings.residual.compressed:
+                held = None  # the residual keeps the images themselves: nothing more reads them there
+            if learned:
+                # the learned check's winner goes on learning from every light (the ones it left out too);
+                # without a check, one model learns from every light
+                winner = None if learned_check is None else learned_check.winner.learned
+                with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, workers, device, 1) as advance:
+                    residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
+                                                                     settings=settings.residual, device=device, log=log, progress=advance,
+                                                                     initial=winner, tune=winner is not None)
+            else:
+                with timer.stage("residual compression"):
+                    residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted),
+                                                    device=device, held_images=held)
+            held = None
+    finally:  # an error or Ctrl-C meanwhile: the plan not left running (it is host work of a fraction of a second)
+        if planning is not None:
+            planning.cancel()
 
     diffuse_model = None
     if diffuse != "none":

@@ -163,9 +163,10 @@ def _nan_median(values: np.ndarray) -> np.ndarray:
 @dataclass
 class HeldImages:
     """A fit's images (n, H W, C) and their own highlights (n, H W; None: not held) as float32 device arrays,
-    sent up once for the move check's scores and the residual's stacks (``hold_images``)."""
+    sent up once for the move check's scores and the residual's stacks (``hold_images``); ``build_residual``
+    lets go of both (None) once its stacks have read them."""
 
-    images: wp.array
+    images: wp.array | None
     own: wp.array | None
 
 
@@ -718,6 +719,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square,
                                        held_images=None if held_images is None else held_images.images,
                                        held_own=None if held_images is None else held_images.own)
+        if held_images is not None:  # read: the device's memory let go for the principal images
+            held_images.images = held_images.own = None
         light_scale = np.sqrt(stacks.squares / (height * width))
         luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
         chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products)

@@ -30,7 +30,7 @@ import warp as wp
 from ..io.images import display_rgb8
 from ..io.metrics import psnr_8bit, psnr_of_mse
 from ..kernels.raster import Rasterizer
-from ..kernels.scores import prediction_errors
+from ..kernels.scores import device_tint, prediction_errors
 from ..kernels.transfer import rows_up, to_host
 from ..model.config import FitSettings
 from ..model.errors import InputError
@@ -268,7 +268,9 @@ class _DeviceScores:
             self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)]))
             self.images = rows_up(images.reshape(n, -1), device, rows=self.needed)
             self.own = rows_up(np.asarray(own, np.float32).reshape(n, -1), device, rows=self.needed)
-        self.tint, self.corners, self.lights, self.scale = tint, np.asarray(corners), np.asarray(lights), float(scale)
+        self.channels = int(np.shape(tint)[-1])
+        self.tint = device_tint(tint, self.height, self.width, device)  # once for every chunk of lights
+        self.corners, self.lights, self.scale = np.asarray(corners), np.asarray(lights), float(scale)
 
     def psnr(self, rows: np.ndarray, drawn: wp.array, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(len(rows),) 8-bit sRGB PSNR (dB) of the moved and the blended predictions of checked lights ``rows``,
@@ -276,5 +278,5 @@ class _DeviceScores:
         errors = prediction_errors(self.images, self.own, drawn.reshape((len(rows), self.height * self.width)), self.tint,
                                    np.searchsorted(self.needed, self.corners[rows]), weights,
                                    np.searchsorted(self.needed, self.lights[rows]), scale=self.scale, height=self.height, width=self.width)
-        values = self.height * self.width * int(np.shape(self.tint)[-1]) * 255.0**2
+        values = self.height * self.width * self.channels * 255.0**2
         return psnr_of_mse(errors[:, 0] / values), psnr_of_mse(errors[:, 1] / values)
