@@ -226,13 +226,14 @@ def check_moving(
     at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))  # lights scored at once, in threads
     scored = None
     if raster.device.is_cuda and not len(kept_rows):  # scored there where the images the lights need are there or fit beside the rest
-        needed = len(np.unique(np.concatenate([corners.ravel(), loo.lights])))
-        if (held is not None and held.own is not None) or needed * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
-            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device, held=held)
+        there = held is not None and held.own is not None
+        needed = np.arange(len(images)) if there else np.unique(np.concatenate([corners.ravel(), loo.lights]))
+        if there or len(needed) * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
+            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device, needed=needed, held=held)
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn_there = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False))
-        if scored is not None:  # scored there (``kernels.scores``): 48 lights in one launch, not 96 sRGB images in host threads
+        if scored is not None:  # scored there (``kernels.scores``): 48 lights in one launch, not 144 sRGB images in host threads
             moving_psnr[rows], blend_psnr[rows] = scored.psnr(rows, drawn_there, loo.barycentric[rows])
             continue
         drawn = to_host(drawn_there)
@@ -259,13 +260,13 @@ class _DeviceScores:
     (``kernels.scores.prediction_errors``), to a few thousandths of a dB of the host's ``psnr_8bit``."""
 
     def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, corners: np.ndarray, lights: np.ndarray, scale, device, *,
-                 held=None):
+                 needed: np.ndarray | None = None, held=None):
         n, self.height, self.width, _ = images.shape
         if held is not None and held.own is not None:  # every image there already
             self.needed = np.arange(n)
             self.images, self.own = held.images.reshape((n, -1)), held.own
-        else:
-            self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)]))
+        else:  # the lights' corners and the lights themselves (sorted indices), given or found here
+            self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)])) if needed is None else needed
             self.images = rows_up(images.reshape(n, -1), device, rows=self.needed)
             self.own = rows_up(np.asarray(own, np.float32).reshape(n, -1), device, rows=self.needed)
         self.channels = int(np.shape(tint)[-1])
