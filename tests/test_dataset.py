@@ -462,8 +462,9 @@ def test_fit_loads_only_what_it_uses_at_its_working_size(small_donut, tmp_path, 
     from warp_highlights.io.fieldfile import load_field
 
     decoded = []
-    real = dataset_module.read_image
-    monkeypatch.setattr(dataset_module, "read_image", lambda path, **k: decoded.append(path.name) or real(path, **k))
+    for reader in ("read_image", "read_pixels"):  # the mask's reader, the images'
+        real = getattr(dataset_module, reader)
+        monkeypatch.setattr(dataset_module, reader, lambda path, real=real, **k: decoded.append(path.name) or real(path, **k))
     out = tmp_path / "field.whf"
     assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--device", "cpu", "-q", *TINY_FIT]) == 0
     lights = read_lp(small_donut / "lights.lp")
@@ -532,14 +533,14 @@ def test_images_decoded_out_of_order_land_in_their_places(tmp_path, monkeypatch)
 
     field = _field(count=9)
     folder = field.save(tmp_path / "capture")
-    real = dataset_module.read_image
+    real = dataset_module.read_pixels
 
     def slow_first(path, **kwargs):
         index = int(path.stem) if path.stem.isdigit() else 0
         time.sleep(0.02 * max(0, 4 - index))  # images 0..3 decode last
         return real(path, **kwargs)
 
-    monkeypatch.setattr(dataset_module, "read_image", slow_first)
+    monkeypatch.setattr(dataset_module, "read_pixels", slow_first)
     monkeypatch.setattr(threads, "PREFAULT_BYTES", 0)  # the stack's pages written from threads, as a large capture's are
     loaded = ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=4)
     np.testing.assert_array_equal(loaded.images, field.images)
@@ -571,13 +572,13 @@ def test_an_image_decoded_to_another_shape_than_the_first_is_named(tmp_path, mon
 
     field = _field(count=6)
     folder = field.save(tmp_path / "capture")
-    real = dataset_module.read_image
+    real = dataset_module.read_pixels
 
     def odd_one(path, **kwargs):
         image = real(path, **kwargs)
         return image[..., :1] if path.stem == "0003" else image  # passed the header check, decoded otherwise
 
-    monkeypatch.setattr(dataset_module, "read_image", odd_one)
+    monkeypatch.setattr(dataset_module, "read_pixels", odd_one)
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=3)
     message = _single_line_error(excinfo, "0003", "0000")

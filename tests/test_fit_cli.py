@@ -324,8 +324,9 @@ def test_a_device_that_is_not_there_is_reported_before_a_large_capture_is_decode
     import warp_highlights.io.dataset as dataset_module
 
     decoded = []
-    real = dataset_module.read_image
-    monkeypatch.setattr(dataset_module, "read_image", lambda *args, **kwargs: decoded.append(1) or real(*args, **kwargs))
+    for reader in ("read_image", "read_pixels"):  # the mask's reader, the images'
+        real = getattr(dataset_module, reader)
+        monkeypatch.setattr(dataset_module, reader, lambda *args, real=real, **kwargs: decoded.append(1) or real(*args, **kwargs))
     if large:
         monkeypatch.setattr(fit_cli, "EARLY_LOAD_BYTES", 0)
     assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cuda:7", "-q"]) == 2
@@ -345,20 +346,37 @@ def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small
     import warp_highlights.io.warmup as warmup_module
 
     order, decoded = [], threading.Event()
-    real_warm, real_read = warmup_module.DeviceWarmup._warm, dataset_module.read_image
+    real_warm, real_reads = warmup_module.DeviceWarmup._warm, {name: getattr(dataset_module, name) for name in ("read_image", "read_pixels")}
 
     def warm(self):
         decoded.wait(2.0)
         order.append("warp")
         real_warm(self)
 
-    def read(*args, **kwargs):
-        if not decoded.is_set():
-            order.append("decode")
-            decoded.set()
-        return real_read(*args, **kwargs)
+    def reader(name):  # the mask's reader, the images'
+        def read(*args, **kwargs):
+            if not decoded.is_set():
+                order.append("decode")
+                decoded.set()
+            return real_reads[name](*args, **kwargs)
+
+        return read
 
     monkeypatch.setattr(warmup_module.DeviceWarmup, "_warm", warm)
-    monkeypatch.setattr(dataset_module, "read_image", read)
+    for name in real_reads:
+        monkeypatch.setattr(dataset_module, name, reader(name))
     assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cpu", "-q", *(["-v"] if verbose else [])]) == 0
     assert order[:2] == (["warp", "decode"] if verbose else ["decode", "warp"])
+
+
+def test_progress_bars_take_a_thread_lock_alone():
+    """``fit``'s bars share a thread lock (tqdm's default also makes a multiprocessing lock, importing
+    ``multiprocessing`` in the loading thread); one set already (by a program embedding us) is kept."""
+    import subprocess
+    import sys
+
+    code = ("import sys, threading; from warp_highlights.cli.fit import _thread_lock_for_progress_bars as take; take(); "
+            "from tqdm import tqdm; lock = tqdm.get_lock(); [None for _ in tqdm(range(3), disable=True)]; take(); "
+            "print('multiprocessing' in sys.modules, type(lock) is type(threading.RLock()), tqdm.get_lock() is lock)")
+    shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert shown == ["False", "True", "True"]

@@ -113,6 +113,7 @@ def test_a_dataset_holding_a_bomb_is_refused_before_any_pixel_is_decoded(bomb, t
         raise AssertionError("an image was decoded")
 
     monkeypatch.setattr(dataset_module, "read_image", no_decoding)
+    monkeypatch.setattr(dataset_module, "read_pixels", no_decoding)
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False)
     _one_line(excinfo, "image01.png", "400.0 megapixels", "--max-megapixels")
@@ -304,7 +305,8 @@ def test_info_on_a_degenerate_capture_exits_2_naming_the_folder(tmp_path, capsys
 def test_a_capture_too_big_for_memory_is_refused_before_decoding(tmp_path, monkeypatch):
     folder = _capture(tmp_path / "d", [np.full((30, 40, 3), 0.5)] * 5)
     monkeypatch.setattr(memory_module, "available_memory", lambda: 50_000)  # needed: (5 + 2) x 30 x 40 x 3 x 4 bytes (one decoding thread)
-    monkeypatch.setattr(dataset_module, "read_image", lambda *a, **k: pytest.fail("an image was decoded"))
+    for reader in ("read_image", "read_pixels"):
+        monkeypatch.setattr(dataset_module, reader, lambda *a, **k: pytest.fail("an image was decoded"))
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False, workers=1)
     message = _one_line(excinfo, "loading needs about 100.8 kB", "(5 images of 40x30x3 as float32) but 50.0 kB is available")

@@ -88,6 +88,55 @@ def test_exr_keeps_nonfinite_values(tmp_path):
     np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), image)
 
 
+def _foreign_exr(path, planes: dict) -> None:
+    """An EXR of ``planes`` (name -> (H, W) array, its dtype the stored type), as another tool writes it."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {name: np.ascontiguousarray(plane) for name, plane in planes.items()}).write(str(path))
+
+
+@pytest.mark.parametrize("layout", ["RGB half", "RGB float", "RGBA half", "RGB mixed types", "RGB and Z", "Y", "one channel", "Y and A"])
+def test_exr_channel_layouts_read_as_each_channel_alone(tmp_path, layout):
+    """R, G and B as OpenEXR groups them (one interleaved "RGB" or "RGBA" channel), or alone where it does
+    not (mixed types): the values of each kept channel read alone, widened to float32; ``read_pixels`` the
+    same values as stored (what the loader copies into its stack), with or without the header read first."""
+    import OpenEXR
+
+    from warp_highlights.io.images import image_header, read_pixels
+
+    rng = np.random.default_rng(7)
+
+    def plane(dtype):
+        return rng.uniform(-2.0, 60.0, size=(9, 13)).astype(dtype)
+
+    planes = {
+        "RGB half": {"R": plane(np.float16), "G": plane(np.float16), "B": plane(np.float16)},
+        "RGB float": {"R": plane(np.float32), "G": plane(np.float32), "B": plane(np.float32)},
+        "RGBA half": {"R": plane(np.float16), "G": plane(np.float16), "B": plane(np.float16), "A": plane(np.float16)},
+        "RGB mixed types": {"R": plane(np.float16), "G": plane(np.float32), "B": plane(np.float16)},
+        "RGB and Z": {"R": plane(np.float16), "G": plane(np.float16), "B": plane(np.float16), "Z": plane(np.float32)},
+        "Y": {"Y": plane(np.float16)},
+        "one channel": {"depth": plane(np.float32)},
+        "Y and A": {"Y": plane(np.float32), "A": plane(np.float32)},
+    }[layout]
+    path = tmp_path / "a.exr"
+    _foreign_exr(path, planes)
+    alone = {name: channel.pixels for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
+    keep = ("R", "G", "B") if "R" in planes else ("Y",) if "Y" in planes else tuple(planes)
+    expected = np.stack([alone[name].astype(np.float32) for name in keep], axis=-1) if len(keep) == 3 else alone[keep[0]].astype(np.float32)
+    image = read_image(path)
+    assert image.dtype == np.float32 and image.flags.writeable and image.flags.owndata
+    np.testing.assert_array_equal(image, expected)
+    header = image_header(path)
+    assert header.shape == expected.shape and header.exr_channels == keep
+    for given in (None, header):
+        stored = read_pixels(path, header=given)
+        widened = np.empty(stored.shape, np.float32)
+        np.copyto(widened, stored, casting="unsafe")
+        np.testing.assert_array_equal(widened, expected)
+
+
 # --- PNG ------------------------------------------------------------------------------------------
 
 

@@ -82,6 +82,18 @@ def _exposure_option(text: str):
     return value
 
 
+def _thread_lock_for_progress_bars() -> None:
+    """Guard this process's tqdm bars with a thread lock alone. tqdm's default lock also makes a
+    multiprocessing one, importing ``multiprocessing`` (0.04 s of the loading thread, under the GIL the
+    pipeline's imports need); this command's bars are all drawn by its own threads."""
+    import threading
+
+    from tqdm import tqdm
+
+    if "_lock" not in vars(tqdm):  # not where a bar (or the program embedding us) has set it already
+        tqdm.set_lock(threading.RLock())
+
+
 def _run_fit(args) -> int:
     from ..model.config import FitSettings
 
@@ -123,6 +135,7 @@ def _run_fit(args) -> int:
     def load_images(stop, before_decoding=None) -> tuple:  # only what the fit uses (no held-out lights, no ground-truth components),
         # shrunk to the working size as each image is decoded; nothing here touches Warp (the host's peak alone)
         load_started = time.perf_counter()
+        _thread_lock_for_progress_bars()
         with PeakMemory("cpu") as peak:
             loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
                                            heldout=False, components=False, stop=stop, before_decoding=before_decoding)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import threading
 import warnings
@@ -23,7 +24,7 @@ from ..model.errors import InputError
 from ..model.lights import LightSet
 from ..model.threads import cancel_and_wait, child_initializer, core_count, mapped_empty, submit
 from .atomic import FolderTransaction, deferred_signals
-from .images import DEFAULT_MAX_PIXELS, image_encoding, image_shape, read_image, write_image
+from .images import DEFAULT_MAX_PIXELS, ImageHeader, image_encoding, image_header, read_image, read_pixels, write_image
 from .lightfile import read_lp, write_lp
 from .memory import check_memory
 
@@ -211,7 +212,7 @@ class ReflectanceField:
         groups = [main] if extra is None else [main, extra]
         if not components:
             groups = [dataclasses.replace(group, specular=None, diffuse=None) for group in groups]
-        shape = _planned_shape(groups, max_pixels)
+        shape, headers = _planned_shape(groups, max_pixels)
         width, height = working_size(shape[1], shape[0], size)
         workers = LOAD_WORKERS if workers is None else int(workers)
         if workers < 1:
@@ -223,7 +224,7 @@ class ReflectanceField:
         try:
             with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                       disable=None if progress else True, leave=False) as bar:
-                reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels,
+                reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels, headers=headers,
                                       size=(width, height), workers=workers, stop=stop)
                 fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         except BaseException:  # a bad image or Ctrl-C: the mask's read not left running
@@ -503,14 +504,17 @@ class _ShapeCheck:
             )
 
 
-def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[int, ...]:
-    """The common image shape, ``(H, W)`` or ``(H, W, 3)``, from every image's header (no pixel decoded)."""
+def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[tuple[int, ...], dict[Path, ImageHeader]]:
+    """The common image shape, ``(H, W)`` or ``(H, W, 3)``, from every image's header (no pixel decoded), and
+    the headers by path (the decoders do not read them again)."""
     shapes = _ShapeCheck()
+    headers: dict[Path, ImageHeader] = {}
     for group in groups:
         for paths in (group.images, group.specular, group.diffuse):
             for path in paths or ():
-                shapes.check(path, image_shape(path, max_pixels=max_pixels))
-    return shapes.first[1]
+                headers[path] = image_header(path, max_pixels=max_pixels)
+                shapes.check(path, headers[path].shape)
+    return shapes.first[1], headers
 
 
 def _check_memory(folder: Path, file_count: int, shape: tuple[int, ...], *, decoding: int = 0) -> None:
@@ -543,8 +547,10 @@ class _StackReader:
     """Reads image stacks into preallocated float32 arrays, checking size, channels and finiteness."""
 
     def __init__(self, *, linear: bool, replace_nonfinite: bool, bar, max_pixels: int | None = DEFAULT_MAX_PIXELS,
-                 size: tuple[int, int] | None = None, workers: int = 1, stop: threading.Event | None = None):
+                 size: tuple[int, int] | None = None, workers: int = 1, stop: threading.Event | None = None,
+                 headers: dict[Path, ImageHeader] | None = None):
         self.stop = stop
+        self.headers = headers or {}  # read and checked already: not read again
         self.linear = linear
         self.replace_nonfinite = replace_nonfinite
         self.bar = bar
@@ -574,14 +580,25 @@ class _StackReader:
         def place(index: int, path: Path) -> tuple:  # one thread's work: decode, then copy into the stack
             if self.stop is not None and self.stop.is_set():
                 raise LoadStopped(f"loading stopped before {path}")  # not decoded: the caller has given up
-            path, shape, bad, image = self._decode(path)
+            path, shape, bad, values = self._decode(path)
             with lock:  # the first image decoded sizes the stack
                 if "stack" not in holder:
-                    holder["stack"] = mapped_empty((len(paths), *image.shape), np.float32)  # its pages mapped by threads
+                    holder["stack"] = mapped_empty((len(paths), *values.shape), np.float32)  # its pages mapped by threads
             stack = holder["stack"]
-            if image.shape == stack.shape[1:]:  # else the check in file order refuses this image or the one that sized the stack
-                stack[index] = image
-            return path, shape, bad, image.shape, float(image.min()), float(image.max())
+            if values.shape != stack.shape[1:]:  # the check in file order refuses this image or the one that sized the stack
+                return path, shape, bad or 0, values.shape, np.inf, -np.inf
+            image = stack[index]
+            np.copyto(image, values, casting="unsafe")  # widened to float32 as it is copied (a half EXR's values exactly)
+            low, high = float(image.min()), float(image.max())
+            if bad is None:  # counted here: min and max carry any NaN or infinity, so finite ones need no count
+                bad = 0
+                if not (math.isfinite(low) and math.isfinite(high)):
+                    nonfinite = ~np.isfinite(image)
+                    bad = int(nonfinite.sum())
+                    if self.replace_nonfinite:
+                        image[nonfinite] = 0.0
+                        low, high = float(image.min()), float(image.max())
+            return path, shape, bad, values.shape, low, high
 
         low, high = np.inf, -np.inf
         first: tuple | None = None  # the first image's path and decoded shape
@@ -606,18 +623,23 @@ class _StackReader:
         return holder.get("stack"), low, high  # no paths: no stack, as before
 
     def _decode(self, path: Path) -> tuple:
-        """(path, shape as stored, non-finite values, image at the working size)."""
+        """(path, shape as stored, non-finite values, values at the working size). Where the file has the
+        working size, its values as stored (``read_pixels``: a half EXR's float16), counted where they are
+        copied into the stack (None here); else float32, counted (and replaced, if asked) before resampling.
+        Each call here that lets go of the GIL must take it back, which beside the pipeline's imports can
+        wait a whole switch interval (5 ms): the fewer such calls an image makes, the sooner the capture loads."""
         from .resample import resample_image
 
-        image = read_image(path, linear=self.linear, max_pixels=self.max_pixels)
-        shape = image.shape
+        pixels = read_pixels(path, linear=self.linear, max_pixels=self.max_pixels, header=self.headers.get(path))
+        shape = pixels.shape
+        if self.size is None or (shape[1], shape[0]) == tuple(self.size):
+            return path, shape, None, pixels
+        image = pixels.astype(np.float32)
         bad = ~np.isfinite(image)
         count = int(bad.sum())
         if count and self.replace_nonfinite:
             image[bad] = 0.0
-        if self.size is not None and (image.shape[1], image.shape[0]) != tuple(self.size):
-            image = resample_image(image, *self.size)
-        return path, shape, count, image
+        return path, shape, count, resample_image(image, *self.size)
 
     def report_nonfinite(self) -> None:
         """Raise (or warn, when replacing) about the non-finite pixels seen so far."""

@@ -32,6 +32,7 @@ import sys
 import threading
 import warnings
 from collections.abc import Iterator
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -45,11 +46,13 @@ __all__ = [
     "IMAGE_EXTENSIONS",
     "display_rgb8",
     "image_encoding",
+    "image_header",
     "image_shape",
     "image_size",
     "linear_to_srgb",
     "quiet_native_stderr",
     "read_image",
+    "read_pixels",
     "srgb_to_linear",
     "write_image",
 ]
@@ -151,10 +154,24 @@ def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_M
         InputError: Missing file, unsupported extension, more than ``max_pixels`` pixels, or a file
             that cannot be decoded (damaged or truncated).
     """
+    pixels = read_pixels(path, linear=linear, max_pixels=max_pixels)
+    exr = _existing_image(path)[1] == ".exr"  # OpenEXR's own buffers: copied, as every other reader's array is fresh
+    return pixels.astype(np.float32) if exr or pixels.dtype != np.float32 else pixels
+
+
+def read_pixels(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS, header: ImageHeader | None = None) -> np.ndarray:
+    """:func:`read_image`'s values before its float32 copy: an EXR's channels as stored (float16, float32
+    or uint32; an ``(H, W, 3)`` view of its interleaved R, G, B, or ``(H, W)``), any other file as
+    ``read_image`` returns it. Widened to float32 (``astype``, or copied into a float32 array) they are
+    ``read_image``'s values exactly: a caller that copies them into a float32 stack anyway makes one copy.
+
+    ``header``: the file's :func:`image_header`, read and checked before (the loader reads every
+    image's header first): not read again. Raises as :func:`read_image`."""
     path, suffix = _existing_image(path)
     if suffix == ".exr":
-        return _read_exr(path, max_pixels)
-    _header(path, suffix, max_pixels)  # the pixel budget, before anything is decoded
+        return _read_exr(path, max_pixels, header=header)
+    if header is None:
+        _header(path, suffix, max_pixels)  # the pixel budget, before anything is decoded
     pixels = _read_with_oiio(path)
     if pixels.dtype == np.float32:
         return pixels
@@ -225,13 +242,28 @@ def image_shape(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[i
     Raises:
         InputError: As :func:`image_size`, and an EXR with neither R, G, B nor Y channels.
     """
+    return image_header(path, max_pixels=max_pixels).shape
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image's header says, as :func:`image_header` read and checked it: the ``shape``
+    :func:`read_image` returns and, for an EXR, the channels it reads (``exr_channels``; None otherwise)."""
+
+    shape: tuple[int, ...]
+    exr_channels: tuple[str, ...] | None = None
+
+
+def image_header(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> ImageHeader:
+    """:func:`image_shape`'s header, kept for :func:`read_pixels` (which then does not read it again).
+    Raises as :func:`image_shape`."""
     path, suffix = _existing_image(path)
     if suffix == ".exr":
         width, height, names = _exr_header(path, max_pixels)
-        colour = len(_exr_channels_to_keep(path, names)) == 3
-    else:
-        width, height, colour = _header(path, suffix, max_pixels)
-    return (height, width, 3) if colour else (height, width)
+        keep = _exr_channels_to_keep(path, names)
+        return ImageHeader((height, width, 3) if len(keep) == 3 else (height, width), keep)
+    width, height, colour = _header(path, suffix, max_pixels)
+    return ImageHeader((height, width, 3) if colour else (height, width))
 
 
 def image_encoding(path, *, linear: bool = False) -> dict:
@@ -487,25 +519,36 @@ def _encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
     return np.rint(values * top).astype(np.uint8 if top == 255 else np.uint16)
 
 
-def _read_exr(path: Path, max_pixels: int | None) -> np.ndarray:
-    """EXR -> float32 (H, W) or (H, W, 3); the header is checked first, so nothing oversized is allocated."""
+def _read_exr(path: Path, max_pixels: int | None, *, header: ImageHeader | None = None) -> np.ndarray:
+    """EXR -> its (H, W) or (H, W, 3) channels as stored (see ``read_pixels``); the header is checked first (unless
+    ``header`` gives it, checked already), so nothing oversized is allocated. R, G and B come from OpenEXR as
+    one interleaved channel ("RGB", or "RGBA" whose alpha is dropped): no stacking, one widening copy after."""
     import OpenEXR
 
-    width, height, names = _exr_header(path, max_pixels)
-    keep = _exr_channels_to_keep(path, names)
+    if header is None or header.exr_channels is None:
+        width, height, names = _exr_header(path, max_pixels)
+        keep = _exr_channels_to_keep(path, names)
+    else:
+        (height, width), keep = header.shape[:2], header.exr_channels
     try:
         with quiet_native_stderr():
-            exr = OpenEXR.File(str(path), separate_channels=True)
-            channels = {name: channel.pixels for name, channel in exr.channels().items()}
+            try:
+                channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path)).channels().items()}
+            except Exception:  # noqa: BLE001 (R, G and B of several pixel types are not grouped: read apart below)
+                channels = {}
+            if len(keep) == 3:
+                grouped = next((channels[name] for name in ("RGB", "RGBA") if name in channels), None)
+                if isinstance(grouped, np.ndarray) and grouped.shape in ((height, width, 3), (height, width, 4)):
+                    return grouped[..., :3]
+            if not all(name in channels for name in keep):  # not grouped as above (or not read): each channel alone
+                channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, UnicodeError, ...)
         raise _unreadable(path, exc) from exc
     planes = [channels.get(name) for name in keep]
     for name, plane in zip(keep, planes):
         if not isinstance(plane, np.ndarray) or plane.shape != (height, width):
             raise _unreadable(path, ValueError(f"channel {name} is missing, subsampled or not {width}x{height}"))
-    if len(planes) == 1:
-        return planes[0].astype(np.float32)
-    return np.stack(planes, axis=-1).astype(np.float32)
+    return planes[0] if len(planes) == 1 else np.stack(planes, axis=-1)
 
 
 def _write_exr(path: Path, image: np.ndarray, *, half: bool) -> None:
