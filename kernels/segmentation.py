@@ -289,10 +289,13 @@ class Segmentation:
             no solvable fit).
         shrunk_images: (n, H / f, W / f[, C]) float32 NumPy, the images themselves shrunk on the device
             where ``segment_in_bands`` was asked to (``shrink_images``), else None.
+        images: (n, H, W[, C]) float32 Warp array, the images as ``segment_in_bands`` sent them up where
+            it was asked to keep them (``keep_images``) and one band held them all; else None.
     """
 
-    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid, shrunk_images=None):
+    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid, shrunk_images=None, images=None):
         self.shrunk_images = shrunk_images
+        self.images = images
         self.diffuse = diffuse
         self.specular = specular
         self.specular_luminance = specular_luminance
@@ -406,7 +409,8 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
 def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
                      workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
                      specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
-                     target_rows: int = 1, shrink_factor: int = 1, target_on_device: bool = False, shrink_images: bool = False) -> Segmentation:
+                     target_rows: int = 1, shrink_factor: int = 1, target_on_device: bool = False, shrink_images: bool = False,
+                     keep_images: bool = False) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
     independent), in host NumPy arrays. Each band goes up and its parts come down an image's rows at
@@ -426,6 +430,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             f rows). A factor above 1 keeps it there without ``target_on_device``.
         shrink_images: With ``shrink_factor``: the images themselves shrunk there too, as each band is
             up, into the host array ``shrunk_images`` (no pass over the whole stack on the host).
+        keep_images: Where one band holds every row on a CUDA device, the images as they went up are
+            kept there (``images``) for later stages to read instead of sending them up again.
     """
     images = np.asarray(images)
     shape = images.shape
@@ -454,6 +460,7 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     else:
         target = mapped_empty((n, height, width), np.float32) if shrink_target is None else None
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
+    kept_images = None
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
     whole = int(np.prod(shape)) * 4  # the float32 stack's bytes: each band's transfers staged where the stack's make it pay
     for top in range(0, height, rows):
@@ -466,6 +473,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
                 shrunk_band = wp.empty((n, low.stop - low.start) + shrunk_images.shape[2:], dtype=float, device=device)
             _shrunk_into(band_images, factor, 0, shrunk_band)
             rows_down(shrunk_band, shrunk_images[:, low], whole_bytes=whole)
+        if keep_images and device.is_cuda and band == slice(0, height):
+            kept_images = band_images
         del band_images
         if specular is not None:
             _down(part.specular, specular[:, band], whole)
@@ -484,7 +493,7 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
             lambert = np.empty((height,) + part.lambert.shape[1:], np.float32)
         lambert[band], valid[band], iterations[band] = part.lambert, part.valid_lights, part.iterations
         del part
-    return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum, shrunk_images)
+    return Segmentation(diffuse, specular, target, lambert, valid, iterations, minimum, shrunk_images, kept_images)
 
 
 def _down(array: wp.array, out: np.ndarray, whole_bytes: int = 0) -> None:

@@ -204,3 +204,23 @@ def test_images_are_held_on_cuda_devices_only_and_within_their_bound(monkeypatch
         assert residual_module.hold_images(images, own, "cuda:0") is not None
         monkeypatch.setattr(residual_module, "HELD_IMAGES_BYTES", images.nbytes)  # the own highlights no longer fit beside
         assert residual_module.hold_images(images, own, "cuda:0") is None
+        assert not residual_module.holds_images(images.shape, "cuda:0")
+    assert not residual_module.holds_images(images.shape, "cpu")
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="images are held on CUDA devices only")
+def test_images_already_up_are_held_as_they_are(monkeypatch):
+    """``hold_images(images_up=, own_up=)``: the arrays given are held (the same memory, not sent up again),
+    even where the bound asked before they went up would not hold them now; ``own`` alone is sent up."""
+    import warp_highlights.fit.residual as residual_module
+
+    images, own = RNG.random((3, 4, 5, 3)).astype(np.float32), RNG.random((3, 4, 5)).astype(np.float32)
+    images_up, own_up = wp.array(images, dtype=float, device="cuda:0"), wp.array(own, dtype=float, device="cuda:0")
+    monkeypatch.setattr(residual_module, "HELD_IMAGES_BYTES", 0)
+    assert residual_module.hold_images(images, own, "cuda:0") is None
+    held = residual_module.hold_images(images, own, "cuda:0", images_up=images_up, own_up=own_up)
+    assert held.images.ptr == images_up.ptr and held.own.ptr == own_up.ptr
+    assert held.images.shape == (3, 20, 3) and held.own.shape == (3, 20)
+    held = residual_module.hold_images(images, own, "cuda:0", images_up=images_up)
+    assert held.images.ptr == images_up.ptr
+    np.testing.assert_array_equal(held.own.numpy(), own.reshape(3, 20))

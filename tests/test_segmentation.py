@@ -257,6 +257,26 @@ def test_bands_short_of_memory_keep_float16_specular_parts_and_shrink_the_lumina
     assert segment_in_bands(images, directions, rows=4, device="cpu", keep_specular=False).specular is None
 
 
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_the_images_sent_up_in_one_band_are_kept_where_asked(device):
+    """``keep_images``: on CUDA, where one band holds every row, the images as they went up (bit for bit);
+    in several bands, on the CPU, or unasked: None. The parts are the same either way."""
+    if device.startswith("cuda") and not wp.is_cuda_available():
+        pytest.skip("CUDA devices only")
+    rng = np.random.default_rng(5)
+    directions = LightSet.fibonacci_sphere(12).directions
+    for images in (rng.uniform(0.0, 2.0, (12, 8, 10, 3)).astype(np.float32), rng.uniform(0.0, 2.0, (12, 8, 10)).astype(np.float32)):
+        whole = segment_in_bands(images, directions, rows=8, device=device, keep_images=True)
+        assert (whole.images is not None) == device.startswith("cuda")
+        if whole.images is not None:
+            np.testing.assert_array_equal(whole.images.numpy(), images)
+        assert segment_in_bands(images, directions, rows=3, device=device, keep_images=True).images is None
+        plain = segment_in_bands(images, directions, rows=8, device=device)
+        assert plain.images is None
+        np.testing.assert_array_equal(plain.specular, whole.specular)
+        np.testing.assert_array_equal(plain.specular_luminance, whole.specular_luminance)
+
+
 def test_band_rows_fit_the_device_s_free_memory():
     import warp as wp
 

@@ -24,6 +24,7 @@ from ..io.resample import resample_image, resize_stack, working_size
 from ..io.warmup import InBackground
 from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
+from ..kernels.transfer import to_host
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.field import DiffuseModel, HighlightField
@@ -38,8 +39,10 @@ from .residual import (
     gaussian_bytes,
     highlight_colour,
     hold_images,
+    holds_images,
     learn_residual,
     render_own,
+    render_own_on_device,
 )
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
@@ -116,13 +119,16 @@ def fit_field(
             shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
             rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
                              keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
+            # a small capture's images, sent up for the segmentation in one band, stay there for the move check and the residual's stacks
+            holds_up = residual and not settings.residual.learns_on(device) and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device)
             if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
                 shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
                 seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                        keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                        specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
                                        shrink_factor=shrink_factor, target_on_device=not on_host,
-                                       shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device))  # the move check's images
+                                       shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device),  # the move check's images
+                                       keep_images=holds_up)
             else:
                 seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
             specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
@@ -134,7 +140,8 @@ def fit_field(
             specular = host_array(seg.specular) if keep_specular else None
             diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
             shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device
-            seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = None
+            images_up = seg.images  # the images as sent up, where kept there (``holds_up``)
+            seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = seg.images = None
             wp.synchronize_device(device)
         with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
             estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
@@ -158,7 +165,10 @@ def fit_field(
                 decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual, raster=settings.raster)
                 moving = decision.moving
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
-                own = render_own(source, height, width, raster=settings.raster, device=device)
+                own_up = render_own_on_device(source, height, width, raster=settings.raster, device=device)
+                own = to_host(own_up)
+                if images_up is None:
+                    own_up = None  # nothing held: the device lets it go
                 colour = None
                 if specular is not None:
                     colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
@@ -166,7 +176,8 @@ def fit_field(
             learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
             with timer.stage("move check"):
                 # sent up once, where small, for the check's scores and the compressed residual's stacks
-                held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device)
+                held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device, images_up=images_up, own_up=own_up)
+                images_up = own_up = None  # held (or not needed): the stages after read them through ``held`` alone
                 plan = planning.result() if planning is not None and moving.any() else plan_check(dataset.lights.directions, edges,
                                                                                                       settings.residual.check_lights if moving.any() else 0)
                 iterations = settings.retarget.rigid_iterations + settings.retarget.iterations

@@ -52,7 +52,7 @@ from ..model.residual import (
 )
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, mapped_empty, parallel_map, submit
 
-__all__ = ["CHROMA_GAIN", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HELD_STACK_SHARE", "HeldImages", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "hold_images", "learn_residual", "quantised_bytes", "RateSample", "render_own", "residual_of", "residual_scale", "sampled_rows"]
+__all__ = ["CHROMA_GAIN", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HELD_STACK_SHARE", "HeldImages", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "hold_images", "holds_images", "learn_residual", "quantised_bytes", "RateSample", "render_own", "render_own_on_device", "residual_of", "residual_scale", "sampled_rows"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -170,22 +170,41 @@ class HeldImages:
     own: wp.array | None
 
 
-def hold_images(images: np.ndarray, own: np.ndarray, device) -> HeldImages | None:
-    """``images`` (n, H, W, C) and ``own`` (n, H, W) on a CUDA ``device`` where together they take at most
-    ``HELD_IMAGES_BYTES`` and ``HELD_IMAGES_SHARE`` of its free memory; else None (each stage sends up what it reads)."""
+def holds_images(shape: tuple[int, ...], device) -> bool:
+    """Whether ``hold_images`` holds images of ``shape`` (n, H, W, C) and their own highlights on ``device``: a CUDA
+    device where together they take at most ``HELD_IMAGES_BYTES`` and ``HELD_IMAGES_SHARE`` of its free memory."""
+    device = wp.get_device(device)
+    n, height, width, channels = shape
+    nbytes = 4 * n * height * width * (channels + 1)
+    return device.is_cuda and nbytes <= HELD_IMAGES_BYTES and nbytes <= HELD_IMAGES_SHARE * device.free_memory
+
+
+def hold_images(images: np.ndarray, own: np.ndarray, device, *, images_up: wp.array | None = None,
+                own_up: wp.array | None = None) -> HeldImages | None:
+    """``images`` (n, H, W, C) and ``own`` (n, H, W) on a CUDA ``device`` where ``holds_images``; else None (each
+    stage sends up what it reads). ``images_up``, ``own_up``: the same values there already (float32, contiguous),
+    held as they are instead of sent up again (``images_up`` given: held whatever the memory is free now, as
+    ``holds_images`` was asked before it was sent up)."""
     device = wp.get_device(device)
     n, height, width, channels = images.shape
-    nbytes = images.nbytes + own.nbytes
-    if not device.is_cuda or nbytes > HELD_IMAGES_BYTES or nbytes > HELD_IMAGES_SHARE * device.free_memory:
+    if images_up is None and not holds_images(images.shape, device):
         return None
-    held = rows_up(np.asarray(images, np.float32).reshape(n, -1), device).reshape((n, height * width, channels))
-    return HeldImages(held, rows_up(np.asarray(own, np.float32).reshape(n, -1), device))
+    if images_up is None:
+        images_up = rows_up(np.asarray(images, np.float32).reshape(n, -1), device)
+    if own_up is None:
+        own_up = rows_up(np.asarray(own, np.float32).reshape(n, -1), device)
+    return HeldImages(images_up.reshape((n, height * width, channels)), own_up.reshape((n, height * width)))
+
+
+def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> wp.array:
+    """(n, H, W) float32 on ``device``: R(x; G_i), every light's own Gaussians drawn as the relighter draws them."""
+    batch = GaussianBatch.from_numpy(estimated, device=device, requires_grad=False)
+    return Rasterizer(height, width, settings=raster, device=device).render(batch)
 
 
 def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:
-    """(n, H, W) float32: R(x; G_i), every light's own Gaussians drawn as the relighter draws them."""
-    batch = GaussianBatch.from_numpy(estimated, device=device, requires_grad=False)
-    return to_host(Rasterizer(height, width, settings=raster, device=device).render(batch))
+    """``render_own_on_device`` in host memory."""
+    return to_host(render_own_on_device(estimated, height, width, raster=raster, device=device))
 
 
 def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:
@@ -657,7 +676,7 @@ def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: fl
     lies beyond it); None where no offset fits the measurement (nothing kept, or bytes the ranges and
     weights alone exceed). Both roots by Brent's method (the model's bytes rise with the offset and
     fall with the distortion)."""
-    from scipy.optimize import brentq  # only the sampled rate search needs it (0.04 s to import after the pipeline)
+    from scipy.optimize import brentq  # only the sampled rate search needs it (the fit command imports it while its images load)
 
     def fitted(offset: float) -> float:
         return _modelled_bytes(plans, levels, log_distortion, offset) - measured

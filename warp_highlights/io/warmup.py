@@ -81,6 +81,10 @@ class InBackground:
         finally:
             self._executor.shutdown(wait=True)
 
+    def done(self) -> bool:
+        """Whether the work has ended (returned or raised)."""
+        return self._future.done()
+
     def cancel(self) -> None:
         """Ask the work to stop and wait until it has."""
         self.stop.set()
