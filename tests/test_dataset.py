@@ -603,3 +603,57 @@ def test_a_set_stop_ends_the_loading_early(tmp_path):
         ReflectanceField.load(folder, progress=False, stop=stop)
     assert not [thread for thread in threading.enumerate() if thread.name.startswith("load")]
     assert ReflectanceField.load(folder, progress=False, stop=threading.Event()).light_count == field.light_count
+
+
+@pytest.mark.parametrize("replacement", ["larger", "grey", "other size"])
+def test_an_image_replaced_after_its_header_was_read_is_checked_again(tmp_path, replacement):
+    """The decoders take each header the loader read first, unless the file changed since (its size or time):
+    then it is read and checked again, so the pixel budget and the shape checks name it as before."""
+    field = _field(count=6)
+    folder = field.save(tmp_path / "capture")
+    target = folder / "images" / "0003.exr"
+    image = {"larger": np.ones((60, 70, 3)), "grey": np.ones((6, 7)), "other size": np.ones((6, 8, 3))}[replacement]
+
+    def swap(_stack_bytes):  # once every header is read, before any image is decoded
+        write_image(target, image.astype(np.float32))
+
+    with pytest.raises(InputError) as excinfo:
+        ReflectanceField.load(folder, progress=False, heldout=False, components=False, max_pixels=1000, before_decoding=swap)
+    expected = {"larger": "over the limit", "grey": "channel(s) but the first image", "other size": "all images must share one size"}
+    _single_line_error(excinfo, "0003.exr", expected[replacement])
+
+
+def test_images_whose_infinities_are_replaced_are_measured_after(tmp_path):
+    """An all-black capture but for an infinite pixel, replaced by 0: still all black (the range is taken
+    again once the pixel is replaced)."""
+    images = np.zeros((4, 6, 7, 3), np.float32)
+    ReflectanceField(images, LightSet.fibonacci_sphere(4)).save(tmp_path / "d")
+    images[2, 3, 4, 1] = np.inf
+    write_image(tmp_path / "d" / "images" / "0002.exr", images[2])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(InputError) as excinfo:
+            ReflectanceField.load(tmp_path / "d", replace_nonfinite=True, progress=False)
+    _single_line_error(excinfo, "entirely black")
+
+
+def test_each_exr_header_is_read_once_while_loading(tmp_path, monkeypatch):
+    """The loader's plan reads every image's header; the decoders take it from there (each decoding thread's
+    call back into Python can wait a whole GIL switch interval beside the pipeline's imports)."""
+    import OpenEXR
+
+    field = _field(count=5, heldout_count=3)
+    folder = field.save(tmp_path / "capture")
+    headers, real = [], OpenEXR.File
+
+    def counting(*args, **kwargs):
+        if kwargs.get("header_only"):
+            headers.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(OpenEXR, "File", counting)
+    loaded = ReflectanceField.load(folder, progress=False)
+    _assert_same(loaded, field)
+    counts = {name: headers.count(name) for name in headers}  # images, specular and diffuse parts, main and held-out lights
+    assert len(counts) == 3 * (5 + 3) and sum(counts.values()) == len(counts) + 1
+    assert counts[str(folder / "images" / "0000.exr")] == 2  # the first image's once more: its encoding, for the report

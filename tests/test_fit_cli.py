@@ -369,14 +369,45 @@ def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small
     assert order[:2] == (["warp", "decode"] if verbose else ["decode", "warp"])
 
 
-def test_progress_bars_take_a_thread_lock_alone():
+def test_progress_bars_take_a_thread_lock_alone(small_donut, tmp_path):
     """``fit``'s bars share a thread lock (tqdm's default also makes a multiprocessing lock, importing
-    ``multiprocessing`` in the loading thread); one set already (by a program embedding us) is kept."""
+    ``multiprocessing`` in the loading thread): a whole fit imports no ``multiprocessing``; a lock set
+    already (by a program embedding us) is kept."""
     import subprocess
     import sys
 
-    code = ("import sys, threading; from warp_highlights.cli.fit import _thread_lock_for_progress_bars as take; take(); "
-            "from tqdm import tqdm; lock = tqdm.get_lock(); [None for _ in tqdm(range(3), disable=True)]; take(); "
-            "print('multiprocessing' in sys.modules, type(lock) is type(threading.RLock()), tqdm.get_lock() is lock)")
+    from conftest import TINY_FIT
+
+    fit = ["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--device", "cpu", *TINY_FIT]
+    code = (f"import sys, threading; from warp_highlights.cli.app import main; status = main({fit!r}); "
+            "from tqdm import tqdm; from warp_highlights.cli.fit import _thread_lock_for_progress_bars as take; lock = tqdm.get_lock(); take(); "
+            "print(status, 'multiprocessing' in sys.modules, type(lock) is type(threading.RLock()), tqdm.get_lock() is lock)")
     shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert shown == ["False", "True", "True"]
+    assert shown[-4:] == ["0", "False", "True", "True"]
+
+
+@pytest.mark.skipif(not __import__("warp").is_cuda_available(), reason="images are held on CUDA devices only")
+def test_a_small_capture_s_images_are_held_from_the_segmentation_s_upload(small_donut, tmp_path, monkeypatch):
+    """On CUDA the move check and the residual's stacks read the images the segmentation sent up and the own
+    highlights as rendered there: ``hold_images`` is handed those very arrays (nothing sent up again)."""
+    from conftest import TINY_FIT
+
+    import warp_highlights.fit.pipeline as pipeline
+
+    kept, handed = [], []
+    real_segment, real_hold = pipeline.segment_in_bands, pipeline.hold_images
+
+    def segment(*args, **kwargs):
+        result = real_segment(*args, **kwargs)
+        kept.append(result.images)
+        return result
+
+    def hold(images, own, device, **kwargs):
+        handed.append(kwargs)
+        return real_hold(images, own, device, **kwargs)
+
+    monkeypatch.setattr(pipeline, "segment_in_bands", segment)
+    monkeypatch.setattr(pipeline, "hold_images", hold)
+    assert main(["fit", str(small_donut), "-o", str(tmp_path / "f.whf"), "--residual", "lowrank", "--device", "cuda:0", "-q", *TINY_FIT]) == 0
+    assert len(kept) == 1 and kept[0] is not None and len(handed) == 1
+    assert handed[0]["images_up"] is kept[0] and handed[0]["own_up"] is not None

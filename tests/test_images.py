@@ -137,6 +137,24 @@ def test_exr_channel_layouts_read_as_each_channel_alone(tmp_path, layout):
         np.testing.assert_array_equal(widened, expected)
 
 
+def test_an_exr_with_a_subsampled_alpha_is_read_quietly_as_before(tmp_path, capfd):
+    """R, G and B at every pixel beside an alpha at every other: the header says OpenEXR will not group them,
+    so they are read apart at once (an attempt to group them prints a warning on stdout)."""
+    import OpenEXR
+
+    rng = np.random.default_rng(8)
+    planes = {name: rng.uniform(0.0, 4.0, size=(8, 10)).astype(np.float16) for name in "RGB"}
+    channels = {name: OpenEXR.Channel(name, plane) for name, plane in planes.items()}
+    channels["A"] = OpenEXR.Channel("A", rng.uniform(size=(8, 10)).astype(np.float16), 2, 2)  # stored at every other pixel
+    path = tmp_path / "a.exr"
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
+    capfd.readouterr()
+    image = read_image(path)
+    np.testing.assert_array_equal(image, np.stack([planes[name].astype(np.float32) for name in "RGB"], axis=-1))
+    shown = capfd.readouterr()
+    assert shown.out == "" and shown.err == ""
+
+
 # --- PNG ------------------------------------------------------------------------------------------
 
 

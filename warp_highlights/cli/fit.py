@@ -148,12 +148,12 @@ def _run_fit(args) -> int:
             try:
                 from ..fit.pipeline import fit_field
                 from ..io.fieldfile import save_field
-
-                if not background.done():  # waiting for the images anyway: the rate search's one late import now
-                    import scipy.optimize  # noqa: F401 (0.05-0.07 s on the lent H100's host)
             finally:
                 warmup.started()  # Warp is started once, in one thread at a time
             device = check_device(args.device)
+            compressed = args.residual != "none" and settings.residual.compressed and not settings.residual.learns_on(device)
+            if compressed and not background.done():  # waiting for the images anyway: the rate search's one late import now
+                import scipy.optimize  # noqa: F401 (0.05-0.07 s on the lent H100's host)
             dataset, loading, load_seconds = background.result() or load_images(background.stop)
         if args.holdout_every:
             dataset = dataset.split_every(args.holdout_every)

@@ -71,9 +71,10 @@ Where a CUDA device holds the stacks instead (``kernels.stacks``), the same shar
 principal images' host copy goes to that mapped file, where the device has no room for them (else they
 stay there, and the host keeps no copy)."""
 HELD_IMAGES_BYTES = 1 << 30
-"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are sent up
-once for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of the device's free
-memory; larger ones go up band by band where each stage reads them (the stacks: 0.1 s of the 480x270 fit on the lent H100)."""
+"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are held on a
+CUDA device for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of its free memory:
+the images from the segmentation's upload on (through estimation, retargeting and the paths), the own highlights from their
+render; larger ones go up band by band where each stage reads them (the stacks: 0.1 s of the 480x270 fit on the lent H100)."""
 HELD_IMAGES_SHARE = 0.1
 _BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each

@@ -27,6 +27,7 @@ import io
 import logging
 import math
 import os
+import stat
 import struct
 import sys
 import threading
@@ -44,6 +45,7 @@ from .atomic import atomic_file
 __all__ = [
     "DEFAULT_MAX_PIXELS",
     "IMAGE_EXTENSIONS",
+    "ImageHeader",
     "display_rgb8",
     "image_encoding",
     "image_header",
@@ -155,8 +157,9 @@ def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_M
             that cannot be decoded (damaged or truncated).
     """
     pixels = read_pixels(path, linear=linear, max_pixels=max_pixels)
-    exr = _existing_image(path)[1] == ".exr"  # OpenEXR's own buffers: copied, as every other reader's array is fresh
-    return pixels.astype(np.float32) if exr or pixels.dtype != np.float32 else pixels
+    # an EXR's values as stored (half, or a view of its interleaved channels) into a fresh float32 array; the
+    # other readers' float32 arrays are fresh already
+    return pixels.astype(np.float32) if Path(path).suffix.lower() == ".exr" or pixels.dtype != np.float32 else pixels
 
 
 def read_pixels(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS, header: ImageHeader | None = None) -> np.ndarray:
@@ -166,8 +169,11 @@ def read_pixels(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_
     ``read_image``'s values exactly: a caller that copies them into a float32 stack anyway makes one copy.
 
     ``header``: the file's :func:`image_header`, read and checked before (the loader reads every
-    image's header first): not read again. Raises as :func:`read_image`."""
-    path, suffix = _existing_image(path)
+    image's header first): not read again, unless the file has changed since (its size or modification
+    time). Raises as :func:`read_image`."""
+    path, suffix, stamp = _stamped_image(path)
+    if header is not None and header.stamp != stamp:
+        header = None  # another file in its place since its header was read: read and checked again
     if suffix == ".exr":
         return _read_exr(path, max_pixels, header=header)
     if header is None:
@@ -226,7 +232,7 @@ def image_size(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[in
     """
     path, suffix = _existing_image(path)
     if suffix == ".exr":
-        width, height, _ = _exr_header(path, max_pixels)
+        width, height, _, _ = _exr_header(path, max_pixels)
         return width, height
     width, height, _ = _header(path, suffix, max_pixels)
     return width, height
@@ -248,22 +254,26 @@ def image_shape(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[i
 @dataclass(frozen=True)
 class ImageHeader:
     """What an image's header says, as :func:`image_header` read and checked it: the ``shape``
-    :func:`read_image` returns and, for an EXR, the channels it reads (``exr_channels``; None otherwise)."""
+    :func:`read_image` returns; for an EXR, the channels it reads (``exr_channels``; None otherwise) and
+    whether OpenEXR can give its R, G and B as one interleaved channel (``exr_grouped``); the file's size
+    and modification time then (``stamp``, bytes and ns)."""
 
     shape: tuple[int, ...]
     exr_channels: tuple[str, ...] | None = None
+    exr_grouped: bool = False
+    stamp: tuple[int, int] | None = None
 
 
 def image_header(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> ImageHeader:
     """:func:`image_shape`'s header, kept for :func:`read_pixels` (which then does not read it again).
     Raises as :func:`image_shape`."""
-    path, suffix = _existing_image(path)
+    path, suffix, stamp = _stamped_image(path)
     if suffix == ".exr":
-        width, height, names = _exr_header(path, max_pixels)
+        width, height, names, grouped = _exr_header(path, max_pixels)
         keep = _exr_channels_to_keep(path, names)
-        return ImageHeader((height, width, 3) if len(keep) == 3 else (height, width), keep)
+        return ImageHeader((height, width, 3) if len(keep) == 3 else (height, width), keep, grouped, stamp)
     width, height, colour = _header(path, suffix, max_pixels)
-    return ImageHeader((height, width, 3) if colour else (height, width))
+    return ImageHeader((height, width, 3) if colour else (height, width), stamp=stamp)
 
 
 def image_encoding(path, *, linear: bool = False) -> dict:
@@ -324,11 +334,20 @@ def _unreadable(path: Path, exc: Exception) -> InputError:
 
 def _existing_image(path) -> tuple[Path, str]:
     """``(Path, lower-case suffix)`` of an existing image file of a supported type."""
+    return _stamped_image(path)[:2]
+
+
+def _stamped_image(path) -> tuple[Path, str, tuple[int, int]]:
+    """``_existing_image`` and the file's (size, modification time in ns), from the one ``stat`` that finds it."""
     path = Path(path)
     suffix = _checked_suffix(path)
-    if not path.is_file():
+    try:
+        status = path.stat()
+    except (OSError, ValueError):  # as Path.is_file: missing, unreadable folder, bad name
+        status = None
+    if status is None or not stat.S_ISREG(status.st_mode):
         raise InputError(f"{path}: image file not found")
-    return path, suffix
+    return path, suffix, (status.st_size, status.st_mtime_ns)
 
 
 def _check_pixels(path: Path, size: str, pixels: int, max_pixels: int | None) -> None:
@@ -459,8 +478,10 @@ def quiet_native_stderr() -> Iterator[None]:
                 _quiet["saved"] = None
 
 
-def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]]:
-    """``(width, height, channel names)`` of an EXR's first part, from the headers alone.
+def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str], bool]:
+    """``(width, height, channel names, grouped)`` of an EXR's first part, from the headers alone; ``grouped``:
+    it has R, G and B, and they and any A are sampled at every pixel (OpenEXR then gives them as one interleaved
+    channel, unless their pixel types differ, which the headers do not show).
 
     The pixel budget counts every part (OpenEXR reads them all). Deep images and empty or inverted
     data windows are refused: none of them allocates anything.
@@ -472,6 +493,8 @@ def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]
             headers = [part.header for part in OpenEXR.File(str(path), header_only=True).parts]
         windows = [tuple(int(v) for corner in header["dataWindow"] for v in corner) for header in headers]
         names = [channel.name for channel in headers[0]["channels"]]
+        grouped = {"R", "G", "B"} <= set(names) and all(
+            channel.xSampling == channel.ySampling == 1 for channel in headers[0]["channels"] if channel.name in ("R", "G", "B", "A"))
         deep = any(header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile) for header in headers)
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, KeyError, UnicodeError, ...)
         raise _unreadable(path, exc) from exc
@@ -483,7 +506,7 @@ def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]
     width, height = sizes[0]
     described = f"{width}x{height}" if len(sizes) == 1 else f"{len(sizes)} parts, the first {width}x{height}"
     _check_pixels(path, described, sum(w * h for w, h in sizes), max_pixels)
-    return width, height, names
+    return width, height, names, grouped
 
 
 def _exr_channels_to_keep(path: Path, names) -> tuple[str, ...]:
@@ -522,24 +545,26 @@ def _encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
 def _read_exr(path: Path, max_pixels: int | None, *, header: ImageHeader | None = None) -> np.ndarray:
     """EXR -> its (H, W) or (H, W, 3) channels as stored (see ``read_pixels``); the header is checked first (unless
     ``header`` gives it, checked already), so nothing oversized is allocated. R, G and B come from OpenEXR as
-    one interleaved channel ("RGB", or "RGBA" whose alpha is dropped): no stacking, one widening copy after."""
+    one interleaved channel ("RGB", or "RGBA" whose alpha is dropped) where the header allows: no stacking, one
+    widening copy after; else (and where their pixel types differ) each channel alone."""
     import OpenEXR
 
     if header is None or header.exr_channels is None:
-        width, height, names = _exr_header(path, max_pixels)
+        width, height, names, grouped = _exr_header(path, max_pixels)
         keep = _exr_channels_to_keep(path, names)
     else:
-        (height, width), keep = header.shape[:2], header.exr_channels
+        (height, width), keep, grouped = header.shape[:2], header.exr_channels, header.exr_grouped
     try:
         with quiet_native_stderr():
-            try:
-                channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path)).channels().items()}
-            except Exception:  # noqa: BLE001 (R, G and B of several pixel types are not grouped: read apart below)
-                channels = {}
-            if len(keep) == 3:
-                grouped = next((channels[name] for name in ("RGB", "RGBA") if name in channels), None)
-                if isinstance(grouped, np.ndarray) and grouped.shape in ((height, width, 3), (height, width, 4)):
-                    return grouped[..., :3]
+            channels = {}
+            if len(keep) == 3 and grouped:
+                try:
+                    channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path)).channels().items()}
+                except Exception:  # noqa: BLE001 (R, G and B of several pixel types are not grouped: read apart below)
+                    channels = {}
+                interleaved = next((channels[name] for name in ("RGB", "RGBA") if name in channels), None)
+                if isinstance(interleaved, np.ndarray) and interleaved.shape in ((height, width, 3), (height, width, 4)):
+                    return interleaved[..., :3]
             if not all(name in channels for name in keep):  # not grouped as above (or not read): each channel alone
                 channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, UnicodeError, ...)
