@@ -175,7 +175,8 @@ def fit_field(
                     del specular
             learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
             with timer.stage("move check"):
-                # sent up once, where small, for the check's scores and the compressed residual's stacks
+                # held there, where small (the segmentation's upload, the own highlights' render), for the check's scores and the
+                # compressed residual's stacks
                 held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device, images_up=images_up, own_up=own_up)
                 images_up = own_up = None  # held (or not needed): the stages after read them through ``held`` alone
                 plan = planning.result() if planning is not None and moving.any() else plan_check(dataset.lights.directions, edges,
