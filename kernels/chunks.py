@@ -14,7 +14,7 @@ import warp as wp
 
 from warp_highlights.model.threads import child_initializer, core_count
 
-__all__ = ["DEVICE_SHARE", "Cancelled", "map_chunks", "memory_chunks", "problem_chunks"]
+__all__ = ["DEVICE_SHARE", "Cancelled", "chunk_progress", "map_chunks", "memory_chunks", "problem_chunks"]
 
 DEVICE_SHARE = 0.5
 """The share of a CUDA device's free memory one batch's arrays may take (the rest is for the stage's
@@ -25,16 +25,32 @@ class Cancelled(Exception):
     """Raised inside a chunk's thread when another chunk failed or the user interrupted."""
 
 
-def problem_chunks(count: int, device, workers: int | None = None) -> list[slice]:
-    """Contiguous slices of ``range(count)``: one on CUDA, up to ``workers`` (default: CPU cores) on the CPU."""
+def problem_chunks(count: int, device, workers: int | None = None, *, most_each: int | None = None) -> list[slice]:
+    """Contiguous slices of ``range(count)``: one on CUDA, up to ``workers`` (default: CPU cores) on the CPU;
+    more where a slice would hold over ``most_each`` problems (one launch's bound, e.g. ``problems_per_launch``)."""
     device = wp.get_device(device)
     if device.is_cuda:
         parts = 1
     else:
         parts = workers if workers is not None else core_count()
-    parts = max(1, min(int(parts), count))
+    return _equal_slices(count, max(1, min(int(parts), count)), most_each)
+
+
+def _equal_slices(count: int, parts: int, most_each: int | None) -> list[slice]:
+    if most_each is not None:
+        parts = max(parts, -(-count // max(1, int(most_each))))
     bounds = [round(k * count / parts) for k in range(parts + 1)]
     return [slice(bounds[k], bounds[k + 1]) for k in range(parts) if bounds[k + 1] > bounds[k]]
+
+
+def chunk_progress(progress, chunk: slice, count: int):
+    """``progress`` for one chunk of ``count`` problems: its ``advance(steps)`` reported as the share of
+    the stage's steps (``steps`` x chunk / count), so a bar over the stage's steps fills once, however many
+    chunks run. None stays None."""
+    if progress is None:
+        return None
+    share = (chunk.stop - chunk.start) / max(count, 1)
+    return lambda steps: progress(steps * share)
 
 
 def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
@@ -74,13 +90,13 @@ def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
     return [f.result() for f in futures]
 
 
-def memory_chunks(count: int, device, workers: int | None = None, *, bytes_each: float, share: float = DEVICE_SHARE) -> list[slice]:
+def memory_chunks(count: int, device, workers: int | None = None, *, bytes_each: float, share: float = DEVICE_SHARE,
+                  most_each: int | None = None) -> list[slice]:
     """``problem_chunks``; on CUDA, as many equal contiguous parts (run one after the other) as keep each
-    part's ``bytes_each`` per problem within ``share`` of the device's free memory."""
+    part's ``bytes_each`` per problem within ``share`` of the device's free memory, and its problems at
+    most ``most_each``."""
     device = wp.get_device(device)
     if not device.is_cuda or count == 0:
-        return problem_chunks(count, device, workers)
+        return problem_chunks(count, device, workers, most_each=most_each)
     fits = max(1, int(share * device.free_memory // max(bytes_each, 1)))
-    parts = -(-count // fits)
-    bounds = [round(k * count / parts) for k in range(parts + 1)]
-    return [slice(bounds[k], bounds[k + 1]) for k in range(parts) if bounds[k + 1] > bounds[k]]
+    return _equal_slices(count, -(-count // fits), most_each)

@@ -45,6 +45,7 @@ from ._tape import active_tape
 from .losses import log_l1_factor, log_l1_gradient
 
 __all__ = [
+    "LAUNCH_PIXELS",
     "Rasterizer",
     "bin_tiles",
     "ellipse_reaches_rectangle",
@@ -52,10 +53,14 @@ __all__ = [
     "frame_distance2",
     "gaussian_frame",
     "prepare_gaussians",
+    "problems_per_launch",
     "rasterize_backward",
     "rasterize_drawn_tiles",
     "rasterize_tiles",
 ]
+
+LAUNCH_PIXELS = 2**31
+"""Pixels one launch may index: Warp's launch dimensions and the kernels' flat pixel indices are 32-bit."""
 
 _BOX_MARGIN = 1  # pixels added around computed ranges; the per-pixel test decides membership
 
@@ -473,6 +478,17 @@ def rasterize_backward(
     wp.atomic_add(grad.sigma, b, n, scale * wp.vec2(sig[0] * ix * ix * m_uu, sig[1] * iy * iy * m_vv))
 
 
+def problems_per_launch(height: int, width: int, settings: RasterSettings | None = None) -> int:
+    """The most (height x width) images one rasterizer launch draws: every tile-padded pixel indexed below 2^31.
+
+    A batch with more (e.g. the six directed edges per light of a light stage) is drawn in parts; see
+    ``kernels.chunks``' ``most_each``.
+    """
+    tile = (settings or RasterSettings()).tile_size
+    padded = -(-int(height) // tile) * -(-int(width) // tile) * tile * tile
+    return max(1, (LAUNCH_PIXELS - 1) // padded)
+
+
 class Rasterizer:
     """Renders a ``GaussianBatch`` to (B, H, W) float32 images, differentiably through ``wp.Tape``.
 
@@ -512,6 +528,11 @@ class Rasterizer:
     def tile_count(self) -> int:
         return self.tiles_x * self.tiles_y
 
+    @property
+    def problems_per_launch(self) -> int:
+        """The most images one ``render`` draws: their tile-padded pixels stay below 2^31 (Warp's launch bound)."""
+        return problems_per_launch(self.height, self.width, self.settings)
+
     def _buffers(self, shape: tuple[int, int]) -> None:
         if self._shape == shape:
             return
@@ -543,7 +564,7 @@ class Rasterizer:
         if batch.device != self.device:
             raise InputError(f"the batch is on {batch.device} but the rasterizer on {self.device}")
         problems, capacity = batch.shape
-        if problems * self.tile_count * self.settings.tile_size**2 >= 2**31:
+        if problems > self.problems_per_launch:
             raise InputError(f"{problems} images of {self.width} x {self.height} exceed one launch (2^31 pixels); render the batch in parts")
         if out is None:
             out = self.new_image(problems)

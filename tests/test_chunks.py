@@ -71,3 +71,32 @@ def test_chunks_not_in_parallel_run_in_order_on_this_thread():
                          problem_chunks(9, "cpu", 3), parallel=False)
     assert results == [0, 3, 6] and [s for s, _ in seen] == [0, 3, 6]
     assert {t for _, t in seen} == {threading.get_ident()}
+
+
+@pytest.mark.parametrize("count,workers,most", [(10, 2, 3), (7, 16, 2), (100, 1, 100), (100, 3, 1), (5, 2, None)])
+def test_chunks_hold_at_most_one_launchs_problems(count, workers, most):
+    """``most_each`` (the rasterizer's bound per launch) splits a thread's or a device's chunk further; the
+    slices still cover every problem once, in order, and are as equal as they can be."""
+    for chunks in (problem_chunks(count, "cpu", workers, most_each=most), memory_chunks(count, "cpu", workers, bytes_each=1.0, most_each=most)):
+        covered = np.concatenate([np.arange(count)[c] for c in chunks])
+        np.testing.assert_array_equal(covered, np.arange(count))
+        sizes = [c.stop - c.start for c in chunks]
+        assert max(sizes) <= (most or count) and max(sizes) - min(sizes) <= 1
+        assert len(chunks) == max(min(workers, count), -(-count // (most or count)))
+    if wp.is_cuda_available():
+        assert problem_chunks(10, "cuda:0", most_each=4) == [slice(0, 3), slice(3, 7), slice(7, 10)]
+        assert memory_chunks(10, "cuda:0", bytes_each=1.0, most_each=4) == [slice(0, 3), slice(3, 7), slice(7, 10)]
+
+
+def test_chunk_progress_reports_each_chunks_share_so_a_bar_fills_once():
+    from warp_highlights.kernels.chunks import chunk_progress
+
+    assert chunk_progress(None, slice(0, 3), 10) is None
+    steps, total = [], 0.0
+    chunks = problem_chunks(11, "cpu", 2, most_each=3)
+    for chunk in chunks:
+        advance = chunk_progress(steps.append, chunk, 11)
+        for _ in range(20):  # every chunk runs the stage's 20 iterations
+            advance(1)
+    total = sum(steps)
+    assert len(chunks) == 4 and total == pytest.approx(20.0)

@@ -64,6 +64,32 @@ def test_chunks_on_threads_give_the_same_result_as_one_batch():
     np.testing.assert_array_equal(one.loss, three.loss)
 
 
+def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_sets(monkeypatch):
+    """A bound of 2 images per launch (a light stage at a large working size) splits 5 lights into 3
+    parts on one thread: the same sets bit for bit as one batch, and the progress bar fills once. On
+    CUDA the parts run one after the other on the device."""
+    import warp as wp
+
+    import warp_highlights.fit.estimation as estimation_module
+
+    rng = np.random.default_rng(5)
+    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]], "theta": [rng.uniform(0, 3)]} for _ in range(5)]
+    target = _render(sets)
+    short = EstimationSettings(iterations=60, densify_every=20, densify_until=50)
+    devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
+    whole = {d: estimate(target, settings=short, device=d, workers=1) for d in devices}
+    monkeypatch.setattr(estimation_module, "problems_per_launch", lambda h, w, raster: 2)
+    for device in devices:
+        steps = []
+        parts = estimate(target, settings=short, device=device, workers=1, progress=steps.append)
+        for name in ("active", "amplitude", "mean", "sigma", "theta"):
+            if device == "cpu":
+                np.testing.assert_array_equal(getattr(parts.params, name), getattr(whole[device].params, name))
+            else:  # the device's atomics may add in another order
+                np.testing.assert_allclose(getattr(parts.params, name), getattr(whole[device].params, name), rtol=1e-4, atol=1e-5)
+        assert sum(steps) == pytest.approx(short.iterations)
+
+
 def test_graph_replay_gives_the_eager_result_bit_for_bit():
     """On CUDA, one iteration captured as a graph and replayed (across the add/prune rounds) against
     the same iterations launched one by one; on the CPU, graphs are refused in one line."""

@@ -7,7 +7,7 @@ import pytest
 import reference
 import warp as wp
 from gaussian_cases import central_differences, inside_params, random_params
-from warp_highlights.kernels.raster import Rasterizer
+from warp_highlights.kernels.raster import LAUNCH_PIXELS, Rasterizer, problems_per_launch
 
 from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError
@@ -252,6 +252,27 @@ def test_same_set_has_the_same_integral_at_any_resolution(device, height):
     # integral of (exp(-d^2/2) - tau) / (1 - tau) over the cut-off ellipse
     integral = stored.weight * stored.amplitude**2 * 2 * np.pi * root_det * (1 - tau - tau * c2 / 2) / (1 - tau)
     assert image.sum() / height**2 == pytest.approx(integral.sum(), rel=2e-3)
+
+
+@pytest.mark.parametrize("tile_size", [4, 16, 32])
+@pytest.mark.parametrize("height,width", [(1, 1), (54, 96), (540, 960), (2160, 3840), (4097, 4095)])
+def test_problems_per_launch_is_the_most_images_whose_padded_pixels_index_below_2_31(height, width, tile_size):
+    """Brute force over the padded image: k images fit, k + 1 do not."""
+    settings = RasterSettings(tile_size=tile_size)
+    k = problems_per_launch(height, width, settings)
+    padded = len(range(0, height, tile_size)) * tile_size * len(range(0, width, tile_size)) * tile_size
+    assert k * padded < LAUNCH_PIXELS <= (k + 1) * padded
+    assert Rasterizer(height, width, settings=settings, device="cpu").problems_per_launch == k
+
+
+def test_render_refuses_one_image_over_a_launch_and_draws_the_most_it_allows():
+    raster = Rasterizer(4096, 4096, device="cpu")  # 127 images per launch
+    most = raster.problems_per_launch
+    assert most == 127
+    with pytest.raises(InputError, match=f"{most + 1} images of 4096 x 4096 exceed one launch"):
+        raster.render(GaussianBatch(most + 1, 1, device="cpu"))
+    small = Rasterizer(8, 8, device="cpu")
+    assert small.render(GaussianBatch(3, 1, device="cpu")).shape == (3, 8, 8)
 
 
 def test_render_rejects_mismatched_inputs():

@@ -274,6 +274,21 @@ def test_chunks_give_the_same_images_as_one_launch(sphere_field):
     assert np.array_equal(np.concatenate([p.specular for p in streamed]), whole.specular)
 
 
+def test_a_launch_never_draws_more_queries_than_its_pixels_allow(sphere_field, monkeypatch):
+    """``max_batch`` (given or the memory default) is capped at the rasterizer's images per launch
+    (2^31 pixels), so a 4K field's batches run in parts instead of being refused."""
+    from warp_highlights.kernels.raster import Rasterizer
+
+    queries = random_directions(np.random.default_rng(16), 9)
+    whole = Relighter(sphere_field, device="cpu").relight(queries)
+    monkeypatch.setattr(Rasterizer, "problems_per_launch", property(lambda self: 3))
+    for asked in (None, 100):
+        capped = Relighter(sphere_field, device="cpu", max_batch=asked)
+        assert capped.max_batch == 3
+        parts = capped.relight(queries)
+        assert np.array_equal(whole.specular, parts.specular) and np.array_equal(whole.full, parts.full)
+
+
 def test_single_direction_has_no_query_axis(sphere_field):
     result = Relighter(sphere_field, device="cpu").relight([0.0, 0.0, 3.0])
     assert result.specular.shape == (HEIGHT, WIDTH)

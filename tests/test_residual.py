@@ -879,3 +879,27 @@ def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
         sides = [residual_module._modelled_bytes(plans, levels, x + dx, 3.5) for dx in (-1e-7, 0.0, 1e-7)]
         assert min(sides) * (1 - 1e-6) <= goal <= max(sides) * (1 + 1e-6)
     assert residual_module._modelled_distortion(plans, levels, top - 6.0, 1.0, measured, lowest, highest) is None
+
+
+@pytest.mark.parametrize("device", ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else []))
+def test_own_highlights_past_one_launch_are_drawn_in_parts_into_one_stack(device, monkeypatch):
+    """Lights whose images pass one launch's 2^31 pixels (100 photographs of 24 megapixels) are drawn a
+    launch's worth at a time into one (n, H, W) array: forced here by a bound of 2 images; every pixel
+    is the one batch's, bit for bit, none left from the empty allocation."""
+    from warp_highlights.kernels.raster import Rasterizer
+
+    from warp_highlights.fit.residual import render_own_on_device
+
+    rng = np.random.default_rng(11)
+    sets = GaussianParams.empty(5, 3)
+    sets.active[:, :2] = True
+    sets.amplitude[:, :2] = rng.uniform(0.5, 1.5, (5, 2))
+    sets.mean[:, :2] = rng.uniform(0.2, 1.2, (5, 2, 2))
+    sets.sigma[:, :2] = rng.uniform(0.03, 0.2, (5, 2, 2))
+    sets.theta[:, :2] = rng.uniform(0, 3, (5, 2))
+    whole = render_own_on_device(sets, 27, 48, raster=RasterSettings(), device=device).numpy()
+    monkeypatch.setattr(Rasterizer, "problems_per_launch", property(lambda self: 2))
+    parts = render_own_on_device(sets, 27, 48, raster=RasterSettings(), device=device)
+    assert parts.shape == (5, 27, 48)
+    np.testing.assert_array_equal(parts.numpy(), whole)
+    assert (whole.reshape(5, -1).max(axis=1) > 0.1).all()

@@ -157,6 +157,38 @@ def test_retargeting_in_parts_that_fit_the_device_gives_the_same_sets(donut_reta
     np.testing.assert_allclose(parts.loss, whole.loss, rtol=1e-3, atol=1e-3)
 
 
+def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(donut_retargeting, small_donut, monkeypatch):
+    """Edges whose images would index past 2^31 pixels in one launch (a light stage's six edges per
+    light) are retargeted in parts: forced here by a bound of 7 images per launch, on 2 threads. Each
+    edge is its own problem: the same sets bit for bit, and the progress bar fills exactly once."""
+    import warp_highlights.fit.retargeting as retargeting_module
+
+    est, edges, whole = donut_retargeting
+    data = ReflectanceField.load(small_donut, progress=False)
+    targets = segment(data.images, data.lights.directions, device="cpu").specular_luminance
+    cuda = wp.is_cuda_available()
+    if cuda:
+        targets_up = wp.array(targets.numpy(), dtype=float, device="cuda:0")
+        whole_on_device = retarget(est.params, targets_up, edges, device="cuda:0")
+    bounds = []
+    monkeypatch.setattr(retargeting_module, "problems_per_launch", lambda h, w, raster: bounds.append((h, w)) or 7)
+    steps = []
+    parts = retarget(est.params, targets, edges, device="cpu", workers=2, progress=steps.append)
+    assert bounds == [tuple(targets.shape[1:])]
+    for name in ("amplitude", "mean", "sigma", "theta", "active"):
+        np.testing.assert_array_equal(getattr(parts.params, name), getattr(whole.params, name))
+    np.testing.assert_array_equal(parts.loss, whole.loss)
+    s = RetargetSettings()
+    assert sum(steps) == pytest.approx(s.rigid_iterations + s.iterations)
+    if cuda:  # a device's 26 parts run one after the other
+        steps.clear()
+        on_device = retarget(est.params, targets_up, edges, device="cuda:0", progress=steps.append)
+        np.testing.assert_array_equal(on_device.params.active, whole_on_device.params.active)
+        for name in ("amplitude", "mean", "sigma", "theta"):
+            np.testing.assert_allclose(getattr(on_device.params, name), getattr(whole_on_device.params, name), rtol=1e-4, atol=1e-5)
+        assert sum(steps) == pytest.approx(s.rigid_iterations + s.iterations)
+
+
 @pytest.fixture(scope="module")
 def donut_retargeting(small_donut):
     data = ReflectanceField.load(small_donut, progress=False)

@@ -18,10 +18,10 @@ import warp as wp
 
 from ..io.metrics import psnr, psnr_of_mse
 from ..kernels._tape import ReplayedStep, adam_iteration
-from ..kernels.chunks import Cancelled, map_chunks, problem_chunks
+from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss, clipped_mse
 from ..kernels.optim import GaussianAdam
-from ..kernels.raster import Rasterizer
+from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.regions import Regions, ResidualRegions
 from ..model.config import (
     REFERENCE_HEIGHT_PX,
@@ -87,7 +87,8 @@ def estimate(
         raster: how Gaussians are drawn.
         device: Warp device (default: the targets' device, else Warp's default).
         workers: CPU threads (default: one per core); ignored on CUDA.
-        progress: optional callable ``advance(iterations)`` called as the fit goes.
+        progress: optional callable ``advance(iterations)`` called as the fit goes (with fractions when
+            the lights run in parts: each part's iterations times its share of the lights).
         graphs: replay one iteration captured as a CUDA graph instead of launching its kernels one by
             one from Python (the same kernels in the same order: the same result); default: on CUDA.
     """
@@ -100,7 +101,7 @@ def estimate(
         source = np.ascontiguousarray(targets.numpy() if isinstance(targets, wp.array) else targets, dtype=np.float32)
     if source.ndim != 3:
         raise InputError(f"estimation targets must have shape (lights, height, width), got {tuple(source.shape)}")
-    chunks = problem_chunks(source.shape[0], device, workers)
+    chunks = problem_chunks(source.shape[0], device, workers, most_each=problems_per_launch(source.shape[1], source.shape[2], raster))
     graphs = device.is_cuda if graphs is None else bool(graphs)
     if graphs and not device.is_cuda:
         raise InputError("CUDA graphs need a CUDA device; estimate on the CPU with graphs=False")
@@ -110,9 +111,9 @@ def estimate(
             device_targets = source if len(chunks) == 1 else source[chunk]
         else:
             device_targets = wp.array(source[chunk], dtype=float, device=device)
-        return _Estimator(device_targets, s, raster, device).run(stop, progress, graphs=graphs)
+        return _Estimator(device_targets, s, raster, device).run(stop, chunk_progress(progress, chunk, source.shape[0]), graphs=graphs)
 
-    parts = map_chunks(run, chunks)
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda)  # a device's parts (over one launch's pixels) run in turn
     params = GaussianParams.concatenate([p[0] for p in parts])
     loss, psnr_db, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
     return EstimationResult(params=params, loss=loss, psnr=psnr_db, added=added, pruned=pruned)

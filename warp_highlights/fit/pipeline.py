@@ -22,7 +22,6 @@ from ..io.dataset import ReflectanceField
 from ..io.memory import PeakMemory, available_memory
 from ..io.resample import resample_image, resize_stack, working_size
 from ..io.warmup import InBackground
-from ..kernels.chunks import problem_chunks
 from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
 from ..kernels.transfer import to_host
 from ..model.config import FitSettings
@@ -143,9 +142,9 @@ def fit_field(
             images_up = seg.images  # the images as sent up, where kept there (``holds_up``)
             seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = seg.images = None
             wp.synchronize_device(device)
-        with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, workers, device, dataset.light_count) as advance:
+        with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, dataset.light_count) as advance:
             estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
-        with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, workers, device, len(edges)) as advance:
+        with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, len(edges)) as advance:
             retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
         with timer.stage("paths"):
             source = estimated.params
@@ -188,12 +187,12 @@ def fit_field(
                     check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
                     check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
                     check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
-                with _bar(progress, "move check", iterations, workers, device, len(plan.missing)) as advance:
+                with _bar(progress, "move check", iterations, len(plan.missing)) as advance:
                     check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, check_images, check_own, check_colour,
                                          factor=factor, settings=settings, device=device, workers=workers, progress=advance,
                                          keep=settings.residual.learned_check if learned else 0, held=held if check_images is images else None)
             if learned and check.moves and len(check.kept_lights):
-                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, workers, device, 1) as advance:
+                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, 1) as advance:
                     learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device, progress=advance)
             if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
@@ -212,7 +211,7 @@ def fit_field(
                 # the learned check's winner goes on learning from every light (the ones it left out too);
                 # without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
-                with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, workers, device, 1) as advance:
+                with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
                                                                      settings=settings.residual, device=device, log=log, progress=advance,
                                                                      initial=winner, tune=winner is not None)
@@ -366,22 +365,23 @@ class _StageTimer:
 
 
 @contextmanager
-def _bar(enabled: bool, name: str, iterations: int, workers, device, problems: int):
-    """A tqdm bar over ``iterations`` steps and a thread-safe ``advance(k)`` for the stage's chunks.
+def _bar(enabled: bool, name: str, iterations: int, problems: int):
+    """A tqdm bar over the stage's ``iterations`` and a thread-safe ``advance(k)`` for its chunks.
 
-    Every chunk (one per CPU thread) reports its own steps, so the bar counts steps of all chunks.
+    Every chunk (one per CPU thread, or one of a device's parts) reports its steps times its share of
+    the problems (``kernels.chunks.chunk_progress``), so the bar fills once whatever the split.
     """
     if not enabled:
         yield None
         return
     from tqdm import tqdm
 
-    chunk_count = len(problem_chunks(problems, device, workers))
     lock = threading.Lock()
     desc = f"{name} ({problems} sets)" if problems > 1 else name
-    with tqdm(total=iterations * chunk_count, desc=desc, unit="step", leave=False, mininterval=0.5) as bar:
+    with tqdm(total=iterations, desc=desc, unit="step", leave=False, mininterval=0.5,
+              bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} [{elapsed}<{remaining}]") as bar:
 
-        def advance(steps: int) -> None:
+        def advance(steps: float) -> None:
             with lock:
                 bar.update(steps)
 

@@ -198,9 +198,17 @@ def hold_images(images: np.ndarray, own: np.ndarray, device, *, images_up: wp.ar
 
 
 def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> wp.array:
-    """(n, H, W) float32 on ``device``: R(x; G_i), every light's own Gaussians drawn as the relighter draws them."""
-    batch = GaussianBatch.from_numpy(estimated, device=device, requires_grad=False)
-    return Rasterizer(height, width, settings=raster, device=device).render(batch)
+    """(n, H, W) float32 on ``device``: R(x; G_i), every light's own Gaussians drawn as the relighter draws them
+    (in parts where the lights' pixels pass one launch's 2^31, e.g. 100 lights of 24 megapixels)."""
+    rasterizer = Rasterizer(height, width, settings=raster, device=device)
+    n, most = estimated.problem_count, rasterizer.problems_per_launch
+    if n <= most:
+        return rasterizer.render(GaussianBatch.from_numpy(estimated, device=device, requires_grad=False))
+    own = wp.empty((n, height, width), dtype=float, device=device)
+    for start in range(0, n, most):
+        rows = np.arange(start, min(start + most, n))
+        rasterizer.render(GaussianBatch.from_numpy(estimated.take(rows), device=device, requires_grad=False), out=own[start:rows[-1] + 1])
+    return own
 
 
 def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:

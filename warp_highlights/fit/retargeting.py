@@ -19,10 +19,10 @@ import numpy as np
 import warp as wp
 
 from ..kernels._tape import ReplayedStep, adam_iteration
-from ..kernels.chunks import Cancelled, map_chunks, memory_chunks
+from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, memory_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
-from ..kernels.raster import Rasterizer
+from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.retarget import RigidAdam, RigidMotion, gather_images
 from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings
@@ -80,7 +80,8 @@ def retarget(
         raster: how Gaussians are drawn.
         device: Warp device (default: the targets' device, else Warp's default).
         workers: CPU threads (default: one per core); ignored on CUDA.
-        progress: optional callable ``advance(iterations)``.
+        progress: optional callable ``advance(iterations)``, called with fractions when the edges run in
+            parts (each part's iterations times its share of the edges).
         graphs: replay each phase's iteration captured as a CUDA graph (the same kernels in the same
             order); default: on CUDA.
     """
@@ -104,12 +105,13 @@ def retarget(
     on_device = isinstance(targets, wp.array) and targets.device == device
     all_targets = targets if on_device else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device)
     image_bytes = 4 * all_targets.shape[1] * all_targets.shape[2]
-    chunks = memory_chunks(len(edges), device, workers, bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity)
+    chunks = memory_chunks(len(edges), device, workers, bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
+                           most_each=problems_per_launch(all_targets.shape[1], all_targets.shape[2], raster))
 
     def run(chunk: slice, stop) -> tuple:
         source = estimated.take(edges[chunk, 0])
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
-        return job.run(stop, progress, graphs=graphs)
+        return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
     parts = map_chunks(run, chunks, parallel=not device.is_cuda)  # a device's parts do not fit it together
     params = GaussianParams.concatenate([p[0] for p in parts])

@@ -139,7 +139,8 @@ class Relighter:
         alpha_images: (n, H, W[, C]) full images per light, for the ``alpha`` method's I' (field
             units, like ``alpha_specular``: ``scale`` applies to them too).
         raster: rasterizer settings (default: the field's).
-        max_batch: queries per launch (default: as many as fit in about 256 MB of images).
+        max_batch: queries per launch (default: as many as fit in about 256 MB of images; never more than
+            one rasterizer launch draws, ``Rasterizer.problems_per_launch``).
         residual_decode: how a low-rank residual is decoded (``RESIDUAL_DECODES``): "query" in every
             query's compose pass (k multiply-adds per pixel and plane, nothing more held), "load" once
             here into n float16 residual images that queries blend like the alpha blend (3 per pixel
@@ -202,6 +203,7 @@ class Relighter:
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
             raise InputError(f"max_batch must be >= 1, got {max_batch}")
+        self.max_batch = min(self.max_batch, self.raster.problems_per_launch)  # one launch indexes below 2^31 pixels
         self._buffers: dict[int, _DeviceQueries] = {}
         self.graphs = self.device.is_cuda and self._learned is None if graphs is None else bool(graphs)
         if self.graphs and not self.device.is_cuda:
