@@ -53,9 +53,10 @@ def chunk_progress(progress, chunk: slice, count: int):
     return lambda steps: progress(steps * share)
 
 
-def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
-    """``[function(chunk, stop) for chunk in chunks]``, on one thread per chunk when there are several
-    (``parallel=False``: one after the other on this thread, for parts that share one device's memory).
+def map_chunks(function, chunks: list[slice], *, parallel: bool = True, threads: int | None = None) -> list:
+    """``[function(chunk, stop) for chunk in chunks]``, on one thread per chunk when there are several, at most
+    ``threads`` at once (default: every chunk at once; ``parallel=False``: one after the other on this thread, for
+    parts that share one device's memory).
 
     ``stop`` is a ``threading.Event`` that long loops should poll (and raise ``Cancelled``): it is set
     as soon as any chunk fails or the caller is interrupted (Ctrl-C), so no thread keeps fitting after
@@ -73,7 +74,8 @@ def map_chunks(function, chunks: list[slice], *, parallel: bool = True) -> list:
             stop.set()
             raise
 
-    pool = ThreadPoolExecutor(max_workers=len(chunks), thread_name_prefix="warp-highlights", initializer=child_initializer())
+    pool = ThreadPoolExecutor(max_workers=min(len(chunks), max(1, int(threads or len(chunks)))), thread_name_prefix="warp-highlights",
+                              initializer=child_initializer())
     futures = [pool.submit(guarded, chunk) for chunk in chunks]
     try:
         wait(futures, return_when=FIRST_EXCEPTION)

@@ -22,7 +22,7 @@ import warp as wp
 
 from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 
-__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "NeuralDecoder", "QueryDecoder", "decode", "initial_model", "train_decoder"]
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "decode", "initial_model", "samples_fit", "train_decoder"]
 
 CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
@@ -31,6 +31,15 @@ HIDDEN = wp.constant(NEURAL_LAYER_SHAPES[0][0])
 INPUTS = wp.constant(12)  # code + light direction
 OUTPUTS = wp.constant(3)
 BLOCK = wp.constant(64)
+
+MAX_SAMPLES = 2**31 - 1
+"""The training samples are indexed light x pixels + pixel in 32 bits (int32 shuffles, half the memory of int64):
+at most this many light x pixel pairs (1,035 lights of 1920x1080, 258 of 3840x2160)."""
+
+
+def samples_fit(lights: int, pixels: int) -> bool:
+    """Whether ``lights`` images of ``pixels`` each can be learned (their sample indices fit 32 bits)."""
+    return int(lights) * int(pixels) <= MAX_SAMPLES
 """Samples per tile block."""
 
 
@@ -228,6 +237,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     n, pixels, _ = targets.shape
+    if not samples_fit(n, pixels):
+        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn fewer or smaller images")
     used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
     if not len(used) or used[0] < 0 or used[-1] >= n:
         raise ValueError(f"used must name some of the {n} lights")

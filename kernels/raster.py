@@ -564,7 +564,7 @@ class Rasterizer:
         if batch.device != self.device:
             raise InputError(f"the batch is on {batch.device} but the rasterizer on {self.device}")
         problems, capacity = batch.shape
-        if problems > self.problems_per_launch:
+        if problems * self.tile_count * self.settings.tile_size**2 >= LAUNCH_PIXELS:  # also one image past it alone
             raise InputError(f"{problems} images of {self.width} x {self.height} exceed one launch (2^31 pixels); render the batch in parts")
         if out is None:
             out = self.new_image(problems)

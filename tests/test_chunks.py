@@ -92,11 +92,31 @@ def test_chunk_progress_reports_each_chunks_share_so_a_bar_fills_once():
     from warp_highlights.kernels.chunks import chunk_progress
 
     assert chunk_progress(None, slice(0, 3), 10) is None
-    steps, total = [], 0.0
+    steps = []
     chunks = problem_chunks(11, "cpu", 2, most_each=3)
     for chunk in chunks:
         advance = chunk_progress(steps.append, chunk, 11)
         for _ in range(20):  # every chunk runs the stage's 20 iterations
             advance(1)
-    total = sum(steps)
-    assert len(chunks) == 4 and total == pytest.approx(20.0)
+    sizes = [c.stop - c.start for c in chunks]
+    assert sizes == [3, 3, 2, 3] and sum(steps) == pytest.approx(20.0)
+    np.testing.assert_allclose(steps, np.repeat(np.array(sizes) / 11, 20))  # each chunk's share, not an equal one
+
+
+def test_chunks_past_the_threads_run_at_most_that_many_at_once():
+    import threading
+
+    running, most, lock = [0], [0], threading.Lock()
+
+    def work(chunk, stop):
+        with lock:
+            running[0] += 1
+            most[0] = max(most[0], running[0])
+        time.sleep(0.05)
+        with lock:
+            running[0] -= 1
+        return chunk.start
+
+    chunks = problem_chunks(12, "cpu", 2, most_each=2)
+    assert len(chunks) == 6 and map_chunks(work, chunks, threads=2) == [0, 2, 4, 6, 8, 10]
+    assert most[0] == 2

@@ -77,11 +77,16 @@ def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_set
     target = _render(sets)
     short = EstimationSettings(iterations=60, densify_every=20, densify_until=50)
     devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
-    whole = {d: estimate(target, settings=short, device=d, workers=1) for d in devices}
+    on = {d: target if d == "cpu" else wp.array(target, dtype=float, device=d) for d in devices}  # on CUDA: the pipeline's device array, sliced
+    whole = {d: estimate(on[d], settings=short, device=d, workers=1) for d in devices}
     monkeypatch.setattr(estimation_module, "problems_per_launch", lambda h, w, raster: 2)
+    sizes = []
+    original = estimation_module._Estimator.__init__
+    monkeypatch.setattr(estimation_module._Estimator, "__init__", lambda self, targets, *a, **k: sizes.append(targets.shape[0]) or original(self, targets, *a, **k))
     for device in devices:
-        steps = []
-        parts = estimate(target, settings=short, device=device, workers=1, progress=steps.append)
+        steps, sizes[:] = [], []
+        parts = estimate(on[device], settings=short, device=device, workers=1, progress=steps.append)
+        assert sizes == [2, 1, 2]
         for name in ("active", "amplitude", "mean", "sigma", "theta"):
             if device == "cpu":
                 np.testing.assert_array_equal(getattr(parts.params, name), getattr(whole[device].params, name))

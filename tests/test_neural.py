@@ -283,3 +283,29 @@ def test_default_fit_learns_on_cuda_only():
     assert ResidualSettings(learned=True).learns_on(cpu)
     assert not ResidualSettings(learned_on_cuda=False).learns_on(cuda)
     assert not ResidualSettings(compressed=False).learns_on(cuda)
+
+
+def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donut, monkeypatch):
+    """The training samples are indexed light x pixels + pixel in int32: past 2^31 (1,036 lights of 1920x1080) the
+    training refuses (it would read the wrong samples), and a fit that asks for the learned residual says so before its
+    first stage; on CUDA, where it is only the default, the fit compresses the residual to low rank instead."""
+    import warp as wp
+
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.config import FitSettings
+
+    monkeypatch.setattr(neural, "MAX_SAMPLES", 4 * 10 - 1)
+    targets = np.zeros((4, 10, 3), np.float32)
+    with pytest.raises(ValueError, match="4 lights of 10 pixels pass the learned residual's 32-bit sample index"):
+        neural.train_decoder(targets, np.tile([[0.0, 0.0, 1.0]], (4, 1)), device="cpu", epochs=1)
+    assert neural.samples_fit(3, 13) and not neural.samples_fit(4, 10)
+    data = ReflectanceField.load(small_donut, progress=False)
+    stages = []
+    learned = FitSettings().with_overrides(["residual.learned=true"])
+    with pytest.raises(InputError, match=r"32 lights of 96x54 pass the learned residual's 2\^31 samples .* use --residual lowrank"):
+        fit_field(data, settings=learned, device="cpu", log=stages.append)
+    assert stages == []  # refused before the first stage
+    if wp.is_cuda_available():
+        field = fit_field(data, settings=FitSettings().with_overrides(FAST_FIT), device="cuda:0")
+        assert field.residual is not None and field.residual.learned is None and field.residual.luminance is not None

@@ -265,14 +265,23 @@ def test_problems_per_launch_is_the_most_images_whose_padded_pixels_index_below_
     assert Rasterizer(height, width, settings=settings, device="cpu").problems_per_launch == k
 
 
-def test_render_refuses_one_image_over_a_launch_and_draws_the_most_it_allows():
+def test_render_refuses_one_image_over_a_launch_and_draws_the_most_it_allows(monkeypatch):
     raster = Rasterizer(4096, 4096, device="cpu")  # 127 images per launch
-    most = raster.problems_per_launch
-    assert most == 127
-    with pytest.raises(InputError, match=f"{most + 1} images of 4096 x 4096 exceed one launch"):
-        raster.render(GaussianBatch(most + 1, 1, device="cpu"))
+    assert raster.problems_per_launch == 127
+    with pytest.raises(InputError, match="128 images of 4096 x 4096 exceed one launch"):
+        raster.render(GaussianBatch(128, 1, device="cpu"))
+    import warp_highlights.kernels.raster as raster_module
+
+    monkeypatch.setattr(raster_module, "LAUNCH_PIXELS", 3 * 16 * 16 + 1)  # three 8x8 images (a 16-pixel tile each) per launch
     small = Rasterizer(8, 8, device="cpu")
+    assert small.problems_per_launch == 3
     assert small.render(GaussianBatch(3, 1, device="cpu")).shape == (3, 8, 8)
+    with pytest.raises(InputError, match="4 images of 8 x 8 exceed one launch"):
+        small.render(GaussianBatch(4, 1, device="cpu"))
+    huge = Rasterizer(32, 32, device="cpu")  # one image alone past the bound: refused, not drawn
+    assert huge.problems_per_launch == 1
+    with pytest.raises(InputError, match="1 images of 32 x 32 exceed one launch"):
+        huge.render(GaussianBatch(1, 1, device="cpu"))
 
 
 def test_render_rejects_mismatched_inputs():

@@ -170,11 +170,15 @@ def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(do
     if cuda:
         targets_up = wp.array(targets.numpy(), dtype=float, device="cuda:0")
         whole_on_device = retarget(est.params, targets_up, edges, device="cuda:0")
-    bounds = []
+    bounds, sizes = [], []
     monkeypatch.setattr(retargeting_module, "problems_per_launch", lambda h, w, raster: bounds.append((h, w)) or 7)
+    original = retargeting_module._Retargeting.__init__
+    monkeypatch.setattr(retargeting_module._Retargeting, "__init__",
+                        lambda self, source, *a, **k: sizes.append(source.problem_count) or original(self, source, *a, **k))
     steps = []
     parts = retarget(est.params, targets, edges, device="cpu", workers=2, progress=steps.append)
     assert bounds == [tuple(targets.shape[1:])]
+    assert len(sizes) == -(-len(edges) // 7) and max(sizes) <= 7 and sum(sizes) == len(edges)
     for name in ("amplitude", "mean", "sigma", "theta", "active"):
         np.testing.assert_array_equal(getattr(parts.params, name), getattr(whole.params, name))
     np.testing.assert_array_equal(parts.loss, whole.loss)
@@ -182,11 +186,12 @@ def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(do
     assert sum(steps) == pytest.approx(s.rigid_iterations + s.iterations)
     if cuda:  # a device's 26 parts run one after the other
         steps.clear()
+        sizes.clear()
         on_device = retarget(est.params, targets_up, edges, device="cuda:0", progress=steps.append)
         np.testing.assert_array_equal(on_device.params.active, whole_on_device.params.active)
         for name in ("amplitude", "mean", "sigma", "theta"):
             np.testing.assert_allclose(getattr(on_device.params, name), getattr(whole_on_device.params, name), rtol=1e-4, atol=1e-5)
-        assert sum(steps) == pytest.approx(s.rigid_iterations + s.iterations)
+        assert sum(steps) == pytest.approx(s.rigid_iterations + s.iterations) and max(sizes) <= 7
 
 
 @pytest.fixture(scope="module")

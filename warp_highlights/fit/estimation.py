@@ -31,6 +31,7 @@ from ..model.config import (
 )
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.threads import core_count
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 
@@ -113,7 +114,8 @@ def estimate(
             device_targets = wp.array(source[chunk], dtype=float, device=device)
         return _Estimator(device_targets, s, raster, device).run(stop, chunk_progress(progress, chunk, source.shape[0]), graphs=graphs)
 
-    parts = map_chunks(run, chunks, parallel=not device.is_cuda)  # a device's parts (over one launch's pixels) run in turn
+    # a device's parts (over one launch's pixels) run in turn; the CPU's on at most ``workers`` threads
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda, threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])
     loss, psnr_db, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
     return EstimationResult(params=params, loss=loss, psnr=psnr_db, added=added, pruned=pruned)

@@ -9,6 +9,7 @@ the figures the ``fit`` command prints.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -93,6 +94,15 @@ def fit_field(
     log = log or _LOG.info
     timer = _StageTimer(log, device)
     width, height = working_size(dataset.width, dataset.height, size)
+    if residual and settings.residual.learns_on(device):
+        from ..kernels.neural import samples_fit
+
+        if not samples_fit(dataset.light_count, width * height):
+            too_many = f"{dataset.light_count} lights of {width}x{height} pass the learned residual's 2^31 samples (lights x pixels)"
+            if settings.residual.learned:
+                raise InputError(f"{too_many}; use --residual lowrank, or a smaller --size")
+            _LOG.warning("%s: the residual is compressed to low rank instead", too_many)  # learned by default on CUDA, not asked for
+            settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, learned_on_cuda=False))
 
     with timer.stage("triangulation"):
         triangulation = SphericalTriangulation(dataset.lights.directions)
@@ -379,7 +389,7 @@ def _bar(enabled: bool, name: str, iterations: int, problems: int):
     lock = threading.Lock()
     desc = f"{name} ({problems} sets)" if problems > 1 else name
     with tqdm(total=iterations, desc=desc, unit="step", leave=False, mininterval=0.5,
-              bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} [{elapsed}<{remaining}]") as bar:
+              bar_format="{l_bar}{bar}| {n:.0f}/{total_fmt} [{elapsed}<{remaining}, {rate_fmt}]") as bar:
 
         def advance(steps: float) -> None:
             with lock:

@@ -28,6 +28,7 @@ from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.threads import core_count
 from .estimation import gaussian_energy_rpx
 
 _IMAGES_PER_EDGE = 5
@@ -113,7 +114,8 @@ def retarget(
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
         return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
-    parts = map_chunks(run, chunks, parallel=not device.is_cuda)  # a device's parts do not fit it together
+    # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda, threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])
     losses = [np.concatenate([p[k] for p in parts]) for k in range(1, 6)]
     return RetargetResult(params, *losses)
