@@ -26,7 +26,8 @@ ALLOWED = {
     "relight": {"synth", "io", "kernels", "model"},
     "view": {"relight", "io", "kernels", "model"},
     "web": {"relight", "io", "kernels", "model"},
-    "cli": {"view", "web", "relight", "fit", "synth", "io", "kernels", "model"},
+    "collection": {"io", "model"},
+    "cli": {"collection", "view", "web", "relight", "fit", "synth", "io", "kernels", "model"},
 }
 """Which sub-packages each sub-package may import (ARCHITECTURE.md draws the same table)."""
 

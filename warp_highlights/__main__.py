@@ -2,4 +2,5 @@
 
 from .cli.console import run
 
-run()
+if __name__ == "__main__":  # not when a spawned process (a Dask worker) imports the main module again
+    run()

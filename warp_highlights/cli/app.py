@@ -21,11 +21,11 @@ import threading
 from .. import __version__
 from ..io.atomic import Terminated, describe_os_error, end_of_command, handle_termination, received_signal, remove_partials
 from ..model.errors import InputError
-from . import dataset, demo, fit, maps, relight, view, web
+from . import collection, dataset, demo, fit, maps, relight, view, web
 
 __all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OneLineParser", "main"]
 
-COMMAND_MODULES = (dataset, fit, relight, maps, web, view, demo)
+COMMAND_MODULES = (dataset, fit, relight, maps, web, collection, view, demo)
 """The modules whose ``COMMANDS`` make up the command line, in the order ``--help`` lists them."""
 
 EXIT_INPUT_ERROR = 2

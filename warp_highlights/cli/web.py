@@ -51,7 +51,7 @@ def _run_export(args) -> int:
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("folder", type=Path, help="a folder written by warp-highlights export")
+    parser.add_argument("folder", type=Path, help="a folder written by warp-highlights export, or a collection's output folder (its gallery)")
     parser.add_argument("--port", type=in_range(int, 0, 65535), default=8000, help="port on 127.0.0.1 (default 8000; 0: any free one)")
 
 

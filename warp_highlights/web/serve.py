@@ -1,4 +1,5 @@
-"""``serve_folder``: an exported viewer over HTTP on 127.0.0.1 only (browsers refuse ``fetch`` from file://)."""
+"""``serve_folder``: an exported viewer, or a collection's gallery with its viewers, over HTTP on 127.0.0.1 only
+(browsers refuse ``fetch`` from file://)."""
 
 from __future__ import annotations
 
@@ -26,8 +27,9 @@ class _QuietHandler(http.server.SimpleHTTPRequestHandler):
 def make_server(folder, port: int = 0) -> http.server.ThreadingHTTPServer:
     """A server of ``folder`` on ``HOST``:``port`` (0: any free port); call ``serve_forever``."""
     folder = Path(folder)
-    if not (folder / "manifest.json").is_file() or not (folder / "index.html").is_file():
-        raise InputError(f"{folder} is not an exported viewer (no manifest.json and index.html); make one with warp-highlights export")
+    if not (folder / "index.html").is_file() or not ((folder / "manifest.json").is_file() or (folder / "collection.json").is_file()):
+        raise InputError(f"{folder} is not an exported viewer or a collection (no index.html with manifest.json or collection.json); "
+                         "make one with warp-highlights export or collection")
     handler = functools.partial(_QuietHandler, directory=str(folder))
     try:
         return http.server.ThreadingHTTPServer((HOST, port), handler)

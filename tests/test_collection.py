@@ -1,0 +1,276 @@
+"""``warp-highlights collection``: captures found and named, every good one processed on a 2-process LocalCluster, the
+corrupt one reported, reruns that do nothing, Ctrl-C that leaves nothing partial, outputs identical to the commands
+run by hand, and an existing scheduler used as it is."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from warp_highlights.cli import main
+from warp_highlights.collection.captures import find_captures, fingerprint
+from warp_highlights.collection.gallery import write_gallery
+from warp_highlights.model.errors import InputError
+
+pytest.importorskip("distributed", reason="warp-highlights collection needs Dask distributed (pip install 'warp-highlights[collection]')")
+
+# A fast fit for 16 lights of 48x27: what each capture of the tests gets (the commands' defaults otherwise)
+QUICK = ["--set", "estimation.iterations=150", "--set", "estimation.densify_until=100", "--set", "estimation.densify_every=50",
+         "--set", "retarget.rigid_iterations=30", "--set", "retarget.iterations=60", "--set", "residual.check_lights=4"]
+GOOD = ("donut-a", "donut-b", "sphere-c", "teapot-d", "donut-e", "sphere-f")
+NO_HELDOUT = ("donut-e",)
+
+
+def _render(folder: Path, shape: str, *extra: str) -> None:
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    assert main(["render", shape, str(folder), "--lights", "16", "--size", "48x27", "--samples", "1", "--device", "cpu", "-q", *extra]) == 0
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory) -> Path:
+    """Six tiny rendered captures in nested folders (one without held-out lights) and one whose first image is cut short."""
+    root = tmp_path_factory.mktemp("collection") / "captures"
+    for name in GOOD:
+        shape = name.split("-")[0]
+        _render(root / ("museum-a" if name < "sphere" else "museum-b") / name, shape, *(["--heldout", "none"] if name in NO_HELDOUT else []))
+    broken = root / "museum-b" / "broken"
+    _render(broken, "donut")
+    first = sorted((broken / "images").iterdir())[0]
+    first.write_bytes(first.read_bytes()[:200])
+    return root
+
+
+def _collection(*arguments: str, session: bool = False) -> subprocess.Popen:
+    command = [sys.executable, "-m", "warp_highlights", "collection", *arguments, "--workers", "2", "--device", "cpu", "-q", *QUICK]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=session,
+                            env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+def _finished(output: Path) -> dict[str, float]:
+    """Finished capture -> the modification time of its record (which a redone capture would change)."""
+    return {p.parent.name: p.stat().st_mtime_ns for p in output.glob("*/capture.json")}
+
+
+def _leftovers(output: Path) -> list[str]:
+    return sorted(p.name for p in output.rglob(".*") if ".partial-" in p.name or ".replaced-" in p.name)
+
+
+@pytest.fixture(scope="module")
+def collected(captures, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
+    output = tmp_path_factory.mktemp("out") / "gallery"
+    run = _collection(str(captures), "-o", str(output))
+    stdout, stderr = run.communicate(timeout=600)
+    return output, subprocess.CompletedProcess(run.args, run.returncode, stdout, stderr)
+
+
+def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
+    lp = "1\nimage.png 0 0 1\n"
+    for folder in ("a/coin", "b/coin", "c/tablet", "c/tablet/Test", "synth/Dome", "synth/Test", "d/seal", "d/seal/images"):
+        (tmp_path / folder).mkdir(parents=True, exist_ok=True)
+    for folder in ("a/coin", "b/coin", "c/tablet", "c/tablet/Test", "synth/Dome", "synth/Test", "d/seal"):
+        (tmp_path / folder / "dirs.lp").write_text(lp)
+    (tmp_path / "d/seal/heldout.lp").write_text(lp)
+    found = {c.name: c for c in find_captures([tmp_path])}
+    assert sorted(found) == ["a_coin", "b_coin", "seal", "synth", "tablet"]
+    assert found["synth"].folder == tmp_path / "synth/Dome" and found["synth"].heldout == tmp_path / "synth/Test"
+    assert found["tablet"].heldout == tmp_path / "c/tablet/Test" and found["tablet"].has_heldout
+    assert found["seal"].heldout is None and found["seal"].has_heldout  # heldout.lp inside
+    assert found["a_coin"].heldout is None and not found["a_coin"].has_heldout
+    assert [c.name for c in find_captures([tmp_path / "a/coin", tmp_path / "a/coin"])] == ["coin"]  # given twice: once
+    with pytest.raises(InputError, match="no capture found"):
+        find_captures([tmp_path / "d/seal/images"])
+    with pytest.raises(InputError, match="not a folder"):
+        find_captures([tmp_path / "missing"])
+    before = fingerprint(found["tablet"])
+    (tmp_path / "c/tablet/Test/dirs.lp").write_text(lp + "\n")
+    assert fingerprint(found["tablet"]) != before  # a held-out light file changed: the capture is redone
+
+
+def test_every_good_capture_is_processed_and_the_corrupt_one_reported(collected):
+    output, run = collected
+    assert run.returncode == 1, run.stderr[-2000:]  # some failed
+    assert "6 captures done now, 0 finished before, 1 failed (broken)" in run.stdout
+    assert "broken: failed at fit:" in run.stderr and "0000.exr" in run.stderr and "Traceback" not in run.stderr
+    data = json.loads((output / "collection.json").read_text())
+    status = {r["name"]: r["status"] for r in data["captures"]}
+    assert status == {**dict.fromkeys(GOOD, "ok"), "broken": "failed"}
+    assert data["summary"]["finished"] == 6 and data["summary"]["failed"] == 1
+    failure = next(r for r in data["captures"] if r["name"] == "broken")
+    assert failure["step"] == "fit" and "damaged or not an image" in failure["error"]
+    for name in GOOD:
+        record = json.loads((output / name / "capture.json").read_text())
+        for relative in ("field.whf", "fit-report.json", "evaluation/report.json", "viewer/index.html", "viewer/manifest.json", "thumbnail.png"):
+            assert (output / name / relative).is_file(), (name, relative)
+        assert record["lights"] == 16 and record["size"] == [48, 27] and record["gaussians_per_light"] > 0
+        methods = record["scores"]["methods"]
+        assert {"circular", "alpha", "ptm", "hsh3", "rbf"} <= set(methods)
+        assert all(np.isfinite(m["psnr_db"]) and 0 < m["ssim"] <= 1 for m in methods.values())
+        assert record["held_out_lights"] == ("lights 0, 5, 10, ... (a second fit)" if name in NO_HELDOUT else "heldout.lp")
+        assert (output / name / "holdout-field.whf").is_file() == (name in NO_HELDOUT)
+    assert not _leftovers(output)
+    rows = _table_rows((output / "index.html").read_text())
+    assert len(rows) == 7 and any("broken" in row and "failed at fit" in " ".join(row) for row in rows)
+    assert sum(any(cell.startswith("viewer") for cell in row) for row in rows) == 6
+
+
+def test_a_rerun_does_nothing_other_options_and_force_redo(collected, captures):
+    output, _ = collected
+    before = _finished(output)
+    run = _collection(str(captures), "-o", str(output))
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 1 and "0 captures done now, 6 finished before, 1 failed (broken)" in stdout, stderr[-2000:]
+    assert "not tried again" in stdout and _finished(output) == before
+    # another option is other work: only what changed is redone (here every capture, by the option)
+    run = _collection(str(captures / "museum-a" / "donut-a"), "-o", str(output), "--no-export")
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0 and "1 captures done now" in stdout, stderr[-2000:]
+    assert not (output / "donut-a" / "viewer").exists() and not _leftovers(output)
+    before = _finished(output)["donut-a"]
+    run = _collection(str(captures / "museum-a" / "donut-a"), "-o", str(output), "--no-export", "--force")
+    stdout, stderr = run.communicate(timeout=300)
+    assert run.returncode == 0 and "1 captures done now, 0 finished before" in stdout, stderr[-2000:]
+    assert _finished(output)["donut-a"] != before and len(_finished(output)) == 6  # the gallery's other captures kept
+    assert len(json.loads((output / "collection.json").read_text())["captures"]) == 6
+
+
+def test_outputs_are_those_of_the_commands_run_by_hand(collected, captures, tmp_path):
+    from warp_highlights.io.fieldfile import load_field
+
+    output, _ = collected
+    for name, museum in (("donut-b", "museum-a"), ("donut-e", "museum-a")):
+        capture, here = captures / museum / name, tmp_path / name
+        here.mkdir()
+        cwd = os.getcwd()
+        os.chdir(here)  # as the collection runs them: in the capture's folder, relative names
+        try:
+            assert main(["fit", str(capture), "-o", "field.whf", "--device", "cpu", "-q", *QUICK]) == 0
+            scored = "field.whf"
+            if name in NO_HELDOUT:
+                scored = "holdout-field.whf"
+                assert main(["fit", str(capture), "-o", scored, "--holdout-every", "5", "--device", "cpu", "-q", *QUICK]) == 0
+            assert main(["evaluate", scored, str(capture), "-o", "evaluation", "--device", "cpu", "-q"]) == 0
+            assert main(["export", "field.whf", "-o", "viewer", "-q"]) == 0
+        finally:
+            os.chdir(cwd)
+        for field_name in ("field.whf", scored):
+            mine, theirs = load_field(here / field_name), load_field(output / name / field_name)
+            for part in ("amplitude", "mean", "sigma", "theta", "active"):
+                np.testing.assert_array_equal(getattr(mine.estimated, part), getattr(theirs.estimated, part))
+                np.testing.assert_array_equal(getattr(mine.retargeted, part), getattr(theirs.retargeted, part))
+        mine, theirs = (json.loads((root / "evaluation" / "report.json").read_text()) for root in (here, output / name))
+        assert mine["per_query"] == theirs["per_query"] and mine["summary"] == theirs["summary"]
+        for path in sorted((here / "viewer").iterdir()):
+            if path.suffix in (".bin", ".gz"):
+                assert path.read_bytes() == (output / name / "viewer" / path.name).read_bytes(), path.name
+
+
+def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(captures, tmp_path):
+    output = tmp_path / "interrupted"
+    run = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
+                      "-o", str(output), "--no-evaluate", session=True)
+    started = time.monotonic()
+    while not _finished(output) and time.monotonic() - started < 300 and run.poll() is None:
+        time.sleep(0.05)
+    os.killpg(run.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the whole process group
+    stdout, stderr = run.communicate(timeout=120)
+    assert run.returncode == 130, stderr[-2000:]
+    assert "interrupted; nothing partial was left behind" in stderr and "Traceback" not in stderr
+    ended = time.monotonic() + 15.0
+    while time.monotonic() < ended:  # no worker, nanny or command left running (the last ones are reaped within a second or two)
+        try:
+            os.killpg(run.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail("processes of the interrupted collection still run 15 s after it ended")
+    done = _finished(output)
+    assert 1 <= len(done) < 5 and not _leftovers(output)
+    assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".")) == sorted(done)  # finished folders only
+    rerun = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
+                        "-o", str(output), "--no-evaluate")
+    stdout, stderr = rerun.communicate(timeout=300)
+    assert rerun.returncode == 0, stderr[-2000:]
+    assert f"{5 - len(done)} captures done now, {len(done)} finished before, 0 failed" in stdout
+    after = _finished(output)
+    assert len(after) == 5 and all(after[name] == stamp for name, stamp in done.items()) and not _leftovers(output)
+
+
+def test_an_existing_scheduler_is_used_as_it_is(captures, tmp_path):
+    from distributed import LocalCluster
+
+    from warp_highlights.collection import JobOptions, run
+
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        with pytest.raises(InputError, match="--workers and --gpus size a local cluster"):
+            run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, workers=2)
+        result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu",
+                     options=JobOptions(fit_args=tuple(QUICK), evaluate=False, export=False))
+    assert result.processed == ["donut-a"] and result.ok
+    assert (tmp_path / "remote" / "donut-a" / "field.whf").is_file() and (tmp_path / "remote" / "index.html").is_file()
+
+
+def test_bad_input_is_one_line_before_any_work(captures, tmp_path, capsys):
+    assert main(["collection", str(tmp_path / "nowhere"), "-o", str(tmp_path / "out")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    assert main(["collection", str(captures), "-o", str(tmp_path / "missing" / "out")]) == 2
+    assert "does not exist; create it first" in capsys.readouterr().err
+    assert main(["collection", str(captures), "-o", str(tmp_path / "out"), "--set", "estimation.nonsense=1"]) == 2
+    assert "nonsense" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_gallery_lists_scores_and_failures(tmp_path):
+    ok = {"name": "coin", "status": "ok", "lights": 40, "size": [480, 270], "gaussians_per_light": 3.25, "fit_seconds": 2.5,
+          "files": {"viewer": "viewer/index.html", "evaluation": "evaluation/report.json"},
+          "scores": {"lights": 8, "methods": {"circular": {"psnr_db": 33.1, "ssim": 0.95}, "alpha": {"psnr_db": 31.0, "ssim": 0.93},
+                                              "rbf": {"psnr_db": 30.2, "ssim": 0.9}}}}
+    bad = {"name": "seal<1>", "status": "failed", "step": "evaluate", "error": "no held-out lights & no Test/"}
+    json_path, html_path = write_gallery(tmp_path, [ok, bad], title="museum")
+    data = json.loads(json_path.read_text())
+    assert data["summary"]["finished"] == 1 and data["summary"]["failed"] == 1 and data["summary"]["circular_beats_alpha"] == "1 of 1"
+    rows = _table_rows(html_path.read_text())
+    assert ["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · report"] == rows[0][1:]
+    assert rows[1][1] == "seal<1>" and "no held-out lights & no Test/" in rows[1][2]  # escaped in the page, read back as text
+    assert "seal&lt;1&gt;" in html_path.read_text() and "&amp; no Test/" in html_path.read_text()
+
+
+def _table_rows(page: str) -> list[list[str]]:
+    """The text of each body row's cells."""
+
+    class Rows(HTMLParser):
+        def __init__(self):
+            super().__init__()
+            self.rows, self.inside, self.cell = [], False, None
+
+        def handle_starttag(self, tag, attrs):
+            if tag == "tbody":
+                self.inside = True
+            elif self.inside and tag == "tr":
+                self.rows.append([])
+            elif self.inside and tag == "td":
+                self.cell = ""
+
+        def handle_endtag(self, tag):
+            if tag == "tbody":
+                self.inside = False
+            elif self.inside and tag == "td" and self.cell is not None:
+                self.rows[-1].append(self.cell.strip())
+                self.cell = None
+
+        def handle_data(self, data):
+            if self.cell is not None:
+                self.cell += data
+
+    parser = Rows()
+    parser.feed(page)
+    return parser.rows

@@ -1,0 +1,135 @@
+"""Finding the captures of a collection: folders with a light file, named uniquely, with their held-out lights."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..model.errors import InputError
+
+__all__ = ["HELDOUT_FOLDER", "Capture", "find_captures", "fingerprint"]
+
+HELDOUT_FOLDER = "Test"
+"""A capture's held-out lights in a folder of their own (the SynthRTI layout: ``Dome/`` beside ``Test/``, or
+``Test/`` inside the capture); ``heldout.lp`` inside the capture (what ``render`` writes) works as well."""
+
+_SKIPPED = {"__pycache__", "node_modules"}
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One capture of a collection.
+
+    Attributes:
+        name: Unique within the collection, safe as a folder name: the capture's output is ``OUT/name``.
+        folder: The dataset folder (its ``.lp`` file and images), as ``fit`` takes it.
+        heldout: A folder of held-out lights and images for ``evaluate --heldout``; None when there is none
+            or they are in the folder (``heldout.lp``).
+        has_heldout: Whether held-out lights exist (else the collection holds out every k-th light).
+    """
+
+    name: str
+    folder: Path
+    heldout: Path | None
+    has_heldout: bool
+
+
+def find_captures(paths) -> list[Capture]:
+    """The captures under ``paths``: each path is a capture folder, or a folder searched (depth first, in name order)
+    for capture folders. A capture folder holds one light file (``lights.lp`` or a single ``*.lp`` other than
+    ``heldout.lp``); its sub-folders are not searched. Raises ``InputError`` for a missing path or none found."""
+    found: list[tuple[Path, Path, Path | None]] = []  # (dataset folder, the folder that names it, held-out folder)
+    for given in paths:
+        root = Path(given)
+        if not root.is_dir():
+            raise InputError(f"{root}: not a folder; give capture folders or folders that contain them")
+        before = len(found)
+        _search(root, found)
+        if len(found) == before:
+            raise InputError(f"{root}: no capture found (a folder with a .lp light file and its images)")
+    unique: dict[Path, tuple[Path, Path | None]] = {}
+    for folder, named, heldout in found:
+        unique.setdefault(folder.resolve(), (named, heldout))
+    names = _unique_names([named for named, _ in unique.values()])
+    return [Capture(name, folder, heldout, heldout is not None or (folder / "heldout.lp").is_file())
+            for name, (folder, (named, heldout)) in zip(names, unique.items())]
+
+
+def _search(folder: Path, found: list) -> None:
+    if _has_light_file(folder):
+        if folder.name == HELDOUT_FOLDER and _has_light_file(folder.parent):
+            return  # the held-out lights of the capture above
+        sibling = folder.parent / HELDOUT_FOLDER
+        if folder.name != HELDOUT_FOLDER and sibling != folder and _has_light_file(sibling) and not _has_light_file(folder.parent):
+            found.append((folder, folder.parent, sibling))  # SynthRTI: OBJECT/Dome beside OBJECT/Test, named OBJECT
+            return
+        inside = folder / HELDOUT_FOLDER
+        found.append((folder, folder, inside if _has_light_file(inside) else None))
+        return
+    try:
+        entries = sorted(os.scandir(folder), key=lambda e: e.name)
+    except OSError as error:
+        raise InputError(f"{folder}: cannot list the folder ({error.strerror}); check its permissions") from None
+    for entry in entries:
+        if entry.is_dir() and not entry.name.startswith(".") and entry.name not in _SKIPPED:
+            if entry.name == HELDOUT_FOLDER and any(f[2] == Path(entry.path) for f in found):
+                continue
+            _search(Path(entry.path), found)
+
+
+def _has_light_file(folder: Path) -> bool:
+    try:
+        return folder.is_dir() and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir())
+    except OSError:
+        return False
+
+
+def _unique_names(folders: list[Path]) -> list[str]:
+    """Folder names made safe (letters, digits, ``-``, ``_``, ``.``); where two are equal, their parents' names are
+    prefixed until they differ (``museum-a/coin`` and ``museum-b/coin`` -> ``museum-a_coin``, ``museum-b_coin``)."""
+    parts = [f.resolve().parts for f in folders]
+    depth = [1] * len(folders)
+    names = [_safe(p[-1]) for p in parts]
+    while True:
+        clashing = [k for k, name in enumerate(names) if names.count(name) > 1 and depth[k] < len(parts[k])]
+        if not clashing:
+            break
+        for k in clashing:
+            depth[k] += 1
+            names[k] = _safe("_".join(parts[k][-depth[k]:]))
+    seen: dict[str, int] = {}
+    result = []
+    for name in names:  # still equal only where the paths are (odd links): numbered
+        seen[name] = seen.get(name, 0) + 1
+        result.append(name if seen[name] == 1 else f"{name}-{seen[name]}")
+    return result
+
+
+def _safe(text: str) -> str:
+    text = re.sub(r"[^A-Za-z0-9._-]+", "-", text.strip("/")).strip("-.") or "capture"
+    return text[:120]
+
+
+def fingerprint(capture: Capture) -> str:
+    """A digest of the capture's files (relative paths, sizes, modification times; its held-out folder's too): a
+    rerun redoes a capture whose files changed since it was finished, or since it failed."""
+    digest = hashlib.sha256()
+    for root in (capture.folder, capture.heldout):
+        if root is None:
+            continue
+        for folder, subfolders, files in os.walk(root):
+            subfolders[:] = sorted(d for d in subfolders if not d.startswith(".") and not (Path(folder) == capture.folder and d == HELDOUT_FOLDER
+                                                                                            and capture.heldout is not None))
+            for name in sorted(files):
+                if name.startswith("."):
+                    continue
+                path = Path(folder) / name
+                try:
+                    stat = path.stat()
+                except OSError:
+                    continue
+                digest.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
+    return digest.hexdigest()[:32]
