@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..model.threads import parallel_map
 from .images import display_rgb8
 
 __all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "psnr_of_mse", "srgb_psnr", "srgb_scores", "ssim_8bit"]
@@ -77,9 +78,11 @@ def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.n
 
     Works on (Q, H, W) or (Q, H, W, C) stacks; PSNR is capped at 100 dB for identical images.
     """
-    psnr_values, ssim_values = np.empty(len(images)), np.empty(len(images))
-    for q, (image, reference) in enumerate(zip(images, truth)):
-        a, b = display_rgb8(image), display_rgb8(reference)
-        psnr_values[q] = psnr_8bit(a, b)
-        ssim_values[q] = ssim_8bit(a, b)
-    return psnr_values, ssim_values
+    def score(q: int) -> tuple[float, float]:
+        a, b = display_rgb8(images[q]), display_rgb8(truth[q])
+        return psnr_8bit(a, b), ssim_8bit(a, b)
+
+    # the images in threads: NumPy's loops and SciPy's filters (SSIM's means) let go of the GIL (124 images of 480x270 on the
+    # lent H200's 16 cores: 7.41 -> 3.94 s, the same scores)
+    scores = np.array(parallel_map(score, range(len(images))), dtype=np.float64).reshape(-1, 2)
+    return scores[:, 0].copy(), scores[:, 1].copy()
