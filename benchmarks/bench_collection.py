@@ -1,7 +1,7 @@
 """A collection on one GPU against several: the wall time of ``warp-highlights collection``.
 
     python benchmarks/bench_collection.py [--captures 20] [--lights 64] [--size 480x270] [--gpus 1,2] [--work DIR]
-                                          [--residual lowrank] [--json FILE]
+                                          [--residual lowrank] [--baselines none] [--no-evaluate] [--json FILE]
 
 Renders ``--captures`` captures (the donut, teapot and sphere in turn, each under its own Fibonacci lights and
 held-out centroids, float16 EXR) into ``--work`` once, then runs the whole ``collection`` command (fit, evaluate
@@ -59,18 +59,21 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("bench-collection"))
     parser.add_argument("--residual", default="lowrank", help="fit --residual (default lowrank: the learned one trains for minutes by design)")
     parser.add_argument("--device", default=None, help="device for rendering (default: CUDA when present)")
+    parser.add_argument("--baselines", default=None, help="collection --baselines (default: its own, ptm,hsh2,hsh3,rbf; 'none' for the field and the blend alone)")
+    parser.add_argument("--no-evaluate", action="store_true", help="collection --no-evaluate: fit, export and thumbnail only")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
+    extra = (["--baselines", args.baselines] if args.baselines else []) + (["--no-evaluate"] if args.no_evaluate else [])
     started = time.perf_counter()
     captures = render(args.work, args.captures, args.lights, args.size, args.device)
     print(f"{args.captures} captures of {args.lights}-{args.lights + 4} lights at {args.size} in {captures} ({time.perf_counter() - started:.1f} s); "
           f"{os.cpu_count()} cores", flush=True)
     counts = [int(g) for g in args.gpus.split(",")]
     first = sorted(captures.iterdir())[0]
-    collection(first, args.work / "warm-up", max(counts[0], 0), args.residual, [])  # kernels compiled into the cache
+    collection(first, args.work / "warm-up", max(counts[0], 0), args.residual, extra)  # kernels compiled into the cache
     rows = []
     for gpus in counts:
-        seconds, data = collection(captures, args.work / f"out-{gpus}gpu", gpus, args.residual, [])
+        seconds, data = collection(captures, args.work / f"out-{gpus}gpu", gpus, args.residual, extra)
         records = [r for r in data["captures"] if r["status"] == "ok"]
         per_capture = sorted(r["seconds"]["total"] for r in records)
         rows.append({"gpus": gpus, "seconds": round(seconds, 2), "finished": len(records), "captures": len(data["captures"]),
@@ -86,7 +89,7 @@ def main() -> None:
               f"{row['fit_seconds_total']:.1f} s | {base / row['seconds']:.2f}x |")
     if args.json:
         args.json.write_text(json.dumps({"captures": args.captures, "lights": args.lights, "size": args.size, "residual": args.residual,
-                                         "rows": rows}, indent=1))
+                                         "collection_options": extra, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

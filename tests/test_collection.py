@@ -55,6 +55,35 @@ def _collection(*arguments: str, session: bool = False) -> subprocess.Popen:
                             env={**os.environ, "PYTHONWARNINGS": "ignore"})
 
 
+def _communicate(run: subprocess.Popen, timeout: float) -> tuple[str, str]:
+    try:
+        return run.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, signal.SIGKILL) if _session(run) else run.kill()
+        run.communicate()
+        raise
+
+
+def _session(run: subprocess.Popen) -> bool:
+    try:
+        return os.getpgid(run.pid) == run.pid
+    except ProcessLookupError:
+        return False
+
+
+def _alive_in_group(group: int) -> list[str]:
+    """Processes of a process group that still run (zombies, which a container's init may never reap, excluded)."""
+    alive = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        if int(fields[2]) == group and fields[0] != "Z":
+            alive.append(stat.parent.name)
+    return alive
+
+
 def _finished(output: Path) -> dict[str, float]:
     """Finished capture -> the modification time of its record (which a redone capture would change)."""
     return {p.parent.name: p.stat().st_mtime_ns for p in output.glob("*/capture.json")}
@@ -68,7 +97,7 @@ def _leftovers(output: Path) -> list[str]:
 def collected(captures, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     output = tmp_path_factory.mktemp("out") / "gallery"
     run = _collection(str(captures), "-o", str(output))
-    stdout, stderr = run.communicate(timeout=600)
+    stdout, stderr = _communicate(run, 600)
     return output, subprocess.CompletedProcess(run.args, run.returncode, stdout, stderr)
 
 
@@ -90,6 +119,14 @@ def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
         find_captures([tmp_path / "d/seal/images"])
     with pytest.raises(InputError, match="not a folder"):
         find_captures([tmp_path / "missing"])
+    for layout in ("objA/Train", "objB/dome"):  # the held-out folder sorts after or before its capture: the same pairing
+        (tmp_path / "order" / layout).mkdir(parents=True)
+        (tmp_path / "order" / layout / "dirs.lp").write_text(lp)
+        (tmp_path / "order" / Path(layout).parent / "Test").mkdir()
+        (tmp_path / "order" / Path(layout).parent / "Test" / "dirs.lp").write_text(lp)
+    paired = {c.name: c for c in find_captures([tmp_path / "order"])}
+    assert sorted(paired) == ["objA", "objB"] and all(c.heldout.name == "Test" for c in paired.values())
+    assert [c.name for c in find_captures(str(tmp_path / "a/coin"))] == ["coin"] and find_captures([tmp_path / "a/coin"])[0].folder.is_absolute()
     before = fingerprint(found["tablet"])
     (tmp_path / "c/tablet/Test/dirs.lp").write_text(lp + "\n")
     assert fingerprint(found["tablet"]) != before  # a held-out light file changed: the capture is redone
@@ -126,17 +163,17 @@ def test_a_rerun_does_nothing_other_options_and_force_redo(collected, captures):
     output, _ = collected
     before = _finished(output)
     run = _collection(str(captures), "-o", str(output))
-    stdout, stderr = run.communicate(timeout=300)
+    stdout, stderr = _communicate(run, 300)
     assert run.returncode == 1 and "0 captures done now, 6 finished before, 1 failed (broken)" in stdout, stderr[-2000:]
     assert "not tried again" in stdout and _finished(output) == before
     # another option is other work: only what changed is redone (here every capture, by the option)
     run = _collection(str(captures / "museum-a" / "donut-a"), "-o", str(output), "--no-export")
-    stdout, stderr = run.communicate(timeout=300)
+    stdout, stderr = _communicate(run, 300)
     assert run.returncode == 0 and "1 captures done now" in stdout, stderr[-2000:]
     assert not (output / "donut-a" / "viewer").exists() and not _leftovers(output)
     before = _finished(output)["donut-a"]
     run = _collection(str(captures / "museum-a" / "donut-a"), "-o", str(output), "--no-export", "--force")
-    stdout, stderr = run.communicate(timeout=300)
+    stdout, stderr = _communicate(run, 300)
     assert run.returncode == 0 and "1 captures done now, 0 finished before" in stdout, stderr[-2000:]
     assert _finished(output)["donut-a"] != before and len(_finished(output)) == 6  # the gallery's other captures kept
     assert len(json.loads((output / "collection.json").read_text())["captures"]) == 6
@@ -180,25 +217,21 @@ def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(ca
     started = time.monotonic()
     while not _finished(output) and time.monotonic() - started < 300 and run.poll() is None:
         time.sleep(0.05)
+    assert run.poll() is None, "the collection ended before it could be interrupted"
     os.killpg(run.pid, signal.SIGINT)  # as Ctrl-C in a terminal: the whole process group
-    stdout, stderr = run.communicate(timeout=120)
+    stdout, stderr = _communicate(run, 120)
     assert run.returncode == 130, stderr[-2000:]
     assert "interrupted; nothing partial was left behind" in stderr and "Traceback" not in stderr
     ended = time.monotonic() + 15.0
-    while time.monotonic() < ended:  # no worker, nanny or command left running (the last ones are reaped within a second or two)
-        try:
-            os.killpg(run.pid, 0)
-        except ProcessLookupError:
-            break
+    while _alive_in_group(run.pid) and time.monotonic() < ended:  # no worker, nanny or command left running
         time.sleep(0.1)
-    else:
-        pytest.fail("processes of the interrupted collection still run 15 s after it ended")
+    assert not _alive_in_group(run.pid), "processes of the interrupted collection still run 15 s after it ended"
     done = _finished(output)
     assert 1 <= len(done) < 5 and not _leftovers(output)
     assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".")) == sorted(done)  # finished folders only
     rerun = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
                         "-o", str(output), "--no-evaluate")
-    stdout, stderr = rerun.communicate(timeout=300)
+    stdout, stderr = _communicate(rerun, 300)
     assert rerun.returncode == 0, stderr[-2000:]
     assert f"{5 - len(done)} captures done now, {len(done)} finished before, 0 failed" in stdout
     after = _finished(output)
@@ -213,9 +246,11 @@ def test_an_existing_scheduler_is_used_as_it_is(captures, tmp_path):
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         with pytest.raises(InputError, match="--workers and --gpus size a local cluster"):
             run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, workers=2)
-        result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu",
-                     options=JobOptions(fit_args=tuple(QUICK), evaluate=False, export=False))
-    assert result.processed == ["donut-a"] and result.ok
+        quick = JobOptions(fit_args=tuple(QUICK), evaluate=False, export=False)
+        result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick)
+        again = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick,
+                    force=True)  # a second run on the same workers (its plugin, its commands: the first run's stop is not its own)
+    assert result.processed == ["donut-a"] and result.ok and again.processed == ["donut-a"] and again.ok
     assert (tmp_path / "remote" / "donut-a" / "field.whf").is_file() and (tmp_path / "remote" / "index.html").is_file()
 
 
@@ -226,7 +261,23 @@ def test_bad_input_is_one_line_before_any_work(captures, tmp_path, capsys):
     assert "does not exist; create it first" in capsys.readouterr().err
     assert main(["collection", str(captures), "-o", str(tmp_path / "out"), "--set", "estimation.nonsense=1"]) == 2
     assert "nonsense" in capsys.readouterr().err
+    assert main(["collection", str(captures), "-o", str(tmp_path / "out"), "--device", "gpu7"]) == 2
+    assert "give cpu, cuda or cuda:N" in capsys.readouterr().err
+    assert main(["collection", str(captures), "-o", str(tmp_path / "out"), "--gpus", "64"]) == 2
+    assert "this machine shows" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_output_folder_overlapping_a_capture_is_refused_and_nothing_is_touched(tmp_path, capsys):
+    """OUT as the captures' parent would make OUT/NAME the capture itself (render wrote it, with a manifest: replaceable);
+    OUT inside a capture would make the capture change with every run."""
+    _render(tmp_path / "shelf" / "coin", "donut")
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    assert main(["collection", str(tmp_path / "shelf"), "-o", str(tmp_path / "shelf"), "--device", "cpu"]) == 2
+    assert "this capture is where its output" in capsys.readouterr().err
+    assert main(["collection", str(tmp_path / "shelf" / "coin"), "-o", str(tmp_path / "shelf" / "coin" / "out"), "--device", "cpu"]) == 2
+    assert "inside the capture" in capsys.readouterr().err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
 def test_the_gallery_lists_scores_and_failures(tmp_path):

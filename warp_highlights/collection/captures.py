@@ -41,13 +41,18 @@ def find_captures(paths) -> list[Capture]:
     """The captures under ``paths``: each path is a capture folder, or a folder searched (depth first, in name order)
     for capture folders. A capture folder holds one light file (``lights.lp`` or a single ``*.lp`` other than
     ``heldout.lp``); its sub-folders are not searched. Raises ``InputError`` for a missing path or none found."""
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
     found: list[tuple[Path, Path, Path | None]] = []  # (dataset folder, the folder that names it, held-out folder)
+    seen: set[Path] = set()  # folders searched (a link back up is not followed twice)
     for given in paths:
-        root = Path(given)
+        root = Path(given).absolute()  # absolute: a remote worker resolves nothing against its own working folder
         if not root.is_dir():
-            raise InputError(f"{root}: not a folder; give capture folders or folders that contain them")
+            raise InputError(f"{given}: not a folder; give capture folders or folders that contain them")
+        if root.resolve() in seen:
+            continue  # given twice, or inside a folder given before
         before = len(found)
-        _search(root, found)
+        _search(root, found, seen)
         if len(found) == before:
             raise InputError(f"{root}: no capture found (a folder with a .lp light file and its images)")
     unique: dict[Path, tuple[Path, Path | None]] = {}
@@ -58,26 +63,39 @@ def find_captures(paths) -> list[Capture]:
             for name, (folder, (named, heldout)) in zip(names, unique.items())]
 
 
-def _search(folder: Path, found: list) -> None:
+def _search(folder: Path, found: list, seen: set[Path]) -> None:
+    real = folder.resolve()
+    if real in seen:
+        return
+    seen.add(real)
     if _has_light_file(folder):
         if folder.name == HELDOUT_FOLDER and _has_light_file(folder.parent):
             return  # the held-out lights of the capture above
         sibling = folder.parent / HELDOUT_FOLDER
-        if folder.name != HELDOUT_FOLDER and sibling != folder and _has_light_file(sibling) and not _has_light_file(folder.parent):
+        if folder.name != HELDOUT_FOLDER and _has_light_file(sibling) and not _has_light_file(folder.parent) and _only_capture_beside(sibling):
             found.append((folder, folder.parent, sibling))  # SynthRTI: OBJECT/Dome beside OBJECT/Test, named OBJECT
             return
         inside = folder / HELDOUT_FOLDER
         found.append((folder, folder, inside if _has_light_file(inside) else None))
         return
     try:
-        entries = sorted(os.scandir(folder), key=lambda e: e.name)
+        entries = sorted((e for e in os.scandir(folder) if e.is_dir() and not e.name.startswith(".") and e.name not in _SKIPPED),
+                         key=lambda e: e.name)
     except OSError as error:
         raise InputError(f"{folder}: cannot list the folder ({error.strerror}); check its permissions") from None
+    with_lights = {e.name for e in entries if _has_light_file(Path(e.path))}
     for entry in entries:
-        if entry.is_dir() and not entry.name.startswith(".") and entry.name not in _SKIPPED:
-            if entry.name == HELDOUT_FOLDER and any(f[2] == Path(entry.path) for f in found):
-                continue
-            _search(Path(entry.path), found)
+        if entry.name == HELDOUT_FOLDER and len(with_lights - {HELDOUT_FOLDER}) == 1:
+            continue  # the held-out lights of the capture beside it (OBJECT/Dome and OBJECT/Test), whatever the names' order
+        _search(Path(entry.path), found, seen)
+
+
+def _only_capture_beside(heldout: Path) -> bool:
+    """Whether exactly one folder beside ``heldout`` (a ``Test/``) has a light file: the capture it belongs to."""
+    try:
+        return sum(1 for p in heldout.parent.iterdir() if p.is_dir() and p.name != HELDOUT_FOLDER and _has_light_file(p)) == 1
+    except OSError:
+        return False
 
 
 def _has_light_file(folder: Path) -> bool:

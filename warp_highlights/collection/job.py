@@ -41,17 +41,23 @@ THUMBNAIL_WIDTH = 320
 """Thumbnail width in pixels (at most; the aspect ratio kept)."""
 
 _STOP_SECONDS = 20.0  # how long a child has to clean up after SIGTERM before it is killed
-_children: set[subprocess.Popen] = set()
+_children: dict[str, set[subprocess.Popen]] = {}  # run -> its running commands in this process
+_stopped: set[str] = set()  # runs told to stop in this process
 _children_lock = threading.Lock()
-_stopping = threading.Event()
+_PILLOW_LIMIT_LOCK = threading.Lock()  # Pillow's limit is process-wide: one thumbnail at a time lifts it
+try:  # resolved here, not in the child between fork and exec (the worker has threads)
+    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl if sys.platform.startswith("linux") else None
+except (OSError, AttributeError):
+    _PRCTL = None
 
 
 class CaptureFailed(Exception):
-    """A command of one capture failed: ``step`` (fit, evaluate, ...) and its one-line message."""
+    """A command of one capture failed: ``step`` (fit, evaluate, ...), its one-line message, and whether the capture
+    itself is at fault (``bad_input``: the command's exit status 2, which a rerun with the same files would repeat)."""
 
-    def __init__(self, step: str, message: str):
+    def __init__(self, step: str, message: str, *, bad_input: bool = False):
         super().__init__(f"{step}: {message}")
-        self.step, self.message = step, message
+        self.step, self.message, self.bad_input = step, message, bad_input
 
 
 @dataclass(frozen=True)
@@ -67,6 +73,8 @@ class JobOptions:
         baselines: ``evaluate --baselines``.
         linear: The images' PNG/JPEG values are linear (``--linear`` of fit and evaluate).
         max_megapixels: ``--max-megapixels`` of fit and evaluate (None: their default).
+        device: Where the commands run, as far as it changes the outputs: ``"cuda"`` (a worker's GPU: ``fit``'s default
+            residual is the learned one there), ``"cpu"``, or None (a running cluster's workers decide).
     """
 
     fit_args: tuple[str, ...] = ()
@@ -76,6 +84,7 @@ class JobOptions:
     baselines: str = "ptm,hsh2,hsh3,rbf"
     linear: bool = False
     max_megapixels: float | None = None
+    device: str | None = None
 
     def key(self) -> dict:
         """The options as stored in ``capture.json`` and compared on a rerun."""
@@ -90,7 +99,8 @@ class _Steps:
 
 
 def process_capture(capture: Capture, output, options: JobOptions, *, device: str | None = None,
-                    visible_gpu: str | None = None, cores: list[int] | None = None, replace: bool = False, fingerprint: str | None = None) -> dict:
+                    visible_gpu: str | None = None, cores: list[int] | None = None, replace: bool = False, fingerprint: str | None = None,
+                    run_id: str = "") -> dict:
     """Fit, score, export and thumbnail one capture into ``output/<name>``; returns its record (``capture.json``).
 
     Args:
@@ -99,6 +109,7 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
         cores: CPU cores the commands may use (a CPU worker's share), None for all.
         replace: Replace an existing output folder (a stale or forced capture).
         fingerprint: The capture's files' digest (``captures.fingerprint``), kept in the record; None computes it.
+        run_id: The collection run this is part of: ``stop_children(run_id)`` stops its commands.
 
     Raises:
         CaptureFailed: a command failed (its one-line message); nothing is left in ``output``.
@@ -107,7 +118,8 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
     started = time.perf_counter()
     target = Path(output) / capture.name
     steps = _Steps()
-    run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear, max_megapixels=options.max_megapixels)
+    run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear, max_megapixels=options.max_megapixels,
+                  run_id=run_id)
     with atomic_folder(target, kind="collection capture", overwrite=replace) as folder:
         run(folder, "fit", ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *options.fit_args],
             device_option=True, reads_images=True)
@@ -140,12 +152,13 @@ def read_record(folder) -> dict | None:
     return record if isinstance(record, dict) and record.get("status") == "ok" else None
 
 
-def stop_children() -> None:
-    """Ask every running command of this process to stop (SIGTERM: each removes its partial outputs), wait for
-    them, kill what is left: for a worker that closes mid-capture (Ctrl-C, the cluster going away)."""
-    _stopping.set()
+def stop_children(run_id: str = "") -> None:
+    """Stop the running commands of collection run ``run_id`` in this process (SIGTERM: each removes its partial outputs),
+    wait for them and kill what is left; that run's next commands are not started. For a worker that closes
+    mid-capture (Ctrl-C, the cluster going away) or a run that ends; other runs on the same worker go on."""
     with _children_lock:
-        children = list(_children)
+        _stopped.add(run_id)
+        children = list(_children.get(run_id, ()))
     for child in children:
         with contextlib.suppress(OSError):
             child.send_signal(signal.SIGTERM)
@@ -161,15 +174,15 @@ def stop_children() -> None:
 class _Runner:
     """Runs ``python -m warp_highlights ...`` in a folder, as a child that ends with this process."""
 
-    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None):
-        self.device, self.cores, self.steps = device, cores, steps
+    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None, run_id: str = ""):
+        self.device, self.cores, self.steps, self.run_id = device, cores, steps, run_id
         self.linear, self.max_megapixels = linear, max_megapixels
         self.env = dict(os.environ)
         if visible_gpu is not None:
             self.env["CUDA_VISIBLE_DEVICES"] = str(visible_gpu)
 
     def __call__(self, folder: Path, step: str, arguments: list[str], *, device_option: bool = False, reads_images: bool = False) -> None:
-        if _stopping.is_set():
+        if self._stopped():
             raise KeyboardInterrupt
         command = [sys.executable, "-m", "warp_highlights", *arguments, "-q"]
         if device_option and self.device is not None:
@@ -182,7 +195,11 @@ class _Runner:
         child = subprocess.Popen(command, cwd=folder, env=self.env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                  stderr=subprocess.PIPE, text=True, errors="replace", preexec_fn=_child_setup(self.cores))
         with _children_lock:
-            _children.add(child)
+            _children.setdefault(self.run_id, set()).add(child)
+            stopped = self.run_id in _stopped
+        if stopped:  # told to stop while it started
+            with contextlib.suppress(OSError):
+                child.send_signal(signal.SIGTERM)
         try:
             _, stderr = child.communicate()
         except BaseException:  # interrupted here: the child stops too (it removes its partial outputs)
@@ -193,21 +210,24 @@ class _Runner:
             raise
         finally:
             with _children_lock:
-                _children.discard(child)
+                _children.get(self.run_id, set()).discard(child)
         self.steps.seconds[step] = round(time.perf_counter() - started, 3)
-        if child.returncode in (130, 143, -signal.SIGINT, -signal.SIGTERM) or _stopping.is_set():
+        if child.returncode in (130, 143, -signal.SIGINT, -signal.SIGTERM, -signal.SIGKILL) or self._stopped():
             raise KeyboardInterrupt
         if child.returncode != 0:
-            raise CaptureFailed(step, _last_message(stderr, child.returncode))
+            raise CaptureFailed(step, _last_message(stderr, child.returncode), bad_input=child.returncode == 2)
+
+    def _stopped(self) -> bool:
+        with _children_lock:
+            return self.run_id in _stopped
 
 
 def _child_setup(cores: list[int] | None):
     """``preexec_fn``: the child gets SIGTERM when the worker that started it dies (Linux), and its CPU share."""
 
     def setup() -> None:
-        if sys.platform.startswith("linux"):
-            with contextlib.suppress(Exception):
-                ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        if _PRCTL is not None:
+            _PRCTL(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG: SIGTERM when the thread that started it ends
         if cores:
             with contextlib.suppress(AttributeError, OSError):
                 os.sched_setaffinity(0, cores)
@@ -227,12 +247,19 @@ def _last_message(stderr: str, status: int) -> str:
 
 
 def _shrink(source: Path, target: Path) -> None:
+    """``target``: ``source`` (an image ``relight`` just wrote, of the capture's size) at most ``THUMBNAIL_WIDTH`` wide.
+    Pillow's decompression-bomb limit is lifted for it (a capture of over 179 megapixels is ours, not a bomb)."""
     from PIL import Image
 
-    with Image.open(source) as image:
-        image.thumbnail((THUMBNAIL_WIDTH, THUMBNAIL_WIDTH * 4), Image.Resampling.LANCZOS)
-        with atomic_file(target) as temporary:
-            image.save(temporary, format="PNG", optimize=True)
+    with _PILLOW_LIMIT_LOCK:
+        saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+        try:
+            with Image.open(source, formats=["PNG"]) as image:
+                image.thumbnail((THUMBNAIL_WIDTH, THUMBNAIL_WIDTH * 4), Image.Resampling.LANCZOS)
+                with atomic_file(target) as temporary:
+                    image.save(temporary, format="PNG", optimize=True)
+        finally:
+            Image.MAX_IMAGE_PIXELS = saved
     source.unlink()
 
 

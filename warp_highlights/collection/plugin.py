@@ -13,21 +13,22 @@ __all__ = ["StopChildren"]
 
 
 class StopChildren(WorkerPlugin):
-    """When a worker closes mid-capture (Ctrl-C, the cluster going away), its running ``warp-highlights`` commands get
-    SIGTERM, remove their partial outputs and end; the capture's temporary folder goes with the failed task.
+    """One collection run's plugin (named after the run): when a worker closes mid-capture (Ctrl-C, the cluster going
+    away) or the run removes the plugin (its end, or its interruption on a running cluster), that run's
+    ``warp-highlights`` commands on the worker get SIGTERM, remove their partial outputs and end; other runs on the same
+    cluster go on.
 
-    A local worker ignores SIGINT: Ctrl-C reaches the client, which closes the cluster (and the commands, which get it
-    too, clean up after themselves), instead of every worker printing its own traceback.
+    On a local cluster the worker also ignores SIGINT: Ctrl-C reaches the client, which closes the cluster (and the
+    commands, which get it too, clean up after themselves), instead of every worker printing its own traceback.
     """
 
-    name = "warp-highlights-stop-children"
-
-    def __init__(self, ignore_interrupts: bool = True):
-        self.ignore_interrupts = ignore_interrupts
+    def __init__(self, run_id: str, ignore_interrupts: bool = True):
+        self.run_id, self.ignore_interrupts = run_id, ignore_interrupts
+        self.name = f"warp-highlights-{run_id}"
 
     def setup(self, worker) -> None:
         if self.ignore_interrupts and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     def teardown(self, worker) -> None:
-        stop_children()
+        stop_children(self.run_id)  # the run's flag stays set: a task of it that starts late starts nothing

@@ -9,16 +9,18 @@ captures and the output folder at the same paths (shared storage): only paths tr
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import os
+import re
 import shutil
 import subprocess
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..io.atomic import clean_stale_partials
+from ..io.atomic import clean_stale_partials, deferred_signals
 from ..model.errors import InputError
 from ..model.threads import core_count
 from .captures import Capture, find_captures, fingerprint
@@ -87,8 +89,19 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
             rerun goes on with the captures not finished.
     """
     options = options or JobOptions()
+    if isinstance(captures, (str, os.PathLike)):
+        captures = [captures]
     found = list(captures) if captures and all(isinstance(c, Capture) for c in captures) else find_captures(captures)
-    output = _output_folder(output)
+    target = Path(output).absolute()
+    if device is not None and not re.fullmatch(r"cpu|cuda(:\d+)?", device):
+        raise InputError(f"--device {device}: give cpu, cuda or cuda:N")
+    if scheduler is not None and (workers is not None or gpus is not None):
+        raise InputError("--workers and --gpus size a local cluster; with --scheduler the cluster is sized where it was started")
+    plan = None if scheduler is not None else _plan_workers(len(found), workers=workers, gpus=gpus, device=device)
+    options = dataclasses.replace(options, device=_device_kind(plan, device))
+    found = _keep_earlier_names(found, target)
+    _check_apart(found, target)
+    output = _output_folder(target)
     for capture in found:
         clean_stale_partials(output / capture.name)
     for name in (COLLECTION_JSON, INDEX_HTML):
@@ -110,9 +123,11 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
         else:
             todo.append((capture, (output / capture.name).exists(), stamp))
     if todo:
-        _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, workers=workers, gpus=gpus, device=device, progress=progress)
+        if plan is not None:
+            plan = plan[: len(todo)]  # no idle workers
+        _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, plan=plan, device=device, progress=progress)
     result.records = [records[c.name] for c in found if c.name in records]
-    write_gallery(output, result.records + _other_finished(output, {c.name for c in found}))
+    write_gallery(output, result.records + _other_finished(output, found))
     return result
 
 
@@ -129,6 +144,51 @@ def visible_gpus() -> list[str]:
     except (OSError, subprocess.SubprocessError):
         return []
     return [str(k) for k, line in enumerate(line for line in listing.splitlines() if line.startswith("GPU "))]
+
+
+def _device_kind(plan: list[dict] | None, device: str | None) -> str | None:
+    """What the commands run on, as the skip key compares it: "cuda", "cpu", or None (a running cluster's default)."""
+    if plan is None:
+        return None if device is None else ("cpu" if device == "cpu" else "cuda")
+    return "cuda" if "visible_gpu" in plan[0] else "cpu"
+
+
+def _keep_earlier_names(found: list[Capture], output: Path) -> list[Capture]:
+    """A capture finished before under another name (the set of captures given then made other names unique) keeps
+    that name, so that adding captures to a collection does not fit the old ones again under new names."""
+    if not output.is_dir():
+        return found
+    earlier = {}
+    for folder in output.iterdir():
+        record = read_record(folder) if folder.is_dir() and not folder.name.startswith(".") else None
+        if record is not None and record.get("name") == folder.name and isinstance(record.get("capture"), str):
+            earlier[record["capture"]] = folder.name
+    taken = {c.name for c in found}
+    renamed = []
+    for capture in found:
+        name = earlier.get(str(capture.folder.resolve()))
+        if name is not None and name != capture.name and name not in taken:
+            taken.discard(capture.name)
+            taken.add(name)
+            capture = dataclasses.replace(capture, name=name)
+        renamed.append(capture)
+    return renamed
+
+
+def _check_apart(found: list[Capture], output: Path) -> None:
+    """Refuse an output folder inside a capture, or a capture inside (or as) a capture's output folder: replacing
+    ``OUT/NAME`` must never touch a capture's own files."""
+    out = output.resolve()
+    for capture in found:
+        for source in (capture.folder, capture.heldout):
+            if source is None:
+                continue
+            source = source.resolve()
+            if out == source or source in out.parents:
+                raise InputError(f"{output}: the output folder is inside the capture {source}; write the collection somewhere else")
+            slot = out / capture.name
+            if source == slot or slot in source.parents:
+                raise InputError(f"{source}: this capture is where its output {slot} would go; give another output folder (-o)")
 
 
 def _output_folder(output) -> Path:
@@ -149,13 +209,14 @@ def _same_work(record: dict, capture: Capture, options: JobOptions, stamp: str) 
             and record.get("fingerprint") == stamp)
 
 
-def _other_finished(output: Path, names: set[str]) -> list[dict]:
+def _other_finished(output: Path, found: list[Capture]) -> list[dict]:
     """Finished captures in ``output`` that this run was not given (an earlier run's): the gallery lists them too."""
+    names, folders = {c.name for c in found}, {str(c.folder.resolve()) for c in found}
     others = []
     for folder in sorted(output.iterdir()):
         if folder.is_dir() and not folder.name.startswith(".") and folder.name not in names:
             record = read_record(folder)
-            if record is not None and record.get("name") == folder.name:
+            if record is not None and record.get("name") == folder.name and record.get("capture") not in folders:
                 others.append(record)
     return others
 
@@ -166,63 +227,73 @@ def _earlier_failures(output: Path) -> dict[str, dict]:
         captures = json.loads((output / COLLECTION_JSON).read_text()).get("captures") or []
     except (OSError, ValueError, AttributeError):
         return {}
-    return {r["name"]: r for r in captures if isinstance(r, dict) and r.get("status") == "failed" and isinstance(r.get("name"), str)}
+    return {r["name"]: r for r in captures if isinstance(r, dict) and r.get("status") == "failed" and isinstance(r.get("name"), str)
+            and r.get("repeatable")}  # only failures the capture's own files cause (bad input); a full disk or a lost worker is retried
 
 
 def _plan_workers(todo: int, *, workers: int | None, gpus: int | None, device: str | None) -> list[dict]:
-    """One entry per local worker: the GPU its commands see and their ``--device``, or its CPU cores."""
+    """One entry per local worker: the GPU its commands see (as their cuda:0), or its CPU cores."""
+    if device not in (None, "cpu", "cuda", "cuda:0"):
+        raise InputError(f"--device {device}: a local cluster gives each worker one GPU, which its commands see as cuda:0; choose the GPUs "
+                         "with --gpus or CUDA_VISIBLE_DEVICES, or give --device cpu or cuda")
     available = visible_gpus()
     if gpus is not None and gpus > len(available):
         raise InputError(f"--gpus {gpus}: this machine shows {len(available)} GPU(s)" + (f" ({', '.join(available)})" if available else ""))
+    if gpus == 0 and device in ("cuda", "cuda:0"):
+        raise InputError("--gpus 0 runs CPU workers; leave out --device cuda, or give --gpus N")
+    if device in ("cuda", "cuda:0") and not available:
+        raise InputError("--device cuda: this machine shows no GPU (nvidia-smi); leave out --device, or give --device cpu")
     chosen = available[: gpus if gpus is not None else len(available)]
-    if chosen and (device is None or device.startswith("cuda")):
-        count = min(workers or len(chosen), len(chosen), todo)
-        return [{"visible_gpu": chosen[k], "device": device if device not in (None, "cuda") else "cuda:0"} for k in range(count)]
+    if chosen and device != "cpu":
+        count = max(1, min(workers or len(chosen), len(chosen), todo))
+        return [{"visible_gpu": chosen[k], "device": "cuda:0"} for k in range(count)]
     cores = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(core_count()))
     count = max(1, min(workers or max(1, len(cores) // CORES_PER_CPU_WORKER), len(cores), todo))
     shares = [cores[round(k * len(cores) / count): round((k + 1) * len(cores) / count)] for k in range(count)]
-    return [{"cores": share, "device": device or "cpu"} for share in shares]
+    return [{"cores": share, "device": "cpu"} for share in shares]
 
 
-def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool, stamp: str, pins: dict, default: dict) -> dict:
-    """The task: one capture on the worker that runs it (pinned as ``pins`` says for that worker's name, else ``default``)."""
+def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool, stamp: str, pins: dict, default: dict, run_id: str) -> dict:
+    """The task: one capture on the worker that runs it (pinned as ``pins`` says for that worker's name, else ``default``).
+    Returns its record, or a failure record: nothing a capture does ends the others."""
     from distributed import get_worker
 
     pin = pins.get(str(get_worker().name), default)
     try:
         return process_capture(capture, output, options, device=pin.get("device"), visible_gpu=pin.get("visible_gpu"),
-                               cores=pin.get("cores"), replace=replace, fingerprint=stamp)
+                               cores=pin.get("cores"), replace=replace, fingerprint=stamp, run_id=run_id)
     except CaptureFailed as failure:
-        return _failure(capture, options, stamp, failure.step, failure.message)
+        return _failure(capture, options, stamp, failure.step, failure.message, repeatable=failure.bad_input)
     except (InputError, OSError) as error:  # the output folder refused (a file edited by the user), a full disk
         message = str(error) if isinstance(error, InputError) else f"{error.strerror or error} ({error.filename or output})"
         return _failure(capture, options, stamp, "output", message)
-    except KeyboardInterrupt:  # its commands were stopped (Ctrl-C, the cluster closing): nothing was left; not a failure to log
-        return {"name": capture.name, "status": "interrupted"}
+    except KeyboardInterrupt:  # its commands were stopped (Ctrl-C, the cluster closing): nothing was left
+        return _failure(capture, options, stamp, "interrupted", "stopped before it finished (its worker was closing); run the collection again")
+    except Exception as error:  # a bug, or a library's surprise: this capture's failure, with what it was
+        return _failure(capture, options, stamp, "internal", f"{type(error).__name__}: {error}")
 
 
-def _failure(capture: Capture, options: JobOptions, stamp: str, step: str, message: str) -> dict:
+def _failure(capture: Capture, options: JobOptions, stamp: str, step: str, message: str, *, repeatable: bool = False) -> dict:
+    """A failed capture's record. ``repeatable``: its own files caused it (a rerun with the same files and options skips it)."""
     return {"name": capture.name, "status": "failed", "capture": str(capture.folder.resolve()), "options": options.key(),
-            "fingerprint": stamp, "step": step, "error": message}
+            "fingerprint": stamp, "step": step, "error": message, "repeatable": repeatable}
 
 
-def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, result: CollectionResult, *, scheduler, workers, gpus,
-                    device, progress: bool) -> None:
+def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, result: CollectionResult, *, scheduler, plan, device,
+                    progress: bool) -> None:
     try:
         from distributed import Client, LocalCluster, as_completed
         from distributed.client import FutureCancelledError
-        from distributed.scheduler import KilledWorker
 
         from .plugin import StopChildren
     except ImportError:
         raise InputError("warp-highlights collection needs Dask distributed: pip install 'warp-highlights[collection]'") from None
-    if scheduler is not None and (workers is not None or gpus is not None):
-        raise InputError("--workers and --gpus size a local cluster; with --scheduler the cluster is sized where it was started")
-    with contextlib.ExitStack() as stack:
+    run_id = uuid.uuid4().hex[:12]
+    stack = contextlib.ExitStack()
+    try:
         stack.callback(_sweep, output, [c.name for c, _, _ in todo])  # last: once the workers are gone
         if scheduler is None:
-            plan = _plan_workers(len(todo), workers=workers, gpus=gpus, device=device)
-            cluster = stack.enter_context(LocalCluster(n_workers=len(plan), threads_per_worker=1, processes=True, dashboard_address=":0",
+            cluster = stack.enter_context(LocalCluster(n_workers=len(plan), threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
                                                        silence_logs=logging.ERROR, memory_limit=0))
             pins = {str(k): pin for k, pin in enumerate(plan)}  # LocalCluster names its workers 0, 1, ...
             client = stack.enter_context(Client(cluster))
@@ -231,44 +302,48 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
         else:
             try:
                 client = stack.enter_context(Client(scheduler, timeout="30s"))
-            except (OSError, TimeoutError) as error:
+            except (OSError, TimeoutError, ValueError) as error:
                 raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({error}); check the address and that it runs") from None
             pins = {}
         with contextlib.suppress(Exception):
             result.dashboard = client.dashboard_link
         if result.dashboard:
             log.info("Dask dashboard: %s", result.dashboard)
-        client.register_plugin(StopChildren(ignore_interrupts=scheduler is None))  # a remote worker's signals are its own
-        run_id = uuid.uuid4().hex[:8]
-        default = {"device": device} if device is not None else {}  # a remote cluster's workers: --device alone
-        futures = {client.submit(_on_worker, capture, str(output), options, replace, stamp, pins, default, key=f"capture-{capture.name}-{run_id}",
-                                 pure=False): capture for capture, replace, stamp in todo}
+        plugin = StopChildren(run_id, ignore_interrupts=scheduler is None)  # a remote worker's signals are its own
+        client.register_plugin(plugin)
+        # removing it stops this run's commands on every worker: at the end (none left), or on Ctrl-C (a running cluster's too)
+        stack.callback(_quietly, client.unregister_worker_plugin, plugin.name)
+        default = {"device": device} if device is not None else {}  # a running cluster's workers: --device alone
+        futures = {client.submit(_on_worker, capture, str(output), options, replace, stamp, pins, default, run_id,
+                                 key=f"capture-{capture.name}-{run_id}", pure=False): capture for capture, replace, stamp in todo}
+        stack.callback(_quietly, client.cancel, list(futures))  # on any way out: nothing queued starts
         bar = _bar(progress, len(todo), len(result.skipped))
-        try:
-            for future in as_completed(futures):
-                capture = futures[future]
-                try:
-                    record = future.result()
-                except KilledWorker:
-                    record = _failure(capture, options, fingerprint(capture), "worker", "the worker running it died (out of memory?); see the Dask workers' logs")
-                except FutureCancelledError:
-                    continue
-                if record["status"] == "interrupted":  # a worker stopped under it: the run is ending
-                    continue
-                records[capture.name] = record
-                (result.processed if record["status"] == "ok" else result.failed).append(capture.name)
-                if record["status"] != "ok":
-                    log.warning("%s: failed at %s: %s", capture.name, record.get("step"), record.get("error"))
-                if bar is not None:
-                    bar.update(1)
-                    bar.set_postfix_str(f"{len(result.failed)} failed" if result.failed else "", refresh=False)
-        except BaseException:
-            with contextlib.suppress(Exception):
-                client.cancel(list(futures))
-            raise
-        finally:
+        if bar is not None:
+            stack.callback(bar.close)
+        for future in as_completed(futures):
+            capture = futures[future]
+            try:
+                record = future.result()
+            except FutureCancelledError:
+                continue
+            except Exception as error:  # the worker died under it (KilledWorker), a lost connection
+                record = _failure(capture, options, fingerprint(capture), "worker",
+                                  f"{type(error).__name__}: {error}; the worker running it was lost (out of memory?), see the Dask workers' logs")
+            records[capture.name] = record
+            (result.processed if record["status"] == "ok" else result.failed).append(capture.name)
+            if record["status"] != "ok":
+                log.warning("%s: failed at %s: %s", capture.name, record.get("step"), record.get("error"))
             if bar is not None:
-                bar.close()
+                bar.update(1)
+                bar.set_postfix_str(f"{len(result.failed)} failed" if result.failed else "", refresh=False)
+    finally:
+        with deferred_signals():  # a second Ctrl-C waits for the workers to stop and the sweep: nothing is left half-removed
+            stack.close()
+
+
+def _quietly(function, *args) -> None:
+    with contextlib.suppress(Exception):
+        function(*args)
 
 
 def _sweep(output: Path, names: list[str]) -> None:
