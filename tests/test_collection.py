@@ -290,7 +290,7 @@ def test_the_gallery_lists_scores_and_failures(tmp_path):
     data = json.loads(json_path.read_text())
     assert data["summary"]["finished"] == 1 and data["summary"]["failed"] == 1 and data["summary"]["circular_beats_alpha"] == "1 of 1"
     rows = _table_rows(html_path.read_text())
-    assert ["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · report"] == rows[0][1:]
+    assert ["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · evaluation"] == rows[0][1:]
     assert rows[1][1] == "seal<1>" and "no held-out lights & no Test/" in rows[1][2]  # escaped in the page, read back as text
     assert "seal&lt;1&gt;" in html_path.read_text() and "&amp; no Test/" in html_path.read_text()
 
@@ -325,3 +325,40 @@ def _table_rows(page: str) -> list[list[str]]:
     parser = Rows()
     parser.feed(page)
     return parser.rows
+
+
+def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collected, tmp_path):
+    """As a person would: the served gallery in headless Chromium shows every thumbnail, and a capture's viewer link opens a
+    viewer that draws (the exported page's own readiness flag), without console errors."""
+    import shutil
+    import threading
+
+    from warp_highlights.web.serve import make_server
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("no chromium on the PATH (apt install chromium)")
+    playwright = pytest.importorskip("playwright.sync_api", reason="Playwright for Python is not installed (pip install playwright)")
+    output, _ = collected
+    server = make_server(output, 0)  # serve takes a collection's folder (index.html + collection.json)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with playwright.sync_playwright() as driver:
+            browser = driver.chromium.launch(executable_path=chromium, args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+            tab = browser.new_page()
+            errors = []
+            tab.on("pageerror", lambda error: errors.append(str(error)))
+            tab.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
+            tab.wait_for_function("Array.from(document.images).every(i => i.complete)", timeout=30_000)
+            widths = tab.eval_on_selector_all("tbody img", "images => images.map(i => i.naturalWidth)")
+            assert len(widths) == 6 and all(w == 48 for w in widths)  # the 48x27 captures' thumbnails (never wider than 320)
+            tab.screenshot(path=str(tmp_path / "gallery.png"))
+            with tab.expect_navigation():
+                tab.click("text=viewer >> nth=1")
+            tab.wait_for_function("window.whReady === true || document.getElementById('status').textContent.startsWith('error')", timeout=120_000)
+            assert tab.evaluate("window.whReady") is True and "/viewer/" in tab.url
+            browser.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert not errors

@@ -77,14 +77,14 @@ def _page(title: str, data: dict) -> str:
         viewer = (record.get("files") or {}).get("viewer")
         link = f'<a href="{e(record["name"])}/{e(viewer)}">viewer</a>' if viewer else ""
         evaluation = (record.get("files") or {}).get("evaluation")
-        report = f' · <a href="{e(record["name"])}/{e(evaluation)}">report</a>' if evaluation else ""
+        report = f' · <a href="{e(record["name"])}/{e(str(Path(evaluation).parent))}/">evaluation</a>' if evaluation else ""  # its plots and report.json
         gaussians = record.get("gaussians_per_light")
         rows.append(
             f'<tr><td><img src="{name}/thumbnail.png" alt="{name}" loading="lazy"></td><td>{name}</td>'
             f'<td class="num">{e(str(record.get("lights")))}</td><td class="num">{e(str(size[0]))}x{e(str(size[1]))}</td>'
             f'<td class="num">{"" if gaussians is None else f"{gaussians:.1f}"}</td>'
             f'<td class="num">{record.get("fit_seconds") or 0:.1f}</td>{cells}<td>{link}{report}</td></tr>')
-    heads = "".join(f'<th>{e(m)}</th>' for m in GALLERY_METHODS)
+    heads = "".join(f'<th class="num">{e(m)}</th>' for m in GALLERY_METHODS)
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{e(title)}: warp-highlights collection</title>
 <meta name="viewport" content="width=device-width, initial-scale=1">
@@ -93,7 +93,7 @@ body {{ font: 14px system-ui, sans-serif; margin: 1.5em; color: #222; }}
 table {{ border-collapse: collapse; }}
 th, td {{ padding: 4px 8px; border-bottom: 1px solid #ddd; vertical-align: middle; text-align: left; }}
 th {{ background: #f4f4f4; position: sticky; top: 0; }}
-td.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
+td.num, th.num {{ text-align: right; font-variant-numeric: tabular-nums; }}
 td.best {{ font-weight: bold; }}
 tr.failed td {{ color: #a00; }}
 img {{ max-width: 160px; display: block; }}
@@ -104,8 +104,8 @@ img {{ max-width: 160px; display: block; }}
 {f'The moving highlights beat the alpha blend on {e(s["circular_beats_alpha"])} captures.' if s["circular_beats_alpha"] else ''}
 The viewers need a web server: <code>warp-highlights serve {e(title)}</code>. Figures for programs: <a href="{COLLECTION_JSON}">{COLLECTION_JSON}</a>.</p>
 <table>
-<thead><tr><th></th><th>capture</th><th>lights</th><th>size</th><th>Gaussians / light</th><th>fit (s)</th>{heads}<th></th></tr>
-<tr><th></th><th></th><th></th><th></th><th></th><th></th><th colspan="{len(GALLERY_METHODS)}">PSNR (dB) at held-out lights, 8-bit sRGB</th><th></th></tr></thead>
+<thead><tr><th></th><th>capture</th><th class="num">lights</th><th class="num">size</th><th class="num">Gaussians / light</th><th class="num">fit (s)</th>{heads}<th></th></tr>
+<tr><th></th><th></th><th></th><th></th><th></th><th></th><th class="num" colspan="{len(GALLERY_METHODS)}">PSNR (dB) at held-out lights, 8-bit sRGB</th><th></th></tr></thead>
 <tbody>
 {chr(10).join(rows)}
 </tbody></table>
