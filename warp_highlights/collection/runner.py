@@ -124,7 +124,7 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
             todo.append((capture, (output / capture.name).exists(), stamp))
     if todo:
         if plan is not None:
-            plan = plan[: len(todo)]  # no idle workers
+            plan = _plan_workers(len(todo), workers=workers, gpus=gpus, device=device)  # no idle workers: the cores shared by those that run
         _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, plan=plan, device=device, progress=progress)
     result.records = [records[c.name] for c in found if c.name in records]
     write_gallery(output, result.records + _other_finished(output, found))
