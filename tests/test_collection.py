@@ -362,3 +362,20 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
         server.shutdown()
         server.server_close()
     assert not errors
+
+
+@pytest.mark.parametrize("width,height,most", [(567, 534, 200), (534, 567, 200), (160, 160, 200), (3840, 2160, 960), (7952, 5304, 1000),
+                                               (6000, 4000, 1024), (4000, 6000, 1023), (1001, 999, 1000)])
+def test_max_side_gives_each_capture_a_size_fit_accepts(width, height, most, monkeypatch):
+    """--max-side: the longer side at most PX, never enlarged, the aspect ratio as fit --size checks it (brute force: fit's own check)."""
+    import warp_highlights.collection.job as job
+    from warp_highlights.io.resample import working_size
+
+    monkeypatch.setattr(job, "image_size", lambda capture: (width, height))
+    arguments = job._size_arguments(None, most)
+    if max(width, height) <= most:
+        assert arguments == []
+        return
+    new_width, new_height = (int(v) for v in arguments[1].split("x"))
+    assert working_size(width, height, (new_width, new_height)) == (new_width, new_height)
+    assert max(new_width, new_height) <= most and max(new_width, new_height) >= most - 2

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..model.errors import InputError
 from .args import Command, in_range, size_option
 from .fit import RESIDUAL_CHOICES, _exposure_option
 
@@ -22,7 +23,10 @@ def _collection_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("passed to every fit")
     group.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.NAME=VALUE",
                        help="override a hyper-parameter, as fit --set (repeatable)")
-    group.add_argument("--size", type=size_option("working size"), help="working resolution WIDTHxHEIGHT, as fit --size")
+    group.add_argument("--size", type=size_option("working size"), help="working resolution WIDTHxHEIGHT, as fit --size (captures of one aspect ratio)")
+    group.add_argument("--max-side", type=in_range(int, 8, 65_536), metavar="PX",
+                       help="fit each capture at most PX pixels on its longer side, its aspect ratio kept (its fit --size worked out from its "
+                       "images; for captures of different sizes)")
     group.add_argument("--residual", choices=list(RESIDUAL_CHOICES), help="as fit --residual (default: fit's, learned on CUDA, lowrank elsewhere)")
     group.add_argument("--diffuse", choices=["lambert", "images", "none"], help="as fit --diffuse")
     group.add_argument("--exposure", type=_exposure_option, help="as fit --exposure")
@@ -52,6 +56,8 @@ def _run_collection(args) -> int:
     from ..model.config import FitSettings
 
     FitSettings().with_overrides(list(args.overrides))  # a wrong --set is one line now, not one per capture
+    if args.size is not None and args.max_side is not None:
+        raise InputError("give --size (one size for every capture) or --max-side (each capture's own), not both")
     fit_args: list[str] = []
     for override in args.overrides:
         fit_args += ["--set", override]
@@ -61,7 +67,8 @@ def _run_collection(args) -> int:
         if value is not None:
             fit_args += [option, str(value)]
     options = JobOptions(fit_args=tuple(fit_args), holdout_every=args.holdout_every, evaluate=not args.no_evaluate, export=not args.no_export,
-                         baselines=_baselines(args.baselines), linear=args.linear, max_megapixels=args.max_megapixels)
+                         baselines=_baselines(args.baselines), linear=args.linear, max_megapixels=args.max_megapixels,
+                         max_side=args.max_side)
     result = run(args.captures, args.output, options=options, force=args.force, retry_failed=args.retry_failed, scheduler=args.scheduler,
                  workers=args.workers, gpus=args.gpus, device=args.device, progress=not args.quiet)
     failed = result.failed + result.failed_before

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ..model.errors import InputError
 
-__all__ = ["HELDOUT_FOLDER", "Capture", "find_captures", "fingerprint"]
+__all__ = ["HELDOUT_FOLDER", "Capture", "find_captures", "fingerprint", "image_size"]
 
 HELDOUT_FOLDER = "Test"
 """A capture's held-out lights in a folder of their own (the SynthRTI layout: ``Dome/`` beside ``Test/``, or
@@ -151,3 +151,20 @@ def fingerprint(capture: Capture) -> str:
                     continue
                 digest.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
     return digest.hexdigest()[:32]
+
+
+def image_size(capture: Capture) -> tuple[int, int]:
+    """(width, height) in pixels of the capture's images, from its first image's header (nothing decoded)."""
+    from ..io.images import image_header
+    from ..io.lightfile import read_lp
+
+    folder = capture.folder
+    light_file = folder / "lights.lp"
+    if not light_file.is_file():
+        candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())
+        if len(candidates) != 1:
+            raise InputError(f"{folder}: " + ("no light file" if not candidates else "several light files") + "; keep one or name it lights.lp")
+        light_file = candidates[0]
+    lights = read_lp(light_file, check_files=False)
+    shape = image_header(light_file.parent / lights.filenames[0], max_pixels=None).shape
+    return int(shape[1]), int(shape[0])

@@ -23,7 +23,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..io.atomic import atomic_file, atomic_folder
-from .captures import Capture
+from ..model.errors import InputError
+from .captures import Capture, image_size
 from .captures import fingerprint as capture_fingerprint
 
 __all__ = ["CAPTURE_RECORD", "CaptureFailed", "JobOptions", "THUMBNAIL_LIGHT", "THUMBNAIL_WIDTH", "process_capture",
@@ -73,6 +74,8 @@ class JobOptions:
         baselines: ``evaluate --baselines``.
         linear: The images' PNG/JPEG values are linear (``--linear`` of fit and evaluate).
         max_megapixels: ``--max-megapixels`` of fit and evaluate (None: their default).
+        max_side: Fit each capture at most this many pixels on its longer side (its ``fit --size`` worked out from its
+            images, the aspect ratio kept); None: at the images' size (or ``--size`` in ``fit_args``).
         device: Where the commands run, as far as it changes the outputs: ``"cuda"`` (a worker's GPU: ``fit``'s default
             residual is the learned one there), ``"cpu"``, or None (a running cluster's workers decide).
     """
@@ -84,6 +87,7 @@ class JobOptions:
     baselines: str = "ptm,hsh2,hsh3,rbf"
     linear: bool = False
     max_megapixels: float | None = None
+    max_side: int | None = None
     device: str | None = None
 
     def key(self) -> dict:
@@ -120,15 +124,16 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
     steps = _Steps()
     run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear, max_megapixels=options.max_megapixels,
                   run_id=run_id)
+    fit_args = list(options.fit_args) + _size_arguments(capture, options.max_side)
     with atomic_folder(target, kind="collection capture", overwrite=replace) as folder:
-        run(folder, "fit", ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *options.fit_args],
+        run(folder, "fit", ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *fit_args],
             device_option=True, reads_images=True)
         if options.evaluate:
             scored = "field.whf"
             if not capture.has_heldout:
                 scored = "holdout-field.whf"
                 run(folder, "holdout fit", ["fit", str(capture.folder.resolve()), "-o", scored, "--report", "holdout-fit-report.json",
-                                            "--holdout-every", str(options.holdout_every), *options.fit_args], device_option=True, reads_images=True)
+                                            "--holdout-every", str(options.holdout_every), *fit_args], device_option=True, reads_images=True)
             heldout = ["--heldout", str(capture.heldout.resolve())] if capture.heldout is not None else []
             run(folder, "evaluate", ["evaluate", scored, str(capture.folder.resolve()), *heldout, "-o", "evaluation",
                                      "--baselines", options.baselines or "none"], device_option=True, reads_images=True)
@@ -141,6 +146,26 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
         record["fingerprint"] = fingerprint if fingerprint is not None else capture_fingerprint(capture)
         (folder / CAPTURE_RECORD).write_text(json.dumps(record, indent=2, allow_nan=False))
     return record
+
+
+def _size_arguments(capture: Capture, max_side: int | None) -> list[str]:
+    """``["--size", "WxH"]`` bringing the capture's longer side to ``max_side`` (never up; at least 8 pixels a side)."""
+    if max_side is None:
+        return []
+    try:
+        width, height = image_size(capture)
+    except (InputError, OSError) as error:
+        raise CaptureFailed("size", str(error) if isinstance(error, InputError) else f"{error.strerror or error}", bad_input=True) from None
+    if max(width, height) <= max_side:
+        return []
+    long, short = max(width, height), min(width, height)
+    new_short = max(8, round(short * max_side / long))
+    new_long = round(long * new_short / short)  # within half a pixel of the ratio, as fit --size wants
+    while new_long > max_side and new_short > 8:
+        new_short -= 1
+        new_long = round(long * new_short / short)
+    new_width, new_height = (new_long, new_short) if width >= height else (new_short, new_long)
+    return ["--size", f"{min(new_width, width)}x{min(new_height, height)}"]
 
 
 def read_record(folder) -> dict | None:
