@@ -24,7 +24,7 @@ ROWS = [
     ("import warp_highlights", ["-c", "import warp_highlights"]),
     ("warp-highlights --help", ["-m", "warp_highlights", "--help"]),
     *[(f"warp-highlights {c} --help", ["-m", "warp_highlights", c, "--help"])
-      for c in ("render", "info", "sheet", "fit", "relight", "animate", "evaluate", "view", "demo")],
+      for c in ("render", "info", "sheet", "fit", "relight", "animate", "evaluate", "collection", "view", "demo")],
     ("warp-highlights fit --size big (usage error)", ["-m", "warp_highlights", "fit", "x", "-o", "y.whf", "--size", "big"]),
 ]
 HEAVY = ("warp", "scipy", "pyvista")

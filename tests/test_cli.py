@@ -202,12 +202,13 @@ def test_render_accepts_a_mesh_file(tmp_path):
     assert json.loads((out / "meta.json").read_text())["shape"] == str(mesh_path)
 
 
-@pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"], ["fit", "x", "-o", "y.whf", "--size", "big"]])
+@pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"], ["collection", "--help"],
+                                       ["fit", "x", "-o", "y.whf", "--size", "big"]])
 def test_help_and_usage_errors_do_not_start_warp(arguments):
     """``--help`` and argument errors are answered before Warp, SciPy or pyvista are imported (they cost
     1 s on the 2-core CPU; benchmarks/bench_startup.py times it); importing the package prints nothing."""
     probe = ("import sys; from warp_highlights.cli import main; status = main(sys.argv[1:]); "
-             "print('HEAVY', [m for m in ('warp', 'scipy', 'pyvista') if m in sys.modules], status)")
+             "print('HEAVY', [m for m in ('warp', 'scipy', 'pyvista', 'distributed') if m in sys.modules], status)")
     run = subprocess.run([sys.executable, "-c", probe, *arguments], capture_output=True, text=True, timeout=120)
     assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
     quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
