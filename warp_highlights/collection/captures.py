@@ -155,16 +155,11 @@ def fingerprint(capture: Capture) -> str:
 
 def image_size(capture: Capture) -> tuple[int, int]:
     """(width, height) in pixels of the capture's images, from its first image's header (nothing decoded)."""
+    from ..io.dataset import find_light_file
     from ..io.images import image_header
     from ..io.lightfile import read_lp
 
-    folder = capture.folder
-    light_file = folder / "lights.lp"
-    if not light_file.is_file():
-        candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())
-        if len(candidates) != 1:
-            raise InputError(f"{folder}: " + ("no light file" if not candidates else "several light files") + "; keep one or name it lights.lp")
-        light_file = candidates[0]
+    light_file = find_light_file(capture.folder)
     lights = read_lp(light_file, check_files=False)
     shape = image_header(light_file.parent / lights.filenames[0], max_pixels=None).shape
     return int(shape[1]), int(shape[0])

@@ -28,7 +28,7 @@ from .images import DEFAULT_MAX_PIXELS, ImageHeader, image_encoding, image_heade
 from .lightfile import read_lp, write_lp
 from .memory import check_memory
 
-__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "dataset_folder_entry"]
+__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "dataset_folder_entry", "find_light_file"]
 
 
 class LoadStopped(Exception):
@@ -207,7 +207,7 @@ class ReflectanceField:
         from .resample import working_size
 
         folder = _existing_folder(folder)
-        main = _ImageGroup.plan(_find_light_file(folder))
+        main = _ImageGroup.plan(find_light_file(folder))
         extra = None if heldout is False else _heldout_group(folder, heldout)
         groups = [main] if extra is None else [main, extra]
         if not components:
@@ -662,8 +662,8 @@ def _existing_folder(folder) -> Path:
     return folder
 
 
-def _find_light_file(folder: Path) -> Path:
-    """``lights.lp``, else the one ``*.lp`` other than ``heldout.lp``."""
+def find_light_file(folder: Path) -> Path:
+    """A dataset folder's light file: ``lights.lp``, else the one ``*.lp`` other than ``heldout.lp`` (``InputError`` for none or several)."""
     if (folder / "lights.lp").is_file():
         return folder / "lights.lp"
     candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())
@@ -677,7 +677,7 @@ def _find_light_file(folder: Path) -> Path:
 
 def _heldout_group(folder: Path, heldout) -> _ImageGroup | None:
     if heldout is not None:
-        return _ImageGroup.plan(_find_light_file(_existing_folder(heldout)))
+        return _ImageGroup.plan(find_light_file(_existing_folder(heldout)))
     if (folder / "heldout.lp").is_file():
         return _ImageGroup.plan(folder / "heldout.lp")
     return None
