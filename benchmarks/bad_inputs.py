@@ -57,6 +57,7 @@ import contextlib
 import copy
 import gzip
 import hashlib
+import importlib.util
 import io
 import json
 import multiprocessing
@@ -1438,7 +1439,7 @@ def option_cases(ctx: Context) -> list[Case]:
         add("animate", [("--compare", True), ("--methods", methods)], expect, label=f"--compare --methods {methods!r}")
     add("animate", [("--compare", True)], E, label="--compare (alpha without --dataset)")
     add("animate", [("--compare", True), ("--dataset", D)], OK, label="--compare --dataset D")
-    each("animate", "-o", [(InCase("orbit.avi"), E), (InCase("orbit.mp4"), None if shutil.which("ffmpeg") else E), (InCase("orbit.GIF"), OK),
+    each("animate", "-o", [(InCase("orbit.avi"), E), (InCase("orbit.mp4"), None if importlib.util.find_spec("imageio_ffmpeg") else E), (InCase("orbit.GIF"), OK),
                            (InCase("frames"), OK)])
     add("animate", [("--exr", True)], E, label="--exr with a .gif")
     each("animate", "--size", [("0x0", E), ("31x18", None), ("64x36", OK)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 
 import numpy as np
@@ -471,44 +472,93 @@ def test_frames_folder_names_widen_when_there_are_more_frames(tmp_path, monkeypa
 
 def _ffmpeg_or_skip() -> None:
     try:
-        animation_module._ffmpeg_executable()
+        animation_module._imageio_ffmpeg()
     except InputError:
-        pytest.skip("no ffmpeg (neither on the PATH nor from imageio-ffmpeg)")
+        pytest.skip("no imageio-ffmpeg (the video extra)")
 
 
 @pytest.mark.parametrize(("height", "width", "colour"), [(H, W, True), (21, 33, False)])
-def test_mp4_written(tmp_path, height, width, colour):
+def test_mp4_written(tmp_path, height, width, colour, capfd):
     _ffmpeg_or_skip()
+    import imageio_ffmpeg
+
     target = tmp_path / "anim.mp4"
     frames = (f[:height, :width] for f in _frames(12, colour=colour))
     done = []
     write_animation(frames, target, fps=12.0, progress=done.append)
     data = target.read_bytes()
-    assert len(data) > 1000 and data[4:8] == b"ftyp"
+    assert data[4:8] == b"ftyp", "not an MP4 file"
     assert done == list(range(1, 13))
     assert [p.name for p in tmp_path.iterdir()] == ["anim.mp4"]
+    assert imageio_ffmpeg.count_frames_and_secs(str(target))[0] == 12
+    reader = imageio_ffmpeg.read_frames(str(target))
+    meta = next(reader)
+    assert tuple(meta["size"]) == (width + width % 2, height + height % 2), "odd sizes padded to even"
+    assert "FFREPORT" not in os.environ, "ffmpeg's report variable left set"
+    assert capfd.readouterr().err == "", "ffmpeg wrote onto stderr"
 
 
-def test_mp4_ffmpeg_failure_is_an_input_error(tmp_path, monkeypatch):
+def test_mp4_colours_close_to_the_frames(tmp_path):
     _ffmpeg_or_skip()
-    command = animation_module._ffmpeg_command
-    monkeypatch.setattr(
-        animation_module,
-        "_ffmpeg_command",
-        lambda *args: ["no_such_encoder" if part == "libx264" else part for part in command(*args)],
-    )
+    import imageio_ffmpeg
+
+    frames = list(_frames(6, colour=True))
+    write_animation(frames, tmp_path / "a.mp4", fps=6.0)
+    reader = imageio_ffmpeg.read_frames(str(tmp_path / "a.mp4"))
+    meta = next(reader)
+    width, height = meta["size"]
+    decoded = [np.frombuffer(raw, np.uint8).reshape(height, width, 3)[: H, : W] for raw in reader]
+    assert len(decoded) == 6
+    expected = _srgb8(frames[3]).astype(float)
+    error = np.abs(decoded[3].astype(float) - expected)
+    assert np.median(error) <= 3.0, f"BT.709 round trip off by {np.median(error)} levels (median)"
+
+
+def test_mp4_ffmpeg_failure_is_an_input_error(tmp_path, monkeypatch, capfd):
+    _ffmpeg_or_skip()
+    import imageio_ffmpeg
+
+    write_frames = imageio_ffmpeg.write_frames
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", lambda *a, **k: write_frames(*a, **{**k, "codec": "no_such_encoder"}))
     with pytest.raises(InputError) as excinfo:
         write_animation(_frames(30), tmp_path / "a.mp4")
     _one_line(excinfo, "ffmpeg could not write", "no_such_encoder")
     assert list(tmp_path.iterdir()) == []
+    assert capfd.readouterr().err == "", "ffmpeg's own messages reached stderr"
 
 
-def test_mp4_without_ffmpeg_is_a_clear_error(tmp_path, monkeypatch):
-    monkeypatch.setattr(animation_module.shutil, "which", lambda name: None)
+def test_mp4_short_video_is_an_input_error(tmp_path, monkeypatch):
+    """ffmpeg told to stop after 2 frames exits cleanly: the read-back count finds the missing ones."""
+    _ffmpeg_or_skip()
+    monkeypatch.setattr(animation_module, "_MP4_OPTIONS", [*animation_module._MP4_OPTIONS[:-2], "-frames:v", "2", "-f", "mp4"])
+    with pytest.raises(InputError) as excinfo:
+        write_animation(_frames(8), tmp_path / "a.mp4")
+    _one_line(excinfo, "ffmpeg could not write", "2 of 8 frames")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_ffmpeg_report_path_with_colon_and_backslash(tmp_path):
+    """The FFREPORT value escapes ':' and '\\' (Windows drive letters), so the log lands where asked."""
+    _ffmpeg_or_skip()
+    import subprocess
+
+    import imageio_ffmpeg
+
+    folder = tmp_path / "C:odd\\name"
+    folder.mkdir()
+    log = folder / "ffmpeg.log"
+    with animation_module._ffmpeg_report(log):
+        subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-v", "quiet", "-f", "lavfi", "-i", "nullsrc=s=16x16:d=0.1",
+                        "-c:v", "no_such_encoder", "-f", "null", "-"], capture_output=True, check=False)
+    assert "FFREPORT" not in os.environ
+    assert "Unknown encoder 'no_such_encoder'" in animation_module._ffmpeg_errors(log)
+
+
+def test_mp4_without_imageio_ffmpeg_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # import fails
     with pytest.raises(InputError) as excinfo:
         write_animation(_frames(3), tmp_path / "a.mp4")
-    _one_line(excinfo, "needs ffmpeg", "pip install imageio-ffmpeg", ".gif")
+    _one_line(excinfo, "needs the imageio-ffmpeg package", "pip install imageio-ffmpeg", ".gif")
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(InputError):
         check_animation_output(tmp_path / "a.mp4")

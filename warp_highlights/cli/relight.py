@@ -48,7 +48,7 @@ def _relight_arguments(parser: argparse.ArgumentParser) -> None:
 def _animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file")
     parser.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
-    parser.add_argument("-o", "--output", type=Path, required=True, help=".gif, .webp (lossless), .apng, .mp4 (needs ffmpeg) or a folder of frames")
+    parser.add_argument("-o", "--output", type=Path, required=True, help=".gif, .webp (lossless), .apng, .mp4 (needs imageio-ffmpeg) or a folder of frames")
     parser.add_argument("--frames", type=in_range(int, 1, 100_000), default=96, help="number of frames, 1..100000 (default 96)")
     parser.add_argument("--fps", type=in_range(float, 0.01, 1000.0), default=24.0, help="frames per second, 0.01..1000 (default 24; GIF up to 50)")
     parser.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")

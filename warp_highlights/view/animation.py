@@ -14,8 +14,8 @@ at once), which is checked against the memory available when the frame count is 
 is written to a temporary sibling (file or folder) and renamed into place when complete, so a failed
 or interrupted write leaves nothing behind and an existing output untouched.
 
-Pillow is imported inside the functions that use it; MP4 needs an ``ffmpeg`` executable (on the PATH,
-or from the ``imageio-ffmpeg`` package).
+Pillow is imported inside the functions that use it; MP4 is written through the ``imageio-ffmpeg``
+package (the ``video`` extra), which brings its own ffmpeg.
 """
 
 from __future__ import annotations
@@ -24,9 +24,8 @@ import contextlib
 import itertools
 import math
 import operator
+import os
 import re
-import shutil
-import subprocess
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
@@ -241,7 +240,7 @@ def check_animation_output(path, *, overwrite: bool = False, frames_format: str 
         raise InputError(f"{path}: frames_format={frames_format!r} is for frame folders; give a folder name")
     _check_target(path, kind, overwrite=overwrite)
     if kind == "mp4":
-        _ffmpeg_executable()
+        _imageio_ffmpeg()
     return kind
 
 
@@ -663,30 +662,27 @@ def _write_apng(frames: Iterator[np.ndarray], path: Path, *, fps: float, progres
                    loop=0, default_image=False, disposal=0, blend=0)
 
 
-def _ffmpeg_executable() -> str:
-    """Path of an ffmpeg executable: on the PATH, else from imageio-ffmpeg; InputError when neither."""
-    found = shutil.which("ffmpeg")
-    if found:
-        return found
+def _imageio_ffmpeg():
+    """The ``imageio_ffmpeg`` module with a usable ffmpeg executable; InputError when it is missing."""
     try:
         import imageio_ffmpeg
 
-        return imageio_ffmpeg.get_ffmpeg_exe()
+        imageio_ffmpeg.get_ffmpeg_exe()
     except (ImportError, RuntimeError):
         raise InputError(
-            "writing .mp4 needs ffmpeg: install it or `pip install imageio-ffmpeg`, or write .gif or a frames folder"
+            "writing .mp4 needs the imageio-ffmpeg package: `pip install imageio-ffmpeg` (or the video extra), "
+            "or write .gif, .webp, .apng or a frames folder"
         ) from None
+    return imageio_ffmpeg
 
 
-def _ffmpeg_command(executable: str, width: int, height: int, fps: float, path: Path) -> list[str]:
-    return [
-        executable, "-hide_banner", "-loglevel", "error", "-nostdin", "-y",
-        "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", f"{width}x{height}", "-framerate", f"{fps:.6g}", "-i", "pipe:0",
-        "-an", "-vf", "scale=out_color_matrix=bt709:out_range=tv",
-        "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "18",
-        "-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709",
-        "-movflags", "+faststart", "-f", "mp4", str(path),
-    ]  # fmt: skip
+# libx264 at visually lossless quality, BT.709 limited range (what players assume for HD video),
+# the index at the front so that a browser plays the file while it downloads.
+_MP4_OPTIONS = [
+    "-vf", "scale=out_color_matrix=bt709:out_range=tv", "-crf", "18",
+    "-colorspace", "bt709", "-color_primaries", "bt709", "-color_trc", "bt709",
+    "-movflags", "+faststart", "-f", "mp4",
+]  # fmt: skip
 
 
 def _rgb24_even(image: np.ndarray) -> np.ndarray:
@@ -695,46 +691,79 @@ def _rgb24_even(image: np.ndarray) -> np.ndarray:
     if levels.ndim == 2:
         levels = np.repeat(levels[:, :, None], 3, axis=2)
     height, width = levels.shape[:2]
-    return np.pad(levels, ((0, height % 2), (0, width % 2), (0, 0)), mode="edge")
+    return np.ascontiguousarray(np.pad(levels, ((0, height % 2), (0, width % 2), (0, 0)), mode="edge"))
 
 
 def _write_mp4(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
-    """Pipe rgb24 frames into ffmpeg (libx264, yuv420p); its error output becomes an InputError."""
-    executable = _ffmpeg_executable()
+    """H.264 video through imageio-ffmpeg's frame writer, checked afterwards: ffmpeg's errors become an InputError.
+
+    imageio-ffmpeg does not look at ffmpeg's exit status, so ffmpeg reports its errors into a log file
+    (its ``FFREPORT`` variable) and the video is read back: it must hold every frame sent.
+    """
+    imageio_ffmpeg = _imageio_ffmpeg()
     first = _rgb24_even(next(frames))
-    command = _ffmpeg_command(executable, first.shape[1], first.shape[0], fps, path)
-    with tempfile.TemporaryFile() as log:
-        process = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=log)
+    height, width = first.shape[:2]
+    with tempfile.TemporaryDirectory(prefix="warp-highlights-ffmpeg-") as folder:
+        log = Path(folder) / "ffmpeg.log"
+        writer = imageio_ffmpeg.write_frames(
+            str(path), (width, height), fps=fps, codec="libx264", pix_fmt_out="yuv420p", quality=None,
+            macro_block_size=1, ffmpeg_log_level="quiet", output_params=_MP4_OPTIONS,
+        )  # fmt: skip
+        sent = 0
         try:
-            code = _feed_ffmpeg(process, itertools.chain([first], map(_rgb24_even, frames)), progress)
+            with _ffmpeg_report(log):
+                writer.send(None)  # starts ffmpeg
+            for sent, levels in enumerate(itertools.chain([first], map(_rgb24_even, frames)), start=1):
+                writer.send(levels)
+                progress(sent)
+        except OSError:
+            pass  # ffmpeg stopped reading; its log says why
         finally:
-            if process.poll() is None:
-                process.kill()
-                process.wait()
-            with contextlib.suppress(OSError):
-                process.stdin.close()
-        if code != 0:
-            log.seek(0)
-            raise InputError(f"ffmpeg could not write the MP4 video ({_ffmpeg_reason(log.read(), code)})")
+            writer.close()  # waits for ffmpeg to finish the file
+        failure = _ffmpeg_errors(log)
+    if not failure:
+        failure = _mp4_frame_shortfall(imageio_ffmpeg, path, sent)
+    if failure:
+        raise InputError(f"ffmpeg could not write the MP4 video ({failure})")
 
 
-def _feed_ffmpeg(process: subprocess.Popen, frames: Iterator[np.ndarray], progress) -> int:
-    """Write every frame to ffmpeg's input, close it, return ffmpeg's exit status."""
-    for done, levels in enumerate(frames, start=1):
-        try:
-            process.stdin.write(levels.tobytes())
-        except BrokenPipeError:
-            break  # ffmpeg stopped; its log says why
-        progress(done)
-    with contextlib.suppress(BrokenPipeError):
-        process.stdin.close()
-    return process.wait()
+@contextlib.contextmanager
+def _ffmpeg_report(log: Path):
+    """While ffmpeg starts: its errors go to ``log`` (the ``FFREPORT`` variable, ``:`` and ``\\`` escaped)."""
+    escaped = str(log).replace("\\", "\\\\").replace(":", "\\:")
+    before = os.environ.get("FFREPORT")
+    os.environ["FFREPORT"] = f"file={escaped}:level=16"  # 16: errors only
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("FFREPORT", None)
+        else:
+            os.environ["FFREPORT"] = before
 
 
-def _ffmpeg_reason(log: bytes, code: int) -> str:
-    """The first and last lines of ffmpeg's error output (cause and summary), without ``[codec @ 0x..]``."""
-    lines = [re.sub(r"^\[[^\]]*\]\s*", "", line).strip() for line in log.decode("utf-8", "replace").splitlines()]
+def _ffmpeg_errors(log: Path) -> str:
+    """The first and last error lines of an ffmpeg report (cause and summary), without ``[codec @ 0x..]``; "" when none."""
+    try:
+        text = log.read_text("utf-8", "replace")
+    except FileNotFoundError:
+        return ""
+    lines = text.splitlines()
+    if lines and lines[0].startswith("Command line:"):
+        lines = lines[2:]  # the header and ffmpeg's command line
+    lines = [re.sub(r"^\[[^\]]*\]\s*", "", line).strip() for line in lines]
     lines = [line for line in lines if line]
     if not lines:
-        return f"exit status {code}"
+        return ""
     return lines[0] if len(lines) == 1 else f"{lines[0]}; {lines[-1]}"
+
+
+def _mp4_frame_shortfall(imageio_ffmpeg, path: Path, sent: int) -> str:
+    """"" when the video at ``path`` holds ``sent`` frames, else what is wrong with it."""
+    try:
+        held, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except (RuntimeError, OSError):
+        return "the file it wrote cannot be read back"
+    if held != sent:
+        return f"the file it wrote holds {held} of {sent} frames"
+    return ""
