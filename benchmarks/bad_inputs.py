@@ -510,7 +510,7 @@ def rgb_channels(image: np.ndarray) -> dict:
 
 
 def png16_bytes(image: np.ndarray) -> bytes:
-    """A 16-bit colour PNG (the package reads these through VTK's libpng), written with the package."""
+    """A 16-bit colour PNG (the package reads these through OpenImageIO), written with the package."""
     from warp_highlights.io.images import write_image
 
     with tempfile.TemporaryDirectory() as scratch:

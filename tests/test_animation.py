@@ -724,3 +724,38 @@ def test_gif_of_an_orbit_is_a_quarter_of_the_issue_19_size(small_field, tmp_path
         assert im.n_frames == 96 and im.size == (240, 135)
     per_pixel = out.stat().st_size / (96 * 240 * 135)
     assert per_pixel <= 26e6 / (96 * 480 * 270) / 4, per_pixel  # this field: 0.27
+
+
+@pytest.mark.parametrize(("kind", "size", "expected"), [
+    ("gif", (1920, 1080), (480, 270)), ("webp", (1080, 1920), (270, 480)), ("apng", (567, 534), (480, 452)),
+    ("gif", (240, 135), (240, 135)), ("gif", (480, 3), (480, 3)), ("gif", (4000, 3), (1333, 1)),
+    ("mp4", (3840, 2160), (1920, 1080)), ("mp4", (1920, 1080), (1920, 1080)), ("frames", (3840, 2160), (3840, 2160)),
+])
+def test_default_animation_size(kind, size, expected):
+    width, height = animation_module.default_animation_size(kind, *size)
+    assert (width, height) == expected
+    assert abs(width - size[0] * height / size[1]) <= 1.0, "the relighter's aspect-ratio rule"
+
+
+def test_animate_default_size_shrinks_web_animations_only(small_field, tmp_path, monkeypatch, capsys):
+    """Without --size, a GIF is shrunk to the default longer side; a frames folder keeps the field's size."""
+    from PIL import Image
+
+    from warp_highlights.cli import main
+    from warp_highlights.io.fieldfile import load_field
+
+    field = load_field(small_field)
+    longest = max(field.width, field.height) // 2
+    monkeypatch.setitem(animation_module.DEFAULT_LONGER_SIDE, "gif", longest)
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "a.gif"), "--device", "cpu"]) == 0
+    expected = animation_module.default_animation_size("gif", field.width, field.height)
+    assert max(expected) == longest
+    with Image.open(tmp_path / "a.gif") as im:
+        assert im.size == expected
+    assert f"animating at {expected[0]}x{expected[1]}" in capsys.readouterr().err, "the shrink is said"
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "frames"), "--device", "cpu", "-q"]) == 0
+    assert read_image(tmp_path / "frames" / "frame_0000.png").shape[:2] == (field.height, field.width)
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "--size", f"{field.width}x{field.height}",
+                 "-o", str(tmp_path / "b.gif"), "--device", "cpu", "-q"]) == 0
+    with Image.open(tmp_path / "b.gif") as im:
+        assert im.size == (field.width, field.height), "--size wins over the default"

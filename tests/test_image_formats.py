@@ -96,6 +96,24 @@ def test_icc_profiles_are_converted_or_named_once(tmp_path, caplog, monkeypatch)
     assert image_encoding(wide)["profile"] == "Test RGB wide" and image_encoding(srgb)["profile"] == "sRGB built-in"
 
 
+def test_float_tiff_profile_is_named_and_its_values_kept(tmp_path, caplog, monkeypatch):
+    """ImageCms converts 8-bit codes only: a float TIFF's profile is named, its values stay as stored."""
+    import OpenImageIO as oiio
+
+    values = np.random.default_rng(5).random((5, 7, 3)).astype(np.float32) * 2.0
+    spec = oiio.ImageSpec(7, 5, 3, "float")
+    spec.attribute("ICCProfile", oiio.TypeDesc("uint8[%d]" % len(_profile("Test RGB wide"))), np.frombuffer(_profile("Test RGB wide"), np.uint8))
+    output = oiio.ImageOutput.create(str(tmp_path / "f.tif"))
+    assert output.open(str(tmp_path / "f.tif"), spec) and output.write_image(values) and output.close()
+    monkeypatch.setattr(images_module, "_REPORTED_PROFILES", set())
+    with caplog.at_level(logging.WARNING, logger="warp_highlights"):
+        np.testing.assert_array_equal(read_image(tmp_path / "f.tif"), values)
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == 1, messages
+    assert "'Test RGB wide'" in messages[0], messages[0]
+    assert "read as linear sRGB" in messages[0], messages[0]
+
+
 @pytest.mark.parametrize("suffix", [".tif", ".png"])
 def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, capsys):
     """Values only a 16-bit file holds come back exactly from the dataset; the field records the

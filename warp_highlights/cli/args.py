@@ -54,8 +54,8 @@ class Command:
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """Add -q/--quiet and -v/--verbose, which every command takes."""
-    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
-    parser.add_argument("-v", "--verbose", action="store_true", help="let Warp report kernel compilation")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars; warnings and errors only")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug messages too, and Warp's own (its start, kernel compilation)")
 
 
 def in_range(kind: type, low: float, high: float, *, unit: str = ""):

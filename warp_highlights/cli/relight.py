@@ -54,7 +54,8 @@ def _animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
     parser.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
     parser.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
-    _add_relight_options(parser)
+    _add_relight_options(parser, size_help="output WIDTHxHEIGHT of each panel, with the field's aspect ratio (default: the field's "
+                         "size, at most 480 px on its longer side for GIF, WebP and APNG and 1920 px for MP4)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing output")
 
 
@@ -78,9 +79,9 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     add_pixel_limit_option(parser)
 
 
-def _add_relight_options(parser: argparse.ArgumentParser) -> None:
+def _add_relight_options(parser: argparse.ArgumentParser, *, size_help: str = "output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)") -> None:
     parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular", help="interpolation (default circular; alpha needs --dataset)")
-    parser.add_argument("--size", type=size_option("output size"), help="output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--size", type=size_option("output size"), help=size_help)
     parser.add_argument("--diffuse", choices=["auto", "residual", "lambert", "images", "none"], default="auto",
                         help="what the moved highlights are added to: residual transfer (the captured images minus their own highlights, "
                         "blended), the Lambertian model, the blended diffuse images, or nothing (default auto: the first the field stores)")
@@ -234,13 +235,18 @@ def _parse_methods(text: str) -> tuple[str, ...]:
 
 def _run_animate(args) -> int:
     from ..io.fieldfile import load_field
-    from ..view.animation import check_animation_output, parse_light_path, write_animation
+    from ..view.animation import check_animation_output, default_animation_size, parse_light_path, write_animation
 
     frames_format = "exr" if args.exr else "png"
-    check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
+    kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
     field = load_field(args.field)
+    if args.size is None:
+        args.size = default_animation_size(kind, field.width, field.height)
+        if args.size != (field.width, field.height):
+            logging.getLogger(__name__).info(f"animating at {args.size[0]}x{args.size[1]}, the {kind.upper()} default "
+                                             f"(the field is {field.width}x{field.height}; --size sets another)")
     relighter = _make_relighter(args, field, methods=methods)
     exposure = field.exposure
 
@@ -397,7 +403,7 @@ COMMANDS = (
     Command("relight", _relight_arguments, _run_relight, help="render a fitted field for one or more light directions",
             description="Relight a highlight field: locate each light direction in the triangulation, move the Gaussians "
             "along their paths, rasterize the highlights and add them to the blended residual (the captured images minus their own highlights)."),
-    Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, MP4 or a folder of frames",
+    Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, WebP, APNG, MP4 or a folder of frames",
             description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great circle "
             "between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that elevation), "
             "list:FILE (a .lp or x y z text file, visited in order)."),

@@ -631,15 +631,16 @@ def _read_with_oiio(path: Path) -> np.ndarray:
     pixels = pixels[:, :, keep[:3]] if len(keep) >= 3 else pixels[:, :, keep[0]]
     pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)  # as ``_header`` counts it
     icc = spec.getattribute("ICCProfile")
-    if icc is not None and len(icc) and pixels.ndim == 3 and kind != "float":
+    if icc is not None and len(icc) and pixels.ndim == 3:
         pixels = _to_srgb(path, pixels, bytes(np.asarray(icc, dtype=np.uint8)))
     return np.ascontiguousarray(pixels, dtype=np.float32 if kind == "float" else None)
 
 
 def _to_srgb(path: Path, levels: np.ndarray, icc: bytes) -> np.ndarray:
     """8-bit RGB codes in the colour space of the ICC profile ``icc`` -> sRGB codes (Pillow's
-    ImageCms); 16-bit codes, which ImageCms cannot convert, are kept. A profile other than sRGB is
-    named once per process in the ``warp_highlights`` log."""
+    ImageCms); 16-bit codes and float values, which ImageCms cannot convert, are kept (floats as
+    linear values with sRGB's primaries). A profile other than sRGB is named once per process in the
+    ``warp_highlights`` log."""
     from PIL import Image, ImageCms
 
     name, source = _icc_profile(icc)
@@ -653,7 +654,8 @@ def _to_srgb(path: Path, levels: np.ndarray, icc: bytes) -> np.ndarray:
             converted = False
     if name not in _REPORTED_PROFILES:
         _REPORTED_PROFILES.add(name)
-        done = "converted to sRGB" if converted else "read as sRGB (convert the capture to sRGB for exact colours)"
+        done = ("converted to sRGB" if converted else "read as linear sRGB (convert the capture to sRGB for exact colours)"
+                if levels.dtype.kind == "f" else "read as sRGB (convert the capture to sRGB for exact colours)")
         logging.getLogger(__name__).warning(f"{path}: colour profile '{name}', not sRGB: {done}")
     return levels
 

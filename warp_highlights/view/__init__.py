@@ -10,7 +10,7 @@ Imports the model, io and relight (to draw relit images), never fit or the comma
 - ``great_circle``: light directions along the shorter great-circle arc between two directions.
 - ``through_directions``: light directions along great-circle arcs through a list of directions.
 - ``parse_light_path``: a light path from its command-line form (``orbit:35``, ``great:...``, a file).
-- ``write_animation``: frames -> GIF, MP4 or a folder of PNG/EXR frames, atomically.
+- ``write_animation``: frames -> GIF, WebP, APNG, MP4 or a folder of PNG/EXR frames, atomically.
 - ``contact_sheet``: full, specular and diffuse images of some lights of a dataset, side by side.
 - ``save_contact_sheet``: the same written to a PNG file, atomically.
 """

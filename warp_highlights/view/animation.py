@@ -64,6 +64,13 @@ _FRAME_DIGITS = 4  # digits of frame numbers in file names, more when there are 
 _FRAME_NAME = re.compile(r"^frame_\d+\.(png|exr)$")
 _FRAMES_FORMATS = ("png", "exr")
 
+DEFAULT_LONGER_SIDE = {"gif": 480, "webp": 480, "apng": 480, "mp4": 1920, "frames": None}
+"""Longer side (pixels) of each panel of an animation whose size is not given; the field's size when it
+is smaller, never grown. GIF, WebP and APNG go into web pages, slides and messages, where inline
+animations are commonly at most 480 px wide, and their files grow with the pixels (a 96-frame GIF of a
+1920x1080 field is tens of MB); MP4 at most 1080p, what players and sites take; frames folders (for
+further work) keep the field's size (None)."""
+
 
 # --- light paths ----------------------------------------------------------------------------------
 
@@ -213,6 +220,21 @@ def animation_kind(path) -> str:
     if suffix == "" or path.is_dir():
         return "frames"
     raise InputError(f"{path}: cannot write an animation as {path.suffix!r}; supported: {ANIMATION_OUTPUTS}")
+
+
+def default_animation_size(kind: str, width: int, height: int) -> tuple[int, int]:
+    """(width, height) of an animation of ``kind`` (see :func:`animation_kind`) relit from a field of
+    ``width`` x ``height`` when no size is given: shrunk to :data:`DEFAULT_LONGER_SIDE` on its longer side,
+    the aspect ratio kept to the pixel (so a field thinner than 1 : that side gets a one-pixel short side
+    and a longer long one); the field's own size when it is no larger."""
+    longest = DEFAULT_LONGER_SIDE[kind]
+    if longest is None or max(width, height) <= longest:
+        return width, height
+    if width >= height:  # the shorter side rounded first, the longer one from it: the ratio holds to the pixel
+        shorter = max(1, round(height * longest / width))
+        return round(width * shorter / height), shorter
+    shorter = max(1, round(width * longest / height))
+    return shorter, round(height * shorter / width)
 
 
 def check_animation_output(path, *, overwrite: bool = False, frames_format: str = "png") -> str:
