@@ -712,9 +712,10 @@ def test_writers_stream(tmp_path, name):
     assert max(lag) <= (animation_module._GIF_PALETTE_FRAMES if name.endswith(".gif") else 1)
 
 
-def test_gif_of_an_orbit_is_a_quarter_of_the_issue_19_size(small_field, tmp_path):
-    """The README's 96-frame orbit was 26 MB at 480x270 when issue 19 was filed (2.09 bytes a pixel and
-    frame); now at most a quarter of that (0.52; the demo field's orbit: 0.20 at 240x135)."""
+def test_gif_of_an_orbit_stays_compact(small_field, tmp_path):
+    """Bytes per pixel and frame of a 96-frame orbit GIF, a guard on the palette and encoder: 0.27 for
+    this field at 240x135 (the demo field's orbit 0.20, the 250-light 480x270 donut's 0.12, at 1920x1080
+    0.068), bounded at 0.35."""
     from warp_highlights.cli import main
 
     out = tmp_path / "orbit.gif"
@@ -723,7 +724,27 @@ def test_gif_of_an_orbit_is_a_quarter_of_the_issue_19_size(small_field, tmp_path
     with Image.open(out) as im:
         assert im.n_frames == 96 and im.size == (240, 135)
     per_pixel = out.stat().st_size / (96 * 240 * 135)
-    assert per_pixel <= 26e6 / (96 * 480 * 270) / 4, per_pixel  # this field: 0.27
+    assert per_pixel <= 0.35, per_pixel
+
+
+def test_default_size_gif_is_at_most_a_quarter_at_equal_frames(small_field, tmp_path, monkeypatch):
+    """A field four times the default longer side (as a 1920x1080 field is to 480): its 96-frame orbit
+    GIF without --size is at most a quarter of the one at the field's size (13.5 MB -> 1.5 MB for the
+    1920x1080 / 480x270 donut)."""
+    from warp_highlights.cli import main
+    from warp_highlights.io.fieldfile import load_field
+
+    field = load_field(small_field)
+    monkeypatch.setitem(animation_module.DEFAULT_LONGER_SIDE, "gif", max(field.width, field.height) // 4)
+    common = ["--path", "orbit:35", "--frames", "96", "--device", "cpu", "-q"]
+    assert main(["animate", str(small_field), *common, "--size", f"{field.width}x{field.height}", "-o", str(tmp_path / "full.gif")]) == 0
+    assert main(["animate", str(small_field), *common, "-o", str(tmp_path / "default.gif")]) == 0
+    with Image.open(tmp_path / "default.gif") as im:
+        assert im.n_frames == 96, "equal frames"
+        assert im.size == animation_module.default_animation_size("gif", field.width, field.height)
+        assert max(im.size) <= max(field.width, field.height) // 4
+    ratio = (tmp_path / "default.gif").stat().st_size / (tmp_path / "full.gif").stat().st_size
+    assert ratio <= 0.25, ratio
 
 
 @pytest.mark.parametrize(("kind", "size", "expected"), [
@@ -734,6 +755,9 @@ def test_gif_of_an_orbit_is_a_quarter_of_the_issue_19_size(small_field, tmp_path
 def test_default_animation_size(kind, size, expected):
     width, height = animation_module.default_animation_size(kind, *size)
     assert (width, height) == expected
+    longest = animation_module.DEFAULT_LONGER_SIDE[kind]
+    if longest is not None and min(size) * longest >= max(size):  # not thinner than 1 : longest
+        assert max(width, height) <= longest
     assert abs(width - size[0] * height / size[1]) <= 1.0, "the relighter's aspect-ratio rule"
 
 

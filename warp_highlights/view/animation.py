@@ -230,10 +230,11 @@ def default_animation_size(kind: str, width: int, height: int) -> tuple[int, int
     longest = DEFAULT_LONGER_SIDE[kind]
     if longest is None or max(width, height) <= longest:
         return width, height
-    if width >= height:  # the shorter side rounded first, the longer one from it: the ratio holds to the pixel
-        shorter = max(1, round(height * longest / width))
+    # the shorter side rounded down first, the longer one from it: at most ``longest``, the ratio kept to half a pixel
+    if width >= height:
+        shorter = max(1, math.floor(height * longest / width))
         return round(width * shorter / height), shorter
-    shorter = max(1, round(width * longest / height))
+    shorter = max(1, math.floor(width * longest / height))
     return shorter, round(height * shorter / width)
 
 
