@@ -720,8 +720,9 @@ def _rgb24_even(image: np.ndarray) -> np.ndarray:
 def _write_mp4(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
     """H.264 video through imageio-ffmpeg's frame writer, checked afterwards: ffmpeg's errors become an InputError.
 
-    imageio-ffmpeg does not look at ffmpeg's exit status, so ffmpeg reports its errors into a log file
-    (its ``FFREPORT`` variable) and the video is read back: it must hold every frame sent.
+    imageio-ffmpeg does not look at ffmpeg's exit status, so the video is read back: it must hold every
+    frame sent. ffmpeg writes its errors into a log file (its ``FFREPORT`` variable), not onto the
+    terminal; the error line quotes them.
     """
     imageio_ffmpeg = _imageio_ffmpeg()
     first = _rgb24_even(next(frames))
@@ -732,7 +733,7 @@ def _write_mp4(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
             str(path), (width, height), fps=fps, codec="libx264", pix_fmt_out="yuv420p", quality=None,
             macro_block_size=1, ffmpeg_log_level="quiet", output_params=_MP4_OPTIONS,
         )  # fmt: skip
-        sent = 0
+        sent, stopped = 0, False
         try:
             with _ffmpeg_report(log):
                 writer.send(None)  # starts ffmpeg
@@ -740,14 +741,12 @@ def _write_mp4(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
                 writer.send(levels)
                 progress(sent)
         except OSError:
-            pass  # ffmpeg stopped reading; its log says why
+            stopped = True  # ffmpeg stopped reading; its log says why
         finally:
             writer.close()  # waits for ffmpeg to finish the file
-        failure = _ffmpeg_errors(log)
-    if not failure:
-        failure = _mp4_frame_shortfall(imageio_ffmpeg, path, sent)
-    if failure:
-        raise InputError(f"ffmpeg could not write the MP4 video ({failure})")
+        failure = "it stopped reading frames" if stopped else _mp4_frame_shortfall(imageio_ffmpeg, path, sent)
+        if failure:  # the cause, where ffmpeg logged one
+            raise InputError(f"ffmpeg could not write the MP4 video ({_ffmpeg_errors(log) or failure})")
 
 
 @contextlib.contextmanager
@@ -772,8 +771,9 @@ def _ffmpeg_errors(log: Path) -> str:
     except FileNotFoundError:
         return ""
     lines = text.splitlines()
-    if lines and lines[0].startswith("Command line:"):
-        lines = lines[2:]  # the header and ffmpeg's command line
+    header = next((i for i, line in enumerate(lines) if line.startswith("Command line:")), None)
+    if header is not None:
+        lines = lines[header + 2 :]  # the report's header and ffmpeg's command line
     lines = [re.sub(r"^\[[^\]]*\]\s*", "", line).strip() for line in lines]
     lines = [line for line in lines if line]
     if not lines:
