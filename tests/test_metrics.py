@@ -80,3 +80,78 @@ def test_8bit_psnr_of_masked_images_keeps_their_mask():
     a = np.ma.masked_array(np.array([[0, 10]], np.uint8), mask=[[False, True]])
     b = np.ma.masked_array(np.array([[0, 250]], np.uint8), mask=[[False, True]])
     assert psnr_8bit(a, b) == 100.0  # the one unmasked value agrees
+
+
+def _stacks(count: int, seed: int = 4):
+    rng = np.random.default_rng(seed)
+    truth = rng.random((count, 20, 24, 3), dtype=np.float32)
+    return np.clip(truth + 0.05 * rng.standard_normal(truth.shape, dtype=np.float32), 0.0, None), truth
+
+
+def test_psnr_excluding_black_image_by_image_is_the_stack_formula():
+    """Scored one image at a time in threads: the same values as the whole stack in float64, NaN where both are black."""
+    images, truth = _stacks(9)
+    images[2] = truth[2] = 0.0
+    images[4] = truth[4]
+    a = np.clip(images.astype(np.float64), 0, 1).reshape(9, -1)
+    b = np.clip(truth.astype(np.float64), 0, 1).reshape(9, -1)
+    with np.errstate(divide="ignore"):
+        want = np.minimum(10 * np.log10(1 / ((a - b) ** 2).mean(axis=1)), 100.0)
+    got = psnr_excluding_black(images, truth)
+    assert np.isnan(got[2]) and got[4] == 100.0
+    np.testing.assert_array_equal(np.delete(got, 2), np.delete(want, 2))
+    assert psnr_excluding_black(images[:0], truth[:0]).shape == (0,)
+    with pytest.raises(ValueError, match="shape"):
+        psnr_excluding_black(images, truth[:3])
+
+
+def test_scores_in_worker_processes_equal_the_threads(caplog):
+    """A stack past PROCESSES_FROM inside scoring_processes: scored by two spawned processes, the same
+    values as in threads; the processes are gone after the scope."""
+    import logging
+    import multiprocessing
+
+    from warp_highlights.io import metrics
+    from warp_highlights.model.threads import core_count
+
+    if core_count() < 2:
+        pytest.skip("one core: scoring_processes keeps to threads")
+    images, truth = _stacks(metrics.PROCESSES_FROM + 3)
+    threads = srgb_scores(images, truth)
+    with caplog.at_level(logging.DEBUG, logger="warp_highlights"):
+        with metrics.scoring_processes(2):
+            with metrics.scoring_processes(4):  # nested: the outer scope's processes
+                inside = srgb_scores(images, truth)
+            again = srgb_scores(images, truth)
+            small = srgb_scores(images[:3], truth[:3])  # below PROCESSES_FROM: threads
+    messages = [r.getMessage() for r in caplog.records]
+    assert "scoring in 2 worker processes" in messages, messages
+    assert not any("unavailable" in m for m in messages), messages
+    for got in (inside, again):
+        np.testing.assert_array_equal(got[0], threads[0])
+        np.testing.assert_array_equal(got[1], threads[1])
+    np.testing.assert_array_equal(small[1], threads[1][:3])
+    assert metrics._SCORING is None
+    assert multiprocessing.active_children() == [], "worker processes left running"
+
+
+def test_scores_fall_back_to_threads_without_processes(monkeypatch, caplog):
+    """Where processes cannot start (a daemonic process, a main module spawn cannot import): the same scores in threads."""
+    import concurrent.futures
+    import logging
+
+    from warp_highlights.io import metrics
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("daemonic processes are not allowed to have children")
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", refuse)
+    images, truth = _stacks(metrics.PROCESSES_FROM)
+    with caplog.at_level(logging.DEBUG, logger="warp_highlights"):
+        with metrics.scoring_processes(2):
+            first = srgb_scores(images, truth)
+            second = srgb_scores(images, truth)
+    assert sum("worker processes unavailable" in r.getMessage() for r in caplog.records) == 1, "said once, then threads"
+    threads = srgb_scores(images, truth)
+    np.testing.assert_array_equal(first[1], threads[1])
+    np.testing.assert_array_equal(second[0], threads[0])

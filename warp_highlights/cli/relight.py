@@ -272,6 +272,7 @@ def _run_animate(args) -> int:
 def _run_evaluate(args) -> int:
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import load_field
+    from ..io.metrics import scoring_processes
     from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)
@@ -295,8 +296,9 @@ def _run_evaluate(args) -> int:
                                     max_pixels=pixel_limit(args))
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
-    evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
-                                barycentric_steps=args.steps, baselines=baselines)  # its steps reach stderr through the logger
+    with scoring_processes():  # every method's scores in the same few worker processes
+        evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
+                                    barycentric_steps=args.steps, baselines=baselines)  # its steps reach stderr through the logger
     report = evaluation.to_dict()
     report["field"] = str(args.field)
     report["dataset"] = str(args.dataset)
