@@ -381,3 +381,31 @@ def test_max_side_gives_each_capture_a_size_fit_accepts(width, height, most, mon
     new_width, new_height = (int(v) for v in arguments[1].split("x"))
     assert working_size(width, height, (new_width, new_height)) == (new_width, new_height)
     assert max(new_width, new_height) <= most and max(new_width, new_height) >= most - 2
+
+
+def _command_environment(environment: dict) -> tuple[str | None, dict]:
+    """On a worker: its own MALLOC_TRIM_THRESHOLD_, and the environment its commands would get."""
+    from warp_highlights.collection.job import _Runner, _Steps
+
+    runner = _Runner(device=None, visible_gpu="0", cores=None, steps=_Steps(), linear=False, max_megapixels=None, environment=environment)
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_"), runner.env
+
+
+def test_commands_get_the_launching_environment_back_from_dask(monkeypatch):
+    """Dask's nanny gives its workers MALLOC_TRIM_THRESHOLD_=65536 and one BLAS thread (an evaluate took twice as long
+    under them); each capture's commands get the variables as the collection's own process had them."""
+    from distributed import Client, LocalCluster
+
+    from warp_highlights.collection.runner import launch_environment
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    environment = launch_environment()
+    assert environment["MALLOC_TRIM_THRESHOLD_"] is None, environment
+    assert environment["OMP_NUM_THREADS"] == "3", environment
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+        worker_trim, env = client.submit(_command_environment, environment, pure=False).result()
+    assert worker_trim == "65536", "the premise: Dask's workers trim malloc at 64 KiB"
+    assert "MALLOC_TRIM_THRESHOLD_" not in env, "the commands must not inherit the worker's trim threshold"
+    assert env["OMP_NUM_THREADS"] == "3"
+    assert env["CUDA_VISIBLE_DEVICES"] == "0"

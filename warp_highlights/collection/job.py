@@ -104,7 +104,7 @@ class _Steps:
 
 def process_capture(capture: Capture, output, options: JobOptions, *, device: str | None = None,
                     visible_gpu: str | None = None, cores: list[int] | None = None, replace: bool = False, fingerprint: str | None = None,
-                    run_id: str = "") -> dict:
+                    run_id: str = "", environment: dict[str, str | None] | None = None) -> dict:
     """Fit, score, export and thumbnail one capture into ``output/<name>``; returns its record (``capture.json``).
 
     Args:
@@ -114,6 +114,8 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
         replace: Replace an existing output folder (a stale or forced capture).
         fingerprint: The capture's files' digest (``captures.fingerprint``), kept in the record; None computes it.
         run_id: The collection run this is part of: ``stop_children(run_id)`` stops its commands.
+        environment: Variables set (None: removed) in the commands' environment over this process's
+            (``runner.launch_environment``: what Dask's nanny changed for its workers, as the user had it).
 
     Raises:
         CaptureFailed: a command failed (its one-line message); nothing is left in ``output``.
@@ -123,7 +125,7 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
     target = Path(output) / capture.name
     steps = _Steps()
     run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear, max_megapixels=options.max_megapixels,
-                  run_id=run_id)
+                  run_id=run_id, environment=environment)
     fit_args = list(options.fit_args) + _size_arguments(capture, options.max_side)
     with atomic_folder(target, kind="collection capture", overwrite=replace) as folder:
         run(folder, "fit", ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *fit_args],
@@ -199,10 +201,16 @@ def stop_children(run_id: str = "") -> None:
 class _Runner:
     """Runs ``python -m warp_highlights ...`` in a folder, as a child that ends with this process."""
 
-    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None, run_id: str = ""):
+    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None, run_id: str = "",
+                 environment: dict[str, str | None] | None = None):
         self.device, self.cores, self.steps, self.run_id = device, cores, steps, run_id
         self.linear, self.max_megapixels = linear, max_megapixels
         self.env = dict(os.environ)
+        for key, value in (environment or {}).items():
+            if value is None:
+                self.env.pop(key, None)
+            else:
+                self.env[key] = value
         if visible_gpu is not None:
             self.env["CUDA_VISIBLE_DEVICES"] = str(visible_gpu)
 
