@@ -203,7 +203,8 @@ def test_render_accepts_a_mesh_file(tmp_path):
 
 
 @pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"], ["collection", "--help"],
-                                       ["fit", "x", "-o", "y.whf", "--size", "big"]])
+                                       ["fit", "x", "-o", "y.whf", "--size", "big"], ["fit"], ["relight", "x.whf", "-o", "a.png"],
+                                       ["evaluate", "x.whf", "d", "--triangle", "foo"], ["evaluate", "x.whf", "d", "--heldout", "h", "--holdout-every", "3"]])
 def test_help_and_usage_errors_do_not_start_warp(arguments):
     """``--help`` and argument errors are answered before Warp, SciPy or pyvista are imported (they cost
     1 s on the 2-core CPU; benchmarks/bench_startup.py times it); importing the package prints nothing."""
@@ -213,6 +214,17 @@ def test_help_and_usage_errors_do_not_start_warp(arguments):
     assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
     quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
     assert quiet.stdout == "" and quiet.stderr == ""
+
+
+@pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"], ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
+                                       ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--exr"]])
+def test_animate_argument_errors_do_not_start_warp(arguments):
+    """animate's path and output are checked by its own parsers (which read light files through SciPy) before Warp is imported."""
+    probe = ("import sys; from warp_highlights.cli import main; status = main(sys.argv[1:]); "
+             "print('HEAVY', [m for m in ('warp', 'pyvista', 'distributed') if m in sys.modules], status)")
+    run = subprocess.run([sys.executable, "-c", probe, *arguments], capture_output=True, text=True, timeout=120)
+    assert run.stdout.splitlines()[-1] == "HEAVY [] 2", run.stdout + run.stderr
+    assert run.stderr.count("\n") == 1 and "animate: error:" in run.stderr, run.stderr
 
 
 def test_python_messages_show_while_the_readers_quiet_descriptor_2(capfd):

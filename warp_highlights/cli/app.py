@@ -55,6 +55,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help(sys.stdout)
             print("warp-highlights: error: no command given; choose one of those listed above", file=sys.stderr)
             return EXIT_INPUT_ERROR
+        try:
+            if getattr(args, "check", None) is not None:
+                args.check(args)  # the arguments among themselves, before Warp too
+        except InputError as error:
+            print(f"warp-highlights {args.command}: error: {error}", file=sys.stderr)
+            return EXIT_INPUT_ERROR
         with python_stderr_apart() if console else contextlib.nullcontext():
             _quiet_warp(verbose=args.verbose)  # after parsing: --help and usage errors never import Warp
             _init_warp(verbose=args.verbose)

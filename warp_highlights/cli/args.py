@@ -36,6 +36,8 @@ class Command:
         run: Runs the command on the parsed arguments; returns the exit status.
         help: Its line in ``warp-highlights --help``.
         description: The text at the top of its own ``--help``; None for none.
+        check: Checks the parsed arguments among themselves (raising ``InputError``) before Warp is
+            imported, so that a wrong combination is answered at once; None for none.
     """
 
     name: str
@@ -43,13 +45,14 @@ class Command:
     run: Callable[[argparse.Namespace], int]
     help: str
     description: str | None = None
+    check: Callable[[argparse.Namespace], None] | None = None
 
     def add_to(self, commands) -> None:
         """Add the command to ``commands``, what ``ArgumentParser.add_subparsers`` returned."""
         parser = commands.add_parser(self.name, help=self.help, description=self.description)
         self.arguments(parser)
         add_common_options(parser)
-        parser.set_defaults(run=self.run)
+        parser.set_defaults(run=self.run, check=self.check)
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:

@@ -94,6 +94,11 @@ def _thread_lock_for_progress_bars() -> None:
         tqdm.set_lock(threading.RLock())
 
 
+def _check_fit(args) -> None:
+    if not args.list_settings and (args.dataset is None or args.output is None):
+        raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
+
+
 def _run_fit(args) -> int:
     from ..model.config import FitSettings
 
@@ -103,8 +108,6 @@ def _run_fit(args) -> int:
     if args.list_settings:
         _print_settings(settings.to_dict())
         return 0
-    if args.dataset is None or args.output is None:
-        raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
     output = Path(args.output)
     check_output_file(output, overwrite=args.overwrite)
     if args.report is not None:
@@ -253,6 +256,6 @@ COMMANDS = (
             description="Segment every image into diffuse and specular parts, fit a few Gaussians to each specular image, "
             "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths and which of them "
             "move, keep each image's residual (the image minus its own moving highlights, compressed), and "
-            "write everything to one highlight-field file."),
+            "write everything to one highlight-field file.", check=_check_fit),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -139,6 +139,10 @@ def _output_image(relit, index: int, *, specular_only: bool, exposure: float) ->
     return image[..., 0] if image.shape[-1] == 1 else image
 
 
+NO_LIGHT = "give at least one light: --light X,Y,Z (towards the light, e.g. --light 0.3,0.5,1) or --lights FILE.lp"
+HELDOUT_OR_HOLDOUT = "give either --heldout FOLDER or --holdout-every K, not both"
+
+
 def _run_relight(args) -> int:
     from ..io.fieldfile import load_field
     from ..io.images import write_image
@@ -148,7 +152,7 @@ def _run_relight(args) -> int:
     if args.lights is not None:
         directions += list(read_lp(args.lights, check_files=False).directions)
     if not directions:
-        raise InputError("give at least one light: --light X,Y,Z (towards the light, e.g. --light 0.3,0.5,1) or --lights FILE.lp")
+        raise InputError(NO_LIGHT)
     output = Path(args.output)
     several = len(directions) > 1
     if several and output.suffix.lower() in IMAGE_EXTENSIONS:
@@ -269,6 +273,37 @@ def _run_animate(args) -> int:
     return 0
 
 
+def _triangle_choice(text: str) -> int | str:
+    """--triangle: a face index, "auto" or "none"."""
+    triangle = text.strip().lower()
+    if triangle in ("auto", "none"):
+        return triangle
+    try:
+        return int(triangle)
+    except ValueError:
+        raise InputError(f"--triangle '{text}' must be a face index, 'auto' or 'none'") from None
+
+
+def _check_evaluate(args) -> None:
+    _triangle_choice(args.triangle)
+    if args.holdout_every and args.heldout:
+        raise InputError(HELDOUT_OR_HOLDOUT)
+
+
+def _check_relight(args) -> None:
+    if not args.light and args.lights is None:
+        raise InputError(NO_LIGHT)
+
+
+def _check_animate(args) -> None:
+    from ..view.animation import animation_kind, parse_light_path
+
+    kind = animation_kind(args.output)  # an unknown suffix is refused
+    if args.exr and kind != "frames":
+        raise InputError(f"{args.output}: --exr writes a folder of EXR frames; give a folder name")
+    parse_light_path(args.path, args.frames)
+
+
 def _run_evaluate(args) -> int:
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import load_field
@@ -276,12 +311,7 @@ def _run_evaluate(args) -> int:
     from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)
-    triangle = args.triangle.strip().lower()
-    if triangle not in ("auto", "none"):
-        try:
-            triangle = int(triangle)
-        except ValueError:
-            raise InputError(f"--triangle '{args.triangle}' must be a face index, 'auto' or 'none'") from None
+    triangle = _triangle_choice(args.triangle)
     output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
     check_output_folder(output, overwrite=args.overwrite, legacy=evaluation_folder_entry)
     device = check_device(args.device)
@@ -291,7 +321,7 @@ def _run_evaluate(args) -> int:
     baselines = _parse_baselines(args.baselines)
     holdout_every = args.holdout_every or field.report.get("holdout_every")
     if args.holdout_every and args.heldout:
-        raise InputError("give either --heldout FOLDER or --holdout-every K, not both")
+        raise InputError(HELDOUT_OR_HOLDOUT)
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
@@ -404,14 +434,15 @@ def print_evaluation_table(report: dict) -> None:
 COMMANDS = (
     Command("relight", _relight_arguments, _run_relight, help="render a fitted field for one or more light directions",
             description="Relight a highlight field: locate each light direction in the triangulation, move the Gaussians "
-            "along their paths, rasterize the highlights and add them to the blended residual (the captured images minus their own highlights)."),
+            "along their paths, rasterize the highlights and add them to the blended residual (the captured images minus their own highlights).",
+            check=_check_relight),
     Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, WebP, APNG, MP4 or a folder of frames",
             description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great circle "
             "between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that elevation), "
-            "list:FILE (a .lp or x y z text file, visited in order)."),
+            "list:FILE (a .lp or x y z text file, visited in order).", check=_check_animate),
     Command("evaluate", _evaluate_arguments, _run_evaluate, help="score a fitted field against held-out ground truth: JSON report and plots",
             description="Relight the field at every held-out light of the dataset (the triangle centroids for rendered "
             "data) with the circular, straight and alpha-blend methods and compare with the ground truth (PSNR, "
-            "peak 1). Writes report.json and PNG plots into the output folder."),
+            "peak 1). Writes report.json and PNG plots into the output folder.", check=_check_evaluate),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""
