@@ -319,9 +319,7 @@ def _run_evaluate(args) -> int:
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
     baselines = _parse_baselines(args.baselines)
-    holdout_every = args.holdout_every or field.report.get("holdout_every")
-    if args.holdout_every and args.heldout:
-        raise InputError(HELDOUT_OR_HOLDOUT)
+    holdout_every = args.holdout_every or field.report.get("holdout_every")  # with --heldout: refused by _check_evaluate
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
