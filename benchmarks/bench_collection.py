@@ -12,7 +12,7 @@ user runs it: a separate process, a fresh local cluster. A one-capture collectio
 into the shared cache, so no timed run pays for that. Prints a Markdown table (and ``--json`` the figures);
 ``--gpus 0`` times CPU workers instead.
 
-Where one run is longer than a time limit allows (20 captures take about 15 minutes on one GPU and a lent
+Where one run is longer than a time limit allows (20 captures take about 11 minutes on one H200 and a lent
 machine's call 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still rendered
 once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
 sums the parts' ``--json`` files per GPU count into the whole collection's table. Each part is a whole
