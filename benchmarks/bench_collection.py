@@ -12,11 +12,12 @@ user runs it: a separate process, a fresh local cluster. A one-capture collectio
 into the shared cache, so no timed run pays for that. Prints a Markdown table (and ``--json`` the figures);
 ``--gpus 0`` times CPU workers instead.
 
-Where one run is longer than a time limit allows (20 captures take about 11 minutes on one H200 and a lent
-machine's call 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still rendered
-once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
+Where one run is longer than a time limit allows (20 captures take about 11 minutes on one H200, 31 s each,
+and a lent machine's call 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
+rendered once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
 sums the parts' ``--json`` files per GPU count into the whole collection's table. Each part is a whole
 command, so a sum counts one start of the command and its cluster per part (``--json`` records each).
+``--json`` is written again after each GPU count, so a call cut off by its limit keeps the counts it finished.
 """
 
 from __future__ import annotations
@@ -78,7 +79,7 @@ def main() -> None:
         report = combine([json.loads(path.read_text()) for path in args.combine])
         print_table(report["rows"])
         if args.json:
-            args.json.write_text(json.dumps(report, indent=1))
+            write_json(args.json, report)
         return
     extra = (["--baselines", args.baselines] if args.baselines else []) + (["--no-evaluate"] if args.no_evaluate else [])
     start, stop = parse_slice(args.slice, args.captures)
@@ -98,10 +99,18 @@ def main() -> None:
                      "capture_seconds": sorted(r["seconds"]["total"] for r in records), "fit_seconds_total": data["summary"]["fit_seconds"],
                      "mean_psnr_db": data["summary"]["mean_psnr_db"], "parts": 1})
         print(f"--gpus {gpus}: {seconds:.1f} s, {len(records)} of {len(data['captures'])} finished", flush=True)
+        if args.json:  # after each GPU count, so a run cut off by a time limit keeps the counts it finished
+            write_json(args.json, {"captures": args.captures, "lights": args.lights, "size": args.size, "residual": args.residual,
+                                   "collection_options": extra, "slice": [start, stop], "rows": rows})
     print_table(rows)
-    if args.json:
-        args.json.write_text(json.dumps({"captures": args.captures, "lights": args.lights, "size": args.size, "residual": args.residual,
-                                         "collection_options": extra, "slice": [start, stop], "rows": rows}, indent=1))
+
+
+def write_json(path: Path, report: dict) -> None:
+    """``report`` into ``path`` through the project's atomic writer: a reader never sees half a file."""
+    from warp_highlights.io.atomic import atomic_file
+
+    with atomic_file(path) as temporary:
+        temporary.write_text(json.dumps(report, indent=1))
 
 
 def parse_slice(text: str | None, count: int) -> tuple[int, int]:
