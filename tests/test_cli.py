@@ -185,7 +185,7 @@ def test_module_entry_point_reports_errors_without_traceback(tmp_path):
         timeout=300,
     )
     assert result.returncode == 2
-    lines = [line for line in result.stderr.splitlines() if not line.startswith("Warp CUDA warning")]
+    lines = result.stderr.splitlines()  # Warp's CUDA warning too would be a line here (test_cpu_runs_say_nothing_of_warp_or_cuda)
     assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"]
     version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True, timeout=300)
     assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")
@@ -214,6 +214,31 @@ def test_help_and_usage_errors_do_not_start_warp(arguments):
     assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
     quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
     assert quiet.stdout == "" and quiet.stderr == ""
+
+
+@pytest.mark.slow
+def test_cpu_runs_say_nothing_of_warp_or_cuda(tmp_path):
+    """A run on the CPU prints neither Warp's greeting nor, on a machine without an NVIDIA driver, its
+    'CUDA driver not found' warning, which would come before our own lines; ``-v`` brings Warp's lines
+    back. Each command is its own process, as a user runs it."""
+    from warp_highlights.cli.app import _cuda_driver_present
+
+    capture, field = tmp_path / "sphere", tmp_path / "sphere.whf"
+    commands = [["render", "sphere", str(capture), "--lights", "10", "--size", "32x18", "--device", "cpu"],
+                ["fit", str(capture), "-o", str(field), "--device", "cpu", "--residual", "lowrank"],
+                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "relit.png"), "--device", "cpu"],
+                ["maps", str(field), "-o", str(tmp_path / "maps"), "--device", "cpu"],
+                ["info", str(capture)],
+                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "verbose.png"), "--device", "cpu", "-v"]]
+    for command in commands:
+        run = subprocess.run([sys.executable, "-m", "warp_highlights", *command], capture_output=True, text=True, timeout=600)
+        assert run.returncode == 0, run.stderr
+        warp_lines = [line for line in (run.stdout + run.stderr).splitlines() if "CUDA" in line or line.startswith("Warp ")]
+        if "-v" not in command:
+            assert warp_lines == [], f"{command[0]}: {warp_lines}"
+        else:  # Warp says it started (and, without a driver, that it found none)
+            assert any(line.startswith("Warp ") for line in warp_lines), run.stdout + run.stderr
+            assert _cuda_driver_present() or any("CUDA" in line for line in warp_lines), run.stdout + run.stderr
 
 
 @pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"], ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
