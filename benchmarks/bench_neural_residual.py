@@ -6,7 +6,7 @@ residual, the alpha blend, PTM, HSH and RBF: full images at the held-out lights,
 
 Per case the field is fitted with the defaults and scored by ``evaluate_field`` with the baselines.
 Its residual's exact images R_i = I_i - c G_i (the captured images minus their own highlights, before
-compression) are then learned as ``fit --residual learned`` learns them (``fit.residual.learn_residual``:
+compression) are then learned as ``fit --residual learned`` learns them (``residual.learned.learn_residual``:
 a code of 9 numbers per pixel and an MLP of code + light direction, trained for ``--seconds``) and
 relit by the relighter with the field's moving highlights. "learned images" learns the captured
 images themselves (NeuralRTI on its own, no Gaussians). Scores: 8-bit sRGB PSNR and SSIM.
@@ -34,10 +34,13 @@ from bench_quality import BASELINES, SIZES, load_case  # noqa: E402
 from warp_highlights.kernels import neural  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
-from warp_highlights.fit.residual import gaussian_bytes, learn_residual, render_own  # noqa: E402
+from warp_highlights.residual.decode import learned_images  # noqa: E402
+from warp_highlights.residual.inputs import render_own  # noqa: E402
+from warp_highlights.residual.learned import learn_residual  # noqa: E402
+from warp_highlights.residual.rate import gaussian_bytes  # noqa: E402
 from warp_highlights.io.fieldfile import save_field  # noqa: E402
 from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
-from warp_highlights.relight.relighter import Relighter  # noqa: E402
+from warp_highlights.relight.relighter import Relighter
 
 
 def run_case(name: str, scale: str, device, seconds: float, scratch: Path, models: tuple[str, ...] = ("residual", "images")) -> dict:
@@ -64,7 +67,7 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
     for method in ("circular", "alpha", *BASELINES):
         add_row(method, evaluation.full_srgb_psnr[method], evaluation.full_ssim[method], float(sizes[method]))
 
-    # the learned residual exactly as ``fit --residual learned`` makes it (fit.residual.learn_residual), relit by the relighter
+    # the learned residual exactly as ``fit --residual learned`` makes it (residual.learned.learn_residual), relit by the relighter
     images = resize_stack(dataset.images, width, height).astype(np.float32) * np.float32(exposure)
     own = render_own(field.estimated, height, width, raster=field.fit_settings().raster, device=device)
     settings = replace(field.fit_settings().residual, learned=True, learned_seconds=seconds)
@@ -85,7 +88,7 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
             gaussians = gaussian_bytes(field.estimated, field.retargeted) / pixels
         else:  # no Gaussians: the decoded residual is the image (float64 reference decode)
             t = time.perf_counter()
-            stack = np.clip(residual.learned.images(queries) / exposure, 0.0, None).astype(np.float32)
+            stack = np.clip(learned_images(residual.learned, queries) / exposure, 0.0, None).astype(np.float32)
             gaussians = 0.0
         decode_seconds = (time.perf_counter() - t) / len(queries)
         psnr, ssim = srgb_scores(stack, truth)

@@ -3,7 +3,7 @@
     python benchmarks/bench_quality.py                          # CPU sizes: samples reduced, 64-light donut/teapot
     python benchmarks/bench_quality.py --scale gpu --device cuda:0   # full-size samples, 250-light donut/teapot
     python benchmarks/bench_quality.py --cases synth,statue     # a subset
-    python benchmarks/bench_quality.py --set residual.learned=true   # any fit setting, as `fit --set` takes it
+    python benchmarks/bench_quality.py --set residual.kind=learned   # any fit setting, as `fit --set` takes it
 
 Per case: fit a field with the defaults (timed), save it (bytes), then ``evaluate_field`` at the
 held-out lights: the field (circular, and the alpha blend of the same triangulation) next to PTM,

@@ -58,7 +58,7 @@ def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     renderer = Renderer(make_shape("donut"), material=default_material("donut"), settings=RenderSettings(width=240, height=135),
                         rotation=view_rotation("donut"), device=str(device))
     dataset = ReflectanceField(images=renderer.render(lights.directions).full, lights=lights)
-    settings = FitSettings().with_overrides(["residual.learned_on_cuda=false"])  # the low-rank residual: a learned one trains for minutes on CUDA
+    settings = FitSettings().with_overrides(["residual.kind=lowrank"])  # the low-rank residual: a learned one trains for minutes on CUDA
     return fit_field(dataset, settings=settings, device=device, progress=False), dataset
 
 

@@ -1,4 +1,4 @@
-"""The residual's compression alone (``fit.residual.build_residual``): time, peak host memory, ranks and
+"""The residual's compression alone (``residual.build.build_residual``): time, peak host memory, ranks and
 bits, with the normalised stacks held in memory and read from the images block by block.
 
     python benchmarks/bench_residual.py DATASET [--size WxH] [--budget 0.24] [--modes held,streamed]
@@ -34,7 +34,7 @@ def main() -> None:
     import warp as wp
 
     wp.config.quiet = True
-    import warp_highlights.fit.residual as residual_module
+    import warp_highlights.residual.build as residual_module
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.io.memory import PeakMemory, resident_memory
     from warp_highlights.io.resample import resize_stack

@@ -68,7 +68,7 @@ DIFFUSE_DECODED = 4
 _WR = wp.constant(LUMINANCE_WEIGHTS[0])
 _WG = wp.constant(LUMINANCE_WEIGHTS[1])
 _WB = wp.constant(LUMINANCE_WEIGHTS[2])
-_FLOAT16_SAFE = wp.constant(FLOAT16_SAFE)  # decoded images are clipped to this, as ``ResidualModel.decoded_images`` clips them
+_FLOAT16_SAFE = wp.constant(FLOAT16_SAFE)  # decoded images are clipped to this, as ``residual.decode.decoded_images`` clips them
 
 
 @wp.func
@@ -394,7 +394,7 @@ def compose_images(
 @wp.kernel(enable_backward=False)
 def dequantise_basis(codes: wp.array3d(dtype=Any), low: wp.array(dtype=float), step: wp.array(dtype=float), basis: wp.array3d(dtype=float)):
     """basis[i, j, p] = low[j] + codes[j, i, p] step[j]: basis image j's (pixels, planes) codes (uint8 or
-    uint16) as float32 values, pixel-major (``compose_images``' layout), as ``LowRankStack.basis`` decodes them."""
+    uint16) as float32 values, pixel-major (``compose_images``' layout), as ``residual.decode.stack_basis`` decodes them."""
     j, i = wp.tid()
     for p in range(codes.shape[2]):
         basis[i, j, p] = low[j] + float(codes[j, i, p]) * step[j]
@@ -414,7 +414,7 @@ def decode_low_rank(
     """out[l, i, c] = light l's residual image at pixel i and channel c: the low-rank luminance (and chroma
     for colour) from the light's own weights (``compose_images``' ``DIFFUSE_LOWRANK`` without the blend,
     the clamp at 0 or the exposure), times ``residual_scale``, clipped to float16's range: what
-    ``ResidualModel.decoded_images`` gives."""
+    ``residual.decode.decoded_images`` gives."""
     light, i = wp.tid()
     channels = out.shape[2]
     opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis, chroma_weights, residual_scale,

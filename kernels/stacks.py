@@ -1,8 +1,8 @@
-"""The residual's normalised stacks made and held on a Warp device (``fit.residual.build_residual`` on
+"""The residual's normalised stacks made and held on a Warp device (``residual.build.build_residual`` on
 CUDA, where they fit): each band of rows of the images and of their own highlights is uploaded once;
 there the residual R = I - c(x) R(x; G) is split into luminance Y and chroma (B - Y, R - Y) in
 float64, each pixel's sum over the lights of Y^2 comes back for its scale s(x) (finished on the host,
-as ``fit.residual.residual_scale`` does), and the normalised planes N = R / s(x) are kept as float32
+as ``residual.inputs.residual_scale`` does), and the normalised planes N = R / s(x) are kept as float32
 rows (``DeviceRows``: a light's luminance, a light's chroma). The principal images' products then
 read their column blocks there (``NormalisedStacks.luminance.on_device``) instead of uploading the
 stacks from host memory in each of their three passes.

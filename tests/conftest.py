@@ -43,7 +43,11 @@ def device(request) -> str:
 def small_donut(tmp_path_factory) -> Path:
     """A rendered donut dataset small enough for CPU fits in tests: 32 Fibonacci lights, 96 x 54, centroid ground truth."""
     from warp_highlights.model.lights import LightSet
-    from warp_highlights.synth.render import RenderSettings, default_material, render_dataset
+    from warp_highlights.synth.render import (
+        RenderSettings,
+        default_material,
+        render_dataset,
+    )
 
     folder = tmp_path_factory.mktemp("data") / "donut"
     return render_dataset(

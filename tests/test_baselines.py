@@ -16,8 +16,18 @@ from reference import (
 from warp_highlights.kernels import baselines as kernels
 
 from warp_highlights.model.errors import InputError
-from warp_highlights.relight import BASELINE_METHODS, BaselineModel, baseline_basis, choose_rbf_sigma, fit_baseline
-from warp_highlights.relight.baselines import RBF_SIGMA_FACTORS, hsh_basis, rbf_loo_errors
+from warp_highlights.relight import (
+    BASELINE_METHODS,
+    BaselineModel,
+    baseline_basis,
+    choose_rbf_sigma,
+    fit_baseline,
+)
+from warp_highlights.relight.baselines import (
+    RBF_SIGMA_FACTORS,
+    hsh_basis,
+    rbf_loo_errors,
+)
 
 HEIGHT, WIDTH, CHANNELS = 5, 7, 3
 COUNTS = {"ptm": 6, "hsh2": 4, "hsh3": 9}

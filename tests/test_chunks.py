@@ -7,7 +7,12 @@ import time
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.chunks import Cancelled, map_chunks, memory_chunks, problem_chunks
+from warp_highlights.kernels.chunks import (
+    Cancelled,
+    map_chunks,
+    memory_chunks,
+    problem_chunks,
+)
 
 
 def test_chunks_cover_every_problem_once():

@@ -14,7 +14,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from warp_highlights.fit.residual import RateSample, component_bytes
 from warp_highlights.io.codes import (
     STREAM_END,
     DeflatedCodes,
@@ -26,7 +25,10 @@ from warp_highlights.io.codes import (
     stored_shape,
 )
 from warp_highlights.io.fieldfile import load_field, save_field
-from warp_highlights.model.residual import LowRankStack, PrincipalImages, ResidualModel, code_levels
+from warp_highlights.model.residual import ResidualModel, code_levels
+from warp_highlights.residual.principal import PrincipalImages
+from warp_highlights.residual.quantise import quantised_stack
+from warp_highlights.residual.rate import RateSample, component_bytes
 
 RNG = np.random.default_rng(14)
 
@@ -91,7 +93,7 @@ def test_the_sampled_bytes_are_the_whole_images_stored_bytes_at_the_sampled_rows
     assert not sample.exact
     steps = principal.spans[:3] / code_levels(bits) * 7.0
     counted = sample.rows[sample.counted]
-    stack = LowRankStack.quantised(principal, steps, bits=bits)
+    stack = quantised_stack(principal, steps, bits=bits)
     expected = sum(deflated_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes)
     assert sample.bytes(steps, bits=bits) == pytest.approx(expected * 320 / len(counted) + sample.per_image * 3, rel=1e-12)
     assert RateSample(principal, 3, whole=True).bytes(steps, bits=bits) == float(component_bytes(stack).sum())
@@ -117,7 +119,7 @@ def test_the_file_holds_the_stored_codes_in_the_bytes_the_budget_counted(bits, t
 
     field = make_field()
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
-    stack = LowRankStack.quantised(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
+    stack = quantised_stack(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
     path = tmp_path / "f.whf"
     info, raw, stored = _codes_entry(field, stack, path)
     np.testing.assert_array_equal(stored, np.stack([stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]))
@@ -136,17 +138,17 @@ def test_the_rate_search_keeps_the_pieces_the_file_then_stores(whole, tmp_path, 
     from test_field import make_field
 
     import warp_highlights.io.codes as codes_module
-    from warp_highlights.fit.residual import StackPlan, allocate
+    from warp_highlights.residual.rate import StackPlan, allocate
 
     field = make_field() if whole else make_field(size=(160, 240))
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
     assert RateSample(principal, 1).exact == whole
     plan = StackPlan(principal, 1.0, principal.count - 1)
-    budget = 0.5 * float(component_bytes(LowRankStack.quantised(principal, principal.spans / code_levels(16), bits=16)).sum())
+    budget = 0.5 * float(component_bytes(quantised_stack(principal, principal.spans / code_levels(16), bits=16)).sum())
     _, (steps,) = allocate([plan], budget, bits=16)
     assert len(plan.deflated) == len(steps) > 0
-    kept = LowRankStack.quantised(principal, steps, bits=16, deflated=plan.deflated)
-    plain = LowRankStack.quantised(principal, steps, bits=16)
+    kept = quantised_stack(principal, steps, bits=16, deflated=plan.deflated)
+    plain = quantised_stack(principal, steps, bits=16)
     assert plain.deflated is None
     for name in ("codes", "ranges", "weights", "mean_weights"):  # the pieces change nothing of the model
         np.testing.assert_array_equal(getattr(kept, name), getattr(plain, name))
@@ -169,8 +171,8 @@ def test_pieces_kept_for_other_codes_are_not_used(tmp_path):
     coarse, fine = (principal.spans / code_levels(16) * factor for factor in (40.0, 2.0))
     store = DeflatedCodes()
     RateSample(principal, len(coarse), whole=True).bytes(coarse, bits=16, keep=store)
-    stale = LowRankStack.quantised(principal, fine, bits=16, deflated=store)
-    fresh = LowRankStack.quantised(principal, fine, bits=16)
+    stale = quantised_stack(principal, fine, bits=16, deflated=store)
+    fresh = quantised_stack(principal, fine, bits=16)
     _codes_entry(field, stale, tmp_path / "stale.whf")
     _codes_entry(field, fresh, tmp_path / "fresh.whf")
     assert (tmp_path / "stale.whf").read_bytes() == (tmp_path / "fresh.whf").read_bytes()
@@ -201,8 +203,8 @@ def test_the_latest_two_measurements_are_kept():
 def test_codes_rounded_a_chunk_at_a_time_are_those_of_the_whole(monkeypatch, chunk, bits):
     """``quantised_codes`` (float64 a chunk at a time, from any strides) gives ``codes_in_place``'s codes
     on the whole images, ties and clipping included: flat images, and (P, R, W) views planes first."""
-    import warp_highlights.model.residual as residual_module
-    from warp_highlights.model.residual import codes_in_place, quantised_codes
+    import warp_highlights.residual.quantise as residual_module
+    from warp_highlights.residual.quantise import codes_in_place, quantised_codes
 
     monkeypatch.setattr(residual_module, "_QUANTISE_CHUNK", chunk)
     levels = code_levels(bits)
@@ -223,7 +225,7 @@ def test_a_rate_sample_deflates_each_image_once_per_step(monkeypatch, whole):
     """``RateSample.deflated``: each image's bytes at the sample's rows (a subset measures only its
     images, the same bytes, the others 0); an image measured before at the same step and bits is not
     deflated again, another step or bit depth is."""
-    import warp_highlights.fit.residual as residual_module
+    import warp_highlights.residual.rate as residual_module
 
     principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
     steps = principal.spans[:5] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0, 4.0])
@@ -237,7 +239,7 @@ def test_a_rate_sample_deflates_each_image_once_per_step(monkeypatch, whole):
     every = sample.deflated(steps, bits=16)
     assert len(calls) == 5
     np.testing.assert_array_equal(every[[1, 3]], subset[[1, 3]])
-    stack = LowRankStack.quantised(principal, steps, bits=16)
+    stack = quantised_stack(principal, steps, bits=16)
     counted = sample.rows[sample.counted] if not whole else np.arange(320)
     expected = [deflated_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes]
     np.testing.assert_array_equal(every, expected)
@@ -269,7 +271,7 @@ def test_a_kept_measurement_takes_the_pieces_it_holds_and_deflates_nothing_twice
     assert measured == [[2, 3]] and len(store) == 2 and np.array_equal(first[:2], early)
     pieces = dict(store._kept[0])
     assert np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == [] and store._kept[0] == pieces
-    stack = LowRankStack.quantised(principal, steps, bits=16)
+    stack = quantised_stack(principal, steps, bits=16)
     stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
     assert list(pieces.values()) == [deflated_piece(image) for image in stored[2:]]
     np.testing.assert_array_equal(first, [len(deflated_piece(image)) for image in stored])
@@ -278,7 +280,7 @@ def test_a_kept_measurement_takes_the_pieces_it_holds_and_deflates_nothing_twice
 @settings(max_examples=60, deadline=None)
 @given(indices=st.sets(st.integers(0, 60), min_size=1), size=st.integers(1, 7))
 def test_index_runs_cover_every_index_once_in_runs_of_at_most_size(indices, size):
-    from warp_highlights.fit.residual import _index_runs
+    from warp_highlights.residual.rate import _index_runs
 
     ordered = np.array(sorted(indices))
     runs = _index_runs(ordered, size)
@@ -287,7 +289,7 @@ def test_index_runs_cover_every_index_once_in_runs_of_at_most_size(indices, size
 
 
 def test_runs_are_packed_into_groups_of_at_most_size_in_order():
-    from warp_highlights.fit.residual import _index_runs, _packed
+    from warp_highlights.residual.rate import _index_runs, _packed
 
     runs = _index_runs(np.array([0, 8, 16, 17, 18, 19, 30, 40, 41]), 3)
     groups = _packed(runs, 3)
@@ -306,7 +308,7 @@ def test_pieces_written_past_the_zip_writer_make_the_file_it_would_write(bits, t
 
     field = make_field()
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
-    stack = LowRankStack.quantised(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
+    stack = quantised_stack(principal, principal.spans / code_levels(bits) * 3.0, bits=bits)
     known = []
     real_known = fieldfile._known_entry
     monkeypatch.setattr(fieldfile, "_known_entry", lambda entry: known.append(real_known(entry)) or known[-1])

@@ -7,7 +7,12 @@ import pytest
 from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.segmentation import segment
 
-from warp_highlights.fit.estimation import _Estimator, estimate, gaussian_energy_rpx, psnr
+from warp_highlights.fit.estimation import (
+    _Estimator,
+    estimate,
+    gaussian_energy_rpx,
+    psnr,
+)
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.model.config import EstimationSettings
 from warp_highlights.model.errors import InputError

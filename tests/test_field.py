@@ -19,7 +19,13 @@ from hypothesis import strategies as st
 import warp_highlights.io.deflate as deflate_module
 from warp_highlights.io import fieldfile
 from warp_highlights.io.deflate import ParallelDeflate
-from warp_highlights.io.fieldfile import FORMAT_VERSION, MAGIC, field_size_report, load_field, save_field
+from warp_highlights.io.fieldfile import (
+    FORMAT_VERSION,
+    MAGIC,
+    field_size_report,
+    load_field,
+    save_field,
+)
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.field import DiffuseModel, HighlightField
 from warp_highlights.model.gaussians import GaussianParams

@@ -13,6 +13,7 @@ from conftest import FAST_FIT
 from warp_highlights.cli import main
 from warp_highlights.io.fieldfile import load_field, save_field
 from warp_highlights.relight.interpolation import interpolate_sets
+from warp_highlights.residual.decode import light_images
 
 
 def _overrides() -> list[str]:
@@ -133,16 +134,15 @@ def test_list_settings(capsys):
     assert "retarget.c_str=0.1" in text and "estimation.iterations=1000" in text
 
 
-@pytest.mark.parametrize("choice, learned, learned_on_cuda, compressed", [
-    ("auto", False, True, True), ("lowrank", False, False, True), ("learned", True, True, True), ("images", False, True, False)])
-def test_residual_choice_sets_the_residual_settings(choice, learned, learned_on_cuda, compressed, capsys):
-    """``--residual`` stands for settings (``--list-settings`` shows them) and ``--set`` still overrides it."""
+@pytest.mark.parametrize("choice", ["auto", "lowrank", "learned", "images", "none"])
+def test_residual_choice_sets_the_residual_kind(choice, capsys):
+    """``--residual`` stands for the setting ``residual.kind`` (``--list-settings`` shows it); ``--set`` still overrides it."""
     assert main(["fit", "--residual", choice, "--list-settings"]) == 0
-    text = capsys.readouterr().out
-    for name, value in (("learned", learned), ("learned_on_cuda", learned_on_cuda), ("compressed", compressed)):
-        assert f"residual.{name}={value}\n" in text
-    assert main(["fit", "--residual", "lowrank", "--set", "residual.learned_on_cuda=true", "--list-settings"]) == 0
-    assert "residual.learned_on_cuda=True\n" in capsys.readouterr().out
+    assert f"residual.kind={choice}\n" in capsys.readouterr().out
+    assert main(["fit", "--residual", "lowrank", "--set", "residual.kind=images", "--list-settings"]) == 0
+    assert "residual.kind=images\n" in capsys.readouterr().out
+    assert main(["fit", "--set", "residual.kind=lossy", "--list-settings"]) == 2
+    assert "kind must be one of auto, lowrank, learned, images, none" in capsys.readouterr().err
 
 
 def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatch, capsys):
@@ -277,7 +277,7 @@ def test_a_large_capture_fits_its_gaussians_at_a_shrunk_size(small_donut, small_
     assert values["size"] == [96, 54] and values["gaussian_size"] == [48, 27]
     assert values["residual"]["move_check"]["lights"] == 32  # the check ran, at the Gaussians' size
     shrunk, full = load_field(out), load_field(small_field)
-    assert (shrunk.width, shrunk.height) == (96, 54) and shrunk.residual.light_images(np.eye(32)[:1]).shape[1:3] == (54, 96)
+    assert (shrunk.width, shrunk.height) == (96, 54) and light_images(shrunk.residual, np.eye(32)[:1]).shape[1:3] == (54, 96)
     dataset = ReflectanceField.load(small_donut, progress=False)
     scores = [evaluate_field(field, dataset, device="cpu", methods=("circular", "alpha"), barycentric_face=None, example_count=0).specular_psnr
               for field in (shrunk, full)]

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from warp_highlights.kernels.gram import DeviceProducts
 
-from warp_highlights.fit.residual import NormalisedResidual
-from warp_highlights.model.residual import LowRankStack, PrincipalImages
+from warp_highlights.residual.build import NormalisedResidual
+from warp_highlights.residual.principal import PrincipalImages
+from warp_highlights.residual.quantise import quantised_stack
 
 RNG = np.random.default_rng(21)
 
@@ -120,12 +121,12 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
     assert host.products is None and there.products is products
     _same_images(host, there, 8)
     steps = host.spans[:6] / 65535 * 40.0
-    a = LowRankStack.quantised(host, steps, bits=16)
-    b = LowRankStack.quantised(there, steps, bits=16)
+    a = quantised_stack(host, steps, bits=16)
+    b = quantised_stack(there, steps, bits=16)
     assert np.mean(a.codes == b.codes) > 0.999  # the directions differ by float32 rounding: a code here and there
     np.testing.assert_allclose(a.weights, b.weights, rtol=0, atol=1e-4 * np.abs(a.weights).max())
     np.testing.assert_allclose(a.mean_weights, b.mean_weights, rtol=1e-5)
-    same = LowRankStack.quantised(dataclass_with(there, products=None, held=None), steps, bits=16)  # the same codes: the sums differ, and
+    same = quantised_stack(dataclass_with(there, products=None, held=None), steps, bits=16)  # the same codes: the sums differ, and
     np.testing.assert_array_equal(b.codes, same.codes)  # the decoded planes by a rounding where the device fuses their multiply-add
     fused = 1e-6 if products.device.is_cuda else 1e-9  # CUDA may fuse the decoded planes' multiply-add
     np.testing.assert_allclose(b.weights, same.weights, rtol=0, atol=fused * np.abs(same.weights).max())

@@ -15,7 +15,13 @@ import pytest
 from warp_highlights.io import dataset as dataset_module
 from warp_highlights.io import memory as memory_module
 from warp_highlights.io.dataset import ReflectanceField
-from warp_highlights.io.images import DEFAULT_MAX_PIXELS, image_shape, image_size, read_image, write_image
+from warp_highlights.io.images import (
+    DEFAULT_MAX_PIXELS,
+    image_shape,
+    image_size,
+    read_image,
+    write_image,
+)
 from warp_highlights.io.lightfile import read_lp, write_lp
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet

@@ -13,7 +13,13 @@ from PIL import Image, ImageCms, ImageOps
 from warp_highlights.cli import main
 from warp_highlights.io import images as images_module
 from warp_highlights.io.dataset import ReflectanceField
-from warp_highlights.io.images import image_encoding, image_shape, image_size, read_image, write_image
+from warp_highlights.io.images import (
+    image_encoding,
+    image_shape,
+    image_size,
+    read_image,
+    write_image,
+)
 from warp_highlights.io.lightfile import write_lp
 from warp_highlights.model.lights import LightSet
 

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from warp_highlights.io import images as images_module
-from warp_highlights.io.images import image_size, linear_to_srgb, read_image, srgb_to_linear, write_image
+from warp_highlights.io.images import (
+    image_size,
+    linear_to_srgb,
+    read_image,
+    srgb_to_linear,
+    write_image,
+)
 from warp_highlights.model.errors import InputError
 
 pytest.importorskip("OpenEXR")

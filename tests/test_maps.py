@@ -37,7 +37,12 @@ def sphere_fits():
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.model.config import FitSettings
     from warp_highlights.model.lights import LightSet
-    from warp_highlights.synth.render import Renderer, RenderSettings, default_material, view_rotation
+    from warp_highlights.synth.render import (
+        Renderer,
+        RenderSettings,
+        default_material,
+        view_rotation,
+    )
     from warp_highlights.synth.shapes import make_shape
 
     renderer = Renderer(make_shape("sphere"), material=default_material("sphere"), settings=RenderSettings(width=64, height=64),

@@ -12,7 +12,14 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from warp_highlights.io.images import display_rgb8
-from warp_highlights.io.metrics import psnr, psnr_8bit, psnr_excluding_black, srgb_psnr, srgb_scores, ssim_8bit
+from warp_highlights.io.metrics import (
+    psnr,
+    psnr_8bit,
+    psnr_excluding_black,
+    srgb_psnr,
+    srgb_scores,
+    ssim_8bit,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,9 +11,15 @@ import warp as wp
 from conftest import FAST_FIT
 from warp_highlights.kernels import neural
 
-from warp_highlights.fit.residual import learn_residual
 from warp_highlights.model.errors import InputError
-from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, ResidualModel, decode_display, encode_display
+from warp_highlights.model.residual import (
+    NEURAL_LAYER_SHAPES,
+    NeuralResidual,
+    ResidualModel,
+)
+from warp_highlights.residual.decode import learned_images, light_images
+from warp_highlights.residual.learned import learn_residual
+from warp_highlights.residual.opponent import decode_display, encode_display
 
 
 def _problem(seed=0, lights=6, pixels=70):
@@ -141,7 +147,7 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     from warp_highlights.relight.relighter import Relighter
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    settings = FitSettings().with_overrides(FAST_FIT + ["residual.learned=true", "residual.learned_epochs=2"])
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None
@@ -161,11 +167,13 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     relit = Relighter(loaded, device="cpu").relight(directions)
     highlights = Relighter(loaded, device="cpu", diffuse="none").relight(directions).full
-    want = np.clip(loaded.residual.learned.images(directions) + highlights, 0.0, None)
+    want = np.clip(learned_images(loaded.residual.learned, directions) + highlights, 0.0, None)
     assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0
     np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))  # the decoded residual passes through float16
 
-    from warp_highlights.cli import main  # relit on the CPU, the command says once that a lowrank field would be faster here
+    from warp_highlights.cli import (
+        main,  # relit on the CPU, the command says once that a lowrank field would be faster here
+    )
 
     capsys.readouterr()
     assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu"]) == 0
@@ -188,7 +196,7 @@ def test_learned_residual_needs_colour_images():
 
     with pytest.raises(InputError, match="colour"):
         learn_residual(np.zeros((4, 8, 8, 1), np.float32), np.zeros((4, 8, 8), np.float32), None, np.eye(3)[[0, 1, 2, 2]], factor=1.0,
-                       settings=ResidualSettings(learned=True), device="cpu")
+                       settings=ResidualSettings(kind="learned"), device="cpu")
 
 
 def test_learned_residual_checks_its_arrays():
@@ -205,7 +213,7 @@ def test_learned_residual_checks_its_arrays():
     with pytest.raises(InputError, match="exactly one"):
         ResidualModel(images=np.zeros((7, 4, 5, 3), np.float16), learned=good)
     with pytest.raises(InputError, match="per query"):
-        model.light_images(np.eye(7)[:1])
+        light_images(model, np.eye(7)[:1])
 
 
 def test_training_never_reads_the_lights_left_out(device):
@@ -235,9 +243,9 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     """No highlights: the residual is the images, so both models learn the same and score the same
     (the Gaussians kept); moved highlights that add a wrong bright blob lose to the images alone, whose
     model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
-    from warp_highlights.fit.residual import check_learned
     from warp_highlights.io.metrics import srgb_psnr
     from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual.learned import check_learned
 
     rng = np.random.default_rng(7)
     directions = rng.normal(size=(9, 3))
@@ -248,13 +256,13 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     images = (0.6 * np.clip(np.einsum("nc,hwc->nhw", directions, normals), 0, None)[..., None] * [1.0, 0.8, 0.6]).astype(np.float32)
     own = np.zeros(images.shape[:3], np.float32)
     left_out = np.array([2, 6])
-    settings = ResidualSettings(learned=True, learned_epochs=4, learned_seconds=60.0)
+    settings = ResidualSettings(kind="learned", learned_epochs=4, learned_seconds=60.0)
     same = check_learned(images, own, None, directions, left_out, np.zeros((2, 6, 8, 3), np.float32), factor=2.0, settings=settings, device="cpu")
     np.testing.assert_array_equal(same.lights, left_out)
     np.testing.assert_allclose(same.with_gaussians, same.images_alone)
     assert same.keeps_gaussians and same.report()["keeps_gaussians"]
     model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu", used=np.array([0, 1, 3, 4, 5, 7, 8]))
-    want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0) for p, t in zip(model.learned.images(directions[left_out]), images[left_out])]
+    want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0) for p, t in zip(learned_images(model.learned, directions[left_out]), images[left_out])]
     np.testing.assert_allclose(same.images_alone, want, rtol=1e-6)
     blob = np.zeros((2, 6, 8, 3), np.float32)
     blob[:, 2:4, 3:6] = 1.5
@@ -270,19 +278,36 @@ def test_training_time_counts_from_the_first_step():
     assert len(history) == 1
 
 
-def test_default_fit_learns_on_cuda_only():
-    """By default a fit learns its residual on CUDA and compresses it elsewhere; ``learned`` learns anywhere,
-    an uncompressed residual or ``learned_on_cuda=False`` never learns unless ``learned`` says so."""
-    from types import SimpleNamespace
+def test_the_residual_kind_is_resolved_for_the_device_and_the_capture():
+    """"auto" learns on CUDA and compresses elsewhere; a concrete kind stays as it is; a learned residual past the
+    decoder's 2^31 samples is refused where asked for and falls back to low rank where "auto" chose it."""
+    from warp_highlights.residual.kind import CONCRETE_KINDS, resolve_kind
 
-    from warp_highlights.model.config import ResidualSettings
+    assert resolve_kind("auto", "cpu") == "lowrank"
+    for kind in CONCRETE_KINDS:
+        assert resolve_kind(kind, "cpu") == kind
+    if wp.is_cuda_available():
+        assert resolve_kind("auto", "cuda:0") == "learned"
+        assert resolve_kind("auto", "cuda:0", light_count=1 << 16, size=(1 << 8, 1 << 8)) == "lowrank"
+    assert resolve_kind("learned", "cpu", light_count=8, size=(4, 4)) == "learned"
+    with pytest.raises(InputError, match=r"65536 lights of 256x256 pass .* use --residual lowrank"):
+        resolve_kind("learned", "cpu", light_count=1 << 16, size=(1 << 8, 1 << 8))
+    with pytest.raises(InputError, match="residual kind must be one of"):
+        resolve_kind("compressed", "cpu")
 
-    cuda, cpu = SimpleNamespace(is_cuda=True), SimpleNamespace(is_cuda=False)
-    default = ResidualSettings()
-    assert default.learns_on(cuda) and not default.learns_on(cpu) and not default.learns_on("cpu")
-    assert ResidualSettings(learned=True).learns_on(cpu)
-    assert not ResidualSettings(learned_on_cuda=False).learns_on(cuda)
-    assert not ResidualSettings(compressed=False).learns_on(cuda)
+
+def test_fields_stored_with_the_residual_booleans_read_as_their_kind():
+    """Settings of fields written before ``residual.kind`` (``compressed``, ``learned``, ``learned_on_cuda``) load as the
+    kind each combination stood for."""
+    from warp_highlights.model.config import FitSettings
+
+    cases = [((True, False, True), "auto"), ((True, False, False), "lowrank"), ((True, True, True), "learned"),
+             ((False, False, True), "images"), ((False, True, False), "learned")]
+    for (compressed, learned, on_cuda), kind in cases:
+        values = FitSettings().to_dict()
+        del values["residual"]["kind"]
+        values["residual"].update(compressed=compressed, learned=learned, learned_on_cuda=on_cuda)
+        assert FitSettings.from_dict(values).residual.kind == kind
 
 
 def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donut, monkeypatch):
@@ -302,7 +327,7 @@ def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donu
     assert neural.samples_fit(3, 13) and not neural.samples_fit(4, 10)
     data = ReflectanceField.load(small_donut, progress=False)
     stages = []
-    learned = FitSettings().with_overrides(["residual.learned=true"])
+    learned = FitSettings().with_overrides(["residual.kind=learned"])
     with pytest.raises(InputError, match=r"32 lights of 96x54 pass the learned residual's 2\^31 samples .* use --residual lowrank"):
         fit_field(data, settings=learned, device="cpu", log=stages.append)
     assert stages == []  # refused before the first stage

@@ -15,10 +15,12 @@ import warp_highlights.kernels.rows as rows_module
 from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.kernels.quantise import DeviceBasis
 
-import warp_highlights.fit.residual as residual_module
-from warp_highlights.fit.residual import RateSample, quantised_bytes
+import warp_highlights.residual.rate as residual_module
 from warp_highlights.io.codes import DeflatedCodes, stored_codes
-from warp_highlights.model.residual import LowRankStack, PrincipalImages, code_levels, codes_in_place
+from warp_highlights.model.residual import code_levels
+from warp_highlights.residual.principal import PrincipalImages
+from warp_highlights.residual.quantise import codes_in_place, quantised_stack
+from warp_highlights.residual.rate import RateSample, quantised_bytes
 
 RNG = np.random.default_rng(33)
 
@@ -147,7 +149,7 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
     kept_there, kept_host = DeflatedCodes(), DeflatedCodes()
     assert quantised_bytes(there, steps, bits=bits, keep=kept_there) == quantised_bytes(host, steps, bits=bits, keep=kept_host)
     assert kept_there._kept == kept_host._kept
-    a, b = LowRankStack.quantised(there, steps, bits=bits), LowRankStack.quantised(host, steps, bits=bits)
+    a, b = quantised_stack(there, steps, bits=bits), quantised_stack(host, steps, bits=bits)
     np.testing.assert_array_equal(a.codes, b.codes)
     np.testing.assert_array_equal(a.ranges, b.ranges)
     if wp.get_device(device).is_cuda:  # the decoded planes within a rounding

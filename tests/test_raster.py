@@ -7,7 +7,11 @@ import pytest
 import reference
 import warp as wp
 from gaussian_cases import central_differences, inside_params, random_params
-from warp_highlights.kernels.raster import LAUNCH_PIXELS, Rasterizer, problems_per_launch
+from warp_highlights.kernels.raster import (
+    LAUNCH_PIXELS,
+    Rasterizer,
+    problems_per_launch,
+)
 
 from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError

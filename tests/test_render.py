@@ -10,7 +10,13 @@ import pytest
 
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.model.lights import LightSet
-from warp_highlights.synth.render import Material, Renderer, RenderSettings, render_dataset, view_rotation
+from warp_highlights.synth.render import (
+    Material,
+    Renderer,
+    RenderSettings,
+    render_dataset,
+    view_rotation,
+)
 from warp_highlights.synth.shapes import sphere, teapot, torus
 
 FRONT_LIGHTS = np.array(

@@ -15,31 +15,45 @@ from hypothesis import strategies as st
 from reference import render as render_reference
 from warp_highlights.kernels.support import support_fractions
 
-import warp_highlights.fit.residual as residual_module
+import warp_highlights.fit.moving as moving_module
+import warp_highlights.residual.build as build_module
+import warp_highlights.residual.device as device_module
+import warp_highlights.residual.rate as rate_module
+from warp_highlights.fit.moving import decide_moving
 from warp_highlights.fit.pipeline import fit_field
-from warp_highlights.fit.residual import (
-    CHROMA_GAIN,
-    LUMINANCE_GAIN,
-    NormalisedResidual,
-    RateSample,
-    StackPlan,
-    allocate,
-    allocate_steps,
-    build_residual,
-    component_bytes,
-    decide_moving,
-    deflated_bytes,
-    highlight_colour,
-    quantised_bytes,
-    sampled_rows,
-)
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
 from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
-from warp_highlights.model.residual import LowRankStack, PrincipalImages, ResidualModel, from_opponent, to_opponent
+from warp_highlights.model.residual import ResidualModel
 from warp_highlights.relight.relighter import Relighter
+from warp_highlights.residual.build import (
+    CHROMA_GAIN,
+    LUMINANCE_GAIN,
+    NormalisedResidual,
+    build_residual,
+)
+from warp_highlights.residual.decode import (
+    decoded_images,
+    light_images,
+    stack_basis,
+    stack_light_images,
+)
+from warp_highlights.residual.inputs import highlight_colour
+from warp_highlights.residual.opponent import from_opponent, to_opponent
+from warp_highlights.residual.principal import PrincipalImages
+from warp_highlights.residual.quantise import fit_stack, quantised_stack
+from warp_highlights.residual.rate import (
+    RateSample,
+    StackPlan,
+    allocate,
+    allocate_steps,
+    component_bytes,
+    deflated_bytes,
+    quantised_bytes,
+    sampled_rows,
+)
 
 RNG = np.random.default_rng(15)
 
@@ -59,32 +73,32 @@ def test_low_rank_stack_is_exact_for_a_stack_of_that_rank_up_to_8_bit_codes():
     n, h, w = 12, 9, 7
     basis = RNG.normal(size=(3, h * w))
     stack = (RNG.normal(size=(n, 3)) @ basis + 0.5).reshape(n, h, w, 1)
-    model = LowRankStack.fit(stack, 3)
+    model = fit_stack(stack, 3)
     assert model.rank == 3 and model.codes.dtype == np.uint8
-    error = np.abs(model.light_images(np.eye(n)) - stack).max()
+    error = np.abs(stack_light_images(model, np.eye(n)) - stack).max()
     # each basis image is off by at most half a code step; the weights are refitted to the codes
     step = (model.ranges[:, 1] - model.ranges[:, 0]).max() / 255
     assert error <= 0.5 * step * np.abs(model.weights).sum(axis=1).max() + 1e-3
-    assert np.abs(model.light_images(np.eye(n)) - stack).mean() < 0.25 * step * np.abs(model.weights).max()
+    assert np.abs(stack_light_images(model, np.eye(n)) - stack).mean() < 0.25 * step * np.abs(model.weights).max()
 
 
 def test_low_rank_error_falls_with_rank_and_the_mean_is_kept_as_float16():
     n, h, w = 20, 16, 12
     stack = RNG.random((n, h, w, 2)).astype(np.float32)
-    errors = [float(np.sqrt(((LowRankStack.fit(stack, k).light_images(np.eye(n)) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
+    errors = [float(np.sqrt(((stack_light_images(fit_stack(stack, k), np.eye(n)) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
     assert errors == sorted(errors, reverse=True)
-    model = LowRankStack.fit(stack, 4)
+    model = fit_stack(stack, 4)
     np.testing.assert_array_equal(model.mean, model.mean.astype(np.float16).astype(np.float32))
 
 
 def test_residual_model_refuses_inconsistent_parts():
-    stack = LowRankStack.fit(RNG.random((6, 4, 5, 1)), 2)
+    stack = fit_stack(RNG.random((6, 4, 5, 1)), 2)
     with pytest.raises(InputError, match="exactly one"):
         ResidualModel()
     with pytest.raises(InputError, match="exactly one"):
         ResidualModel(images=np.zeros((6, 4, 5, 1)), luminance=stack)
     with pytest.raises(InputError, match="chroma"):
-        ResidualModel(luminance=stack, chroma=LowRankStack.fit(RNG.random((6, 4, 5, 1)), 2))
+        ResidualModel(luminance=stack, chroma=fit_stack(RNG.random((6, 4, 5, 1)), 2))
     with pytest.raises(InputError, match="highlight colour"):
         ResidualModel(luminance=stack, highlight_colour=-np.ones((4, 5, 1)))
     with pytest.raises(InputError, match="non-finite"):
@@ -155,8 +169,8 @@ def test_predicted_distortion_is_the_stack_s_error():
     plan = StackPlan(principal, 1.0, principal.count - 1)
     for bits, share in ((8, 1e-3), (16, 1e-4), (16, 1e-7)):
         steps = plan.steps(share * principal.energies[1], 65535 if bits == 16 else 255)
-        model = LowRankStack.quantised(principal, steps, bits=bits)
-        error = np.sum(((model.light_images(np.eye(n)).reshape(n, -1) - flat) / scale[:, None]) ** 2)
+        model = quantised_stack(principal, steps, bits=bits)
+        error = np.sum(((stack_light_images(model, np.eye(n)).reshape(n, -1) - flat) / scale[:, None]) ** 2)
         predicted = plan.distortion(steps)
         assert 0.75 < error / predicted < 1.25, (bits, share, error, predicted)
 
@@ -168,8 +182,8 @@ def test_the_bits_are_those_of_the_lower_predicted_error_and_16_are_tried_only_w
     n, h, w = 24, 32, 40
     own = np.zeros((n, h, w), np.float32)
     searched = []
-    real = residual_module.allocate
-    monkeypatch.setattr(residual_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
+    real = build_module.allocate
+    monkeypatch.setattr(build_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
     noisy = (1.0 + 0.3 * RNG.normal(size=(n, h, w, 1))).astype(np.float32)
     model = build_residual(noisy, own, None, settings=ResidualSettings(size_budget=0.1, min_luminance_rank=1))
     assert searched == [8] and model.luminance.bits == 8
@@ -180,7 +194,7 @@ def test_the_bits_are_those_of_the_lower_predicted_error_and_16_are_tried_only_w
     errors = {}
     for bits in (8, 16):
         forced = build_residual(smooth, own, None, settings=ResidualSettings(size_budget=1.0, basis_bits=bits))
-        errors[bits] = float(np.mean((forced.light_images(np.eye(n)) - smooth) ** 2))
+        errors[bits] = float(np.mean((light_images(forced, np.eye(n)) - smooth) ** 2))
     assert errors[16] < errors[8], errors
 
 
@@ -228,7 +242,7 @@ def test_a_residual_too_large_to_hold_is_compressed_from_the_images_bit_for_bit(
     colour = RNG.uniform(0.8, 1.2, size=(h, w, channels)).astype(np.float32) if channels == 3 else None
     settings = ResidualSettings(size_budget=0.5)
     held = build_residual(stack, own, colour, settings=settings)
-    monkeypatch.setattr(residual_module, "HELD_STACK_SHARE", 0.0)
+    monkeypatch.setattr(build_module, "HELD_STACK_SHARE", 0.0)
     streamed = build_residual(stack, own, colour, settings=settings)
     for a, b in ((held.luminance, streamed.luminance), (held.chroma, streamed.chroma)):
         if a is None:
@@ -247,7 +261,7 @@ def test_allocation_fits_the_budget_and_spends_it_where_the_energy_is():
     spent = []
     for budget in (2e3, 8e3, 3e4, 1e5):
         steps = allocate_steps(plans, budget, bits=8)
-        stacks = [LowRankStack.quantised(plan.principal, step, bits=8) for plan, step in zip(plans, steps)]
+        stacks = [quantised_stack(plan.principal, step, bits=8) for plan, step in zip(plans, steps)]
         stored = sum(float(component_bytes(stack).sum()) for stack in stacks)
         assert stored <= budget
         assert stacks[0].rank >= stacks[1].rank  # the luminance's images remove more per byte
@@ -265,14 +279,14 @@ def test_allocation_beats_keeping_whole_8_bit_images_at_the_same_bytes():
     stack = _patterned_stack(n, h, w, 1, 24, 0.85)
     principal = PrincipalImages.of(stack)
     plan = StackPlan(principal, 1.0, principal.count - 1)
-    whole = [LowRankStack.fit(stack, rank) for rank in range(principal.count)]
+    whole = [fit_stack(stack, rank) for rank in range(principal.count)]
     whole_bytes = [float(component_bytes(model).sum()) for model in whole]
 
     def error(model):
-        return float(np.mean((model.light_images(np.eye(n)) - stack) ** 2))
+        return float(np.mean((stack_light_images(model, np.eye(n)) - stack) ** 2))
 
     for budget in (3e3, 1e4, 2e4):  # budgets that bind: the 24-component stack's every image at 8 bits takes 28 kB
-        allocated = LowRankStack.quantised(principal, allocate_steps([plan], budget, bits=8)[0], bits=8)
+        allocated = quantised_stack(principal, allocate_steps([plan], budget, bits=8)[0], bits=8)
         best_whole = min(error(model) for model, size in zip(whole, whole_bytes) if size <= budget)
         assert float(component_bytes(allocated).sum()) <= budget
         assert error(allocated) <= 0.5 * best_whole, (budget, error(allocated), best_whole)  # 6-50 times lower here
@@ -298,7 +312,7 @@ def test_principal_images_are_the_stack_s_principal_directions():
 def test_principal_images_and_quantisation_in_blocks_match_a_float64_reference(monkeypatch):
     """With blocks of a few columns (the stack's products a block at a time), the principal images,
     the codes and the fitted weights are those of one float64 product over the whole stack."""
-    import warp_highlights.model.residual as model_residual
+    import warp_highlights.residual.principal as model_residual
 
     n, h, w = 12, 9, 11
     stack = _patterned_stack(n, h, w, 2, 8, 0.7).astype(np.float32)
@@ -314,10 +328,10 @@ def test_principal_images_and_quantisation_in_blocks_match_a_float64_reference(m
     reference *= np.sign(np.sum(reference * principal.directions, axis=1))[:, None]  # a direction's sign is arbitrary
     np.testing.assert_allclose(principal.directions, reference, atol=1e-6)
     steps = principal.spans[:5] / 255
-    stack_model = LowRankStack.quantised(principal, steps, bits=8)
+    stack_model = quantised_stack(principal, steps, bits=8)
     codes = np.round((principal.directions[1:6].astype(np.float64) - principal.directions[1:6].min(axis=1, keepdims=True)) / steps[:, None])
     np.testing.assert_array_equal(stack_model.codes.reshape(5, -1), codes.clip(0, 255))
-    design = np.concatenate([stack_model.mean.reshape(1, -1), stack_model.basis.reshape(5, -1)]).astype(np.float64)
+    design = np.concatenate([stack_model.mean.reshape(1, -1), stack_basis(stack_model).reshape(5, -1)]).astype(np.float64)
     solution = np.linalg.solve(design @ design.T + 1e-12 * np.trace(design @ design.T) * np.eye(6), design @ flat.T)
     np.testing.assert_allclose(stack_model.weights, solution[1:].T, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(stack_model.mean_weights, solution[0], rtol=1e-5)
@@ -335,7 +349,7 @@ def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light
     settings = ResidualSettings(size_budget=2.0, basis_bits=16)
     model = build_residual(coloured, own, None, settings=settings)
     assert model.chroma.rank >= 8, model.chroma.rank
-    back = model.light_images(np.eye(n))
+    back = light_images(model, np.eye(n))
     assert np.abs(back - coloured).max() < 5e-3
     flat = build_residual(np.repeat(grey[..., None], 3, axis=-1).astype(np.float32), own, None, settings=settings)
     assert flat.chroma.rank <= 1 and flat.luminance.rank >= 8
@@ -345,7 +359,7 @@ def test_the_budget_buys_chroma_basis_images_where_colour_changes_with_the_light
 def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
     """``decode_residual`` (the codes dequantised and every light decoded by kernels) gives the images
     ``decoded_images`` gives on the host, to float16 rounding: colour (luminance and chroma) and grey."""
-    from warp_highlights.relight.relighter import decode_residual
+    from warp_highlights.residual.device import decode_residual
 
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
@@ -354,7 +368,7 @@ def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
         model = build_residual(images[..., :planes], np.zeros((n, h, w), np.float32), None, settings=settings)
         assert model.scale is not None and model.luminance.bits == bits
         decoded = decode_residual(model, device).numpy()
-        host = model.decoded_images().reshape(n, h * w, planes)
+        host = decoded_images(model).reshape(n, h * w, planes)
         assert decoded.dtype == np.float16 and decoded.shape == host.shape
         np.testing.assert_allclose(decoded.astype(np.float32), host.astype(np.float32), rtol=2e-3, atol=2e-3)
 
@@ -362,7 +376,6 @@ def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
 def test_a_relighter_decodes_on_the_device_where_the_basis_fits_beside_the_images(monkeypatch):
     """``_decodes_on_device``: the residual's own size, and its float32 basis, codes and float16 images
     within the share of the free device memory; else the host decodes."""
-    import warp_highlights.relight.relighter as relighter_module
 
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
@@ -370,29 +383,29 @@ def test_a_relighter_decodes_on_the_device_where_the_basis_fits_beside_the_image
     pixels = h * w
     needed = 4 * pixels * (4 * 1 + 2 * 2) + model.chroma.codes.nbytes + 2 * n * pixels * 3
     for free, expected in ((None, False), (needed / 0.75 - 1, False), (needed / 0.75 + 1, True)):
-        monkeypatch.setattr(relighter_module, "device_free_memory", lambda device, free=free: free)
-        assert relighter_module._decodes_on_device(model, w, h, "cuda:0") == expected, free
-    monkeypatch.setattr(relighter_module, "device_free_memory", lambda device: 1 << 40)
-    assert not relighter_module._decodes_on_device(model, w // 2, h // 2, "cuda:0")  # another size: resampled on the host
-    assert not relighter_module._decodes_on_device(ResidualModel(images=images), w, h, "cuda:0")
+        monkeypatch.setattr(device_module, "device_free_memory", lambda device, free=free: free)
+        assert device_module.decodes_on_device(model, w, h, "cuda:0") == expected, free
+    monkeypatch.setattr(device_module, "device_free_memory", lambda device: 1 << 40)
+    assert not device_module.decodes_on_device(model, w // 2, h // 2, "cuda:0")  # another size: resampled on the host
+    assert not device_module.decodes_on_device(ResidualModel(images=images), w, h, "cuda:0")
 
 
 @pytest.mark.parametrize("band_values", [1 << 20, 96])
 def test_decoded_images_match_the_float64_reference(band_values, monkeypatch):
     """Decoded a block of lights at a time, in bands of rows (one band; bands of 2 rows here)."""
-    import warp_highlights.model.residual as residual_module
+    import warp_highlights.residual.decode as residual_module
 
-    monkeypatch.setattr(residual_module, "_DECODE_BAND_VALUES", band_values)
+    monkeypatch.setattr(residual_module, "DECODE_BAND_VALUES", band_values)
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
     model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2))
-    decoded = model.decoded_images(block=4)
+    decoded = decoded_images(model, block=4)
     assert decoded.dtype == np.float16 and decoded.shape == (n, h, w, 3)
-    np.testing.assert_allclose(decoded, model.light_images(np.eye(n)), atol=2e-3)
+    np.testing.assert_allclose(decoded, light_images(model, np.eye(n)), atol=2e-3)
     grey = build_residual(images[..., :1], np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=3))
-    np.testing.assert_allclose(grey.decoded_images(), grey.light_images(np.eye(n)), atol=2e-3)
+    np.testing.assert_allclose(decoded_images(grey), light_images(grey, np.eye(n)), atol=2e-3)
     whole = ResidualModel(images=images)
-    assert whole.decoded_images() is whole.images
+    assert decoded_images(whole) is whole.images
 
 
 def test_the_default_field_is_at_most_a_quarter_of_the_8_bit_capture(donut_fields, tmp_path):
@@ -478,7 +491,7 @@ def donut_fields(small_donut, tmp_path_factory):
     """The small donut fitted twice: low-rank residual (default) and uncompressed; with its dataset."""
     dataset = ReflectanceField.load(small_donut, progress=False)
     fits = {}
-    for name, extra in (("lowrank", []), ("images", ["residual.compressed=false"])):
+    for name, extra in (("lowrank", []), ("images", ["residual.kind=images"])):
         fits[name] = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT + extra), device="cpu", progress=False)
     return dataset, fits
 
@@ -490,7 +503,7 @@ def _reference_full(field, directions, scale) -> np.ndarray:
     weights = np.zeros((len(directions), field.light_count))
     for k in range(3):
         np.add.at(weights, (np.arange(len(directions)), tri.faces[location.faces, k]), location.barycentric[:, k])
-    residual = field.residual.light_images(weights)
+    residual = light_images(field.residual, weights)
     relighter = Relighter(field, device="cpu")
     sets = relighter.interpolated_sets(directions)
     specular = render_reference(sets, field.height, field.width, field.fit_settings().raster)
@@ -539,7 +552,7 @@ def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_ba
     dataset, _ = donut_fields
     lost = MoveCheck(np.arange(3), np.full(3, 30.0), np.full(3, 31.0), 0)
     monkeypatch.setattr(pipeline, "check_moving", lambda *args, **kwargs: lost)
-    settings = FitSettings().with_overrides(FAST_FIT + ["residual.compressed=false"])
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=images"])
     field = fit_field(dataset, settings=settings, device="cpu", progress=False)
     residual = field.report["residual"]
     assert residual["move_check"]["moves"] is False and residual["moving_gaussians"] == residual["staying_gaussians"] == 0
@@ -619,8 +632,8 @@ def test_a_field_without_chroma_basis_images_round_trips_and_relights(donut_fiel
     dataset, fits = donut_fields
     field = fits["lowrank"]
     residual = field.residual
-    _, opponent = to_opponent(residual.light_images(np.eye(field.light_count)))
-    chroma = LowRankStack.fit(opponent / residual.scale[..., None], 0)
+    _, opponent = to_opponent(light_images(residual, np.eye(field.light_count)))
+    chroma = fit_stack(opponent / residual.scale[..., None], 0)
     assert chroma.rank == 0 and chroma.codes.shape == (0, field.height, field.width, 2)
     plain = dataclasses.replace(field, residual=dataclasses.replace(residual, chroma=chroma))
     save_field(plain, tmp_path / "f.whf")
@@ -705,17 +718,17 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
 
     n, h, w = 12, 9, 7
     stack = (RNG.normal(size=(n, 3)) @ RNG.normal(size=(3, h * w)) + 0.5).reshape(n, h, w, 1)
-    errors = {bits: np.abs(LowRankStack.fit(stack, 3, bits=bits).light_images(np.eye(n)) - stack).max() for bits in (8, 16)}
+    errors = {bits: np.abs(stack_light_images(fit_stack(stack, 3, bits=bits), np.eye(n)) - stack).max() for bits in (8, 16)}
     # 16-bit codes leave the float16 mean image as the larger error (about 1e-3 here)
-    assert LowRankStack.fit(stack, 3, bits=16).codes.dtype == np.uint16 and errors[16] < errors[8] / 8
+    assert fit_stack(stack, 3, bits=16).codes.dtype == np.uint16 and errors[16] < errors[8] / 8
     with pytest.raises(InputError, match="8 or 16"):
-        LowRankStack.fit(stack, 3, bits=12)
+        fit_stack(stack, 3, bits=12)
     _, fits = donut_fields
     field = fits["lowrank"]
     residual = field.residual
     sixteen = ResidualModel(
-        luminance=LowRankStack.fit(residual.luminance.light_images(np.eye(field.light_count)), 4, bits=16),
-        chroma=LowRankStack.fit(residual.chroma.light_images(np.eye(field.light_count)), 2, bits=16),
+        luminance=fit_stack(stack_light_images(residual.luminance, np.eye(field.light_count)), 4, bits=16),
+        chroma=fit_stack(stack_light_images(residual.chroma, np.eye(field.light_count)), 2, bits=16),
         highlight_colour=residual.highlight_colour, scale=residual.scale,
     )
     path = tmp_path / "sixteen.whf"
@@ -729,7 +742,7 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
 def test_sampled_rows_are_spread_bands_or_every_row():
     assert np.array_equal(sampled_rows(54, 96, 1), np.arange(54))  # a small image is deflated whole
     rows = sampled_rows(1080, 1920, 1)
-    assert len(rows) % 8 == 0 and len(rows) >= residual_module._RATE_SHARE * 1080 and len(np.unique(rows)) == len(rows)
+    assert len(rows) % 8 == 0 and len(rows) >= rate_module._RATE_SHARE * 1080 and len(np.unique(rows)) == len(rows)
     bands = rows.reshape(-1, 8)
     assert np.all(np.diff(bands, axis=1) == 1) and rows.min() > 0 and rows.max() < 1079  # whole bands, none at the very edges
     strips = np.floor(bands.mean(axis=1) / (1080 / len(bands)))
@@ -753,11 +766,11 @@ def test_the_sampled_rate_search_keeps_the_exact_budget(monkeypatch):
             steps = allocate_steps([plan], budget, bits=bits)[0]
             stored = quantised_bytes(principal, steps, bits=bits)
             with monkeypatch.context() as patch:
-                patch.setattr(residual_module, "_RATE_MIN_VALUES", 1 << 40)  # every row: the exact search
+                patch.setattr(rate_module, "_RATE_MIN_VALUES", 1 << 40)  # every row: the exact search
                 assert RateSample(principal, 4).exact
                 exact = quantised_bytes(principal, allocate_steps([plan], budget, bits=bits)[0], bits=bits)
             assert exact <= stored <= budget or 0.99 * exact <= stored <= budget, (bits, budget, stored, exact)
-            assert stored == float(component_bytes(LowRankStack.quantised(principal, steps, bits=bits)).sum())
+            assert stored == float(component_bytes(quantised_stack(principal, steps, bits=bits)).sum())
 
 
 def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_the_result_is_the_same(monkeypatch):
@@ -768,13 +781,13 @@ def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_
     own = np.zeros((n, h, w), np.float32)
     smooth = _patterned_stack(n, h, w, 1, 10, 0.8).astype(np.float32)
     searched = []
-    real = residual_module.allocate
-    monkeypatch.setattr(residual_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
+    real = build_module.allocate
+    monkeypatch.setattr(build_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
     settings = ResidualSettings(size_budget=1.0)
     quick = build_residual(smooth, own, None, settings=settings)
     assert searched == [16] and quick.luminance.bits == 16
     searched.clear()
-    monkeypatch.setattr(residual_module, "finest_within", lambda plans, budget, *, bits: None)
+    monkeypatch.setattr(build_module, "finest_within", lambda plans, budget, *, bits: None)
     both = build_residual(smooth, own, None, settings=settings)
     assert searched == [8, 16]
     assert np.array_equal(quick.luminance.codes, both.luminance.codes) and np.array_equal(quick.luminance.weights, both.luminance.weights)
@@ -793,7 +806,7 @@ def test_the_move_decision_s_median_is_numpy_s_nanmedian(lights, edges, slots, s
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         expected = np.nanmedian(values, axis=1)
-    np.testing.assert_array_equal(residual_module._nan_median(values), expected)
+    np.testing.assert_array_equal(moving_module._nan_median(values), expected)
 
 
 def _sampled_principal(seed: int) -> PrincipalImages:
@@ -872,13 +885,13 @@ def test_the_modelled_first_step_meets_the_goal_of_the_model_it_fits():
     levels = 65535
     top = np.log(plans[0].energies.max())
     lowest, highest = top - 35.0, top + 1.0
-    measured = residual_module._modelled_bytes(plans, levels, top - 6.0, 3.5)
+    measured = rate_module._modelled_bytes(plans, levels, top - 6.0, 3.5)
     for goal_share in (0.5, 2.0, 4.0):
         goal = goal_share * measured
-        x = residual_module._modelled_distortion(plans, levels, top - 6.0, measured, goal, lowest, highest)
-        sides = [residual_module._modelled_bytes(plans, levels, x + dx, 3.5) for dx in (-1e-7, 0.0, 1e-7)]
+        x = rate_module._modelled_distortion(plans, levels, top - 6.0, measured, goal, lowest, highest)
+        sides = [rate_module._modelled_bytes(plans, levels, x + dx, 3.5) for dx in (-1e-7, 0.0, 1e-7)]
         assert min(sides) * (1 - 1e-6) <= goal <= max(sides) * (1 + 1e-6)
-    assert residual_module._modelled_distortion(plans, levels, top - 6.0, 1.0, measured, lowest, highest) is None
+    assert rate_module._modelled_distortion(plans, levels, top - 6.0, 1.0, measured, lowest, highest) is None
 
 
 @pytest.mark.parametrize("device", ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else []))
@@ -888,7 +901,7 @@ def test_own_highlights_past_one_launch_are_drawn_in_parts_into_one_stack(device
     is the one batch's, bit for bit, none left from the empty allocation."""
     from warp_highlights.kernels.raster import Rasterizer
 
-    from warp_highlights.fit.residual import render_own_on_device
+    from warp_highlights.residual.inputs import render_own_on_device
 
     rng = np.random.default_rng(11)
     sets = GaussianParams.empty(5, 3)

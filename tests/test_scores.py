@@ -129,8 +129,8 @@ def test_exact_halves_round_to_even(device):
 def test_the_checks_device_scores_are_the_hosts(device, held, channels):
     """``fit.validation``'s scorer (the CPU device here: the host's arithmetic) over a chunk of the lights, the images
     it needs sent up or held there already, against the host's scores."""
-    from warp_highlights.fit.residual import HeldImages
     from warp_highlights.fit.validation import _DeviceScores
+    from warp_highlights.residual.inputs import HeldImages
 
     images, own, drawn, tint, corners, weights, truth = _case(k=9, m=5, channels=channels)
     tint = np.ones((1, 1, 1), np.float32) if channels == 1 else tint
@@ -188,7 +188,7 @@ def test_the_check_scores_on_the_device_as_on_the_host(monkeypatch):
 
 
 def validation_hold(images, own):
-    from warp_highlights.fit.residual import hold_images
+    from warp_highlights.residual.inputs import hold_images
 
     held = hold_images(images, own, "cuda:0")
     assert held is not None and held.images.shape == (len(images), images.shape[1] * images.shape[2], images.shape[3])
@@ -196,7 +196,7 @@ def validation_hold(images, own):
 
 
 def test_images_are_held_on_cuda_devices_only_and_within_their_bound(monkeypatch):
-    import warp_highlights.fit.residual as residual_module
+    import warp_highlights.residual.inputs as residual_module
 
     images, own = np.zeros((3, 4, 5, 3), np.float32), np.zeros((3, 4, 5), np.float32)
     assert residual_module.hold_images(images, own, "cpu") is None
@@ -212,7 +212,7 @@ def test_images_are_held_on_cuda_devices_only_and_within_their_bound(monkeypatch
 def test_images_already_up_are_held_as_they_are(monkeypatch):
     """``hold_images(images_up=, own_up=)``: the arrays given are held (the same memory, not sent up again),
     even where the bound asked before they went up would not hold them now; ``own`` alone is sent up."""
-    import warp_highlights.fit.residual as residual_module
+    import warp_highlights.residual.inputs as residual_module
 
     images, own = RNG.random((3, 4, 5, 3)).astype(np.float32), RNG.random((3, 4, 5)).astype(np.float32)
     images_up, own_up = wp.array(images, dtype=float, device="cuda:0"), wp.array(own, dtype=float, device="cuda:0")

@@ -11,7 +11,12 @@ import pytest
 import warp as wp
 from reference import render as render_reference
 
-from warp_highlights.fit.validation import check_moving, leave_one_out, plan_check, spread_lights
+from warp_highlights.fit.validation import (
+    check_moving,
+    leave_one_out,
+    plan_check,
+    spread_lights,
+)
 from warp_highlights.model.config import FitSettings, RasterSettings, RetargetSettings
 from warp_highlights.model.gaussians import GaussianParams
 from warp_highlights.model.lights import LightSet

@@ -74,6 +74,7 @@ def fields(small_field, tmp_path_factory):
     uncompressed, and a learned residual of random weights (the page's decoder against the reference)."""
     from warp_highlights.io.fieldfile import load_field, save_field
     from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual
+    from warp_highlights.residual.decode import decoded_images
 
     field = load_field(small_field)
     residual = field.residual
@@ -82,7 +83,7 @@ def fields(small_field, tmp_path_factory):
     weights = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32) for shape in NEURAL_LAYER_SHAPES)
     codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)
     variants = {
-        "images": dataclasses.replace(residual, images=residual.decoded_images(), luminance=None, chroma=None, scale=None),
+        "images": dataclasses.replace(residual, images=decoded_images(residual), luminance=None, chroma=None, scale=None),
         "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count), luminance=None, chroma=None, scale=None),
     }
     root = tmp_path_factory.mktemp("web-fields")

@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..model.config import RESIDUAL_KINDS
 from ..model.errors import InputError
 from .args import Command, in_range, size_option
-from .fit import RESIDUAL_CHOICES, _exposure_option
+from .fit import _exposure_option
 
 __all__ = ["COMMANDS", "EXIT_SOME_FAILED"]
 
@@ -27,7 +28,7 @@ def _collection_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--max-side", type=in_range(int, 8, 65_536), metavar="PX",
                        help="fit each capture at most PX pixels on its longer side, its aspect ratio kept (its fit --size worked out from its "
                        "images; for captures of different sizes)")
-    group.add_argument("--residual", choices=list(RESIDUAL_CHOICES), help="as fit --residual (default: fit's, learned on CUDA, lowrank elsewhere)")
+    group.add_argument("--residual", choices=list(RESIDUAL_KINDS), help="as fit --residual (default: fit's, learned on CUDA, lowrank elsewhere)")
     group.add_argument("--diffuse", choices=["lambert", "images", "none"], help="as fit --diffuse")
     group.add_argument("--exposure", type=_exposure_option, help="as fit --exposure")
     group.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB (fit and evaluate)")

@@ -32,13 +32,13 @@ def _demo_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _run_demo(args) -> int:
     from ..model.config import FitSettings
-    from .fit import RESIDUAL_CHOICES
+    from .fit import residual_overrides
 
     width, height = args.size
     device = check_device(args.device)
     out = Path(args.out)
     check_output_folder(out, overwrite=args.overwrite, legacy=demo_folder_entry)
-    settings = FitSettings().with_overrides(RESIDUAL_CHOICES[args.residual])
+    settings = FitSettings().with_overrides(residual_overrides(args.residual))
     started = time.perf_counter()
     index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
                      overwrite=args.overwrite, settings=settings)

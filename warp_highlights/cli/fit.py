@@ -7,6 +7,7 @@ import json
 import time
 from pathlib import Path
 
+from ..model.config import RESIDUAL_KINDS
 from ..model.errors import InputError
 from .args import Command, add_pixel_limit_option, check_device, check_output_file, in_range, pixel_limit, size_option
 
@@ -32,12 +33,13 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
                         help="fit without lights 0, K, 2K, ... of the dataset, to score them later (evaluate FIELD DATASET)")
     parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
-    parser.add_argument("--residual", choices=list(RESIDUAL_CHOICES), default="auto",
-                        help="what relighting adds the moved highlights to: the images minus their own highlights, compressed to "
-                        "low-rank 8-bit bases (lowrank, about a quarter of the 8-bit capture; seconds), learned (9 numbers per pixel "
-                        "and an MLP, trained for up to residual.learned_seconds, twice where a check decides whether it keeps the "
-                        "moving Gaussians or learns the images alone; minutes, for a GPU), auto (default: learned on CUDA, "
-                        "lowrank elsewhere), uncompressed float16 images (images: exact at the captured lights), or none (then use --diffuse)")
+    parser.add_argument("--residual", choices=list(RESIDUAL_KINDS), default=None,
+                        help="what relighting adds the moved highlights to (the images minus their own highlights), the setting "
+                        "residual.kind: lowrank (low-rank 8- or 16-bit bases, about a quarter of the 8-bit capture; seconds), learned "
+                        "(9 numbers per pixel and an MLP, trained for up to residual.learned_seconds, twice where a check decides "
+                        "whether it keeps the moving Gaussians or learns the images alone; minutes, for a GPU), images (uncompressed "
+                        "float16, exact at the captured lights), none (then use --diffuse), or auto (default: learned on CUDA, lowrank "
+                        "elsewhere)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
@@ -60,13 +62,11 @@ EARLY_LOAD_BYTES = 1 << 29
 starts, and a larger one only once Warp has found the device: a wrong ``--device`` then costs at most about 0.5 s of
 reading before its error line; at 480x270 the wait for Warp's start (0.12 s on the lent H100) was on the command's path."""
 
-RESIDUAL_CHOICES = {  # --residual -> the settings it stands for (put before any --set, which can still change them)
-    "auto": [],
-    "lowrank": ["residual.learned=false", "residual.learned_on_cuda=false"],
-    "learned": ["residual.learned=true"],
-    "images": ["residual.compressed=false", "residual.learned=false"],
-    "none": [],
-}
+
+
+def residual_overrides(kind: str | None) -> list[str]:
+    """The ``--set`` overrides ``--residual KIND`` stands for (put before any ``--set``, which can still change it)."""
+    return [] if kind is None else [f"residual.kind={kind}"]
 
 
 def _exposure_option(text: str):
@@ -103,7 +103,7 @@ def _run_fit(args) -> int:
     from ..model.config import FitSettings
 
     overrides = list(args.overrides)
-    overrides[:0] = RESIDUAL_CHOICES[args.residual]
+    overrides[:0] = residual_overrides(args.residual)
     settings = FitSettings().with_overrides(overrides)
     if args.list_settings:
         _print_settings(settings.to_dict())
@@ -154,8 +154,9 @@ def _run_fit(args) -> int:
             finally:
                 warmup.started()  # Warp is started once, in one thread at a time
             device = check_device(args.device)
-            compressed = args.residual != "none" and settings.residual.compressed and not settings.residual.learns_on(device)
-            if compressed and not background.done():  # waiting for the images anyway: the rate search's one late import now
+            from ..residual.kind import resolve_kind
+
+            if resolve_kind(settings.residual.kind, device) == "lowrank" and not background.done():  # waiting for the images anyway: the rate search's one late import now
                 import scipy.optimize  # noqa: F401 (0.05-0.07 s on the lent H100's host)
             dataset, loading, load_seconds = background.result() or load_images(background.stop)
         if args.holdout_every:
@@ -164,7 +165,7 @@ def _run_fit(args) -> int:
         if warmup is not None:
             warmup.join()
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
-        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, residual=args.residual != "none", exposure=args.exposure, workers=args.workers, progress=not args.quiet
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure, workers=args.workers, progress=not args.quiet
     )
     del dataset
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}

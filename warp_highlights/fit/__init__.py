@@ -18,7 +18,7 @@ io and the kernels (ARCHITECTURE.md).
 - ``plan_check``: the captured lights left out to check that moving pays, and the edges they need.
 - ``check_moving``: stage 5b: moving against blending at those lights (``MoveCheck``).
 - ``MoveCheck``: both predictions' 8-bit sRGB PSNR per left-out light and the verdict.
-- ``build_residual``: stage 6: each image minus its own highlights, compressed (``ResidualModel``).
+- ``build_residual``: stage 6: each image minus its own highlights, compressed (``ResidualModel``; from ``residual``).
 """
 
 from .._api import lazy_exports
@@ -31,7 +31,8 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["estimate", "EstimationResult"], "estimation"),
         **dict.fromkeys(["retarget", "RetargetResult"], "retargeting"),
         **dict.fromkeys(["decide_paths", "PathDecisions"], "paths"),
-        **dict.fromkeys(["decide_moving", "MoveDecision", "build_residual"], "residual"),
+        **dict.fromkeys(["decide_moving", "MoveDecision"], "moving"),
+        "build_residual": "..residual.build",
         **dict.fromkeys(["plan_check", "check_moving", "MoveCheck"], "validation"),
     },
 )

@@ -32,18 +32,12 @@ from ..model.gaussians import GaussianParams
 from ..model.triangulation import SphericalTriangulation
 from .estimation import estimate
 from .paths import decide_paths
-from .residual import (
-    build_residual,
-    check_learned,
-    decide_moving,
-    gaussian_bytes,
-    highlight_colour,
-    hold_images,
-    holds_images,
-    learn_residual,
-    render_own,
-    render_own_on_device,
-)
+from ..residual.build import build_residual
+from ..residual.inputs import highlight_colour, hold_images, holds_images, render_own, render_own_on_device
+from ..residual.kind import resolve_kind
+from ..residual.learned import check_learned, learn_residual
+from ..residual.rate import gaussian_bytes
+from .moving import decide_moving
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
@@ -61,7 +55,6 @@ def fit_field(
     device=None,
     size: tuple[int, int] | None = None,
     diffuse: str = "none",
-    residual: bool = True,
     exposure: float | str | None = None,
     workers: int | None = None,
     progress: bool = False,
@@ -76,7 +69,6 @@ def fit_field(
         size: working resolution (width, height) of the same aspect ratio, or None for the images' own.
         diffuse: the optional Lambertian diffuse model: "lambert" (per-pixel nbar and k_a), "images"
             (that plus the diffuse images, float16) or "none" (default: residual transfer needs none).
-        residual: store the residual images for residual transfer (``settings.residual`` says how).
         exposure: factor applied to the radiance before fitting, or "auto": the factor that maps the
             99.9th percentile of all samples to 1 (display white). The method's thresholds (lit sample
             0.05, new Gaussian 0.2) assume display white is 1, as in rendered data; a dim photographic
@@ -94,15 +86,11 @@ def fit_field(
     log = log or _LOG.info
     timer = _StageTimer(log, device)
     width, height = working_size(dataset.width, dataset.height, size)
-    if residual and settings.residual.learns_on(device):
-        from ..kernels.neural import samples_fit
-
-        if not samples_fit(dataset.light_count, width * height):
-            too_many = f"{dataset.light_count} lights of {width}x{height} pass the learned residual's 2^31 samples (lights x pixels)"
-            if settings.residual.learned:
-                raise InputError(f"{too_many}; use --residual lowrank, or a smaller --size")
-            _LOG.warning("%s: the residual is compressed to low rank instead", too_many)  # learned by default on CUDA, not asked for
-            settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, learned_on_cuda=False))
+    requested_kind = settings.residual.kind
+    kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height))  # once: the stages read it
+    settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, kind=kind))
+    residual = kind != "none"
+    learned = kind == "learned"
 
     with timer.stage("triangulation"):
         triangulation = SphericalTriangulation(dataset.lights.directions)
@@ -129,14 +117,14 @@ def fit_field(
             rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
                              keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
             # a small capture's images, sent up for the segmentation in one band, stay there for the move check and the residual's stacks
-            holds_up = residual and not settings.residual.learns_on(device) and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device)
+            holds_up = residual and not learned and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device)
             if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
                 shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
                 seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                        keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                        specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
                                        shrink_factor=shrink_factor, target_on_device=not on_host,
-                                       shrink_images=shrink_factor > 1 and residual and not settings.residual.learns_on(device),  # the move check's images
+                                       shrink_images=shrink_factor > 1 and residual and not learned,  # the move check's images
                                        keep_images=holds_up)
             else:
                 seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
@@ -182,7 +170,6 @@ def fit_field(
                 if specular is not None:
                     colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
                     del specular
-            learned = settings.residual.learns_on(device)  # learned where asked, or by default on CUDA
             with timer.stage("move check"):
                 # held there, where small (the segmentation's upload, the own highlights' render), for the check's scores and the
                 # compressed residual's stacks
@@ -215,7 +202,7 @@ def fit_field(
                 own, colour = np.zeros_like(own), None
                 if held is not None:
                     held.own = None  # the residual's stacks read the zeros from the host
-            if not settings.residual.compressed:
+            if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
             if learned:
                 # the learned check's winner goes on learning from every light (the ones it left out too);
@@ -279,6 +266,8 @@ def fit_field(
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
+            "kind": kind,
+            "requested_kind": requested_kind,
             "compressed": residual_model.compressed,
             "luminance_rank": residual_model.luminance.rank if residual_model.compressed else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,

@@ -15,7 +15,7 @@ The directed edges of those triangles that the capture's own triangulation lacks
 is lower, no Gaussian moves. Only the prediction leaves j out: the Gaussians, their move decisions, the
 highlight colour and the segmentation were fitted with image j among the others, which favours moving
 a little (the check is conservative about blending). For a learned residual, the moved highlights of
-a few checked lights are kept (``keep``): ``fit.residual.check_learned`` scores the learned residual
+a few checked lights are kept (``keep``): ``residual.learned.check_learned`` scores the learned residual
 with them there. Units: images in the field's units (``factor`` divides them back to display units,
 1 = white).
 """
@@ -191,8 +191,8 @@ def check_moving(
         factor: the fit's exposure factor (field units per display unit).
         progress: optional ``advance(steps)`` for the retargeting of the missing edges.
         keep: keep the moved highlights of this many checked lights, spread over them (for the
-            learned residual's check, ``fit.residual.check_learned``).
-        held: ``images`` and ``own`` on the CUDA device already (``fit.residual.HeldImages``), scored there.
+            learned residual's check, ``residual.learned.check_learned``).
+        held: ``images`` and ``own`` on the CUDA device already (``residual.inputs.HeldImages``), scored there.
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():

@@ -372,6 +372,9 @@ class PathSettings:
         _require(math.isfinite(self.length_scale_rpx) and self.length_scale_rpx > 0, f"length_scale_rpx must be > 0, got {self.length_scale_rpx}")
 
 
+RESIDUAL_KINDS = ("auto", "lowrank", "learned", "images", "none")
+"""What a fit keeps beyond its moving highlights (``ResidualSettings.kind``); "auto" is resolved when it starts."""
+
 LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
 LEARNED_BATCH_CPU = 1 << 11
@@ -383,12 +386,20 @@ class ResidualSettings:
     """What a field keeps of the images beyond its moving highlights: residual transfer (method.md section 6).
 
     Attributes:
-        compressed: store the residual images as low-rank luminance and chroma stacks with 8- or
-            16-bit bases (True, default) or uncompressed as float16 images (False: exact at the captured
-            lights, as large as the alpha blend's input).
+        kind: what relighting adds the moved highlights to (``RESIDUAL_KINDS``), resolved once when a fit
+            starts (``residual.kind.resolve_kind``): "lowrank" stores the residual images as low-rank
+            luminance and chroma stacks with 8- or 16-bit bases within ``size_budget``; "learned" learns
+            them (9 numbers per pixel and an MLP of code + direction, NeuralRTI's model, ``kernels.neural``);
+            "images" keeps them uncompressed as float16 (exact at the captured lights, as large as the alpha
+            blend's input); "none" keeps no residual (relight with a diffuse model instead). "auto"
+            (default): learned on a CUDA device, low rank elsewhere. On the CPU learning does not fit the
+            time a fit should take (the statue's fit at 283x267 must stay under 2 minutes there, an epoch
+            of it takes about 20 s, and 120 s left it undertrained: 31.29 dB at 192x181 against 33.01
+            low-rank); on CUDA the learned residual scored higher at held-out lights on the samples
+            (``benchmarks/bench_quality.py``), at the cost of minutes of training.
         size_budget: the largest share of the 8-bit capture (lights x pixels x channels bytes) the
             whole field file may take: the residual's basis images, their number and their
-            quantisation (``fit.residual.allocate_steps``) are chosen to fill what the Gaussians,
+            quantisation (``residual.rate.allocate_steps``) are chosen to fill what the Gaussians,
             paths and the rest leave. The project aims at 25% (issue 15); the estimate counts the
             deflated basis images as the file stores them and the file's own overhead, and the
             eight benchmark fields (samples and renders, CPU and H100 sizes) were written at
@@ -416,7 +427,7 @@ class ResidualSettings:
             samples and the 64-light donut at budgets 0.08, 0.24, 0.5 and 1 (12 of 12) and on the
             250-light donut.
         chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) lets the budget decide,
-            with the luminance's (``fit.residual.allocate_steps``: every kept image of either stack
+            with the luminance's (``residual.rate.allocate_steps``: every kept image of either stack
             adds the same squared RGB error). A fixed 3 or 6 cost the 250-light donut, whose colour
             changes with the light, 4.5 dB (34.02 against 38.58 dB with the residual uncompressed).
         move_support: a Gaussian moves only where, on the median outgoing edge, at least this share
@@ -436,20 +447,6 @@ class ResidualSettings:
             (metals, coloured plastics); False keeps white highlights.
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
-        learned: always learn the residual (``kernels.neural``: 9 numbers per pixel and an MLP of code +
-            direction, NeuralRTI's model) instead of compressing it, on any device (an epoch of the
-            statue sample at 567x534 takes 1.3 s on an H100, its 283x267 about 20 s on a 2-core CPU,
-            where 120 s leave it undertrained: 31.29 dB at 192x181 against 33.01 low-rank).
-        learned_on_cuda: learn it where the fit runs on a CUDA device and ``compressed`` is on (the
-            default field there); elsewhere the low-rank residual. On the H100 (issue 15's eighth
-            session, ``residual.learned_check`` deciding, 120 s per model): the dome sample 48.88 dB /
-            SSIM 0.993 against 41.69 / 0.982 low-rank (alpha 38.63, RBF 38.89 / 0.987), the statue
-            32.16 / 0.924 against 32.03 / 0.925 (alpha 32.06), the 250-light teapot 36.52 / 0.984
-            against 35.70 / 0.986 (alpha 35.18), the 250-light donut 41.93 / 0.993 against 38.54 /
-            0.988 (alpha 37.11; ninth session), at 2-13% of the 8-bit capture against 24%; the fit
-            takes 2-5 minutes instead of seconds (plus 6.5 minutes compiling the tile kernels once
-            per machine). Not on the CPU: the statue's fit at 283x267 must stay under 2 minutes
-            there, and decoding costs about 1.3 GFLOP per 480x270 query.
         learned_seconds: the learned residual's training time at most, seconds (each of the learned
             check's two models, or the one model without it): 120 took the donut and the dome to
             41.35 and 41.02 dB, the statue scored 32.92 after 300.
@@ -462,7 +459,7 @@ class ResidualSettings:
             43.06 with 8,192 and 44.83 with 2,048; at 160x160 after 120 s, 45.83 with 2,048 and
             45.63 with 512 (the default low-rank field: 41.99; RBF 38.91).
         learned_check: where the move check keeps the Gaussians, this many of its left-out lights
-            (spread) decide whether the learned residual keeps them too (``fit.residual.check_learned``):
+            (spread) decide whether the learned residual keeps them too (``residual.learned.check_learned``):
             two models learn without those lights, each for ``learned_seconds``, the residual (scored
             with the Gaussians moved there) and the images alone (NeuralRTI); the better one goes on
             learning from every light. 6, an eighth of the dome sample's 49 lights, spread like the
@@ -479,7 +476,7 @@ class ResidualSettings:
             teapot (35.57 against 35.08).
     """
 
-    compressed: bool = True
+    kind: str = "auto"
     size_budget: float = 0.24
     luminance_rank: int = 0
     max_luminance_rank: int = 255
@@ -490,27 +487,14 @@ class ResidualSettings:
     check_lights: int = 48
     highlight_colour: bool = True
     colour_prior: float = 0.01
-    learned: bool = False
-    learned_on_cuda: bool = True
     learned_seconds: float = 120.0
     learned_epochs: int = 400
     learned_batch: int = 0
     learned_check: int = 6
     learned_tune_seconds: float = 30.0
 
-    def learns_on(self, device) -> bool:
-        """Whether a fit on this device (a Warp device name, or anything with ``is_cuda``) learns its residual."""
-        if self.learned:
-            return True
-        if not (self.learned_on_cuda and self.compressed):
-            return False
-        if not hasattr(device, "is_cuda"):
-            import warp as wp
-
-            device = wp.get_device(device)
-        return bool(device.is_cuda)
-
     def __post_init__(self):
+        _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")
         _require(math.isfinite(self.size_budget) and 0 < self.size_budget <= 10, f"size_budget must be in (0, 10], got {self.size_budget}")
         _require(0 <= int(self.luminance_rank) <= 1024, f"luminance_rank must be in [0, 1024], got {self.luminance_rank}")
         _require(1 <= int(self.max_luminance_rank) <= 1024, f"max_luminance_rank must be in [1, 1024], got {self.max_luminance_rank}")
@@ -593,7 +577,11 @@ class FitSettings:
 
     @classmethod
     def from_dict(cls, values: dict) -> FitSettings:
-        """Inverse of ``to_dict``; unknown keys are an ``InputError``."""
+        """Inverse of ``to_dict``; unknown keys are an ``InputError``. Settings stored by fields written
+        before ``ResidualSettings.kind`` (its booleans ``compressed``, ``learned``, ``learned_on_cuda``) read as
+        the kind they stood for."""
+        if isinstance(values, dict) and isinstance(values.get("residual"), dict):
+            values = {**values, "residual": _residual_kind_of_booleans(values["residual"])}
         return _build(cls, values, "settings")
 
     def with_overrides(self, overrides: list[str]) -> FitSettings:
@@ -618,6 +606,19 @@ class FitSettings:
         return FitSettings.from_dict(values)
 
 
+_RESIDUAL_BOOLEANS = ("compressed", "learned", "learned_on_cuda")
+"""The residual settings that ``ResidualSettings.kind`` replaced, as older field files store them."""
+
+
+def _residual_kind_of_booleans(values: dict) -> dict:
+    """Residual settings with the older booleans (``_RESIDUAL_BOOLEANS``) replaced by the ``kind`` they chose."""
+    if not any(name in values for name in _RESIDUAL_BOOLEANS) or "kind" in values:
+        return values
+    compressed, learned, on_cuda = (values.get(name, default) for name, default in zip(_RESIDUAL_BOOLEANS, (True, False, True)))
+    kind = "learned" if learned is True else "images" if compressed is False else "auto" if on_cuda is True else "lowrank"
+    return {"kind": kind, **{name: value for name, value in values.items() if name not in _RESIDUAL_BOOLEANS}}
+
+
 def _groups(values: dict, prefix: str = "") -> list[str]:
     names = []
     for key, value in values.items():
@@ -628,6 +629,8 @@ def _groups(values: dict, prefix: str = "") -> list[str]:
 
 
 def _parse_like(current, raw: str, text: str):
+    if isinstance(current, str):
+        return raw
     try:
         if isinstance(current, bool):
             if raw.lower() not in ("true", "false", "1", "0"):
@@ -667,5 +670,7 @@ def _checked_value(default, value, where: str):
         return int(value)
     if isinstance(default, float) and is_number:
         return float(value)
-    kind = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
+    if isinstance(default, str) and isinstance(value, str):
+        return value
+    kind = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}[type(default)]
     raise InputError(f"{where} must be {kind}, got {value!r}")

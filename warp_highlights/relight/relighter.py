@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.memory import device_free_memory
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
 from ..kernels.neural import QueryDecoder
@@ -38,20 +37,18 @@ from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
-from ..model.residual import code_levels
 from ..model.triangulation import unit_query_directions
+from ..residual.decode import decoded_blocks
+from ..residual.device import RESIDUAL_DECODES, LowRankArrays, decode_on_load, decode_residual, decodes_on_device
 from .interpolation import edge_rows
 
 __all__ = [
-    "DECODED_RESIDUAL_BYTES",
     "DIFFUSE_MODES",
     "RELIGHT_METHODS",
-    "RESIDUAL_DECODES",
     "Relighter",
     "RelitImages",
     "alpha_inputs",
     "check_same_lights",
-    "decode_residual",
     "face_edge_rows",
     "relight_field",
 ]
@@ -62,18 +59,7 @@ DIFFUSE_MODES = ("auto", "residual", "lambert", "images", "none")
 per-pixel Lambertian model; ``images``: the blended diffuse images; ``none``: nothing. ``auto``: the
 first of residual, images, lambert that the field stores."""
 
-RESIDUAL_DECODES = ("auto", "query", "load")
-"""How a ``Relighter`` decodes a low-rank residual (its ``residual_decode`` argument)."""
-DECODED_RESIDUAL_SHARE = 0.25
-"""Share of the free device memory that "auto" gives a low-rank residual decoded once into float16 images
-on CUDA: 250 lights of 1920x1080 RGB take 3.1 GB of an 80 GB card, and a query then blends three images
-instead of reading every basis image (6.3 -> below 1 ms at 1080p on an H100, benchmarks/README.md)."""
-DECODED_RESIDUAL_BYTES = 512 * 2**20
-"""Most memory "auto" gives the decoded residual on the CPU (and on CUDA where the free memory is
-unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, about 12 s per 3 GB
-on 2 cores, which a single query would wait for; a larger field is decoded per query instead."""
 _DECODE_BLOCK = 16  # lights decoded, resampled and uploaded at a time: the host holds one block
-_DEVICE_DECODE_SHARE = 0.75  # of the free device memory that decoding on the device may hold at once (basis, codes, images)
 
 # Bytes of output images (specular + full) one launch may hold; larger batches run in chunks.
 _CHUNK_BYTES = 256 * 2**20
@@ -179,7 +165,7 @@ class Relighter:
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
-        if self.diffuse == kernels.DIFFUSE_LOWRANK and _decode_on_load(field.residual, self.width * self.height, residual_decode, self.device):
+        if self.diffuse == kernels.DIFFUSE_LOWRANK and decode_on_load(field.residual, self.width * self.height, residual_decode, self.device):
             self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
@@ -244,7 +230,7 @@ class Relighter:
         device, model, residual = self.device, self.field.diffuse, self.field.residual
         lambert = np.zeros((1, 1, 4), dtype=np.float32)
         images = np.zeros((1, 1, 1), dtype=np.float16)
-        self._stacks = {name: _LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
+        self._stacks = {name: LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
         residual_scale = np.ones(1, np.float32)
         self._learned = None
         if self.diffuse == kernels.DIFFUSE_DECODED:
@@ -257,11 +243,11 @@ class Relighter:
         elif self.diffuse == kernels.DIFFUSE_BLEND:
             images = self._upload_images(residual if self._residual_images else model)
         elif self.diffuse == kernels.DIFFUSE_LOWRANK:
-            self._stacks["luminance"] = _LowRankArrays.upload(residual.luminance, self.width, self.height, device)
+            self._stacks["luminance"] = LowRankArrays.upload(residual.luminance, self.width, self.height, device)
             if residual.scale is not None:
                 residual_scale = resample_image(residual.scale, self.width, self.height).reshape(-1)
             if residual.chroma is not None:
-                self._stacks["chroma"] = _LowRankArrays.upload(residual.chroma, self.width, self.height, device)
+                self._stacks["chroma"] = LowRankArrays.upload(residual.chroma, self.width, self.height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
         self._diffuse_images = images if isinstance(images, wp.array) else wp.array(images, dtype=wp.float16, device=device)
         self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float, device=device)
@@ -271,10 +257,10 @@ class Relighter:
         """The per-light images of ``source`` (a residual, decoded here, or a diffuse model's images) at the
         output size on the device, (n, H W, C) float16: a low-rank residual decoded on a CUDA device
         where it can be (``decode_residual``), else made on the host ``_DECODE_BLOCK`` lights at a time."""
-        if source is self.field.residual and self.device.is_cuda and _decodes_on_device(source, self.width, self.height, self.device):
+        if source is self.field.residual and self.device.is_cuda and decodes_on_device(source, self.width, self.height, self.device):
             return decode_residual(source, self.device)
         if source is self.field.residual:
-            blocks, count, channels = source.decoded_blocks(block=_DECODE_BLOCK), source.light_count, source.channels
+            blocks, count, channels = decoded_blocks(source, block=_DECODE_BLOCK), source.light_count, source.channels
         else:
             images = source.images
             blocks = ((start, images[start : start + _DECODE_BLOCK]) for start in range(0, len(images), _DECODE_BLOCK))
@@ -738,89 +724,9 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
     return (kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND), False
 
 
-def _decode_on_load(residual, output_pixels: int, decode: str, device) -> bool:
-    """Whether a low-rank ``residual`` is decoded once into images (see ``Relighter``'s ``residual_decode``):
-    for "auto", where its float16 images fit ``DECODED_RESIDUAL_SHARE`` of the free memory of a CUDA
-    ``device`` (else ``DECODED_RESIDUAL_BYTES``) and blending three of them reads less than the basis."""
-    if decode != "auto":
-        return decode == "load"
-    held = residual.light_count * output_pixels * residual.channels * 2
-    per_query = residual.luminance.rank + 1 + (0 if residual.chroma is None else 2 * (residual.chroma.rank + 1))
-    free = device_free_memory(device) if device.is_cuda else None
-    budget = DECODED_RESIDUAL_SHARE * free if free is not None else DECODED_RESIDUAL_BYTES
-    return held <= budget and per_query > 3 * residual.channels
-
-
 def _field_channels(field) -> int:
     if field.residual is not None:
         return field.residual.channels
     return field.diffuse.channel_count if field.diffuse is not None else 1
 
 
-@dataclass(frozen=True)
-class _LowRankArrays:
-    """A ``LowRankStack`` on the device at the output size: mean (P, planes), basis (P, max(k, 1), planes),
-    pixel-major, weights (n, k + 1): each light's basis weights, then its mean weight."""
-
-    mean: wp.array
-    basis: wp.array
-    weights: wp.array
-    rank: int
-    uploaded: bool = True
-
-    @classmethod
-    def empty(cls, device, planes: int) -> _LowRankArrays:
-        return cls(wp.zeros((1, planes), dtype=float, device=device), wp.zeros((1, 1, planes), dtype=float, device=device),
-                   wp.zeros((1, 1), dtype=float, device=device), 0, uploaded=False)
-
-    @classmethod
-    def upload(cls, stack, width: int, height: int, device) -> _LowRankArrays:
-        """The stack at ``width`` x ``height``: at its own size its codes go to the device and are dequantised
-        there (``dequantise_basis``: half the bytes of the float32 basis, no host pass over it), else
-        the dequantised basis is resampled on the host."""
-        planes = stack.mean.shape[2]
-        mean = resample_image(stack.mean, width, height).reshape(height * width, planes)
-        weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
-        array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
-        if stack.rank and stack.mean.shape[:2] == (height, width):
-            codes = wp.array(stack.codes.reshape(stack.rank, height * width, planes), dtype=wp.uint16 if stack.bits == 16 else wp.uint8, device=device)
-            low = stack.ranges[:, 0]
-            step = (stack.ranges[:, 1] - stack.ranges[:, 0]) / np.float32(code_levels(stack.bits))  # float32, as LowRankStack.basis
-            basis = wp.empty((height * width, stack.rank, planes), dtype=float, device=device)
-            wp.launch(kernels.dequantise_basis, dim=(stack.rank, height * width), inputs=[codes, array(low), array(step)], outputs=[basis], device=device)
-            return cls(array(mean), basis, array(weights), stack.rank)
-        if stack.rank:
-            basis = np.stack([resample_image(image, width, height) for image in stack.basis]).reshape(stack.rank, height * width, planes)
-            basis = basis.transpose(1, 0, 2)  # pixel-major: a pixel's k values are contiguous
-        else:
-            basis = np.zeros((height * width, 1, planes), np.float32)
-        return cls(array(mean), array(basis), array(weights), stack.rank)
-
-
-def decode_residual(residual, device) -> wp.array:
-    """Every captured light's image of a low-rank ``residual`` at its own size, decoded on a Warp
-    ``device`` (``decode_low_rank``): (n, H W, C) float16, what ``ResidualModel.decoded_images`` gives
-    (to float32 rounding). The basis is held on the device meanwhile (``_decodes_on_device``)."""
-    pixels = residual.height * residual.width
-    lum = _LowRankArrays.upload(residual.luminance, residual.width, residual.height, device)
-    chroma = _LowRankArrays.empty(device, 2) if residual.chroma is None else _LowRankArrays.upload(residual.chroma, residual.width, residual.height, device)
-    scale = np.ones(1, np.float32) if residual.scale is None else residual.scale.reshape(-1)
-    out = wp.empty((residual.light_count, pixels, residual.channels), dtype=wp.float16, device=device)
-    wp.launch(kernels.decode_low_rank, dim=(residual.light_count, pixels),
-              inputs=[lum.mean, lum.basis, lum.weights, chroma.mean, chroma.basis, chroma.weights,
-                      wp.array(np.ascontiguousarray(scale, np.float32), dtype=float, device=device)], outputs=[out], device=device)
-    return out
-
-
-def _decodes_on_device(residual, width: int, height: int, device) -> bool:
-    """Whether ``decode_residual`` serves a ``Relighter`` at ``width`` x ``height``: the residual's own size,
-    and its float32 basis, codes and decoded images within ``_DEVICE_DECODE_SHARE`` of the free memory."""
-    if residual.luminance is None or (residual.height, residual.width) != (height, width):
-        return False
-    pixels = height * width
-    stacks = [stack for stack in (residual.luminance, residual.chroma) if stack is not None]
-    basis = sum(4 * pixels * max(stack.rank, 1) * stack.mean.shape[2] for stack in stacks)
-    codes = max(stack.codes.nbytes for stack in stacks)
-    images = 2 * residual.light_count * pixels * residual.channels
-    free = device_free_memory(device)
-    return free is not None and basis + codes + images <= _DEVICE_DECODE_SHARE * free

@@ -1,17 +1,7 @@
-"""The fit's last stages: which Gaussians move, the highlight colour, and the residual (method.md section 6).
-
-- ``decide_moving``: a Gaussian moves when its retargeted selves land on the neighbours' specular
-  images (the median over its outgoing edges of ``kernels.support``); otherwise it stays where it
-  is and blends with the barycentric weight, like the alpha baseline.
-- ``highlight_colour``: c(x), the colour of the specular part under the Gaussians, of luminance 1,
-  pulled towards white where they draw little.
-- ``build_residual``: R_i = I_i - c(x) R(x; G_i) for every light (all of its Gaussians: a static one
-  blended in place adds back exactly what its light's residual lacks), compressed to low-rank
-  luminance and chroma stacks (``ResidualModel``) or kept whole.
-- ``learn_residual``: the residual learned instead (``kernels.neural``); ``check_learned`` decides
-  whether the learned residual keeps the moving Gaussians or learns the images alone.
-
-Units: images in the field's units (the fit's exposure applied); Gaussians in image heights.
+"""The residual's rate search: how many basis images each stack keeps and how finely each is quantised so
+that the whole field file fits its size budget, every kept image adding the same squared RGB error.
+The bytes are the deflated codes as the field file stores them: estimated from sampled rows,
+calibrated on whole images, and measured exactly before the answer is taken.
 """
 
 from __future__ import annotations
@@ -21,62 +11,27 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-import warp as wp
 
 from ..io.codes import DeflatedCodes, deflated_piece, stored_bytes, stored_codes
-from ..io.memory import available_memory
-from ..io.metrics import srgb_psnr
-from ..kernels.gram import DeviceProducts
-from ..kernels.neural import NeuralDecoder, train_decoder
-from ..kernels.raster import Rasterizer
-from ..kernels.stacks import NormalisedStacks
-from ..kernels.support import support_fractions
-from ..kernels.transfer import rows_up, to_host
-from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
-from ..model.errors import InputError
-from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.gaussians import GaussianParams
 from ..model.residual import (
-    LUMINANCE_WEIGHTS,
     LowRankStack,
-    NeuralResidual,
-    PrincipalImages,
-    ResidualModel,
-    clamped_steps,
     code_levels,
-    colour_codes,
-    colour_from_codes,
-    encode_display,
-    luminance_of,
-    quantised_codes,
-    to_opponent,
 )
-from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, mapped_empty, parallel_map, submit
+from ..model.threads import (
+    NUMPY_THREADS,
+    cancel_and_wait,
+    gather,
+    mapped_empty,
+    parallel_map,
+    submit,
+)
+from .inputs import BAND_VALUES
+from .principal import PrincipalImages
+from .quantise import clamped_steps, quantised_codes
 
-__all__ = ["CHROMA_GAIN", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HELD_STACK_SHARE", "HeldImages", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "hold_images", "holds_images", "learn_residual", "quantised_bytes", "RateSample", "render_own", "render_own_on_device", "residual_of", "residual_scale", "sampled_rows"]
+__all__ = ["FILE_BYTES", "LIGHT_BYTES", "RateSample", "StackPlan", "allocate", "allocate_steps", "component_bytes", "deflated_bytes", "finest_within", "gaussian_bytes", "quantised_bytes", "sampled_rows"]
 
-SCALE_FLOOR = 2.0**-10
-"""Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
-near black, so a black background is approximated to well under one step."""
-LUMINANCE_GAIN = 3.0
-"""Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
-CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
-"""The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
-HELD_STACK_SHARE = 0.25
-"""The normalised luminance and chroma stacks (float32, as large as the images) are held while they take
-at most this share of the available memory; beyond it they are computed from the images a block at a
-time in each of their three passes, and their principal directions (as large) are kept in a temporary
-file mapped into memory (``spilled_empty``). The 250-light 480x270 donut: 0.5 GB less at the peak, 3.8 s
-more on the 2-core CPU (``benchmarks/bench_residual.py``); a 100-light 3840x2160 capture's stacks are 10 GB.
-Where a CUDA device holds the stacks instead (``kernels.stacks``), the same share decides whether the
-principal images' host copy goes to that mapped file, where the device has no room for them (else they
-stay there, and the host keeps no copy)."""
-HELD_IMAGES_BYTES = 1 << 30
-"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are held on a
-CUDA device for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of its free memory:
-the images from the segmentation's upload on (through estimation, retargeting and the paths), the own highlights from their
-render; larger ones go up band by band where each stage reads them (the stacks: 0.1 s of the 480x270 fit on the lent H100)."""
-HELD_IMAGES_SHARE = 0.1
-_BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 _TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each
 # cost more to hand out than to deflate)
 _STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: up to this much a group (64 MiB; two groups held), so
@@ -85,8 +40,8 @@ _STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device
 _DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
-_FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
-_LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
+FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
+LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 16  # _search's evaluations at most
 _SEARCH_DEPTH = 35.0  # the search's finest distortion: this far (natural log) under the top energy, far below any 16-bit quantisation noise
@@ -112,127 +67,6 @@ _FIRST_SLACK = 0.05  # the first search, on uncalibrated sampled bytes (2-5% off
 _CALIBRATION_EVERY = 8  # the first search's answer: every this many-th kept image deflated whole, to scale the sampled bytes ...
 _CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer than twice as many)
 _FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (uncalibrated samples were 0-4% off the whole
-# images with an 8th of the rows, 2% at 1,000 x 1080p with a 16th; a wrong "plain" choice is measured on every row after all)
-_TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
-_EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
-
-
-@dataclass(frozen=True)
-class MoveDecision:
-    """Attributes: moving (n, N) bool; support (E, N) float64 per directed edge (-1 where a slot draws nothing)."""
-
-    moving: np.ndarray
-    support: np.ndarray
-
-
-def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray, specular_luminance: wp.array,
-                  *, settings: ResidualSettings, raster: RasterSettings) -> MoveDecision:
-    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``."""
-    n, capacity = estimated.active.shape
-    device = specular_luminance.device
-    batch = GaussianBatch.from_numpy(retargeted, device=device, requires_grad=False)
-    values = support_fractions(batch, edges[:, 1], specular_luminance, settings=raster)
-    values = np.where(retargeted.active, values, np.nan)
-    values[values < 0] = 0.0  # a retargeted Gaussian that draws nothing explains nothing
-    if settings.move_support <= 0:
-        return MoveDecision(estimated.active.copy(), values)
-    order = np.argsort(edges[:, 0], kind="stable")
-    sources = edges[order, 0]
-    starts = np.searchsorted(sources, np.arange(n + 1))
-    for_light = values[order]
-    # median over each light's outgoing edges, per slot: lights have 3..~8 edges, so pad to the most
-    most = int(np.diff(starts).max()) if len(edges) else 0
-    padded = np.full((n, max(most, 1), capacity), np.nan)
-    position = np.arange(len(edges)) - np.repeat(starts[:-1], np.diff(starts))
-    padded[sources, position] = for_light
-    median = _nan_median(padded)
-    moving = estimated.active & (np.nan_to_num(median, nan=0.0) >= settings.move_support)
-    return MoveDecision(moving, values)
-
-
-def _nan_median(values: np.ndarray) -> np.ndarray:
-    """``np.nanmedian(values, axis=1)`` of an (n, k >= 1, m) array (NaN where a column holds none), without
-    its warnings and many times faster on mostly empty columns: the values sorted (NaN last), the
-    middle one or the mean of the middle two of each column's count."""
-    ordered = np.sort(values, axis=1)
-    count = np.count_nonzero(~np.isnan(values), axis=1)  # (n, m)
-    low = np.take_along_axis(ordered, (np.maximum(count - 1, 0) // 2)[:, None], axis=1)[:, 0]
-    high = np.take_along_axis(ordered, (count // 2)[:, None], axis=1)[:, 0]  # count // 2 <= k - 1
-    return np.where(count > 0, (low + high) / 2.0, np.nan)
-
-
-@dataclass
-class HeldImages:
-    """A fit's images (n, H W, C) and their own highlights (n, H W; None: not held) as float32 device arrays,
-    sent up once for the move check's scores and the residual's stacks (``hold_images``); ``build_residual``
-    lets go of both (None) once its stacks have read them."""
-
-    images: wp.array | None
-    own: wp.array | None
-
-
-def holds_images(shape: tuple[int, ...], device) -> bool:
-    """Whether ``hold_images`` holds images of ``shape`` (n, H, W, C) and their own highlights on ``device``: a CUDA
-    device where together they take at most ``HELD_IMAGES_BYTES`` and ``HELD_IMAGES_SHARE`` of its free memory."""
-    device = wp.get_device(device)
-    n, height, width, channels = shape
-    nbytes = 4 * n * height * width * (channels + 1)
-    return device.is_cuda and nbytes <= HELD_IMAGES_BYTES and nbytes <= HELD_IMAGES_SHARE * device.free_memory
-
-
-def hold_images(images: np.ndarray, own: np.ndarray, device, *, images_up: wp.array | None = None,
-                own_up: wp.array | None = None) -> HeldImages | None:
-    """``images`` (n, H, W, C) and ``own`` (n, H, W) on a CUDA ``device`` where ``holds_images``; else None (each
-    stage sends up what it reads). ``images_up``, ``own_up``: the same values there already (float32, contiguous),
-    held as they are instead of sent up again (``images_up`` given: held whatever the memory is free now, as
-    ``holds_images`` was asked before it was sent up)."""
-    device = wp.get_device(device)
-    n, height, width, channels = images.shape
-    if images_up is None and not holds_images(images.shape, device):
-        return None
-    if images_up is None:
-        images_up = rows_up(np.asarray(images, np.float32).reshape(n, -1), device)
-    if own_up is None:
-        own_up = rows_up(np.asarray(own, np.float32).reshape(n, -1), device)
-    return HeldImages(images_up.reshape((n, height * width, channels)), own_up.reshape((n, height * width)))
-
-
-def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> wp.array:
-    """(n, H, W) float32 on ``device``: R(x; G_i), every light's own Gaussians drawn as the relighter draws them
-    (in parts where the lights' pixels pass one launch's 2^31, e.g. 100 lights of 24 megapixels)."""
-    rasterizer = Rasterizer(height, width, settings=raster, device=device)
-    n, most = estimated.problem_count, rasterizer.problems_per_launch
-    if n <= most:
-        return rasterizer.render(GaussianBatch.from_numpy(estimated, device=device, requires_grad=False))
-    own = wp.empty((n, height, width), dtype=float, device=device)
-    for start in range(0, n, most):
-        rows = np.arange(start, min(start + most, n))
-        rasterizer.render(GaussianBatch.from_numpy(estimated.take(rows), device=device, requires_grad=False), out=own[start:rows[-1] + 1])
-    return own
-
-
-def render_own(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> np.ndarray:
-    """``render_own_on_device`` in host memory."""
-    return to_host(render_own_on_device(estimated, height, width, raster=raster, device=device))
-
-
-def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:
-    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 4] in steps of ``COLOUR_STEP``.
-
-    ``specular``: (n, H, W, 3) the segmentation's specular part; ``own``: (n, H, W) the moving
-    Gaussians' images. The luminance of c is 1 up to the clip, so c G keeps G's luminance.
-    """
-    n = len(own)
-    numerator = np.empty(specular.shape[1:], np.float64)
-
-    def sums(band: slice) -> None:  # float64 a band of rows at a time (no float64 copy of the whole stack), the bands in threads
-        numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64), specular[:, band].astype(np.float64))
-
-    parallel_map(sums, _row_bands(specular))
-    denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)
-    weight = prior * n
-    colour = (numerator + weight) / (denominator[..., None] + weight)
-    return colour_from_codes(colour_codes(colour))  # kept as the file keeps it: 8 bits per channel
 
 
 def deflated_bytes(array: np.ndarray) -> int:
@@ -313,7 +147,7 @@ class RateSample:
     ``sampled_rows`` (every row where ``whole``), planes first and stored as the file stores them
     (``io.codes``: a band's first row less the row above it, quantised for that), quantised from
     the whole images' minima and spans as ``quantise_basis`` does. ``bytes`` estimates a quantisation's
-    stored bytes from them; on every row it is exactly ``component_bytes`` of ``LowRankStack.quantised``.
+    stored bytes from them; on every row it is exactly ``component_bytes`` of ``quantise.quantised_stack``.
     Where the principal images are held on a device (``PrincipalImages.held``), they are quantised
     and stored there, and the host deflates what comes back."""
 
@@ -418,7 +252,7 @@ class RateSample:
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
             return [deflate(images.start + offset, image) for offset, image in enumerate(stored)]
 
-        size = max(1, min(-(-len(indices) // NUMPY_THREADS), _BAND_VALUES // max(self.values, 1)))
+        size = max(1, min(-(-len(indices) // NUMPY_THREADS), BAND_VALUES // max(self.values, 1)))
         return [entry for part in parallel_map(group, _index_runs(indices, size)) for entry in part]
 
     def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, pieces) -> list:
@@ -486,7 +320,7 @@ def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
 
 def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
-    ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights): every row
+    ``quantise.quantised_stack`` does (``component_bytes``, without fitting the weights): every row
     deflated (the pieces held in ``keep`` when given)."""
     return RateSample(principal, len(steps), whole=True).bytes(steps, bits=bits, keep=keep)
 
@@ -685,7 +519,9 @@ def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: fl
     lies beyond it); None where no offset fits the measurement (nothing kept, or bytes the ranges and
     weights alone exceed). Both roots by Brent's method (the model's bytes rise with the offset and
     fall with the distortion)."""
-    from scipy.optimize import brentq  # only the sampled rate search needs it (the fit command imports it while its images load)
+    from scipy.optimize import (
+        brentq,  # only the sampled rate search needs it (the fit command imports it while its images load)
+    )
 
     def fitted(offset: float) -> float:
         return _modelled_bytes(plans, levels, log_distortion, offset) - measured
@@ -702,319 +538,3 @@ def _modelled_distortion(plans: list[StackPlan], levels: int, log_distortion: fl
     if short(highest) <= 0:
         return highest
     return brentq(short, lowest, highest, xtol=_MODEL_TOLERANCE)
-
-
-def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,
-                   device=None, held_images: HeldImages | None = None) -> ResidualModel:
-    """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
-    On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
-    equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS. There too, where they
-    fit (``kernels.gram.HELD_SHARE`` of its free memory), the normalised stacks are made and held
-    there (``kernels.stacks``), and then the principal images, which are quantised there
-    (``kernels.quantise``).
-
-    Compressed, a stack whose rank the settings fix keeps that many basis images, each quantised over
-    its whole range. Otherwise the whole field is kept within ``size_budget`` of the 8-bit capture,
-    counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array:
-    ``allocate_steps`` chooses, for the luminance and chroma together, how many basis images to keep
-    and how finely to quantise each, so that each adds the same squared RGB error (at most
-    ``max_luminance_rank`` luminance images, at least ``min_luminance_rank``). The codes are 8 or 16
-    bits as the settings say, or else those of the lower squared error the rate-distortion model
-    predicts (``StackPlan.distortion``); 16 bits are not tried where 8-bit codes already hold every
-    kept image's step (16-bit codes would store the same quantisation in more bytes). ``held_images``:
-    the images (and, where not None, ``own``) on the device already (``HeldImages``), read there.
-    """
-    images = np.asarray(images, dtype=np.float32)
-    if images.ndim == 3:
-        images = images[..., None]
-    n, height, width, channels = images.shape
-    tint = np.broadcast_to(np.ones((1, 1, channels), np.float32) if colour is None else colour, (height, width, channels))
-    if not settings.compressed:
-        stored = np.empty(images.shape, np.float16)
-
-        def subtract(band: slice) -> None:
-            stored[:, band] = residual_of(images[:, band], own[:, band], tint[band])
-
-        parallel_map(subtract, _row_bands(images))
-        return ResidualModel(images=stored, highlight_colour=colour)
-    products = _device_products(device)
-    available = available_memory()
-    held = available is None or n * height * width * channels * 4 <= HELD_STACK_SHARE * available
-    if products is not None and products.holds(NormalisedStacks.nbytes(images.shape)):
-        # on the device: the stacks made there from the images' bands, and read there by every product; the
-        # principal images there too where they fit, else on the host (in a file mapped into memory where
-        # the host's stacks would not be held)
-        stacks = NormalisedStacks.make(images, own, tint, products, scale_of=_scale_of_mean_square,
-                                       held_images=None if held_images is None else held_images.images,
-                                       held_own=None if held_images is None else held_images.own)
-        if held_images is not None:  # read: the device's memory let go for the principal images
-            held_images.images = held_images.own = None
-        light_scale = np.sqrt(stacks.squares / (height * width))
-        luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
-        chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products)
-        return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes, n * height * width * channels)
-    # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
-    # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
-    scale = np.empty((height, width), np.float32)
-    luminance_stack = mapped_empty((n, height, width, 1), np.float32) if held else None
-    chroma_stack = mapped_empty((n, height, width, 2), np.float32) if held and channels == 3 else None
-
-    def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
-        residual = residual_of(images[:, band], own[:, band], tint[band])
-        y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual, with_chroma=chroma_stack is not None)
-        scale[band] = residual_scale(y)
-        normalised = y / scale[band]
-        if luminance_stack is not None:
-            luminance_stack[:, band, :, 0] = normalised
-        if chroma_stack is not None:
-            chroma_stack[:, band] = opponent / scale[band, :, None]
-        return np.sum(normalised**2, axis=(1, 2))
-
-    squares = sum(parallel_map(normalise, _row_bands(images)))
-    light_scale = np.sqrt(squares / (height * width))  # both stacks weigh each light by its brightness
-    if held:
-        luminance = PrincipalImages.of(luminance_stack, light_scale, products=products)
-        chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale, products=products)
-    else:  # read from the images a block at a time (three passes each instead of one), never held whole; the principal
-        # directions, as large, in a file mapped into memory (paged out as memory runs short), or on the device where the
-        # products are summed there and it has room for them (no host copy then)
-        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True, products=products)
-        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True,
-                                                                      products=products)
-    luminance_stack = chroma_stack = None  # the principal images hold them now
-    return _compressed(luminance, chroma, scale, colour, settings, other_bytes, n * height * width * channels)
-
-
-def _device_products(device) -> DeviceProducts | None:
-    """Where ``build_residual`` sums its stacks' products and holds them: a CUDA device's
-    ``DeviceProducts``; None elsewhere (the host's BLAS, the host's stacks)."""
-    return DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
-
-
-def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray, colour: np.ndarray | None,
-                settings: ResidualSettings, other_bytes: int, capture_values: int) -> ResidualModel:
-    """``build_residual``'s model from the stacks' principal images: the bits and steps chosen within the
-    size budget (of ``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
-    n = luminance.light_count
-    budget = settings.size_budget * capture_values
-    stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]  # the other planes the file deflates, in threads (4K: 1.7 s on one)
-    stored += [colour_codes(colour)] if colour is not None else []
-    stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
-    fixed = other_bytes + _FILE_BYTES + (_LIGHT_BYTES + 8) * n + sum(parallel_map(deflated_bytes, stored)) + (4 * n if chroma is not None else 0)
-    # both widths when the settings leave it open: 8-bit first, measured on every row only if 16 bits do
-    # not beat it (its every image at the finest 8-bit step is plain from the sampled bytes alone, and
-    # the whole images' bytes can only make it coarser)
-    options = []
-    for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        options.append(_quantisation(luminance, chroma, settings, bits, budget - fixed, plain_finest=bits == 8 and settings.basis_bits == 0))
-        if bits == 8 and settings.basis_bits == 0 and not options[-1].finer_with_16_bits:
-            break  # 16-bit codes would hold the same quantisation in more bytes
-    choice = min(options, key=lambda option: option.distortion)  # the first on ties: 8 bits
-    if not choice.checked:
-        options[0] = _quantisation(luminance, chroma, settings, 8, budget - fixed)
-        choice = min(options, key=lambda option: option.distortion)
-    stacks = {name: LowRankStack.quantised(principal, choice.steps[name], bits=choice.bits, deflated=choice.deflated.get(name))
-              for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
-    return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
-
-
-@dataclass(frozen=True)
-class _Quantisation:
-    """One bit depth's choice for the stacks: their steps by name, the squared RGB error the model
-    predicts (``StackPlan.distortion``), and whether 16-bit codes would quantise any kept image finer
-    at the same distortion."""
-
-    bits: int
-    steps: dict
-    distortion: float
-    finer_with_16_bits: bool
-    checked: bool = True  # False: ``finest_within``'s choice, its bytes not yet measured on every row
-    deflated: dict = dataclasses.field(default_factory=dict)  # by name: the pieces its last measurement on every row deflated
-
-
-def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float,
-                  *, plain_finest: bool = False) -> _Quantisation:
-    """The steps of both stacks at ``bits`` within ``left`` bytes: a stack whose rank the settings fix,
-    each image over its whole range; the others by ``allocate``, or by ``finest_within`` where
-    ``plain_finest`` is set, no rank is fixed and the sampled bytes make the choice plain (unchecked)."""
-    levels = code_levels(bits)
-    steps, plans, distortion, finer, deflated = {}, {}, 0.0, False, {}
-    for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
-        if principal is None:
-            continue
-        if fixed_rank:
-            rank = min(fixed_rank, principal.count - 1)
-            steps[name] = principal.spans[:rank] / levels
-            distortion += StackPlan(principal, gain, rank).distortion(steps[name])
-            deflated[name] = DeflatedCodes()
-            left -= quantised_bytes(principal, steps[name], bits=bits, keep=deflated[name])
-            finer = finer or rank > 0
-        else:
-            most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
-            plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
-            deflated[name] = plans[name].deflated
-    checked = True
-    if plans:
-        plain = finest_within(list(plans.values()), left, bits=bits) if plain_finest and not steps else None
-        checked = plain is None
-        log_distortion, chosen = plain if plain is not None else allocate(list(plans.values()), left, bits=bits)
-        for (name, plan), plan_steps in zip(plans.items(), chosen):
-            steps[name] = plan_steps
-            distortion += plan.distortion(plan_steps)
-            fine = plan.steps(np.exp(log_distortion), code_levels(16))
-            finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
-    return _Quantisation(bits, steps, distortion, finer, checked, deflated)
-
-
-class NormalisedResidual:
-    """The normalised residual N = (I - c(x) R(x; G)) / s(x) of (n, H, W, C) images as a ``StackSource``:
-    its luminance (P = 1) or its chroma (P = 2, B - Y and R - Y), computed a block of columns at a
-    time (the lights in threads), float32 values as a held stack would keep them.
-
-    Args:
-        images: (n, H, W, C) float32 images, field units.
-        own: (n, H, W) float32 their own highlights.
-        tint: (H, W, C) or (1, 1, C) float32 highlight colour.
-        scale: (H, W) float32 s(x).
-        kind: ``"luminance"`` or ``"chroma"``.
-    """
-
-    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, scale: np.ndarray, kind: str):
-        n, height, width, channels = images.shape
-        self.planes = 1 if kind == "luminance" else 2
-        self.kind = kind
-        self.light_count = n
-        self.shape = (height, width, self.planes)
-        self.images = images.reshape(n, height * width, channels)
-        self.own = own.reshape(n, height * width)
-        self.tint = np.broadcast_to(tint, (height, width, channels)).reshape(height * width, channels)
-        self.scale = scale.reshape(height * width)
-
-    def block(self, columns: slice) -> np.ndarray:
-        first, last = columns.start // self.planes, -(-columns.stop // self.planes)  # the pixels the columns cover
-        pixels = slice(first, last)
-        out = np.empty((self.light_count, (last - first) * self.planes), np.float64)
-
-        def part(lights: slice) -> None:
-            residual = residual_of(self.images[lights, pixels], self.own[lights, pixels], self.tint[pixels])
-            if residual.shape[-1] == 1:
-                out[lights] = (residual[..., 0].astype(np.float64) / self.scale[pixels]).astype(np.float32)
-            elif self.kind == "luminance":
-                out[lights] = (luminance_of(residual) / self.scale[pixels]).astype(np.float32)
-            else:
-                out[lights] = (to_opponent(residual)[1] / self.scale[pixels, None]).astype(np.float32).reshape(len(residual), -1)
-
-        step = max(1, -(-self.light_count // (2 * NUMPY_THREADS)))
-        parallel_map(part, [slice(start, min(start + step, self.light_count)) for start in range(0, self.light_count, step)])
-        offset = first * self.planes
-        return out[:, columns.start - offset : columns.stop - offset]
-
-
-def residual_of(images: np.ndarray, own: np.ndarray, tint: np.ndarray) -> np.ndarray:
-    """R = I - c(x) R(x; G): (..., C) images less their own (...) highlights in the (..., C) colour
-    ``tint`` (broadcast from the right: pixels, rows or whole images), float32."""
-    return images - own[..., None] * tint
-
-
-def _row_bands(images: np.ndarray) -> list[slice]:
-    """Bands of rows of an (n, H, W, C) stack of about ``_BAND_VALUES`` values each."""
-    n, height = images.shape[:2]
-    rows = max(1, _BAND_VALUES // max(1, images[0, 0].size * n))
-    return [slice(top, min(top + rows, height)) for top in range(0, height, rows)]
-
-
-def residual_scale(luminance: np.ndarray) -> np.ndarray:
-    """(H, W) float32 s(x): the RMS over the lights of a pixel's (n, H, W) residual luminance, at least
-    ``SCALE_FLOOR``, rounded to float16 as the file keeps it."""
-    return _scale_of_mean_square(np.mean(np.square(luminance, dtype=np.float64), axis=0))
-
-
-def _scale_of_mean_square(mean_square: np.ndarray) -> np.ndarray:
-    """``residual_scale`` from each pixel's float64 mean over the lights of its squared residual luminance."""
-    return np.maximum(np.sqrt(mean_square), SCALE_FLOOR).astype(np.float16).astype(np.float32)
-
-
-def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,
-                   settings: ResidualSettings, device, log=None, progress=None, used: np.ndarray | None = None,
-                   initial: NeuralResidual | None = None, tune: bool = False) -> tuple[ResidualModel, list[float]]:
-    """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
-    own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
-    display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after each epoch, ``log``
-    a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to go on
-    training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
-    check's winner learning the lights it left out). Returns it and the loss per epoch."""
-    images = np.asarray(images, dtype=np.float32)
-    if images.ndim != 4 or images.shape[3] != 3:
-        raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
-    n, height, width, _ = images.shape
-    tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
-    targets = encode_display(residual_of(images, own, tint) / np.float32(factor)).reshape(n, height * width, 3)
-
-    def say(message: str) -> None:  # once an epoch
-        if progress is not None:
-            progress(1)
-        if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
-            log(f"learned residual: {message}")
-
-    rates = {"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune else {"seconds": float(settings.learned_seconds)}
-    start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32), [np.asarray(w, np.float32) for w in initial.weights])
-    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if wp.get_device(device).is_cuda else LEARNED_BATCH_CPU)
-    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), batch=batch, log=say, used=used,
-                                   initial=start, **rates)
-    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
-    return ResidualModel(learned=learned, highlight_colour=colour), history
-
-
-@dataclass(frozen=True)
-class LearnedCheck:
-    """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the learned
-    residual plus the moved highlights (``with_gaussians``) and of the images learned alone, and the
-    winner's model (learned without those lights)."""
-
-    lights: np.ndarray
-    with_gaussians: np.ndarray
-    images_alone: np.ndarray
-    winner: ResidualModel | None = None
-
-    @property
-    def keeps_gaussians(self) -> bool:
-        """True unless the images learned alone scored higher on average (no light checked: True)."""
-        return not len(self.lights) or float(np.mean(self.with_gaussians)) >= float(np.mean(self.images_alone))
-
-    def report(self) -> dict:
-        """Plain figures for the fit report."""
-        if not len(self.lights):
-            return {"lights": 0, "keeps_gaussians": True}
-        return {
-            "lights": int(len(self.lights)),
-            "with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
-            "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3),
-            "keeps_gaussians": self.keeps_gaussians,
-        }
-
-
-def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, lights: np.ndarray,
-                  highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device, progress=None) -> LearnedCheck:
-    """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
-    ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
-    images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
-    (NeuralRTI). At each left-out light the first plus ``highlights`` (m, H, W, 3), the Gaussians moved
-    there from the other lights' triangle (``MoveCheck.kept_highlights``), and the second are scored
-    against the image in 8-bit sRGB. Both train in full because the ranking changes with training
-    (a short run favours the residual, whose Gaussians carry the highlights from the start).
-    ``progress(1)`` after each epoch."""
-    lights = np.asarray(lights, dtype=np.int64)
-    if not len(lights):
-        return LearnedCheck(lights, np.zeros(0), np.zeros(0))
-    used = np.setdiff1d(np.arange(len(images)), lights)
-    scale = np.float32(1.0 / factor)
-    truth = np.asarray(images[lights], np.float32) * scale
-    scores, models = [], []
-    for own_images, tint, added in ((own, colour, highlights), (np.zeros_like(own), None, np.zeros_like(highlights))):
-        model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device, progress=progress, used=used)
-        predicted = np.maximum(model.learned.images(directions[lights]) + added, 0.0)  # as the relighter clamps
-        scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
-        models.append(model)
-    check = LearnedCheck(lights, scores[0], scores[1])
-    return dataclasses.replace(check, winner=models[0] if check.keeps_gaussians else models[1])

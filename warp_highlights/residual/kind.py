@@ -1,0 +1,40 @@
+"""Which residual a fit builds: ``ResidualSettings.kind`` resolved once, when the fit starts, from "auto" to
+the concrete kind for the device and the capture's size."""
+
+from __future__ import annotations
+
+import logging
+
+import warp as wp
+
+from ..model.config import RESIDUAL_KINDS
+from ..model.errors import InputError
+
+__all__ = ["CONCRETE_KINDS", "resolve_kind"]
+
+CONCRETE_KINDS = tuple(kind for kind in RESIDUAL_KINDS if kind != "auto")
+"""The kinds a fitted field can have: "lowrank", "learned", "images", "none"."""
+
+_LOG = logging.getLogger(__name__)
+
+
+def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tuple[int, int] | None = None) -> str:
+    """The concrete kind for ``kind`` (``RESIDUAL_KINDS``) on a Warp ``device``: "auto" is "learned" on a CUDA
+    device and "lowrank" elsewhere. Given ``light_count`` and the working ``size`` (width, height), a learned
+    residual past the decoder's 2^31 (light, pixel) samples is refused where asked for (``InputError``) and
+    replaced by "lowrank", with a warning, where "auto" chose it."""
+    if kind not in RESIDUAL_KINDS:
+        raise InputError(f"residual kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{kind}'")
+    if kind != "auto" and kind != "learned":
+        return kind
+    concrete = kind if kind == "learned" else "learned" if wp.get_device(device).is_cuda else "lowrank"
+    if concrete == "learned" and light_count is not None and size is not None:
+        from ..kernels.neural import samples_fit
+
+        if not samples_fit(light_count, size[0] * size[1]):
+            too_many = f"{light_count} lights of {size[0]}x{size[1]} pass the learned residual's 2^31 samples (lights x pixels)"
+            if kind == "learned":
+                raise InputError(f"{too_many}; use --residual lowrank, or a smaller --size")
+            _LOG.warning("%s: the residual is compressed to low rank instead", too_many)
+            return "lowrank"
+    return concrete
