@@ -22,6 +22,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``regions``: the residual's connected regions labelled and measured on a device (``ResidualRegions``).
 - ``transfer``: large device arrays into host pages mapped first (``to_host``); bands of a stack up and
   down an image's rows at a time (``rows_up``, ``rows_down``).
+- ``warmup``: Warp started and a device's context made in a thread (``DeviceWarmup``); work in a thread (``InBackground``).
 """
 
 from warp_highlights._api import lazy_exports
@@ -32,6 +33,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
     modules={
         "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
-        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "warmup": "warmup",
     },
 )

@@ -344,7 +344,7 @@ def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small
     import threading
 
     import warp_highlights.io.dataset as dataset_module
-    import warp_highlights.io.warmup as warmup_module
+    import warp_highlights.kernels.warmup as warmup_module
 
     order, decoded = [], threading.Event()
     real_warm, real_reads = warmup_module.DeviceWarmup._warm, {name: getattr(dataset_module, name) for name in ("read_image", "read_pixels")}

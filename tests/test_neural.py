@@ -236,7 +236,7 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     (the Gaussians kept); moved highlights that add a wrong bright blob lose to the images alone, whose
     model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
     from warp_highlights.fit.residual import check_learned
-    from warp_highlights.io.metrics import srgb_psnr
+    from warp_highlights.quality.metrics import srgb_psnr
     from warp_highlights.model.config import ResidualSettings
 
     rng = np.random.default_rng(7)

@@ -116,8 +116,8 @@ def _run_fit(args) -> int:
         check_output_file(Path(args.report), overwrite=args.overwrite)
     size = args.size
     from ..io.dataset import LoadStopped, ReflectanceField
-    from ..io.memory import PeakMemory
-    from ..io.warmup import DeviceWarmup, InBackground
+    from ..kernels.warmup import DeviceWarmup, InBackground
+    from ..model.memory import PeakMemory
 
     started = time.perf_counter()  # the summary's time includes the pipeline's imports from here on
 
@@ -192,7 +192,7 @@ def _gaussian_size_text(report: dict) -> str:
 
 def _peak_text(memory: dict) -> str:
     """'host 1.2 GB (residual compression), device 3.4 GB (estimation)': each kind's largest stage."""
-    from ..io.memory import bytes_text
+    from ..model.memory import bytes_text
 
     parts = []
     for kind in ("host", "device"):

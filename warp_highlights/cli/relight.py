@@ -105,7 +105,7 @@ def learned_on_cpu_note(field, device) -> str | None:
 
 def _make_relighter(args, field, *, methods: tuple[str, ...]):
     """A Relighter for the command's options; loads the dataset when a method needs it."""
-    from ..io.memory import check_memory
+    from ..model.memory import check_memory
     from ..relight.relighter import Relighter, alpha_inputs
 
     device = check_device(args.device)
@@ -307,7 +307,7 @@ def _check_animate(args) -> None:
 def _run_evaluate(args) -> int:
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import load_field
-    from ..io.metrics import scoring_processes
+    from ..quality.metrics import scoring_processes
     from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.metrics import psnr, psnr_of_mse
 from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss, clipped_mse
@@ -32,6 +31,7 @@ from ..model.config import (
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.threads import core_count
+from ..quality.metrics import psnr, psnr_of_mse
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 

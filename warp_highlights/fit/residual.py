@@ -24,8 +24,6 @@ import numpy as np
 import warp as wp
 
 from ..io.codes import DeflatedCodes, deflated_piece, stored_bytes, stored_codes
-from ..io.memory import available_memory
-from ..io.metrics import srgb_psnr
 from ..kernels.gram import DeviceProducts
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..kernels.raster import Rasterizer
@@ -35,6 +33,7 @@ from ..kernels.transfer import rows_up, to_host
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, RasterSettings, ResidualSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.memory import available_memory
 from ..model.residual import (
     LUMINANCE_WEIGHTS,
     LowRankStack,
@@ -51,6 +50,7 @@ from ..model.residual import (
     to_opponent,
 )
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, mapped_empty, parallel_map, submit
+from ..quality.metrics import srgb_psnr
 
 __all__ = ["CHROMA_GAIN", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HELD_STACK_SHARE", "HeldImages", "LUMINANCE_GAIN", "LearnedCheck", "MoveDecision", "NormalisedResidual", "StackPlan", "allocate", "allocate_steps", "build_residual", "check_learned", "component_bytes", "decide_moving", "deflated_bytes", "gaussian_bytes", "highlight_colour", "hold_images", "holds_images", "learn_residual", "quantised_bytes", "RateSample", "render_own", "render_own_on_device", "residual_of", "residual_scale", "sampled_rows"]
 

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.memory import device_free_memory
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
 from ..kernels.neural import QueryDecoder
@@ -38,6 +37,7 @@ from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.memory import device_free_memory
 from ..model.residual import code_levels
 from ..model.triangulation import unit_query_directions
 from .interpolation import edge_rows

@@ -652,7 +652,7 @@ def _write_gif(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
 
 def _check_held_frames(frame_count: int, shape: tuple[int, ...], kind: str) -> None:
     """InputError when ``frame_count`` 8-bit frames of ``shape`` would not fit in the memory available."""
-    from ..io.memory import check_memory
+    from ..model.memory import check_memory
 
     frame_bytes = int(np.prod(shape[:2])) * (3 if len(shape) == 3 else 1)
     check_memory(2 * frame_count * frame_bytes, f"a {kind.upper()} of {frame_count} frames", "write fewer frames, a .gif, an .mp4 or a frames folder",
