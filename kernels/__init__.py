@@ -14,6 +14,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``baselines``: the classic RTI fits (PTM, HSH, RBF) as per-pixel linear maps: project and evaluate.
 - ``neural``: a learned per-pixel residual (code + MLP, NeuralRTI-style) trained with tiles and the tape.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
+- ``tape``: the calling thread's tape (``recording``, ``active_tape``), one Adam iteration on it, its CUDA-graph replay.
 - ``chunks``: a batch of independent problems split over CPU threads (Warp runs a CPU launch on one).
 - ``gram``: the residual's Gram matrices, projections and weight sums on a device (``DeviceProducts``).
 - ``rows``: long float32 rows held on a device in parts of at most 2 GiB (``DeviceRows``).
@@ -33,6 +34,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
     modules={
         "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
-        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "warmup": "warmup",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "tape": "tape", "warmup": "warmup",
     },
 )

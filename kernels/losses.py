@@ -34,7 +34,7 @@ from warp_highlights.model.config import (
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
-from ._tape import active_tape
+from .tape import active_tape
 
 __all__ = ["EnergyLoss", "LogL1Loss", "StructureLoss", "clipped_mse", "total"]
 

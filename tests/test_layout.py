@@ -143,6 +143,8 @@ def test_the_walk_sees_lazy_exports_and_imports_inside_functions():
     assert (f"{PACKAGE}.fit", f"{PACKAGE}.kernels.segmentation", None, True) in seen
     assert (f"{PACKAGE}.cli.fit", f"{PACKAGE}.fit.pipeline", "_run_fit", False) in seen
     assert (f"{PACKAGE}.io.fieldfile", PACKAGE, None, False) in seen  # from .. import __version__
+    names = {(source, imp.target): imp.names for source, imp in EDGES}
+    assert "encode_levels" in names[(f"{PACKAGE}.view.animation", f"{PACKAGE}.io.images")]  # the names a from-import takes
 
 
 def test_every_module_is_in_a_layer():
@@ -193,6 +195,46 @@ def test_no_import_cycles():
         tuple(TopologicalSorter(graph).static_order())
     except CycleError as error:
         pytest.fail(f"import cycle: {' -> '.join(error.args[1])}")
+
+
+def _private(name: str) -> bool:
+    """A leading underscore; dunders (``__version__``) are not private."""
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def private_imports_across_sub_packages(edges) -> list[str]:
+    """Each import (statement or lazy export) of a private module or name of one sub-package by another
+    (or by the root). Within a sub-package private names are its own business; the root's ``_api``
+    belongs to no sub-package (every layer may use its ``lazy_exports``)."""
+    wrong = []
+    for source, imp in edges:
+        there = _layer(imp.target)
+        if there is None or _layer(source) == there:
+            continue
+        private = [part for part in imp.target.split(".")[1:] if _private(part)]
+        private += [name for name in imp.names if _private(name) and name not in private]
+        if private:
+            wrong.append(f"{source}:{imp.line} imports {', '.join(private)} of {imp.target}, private to {there}")
+    return wrong
+
+
+def test_no_private_name_is_imported_from_another_sub_package():
+    wrong = private_imports_across_sub_packages(EDGES)
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_private_check_sees_private_modules_and_names():
+    """Guards the guard: made-up imports of a private name, a private module, and a lazy export of one."""
+    edges = [
+        (f"{PACKAGE}.view.animation", _Import(f"{PACKAGE}.io.images", 1, None, ("_srgb_table",))),
+        (f"{PACKAGE}.fit.estimation", _Import(f"{PACKAGE}.kernels._hidden", 2, "f", ("thing",))),
+        (f"{PACKAGE}.fit", _Import(f"{PACKAGE}.kernels._hidden", 3, None, ("_hidden",), lazy=True)),
+        (f"{PACKAGE}.kernels.raster", _Import(f"{PACKAGE}.kernels._hidden", 4, None, ("_thing",))),  # within kernels
+        (f"{PACKAGE}.io.fieldfile", _Import(PACKAGE, 5, None, ("__version__",))),  # a dunder, the root
+    ]
+    assert [line.split(" ")[0] for line in private_imports_across_sub_packages(edges)] == [
+        f"{PACKAGE}.view.animation:1", f"{PACKAGE}.fit.estimation:2", f"{PACKAGE}.fit:3"
+    ]
 
 
 def test_pyproject_lists_every_sub_package():

@@ -25,7 +25,7 @@ from .args import (
     triple_option,
 )
 
-__all__ = ["COMMANDS", "print_evaluation_table", "write_evaluation"]
+__all__ = ["COMMANDS", "parse_baselines", "print_evaluation_table", "write_evaluation"]
 
 RELIT_BYTES_PER_PIXEL = 48
 """Memory one relit pixel takes at most, for the up-front check: the full image (3 float32) and the
@@ -318,7 +318,7 @@ def _run_evaluate(args) -> int:
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
-    baselines = _parse_baselines(args.baselines)
+    baselines = parse_baselines(args.baselines)
     holdout_every = args.holdout_every or field.report.get("holdout_every")  # with --heldout: refused by _check_evaluate
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
@@ -336,7 +336,7 @@ def _run_evaluate(args) -> int:
     return 0
 
 
-def _parse_baselines(text: str) -> tuple[str, ...]:
+def parse_baselines(text: str) -> tuple[str, ...]:
     from ..relight.baselines import BASELINE_METHODS
 
     if text.strip().lower() == "none":

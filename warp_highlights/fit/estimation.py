@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels._tape import ReplayedStep, adam_iteration
+from ..kernels.tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss, clipped_mse
 from ..kernels.optim import GaussianAdam

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels._tape import ReplayedStep, adam_iteration
+from ..kernels.tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, memory_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import atomic_file, atomic_folder, check_file_target, check_folder_target
-from ..io.images import _encode_levels, write_image
+from ..io.images import encode_levels, write_image
 from ..io.lightfile import read_lp
 from ..model.errors import InputError
 
@@ -574,7 +574,7 @@ def _write_frames(
 
 def _srgb8(image: np.ndarray) -> np.ndarray:
     """Linear float frame -> uint8 sRGB codes (clipped to [0, 1])."""
-    return _encode_levels(image, 255, linear=False)
+    return encode_levels(image, 255, linear=False)
 
 
 def _frame_durations(fps: float, ticks_per_second: float) -> Iterator[int]:
