@@ -28,7 +28,11 @@ from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import field_size_report, save_field
 from warp_highlights.model.config import FitSettings
 from warp_highlights.model.lights import LightSet
-from warp_highlights.synth.render import RenderSettings, default_material, render_dataset
+from warp_highlights.synth.render import (
+    RenderSettings,
+    default_material,
+    render_dataset,
+)
 
 # thesis Table 4.2 (donut, RTX 3080), seconds for the whole dataset of 250 lights at 480x270
 THESIS_SECONDS = {"segmentation": 1.5, "estimation": 324.0, "retargeting": 3573.0, "total": 3915.0}

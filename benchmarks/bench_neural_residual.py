@@ -34,13 +34,13 @@ from bench_quality import BASELINES, SIZES, load_case  # noqa: E402
 from warp_highlights.kernels import neural  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
+from warp_highlights.io.fieldfile import save_field  # noqa: E402
+from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
+from warp_highlights.relight.relighter import Relighter
 from warp_highlights.residual.decode import learned_images  # noqa: E402
 from warp_highlights.residual.inputs import render_own  # noqa: E402
 from warp_highlights.residual.learned import learn_residual  # noqa: E402
 from warp_highlights.residual.rate import gaussian_bytes  # noqa: E402
-from warp_highlights.io.fieldfile import save_field  # noqa: E402
-from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
-from warp_highlights.relight.relighter import Relighter
 
 
 def run_case(name: str, scale: str, device, seconds: float, scratch: Path, models: tuple[str, ...] = ("residual", "images")) -> dict:

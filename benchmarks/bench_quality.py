@@ -42,7 +42,12 @@ from warp_highlights.model.config import FitSettings
 from warp_highlights.model.lights import LightSet
 from warp_highlights.model.triangulation import SphericalTriangulation
 from warp_highlights.relight.evaluation import evaluate_field
-from warp_highlights.synth.render import Renderer, RenderSettings, default_material, view_rotation
+from warp_highlights.synth.render import (
+    Renderer,
+    RenderSettings,
+    default_material,
+    view_rotation,
+)
 from warp_highlights.synth.shapes import make_shape
 
 BASELINES = ("ptm", "hsh2", "hsh3", "rbf")

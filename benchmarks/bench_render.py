@@ -21,7 +21,12 @@ import numpy as np
 import warp as wp
 
 from warp_highlights.model.lights import LightSet
-from warp_highlights.synth.render import Renderer, RenderSettings, default_material, view_rotation
+from warp_highlights.synth.render import (
+    Renderer,
+    RenderSettings,
+    default_material,
+    view_rotation,
+)
 from warp_highlights.synth.shapes import make_shape
 
 

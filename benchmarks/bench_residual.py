@@ -8,7 +8,7 @@ colour): the compression's whole work at the dataset's size, without fitting fir
 the normalised luminance and chroma stacks (what a fit does while they take at most
 ``HELD_STACK_SHARE`` of the available memory); ``streamed`` computes them from the images in each
 pass (what it does beyond). Peak memory is the process's resident memory above what it held before
-the call (``io.memory.PeakMemory``). Prints a Markdown table.
+the call (``model.memory.PeakMemory``). Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ def main() -> None:
     wp.config.quiet = True
     import warp_highlights.residual.build as residual_module
     from warp_highlights.io.dataset import ReflectanceField
-    from warp_highlights.io.memory import PeakMemory, resident_memory
     from warp_highlights.io.resample import resize_stack
     from warp_highlights.model.config import FitSettings
+    from warp_highlights.model.memory import PeakMemory, resident_memory
     from warp_highlights.model.threads import NUMPY_THREADS
 
     dataset = ReflectanceField.load(args.dataset, heldout=False, components=False, progress=False)

@@ -1,4 +1,4 @@
-"""What a CUDA device's start and host<->device copies cost: the figures behind ``io.warmup`` and
+"""What a CUDA device's start and host<->device copies cost: the figures behind ``kernels.warmup`` and
 ``kernels.transfer.Staging``.
 
     python benchmarks/bench_transfer.py [--device cuda:0] [--gib 8]

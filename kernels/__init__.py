@@ -14,6 +14,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``baselines``: the classic RTI fits (PTM, HSH, RBF) as per-pixel linear maps: project and evaluate.
 - ``neural``: a learned per-pixel residual (code + MLP, NeuralRTI-style) trained with tiles and the tape.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
+- ``tape``: the calling thread's tape (``recording``, ``active_tape``), one Adam iteration on it, its CUDA-graph replay.
 - ``chunks``: a batch of independent problems split over CPU threads (Warp runs a CPU launch on one).
 - ``gram``: the residual's Gram matrices, projections and weight sums on a device (``DeviceProducts``).
 - ``rows``: long float32 rows held on a device in parts of at most 2 GiB (``DeviceRows``).
@@ -22,6 +23,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``regions``: the residual's connected regions labelled and measured on a device (``ResidualRegions``).
 - ``transfer``: large device arrays into host pages mapped first (``to_host``); bands of a stack up and
   down an image's rows at a time (``rows_up``, ``rows_down``).
+- ``warmup``: Warp started and a device's context made in a thread (``DeviceWarmup``); work in a thread (``InBackground``).
 """
 
 from warp_highlights._api import lazy_exports
@@ -32,6 +34,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
     modules={
         "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
-        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "tape": "tape", "warmup": "warmup",
     },
 )

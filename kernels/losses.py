@@ -34,7 +34,7 @@ from warp_highlights.model.config import (
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
-from ._tape import active_tape
+from .tape import active_tape
 
 __all__ = ["EnergyLoss", "LogL1Loss", "StructureLoss", "clipped_mse", "total"]
 
@@ -153,7 +153,7 @@ def clipped_square_error_rows(image: wp.array3d(dtype=float), target: wp.array3d
 
 def clipped_mse(image: wp.array, target: wp.array) -> np.ndarray:
     """(B,) float64 mean of (clip(R, 0, 1) - clip(S, 0, 1))^2 over (B, H, W) float32 device images: the
-    error of ``io.metrics.psnr``, summed there; only one float64 per row comes to the host."""
+    error of ``quality.metrics.psnr``, summed there; only one float64 per row comes to the host."""
     if image.shape != target.shape or image.ndim != 3:
         raise InputError(f"image {image.shape} and target {target.shape} must be two (B, H, W) arrays of one shape")
     rows = wp.empty(image.shape[:2], dtype=wp.float64, device=image.device)

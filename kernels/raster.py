@@ -41,7 +41,7 @@ from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
-from ._tape import active_tape
+from .tape import active_tape
 from .losses import log_l1_factor, log_l1_gradient
 
 __all__ = [

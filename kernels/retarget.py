@@ -19,7 +19,7 @@ from warp_highlights.model.config import rpx_to_normalized
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
-from ._tape import active_tape
+from .tape import active_tape
 
 __all__ = ["RigidAdam", "RigidMotion", "apply_rigid", "apply_rigid_backward", "gather_images", "rigid_adam_step", "rotate_vec2"]
 

@@ -99,6 +99,8 @@ def test_demo_fits_with_the_residual_it_is_given(choice, tmp_path, monkeypatch):
         (["sheet", "{tmp}", "-o", "{tmp}/s.png", "--thumb-height", "0"], "use 16..1024 pixels"),
         (["sheet", "{tmp}", "-o", "{tmp}/s.png", "--thumb-height", "100000"], "use 16..1024 pixels"),
         (["fit", "{tmp}", "-o", "{tmp}/f.whf", "--exposure", "-2"], "--exposure"),
+        (["collection", "{tmp}", "-o", "{tmp}/out", "--exposure", "x"], "neither 'auto' nor a number"),
+        (["collection", "{tmp}", "-o", "{tmp}/out", "--baselines", "ptm,phong"], "--baselines 'ptm,phong'"),
         (["fit", "{tmp}", "-o", "{tmp}/f.whf", "--workers", "0"], "--workers"),
         (["render", "sphere", "{out}", "--albedo", "red"], "albedo"),
         (["render", "sphere", "{out}", "--albedo", "2,0,0"], "albedo"),

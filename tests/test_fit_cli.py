@@ -343,8 +343,9 @@ def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small
     until an image is decoded, or 2 s); under -v the loading waits for it (Warp's own messages)."""
     import threading
 
+    import warp_highlights.kernels.warmup as warmup_module
+
     import warp_highlights.io.dataset as dataset_module
-    import warp_highlights.io.warmup as warmup_module
 
     order, decoded = [], threading.Event()
     real_warm, real_reads = warmup_module.DeviceWarmup._warm, {name: getattr(dataset_module, name) for name in ("read_image", "read_pixels")}

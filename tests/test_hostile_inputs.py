@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from warp_highlights.io import dataset as dataset_module
-from warp_highlights.io import memory as memory_module
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.images import (
     DEFAULT_MAX_PIXELS,
@@ -23,6 +22,7 @@ from warp_highlights.io.images import (
     write_image,
 )
 from warp_highlights.io.lightfile import read_lp, write_lp
+from warp_highlights.model import memory as memory_module
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
 from warp_highlights.model.triangulation import SphericalTriangulation
@@ -352,7 +352,7 @@ def test_peak_memory_sees_an_array_held_for_a_moment():
     import numpy as np
     import warp as wp
 
-    from warp_highlights.io.memory import PeakMemory, resident_memory
+    from warp_highlights.model.memory import PeakMemory, resident_memory
 
     before = resident_memory()
     if before is None:

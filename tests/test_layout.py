@@ -21,14 +21,15 @@ ALLOWED = {
     "model": set(),
     "kernels": {"model"},
     "io": {"model"},
-    "residual": {"io", "kernels", "model"},
-    "fit": {"residual", "io", "kernels", "model"},
+    "quality": {"io", "model"},
+    "residual": {"quality", "io", "kernels", "model"},
+    "fit": {"residual", "quality", "io", "kernels", "model"},
     "synth": {"io", "kernels", "model"},
-    "relight": {"synth", "residual", "io", "kernels", "model"},
-    "view": {"relight", "residual", "io", "kernels", "model"},
-    "web": {"relight", "residual", "io", "kernels", "model"},
+    "relight": {"synth", "residual", "quality", "io", "kernels", "model"},
+    "view": {"relight", "residual", "quality", "io", "kernels", "model"},
+    "web": {"relight", "residual", "quality", "io", "kernels", "model"},
     "collection": {"io", "model"},
-    "cli": {"collection", "view", "web", "relight", "fit", "synth", "residual", "io", "kernels", "model"},
+    "cli": {"collection", "view", "web", "relight", "fit", "synth", "residual", "quality", "io", "kernels", "model"},
 }
 """Which sub-packages each sub-package may import (ARCHITECTURE.md draws the same table)."""
 
@@ -37,20 +38,6 @@ ROOT_MODULES_FOR_ALL = {PACKAGE, f"{PACKAGE}._api"}
 
 FACADE = {PACKAGE, f"{PACKAGE}.__main__"}
 """Above every layer: the package root's lazy API over all sub-packages, and ``python -m``."""
-
-DEPRECATED_FORWARDS = {
-    (f"{PACKAGE}.model.field", f"{PACKAGE}.io.fieldfile"): {
-        "HighlightField.save",
-        "HighlightField.load",
-        "HighlightField.size_report",
-        "_MovedFormatVersion.__get__",
-    },
-    (f"{PACKAGE}.model.field", f"{PACKAGE}.relight.relighter"): {"HighlightField.relight"},
-    (f"{PACKAGE}.model.lights", f"{PACKAGE}.io.lightfile"): {"LightSet.read_lp", "LightSet.write_lp"},
-}
-"""The only upward imports: inside the deprecated methods (by qualified name) that forward to where
-things moved (removed in 0.3). Each of these methods must call ``warn_moved`` first."""
-
 
 def _module_files() -> dict[str, Path]:
     """Dotted module name -> file, for the package and the kernels (installed as ``warp_highlights.kernels``)."""
@@ -155,9 +142,10 @@ def test_the_walk_sees_lazy_exports_and_imports_inside_functions():
     seen = {(source, imp.target, imp.scope, imp.lazy) for source, imp in EDGES}
     assert (f"{PACKAGE}.model", f"{PACKAGE}.model.field", None, True) in seen
     assert (f"{PACKAGE}.fit", f"{PACKAGE}.kernels.segmentation", None, True) in seen
-    assert (f"{PACKAGE}.model.field", f"{PACKAGE}.io.fieldfile", "HighlightField.load", False) in seen
     assert (f"{PACKAGE}.cli.fit", f"{PACKAGE}.fit.pipeline", "_run_fit", False) in seen
     assert (f"{PACKAGE}.io.fieldfile", PACKAGE, None, False) in seen  # from .. import __version__
+    names = {(source, imp.target): imp.names for source, imp in EDGES}
+    assert "encode_levels" in names[(f"{PACKAGE}.view.animation", f"{PACKAGE}.io.images")]  # the names a from-import takes
 
 
 def test_every_module_is_in_a_layer():
@@ -178,8 +166,7 @@ def test_imports_only_go_down_the_layers():
         if here is None or there is None:
             wrong.append(f"{source}:{imp.line} imports {imp.target}: one of them is outside the layers")
         elif here != there and there not in ALLOWED[here]:
-            if imp.lazy or imp.scope not in DEPRECATED_FORWARDS.get((source, imp.target), set()):
-                wrong.append(f"{source}:{imp.line} ({here}) imports {imp.target} ({there}), which {here} may not")
+            wrong.append(f"{source}:{imp.line} ({here}) imports {imp.target} ({there}), which {here} may not")
     assert not wrong, "\n".join(wrong)
 
 
@@ -191,46 +178,64 @@ def test_the_allowed_imports_form_layers():
 
 def test_the_model_never_imports_io_and_io_only_the_model():
     for source, imp in EDGES:
-        if _layer(source) == "model" and _layer(imp.target) not in (None, "model"):
-            assert imp.scope in DEPRECATED_FORWARDS.get((source, imp.target), set()), (source, imp.line, imp.target)
+        if _layer(source) == "model":
+            assert _layer(imp.target) in (None, "model"), (source, imp.line, imp.target)
         if _layer(source) == "io":
             assert _layer(imp.target) in (None, "model", "io"), (source, imp.line, imp.target)
 
 
 def test_no_import_cycles():
-    """Over every module and package ``__init__`` (lazy exports included); the facade is left out, and
-    so are the deprecated forwards, which point back up by design."""
+    """Over every module and package ``__init__`` (lazy exports included, and imports inside functions);
+    only the facade is left out."""
     graph = {name: set() for name in MODULES if name not in FACADE}
     for source, imp in EDGES:
         if source in FACADE or imp.target in FACADE:
             continue
-        if imp.scope not in DEPRECATED_FORWARDS.get((source, imp.target), set()):
-            graph[source].add(imp.target)
+        graph[source].add(imp.target)
     try:
         tuple(TopologicalSorter(graph).static_order())
     except CycleError as error:
         pytest.fail(f"import cycle: {' -> '.join(error.args[1])}")
 
 
-def test_deprecated_forwards_warn_first():
-    """Each allowed upward import sits in a named method whose first statement calls ``warn_moved``."""
-    for (source, _), scopes in DEPRECATED_FORWARDS.items():
-        tree = ast.parse(MODULES[source].read_text())
-        found = {}
-        for cls in (node for node in tree.body if isinstance(node, ast.ClassDef)):
-            for method in (node for node in cls.body if isinstance(node, ast.FunctionDef)):
-                if f"{cls.name}.{method.name}" in scopes:
-                    assert f"{cls.name}.{method.name}" not in found, f"{source}: two {cls.name}.{method.name}"
-                    found[f"{cls.name}.{method.name}"] = method
-        assert set(found) == scopes, (source, scopes - set(found))
-        for scope, method in found.items():
-            body = method.body
-            if isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant):
-                body = body[1:]  # the docstring
-            call = body[0].value if isinstance(body[0], ast.Expr) else None
-            assert isinstance(call, ast.Call) and getattr(call.func, "id", None) == "warn_moved", (
-                f"{source}: {scope} must call warn_moved first"
-            )
+def _private(name: str) -> bool:
+    """A leading underscore; dunders (``__version__``) are not private."""
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def private_imports_across_sub_packages(edges) -> list[str]:
+    """Each import (statement or lazy export) of a private module or name of one sub-package by another
+    (or by the root). Within a sub-package private names are its own business; the root's ``_api``
+    belongs to no sub-package (every layer may use its ``lazy_exports``)."""
+    wrong = []
+    for source, imp in edges:
+        there = _layer(imp.target)
+        if there is None or _layer(source) == there:
+            continue
+        private = [part for part in imp.target.split(".")[1:] if _private(part)]
+        private += [name for name in imp.names if _private(name) and name not in private]
+        if private:
+            wrong.append(f"{source}:{imp.line} imports {', '.join(private)} of {imp.target}, private to {there}")
+    return wrong
+
+
+def test_no_private_name_is_imported_from_another_sub_package():
+    wrong = private_imports_across_sub_packages(EDGES)
+    assert not wrong, "\n".join(wrong)
+
+
+def test_the_private_check_sees_private_modules_and_names():
+    """Guards the guard: made-up imports of a private name, a private module, and a lazy export of one."""
+    edges = [
+        (f"{PACKAGE}.view.animation", _Import(f"{PACKAGE}.io.images", 1, None, ("_srgb_table",))),
+        (f"{PACKAGE}.fit.estimation", _Import(f"{PACKAGE}.kernels._hidden", 2, "f", ("thing",))),
+        (f"{PACKAGE}.fit", _Import(f"{PACKAGE}.kernels._hidden", 3, None, ("_hidden",), lazy=True)),
+        (f"{PACKAGE}.kernels.raster", _Import(f"{PACKAGE}.kernels._hidden", 4, None, ("_thing",))),  # within kernels
+        (f"{PACKAGE}.io.fieldfile", _Import(PACKAGE, 5, None, ("__version__",))),  # a dunder, the root
+    ]
+    assert [line.split(" ")[0] for line in private_imports_across_sub_packages(edges)] == [
+        f"{PACKAGE}.view.animation:1", f"{PACKAGE}.fit.estimation:2", f"{PACKAGE}.fit:3"
+    ]
 
 
 def test_pyproject_lists_every_sub_package():

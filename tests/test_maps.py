@@ -236,7 +236,7 @@ def test_dome_sample_normals_against_its_rendered_normal_map(data_root):
 
 
 def test_maps_that_would_not_fit_in_memory_are_refused_before_any_work(sphere_fits, monkeypatch):
-    from warp_highlights.io import memory
+    from warp_highlights.model import memory
     from warp_highlights.model.errors import InputError
     from warp_highlights.relight.maps import surface_maps
 

@@ -1,4 +1,4 @@
-"""``io.metrics``, the one place image quality is computed, against direct computations; and no other
+"""``quality.metrics``, the one place image quality is computed, against direct computations; and no other
 module computes PSNR or SSIM itself."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from warp_highlights.io.images import display_rgb8
-from warp_highlights.io.metrics import (
+from warp_highlights.quality.metrics import (
     psnr,
     psnr_8bit,
     psnr_excluding_black,
@@ -54,11 +54,11 @@ def test_ssim_is_scikit_images():
 
 
 def test_quality_is_computed_in_one_module():
-    """No module but ``io/metrics.py`` takes a logarithm of an error or calls scikit-image's SSIM."""
+    """No module but ``quality/metrics.py`` takes a logarithm of an error or calls scikit-image's SSIM."""
     found = []
     for folder in ("warp_highlights", "kernels", "benchmarks"):
         for path in sorted((ROOT / folder).rglob("*.py")):
-            if path.relative_to(ROOT).as_posix() == "warp_highlights/io/metrics.py":
+            if path.relative_to(ROOT).as_posix() == "warp_highlights/quality/metrics.py":
                 continue
             text = path.read_text()
             found += [f"{path.relative_to(ROOT)}: {needle}" for needle in ("log10(", "structural_similarity", "peak_signal_noise_ratio") if needle in text]
@@ -118,8 +118,8 @@ def test_scores_in_worker_processes_equal_the_threads(caplog):
     import logging
     import multiprocessing
 
-    from warp_highlights.io import metrics
     from warp_highlights.model.threads import core_count
+    from warp_highlights.quality import metrics
 
     if core_count() < 2:
         pytest.skip("one core: scoring_processes keeps to threads")
@@ -147,7 +147,7 @@ def test_scores_fall_back_to_threads_without_processes(monkeypatch, caplog):
     import concurrent.futures
     import logging
 
-    from warp_highlights.io import metrics
+    from warp_highlights.quality import metrics
 
     def refuse(*args, **kwargs):
         raise AssertionError("daemonic processes are not allowed to have children")

@@ -243,8 +243,8 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     """No highlights: the residual is the images, so both models learn the same and score the same
     (the Gaussians kept); moved highlights that add a wrong bright blob lose to the images alone, whose
     model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
-    from warp_highlights.io.metrics import srgb_psnr
     from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.quality.metrics import srgb_psnr
     from warp_highlights.residual.learned import check_learned
 
     rng = np.random.default_rng(7)

@@ -1,6 +1,6 @@
 """The residual's connected regions labelled and measured on a Warp device (``kernels.regions``) against
 ``scipy.ndimage.label`` and float64 NumPy sums (the estimation's former host path), and the device PSNR
-(``kernels.losses.clipped_mse``) against ``io.metrics.psnr``.
+(``kernels.losses.clipped_mse``) against ``quality.metrics.psnr``.
 
 A CPU launch runs its threads one after the other, so there ``_unite`` never finds a root moved by
 another thread; its retry runs only in the CUDA variants (run on the lent H100 with each change of
@@ -17,8 +17,8 @@ from scipy import ndimage
 from warp_highlights.kernels.losses import clipped_mse
 from warp_highlights.kernels.regions import ResidualRegions
 
-from warp_highlights.io.metrics import psnr, psnr_of_mse
 from warp_highlights.model.errors import InputError
+from warp_highlights.quality.metrics import psnr, psnr_of_mse
 
 THRESHOLD = 0.2
 

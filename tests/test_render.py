@@ -167,7 +167,7 @@ def test_render_is_deterministic_and_chunking_changes_nothing():
 def test_the_light_chunk_fits_the_available_memory(monkeypatch):
     """Short of memory, fewer lights are shaded per launch (a quarter of the available memory for
     their three images; at least one), with the same images."""
-    import warp_highlights.io.memory as memory
+    import warp_highlights.model.memory as memory
 
     lights = LightSet.fibonacci_sphere(7).directions
     renderer = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=64), device="cpu")

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels._tape import recording
 from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.retarget import RigidMotion, gather_images
 from warp_highlights.kernels.segmentation import segment
+from warp_highlights.kernels.tape import recording
 
 from warp_highlights.fit.estimation import estimate
 from warp_highlights.fit.retargeting import retarget

@@ -12,7 +12,7 @@ from warp_highlights.kernels.scores import _code, prediction_errors
 from warp_highlights.kernels.transfer import rows_up
 
 from warp_highlights.io.images import display_rgb8, linear_to_srgb
-from warp_highlights.io.metrics import psnr_8bit
+from warp_highlights.quality.metrics import psnr_8bit
 
 RNG = np.random.default_rng(31)
 

@@ -265,7 +265,7 @@ def test_the_host_s_peak_memory_needs_no_warp():
     import subprocess
     import sys
 
-    probe = ("from warp_highlights.io.memory import PeakMemory\n"
+    probe = ("from warp_highlights.model.memory import PeakMemory\n"
              "with PeakMemory('cpu') as peak:\n    x = bytearray(1 << 20)\n"
              "from warp._src import context\nprint(context.runtime is None, peak.host is not None, peak.device is None)")
     run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)

@@ -123,7 +123,7 @@ def test_moving_wins_where_the_gaussians_follow_the_highlight():
 def test_the_check_keeps_the_moved_highlights_it_is_asked_for():
     """``keep``: the moved highlights of that many checked lights, spread over them; over the plane's
     flat 0.2 (every corner's residual), they give the moving prediction's score back."""
-    from warp_highlights.io.metrics import srgb_psnr
+    from warp_highlights.quality.metrics import srgb_psnr
 
     directions, edges, estimated, own, images = _scene()
     retargeted = _one_gaussian_sets(np.array([_highlight_at(directions[b]) for b in edges[:, 1]]))
@@ -165,9 +165,9 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     from warp_highlights.fit.paths import decide_paths
     from warp_highlights.fit.retargeting import restore_vanished, retarget
     from warp_highlights.io.dataset import ReflectanceField
-    from warp_highlights.io.metrics import srgb_psnr
     from warp_highlights.model.field import HighlightField
     from warp_highlights.model.residual import ResidualModel
+    from warp_highlights.quality.metrics import srgb_psnr
     from warp_highlights.relight.relighter import Relighter
 
     calls = {}

@@ -1,11 +1,10 @@
-"""io.warmup: Warp started and the device's context made in a thread."""
+"""kernels.warmup: Warp started and the device's context made in a thread."""
 
 from __future__ import annotations
 
 import pytest
 import warp as wp
-
-from warp_highlights.io.warmup import DeviceWarmup
+from warp_highlights.kernels.warmup import DeviceWarmup
 
 
 @pytest.mark.parametrize("device", ["cpu", None])
@@ -51,7 +50,7 @@ def test_a_failing_context_is_silent(monkeypatch):
 def test_work_in_the_background_returns_raises_or_stops():
     import threading
 
-    from warp_highlights.io.warmup import InBackground
+    from warp_highlights.kernels.warmup import InBackground
 
     assert InBackground(lambda stop: 42, name="answer").result() == 42
     with pytest.raises(ValueError, match="bad image"):

@@ -128,7 +128,7 @@ def _expected(field, relighter, direction, method: str) -> np.ndarray:
 
 def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float = 0.0) -> list[float]:
     from warp_highlights.io.fieldfile import load_field
-    from warp_highlights.io.metrics import psnr_8bit
+    from warp_highlights.quality.metrics import psnr_8bit
     from warp_highlights.relight.relighter import Relighter
 
     field = load_field(field_path)
@@ -249,7 +249,7 @@ def test_view_and_the_page_show_the_same_direction_and_image(browser, exported, 
     """``view``'s designer (off screen) and the page, moved to the same directions: the same unit
     direction text, the same triangle and the same 8-bit image."""
     from warp_highlights.io.fieldfile import load_field
-    from warp_highlights.io.metrics import psnr_8bit
+    from warp_highlights.quality.metrics import psnr_8bit
     from warp_highlights.view.designer import LightDesigner
 
     field = load_field(fields["lowrank"])

@@ -1,9 +1,9 @@
 """warp-highlights: relight reflectance fields with moving specular highlights, built on NVIDIA Warp.
 
 The package reads as the method's pipeline (ARCHITECTURE.md): ``model`` (what a highlight field is
-made of), ``io`` (files), ``kernels`` (every Warp kernel), ``fit`` (segment -> estimate -> retarget ->
-decide paths), ``relight``, ``synth`` (synthetic data), ``view`` and ``cli``. The names below are the
-everyday API; each sub-package's ``__init__`` lists what else it offers.
+made of), ``io`` (files), ``quality`` (PSNR, SSIM), ``kernels`` (every Warp kernel), ``fit`` (segment
+-> estimate -> retarget -> decide paths), ``relight``, ``synth`` (synthetic data), ``view`` and ``cli``.
+The names below are the everyday API; each sub-package's ``__init__`` lists what else it offers.
 """
 
 from __future__ import annotations

@@ -1,13 +1,12 @@
-"""Plumbing of the public API, usable from every layer: lazy exports and warnings for moved names."""
+"""Plumbing of the public API, usable from every layer: the packages' lazy exports."""
 
 from __future__ import annotations
 
 import importlib
 import sys
-import warnings
 from collections.abc import Callable
 
-__all__ = ["lazy_exports", "warn_moved"]
+__all__ = ["lazy_exports"]
 
 
 def lazy_exports(
@@ -44,8 +43,3 @@ def lazy_exports(
 
     return __getattr__, __dir__, sorted([*exports, *modules])
 
-
-def warn_moved(old: str, new: str) -> None:
-    """Warn that ``old`` is deprecated in favour of ``new`` (both as the user writes them), pointing at the
-    line that called the deprecated name (a ``DeprecationWarning``)."""
-    warnings.warn(f"{old} is deprecated and will be removed in warp-highlights 0.3; use {new}", DeprecationWarning, stacklevel=3)

@@ -19,7 +19,14 @@ import sys
 import threading
 
 from .. import __version__
-from ..io.atomic import Terminated, describe_os_error, end_of_command, handle_termination, received_signal, remove_partials
+from ..io.atomic import (
+    Terminated,
+    describe_os_error,
+    end_of_command,
+    handle_termination,
+    received_signal,
+    remove_partials,
+)
 from ..model.errors import InputError
 from . import collection, dataset, demo, fit, maps, relight, view, web
 

@@ -16,6 +16,7 @@ __all__ = [
     "check_device",
     "check_output_file",
     "check_output_folder",
+    "exposure_option",
     "in_range",
     "parse_direction",
     "parse_size",
@@ -88,6 +89,23 @@ def size_option(what: str = "image size"):
 def triple_option(what: str):
     """An argparse ``type`` for R,G,B values that are finite and not negative (see :func:`parse_triple`)."""
     return _as_option(parse_triple, what, "triple")
+
+
+MIN_EXPOSURE, MAX_EXPOSURE = 1e-12, 1e12
+"""The range ``--exposure`` takes: wide enough for any radiance units, far from float32 overflow."""
+
+
+def exposure_option(text: str):
+    """An argparse ``type`` for ``--exposure`` (fit, collection): 'auto' or a positive finite factor."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is neither 'auto' nor a number; use auto or a factor > 0, e.g. 4") from None
+    if not (MIN_EXPOSURE <= value <= MAX_EXPOSURE):
+        raise argparse.ArgumentTypeError(f"{text} is out of range; use auto or a factor in {MIN_EXPOSURE:g}..{MAX_EXPOSURE:g}, e.g. 4")
+    return value
 
 
 def _as_option(parse: Callable, what: str, name: str):

@@ -7,8 +7,7 @@ from pathlib import Path
 
 from ..model.config import RESIDUAL_KINDS
 from ..model.errors import InputError
-from .args import Command, in_range, size_option
-from .fit import _exposure_option
+from .args import Command, exposure_option, in_range, size_option
 
 __all__ = ["COMMANDS", "EXIT_SOME_FAILED"]
 
@@ -30,7 +29,7 @@ def _collection_arguments(parser: argparse.ArgumentParser) -> None:
                        "images; for captures of different sizes)")
     group.add_argument("--residual", choices=list(RESIDUAL_KINDS), help="as fit --residual (default: fit's, learned on CUDA, lowrank elsewhere)")
     group.add_argument("--diffuse", choices=["lambert", "images", "none"], help="as fit --diffuse")
-    group.add_argument("--exposure", type=_exposure_option, help="as fit --exposure")
+    group.add_argument("--exposure", type=exposure_option, help="as fit --exposure")
     group.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB (fit and evaluate)")
     group.add_argument("--max-megapixels", type=in_range(float, 0.001, 100_000.0), metavar="MP", help="as fit --max-megapixels (fit and evaluate)")
     group = parser.add_argument_group("what each capture gets")
@@ -83,9 +82,9 @@ def _run_collection(args) -> int:
 
 
 def _baselines(text: str) -> str:
-    from .relight import _parse_baselines
+    from .relight import parse_baselines
 
-    names = _parse_baselines(text)
+    names = parse_baselines(text)
     return ",".join(names) if names else "none"
 
 

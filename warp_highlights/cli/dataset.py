@@ -161,8 +161,8 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
     """Refuse a render whose images cannot fit on the disk, with the figures; announce a large one."""
     import shutil
 
-    from ..io.memory import bytes_text
     from ..model.lights import LightSet
+    from ..model.memory import bytes_text
 
     held = 2 * len(lights) if heldout == "centroids" else (len(heldout) if isinstance(heldout, LightSet) else 0)
     images = 3 * (len(lights) + held)  # full, specular and diffuse per light; at most 2n-4 triangle centroids

@@ -9,12 +9,18 @@ from pathlib import Path
 
 from ..model.config import RESIDUAL_KINDS
 from ..model.errors import InputError
-from .args import Command, add_pixel_limit_option, check_device, check_output_file, in_range, pixel_limit, size_option
+from .args import (
+    Command,
+    add_pixel_limit_option,
+    check_device,
+    check_output_file,
+    exposure_option,
+    in_range,
+    pixel_limit,
+    size_option,
+)
 
 __all__ = ["COMMANDS"]
-
-MIN_EXPOSURE, MAX_EXPOSURE = 1e-12, 1e12
-"""The range ``--exposure`` takes: wide enough for any radiance units, far from float32 overflow."""
 
 
 def _fit_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,7 +50,7 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
     parser.add_argument(
             "--exposure",
-            type=_exposure_option,
+            type=exposure_option,
             default=None,
             help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
             "display white is 1 (default: auto for JPEG/PNG/TIFF photographs, 1 for EXR/HDR radiance); relighting undoes it",
@@ -63,23 +69,9 @@ starts, and a larger one only once Warp has found the device: a wrong ``--device
 reading before its error line; at 480x270 the wait for Warp's start (0.12 s on the lent H100) was on the command's path."""
 
 
-
 def residual_overrides(kind: str | None) -> list[str]:
     """The ``--set`` overrides ``--residual KIND`` stands for (put before any ``--set``, which can still change it)."""
     return [] if kind is None else [f"residual.kind={kind}"]
-
-
-def _exposure_option(text: str):
-    """``--exposure``: 'auto' or a positive finite factor, checked at parse time."""
-    if text.strip().lower() == "auto":
-        return "auto"
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is neither 'auto' nor a number; use auto or a factor > 0, e.g. 4") from None
-    if not (MIN_EXPOSURE <= value <= MAX_EXPOSURE):
-        raise argparse.ArgumentTypeError(f"{text} is out of range; use auto or a factor in {MIN_EXPOSURE:g}..{MAX_EXPOSURE:g}, e.g. 4")
-    return value
 
 
 def _thread_lock_for_progress_bars() -> None:
@@ -116,8 +108,8 @@ def _run_fit(args) -> int:
         check_output_file(Path(args.report), overwrite=args.overwrite)
     size = args.size
     from ..io.dataset import LoadStopped, ReflectanceField
-    from ..io.memory import PeakMemory
-    from ..io.warmup import DeviceWarmup, InBackground
+    from ..kernels.warmup import DeviceWarmup, InBackground
+    from ..model.memory import PeakMemory
 
     started = time.perf_counter()  # the summary's time includes the pipeline's imports from here on
 
@@ -193,7 +185,7 @@ def _gaussian_size_text(report: dict) -> str:
 
 def _peak_text(memory: dict) -> str:
     """'host 1.2 GB (residual compression), device 3.4 GB (estimation)': each kind's largest stage."""
-    from ..io.memory import bytes_text
+    from ..model.memory import bytes_text
 
     parts = []
     for kind in ("host", "device"):

@@ -25,7 +25,7 @@ from .args import (
     triple_option,
 )
 
-__all__ = ["COMMANDS", "print_evaluation_table", "write_evaluation"]
+__all__ = ["COMMANDS", "parse_baselines", "print_evaluation_table", "write_evaluation"]
 
 RELIT_BYTES_PER_PIXEL = 48
 """Memory one relit pixel takes at most, for the up-front check: the full image (3 float32) and the
@@ -105,7 +105,7 @@ def learned_on_cpu_note(field, device) -> str | None:
 
 def _make_relighter(args, field, *, methods: tuple[str, ...]):
     """A Relighter for the command's options; loads the dataset when a method needs it."""
-    from ..io.memory import check_memory
+    from ..model.memory import check_memory
     from ..relight.relighter import Relighter, alpha_inputs
 
     device = check_device(args.device)
@@ -239,7 +239,12 @@ def _parse_methods(text: str) -> tuple[str, ...]:
 
 def _run_animate(args) -> int:
     from ..io.fieldfile import load_field
-    from ..view.animation import check_animation_output, default_animation_size, parse_light_path, write_animation
+    from ..view.animation import (
+        check_animation_output,
+        default_animation_size,
+        parse_light_path,
+        write_animation,
+    )
 
     frames_format = "exr" if args.exr else "png"
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
@@ -307,7 +312,7 @@ def _check_animate(args) -> None:
 def _run_evaluate(args) -> int:
     from ..io.dataset import ReflectanceField
     from ..io.fieldfile import load_field
-    from ..io.metrics import scoring_processes
+    from ..quality.metrics import scoring_processes
     from ..relight.evaluation import evaluate_field
 
     methods = _parse_methods(args.methods)
@@ -318,7 +323,7 @@ def _run_evaluate(args) -> int:
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
-    baselines = _parse_baselines(args.baselines)
+    baselines = parse_baselines(args.baselines)
     holdout_every = args.holdout_every or field.report.get("holdout_every")  # with --heldout: refused by _check_evaluate
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
@@ -336,7 +341,7 @@ def _run_evaluate(args) -> int:
     return 0
 
 
-def _parse_baselines(text: str) -> tuple[str, ...]:
+def parse_baselines(text: str) -> tuple[str, ...]:
     from ..relight.baselines import BASELINE_METHODS
 
     if text.strip().lower() == "none":

@@ -28,7 +28,7 @@ def _viewer_entry(relative: str) -> bool:
 def _run_export(args) -> int:
     from ..io.atomic import atomic_file, atomic_folder
     from ..io.fieldfile import load_field
-    from ..io.memory import bytes_text
+    from ..model.memory import bytes_text
     from ..web.export import export_viewer, single_file_page
 
     output = Path(args.output)

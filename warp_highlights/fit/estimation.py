@@ -16,13 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.metrics import psnr, psnr_of_mse
-from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss, clipped_mse
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.regions import Regions, ResidualRegions
+from ..kernels.tape import ReplayedStep, adam_iteration
 from ..model.config import (
     REFERENCE_HEIGHT_PX,
     EstimationSettings,
@@ -32,6 +31,7 @@ from ..model.config import (
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.threads import core_count
+from ..quality.metrics import psnr, psnr_of_mse
 
 __all__ = ["EstimationResult", "estimate", "gaussian_energy_rpx", "psnr"]
 

@@ -20,24 +20,30 @@ import warp as wp
 
 from .. import __version__
 from ..io.dataset import ReflectanceField
-from ..io.memory import PeakMemory, available_memory
 from ..io.resample import resample_image, resize_stack, working_size
-from ..io.warmup import InBackground
 from ..kernels.segmentation import band_rows, host_array, segment, segment_in_bands
 from ..kernels.transfer import to_host
+from ..kernels.warmup import InBackground
 from ..model.config import FitSettings
 from ..model.errors import InputError
 from ..model.field import DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
+from ..model.memory import PeakMemory, available_memory
 from ..model.triangulation import SphericalTriangulation
-from .estimation import estimate
-from .paths import decide_paths
 from ..residual.build import build_residual
-from ..residual.inputs import highlight_colour, hold_images, holds_images, render_own, render_own_on_device
+from ..residual.inputs import (
+    highlight_colour,
+    hold_images,
+    holds_images,
+    render_own,
+    render_own_on_device,
+)
 from ..residual.kind import resolve_kind
 from ..residual.learned import check_learned, learn_residual
 from ..residual.rate import gaussian_bytes
+from .estimation import estimate
 from .moving import decide_moving
+from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels._tape import ReplayedStep, adam_iteration
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, memory_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.retarget import RigidAdam, RigidMotion, gather_images
+from ..kernels.tape import ReplayedStep, adam_iteration
 from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings
 from ..model.errors import InputError

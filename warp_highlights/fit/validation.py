@@ -28,7 +28,6 @@ import numpy as np
 import warp as wp
 
 from ..io.images import display_rgb8
-from ..io.metrics import psnr_8bit, psnr_of_mse
 from ..kernels.raster import Rasterizer
 from ..kernels.scores import device_tint, prediction_errors
 from ..kernels.transfer import rows_up, to_host
@@ -38,6 +37,7 @@ from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.interpolation import move_sets
 from ..model.threads import NUMPY_THREADS, parallel_map
 from ..model.triangulation import SphericalTriangulation
+from ..quality.metrics import psnr_8bit, psnr_of_mse
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
 

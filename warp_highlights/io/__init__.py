@@ -14,12 +14,6 @@ Imports the model only (ARCHITECTURE.md).
 - ``srgb_to_linear``: sRGB-encoded values in [0, 1] -> linear radiance.
 - ``linear_to_srgb``: linear radiance -> sRGB-encoded values in [0, 1].
 - ``display_rgb8``: linear radiance -> 8-bit sRGB RGB for showing or PNG.
-- ``psnr``: dB with peak 1 over the last two axes of linear values (``io.metrics``, where all quality is computed).
-- ``psnr_excluding_black``: (Q,) dB per image of a stack; NaN where both images are all black.
-- ``psnr_8bit``: dB (peak 255) of two 8-bit images.
-- ``srgb_psnr``: dB of two linear images as shown in 8-bit sRGB.
-- ``ssim_8bit``: scikit-image's SSIM of two 8-bit RGB images.
-- ``srgb_scores``: (Q,) PSNR and SSIM of linear image stacks shown in 8-bit sRGB.
 - ``ReflectanceField``: a dataset in memory: images per light, lights, held-out ground truth, mask.
 - ``DatasetWriter``: writes a dataset folder chunk by chunk (the renderer's output).
 - ``resize_stack``: area-resample a stack of images to a working size.
@@ -47,7 +41,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
             ],
             "images",
         ),
-        **dict.fromkeys(["psnr", "psnr_excluding_black", "psnr_8bit", "srgb_psnr", "ssim_8bit", "srgb_scores"], "metrics"),
         **dict.fromkeys(["ReflectanceField", "DatasetWriter"], "dataset"),
         **dict.fromkeys(["resize_stack", "resample_image", "working_size"], "resample"),
         **dict.fromkeys(["save_field", "load_field", "field_size_report", "FORMAT_VERSION", "MAGIC"], "fieldfile"),

@@ -22,11 +22,25 @@ import numpy as np
 
 from ..model.errors import InputError
 from ..model.lights import LightSet
-from ..model.threads import cancel_and_wait, child_initializer, core_count, mapped_empty, submit
+from ..model.memory import check_memory
+from ..model.threads import (
+    cancel_and_wait,
+    child_initializer,
+    core_count,
+    mapped_empty,
+    submit,
+)
 from .atomic import FolderTransaction, deferred_signals
-from .images import DEFAULT_MAX_PIXELS, ImageHeader, image_encoding, image_header, read_image, read_pixels, write_image
+from .images import (
+    DEFAULT_MAX_PIXELS,
+    ImageHeader,
+    image_encoding,
+    image_header,
+    read_image,
+    read_pixels,
+    write_image,
+)
 from .lightfile import read_lp, write_lp
-from .memory import check_memory
 
 __all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "dataset_folder_entry", "find_light_file"]
 

@@ -95,7 +95,14 @@ from ..model.residual import (
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
-from .codes import STREAM_END, DeflatedCodes, codes_from_stored, deflated_piece, stored_codes, stored_shape
+from .codes import (
+    STREAM_END,
+    DeflatedCodes,
+    codes_from_stored,
+    deflated_piece,
+    stored_codes,
+    stored_shape,
+)
 from .crc import Crc32Appender
 from .deflate import ParallelDeflate
 

@@ -47,6 +47,7 @@ __all__ = [
     "IMAGE_EXTENSIONS",
     "ImageHeader",
     "display_rgb8",
+    "encode_levels",
     "image_encoding",
     "image_header",
     "image_shape",
@@ -211,9 +212,9 @@ def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool 
         if suffix == ".exr":
             _write_exr(tmp, image, half=half)
         elif bits == 16 or suffix in _TIFF_SUFFIXES:
-            _write_with_oiio(tmp, "tiff" if suffix in _TIFF_SUFFIXES else "png", _encode_levels(image, 2**bits - 1, linear=linear))
+            _write_with_oiio(tmp, "tiff" if suffix in _TIFF_SUFFIXES else "png", encode_levels(image, 2**bits - 1, linear=linear))
         else:
-            _write_with_pillow(tmp, suffix, _encode_levels(image, 2**bits - 1, linear=linear))
+            _write_with_pillow(tmp, suffix, encode_levels(image, 2**bits - 1, linear=linear))
 
 
 def image_size(path, *, max_pixels: int | None = DEFAULT_MAX_PIXELS) -> tuple[int, int]:
@@ -534,7 +535,7 @@ def _decode_levels(levels: np.ndarray, *, linear: bool) -> np.ndarray:
     return _srgb_table(count)[levels]
 
 
-def _encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
+def encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
     """Linear float image -> integer codes 0..top (uint8 or uint16), sRGB-encoded unless ``linear``."""
     values = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0)
     if not linear:

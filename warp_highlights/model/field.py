@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-from .._api import warn_moved
 from .config import FitSettings
 from .errors import InputError, finite_array
 from .gaussians import GaussianParams
@@ -97,16 +96,6 @@ class DiffuseModel:
         return np.maximum(self.lambert[..., :3] @ omega, 0.0) + self.lambert[..., 3]
 
 
-class _MovedFormatVersion:
-    """``HighlightField.FORMAT_VERSION``, deprecated: ``warp_highlights.io.fieldfile.FORMAT_VERSION``."""
-
-    def __get__(self, instance, owner) -> int:
-        warn_moved("HighlightField.FORMAT_VERSION", "warp_highlights.io.fieldfile.FORMAT_VERSION")
-        from ..io.fieldfile import FORMAT_VERSION
-
-        return FORMAT_VERSION
-
-
 @dataclass(eq=False, repr=False)
 class HighlightField:
     """A fitted highlight field (method.md section 8); treat it as immutable once made.
@@ -157,8 +146,6 @@ class HighlightField:
     diffuse: DiffuseModel | None = None
     residual: ResidualModel | None = None
     moving: np.ndarray | None = None
-
-    FORMAT_VERSION = _MovedFormatVersion()  # deprecated (a class attribute, not a field)
 
     def __post_init__(self):
         if not isinstance(self.lights, LightSet):
@@ -348,39 +335,6 @@ class HighlightField:
             f"HighlightField({self.light_count} lights, {self.edge_count} directed edges, "
             f"{self.gaussian_count} Gaussians, {self.width}x{self.height})"
         )
-
-    # --- deprecated: moved out of the model (issue 13); removed in 0.3 -----------------------------
-    # These imports (and the one in _MovedFormatVersion) are the only ones from the model upwards:
-    # tests/test_layout.py allows exactly these, inside these methods, and checks that each one warns.
-
-    def save(self, path, *, lambert_half: bool = True) -> int:
-        """Deprecated: ``warp_highlights.save_field(field, path, lambert_half=...)``."""
-        warn_moved("HighlightField.save(path)", "warp_highlights.save_field(field, path)")
-        from ..io.fieldfile import save_field
-
-        return save_field(self, path, lambert_half=lambert_half)
-
-    @classmethod
-    def load(cls, path) -> HighlightField:
-        """Deprecated: ``warp_highlights.load_field(path)``."""
-        warn_moved("HighlightField.load(path)", "warp_highlights.load_field(path)")
-        from ..io.fieldfile import load_field
-
-        return load_field(path)
-
-    def size_report(self) -> dict:
-        """Deprecated: ``warp_highlights.field_size_report(field)``."""
-        warn_moved("HighlightField.size_report()", "warp_highlights.field_size_report(field)")
-        from ..io.fieldfile import field_size_report
-
-        return field_size_report(self)
-
-    def relight(self, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"):
-        """Deprecated: ``warp_highlights.relight_field(field, directions, ...)``."""
-        warn_moved("HighlightField.relight(directions)", "warp_highlights.relight_field(field, directions)")
-        from ..relight.relighter import relight_field
-
-        return relight_field(self, directions, method=method, device=device, size=size, diffuse=diffuse)
 
 
 # --- validation helpers ----------------------------------------------------------------------------

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._api import warn_moved
 from .errors import InputError
 
 __all__ = ["LightSet"]
@@ -75,25 +74,6 @@ class LightSet:
         if not -90.0 <= min_elevation_deg < 90.0:
             raise InputError(f"min_elevation_deg must be in [-90, 90), got {min_elevation_deg}")
         return cls(_fibonacci_cap(_checked_count(count), z_min=math.sin(math.radians(min_elevation_deg))))
-
-    # --- deprecated: the .lp file moved to warp_highlights.io.lightfile (issue 13); removed in 0.3 ---
-    # These imports are the only ones from the model upwards besides the field's: tests/test_layout.py
-    # allows exactly these, inside these methods, and checks that each method warns.
-
-    @classmethod
-    def read_lp(cls, path, *, check_files: bool = True) -> LightSet:
-        """Deprecated: ``warp_highlights.read_lp(path, check_files=...)``."""
-        warn_moved("LightSet.read_lp(path)", "warp_highlights.read_lp(path)")
-        from ..io.lightfile import read_lp
-
-        return read_lp(path, check_files=check_files)
-
-    def write_lp(self, path, filenames: list[str] | None = None) -> None:
-        """Deprecated: ``warp_highlights.write_lp(lights, path, filenames)``."""
-        warn_moved("LightSet.write_lp(path)", "warp_highlights.write_lp(lights, path)")
-        from ..io.lightfile import write_lp
-
-        write_lp(self, path, filenames)
 
 
 def _checked_count(count: int) -> int:

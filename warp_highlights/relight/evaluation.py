@@ -31,10 +31,10 @@ import numpy as np
 import warp as wp
 
 from ..io.images import linear_to_srgb, srgb_to_linear
-from ..io.metrics import psnr_excluding_black, srgb_scores
 from ..io.resample import resize_stack
 from ..model.errors import InputError
 from ..model.residual import LUMINANCE_WEIGHTS
+from ..quality.metrics import psnr_excluding_black, srgb_scores
 from .baselines import BASELINE_METHODS, fit_baseline, minimum_lights
 from .relighter import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
 

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.memory import check_memory
 from ..model.config import MapSettings
 from ..model.errors import InputError
+from ..model.memory import check_memory
 from ..model.residual import LUMINANCE_WEIGHTS
 from .relighter import Relighter
 

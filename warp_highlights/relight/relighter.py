@@ -39,7 +39,13 @@ from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.triangulation import unit_query_directions
 from ..residual.decode import decoded_blocks
-from ..residual.device import RESIDUAL_DECODES, LowRankArrays, decode_on_load, decode_residual, decodes_on_device
+from ..residual.device import (
+    RESIDUAL_DECODES,
+    LowRankArrays,
+    decode_on_load,
+    decode_residual,
+    decodes_on_device,
+)
 from .interpolation import edge_rows
 
 __all__ = [

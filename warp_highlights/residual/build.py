@@ -11,10 +11,10 @@ import numpy as np
 import warp as wp
 
 from ..io.codes import DeflatedCodes
-from ..io.memory import available_memory
 from ..kernels.gram import DeviceProducts
 from ..kernels.stacks import NormalisedStacks
 from ..model.config import ResidualSettings
+from ..model.memory import available_memory
 from ..model.residual import (
     LUMINANCE_WEIGHTS,
     ResidualModel,

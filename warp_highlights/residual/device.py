@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.memory import device_free_memory
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
+from ..model.memory import device_free_memory
 from ..model.residual import LowRankStack, ResidualModel, code_levels
 from .decode import stack_basis
 

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.metrics import srgb_psnr
 from ..kernels.neural import NeuralDecoder, train_decoder
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, ResidualSettings
 from ..model.errors import InputError
@@ -18,6 +17,7 @@ from ..model.residual import (
     NeuralResidual,
     ResidualModel,
 )
+from ..quality.metrics import srgb_psnr
 from .decode import learned_images
 from .inputs import residual_of
 from .opponent import encode_display

@@ -162,7 +162,7 @@ class Renderer:
         """Lights shaded per launch: ``settings.light_chunk``, fewer where their three images would take
         more than ``CHUNK_MEMORY_SHARE`` of the free device memory (the host's available memory on the
         CPU): 64 lights of 3840x2160 RGB are 19 GB."""
-        from ..io.memory import device_free_memory
+        from ..model.memory import device_free_memory
 
         free = device_free_memory(wp.get_device(self.device))
         per_light = 3 * 4 * self.settings.width * self.settings.height * (3 if self.settings.colour else 1)

@@ -32,8 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_file, atomic_folder, check_file_target, check_folder_target
-from ..io.images import _encode_levels, write_image
+from ..io.atomic import (
+    atomic_file,
+    atomic_folder,
+    check_file_target,
+    check_folder_target,
+)
+from ..io.images import encode_levels, write_image
 from ..io.lightfile import read_lp
 from ..model.errors import InputError
 
@@ -574,7 +579,7 @@ def _write_frames(
 
 def _srgb8(image: np.ndarray) -> np.ndarray:
     """Linear float frame -> uint8 sRGB codes (clipped to [0, 1])."""
-    return _encode_levels(image, 255, linear=False)
+    return encode_levels(image, 255, linear=False)
 
 
 def _frame_durations(fps: float, ticks_per_second: float) -> Iterator[int]:
@@ -652,7 +657,7 @@ def _write_gif(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress
 
 def _check_held_frames(frame_count: int, shape: tuple[int, ...], kind: str) -> None:
     """InputError when ``frame_count`` 8-bit frames of ``shape`` would not fit in the memory available."""
-    from ..io.memory import check_memory
+    from ..model.memory import check_memory
 
     frame_bytes = int(np.prod(shape[:2])) * (3 if len(shape) == 3 else 1)
     check_memory(2 * frame_count * frame_bytes, f"a {kind.upper()} of {frame_count} frames", "write fewer frames, a .gif, an .mp4 or a frames folder",

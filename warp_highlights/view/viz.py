@@ -507,7 +507,9 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
         interpolated = interpolate_sets(field, location.vertices[None], location.barycentric[None], method=method)
     plotter = plotter if plotter is not None else new_plotter()
     if background is None:
-        from ..relight.relighter import relight_field  # loads Warp: only when the image is needed
+        from ..relight.relighter import (
+            relight_field,  # loads Warp: only when the image is needed
+        )
 
         background = relight_field(field, direction, method=method).specular
     if frame not in ("paths", "image", None):

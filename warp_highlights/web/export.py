@@ -14,7 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from ..model.errors import InputError
-from ..model.residual import COLOUR_STEP, NEURAL_CODE_SIZE, colour_codes, colour_from_codes
+from ..model.residual import (
+    COLOUR_STEP,
+    NEURAL_CODE_SIZE,
+    colour_codes,
+    colour_from_codes,
+)
 from ..relight.relighter import face_edge_rows, rim_tables
 
 __all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays", "export_viewer", "single_file_page"]

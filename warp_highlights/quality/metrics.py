@@ -2,6 +2,11 @@
 as shown in 8-bit sRGB, the way RTI tools are compared (estimation, the move and learned checks,
 evaluation and the benchmarks all score through here).
 
+A layer of its own (``quality``): it needs io (the 8-bit sRGB encoding, ``io.images.display_rgb8``)
+and the model (the thread pool), and both fit and relight score with it, which io, a layer of files,
+should not hold. The kernels' device-side errors (``kernels.losses.clipped_mse``, ``kernels.scores``)
+are turned into dB here by their callers, so the kernels import neither this nor io.
+
 - ``psnr``: dB with peak 1 over the last two axes of linear values clipped to [0, 1], at most ``cap``.
 - ``psnr_excluding_black``: (Q,) dB per image of a stack; NaN where both images are all black.
 - ``psnr_8bit``: dB (peak 255, at most 100) of two 8-bit images.
@@ -19,8 +24,8 @@ import signal
 
 import numpy as np
 
+from ..io.images import display_rgb8
 from ..model.threads import core_count, parallel_map
-from .images import display_rgb8
 
 __all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "psnr_of_mse", "scoring_processes", "srgb_psnr", "srgb_scores", "ssim_8bit"]
 

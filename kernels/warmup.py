@@ -9,6 +9,10 @@ defines its kernels without starting Warp), and the context is made while the im
 
 ``InBackground`` runs other work in a thread the same way: the fit command's loading, whose decoding
 lets go of the GIL, while the command imports the rest of the pipeline and Warp starts.
+
+With the kernels, the layer that owns Warp and its devices; the module imports nothing of the package
+(nor Warp, until its thread runs), so the command can start it before the pipeline is imported. Fit's
+pipeline and the fit command use both classes.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Access to the ``wp.Tape`` being recorded, for operations that register hand-written adjoints."""
+"""Access to the ``wp.Tape`` being recorded, for operations that register hand-written adjoints; one
+Adam iteration on a tape, and its CUDA-graph replay (``ReplayedStep``), which the fitting stages run."""
 
 from __future__ import annotations
 

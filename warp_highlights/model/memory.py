@@ -1,4 +1,10 @@
-"""How much memory a request may take: what is available, and byte counts people can read."""
+"""How much memory a request may take: what is available, byte counts people can read, and the peak a
+block of work used (``PeakMemory``, the fit report's figures).
+
+In the model layer beside ``threads``: the host's (and a Warp device's) resources, which every layer
+consults (the dataset loader, fitting, relighting, rendering, the commands) and which need nothing of
+the package but ``InputError``; Warp is imported only where a device is asked about.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +13,7 @@ import resource
 import sys
 import threading
 
-from ..model.errors import InputError
+from .errors import InputError
 
 __all__ = ["PeakMemory", "available_memory", "bytes_text", "check_memory", "device_free_memory", "resident_memory"]
 
