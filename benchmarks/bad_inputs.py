@@ -1,4 +1,4 @@
-"""Robustness harness behind the README's reliability table (issue 14): many hundreds of bad inputs
+"""Robustness harness behind the reliability table (docs/reliability.md): many hundreds of bad inputs
 through the ``warp-highlights`` command line, as a new user (or a hostile file) would give them.
 
     python benchmarks/bad_inputs.py                      # every case (several minutes on a 2-core CPU)

@@ -13,7 +13,7 @@ into the shared cache, so no timed run pays for that. Prints a Markdown table (a
 ``--gpus 0`` times CPU workers instead.
 
 Where one run is longer than a time limit allows (20 captures take about 11 minutes on one H200, 31 s each,
-and a lent machine's call 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
+where a command may run 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
 rendered once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
 sums the parts' ``--json`` files per GPU count into the whole collection's table. Each part is a whole
 command, so a sum counts one start of the command and its cluster per part (``--json`` records each).

@@ -6,7 +6,7 @@
 
 Prints a table of seconds per stage (best of --repeat fits after a warm-up that compiles the kernels)
 and the field's file size; writes the full report to $OUT/bench_fit.json when OUT is set. Runs from a
-plain checkout with only warp, numpy and scipy (PYTHONPATH=$PWD), as on the lent GPU machine.
+plain checkout with only warp, numpy and scipy (PYTHONPATH=$PWD), as on a GPU machine without the project installed.
 """
 
 from __future__ import annotations

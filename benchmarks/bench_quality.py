@@ -67,7 +67,7 @@ def load_case(name: str, scale: str, device) -> ReflectanceField:
         return ReflectanceField.load(root / "Dome", heldout=root / "Test", progress=False)
     if name == "statue":
         return ReflectanceField.load(data / "realrti-item11", progress=False).split_every(5)
-    # rendered in memory (the lent GPU machine has no EXR writer), with ground truth at the triangle centroids
+    # rendered in memory (a GPU machine may have no EXR writer), with ground truth at the triangle centroids
     width, height = SIZES[name][1 if scale == "gpu" else 0]
     lights = LightSet.fibonacci_sphere(RENDERED_LIGHTS[scale])
     renderer = Renderer(make_shape(name), material=default_material(name), settings=RenderSettings(width=width, height=height),

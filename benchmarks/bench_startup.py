@@ -1,5 +1,5 @@
 """Time what a user waits for before any work: ``--help`` of every command, an argument error, and
-``import warp_highlights`` (issue 19: under 0.5 s on the 2-core CPU, Warp not imported).
+``import warp_highlights`` (aim: under 0.5 s on a 2-core CPU, Warp not imported).
 
     python benchmarks/bench_startup.py [--repeat 5]
 
