@@ -6,6 +6,8 @@ height, so the thesis' values (it worked at 480 x 270) hold at every resolution.
 from rpx to normalised units here and nowhere else.
 
 Where the thesis gives a value it is the default; every other default says how it was chosen.
+This module holds one thing: the settings of a fit (one frozen dataclass per stage), their checks and
+the overrides that edit them.
 """
 
 from __future__ import annotations
@@ -81,9 +83,8 @@ class RasterSettings:
             A Gaussian that collapses between pixel centres draws nothing and gets no gradient; the
             estimation's pruning removes Gaussians narrower than 0.05 pixel.
         tile_size: culling tile edge in pixels, a power of two (a performance knob; it never changes
-            the image).
-            8, 16 and 32 measured within 2% of each other on the CPU and the H200
-            (benchmarks/bench_raster.py --tile-sizes 8,16,32); 16 kept.
+            the image). 8, 16 and 32 measure within 2% of each other on the CPU and on an NVIDIA H200
+            (benchmarks/bench_raster.py --tile-sizes 8,16,32); 16 is the middle one.
     """
 
     cutoff: float = 4.0
@@ -232,7 +233,7 @@ class EstimationSettings:
             lengths are in rpx and its finest (the 0.1 rpx sigma floor, regions of 4 rpx^2) are
             resolved at 2, so larger images only cost time and memory: 1920x1080 and 3840x2160
             captures are fitted at 960x540. 0: never shrink. Every capture up to 540 rows (the
-            samples, the 480x270 renders) is fitted as before.
+            samples, the 480x270 renders) is fitted at its own size.
         adam: learning rates (AdamSettings).
     """
 
@@ -290,16 +291,15 @@ class ComponentSettings:
 class RetargetSettings:
     """Re-fitting every estimated set onto its neighbours' specular images (method.md section 5).
 
-    The defaults come from benchmarks/sweep_retarget.py on the 250-light 480x270 donut (H100; tables in
-    benchmarks/README.md), scored by what the fit is for: the PSNR of the circular interpolation at
-    all 496 triangle centroids against the rendered ground truth. The interpolation quality was flat
-    in c_str (43.70-43.73 dB from 0 to 1 at 200 + 500 iterations) while the structure loss fell from
-    39 to 0.2 rpx^2; c_str = 0.1 keeps it at 4 rpx^2 without stiffening the sets. Any c_ene >= 1e-3
-    cost 0.3-2 dB, so the energy term stays as a light tie (1e-4, indistinguishable from 0). Short
-    phases scored best (at c_ene = 1e-3: 50 + 150 iterations 43.80 dB, 200 + 500 43.42, 400 + 800
-    43.22): longer fits chase each target's detail at the cost of the correspondence the paths rely
-    on. The defaults together score 43.82 dB (straight paths 41.62, alpha blend 38.65). The 64-light
-    240x135 CPU sweep agreed: the defaults scored 38.13 dB there, above every swept setting.
+    The defaults come from benchmarks/sweep_retarget.py on the 250-light 480x270 donut (on an NVIDIA
+    H100; tables in benchmarks/README.md), scored by what the fit is for: the PSNR of the circular
+    interpolation at all 496 triangle centroids against the rendered ground truth. The interpolation
+    quality was flat in c_str (within 0.03 dB from 0 to 1) while the structure loss fell from 39 to
+    0.2 rpx^2; c_str = 0.1 keeps it at 4 rpx^2 without stiffening the sets. Any c_ene >= 1e-3 cost
+    0.3-2 dB, so the energy term stays as a light tie (1e-4, indistinguishable from 0). Short phases
+    scored best (50 + 150 iterations ahead of 200 + 500 and 400 + 800): longer fits chase each
+    target's detail at the cost of the correspondence the paths rely on. The 64-light 240x135 sweep
+    on the CPU agreed: the defaults scored above every swept setting there.
 
     Attributes:
         rigid_iterations: phase 1 steps (T1): one translation and rotation per connected component.
@@ -317,11 +317,11 @@ class RetargetSettings:
             shadow or off the surface) and is put back at its source: along that edge it stays as it
             is, as the alpha blend would keep it, instead of shrinking to a point. On the 250-light
             donut a small highlight that is missing at some lights made such collapsed Gaussians
-            (energy share 0.2%) and cost circular 4-7 dB on the specular part at the centroids of
-            their triangles; putting them back raised its specular share over alpha from 90.7% to
-            94.4% of centroids at 0.05 and at 0.01 (H100). 0.01 (default) cost the teapot's full
-            image 0.05 dB (0.05: 0.08 dB) and the donut's 0.04 dB; the dome sample gained 0.12 dB
-            (benchmarks/README.md, "Vanished retargets"). 0 keeps every retargeted Gaussian.
+            (energy share 0.2%), which cost circular its lead over alpha at the centroids of their
+            triangles; putting them back raised the share of centroids where circular beats alpha
+            from 90.7% to 94.4%, at 0.05 and at 0.01 alike (benchmarks/thesis_experiments.py). 0.01,
+            the smaller, changes the full images least (benchmarks/bench_quality.py). 0 keeps every
+            retargeted Gaussian.
     """
 
     rigid_iterations: int = 50
@@ -360,7 +360,7 @@ class PathSettings:
             other, and 4.5% of the donut's Gaussians took the longer turn (a needle swinging through
             90 degrees mid-triangle, visible in animations); comparing rotations left 0% and raised
             the circular PSNR of the 64-light 240x135 donut from 38.13 to 38.89 dB
-            (docs in README, "Path decisions").
+            (benchmarks/thesis_experiments.py; docs/method.md, "Fitting", step 6).
     """
 
     straight_below: float = 1e-4
@@ -393,43 +393,43 @@ class ResidualSettings:
             "images" keeps them uncompressed as float16 (exact at the captured lights, as large as the alpha
             blend's input); "none" keeps no residual (relight with a diffuse model instead). "auto"
             (default): learned on a CUDA device, low rank elsewhere. On the CPU learning does not fit the
-            time a fit should take (the statue's fit at 283x267 must stay under 2 minutes there, an epoch
-            of it takes about 20 s, and 120 s left it undertrained: 31.29 dB at 192x181 against 33.01
-            low-rank); on CUDA the learned residual scored higher at held-out lights on the samples
-            (``benchmarks/bench_quality.py``), at the cost of minutes of training.
+            time a fit should take (the statue's fit at 283x267 should stay under 2 minutes there, and
+            120 s of training left it below the low-rank residual at its held-out lights); on CUDA the
+            learned residual scored higher at held-out lights on the samples
+            (``benchmarks/bench_quality.py``, with ``--set residual.kind=...``), at the cost of minutes
+            of training.
         size_budget: the largest share of the 8-bit capture (lights x pixels x channels bytes) the
             whole field file may take: the residual's basis images, their number and their
             quantisation (``residual.rate.allocate_steps``) are chosen to fill what the Gaussians,
-            paths and the rest leave. The project aims at 25% (issue 15); the estimate counts the
-            deflated basis images as the file stores them and the file's own overhead, and the
-            eight benchmark fields (samples and renders, CPU and H100 sizes) were written at
-            23.2-24.0% of their captures with 0.24. On
-            the statue (192x181) the full image gains 0.25 dB from a share of 0.19 to 0.24 and 0.1 dB more
-            at 0.33 (README, "Residual transfer").
+            paths and the rest leave. A field should stay within a quarter of its capture; the estimate
+            counts the deflated basis images as the file stores them and the file's own overhead, and
+            with 0.24 the eight fields of benchmarks/bench_quality.py (samples and renders, CPU and GPU
+            sizes) take 23.2-24.0% of their captures (its "share" column). A larger share gains the
+            statue's full images little.
         luminance_rank: basis images of the luminance, each quantised over its whole range; 0
             (default) lets the budget decide.
         min_luminance_rank: the automatic rank's floor, whatever the budget (those beyond what it
-            allows at 8 bits over their range): at small working sizes
-            the Gaussians alone can take most of it (the statue at 68x64: rank 1 scored 26.1 dB
-            against 34.8 for the alpha blend), and 8 basis images cost little there.
+            allows at 8 bits over their range): at small working sizes the Gaussians alone can take
+            most of the budget (the statue at 68x64 relit with rank 1 fell far below the alpha blend),
+            and 8 basis images cost little there.
         max_luminance_rank: cap on the automatic rank (each rank costs the relight one multiply-add
-            per pixel and plane). 255, so that the size budget decides: at 32 the dome sample is
-            within 0.05 dB of its uncompressed residual, but the 64-light full-sphere donut gained
-            1 dB more up to 58, and with a cap of 64 the 250-light donut scored 4 dB under the alpha
-            blend (its dark back-lit images need the rank).
+            per pixel and plane). 255, so that the size budget decides: a low cap suits the dome
+            sample, whose residual needs few images, but the full-sphere donut gains up to rank 58 at
+            64 lights, and a cap of 64 left the 250-light donut under the alpha blend (its dark
+            back-lit images need the rank; ``benchmarks/bench_quality.py --set
+            residual.max_luminance_rank=64``).
         basis_bits: bits of the stored basis images' codes, 8 or 16; 0 (default) fits both within
             the budget and keeps the one of lower predicted squared error (``StackPlan.distortion``),
             and fits only 8 where their steps are all coarser than the codes' finest (16-bit codes
             would store the same quantisation in more bytes): 16 bits let the leading images be
-            quantised finer than their range over 255 (the 64-light donut's lights came back at 35 dB
-            from 8-bit bases quantised over their range at full rank), 8 bits cost less where they
-            need not be. The prediction chose as the 8-bit sRGB error of both candidates did on both
-            samples and the 64-light donut at budgets 0.08, 0.24, 0.5 and 1 (12 of 12) and on the
-            250-light donut.
+            quantised finer than their range over 255 (8-bit bases quantised over their range hold the
+            64-light donut back even at full rank), 8 bits cost less where they need not be. The
+            prediction picks the width that the measured 8-bit sRGB error of both candidates picks, on
+            both samples and the donuts over budgets from 0.08 to 1.
         chroma_rank: basis images of the chroma (B - Y, R - Y); 0 (default) lets the budget decide,
             with the luminance's (``residual.rate.allocate_steps``: every kept image of either stack
-            adds the same squared RGB error). A fixed 3 or 6 cost the 250-light donut, whose colour
-            changes with the light, 4.5 dB (34.02 against 38.58 dB with the residual uncompressed).
+            adds the same squared RGB error). A small fixed rank (3 or 6) loses much of the 250-light
+            donut, whose colour changes with the light.
         move_support: a Gaussian moves only where, on the median outgoing edge, at least this share
             of its retargeted self lies on the neighbour's specular image (``kernels.support``);
             otherwise it stays where it is and blends like the alpha baseline. 0 lets every Gaussian move.
@@ -438,42 +438,40 @@ class ResidualSettings:
             that holds it, with the Gaussians moved (its missing edges retargeted) and with the
             corners' images blended; where moving scores lower (mean 8-bit sRGB PSNR), the
             highlights stay in the residual and the field keeps no Gaussians. 48 (default) checks
-            every light of the statue sample (43 fitted lights), where moving lost 0.04-0.07 dB to
-            blending at the left-out lights (and 0.07-0.1 dB at the held-out ones, the fourth
-            session's fields), and 48 spread lights of larger captures (the dome sample and the
-            250-light renders: moving ahead by 0.9-2.4 dB); each costs the fit about 3-4 retargeted
-            edges (the statue's CPU fit at 283x267: 20 s of 102-106 s). 0 skips the check.
+            every light of the statue sample (43 fitted lights), where moving loses to blending at the
+            left-out lights as at the held-out ones, and 48 spread lights of larger captures (the dome
+            sample and the 250-light renders, where moving is ahead; ``benchmarks/bench_quality.py``
+            records which fields keep their Gaussians); each light costs the fit about 3-4 retargeted
+            edges. 0 skips the check.
         highlight_colour: estimate a per-pixel highlight colour c(x) from the specular part
             (metals, coloured plastics); False keeps white highlights.
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
         learned_seconds: the learned residual's training time at most, seconds (each of the learned
-            check's two models, or the one model without it): 120 took the donut and the dome to
-            41.35 and 41.02 dB, the statue scored 32.92 after 300.
+            check's two models, or the one model without it): on an NVIDIA H100, 120 s take the
+            250-light donut and the dome sample to 41.35 and 41.02 dB at their held-out lights, ahead
+            of the low-rank field on the donut (``benchmarks/bench_neural_residual.py --seconds 120``).
         learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them);
             400, so that ``learned_seconds`` ends training on any capture bigger than the dome.
         learned_batch: (light, pixel) samples per Adam step; 0 (default) by device: 65,536 on CUDA
-            (the H100 figures above; a step that fills the GPU), 2,048 on the CPU, where a step
-            costs little beyond its samples: the dome sample at 64x64 learned alone for 60 s on
-            the 2-core CPU scored 26.09 dB at its `Test/` lights with 65,536 (3 steps an epoch),
-            43.06 with 8,192 and 44.83 with 2,048; at 160x160 after 120 s, 45.83 with 2,048 and
-            45.63 with 512 (the default low-rank field: 41.99; RBF 38.91).
+            (a step that fills the GPU; the ``learned_seconds`` figures are at it), 2,048 on the CPU,
+            where a step costs little beyond its samples: a large batch gives a small capture only a
+            few steps an epoch and leaves it undertrained in the time given, while below 2,048 the
+            dome sample gained nothing more.
         learned_check: where the move check keeps the Gaussians, this many of its left-out lights
             (spread) decide whether the learned residual keeps them too (``residual.learned.check_learned``):
             two models learn without those lights, each for ``learned_seconds``, the residual (scored
             with the Gaussians moved there) and the images alone (NeuralRTI); the better one goes on
             learning from every light. 6, an eighth of the dome sample's 49 lights, spread like the
-            move check's; on the H100 the two kinds differed by 7 dB there (41.02 with the Gaussians,
-            48.00 alone) and by 2.3 dB the other way on the 250-light donut, far more than 6 lights'
-            spread. Both models train in full because the ranking turns with training: on the 2-core
-            CPU the dome at 80x80 scored 32.19 with the Gaussians and 27.97 alone after 30 s (tens of
-            steps), 33.13 and 32.20 at 64x64 after 200 epochs (about 600 steps), against 48.00 alone
-            after 9,000 steps on the H100. 0 keeps the Gaussians unchecked (one model, trained once).
+            move check's: on an NVIDIA H100 the two kinds differ by 7 dB on the dome sample (the
+            images alone ahead) and by 2.3 dB the other way on the 250-light donut
+            (``benchmarks/bench_neural_residual.py``), far more than 6 lights' spread. Both models
+            train in full because the ranking turns with training: after a few tens of steps the
+            model with the Gaussians leads on the dome sample, after thousands the images alone do.
+            0 keeps the Gaussians unchecked (one model, trained once).
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
-            left-out ones included, at the final learning rate (3e-4), seconds: a quarter of ``learned_seconds``, for 6 lights
-            out of 43-250. On the H100 the check chose the images alone on the dome sample (46.45 dB
-            against 34.45 with the Gaussians at its 6 lights) and the Gaussians on the 250-light
-            teapot (35.57 against 35.08).
+            left-out ones included, at the final learning rate (3e-4), seconds: a quarter of
+            ``learned_seconds``, for 6 lights out of 43-250.
     """
 
     kind: str = "auto"
@@ -520,14 +518,15 @@ class MapSettings:
     Chosen on the dome sample (against the normal map its renderer wrote, flattened) and the rendered
     sphere (against the analytic normals), from the captured images themselves: with one threshold
     for the whole image, segmentation's 0.05, the dark dome sample (median pixel 0.025) kept too few
-    lights and scored 1.75 degrees (median) with segmentation's fit, 0.31 with its threshold relative.
+    lights, and its normals erred several times more than with a threshold relative to each pixel
+    (tests/test_maps.py holds both captures to their normals).
 
     Attributes:
         lit_percentile: a pixel's typical lit value is this percentile of its luminance over the lights
             (75: a quarter of the lights may be highlights, three quarters shadow).
         lit_fraction: a light lights the pixel when its value is at least this share of the typical
             one (0.1: the rendered sphere's ambient 0.02 under an albedo of 0.6 is 3%; at 5% of the
-            75th percentile, shadowed samples counted and its normals erred by 1.26 degrees).
+            75th percentile, shadowed samples counted and bent its normals).
         black_level: a pixel whose typical lit value is below this (linear, the field's units, where
             display white is about 1) is black: no normal. 0.001 is 8-bit sRGB level 4; below it an
             8-bit capture holds no shading to fit, and a compressed residual's noise on a black
