@@ -12,8 +12,7 @@ user runs it: a separate process, a fresh local cluster. A one-capture collectio
 into the shared cache, so no timed run pays for that. Prints a Markdown table (and ``--json`` the figures);
 ``--gpus 0`` times CPU workers instead.
 
-Where one run is longer than a time limit allows (20 captures take about 11 minutes on one H200, 31 s each,
-where a command may run 10), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
+Where one run is longer than a time limit allows (20 captures take minutes on one GPU), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
 rendered once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
 sums the parts' ``--json`` files per GPU count into the whole collection's table. Each part is a whole
 command, so a sum counts one start of the command and its cluster per part (``--json`` records each).

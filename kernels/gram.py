@@ -9,7 +9,7 @@ atomics), and ``CrossSum.value`` adds the PARTS partial sums on the host, so a f
 bytes every run. A Gram matrix (``add(a)``) computes the tiles on and above the diagonal only.
 
 ``tile_matmul`` runs Warp's scalar GEMM (module option ``enable_mathdx_gemm`` off): cuBLASDx's
-link-time compile of these mixed float32/float64 tiles took 129 s on an H100 for a 2 s saving per
+link-time compile of these mixed float32/float64 tiles takes minutes for a saving of seconds per
 1080p fit. On the CPU the same kernels run (the tests' reference), but the host's BLAS is faster
 there, so the package sends only CUDA work here.
 """
@@ -122,9 +122,9 @@ class DeviceProducts:
 
     On CUDA the blocks go through two page-locked host buffers used in turn: a block (a strided view
     of the stack will do) is copied into one while the other's copy to the device runs, and
-    projections come back through them. On the lent H100's host a copy from page-locked memory ran at
-    48 GB/s against 9.4 GB/s from pageable memory, and one thread filled a buffer at 7.0 GB/s against
-    3.9 GB/s from 16 (``.diag`` measurements, benchmarks/README.md): the host's copies are one thread's."""
+    projections come back through them. A copy from page-locked memory runs several times faster than
+    one from pageable memory (benchmarks/bench_transfer.py), and one thread fills a buffer faster than
+    many: the host's copies are one thread's."""
 
     def __init__(self, device):
         self.device = wp.get_device(device)

@@ -1,6 +1,6 @@
 """A learned per-pixel residual (NeuralRTI-style): a code per pixel and a small MLP that decodes code +
-light direction to RGB, trained with Warp tiles and the tape (issue 15, point 2: a candidate for the
-compact residual, measured on the PSNR-size curve by ``benchmarks/bench_neural_residual.py``).
+light direction to RGB, trained with Warp tiles and the tape (``fit --residual learned``; its quality
+against the low-rank residual is measured by ``benchmarks/bench_neural_residual.py``).
 
 Model: ``y(p, w) = W3 elu(W2 elu(W1 elu(W0 [z_p, w] + b0) + b1) + b2) + b3``, z_p the pixel's
 ``CODE_SIZE`` numbers, w the unit light direction; y in display units (signed sRGB encoding of the

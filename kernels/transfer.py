@@ -1,21 +1,19 @@
 """Large arrays between host and device memory at the copy's speed.
 
 ``wp.array.numpy()`` copies a CUDA array into a fresh NumPy array, and the copy then stops at every
-page of it the first time it writes there (the kernel maps the page): on the lent H100's host, 6.2 GB
-of a 250-light 1920x1080 specular stack came down in 5.0 s. ``to_host`` first writes every page of
-the new array from threads, which the kernel maps in parallel, then copies into it: 0.17 + 0.59 s.
+page of it the first time it writes there (the kernel maps the page), so a large stack comes down
+slowly. ``to_host`` first writes every page of the new array from threads, which the kernel maps in
+parallel, then copies into it, several times faster in all.
 
 A band of rows of an (n, H, W[, C]) stack is n separate runs of host memory: ``rows_up`` and
 ``rows_down`` copy each run straight between host and device memory (no contiguous copy of the band
-on the host first; the lent H100's host copied 9.4 GB/s so from pageable memory).
+on the host first).
 
 From ``STAGED_MIN_BYTES`` on (a 250-light 1080p stack and larger), a CUDA transfer goes through a few
 page-locked buffers (``Staging``): threads copy the host memory into one while the device copies
-another. Measured on the lent H100 (benchmarks/README.md "Tenth session";
-``benchmarks/bench_transfer.py`` takes the same figures): 8 GiB went up at 6.9 GB/s from pageable
-memory and 52 GB/s from page-locked memory, down at 11 and 53 GB/s; but page-locking memory costs
-0.7 s per GiB, so only a few small buffers are locked, once per process, and a large stack never is.
-The whole staged path was measured only inside the fit (segmentation 11.6 -> 6.5 s at 1,000 x 1080p).
+another. Copies from and to page-locked memory run several times faster than from and to pageable
+memory (``benchmarks/bench_transfer.py`` measures both), but page-locking memory costs time per GiB
+too, so only a few small buffers are locked, once per process, and a large stack never is.
 """
 
 from __future__ import annotations
@@ -31,8 +29,8 @@ __all__ = ["STAGED_MIN_BYTES", "STAGING_BYTES", "STAGING_SLOTS", "Staging", "as_
 
 STAGED_MIN_BYTES = 1 << 30
 """Transfers of this many bytes or more (1 GiB) go through ``Staging``: a process whose transfers are
-all smaller (a 480x270 capture's, 0.4 GB) would pay the buffers' 0.13 s of page-locking for less than
-it saves (about 0.09 s a GB at the rates measured)."""
+all smaller (a 480x270 capture's, 0.4 GB) would pay more for locking the buffers than they save at the
+copy rates ``benchmarks/bench_transfer.py`` measures."""
 STAGING_BYTES = 1 << 26
 """Bytes of each page-locked staging buffer (64 MiB: a copy into it split over the threads is a few MB each)."""
 STAGING_SLOTS = 3

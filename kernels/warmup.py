@@ -1,11 +1,11 @@
 """Warp started, and a CUDA device's context made, in a thread while the host does other work.
 
-``wp.init`` took 0.43 s on the lent H100 and the device's (primary) context, made on its first use,
-another 0.13-0.3 s, while nothing else ran in the ``fit`` command (measured with py-spy and a
-micro-benchmark, benchmarks/README.md "Tenth session"). Both are mostly the CUDA driver's calls, which
-let go of the GIL: started in a thread, Warp starts while the command imports the pipeline (which
-defines its kernels without starting Warp), and the context is made while the images decode.
-(The memory pool needs no such start: its first 400 MB took 0.7 ms.)
+``wp.init`` and the device's (primary) context, made on its first use, take a noticeable part of a
+short ``fit`` command, during which nothing else would run (``benchmarks/bench_transfer.py`` times
+both). Both are mostly the CUDA driver's calls, which let go of the GIL: started in a thread, Warp
+starts while the command imports the pipeline (which defines its kernels without starting Warp), and
+the context is made while the images decode. (The memory pool needs no such start: its first
+allocations are quick.)
 
 ``InBackground`` runs other work in a thread the same way: the fit command's loading, whose decoding
 lets go of the GIL, while the command imports the rest of the pipeline and Warp starts.

@@ -3,8 +3,8 @@
 Ctrl-C or SIGTERM while the program is still loading ends it at once with status 130 or 143 (nothing
 has been written then); once ``main`` runs, its own handlers take over and clean up. Once ``main`` has
 returned, the process ends at once (``_end``; not under a profiler or coverage tool): the interpreter's
-teardown of the modules it loaded (Warp, SciPy, NumPy) took 0.2-0.3 s after every command, with
-nothing left for it to do.
+teardown of the modules it loaded (Warp, SciPy, NumPy) would add a noticeable wait after every
+command, with nothing left for it to do.
 """
 
 from __future__ import annotations

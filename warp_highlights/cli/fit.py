@@ -65,8 +65,8 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
 
 EARLY_LOAD_BYTES = 1 << 29
 """``fit`` decodes a capture of at most this many float32 bytes (512 MiB: 250 lights at 480x270 are 389 MB) while Warp
-starts, and a larger one only once Warp has found the device: a wrong ``--device`` then costs at most about 0.5 s of
-reading before its error line; at 480x270 the wait for Warp's start (0.12 s on the lent H100) was on the command's path."""
+starts, and a larger one only once Warp has found the device: a wrong ``--device`` then costs at most a short
+read before its error line, while at 480x270 the reading hides the wait for Warp's start."""
 
 
 def residual_overrides(kind: str | None) -> list[str]:
@@ -76,7 +76,7 @@ def residual_overrides(kind: str | None) -> list[str]:
 
 def _thread_lock_for_progress_bars() -> None:
     """Guard this process's tqdm bars with a thread lock alone. tqdm's default lock also makes a
-    multiprocessing one, importing ``multiprocessing`` (0.04 s of the loading thread, under the GIL the
+    multiprocessing one, importing ``multiprocessing`` (time of the loading thread, under the GIL the
     pipeline's imports need); this command's bars are all drawn by its own threads."""
     import threading
 
@@ -149,7 +149,7 @@ def _run_fit(args) -> int:
             from ..residual.kind import resolve_kind
 
             if resolve_kind(settings.residual.kind, device) == "lowrank" and not background.done():  # waiting for the images anyway: the rate search's one late import now
-                import scipy.optimize  # noqa: F401 (0.05-0.07 s on the lent H100's host)
+                import scipy.optimize  # noqa: F401 (imported while the images load, not after)
             dataset, loading, load_seconds = background.result() or load_images(background.stop)
         if args.holdout_every:
             dataset = dataset.split_every(args.holdout_every)

@@ -256,9 +256,9 @@ def _plan_workers(todo: int, *, workers: int | None, gpus: int | None, device: s
 def launch_environment() -> dict[str, str | None]:
     """The variables Dask's nanny sets for its workers (``distributed.nanny.pre-spawn-environ`` and
     ``environ``: ``MALLOC_TRIM_THRESHOLD_=65536``, one OpenMP/MKL/OpenBLAS thread) as this process has
-    them, None where unset: each capture's commands get them back. Dask's trim threshold doubled an
-    ``evaluate`` (25.5 -> 52.4 s on the 2-core CPU): every large array freed went back to the system
-    and the next one faulted its pages in again."""
+    them, None where unset: each capture's commands get them back. Dask's trim threshold makes an
+    ``evaluate`` far slower: every large array freed goes back to the system and the next one faults
+    its pages in again."""
     import dask
 
     keys = set()

@@ -103,7 +103,7 @@ def fit_field(
         edges = triangulation.directed_edges()
     planning = None
     if residual and device.is_cuda:  # the move check's left-out lights, host work that depends on the lights alone, planned in a
-        # thread while the device fits (the fit's thread mostly waits for it): 0.13 s of the 250-light check on the lent H100's host
+        # thread while the device fits (the fit's thread mostly waits for it)
         planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, settings.residual.check_lights), name="check-plan")
     try:
         with timer.stage("segmentation"):

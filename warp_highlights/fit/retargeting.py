@@ -33,7 +33,8 @@ from .estimation import gaussian_energy_rpx
 
 _IMAGES_PER_EDGE = 5
 """Image-sized float32 arrays retargeting holds per directed edge (its target, its rendering, their
-adjoints, the loss's scratch), rounded up from the H100's 13 GB for 1,494 edges at 960x540 (four)."""
+adjoints, the loss's scratch), rounded up from the four that a 1920x1080 capture's peak device memory
+gives (its Gaussians fitted at 960x540; benchmarks/bench_scale.py)."""
 
 __all__ = ["RetargetResult", "restore_vanished", "retarget"]
 

@@ -1,8 +1,8 @@
 """Leave-one-out check that moving the highlights beats blending the images on this capture (method.md section 6).
 
-Moving wins where the Gaussians sit on real highlights that retarget reliably (the rendered dome sample:
-2.1 dB ahead at its left-out lights) and loses where they model broad sheen and shading (the statue
-sample: 0.04-0.07 dB behind). Held-out lights cannot tell at fit time, so the captured ones do, one at a time: each
+Moving wins where the Gaussians sit on real highlights that retarget reliably (the rendered dome sample)
+and loses where they model broad sheen and shading (the statue sample). Held-out lights cannot tell at
+fit time, so the captured ones do, one at a time: each
 checked light j is located in the triangulation of the *other* lights, and its triangle's corners
 predict image j twice,
 
@@ -47,7 +47,7 @@ _RENDER_BYTES = 256 * 2**20  # the left-out lights' highlights are drawn in batc
 _SCORE_BYTES = 2 * 2**30  # the lights scored at once take at most this much memory for their images ...
 _SCORE_COPIES = 8  # ... each about this many image-sized temporaries (the blend, the moved image, the truth, sRGB)
 _DEVICE_SCORE_SHARE = 0.25  # on a CUDA device the lights are scored there where the images they need take at most this share of its free
-# memory (48 lights of a 480x270 capture: 192 images, 0.3 GB; the host's threads took 0.15-0.2 s of the 0.35-0.5 s check on the lent H100)
+# memory (48 lights of a 480x270 capture: 192 images, 0.3 GB), where the host's threads would take a large part of the check
 
 
 @dataclass(frozen=True)

@@ -50,9 +50,9 @@ class LoadStopped(Exception):
 
 LOAD_WORKERS = min(32, core_count())
 """Threads that decode a dataset's images (the decoders release the GIL): one per core, at most 32
-(the most cores measured; each holds an image being decoded, see ``_check_memory``). Measured on
-the lent H100's 16-core host (benchmarks/README.md): the 1,000-image 1920x1080 float16 EXR capture
-loads in 6.0 s with 16 threads, 7.2 s with 12 and 9.8-10.9 s with 8 (the earlier cap)."""
+(the most cores measured; each holds an image being decoded, see ``_check_memory``). On a 16-core
+host the 1,000-image 1920x1080 float16 EXR capture loads in 6.0 s with 16 threads, 7.2 s with 12 and
+9.8-10.9 s with 8 (benchmarks/bench_load.py), so every core is used."""
 DISPLAY_REFERRED_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 """Image files that hold display values (8/16-bit photographs), as opposed to radiance (EXR/HDR)."""
 

@@ -131,8 +131,8 @@ smaller ones are left to be mapped as they are first written (the threads would 
 def mapped_empty(shape, dtype) -> np.ndarray:
     """``np.empty(shape, dtype)`` whose memory is mapped already: a large array's pages are written
     (zeros) from threads first. A fresh array's first writes stop at each of its pages while the
-    system maps it, one page at a time even from many threads; on the lent H100's host a copy into
-    fresh pages ran at 2.9 GB/s, the threaded zero fill at tens of GB/s (``kernels.transfer``)."""
+    system maps it, one page at a time even from many threads, so a copy into fresh pages runs far
+    slower than the threaded zero fill and a copy into mapped pages together (``kernels.transfer``)."""
     array = np.empty(shape, dtype)
     if array.nbytes < PREFAULT_BYTES or NUMPY_THREADS == 1:
         return array

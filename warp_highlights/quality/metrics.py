@@ -52,7 +52,7 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
     if images.shape != truth.shape:
         raise ValueError(f"images {images.shape} and truth {truth.shape} differ in shape")
 
-    def one(q: int) -> tuple[float, bool]:  # one image in float64 at a time: a stack's copies took 0.5 s (124 of 480x270)
+    def one(q: int) -> tuple[float, bool]:  # one image in float64 at a time: float64 copies of a whole stack cost time and memory
         a = np.clip(images[q].astype(np.float64).reshape(-1), 0.0, 1.0)
         b = np.clip(truth[q].astype(np.float64).reshape(-1), 0.0, 1.0)
         return float(((a - b) ** 2).mean()), bool(a.max() <= 0.0 and b.max() <= 0.0)
@@ -115,14 +115,14 @@ def _scores_of_chunk(pairs: list) -> list:
 
 
 SCORING_PROCESSES = 4
-"""Worker processes of :func:`scoring_processes`, at most one per core. 124 image pairs of 480x270 on a
-lent H200 host's 16 cores: 1.53 s with 4 processes, 1.45 s with 8, 1.43 s with 16 (8 threads: 1.98 s,
-16 threads: 2.39 s); on the 2-core CPU 1.39 s (2 threads: 2.15 s). Beyond 4, the parent's encoding and
-the pipes are the limit, and each process holds its own copy of NumPy, SciPy and scikit-image."""
+"""Worker processes of :func:`scoring_processes`, at most one per core. Scoring 124 image pairs of 480x270
+on 16 cores, 8 or 16 processes were barely faster than 4, and threads were slower than processes (the
+scores hold the GIL). Beyond 4, the parent's encoding and the pipes are the limit, and each process
+holds its own copy of NumPy, SciPy and scikit-image."""
 
 PROCESSES_FROM = 32
 """Images from which ``srgb_scores`` hands a stack to the worker processes: below, the pipes and the
-processes' start (0.7-1.5 s, once per scope) outweigh the 7-14 ms an image they save."""
+processes' start (once per scope) cost more than the processes save."""
 
 _SCORING: _ScoringPool | None = None
 

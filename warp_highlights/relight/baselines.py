@@ -63,8 +63,8 @@ coincident lights; the interpolant then misses a training image by about lambda 
 RBF_SIGMA_FACTORS = np.geomspace(0.5, 3.0, 41)
 """sigma candidates of the leave-one-out search, as multiples of the median chord from each light to its
 nearest neighbour (0.34 on a 49-light dome). Larger sigma makes K so ill-conditioned that lambda, not
-the data, shapes the interpolant (on the SynthRTI dome a second LOO dip at 5 spacings scores 8 dB
-worse on held-out lights)."""
+the data, shapes the interpolant (on the SynthRTI dome a second leave-one-out dip at 5 spacings
+scores far worse on held-out lights)."""
 
 RBF_LOO_PIXELS = 4096
 """Pixels (all their channels) drawn, without replacement and with a fixed seed, to score the sigma

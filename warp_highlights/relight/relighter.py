@@ -673,7 +673,7 @@ def _copy_to_host(chunk: _DeviceQueries, specular: np.ndarray, images: np.ndarra
     """Copy the chunk's S' (and I' when ``images`` is given) into host arrays (Q, H, W), (Q, H, W, C)."""
     device_specular, device_full = chunk.specular, chunk.full
     if device_specular.device.is_cuda:
-        # a copy into page-locked memory runs at full bus speed (a pageable one took 1 ms per 480x270 image)
+        # a copy into page-locked memory runs at full bus speed (a pageable one is several times slower)
         if chunk.staging_specular is None:
             chunk.staging_specular = wp.empty_like(device_specular, device="cpu", pinned=True)
         wp.copy(chunk.staging_specular, device_specular)

@@ -21,7 +21,7 @@ RESIDUAL_DECODES = ("auto", "query", "load")
 DECODED_RESIDUAL_SHARE = 0.25
 """Share of the free device memory that "auto" gives a low-rank residual decoded once into float16 images
 on CUDA: 250 lights of 1920x1080 RGB take 3.1 GB of an 80 GB card, and a query then blends three images
-instead of reading every basis image (6.3 -> below 1 ms at 1080p on an H100, benchmarks/README.md)."""
+instead of reading every basis image, far less work at 1080p."""
 DECODED_RESIDUAL_BYTES = 512 * 2**20
 """Most memory "auto" gives the decoded residual on the CPU (and on CUDA where the free memory is
 unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, about 12 s per 3 GB

@@ -32,7 +32,7 @@ HELD_IMAGES_BYTES = 1 << 30
 """A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are held on a
 CUDA device for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of its free memory:
 the images from the segmentation's upload on (through estimation, retargeting and the paths), the own highlights from their
-render; larger ones go up band by band where each stage reads them (the stacks: 0.1 s of the 480x270 fit on the lent H100)."""
+render; larger ones go up band by band where each stage reads them."""
 HELD_IMAGES_SHARE = 0.1
 BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
 

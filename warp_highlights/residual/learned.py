@@ -24,7 +24,6 @@ from .opponent import encode_display
 
 __all__ = ["LearnedCheck", "check_learned", "learn_residual"]
 
-# images with an 8th of the rows, 2% at 1,000 x 1080p with a 16th; a wrong "plain" choice is measured on every row after all)
 _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
