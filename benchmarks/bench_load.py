@@ -1,4 +1,4 @@
-"""Loading a capture: every image decoded on one thread (the old way) against the threads of
+"""Loading a capture: every image decoded on one thread against the threads of
 ``ReflectanceField.load`` and what ``fit`` loads (no held-out lights, no ground-truth components,
 each image shrunk to the working size as it is decoded).
 

@@ -479,7 +479,7 @@ def total(losses: wp.array) -> wp.array:
     return out
 
 
-# --- helpers ---------------------------------------------------------------------------------------
+# --- helper functions ------------------------------------------------------------------------------
 
 
 def _output(out: wp.array | None, problems: int, device) -> wp.array:

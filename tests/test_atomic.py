@@ -1,4 +1,4 @@
-"""The shared atomic-output helper: files and folders appear whole, folders are replaced only when this
+"""The shared atomic outputs (``io.atomic``): files and folders appear whole, folders are replaced only when this
 project wrote them, stale temporaries of dead processes are cleaned, signals wait for cleanup."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Hostile inputs to the readers (issue 14): each is refused with exactly one one-line InputError that
+"""Hostile inputs to the readers: each is refused with exactly one one-line InputError that
 names the file and the problem, before anything large is allocated and without a library's traceback."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""TIFF and 16-bit captures, EXIF orientation and ICC profiles (issue 19): read through OpenImageIO,
+"""TIFF and 16-bit captures, EXIF orientation and ICC profiles: read through OpenImageIO,
 recorded in ``info``, the field's header and the relit output's bit depth."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Interrupts (issue 14): SIGINT, SIGTERM and SIGKILL at random points never damage an earlier output.
+"""Interrupts: SIGINT, SIGTERM and SIGKILL at random points never damage an earlier output.
 
 Each command runs as ``python -m warp_highlights`` writing, with --overwrite, over an earlier output
 of the same command, and gets SIGINT or SIGTERM after a random delay (a fixed-seed generator, from
@@ -78,7 +78,7 @@ WORKLOADS = {
 }
 
 
-# --- helpers ---------------------------------------------------------------------------------------
+# --- helper functions ------------------------------------------------------------------------------
 
 
 def _argv(template, inputs: dict, out: Path) -> list[str]:

@@ -1,4 +1,4 @@
-"""The core imports with warp + numpy + scipy only, as on the lent GPU machine."""
+"""The core imports with warp + numpy + scipy only, as from a plain checkout on a GPU machine."""
 
 from __future__ import annotations
 
@@ -62,7 +62,7 @@ API_0_1 = (
     "SegmentationSettings SphericalTriangulation StructureLoss StructureLossSettings __version__ decide_paths "
     "estimate evaluate_field fit_field retarget segment"
 ).split()
-"""The top-level names of 0.1, before the sub-package layout: they stay (issue 13)."""
+"""The top-level names of 0.1, before the sub-package layout: they stay."""
 
 
 def test_public_api_names_resolve():

@@ -1,7 +1,7 @@
 """Circular paths and the choice of rotation direction (method.md section 6).
 
 The expected decisions below are worked out by hand from method.md's formulas (numbers in the
-comments), not by calling the implementation's helpers.
+comments), not by calling the implementation's helper functions.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Property-based tests of the readers (issue 14): whatever bytes they are given, the only exception
+"""Property-based tests of the readers: whatever bytes they are given, the only exception
 that leaves them is the project's one-line ``InputError`` naming the file, and valid input reads back right.
 
 Each reader gets ``EXAMPLES`` generated inputs: random bytes, a valid file truncated, bit-flipped or with

@@ -1,10 +1,9 @@
 """The residual's connected regions labelled and measured on a Warp device (``kernels.regions``) against
-``scipy.ndimage.label`` and float64 NumPy sums (the estimation's former host path), and the device PSNR
+``scipy.ndimage.label`` and float64 NumPy sums, and the device PSNR
 (``kernels.losses.clipped_mse``) against ``quality.metrics.psnr``.
 
 A CPU launch runs its threads one after the other, so there ``_unite`` never finds a root moved by
-another thread; its retry runs only in the CUDA variants (run on the lent H100 with each change of
-the module: benchmarks/README.md)."""
+another thread; its retry runs only in the CUDA variants, which need a CUDA device."""
 
 from __future__ import annotations
 

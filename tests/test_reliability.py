@@ -1,4 +1,4 @@
-"""Reliability of the commands that write (issue 14), as black-box specifications of the CLI.
+"""Reliability of the commands that write, as black-box specifications of the CLI.
 
 1. Operating-system failures (a read-only folder, a full file system, a missing parent folder) end
    with exit status 2 and exactly one line ``warp-highlights COMMAND: error: ...`` on stderr, and
@@ -81,7 +81,7 @@ SLOW_FOLDERS = {"demo"}
 """Folder commands whose replacement tests run the command three times for real: marked slow."""
 
 
-# --- helpers ---------------------------------------------------------------------------------------
+# --- helper functions ------------------------------------------------------------------------------
 
 
 def _argv(template, inputs: dict, **paths) -> list[str]:

@@ -504,7 +504,7 @@ def test_overwrite_never_deletes_other_files(small_field, small_donut, tmp_path,
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
-# --- residual transfer and the capture protocols (issue 15) ------------------------------------------
+# --- residual transfer and the capture protocols ----------------------------------------------------
 
 LEGACY_FIELD = Path(__file__).resolve().parent / "data" / "legacy-v1.whf"
 

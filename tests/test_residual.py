@@ -703,7 +703,7 @@ def test_no_output_pixel_of_the_samples_is_negative_or_non_finite(sample_fields,
 
 def test_the_samples_relit_at_their_held_out_lights_beat_the_per_pixel_fits(sample_fields):
     """A smoke check of the whole chain on real data at 64 px: the field is not far from the alpha
-    blend and ahead of PTM (the README's table is the measurement)."""
+    blend and ahead of PTM (benchmarks/bench_quality.py is the measurement)."""
     from warp_highlights.relight.evaluation import evaluate_field
 
     for field, dataset in sample_fields:

@@ -166,7 +166,7 @@ def test_teapot_subdivisions_scale_the_tessellation():
         teapot(subdivisions=0)
 
 
-# --- helpers ---------------------------------------------------------------------------------------
+# --- helper functions ------------------------------------------------------------------------------
 
 
 def test_weld_vertices_merges_duplicates_and_drops_collapsed_faces():

@@ -1,5 +1,5 @@
 """The residual's normalised stacks made on a Warp device (``kernels.stacks``) against the host's
-float64 NumPy (``fit.residual``: ``residual_of``, ``to_opponent``, ``residual_scale``), and the
+float64 NumPy (``residual.inputs.residual_of`` and ``residual_scale``, ``residual.opponent.to_opponent``), and the
 principal images and stacks made from them against those of the host's stacks."""
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ def _attach_checkout_kernels() -> None:
     """Make ``warp_highlights.kernels`` importable when running from a source checkout via PYTHONPATH.
 
     An install maps the top-level kernels/ folder to this subpackage (pyproject.toml); on a machine
-    where the project is only on PYTHONPATH (the lent GPU machine), the mapping is done here.
+    where the project is only on PYTHONPATH (a plain checkout, as the benchmarks run), the mapping is
+    done here.
     """
     name = f"{__name__}.kernels"
     folder = _Path(__file__).resolve().parent.parent / "kernels"

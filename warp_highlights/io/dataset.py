@@ -470,7 +470,7 @@ class DatasetWriter:
                 raise ValueError(f"{group}: {kind} images written for some lights but not all")
 
 
-# --- loading helpers ----------------------------------------------------------------------------
+# --- loading helper functions -------------------------------------------------------------------
 
 
 @dataclass
@@ -747,7 +747,7 @@ def _read_meta(path: Path) -> dict:
     return meta
 
 
-# --- writing helpers ----------------------------------------------------------------------------
+# --- writing helper functions -------------------------------------------------------------------
 
 
 def _image_name(group: str, kind: str, index: int) -> str:

@@ -302,7 +302,7 @@ def image_encoding(path, *, linear: bool = False) -> dict:
     return {"format": name, "bits": int(bits), "values": "linear" if floating or linear else "sRGB", "profile": profile}
 
 
-# --- helpers -----------------------------------------------------------------------------------
+# --- helper functions --------------------------------------------------------------------------
 
 
 def _as_float(x) -> np.ndarray:

@@ -337,7 +337,7 @@ class HighlightField:
         )
 
 
-# --- validation helpers ----------------------------------------------------------------------------
+# --- validation helper functions -------------------------------------------------------------------
 
 
 def _positive_int(value, name: str) -> int:

@@ -77,7 +77,7 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
     ``settings``: which lights light a pixel (``MapSettings``, default its defaults).
     ``flatten``: remove the slopes' linear trend over the image (``flatten_normals``; flat objects only).
     ``progress``: optional callable(lights_done) while the captured images are relit (the long part
-    for a learned residual on the CPU: about 0.2 s a light at 480x270).
+    for a learned residual on the CPU).
 
     Raises:
         InputError: the field holds no diffuse part (fitted with neither a residual nor a diffuse model).

@@ -24,8 +24,8 @@ on CUDA: 250 lights of 1920x1080 RGB take 3.1 GB of an 80 GB card, and a query t
 instead of reading every basis image, far less work at 1080p."""
 DECODED_RESIDUAL_BYTES = 512 * 2**20
 """Most memory "auto" gives the decoded residual on the CPU (and on CUDA where the free memory is
-unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, about 12 s per 3 GB
-on 2 cores, which a single query would wait for; a larger field is decoded per query instead."""
+unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, slow on a few
+cores, which a single query would wait for; a larger field is decoded per query instead."""
 DEVICE_DECODE_SHARE = 0.75  # of the free device memory that decoding on the device may hold at once (basis, codes, images)
 
 

@@ -131,7 +131,7 @@ class TriangleMesh:
 
 
 # ---------------------------------------------------------------------------------------------------
-# Mesh helpers
+# Mesh helper functions
 
 
 def _doubled_area_normals(points: np.ndarray, faces: np.ndarray) -> np.ndarray:

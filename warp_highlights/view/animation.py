@@ -72,8 +72,7 @@ _FRAMES_FORMATS = ("png", "exr")
 DEFAULT_LONGER_SIDE = {"gif": 480, "webp": 480, "apng": 480, "mp4": 1920, "frames": None}
 """Longer side (pixels) of each panel of an animation whose size is not given; the field's size when it
 is smaller, never grown. GIF, WebP and APNG go into web pages, slides and messages, where inline
-animations are commonly at most 480 px wide, and their files grow with the pixels (the 250-light
-donut's 96-frame orbit: a GIF of 13.5 MB at 1920x1080, 1.5 MB at 480x270); MP4 at most 1080p, what
+animations are commonly at most 480 px wide, and their files grow with the pixels; MP4 at most 1080p, what
 players and sites take; frames folders (for further work) keep the field's size (None)."""
 
 
@@ -338,7 +337,7 @@ def write_animation(
     return path
 
 
-# --- path helpers ---------------------------------------------------------------------------------
+# --- path helper functions ------------------------------------------------------------------------
 
 
 def _checked_frame_count(frames) -> int:
@@ -510,7 +509,7 @@ def _parse_direction_line(path: Path, number: int, body: str) -> list[float]:
     return values
 
 
-# --- writer helpers ---------------------------------------------------------------------------------
+# --- writer helper functions ------------------------------------------------------------------------
 
 
 def _checked_fps(fps, kind: str) -> float:

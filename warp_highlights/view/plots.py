@@ -408,7 +408,7 @@ def caption_fontsize(labels: Sequence[str], panel_width_in: float, *, largest: f
     return min(largest, panel_width_in * 72.0 / (_CHAR_WIDTH_EM * max(longest, 1)))
 
 
-# --- helpers -----------------------------------------------------------------------------------
+# --- helper functions --------------------------------------------------------------------------
 
 
 def _new_figure(width_in: float, height_in: float, *, layout: str = "constrained"):

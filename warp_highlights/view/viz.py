@@ -556,7 +556,7 @@ def _plot_current_gaussians(plotter, interpolated, colours: np.ndarray) -> np.nd
     return outlines
 
 
-# --- helpers -------------------------------------------------------------------------------------
+# --- helper functions ----------------------------------------------------------------------------
 
 
 def put_mesh(plotter, mesh, name: str, **options):

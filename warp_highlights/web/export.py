@@ -33,8 +33,8 @@ SINGLE_FILE_LIMIT = 15 * 1024 * 1024
 """Largest ``--single-file`` page, bytes: mail services cap a message at 20-25 MB and a mailed
 attachment grows by a third (base64), so 15 MiB still goes through Gmail and Outlook."""
 GZIP_LEVEL = 6
-"""zlib level of the gzipped arrays: the donut at 480x270 goes from 52.0 to 6.8 MB (level 9: no smaller
-by a percent, three times slower)."""
+"""zlib level of the gzipped arrays: several times smaller than the raw arrays (the export sizes of
+benchmarks/bench_web.py); level 9 is barely smaller and much slower."""
 _STATIC = Path(__file__).with_name("static")
 _STATIC_FILES = ("index.html", "viewer.js")
 _IMPORT_LINE = 'import { Viewer } from "./viewer.js";'
