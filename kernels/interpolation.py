@@ -1,4 +1,4 @@
-"""Kernels of relighting (method.md section 6): locate queries, interpolate Gaussian sets, compose images.
+"""Kernels of relighting (docs/method.md, Relighting): locate queries, interpolate Gaussian sets, compose images.
 
 The kernels that turn Q query directions into Q images, whatever Q is (the rasterizer draws S'
 between steps 2 and 3):
@@ -203,7 +203,7 @@ def interpolate_gaussians(
     straight_below: float,
     out: GaussianArrays,
 ):
-    """out[q, k N + p] = slot p of corner k's set moved to query q (method.md section 6).
+    """out[q, k N + p] = slot p of corner k's set moved to query q (docs/method.md, Relighting).
 
     For corner A = face_vertices[f, k] with weights (lA, lB, lC) rotated so lA is corner k's:
     |a'| = lA |a_A| + lB |a_AB| + lC |a_AC| (likewise |sigma|), theta' = theta_A + lB delta_AB + lC delta_AC,

@@ -1,4 +1,4 @@
-"""Per-problem losses of estimation and retargeting (method.md sections 3 and 5), differentiable on the tape.
+"""Per-problem losses of estimation and retargeting (docs/method.md, Fitting steps 2 and 5), differentiable on the tape.
 
 Every loss returns one value per problem, shape (B,), and *adds* ``weight`` x its value into ``out``
 when one is given, so the retargeting loss c_fit L_fit + c_str L_str + c_ene L_ene is three calls on

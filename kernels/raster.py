@@ -1,4 +1,4 @@
-"""Differentiable rasterizer of batched 2D Gaussian sets (method.md section 1).
+"""Differentiable rasterizer of batched 2D Gaussian sets (docs/method.md, Building blocks).
 
 One image per problem, all of the same size, in coordinates normalised by the image height: pixel
 (col, row) samples the point ((col + 0.5) / H, (row + 0.5) / H). A Gaussian with amplitude a, mean mu,

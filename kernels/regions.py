@@ -1,6 +1,6 @@
 """Connected regions where a residual S - R exceeds a threshold, labelled and measured on the device.
 
-The estimation's add rounds (method.md section 3) need, for every image of a batch at once, the
+The estimation's add rounds (docs/method.md, Fitting step 2) need, for every image of a batch at once, the
 8-connected regions of ``target - image > threshold`` and each region's pixel count, residual mass,
 peak, and residual-weighted centroid and second moments. Here the labelling is a union-find over one
 int32 per pixel (``parent``), so only the regions' figures come to the host:

@@ -1,4 +1,4 @@
-"""Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (method.md section 2).
+"""Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (docs/method.md, Fitting step 1).
 
 Every (pixel, channel) fits the Lambertian model D~_i = nbar . omega_i + k_a to its samples I_i over the
 lights, by a 4 x 4 normal-equation solve, robustly:

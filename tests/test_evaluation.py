@@ -1,4 +1,4 @@
-"""Evaluation against held-out ground truth (method.md section 7): PSNR, statistics, the barycentric sweep."""
+"""Evaluation against held-out ground truth (docs/method.md, Evaluation): PSNR, statistics, the barycentric sweep."""
 
 from __future__ import annotations
 

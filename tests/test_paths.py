@@ -1,4 +1,4 @@
-"""Circular paths and the choice of rotation direction (method.md section 6).
+"""Circular paths and the choice of rotation direction (docs/method.md, Fitting step 6).
 
 The expected decisions below are worked out by hand from method.md's formulas (numbers in the
 comments), not by calling the implementation's helper functions.

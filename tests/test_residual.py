@@ -1,4 +1,4 @@
-"""Residual transfer (method.md section 6): the residual model, its compression, the move decision,
+"""Residual transfer (docs/method.md, The residual): the residual model, its compression, the move decision,
 the highlight colour, the compose kernel against a float64 reference, exactness at captured lights,
 the field file's version 2, and non-negative outputs."""
 

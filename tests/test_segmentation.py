@@ -23,7 +23,7 @@ from warp_highlights.model.lights import LightSet
 
 
 def reference_segment(samples: np.ndarray, directions: np.ndarray, s: SegmentationSettings):
-    """Float64 per-pixel reference of method.md section 2 for one column of samples (n,)."""
+    """Float64 per-pixel reference of the segmentation (docs/method.md, Fitting step 1) for one column of samples (n,)."""
     rows = np.concatenate([directions, np.ones((len(directions), 1))], axis=1)
     valid = samples >= s.valid_threshold
     if valid.sum() < s.min_valid_lights:

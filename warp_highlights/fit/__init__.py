@@ -1,4 +1,4 @@
-"""Fitting: a reflectance field -> a highlight field (method.md sections 2-6), stage by stage.
+"""Fitting: a reflectance field -> a highlight field (docs/method.md, Fitting), stage by stage.
 
 The pipeline is ``segment -> estimate -> retarget -> decide_paths -> decide_moving -> check_moving -> build_residual``;
 ``fit_field`` runs all of it.

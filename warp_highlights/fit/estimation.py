@@ -1,4 +1,4 @@
-"""Estimation: a few Gaussians per specular image, for every light in one batch (method.md section 3).
+"""Estimation: a few Gaussians per specular image, for every light in one batch (docs/method.md, Fitting step 2).
 
 All sets are fitted together: one rasterizer launch, one loss and one Adam step per iteration cover
 every light. The number of Gaussians changes in add/prune rounds (every ``densify_every`` iterations

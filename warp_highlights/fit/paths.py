@@ -1,4 +1,4 @@
-"""Which way each Gaussian turns along each triangle edge: the path decisions (method.md section 6).
+"""Which way each Gaussian turns along each triangle edge: the path decisions (docs/method.md, Fitting step 6).
 
 Every Gaussian of G_A can reach its retargeted self in G_{A->B} by turning either way (the two
 rotation options, delta+ and delta-; their geometry is ``warp_highlights.model.arcs``).
@@ -51,7 +51,7 @@ class PathDecisions:
 
 
 def _negative_option_weight(mean_a, mean_b, sigma_a, theta_a, delta_neg) -> np.ndarray:
-    """w of method.md section 6 (thesis eq. 3.24) for the negative option, (E, N).
+    """w (thesis eq. 3.24) for the negative option, (E, N).
 
     The angle thetabar between the major axis and the direction mu_A -> O follows from the chord
     alone: that direction is R(pi/2 - delta/2) applied to the unit chord (up to sign, which cos^2
@@ -79,7 +79,7 @@ def _negative_option_weight(mean_a, mean_b, sigma_a, theta_a, delta_neg) -> np.n
 def _propagate(
     weight, mean_a, mean_b, parity_angle, active, length_scale
 ) -> np.ndarray:
-    """w' = M (M w) per edge over its active Gaussians (method.md section 6, thesis eq. 3.25-3.29).
+    """w' = M (M w) per edge over its active Gaussians (thesis eq. 3.25-3.29).
 
     Only active Gaussians take part, so each edge's are packed first and the edges grouped by how many
     they have (rounded up to a power of two, the group's width): a set holds a few Gaussians in 64
@@ -123,7 +123,7 @@ def decide_paths(
     *,
     parity: str | None = None,
 ) -> PathDecisions:
-    """Choose the rotation option of every Gaussian on every directed edge A->B (method.md section 6).
+    """Choose the rotation option of every Gaussian on every directed edge A->B (docs/method.md, Fitting step 6).
 
     Per Gaussian, the weight of the negative option (thesis eq. 3.24) is
     ``w = (cos d + d - pi/2) / (pi/2 - 1) + (cos^2(thetabar) - 1/2) / 10`` with d = |delta-| and

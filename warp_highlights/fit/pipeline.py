@@ -1,4 +1,4 @@
-"""The whole precomputation: reflectance field -> highlight field (method.md sections 2-6 and 8).
+"""The whole precomputation: reflectance field -> highlight field (docs/method.md, Fitting; docs/file-format.md).
 
 segment -> estimate -> triangulate -> retarget (components, phase 1, phase 2) -> decide paths ->
 decide which Gaussians move -> check at left-out captured lights that moving beats blending (else the

@@ -1,4 +1,4 @@
-"""Retargeting: re-fit every estimated set onto each neighbour's specular image (method.md section 5).
+"""Retargeting: re-fit every estimated set onto each neighbour's specular image (docs/method.md, Fitting step 5).
 
 One problem per directed edge i -> j of the triangulation (6n - 12 on a full sphere), all in one batch:
 start from G_i and fit S_j.

@@ -1,4 +1,4 @@
-"""Leave-one-out check that moving the highlights beats blending the images on this capture (method.md section 6).
+"""Leave-one-out check that moving the highlights beats blending the images on this capture (docs/method.md, Fitting step 7).
 
 Moving wins where the Gaussians sit on real highlights that retarget reliably (the rendered dome sample)
 and loses where they model broad sheen and shading (the statue sample). Held-out lights cannot tell at

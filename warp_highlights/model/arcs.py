@@ -1,4 +1,4 @@
-"""Circular paths of Gaussians: the geometry of the paths a highlight field stores (method.md section 6).
+"""Circular paths of Gaussians: the geometry of the paths a highlight field stores (docs/method.md, Fitting step 6).
 
 A Gaussian p of the estimated set G_A reappears as slot p of the retargeted set G_{A->B}. Between
 the two it turns by a signed angle delta, which can be either of two options that reach the same

@@ -1,4 +1,4 @@
-"""Connected components of a Gaussian set, for the rigid phase of retargeting (method.md section 5).
+"""Connected components of a Gaussian set, for the rigid phase of retargeting (docs/method.md, Fitting step 5).
 
 Two active Gaussians of one set *touch* when their level-k ellipses intersect, where the level-k
 ellipse of a Gaussian is the filled region {x : (x - mu)^T Sigma^-1 (x - mu) <= k^2} (k = 2 by
@@ -8,7 +8,7 @@ The ellipse test is exact (up to float64 rounding), after D. Eberly, "Intersecti
 "Distance from a Point to an Ellipse" (Geometric Tools): map one ellipse to the unit disc, then the
 two intersect iff the other one contains the origin or its boundary comes within distance 1 of it.
 
-Units: positions and sizes in image heights (method.md section 0), energies in intensity x image
+Units: positions and sizes in image heights (docs/method.md, Units and conventions), energies in intensity x image
 height^2.
 """
 
@@ -36,7 +36,7 @@ _TOLERANCE = 1e-9
 
 
 def gaussian_covariances(sigma, theta, eps: float = 0.0) -> np.ndarray:
-    """Covariances R(theta) diag(sigma_x^2 + eps, sigma_y^2 + eps) R(theta)^T (method.md section 1).
+    """Covariances R(theta) diag(sigma_x^2 + eps, sigma_y^2 + eps) R(theta)^T (docs/method.md, Building blocks).
 
     Args:
         sigma: (..., 2) standard deviations along the Gaussian's own axes, image heights (the sign
@@ -204,7 +204,7 @@ def _exterior_distance(e0, e1, z0, z1, steps: int = _BISECTION_STEPS) -> np.ndar
 @dataclass(frozen=True, eq=False)
 class ConnectedComponents:
     """Connected components of every set of a batch: active Gaussians touch when their level-k
-    ellipses intersect (method.md section 5, phase 1). Build with ``ConnectedComponents.of``.
+    ellipses intersect (docs/method.md, Fitting step 4). Build with ``ConnectedComponents.of``.
 
     Attributes:
         labels: (B, N) int32 component of each slot within its problem, numbered 0..counts[b] - 1 in

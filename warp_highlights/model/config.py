@@ -1,6 +1,6 @@
 """Hyper-parameters of the method, in one place, in resolution-independent units.
 
-Units (method.md section 0): Gaussian positions and sizes are *normalised by image height* (the image
+Units (docs/method.md, Units and conventions): Gaussian positions and sizes are *normalised by image height* (the image
 spans y in (0, 1)); user-facing lengths are in *reference pixels* (rpx), 1 rpx = 1/270 of the image
 height, so the thesis' values (it worked at 480 x 270) hold at every resolution. Lengths are converted
 from rpx to normalised units here and nowhere else.
@@ -69,7 +69,7 @@ def _require(condition: bool, message: str) -> None:
 
 @dataclass(frozen=True)
 class RasterSettings:
-    """How Gaussians are drawn (method.md section 1).
+    """How Gaussians are drawn (docs/method.md, Building blocks).
 
     Attributes:
         cutoff: truncation radius in Mahalanobis units. Beyond it a Gaussian is exactly zero; inside,
@@ -109,7 +109,7 @@ class RasterSettings:
 
 @dataclass(frozen=True)
 class StructureLossSettings:
-    """The structure loss of retargeting (method.md section 5).
+    """The structure loss of retargeting (docs/method.md, Fitting step 5).
 
     Attributes:
         gamma_per_rpx: steepness of the neighbourhood weight h; thesis value 4 (per rpx).
@@ -167,7 +167,7 @@ class AdamSettings:
 
 @dataclass(frozen=True)
 class SegmentationSettings:
-    """Diffuse/specular split per pixel (method.md section 2; thesis values).
+    """Diffuse/specular split per pixel (docs/method.md, Fitting step 1; thesis values).
 
     Attributes:
         valid_threshold: a light counts for a pixel's Lambertian fit when its value is at least this
@@ -204,7 +204,7 @@ class SegmentationSettings:
 
 @dataclass(frozen=True)
 class EstimationSettings:
-    """Fitting a few Gaussians to every specular image (method.md section 3).
+    """Fitting a few Gaussians to every specular image (docs/method.md, Fitting step 2).
 
     iterations, densify_every, densify_until, residual_threshold and capacity are method.md's values
     (the thesis' schedule and t_est). The region-size floor, the per-round cap and the pruning limits
@@ -274,7 +274,7 @@ class EstimationSettings:
 
 @dataclass(frozen=True)
 class ComponentSettings:
-    """Connected components of a Gaussian set (method.md section 5, phase 1).
+    """Connected components of a Gaussian set (docs/method.md, Fitting step 4).
 
     Attributes:
         level: two Gaussians touch when their ellipses at this Mahalanobis distance intersect
@@ -289,7 +289,7 @@ class ComponentSettings:
 
 @dataclass(frozen=True)
 class RetargetSettings:
-    """Re-fitting every estimated set onto its neighbours' specular images (method.md section 5).
+    """Re-fitting every estimated set onto its neighbours' specular images (docs/method.md, Fitting step 5).
 
     The defaults come from benchmarks/sweep_retarget.py on the 250-light 480x270 donut (on an NVIDIA
     H100; tables in benchmarks/README.md), scored by what the fit is for: the PSNR of the circular
@@ -347,7 +347,7 @@ class RetargetSettings:
 
 @dataclass(frozen=True)
 class PathSettings:
-    """Which way each Gaussian turns along a triangle edge (method.md section 6).
+    """Which way each Gaussian turns along a triangle edge (docs/method.md, Fitting step 6).
 
     Attributes:
         straight_below: |rotation| (radians) under which the path is the straight segment (no centre).
@@ -383,7 +383,7 @@ LEARNED_BATCH_CPU = 1 << 11
 
 @dataclass(frozen=True)
 class ResidualSettings:
-    """What a field keeps of the images beyond its moving highlights: residual transfer (method.md section 6).
+    """What a field keeps of the images beyond its moving highlights: residual transfer (docs/method.md, The residual).
 
     Attributes:
         kind: what relighting adds the moved highlights to (``RESIDUAL_KINDS``), resolved once when a fit

@@ -1,4 +1,4 @@
-"""The fitted highlight field: the object that relights (method.md section 8).
+"""The fitted highlight field: the object that relights (docs/file-format.md).
 
 A :class:`HighlightField` holds everything needed to relight: the lights and their triangulation, the
 Gaussians estimated for every light, the Gaussians retargeted along every directed edge, the rotation
@@ -38,7 +38,7 @@ class DiffuseModel:
 
     Attributes:
         lambert: (H, W, C, 4) float32: per pixel and channel nbar_x, nbar_y, nbar_z, k_a of the
-            Lambertian model D(omega) = max(nbar . omega, 0) + k_a (method.md section 2).
+            Lambertian model D(omega) = max(nbar . omega, 0) + k_a (docs/method.md, Fitting step 1).
         images: (n, H, W, C) float16 diffuse images of the n lights (for barycentric blending), or None.
 
     Raises:
@@ -98,7 +98,7 @@ class DiffuseModel:
 
 @dataclass(eq=False, repr=False)
 class HighlightField:
-    """A fitted highlight field (method.md section 8); treat it as immutable once made.
+    """A fitted highlight field (docs/file-format.md); treat it as immutable once made.
 
     Attributes:
         lights: The n lights the field was fitted to.

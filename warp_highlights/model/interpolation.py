@@ -1,4 +1,4 @@
-"""Gaussian sets moved to query directions (method.md section 6), in float64 NumPy, on plain arrays.
+"""Gaussian sets moved to query directions (docs/method.md, Relighting), in float64 NumPy, on plain arrays.
 
 For a query in triangle (A, B, C) with barycentric (lA, lB, lC), each vertex V contributes its set
 moved towards the other two vertices' retargeted sets: |amplitudes| and |sizes| blend barycentrically,

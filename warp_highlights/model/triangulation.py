@@ -1,4 +1,4 @@
-"""Spherical Delaunay triangulation of light directions (method.md section 4).
+"""Spherical Delaunay triangulation of light directions (docs/method.md, Fitting step 3).
 
 The spherical Delaunay triangulation of points on the unit sphere is their convex hull. For a full
 sphere every hull face is kept. For a dome (all lights on one side, as in RTI captures) the hull also
@@ -169,7 +169,7 @@ class SphericalTriangulation:
         return total / np.linalg.norm(total, axis=1, keepdims=True)
 
     def locate(self, directions: np.ndarray) -> Location:
-        """Find the face each direction falls in, and its planar barycentric weights (method.md section 4).
+        """Find the face each direction falls in, and its planar barycentric weights (docs/method.md, Fitting step 3).
 
         The face is the one whose planar triangle the ray from the origin along the direction crosses;
         the weights are those of the crossing point. A direction on a shared edge or vertex gets one of

@@ -1,4 +1,4 @@
-"""Relighting: a highlight field -> images for any light direction (method.md sections 6-7).
+"""Relighting: a highlight field -> images for any light direction (docs/method.md, Relighting and Evaluation).
 
 Per query: locate it in the triangulation, move the corner lights' Gaussians along their stored paths,
 rasterize them, add them to the blended residual (residual transfer). Imports the model, io, the kernels and synth (to render ground

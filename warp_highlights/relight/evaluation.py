@@ -1,4 +1,4 @@
-"""Compare a fitted field with ground truth at held-out light directions (method.md section 7).
+"""Compare a fitted field with ground truth at held-out light directions (docs/method.md, Evaluation).
 
 For every held-out direction (the thesis' protocol: the centroid of every triangle) the field is
 relit with each method and compared with the ground truth:

@@ -1,4 +1,4 @@
-"""Interpolated Gaussian sets of a field for query directions (method.md section 6), in float64 NumPy.
+"""Interpolated Gaussian sets of a field for query directions (docs/method.md, Relighting), in float64 NumPy.
 
 ``interpolate_sets`` applies ``model.interpolation.move_sets`` (the geometry, on plain arrays) to a
 field's Gaussians, retargeted sets, stored paths and move decisions (a Gaussian that does not move is

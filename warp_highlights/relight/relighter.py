@@ -1,4 +1,4 @@
-"""Relight a fitted highlight field for any light directions (method.md section 6), batched on a device.
+"""Relight a fitted highlight field for any light directions (docs/method.md, Relighting), batched on a device.
 
 A :class:`Relighter` uploads a field once (its Gaussians, paths, triangulation tables and residual
 or diffuse model) and then turns any number of query directions into images with a fixed number of
@@ -420,7 +420,7 @@ class Relighter:
         any view of them is alive).
 
         Args:
-            directions: towards the lights, camera space (method.md section 0).
+            directions: towards the lights, camera space (docs/method.md, Units and conventions).
             method: one of ``RELIGHT_METHODS``.
             full: also compose I' (else ``RelitImages.full`` is None).
             progress: optional callable(count_done) called after each chunk.

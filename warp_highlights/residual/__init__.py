@@ -1,5 +1,5 @@
 """The residual: what each captured image holds beyond its own moving highlights, which relighting adds
-the moved highlights to (residual transfer, method.md section 6). Built by a fit, decoded by relighting;
+the moved highlights to (residual transfer, docs/method.md, The residual). Built by a fit, decoded by relighting;
 the data classes it fills are ``model.residual``'s. Imports the model, io and the kernels (ARCHITECTURE.md).
 
 - ``resolve_kind``: ``ResidualSettings.kind`` ("auto", ...) -> the concrete kind for a device and a capture.

@@ -1,7 +1,7 @@
 """Synthetic reflectance fields: ray-trace a mesh under many distant lights, with ground truth.
 
-The camera sits on +z and looks along -z, so the scene frame is the light-direction frame of
-method.md section 0 (x right, y up the image, z towards the camera). Meshes are normalised to a unit
+The camera sits on +z and looks along -z, so the scene frame is the light-direction frame
+(x right, y up the image, z towards the camera; docs/method.md, Units and conventions). Meshes are normalised to a unit
 bounding sphere and turned to a per-shape viewing orientation; the camera distance is chosen so the
 object fills a given fraction of the frame.
 """

@@ -2,7 +2,7 @@
 WebP or PNG (APNG), MP4 or frames.
 
 Light directions are float64 unit vectors from the object towards the light, in camera space: x to
-the right of the image, y towards the top, z towards the camera (method.md section 0). Angles taken
+the right of the image, y towards the top, z towards the camera (docs/method.md, Units and conventions). Angles taken
 as arguments are in degrees; elevation is measured from the image plane (xy) towards +z (the camera
 side), azimuth from +x towards +y.
 

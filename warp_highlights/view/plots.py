@@ -1,4 +1,4 @@
-"""Figures for the evaluation report (method.md section 7), written as PNG files.
+"""Figures for the evaluation report (docs/method.md, Evaluation), written as PNG files.
 
 PSNR distributions per interpolation method, per-query scatter of one method against another,
 Gaussian counts, PSNR over the barycentric coordinates of an interpolation triangle, and image grids
@@ -78,7 +78,7 @@ def plot_psnr_distributions(
         path: Target ``.png`` file; missing parent folders are made.
         title: Figure title; a default describes the plot.
         excluded: Number of queries left out before scoring because both the interpolated and the
-            ground-truth image were all black (method.md section 7); stated in the footnote.
+            ground-truth image were all black (docs/method.md, Evaluation); stated in the footnote.
 
     Returns:
         The path of the written PNG.

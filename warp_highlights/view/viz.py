@@ -4,7 +4,7 @@ paths over the image plane. ``warp-highlights view`` composes them into the ligh
 
 Scene coordinates:
 
-- **Light sphere**: camera space of method.md section 0 (x right, y up, z towards the camera), unit
+- **Light sphere**: camera space (docs/method.md, Units and conventions: x right, y up, z towards the camera), unit
   radius; a light direction is a point on the sphere.
 - **Image plane**: the Gaussians' image-height units with y turned up so the picture stands upright:
   image point (x, y) is drawn at (x, -y, 0), and the image covers [0, W/H] x [-1, 0].
