@@ -621,7 +621,8 @@ def light_file_cases(ctx: Context) -> list[Case]:
         put(folder / "other.lp", body)
 
     def latin1(folder):
-        os.link(folder / "images" / ctx.names[5], os.fsencode(folder / "images") + b"/imag\xe9.exr")  # a non-UTF-8 name on disk too
+        # a non-UTF-8 name on disk too
+        os.link(folder / "images" / ctx.names[5], os.fsencode(folder / "images") + b"/imag\xe9.exr")
         (folder / "images" / ctx.names[5]).unlink()
         put(folder / "lights.lp", lines_with(5, f"images/imag\xe9.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}").encode("latin-1"))
 
@@ -1372,7 +1373,8 @@ def option_cases(ctx: Context) -> list[Case]:
         ("bogus", E), ("=1", E), ("estimation=1", E), ("estimation.adam=1", E), ("nosuch.x=1", E), ("estimation.nosuch=1", E),
         ("estimation.iterations=x", E), ("estimation.iterations=1.5", E), ("estimation.iterations=-1", E), ("estimation.iterations=0", E),
         ("estimation.iterations=1", OK), ("estimation.iterations=1e3", E), ("estimation.iterations= 5", OK), ("estimation.iterations=5=6", E),
-        ("ESTIMATION.ITERATIONS=5", E), ("estimation.iterations=100000000", None),  # legal, but hours of work: a hang here
+        # legal, but hours of work: a hang here
+        ("ESTIMATION.ITERATIONS=5", E), ("estimation.iterations=100000000", None),
         ("estimation.capacity=0", E), ("estimation.capacity=100000", E), ("estimation.capacity=1024", None), ("estimation.capacity=1", OK),
         ("raster.tile_size=3", E), ("raster.tile_size=32", OK), ("raster.cutoff=nan", E), ("raster.cutoff=inf", E), ("raster.cutoff=0", E),
         ("raster.sigma_eps_rpx2=0", E), ("raster.sigma_eps_rpx2=-1", E),

@@ -12,11 +12,11 @@ user runs it: a separate process, a fresh local cluster. A one-capture collectio
 into the shared cache, so no timed run pays for that. Prints a Markdown table (and ``--json`` the figures);
 ``--gpus 0`` times CPU workers instead.
 
-Where one run is longer than a time limit allows (20 captures take minutes on one GPU), ``--slice A:B`` times the sorted captures A..B-1 alone (the captures are still
-rendered once, all of them), ``--no-warm-up`` skips the compiling run on a machine that did it, and ``--combine``
-sums the parts' ``--json`` files per GPU count into the whole collection's table. Each part is a whole
-command, so a sum counts one start of the command and its cluster per part (``--json`` records each).
-``--json`` is written again after each GPU count, so a call cut off by its limit keeps the counts it finished.
+Where one run is longer than a time limit allows (20 captures take minutes on one GPU), ``--slice A:B`` times the sorted
+captures A..B-1 alone (the captures are still rendered once, all of them), ``--no-warm-up`` skips the compiling run on a
+machine that did it, and ``--combine`` sums the parts' ``--json`` files per GPU count into the whole collection's table.
+Each part is a whole command, so a sum counts one start of the command and its cluster per part (``--json`` records
+each). ``--json`` is written again after each GPU count, so a call cut off by its limit keeps the counts it finished.
 """
 
 from __future__ import annotations
@@ -89,7 +89,8 @@ def main() -> None:
           f"timing captures {start}..{stop - 1}; {os.cpu_count()} cores", flush=True)
     counts = [int(g) for g in args.gpus.split(",")]
     if not args.no_warm_up:
-        collection(captures[:1], args.work / "warm-up", max(counts[0], 0), args.residual, extra)  # kernels compiled into the cache
+        # kernels compiled into the cache
+        collection(captures[:1], args.work / "warm-up", max(counts[0], 0), args.residual, extra)
     rows = []
     for gpus in counts:
         seconds, data = collection(captures[start:stop], args.work / f"out-{gpus}gpu-{start}-{stop}", gpus, args.residual, extra)

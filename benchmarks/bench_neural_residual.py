@@ -67,7 +67,8 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
     for method in ("circular", "alpha", *BASELINES):
         add_row(method, evaluation.full_srgb_psnr[method], evaluation.full_ssim[method], float(sizes[method]))
 
-    # the learned residual exactly as ``fit --residual learned`` makes it (residual.learned.learn_residual), relit by the relighter
+    # the learned residual exactly as ``fit --residual learned`` makes it (residual.learned.learn_residual), relit by
+    # the relighter
     images = resize_stack(dataset.images, width, height).astype(np.float32) * np.float32(exposure)
     own = render_own(field.estimated, height, width, raster=field.fit_settings().raster, device=device)
     settings = replace(field.fit_settings().residual, learned=True, learned_seconds=seconds)

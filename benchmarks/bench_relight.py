@@ -58,7 +58,8 @@ def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     renderer = Renderer(make_shape("donut"), material=default_material("donut"), settings=RenderSettings(width=240, height=135),
                         rotation=view_rotation("donut"), device=str(device))
     dataset = ReflectanceField(images=renderer.render(lights.directions).full, lights=lights)
-    settings = FitSettings().with_overrides(["residual.kind=lowrank"])  # the low-rank residual: a learned one trains for minutes on CUDA
+    # the low-rank residual: a learned one trains for minutes on CUDA
+    settings = FitSettings().with_overrides(["residual.kind=lowrank"])
     return fit_field(dataset, settings=settings, device=device, progress=False), dataset
 
 
@@ -88,7 +89,8 @@ def graph_device_ms(relighter: Relighter, directions: np.ndarray, method: str = 
         return {}
     device = relighter.device
     relighter.relight(directions[0], method=method)  # captures the single-query graph
-    query = relighter._graphs[(method, True)]  # private: the graph relight(direction) replays, and how it sets its direction
+    # private: the graph relight(direction) replays, and how it sets its direction
+    query = relighter._graphs[(method, True)]
     buffers = relighter.launch(directions[:1], method=method)
     with wp.ScopedCapture(device=device, force_module_load=False) as capture:
         relighter._run(buffers, relighter.raster, method=method, full=True)

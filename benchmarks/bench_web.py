@@ -56,7 +56,8 @@ def measure(path: Path, browser, decode: str, screenshot: Path | None) -> dict:
                                    timeout=120_000, polling=5)
             if page.evaluate("window.whViewer === undefined"):
                 raise SystemExit(f"{path}: the page says {page.inner_text('#status')}")
-            first = page.evaluate("window.whFirstImageMs") / 1000  # the page's clock: from navigation to the first image drawn and read back
+            # the page's clock: from navigation to the first image drawn and read back
+            first = page.evaluate("window.whFirstImageMs") / 1000
             page.wait_for_function("window.whReady === true", timeout=600_000, polling=20)
             ready = page.evaluate("window.whReadyMs") / 1000
             mode = page.evaluate("whViewer.mode")

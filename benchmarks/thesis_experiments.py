@@ -1,6 +1,7 @@
 """The thesis' experiments 4.2 and 4.5.4 on our data: render, fit and evaluate donut and teapot.
 
-    python benchmarks/thesis_experiments.py WORK [--shapes donut teapot] [--lights 250] [--size 480x270] [--device cuda:0]
+    python benchmarks/thesis_experiments.py WORK [--shapes donut teapot] [--lights 250] [--size 480x270] [--device
+    cuda:0]
 
 For every shape this runs the three commands a user would run, in WORK:
 

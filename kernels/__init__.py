@@ -23,7 +23,8 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``regions``: the residual's connected regions labelled and measured on a device (``ResidualRegions``).
 - ``transfer``: large device arrays into host pages mapped first (``to_host``); bands of a stack up and
   down an image's rows at a time (``rows_up``, ``rows_down``).
-- ``warmup``: Warp started and a device's context made in a thread (``DeviceWarmup``); work in a thread (``InBackground``).
+- ``warmup``: Warp started and a device's context made in a thread (``DeviceWarmup``); work in a thread
+  (``InBackground``).
 """
 
 from warp_highlights._api import lazy_exports

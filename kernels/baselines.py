@@ -59,7 +59,8 @@ def project(matrix: wp.array2d, images: wp.array2d, out: wp.array2d | None = Non
 
 
 def evaluate(basis: wp.array2d, planes: wp.array2d, out: wp.array2d | None = None) -> wp.array2d:
-    """(Q, M) basis values times (M, P) planes, clamped to [0, FLOAT32_MAX] -> (Q, P), one launch on the planes' device."""
+    """(Q, M) basis values times (M, P) planes, clamped to [0, FLOAT32_MAX] -> (Q, P), one launch on the planes'
+    device."""
     if basis.shape[1] != planes.shape[0]:
         raise ValueError(f"basis {basis.shape} does not multiply planes {planes.shape}")
     device = planes.device

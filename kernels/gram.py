@@ -132,7 +132,8 @@ class DeviceProducts:
         self._copied: list[wp.Event | None] = [None, None]  # recorded after a buffer's last copy to the device
         self._matrix: tuple = (None, None)  # the last projection matrix (a host copy) and its device copy
         self._turn = 0
-        self._staged: tuple[int, wp.array, np.ndarray] | None = None  # the ``staging`` array not yet uploaded, and its buffer
+        # the ``staging`` array not yet uploaded, and its buffer
+        self._staged: tuple[int, wp.array, np.ndarray] | None = None
 
     def staging(self, shape: tuple) -> np.ndarray:
         """A float32 host array of ``shape`` to fill and then ``upload``, before any other upload or

@@ -68,7 +68,8 @@ DIFFUSE_DECODED = 4
 _WR = wp.constant(LUMINANCE_WEIGHTS[0])
 _WG = wp.constant(LUMINANCE_WEIGHTS[1])
 _WB = wp.constant(LUMINANCE_WEIGHTS[2])
-_FLOAT16_SAFE = wp.constant(FLOAT16_SAFE)  # decoded images are clipped to this, as ``residual.decode.decoded_images`` clips them
+# decoded images are clipped to this, as ``residual.decode.decoded_images`` clips them
+_FLOAT16_SAFE = wp.constant(FLOAT16_SAFE)
 
 
 @wp.func
@@ -294,7 +295,8 @@ def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coe
 def _low_rank_opponent(luminance_mean: wp.array2d(dtype=float), luminance_basis: wp.array3d(dtype=float), luminance_weights: wp.array2d(dtype=float),
                        chroma_mean: wp.array2d(dtype=float), chroma_basis: wp.array3d(dtype=float), chroma_weights: wp.array2d(dtype=float),
                        residual_scale: wp.array(dtype=float), q: int, i: int, channels: int) -> wp.vec3:
-    # (Y, B - Y, R - Y) of the low-rank residual at pixel i for coefficient row q, times the residual scale; chroma 0 for grey
+    # (Y, B - Y, R - Y) of the low-rank residual at pixel i for coefficient row q, times the residual scale; chroma 0
+    # for grey
     s = residual_scale[0]
     if residual_scale.shape[0] > 1:
         s = residual_scale[i]
@@ -352,9 +354,10 @@ def compose_images(
     ``lambert[i, c]`` = (nbar_x, nbar_y, nbar_z, k_a); ``DIFFUSE_BLEND`` the barycentric blend of
     ``diffuse_images[light, i, c]`` (the residual images, or diffuse images); ``DIFFUSE_LOWRANK`` the
     low-rank residual: luminance Y = m mean + sum_j coefficient_j basis_j (m and the coefficients:
-    the query's blend of the per-light weights, ``luminance_weights[q]`` = (coefficients..., m)), chroma (B - Y, R - Y) likewise when there are three channels, both
-    times ``residual_scale[i]`` (one entry: 1 everywhere); ``DIFFUSE_DECODED`` ``diffuse_images[q, i, c]``. S' is
-    added only when ``add_specular`` is set; c_i is ``pixel_colour[i]`` (row 0 when it has one row).
+    the query's blend of the per-light weights, ``luminance_weights[q]`` = (coefficients..., m)), chroma (B - Y, R - Y)
+    likewise when there are three channels, both times ``residual_scale[i]`` (one entry: 1 everywhere);
+    ``DIFFUSE_DECODED`` ``diffuse_images[q, i, c]``. S' is added only when ``add_specular`` is set; c_i is
+    ``pixel_colour[i]`` (row 0 when it has one row).
     """
     q, t = wp.tid()
     f = faces[q]
@@ -394,7 +397,8 @@ def compose_images(
 @wp.kernel(enable_backward=False)
 def dequantise_basis(codes: wp.array3d(dtype=Any), low: wp.array(dtype=float), step: wp.array(dtype=float), basis: wp.array3d(dtype=float)):
     """basis[i, j, p] = low[j] + codes[j, i, p] step[j]: basis image j's (pixels, planes) codes (uint8 or
-    uint16) as float32 values, pixel-major (``compose_images``' layout), as ``residual.decode.stack_basis`` decodes them."""
+    uint16) as float32 values, pixel-major (``compose_images``' layout), as ``residual.decode.stack_basis`` decodes
+    them."""
     j, i = wp.tid()
     for p in range(codes.shape[2]):
         basis[i, j, p] = low[j] + float(codes[j, i, p]) * step[j]

@@ -214,7 +214,8 @@ class LogL1Loss:
         the Gaussians reach are drawn (``render(drawn_only=True)``): ``image`` holds R(G) there and
         stale pixels elsewhere, so render it again before reading it whole.
         """
-        raster.render(batch, out=image, record=False, drawn_only=not value)  # the adjoint reads only where Gaussians draw
+        # the adjoint reads only where Gaussians draw
+        raster.render(batch, out=image, record=False, drawn_only=not value)
         out, scale = self._value(image, out, weight, value)
         tape = active_tape()
         if tape is not None and batch.requires_grad:

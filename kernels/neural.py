@@ -249,7 +249,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     params = [codes, *weights]
     target_array = wp.array(targets, dtype=wp.vec3, device=device)
     light_array = wp.array(np.asarray(lights, np.float32), dtype=wp.vec3, device=device)
-    import warp.optim  # here, not at the top: it imports Warp's sparse and solver kernels (0.25 s), which only training needs
+    # here, not at the top: it imports Warp's sparse and solver kernels (0.25 s), which only training needs
+    import warp.optim
 
     optimizer = warp.optim.Adam([p.flatten() for p in params], lr=lr)
     grads = [p.grad.flatten() for p in params]
@@ -258,7 +259,9 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     buffers = _Batch(_padded(min(batch, total)), device, True)
     rng = np.random.default_rng(seed)
     history = []
-    started = None  # the clock starts once the first step has run: compiling the kernels (minutes on a fresh CUDA machine) is not training
+    # the clock starts once the first step has run: compiling the kernels (minutes on a fresh CUDA machine) is not
+    # training
+    started = None
     for epoch in range(epochs):
         optimizer.lr = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
         shuffled = rng.permutation(total)

@@ -3,8 +3,8 @@
 Each slot keeps its own moments and step count on the device, so a step needs no host value (it can
 be captured in a CUDA graph), free slots are left untouched, and a slot whose contents were replaced
 from the host (``GaussianBatch.add``/``assign``/``copy_from`` bump its generation) restarts with zero
-moments and fresh bias correction, without the caller having to remember it. Parameter groups: amplitude, mean, sigma, theta, each with its own learning rate
-(``AdamSettings``, lengths in rpx); the weight is not optimised.
+moments and fresh bias correction, without the caller having to remember it. Parameter groups: amplitude, mean, sigma,
+theta, each with its own learning rate (``AdamSettings``, lengths in rpx); the weight is not optimised.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (docs/method.md, Fitting step 1).
+"""Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (docs/method.md, Fitting step
+1).
 
 Every (pixel, channel) fits the Lambertian model D~_i = nbar . omega_i + k_a to its samples I_i over the
 lights, by a 4 x 4 normal-equation solve, robustly:
@@ -265,7 +266,8 @@ def shrink_by(images: wp.array4d(dtype=float), factor: int, first_row: int, out:
 
 
 def _shrunk_into(band: wp.array, factor: int, first_row: int, out: wp.array) -> None:
-    """``shrink_by`` of an (n, rows, W[, C]) device band into rows ``first_row`` on of ``out`` (n, H / f, W / f[, C])."""
+    """``shrink_by`` of an (n, rows, W[, C]) device band into rows ``first_row`` on of ``out`` (n, H / f, W / f[,
+    C])."""
     four = band if band.ndim == 4 else band.reshape(band.shape + (1,))
     target = out if out.ndim == 4 else out.reshape(out.shape + (1,))
     wp.launch(shrink_by, dim=(four.shape[0], four.shape[1] // factor, four.shape[2] // factor, four.shape[3]), inputs=[four, factor, first_row],
@@ -462,7 +464,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     lambert, valid, iterations = None, np.empty((height, width), np.int32), np.empty((height, width), np.int32)
     kept_images = None
     minimum = int((settings or SegmentationSettings()).min_valid_lights)
-    whole = int(np.prod(shape)) * 4  # the float32 stack's bytes: each band's transfers staged where the stack's make it pay
+    # the float32 stack's bytes: each band's transfers staged where the stack's make it pay
+    whole = int(np.prod(shape)) * 4
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
         band_images = rows_up(np.asarray(images[:, band], np.float32), device, whole_bytes=whole)
@@ -506,6 +509,7 @@ def _down(array: wp.array, out: np.ndarray, whole_bytes: int = 0) -> None:
         rows_down(array, out, whole_bytes=whole_bytes)
         return
     values = to_host(array)
-    if out.dtype == np.float16 and values.dtype != np.float16:  # finite, as as_half keeps them (the part is dropped after)
+    # finite, as as_half keeps them (the part is dropped after)
+    if out.dtype == np.float16 and values.dtype != np.float16:
         values = np.clip(values, -float(HALF_MAX), float(HALF_MAX), out=values if values.flags.writeable else None)
     out[...] = values

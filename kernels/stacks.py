@@ -140,7 +140,8 @@ class NormalisedStacks:
         n, height, width, channels = images.shape
         device = products.device
         chroma = DeviceRows(n, height * width * 2, device) if channels == 3 else None
-        luminance = DeviceRows(n, height * width, device, part_rows=chroma.part_rows if chroma is not None else None)  # the lights split alike
+        # the lights split alike
+        luminance = DeviceRows(n, height * width, device, part_rows=chroma.part_rows if chroma is not None else None)
         unused = wp.empty((1, 1), dtype=wp.float32, device=device)
         scale = np.empty((height, width), np.float32)
         weights = [wp.float64(w) for w in LUMINANCE_WEIGHTS]

@@ -41,7 +41,8 @@ def device(request) -> str:
 
 @pytest.fixture(scope="session")
 def small_donut(tmp_path_factory) -> Path:
-    """A rendered donut dataset small enough for CPU fits in tests: 32 Fibonacci lights, 96 x 54, centroid ground truth."""
+    """A rendered donut dataset small enough for CPU fits in tests: 32 Fibonacci lights, 96 x 54, centroid ground
+    truth."""
     from warp_highlights.model.lights import LightSet
     from warp_highlights.synth.render import (
         RenderSettings,

@@ -67,7 +67,8 @@ def energy_loss(params: GaussianParams, reference: GaussianParams, settings: Ras
 
 
 def structure_loss(params: GaussianParams, reference: GaussianParams, gamma: float = 4.0, threshold: float = 15.0, eps: float = 1e-6, *, thesis_form: bool = False) -> np.ndarray:
-    """Per-problem structure loss of retargeting (docs/method.md, Fitting step 5), by explicit pair loops (distances in rpx).
+    """Per-problem structure loss of retargeting (docs/method.md, Fitting step 5), by explicit pair loops (distances in
+    rpx).
 
     ``thesis_form`` uses the thesis' printed (rho s - rho^)^2 instead, which method.md corrects.
     """

@@ -277,7 +277,8 @@ def test_an_interrupt_raised_inside_a_library_s_weakref_callback_is_delivered_ag
             pass
 
         thing = Thing()
-        reference = weakref.ref(thing, lambda _: signal.raise_signal(signal.SIGINT))  # the handler runs inside the callback
+        # the handler runs inside the callback
+        reference = weakref.ref(thing, lambda _: signal.raise_signal(signal.SIGINT))
         started = time.monotonic()
         with pytest.raises(KeyboardInterrupt):
             del thing

@@ -1,4 +1,5 @@
-"""CPU chunking: slices cover the problems, a failing chunk stops the others at once, the device default is untouched."""
+"""CPU chunking: slices cover the problems, a failing chunk stops the others at once, the device default is
+untouched."""
 
 from __future__ import annotations
 
@@ -58,7 +59,8 @@ def test_threaded_cpu_fit_leaves_the_default_device_alone():
 
 
 def test_memory_chunks_split_a_cuda_batch_to_fit_the_free_memory():
-    assert memory_chunks(10, "cpu", 3, bytes_each=1e15) == problem_chunks(10, "cpu", 3)  # host memory: the threads' chunks
+    # host memory: the threads' chunks
+    assert memory_chunks(10, "cpu", 3, bytes_each=1e15) == problem_chunks(10, "cpu", 3)
     if not wp.is_cuda_available():
         pytest.skip("the split by device memory needs a CUDA device")
     free = wp.get_device("cuda:0").free_memory

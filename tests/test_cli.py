@@ -187,7 +187,8 @@ def test_module_entry_point_reports_errors_without_traceback(tmp_path):
         timeout=300,
     )
     assert result.returncode == 2
-    lines = result.stderr.splitlines()  # Warp's CUDA warning too would be a line here (test_cpu_runs_say_nothing_of_warp_or_cuda)
+    # Warp's CUDA warning too would be a line here (test_cpu_runs_say_nothing_of_warp_or_cuda)
+    lines = result.stderr.splitlines()
     assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"]
     version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True, timeout=300)
     assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")
@@ -246,7 +247,8 @@ def test_cpu_runs_say_nothing_of_warp_or_cuda(tmp_path):
 @pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"], ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
                                        ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--exr"]])
 def test_animate_argument_errors_do_not_start_warp(arguments):
-    """animate's path and output are checked by its own parsers (which read light files through SciPy) before Warp is imported."""
+    """animate's path and output are checked by its own parsers (which read light files through SciPy) before Warp is
+    imported."""
     probe = ("import sys; from warp_highlights.cli import main; status = main(sys.argv[1:]); "
              "print('HEAVY', [m for m in ('warp', 'pyvista', 'distributed') if m in sys.modules], status)")
     run = subprocess.run([sys.executable, "-c", probe, *arguments], capture_output=True, text=True, timeout=120)
@@ -291,7 +293,8 @@ def test_the_console_ends_without_teardown_after_flushing_everything(tmp_path):
     assert closed.stdout == helped.stdout[:10] and "Traceback" not in closed.stderr
     no_stdout = subprocess.run(f"'{sys.executable}' -m warp_highlights --version >&-", shell=True, capture_output=True, text=True, timeout=300)
     assert no_stdout.returncode == 0 and "Traceback" not in no_stdout.stderr
-    environment = {key: value for key, value in os.environ.items() if key != "PYTHONUNBUFFERED"}  # buffered output is flushed too
+    # buffered output is flushed too
+    environment = {key: value for key, value in os.environ.items() if key != "PYTHONUNBUFFERED"}
     buffered = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True, text=True, timeout=300,
                               env=environment)
     assert buffered.stdout == helped.stdout

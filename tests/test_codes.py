@@ -49,7 +49,8 @@ def _reference_stored(codes: np.ndarray) -> np.ndarray:
 def test_stored_codes_are_row_differences_in_byte_planes_and_come_back_exactly(bits, data):
     kind = np.uint8 if bits == 8 else np.uint16
     shape = data.draw(st.tuples(st.integers(1, 3), st.integers(1, 2), st.integers(1, 9), st.integers(1, 7)))
-    codes = data.draw(hnp.arrays(kind, shape, elements=st.integers(0, code_levels(bits))))  # extremes included: differences wrap
+    # extremes included: differences wrap
+    codes = data.draw(hnp.arrays(kind, shape, elements=st.integers(0, code_levels(bits))))
     stored = np.stack([stored_codes(image) for image in codes])
     assert stored.dtype == np.uint8 and stored.shape == stored_shape(*shape, bits)
     np.testing.assert_array_equal(stored, np.stack([_reference_stored(image) for image in codes]))

@@ -37,7 +37,8 @@ def _render(folder: Path, shape: str, *extra: str) -> None:
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory) -> Path:
-    """Six tiny rendered captures in nested folders (one without held-out lights) and one whose first image is cut short."""
+    """Six tiny rendered captures in nested folders (one without held-out lights) and one whose first image is cut
+    short."""
     root = tmp_path_factory.mktemp("collection") / "captures"
     for name in GOOD:
         shape = name.split("-")[0]
@@ -119,7 +120,8 @@ def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
         find_captures([tmp_path / "d/seal/images"])
     with pytest.raises(InputError, match="not a folder"):
         find_captures([tmp_path / "missing"])
-    for layout in ("objA/Train", "objB/dome"):  # the held-out folder sorts after or before its capture: the same pairing
+    # the held-out folder sorts after or before its capture: the same pairing
+    for layout in ("objA/Train", "objB/dome"):
         (tmp_path / "order" / layout).mkdir(parents=True)
         (tmp_path / "order" / layout / "dirs.lp").write_text(lp)
         (tmp_path / "order" / Path(layout).parent / "Test").mkdir()
@@ -230,7 +232,8 @@ def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(ca
     assert done, "no capture had finished when the collection was interrupted"
     assert len(done) < 5, "every capture had finished: the interruption came too late to test anything"
     assert not _leftovers(output), _leftovers(output)
-    assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".")) == sorted(done)  # finished folders only
+    # finished folders only
+    assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".")) == sorted(done)
     rerun = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
                         "-o", str(output), "--no-evaluate")
     stdout, stderr = _communicate(rerun, 300)
@@ -251,7 +254,8 @@ def test_an_existing_scheduler_is_used_as_it_is(captures, tmp_path):
         quick = JobOptions(fit_args=tuple(QUICK), evaluate=False, export=False)
         result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick)
         again = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick,
-                    force=True)  # a second run on the same workers (its plugin, its commands: the first run's stop is not its own)
+                    # a second run on the same workers (its plugin, its commands: the first run's stop is not its own)
+                    force=True)
     assert result.processed == ["donut-a"] and result.ok and again.processed == ["donut-a"] and again.ok
     assert (tmp_path / "remote" / "donut-a" / "field.whf").is_file() and (tmp_path / "remote" / "index.html").is_file()
 
@@ -271,8 +275,8 @@ def test_bad_input_is_one_line_before_any_work(captures, tmp_path, capsys):
 
 
 def test_an_output_folder_overlapping_a_capture_is_refused_and_nothing_is_touched(tmp_path, capsys):
-    """OUT as the captures' parent would make OUT/NAME the capture itself (render wrote it, with a manifest: replaceable);
-    OUT inside a capture would make the capture change with every run."""
+    """OUT as the captures' parent would make OUT/NAME the capture itself (render wrote it, with a manifest:
+    replaceable); OUT inside a capture would make the capture change with every run."""
     _render(tmp_path / "shelf" / "coin", "donut")
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     assert main(["collection", str(tmp_path / "shelf"), "-o", str(tmp_path / "shelf"), "--device", "cpu"]) == 2
@@ -293,7 +297,8 @@ def test_the_gallery_lists_scores_and_failures(tmp_path):
     assert data["summary"]["finished"] == 1 and data["summary"]["failed"] == 1 and data["summary"]["circular_beats_alpha"] == "1 of 1"
     rows = _table_rows(html_path.read_text())
     assert ["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · evaluation"] == rows[0][1:]
-    assert rows[1][1] == "seal<1>" and "no held-out lights & no Test/" in rows[1][2]  # escaped in the page, read back as text
+    # escaped in the page, read back as text
+    assert rows[1][1] == "seal<1>" and "no held-out lights & no Test/" in rows[1][2]
     assert "seal&lt;1&gt;" in html_path.read_text() and "&amp; no Test/" in html_path.read_text()
 
 
@@ -330,8 +335,8 @@ def _table_rows(page: str) -> list[list[str]]:
 
 
 def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collected, tmp_path):
-    """As a person would: the served gallery in headless Chromium shows every thumbnail, and a capture's viewer link opens a
-    viewer that draws (the exported page's own readiness flag), without console errors."""
+    """As a person would: the served gallery in headless Chromium shows every thumbnail, and a capture's viewer link
+    opens a viewer that draws (the exported page's own readiness flag), without console errors."""
     import shutil
     import threading
 
@@ -353,7 +358,8 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
             tab.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
             tab.wait_for_function("Array.from(document.images).every(i => i.complete)", timeout=30_000)
             widths = tab.eval_on_selector_all("tbody img", "images => images.map(i => i.naturalWidth)")
-            assert len(widths) == 6 and all(w == 48 for w in widths)  # the 48x27 captures' thumbnails (never wider than 320)
+            # the 48x27 captures' thumbnails (never wider than 320)
+            assert len(widths) == 6 and all(w == 48 for w in widths)
             tab.screenshot(path=str(tmp_path / "gallery.png"))
             with tab.expect_navigation():
                 tab.click("text=viewer >> nth=1")
@@ -369,7 +375,8 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
 @pytest.mark.parametrize("width,height,most", [(567, 534, 200), (534, 567, 200), (160, 160, 200), (3840, 2160, 960), (7952, 5304, 1000),
                                                (6000, 4000, 1024), (4000, 6000, 1023), (1001, 999, 1000)])
 def test_max_side_gives_each_capture_a_size_fit_accepts(width, height, most, monkeypatch):
-    """--max-side: the longer side at most PX, never enlarged, the aspect ratio as fit --size checks it (brute force: fit's own check)."""
+    """--max-side: the longer side at most PX, never enlarged, the aspect ratio as fit --size checks it (brute force:
+    fit's own check)."""
     import warp_highlights.collection.job as job
     from warp_highlights.io.resample import working_size
 

@@ -40,7 +40,8 @@ def test_a_negative_length_is_refused():
 
 
 def _zlib_combine():
-    """zlib's own crc32_combine64 from the C library, where it can be loaded (a reference for lengths no test can hold)."""
+    """zlib's own crc32_combine64 from the C library, where it can be loaded (a reference for lengths no test can
+    hold)."""
     import ctypes
     import ctypes.util
 

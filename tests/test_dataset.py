@@ -468,7 +468,8 @@ def test_fit_loads_only_what_it_uses_at_its_working_size(small_donut, tmp_path, 
     out = tmp_path / "field.whf"
     assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--device", "cpu", "-q", *TINY_FIT]) == 0
     lights = read_lp(small_donut / "lights.lp")
-    assert sorted(decoded) == sorted([name.split("/")[-1] for name in lights.filenames] + ["mask.png"])  # no held-out image, no ground truth
+    # no held-out image, no ground truth
+    assert sorted(decoded) == sorted([name.split("/")[-1] for name in lights.filenames] + ["mask.png"])
     field = load_field(out)
     assert (field.width, field.height) == (48, 27) and field.report["source_size"] == [96, 54]
 
@@ -541,7 +542,8 @@ def test_images_decoded_out_of_order_land_in_their_places(tmp_path, monkeypatch)
         return real(path, **kwargs)
 
     monkeypatch.setattr(dataset_module, "read_pixels", slow_first)
-    monkeypatch.setattr(threads, "PREFAULT_BYTES", 0)  # the stack's pages written from threads, as a large capture's are
+    # the stack's pages written from threads, as a large capture's are
+    monkeypatch.setattr(threads, "PREFAULT_BYTES", 0)
     loaded = ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=4)
     np.testing.assert_array_equal(loaded.images, field.images)
 
@@ -654,6 +656,7 @@ def test_each_exr_header_is_read_once_while_loading(tmp_path, monkeypatch):
     monkeypatch.setattr(OpenEXR, "File", counting)
     loaded = ReflectanceField.load(folder, progress=False)
     _assert_same(loaded, field)
-    counts = {name: headers.count(name) for name in headers}  # images, specular and diffuse parts, main and held-out lights
+    # images, specular and diffuse parts, main and held-out lights
+    counts = {name: headers.count(name) for name in headers}
     assert len(counts) == 3 * (5 + 3) and sum(counts.values()) == len(counts) + 1
     assert counts[str(folder / "images" / "0000.exr")] == 2  # the first image's once more: its encoding, for the report

@@ -82,7 +82,8 @@ def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_set
     target = _render(sets)
     short = EstimationSettings(iterations=60, densify_every=20, densify_until=50)
     devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
-    on = {d: target if d == "cpu" else wp.array(target, dtype=float, device=d) for d in devices}  # on CUDA: the pipeline's device array, sliced
+    # on CUDA: the pipeline's device array, sliced
+    on = {d: target if d == "cpu" else wp.array(target, dtype=float, device=d) for d in devices}
     whole = {d: estimate(on[d], settings=short, device=d, workers=1) for d in devices}
     monkeypatch.setattr(estimation_module, "problems_per_launch", lambda h, w, raster: 2)
     sizes = []

@@ -1036,7 +1036,8 @@ def test_entries_deflated_ahead_in_threads_make_the_file_the_zip_writer_makes(sm
     field = load_field(small_field)
     made, stored = [], []
     real, real_compress = fieldfile._deflated_npy, fieldfile._Deflated.compress
-    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(np.asfortranarray(array)))  # Fortran order too
+    # Fortran order too
+    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(np.asfortranarray(array)))
     monkeypatch.setattr(fieldfile._Deflated, "compress", lambda self, data: stored.append(len(self.deflated)) or real_compress(self, data))
     save_field(field, tmp_path / "ahead.whf")
     assert len(made) >= 10  # the Gaussians, the paths, the residual's means, ranges, weights, scale and colour

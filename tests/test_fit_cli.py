@@ -136,7 +136,8 @@ def test_list_settings(capsys):
 
 @pytest.mark.parametrize("choice", ["auto", "lowrank", "learned", "images", "none"])
 def test_residual_choice_sets_the_residual_kind(choice, capsys):
-    """``--residual`` stands for the setting ``residual.kind`` (``--list-settings`` shows it); ``--set`` still overrides it."""
+    """``--residual`` stands for the setting ``residual.kind`` (``--list-settings`` shows it); ``--set`` still overrides
+    it."""
     assert main(["fit", "--residual", choice, "--list-settings"]) == 0
     assert f"residual.kind={choice}\n" in capsys.readouterr().out
     assert main(["fit", "--residual", "lowrank", "--set", "residual.kind=images", "--list-settings"]) == 0
@@ -200,7 +201,8 @@ def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys
     args = [a.format(**names) for a in arguments] + ["-q"]
     assert main(args) == 2
     assert message in _error_line(capsys)
-    assert not [thread.name for thread in threading.enumerate() if thread.name.startswith("load")]  # a loading begun is stopped
+    # a loading begun is stopped
+    assert not [thread.name for thread in threading.enumerate() if thread.name.startswith("load")]
     assert existing.read_bytes() == b"keep"
     assert not (tmp_path / "out.whf").exists()
 
@@ -254,7 +256,8 @@ def test_gaussian_size_shrinks_by_whole_factors_to_the_row_limit():
     from warp_highlights.model.config import EstimationSettings
 
     default = EstimationSettings()
-    assert default.gaussian_size(480, 270) == (480, 270) and default.gaussian_size(567, 534) == (567, 534)  # the renders, the statue
+    # the renders, the statue
+    assert default.gaussian_size(480, 270) == (480, 270) and default.gaussian_size(567, 534) == (567, 534)
     assert default.gaussian_size(1920, 1080) == (960, 540) and default.gaussian_size(3840, 2160) == (960, 540)
     assert default.gaussian_size(4000, 6000) == (333, 500)  # a 24-megapixel portrait: a factor of 12
     assert EstimationSettings(max_pixels_per_rpx=0).gaussian_size(3840, 2160) == (3840, 2160)

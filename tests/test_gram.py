@@ -97,7 +97,8 @@ def _stack(n: int, h: int, w: int, planes: int) -> np.ndarray:
 
 def _same_images(a: PrincipalImages, b: PrincipalImages, count: int) -> None:
     np.testing.assert_allclose(a.energies, b.energies, rtol=1e-9, atol=1e-12 * a.energies[0])
-    for x, y in zip(a.host_directions()[:count], b.host_directions()[:count]):  # a direction's sign is the eigensolver's choice
+    # a direction's sign is the eigensolver's choice
+    for x, y in zip(a.host_directions()[:count], b.host_directions()[:count]):
         np.testing.assert_allclose(x * np.sign(float(x @ y)), y, atol=2e-6)
 
 
@@ -114,7 +115,8 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
         host = PrincipalImages.of(stack, light_scale)
         there = PrincipalImages.of(stack, light_scale, products=products)
     else:
-        images = np.concatenate([stack[..., :1], stack[..., 1:] * 0.5, stack[..., :1] * 0.25], axis=-1)  # three channels
+        # three channels
+        images = np.concatenate([stack[..., :1], stack[..., 1:] * 0.5, stack[..., :1] * 0.25], axis=-1)
         own, tint, scale = np.zeros((n, h, w), np.float32), np.ones((1, 1, 3), np.float32), np.ones((h, w), np.float32)
         host = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale)
         there = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, products=products)
@@ -126,8 +128,10 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
     assert np.mean(a.codes == b.codes) > 0.999  # the directions differ by float32 rounding: a code here and there
     np.testing.assert_allclose(a.weights, b.weights, rtol=0, atol=1e-4 * np.abs(a.weights).max())
     np.testing.assert_allclose(a.mean_weights, b.mean_weights, rtol=1e-5)
-    same = quantised_stack(dataclass_with(there, products=None, held=None), steps, bits=16)  # the same codes: the sums differ, and
-    np.testing.assert_array_equal(b.codes, same.codes)  # the decoded planes by a rounding where the device fuses their multiply-add
+    # the same codes: the sums differ, and
+    same = quantised_stack(dataclass_with(there, products=None, held=None), steps, bits=16)
+    # the decoded planes by a rounding where the device fuses their multiply-add
+    np.testing.assert_array_equal(b.codes, same.codes)
     fused = 1e-6 if products.device.is_cuda else 1e-9  # CUDA may fuse the decoded planes' multiply-add
     np.testing.assert_allclose(b.weights, same.weights, rtol=0, atol=fused * np.abs(same.weights).max())
 

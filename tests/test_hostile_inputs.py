@@ -310,7 +310,8 @@ def test_info_on_a_degenerate_capture_exits_2_naming_the_folder(tmp_path, capsys
 
 def test_a_capture_too_big_for_memory_is_refused_before_decoding(tmp_path, monkeypatch):
     folder = _capture(tmp_path / "d", [np.full((30, 40, 3), 0.5)] * 5)
-    monkeypatch.setattr(memory_module, "available_memory", lambda: 50_000)  # needed: (5 + 2) x 30 x 40 x 3 x 4 bytes (one decoding thread)
+    # needed: (5 + 2) x 30 x 40 x 3 x 4 bytes (one decoding thread)
+    monkeypatch.setattr(memory_module, "available_memory", lambda: 50_000)
     for reader in ("read_image", "read_pixels"):
         monkeypatch.setattr(dataset_module, reader, lambda *a, **k: pytest.fail("an image was decoded"))
     with pytest.raises(InputError) as excinfo:

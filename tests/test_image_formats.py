@@ -93,10 +93,12 @@ def test_icc_profiles_are_converted_or_named_once(tmp_path, caplog, monkeypatch)
         plain = read_image(srgb, linear=True)
         assert not caplog.records and not conversions  # sRGB: nothing to say or do
         for _ in range(2):
-            np.testing.assert_allclose(read_image(wide, linear=True), plain, atol=1.5 / 255)  # the same colours, converted
+            # the same colours, converted
+            np.testing.assert_allclose(read_image(wide, linear=True), plain, atol=1.5 / 255)
         read_image(lab, linear=True)  # a profile ImageCms cannot apply to RGB: read as sRGB, said so
     messages = [r.getMessage() for r in caplog.records]
-    assert len(conversions) == 3 and len(messages) == 2  # two conversions and one refused attempt; each profile named once
+    # two conversions and one refused attempt; each profile named once
+    assert len(conversions) == 3 and len(messages) == 2
     assert "'Test RGB wide'" in messages[0] and "converted to sRGB" in messages[0]
     assert "'Lab identity built-in'" in messages[1] and "read as sRGB" in messages[1]
     assert image_encoding(wide)["profile"] == "Test RGB wide" and image_encoding(srgb)["profile"] == "sRGB built-in"

@@ -151,7 +151,8 @@ def test_an_exr_with_a_subsampled_alpha_is_read_quietly_as_before(tmp_path, capf
     rng = np.random.default_rng(8)
     planes = {name: rng.uniform(0.0, 4.0, size=(8, 10)).astype(np.float16) for name in "RGB"}
     channels = {name: OpenEXR.Channel(name, plane) for name, plane in planes.items()}
-    channels["A"] = OpenEXR.Channel("A", rng.uniform(size=(8, 10)).astype(np.float16), 2, 2)  # stored at every other pixel
+    # stored at every other pixel
+    channels["A"] = OpenEXR.Channel("A", rng.uniform(size=(8, 10)).astype(np.float16), 2, 2)
     path = tmp_path / "a.exr"
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels).write(str(path))
     capfd.readouterr()

@@ -145,7 +145,8 @@ def test_the_walk_sees_lazy_exports_and_imports_inside_functions():
     assert (f"{PACKAGE}.cli.fit", f"{PACKAGE}.fit.pipeline", "_run_fit", False) in seen
     assert (f"{PACKAGE}.io.fieldfile", PACKAGE, None, False) in seen  # from .. import __version__
     names = {(source, imp.target): imp.names for source, imp in EDGES}
-    assert "encode_levels" in names[(f"{PACKAGE}.view.animation", f"{PACKAGE}.io.images")]  # the names a from-import takes
+    # the names a from-import takes
+    assert "encode_levels" in names[(f"{PACKAGE}.view.animation", f"{PACKAGE}.io.images")]
 
 
 def test_every_module_is_in_a_layer():

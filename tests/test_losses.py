@@ -159,7 +159,8 @@ def test_a_fitting_step_reads_the_image_only_where_gaussians_draw(device):
     height, width = 40, 90  # most tiles empty
     _, batch = _pair(device, seed=8, height=height, width=width)
     params = batch.numpy()
-    params.weight[0, 0] = 0.0  # drawn, scale 0: its tiles are listed all the same, though no other Gaussian reaches them
+    # drawn, scale 0: its tiles are listed all the same, though no other Gaussian reaches them
+    params.weight[0, 0] = 0.0
     params.active[0, 2:] = False
     params.mean[0, 0], params.mean[0, 1] = (0.3, 0.3), (1.9, 0.7)
     params.sigma[0, :2] = 3.0 / height

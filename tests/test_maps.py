@@ -63,7 +63,8 @@ def test_sphere_normals_within_two_degrees_of_the_analytic_ones(sphere_fits, lig
     renderer, field = sphere_fits[lights]
     maps = surface_maps(field, device="cpu")
     truth, covered = _analytic_normals(renderer)
-    assert np.count_nonzero(covered & maps.mask) >= 0.98 * np.count_nonzero(covered)  # every pixel on the sphere is estimated
+    # every pixel on the sphere is estimated
+    assert np.count_nonzero(covered & maps.mask) >= 0.98 * np.count_nonzero(covered)
     assert not np.any(maps.mask & ~renderer.mask & (renderer.coverage == 0))  # and none of the background
     angles = _angles_deg(maps.normals, truth)[covered & maps.mask]
     assert np.median(angles) < 2.0, f"median {np.median(angles):.2f} degrees"
@@ -110,11 +111,13 @@ def test_flatten_removes_a_linear_trend_of_the_slopes_and_keeps_the_rest():
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
     tilt = np.array([0.03, -0.02])  # ... on an object tilted as a whole ...
-    leaning = relief + tilt + np.stack([0.2 * u, 0.15 * v], axis=-1)  # ... that near lights make lean away from the centre
+    # ... that near lights make lean away from the centre
+    leaning = relief + tilt + np.stack([0.2 * u, 0.15 * v], axis=-1)
     flat = flatten_normals(unit(leaning), mask)
     np.testing.assert_allclose(flat[mask], unit(relief + tilt)[mask], atol=1e-6)
     np.testing.assert_array_equal(flat[~mask], unit(leaning).astype(np.float32)[~mask])
-    np.testing.assert_allclose(flatten_normals(unit(relief + tilt), mask), unit(relief + tilt), atol=1e-6)  # nothing to remove
+    # nothing to remove
+    np.testing.assert_allclose(flatten_normals(unit(relief + tilt), mask), unit(relief + tilt), atol=1e-6)
 
 
 def test_fit_normals_matches_per_pixel_least_squares_and_rejects_highlights_and_shadows():
@@ -232,7 +235,8 @@ def test_dome_sample_normals_against_its_rendered_normal_map(data_root):
     flat_error = np.median(_angles_deg(flat.normals, truth))
     assert flat_error < 1.0, f"median {flat_error:.2f} degrees"
     assert flat_error < np.median(_angles_deg(leaning.normals, truth)) / 4
-    np.testing.assert_allclose(flat.albedo, leaning.albedo, rtol=0.1, atol=1e-3)  # flattening turns the normals only a little
+    # flattening turns the normals only a little
+    np.testing.assert_allclose(flat.albedo, leaning.albedo, rtol=0.1, atol=1e-3)
 
 
 def test_maps_that_would_not_fit_in_memory_are_refused_before_any_work(sphere_fits, monkeypatch):

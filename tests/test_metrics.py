@@ -96,7 +96,8 @@ def _stacks(count: int, seed: int = 4):
 
 
 def test_psnr_excluding_black_image_by_image_is_the_stack_formula():
-    """Scored one image at a time in threads: the same values as the whole stack in float64, NaN where both are black."""
+    """Scored one image at a time in threads: the same values as the whole stack in float64, NaN where both are
+    black."""
     images, truth = _stacks(9)
     images[2] = truth[2] = 0.0
     images[4] = truth[4]
@@ -143,7 +144,8 @@ def test_scores_in_worker_processes_equal_the_threads(caplog):
 
 
 def test_scores_fall_back_to_threads_without_processes(monkeypatch, caplog):
-    """Where processes cannot start (a daemonic process, a main module spawn cannot import): the same scores in threads."""
+    """Where processes cannot start (a daemonic process, a main module spawn cannot import): the same scores in
+    threads."""
     import concurrent.futures
     import logging
 

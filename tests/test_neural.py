@@ -71,7 +71,8 @@ def test_initial_codes_are_the_leading_components():
     codes = neural.initial_model(targets).codes
     assert codes.shape == (200, neural.CODE_SIZE)
     np.testing.assert_allclose(codes.std(axis=0), 1.0, rtol=1e-4)
-    np.testing.assert_allclose(codes.T @ codes / 200, np.eye(neural.CODE_SIZE), atol=1e-4)  # uncorrelated: principal components
+    # uncorrelated: principal components
+    np.testing.assert_allclose(codes.T @ codes / 200, np.eye(neural.CODE_SIZE), atol=1e-4)
 
 
 def test_tape_gradients_match_central_differences(device):
@@ -152,7 +153,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None
     assert field.report["residual"]["learned"]["epochs"] == 2
-    verdict = field.report["residual"]["learned_check"]  # the move check let the Gaussians move, so the learned check ran
+    # the move check let the Gaussians move, so the learned check ran
+    verdict = field.report["residual"]["learned_check"]
     assert field.report["residual"]["move_check"]["moves"] and verdict["lights"] == 6
     keeps = verdict["with_gaussians_psnr_db"] >= verdict["images_alone_psnr_db"]
     assert verdict["keeps_gaussians"] == keeps and bool(field.estimated.active.any()) == keeps
@@ -169,7 +171,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     highlights = Relighter(loaded, device="cpu", diffuse="none").relight(directions).full
     want = np.clip(learned_images(loaded.residual.learned, directions) + highlights, 0.0, None)
     assert np.all(np.isfinite(relit.full)) and relit.full.min() >= 0
-    np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))  # the decoded residual passes through float16
+    # the decoded residual passes through float16
+    np.testing.assert_allclose(relit.full, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))
 
     from warp_highlights.cli import (
         main,  # relit on the CPU, the command says once that a lowrank field would be faster here
@@ -228,7 +231,8 @@ def test_training_never_reads_the_lights_left_out(device):
     for got, want in zip(second.weights, first.weights):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(again, history, rtol=1e-5)
-    whole, _ = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64)  # all lights: the changed ones count
+    # all lights: the changed ones count
+    whole, _ = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64)
     assert not np.allclose(whole.codes, first.codes, atol=1e-3)
     with pytest.raises(ValueError, match="used"):
         neural.train_decoder(targets, directions, device=device, epochs=1, used=np.array([7]))
@@ -268,7 +272,8 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     blob[:, 2:4, 3:6] = 1.5
     wrong = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings, device="cpu")
     assert np.all(wrong.with_gaussians < wrong.images_alone) and not wrong.keeps_gaussians
-    np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)  # the images alone, learned without the left-out lights
+    # the images alone, learned without the left-out lights
+    np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)
 
 
 def test_training_time_counts_from_the_first_step():
@@ -297,8 +302,8 @@ def test_the_residual_kind_is_resolved_for_the_device_and_the_capture():
 
 
 def test_fields_stored_with_the_residual_booleans_read_as_their_kind():
-    """Settings of fields written before ``residual.kind`` (``compressed``, ``learned``, ``learned_on_cuda``) load as the
-    kind each combination stood for."""
+    """Settings of fields written before ``residual.kind`` (``compressed``, ``learned``, ``learned_on_cuda``) load as
+    the kind each combination stood for."""
     from warp_highlights.model.config import FitSettings
 
     cases = [((True, False, True), "auto"), ((True, False, False), "lowrank"), ((True, True, True), "learned"),

@@ -70,7 +70,8 @@ def test_device_codes_and_stored_rows_are_the_host_s_bit_for_bit(device, bits, m
     rows = np.arange(height)
     whole = held.stored(1, low[1:], step[1:], bits, rows, rows - 1, out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (height, width), np.uint8))
     np.testing.assert_array_equal(whole, stored_codes(planes))
-    band = np.array([2, 3, 4, 7, 8])  # rows 3, 4 counted with row 2 above them; rows 7, 8 after a gap, 7 less row 4 (as the host subtracts)
+    # rows 3, 4 counted with row 2 above them; rows 7, 8 after a gap, 7 less row 4 (as the host subtracts)
+    band = np.array([2, 3, 4, 7, 8])
     above = np.array([-1, 2, 3, 4, 7])
     sampled = held.stored(1, low[1:], step[1:], bits, band, above, out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (len(band), width), np.uint8))
     np.testing.assert_array_equal(sampled, stored_codes(planes[:, :, band]))
@@ -80,7 +81,8 @@ def test_device_codes_and_stored_rows_are_the_host_s_bit_for_bit(device, bits, m
     design = held.design(1, low[1:], step[1:], bits, decoded_low, decoded_step, mean, columns).numpy()
     reference = np.vstack([mean[None], decoded_low[:, None] + expected[:, columns].astype(np.float32) * decoded_step[:, None]])
     if wp.get_device(device).is_cuda:
-        np.testing.assert_allclose(design, reference, rtol=2**-23, atol=0)  # within a rounding: CUDA may fuse the multiply-add
+        # within a rounding: CUDA may fuse the multiply-add
+        np.testing.assert_allclose(design, reference, rtol=2**-23, atol=0)
     else:
         np.testing.assert_array_equal(design, reference)
     np.testing.assert_array_equal(held.rows(0, count + 1), images)  # every part copied down
@@ -136,12 +138,15 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
         a, b = RateSample(there, 6, whole=whole), RateSample(host, 6, whole=whole)
         assert a.held is not None and b.held is None and a.exact == whole
         if not whole:
-            assert np.any(np.diff(a.stored_rows) > 1) and np.all(a.above[1:] >= 0)  # a gap between the bands, each row with the one above
+            # a gap between the bands, each row with the one above
+            assert np.any(np.diff(a.stored_rows) > 1) and np.all(a.above[1:] >= 0)
         subset = np.array([0, 2, 4, 5])  # runs of one and two images, the first two in one group
         np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset), b.deflated(steps, bits=bits, images=subset))
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
-        assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)  # fewer images into the memory kept
-        with monkeypatch.context() as slow:  # deflates that read their slot late: a slot filled again too early gives other bytes
+        # fewer images into the memory kept
+        assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)
+        # deflates that read their slot late: a slot filled again too early gives other bytes
+        with monkeypatch.context() as slow:
             real = residual_module.deflated_piece
             slow.setattr(residual_module, "deflated_piece", lambda data: time.sleep(0.02) or real(data))
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once

@@ -276,7 +276,8 @@ def test_render_refuses_one_image_over_a_launch_and_draws_the_most_it_allows(mon
         raster.render(GaussianBatch(128, 1, device="cpu"))
     import warp_highlights.kernels.raster as raster_module
 
-    monkeypatch.setattr(raster_module, "LAUNCH_PIXELS", 3 * 16 * 16 + 1)  # three 8x8 images (a 16-pixel tile each) per launch
+    # three 8x8 images (a 16-pixel tile each) per launch
+    monkeypatch.setattr(raster_module, "LAUNCH_PIXELS", 3 * 16 * 16 + 1)
     small = Rasterizer(8, 8, device="cpu")
     assert small.problems_per_launch == 3
     assert small.render(GaussianBatch(3, 1, device="cpu")).shape == (3, 8, 8)

@@ -99,7 +99,8 @@ def test_any_shape_matches_scipy(problems, height, width, density, seed):
 
 
 def test_snakes_and_diagonals_join(device):
-    """A serpentine path (one region whose union-find joins from both ends) and a checkerboard (8-connected: one region)."""
+    """A serpentine path (one region whose union-find joins from both ends) and a checkerboard (8-connected: one
+    region)."""
     height, width = 41, 61
     snake = np.zeros((height, width), np.float32)
     snake[::2, :] = 1.0  # full rows 0, 2, 4, ... joined at alternate ends

@@ -342,7 +342,8 @@ def test_resample_image_shrinks_by_area_and_grows_linearly():
     expected = np.add.outer(np.clip(rows, 0, 9), 2.0 * np.clip(cols, 0, 15))
     np.testing.assert_allclose(grown, expected, atol=1e-5)  # a ramp is reproduced exactly inside
     assert resample_image(np.ones((5, 8)), 16, 10).shape == (10, 16)
-    np.testing.assert_allclose(resample_image(np.full((1, 1, 3), 0.25), 4, 3), 0.25)  # one pixel grows into a flat image
+    # one pixel grows into a flat image
+    np.testing.assert_allclose(resample_image(np.full((1, 1, 3), 0.25), 4, 3), 0.25)
     mixed = resample_image(ramp, 12, 20)  # grows down the rows, shrinks across the columns
     np.testing.assert_allclose(mixed, resample_image(resample_image(ramp, 12, 10), 12, 20), atol=1e-5)
 

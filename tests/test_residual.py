@@ -144,7 +144,8 @@ def test_quantisation_step_gives_the_distortion_it_was_chosen_for():
     distortion = 1e-4 * principal.energies[1]
     steps = plan.steps(distortion, 65535)
     energies = principal.energies[1 : len(steps) + 1]
-    assert np.all(energies > distortion) and principal.energies[len(steps) + 1] <= distortion  # kept: exactly those above it
+    # kept: exactly those above it
+    assert np.all(energies > distortion) and principal.energies[len(steps) + 1] <= distortion
     pixels = principal.values
     np.testing.assert_allclose(energies * pixels * steps**2 / 12, distortion, rtol=1e-9)
     basis = principal.directions[1 : len(steps) + 1]
@@ -606,7 +607,8 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
         data = path.read_bytes()
         residual_before = lambda r: {key: value for key, value in r.items() if key != "learned" or version > 2}
         stacks = {name: getattr(field.residual, name) for name in ("luminance", "chroma") if getattr(field.residual, name) is not None}
-        codes = {f"residual__{'Y' if name == 'luminance' else 'C'}_codes": stack.codes.transpose(0, 3, 1, 2) for name, stack in stacks.items()}  # as they are
+        # as they are
+        codes = {f"residual__{'Y' if name == 'luminance' else 'C'}_codes": stack.codes.transpose(0, 3, 1, 2) for name, stack in stacks.items()}
         rewrite(data, path, header=lambda h: {**h, "format_version": version, "residual": residual_before(h["residual"])}, **codes)
     back = load_field(path)
     np.testing.assert_array_equal(back.moving, field.moving)
@@ -744,7 +746,8 @@ def test_sampled_rows_are_spread_bands_or_every_row():
     rows = sampled_rows(1080, 1920, 1)
     assert len(rows) % 8 == 0 and len(rows) >= rate_module._RATE_SHARE * 1080 and len(np.unique(rows)) == len(rows)
     bands = rows.reshape(-1, 8)
-    assert np.all(np.diff(bands, axis=1) == 1) and rows.min() > 0 and rows.max() < 1079  # whole bands, none at the very edges
+    # whole bands, none at the very edges
+    assert np.all(np.diff(bands, axis=1) == 1) and rows.min() > 0 and rows.max() < 1079
     strips = np.floor(bands.mean(axis=1) / (1080 / len(bands)))
     assert np.array_equal(strips, np.arange(len(bands)))  # one band in each equal strip
 
@@ -858,7 +861,8 @@ def test_calibration_absorbs_a_sample_s_bias_in_one_exact_measurement(monkeypatc
     whole = RateSample(principal, principal.count - 1, whole=True)
     exact = []
 
-    def biased(self, steps, *, bits, keep=None, images=None):  # the sample: each image's whole bytes, 6% over, per sampled row
+    # the sample: each image's whole bytes, 6% over, per sampled row
+    def biased(self, steps, *, bits, keep=None, images=None):
         if self.exact:
             return real_deflated(self, steps, bits=bits, keep=keep, images=images)
         return np.rint(real_deflated(whole, steps, bits=bits, images=images) * 1.06 / self.scale).astype(np.int64)

@@ -109,7 +109,8 @@ def test_codes_are_display_rgb8s(device):
     np.testing.assert_array_equal(codes[:10], expected[:10])
     off = np.flatnonzero(codes != expected)
     assert np.all(np.abs(codes[off] - expected[off]) == 1)
-    edge = np.abs(linear_to_srgb(values[off].astype(np.float64)) * 255.0 % 1.0 - 0.5)  # distance of the exact code to a rounding edge
+    # distance of the exact code to a rounding edge
+    edge = np.abs(linear_to_srgb(values[off].astype(np.float64)) * 255.0 % 1.0 - 0.5)
     assert np.all(edge < 1e-4)
 
 
@@ -141,7 +142,8 @@ def test_the_checks_device_scores_are_the_hosts(device, held, channels):
     rows = np.array([1, 3, 4])
     moving, blending = scorer.psnr(rows, wp.array(drawn[rows], dtype=wp.float32, device=device), weights[rows])
     host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth, np.float32(0.6))
-    np.testing.assert_allclose(moving, host[0][rows], atol=0.02)  # a code moved by one at an edge (a CPU's own pow or FMA too)
+    # a code moved by one at an edge (a CPU's own pow or FMA too)
+    np.testing.assert_allclose(moving, host[0][rows], atol=0.02)
     np.testing.assert_allclose(blending, host[1][rows], atol=0.02)
 
 
@@ -183,7 +185,8 @@ def test_the_check_scores_on_the_device_as_on_the_host(monkeypatch):
     held = validation_hold(images, own)
     with_held = validation.check_moving(*args, wp.array(own, dtype=float, device="cuda:0"), images, own, None, factor=1.0, settings=settings,
                                         device="cuda:0", held=held)
-    np.testing.assert_array_equal(with_held.moving_psnr, checks[0].moving_psnr)  # the same images there: the same scores
+    # the same images there: the same scores
+    np.testing.assert_array_equal(with_held.moving_psnr, checks[0].moving_psnr)
     np.testing.assert_array_equal(with_held.blend_psnr, checks[0].blend_psnr)
 
 
@@ -202,7 +205,8 @@ def test_images_are_held_on_cuda_devices_only_and_within_their_bound(monkeypatch
     assert residual_module.hold_images(images, own, "cpu") is None
     if wp.is_cuda_available():
         assert residual_module.hold_images(images, own, "cuda:0") is not None
-        monkeypatch.setattr(residual_module, "HELD_IMAGES_BYTES", images.nbytes)  # the own highlights no longer fit beside
+        # the own highlights no longer fit beside
+        monkeypatch.setattr(residual_module, "HELD_IMAGES_BYTES", images.nbytes)
         assert residual_module.hold_images(images, own, "cuda:0") is None
         assert not residual_module.holds_images(images.shape, "cuda:0")
     assert not residual_module.holds_images(images.shape, "cpu")

@@ -23,7 +23,8 @@ from warp_highlights.model.lights import LightSet
 
 
 def reference_segment(samples: np.ndarray, directions: np.ndarray, s: SegmentationSettings):
-    """Float64 per-pixel reference of the segmentation (docs/method.md, Fitting step 1) for one column of samples (n,)."""
+    """Float64 per-pixel reference of the segmentation (docs/method.md, Fitting step 1) for one column of samples
+    (n,)."""
     rows = np.concatenate([directions, np.ones((len(directions), 1))], axis=1)
     valid = samples >= s.valid_threshold
     if valid.sum() < s.min_valid_lights:
@@ -123,7 +124,8 @@ def test_median_two_halvings_a_pass_equals_one_a_pass_and_the_exact_median(devic
     and within float32 resolution of NumPy's median of the same residuals."""
     rng = np.random.default_rng(11)
     columns, directions = synthetic_columns(rng, 500, 61)
-    columns[:, :40] = np.where(rng.random((61, 40)) < 0.5, 0.0, columns[:, :40])  # odd and even valid counts, ties at zero
+    # odd and even valid counts, ties at zero
+    columns[:, :40] = np.where(rng.random((61, 40)) < 0.5, 0.0, columns[:, :40])
     fits = np.concatenate([rng.normal(size=(500, 3)) * 0.5, rng.uniform(0.0, 0.1, (500, 1))], axis=1).astype(np.float32)
     threshold = SegmentationSettings().valid_threshold
     together, apart = wp.zeros(500, dtype=float, device=device), wp.zeros(500, dtype=float, device=device)
@@ -138,7 +140,8 @@ def test_median_two_halvings_a_pass_equals_one_a_pass_and_the_exact_median(devic
     exact = np.array([np.median(residual[kept[:, q], q].astype(np.float64)) if counts[q] else 0.0 for q in range(500)])
     largest = np.array([residual[kept[:, q], q].max() if counts[q] else 0.0 for q in range(500)])
     error = np.abs(together.numpy() - exact)
-    assert np.all(error <= 2.0 * 2.0**-_MEDIAN_BISECTIONS * largest + 2e-7 * exact), error.max()  # each rank within one final interval
+    # each rank within one final interval
+    assert np.all(error <= 2.0 * 2.0**-_MEDIAN_BISECTIONS * largest + 2e-7 * exact), error.max()
 
 
 def test_any_split_over_cpu_threads_gives_the_same_result():
@@ -190,7 +193,8 @@ def test_shrink_by_is_the_float64_mean_of_each_block(device):
     values = np.random.default_rng(8).uniform(0, 3, (3, 12, 18)).astype(np.float32)
     out = wp.zeros((3, 8, 6), dtype=float, device=device)
     four = out.reshape((3, 8, 6, 1))
-    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, 4:, :, None], device=device), 2, 0], outputs=[four], device=device)  # rows 0..3
+    # rows 0..3
+    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, 4:, :, None], device=device), 2, 0], outputs=[four], device=device)
     wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, :12, :, None], device=device), 3, 4], outputs=[four], device=device)
     reference = values.astype(np.float64)
     np.testing.assert_allclose(out.numpy()[:, :4], reference[:, 4:12, :12].reshape(3, 4, 2, 6, 2).mean(axis=(2, 4)), rtol=1e-7)
@@ -281,9 +285,11 @@ def test_band_rows_fit_the_device_s_free_memory():
     import warp as wp
 
     assert band_rows((1000, 1080, 1920, 3), "cpu") == 1080  # the host's free memory not given: no bands
-    row_bytes, held = 4 * 100 * 3840 * 10, 4 * 100 * 2160 * 3840 * 4  # images, diffuse, specular, luminance a row; specular and luminance whole
+    # images, diffuse, specular, luminance a row; specular and luminance whole
+    row_bytes, held = 4 * 100 * 3840 * 10, 4 * 100 * 2160 * 3840 * 4
     assert band_rows((100, 2160, 3840, 3), "cpu", host_free=2160 * row_bytes * 2) == 2160  # fits in half of it
-    rows = band_rows((100, 2160, 3840, 3), "cpu", host_free=24 << 30, keep_diffuse=False)  # a 100-light 4K capture on a 24 GiB machine
+    # a 100-light 4K capture on a 24 GiB machine
+    rows = band_rows((100, 2160, 3840, 3), "cpu", host_free=24 << 30, keep_diffuse=False)
     row_bytes = 4 * 100 * 3840 * 7  # no diffuse part made: images, specular, luminance
     assert rows * row_bytes <= 0.5 * ((24 << 30) - held) < (rows + 1) * row_bytes
     assert band_rows((100, 2160, 3840, 3), "cpu", host_free=held // 2) == 1  # at least one row

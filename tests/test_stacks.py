@@ -40,7 +40,8 @@ def _capture(n: int, height: int, width: int, channels: int) -> tuple[np.ndarray
 
 
 def _host_planes(images, own, tint):
-    """(scale, squares, luminance (n, H, W, 1), chroma (n, H, W, 2) or None) as build_residual's host pass makes them."""
+    """(scale, squares, luminance (n, H, W, 1), chroma (n, H, W, 2) or None) as build_residual's host pass makes
+    them."""
     residual = residual_of(images, own, tint)
     if images.shape[-1] == 1:
         y, chroma = residual[..., 0].astype(np.float64), None
@@ -63,7 +64,8 @@ def test_device_stacks_are_the_host_s_to_a_float32_rounding(device, channels, mo
     made = NormalisedStacks.make(images, own, tint, DeviceProducts(device), scale_of=_scale_of_mean_square)
     scale, squares, luminance, chroma = _host_planes(images, own, tint)
     held = made.luminance.block(slice(0, height * width)).reshape(n, height, width, 1)
-    exact = not wp.get_device(device).is_cuda  # the CPU device: the host's arithmetic in the host's order but for the sums
+    # the CPU device: the host's arithmetic in the host's order but for the sums
+    exact = not wp.get_device(device).is_cuda
     if exact:
         np.testing.assert_array_equal(made.scale, scale)
         np.testing.assert_array_equal(held, luminance)
@@ -72,7 +74,8 @@ def test_device_stacks_are_the_host_s_to_a_float32_rounding(device, channels, mo
     same = made.scale == scale  # compare the planes where the scales agree
     np.testing.assert_allclose(held[:, same], luminance[:, same], rtol=2e-6, atol=1e-6)
     np.testing.assert_allclose(made.squares, squares, rtol=1e-5)
-    assert made.luminance.shape == (height, width, 1) and made.luminance.light_count == n and len(made.luminance.rows.parts) == (3 if channels == 3 else 2)  # the lights split as the chroma rows split
+    # the lights split as the chroma rows split
+    assert made.luminance.shape == (height, width, 1) and made.luminance.light_count == n and len(made.luminance.rows.parts) == (3 if channels == 3 else 2)
     if channels == 1:
         assert made.chroma is None
         return

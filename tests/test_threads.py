@@ -37,7 +37,8 @@ def test_mapped_empty_is_an_empty_array_of_the_shape_and_type(monkeypatch, cores
     array is writable and whole either way (odd sizes: the last part is short)."""
     monkeypatch.setattr(threads, "NUMPY_THREADS", cores)
     monkeypatch.setattr(threads, "PREFAULT_BYTES", limit)
-    monkeypatch.setattr(threads.np, "empty", lambda shape, dtype: np.full(shape, 0xAB, dtype))  # memory that is not zero already
+    # memory that is not zero already
+    monkeypatch.setattr(threads.np, "empty", lambda shape, dtype: np.full(shape, 0xAB, dtype))
     filled = []
     real_map = threads.parallel_map
     monkeypatch.setattr(threads, "parallel_map", lambda function, items: filled.extend(items) or real_map(function, items))

@@ -100,7 +100,8 @@ def test_staging_chunks_cover_every_run_once_and_fill_each_buffer(device, small_
 
 
 def test_as_half_rounds_as_numpy_does(device):
-    """float32 -> float16 on the device: clamped to the largest half, then NumPy's astype (round to nearest even), any rank."""
+    """float32 -> float16 on the device: clamped to the largest half, then NumPy's astype (round to nearest even), any
+    rank."""
     from warp_highlights.kernels.transfer import as_half
 
     rng = np.random.default_rng(9)
@@ -109,7 +110,8 @@ def test_as_half_rounds_as_numpy_does(device):
         part = values[: int(np.prod(shape))].astype(np.float32).reshape(shape)
         half = as_half(wp.array(part, dtype=float, device=device))
         assert half.dtype == wp.float16 and half.shape == shape
-        np.testing.assert_array_equal(half.numpy(), np.clip(part, -65504, 65504).astype(np.float16))  # finite: 1e9 and 65520 -> 65504
+        # finite: 1e9 and 65520 -> 65504
+        np.testing.assert_array_equal(half.numpy(), np.clip(part, -65504, 65504).astype(np.float16))
     with pytest.raises(ValueError, match="float32"):
         as_half(wp.zeros(3, dtype=wp.float16, device=device))
 

@@ -416,7 +416,8 @@ def test_dragging_the_handle_moves_the_light_on_the_sphere_and_the_image_follows
         interactor.InvokeEvent("LeftButtonReleaseEvent")
         assert np.degrees(np.arccos(np.clip(start @ designer.direction, -1, 1))) > 5
         assert np.linalg.norm(designer.direction) == pytest.approx(1.0)
-        np.testing.assert_allclose(designer._widget.GetCenter(), designer.direction, atol=1e-9)  # the handle stays on the sphere
+        # the handle stays on the sphere
+        np.testing.assert_allclose(designer._widget.GetCenter(), designer.direction, atol=1e-9)
         plotter.subplot(0, 1)
         after = plotter.renderer.actors["image"].texture.to_array()
         expected = display_rgb8(designer.relighter.relight(designer.direction).full)

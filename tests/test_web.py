@@ -141,7 +141,8 @@ def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float
             expected = _expected(field, relighter, direction, method).astype(int)
             scores.append(psnr_8bit(shown.astype(np.uint8), expected.astype(np.uint8)))
             assert scores[-1] >= 40.0, (method, direction)
-            # the same image but for rounding; alpha's reference clamps each corner's image at 0 before blending, the page after
+            # the same image but for rounding; alpha's reference clamps each corner's image at 0 before blending, the
+            # page after
             assert np.mean(np.abs(shown - expected) > 1) < (0.002 if method != "alpha" else 0.05), (method, direction)
     assert tab.errors == []
     return scores

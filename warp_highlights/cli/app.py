@@ -236,7 +236,8 @@ def python_stderr_apart():
     try:
         original.flush()
         copy = os.dup(original.fileno())
-    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):  # no descriptor behind it (captured, embedded)
+    # no descriptor behind it (captured, embedded)
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
         yield
         return
     stream = io.TextIOWrapper(io.FileIO(copy, "w"), encoding=original.encoding or "utf-8", errors="backslashreplace", line_buffering=True,

@@ -149,7 +149,8 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     made.append(("evaluation/", "report.json and plots: " + ", ".join(written)))
     summary = report["summary"]["specular"]
     full, ssim = report["summary"]["full_srgb"], report["summary"]["full_ssim"]
-    full_methods = [m for m in ("circular", "straight", "alpha", "ptm", "hsh3", "rbf") if m in full]  # too few lights leave some out
+    # too few lights leave some out
+    full_methods = [m for m in ("circular", "straight", "alpha", "ptm", "hsh3", "rbf") if m in full]
     step("evaluate", t, "specular PSNR " + ", ".join(f"{m} {summary[m]['mean']:.2f} dB" for m in ("circular", "straight", "alpha"))
          + "; full image 8-bit PSNR " + ", ".join(f"{m} {full[m]['mean']:.2f} dB" for m in ("circular", "alpha", "rbf") if m in full))
 

@@ -114,9 +114,11 @@ def _run_fit(args) -> int:
     started = time.perf_counter()  # the summary's time includes the pipeline's imports from here on
 
     def load(stop) -> tuple | None:  # in a thread, while the pipeline is imported: the decoding lets go of the GIL
-        def device_found(stack_bytes: int) -> None:  # a large capture decodes only once Warp has found the device (a wrong
-            # --device is reported before it is read); a small one at once (reading it first costs less than waiting), unless -v
-            # asks for Warp's own messages (the decoders' quieting of native stderr would hide those of its start)
+        # a large capture decodes only once Warp has found the device (a wrong
+        def device_found(stack_bytes: int) -> None:
+            # --device is reported before it is read); a small one at once (reading it first costs less than waiting),
+            # unless -v asks for Warp's own messages (the decoders' quieting of native stderr would hide those of its
+            # start)
             if stack_bytes > EARLY_LOAD_BYTES or getattr(args, "verbose", False):
                 warmup.started()
                 if warmup.device is None:
@@ -125,10 +127,12 @@ def _run_fit(args) -> int:
         try:
             return load_images(stop, device_found)
         except LoadStopped:
-            return None  # check_device reports what is wrong (or, where Warp's start failed there only, the images load after it)
+            # check_device reports what is wrong (or, where Warp's start failed there only, the images load after it)
+            return None
 
-    def load_images(stop, before_decoding=None) -> tuple:  # only what the fit uses (no held-out lights, no ground-truth components),
-        # shrunk to the working size as each image is decoded; nothing here touches Warp (the host's peak alone)
+    # only what the fit uses (no held-out lights, no ground-truth components), shrunk to the working size as each image
+    # is decoded; nothing here touches Warp (the host's peak alone)
+    def load_images(stop, before_decoding=None) -> tuple:
         load_started = time.perf_counter()
         _thread_lock_for_progress_bars()
         with PeakMemory("cpu") as peak:
@@ -138,7 +142,8 @@ def _run_fit(args) -> int:
 
     warmup = None
     try:
-        warmup = DeviceWarmup(args.device)  # Warp started while the pipeline is imported, the device's context while the images load
+        # Warp started while the pipeline is imported, the device's context while the images load
+        warmup = DeviceWarmup(args.device)
         with InBackground(load, name="load") as background:
             try:
                 from ..fit.pipeline import fit_field
@@ -148,7 +153,8 @@ def _run_fit(args) -> int:
             device = check_device(args.device)
             from ..residual.kind import resolve_kind
 
-            if resolve_kind(settings.residual.kind, device) == "lowrank" and not background.done():  # waiting for the images anyway: the rate search's one late import now
+            # waiting for the images anyway: the rate search's one late import now
+            if resolve_kind(settings.residual.kind, device) == "lowrank" and not background.done():
                 import scipy.optimize  # noqa: F401 (imported while the images load, not after)
             dataset, loading, load_seconds = background.result() or load_images(background.stop)
         if args.holdout_every:

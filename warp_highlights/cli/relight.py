@@ -324,14 +324,16 @@ def _run_evaluate(args) -> int:
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
     baselines = parse_baselines(args.baselines)
-    holdout_every = args.holdout_every or field.report.get("holdout_every")  # with --heldout: refused by _check_evaluate
+    # with --heldout: refused by _check_evaluate
+    holdout_every = args.holdout_every or field.report.get("holdout_every")
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
     with scoring_processes():  # every method's scores in the same few worker processes
         evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
-                                    barycentric_steps=args.steps, baselines=baselines)  # its steps reach stderr through the logger
+                                    # its steps reach stderr through the logger
+                                    barycentric_steps=args.steps, baselines=baselines)
     report = evaluation.to_dict()
     report["field"] = str(args.field)
     report["dataset"] = str(args.dataset)

@@ -86,7 +86,8 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
     with_lights = {e.name for e in entries if _has_light_file(Path(e.path))}
     for entry in entries:
         if entry.name == HELDOUT_FOLDER and len(with_lights - {HELDOUT_FOLDER}) == 1:
-            continue  # the held-out lights of the capture beside it (OBJECT/Dome and OBJECT/Test), whatever the names' order
+            # the held-out lights of the capture beside it (OBJECT/Dome and OBJECT/Test), whatever the names' order
+            continue
         _search(Path(entry.path), found, seen)
 
 

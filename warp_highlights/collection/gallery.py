@@ -21,7 +21,8 @@ the full images at the held-out lights); ``collection.json`` has every method ev
 
 
 def summary(records: list[dict]) -> dict:
-    """Counts, and per method the mean over the scored captures of their mean PSNR; how often the field beats the blend."""
+    """Counts, and per method the mean over the scored captures of their mean PSNR; how often the field beats the
+    blend."""
     ok = [r for r in records if r.get("status") == "ok"]
     scored = [r for r in ok if r.get("scores")]
     methods: dict[str, list[float]] = {}
@@ -77,7 +78,8 @@ def _page(title: str, data: dict) -> str:
         viewer = (record.get("files") or {}).get("viewer")
         link = f'<a href="{e(record["name"])}/{e(viewer)}">viewer</a>' if viewer else ""
         evaluation = (record.get("files") or {}).get("evaluation")
-        report = f' · <a href="{e(record["name"])}/{e(str(Path(evaluation).parent))}/">evaluation</a>' if evaluation else ""  # its plots and report.json
+        # its plots and report.json
+        report = f' · <a href="{e(record["name"])}/{e(str(Path(evaluation).parent))}/">evaluation</a>' if evaluation else ""
         gaussians = record.get("gaussians_per_light")
         rows.append(
             f'<tr><td><img src="{name}/thumbnail.png" alt="{name}" loading="lazy"></td><td>{name}</td>'

@@ -180,8 +180,8 @@ def read_record(folder) -> dict | None:
 
 
 def stop_children(run_id: str = "") -> None:
-    """Stop the running commands of collection run ``run_id`` in this process (SIGTERM: each removes its partial outputs),
-    wait for them and kill what is left; that run's next commands are not started. For a worker that closes
+    """Stop the running commands of collection run ``run_id`` in this process (SIGTERM: each removes its partial
+    outputs), wait for them and kill what is left; that run's next commands are not started. For a worker that closes
     mid-capture (Ctrl-C, the cluster going away) or a run that ends; other runs on the same worker go on."""
     with _children_lock:
         _stopped.add(run_id)

@@ -124,7 +124,8 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
             todo.append((capture, (output / capture.name).exists(), stamp))
     if todo:
         if plan is not None:
-            plan = _plan_workers(len(todo), workers=workers, gpus=gpus, device=device)  # no idle workers: the cores shared by those that run
+            # no idle workers: the cores shared by those that run
+            plan = _plan_workers(len(todo), workers=workers, gpus=gpus, device=device)
         _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, plan=plan, device=device, progress=progress)
     result.records = [records[c.name] for c in found if c.name in records]
     write_gallery(output, result.records + _other_finished(output, found))
@@ -228,7 +229,8 @@ def _earlier_failures(output: Path) -> dict[str, dict]:
     except (OSError, ValueError, AttributeError):
         return {}
     return {r["name"]: r for r in captures if isinstance(r, dict) and r.get("status") == "failed" and isinstance(r.get("name"), str)
-            and r.get("repeatable")}  # only failures the capture's own files cause (bad input); a full disk or a lost worker is retried
+            # only failures the capture's own files cause (bad input); a full disk or a lost worker is retried
+            and r.get("repeatable")}
 
 
 def _plan_workers(todo: int, *, workers: int | None, gpus: int | None, device: str | None) -> list[dict]:
@@ -269,9 +271,9 @@ def launch_environment() -> dict[str, str | None]:
 
 def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool, stamp: str, pins: dict, default: dict, run_id: str,
                environment: dict | None = None) -> dict:
-    """The task: one capture on the worker that runs it (pinned as ``pins`` says for that worker's name, else ``default``;
-    its commands with ``environment`` over the worker's). Returns its record, or a failure record: nothing a capture does
-    ends the others."""
+    """The task: one capture on the worker that runs it (pinned as ``pins`` says for that worker's name, else
+    ``default``; its commands with ``environment`` over the worker's). Returns its record, or a failure record: nothing
+    a capture does ends the others."""
     from distributed import get_worker
 
     pin = pins.get(str(get_worker().name), default)
@@ -290,7 +292,8 @@ def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool
 
 
 def _failure(capture: Capture, options: JobOptions, stamp: str, step: str, message: str, *, repeatable: bool = False) -> dict:
-    """A failed capture's record. ``repeatable``: its own files caused it (a rerun with the same files and options skips it)."""
+    """A failed capture's record. ``repeatable``: its own files caused it (a rerun with the same files and options skips
+    it)."""
     return {"name": capture.name, "status": "failed", "capture": str(capture.folder.resolve()), "options": options.key(),
             "fingerprint": stamp, "step": step, "error": message, "repeatable": repeatable}
 
@@ -327,7 +330,8 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
             log.info("Dask dashboard: %s", result.dashboard)
         plugin = StopChildren(run_id, ignore_interrupts=scheduler is None)  # a remote worker's signals are its own
         client.register_plugin(plugin)
-        # removing it stops this run's commands on every worker: at the end (none left), or on Ctrl-C (a running cluster's too)
+        # removing it stops this run's commands on every worker: at the end (none left), or on Ctrl-C (a running
+        # cluster's too)
         stack.callback(_quietly, client.unregister_worker_plugin, plugin.name)
         default = {"device": device} if device is not None else {}  # a running cluster's workers: --device alone
         environment = launch_environment()
@@ -354,7 +358,8 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
                 bar.update(1)
                 bar.set_postfix_str(f"{len(result.failed)} failed" if result.failed else "", refresh=False)
     finally:
-        with deferred_signals():  # a second Ctrl-C waits for the workers to stop and the sweep: nothing is left half-removed
+        # a second Ctrl-C waits for the workers to stop and the sweep: nothing is left half-removed
+        with deferred_signals():
             stack.close()
 
 

@@ -108,8 +108,8 @@ def _propagate(
             # eta includes xi_pp = 1, so every active row of |M| sums to 1
             eta = xi.sum(axis=-1)
             angle = parity_angle[rows, packed]
-            phi = np.where(pair, np.sign(0.5 * np.pi - np.abs(angle[:, :, None] - angle[:, None, :])), 0.0)  # the padding inert
-            # phi_pp = 1 and xi_pp = 1 give M_pp = 1 / eta_p; free rows and columns are 0
+            # the padding inert phi_pp = 1 and xi_pp = 1 give M_pp = 1 / eta_p; free rows and columns are 0
+            phi = np.where(pair, np.sign(0.5 * np.pi - np.abs(angle[:, :, None] - angle[:, None, :])), 0.0)
             matrix = phi * xi / np.where(eta > 0, eta, 1.0)[..., None]
             once = np.einsum("epq,eq->ep", matrix, np.where(on, weight[rows, packed], 0.0))
             propagated[rows, packed] = np.where(on, np.einsum("epq,eq->ep", matrix, once), 0.0)

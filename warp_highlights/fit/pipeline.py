@@ -93,7 +93,8 @@ def fit_field(
     timer = _StageTimer(log, device)
     width, height = working_size(dataset.width, dataset.height, size)
     requested_kind = settings.residual.kind
-    kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height))  # once: the stages read it
+    # once: the stages read it
+    kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height))
     settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, kind=kind))
     residual = kind != "none"
     learned = kind == "learned"
@@ -102,8 +103,9 @@ def fit_field(
         triangulation = SphericalTriangulation(dataset.lights.directions)
         edges = triangulation.directed_edges()
     planning = None
-    if residual and device.is_cuda:  # the move check's left-out lights, host work that depends on the lights alone, planned in a
-        # thread while the device fits (the fit's thread mostly waits for it)
+    # the move check's left-out lights, host work that depends on the lights alone, planned in a thread while the device
+    # fits (the fit's thread mostly waits for it)
+    if residual and device.is_cuda:
         planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, settings.residual.check_lights), name="check-plan")
     try:
         with timer.stage("segmentation"):
@@ -111,10 +113,12 @@ def fit_field(
             factor = exposure_factor(images, default_exposure(dataset) if exposure is None else exposure)
             if factor != 1.0:
                 images = images * np.float32(factor)
-            keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour  # for the highlight colour
+            # for the highlight colour
+            keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour
             gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
-            # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half the bytes
-            # to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by band where the Gaussians' rows divide the working rows
+            # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half
+            # the bytes to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by
+            # band where the Gaussians' rows divide the working rows
             on_host = not device.is_cuda
             shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
             # on CUDA: the Gaussians' targets shrunk there where the sizes divide by one whole factor
@@ -122,26 +126,33 @@ def fit_field(
             shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
             rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
                              keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
-            # a small capture's images, sent up for the segmentation in one band, stay there for the move check and the residual's stacks
+            # a small capture's images, sent up for the segmentation in one band, stay there for the move check and the
+            # residual's stacks
             holds_up = residual and not learned and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device)
-            if rows < height or not on_host:  # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as they are
+            # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as
+            # they are
+            if rows < height or not on_host:
                 shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
                 seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
                                        keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                        specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
                                        shrink_factor=shrink_factor, target_on_device=not on_host,
-                                       shrink_images=shrink_factor > 1 and residual and not learned,  # the move check's images
+                                       # the move check's images
+                                       shrink_images=shrink_factor > 1 and residual and not learned,
                                        keep_images=holds_up)
             else:
                 seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
-            specular_luminance = seg.specular_luminance  # what the Gaussians are fitted to, shrunk where the images are large
-            if tuple(specular_luminance.shape[1:3]) != (gaussian_height, gaussian_width):  # not shrunk band by band already
+            # what the Gaussians are fitted to, shrunk where the images are large
+            specular_luminance = seg.specular_luminance
+            # not shrunk band by band already
+            if tuple(specular_luminance.shape[1:3]) != (gaussian_height, gaussian_width):
                 specular_luminance = resize_stack(host_array(seg.specular_luminance), gaussian_width, gaussian_height)
             if not isinstance(specular_luminance, wp.array):
                 specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
             # what the later stages need of the full-size parts, in host memory; the device keeps none of them
             specular = host_array(seg.specular) if keep_specular else None
-            diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None  # as the field keeps them
+            # as the field keeps them
+            diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None
             shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device
             images_up = seg.images  # the images as sent up, where kept there (``holds_up``)
             seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = seg.images = None
@@ -177,8 +188,8 @@ def fit_field(
                     colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
                     del specular
             with timer.stage("move check"):
-                # held there, where small (the segmentation's upload, the own highlights' render), for the check's scores and the
-                # compressed residual's stacks
+                # held there, where small (the segmentation's upload, the own highlights' render), for the check's
+                # scores and the compressed residual's stacks
                 held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device, images_up=images_up, own_up=own_up)
                 images_up = own_up = None  # held (or not needed): the stages after read them through ``held`` alone
                 plan = planning.result() if planning is not None and moving.any() else plan_check(dataset.lights.directions, edges,
@@ -186,7 +197,8 @@ def fit_field(
                 iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
                 check_images, check_own, check_colour = images, own, colour
                 if (gaussian_width, gaussian_height) != (width, height) and not learned:
-                    # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer pixels)
+                    # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer
+                    # pixels)
                     check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
                     check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
                     check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
@@ -202,7 +214,8 @@ def fit_field(
                 # blending beat moving at the left-out lights (or the images learned alone beat the learned
                 # residual with its Gaussians): the highlights stay in the residual (the images themselves)
                 # and the field keeps no Gaussians, which leaves their bytes to the residual
-                kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)  # one free slot each
+                # one free slot each
+                kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)
                 moving = np.zeros((len(source.active), 1), dtype=bool)
                 path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
                 own, colour = np.zeros_like(own), None
@@ -238,7 +251,8 @@ def fit_field(
     report = {
         "version": __version__,
         "device": str(device),
-        "source_size": (dataset.source or {}).get("size", [dataset.width, dataset.height]),  # the files' size, before any shrink at load
+        # the files' size, before any shrink at load
+        "source_size": (dataset.source or {}).get("size", [dataset.width, dataset.height]),
         "input": dataset.source,  # format, bits per channel, sRGB or linear, ICC profile of the capture's files
         "size": [width, height],
         "gaussian_size": [gaussian_width, gaussian_height],  # where the Gaussians were estimated and retargeted
@@ -247,7 +261,8 @@ def fit_field(
         "directed_edges": len(edges),
         "dome": bool(triangulation.is_dome),
         "seconds": timer.seconds,
-        "memory": timer.memory,  # per stage: peak resident host bytes and peak bytes of Warp's CUDA memory pool (None off CUDA)
+        # per stage: peak resident host bytes and peak bytes of Warp's CUDA memory pool (None off CUDA)
+        "memory": timer.memory,
         "segmentation": {"few_light_pixels": seg.few_light_pixels, "mean_iterations": float(seg.iterations.mean())},
         "estimation": {
             "gaussians_per_light": _stats(counts),

@@ -1,4 +1,5 @@
-"""Leave-one-out check that moving the highlights beats blending the images on this capture (docs/method.md, Fitting step 7).
+"""Leave-one-out check that moving the highlights beats blending the images on this capture (docs/method.md, Fitting
+step 7).
 
 Moving wins where the Gaussians sit on real highlights that retarget reliably (the rendered dome sample)
 and loses where they model broad sheen and shading (the statue sample). Held-out lights cannot tell at
@@ -46,8 +47,9 @@ __all__ = ["CheckPlan", "LeaveOneOut", "MoveCheck", "check_moving", "leave_one_o
 _RENDER_BYTES = 256 * 2**20  # the left-out lights' highlights are drawn in batches of at most this many bytes
 _SCORE_BYTES = 2 * 2**30  # the lights scored at once take at most this much memory for their images ...
 _SCORE_COPIES = 8  # ... each about this many image-sized temporaries (the blend, the moved image, the truth, sRGB)
-_DEVICE_SCORE_SHARE = 0.25  # on a CUDA device the lights are scored there where the images they need take at most this share of its free
-# memory (48 lights of a 480x270 capture: 192 images, 0.3 GB), where the host's threads would take a large part of the check
+# on a CUDA device the lights are scored there where the images they need take at most this share of its free memory (48
+# lights of a 480x270 capture: 192 images, 0.3 GB), where the host's threads would take a large part of the check
+_DEVICE_SCORE_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -223,9 +225,11 @@ def check_moving(
     kept_rows = np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64)) if keep > 0 else np.zeros(0, np.int64)
     kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
-    at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))  # lights scored at once, in threads
+    # lights scored at once, in threads
+    at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))
     scored = None
-    if raster.device.is_cuda and not len(kept_rows):  # scored there where the images the lights need are there or fit beside the rest
+    # scored there where the images the lights need are there or fit beside the rest
+    if raster.device.is_cuda and not len(kept_rows):
         there = held is not None and held.own is not None
         needed = np.arange(len(images)) if there else np.unique(np.concatenate([corners.ravel(), loo.lights]))
         if there or len(needed) * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
@@ -233,7 +237,8 @@ def check_moving(
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn_there = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False))
-        if scored is not None:  # scored there (``kernels.scores``): 48 lights in one launch, not 144 sRGB images in host threads
+        # scored there (``kernels.scores``): 48 lights in one launch, not 144 sRGB images in host threads
+        if scored is not None:
             moving_psnr[rows], blend_psnr[rows] = scored.psnr(rows, drawn_there, loo.barycentric[rows])
             continue
         drawn = to_host(drawn_there)
@@ -243,7 +248,8 @@ def check_moving(
             blend = sum(w * images[v] for v, w in zip(corners[q], weights))
             highlights = sum(w * own[v] for v, w in zip(corners[q], weights))
             moved = blend + (drawn_q - highlights)[..., None] * tint  # the blended residual plus the moved highlights
-            truth = display_rgb8(images[loo.lights[q]] * scale)  # shown once for both scores (``srgb_psnr`` shows both its images)
+            # shown once for both scores (``srgb_psnr`` shows both its images)
+            truth = display_rgb8(images[loo.lights[q]] * scale)
             moving_psnr[q] = psnr_8bit(display_rgb8(moved * scale), truth)
             blend_psnr[q] = psnr_8bit(display_rgb8(blend * scale), truth)
             if q in kept_rows:

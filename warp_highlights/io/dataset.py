@@ -231,10 +231,12 @@ class ReflectanceField:
         workers = LOAD_WORKERS if workers is None else int(workers)
         if workers < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
-        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))  # a decoding thread's image, its finite mask, its shrunk copy
+        # a decoding thread's image, its finite mask, its shrunk copy
+        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))
         if before_decoding is not None:
             before_decoding(sum(g.file_count for g in groups) * height * width * int(np.prod(shape[2:])) * 4)
-        mask = submit(_read_mask, folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))  # while the images decode
+        # while the images decode
+        mask = submit(_read_mask, folder / "mask.png", (shape[0], shape[1]), max_pixels, size=(width, height))
         try:
             with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                       disable=None if progress else True, leave=False) as bar:
@@ -597,12 +599,15 @@ class _StackReader:
             path, shape, bad, values = self._decode(path)
             with lock:  # the first image decoded sizes the stack
                 if "stack" not in holder:
-                    holder["stack"] = mapped_empty((len(paths), *values.shape), np.float32)  # its pages mapped by threads
+                    # its pages mapped by threads
+                    holder["stack"] = mapped_empty((len(paths), *values.shape), np.float32)
             stack = holder["stack"]
-            if values.shape != stack.shape[1:]:  # the check in file order refuses this image or the one that sized the stack
+            # the check in file order refuses this image or the one that sized the stack
+            if values.shape != stack.shape[1:]:
                 return path, shape, bad or 0, values.shape, np.inf, -np.inf
             image = stack[index]
-            np.copyto(image, values, casting="unsafe")  # widened to float32 as it is copied (a half EXR's values exactly)
+            # widened to float32 as it is copied (a half EXR's values exactly)
+            np.copyto(image, values, casting="unsafe")
             low, high = float(image.min()), float(image.max())
             if bad is None:  # counted here: min and max carry any NaN or infinity, so finite ones need no count
                 bad = 0
@@ -617,7 +622,8 @@ class _StackReader:
         low, high = np.inf, -np.inf
         first: tuple | None = None  # the first image's path and decoded shape
         pool = ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(paths))), thread_name_prefix="load",
-                                  initializer=child_initializer())  # loaded from a worker: its threads' maps run in place
+                                  # loaded from a worker: its threads' maps run in place
+                                  initializer=child_initializer())
         try:
             for path, shape, bad, decoded, image_low, image_high in pool.map(place, range(len(paths)), paths):
                 if self.stop is not None and self.stop.is_set():
@@ -677,7 +683,8 @@ def _existing_folder(folder) -> Path:
 
 
 def find_light_file(folder: Path) -> Path:
-    """A dataset folder's light file: ``lights.lp``, else the one ``*.lp`` other than ``heldout.lp`` (``InputError`` for none or several)."""
+    """A dataset folder's light file: ``lights.lp``, else the one ``*.lp`` other than ``heldout.lp`` (``InputError`` for
+    none or several)."""
     if (folder / "lights.lp").is_file():
         return folder / "lights.lp"
     candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())

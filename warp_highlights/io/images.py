@@ -630,7 +630,8 @@ def _read_with_oiio(path: Path) -> np.ndarray:
     pixels = np.asarray(pixels).reshape(spec.height, spec.width, spec.nchannels)
     keep = [c for c in range(spec.nchannels) if c != spec.alpha_channel]
     pixels = pixels[:, :, keep[:3]] if len(keep) >= 3 else pixels[:, :, keep[0]]
-    pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)  # as ``_header`` counts it
+    # as ``_header`` counts it
+    pixels = _EXIF_ORIENTATIONS.get(spec.get_int_attribute("Orientation", 1), _EXIF_ORIENTATIONS[1])(pixels)
     icc = spec.getattribute("ICCProfile")
     if icc is not None and len(icc) and pixels.ndim == 3:
         pixels = _to_srgb(path, pixels, bytes(np.asarray(icc, dtype=np.uint8)))
@@ -671,7 +672,8 @@ def _write_with_oiio(path: Path, format_name: str, levels: np.ndarray) -> None:
     spec.attribute("oiio:UnassociatedAlpha", 1)  # any alpha channel is stored as given
     if format_name == "tiff":
         spec.attribute("compression", "zip")
-        spec.attribute("tiff:write_exif", 0)  # no EXIF to write; with it on, OpenImageIO 3.2 reports a failed EXIF directory
+        # no EXIF to write; with it on, OpenImageIO 3.2 reports a failed EXIF directory
+        spec.attribute("tiff:write_exif", 0)
     pixels = np.ascontiguousarray(levels.reshape(height, width, channels))  # OpenImageIO misreads a 2-D array
     output = oiio.ImageOutput.create(format_name)
     if output is None:

@@ -123,9 +123,9 @@ class HighlightField:
     The constructor validates everything and raises ``InputError`` (one line) on any inconsistency. It
     stores float32-rounded copies of the Gaussian and path values (the device works in float32; the
     ``GaussianParams`` stay float64 arrays holding float32 values), clears free slots (zeros, weight 1;
-    zero path delta and centre; only active slots' path values need to be finite), and keeps ``settings`` and ``report`` as plain JSON values, so that
-    ``load_field(path)`` after ``save_field(field, path)`` gives back equal data. Active Gaussians must
-    have weight 1. The inputs are not modified.
+    zero path delta and centre; only active slots' path values need to be finite), and keeps ``settings`` and ``report``
+    as plain JSON values, so that ``load_field(path)`` after ``save_field(field, path)`` gives back equal data. Active
+    Gaussians must have weight 1. The inputs are not modified.
 
     ``file_path`` and ``file_sizes`` (not constructor arguments) say where the field was last saved to
     or loaded from and how many compressed bytes each part took there (``field_size_report``); both are

@@ -3,8 +3,8 @@
 A batch holds B independent problems (one Gaussian set each) of N slots. A slot is *active* or free;
 a free slot has amplitude 0 and is skipped by every kernel. A single set is a batch of one.
 
-Units (docs/method.md, Units and conventions, Building blocks): ``mean`` and ``sigma`` in image heights (x right, y down, pixel
-centre (col, row) at ((col + 0.5) / H, (row + 0.5) / H)); ``theta`` in radians from +x towards +y;
+Units (docs/method.md, Units and conventions, Building blocks): ``mean`` and ``sigma`` in image heights (x right, y
+down, pixel centre (col, row) at ((col + 0.5) / H, (row + 0.5) / H)); ``theta`` in radians from +x towards +y;
 ``amplitude`` a with peak value a^2 (linear radiance); ``weight`` multiplies the Gaussian's
 contribution (1 when fitting, the barycentric weight when interpolating).
 """

@@ -96,7 +96,8 @@ class PeakMemory:
 
     def __init__(self, device=None):
         self._device = None
-        if device != "cpu":  # the host alone needs no Warp (usable before Warp has started, as the fit command's loading is)
+        # the host alone needs no Warp (usable before Warp has started, as the fit command's loading is)
+        if device != "cpu":
             import warp as wp
 
             device = wp.get_device(device)  # None: Warp's default device

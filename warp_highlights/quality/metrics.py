@@ -52,7 +52,8 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
     if images.shape != truth.shape:
         raise ValueError(f"images {images.shape} and truth {truth.shape} differ in shape")
 
-    def one(q: int) -> tuple[float, bool]:  # one image in float64 at a time: float64 copies of a whole stack cost time and memory
+    # one image in float64 at a time: float64 copies of a whole stack cost time and memory
+    def one(q: int) -> tuple[float, bool]:
         a = np.clip(images[q].astype(np.float64).reshape(-1), 0.0, 1.0)
         b = np.clip(truth[q].astype(np.float64).reshape(-1), 0.0, 1.0)
         return float(((a - b) ** 2).mean()), bool(a.max() <= 0.0 and b.max() <= 0.0)
@@ -66,7 +67,8 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
 def psnr_8bit(a: np.ndarray, b: np.ndarray) -> float:
     """PSNR in dB (peak 255, at most 100 for identical images) of two 8-bit images of one shape."""
     a, b = np.asanyarray(a), np.asanyarray(b)
-    if a.dtype == b.dtype == np.uint8 and not (np.ma.isMaskedArray(a) or np.ma.isMaskedArray(b)):  # integers throughout (the move check scores 96 images a fit): the sum is exact, as float64's was
+    # integers throughout (the move check scores 96 images a fit): the sum is exact, as float64's was
+    if a.dtype == b.dtype == np.uint8 and not (np.ma.isMaskedArray(a) or np.ma.isMaskedArray(b)):
         difference = np.subtract(a, b, dtype=np.int16)
         mse = int(np.square(difference, dtype=np.int32).sum(dtype=np.int64)) / max(difference.size, 1)
     else:
@@ -75,7 +77,8 @@ def psnr_8bit(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def srgb_psnr(image, reference) -> float:
-    """PSNR in dB (peak 255, at most 100 for identical images) of two linear images as shown in 8-bit sRGB (``display_rgb8``)."""
+    """PSNR in dB (peak 255, at most 100 for identical images) of two linear images as shown in 8-bit sRGB
+    (``display_rgb8``)."""
     return psnr_8bit(display_rgb8(image), display_rgb8(reference))
 
 

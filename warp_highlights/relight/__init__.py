@@ -1,8 +1,8 @@
 """Relighting: a highlight field -> images for any light direction (docs/method.md, Relighting and Evaluation).
 
 Per query: locate it in the triangulation, move the corner lights' Gaussians along their stored paths,
-rasterize them, add them to the blended residual (residual transfer). Imports the model, io, the kernels and synth (to render ground
-truth for an evaluation), never fit (ARCHITECTURE.md).
+rasterize them, add them to the blended residual (residual transfer). Imports the model, io, the kernels and synth (to
+render ground truth for an evaluation), never fit (ARCHITECTURE.md).
 
 - ``Relighter``: a field uploaded once to a device; any batch of directions -> ``RelitImages``.
 - ``RelitImages``: relit specular and full images, with each query's face and barycentric weights.

@@ -92,7 +92,8 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
                  "fit the field at a smaller --size", detail="the captured images as float32, their luminance as float64")
     relighter = Relighter(field, device=device, scale=1.0)  # field units; the albedo leaves them below
     directions = field.lights.directions
-    captured = relighter.relight(directions, progress=progress).full  # (n, H, W, C): the captured images, as the field keeps them
+    # (n, H, W, C): the captured images, as the field keeps them
+    captured = relighter.relight(directions, progress=progress).full
     captured = np.maximum(np.nan_to_num(captured, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
     if captured.ndim == 3:
         captured = captured[..., None]
@@ -225,7 +226,8 @@ def channel_albedo(images: np.ndarray, directions: np.ndarray, normals: np.ndarr
     albedo = np.zeros((pixels, channels))
     for start in range(0, pixels, _PIXELS_PER_BLOCK):
         block = slice(start, min(start + _PIXELS_PER_BLOCK, pixels))
-        shading = np.maximum(directions @ np.asarray(normals[block], dtype=np.float64).T, 0.0) * inliers[:, block]  # (n, p)
+        # (n, p)
+        shading = np.maximum(directions @ np.asarray(normals[block], dtype=np.float64).T, 0.0) * inliers[:, block]
         energy = np.sum(shading**2, axis=0)
         sums = np.einsum("np,npc->pc", shading, np.asarray(images[:, block], dtype=np.float64))
         albedo[block] = np.where(energy[:, None] > 0, np.maximum(sums, 0.0) / np.where(energy > 0, energy, 1.0)[:, None], 0.0)

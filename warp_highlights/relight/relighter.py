@@ -7,7 +7,8 @@ I' is residual transfer, I' = R~ + c(x) S': the captured images minus their own 
 blended with the query's barycentric weights, plus the moved highlights in the per-pixel highlight
 colour; so a captured light gives back its image, and what the Gaussians do not model blends like the
 alpha baseline. A learned residual (``fit --residual learned``) is decoded instead for each query at its
-located direction (``kernels.neural.QueryDecoder``). Every output is clamped at 0. Large batches run in chunks that bound the device memory.
+located direction (``kernels.neural.QueryDecoder``). Every output is clamped at 0. Large batches run in chunks that
+bound the device memory.
 
 Methods:
 
@@ -101,7 +102,8 @@ class _DeviceQueries:
         self.count = count
         self.directions = wp.empty(count, dtype=wp.vec3d, device=device)
         self.faces = wp.empty(count, dtype=wp.int32, device=device)
-        self.depths = wp.empty((count, kernels.FACE_SLICES), dtype=wp.float64, device=device)  # each face slice's best (deepest_faces)
+        # each face slice's best (deepest_faces)
+        self.depths = wp.empty((count, kernels.FACE_SLICES), dtype=wp.float64, device=device)
         self.best_faces = wp.empty((count, kernels.FACE_SLICES), dtype=wp.int32, device=device)
         self.weights = wp.empty(count, dtype=wp.vec3, device=device)
         self.located = wp.empty(count, dtype=wp.vec3, device=device)
@@ -357,7 +359,8 @@ class Relighter:
             if self._learned is not None:
                 if buffers.decoded is None:
                     buffers.decoded = wp.empty((buffers.count, self.height * self.width, 3), dtype=wp.float16, device=self.device)
-                self._learned.decode(buffers.located, buffers.decoded)  # at the direction as located: clamped to a dome's rim
+                # at the direction as located: clamped to a dome's rim
+                self._learned.decode(buffers.located, buffers.decoded)
                 images = buffers.decoded
             self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=images)
         return buffers

@@ -85,7 +85,8 @@ def decoded_blocks(residual: ResidualModel, *, block: int = 16) -> Iterator[tupl
         stop = min(n, start + block)
         out = np.empty((stop - start, residual.height, residual.width, residual.channels), np.float16)
 
-        def band(rows: slice, start=start, stop=stop, out=out) -> None:  # the bands in threads: the basis dequantised a band at a time, never whole
+        # the bands in threads: the basis dequantised a band at a time, never whole
+        def band(rows: slice, start=start, stop=stop, out=out) -> None:
             parts = []
             for stack in stacks:
                 basis = band_basis(stack, rows)

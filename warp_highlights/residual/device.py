@@ -26,7 +26,8 @@ DECODED_RESIDUAL_BYTES = 512 * 2**20
 """Most memory "auto" gives the decoded residual on the CPU (and on CUDA where the free memory is
 unknown): 250 lights of 480x270 RGB take 194 MB. The decoding is host matrix work, slow on a few
 cores, which a single query would wait for; a larger field is decoded per query instead."""
-DEVICE_DECODE_SHARE = 0.75  # of the free device memory that decoding on the device may hold at once (basis, codes, images)
+# of the free device memory that decoding on the device may hold at once (basis, codes, images)
+DEVICE_DECODE_SHARE = 0.75
 
 
 def decode_on_load(residual: ResidualModel, output_pixels: int, decode: str, device) -> bool:
@@ -70,7 +71,8 @@ class LowRankArrays:
         if stack.rank and stack.mean.shape[:2] == (height, width):
             codes = wp.array(stack.codes.reshape(stack.rank, height * width, planes), dtype=wp.uint16 if stack.bits == 16 else wp.uint8, device=device)
             low = stack.ranges[:, 0]
-            step = (stack.ranges[:, 1] - stack.ranges[:, 0]) / np.float32(code_levels(stack.bits))  # float32, as decode.stack_basis
+            # float32, as decode.stack_basis
+            step = (stack.ranges[:, 1] - stack.ranges[:, 0]) / np.float32(code_levels(stack.bits))
             basis = wp.empty((height * width, stack.rank, planes), dtype=float, device=device)
             wp.launch(kernels.dequantise_basis, dim=(stack.rank, height * width), inputs=[codes, array(low), array(step)], outputs=[basis], device=device)
             return cls(array(mean), basis, array(weights), stack.rank)

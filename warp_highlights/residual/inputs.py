@@ -29,12 +29,13 @@ SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
 near black, so a black background is approximated to well under one step."""
 HELD_IMAGES_BYTES = 1 << 30
-"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are held on a
-CUDA device for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of its free memory:
-the images from the segmentation's upload on (through estimation, retargeting and the paths), the own highlights from their
-render; larger ones go up band by band where each stage reads them."""
+"""A fit's images and own highlights of at most this many bytes (1 GiB: 250 lights at 480x270 take 0.52 GB) are held on
+a CUDA device for the move check and the residual's stacks (``hold_images``), within ``HELD_IMAGES_SHARE`` of its free
+memory: the images from the segmentation's upload on (through estimation, retargeting and the paths), the own highlights
+from their render; larger ones go up band by band where each stage reads them."""
 HELD_IMAGES_SHARE = 0.1
-BAND_VALUES = 1 << 22  # highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
+# highlight_colour's and build_residual's float64 copies: this many values of the stack a thread at a time (32 MB)
+BAND_VALUES = 1 << 22
 
 
 @dataclass
@@ -93,7 +94,8 @@ def render_own(estimated: GaussianParams, height: int, width: int, *, raster: Ra
 
 
 def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> np.ndarray:
-    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 4] in steps of ``COLOUR_STEP``.
+    """(H, W, 3) c(x) = (sum_i G_i S_i + prior n) / (sum_i G_i Y(S_i) + prior n), channels in [0, 4] in steps of
+    ``COLOUR_STEP``.
 
     ``specular``: (n, H, W, 3) the segmentation's specular part; ``own``: (n, H, W) the moving
     Gaussians' images. The luminance of c is 1 up to the clip, so c G keeps G's luminance.
@@ -101,7 +103,8 @@ def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> 
     n = len(own)
     numerator = np.empty(specular.shape[1:], np.float64)
 
-    def sums(band: slice) -> None:  # float64 a band of rows at a time (no float64 copy of the whole stack), the bands in threads
+    # float64 a band of rows at a time (no float64 copy of the whole stack), the bands in threads
+    def sums(band: slice) -> None:
         numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64), specular[:, band].astype(np.float64))
 
     parallel_map(sums, row_bands(specular))

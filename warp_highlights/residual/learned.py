@@ -34,9 +34,9 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after each epoch, ``log``
-    a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to go on
-    training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
+    ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after
+    each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
+    go on training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
     check's winner learning the lights it left out). Returns it and the loss per epoch."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[3] != 3:
@@ -107,7 +107,8 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     scores, models = [], []
     for own_images, tint, added in ((own, colour, highlights), (np.zeros_like(own), None, np.zeros_like(highlights))):
         model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device, progress=progress, used=used)
-        predicted = np.maximum(learned_images(model.learned, directions[lights]) + added, 0.0)  # as the relighter clamps
+        # as the relighter clamps
+        predicted = np.maximum(learned_images(model.learned, directions[lights]) + added, 0.0)
         scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
         models.append(model)
     check = LearnedCheck(lights, scores[0], scores[1])

@@ -22,7 +22,8 @@ def to_opponent(rgb: np.ndarray, *, with_chroma: bool = True) -> tuple[np.ndarra
     """(..., 3) linear RGB -> luminance (...,) and chroma (..., 2) = (B - Y, R - Y), float64 (chroma
     None when not asked for)."""
     rgb = np.asarray(rgb)
-    red, green, blue = (rgb[..., c].astype(np.float64) for c in range(3))  # plane by plane: no float64 copy of the whole stack
+    # plane by plane: no float64 copy of the whole stack
+    red, green, blue = (rgb[..., c].astype(np.float64) for c in range(3))
     y = LUMINANCE_WEIGHTS[0] * red + LUMINANCE_WEIGHTS[1] * green + LUMINANCE_WEIGHTS[2] * blue
     if not with_chroma:
         return y, None

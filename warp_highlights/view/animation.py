@@ -286,8 +286,8 @@ def write_animation(
     GIF: one 256-colour palette for every frame (adaptive, from the first 8 frames, plus a gray
     ramp; exact gray levels for grayscale frames), no dithering, so still regions never flicker; loops
     forever; every frame is kept, identical ones too. WebP (lossless) and APNG: every 8-bit sRGB
-    colour exactly, looping forever, through Pillow. MP4: H.264 (libx264, yuv420p, BT.709), odd sizes padded to even by repeating the last
-    row/column. Folder: ``frame_0000.png`` ... (8-bit sRGB) or ``frame_0000.exr`` (linear float32).
+    colour exactly, looping forever, through Pillow. MP4: H.264 (libx264, yuv420p, BT.709), odd sizes padded to even by
+    repeating the last row/column. Folder: ``frame_0000.png`` ... (8-bit sRGB) or ``frame_0000.exr`` (linear float32).
 
     Args:
         frames: Iterable of linear float images, ``(H, W)`` or ``(H, W, 3)``, all the same shape;
@@ -675,7 +675,8 @@ def _pillow_frames(frames: Iterator[np.ndarray], progress) -> list:
 
 
 def _write_webp(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
-    """Animated lossless WebP through Pillow, looping forever (identical neighbours become one frame of their summed duration)."""
+    """Animated lossless WebP through Pillow, looping forever (identical neighbours become one frame of their summed
+    duration)."""
     images = _pillow_frames(frames, progress)
     images = [image if image.mode == "RGB" else image.convert("RGB") for image in images]  # WebP has no grey mode
     images[0].save(path, format="WEBP", save_all=True, append_images=images[1:], lossless=True, quality=100, method=4,
@@ -769,7 +770,8 @@ def _ffmpeg_report(log: Path):
 
 
 def _ffmpeg_errors(log: Path) -> str:
-    """The first and last error lines of an ffmpeg report (cause and summary), without ``[codec @ 0x..]``; "" when none."""
+    """The first and last error lines of an ffmpeg report (cause and summary), without ``[codec @ 0x..]``; "" when
+    none."""
     try:
         text = log.read_text("utf-8", "replace")
     except FileNotFoundError:

@@ -186,7 +186,8 @@ class LightDesigner:
             return
         if self._paths is None or self._paths.face != self._face:
             self._paths = viz.gaussian_paths(self.field, self._face)
-        frame = "paths" if self._framed_face != self._face else None  # reframe on a new triangle only: keep the user's zoom
+        # reframe on a new triangle only: keep the user's zoom
+        frame = "paths" if self._framed_face != self._face else None
         self._framed_face = self._face
         viz.plot_paths(self.field, self.direction, plotter=self.plotter, method=self.method, background=relit.specular,
                        paths=self._paths, frame=frame, location=location)

@@ -403,7 +403,8 @@ def plot_image_grid(
 
 
 def caption_fontsize(labels: Sequence[str], panel_width_in: float, *, largest: float = 10.0) -> float:
-    """Font size (points) at which the longest line of ``labels`` fits ``panel_width_in`` inches, at most ``largest``."""
+    """Font size (points) at which the longest line of ``labels`` fits ``panel_width_in`` inches, at most
+    ``largest``."""
     longest = max((len(line) for label in labels for line in str(label).split("\n")), default=1)
     return min(largest, panel_width_in * 72.0 / (_CHAR_WIDTH_EM * max(longest, 1)))
 

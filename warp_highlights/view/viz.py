@@ -74,7 +74,8 @@ _PATH_SAMPLES = 33  # points of each drawn Gaussian path
 _ELLIPSE_SAMPLES = 49
 _ELLIPSE_SIGMAS = 1.0  # outlines drawn at this Mahalanobis distance
 _PATH_LIFT = 2e-3  # height of the paths above the image plane (image heights), so they sit on top
-_ADDED_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # renderer -> {name: (actor, mesh)}, see put_mesh
+# renderer -> {name: (actor, mesh)}, see put_mesh
+_ADDED_MESHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _COLOURS = {
     "sphere": "#d9dde3",
     "lights": "#f28e2b",
@@ -539,7 +540,8 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
 
 
 def _plot_current_gaussians(plotter, interpolated, colours: np.ndarray) -> np.ndarray:
-    """Outlines of the interpolated set, coloured by Gaussian, opacity following their weights; returns them (G, S, 2)."""
+    """Outlines of the interpolated set, coloured by Gaussian, opacity following their weights; returns them (G, S,
+    2)."""
     import pyvista as pv
 
     shown = interpolated.active[0] & (interpolated.weight[0] > 0)  # a corner of weight 0 contributes nothing
