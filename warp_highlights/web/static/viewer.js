@@ -148,7 +148,8 @@ export function movedGaussians(m, a, location, method) {
       }
       const peak = lA * amp * amp / (1 - tau);
       if (![peak, mu[0], mu[1], sx, sy, theta].every(Number.isFinite)) continue;
-      const vx = sx * sx + m.sigma_eps, vy = sy * sy + m.sigma_eps;  // beyond cutoff * the larger sigma a pixel gets nothing
+      // beyond cutoff * the larger sigma a pixel gets nothing
+      const vx = sx * sx + m.sigma_eps, vy = sy * sy + m.sigma_eps;
       out.push(mu[0], mu[1], peak, Math.cos(theta), Math.sin(theta), 1 / vx, 1 / vy, m.cutoff * m.cutoff * Math.max(vx, vy));
     }
   }
@@ -226,7 +227,8 @@ ${layer("h2", "w2", "b2", "h1", 12)}
   vec3 y = b3.xyz;
   for (int q = 0; q < 12; q++) y += vec3(dot(w3[q], h2[q]), dot(w3[12 + q], h2[q]), dot(w3[24 + q], h2[q]));
   vec3 r = clamp(unit * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
-  return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);  // float16, as Relighter keeps it
+  // float16, as Relighter keeps it
+  return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);
 }`;
 }
 
@@ -269,7 +271,8 @@ function decodeShader(m) {
 ${stackSource(m)}
 out vec4 colour;
 void main() {
-  ivec2 pixel = ivec2(gl_FragCoord.xy);  // texel (x, y) of the layer holds pixel (x, y): rows top first, as uploaded images
+  // texel (x, y) of the layer holds pixel (x, y): rows top first, as uploaded images
+  ivec2 pixel = ivec2(gl_FragCoord.xy);
   colour = vec4(clamp(residual(pixel), -${FLOAT16_SAFE}, ${FLOAT16_SAFE}), 1.0);
 }`;
 }
@@ -545,7 +548,8 @@ export class Viewer {
 
 
   defaultDirection() {
-    // the first light, as view's: the centroid of the triangle that (0.3, 0.4, 1) falls in (every corner weighs the same)
+    // the first light, as view's: the centroid of the triangle that (0.3, 0.4, 1) falls in (every corner weighs the
+    // same)
     const face = locate(this.manifest, this.arrays, [0.3, 0.4, 1]).face, d = [0, 0, 0];
     for (let k = 0; k < 3; k++) for (let i = 0; i < 3; i++) d[i] += this.arrays.directions[3 * this.arrays.faces[3 * face + k] + i];
     const length = Math.hypot(...d);
