@@ -48,6 +48,8 @@ Prints the table (and every failing case with a command line that reproduces it;
 failing cases are kept in the work folder). Writes everything to $OUT/bad_inputs.json when OUT is set.
 Needs root for the tmpfs mounts (``mount -t tmpfs``); without them those cases are skipped and the
 output says so.
+
+This script holds one thing: the bad-input harness, its cases grouped by category.
 """
 
 from __future__ import annotations

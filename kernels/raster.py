@@ -29,6 +29,8 @@ numbers to the parameter gradients at the end, so no pixel-level atomics pile on
 Forward and backward apply the same per-pixel test d^2 < c^2, computed the same way.
 ``LogL1Loss.of_render`` records render and fit loss as one step: the adjoint then computes the loss's
 image gradient at each pixel it visits instead of reading a stored image gradient.
+
+This module holds one thing: the Gaussian rasterizer, forward and backward.
 """
 
 # ruff: noqa: UP018  (Warp declares a mutable kernel local with float(0.0) / int(0))

@@ -1,4 +1,7 @@
-"""ReflectanceField.load / save and DatasetWriter: round trips, atomic commits, one-line errors."""
+"""ReflectanceField.load / save and DatasetWriter: round trips, atomic commits, one-line errors.
+
+This module holds one thing: the tests of ``io.dataset``.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""HighlightField: construction checks, the versioned single-file format, atomic saving, load errors."""
+"""HighlightField: construction checks, the versioned single-file format, atomic saving, load errors.
+
+This module holds one thing: the tests of the highlight field and its file.
+"""
 
 from __future__ import annotations
 

@@ -20,6 +20,8 @@ and puts back a ``.NAME.replaced-*`` whose replacement never arrived.
 Signals: ``handle_termination`` makes SIGTERM raise :class:`Terminated` (a ``KeyboardInterrupt``, so
 every cleanup written for Ctrl-C runs for it too), and ``deferred_signals`` holds SIGINT/SIGTERM back
 during the few statements that rename or remove, so cleanup is never cut half-way.
+
+This module holds one thing: outputs that appear whole, with the signal handling that keeps them so.
 """
 
 from __future__ import annotations

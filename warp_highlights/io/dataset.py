@@ -3,6 +3,9 @@
 The folder layout is described in ``docs/dataset-format.md``: a ``.lp`` light file listing the images,
 optional ground-truth ``specular/`` and ``diffuse/`` EXRs named after each image's stem, optional
 held-out lights (``heldout.lp``), ``mask.png`` and ``meta.json``.
+
+This module holds one thing: a dataset folder on disk, read (``ReflectanceField``) and written
+(``DatasetWriter``).
 """
 
 from __future__ import annotations

@@ -17,6 +17,8 @@ once per profile in the ``warp_highlights`` log and converted to sRGB by Pillow'
 can (8-bit RGB; otherwise the values are read as sRGB). Headers of PNG and JPEG
 files are read with Pillow, whose parser sees a decompression bomb's size without decoding it; EXR goes
 through OpenEXR. Each library is imported inside the functions that use it.
+
+This module holds one thing: reading and writing single image files.
 """
 
 from __future__ import annotations

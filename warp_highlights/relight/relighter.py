@@ -21,6 +21,8 @@ Methods:
 Units: images in the field's radiance units (the fit's exposure applied; 1 = display white) times
 ``scale``; Gaussian coordinates in image heights, so any output size with the field's aspect ratio
 works.
+
+This module holds one thing: the batched relighter (``Relighter``) and the tables it uploads.
 """
 
 from __future__ import annotations

@@ -7,6 +7,8 @@ barycentrics. Lengths are in the caller's units (the teapot keeps Newell's origi
 6.4 x 3.15 x 4). The up axis is +y for every built-in shape.
 
 Only NumPy and SciPy are needed, except :func:`load_mesh`, which imports pyvista when called.
+
+This module holds one thing: the meshes of the built-in shapes (and a mesh file loaded as one).
 """
 
 from __future__ import annotations

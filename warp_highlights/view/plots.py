@@ -9,6 +9,8 @@ API is used (:class:`matplotlib.figure.Figure` on a :class:`~matplotlib.backends
 never pyplot: no global figure state, so the functions are headless and safe to call from several
 threads. Every figure is written to a temporary file beside the target, which then replaces the
 target, so a failed plot never leaves half a file or destroys an earlier one.
+
+This module holds one thing: the evaluation report's figures.
 """
 
 from __future__ import annotations

@@ -14,6 +14,8 @@ The builders (``great_circle_arcs``, ``triangulation_lines``, ``spherical_triang
 them to a ``pyvista.Plotter`` (a new one when none is given, off screen when there is no display) and
 return it; called again on the same plotter they refill their actors in place (``put_mesh``).
 pyvista is imported on first use.
+
+This module holds one thing: the pyvista scene pieces that views of a field are built from.
 """
 
 from __future__ import annotations

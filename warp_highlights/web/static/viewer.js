@@ -3,6 +3,7 @@
 // add the residual: each captured light's residual decoded once into a float16 texture layer and
 // blended from the three corner lights (low-rank and uncompressed fields), or the learned residual's
 // decoder run per pixel at the located direction.
+// This file holds one thing: the page's relighting, as Relighter does it.
 
 const TYPES = { "<f8": Float64Array, "<f4": Float32Array, "<f2": Uint16Array, "<i4": Int32Array, "|u1": Uint8Array, "<u2": Uint16Array };
 export const FORMAT_VERSION = 2;
