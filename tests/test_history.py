@@ -20,7 +20,8 @@ CODE_NOUNS = r"(?:function|functions|module|modules|class|classes|method|methods
 HISTORY = [
     # issue and ticket numbers: "issue 15", "issues 13-14", "see #12", "(#123)", "#42" (two digits: never a colour)
     re.compile(r"\b[Ii]ssues? #?\d"),
-    re.compile(r"(?i)\b(?:issues?|tickets?|bugs?|PRs?|pull requests?|fix(?:es|ed)?|close[sd]?|see|in|as|from)\s+#\d+\b"),
+    re.compile(r"(?i)\b(?:issues?|tickets?|bugs?|PRs?|pull requests?|fix(?:es|ed)?|close[sd]?|see|in|as|from)"
+               r"\s+#\d+\b"),
     re.compile(r"\(#\d+\)"),
     re.compile(r"(?<![\w&/#])#\d{2}(?![\w#])"),
     # working sessions: "the fourth session's fields", "Tenth session"
