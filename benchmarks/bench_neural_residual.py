@@ -71,7 +71,7 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
     # the relighter
     images = resize_stack(dataset.images, width, height).astype(np.float32) * np.float32(exposure)
     own = render_own(field.estimated, height, width, raster=field.fit_settings().raster, device=device)
-    settings = replace(field.fit_settings().residual, learned=True, learned_seconds=seconds)
+    settings = replace(field.fit_settings().residual, kind="learned", learned_seconds=seconds)
     strips = [truth, Relighter(field, device=device, scale=1.0 / exposure).relight(queries).full]
     learned = [("learned images", np.zeros_like(own), None)] if "images" in models else []
     if field.estimated.active.any() and "residual" in models:  # else the residual is the images
