@@ -17,7 +17,7 @@ from warp_highlights.kernels.quantise import DeviceBasis
 
 import warp_highlights.fit.residual as residual_module
 from warp_highlights.fit.residual import RateSample, quantised_bytes
-from warp_highlights.io.codes import DeflatedCodes, stored_codes
+from warp_highlights.io.codes import CompressedCodes, stored_codes
 from warp_highlights.model.residual import LowRankStack, PrincipalImages, code_levels, codes_in_place
 
 RNG = np.random.default_rng(33)
@@ -122,7 +122,7 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
     principal images are quantised on the device or on the host (the same directions: the host's are
     the device's, copied down). The sample is two bands of rows with a gap between them; two images
     a group (a fresh measurement of six: three groups in two slots of host memory used in turn, each
-    slot's deflates slowed so that one filled again before they end would be caught)."""
+    slot's compressions slowed so that one filled again before they end would be caught)."""
     monkeypatch.setattr(residual_module, "_RATE_MIN_VALUES", 64)
     monkeypatch.setattr(residual_module, "_RATE_SHARE", 0.125)  # two bands of these images' rows
     monkeypatch.setattr(residual_module, "NUMPY_THREADS", 2)
@@ -139,12 +139,12 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
         np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset), b.deflated(steps, bits=bits, images=subset))
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)  # fewer images into the memory kept
-        with monkeypatch.context() as slow:  # deflates that read their slot late: a slot filled again too early gives other bytes
-            real = residual_module.deflated_piece
-            slow.setattr(residual_module, "deflated_piece", lambda data: time.sleep(0.02) or real(data))
+        with monkeypatch.context() as slow:  # compressions that read their slot late: a slot filled again too early gives other bytes
+            real = residual_module.compressed_frame
+            slow.setattr(residual_module, "compressed_frame", lambda data: time.sleep(0.02) or real(data))
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
             np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
-    kept_there, kept_host = DeflatedCodes(), DeflatedCodes()
+    kept_there, kept_host = CompressedCodes(), CompressedCodes()
     assert quantised_bytes(there, steps, bits=bits, keep=kept_there) == quantised_bytes(host, steps, bits=bits, keep=kept_host)
     assert kept_there._kept == kept_host._kept
     a, b = LowRankStack.quantised(there, steps, bits=bits), LowRankStack.quantised(host, steps, bits=bits)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.codes import DeflatedCodes, deflated_piece, stored_bytes, stored_codes
+from ..io.codes import CompressedCodes, compressed_frame, stored_bytes, stored_codes
 from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
 from ..kernels.gram import DeviceProducts
@@ -246,8 +246,8 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
-    """(k,) stored bytes of each basis image of ``stack``: its deflated codes (planes first, as the file
-    stores them: ``io.codes``), its range and its per-light weights."""
+    """(k,) stored bytes of each basis image of ``stack``: its codes' Zstandard frame (planes first, as the
+    file stores them: ``io.codes``), its range and its per-light weights."""
     return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
 
 
@@ -260,7 +260,7 @@ class StackPlan:
     gain: float
     most: int
     floor: int = 0
-    deflated: DeflatedCodes = dataclasses.field(default_factory=DeflatedCodes, repr=False, compare=False)  # the last exact measurement's pieces
+    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)  # the last exact measurement's frames
 
     @property
     def energies(self) -> np.ndarray:
@@ -346,17 +346,17 @@ class RateSample:
     def exact(self) -> bool:
         return self.scale == 1.0
 
-    def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, calibration: float = 1.0) -> float:
+    def bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, calibration: float = 1.0) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
         (``deflated``, scaled to the whole images and by ``calibration``, the whole images' bytes per
         scaled sampled byte, with each image's range and weights). ``keep`` (an ``exact`` sample only):
         hold the images' deflated pieces there, in place of what it held, for the field writer."""
         return calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
 
-    def deflated(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
-        """(len(``steps``),) int64 deflated bytes of each of the first len(``steps``) basis images at the
-        sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
-        (the others 0). Deflated in threads (zlib lets go of the GIL). An image is deflated once per
+    def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
+        """(len(``steps``),) int64 stored bytes (``io.codes.frame_size``) of each of the first len(``steps``) basis images
+        at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
+        (the others 0). Compressed in threads (Zstandard lets go of the GIL). An image is deflated once per
         step and bits: a measurement remembers each image's bytes, and a later one at the same step
         takes them instead of deflating it again (and, where ``keep`` is given, its piece where ``keep``
         still holds it: else the field writer deflates that image, if it is kept)."""
@@ -405,8 +405,8 @@ class RateSample:
         kind = np.uint8 if bits == 8 else np.uint16
 
         def deflate(index: int, image: np.ndarray) -> tuple:
-            piece = deflated_piece(image)
-            return (index, len(piece), DeflatedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
+            piece = compressed_frame(image)
+            return (index, len(piece), CompressedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
 
         if self.held is not None:
             return self._deflated_from_device(indices, steps, bits, lambda images: [deflate(index, image) for index, image in images])
@@ -484,7 +484,7 @@ def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
     return runs
 
 
-def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
+def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
     ``LowRankStack.quantised`` does (``component_bytes``, without fitting the weights): every row
     deflated (the pieces held in ``keep`` when given)."""
@@ -846,7 +846,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             rank = min(fixed_rank, principal.count - 1)
             steps[name] = principal.spans[:rank] / levels
             distortion += StackPlan(principal, gain, rank).distortion(steps[name])
-            deflated[name] = DeflatedCodes()
+            deflated[name] = CompressedCodes()
             left -= quantised_bytes(principal, steps[name], bits=bits, keep=deflated[name])
             finer = finer or rank > 0
         else:

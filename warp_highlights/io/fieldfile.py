@@ -2,9 +2,12 @@
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (method.md section 8).
 
-File format (version 2; any file name, ``.whf`` suggested): a zip archive, deflate-compressed, written
-atomically (temporary file in the same folder, fsync, rename). Its first entry is ``header.json``; every
-other entry is a standard little-endian ``.npy`` array, so ``numpy.load`` can open the file too.
+File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
+``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
+entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
+zip (``numpy.load`` can open those), or, for the basis codes and arrays of 16 MiB or more, stored
+as it is and holding the ``.npy`` file in Zstandard frames (the entry's name ends in ``.npy.zst``:
+``zstd -d`` gives the ``.npy`` file).
 
 ==============================  ===============  =================================================
 entry                           dtype, shape     contents
@@ -29,13 +32,15 @@ entry                           dtype, shape     contents
 ``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
 ``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
                                 (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
-``residual/Y_codes.npy``        <u1              version 4: the 8- or 16-bit basis images of that
+``residual/Y_codes.npy.zst``    <u1              version 5: the 8- or 16-bit basis images of that
                                 (k, P, H, W) or  stack as ``io.codes`` stores them: each row less the
-                                (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits; 16-bit
-                                                 differences as high and low byte planes; deflated
-                                                 run-length only (zlib's ``Z_RLE``), a flushed piece
-                                                 an image. Versions 2 and 3: the codes themselves,
-                                                 <u1 or <u2 (k, P, H, W)
+                                (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits, zigzag-
+                                                 mapped; 16-bit values as high and low byte planes;
+                                                 a Zstandard frame for the ``.npy`` header, then one
+                                                 per basis image. Version 4: ``Y_codes.npy``, the
+                                                 differences without the zigzag, deflated. Versions
+                                                 2 and 3: the codes themselves, <u1 or <u2
+                                                 (k, P, H, W)
 ``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
 ``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
 ``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
@@ -60,7 +65,11 @@ loads with every Gaussian moving and no residual (relighting then uses its diffu
 
 Version 2 files have no learned residual; they load unchanged.
 
-Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy``); they load unchanged.
+Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy.zst``); they load unchanged.
+
+Version 4 files store the basis codes' row differences without the zigzag in a deflated
+``residual/Y_codes.npy`` (``io.codes.codes_from_differences`` reads them), and every array as a
+deflated ``.npy`` entry; they load unchanged.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -73,7 +82,7 @@ import json
 import math
 import os
 import zipfile
-import zlib
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -92,23 +101,27 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
 )
-from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, submit
+from ..model.threads import NUMPY_THREADS, cancel_and_wait, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
-from .codes import STREAM_END, DeflatedCodes, codes_from_stored, deflated_piece, stored_codes, stored_shape
-from .crc import Crc32Appender
-from .deflate import ParallelDeflate
+from .codes import CompressedCodes, codes_from_differences, codes_from_stored, compressed_frame, stored_codes, stored_shape
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 4
-
-_PARALLEL_BYTES = 1 << 24
-"""Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's basis codes) are deflated in threads."""
+FORMAT_VERSION = 5
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
+
+_ZSTD_BYTES = 1 << 24
+"""Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's float16 diffuse images take
+194 MB) are stored Zstandard-compressed in the codec's own threads; smaller ones deflated by the zip."""
+_ZSTD_LEVEL = 3
+"""Zstandard level of those arrays (zstd's default)."""
+_ZSTD = ".zst"
+"""What a Zstandard-compressed ``.npy`` entry's name adds to the array's name."""
+_ZSTD_PART_BYTES = 1 << 22  # such an array is handed to the compressor about this many bytes at a time (4 MiB)
 
 _HEADER = "header.json"
 _DIRECTIONS = "lights/directions.npy"
@@ -281,17 +294,19 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     header = json.dumps(
         _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
-    # the smaller arrays' entries deflated in threads from the start, while the writer stores the ones before them
-    ahead = [submit(_deflated_npy, array) if _deflated_ahead(array) else None for _, array in arrays]
+    frames = [array for _, array in arrays if isinstance(array, _CodeFrames)]
     try:
+        for codes in frames:  # the first images' frames made in threads while the writer deflates the entries before them
+            codes.start()
         with zipfile.ZipFile(stream, "w") as archive:
             with archive.open(_entry_info(_HEADER), "w") as entry:
                 entry.write(header)
-            for (name, array), deflated in zip(arrays, ahead):
-                _write_array(archive, name, array, deflated=deflated)
+            for name, array in arrays:
+                _write_array(archive, name, array)
             infos = archive.infolist()
-    except BaseException:  # an error or Ctrl-C: nothing left deflating behind
-        cancel_and_wait([future for future in ahead if future is not None])
+    except BaseException:  # an error or Ctrl-C: nothing left compressing behind
+        for codes in frames:
+            codes.cancel()
         raise
     return _size_report(infos, stream.tell())
 
@@ -322,7 +337,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", _StoredCodes(stack)),  # row differences in byte planes, an image at a time
+            (prefix + "codes.npy", _CodeFrames(stack)),  # a Zstandard frame an image (io.codes)
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -348,170 +363,87 @@ def _pack(params: GaussianParams, rows: np.ndarray, slots: np.ndarray) -> np.nda
     return np.stack(columns, axis=1).astype("<f4")
 
 
-def _entry_info(name: str) -> zipfile.ZipInfo:
+def _entry_info(name: str, compress_type: int = zipfile.ZIP_DEFLATED) -> zipfile.ZipInfo:
     info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
-    info.compress_type = zipfile.ZIP_DEFLATED
+    info.compress_type = compress_type
     info.external_attr = 0o644 << 16
     return info
 
 
-class _StoredCodes:
-    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: one uint8
-    ``.npy`` entry of ``stored_shape``, an image at a time, each image's deflated piece taken from the
-    stack's ``deflated`` (what the fit's rate search deflated) or deflated here."""
+class _CodeFrames:
+    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: the
+    Zstandard frames of each image's stored codes, in order, each taken from the stack's ``deflated``
+    (what the fit's rate search compressed, ``io.codes.CompressedCodes``) or compressed here; made in
+    threads, at most ``2 NUMPY_THREADS`` images ahead of the writer."""
 
     def __init__(self, stack: LowRankStack):
         self.codes = stack.codes
-        self.deflated = stack.deflated if stack.deflated is not None else DeflatedCodes()
+        self.frames = stack.deflated if stack.deflated is not None else CompressedCodes()
         rank, height, width, planes = self.codes.shape
         self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
+        self._next = 0
+        self._pending: deque = deque()
 
-    def images(self, *, pieces: bool = True):
-        """(stored codes, deflated piece or None, CRC-32 of the stored codes or None) of each basis image, in
-        order: a block of images at a time made in threads, the next block made while the caller stores
-        this one. The piece and the CRC only where ``pieces``."""
+    def _frame(self, index: int) -> bytes:
+        return self.frames.piece(stored_codes(self.codes[index].transpose(2, 0, 1)))  # zstd and hashlib let go of the GIL
 
-        def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None, int | None]:
-            stored = stored_codes(code.transpose(2, 0, 1))
-            if not pieces:
-                return stored, None, None
-            return stored, self.deflated.piece(stored), zlib.crc32(stored)  # zlib lets go of the GIL
+    def start(self) -> None:
+        """Submit the images' frames up to ``2 NUMPY_THREADS`` ahead of the writer."""
+        while len(self._pending) < 2 * max(1, NUMPY_THREADS) and self._next < len(self.codes):
+            self._pending.append(submit(self._frame, self._next))
+            self._next += 1
 
-        block = max(1, NUMPY_THREADS)
-        starts = range(0, len(self.codes), block)
-        current: list = []
-        made: list = []  # the next block's images, made by the threads while the writer stores this block's
-        try:
-            for start in starts:
-                if not made:
-                    made.extend(submit(one, code) for code in self.codes[start : start + block])
-                current, made = made, []
-                made.extend(submit(one, code) for code in self.codes[start + block : start + 2 * block])  # seen by ``finally`` as it grows
-                yield from gather(current)
-        finally:  # an error or Ctrl-C while writing: what is being made waited for, not left running
-            cancel_and_wait(current + made)
+    def __iter__(self):
+        """Each image's frame, in order."""
+        self.start()
+        while self._pending:
+            frame = self._pending[0].result()
+            self._pending.popleft()
+            self.start()
+            yield frame
 
-
-class _GivenPieces:
-    """The codes entry's compressor: ``compress`` returns the piece ``given`` for the data it is handed
-    (the zip writer still sums the data's CRC), or deflates the data as a piece of its own (the
-    ``.npy`` header); ``flush`` ends the stream (``io.codes``)."""
-
-    def __init__(self):
-        self.given: bytes | None = None
-
-    def compress(self, data) -> bytes:
-        piece, self.given = self.given, None
-        return piece if piece is not None else deflated_piece(data)
-
-    def flush(self) -> bytes:
-        return STREAM_END
+    def cancel(self) -> None:
+        """Drop the frames not started, wait for the running ones."""
+        cancel_and_wait(list(self._pending))
+        self._pending.clear()
 
 
-def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> None:
-    """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
-    image's stored codes, as deflated pieces (``io.codes``). Where the zip writer's entry is as this
-    code knows it (``_known_entry``), each piece goes straight to the file, the entry's CRC summed from
-    the CRCs the threads took of the images (``io.crc``): the writer reads no image's bytes again."""
-    with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
-        compressor = None  # where the zip writer has no compressor of its own to replace, it deflates the entry itself
-        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
-            compressor = entry._compressor = _GivenPieces()
-        np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-        appender = Crc32Appender(math.prod(stored.shape[1:])) if compressor is not None and _known_entry(entry) else None
-        for image, piece, crc in stored.images(pieces=compressor is not None):
-            if appender is not None:  # what the entry's ``write`` does, with the image's CRC taken in its thread
-                entry._file_size += appender.length
-                entry._crc = appender.append(entry._crc, crc)
-                entry._compress_size += len(piece)
-                entry._fileobj.write(piece)
-                continue
-            if compressor is not None:
-                compressor.given = piece
-            entry.write(image.reshape(-1))
+def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
+    """The ``.npy`` header (format 1.0) of a C-ordered array of ``dtype`` and ``shape``."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
+                                                  "shape": tuple(shape)})
+    return buffer.getvalue()
 
 
-_ENTRY_FIELDS = ("_file_size", "_crc", "_compress_size", "_fileobj")
-
-
-def _known_entry(entry) -> bool:
-    """Whether a zip entry open for writing keeps its running sizes, CRC and file under the names
-    ``_write_codes`` adds to (``zipfile``'s own writer; a test checks the file is the same byte for byte); else
-    its ``write`` is used."""
-    return all(hasattr(entry, field) for field in _ENTRY_FIELDS) and isinstance(entry._crc, int) and not entry.closed
-
-
-def _write_array(archive: zipfile.ZipFile, name: str, array, *, deflated=None) -> None:
-    """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
-    ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
-    about the same size), where the zip writer has the compressor this replaces; ``deflated``: a future
-    of the entry made and deflated already (``_deflated_npy``)."""
-    if deflated is not None:
-        _write_deflated(archive, name, *deflated.result())
-        return
-    if isinstance(array, _StoredCodes):
-        _write_codes(archive, name, array)
+def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
+    """One array's entry: the basis codes (``_CodeFrames``) and arrays of ``_ZSTD_BYTES`` or more as a
+    ``.npy`` file in Zstandard frames (``name`` + ``.zst``, stored as it is), any other array as a
+    ``.npy`` entry the zip deflates. Zip64 where an entry may pass the 2 GiB limit of plain zip."""
+    if isinstance(array, _CodeFrames):
+        with archive.open(_entry_info(name + _ZSTD, zipfile.ZIP_STORED), "w", force_zip64=array.nbytes > 2**30) as entry:
+            entry.write(compressed_frame(_npy_header(np.uint8, array.shape)))
+            for frame in array:
+                entry.write(frame)
         return
     array = np.asarray(array)
     if array.flags.f_contiguous and not array.flags.c_contiguous:
         array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
-    with archive.open(
-        _entry_info(name), "w", force_zip64=array.nbytes > 2**30
-    ) as entry:
-        _set_compressor(entry, array.nbytes)
-        np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
+    if array.nbytes < _ZSTD_BYTES:
+        with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
+            np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
+        return
+    import zstandard  # the codec, imported where a large array is written
 
-
-def _deflated_ahead(array) -> bool:
-    """Whether an entry's ``.npy`` is made and deflated in a thread ahead of the writer: an array under
-    ``_PARALLEL_BYTES`` (a larger one is deflated in threads as it is written; the basis codes by image)."""
-    return not isinstance(array, _StoredCodes) and np.asarray(array).nbytes < _PARALLEL_BYTES
-
-
-def _deflated_npy(array) -> tuple[bytes, bytes]:
-    """(the ``.npy`` bytes of ``array`` as ``_write_array`` writes them, those bytes deflated as the zip writer's
-    own compressor deflates an entry: raw deflate at zlib's default level, finished)."""
-    array = np.asarray(array)
-    if array.flags.f_contiguous and not array.flags.c_contiguous:
-        array = np.ascontiguousarray(array)
-    buffer = io.BytesIO()
-    np.lib.format.write_array(buffer, array, allow_pickle=False)
-    raw = buffer.getvalue()
-    compressor = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
-    return raw, compressor.compress(raw) + compressor.flush()
-
-
-class _Deflated:
-    """A zip entry's compressor handing out the entry's data deflated already: all of it for the first
-    ``compress``, nothing after (``flush`` included)."""
-
-    def __init__(self, deflated: bytes):
-        self.deflated = deflated
-
-    def compress(self, data) -> bytes:
-        deflated, self.deflated = self.deflated, b""
-        return deflated
-
-    def flush(self) -> bytes:
-        return b""
-
-
-def _write_deflated(archive: zipfile.ZipFile, name: str, raw: bytes, deflated: bytes) -> None:
-    """One ``.npy`` entry of the ``raw`` bytes, stored as ``deflated`` (``_deflated_npy``) where the zip writer has
-    the compressor this replaces, else deflated by the writer."""
-    with archive.open(_entry_info(name), "w") as entry:
-        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
-            entry._compressor = _Deflated(deflated)
-        entry.write(raw)  # the zip writer sums the CRC (a small entry)
-
-
-def _set_compressor(entry, nbytes: int) -> None:
-    """Give a zip entry being written ``ParallelDeflate`` (zipfile's own raw deflate, level 6, in threads)
-    for ``_PARALLEL_BYTES`` or more, with more than one core; only where the zip writer has the
-    compressor this replaces."""
-    if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()) and nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
-        entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)
+    header = _npy_header(array.dtype, array.shape)
+    compressor = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, threads=max(1, NUMPY_THREADS))
+    with archive.open(_entry_info(name + _ZSTD, zipfile.ZIP_STORED), "w", force_zip64=array.nbytes > 2**30) as entry, \
+            compressor.stream_writer(entry, size=len(header) + array.nbytes, closefd=False) as writer:
+        writer.write(header)
+        rows = max(1, _ZSTD_PART_BYTES // max(1, array[:1].nbytes))
+        for start in range(0, len(array), rows):  # a C-ordered copy of a few MB at a time: any strides
+            writer.write(np.ascontiguousarray(array[start : start + rows]).data)
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:
@@ -677,53 +609,58 @@ def _read_array(
     dtype: str,
     shape: tuple,
 ) -> np.ndarray:
-    """Read one ``.npy`` entry, checking its dtype and shape before reading the data."""
-    if name not in names:
+    """Read one ``.npy`` entry (deflated by the zip, or in Zstandard frames: ``name`` + ``.zst``),
+    checking its dtype and shape before reading the data."""
+    compressed = name not in names and name + _ZSTD in names
+    if name not in names and not compressed:
         raise _corrupt(path, f"entry {name} is missing")
     expected = np.dtype(dtype)
-    with archive.open(name) as entry:
+    with archive.open(name + _ZSTD if compressed else name) as entry:
+        if compressed:
+            import zstandard  # the codec, imported where a file holds such an entry
+
+            reader = zstandard.ZstdDecompressor().stream_reader(entry, read_across_frames=True, closefd=False)
+        else:
+            reader = entry
         try:
-            version = np.lib.format.read_magic(entry)
+            version = np.lib.format.read_magic(reader)
             if version == (1, 0):
-                stored_shape, fortran, stored_dtype = (
-                    np.lib.format.read_array_header_1_0(entry)
-                )
+                stored_shape, fortran, stored_dtype = np.lib.format.read_array_header_1_0(reader)
             elif version == (2, 0):
-                stored_shape, fortran, stored_dtype = (
-                    np.lib.format.read_array_header_2_0(entry)
-                )
+                stored_shape, fortran, stored_dtype = np.lib.format.read_array_header_2_0(reader)
             else:
                 raise ValueError(f"unsupported .npy version {version}")
         except ValueError as exc:
-            raise _corrupt(
-                path, f"entry {name} is not a valid .npy array ({exc})"
-            ) from None
+            raise _corrupt(path, f"entry {name} is not a valid .npy array ({exc})") from None
         if stored_dtype != expected:
-            raise _corrupt(
-                path,
-                f"entry {name} holds {stored_dtype.str} data, expected {expected.str}",
-            )
+            raise _corrupt(path, f"entry {name} holds {stored_dtype.str} data, expected {expected.str}")
         if fortran:
             raise _corrupt(path, f"entry {name} is stored in Fortran order")
         if tuple(stored_shape) != tuple(shape):
-            raise _corrupt(
-                path,
-                f"entry {name} has shape {tuple(stored_shape)}, expected {tuple(shape)}",
-            )
+            raise _corrupt(path, f"entry {name} has shape {tuple(stored_shape)}, expected {tuple(shape)}")
         size = math.prod(shape) * expected.itemsize
-        data = entry.read(size)
+        data = _read_exactly(reader, size)
         if len(data) != size:
             raise _corrupt(path, f"entry {name} is truncated")
-        if entry.read(1):  # also completes the zip checksum test
+        if reader.read(1) or entry.read(1):  # reading the zip entry to its end also completes its checksum test
             raise _corrupt(path, f"entry {name} has data after its array")
-    array = (
-        np.frombuffer(data, dtype=expected)
-        .reshape(shape)
-        .astype(expected.newbyteorder("="))
-    )
+    array = np.frombuffer(data, dtype=expected).reshape(shape).astype(expected.newbyteorder("="))
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
         raise _corrupt(path, f"entry {name} has non-finite values")
     return array
+
+
+def _read_exactly(stream, size: int) -> bytearray:
+    """``size`` bytes of ``stream`` (fewer where it ends first), read into one buffer."""
+    data = bytearray(size)
+    done = 0
+    with memoryview(data) as view:
+        while done < size:
+            got = stream.readinto(view[done:])
+            if not got:
+                break
+            done += got
+    return data if done == size else data[:done]
 
 
 def _build_field(
@@ -889,7 +826,7 @@ def _build_field(
 
 
 def _read_residual(path: Path, layout, read, n: int, height: int, width: int, version: int) -> ResidualModel:
-    """The residual model of a version-2, -3 or -4 file, from its header layout and entries."""
+    """The residual model of a version-2 to -5 file, from its header layout and entries."""
     if not isinstance(layout, dict):
         raise _corrupt(path, "header entry 'residual' must be null or a JSON object")
     channels = _header_int(path, layout, "channels", 1, 3)
@@ -922,8 +859,9 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
                 raise _corrupt(path, f"header entry residual.{name}.bits must be 8 or 16, got {bits!r}")
             prefix = _STACK_PREFIX[name]
             mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
-            if version >= 4:
-                codes = codes_from_stored(read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits)), bits)
+            if version >= 4:  # version 5: the differences zigzag-mapped (io.codes); 4: as they are
+                stored = read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits))
+                codes = codes_from_stored(stored, bits) if version >= 5 else codes_from_differences(stored, bits)
             else:
                 codes = read(prefix + "codes.npy", "<u1" if bits == 8 else "<u2", (rank, planes, height, width))
             stacks[name] = LowRankStack(
