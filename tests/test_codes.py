@@ -1,5 +1,5 @@
 """How the field file stores basis codes (``io.codes``): zigzag row differences in byte planes, a
-Zstandard frame per image; the rate search counts the bytes the file holds."""
+Blosc chunk per image; the rate search counts the bytes the file holds."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import zlib
 
 import numpy as np
 import pytest
-import zstandard
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -20,8 +19,8 @@ from warp_highlights.io.codes import (
     CompressedCodes,
     codes_from_differences,
     codes_from_stored,
-    compressed_frame,
-    frame_size,
+    compressed_chunk,
+    chunk_size,
     stored_bytes,
     stored_codes,
     stored_shape,
@@ -88,7 +87,7 @@ def test_a_band_of_rows_with_the_row_above_it_is_stored_as_the_whole_image_store
     whole = stored_codes(codes)
     band = stored_codes(codes[:, 11:20])[..., 1:, :]
     np.testing.assert_array_equal(band, whole[..., 12:20, :])
-    assert frame_size(band) == frame_size(whole[..., 12:20, :])
+    assert chunk_size(band) == chunk_size(whole[..., 12:20, :])
 
 
 def _run_length_v4(codes: np.ndarray) -> int:
@@ -112,12 +111,17 @@ def test_smooth_16_bit_codes_store_smaller_than_as_they_are_and_than_format_4():
     assert stored_bytes(codes) < 0.9 * _run_length_v4(codes)
 
 
-def test_a_frame_is_one_zstandard_frame_of_the_stored_bytes():
+def test_a_chunk_is_one_blosc_chunk_of_the_stored_bytes_made_alike_on_any_thread():
+    from numcodecs import Blosc
+
+    from warp_highlights.model.threads import parallel_map
+
     stored = stored_codes(RNG.integers(0, 40, size=(2, 13, 9)).astype(np.uint16))
-    frame = compressed_frame(stored)
-    assert zstandard.frame_content_size(frame) == stored.nbytes
-    assert zstandard.ZstdDecompressor().decompress(frame) == stored.tobytes()
-    assert frame_size(stored) == len(frame) and stored_bytes(codes_from_stored(stored[None], 16)[0]) == len(frame)
+    chunk = compressed_chunk(stored)
+    assert bytes(Blosc().decode(chunk)) == stored.tobytes()
+    assert chunk_size(stored) == len(chunk) and stored_bytes(codes_from_stored(stored[None], 16)[0]) == len(chunk)
+    large = stored_codes(RNG.integers(0, 9, size=(1, 700, 900)).astype(np.uint16))  # several blocks
+    assert set(parallel_map(compressed_chunk, [large] * 4)) == {compressed_chunk(large)}  # the main thread's (Blosc's threads) and the workers'
 
 
 def _smooth_stack(n: int, h: int, w: int) -> np.ndarray:
@@ -137,47 +141,55 @@ def test_the_sampled_bytes_are_the_whole_images_stored_bytes_at_the_sampled_rows
     steps = principal.spans[:3] / code_levels(bits) * 7.0
     counted = sample.rows[sample.counted]
     stack = LowRankStack.quantised(principal, steps, bits=bits)
-    expected = sum(frame_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes)
+    expected = sum(chunk_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes)
     assert sample.bytes(steps, bits=bits) == pytest.approx(expected * 320 / len(counted) + sample.per_image * 3, rel=1e-12)
     assert RateSample(principal, 3, whole=True).bytes(steps, bits=bits) == float(component_bytes(stack).sum())
 
 
+def _decoded(raw: bytes, lengths) -> bytes:
+    """The chunks of a chunked entry decoded one after another."""
+    from numcodecs import Blosc
+
+    ends = np.cumsum(lengths)
+    return b"".join(bytes(Blosc().decode(raw[end - length : end])) for end, length in zip(ends, lengths))
+
+
 def _codes_entry(field, stack, path):
-    """(ZipInfo, raw bytes, the stored array the entry's ``.npy`` holds) of the luminance codes entry
-    of ``field`` with ``stack`` as its residual, written to ``path``."""
+    """(ZipInfo, raw bytes, chunk lengths, the stored array the entry's ``.npy`` holds) of the luminance
+    codes entry of ``field`` with ``stack`` as its residual, written to ``path``."""
     field = dataclasses.replace(field, residual=ResidualModel(luminance=stack))
     save_field(field, path)
     with zipfile.ZipFile(path) as archive:
         assert archive.testzip() is None  # every entry's CRC holds
-        info = archive.getinfo("residual/Y_codes.npy.zst")
+        info = archive.getinfo("residual/Y_codes.npy.blosc")
         raw = archive.read(info)
+        lengths = np.load(io.BytesIO(archive.read("residual/Y_codes.lengths.npy")))
         assert "residual/Y_codes.npy" not in archive.namelist()
-    npy = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(raw), read_across_frames=True).read()
-    return info, raw, np.load(io.BytesIO(npy))
+    return info, raw, lengths, np.load(io.BytesIO(_decoded(raw, lengths)))
 
 
 @pytest.mark.parametrize(("bits", "size", "rank"), [(8, None, None), (16, None, None), (16, (23, 7), None), (8, (9, 31), None), (16, None, 0)])
 def test_the_file_holds_the_stored_codes_in_the_bytes_the_budget_counted(bits, size, rank, tmp_path):
-    """The codes entry is stored as it is (no zip compression): the frame of the ``.npy`` header of the
-    stored array, then each image's frame. Its size is the header's frame plus what ``component_bytes``
-    counts; it decompresses to the ``.npy`` file; the field loads the same codes back (odd sizes, and a
-    stack of no basis image too)."""
+    """The codes entry is stored as it is (no zip compression): the chunk of the ``.npy`` header of the
+    stored array, then each image's chunk, their lengths in ``Y_codes.lengths.npy``. Its size is the
+    header's chunk plus what ``component_bytes`` counts; decoded, it is the ``.npy`` file; the field
+    loads the same codes back (odd sizes, and a stack of no basis image too)."""
     from test_field import make_field
 
     field = make_field() if size is None else make_field(size=size)
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
     steps = principal.spans / code_levels(bits) * 3.0
     stack = LowRankStack.quantised(principal, steps[:rank], bits=bits)
-    info, raw, stored = _codes_entry(field, stack, tmp_path / "f.whf")
+    info, raw, lengths, stored = _codes_entry(field, stack, tmp_path / "f.whf")
     assert info.compress_type == zipfile.ZIP_STORED and info.file_size == info.compress_size == len(raw)
     assert stored.shape == stored_shape(stack.rank, 1, field.height, field.width, bits)
     np.testing.assert_array_equal(stored, stored_codes(stack.codes.transpose(0, 3, 1, 2)))
     header = io.BytesIO()
     np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-    frames = [compressed_frame(header.getvalue())] + [compressed_frame(image) for image in stored]
-    assert raw == b"".join(frames)
+    chunks = [compressed_chunk(header.getvalue())] + [compressed_chunk(image) for image in stored]
+    assert raw == b"".join(chunks) and lengths.tolist() == [len(chunk) for chunk in chunks]
     counted = float(component_bytes(stack).sum()) - stack.rank * (8 + 4 * len(stack.weights))
-    assert info.compress_size == len(frames[0]) + counted
+    assert info.compress_size == len(chunks[0]) + counted
     loaded = load_field(tmp_path / "f.whf").residual.luminance
     np.testing.assert_array_equal(loaded.codes, stack.codes)
     assert loaded.codes.dtype == stack.codes.dtype
@@ -191,7 +203,7 @@ def test_damaged_or_cut_codes_give_the_corrupt_file_error(tmp_path):
     principal = PrincipalImages.of(_smooth_stack(field.light_count, field.height, field.width))
     stack = LowRankStack.quantised(principal, principal.spans[:4] / code_levels(16) * 2.0, bits=16)
     path = tmp_path / "f.whf"
-    info, raw, _ = _codes_entry(field, stack, path)
+    info, raw, _, _ = _codes_entry(field, stack, path)
     data = path.read_bytes()
     start = info.header_offset + 30 + len(info.filename)  # the entry's data after its local header
     for position in np.linspace(start, start + len(raw) - 1, 12).astype(int):
@@ -207,7 +219,7 @@ def test_damaged_or_cut_codes_give_the_corrupt_file_error(tmp_path):
             load_field(path)
 
 
-def test_a_codes_entry_with_data_after_its_frames_is_corrupt(tmp_path):
+def test_a_codes_entry_with_data_after_its_chunks_or_wrong_lengths_is_corrupt(tmp_path):
     from test_field import make_field
 
     field = make_field()
@@ -220,15 +232,32 @@ def test_a_codes_entry_with_data_after_its_frames_is_corrupt(tmp_path):
     extended = tmp_path / "extended.whf"
     with zipfile.ZipFile(extended, "w") as archive:
         for info, data in entries.items():
-            archive.writestr(info, data + compressed_frame(b"more") if info.filename.endswith("codes.npy.zst") else data)
+            if info.filename.endswith("codes.npy.blosc"):
+                data += compressed_chunk(b"more")
+            elif info.filename.endswith("codes.lengths.npy"):
+                lengths = np.load(io.BytesIO(data))
+                buffer = io.BytesIO()
+                np.save(buffer, np.append(lengths, len(compressed_chunk(b"more"))))
+                data = buffer.getvalue()
+            archive.writestr(info, data)
     with pytest.raises(InputError, match="has data after its array"):
         load_field(extended)
+    with zipfile.ZipFile(path) as archive, zipfile.ZipFile(tmp_path / "lengths.whf", "w") as copy:
+        for info in archive.infolist():  # lengths that do not add up to the entry
+            data = archive.read(info)
+            if info.filename.endswith("codes.lengths.npy"):
+                buffer = io.BytesIO()
+                np.save(buffer, np.load(io.BytesIO(data)) + 1)
+                data = buffer.getvalue()
+            copy.writestr(info, data)
+    with pytest.raises(InputError, match="does not give the chunks"):
+        load_field(tmp_path / "lengths.whf")
 
 
 @pytest.mark.parametrize("whole", [False, True])
-def test_the_rate_search_keeps_the_frames_the_file_then_stores(whole, tmp_path, monkeypatch):
-    """``allocate``'s last measurement on every row keeps each image's frame (the small image here is
-    measured whole; the larger one in samples, then on every row); the writer stores those frames
+def test_the_rate_search_keeps_the_chunks_the_file_then_stores(whole, tmp_path, monkeypatch):
+    """``allocate``'s last measurement on every row keeps each image's chunk (the small image here is
+    measured whole; the larger one in samples, then on every row); the writer stores those chunks
     without compressing the images again, and the file is the one written without them."""
     from test_field import make_field
 
@@ -245,25 +274,25 @@ def test_the_rate_search_keeps_the_frames_the_file_then_stores(whole, tmp_path, 
     kept = LowRankStack.quantised(principal, steps, bits=16, deflated=plan.deflated)
     plain = LowRankStack.quantised(principal, steps, bits=16)
     assert plain.deflated is None
-    for name in ("codes", "ranges", "weights", "mean_weights"):  # the frames change nothing of the model
+    for name in ("codes", "ranges", "weights", "mean_weights"):  # the chunks change nothing of the model
         np.testing.assert_array_equal(getattr(kept, name), getattr(plain, name))
     compressed = []
-    real = codes_module.compressed_frame
-    monkeypatch.setattr(codes_module, "compressed_frame", lambda data: compressed.append(len(data)) or real(data))
-    kept_info, _, _ = _codes_entry(field, kept, tmp_path / "kept.whf")
-    assert compressed == []  # every image's frame was found
+    real = codes_module.compressed_chunk
+    monkeypatch.setattr(codes_module, "compressed_chunk", lambda data: compressed.append(len(data)) or real(data))
+    kept_info, _, _, _ = _codes_entry(field, kept, tmp_path / "kept.whf")
+    assert compressed == []  # every image's chunk was found
     _codes_entry(field, plain, tmp_path / "plain.whf")
     assert len(compressed) == len(steps)  # without them, each image compressed here
     assert (tmp_path / "kept.whf").read_bytes() == (tmp_path / "plain.whf").read_bytes()
-    # what the budget held to is what the entry holds: the measured frames and the header's
+    # what the budget held to is what the entry holds: the measured chunks and the header's
     measured = float(component_bytes(kept).sum()) - kept.rank * (8 + 4 * len(kept.weights))
     header = io.BytesIO()
     np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": stored_shape(kept.rank, 1, field.height, field.width, 16)})
     assert kept_info.compress_size == measured + len(real(header.getvalue()))
 
 
-def test_frames_kept_for_other_codes_are_not_used(tmp_path):
-    """Frames are found by content: a stack whose kept frames are another quantisation's writes its own."""
+def test_chunks_kept_for_other_codes_are_not_used(tmp_path):
+    """Chunks are found by content: a stack whose kept chunks are another quantisation's writes its own."""
     from test_field import make_field
 
     field = make_field()
@@ -279,14 +308,14 @@ def test_frames_kept_for_other_codes_are_not_used(tmp_path):
     np.testing.assert_array_equal(load_field(tmp_path / "stale.whf").residual.luminance.codes, fresh.codes)
 
 
-def test_only_a_sample_of_every_row_keeps_frames():
+def test_only_a_sample_of_every_row_keeps_chunks():
     principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
     with pytest.raises(ValueError, match="every row"):
         RateSample(principal, 3).bytes(principal.spans[:3] / 255, bits=8, keep=CompressedCodes())
 
 
 def test_the_latest_two_measurements_are_kept():
-    """A search's answer is its last measurement or the one before: frames of both are found, older
+    """A search's answer is its last measurement or the one before: chunks of both are found, older
     ones are compressed again (and are the same bytes)."""
     rng = np.random.default_rng(8)
     images = [rng.integers(0, 4, size=(2, 9, 11), dtype=np.uint8) for _ in range(3)]
@@ -295,7 +324,7 @@ def test_the_latest_two_measurements_are_kept():
         store.keep({CompressedCodes.key(image): b"kept"})
     assert len(store) == 1
     assert store.piece(images[2]) == b"kept" and store.piece(images[1]) == b"kept"
-    assert store.piece(images[0]) == compressed_frame(images[0])  # dropped: compressed now
+    assert store.piece(images[0]) == compressed_chunk(images[0])  # dropped: compressed now
 
 
 @pytest.mark.parametrize("chunk", [1 << 15, 7, 1])
@@ -330,8 +359,8 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
     steps = principal.spans[:5] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0, 4.0])
     calls = []
-    real = residual_module.compressed_frame
-    monkeypatch.setattr(residual_module, "compressed_frame", lambda data: calls.append(1) or real(data))
+    real = residual_module.compressed_chunk
+    monkeypatch.setattr(residual_module, "compressed_chunk", lambda data: calls.append(1) or real(data))
     sample = RateSample(principal, 5, whole=whole)
     assert sample.exact == whole
     subset = sample.deflated(steps, bits=16, images=np.array([3, 1, 3]))
@@ -341,7 +370,7 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     np.testing.assert_array_equal(every[[1, 3]], subset[[1, 3]])
     stack = LowRankStack.quantised(principal, steps, bits=16)
     counted = sample.rows[sample.counted] if not whole else np.arange(320)
-    expected = [frame_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes]
+    expected = [chunk_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes]
     np.testing.assert_array_equal(every, expected)
     changed = steps.copy()
     changed[2] *= 2.0
@@ -355,26 +384,26 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     assert sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image and len(calls) == 16
 
 
-def test_a_kept_measurement_takes_the_frames_it_holds_and_compresses_nothing_twice():
-    """Measured again at the same steps, a whole sample keeps the same frames without compressing; an
-    image measured before without keeping its frame is not compressed again either: its bytes are
-    remembered and its frame left to the field writer, which writes the same entry."""
+def test_a_kept_measurement_takes_the_chunks_it_holds_and_compresses_nothing_twice():
+    """Measured again at the same steps, a whole sample keeps the same chunks without compressing; an
+    image measured before without keeping its chunk is not compressed again either: its bytes are
+    remembered and its chunk left to the field writer, which writes the same entry."""
     principal = PrincipalImages.of(_smooth_stack(12, 320, 200))
     steps = principal.spans[:4] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0])
     sample = RateSample(principal, 4, whole=True)
     store = CompressedCodes()
-    early = sample.deflated(steps[:2], bits=16)  # images 0 and 1 measured, no frames kept
+    early = sample.deflated(steps[:2], bits=16)  # images 0 and 1 measured, no chunks kept
     measured = []
     real = sample._measured
     sample._measured = lambda indices, *args, **kwargs: measured.append(indices.tolist()) or real(indices, *args, **kwargs)
     first = sample.deflated(steps, bits=16, keep=store)
     assert measured == [[2, 3]] and len(store) == 2 and np.array_equal(first[:2], early)
-    frames = dict(store._kept[0])
-    assert np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == [] and store._kept[0] == frames
+    chunks = dict(store._kept[0])
+    assert np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == [] and store._kept[0] == chunks
     stack = LowRankStack.quantised(principal, steps, bits=16)
     stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
-    assert list(frames.values()) == [compressed_frame(image) for image in stored[2:]]
-    np.testing.assert_array_equal(first, [len(compressed_frame(image)) for image in stored])
+    assert list(chunks.values()) == [compressed_chunk(image) for image in stored[2:]]
+    np.testing.assert_array_equal(first, [len(compressed_chunk(image)) for image in stored])
 
 
 @settings(max_examples=60, deadline=None)

@@ -996,46 +996,51 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
     assert new == old  # every array entry byte for byte
 
 
-# --- large arrays in Zstandard frames -------------------------------------------------------------
+# --- large arrays in Blosc chunks ------------------------------------------------------------------
 
 
-def test_large_arrays_are_zstandard_npy_entries_that_load_the_same(small_field, tmp_path, monkeypatch):
-    """Arrays of ``_ZSTD_BYTES`` or more (made small here: the diffuse images and the residual's mean)
-    are stored as ``.npy.zst`` entries (one Zstandard frame of the ``.npy`` file, stored as it is,
-    compressed in the codec's threads), the others deflated by the zip; the field loads the same, the
-    file is the same whatever the threads, and every entry's CRC holds."""
-    import zstandard
+def test_large_arrays_are_chunked_npy_entries_that_load_the_same(small_field, tmp_path, monkeypatch):
+    """Arrays of ``_CHUNKED_BYTES`` or more (made small here: the diffuse images, the residual's means)
+    are stored as ``.npy.blosc`` entries (the ``.npy`` file in Blosc chunks, stored as they are, their
+    lengths in ``.lengths.npy``), the others deflated by the zip; the field loads the same, the file is
+    the same whatever the threads, and every entry's CRC holds."""
+    from numcodecs import Blosc
 
     field = load_field(small_field)
-    monkeypatch.setattr(fieldfile, "_ZSTD_BYTES", 4096)
-    monkeypatch.setattr(fieldfile, "_ZSTD_PART_BYTES", 1000)  # several parts an array
-    path = tmp_path / "zstd.whf"
+    monkeypatch.setattr(fieldfile, "_CHUNKED_BYTES", 4096)
+    monkeypatch.setattr(fieldfile, "_CHUNK_BYTES", 5000)  # several chunks an array
+    path = tmp_path / "chunked.whf"
     save_field(field, path)
     with zipfile.ZipFile(path) as archive:
         assert archive.testzip() is None
         infos = {info.filename: info for info in archive.infolist()}
-        assert "diffuse/images.npy.zst" in infos and "diffuse/images.npy" not in infos
-        assert infos["diffuse/images.npy.zst"].compress_type == zipfile.ZIP_STORED
+        assert "diffuse/images.npy.blosc" in infos and "diffuse/images.npy" not in infos
+        assert infos["diffuse/images.npy.blosc"].compress_type == zipfile.ZIP_STORED
         assert infos["gaussians/estimated_counts.npy"].compress_type == zipfile.ZIP_DEFLATED
-        npy = zstandard.ZstdDecompressor().decompress(archive.read("diffuse/images.npy.zst"))
+        raw = archive.read("diffuse/images.npy.blosc")
+        lengths = np.load(io.BytesIO(archive.read("diffuse/images.lengths.npy")))
+    assert len(lengths) > 3 and lengths.sum() == len(raw)
+    ends = np.cumsum(lengths)
+    npy = b"".join(bytes(Blosc().decode(raw[end - length : end])) for end, length in zip(ends, lengths))
     np.testing.assert_array_equal(np.load(io.BytesIO(npy)), field.diffuse.images.transpose(0, 3, 1, 2).astype("<f2"))
     again = load_field(path)
     assert_fields_equal(field, again, lambert_exact=False)
     np.testing.assert_array_equal(again.diffuse.images, field.diffuse.images)
     np.testing.assert_array_equal(again.residual.luminance.codes, field.residual.luminance.codes)
+    assert save_field(field, tmp_path / "again.whf") and (tmp_path / "again.whf").read_bytes() == path.read_bytes()
     monkeypatch.setattr(fieldfile, "NUMPY_THREADS", 1)
     save_field(field, tmp_path / "one.whf")
     assert (tmp_path / "one.whf").read_bytes() == path.read_bytes()
 
 
-def test_a_cut_or_damaged_zstandard_entry_is_a_corrupt_file(small_field, tmp_path, monkeypatch):
+def test_a_cut_or_damaged_chunked_entry_is_a_corrupt_file(small_field, tmp_path, monkeypatch):
     field = load_field(small_field)
-    monkeypatch.setattr(fieldfile, "_ZSTD_BYTES", 4096)
-    path = tmp_path / "zstd.whf"
+    monkeypatch.setattr(fieldfile, "_CHUNKED_BYTES", 4096)
+    path = tmp_path / "chunked.whf"
     save_field(field, path)
     data = path.read_bytes()
     with zipfile.ZipFile(path) as archive:
-        info = archive.getinfo("diffuse/images.npy.zst")
+        info = archive.getinfo("diffuse/images.npy.blosc")
     start = info.header_offset + 30 + len(info.filename)
     for position in (start + 20, start + info.compress_size // 2, start + info.compress_size - 3):
         damaged = bytearray(data)
@@ -1044,6 +1049,8 @@ def test_a_cut_or_damaged_zstandard_entry_is_a_corrupt_file(small_field, tmp_pat
         assert "corrupt field file" in load_error(path)
     path.write_bytes(data[: start + info.compress_size // 2])
     assert "truncated or corrupt" in load_error(path)
+    rewrite(data, path, drop=("diffuse/images.lengths.npy",))
+    assert "diffuse/images.lengths.npy is missing" in load_error(path)
 
 
 # --- a version-4 file --------------------------------------------------------------------------------
@@ -1076,15 +1083,17 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     again = tmp_path / "again.whf"
     save_field(field, again)
     old, new = entries(path.read_bytes()), entries(again.read_bytes())
-    assert list(new) == [name + ".zst" if name.endswith("_codes.npy") else name for name in old]
+    chunked = {name: [name + ".blosc", name.replace(".npy", ".lengths.npy")] for name in old if name.endswith("_codes.npy")}
+    assert list(new) == [part for name in old for part in chunked.get(name, [name])]
     old_header, new_header = json.loads(old.pop("header.json")), json.loads(new.pop("header.json"))
     assert new_header["format_version"] == FORMAT_VERSION == 5
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")
     assert new_header == old_header
-    for name in ("residual/Y_codes.npy", "residual/C_codes.npy"):  # the same codes, stored anew
-        old.pop(name), new.pop(name + ".zst")
+    for name, parts in chunked.items():  # the same codes, stored anew
+        old.pop(name)
+        for part in parts:
+            new.pop(part)
     assert new == old  # every other array entry byte for byte
     reloaded = load_field(again)
     np.testing.assert_array_equal(reloaded.residual.luminance.codes, luminance.codes)
-    assert again.stat().st_size < path.stat().st_size

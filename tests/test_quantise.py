@@ -140,8 +140,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)  # fewer images into the memory kept
         with monkeypatch.context() as slow:  # compressions that read their slot late: a slot filled again too early gives other bytes
-            real = residual_module.compressed_frame
-            slow.setattr(residual_module, "compressed_frame", lambda data: time.sleep(0.02) or real(data))
+            real = residual_module.compressed_chunk
+            slow.setattr(residual_module, "compressed_chunk", lambda data: time.sleep(0.02) or real(data))
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
             np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
     kept_there, kept_host = CompressedCodes(), CompressedCodes()

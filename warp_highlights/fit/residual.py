@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.codes import CompressedCodes, compressed_frame, stored_bytes, stored_codes
+from ..io.codes import CompressedCodes, compressed_chunk, stored_bytes, stored_codes
 from ..io.memory import available_memory
 from ..io.metrics import srgb_psnr
 from ..kernels.gram import DeviceProducts
@@ -246,7 +246,7 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
-    """(k,) stored bytes of each basis image of ``stack``: its codes' Zstandard frame (planes first, as the
+    """(k,) stored bytes of each basis image of ``stack``: its codes' Blosc chunk (planes first, as the
     file stores them: ``io.codes``), its range and its per-light weights."""
     return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
 
@@ -260,7 +260,7 @@ class StackPlan:
     gain: float
     most: int
     floor: int = 0
-    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)  # the last exact measurement's frames
+    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)  # the last exact measurement's chunks
 
     @property
     def energies(self) -> np.ndarray:
@@ -354,9 +354,9 @@ class RateSample:
         return calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
 
     def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
-        """(len(``steps``),) int64 stored bytes (``io.codes.frame_size``) of each of the first len(``steps``) basis images
+        """(len(``steps``),) int64 stored bytes (``io.codes.chunk_size``) of each of the first len(``steps``) basis images
         at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
-        (the others 0). Compressed in threads (Zstandard lets go of the GIL). An image is deflated once per
+        (the others 0). Compressed in threads (Blosc lets go of the GIL off the main thread). An image is deflated once per
         step and bits: a measurement remembers each image's bytes, and a later one at the same step
         takes them instead of deflating it again (and, where ``keep`` is given, its piece where ``keep``
         still holds it: else the field writer deflates that image, if it is kept)."""
@@ -405,7 +405,7 @@ class RateSample:
         kind = np.uint8 if bits == 8 else np.uint16
 
         def deflate(index: int, image: np.ndarray) -> tuple:
-            piece = compressed_frame(image)
+            piece = compressed_chunk(image)
             return (index, len(piece), CompressedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
 
         if self.held is not None:

@@ -1,5 +1,5 @@
 """How a field file stores a low-rank stack's basis codes (format version 5): a row-difference
-predictor in NumPy, then one Zstandard frame per basis image. The rate search counts a basis image's
+predictor in NumPy, then one Blosc chunk per basis image. The rate search counts a basis image's
 bytes with the same functions, so the bytes a size budget holds to are the bytes the file holds.
 
 Predictor (``stored_codes``): a basis image's (P, H, W) codes of 8 or 16 bits less the row above
@@ -11,16 +11,18 @@ small values an entropy coder takes in few bits. (Without the zigzag, a small ne
 has the high byte 0xFF, a positive one 0x00: the high plane repeats each difference's sign, which
 the low byte already holds; with it, 16-bit codes take a fifth fewer bytes.)
 
-Coder (``compressed_frame``): each image's stored bytes are one Zstandard frame (``zstandard``,
-level ``CODES_LEVEL``, the content size in the frame's header). The field file's codes entry,
-``residual/Y_codes.npy.zst`` (stored in the zip without compression of its own), is the frame of the
-``.npy`` header of the whole (k, P, [2,] H, W) uint8 array and then each image's frame: frames one
-after another make one Zstandard stream, which decompresses to that ``.npy`` file (``zstd -d``, or
-``zstandard``'s ``stream_reader(read_across_frames=True)``). A frame per image lets the images be
-compressed in threads and lets the rate search measure each image's exact share of the entry;
-``CompressedCodes`` keeps the frames that search made last, and the field writer stores those
-rather than compressing the same codes again. Zstandard over the predictor's bytes is about as small
-as zlib's run-length-only deflate of them and several times faster (``benchmarks/bench_codes.py``).
+Coder (``compressed_chunk``): each image's stored bytes are one Blosc chunk (``numcodecs.Blosc``:
+Zstandard at level ``CODES_LEVEL`` after Blosc's bit shuffle, which gathers bit k of every byte of a
+block: the sparse low bits of small differences into few runs, the high bits' zeros into long ones).
+The field file's codes entry, ``residual/Y_codes.npy.blosc`` (stored in the zip without compression
+of its own), is the chunk of the ``.npy`` header of the whole (k, P, [2,] H, W) uint8 array and then
+each image's chunk; ``residual/Y_codes.lengths.npy`` gives each chunk's bytes. Decoded one after
+another, the chunks are that ``.npy`` file. A chunk per image lets the images be compressed in
+threads and lets the rate search measure each image's exact share of the entry; ``CompressedCodes``
+keeps the chunks that search made last, and the field writer stores those rather than compressing
+the same codes again. Against zlib's run-length-only deflate of the row differences (format 4),
+the 16-bit dome codes take 76% of the bytes and the 8-bit statue's 96%, compressed 4-6 times faster
+on one thread (``benchmarks/bench_codes.py``).
 
 Format version 4 stored the row differences without the zigzag (``codes_from_differences`` reads
 them) in a deflated ``.npy`` entry, which the zip reader inflates as any other.
@@ -29,17 +31,18 @@ them) in a deflated ``.npy`` entry, which the zip reader inflates as any other.
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import numpy as np
 
-from ..model.threads import parallel_map
+from ..model.threads import parallel_map, submit
 
-__all__ = ["CODES_LEVEL", "CompressedCodes", "codes_from_differences", "codes_from_stored", "compressed_frame", "frame_size", "stored_bytes",
+__all__ = ["CODES_LEVEL", "CompressedCodes", "chunk_size", "codes_from_differences", "codes_from_stored", "compressed_chunk", "stored_bytes",
            "stored_codes", "stored_shape"]
 
-CODES_LEVEL = 3
-"""Zstandard level of each basis image's frame (zstd's default; levels 1-9 were within 3% of its bytes
-on the benchmarks' codes, 3 among the fastest of them: ``benchmarks/bench_codes.py``)."""
+CODES_LEVEL = 1
+"""Zstandard level inside each basis image's Blosc chunk (on the benchmarks' codes, levels 3 and 5 gave
+98-103% and 97-99% of level 1's bytes in 2-3 and 4-6 times its seconds)."""
 
 
 def stored_shape(rank: int, planes: int, height: int, width: int, bits: int) -> tuple:
@@ -102,26 +105,39 @@ def _summed_rows(stored: np.ndarray, bits: int, *, zigzag: bool) -> np.ndarray:
     return codes
 
 
-def compressed_frame(stored) -> bytes:
-    """Stored codes (or any bytes) as one Zstandard frame of the codes' entry (level ``CODES_LEVEL``,
-    the content size in its header, no checksum: the zip entry's CRC covers the frames)."""
-    import zstandard  # the codec, imported where codes are written or measured
+def codes_codec():
+    """The ``numcodecs.Blosc`` codec of the codes' chunks (Zstandard at ``CODES_LEVEL``, bit shuffle)."""
+    from numcodecs import Blosc  # the codec, imported where codes are written, measured or read
 
-    return zstandard.ZstdCompressor(level=CODES_LEVEL).compress(np.ascontiguousarray(stored))
+    return Blosc(cname="zstd", clevel=CODES_LEVEL, shuffle=Blosc.BITSHUFFLE)
 
 
-def frame_size(stored: np.ndarray) -> int:
-    """Bytes of stored codes in the codes' entry: the length of their ``compressed_frame``."""
-    return len(compressed_frame(stored))
+def compressed_chunk(stored) -> bytes:
+    """Stored codes (or any bytes) as one Blosc chunk of the codes' entry (``codes_codec``), made on a
+    thread other than the main one: there Blosc compresses on the calling thread alone and lets go of
+    the GIL, and a chunk is the same bytes each time (on the main thread, Blosc's own threads place the
+    chunk's blocks in the order they finish)."""
+    if threading.current_thread() is threading.main_thread():
+        return submit(_encoded, stored).result()
+    return _encoded(stored)
+
+
+def _encoded(stored) -> bytes:
+    return bytes(codes_codec().encode(np.ascontiguousarray(stored).reshape(-1).view(np.uint8)))
+
+
+def chunk_size(stored: np.ndarray) -> int:
+    """Bytes of stored codes in the codes' entry: the length of their ``compressed_chunk``."""
+    return len(compressed_chunk(stored))
 
 
 def stored_bytes(codes: np.ndarray) -> int:
-    """Bytes of (..., R, W) codes as the field file stores them: ``frame_size`` of ``stored_codes``."""
-    return frame_size(stored_codes(codes))
+    """Bytes of (..., R, W) codes as the field file stores them: ``chunk_size`` of ``stored_codes``."""
+    return chunk_size(stored_codes(codes))
 
 
 class CompressedCodes:
-    """Frames of stored basis images (``compressed_frame``), found by their content (a SHA-1 digest
+    """Chunks of stored basis images (``compressed_chunk``), found by their content (a SHA-1 digest
     and the length of the stored bytes): what the rate search compressed, kept for the field writer,
     which compresses an image it does not find here. Holds the latest two ``keep``s (a search's answer
     is its last measurement or, where that went over the budget, usually the one before)."""
@@ -137,25 +153,25 @@ class CompressedCodes:
         data = np.ascontiguousarray(stored)
         return hashlib.sha1(data, usedforsecurity=False).digest(), data.nbytes
 
-    def keep(self, frames: dict[tuple, bytes]) -> None:
-        """Hold ``frames`` (key -> frame), the oldest held measurement dropped."""
-        self._kept = [dict(frames), *self._kept][: self.KEPT]
+    def keep(self, chunks: dict[tuple, bytes]) -> None:
+        """Hold ``chunks`` (key -> chunk), the oldest held measurement dropped."""
+        self._kept = [dict(chunks), *self._kept][: self.KEPT]
 
     def held(self, key: tuple) -> bytes | None:
-        """The frame held for the content ``key`` (see ``key``), or None."""
-        for frames in self._kept:
-            if key in frames:
-                return frames[key]
+        """The chunk held for the content ``key`` (see ``key``), or None."""
+        for chunks in self._kept:
+            if key in chunks:
+                return chunks[key]
         return None
 
     def piece(self, stored: np.ndarray) -> bytes:
-        """The frame of ``stored``: the one held for its content, else compressed now (nothing hashed
+        """The chunk of ``stored``: the one held for its content, else compressed now (nothing hashed
         where nothing is held: a field loaded and saved again)."""
         if not self._kept:
-            return compressed_frame(stored)
-        frame = self.held(self.key(stored))
-        return compressed_frame(stored) if frame is None else frame
+            return compressed_chunk(stored)
+        chunk = self.held(self.key(stored))
+        return compressed_chunk(stored) if chunk is None else chunk
 
     def __len__(self) -> int:
-        """Frames of the latest measurement."""
+        """Chunks of the latest measurement."""
         return len(self._kept[0]) if self._kept else 0

@@ -5,9 +5,9 @@ The model it stores is :class:`warp_highlights.model.field.HighlightField` (meth
 File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
 entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
-zip (``numpy.load`` can open those), or, for the basis codes and arrays of 16 MiB or more, stored
-as it is and holding the ``.npy`` file in Zstandard frames (the entry's name ends in ``.npy.zst``:
-``zstd -d`` gives the ``.npy`` file).
+zip (``numpy.load`` can open those), or, for the basis codes and arrays of 16 MiB or more, the
+``.npy`` file in Blosc chunks (``numcodecs.Blosc``), stored as they are in ``X.npy.blosc``, with each
+chunk's bytes in ``X.lengths.npy``: the chunks decoded one after another are the ``.npy`` file.
 
 ==============================  ===============  =================================================
 entry                           dtype, shape     contents
@@ -32,12 +32,13 @@ entry                           dtype, shape     contents
 ``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
 ``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
                                 (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
-``residual/Y_codes.npy.zst``    <u1              version 5: the 8- or 16-bit basis images of that
+``residual/Y_codes.npy.blosc``  <u1              version 5: the 8- or 16-bit basis images of that
                                 (k, P, H, W) or  stack as ``io.codes`` stores them: each row less the
                                 (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits, zigzag-
                                                  mapped; 16-bit values as high and low byte planes;
-                                                 a Zstandard frame for the ``.npy`` header, then one
-                                                 per basis image. Version 4: ``Y_codes.npy``, the
+                                                 a Blosc chunk for the ``.npy`` header, then one
+                                                 per basis image (``io.codes``; their lengths in
+                                                 ``Y_codes.lengths.npy``). Version 4: ``Y_codes.npy``, the
                                                  differences without the zigzag, deflated. Versions
                                                  2 and 3: the codes themselves, <u1 or <u2
                                                  (k, P, H, W)
@@ -65,7 +66,7 @@ loads with every Gaussian moving and no residual (relighting then uses its diffu
 
 Version 2 files have no learned residual; they load unchanged.
 
-Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy.zst``); they load unchanged.
+Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy.blosc``); they load unchanged.
 
 Version 4 files store the basis codes' row differences without the zigzag in a deflated
 ``residual/Y_codes.npy`` (``io.codes.codes_from_differences`` reads them), and every array as a
@@ -82,6 +83,7 @@ import json
 import math
 import os
 import zipfile
+import itertools
 from collections import deque
 from pathlib import Path
 
@@ -104,7 +106,7 @@ from ..model.residual import (
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
-from .codes import CompressedCodes, codes_from_differences, codes_from_stored, compressed_frame, stored_codes, stored_shape
+from .codes import CompressedCodes, codes_codec, codes_from_differences, codes_from_stored, compressed_chunk, stored_codes, stored_shape
 
 __all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
 
@@ -114,14 +116,15 @@ MAGIC = "warp-highlights field"
 FORMAT_VERSION = 5
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
-_ZSTD_BYTES = 1 << 24
+_CHUNKED_BYTES = 1 << 24
 """Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's float16 diffuse images take
-194 MB) are stored Zstandard-compressed in the codec's own threads; smaller ones deflated by the zip."""
-_ZSTD_LEVEL = 3
-"""Zstandard level of those arrays (zstd's default)."""
-_ZSTD = ".zst"
-"""What a Zstandard-compressed ``.npy`` entry's name adds to the array's name."""
-_ZSTD_PART_BYTES = 1 << 22  # such an array is handed to the compressor about this many bytes at a time (4 MiB)
+194 MB) are stored in Blosc chunks compressed in threads; smaller ones deflated by the zip."""
+_CHUNK_BYTES = 1 << 22  # such an array is cut into chunks of about this many bytes (4 MiB), a thread compressing each
+_ARRAY_LEVEL = 1
+"""Zstandard level inside those chunks, after Blosc's byte shuffle (float16 diffuse images of the 480x270
+donut: 82% of zlib's level-6 bytes in a fifth of its seconds; levels 3 and 5: 78% and 75% in 2 and 4 times level 1's)."""
+_CHUNKED = ".blosc"
+"""What a chunked ``.npy`` entry's name adds to the array's name (``X.npy.blosc``, its chunks' lengths in ``X.lengths.npy``)."""
 
 _HEADER = "header.json"
 _DIRECTIONS = "lights/directions.npy"
@@ -294,9 +297,9 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     header = json.dumps(
         _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
-    frames = [array for _, array in arrays if isinstance(array, _CodeFrames)]
+    codes_entries = [array for _, array in arrays if isinstance(array, _CodeChunks)]
     try:
-        for codes in frames:  # the first images' frames made in threads while the writer deflates the entries before them
+        for codes in codes_entries:  # the first images' chunks made in threads while the writer deflates the entries before them
             codes.start()
         with zipfile.ZipFile(stream, "w") as archive:
             with archive.open(_entry_info(_HEADER), "w") as entry:
@@ -305,7 +308,7 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
                 _write_array(archive, name, array)
             infos = archive.infolist()
     except BaseException:  # an error or Ctrl-C: nothing left compressing behind
-        for codes in frames:
+        for codes in codes_entries:
             codes.cancel()
         raise
     return _size_report(infos, stream.tell())
@@ -337,7 +340,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", _CodeFrames(stack)),  # a Zstandard frame an image (io.codes)
+            (prefix + "codes.npy", _CodeChunks(stack)),  # a Blosc chunk an image (io.codes)
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -370,43 +373,49 @@ def _entry_info(name: str, compress_type: int = zipfile.ZIP_DEFLATED) -> zipfile
     return info
 
 
-class _CodeFrames:
-    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: the
-    Zstandard frames of each image's stored codes, in order, each taken from the stack's ``deflated``
-    (what the fit's rate search compressed, ``io.codes.CompressedCodes``) or compressed here; made in
-    threads, at most ``2 NUMPY_THREADS`` images ahead of the writer."""
+class _Ahead:
+    """``function(i)`` for i in 0 .. ``count`` - 1, in order, made in threads at most ``2 NUMPY_THREADS``
+    ahead of the one who iterates (``start`` submits the first ones early)."""
 
-    def __init__(self, stack: LowRankStack):
-        self.codes = stack.codes
-        self.frames = stack.deflated if stack.deflated is not None else CompressedCodes()
-        rank, height, width, planes = self.codes.shape
-        self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
-        self.nbytes = math.prod(self.shape)
+    def __init__(self, function, count: int):
+        self.function, self.count = function, count
         self._next = 0
         self._pending: deque = deque()
 
-    def _frame(self, index: int) -> bytes:
-        return self.frames.piece(stored_codes(self.codes[index].transpose(2, 0, 1)))  # zstd and hashlib let go of the GIL
-
     def start(self) -> None:
-        """Submit the images' frames up to ``2 NUMPY_THREADS`` ahead of the writer."""
-        while len(self._pending) < 2 * max(1, NUMPY_THREADS) and self._next < len(self.codes):
-            self._pending.append(submit(self._frame, self._next))
+        while len(self._pending) < 2 * max(1, NUMPY_THREADS) and self._next < self.count:
+            self._pending.append(submit(self.function, self._next))
             self._next += 1
 
     def __iter__(self):
-        """Each image's frame, in order."""
         self.start()
         while self._pending:
-            frame = self._pending[0].result()
+            result = self._pending[0].result()
             self._pending.popleft()
             self.start()
-            yield frame
+            yield result
 
     def cancel(self) -> None:
-        """Drop the frames not started, wait for the running ones."""
+        """Drop what is not started, wait for what is running."""
         cancel_and_wait(list(self._pending))
         self._pending.clear()
+
+
+class _CodeChunks(_Ahead):
+    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: the Blosc
+    chunk of each image's stored codes, in order, taken from the stack's ``deflated`` (what the fit's
+    rate search compressed, ``io.codes.CompressedCodes``) or compressed here, in threads."""
+
+    def __init__(self, stack: LowRankStack):
+        self.codes = stack.codes
+        self.chunks = stack.deflated if stack.deflated is not None else CompressedCodes()
+        rank, height, width, planes = self.codes.shape
+        self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
+        self.nbytes = math.prod(self.shape)
+        super().__init__(self._chunk, rank)
+
+    def _chunk(self, index: int) -> bytes:
+        return self.chunks.piece(stored_codes(self.codes[index].transpose(2, 0, 1)))  # Blosc (off the main thread) and hashlib let go of the GIL
 
 
 def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
@@ -418,32 +427,48 @@ def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
 
 
 def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
-    """One array's entry: the basis codes (``_CodeFrames``) and arrays of ``_ZSTD_BYTES`` or more as a
-    ``.npy`` file in Zstandard frames (``name`` + ``.zst``, stored as it is), any other array as a
-    ``.npy`` entry the zip deflates. Zip64 where an entry may pass the 2 GiB limit of plain zip."""
-    if isinstance(array, _CodeFrames):
-        with archive.open(_entry_info(name + _ZSTD, zipfile.ZIP_STORED), "w", force_zip64=array.nbytes > 2**30) as entry:
-            entry.write(compressed_frame(_npy_header(np.uint8, array.shape)))
-            for frame in array:
-                entry.write(frame)
+    """One array's entries: the basis codes (``_CodeChunks``) and arrays of ``_CHUNKED_BYTES`` or more as
+    a ``.npy`` file in Blosc chunks (``_write_chunks``), any other array as a ``.npy`` entry the zip
+    deflates (zip64 where it may pass the 2 GiB limit of plain zip)."""
+    if isinstance(array, _CodeChunks):
+        _write_chunks(archive, name, itertools.chain([compressed_chunk(_npy_header(np.uint8, array.shape))], array), array.nbytes)
         return
     array = np.asarray(array)
     if array.flags.f_contiguous and not array.flags.c_contiguous:
         array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
-    if array.nbytes < _ZSTD_BYTES:
+    if array.nbytes < _CHUNKED_BYTES:
         with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
             np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
         return
-    import zstandard  # the codec, imported where a large array is written
+    from numcodecs import Blosc  # the codec, imported where a large array is written
 
-    header = _npy_header(array.dtype, array.shape)
-    compressor = zstandard.ZstdCompressor(level=_ZSTD_LEVEL, threads=max(1, NUMPY_THREADS))
-    with archive.open(_entry_info(name + _ZSTD, zipfile.ZIP_STORED), "w", force_zip64=array.nbytes > 2**30) as entry, \
-            compressor.stream_writer(entry, size=len(header) + array.nbytes, closefd=False) as writer:
-        writer.write(header)
-        rows = max(1, _ZSTD_PART_BYTES // max(1, array[:1].nbytes))
-        for start in range(0, len(array), rows):  # a C-ordered copy of a few MB at a time: any strides
-            writer.write(np.ascontiguousarray(array[start : start + rows]).data)
+    codec = Blosc(cname="zstd", clevel=_ARRAY_LEVEL, shuffle=Blosc.SHUFFLE)
+    rows = max(1, _CHUNK_BYTES // max(1, array[:1].nbytes))
+    # a part of rows at a time, copied in C order (any strides) and compressed on a worker thread: there Blosc compresses on that
+    # thread alone, so the chunk is the same bytes each time (Blosc's own threads place its blocks in the order they finish)
+    parts = _Ahead(lambda index: bytes(codec.encode(np.ascontiguousarray(array[index * rows : (index + 1) * rows]))), -(-len(array) // rows))
+    header = submit(lambda: bytes(codec.encode(np.frombuffer(_npy_header(array.dtype, array.shape), np.uint8))))
+    try:
+        _write_chunks(archive, name, itertools.chain([header.result()], parts), array.nbytes)
+    except BaseException:
+        parts.cancel()
+        raise
+
+
+def _write_chunks(archive: zipfile.ZipFile, name: str, chunks, nbytes: int) -> None:
+    """``name`` (``X.npy``) as ``X.npy.blosc``, the Blosc ``chunks`` one after another, stored as they are,
+    and ``X.lengths.npy``, each chunk's bytes (<i8); ``nbytes``: about the bytes they hold."""
+    lengths = []
+    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w", force_zip64=nbytes > 2**30) as entry:
+        for chunk in chunks:
+            entry.write(chunk)
+            lengths.append(len(chunk))
+    _write_array(archive, _lengths_name(name), np.array(lengths, "<i8"))
+
+
+def _lengths_name(name: str) -> str:
+    """The entry of a chunked array's chunk lengths: ``X.lengths.npy`` for ``X.npy``."""
+    return name.removesuffix(".npy") + ".lengths.npy"
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:
@@ -609,19 +634,14 @@ def _read_array(
     dtype: str,
     shape: tuple,
 ) -> np.ndarray:
-    """Read one ``.npy`` entry (deflated by the zip, or in Zstandard frames: ``name`` + ``.zst``),
+    """Read one ``.npy`` entry (deflated by the zip, or in Blosc chunks: ``name`` + ``.blosc``),
     checking its dtype and shape before reading the data."""
-    compressed = name not in names and name + _ZSTD in names
-    if name not in names and not compressed:
+    chunked = name not in names and name + _CHUNKED in names
+    if name not in names and not chunked:
         raise _corrupt(path, f"entry {name} is missing")
     expected = np.dtype(dtype)
-    with archive.open(name + _ZSTD if compressed else name) as entry:
-        if compressed:
-            import zstandard  # the codec, imported where a file holds such an entry
-
-            reader = zstandard.ZstdDecompressor().stream_reader(entry, read_across_frames=True, closefd=False)
-        else:
-            reader = entry
+    with archive.open(name + _CHUNKED if chunked else name) as entry:
+        reader = _Chunks(entry, _chunk_lengths(path, archive, names, name)) if chunked else entry
         try:
             version = np.lib.format.read_magic(reader)
             if version == (1, 0):
@@ -648,6 +668,68 @@ def _read_array(
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
         raise _corrupt(path, f"entry {name} has non-finite values")
     return array
+
+
+def _chunk_lengths(path: Path, archive: zipfile.ZipFile, names: set, name: str) -> np.ndarray:
+    """The chunk lengths of the chunked ``.npy`` entry of ``name``: positive, summing to its stored bytes."""
+    lengths_name = _lengths_name(name)
+    if lengths_name not in names:
+        raise _corrupt(path, f"entry {lengths_name} is missing")
+    count = archive.getinfo(lengths_name).file_size  # a bound: 8 bytes a chunk and a header
+    lengths = _read_array(path, archive, names, lengths_name, "<i8", (_npy_length(path, archive, lengths_name, count),))
+    if lengths.size == 0 or lengths.min() <= 0 or int(lengths.sum()) != archive.getinfo(name + _CHUNKED).file_size:
+        raise _corrupt(path, f"entry {lengths_name} does not give the chunks of {name + _CHUNKED}")
+    return lengths
+
+
+def _npy_length(path: Path, archive: zipfile.ZipFile, name: str, bound: int) -> int:
+    """The length of the 1-d ``.npy`` entry ``name`` from its header (its data read by ``_read_array``)."""
+    with archive.open(name) as entry:
+        try:
+            version = np.lib.format.read_magic(entry)
+            header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape = header(entry)[0]
+        except ValueError as exc:
+            raise _corrupt(path, f"entry {name} is not a valid .npy array ({exc})") from None
+    if len(shape) != 1 or not 0 <= shape[0] <= bound:
+        raise _corrupt(path, f"entry {name} has shape {shape}, expected one length a chunk")
+    return int(shape[0])
+
+
+class _Chunks:
+    """The bytes of a chunked entry's Blosc chunks decoded one after another (a readable stream). The
+    entry is read whole first, so that its zip checksum is tested before any chunk is decoded."""
+
+    def __init__(self, entry, lengths: np.ndarray):
+        self.data = memoryview(entry.read())
+        self.ends = np.cumsum(lengths)
+        if len(self.data) != int(self.ends[-1]):
+            raise zipfile.BadZipFile("the chunks' lengths do not add up to the entry")
+        self.next = 0
+        self.buffer = b""
+        self.at = 0
+        self.codec = codes_codec()  # any Blosc codec decodes any Blosc chunk: its header says how it was made
+
+    def read(self, size: int = -1) -> bytes:
+        parts = []
+        while size != 0:
+            if self.at == len(self.buffer):
+                if self.next == len(self.ends):
+                    break
+                start = int(self.ends[self.next - 1]) if self.next else 0
+                self.buffer, self.at = bytes(self.codec.decode(self.data[start : int(self.ends[self.next])])), 0
+                self.next += 1
+                continue
+            take = len(self.buffer) - self.at if size < 0 else min(size, len(self.buffer) - self.at)
+            parts.append(self.buffer[self.at : self.at + take])
+            self.at += take
+            size -= take if size > 0 else 0
+        return b"".join(parts)
+
+    def readinto(self, buffer) -> int:
+        data = self.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
 
 
 def _read_exactly(stream, size: int) -> bytearray:
