@@ -83,7 +83,6 @@ import json
 import math
 import os
 import zipfile
-import itertools
 from collections import deque
 from pathlib import Path
 
@@ -116,9 +115,11 @@ MAGIC = "warp-highlights field"
 FORMAT_VERSION = 5
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
-_CHUNKED_BYTES = 1 << 24
-"""Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's float16 diffuse images take
-194 MB) are stored in Blosc chunks compressed in threads; smaller ones deflated by the zip."""
+_CHUNKED_BYTES = 1 << 16
+"""Arrays of at least this many bytes (64 KiB: the residual's mean, scale and colour planes of a 320x320
+field and larger, the weights and Gaussians of a few hundred lights) are stored in Blosc chunks made in
+threads before the writer reaches them; smaller ones deflated by the zip (the time a zip entry's
+deflate takes on the writer's thread, serially, was most of a dome field's save)."""
 _CHUNK_BYTES = 1 << 22  # such an array is cut into chunks of about this many bytes (4 MiB), a thread compressing each
 _ARRAY_LEVEL = 1
 """Zstandard level inside those chunks, after Blosc's byte shuffle (float16 diffuse images of the 480x270
@@ -297,19 +298,23 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     header = json.dumps(
         _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
-    codes_entries = [array for _, array in arrays if isinstance(array, _CodeChunks)]
+    entries = [(name, _chunked(array)) for name, array in arrays]
+    chunked = [entry for _, entry in entries if isinstance(entry, _Ahead)]
     try:
-        for codes in codes_entries:  # the first images' chunks made in threads while the writer deflates the entries before them
-            codes.start()
+        for chunks in chunked:  # each chunked entry's first chunks made in threads while the writer stores the entries before it
+            chunks.start(2)
         with zipfile.ZipFile(stream, "w") as archive:
             with archive.open(_entry_info(_HEADER), "w") as entry:
                 entry.write(header)
-            for name, array in arrays:
-                _write_array(archive, name, array)
+            for name, entry in entries:
+                if isinstance(entry, _Ahead):
+                    _write_chunks(archive, name, entry)
+                else:
+                    _write_array(archive, name, entry)
             infos = archive.infolist()
     except BaseException:  # an error or Ctrl-C: nothing left compressing behind
-        for codes in codes_entries:
-            codes.cancel()
+        for chunks in chunked:
+            chunks.cancel()
         raise
     return _size_report(infos, stream.tell())
 
@@ -340,7 +345,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", _CodeChunks(stack)),  # a Blosc chunk an image (io.codes)
+            (prefix + "codes.npy", stack),  # a Blosc chunk an image (io.codes: _CodeChunks)
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -382,8 +387,10 @@ class _Ahead:
         self._next = 0
         self._pending: deque = deque()
 
-    def start(self) -> None:
-        while len(self._pending) < 2 * max(1, NUMPY_THREADS) and self._next < self.count:
+    def start(self, ahead: int | None = None) -> None:
+        """Submit what is next, up to ``ahead`` (default ``2 NUMPY_THREADS``) waiting."""
+        ahead = 2 * max(1, NUMPY_THREADS) if ahead is None else ahead
+        while len(self._pending) < ahead and self._next < self.count:
             self._pending.append(submit(self.function, self._next))
             self._next += 1
 
@@ -402,9 +409,10 @@ class _Ahead:
 
 
 class _CodeChunks(_Ahead):
-    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: the Blosc
-    chunk of each image's stored codes, in order, taken from the stack's ``deflated`` (what the fit's
-    rate search compressed, ``io.codes.CompressedCodes``) or compressed here, in threads."""
+    """A low-rank stack's (k, H, W, P) basis codes as ``io.codes`` stores them: the Blosc chunk of the
+    ``.npy`` header of the stored (``stored_shape``) uint8 array, then each image's chunk, in order,
+    taken from the stack's ``deflated`` (what the fit's rate search compressed,
+    ``io.codes.CompressedCodes``) or compressed here, in threads."""
 
     def __init__(self, stack: LowRankStack):
         self.codes = stack.codes
@@ -412,10 +420,44 @@ class _CodeChunks(_Ahead):
         rank, height, width, planes = self.codes.shape
         self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
-        super().__init__(self._chunk, rank)
+        super().__init__(self._chunk, 1 + rank)
 
     def _chunk(self, index: int) -> bytes:
-        return self.chunks.piece(stored_codes(self.codes[index].transpose(2, 0, 1)))  # Blosc (off the main thread) and hashlib let go of the GIL
+        if index == 0:
+            return compressed_chunk(_npy_header(np.uint8, self.shape))
+        return self.chunks.piece(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))  # Blosc (off the main thread) and hashlib let go of the GIL
+
+
+class _ArrayChunks(_Ahead):
+    """An array's ``.npy`` file in Blosc chunks (Zstandard at ``_ARRAY_LEVEL`` after Blosc's byte
+    shuffle): its header, then parts of about ``_CHUNK_BYTES`` (whole rows, copied in C order from
+    any strides), each compressed on a worker thread: there Blosc compresses on that thread alone, so
+    a chunk is the same bytes each time (Blosc's own threads place its blocks in the order they finish)."""
+
+    def __init__(self, array: np.ndarray):
+        from numcodecs import Blosc  # the codec, imported where an array is written in chunks
+
+        self.array = array
+        self.nbytes = array.nbytes
+        self.codec = Blosc(cname="zstd", clevel=_ARRAY_LEVEL, shuffle=Blosc.SHUFFLE)
+        self.rows = max(1, _CHUNK_BYTES // max(1, array[:1].nbytes))
+        super().__init__(self._chunk, 1 + -(-len(array) // self.rows))
+
+    def _chunk(self, index: int) -> bytes:
+        if index == 0:
+            return bytes(self.codec.encode(np.frombuffer(_npy_header(self.array.dtype, self.array.shape), np.uint8)))
+        return bytes(self.codec.encode(np.ascontiguousarray(self.array[(index - 1) * self.rows : index * self.rows])))
+
+
+def _chunked(array):
+    """How an array is written: a stack's codes as ``_CodeChunks``, an array of ``_CHUNKED_BYTES`` or
+    more (not 0-d) as ``_ArrayChunks``, any other as it is (deflated by the zip)."""
+    if isinstance(array, LowRankStack):
+        return _CodeChunks(array)
+    array = np.asarray(array)
+    if array.flags.f_contiguous and not array.flags.c_contiguous:
+        array = np.ascontiguousarray(array)  # kept in C order
+    return _ArrayChunks(array) if array.nbytes >= _CHUNKED_BYTES and array.ndim else array
 
 
 def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
@@ -426,40 +468,17 @@ def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
     return buffer.getvalue()
 
 
-def _write_array(archive: zipfile.ZipFile, name: str, array) -> None:
-    """One array's entries: the basis codes (``_CodeChunks``) and arrays of ``_CHUNKED_BYTES`` or more as
-    a ``.npy`` file in Blosc chunks (``_write_chunks``), any other array as a ``.npy`` entry the zip
-    deflates (zip64 where it may pass the 2 GiB limit of plain zip)."""
-    if isinstance(array, _CodeChunks):
-        _write_chunks(archive, name, itertools.chain([compressed_chunk(_npy_header(np.uint8, array.shape))], array), array.nbytes)
-        return
-    array = np.asarray(array)
-    if array.flags.f_contiguous and not array.flags.c_contiguous:
-        array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
-    if array.nbytes < _CHUNKED_BYTES:
-        with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
-            np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
-        return
-    from numcodecs import Blosc  # the codec, imported where a large array is written
-
-    codec = Blosc(cname="zstd", clevel=_ARRAY_LEVEL, shuffle=Blosc.SHUFFLE)
-    rows = max(1, _CHUNK_BYTES // max(1, array[:1].nbytes))
-    # a part of rows at a time, copied in C order (any strides) and compressed on a worker thread: there Blosc compresses on that
-    # thread alone, so the chunk is the same bytes each time (Blosc's own threads place its blocks in the order they finish)
-    parts = _Ahead(lambda index: bytes(codec.encode(np.ascontiguousarray(array[index * rows : (index + 1) * rows]))), -(-len(array) // rows))
-    header = submit(lambda: bytes(codec.encode(np.frombuffer(_npy_header(array.dtype, array.shape), np.uint8))))
-    try:
-        _write_chunks(archive, name, itertools.chain([header.result()], parts), array.nbytes)
-    except BaseException:
-        parts.cancel()
-        raise
+def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    """One ``.npy`` entry the zip deflates (zip64 where it may pass the 2 GiB limit of plain zip)."""
+    with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
+        np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
 
 
-def _write_chunks(archive: zipfile.ZipFile, name: str, chunks, nbytes: int) -> None:
+def _write_chunks(archive: zipfile.ZipFile, name: str, chunks: _Ahead) -> None:
     """``name`` (``X.npy``) as ``X.npy.blosc``, the Blosc ``chunks`` one after another, stored as they are,
-    and ``X.lengths.npy``, each chunk's bytes (<i8); ``nbytes``: about the bytes they hold."""
+    and ``X.lengths.npy``, each chunk's bytes (<i8)."""
     lengths = []
-    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w", force_zip64=nbytes > 2**30) as entry:
+    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w", force_zip64=chunks.nbytes > 2**30) as entry:
         for chunk in chunks:
             entry.write(chunk)
             lengths.append(len(chunk))
