@@ -1,5 +1,5 @@
 """Bytes and seconds of fields' basis codes as the field file stores them (format 5, ``io.codes``:
-zigzag row differences in byte planes, a Zstandard frame per image) against format 4's layout (row
+zigzag row differences in byte planes, a Blosc chunk per image) against format 4's layout (row
 differences without the zigzag, raw deflate run-length only, a sync-flushed piece per image); and
 each field's bytes and ``save_field`` seconds as this version writes it.
 
@@ -8,7 +8,7 @@ each field's bytes and ``save_field`` seconds as this version writes it.
 The first table: each stack's every ``--every``-th basis image made into its stored form and
 compressed as each layout stores it, one image at a time on one thread (the rate search's unit of
 work), best of ``--repeat``; the totals. The second: the field loaded and saved again (best and
-median of ``--repeat``), once with every image's frame kept as the fit's rate search keeps them (the
+median of ``--repeat``), once with every image's chunk kept as the fit's rate search keeps them (the
 save after a fit) and once with none (a loaded field saved again: the codes compressed in threads).
 Format 4's field bytes and save seconds come from running the same save with a version that writes
 format 4 (``benchmarks/README.md`` gives both).
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from warp_highlights.io.codes import CompressedCodes, compressed_frame, stored_codes
+from warp_highlights.io.codes import CompressedCodes, compressed_chunk, stored_codes
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
 
 
@@ -47,8 +47,8 @@ def format_4_bytes(codes: np.ndarray) -> int:
 
 
 def format_5_bytes(codes: np.ndarray) -> int:
-    """This version's bytes of one image: the Zstandard frame of its stored form."""
-    return len(compressed_frame(stored_codes(codes)))
+    """This version's bytes of one image: the Blosc chunk of its stored form."""
+    return len(compressed_chunk(stored_codes(codes)))
 
 
 def timed(function, items: list, repeat: int) -> tuple[int, float]:
@@ -61,8 +61,8 @@ def timed(function, items: list, repeat: int) -> tuple[int, float]:
     return total, best
 
 
-def with_kept_frames(field):
-    """The field with every basis image's frame kept, as the fit's rate search leaves its stacks."""
+def with_kept_chunks(field):
+    """The field with every basis image's chunk kept, as the fit's rate search leaves its stacks."""
     residual = field.residual
     if residual is None:
         return field
@@ -73,7 +73,7 @@ def with_kept_frames(field):
             continue
         kept = CompressedCodes()
         stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
-        kept.keep({CompressedCodes.key(image): compressed_frame(image) for image in stored})
+        kept.keep({CompressedCodes.key(image): compressed_chunk(image) for image in stored})
         stacks[name] = dataclasses.replace(stack, deflated=kept)
     return dataclasses.replace(field, residual=dataclasses.replace(residual, **stacks))
 
@@ -112,11 +112,11 @@ def main() -> None:
             print(f"| {path.name} | {name} | {stack.bits}-bit {stack.codes.shape[1]}x{stack.codes.shape[2]} | {len(images)} | "
                   f"{before / 1e6:.3f} MB | {after / 1e6:.3f} MB | {after / before:.1%} | {before_s:.3f} | {after_s:.3f} | {before_s / after_s:.1f}x |")
     print()
-    print(f"| field | format | field bytes | codes bytes | save, frames kept: best / median s | save, none kept: best / median s |")
+    print("| field | format | field bytes | codes bytes | save, chunks kept: best / median s | save, none kept: best / median s |")
     print("|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
         for path, field in fields.items():
-            kept_best, kept_median, size, codes = save_seconds(with_kept_frames(field), Path(folder), args.repeat)
+            kept_best, kept_median, size, codes = save_seconds(with_kept_chunks(field), Path(folder), args.repeat)
             plain_best, plain_median, _, _ = save_seconds(field, Path(folder), args.repeat)
             print(f"| {path.name} | {FORMAT_VERSION} | {size:,} | {codes:,} | {kept_best:.3f} / {kept_median:.3f} | {plain_best:.3f} / {plain_median:.3f} |")
 

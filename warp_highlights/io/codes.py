@@ -21,8 +21,9 @@ another, the chunks are that ``.npy`` file. A chunk per image lets the images be
 threads and lets the rate search measure each image's exact share of the entry; ``CompressedCodes``
 keeps the chunks that search made last, and the field writer stores those rather than compressing
 the same codes again. Against zlib's run-length-only deflate of the row differences (format 4),
-the 16-bit dome codes take 76% of the bytes and the 8-bit statue's 96%, compressed 4-6 times faster
-on one thread (``benchmarks/bench_codes.py``).
+the 16-bit codes of the dome sample and the 250-light 480x270 donut take 76% and 82-90% of the
+bytes, the 8-bit statue's 96-97%, compressed 1.6-3.4 times faster on one thread
+(``benchmarks/bench_codes.py``).
 
 Format version 4 stored the row differences without the zigzag (``codes_from_differences`` reads
 them) in a deflated ``.npy`` entry, which the zip reader inflates as any other.
@@ -41,8 +42,8 @@ __all__ = ["CODES_LEVEL", "CompressedCodes", "chunk_size", "codes_from_differenc
            "stored_codes", "stored_shape"]
 
 CODES_LEVEL = 1
-"""Zstandard level inside each basis image's Blosc chunk (on the benchmarks' codes, levels 3 and 5 gave
-98-103% and 97-99% of level 1's bytes in 2-3 and 4-6 times its seconds)."""
+"""Zstandard level inside each basis image's Blosc chunk (on the dome's and the statue's codes, levels 3
+and 5 gave 101-103% and 97-100% of level 1's bytes in 2-3 and 4-6 times its seconds)."""
 
 
 def stored_shape(rank: int, planes: int, height: int, width: int, bits: int) -> tuple:
