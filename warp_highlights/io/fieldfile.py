@@ -5,9 +5,10 @@ The model it stores is :class:`warp_highlights.model.field.HighlightField` (meth
 File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
 entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
-zip (``numpy.load`` can open those), or, for the basis codes and arrays of 16 MiB or more, the
+zip (``numpy.load`` can open those), or, for the basis codes and arrays of 64 KiB or more, the
 ``.npy`` file in Blosc chunks (``numcodecs.Blosc``), stored as they are in ``X.npy.blosc``, with each
-chunk's bytes in ``X.lengths.npy``: the chunks decoded one after another are the ``.npy`` file.
+chunk's bytes in ``X.lengths.npy``: the chunks decoded one after another are the ``.npy`` file. The
+table names each array ``X.npy`` whichever way it is stored.
 
 ==============================  ===============  =================================================
 entry                           dtype, shape     contents
