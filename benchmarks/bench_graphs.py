@@ -24,10 +24,10 @@ PARAMETERS = ("amplitude", "mean", "sigma", "theta", "active")
 
 def main() -> None:
     import warp as wp
-    from warp_highlights.kernels.segmentation import segment
 
     from warp_highlights.fit.estimation import estimate
     from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.kernels.segmentation import segment
     from warp_highlights.model.config import EstimationSettings
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -31,10 +31,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_quality import BASELINES, SIZES, load_case  # noqa: E402
-from warp_highlights.kernels import neural  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
 from warp_highlights.io.fieldfile import save_field  # noqa: E402
+from warp_highlights.kernels import neural  # noqa: E402
 from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
 from warp_highlights.relight.relighter import Relighter
 from warp_highlights.residual.decode import learned_images  # noqa: E402

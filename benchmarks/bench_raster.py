@@ -34,7 +34,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from warp_highlights.kernels import losses, optim
 from warp_highlights.kernels.raster import Rasterizer
-
 from warp_highlights.model.config import RasterSettings, rpx_to_normalized
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 

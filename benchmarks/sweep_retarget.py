@@ -26,14 +26,13 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from warp_highlights.kernels.raster import Rasterizer
-from warp_highlights.kernels.segmentation import segment
-
 from warp_highlights.fit.estimation import estimate, psnr
 from warp_highlights.fit.paths import decide_paths
 from warp_highlights.fit.retargeting import retarget
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.resample import resize_stack
+from warp_highlights.kernels.raster import Rasterizer
+from warp_highlights.kernels.segmentation import segment
 from warp_highlights.model.config import FitSettings
 from warp_highlights.model.field import HighlightField
 from warp_highlights.model.gaussians import GaussianBatch

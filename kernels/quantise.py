@@ -1,7 +1,7 @@
 """The residual's basis images held and quantised on a Warp device: the codes of ``model.residual``'s
 rounding (``codes_in_place``: ``round((v - low) / step)`` in float64, halves to even, clipped to
-[0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, 16-bit
-differences as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
+[0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, zigzag-mapped,
+16-bit values as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
 principal images. The host keeps no copy of those: their extremes (``extremes``) and the mean image
 (``rows``) come down, and the codes; nothing else.
 
@@ -9,7 +9,7 @@ The arithmetic is the host's (a float32 value is exact in float64, the subtracti
 are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), so the codes are the
 host's bit for bit (``tests/test_quantise.py``). On the lent H100 a 3840x2160 capture's rate search
 quantised its 297 basis planes (2.5 G values) twice on the host's 16 threads, about 8 s of its 36 s
-compression; here it is a launch, and the host only deflates.
+compression; here it is a launch, and the host only compresses.
 """
 
 from __future__ import annotations
@@ -39,20 +39,29 @@ def stored_rows(basis: wp.array2d(dtype=wp.float32), width: int, planes: int, ro
                 above: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
                 levels: wp.float64, wide: int, out: wp.array(dtype=wp.uint8)):
     """Thread (j, p, r, x): image j's plane p at row ``rows[r]``, column x, stored as the file stores it:
-    its code less the code at row ``above[r]`` (-1: none), modulo 2^bits; ``out`` is (images, P, R, W),
-    or (images, P, 2, R, W) with the high bytes first where ``wide`` (16 bits)."""
+    its code less the code at row ``above[r]`` (-1: none), modulo 2^bits, zigzag-mapped (the signed
+    difference d as 2d, or -2d - 1 below 0); ``out`` is (images, P, R, W), or (images, P, 2, R, W)
+    with the high bytes first where ``wide`` (16 bits)."""
     j, p, r, x = wp.tid()
     count = rows.shape[0]
     value = _code(basis[j, (rows[r] * width + x) * planes + p], low[j], step[j], levels)
     if above[r] >= 0:
         value = value - _code(basis[j, (above[r] * width + x) * planes + p], low[j], step[j], levels)
+    modulus = 256
     if wide != 0:
-        difference = (value + 65536) % 65536
+        modulus = 65536
+    difference = (value + modulus) % modulus  # modulo 2^bits, then read as a signed difference
+    if difference >= modulus / 2:
+        difference = difference - modulus
+    zigzag = 2 * difference
+    if difference < 0:
+        zigzag = -2 * difference - 1
+    if wide != 0:
         at = ((j * planes + p) * 2 * count + r) * width + x
-        out[at] = wp.uint8(difference / 256)
-        out[at + count * width] = wp.uint8(difference % 256)
+        out[at] = wp.uint8(zigzag / 256)
+        out[at + count * width] = wp.uint8(zigzag % 256)
     else:
-        out[((j * planes + p) * count + r) * width + x] = wp.uint8((value + 256) % 256)
+        out[((j * planes + p) * count + r) * width + x] = wp.uint8(zigzag)
 
 
 @wp.kernel

@@ -43,8 +43,8 @@ from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
-from .tape import active_tape
 from .losses import log_l1_factor, log_l1_gradient
+from .tape import active_tape
 
 __all__ = [
     "LAUNCH_PIXELS",

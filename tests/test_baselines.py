@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+
 from reference import (
     baseline_terms,
     gaussian_rbf,
@@ -14,7 +15,6 @@ from reference import (
     relit_planes,
 )
 from warp_highlights.kernels import baselines as kernels
-
 from warp_highlights.model.errors import InputError
 from warp_highlights.relight import (
     BASELINE_METHODS,

@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 import warp as wp
+
 from warp_highlights.kernels.chunks import (
     Cancelled,
     map_chunks,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gaussian_cases import random_params
 
+from gaussian_cases import random_params
 from warp_highlights.model.components import (
     ConnectedComponents,
     _exterior_distance,

@@ -459,7 +459,6 @@ def test_fit_loads_only_what_it_uses_at_its_working_size(small_donut, tmp_path, 
     """``fit`` skips the held-out ground truth and shrinks each image as it is decoded; the report
     keeps the files' size."""
     from conftest import TINY_FIT
-
     from warp_highlights.cli import main
     from warp_highlights.io import dataset as dataset_module
     from warp_highlights.io.fieldfile import load_field

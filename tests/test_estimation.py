@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from warp_highlights.kernels.raster import Rasterizer
-from warp_highlights.kernels.segmentation import segment
 
 from warp_highlights.fit.estimation import (
     _Estimator,
@@ -14,6 +12,8 @@ from warp_highlights.fit.estimation import (
     psnr,
 )
 from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.kernels.raster import Rasterizer
+from warp_highlights.kernels.segmentation import segment
 from warp_highlights.model.config import EstimationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams

@@ -348,7 +348,6 @@ def test_renderer_from_meta_reproduces_the_datasets_images(donut):
 def exposed(small_donut):
     """A field fitted with exposure 2 (its radiance is twice the dataset's), at half size."""
     from conftest import FAST_FIT
-
     from warp_highlights.fit.pipeline import fit_field
     from warp_highlights.model.config import FitSettings
 
@@ -379,7 +378,6 @@ def test_full_psnr_of_every_method_is_in_the_datasets_units(exposed):
 def test_evaluate_the_real_dome_capture_at_its_test_lights(data_root, tmp_path):
     """SynthRTI: fit the 49 dome lights at 80x80, score the 20 held-out Test lights (full images only)."""
     from conftest import FAST_FIT
-
     from warp_highlights.cli import main
 
     sample = data_root / "synthrti-object1-material5"

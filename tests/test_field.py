@@ -10,25 +10,14 @@ import json
 import os
 import re
 import zipfile
-import zlib
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
-import warp_highlights.io.deflate as deflate_module
 from warp_highlights.io import fieldfile
-from warp_highlights.io.deflate import ParallelDeflate
-from warp_highlights.io.fieldfile import (
-    FORMAT_VERSION,
-    MAGIC,
-    field_size_report,
-    load_field,
-    save_field,
-)
+from warp_highlights.io.fieldfile import FORMAT_VERSION, MAGIC, field_size_report, load_field, save_field
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.field import DiffuseModel, HighlightField
 from warp_highlights.model.gaussians import GaussianParams
@@ -476,6 +465,23 @@ def rewrite(data: bytes, path, *, header=None, drop=(), **arrays) -> None:
 
 def read_entry(data: bytes, name: str) -> np.ndarray:
     return np.load(io.BytesIO(entries(data)[name]))
+
+
+def npy_entries(data: bytes) -> dict:
+    """The ``.npy`` file of every array of a field file, by array name (``X.npy``): a deflated entry's
+    bytes, or a chunked entry's Blosc chunks (``X.npy.blosc``, lengths in ``X.lengths.npy``) decoded."""
+    from numcodecs import Blosc
+
+    contents = entries(data)
+    arrays = {}
+    for name, blob in contents.items():
+        if name.endswith(".npy.blosc"):
+            lengths = np.load(io.BytesIO(contents[name.removesuffix(".npy.blosc") + ".lengths.npy"]))
+            ends = np.cumsum(lengths)
+            arrays[name.removesuffix(".blosc")] = b"".join(bytes(Blosc().decode(blob[end - length : end])) for end, length in zip(ends, lengths))
+        elif name.endswith(".npy") and not (name.endswith(".lengths.npy") and name.replace(".lengths.npy", ".npy.blosc") in contents):
+            arrays[name] = blob
+    return arrays
 
 
 def test_rewrite_helper_round_trips(saved, tmp_path):
@@ -997,77 +1003,111 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
 
     again = tmp_path / "again.whf"
     save_field(field, again)
-    old, new = entries(path.read_bytes()), entries(again.read_bytes())
+    old_header, new_header = (json.loads(entries(data)["header.json"]) for data in (path.read_bytes(), again.read_bytes()))
+    old, new = npy_entries(path.read_bytes()), npy_entries(again.read_bytes())
     assert list(new) == list(old)
-    old_header, new_header = json.loads(old.pop("header.json")), json.loads(new.pop("header.json"))
     assert old_header.pop("library_version") == "0.1.0"
     new_header.pop("library_version")
     # version 2 adds the residual layout and the moving flag; a version-1 field has neither
     assert new_header == {**old_header, "format_version": FORMAT_VERSION, "residual": None, "moving": False}
-    assert new == old  # every array entry byte for byte
+    assert new == old  # every array's .npy file byte for byte
 
 
-# --- deflate in threads ---------------------------------------------------------------------------
+# --- large arrays in Blosc chunks ------------------------------------------------------------------
 
 
-@given(data=st.binary(min_size=0, max_size=20_000), repeat=st.integers(1, 6), split=st.integers(1, 7_000), threads=st.integers(1, 4),
-       strategy=st.sampled_from([zlib.Z_DEFAULT_STRATEGY, zlib.Z_RLE]))
-@settings(max_examples=60, deadline=None)
-def test_parallel_deflate_inflates_to_its_input_however_it_is_fed(data, repeat, split, threads, strategy, monkeypatch_module):
-    """Pieces of 1,000 bytes (forced) deflated in threads, each primed with the 32 KiB before it: one
-    raw deflate stream that inflates to the input, whatever the compress() calls' sizes (zlib's default
-    strategy, and run-length only as the basis codes use)."""
-    data = data * repeat
-    compressor = ParallelDeflate(6, strategy=strategy, threads=threads)
-    stream = b"".join(compressor.compress(data[i : i + split]) for i in range(0, len(data), split)) + compressor.flush()
-    whole = ParallelDeflate(6, strategy=strategy, threads=threads)
-    assert whole.compress(data) + whole.flush() == stream  # the same bytes, however it was fed
-    inflate = zlib.decompressobj(-15)
-    assert inflate.decompress(stream) + inflate.flush() == data and inflate.eof
+def test_large_arrays_are_chunked_npy_entries_that_load_the_same(small_field, tmp_path, monkeypatch):
+    """Arrays of ``_CHUNKED_BYTES`` or more (made small here: the diffuse images, the residual's means)
+    are stored as ``.npy.blosc`` entries (the ``.npy`` file in Blosc chunks, stored as they are, their
+    lengths in ``.lengths.npy``), the others deflated by the zip; the field loads the same, the file is
+    the same whatever the threads, and every entry's CRC holds."""
+    from numcodecs import Blosc
 
-
-@pytest.fixture(scope="module")
-def monkeypatch_module():
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(deflate_module, "PIECE_BYTES", 1_000)
-        yield patch
-
-
-def test_entries_deflated_ahead_in_threads_make_the_file_the_zip_writer_makes(small_field, tmp_path, monkeypatch):
-    """The smaller arrays' entries, made and deflated in threads before the writer stores them, are the bytes the
-    zip writer's own compressor makes of them: the file is the same byte for byte, and its CRCs check."""
     field = load_field(small_field)
-    made, stored = [], []
-    real, real_compress = fieldfile._deflated_npy, fieldfile._Deflated.compress
-    # Fortran order too
-    monkeypatch.setattr(fieldfile, "_deflated_npy", lambda array: made.append(1) or real(np.asfortranarray(array)))
-    monkeypatch.setattr(fieldfile._Deflated, "compress", lambda self, data: stored.append(len(self.deflated)) or real_compress(self, data))
-    save_field(field, tmp_path / "ahead.whf")
-    assert len(made) >= 10  # the Gaussians, the paths, the residual's means, ranges, weights, scale and colour
-    assert len(stored) == len(made) and all(stored)  # each stored as deflated ahead, not deflated again
-    monkeypatch.setattr(fieldfile, "_deflated_ahead", lambda array: False)
-    save_field(field, tmp_path / "written.whf")
-    assert (tmp_path / "ahead.whf").read_bytes() == (tmp_path / "written.whf").read_bytes()
-    with zipfile.ZipFile(tmp_path / "ahead.whf") as archive:
+    monkeypatch.setattr(fieldfile, "_CHUNKED_BYTES", 4096)
+    monkeypatch.setattr(fieldfile, "_CHUNK_BYTES", 5000)  # several chunks an array
+    path = tmp_path / "chunked.whf"
+    save_field(field, path)
+    with zipfile.ZipFile(path) as archive:
         assert archive.testzip() is None
-
-
-def test_a_field_deflated_in_threads_loads_the_same_and_is_as_small(small_field, tmp_path, monkeypatch):
-    field = load_field(small_field)
-    serial = tmp_path / "serial.whf"
-    monkeypatch.setattr(fieldfile, "_PARALLEL_BYTES", 1 << 60)
-    save_field(field, serial)
-    threaded = tmp_path / "threaded.whf"
-    monkeypatch.setattr(fieldfile, "_PARALLEL_BYTES", 1)  # every array
-    monkeypatch.setattr(fieldfile, "NUMPY_THREADS", 4)
-    monkeypatch.setattr(deflate_module, "PIECE_BYTES", 1 << 16)  # the larger arrays (diffuse images: 1 MB) in 16 pieces
-    save_field(field, threaded)
-    with zipfile.ZipFile(threaded) as archive:
-        assert archive.testzip() is None  # every entry inflates and its CRC holds
-        with zipfile.ZipFile(serial) as reference:
-            for name in reference.namelist():
-                assert archive.read(name) == reference.read(name), name
-    assert abs(threaded.stat().st_size - serial.stat().st_size) < 0.01 * serial.stat().st_size
-    again = load_field(threaded)
+        infos = {info.filename: info for info in archive.infolist()}
+        assert "diffuse/images.npy.blosc" in infos and "diffuse/images.npy" not in infos
+        assert infos["diffuse/images.npy.blosc"].compress_type == zipfile.ZIP_STORED
+        assert infos["gaussians/estimated_counts.npy"].compress_type == zipfile.ZIP_DEFLATED
+        raw = archive.read("diffuse/images.npy.blosc")
+        lengths = np.load(io.BytesIO(archive.read("diffuse/images.lengths.npy")))
+    assert len(lengths) > 3 and lengths.sum() == len(raw)
+    ends = np.cumsum(lengths)
+    npy = b"".join(bytes(Blosc().decode(raw[end - length : end])) for end, length in zip(ends, lengths))
+    np.testing.assert_array_equal(np.load(io.BytesIO(npy)), field.diffuse.images.transpose(0, 3, 1, 2).astype("<f2"))
+    again = load_field(path)
+    assert_fields_equal(field, again, lambert_exact=False)
+    np.testing.assert_array_equal(again.diffuse.images, field.diffuse.images)
     np.testing.assert_array_equal(again.residual.luminance.codes, field.residual.luminance.codes)
-    np.testing.assert_array_equal(again.estimated.mean, field.estimated.mean)
+    assert save_field(field, tmp_path / "again.whf") and (tmp_path / "again.whf").read_bytes() == path.read_bytes()
+    monkeypatch.setattr(fieldfile, "NUMPY_THREADS", 1)
+    save_field(field, tmp_path / "one.whf")
+    assert (tmp_path / "one.whf").read_bytes() == path.read_bytes()
+
+
+def test_a_cut_or_damaged_chunked_entry_is_a_corrupt_file(small_field, tmp_path, monkeypatch):
+    field = load_field(small_field)
+    monkeypatch.setattr(fieldfile, "_CHUNKED_BYTES", 4096)
+    path = tmp_path / "chunked.whf"
+    save_field(field, path)
+    data = path.read_bytes()
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo("diffuse/images.npy.blosc")
+    start = info.header_offset + 30 + len(info.filename)
+    for position in (start + 20, start + info.compress_size // 2, start + info.compress_size - 3):
+        damaged = bytearray(data)
+        damaged[position] ^= 0x21
+        path.write_bytes(bytes(damaged))
+        assert "corrupt field file" in load_error(path)
+    path.write_bytes(data[: start + info.compress_size // 2])
+    assert "truncated or corrupt" in load_error(path)
+    rewrite(data, path, drop=("diffuse/images.lengths.npy",))
+    assert "diffuse/images.lengths.npy is missing" in load_error(path)
+
+
+# --- a version-4 file --------------------------------------------------------------------------------
+
+
+def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
+    """tests/data/legacy-v4.whf (format 4: the basis codes' row differences deflated run-length only)
+    loads the codes it was written with (their SHA-256 taken by that version), relights to the images
+    that version relit, and is written back in the current format with every array the same."""
+    import hashlib
+
+    from warp_highlights.relight.relighter import Relighter
+
+    path = LEGACY / "legacy-v4.whf"
+    with zipfile.ZipFile(path) as archive:
+        assert json.loads(archive.read("header.json"))["format_version"] == 4
+        assert "residual/Y_codes.npy" in archive.namelist()
+    field = load_field(path)
+    luminance, chroma = field.residual.luminance, field.residual.chroma
+    assert luminance.codes.shape == (8, 24, 40, 1) and luminance.codes.dtype == np.uint16 and chroma.rank == 0
+    assert hashlib.sha256(luminance.codes.tobytes()).hexdigest() == "598d2c92922649fa91e1ce7d604a3a4185161f6d0a32045ccc5b4c4cbc718cd9"
+    assert field_size_report(field)["total"] == path.stat().st_size == 26937
+
+    expected = np.load(LEGACY / "legacy-v4-relit.npz")
+    for method in ("circular", "straight"):
+        relit = Relighter(field, device="cpu", diffuse="auto", scale=1.0 / field.exposure).relight(expected["directions"], method=method)
+        np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
+
+    again = tmp_path / "again.whf"
+    save_field(field, again)
+    old_header, new_header = (json.loads(entries(data)["header.json"]) for data in (path.read_bytes(), again.read_bytes()))
+    assert new_header["format_version"] == FORMAT_VERSION == 5
+    for header in (old_header, new_header):
+        header.pop("format_version"), header.pop("library_version")
+    assert new_header == old_header
+    old, new = npy_entries(path.read_bytes()), npy_entries(again.read_bytes())
+    assert list(new) == list(old)
+    for name in ("residual/Y_codes.npy", "residual/C_codes.npy"):  # the same codes, stored anew
+        assert np.load(io.BytesIO(new.pop(name))).shape == np.load(io.BytesIO(old.pop(name))).shape
+    assert new == old  # every other array's .npy file byte for byte
+    reloaded = load_field(again)
+    np.testing.assert_array_equal(reloaded.residual.luminance.codes, luminance.codes)

@@ -8,8 +8,8 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import FAST_FIT
 
+from conftest import FAST_FIT
 from warp_highlights.cli import main
 from warp_highlights.io.fieldfile import load_field, save_field
 from warp_highlights.relight.interpolation import interpolate_sets
@@ -293,10 +293,9 @@ def test_a_fit_segmented_in_row_bands_is_the_whole_fit(small_donut, monkeypatch)
     enough for bands of 7 rows beside the parts held whole), the fit segments it in row bands; the
     field is the untiled fit's, bit for bit (the specular part, kept as float16 in host bands, only
     sets the highlight colour, 8 bits over [0, 4])."""
-    from warp_highlights.kernels.chunks import DEVICE_SHARE
-
     import warp_highlights.fit.pipeline as pipeline
     from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.kernels.chunks import DEVICE_SHARE
     from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
@@ -346,9 +345,8 @@ def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small
     until an image is decoded, or 2 s); under -v the loading waits for it (Warp's own messages)."""
     import threading
 
-    import warp_highlights.kernels.warmup as warmup_module
-
     import warp_highlights.io.dataset as dataset_module
+    import warp_highlights.kernels.warmup as warmup_module
 
     order, decoded = [], threading.Event()
     real_warm, real_reads = warmup_module.DeviceWarmup._warm, {name: getattr(dataset_module, name) for name in ("read_image", "read_pixels")}
@@ -395,9 +393,8 @@ def test_progress_bars_take_a_thread_lock_alone(small_donut, tmp_path):
 def test_a_small_capture_s_images_are_held_from_the_segmentation_s_upload(small_donut, tmp_path, monkeypatch):
     """On CUDA the move check and the residual's stacks read the images the segmentation sent up and the own
     highlights as rendered there: ``hold_images`` is handed those very arrays (nothing sent up again)."""
-    from conftest import TINY_FIT
-
     import warp_highlights.fit.pipeline as pipeline
+    from conftest import TINY_FIT
 
     kept, handed = [], []
     real_segment, real_hold = pipeline.segment_in_bands, pipeline.hold_images

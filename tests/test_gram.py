@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from warp_highlights.kernels.gram import DeviceProducts
 
+from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.residual.build import NormalisedResidual
 from warp_highlights.residual.principal import PrincipalImages
 from warp_highlights.residual.quantise import quantised_stack

@@ -7,9 +7,9 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import FAST_FIT
 from PIL import Image, ImageCms, ImageOps
 
+from conftest import FAST_FIT
 from warp_highlights.cli import main
 from warp_highlights.io import images as images_module
 from warp_highlights.io.dataset import ReflectanceField

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY_FIT
 
+from conftest import TINY_FIT
 from warp_highlights.cli import main
 
 pytestmark = pytest.mark.slow

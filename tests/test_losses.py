@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 import warp as wp
+
+import reference
 from gaussian_cases import central_differences, inside_params
 from warp_highlights.kernels import losses
 from warp_highlights.kernels.raster import Rasterizer
-
 from warp_highlights.model.config import StructureLossSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+
 from conftest import FAST_FIT
 
 SPHERE_ALBEDO = 0.6  # default_material("sphere")

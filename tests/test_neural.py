@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 import warp as wp
+
+import reference
 from conftest import FAST_FIT
 from warp_highlights.kernels import neural
-
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import (
     NEURAL_LAYER_SHAPES,

@@ -10,6 +10,7 @@ import time
 import types
 
 import pytest
+
 from conftest import PROJECT_ROOT
 
 nbformat = pytest.importorskip("nbformat", reason="pip install -e '.[test]' brings nbformat, nbclient and ipykernel")

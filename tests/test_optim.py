@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+
 from gaussian_cases import random_params
 from warp_highlights.kernels import losses
 from warp_highlights.kernels.optim import GaussianAdam
 from warp_highlights.kernels.raster import Rasterizer
-
 from warp_highlights.model.config import AdamSettings, rpx_to_normalized
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams

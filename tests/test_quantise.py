@@ -10,13 +10,13 @@ import time
 import numpy as np
 import pytest
 import warp as wp
+
 import warp_highlights.kernels.quantise as quantise
 import warp_highlights.kernels.rows as rows_module
+import warp_highlights.residual.rate as residual_module
+from warp_highlights.io.codes import CompressedCodes, stored_codes
 from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.kernels.quantise import DeviceBasis
-
-import warp_highlights.residual.rate as residual_module
-from warp_highlights.io.codes import DeflatedCodes, stored_codes
 from warp_highlights.model.residual import code_levels
 from warp_highlights.residual.principal import PrincipalImages
 from warp_highlights.residual.quantise import codes_in_place, quantised_stack
@@ -126,7 +126,7 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
     principal images are quantised on the device or on the host (the same directions: the host's are
     the device's, copied down). The sample is two bands of rows with a gap between them; two images
     a group (a fresh measurement of six: three groups in two slots of host memory used in turn, each
-    slot's deflates slowed so that one filled again before they end would be caught)."""
+    slot's compressions slowed so that one filled again before they end would be caught)."""
     monkeypatch.setattr(residual_module, "_RATE_MIN_VALUES", 64)
     monkeypatch.setattr(residual_module, "_RATE_SHARE", 0.125)  # two bands of these images' rows
     monkeypatch.setattr(residual_module, "NUMPY_THREADS", 2)
@@ -145,13 +145,13 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         # fewer images into the memory kept
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)
-        # deflates that read their slot late: a slot filled again too early gives other bytes
+        # compressions that read their slot late: a slot filled again too early gives other bytes
         with monkeypatch.context() as slow:
-            real = residual_module.deflated_piece
-            slow.setattr(residual_module, "deflated_piece", lambda data: time.sleep(0.02) or real(data))
+            real = residual_module.compressed_chunk
+            slow.setattr(residual_module, "compressed_chunk", lambda data: time.sleep(0.02) or real(data))
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
             np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
-    kept_there, kept_host = DeflatedCodes(), DeflatedCodes()
+    kept_there, kept_host = CompressedCodes(), CompressedCodes()
     assert quantised_bytes(there, steps, bits=bits, keep=kept_there) == quantised_bytes(host, steps, bits=bits, keep=kept_host)
     assert kept_there._kept == kept_host._kept
     a, b = quantised_stack(there, steps, bits=bits), quantised_stack(host, steps, bits=bits)

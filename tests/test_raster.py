@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 import warp as wp
+
+import reference
 from gaussian_cases import central_differences, inside_params, random_params
 from warp_highlights.kernels.raster import (
     LAUNCH_PIXELS,
     Rasterizer,
     problems_per_launch,
 )
-
 from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams

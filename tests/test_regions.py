@@ -13,9 +13,9 @@ import warp as wp
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
+
 from warp_highlights.kernels.losses import clipped_mse
 from warp_highlights.kernels.regions import ResidualRegions
-
 from warp_highlights.model.errors import InputError
 from warp_highlights.quality.metrics import psnr, psnr_of_mse
 

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY_FIT
 
+from conftest import TINY_FIT
 from warp_highlights.cli import main
 
 SMALL_RENDER = ["--size", "32x18", "--samples", "1", "--heldout", "none", "--device", "cpu"]

@@ -4,18 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import reference
 import warp as wp
+
+import reference
 from gaussian_cases import inside_params
 from reference import render as reference_render
-from warp_highlights.kernels.raster import Rasterizer
-
 from warp_highlights.fit.paths import decide_paths
 from warp_highlights.io.fieldfile import load_field, save_field
 from warp_highlights.io.resample import (
     resample_image,
     resize_stack,
 )
+from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.model.config import FitSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.field import DiffuseModel, HighlightField
@@ -129,7 +129,6 @@ def test_circular_and_straight_differ_only_in_the_means(sphere_field):
 
 def test_arc_position_kernel_matches_the_path_identity(device):
     from warp_highlights.kernels.interpolation import arc_position
-
     from warp_highlights.model.arcs import circular_position, path_centre
 
     rng = np.random.default_rng(8)

@@ -154,7 +154,6 @@ def test_relight_alpha_with_the_dataset(small_field, small_donut, field, tmp_pat
 def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path):
     """With a field fitted with an exposure, --method alpha still writes the dataset's units."""
     from conftest import FAST_FIT
-
     from warp_highlights.fit.pipeline import fit_field
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.io.resample import resize_stack

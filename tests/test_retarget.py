@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.raster import Rasterizer
-from warp_highlights.kernels.retarget import RigidMotion, gather_images
-from warp_highlights.kernels.segmentation import segment
-from warp_highlights.kernels.tape import recording
 
 from warp_highlights.fit.estimation import estimate
 from warp_highlights.fit.retargeting import retarget
 from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.kernels.raster import Rasterizer
+from warp_highlights.kernels.retarget import RigidMotion, gather_images
+from warp_highlights.kernels.segmentation import segment
+from warp_highlights.kernels.tape import recording
 from warp_highlights.model.config import RasterSettings, RetargetSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams

@@ -8,10 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.scores import _code, prediction_errors
-from warp_highlights.kernels.transfer import rows_up
 
 from warp_highlights.io.images import display_rgb8, linear_to_srgb
+from warp_highlights.kernels.scores import _code, prediction_errors
+from warp_highlights.kernels.transfer import rows_up
 from warp_highlights.quality.metrics import psnr_8bit
 
 RNG = np.random.default_rng(31)
@@ -166,7 +166,6 @@ def test_selected_rows_go_up_in_their_order(device, staged, monkeypatch):
 def test_the_check_scores_on_the_device_as_on_the_host(monkeypatch):
     """``check_moving`` on CUDA (scored by ``kernels.scores``) against the host's scoring of the same lights."""
     import test_validation as scene
-
     import warp_highlights.fit.validation as validation
 
     directions, edges, estimated, own, images = scene._scene()

@@ -5,6 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+
+from warp_highlights.fit.estimation import psnr
+from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.kernels.segmentation import (
     _MEDIAN_BISECTIONS,
     _lambert,
@@ -14,9 +17,6 @@ from warp_highlights.kernels.segmentation import (
     segment,
     segment_in_bands,
 )
-
-from warp_highlights.fit.estimation import psnr
-from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.model.config import SegmentationSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
@@ -188,6 +188,7 @@ def test_no_diffuse_part_made_leaves_the_rest_as_it_was(device):
 
 def test_shrink_by_is_the_float64_mean_of_each_block(device):
     import warp as wp
+
     from warp_highlights.kernels.segmentation import shrink_by
 
     values = np.random.default_rng(8).uniform(0, 3, (3, 12, 18)).astype(np.float32)
@@ -230,6 +231,7 @@ def test_bands_keep_the_luminance_on_the_device_shrunk_there(device):
 
 def test_non_finite_pixels_are_counted_on_the_device(device):
     import warp as wp
+
     from warp_highlights.kernels.segmentation import count_non_finite
 
     values = np.ones((4, 50), np.float32)

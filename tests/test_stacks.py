@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+
 import warp_highlights.kernels.rows as rows_module
 import warp_highlights.kernels.stacks as stacks_module
 from warp_highlights.kernels.gram import DeviceProducts
 from warp_highlights.kernels.stacks import NormalisedStacks
-
 from warp_highlights.model.config import ResidualSettings
 from warp_highlights.residual.build import build_residual
 from warp_highlights.residual.decode import light_images, stack_light_images

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from warp_highlights.kernels.transfer import rows_down, rows_up, to_host
 
+from warp_highlights.kernels.transfer import rows_down, rows_up, to_host
 from warp_highlights.model import threads
 
 

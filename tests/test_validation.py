@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from reference import render as render_reference
 
+from reference import render as render_reference
 from warp_highlights.fit.validation import (
     check_moving,
     leave_one_out,
@@ -159,9 +159,8 @@ def test_gaussians_that_stay_predict_what_blending_predicts():
 def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights(small_donut, monkeypatch):
     """For left-out lights of a real fit (retargeted missing edges, Gaussians that stay, highlight colour),
     the check's moving prediction scores what the Relighter gives for a field built over the other lights."""
-    from conftest import FAST_FIT
-
     import warp_highlights.fit.pipeline as pipeline
+    from conftest import FAST_FIT
     from warp_highlights.fit.paths import decide_paths
     from warp_highlights.fit.retargeting import restore_vanished, retarget
     from warp_highlights.io.dataset import ReflectanceField

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import warp as wp
+
 from warp_highlights.kernels.warmup import DeviceWarmup
 
 

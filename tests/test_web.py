@@ -223,7 +223,6 @@ def test_a_learned_field_offers_no_alpha_blend(browser, exported):
 def statue_field(data_root, tmp_path_factory):
     """The real statue sample, fitted small and fast through the command line (71 x 67)."""
     from conftest import TINY_FIT
-
     from warp_highlights.cli import main
 
     folder = data_root / "realrti-item11"

@@ -2,9 +2,13 @@
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (method.md section 8).
 
-File format (version 2; any file name, ``.whf`` suggested): a zip archive, deflate-compressed, written
-atomically (temporary file in the same folder, fsync, rename). Its first entry is ``header.json``; every
-other entry is a standard little-endian ``.npy`` array, so ``numpy.load`` can open the file too.
+File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
+``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
+entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
+zip (``numpy.load`` can open those), or, for the basis codes and arrays of 64 KiB or more, the
+``.npy`` file in Blosc chunks (``numcodecs.Blosc``), stored as they are in ``X.npy.blosc``, with each
+chunk's bytes in ``X.lengths.npy``: the chunks decoded one after another are the ``.npy`` file. The
+table names each array ``X.npy`` whichever way it is stored.
 
 ==============================  ===============  =================================================
 entry                           dtype, shape     contents
@@ -29,13 +33,16 @@ entry                           dtype, shape     contents
 ``residual/images.npy``         <f2 (n, C, H, W) version 2, optional: uncompressed residual images
 ``residual/Y_mean.npy``         <f2 or <f4       low-rank residual: mean plane(s) of the luminance
                                 (P, H, W)        (P = 1) and ``C_`` chroma (P = 2) stacks
-``residual/Y_codes.npy``        <u1              version 4: the 8- or 16-bit basis images of that
+``residual/Y_codes.npy.blosc``  <u1              version 5: the 8- or 16-bit basis images of that
                                 (k, P, H, W) or  stack as ``io.codes`` stores them: each row less the
-                                (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits; 16-bit
-                                                 differences as high and low byte planes; deflated
-                                                 run-length only (zlib's ``Z_RLE``), a flushed piece
-                                                 an image. Versions 2 and 3: the codes themselves,
-                                                 <u1 or <u2 (k, P, H, W)
+                                (k, P, 2, H, W)  row above (the first as it is), modulo 2^bits, zigzag-
+                                                 mapped; 16-bit values as high and low byte planes;
+                                                 a Blosc chunk for the ``.npy`` header, then one
+                                                 per basis image (``io.codes``; their lengths in
+                                                 ``Y_codes.lengths.npy``). Version 4: ``Y_codes.npy``, the
+                                                 differences without the zigzag, deflated. Versions
+                                                 2 and 3: the codes themselves, <u1 or <u2
+                                                 (k, P, H, W)
 ``residual/Y_ranges.npy``       <f4 (k, 2)       (low, high) of each basis image
 ``residual/Y_weights.npy``      <f4 (n, k)       per-light weights
 ``residual/Y_mean_weights.npy`` <f4 (n,)         per-light weight of the mean plane(s)
@@ -60,7 +67,11 @@ loads with every Gaussian moving and no residual (relighting then uses its diffu
 
 Version 2 files have no learned residual; they load unchanged.
 
-Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy``); they load unchanged.
+Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy.blosc``); they load unchanged.
+
+Version 4 files store the basis codes' row differences without the zigzag in a deflated
+``residual/Y_codes.npy`` (``io.codes.codes_from_differences`` reads them), and every array as a
+deflated ``.npy`` entry; they load unchanged.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -74,6 +85,7 @@ import math
 import os
 import zipfile
 import zlib
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -92,30 +104,38 @@ from ..model.residual import (
     colour_codes,
     colour_from_codes,
 )
-from ..model.threads import NUMPY_THREADS, cancel_and_wait, gather, submit
+from ..model.threads import NUMPY_THREADS, cancel_and_wait, submit
 from ..model.triangulation import SphericalTriangulation
 from .atomic import atomic_file, describe_os_error
 from .codes import (
-    STREAM_END,
-    DeflatedCodes,
+    CompressedCodes,
+    codes_codec,
+    codes_from_differences,
     codes_from_stored,
-    deflated_piece,
+    compressed_chunk,
     stored_codes,
     stored_shape,
 )
-from .crc import Crc32Appender
-from .deflate import ParallelDeflate
 
-__all__ = ["FORMAT_VERSION", "MAGIC", "field_size_report", "load_field", "save_field"]
+__all__ = ["FORMAT_VERSION", "MAGIC", "array_entry_bytes", "field_size_report", "load_field", "save_field"]
 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 4
-
-_PARALLEL_BYTES = 1 << 24
-"""Arrays of at least this many bytes (16 MiB: a 250-light 480x270 field's basis codes) are deflated in threads."""
+FORMAT_VERSION = 5
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
+
+_CHUNKED_BYTES = 1 << 16
+"""Arrays of at least this many bytes (64 KiB: the residual's mean, scale and colour planes of a 320x320
+field and larger, the weights and Gaussians of a few hundred lights) are stored in Blosc chunks made in
+threads before the writer reaches them; smaller ones deflated by the zip (the time a zip entry's
+deflate takes on the writer's thread, serially, was most of a dome field's save)."""
+_CHUNK_BYTES = 1 << 22  # such an array is cut into chunks of about this many bytes (4 MiB), a thread compressing each
+_ARRAY_LEVEL = 1
+"""Zstandard level inside those chunks, after Blosc's byte shuffle (float16 diffuse images of the 480x270
+donut: 82% of zlib's level-6 bytes in a fifth of its seconds; levels 3 and 5: 78% and 75% in 2 and 4 times level 1's)."""
+_CHUNKED = ".blosc"
+"""What a chunked ``.npy`` entry's name adds to the array's name (``X.npy.blosc``, its chunks' lengths in ``X.lengths.npy``)."""
 
 _HEADER = "header.json"
 _DIRECTIONS = "lights/directions.npy"
@@ -288,17 +308,23 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     header = json.dumps(
         _header(field, diffuse_layout, residual_layout), indent=1, allow_nan=False
     ).encode("utf-8")
-    # the smaller arrays' entries deflated in threads from the start, while the writer stores the ones before them
-    ahead = [submit(_deflated_npy, array) if _deflated_ahead(array) else None for _, array in arrays]
+    entries = [(name, _chunked(array)) for name, array in arrays]
+    chunked = [entry for _, entry in entries if isinstance(entry, _Ahead)]
     try:
+        for chunks in chunked:  # each chunked entry's first chunks made in threads while the writer stores the entries before it
+            chunks.start(2)
         with zipfile.ZipFile(stream, "w") as archive:
             with archive.open(_entry_info(_HEADER), "w") as entry:
                 entry.write(header)
-            for (name, array), deflated in zip(arrays, ahead):
-                _write_array(archive, name, array, deflated=deflated)
+            for name, entry in entries:
+                if isinstance(entry, _Ahead):
+                    _write_chunks(archive, name, entry)
+                else:
+                    _write_array(archive, name, entry)
             infos = archive.infolist()
-    except BaseException:  # an error or Ctrl-C: nothing left deflating behind
-        cancel_and_wait([future for future in ahead if future is not None])
+    except BaseException:  # an error or Ctrl-C: nothing left compressing behind
+        for chunks in chunked:
+            chunks.cancel()
         raise
     return _size_report(infos, stream.tell())
 
@@ -329,7 +355,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", _StoredCodes(stack)),  # row differences in byte planes, an image at a time
+            (prefix + "codes.npy", stack),  # a Blosc chunk an image (io.codes: _CodeChunks)
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -355,170 +381,141 @@ def _pack(params: GaussianParams, rows: np.ndarray, slots: np.ndarray) -> np.nda
     return np.stack(columns, axis=1).astype("<f4")
 
 
-def _entry_info(name: str) -> zipfile.ZipInfo:
+def _entry_info(name: str, compress_type: int = zipfile.ZIP_DEFLATED) -> zipfile.ZipInfo:
     info = zipfile.ZipInfo(name, date_time=_ZIP_DATE)
-    info.compress_type = zipfile.ZIP_DEFLATED
+    info.compress_type = compress_type
     info.external_attr = 0o644 << 16
     return info
 
 
-class _StoredCodes:
-    """A low-rank stack's (k, H, W, P) basis codes to be written as ``io.codes`` stores them: one uint8
-    ``.npy`` entry of ``stored_shape``, an image at a time, each image's deflated piece taken from the
-    stack's ``deflated`` (what the fit's rate search deflated) or deflated here."""
+class _Ahead:
+    """``function(i)`` for i in 0 .. ``count`` - 1, in order, made in threads at most ``2 NUMPY_THREADS``
+    ahead of the one who iterates (``start`` submits the first ones early)."""
+
+    def __init__(self, function, count: int):
+        self.function, self.count = function, count
+        self._next = 0
+        self._pending: deque = deque()
+
+    def start(self, ahead: int | None = None) -> None:
+        """Submit what is next, up to ``ahead`` (default ``2 NUMPY_THREADS``) waiting."""
+        ahead = 2 * max(1, NUMPY_THREADS) if ahead is None else ahead
+        while len(self._pending) < ahead and self._next < self.count:
+            self._pending.append(submit(self.function, self._next))
+            self._next += 1
+
+    def __iter__(self):
+        self.start()
+        while self._pending:
+            result = self._pending[0].result()
+            self._pending.popleft()
+            self.start()
+            yield result
+
+    def cancel(self) -> None:
+        """Drop what is not started, wait for what is running."""
+        cancel_and_wait(list(self._pending))
+        self._pending.clear()
+
+
+class _CodeChunks(_Ahead):
+    """A low-rank stack's (k, H, W, P) basis codes as ``io.codes`` stores them: the Blosc chunk of the
+    ``.npy`` header of the stored (``stored_shape``) uint8 array, then each image's chunk, in order,
+    taken from the stack's ``deflated`` (what the fit's rate search compressed,
+    ``io.codes.CompressedCodes``) or compressed here, in threads."""
 
     def __init__(self, stack: LowRankStack):
         self.codes = stack.codes
-        self.deflated = stack.deflated if stack.deflated is not None else DeflatedCodes()
+        self.chunks = stack.deflated if stack.deflated is not None else CompressedCodes()
         rank, height, width, planes = self.codes.shape
         self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
+        super().__init__(self._chunk, 1 + rank)
 
-    def images(self, *, pieces: bool = True):
-        """(stored codes, deflated piece or None, CRC-32 of the stored codes or None) of each basis image, in
-        order: a block of images at a time made in threads, the next block made while the caller stores
-        this one. The piece and the CRC only where ``pieces``."""
-
-        def one(code: np.ndarray) -> tuple[np.ndarray, bytes | None, int | None]:
-            stored = stored_codes(code.transpose(2, 0, 1))
-            if not pieces:
-                return stored, None, None
-            return stored, self.deflated.piece(stored), zlib.crc32(stored)  # zlib lets go of the GIL
-
-        block = max(1, NUMPY_THREADS)
-        starts = range(0, len(self.codes), block)
-        current: list = []
-        made: list = []  # the next block's images, made by the threads while the writer stores this block's
-        try:
-            for start in starts:
-                if not made:
-                    made.extend(submit(one, code) for code in self.codes[start : start + block])
-                current, made = made, []
-                made.extend(submit(one, code) for code in self.codes[start + block : start + 2 * block])  # seen by ``finally`` as it grows
-                yield from gather(current)
-        finally:  # an error or Ctrl-C while writing: what is being made waited for, not left running
-            cancel_and_wait(current + made)
+    def _chunk(self, index: int) -> bytes:
+        if index == 0:
+            return compressed_chunk(_npy_header(np.uint8, self.shape))
+        return self.chunks.piece(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))  # Blosc (off the main thread) and hashlib let go of the GIL
 
 
-class _GivenPieces:
-    """The codes entry's compressor: ``compress`` returns the piece ``given`` for the data it is handed
-    (the zip writer still sums the data's CRC), or deflates the data as a piece of its own (the
-    ``.npy`` header); ``flush`` ends the stream (``io.codes``)."""
+class _ArrayChunks(_Ahead):
+    """An array's ``.npy`` file in Blosc chunks (Zstandard at ``_ARRAY_LEVEL`` after Blosc's byte
+    shuffle): its header, then parts of about ``_CHUNK_BYTES`` (whole rows, copied in C order from
+    any strides), each compressed on a worker thread: there Blosc compresses on that thread alone, so
+    a chunk is the same bytes each time (Blosc's own threads place its blocks in the order they finish)."""
 
-    def __init__(self):
-        self.given: bytes | None = None
+    def __init__(self, array: np.ndarray):
+        from numcodecs import Blosc  # the codec, imported where an array is written in chunks
 
-    def compress(self, data) -> bytes:
-        piece, self.given = self.given, None
-        return piece if piece is not None else deflated_piece(data)
+        self.array = array
+        self.nbytes = array.nbytes
+        self.codec = Blosc(cname="zstd", clevel=_ARRAY_LEVEL, shuffle=Blosc.SHUFFLE)
+        self.rows = max(1, _CHUNK_BYTES // max(1, array[:1].nbytes))
+        super().__init__(self.chunk, 1 + -(-len(array) // self.rows))
 
-    def flush(self) -> bytes:
-        return STREAM_END
-
-
-def _write_codes(archive: zipfile.ZipFile, name: str, stored: _StoredCodes) -> None:
-    """The basis codes' entry: the ``.npy`` header of a (``stored.shape``) uint8 array, then each
-    image's stored codes, as deflated pieces (``io.codes``). Where the zip writer's entry is as this
-    code knows it (``_known_entry``), each piece goes straight to the file, the entry's CRC summed from
-    the CRCs the threads took of the images (``io.crc``): the writer reads no image's bytes again."""
-    with archive.open(_entry_info(name), "w", force_zip64=stored.nbytes > 2**30) as entry:
-        compressor = None  # where the zip writer has no compressor of its own to replace, it deflates the entry itself
-        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
-            compressor = entry._compressor = _GivenPieces()
-        np.lib.format.write_array_header_1_0(entry, {"descr": "|u1", "fortran_order": False, "shape": stored.shape})
-        appender = Crc32Appender(math.prod(stored.shape[1:])) if compressor is not None and _known_entry(entry) else None
-        for image, piece, crc in stored.images(pieces=compressor is not None):
-            if appender is not None:  # what the entry's ``write`` does, with the image's CRC taken in its thread
-                entry._file_size += appender.length
-                entry._crc = appender.append(entry._crc, crc)
-                entry._compress_size += len(piece)
-                entry._fileobj.write(piece)
-                continue
-            if compressor is not None:
-                compressor.given = piece
-            entry.write(image.reshape(-1))
+    def chunk(self, index: int) -> bytes:
+        """Chunk ``index``: 0 the ``.npy`` header, then the parts of ``rows`` rows."""
+        if index == 0:
+            return bytes(self.codec.encode(np.frombuffer(_npy_header(self.array.dtype, self.array.shape), np.uint8)))
+        return bytes(self.codec.encode(np.ascontiguousarray(self.array[(index - 1) * self.rows : index * self.rows])))
 
 
-_ENTRY_FIELDS = ("_file_size", "_crc", "_compress_size", "_fileobj")
-
-
-def _known_entry(entry) -> bool:
-    """Whether a zip entry open for writing keeps its running sizes, CRC and file under the names
-    ``_write_codes`` adds to (``zipfile``'s own writer; a test checks the file is the same byte for byte); else
-    its ``write`` is used."""
-    return all(hasattr(entry, field) for field in _ENTRY_FIELDS) and isinstance(entry._crc, int) and not entry.closed
-
-
-def _write_array(archive: zipfile.ZipFile, name: str, array, *, deflated=None) -> None:
-    """One ``.npy`` entry (deflated; zip64 when it may pass the 2 GiB limit of plain zip). An array of
-    ``_PARALLEL_BYTES`` or more is deflated in threads (``ParallelDeflate``: the same stream format,
-    about the same size), where the zip writer has the compressor this replaces; ``deflated``: a future
-    of the entry made and deflated already (``_deflated_npy``)."""
-    if deflated is not None:
-        _write_deflated(archive, name, *deflated.result())
-        return
-    if isinstance(array, _StoredCodes):
-        _write_codes(archive, name, array)
-        return
+def _chunked(array):
+    """How an array is written: a stack's codes as ``_CodeChunks``, an array of ``_CHUNKED_BYTES`` or
+    more (not 0-d) as ``_ArrayChunks``, any other as it is (deflated by the zip)."""
+    if isinstance(array, LowRankStack):
+        return _CodeChunks(array)
     array = np.asarray(array)
     if array.flags.f_contiguous and not array.flags.c_contiguous:
-        array = np.ascontiguousarray(array)  # kept in C order (write_array would store it Fortran-ordered)
-    with archive.open(
-        _entry_info(name), "w", force_zip64=array.nbytes > 2**30
-    ) as entry:
-        _set_compressor(entry, array.nbytes)
+        array = np.ascontiguousarray(array)  # kept in C order
+    return _ArrayChunks(array) if array.nbytes >= _CHUNKED_BYTES and array.ndim else array
+
+
+def array_entry_bytes(array: np.ndarray) -> int:
+    """Bytes ``save_field`` stores for ``array`` as one entry's data: its Blosc chunks and their lengths where it is
+    chunked (``_CHUNKED_BYTES`` or more), else its ``.npy`` file deflated as the zip deflates it (zlib's default
+    level). The zip's own records are not counted. Made on the calling thread (callable from a worker's)."""
+    chunks = _chunked(array)
+    if isinstance(chunks, _ArrayChunks):
+        return sum(len(chunks.chunk(index)) for index in range(chunks.count)) + _DEFLATED_LENGTH_BYTES * chunks.count
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, chunks, allow_pickle=False)
+    compressor = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
+    return len(compressor.compress(buffer.getbuffer())) + len(compressor.flush())
+
+
+_DEFLATED_LENGTH_BYTES = 8
+"""A chunk's length in its array's ``.lengths.npy`` entry (<i8, before deflate: an upper bound)."""
+
+
+def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
+    """The ``.npy`` header (format 1.0) of a C-ordered array of ``dtype`` and ``shape``."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
+                                                  "shape": tuple(shape)})
+    return buffer.getvalue()
+
+
+def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
+    """One ``.npy`` entry the zip deflates (zip64 where it may pass the 2 GiB limit of plain zip)."""
+    with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
         np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
 
 
-def _deflated_ahead(array) -> bool:
-    """Whether an entry's ``.npy`` is made and deflated in a thread ahead of the writer: an array under
-    ``_PARALLEL_BYTES`` (a larger one is deflated in threads as it is written; the basis codes by image)."""
-    return not isinstance(array, _StoredCodes) and np.asarray(array).nbytes < _PARALLEL_BYTES
+def _write_chunks(archive: zipfile.ZipFile, name: str, chunks: _Ahead) -> None:
+    """``name`` (``X.npy``) as ``X.npy.blosc``, the Blosc ``chunks`` one after another, stored as they are,
+    and ``X.lengths.npy``, each chunk's bytes (<i8)."""
+    lengths = []
+    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w", force_zip64=chunks.nbytes > 2**30) as entry:
+        for chunk in chunks:
+            entry.write(chunk)
+            lengths.append(len(chunk))
+    _write_array(archive, _lengths_name(name), np.array(lengths, "<i8"))
 
 
-def _deflated_npy(array) -> tuple[bytes, bytes]:
-    """(the ``.npy`` bytes of ``array`` as ``_write_array`` writes them, those bytes deflated as the zip writer's
-    own compressor deflates an entry: raw deflate at zlib's default level, finished)."""
-    array = np.asarray(array)
-    if array.flags.f_contiguous and not array.flags.c_contiguous:
-        array = np.ascontiguousarray(array)
-    buffer = io.BytesIO()
-    np.lib.format.write_array(buffer, array, allow_pickle=False)
-    raw = buffer.getvalue()
-    compressor = zlib.compressobj(zlib.Z_DEFAULT_COMPRESSION, zlib.DEFLATED, -15)
-    return raw, compressor.compress(raw) + compressor.flush()
-
-
-class _Deflated:
-    """A zip entry's compressor handing out the entry's data deflated already: all of it for the first
-    ``compress``, nothing after (``flush`` included)."""
-
-    def __init__(self, deflated: bytes):
-        self.deflated = deflated
-
-    def compress(self, data) -> bytes:
-        deflated, self.deflated = self.deflated, b""
-        return deflated
-
-    def flush(self) -> bytes:
-        return b""
-
-
-def _write_deflated(archive: zipfile.ZipFile, name: str, raw: bytes, deflated: bytes) -> None:
-    """One ``.npy`` entry of the ``raw`` bytes, stored as ``deflated`` (``_deflated_npy``) where the zip writer has
-    the compressor this replaces, else deflated by the writer."""
-    with archive.open(_entry_info(name), "w") as entry:
-        if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()):
-            entry._compressor = _Deflated(deflated)
-        entry.write(raw)  # the zip writer sums the CRC (a small entry)
-
-
-def _set_compressor(entry, nbytes: int) -> None:
-    """Give a zip entry being written ``ParallelDeflate`` (zipfile's own raw deflate, level 6, in threads)
-    for ``_PARALLEL_BYTES`` or more, with more than one core; only where the zip writer has the
-    compressor this replaces."""
-    if type(getattr(entry, "_compressor", None)) is type(zlib.compressobj()) and nbytes >= _PARALLEL_BYTES and NUMPY_THREADS > 1:
-        entry._compressor = ParallelDeflate(zlib.Z_DEFAULT_COMPRESSION)
+def _lengths_name(name: str) -> str:
+    """The entry of a chunked array's chunk lengths: ``X.lengths.npy`` for ``X.npy``."""
+    return name.removesuffix(".npy") + ".lengths.npy"
 
 
 def _size_report(infos: list[zipfile.ZipInfo], total: int) -> dict:
@@ -684,53 +681,115 @@ def _read_array(
     dtype: str,
     shape: tuple,
 ) -> np.ndarray:
-    """Read one ``.npy`` entry, checking its dtype and shape before reading the data."""
-    if name not in names:
+    """Read one ``.npy`` entry (deflated by the zip, or in Blosc chunks: ``name`` + ``.blosc``),
+    checking its dtype and shape before reading the data."""
+    chunked = name not in names and name + _CHUNKED in names
+    if name not in names and not chunked:
         raise _corrupt(path, f"entry {name} is missing")
     expected = np.dtype(dtype)
-    with archive.open(name) as entry:
+    with archive.open(name + _CHUNKED if chunked else name) as entry:
+        reader = _Chunks(entry, _chunk_lengths(path, archive, names, name)) if chunked else entry
         try:
-            version = np.lib.format.read_magic(entry)
+            version = np.lib.format.read_magic(reader)
             if version == (1, 0):
-                stored_shape, fortran, stored_dtype = (
-                    np.lib.format.read_array_header_1_0(entry)
-                )
+                stored_shape, fortran, stored_dtype = np.lib.format.read_array_header_1_0(reader)
             elif version == (2, 0):
-                stored_shape, fortran, stored_dtype = (
-                    np.lib.format.read_array_header_2_0(entry)
-                )
+                stored_shape, fortran, stored_dtype = np.lib.format.read_array_header_2_0(reader)
             else:
                 raise ValueError(f"unsupported .npy version {version}")
         except ValueError as exc:
-            raise _corrupt(
-                path, f"entry {name} is not a valid .npy array ({exc})"
-            ) from None
+            raise _corrupt(path, f"entry {name} is not a valid .npy array ({exc})") from None
         if stored_dtype != expected:
-            raise _corrupt(
-                path,
-                f"entry {name} holds {stored_dtype.str} data, expected {expected.str}",
-            )
+            raise _corrupt(path, f"entry {name} holds {stored_dtype.str} data, expected {expected.str}")
         if fortran:
             raise _corrupt(path, f"entry {name} is stored in Fortran order")
         if tuple(stored_shape) != tuple(shape):
-            raise _corrupt(
-                path,
-                f"entry {name} has shape {tuple(stored_shape)}, expected {tuple(shape)}",
-            )
+            raise _corrupt(path, f"entry {name} has shape {tuple(stored_shape)}, expected {tuple(shape)}")
         size = math.prod(shape) * expected.itemsize
-        data = entry.read(size)
+        data = _read_exactly(reader, size)
         if len(data) != size:
             raise _corrupt(path, f"entry {name} is truncated")
-        if entry.read(1):  # also completes the zip checksum test
+        if reader.read(1) or entry.read(1):  # reading the zip entry to its end also completes its checksum test
             raise _corrupt(path, f"entry {name} has data after its array")
-    array = (
-        np.frombuffer(data, dtype=expected)
-        .reshape(shape)
-        .astype(expected.newbyteorder("="))
-    )
+    array = np.frombuffer(data, dtype=expected).reshape(shape).astype(expected.newbyteorder("="))
     if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
         raise _corrupt(path, f"entry {name} has non-finite values")
     return array
+
+
+def _chunk_lengths(path: Path, archive: zipfile.ZipFile, names: set, name: str) -> np.ndarray:
+    """The chunk lengths of the chunked ``.npy`` entry of ``name``: positive, summing to its stored bytes."""
+    lengths_name = _lengths_name(name)
+    if lengths_name not in names:
+        raise _corrupt(path, f"entry {lengths_name} is missing")
+    count = archive.getinfo(lengths_name).file_size  # a bound: 8 bytes a chunk and a header
+    lengths = _read_array(path, archive, names, lengths_name, "<i8", (_npy_length(path, archive, lengths_name, count),))
+    if lengths.size == 0 or lengths.min() <= 0 or int(lengths.sum()) != archive.getinfo(name + _CHUNKED).file_size:
+        raise _corrupt(path, f"entry {lengths_name} does not give the chunks of {name + _CHUNKED}")
+    return lengths
+
+
+def _npy_length(path: Path, archive: zipfile.ZipFile, name: str, bound: int) -> int:
+    """The length of the 1-d ``.npy`` entry ``name`` from its header (its data read by ``_read_array``)."""
+    with archive.open(name) as entry:
+        try:
+            version = np.lib.format.read_magic(entry)
+            header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape = header(entry)[0]
+        except ValueError as exc:
+            raise _corrupt(path, f"entry {name} is not a valid .npy array ({exc})") from None
+    if len(shape) != 1 or not 0 <= shape[0] <= bound:
+        raise _corrupt(path, f"entry {name} has shape {shape}, expected one length a chunk")
+    return int(shape[0])
+
+
+class _Chunks:
+    """The bytes of a chunked entry's Blosc chunks decoded one after another (a readable stream). The
+    entry is read whole first, so that its zip checksum is tested before any chunk is decoded."""
+
+    def __init__(self, entry, lengths: np.ndarray):
+        self.data = memoryview(entry.read())
+        self.ends = np.cumsum(lengths)
+        if len(self.data) != int(self.ends[-1]):
+            raise zipfile.BadZipFile("the chunks' lengths do not add up to the entry")
+        self.next = 0
+        self.buffer = b""
+        self.at = 0
+        self.codec = codes_codec()  # any Blosc codec decodes any Blosc chunk: its header says how it was made
+
+    def read(self, size: int = -1) -> bytes:
+        parts = []
+        while size != 0:
+            if self.at == len(self.buffer):
+                if self.next == len(self.ends):
+                    break
+                start = int(self.ends[self.next - 1]) if self.next else 0
+                self.buffer, self.at = bytes(self.codec.decode(self.data[start : int(self.ends[self.next])])), 0
+                self.next += 1
+                continue
+            take = len(self.buffer) - self.at if size < 0 else min(size, len(self.buffer) - self.at)
+            parts.append(self.buffer[self.at : self.at + take])
+            self.at += take
+            size -= take if size > 0 else 0
+        return b"".join(parts)
+
+    def readinto(self, buffer) -> int:
+        data = self.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
+
+
+def _read_exactly(stream, size: int) -> bytearray:
+    """``size`` bytes of ``stream`` (fewer where it ends first), read into one buffer."""
+    data = bytearray(size)
+    done = 0
+    with memoryview(data) as view:
+        while done < size:
+            got = stream.readinto(view[done:])
+            if not got:
+                break
+            done += got
+    return data if done == size else data[:done]
 
 
 def _build_field(
@@ -896,7 +955,7 @@ def _build_field(
 
 
 def _read_residual(path: Path, layout, read, n: int, height: int, width: int, version: int) -> ResidualModel:
-    """The residual model of a version-2, -3 or -4 file, from its header layout and entries."""
+    """The residual model of a version-2 to -5 file, from its header layout and entries."""
     if not isinstance(layout, dict):
         raise _corrupt(path, "header entry 'residual' must be null or a JSON object")
     channels = _header_int(path, layout, "channels", 1, 3)
@@ -929,8 +988,9 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
                 raise _corrupt(path, f"header entry residual.{name}.bits must be 8 or 16, got {bits!r}")
             prefix = _STACK_PREFIX[name]
             mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
-            if version >= 4:
-                codes = codes_from_stored(read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits)), bits)
+            if version >= 4:  # version 5: the differences zigzag-mapped (io.codes); 4: as they are
+                stored = read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits))
+                codes = codes_from_stored(stored, bits) if version >= 5 else codes_from_differences(stored, bits)
             else:
                 codes = read(prefix + "codes.npy", "<u1" if bits == 8 else "<u2", (rank, planes, height, width))
             stacks[name] = LowRankStack(

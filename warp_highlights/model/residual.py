@@ -77,7 +77,7 @@ def code_levels(bits: int) -> int:
 
 
 class DeflatedPieces(Protocol):
-    """Where the field writer finds a basis image's stored codes already deflated (``io.codes.DeflatedCodes``)."""
+    """Where the field writer finds a basis image's stored codes already compressed (``io.codes.CompressedCodes``)."""
 
     def piece(self, stored: np.ndarray) -> bytes: ...
 
@@ -112,8 +112,8 @@ class LowRankStack:
         ranges: (k, 2) float32 (low, high) per basis image.
         weights: (n, k) float32 per-light weights.
         mean_weights: (n,) float32 per-light weight of the mean image (None: all 1).
-        deflated: the basis images' codes deflated as the field file stores them (``io.codes.DeflatedCodes``,
-            found by content), where the fit's rate search measured them; the field writer deflates
+        deflated: the basis images' codes compressed as the field file stores them (``io.codes.CompressedCodes``,
+            found by content), where the fit's rate search measured them; the field writer compresses
             what it does not find there. Not part of the model (never compared, never stored).
     """
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..io.codes import DeflatedCodes
+from ..io.codes import CompressedCodes
 from ..kernels.gram import DeviceProducts
 from ..kernels.stacks import NormalisedStacks
 from ..model.config import ResidualSettings
@@ -37,7 +37,7 @@ from .rate import (
     LIGHT_BYTES,
     StackPlan,
     allocate,
-    deflated_bytes,
+    entry_bytes,
     finest_within,
     quantised_bytes,
 )
@@ -155,7 +155,7 @@ def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scal
     stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]  # the other planes the file deflates, in threads (4K: 1.7 s on one)
     stored += [colour_codes(colour)] if colour is not None else []
     stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
-    fixed = other_bytes + FILE_BYTES + (LIGHT_BYTES + 8) * n + sum(parallel_map(deflated_bytes, stored)) + (4 * n if chroma is not None else 0)
+    fixed = other_bytes + FILE_BYTES + (LIGHT_BYTES + 8) * n + sum(parallel_map(entry_bytes, stored)) + (4 * n if chroma is not None else 0)
     # both widths when the settings leave it open: 8-bit first, measured on every row only if 16 bits do
     # not beat it (its every image at the finest 8-bit step is plain from the sampled bytes alone, and
     # the whole images' bytes can only make it coarser)
@@ -201,7 +201,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             rank = min(fixed_rank, principal.count - 1)
             steps[name] = principal.spans[:rank] / levels
             distortion += StackPlan(principal, gain, rank).distortion(steps[name])
-            deflated[name] = DeflatedCodes()
+            deflated[name] = CompressedCodes()
             left -= quantised_bytes(principal, steps[name], bits=bits, keep=deflated[name])
             finer = finer or rank > 0
         else:

@@ -7,12 +7,12 @@ calibrated on whole images, and measured exactly before the answer is taken.
 from __future__ import annotations
 
 import dataclasses
-import zlib
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.codes import DeflatedCodes, deflated_piece, stored_bytes, stored_codes
+from ..io.codes import CompressedCodes, compressed_chunk, stored_bytes, stored_codes
+from ..io.fieldfile import array_entry_bytes
 from ..model.gaussians import GaussianParams
 from ..model.residual import (
     LowRankStack,
@@ -30,14 +30,13 @@ from .inputs import BAND_VALUES
 from .principal import PrincipalImages
 from .quantise import clamped_steps, quantised_codes
 
-__all__ = ["FILE_BYTES", "LIGHT_BYTES", "RateSample", "StackPlan", "allocate", "allocate_steps", "component_bytes", "deflated_bytes", "finest_within", "gaussian_bytes", "quantised_bytes", "sampled_rows"]
+__all__ = ["FILE_BYTES", "LIGHT_BYTES", "RateSample", "StackPlan", "allocate", "allocate_steps", "component_bytes", "entry_bytes", "finest_within", "gaussian_bytes", "quantised_bytes", "sampled_rows"]
 
 _TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each
 # cost more to hand out than to deflate)
 _STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: up to this much a group (64 MiB; two groups held), so
 # small images come in a few launches and copies rather than one round of them per NUMPY_THREADS images (at 480x270 a round cost
 # about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group (one per deflating thread) whatever their size
-_DEFLATE_LEVEL = 6  # zlib's default, what zipfile's deflate uses
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
 FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
@@ -69,9 +68,9 @@ _CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of 
 _FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (uncalibrated samples were 0-4% off the whole
 
 
-def deflated_bytes(array: np.ndarray) -> int:
-    """Bytes of ``array`` deflated as the field file deflates its entries (zlib's default level)."""
-    return len(zlib.compress(np.ascontiguousarray(array).tobytes(), _DEFLATE_LEVEL))
+def entry_bytes(array: np.ndarray) -> int:
+    """Bytes of ``array`` as the field file stores it (``io.fieldfile.array_entry_bytes``)."""
+    return array_entry_bytes(array)
 
 
 def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int:
@@ -80,8 +79,8 @@ def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int
 
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
-    """(k,) stored bytes of each basis image of ``stack``: its deflated codes (planes first, as the file
-    stores them: ``io.codes``), its range and its per-light weights."""
+    """(k,) stored bytes of each basis image of ``stack``: its codes' Blosc chunk (planes first, as the
+    file stores them: ``io.codes``), its range and its per-light weights."""
     return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
 
 
@@ -94,7 +93,7 @@ class StackPlan:
     gain: float
     most: int
     floor: int = 0
-    deflated: DeflatedCodes = dataclasses.field(default_factory=DeflatedCodes, repr=False, compare=False)  # the last exact measurement's pieces
+    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)  # the last exact measurement's chunks
 
     @property
     def energies(self) -> np.ndarray:
@@ -180,17 +179,17 @@ class RateSample:
     def exact(self) -> bool:
         return self.scale == 1.0
 
-    def bytes(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, calibration: float = 1.0) -> float:
+    def bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, calibration: float = 1.0) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
         (``deflated``, scaled to the whole images and by ``calibration``, the whole images' bytes per
         scaled sampled byte, with each image's range and weights). ``keep`` (an ``exact`` sample only):
         hold the images' deflated pieces there, in place of what it held, for the field writer."""
         return calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
 
-    def deflated(self, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
-        """(len(``steps``),) int64 deflated bytes of each of the first len(``steps``) basis images at the
-        sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
-        (the others 0). Deflated in threads (zlib lets go of the GIL). An image is deflated once per
+    def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
+        """(len(``steps``),) int64 stored bytes (``io.codes.chunk_size``) of each of the first len(``steps``) basis images
+        at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
+        (the others 0). Compressed in threads (Blosc lets go of the GIL off the main thread). An image is deflated once per
         step and bits: a measurement remembers each image's bytes, and a later one at the same step
         takes them instead of deflating it again (and, where ``keep`` is given, its piece where ``keep``
         still holds it: else the field writer deflates that image, if it is kept)."""
@@ -239,8 +238,8 @@ class RateSample:
         kind = np.uint8 if bits == 8 else np.uint16
 
         def deflate(index: int, image: np.ndarray) -> tuple:
-            piece = deflated_piece(image)
-            return (index, len(piece), DeflatedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
+            piece = compressed_chunk(image)
+            return (index, len(piece), CompressedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
 
         if self.held is not None:
             return self._deflated_from_device(indices, steps, bits, lambda images: [deflate(index, image) for index, image in images])
@@ -318,7 +317,7 @@ def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
     return runs
 
 
-def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: DeflatedCodes | None = None) -> float:
+def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
     ``quantise.quantised_stack`` does (``component_bytes``, without fitting the weights): every row
     deflated (the pieces held in ``keep`` when given)."""
