@@ -92,7 +92,8 @@ OUTCOMES = ("error", "accepted", "traceback", "hang", "other")
 LITTER_NAME = re.compile(r"^\..+\.(partial|replaced)-")
 GRACE_SECONDS = 30.0
 """How long past the limit a worker may take to answer SIGALRM before it is killed."""
-FAST_FIT = ["--set", "estimation.iterations=100", "--set", "estimation.densify_until=60", "--set", "estimation.densify_every=20",
+FAST_FIT = ["--set", "estimation.iterations=100", "--set", "estimation.densify_until=60", "--set",
+            "estimation.densify_every=20",
             "--set", "retarget.rigid_iterations=10", "--set", "retarget.iterations=20"]
 """A short fit schedule (the bad inputs concern loading and checking, not the optimisation)."""
 MEMORY_LIMIT_GB = 12.0
@@ -207,7 +208,8 @@ class Worker:
     def _start(self) -> None:
         context = multiprocessing.get_context("spawn")
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_worker_main, args=(child, self.memory_limit_gb), name="bad-inputs-worker", daemon=True)
+        self.process = context.Process(target=_worker_main, args=(child, self.memory_limit_gb),
+                                       name="bad-inputs-worker", daemon=True)
         self.process.start()
         child.close()
         if not self.conn.poll(600):
@@ -235,12 +237,14 @@ class Worker:
             self.process.join(10)
             code = self.process.exitcode
             self.stop()
-            what = f"killed by {signal.Signals(-code).name}" if code is not None and code < 0 else f"exited with status {code}"
+            what = (f"killed by {signal.Signals(-code).name}" if code is not None and code < 0
+                    else f"exited with status {code}")
             return {"rc": code, "exception": None, "hang": False, "crashed": f"the process died: {what}",
                     "stdout": "", "stderr": "", "seconds": time.perf_counter() - started}
         self.stop()
         return {"rc": None, "exception": None, "hang": True, "crashed": None, "stdout": "", "stderr": "",
-                "seconds": time.perf_counter() - started, "note": f"ignored SIGALRM for {GRACE_SECONDS:.0f} s more; killed"}
+                "seconds": time.perf_counter() - started,
+                "note": f"ignored SIGALRM for {GRACE_SECONDS:.0f} s more; killed"}
 
     def stop(self, gently: bool = False) -> None:
         if self.process is not None:
@@ -336,7 +340,8 @@ class Context:
         """Run a command in the worker (for builders that need a real earlier output)."""
         result = self.worker.run([str(a) for a in argv], max(self.timeout, 300.0))
         if result.get("rc") != 0:
-            raise RuntimeError(f"set-up command failed: warp-highlights {shlex.join(map(str, argv))}\n{result.get('stderr')}{result.get('exception') or ''}")
+            raise RuntimeError(f"set-up command failed: warp-highlights "
+                               f"{shlex.join(map(str, argv))}\n{result.get('stderr')}{result.get('exception') or ''}")
         return result
 
     def mount(self, path: Path, options: str) -> None:
@@ -386,7 +391,8 @@ def link_tree(source: Path, target: Path) -> Path:
 
 
 def lp_text(names, directions, number=repr) -> str:
-    lines = [str(len(names))] + [f"{n} {number(float(x))} {number(float(y))} {number(float(z))}" for n, (x, y, z) in zip(names, directions)]
+    lines = [str(len(names))] + [f"{n} {number(float(x))} {number(float(y))} {number(float(z))}"
+                                 for n, (x, y, z) in zip(names, directions)]
     return "\n".join(lines) + "\n"
 
 
@@ -405,7 +411,8 @@ def npy(array, **kwargs) -> bytes:
 
 def npy_with_header(header: dict, data: bytes, version=(1, 0)) -> bytes:
     """A .npy file with a header of our own (claims the data need not keep)."""
-    text = repr({"descr": header["descr"], "fortran_order": header["fortran_order"], "shape": tuple(header["shape"])}).encode("latin-1")
+    text = repr({"descr": header["descr"], "fortran_order": header["fortran_order"],
+                 "shape": tuple(header["shape"])}).encode("latin-1")
     size = 4 if version[0] >= 2 else 2
     pad = 64 - (6 + 2 + size + len(text) + 1) % 64
     text += b" " * pad + b"\n"
@@ -423,9 +430,11 @@ def set_up(ctx: Context) -> None:
 
     ctx.base.mkdir(parents=True)
     ctx.cases.mkdir(parents=True)
-    ctx.cli(["render", "sphere", ctx.dataset, "--lights", "16", "--size", "32x18", "--samples", "1", "--heldout", "centroids", "--device", "cpu", "-q"])
+    ctx.cli(["render", "sphere", ctx.dataset, "--lights", "16", "--size", "32x18", "--samples", "1", "--heldout",
+             "centroids", "--device", "cpu", "-q"])
     ctx.cli(["fit", ctx.dataset, "-o", ctx.field, "--device", "cpu", "-q"])
-    view = ctx.worker.run(["view", str(ctx.field), "--screenshot", str(ctx.base / "view-check.png"), "-q"], max(ctx.timeout, 300.0))
+    view = ctx.worker.run(["view", str(ctx.field), "--screenshot", str(ctx.base / "view-check.png"), "-q"],
+                          max(ctx.timeout, 300.0))
     ctx.view_ok = view.get("rc") == 0
     if ctx.view_ok:
         ctx.view_note = "view --screenshot renders off screen"
@@ -447,7 +456,8 @@ def set_up(ctx: Context) -> None:
     ctx.capture_exr = capture
     ctx.lp8 = put(ctx.base / "eight.lp", lp_text([f"l{i}.exr" for i in range(8)], ctx.directions[:8]))
     ctx.other_dataset = ctx.base / "D8"
-    ctx.cli(["render", "sphere", ctx.other_dataset, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu", "-q"])
+    ctx.cli(["render", "sphere", ctx.other_dataset, "--lights", "8", "--size", "32x18", "--samples", "1", "--device",
+             "cpu", "-q"])
 
     ctx.mount_ok, ctx.mount_note = _can_mount(ctx.base / "mount-check")
 
@@ -457,7 +467,8 @@ def _can_mount(path: Path) -> tuple[bool, str]:
         return False, "no mount command"
     path.mkdir()
     try:
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(path)], capture_output=True, text=True)
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(path)], capture_output=True,
+                              text=True)
         if done.returncode != 0:
             return False, (done.stderr.strip() or f"mount exited with {done.returncode}")
         subprocess.run(["umount", str(path)], check=True, capture_output=True)
@@ -497,7 +508,8 @@ def write_exr(path: Path, channels: dict, *, half: bool = False) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.exists() or path.is_symlink():
         path.unlink()
-    data = {name: np.ascontiguousarray(plane.astype(np.float16 if half else np.float32)) for name, plane in channels.items()}
+    data = {name: np.ascontiguousarray(plane.astype(np.float16 if half else np.float32))
+            for name, plane in channels.items()}
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, data).write(str(path))
     return path
 
@@ -626,7 +638,8 @@ def light_file_cases(ctx: Context) -> list[Case]:
         # a non-UTF-8 name on disk too
         os.link(folder / "images" / ctx.names[5], os.fsencode(folder / "images") + b"/imag\xe9.exr")
         (folder / "images" / ctx.names[5]).unlink()
-        put(folder / "lights.lp", lines_with(5, f"images/imag\xe9.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}").encode("latin-1"))
+        put(folder / "lights.lp",
+            lines_with(5, f"images/imag\xe9.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}").encode("latin-1"))
 
     def bad_heldout(text):
         return lambda folder: put(folder / "heldout.lp", text)
@@ -669,21 +682,25 @@ def light_file_cases(ctx: Context) -> list[Case]:
         ("hexadecimal float", vector("0x1p-2", "0", "1"), (E, E)),
         ("numbers with underscores", vector("1_0", "0", "1"), (E, E)),
         ("non-UTF-8 (latin-1) file name", latin1, (None, None)),
-        ("invalid UTF-8 bytes in a number", lines_with(5, f"{names[5]} 0.1 0.2 0.9").encode().replace(b"0.2", b"0.\xff2"), (E, E)),
+        ("invalid UTF-8 bytes in a number",
+         lines_with(5, f"{names[5]} 0.1 0.2 0.9").encode().replace(b"0.2", b"0.\xff2"), (E, E)),
         ("4 kB of binary garbage", garbage, (E, E)),
         ("garbage after a valid file", body.encode() + garbage, (E, E)),
         ("NUL bytes inside a line", lines_with(5, f"{names[5]}\x00 0.1 0.2 0.9"), (E, E)),
         ("UTF-16 with a BOM (valid)", body.encode("utf-16"), (OK, OK)),
         ("UTF-16 without a BOM", body.encode("utf-16-le"), (E, E)),
         ("UTF-32", body.encode("utf-32"), (E, E)),
-        ("BOM, CRLF, tabs and decimal commas (valid)", ("\ufeff" + lp_text(names, dirs, number=lambda v: repr(v).replace(".", ","))
+        ("BOM, CRLF, tabs and decimal commas (valid)", ("\ufeff" + lp_text(names, dirs,
+                                                                           number=lambda v: repr(v).replace(".", ","))
                                                         .replace(" ", "\t").replace("\n", "\r\n")).encode(), (OK, OK)),
         ("a '#' comment line", "# my dome\n" + body, (None, None)),
         ("a trailing 'end' line", body + "end\n", (E, E)),
-        ("x,y,z with commas and no spaces", "\n".join([rows[0]] + [f"{n} {x!r},{y!r},{z!r}" for n, (x, y, z) in zip(names, dirs)]) + "\n", (E, E)),
+        ("x,y,z with commas and no spaces",
+         "\n".join([rows[0]] + [f"{n} {x!r},{y!r},{z!r}" for n, (x, y, z) in zip(names, dirs)]) + "\n", (E, E)),
         ("an image listed twice", lines_with(5, f"{names[4]} {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
         ("a direction listed twice", lines_with(5, f"{names[5]} {dirs[4][0]!r} {dirs[4][1]!r} {dirs[4][2]!r}"), (E, E)),
-        ("two directions 1e-9 apart", lines_with(5, f"{names[5]} {dirs[4][0] + 1e-9!r} {dirs[4][1]!r} {dirs[4][2]!r}"), (E, E)),
+        ("two directions 1e-9 apart", lines_with(5, f"{names[5]} {dirs[4][0] + 1e-9!r} {dirs[4][1]!r} {dirs[4][2]!r}"),
+         (E, E)),
         ("3 lights", geometry(dirs, 3), (None, E)),
         ("4 lights on the equator (coplanar)", geometry(ring(4, 0.0)), (None, E)),
         ("8 lights on one ring at 30 degrees", geometry(ring(8, 30.0)), (None, E)),
@@ -691,11 +708,16 @@ def light_file_cases(ctx: Context) -> list[Case]:
         ("all 16 lights on the equator", geometry(ring(16, 0.0)), (None, E)),
         ("16 lights within 0.1 degrees", geometry(cluster), (None, None)),
         ("all lights behind the object (z < 0)", geometry(dirs * np.array([1.0, 1.0, -1.0])), (None, None)),
-        ("a listed image is missing", lines_with(5, f"images/nothere.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
-        ("an image named by absolute path /etc/passwd", lines_with(5, f"/etc/passwd {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
-        ("an image path escaping the folder (../../../etc/hostname)", lines_with(5, f"../../../../../../etc/hostname {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
-        ("an image name that is a folder", lines_with(5, f"images {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
-        ("a 5000-character image name", lines_with(5, f"images/{'n' * 5000}.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
+        ("a listed image is missing", lines_with(5, f"images/nothere.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"),
+         (E, E)),
+        ("an image named by absolute path /etc/passwd",
+         lines_with(5, f"/etc/passwd {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
+        ("an image path escaping the folder (../../../etc/hostname)",
+         lines_with(5, f"../../../../../../etc/hostname {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
+        ("an image name that is a folder", lines_with(5, f"images {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"),
+         (E, E)),
+        ("a 5000-character image name",
+         lines_with(5, f"images/{'n' * 5000}.exr {dirs[5][0]!r} {dirs[5][1]!r} {dirs[5][2]!r}"), (E, E)),
         ("a 1 MB line", lines_with(5, "x" * 1_000_000), (E, E)),
         (f"{many} lines naming missing images (9 MB)", big, (E, E)),
         ("lights.lp is a folder", folder_named, (E, E)),
@@ -707,7 +729,8 @@ def light_file_cases(ctx: Context) -> list[Case]:
         ("two .lp files and no lights.lp", two_files, (E, E)),
         ("no .lp file at all", lambda folder: None, (E, E)),
         ("heldout.lp malformed", ("heldout", bad_heldout("3\nfoo 1 2\n")), (E, E)),
-        ("heldout.lp lists missing images", ("heldout", bad_heldout(lp_text(["heldout/h0000.exr", "heldout/h0001.exr"], dirs[:2] + 0.1))), (E, E)),
+        ("heldout.lp lists missing images",
+         ("heldout", bad_heldout(lp_text(["heldout/h0000.exr", "heldout/h0001.exr"], dirs[:2] + 0.1))), (E, E)),
     ]
     cases = []
     for label, content, (expect_info, expect_fit) in variants:
@@ -727,7 +750,8 @@ def light_file_cases(ctx: Context) -> list[Case]:
             return Run(["fit", dataset, "-o", out, "--device", "cpu", *ctx.fast, "-q"], outputs=[out])
 
         cases.append(Case("light files", f"info: {label}", build, expect_info))
-        cases.append(Case("light files", f"fit: {label}", lambda folder, build=build: build(folder, command="fit"), expect_fit))
+        cases.append(Case("light files", f"fit: {label}", lambda folder, build=build: build(folder, command="fit"),
+                          expect_fit))
     return cases
 
 
@@ -755,7 +779,8 @@ def field_cases(ctx: Context) -> list[Case]:
             warnings.simplefilter("ignore")  # duplicate names on purpose
             with zipfile.ZipFile(buffer, "w", compression) as archive:
                 for name, data in list(items.items()) + list(extra):
-                    with archive.open(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), "w", force_zip64=zip64) as handle:
+                    with archive.open(zipfile.ZipInfo(name, date_time=(1980, 1, 1, 0, 0, 0)), "w",
+                                      force_zip64=zip64) as handle:
                         handle.write(data)
         return buffer.getvalue()
 
@@ -785,7 +810,8 @@ def field_cases(ctx: Context) -> list[Case]:
         for info in infos:
             assert data[pos : pos + 4] == b"PK\x01\x02"
             offsets(data, info, info.header_offset, pos)
-            name_len, extra_len, comment_len = (int.from_bytes(data[pos + k : pos + k + 2], "little") for k in (28, 30, 32))
+            name_len, extra_len, comment_len = (int.from_bytes(data[pos + k : pos + k + 2], "little")
+                                                for k in (28, 30, 32))
             pos += 46 + name_len + extra_len + comment_len
         return bytes(data)
 
@@ -815,7 +841,8 @@ def field_cases(ctx: Context) -> list[Case]:
     def big_header() -> bytes:
         buffer = io.BytesIO()
         with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
-            with archive.open(zipfile.ZipInfo("header.json", date_time=(1980, 1, 1, 0, 0, 0)), "w", force_zip64=True) as handle:
+            with archive.open(zipfile.ZipInfo("header.json", date_time=(1980, 1, 1, 0, 0, 0)), "w",
+                              force_zip64=True) as handle:
                 handle.write(b"{")
                 chunk = b" " * (1 << 20)
                 for _ in range(256):
@@ -894,29 +921,43 @@ def field_cases(ctx: Context) -> list[Case]:
         ("diffuse: images true without the entry", with_header(diffuse={**header["diffuse"], "images": True}), E),
         ("diffuse: a string", with_header(diffuse="lambert"), E),
         ("light_filenames a number", with_header(light_filenames=3), E),
-        ("settings: an unknown setting", with_header(settings={**header["settings"], "estimation": {**header["settings"]["estimation"], "bogus": 1}}), E),
-        ("settings: iterations -5", with_header(settings={**header["settings"], "estimation": {**header["settings"]["estimation"], "iterations": -5}}), E),
+        ("settings: an unknown setting",
+         with_header(settings={**header["settings"], "estimation": {**header["settings"]["estimation"], "bogus": 1}}),
+         E),
+        ("settings: iterations -5",
+         with_header(settings={**header["settings"],
+                               "estimation": {**header["settings"]["estimation"], "iterations": -5}}), E),
         ("settings missing", with_header(settings=_DELETE), None),
         ("report missing", with_header(report=_DELETE), None),
     ]
     for name in entries:
-        structured.append((f"entry {name} removed", zipped({name: _DELETE}), E if name != "diffuse/lambert.npy" else None))
+        structured.append((f"entry {name} removed", zipped({name: _DELETE}),
+                           E if name != "diffuse/lambert.npy" else None))
         structured.append((f"entry {name} replaced by garbage", zipped({name: b"garbage" * 10}), E))
     structured += [
         ("directions as float32", with_array("lights/directions.npy", directions.astype(np.float32)), E),
         ("directions of shape (16, 2)", with_array("lights/directions.npy", directions[:, :2]), E),
-        ("directions with a NaN", with_array("lights/directions.npy", np.where(np.arange(directions.size).reshape(directions.shape) == 7, np.nan, directions)), E),
+        ("directions with a NaN",
+         with_array("lights/directions.npy",
+                    np.where(np.arange(directions.size).reshape(directions.shape) == 7, np.nan, directions)), E),
         ("directions all zero", with_array("lights/directions.npy", np.zeros_like(directions)), E),
         ("directions scaled by 1000", with_array("lights/directions.npy", directions * 1000), None),
-        ("directions all the same", with_array("lights/directions.npy", np.repeat(directions[:1], len(directions), axis=0)), E),
+        ("directions all the same",
+         with_array("lights/directions.npy", np.repeat(directions[:1], len(directions), axis=0)), E),
         ("directions shuffled", with_array("lights/directions.npy", directions[::-1].copy()), None),
-        ("faces with index 999", with_array("triangulation/faces.npy", np.where(faces == faces.max(), 999, faces).astype(faces.dtype)), E),
-        ("faces with index -1", with_array("triangulation/faces.npy", np.where(faces == 0, -1, faces).astype(faces.dtype)), E),
+        ("faces with index 999",
+         with_array("triangulation/faces.npy", np.where(faces == faces.max(), 999, faces).astype(faces.dtype)), E),
+        ("faces with index -1",
+         with_array("triangulation/faces.npy", np.where(faces == 0, -1, faces).astype(faces.dtype)), E),
         ("degenerate faces (0, 0, 0)", with_array("triangulation/faces.npy", np.zeros_like(faces)), E),
         ("faces wound the other way", with_array("triangulation/faces.npy", faces[:, ::-1].copy()), None),
         ("estimated Gaussians with NaN", with_array("gaussians/estimated.npy", np.full_like(estimated, np.nan)), E),
-        ("estimated Gaussians of sigma 0", with_array("gaussians/estimated.npy", np.concatenate([estimated[:, :3], np.zeros_like(estimated[:, 3:5]), estimated[:, 5:]], axis=1)), None),
-        ("estimated amplitudes 1e30", with_array("gaussians/estimated.npy", np.concatenate([np.full_like(estimated[:, :1], 1e30), estimated[:, 1:]], axis=1)), None),
+        ("estimated Gaussians of sigma 0",
+         with_array("gaussians/estimated.npy", np.concatenate([estimated[:, :3], np.zeros_like(estimated[:, 3:5]),
+                                                               estimated[:, 5:]], axis=1)), None),
+        ("estimated amplitudes 1e30",
+         with_array("gaussians/estimated.npy",
+                    np.concatenate([np.full_like(estimated[:, :1], 1e30), estimated[:, 1:]], axis=1)), None),
         ("estimated counts over the capacity", with_array("gaussians/estimated_counts.npy", counts + 1000), E),
         ("estimated slots out of range", with_array("gaussians/estimated_slots.npy", slots + 1000), E),
         ("path rotations inf", with_array("paths/delta.npy", np.full_like(delta, np.inf)), E),
@@ -924,11 +965,14 @@ def field_cases(ctx: Context) -> list[Case]:
         ("Lambertian diffuse all inf", with_array("diffuse/lambert.npy", np.full_like(lambert, np.inf)), E),
         ("a .npy header claiming 10^12 x 3 values", zipped({"lights/directions.npy": npy_with_header(
             {"descr": "<f8", "fortran_order": False, "shape": (10**12, 3)}, directions.tobytes())}), E),
-        ("an object (pickle) .npy", zipped({"lights/directions.npy": npy(np.array([{"a": 1}] * 16, dtype=object), allow_pickle=True)}), E),
+        ("an object (pickle) .npy",
+         zipped({"lights/directions.npy": npy(np.array([{"a": 1}] * 16, dtype=object), allow_pickle=True)}), E),
         ("a Fortran-order .npy", zipped({"lights/directions.npy": npy(np.asfortranarray(directions))}), E),
         ("a .npy of format version 3.0", zipped({"lights/directions.npy": npy_with_header(
-            {"descr": "<f8", "fortran_order": False, "shape": directions.shape}, directions.tobytes(), version=(3, 0))}), E),
-        ("header.json twice in the zip", zipped(extra=[("header.json", with_header_bytes(header, format_version=2))]), None),
+            {"descr": "<f8", "fortran_order": False, "shape": directions.shape}, directions.tobytes(),
+            version=(3, 0))}), E),
+        ("header.json twice in the zip", zipped(extra=[("header.json", with_header_bytes(header, format_version=2))]),
+         None),
         ("an unknown extra entry", zipped(extra=[("notes.txt", b"hello\n")]), None),
         ("encrypted flag on every entry", patched(set_flag), E),
         ("compression method 9 (deflate64)", patched(set_method), E),
@@ -975,13 +1019,15 @@ def field_cases(ctx: Context) -> list[Case]:
     for k in range(20):
         cut = rng.randrange(1, len(raw))
         command = commands[k % len(commands)]
-        cases.append(Case("field files", f"{command}: truncated at byte {cut} of {len(raw)}", builder(raw[:cut], command), E))
+        cases.append(Case("field files", f"{command}: truncated at byte {cut} of {len(raw)}",
+                          builder(raw[:cut], command), E))
     for k in range(30):
         at, bit = rng.randrange(len(raw)), rng.randrange(8)
         flipped = bytearray(raw)
         flipped[at] ^= 1 << bit
         command = commands[k % len(commands)]
-        cases.append(Case("field files", f"{command}: bit {bit} of byte {at} flipped", builder(bytes(flipped), command), None))
+        cases.append(Case("field files", f"{command}: bit {bit} of byte {at} flipped", builder(bytes(flipped), command),
+                          None))
     return cases
 
 
@@ -1052,7 +1098,8 @@ def image_cases(ctx: Context) -> list[Case]:
         return bytes(out)
 
     def corrupt_idat_valid_crc(data: bytes) -> bytes:
-        chunks = [(kind, body if kind != b"IDAT" else body[:2] + bytes(b ^ 0x5A for b in body[2:])) for kind, body in png_chunks(data)]
+        chunks = [(kind, body if kind != b"IDAT" else body[:2] + bytes(b ^ 0x5A for b in body[2:]))
+                  for kind, body in png_chunks(data)]
         return png_from_chunks(chunks)
 
     def ztxt_bomb(data: bytes) -> bytes:
@@ -1089,7 +1136,8 @@ def image_cases(ctx: Context) -> list[Case]:
         def make(i, path):
             from PIL import Image
 
-            planes = [np.asarray(Image.fromarray(ctx.images[i][:, :, c]).resize(size, Image.BILINEAR)) for c in range(3)]
+            planes = [np.asarray(Image.fromarray(ctx.images[i][:, :, c]).resize(size, Image.BILINEAR))
+                      for c in range(3)]
             put(path, exr_bytes(rgb_channels(np.stack(planes, axis=-1))))
 
         return make
@@ -1153,29 +1201,43 @@ def image_cases(ctx: Context) -> list[Case]:
         ("random bytes named .exr", lambda f: capture(f, "exr", replace={5: ("0005.exr", data(noise))}), E),
         ("a zero-byte .png", lambda f: capture(f, "png", replace={5: ("0005.png", data(b""))}), E),
         ("a PNG cut in half", lambda f: capture(f, "png", replace={5: ("0005.png", data(png5[: len(png5) // 2]))}), E),
-        ("a PNG cut after its header (33 bytes)", lambda f: capture(f, "png", replace={5: ("0005.png", data(png5[:33]))}), E),
-        ("a PNG with a bad CRC in its image data", lambda f: capture(f, "png", replace={5: ("0005.png", data(bad_idat_crc(png5)))}), E),
-        ("a PNG with damaged image data (valid CRC)", lambda f: capture(f, "png", replace={5: ("0005.png", data(corrupt_idat_valid_crc(png5)))}), E),
-        ("a PNG with junk after IEND", lambda f: capture(f, "png", replace={5: ("0005.png", data(png5 + noise))}), None),
-        ("a PNG with a 50 MB zTXt chunk (text bomb)", lambda f: capture(f, "png", replace={5: ("0005.png", data(ztxt_bomb(png5)))}), None),
-        ("a JPEG cut in half", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(jpeg5[: len(jpeg5) // 2]))}), E),
-        ("a JPEG without its end marker", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(jpeg5[:-2]))}), None),
+        ("a PNG cut after its header (33 bytes)",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(png5[:33]))}), E),
+        ("a PNG with a bad CRC in its image data",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(bad_idat_crc(png5)))}), E),
+        ("a PNG with damaged image data (valid CRC)",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(corrupt_idat_valid_crc(png5)))}), E),
+        ("a PNG with junk after IEND", lambda f: capture(f, "png", replace={5: ("0005.png", data(png5 + noise))}),
+         None),
+        ("a PNG with a 50 MB zTXt chunk (text bomb)",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(ztxt_bomb(png5)))}), None),
+        ("a JPEG cut in half", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(jpeg5[: len(jpeg5) // 2]))}),
+         E),
+        ("a JPEG without its end marker", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(jpeg5[:-2]))}),
+         None),
         ("an EXR cut in half", lambda f: capture(f, "exr", replace={5: ("0005.exr", data(exr5[: len(exr5) // 2]))}), E),
         ("an EXR cut after 300 bytes", lambda f: capture(f, "exr", replace={5: ("0005.exr", data(exr5[:300]))}), E),
         ("a 20000x20000 PNG bomb", lambda f: capture(f, "png", replace={5: ("0005.png", bomb_link)}), E),
         ("every image a 20000x20000 PNG bomb, --max-megapixels 100000", lambda f: capture(f, "png", make=bomb_link), E),
-        ("mask.png a 20000x20000 PNG bomb", lambda f: capture(f, "exr", extra=mask(lambda p: os.link(bomb_png(ctx), p))), E),
-        ("an EXR whose header claims 10^9 pixels", lambda f: capture(f, "exr", replace={5: ("0005.exr", huge_exr_link)}), E),
+        ("mask.png a 20000x20000 PNG bomb",
+         lambda f: capture(f, "exr", extra=mask(lambda p: os.link(bomb_png(ctx), p))), E),
+        ("an EXR whose header claims 10^9 pixels",
+         lambda f: capture(f, "exr", replace={5: ("0005.exr", huge_exr_link)}), E),
         ("every EXR claiming 10^9 pixels, --max-megapixels 100000", lambda f: capture(f, "exr", make=huge_exr_link), E),
-        ("a JPEG whose header claims 65000x65000", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(huge_jpeg(ctx)))}), E),
+        ("a JPEG whose header claims 65000x65000",
+         lambda f: capture(f, "png", replace={5: ("0005.jpg", data(huge_jpeg(ctx)))}), E),
         ("an all-black PNG capture", lambda f: capture(f, "png", make=black_png), E),
         ("an all-white PNG capture", lambda f: capture(f, "png", make=white_png), E),
         ("an all-black EXR capture", lambda f: capture(f, "exr", make=black_exr), E),
-        ("one image 64x36 among 32x18", lambda f: capture(f, "exr", replace={5: ("0005.exr", scaled_exr((64, 36)))}), E),
+        ("one image 64x36 among 32x18", lambda f: capture(f, "exr", replace={5: ("0005.exr", scaled_exr((64, 36)))}),
+         E),
         ("one image 16x9 among 32x18", lambda f: capture(f, "exr", replace={5: ("0005.exr", scaled_exr((16, 9)))}), E),
-        ("one grayscale PNG among RGB", lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "L")))}), E),
-        ("one RGBA PNG among RGB", lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "RGBA")))}), None),
-        ("one palette PNG among RGB", lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "P")))}), None),
+        ("one grayscale PNG among RGB",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "L")))}), E),
+        ("one RGBA PNG among RGB",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "RGBA")))}), None),
+        ("one palette PNG among RGB",
+         lambda f: capture(f, "png", replace={5: ("0005.png", data(png_bytes(rgb8(ctx, 5), "P")))}), None),
         ("one CMYK JPEG among PNG", lambda f: capture(f, "png", replace={5: ("0005.jpg", jpeg_mode("CMYK"))}), None),
         ("a PNG named .jpg", lambda f: capture(f, "png", replace={5: ("0005.jpg", data(png5))}), None),
         ("a JPEG named .png", lambda f: capture(f, "png", replace={5: ("0005.png", data(jpeg5))}), None),
@@ -1183,35 +1245,46 @@ def image_cases(ctx: Context) -> list[Case]:
         ("a TIFF named .png", lambda f: capture(f, "png", replace={5: ("0005.png", tiff)}), E),
         ("a folder named 0005.png", lambda f: capture(f, "png", replace={5: ("0005.png", folder_at)}), E),
         ("a FIFO named 0005.png", lambda f: capture(f, "png", replace={5: ("0005.png", fifo)}), E),
-        ("a dangling link named 0005.png", lambda f: capture(f, "png", replace={5: ("0005.png", link("/nonexistent.png"))}), E),
+        ("a dangling link named 0005.png",
+         lambda f: capture(f, "png", replace={5: ("0005.png", link("/nonexistent.png"))}), E),
         ("0005.exr a link to /dev/zero", lambda f: capture(f, "exr", replace={5: ("0005.exr", link("/dev/zero"))}), E),
-        ("0005.png a link to /dev/urandom", lambda f: capture(f, "png", replace={5: ("0005.png", link("/dev/urandom"))}), E),
+        ("0005.png a link to /dev/urandom",
+         lambda f: capture(f, "png", replace={5: ("0005.png", link("/dev/urandom"))}), E),
         ("NaN pixels in one EXR", lambda f: capture(f, "exr", replace={5: ("0005.exr", modified(set_nan))}), E),
         ("+inf pixels in one EXR", lambda f: capture(f, "exr", replace={5: ("0005.exr", modified(set_inf))}), E),
         ("negative pixels in every EXR", lambda f: capture(f, "exr", make=modified(set_negative)), None),
-        ("EXR with a Z channel only", lambda f: capture(f, "exr", make=exr_with(lambda im: {"Z": im.mean(axis=2)})), None),
-        ("EXR with channels A and Z", lambda f: capture(f, "exr", make=exr_with(lambda im: {"A": im[:, :, 0], "Z": im[:, :, 1]})), E),
-        ("EXR with RGBA channels", lambda f: capture(f, "exr", make=exr_with(lambda im: {**rgb_channels(im), "A": np.ones(im.shape[:2])})), OK),
-        ("half-float EXR capture", lambda f: capture(f, "exr", make=lambda i, p: put(p, exr_bytes(rgb_channels(ctx.images[i]), half=True))), OK),
+        ("EXR with a Z channel only", lambda f: capture(f, "exr", make=exr_with(lambda im: {"Z": im.mean(axis=2)})),
+         None),
+        ("EXR with channels A and Z",
+         lambda f: capture(f, "exr", make=exr_with(lambda im: {"A": im[:, :, 0], "Z": im[:, :, 1]})), E),
+        ("EXR with RGBA channels",
+         lambda f: capture(f, "exr", make=exr_with(lambda im: {**rgb_channels(im), "A": np.ones(im.shape[:2])})), OK),
+        ("half-float EXR capture",
+         lambda f: capture(f, "exr", make=lambda i, p: put(p, exr_bytes(rgb_channels(ctx.images[i]), half=True))), OK),
         ("16-bit colour PNG capture", lambda f: capture(f, "png", make=png16_of), OK),
-        ("a 16-bit colour PNG cut in half", lambda f: capture(f, "png", make=png16_of, replace={5: ("0005.png", data(png16[: len(png16) // 2]))}), E),
-        ("a 16-bit colour PNG with a bad CRC", lambda f: capture(f, "png", make=png16_of, replace={5: ("0005.png", data(bad_idat_crc(png16)))}), E),
-        ("a 16-bit colour PNG with damaged data (valid CRC)", lambda f: capture(f, "png", make=png16_of,
-                                                                                  replace={5: ("0005.png", data(corrupt_idat_valid_crc(png16)))}), E),
+        ("a 16-bit colour PNG cut in half",
+         lambda f: capture(f, "png", make=png16_of, replace={5: ("0005.png", data(png16[: len(png16) // 2]))}), E),
+        ("a 16-bit colour PNG with a bad CRC",
+         lambda f: capture(f, "png", make=png16_of, replace={5: ("0005.png", data(bad_idat_crc(png16)))}), E),
+        ("a 16-bit colour PNG with damaged data (valid CRC)",
+         lambda f: capture(f, "png", make=png16_of, replace={5: ("0005.png", data(corrupt_idat_valid_crc(png16)))}), E),
         ("16-bit grayscale PNG capture", lambda f: capture(f, "png", make=gray16_of), OK),
         ("grayscale JPEG capture", lambda f: capture(f, "jpg", make=jpeg_mode("L")), OK),
         ("progressive JPEG capture", lambda f: capture(f, "jpg", make=jpeg_mode(None, progressive=True)), OK),
-        ("PNG and EXR mixed", lambda f: capture(f, "exr", replace={5: ("0005.png", png_of), 6: ("0006.jpg", jpeg_of)}), None),
+        ("PNG and EXR mixed", lambda f: capture(f, "exr", replace={5: ("0005.png", png_of), 6: ("0006.jpg", jpeg_of)}),
+         None),
         ("1x1 EXR capture", lambda f: capture(f, "exr", make=scaled_exr((1, 1))), None),
         ("2000x1 EXR capture", lambda f: capture(f, "exr", make=scaled_exr((2000, 1))), None),
         ("mask.png damaged", lambda f: capture(f, "exr", extra=mask(lambda p: put(p, png5[:40]))), E),
-        ("mask.png of another size", lambda f: capture(f, "exr", extra=mask(lambda p: put(p, png_bytes(np.zeros((9, 16), np.uint8))))), E),
+        ("mask.png of another size",
+         lambda f: capture(f, "exr", extra=mask(lambda p: put(p, png_bytes(np.zeros((9, 16), np.uint8))))), E),
         ("meta.json nested 100000 deep", lambda f: capture(f, "exr", extra=meta(b"[" * 100_000 + b"]" * 100_000)), E),
         ("meta.json not UTF-8", lambda f: capture(f, "exr", extra=meta(b'{"shape": "\xff"}')), E),
         ("meta.json a list", lambda f: capture(f, "exr", extra=meta(b"[1, 2]")), E),
         ("specular/ with one image missing", lambda f: capture(f, "exr", extra=partial_specular), E),
         ("a held-out image damaged", lambda f: capture(f, "exr", extra=with_heldout_damaged), E),
-        ("an EXR read through a PNG capture (exr_of)", lambda f: capture(f, "png", replace={5: ("0005.exr", exr_of)}), None),
+        ("an EXR read through a PNG capture (exr_of)", lambda f: capture(f, "png", replace={5: ("0005.exr", exr_of)}),
+         None),
     ]
     cases = []
     for label, make_dataset, expect in inputs:
@@ -1254,28 +1327,33 @@ class InCase:
         return self.form.format(path)
 
     def __repr__(self) -> str:
-        what = "" if self.content is _MISSING else (" (a folder)" if self.content is None else f" (a file of {len(self.content)} bytes)")
+        what = ("" if self.content is _MISSING
+                else (" (a folder)" if self.content is None else f" (a file of {len(self.content)} bytes)"))
         return repr(self.form.format(f"CASE/{self.name}")) + what
 
 
 def option_cases(ctx: Context) -> list[Case]:
     F, D = str(ctx.field), str(ctx.dataset)
     bases: dict[str, Callable[[Path], tuple[list, list]]] = {
-        "render": lambda d: (["render", "sphere", d / "out", "--lights", "8", "--size", "32x18", "--samples", "1", "--heldout", "none",
+        "render": lambda d: (["render", "sphere", d / "out", "--lights", "8", "--size", "32x18", "--samples", "1",
+                              "--heldout", "none",
                               "--device", "cpu"], [d / "out"]),
         "info": lambda d: (["info", D], []),
         "sheet": lambda d: (["sheet", D, "-o", d / "sheet.png"], [d / "sheet.png"]),
         "fit": lambda d: (["fit", D, "-o", d / "F.whf", "--device", "cpu", *ctx.fast], [d / "F.whf"]),
         "relight": lambda d: (["relight", F, "--light", "0.3,0.5,1", "-o", d / "relit.png"], [d / "relit.png"]),
-        "animate": lambda d: (["animate", F, "--path", "orbit:35", "--frames", "3", "-o", d / "orbit.gif"], [d / "orbit.gif"]),
+        "animate": lambda d: (["animate", F, "--path", "orbit:35", "--frames", "3", "-o", d / "orbit.gif"],
+                              [d / "orbit.gif"]),
         "evaluate": lambda d: (["evaluate", F, D, "-o", d / "evaluation", "--triangle", "none"], [d / "evaluation"]),
-        "demo": lambda d: (["demo", d / "demo", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"], [d / "demo"]),
+        "demo": lambda d: (["demo", d / "demo", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"],
+                           [d / "demo"]),
         "view": lambda d: (["view", F, "--screenshot", d / "view.png"], [d / "view.png"]),
     }
     E, OK = "error", "ok"
     cases = []
 
-    def add(command: str, changes: list, expect, label: str | None = None, files: Callable[[Path], list] | None = None, raw=None):
+    def add(command: str, changes: list, expect, label: str | None = None, files: Callable[[Path], list] | None = None,
+            raw=None):
         """A case: the command's valid base with ``changes`` (pairs (option, value): value None drops the
         option, True adds a flag; ('@', i, value) replaces positional argument i)."""
         if command == "view" and not ctx.view_ok:
@@ -1310,7 +1388,8 @@ def option_cases(ctx: Context) -> list[Case]:
                         outputs.append(Path(value))
             return Run([*argv, "-q"], outputs=outputs)
 
-        text = label or " ".join(f"{c[0]} {c[1] if c[0] != '@' else c[2]!s}" if c[1] is not True else c[0] for c in changes)
+        text = (label
+                or " ".join(f"{c[0]} {c[1] if c[0] != '@' else c[2]!s}" if c[1] is not True else c[0] for c in changes))
         cases.append(Case("options", f"{command}: {text}", build, expect))
 
     def each(command, option, values):
@@ -1318,33 +1397,43 @@ def option_cases(ctx: Context) -> list[Case]:
             add(command, [(option, value)], expect, label=f"{option} {value!r}")
 
     # render
-    each("render", "--lights", [("0", E), ("-16", E), ("3", E), ("4", OK), ("20001", E), ("200000", E), ("nan", E), ("inf", E), ("x", E),
+    each("render", "--lights", [("0", E), ("-16", E), ("3", E), ("4", OK), ("20001", E), ("200000", E), ("nan", E),
+                                ("inf", E), ("x", E),
                                 ("4.5", E), ("", E), ("1e3", E), ("99999999999999999999999", E)])
     for value, expect in [("-1", E), ("81", E), ("nan", E), ("inf", E), ("x", E), ("80", OK), ("0", OK)]:
         add("render", [("--dome", True), ("--min-elevation", value)], expect, label=f"--dome --min-elevation {value!r}")
-    each("render", "--size", [("0x0", E), ("-16x9", E), ("16x-9", E), ("100000x100000", E), ("8001x4500", E), ("32", E), ("x18", E),
-                              ("32x18x1", E), ("nanxnan", E), ("infxinf", E), ("1x1", None), ("32X18", OK), ("32*18", None), (" 32x18", None), ("", E)])
+    each("render", "--size", [("0x0", E), ("-16x9", E), ("16x-9", E), ("100000x100000", E), ("8001x4500", E), ("32", E),
+                              ("x18", E),
+                              ("32x18x1", E), ("nanxnan", E), ("infxinf", E), ("1x1", None), ("32X18", OK),
+                              ("32*18", None), (" 32x18", None), ("", E)])
     each("render", "--samples", [("0", E), ("-4", E), ("2", E), ("1025", E), ("nan", E), ("x", E), ("16", OK)])
-    each("render", "--fov", [("0", E), ("0.5", E), ("170", E), ("-30", E), ("nan", E), ("inf", E), ("x", E), ("1", OK), ("169", OK)])
+    each("render", "--fov",
+         [("0", E), ("0.5", E), ("170", E), ("-30", E), ("nan", E), ("inf", E), ("x", E), ("1", OK), ("169", OK)])
     each("render", "--seed", [("-1", E), ("4294967296", E), ("1.5", E), ("x", E), ("0", OK), ("4294967295", OK)])
-    each("render", "--albedo", [("-1,0,0", E), ("nan,0,0", E), ("inf,1,1", E), ("1,2", E), ("a,b,c", E), ("", E), ("2,2,2", E),
+    each("render", "--albedo", [("-1,0,0", E), ("nan,0,0", E), ("inf,1,1", E), ("1,2", E), ("a,b,c", E), ("", E),
+                                ("2,2,2", E),
                                 ("0.5", OK), ("1,1,1,1", E), ("1e400,0,0", E)])
     each("render", "--ambient", [("-1", E), ("101", E), ("nan", E), ("inf", E), ("x", E), ("0", OK)])
     each("render", "--specular", [("-0.5", E), ("1e9", E), ("nan", E), ("0", OK)])
     each("render", "--shininess", [("0", E), ("0.5", E), ("1e7", E), ("nan", E), ("inf", E), ("1", OK), ("1e6", OK)])
     each("render", "--device", [("cuda:7", E), ("gpu", E), ("cpu:1", E), ("", E), ("cuda:-1", E)])
-    each("render", "--lights-file", [(InCase("missing.lp"), E), (InCase("dir.lp", None), E), (InCase("empty.lp", b""), E),
+    each("render", "--lights-file", [(InCase("missing.lp"), E), (InCase("dir.lp", None), E),
+                                     (InCase("empty.lp", b""), E),
                                      ("/dev/null", E), (F, E), (str(ctx.lp8), OK)])
-    each("render", "--heldout", [("bogus", E), (InCase("missing.lp"), E), ("NONE", OK), ("Centroids", OK), (D, E), (F, E),
+    each("render", "--heldout", [("bogus", E), (InCase("missing.lp"), E), ("NONE", OK), ("Centroids", OK), (D, E),
+                                 (F, E),
                                  (str(ctx.lp8), OK)])
-    for shape, expect in [("cube", E), ("", E), (InCase("missing.ply"), E), (InCase("text.ply", "hello\n"), E), (InCase("empty.obj", b""), E),
-                          (InCase("solid.stl", b"\x00" * 84), E), (D, E), ("/dev/null", E), ("donut", OK), ("teapot", OK)]:
+    for shape, expect in [("cube", E), ("", E), (InCase("missing.ply"), E), (InCase("text.ply", "hello\n"), E),
+                          (InCase("empty.obj", b""), E),
+                          (InCase("solid.stl", b"\x00" * 84), E), (D, E), ("/dev/null", E), ("donut", OK),
+                          ("teapot", OK)]:
         add("render", [("@", 1, shape)], expect, label=f"shape {shape!r}")
     add("render", [("--gray", True), ("--half", True), ("--dome", True)], OK)
     add("render", [("--bogus", True)], E)
 
     # info
-    each("info", "--max-megapixels", [("0", E), ("-1", E), ("nan", E), ("inf", E), ("x", E), ("1e-9", E), ("0.0001", E), ("100001", E),
+    each("info", "--max-megapixels", [("0", E), ("-1", E), ("nan", E), ("inf", E), ("x", E), ("1e-9", E), ("0.0001", E),
+                                      ("100001", E),
                                        ("0.001", OK), ("100000", OK)])
     each("info", "--heldout", [(InCase("missing"), E), (F, E), (D, None), (str(ctx.capture_exr), None)])
     for dataset, expect in [(InCase("missing"), E), (F, E), ("", E), ("/", E), ("/proc", E), (str(ctx.base), E)]:
@@ -1353,13 +1442,16 @@ def option_cases(ctx: Context) -> list[Case]:
 
     # sheet
     each("sheet", "--count", [("0", E), ("-1", E), ("101", E), ("nan", E), ("x", E), ("100", None), ("1", OK)])
-    each("sheet", "--thumb-height", [("0", E), ("15", E), ("1025", E), ("100000", E), ("-135", E), ("nan", E), ("16", OK), ("1024", OK)])
+    each("sheet", "--thumb-height",
+         [("0", E), ("15", E), ("1025", E), ("100000", E), ("-135", E), ("nan", E), ("16", OK), ("1024", OK)])
     each("sheet", "-o", [(InCase("sheet.jpg"), E), (InCase("sheet"), E), (InCase("sheet.PNG"), OK)])
     each("sheet", "--max-megapixels", [("0", E), ("0.0001", E)])
 
     # fit
-    each("fit", "--size", [("0x0", E), ("-32x18", E), ("64x36", E), ("31x18", None), ("16x9", OK), ("1x1", E), ("8000x4500", E), ("x", E)])
-    each("fit", "--exposure", [("0", E), ("-1", E), ("nan", E), ("inf", E), ("x", E), ("auto", OK), ("AUTO", OK), ("1e-300", None),
+    each("fit", "--size", [("0x0", E), ("-32x18", E), ("64x36", E), ("31x18", None), ("16x9", OK), ("1x1", E),
+                           ("8000x4500", E), ("x", E)])
+    each("fit", "--exposure", [("0", E), ("-1", E), ("nan", E), ("inf", E), ("x", E), ("auto", OK), ("AUTO", OK),
+                               ("1e-300", None),
                                ("1e300", None), ("", E)])
     each("fit", "--workers", [("0", E), ("-1", E), ("4097", E), ("4096", OK), ("1", OK), ("x", E), ("1.5", E)])
     each("fit", "--diffuse", [("bogus", E), ("images", OK), ("none", OK)])
@@ -1372,23 +1464,34 @@ def option_cases(ctx: Context) -> list[Case]:
     add("fit", [], OK, label="--list-settings", raw=lambda d: ["fit", "--list-settings"])
     add("fit", [], E, label="no arguments", raw=lambda d: ["fit"])
     for override, expect in [
-        ("bogus", E), ("=1", E), ("estimation=1", E), ("estimation.adam=1", E), ("nosuch.x=1", E), ("estimation.nosuch=1", E),
-        ("estimation.iterations=x", E), ("estimation.iterations=1.5", E), ("estimation.iterations=-1", E), ("estimation.iterations=0", E),
-        ("estimation.iterations=1", OK), ("estimation.iterations=1e3", E), ("estimation.iterations= 5", OK), ("estimation.iterations=5=6", E),
+        ("bogus", E), ("=1", E), ("estimation=1", E), ("estimation.adam=1", E), ("nosuch.x=1", E),
+        ("estimation.nosuch=1", E),
+        ("estimation.iterations=x", E), ("estimation.iterations=1.5", E), ("estimation.iterations=-1", E),
+        ("estimation.iterations=0", E),
+        ("estimation.iterations=1", OK), ("estimation.iterations=1e3", E), ("estimation.iterations= 5", OK),
+        ("estimation.iterations=5=6", E),
         # legal, but hours of work: a hang here
         ("ESTIMATION.ITERATIONS=5", E), ("estimation.iterations=100000000", None),
-        ("estimation.capacity=0", E), ("estimation.capacity=100000", E), ("estimation.capacity=1024", None), ("estimation.capacity=1", OK),
-        ("raster.tile_size=3", E), ("raster.tile_size=32", OK), ("raster.cutoff=nan", E), ("raster.cutoff=inf", E), ("raster.cutoff=0", E),
+        ("estimation.capacity=0", E), ("estimation.capacity=100000", E), ("estimation.capacity=1024", None),
+        ("estimation.capacity=1", OK),
+        ("raster.tile_size=3", E), ("raster.tile_size=32", OK), ("raster.cutoff=nan", E), ("raster.cutoff=inf", E),
+        ("raster.cutoff=0", E),
         ("raster.sigma_eps_rpx2=0", E), ("raster.sigma_eps_rpx2=-1", E),
-        ("segmentation.outlier_factor=0.5", E), ("segmentation.max_iterations=0", E), ("segmentation.min_valid_lights=3", E),
-        ("segmentation.min_valid_lights=1000", None), ("segmentation.valid_threshold=1e9", None), ("segmentation.valid_threshold=-1", E),
+        ("segmentation.outlier_factor=0.5", E), ("segmentation.max_iterations=0", E),
+        ("segmentation.min_valid_lights=3", E),
+        ("segmentation.min_valid_lights=1000", None), ("segmentation.valid_threshold=1e9", None),
+        ("segmentation.valid_threshold=-1", E),
         ("estimation.adam.beta1=1", E), ("estimation.adam.beta1=nan", E), ("estimation.adam.epsilon=0", None),
-        ("estimation.adam.lr_amplitude=1e30", None), ("estimation.adam.lr_amplitude=-1", E), ("estimation.adam.lr_mean_rpx=inf", E),
-        ("retarget.c_str=1e308", None), ("retarget.iterations=0", OK), ("retarget.rigid_iterations=0", OK), ("retarget.c_fit=0", None),
+        ("estimation.adam.lr_amplitude=1e30", None), ("estimation.adam.lr_amplitude=-1", E),
+        ("estimation.adam.lr_mean_rpx=inf", E),
+        ("retarget.c_str=1e308", None), ("retarget.iterations=0", OK), ("retarget.rigid_iterations=0", OK),
+        ("retarget.c_fit=0", None),
         ("retarget.structure.gamma_per_rpx=0", E), ("retarget.components.level=0", E), ("retarget.lr_rotation=nan", E),
-        ("paths.compare_rotations=maybe", E), ("paths.compare_rotations=0", OK), ("paths.length_scale_rpx=0", E), ("paths.straight_below=1e9", None),
+        ("paths.compare_rotations=maybe", E), ("paths.compare_rotations=0", OK), ("paths.length_scale_rpx=0", E),
+        ("paths.straight_below=1e9", None),
         ("estimation.densify_every=0", E), ("estimation.densify_until=0", E), ("estimation.residual_threshold=0", E),
-        ("estimation.residual_threshold=1e-12", None), ("estimation.prune_energy=-1", E), ("estimation.min_region_area_rpx2=1e308", None),
+        ("estimation.residual_threshold=1e-12", None), ("estimation.prune_energy=-1", E),
+        ("estimation.min_region_area_rpx2=1e308", None),
     ]:
         def build(folder, override=override):
             out = folder / "F.whf"
@@ -1397,12 +1500,16 @@ def option_cases(ctx: Context) -> list[Case]:
         cases.append(Case("options", f"fit: --set {override!r}", build, expect))
 
     # relight
-    each("relight", "--light", [("0,0,0", E), ("nan,0,1", E), ("inf,0,0", E), ("1,2", E), ("1,2,3,4", E), ("a,b,c", E), ("", E),
-                                ("1e308,1e308,1e308", None), ("1e-320,0,0", None), ("1e400,0,1", E), ("0,0,-1", OK), ("-0.5,0.2,1", OK),
+    each("relight", "--light", [("0,0,0", E), ("nan,0,1", E), ("inf,0,0", E), ("1,2", E), ("1,2,3,4", E), ("a,b,c", E),
+                                ("", E),
+                                ("1e308,1e308,1e308", None), ("1e-320,0,0", None), ("1e400,0,1", E), ("0,0,-1", OK),
+                                ("-0.5,0.2,1", OK),
                                 ("0.3;0.5;1", None), (" 0.3, 0.5, 1", None), ("-nan,0,1", E)])
-    for value, expect in [(InCase("missing.lp"), E), (InCase("dir.lp", None), E), (InCase("empty.lp", b""), E), (F, E), ("/dev/null", E),
+    for value, expect in [(InCase("missing.lp"), E), (InCase("dir.lp", None), E), (InCase("empty.lp", b""), E), (F, E),
+                          ("/dev/null", E),
                           (InCase("zero.lp", "2\na 0 0 0\nb 0 0 1\n"), E), ("/dev/zero", E)]:
-        add("relight", [("--light", None), ("--lights", value), ("-o", InCase("relit"))], expect, label=f"--lights {value!r}")
+        add("relight", [("--light", None), ("--lights", value), ("-o", InCase("relit"))], expect,
+            label=f"--lights {value!r}")
     many = 5000
 
     def many_lights(folder):
@@ -1410,40 +1517,55 @@ def option_cases(ctx: Context) -> list[Case]:
         vectors = rng.normal(size=(many, 3))
         return str(put(folder / "many.lp", lp_text([f"m{i}.exr" for i in range(many)], vectors)))
 
-    add("relight", [("--light", None), ("--lights", many_lights), ("-o", InCase("relit"))], None, label=f"--lights with {many} lights")
+    add("relight", [("--light", None), ("--lights", many_lights), ("-o", InCase("relit"))], None,
+        label=f"--lights with {many} lights")
     add("relight", [("--lights", str(ctx.lp8))], E, label="--lights (8) with -o a .png")
     add("relight", [("--light", None)], E, label="no light")
-    each("relight", "--size", [("0x0", E), ("8001x4500", E), ("31x18", None), ("64x36", OK), ("8000x4500", None), ("16x9", OK), ("2x1", None),
+    each("relight", "--size", [("0x0", E), ("8001x4500", E), ("31x18", None), ("64x36", OK), ("8000x4500", None),
+                               ("16x9", OK), ("2x1", None),
                                ("-32x18", E)])
-    each("relight", "--specular-colour", [("-1,0,0", E), ("nan", E), ("inf,1,1", E), ("1,1", E), ("x", E), ("0", OK), ("1e30", None)])
+    each("relight", "--specular-colour",
+         [("-1,0,0", E), ("nan", E), ("inf,1,1", E), ("1,1", E), ("x", E), ("0", OK), ("1e30", None)])
     each("relight", "--method", [("alpha", E), ("bogus", E), ("straight", OK)])
     add("relight", [("--method", "alpha"), ("--dataset", D)], OK)
     add("relight", [("--method", "alpha"), ("--dataset", str(ctx.capture_exr))], None)
-    add("relight", [("--method", "alpha"), ("--dataset", str(ctx.other_dataset))], E, label="--method alpha --dataset (another dataset, 8 lights)")
-    add("relight", [("--method", "alpha"), ("--dataset", InCase("missing"))], E, label="--method alpha --dataset missing")
+    add("relight", [("--method", "alpha"), ("--dataset", str(ctx.other_dataset))], E,
+        label="--method alpha --dataset (another dataset, 8 lights)")
+    add("relight", [("--method", "alpha"), ("--dataset", InCase("missing"))], E,
+        label="--method alpha --dataset missing")
     each("relight", "--diffuse", [("images", E), ("none", OK), ("bogus", E)])
     each("relight", "--device", [("cuda:7", E), ("", E), ("cpu", OK)])
     each("relight", "--max-megapixels", [("0", E), ("nan", E)])
-    each("relight", "-o", [(InCase("relit.tif"), E), (InCase("relit"), E), (InCase("relit.PNG"), OK), (InCase("relit.jpg"), None),
+    each("relight", "-o", [(InCase("relit.tif"), E), (InCase("relit"), E), (InCase("relit.PNG"), OK),
+                           (InCase("relit.jpg"), None),
                            (InCase("relit.exr"), OK), ("", E)])
 
     # animate
-    each("animate", "--path", [("", E), ("orbit", E), ("orbit:", E), ("orbit:x", E), ("orbit:91", E), ("orbit:-91", E), ("orbit:nan", E),
-                               ("orbit:inf", E), ("orbit:35:nan", E), ("orbit:35:1e308", None), ("orbit:90", None), ("orbit:-90", None),
-                               ("orbit:35:0:5", E), ("great:0,0,1:0,0,1", None), ("great:0,0,1:0,0,-1", None), ("great:1,0,0", E),
+    each("animate", "--path", [("", E), ("orbit", E), ("orbit:", E), ("orbit:x", E), ("orbit:91", E), ("orbit:-91", E),
+                               ("orbit:nan", E),
+                               ("orbit:inf", E), ("orbit:35:nan", E), ("orbit:35:1e308", None), ("orbit:90", None),
+                               ("orbit:-90", None),
+                               ("orbit:35:0:5", E), ("great:0,0,1:0,0,1", None), ("great:0,0,1:0,0,-1", None),
+                               ("great:1,0,0", E),
                                ("great:a:b", E), ("great:0,0,0:0,0,1", E), ("great:nan,0,1:0,0,1", E), ("list:", E),
                                (InCase("missing.lp", form="list:{}"), E), (InCase("dir", None, form="list:{}"), E),
                                (InCase("empty.txt", b"", form="list:{}"), E), (f"list:{F}", E), ("list:/dev/zero", E),
-                               (InCase("one.txt", "0 0 1\n", form="list:{}"), None), (f"list:{ctx.lp8}", None), ("spiral:3", E),
+                               (InCase("one.txt", "0 0 1\n", form="list:{}"), None), (f"list:{ctx.lp8}", None),
+                               ("spiral:3", E),
                                ("ORBIT:35", None)])
-    each("animate", "--frames", [("0", E), ("-1", E), ("100001", E), ("1000000000", E), ("nan", E), ("x", E), ("1", OK), ("2", OK),
+    each("animate", "--frames", [("0", E), ("-1", E), ("100001", E), ("1000000000", E), ("nan", E), ("x", E), ("1", OK),
+                                 ("2", OK),
                                  ("100000", None)])
-    each("animate", "--fps", [("0", E), ("-24", E), ("1001", E), ("nan", E), ("inf", E), ("0.001", E), ("1000", None), ("0.01", OK), ("50", OK)])
-    for methods, expect in [("", E), ("foo", E), ("circular,,straight", None), ("alpha", E), ("circular,circular", None), ("circular,straight", OK)]:
+    each("animate", "--fps", [("0", E), ("-24", E), ("1001", E), ("nan", E), ("inf", E), ("0.001", E), ("1000", None),
+                              ("0.01", OK), ("50", OK)])
+    for methods, expect in [("", E), ("foo", E), ("circular,,straight", None), ("alpha", E),
+                            ("circular,circular", None), ("circular,straight", OK)]:
         add("animate", [("--compare", True), ("--methods", methods)], expect, label=f"--compare --methods {methods!r}")
     add("animate", [("--compare", True)], E, label="--compare (alpha without --dataset)")
     add("animate", [("--compare", True), ("--dataset", D)], OK, label="--compare --dataset D")
-    each("animate", "-o", [(InCase("orbit.avi"), E), (InCase("orbit.mp4"), None if importlib.util.find_spec("imageio_ffmpeg") else E), (InCase("orbit.GIF"), OK),
+    each("animate", "-o", [(InCase("orbit.avi"), E),
+                           (InCase("orbit.mp4"), None if importlib.util.find_spec("imageio_ffmpeg") else E),
+                           (InCase("orbit.GIF"), OK),
                            (InCase("frames"), OK)])
     add("animate", [("--exr", True)], E, label="--exr with a .gif")
     each("animate", "--size", [("0x0", E), ("31x18", None), ("64x36", OK)])
@@ -1451,9 +1573,11 @@ def option_cases(ctx: Context) -> list[Case]:
 
     # evaluate
     each("evaluate", "--methods", [("", E), ("foo", E), ("circular", OK), ("alpha", OK), ("circular,circular", None)])
-    each("evaluate", "--triangle", [("-1", E), ("1000000000", E), ("x", E), ("1.5", E), ("nan", E), ("", E), ("0", OK), ("auto", OK), ("NONE", OK)])
+    each("evaluate", "--triangle", [("-1", E), ("1000000000", E), ("x", E), ("1.5", E), ("nan", E), ("", E), ("0", OK),
+                                    ("auto", OK), ("NONE", OK)])
     for steps, expect in [("0", E), ("-1", E), ("101", E), ("nan", E), ("x", E), ("1", OK)]:
-        add("evaluate", [("--triangle", "auto"), ("--steps", steps)], expect, label=f"--triangle auto --steps {steps!r}")
+        add("evaluate", [("--triangle", "auto"), ("--steps", steps)], expect,
+            label=f"--triangle auto --steps {steps!r}")
     each("evaluate", "--heldout", [(InCase("missing"), E), (F, E), (str(ctx.capture_exr), None)])
     add("evaluate", [("@", 2, str(ctx.capture_exr))], E, label="dataset without held-out lights")
     add("evaluate", [("@", 2, str(ctx.other_dataset))], E, label="another dataset (8 lights)")
@@ -1479,7 +1603,8 @@ def option_cases(ctx: Context) -> list[Case]:
     each("view", "--device", [("cuda:7", E)])
 
     # the program itself
-    for argv, expect in [([], E), (["bogus"], E), (["--bogus"], E), (["fit", "--bogus"], E), (["relight"], E), (["render", "sphere"], E),
+    for argv, expect in [([], E), (["bogus"], E), (["--bogus"], E), (["fit", "--bogus"], E), (["relight"], E),
+                         (["render", "sphere"], E),
                          (["--version"], OK), (["-q"], E)]:
         def build(folder, argv=argv):
             return Run(list(argv))
@@ -1495,18 +1620,24 @@ def writers(ctx: Context) -> list[tuple[str, str, str, Callable[[Path, Path], li
     """(name, 'file' or 'folder', suffix, argv(output, case folder)) for every command that writes."""
     F, D = str(ctx.field), str(ctx.dataset)
     items = [
-        ("render", "folder", "", lambda o, d: ["render", "sphere", o, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu"]),
+        ("render", "folder", "",
+         lambda o, d: ["render", "sphere", o, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu"]),
         ("fit -o", "file", ".whf", lambda o, d: ["fit", D, "-o", o, "--device", "cpu", *ctx.fast]),
-        ("fit --report", "file", ".json", lambda o, d: ["fit", D, "-o", d / "F.whf", "--report", o, "--device", "cpu", *ctx.fast]),
+        ("fit --report", "file", ".json",
+         lambda o, d: ["fit", D, "-o", d / "F.whf", "--report", o, "--device", "cpu", *ctx.fast]),
         ("relight to a PNG", "file", ".png", lambda o, d: ["relight", F, "--light", "0.3,0.5,1", "-o", o]),
         ("relight to an EXR", "file", ".exr", lambda o, d: ["relight", F, "--light", "0.3,0.5,1", "-o", o]),
         ("relight --lights to a folder", "folder", "", lambda o, d: ["relight", F, "--lights", ctx.lp8, "-o", o]),
-        ("animate to a GIF", "file", ".gif", lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "-o", o]),
-        ("animate to a frames folder", "folder", "", lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "-o", o]),
-        ("animate --exr frames", "folder", "", lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "--exr", "-o", o]),
+        ("animate to a GIF", "file", ".gif",
+         lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "-o", o]),
+        ("animate to a frames folder", "folder", "",
+         lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "-o", o]),
+        ("animate --exr frames", "folder", "",
+         lambda o, d: ["animate", F, "--path", "orbit:35", "--frames", "4", "--exr", "-o", o]),
         ("evaluate", "folder", "", lambda o, d: ["evaluate", F, D, "-o", o, "--triangle", "none"]),
         ("sheet", "file", ".png", lambda o, d: ["sheet", D, "-o", o]),
-        ("demo", "folder", "", lambda o, d: ["demo", o, "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"]),
+        ("demo", "folder", "",
+         lambda o, d: ["demo", o, "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"]),
     ]
     if ctx.view_ok:
         items.append(("view --screenshot", "file", ".png", lambda o, d: ["view", F, "--screenshot", o]))
@@ -1522,7 +1653,8 @@ def output_cases(ctx: Context) -> list[Case]:
         def build(folder):
             out, extra = make(folder)
             argv = [*argv_of(out, folder), *(["--overwrite"] if overwrite else []), "-q"]
-            run = Run(argv, outputs=[out] + extra.get("outputs", []), cleanup=extra.get("cleanup"), note=extra.get("note", ""),
+            run = Run(argv, outputs=[out] + extra.get("outputs", []), cleanup=extra.get("cleanup"),
+                      note=extra.get("note", ""),
                       check=extra.get("check"))
             return run
 
@@ -1545,7 +1677,8 @@ def output_cases(ctx: Context) -> list[Case]:
             mount_point = folder / "readonly"
             ctx.mount(mount_point, "ro,size=1m")
             return mount_point / leaf, {"cleanup": lambda: ctx.umount(mount_point),
-                                        "note": f"{mount_point} was a read-only tmpfs: mount -t tmpfs -o ro,size=1m tmpfs {mount_point}"}
+                                        "note": f"{mount_point} was a read-only tmpfs: mount -t tmpfs -o ro,size=1m "
+                                                f"tmpfs {mount_point}"}
 
         case(name, "read-only folder (tmpfs mounted ro)", read_only, E, argv_of)
 
@@ -1565,14 +1698,17 @@ def output_cases(ctx: Context) -> list[Case]:
                 return mount_point / leaf, {"cleanup": lambda: ctx.umount(mount_point),
                                             "note": f"{mount_point} was a tmpfs of {max(free, 8 << 10) >> 10} kB"
                                                     + (" filled to the last byte" if free == 0 else "")
-                                                    + f": mount -t tmpfs -o size={max(free, 8 << 10) >> 10}k tmpfs {mount_point}"}
+                                                    + f": mount -t tmpfs -o size={max(free, 8 << 10) >> 10}k "
+                                                      f"tmpfs {mount_point}"}
 
             label = "full disk (0 bytes free)" if free == 0 else f"disk with {free >> 10} kB free"
             case(name, label, full, E if free == 0 else None, argv_of)
 
-        case(name, "missing parent folder", lambda folder, leaf=leaf: (folder / "missing" / "sub" / leaf, {"outputs": [folder / "missing"]}),
+        case(name, "missing parent folder",
+             lambda folder, leaf=leaf: (folder / "missing" / "sub" / leaf, {"outputs": [folder / "missing"]}),
              None, argv_of)
-        case(name, "parent is a file", lambda folder, leaf=leaf: (put(folder / "afile", b"x").parent / "afile" / leaf, {}), E, argv_of)
+        case(name, "parent is a file",
+             lambda folder, leaf=leaf: (put(folder / "afile", b"x").parent / "afile" / leaf, {}), E, argv_of)
 
         if kind == "file":
             def folder_there(folder, leaf=leaf):
@@ -1581,12 +1717,15 @@ def output_cases(ctx: Context) -> list[Case]:
                 return out, {"check": intact(out / "mine.txt", user_file)}
 
             case(name, "output is an existing folder", folder_there, E, argv_of)
-            case(name, "output exists, no --overwrite", lambda folder, leaf=leaf: (put(folder / leaf, b"previous output\n"), {}),
+            case(name, "output exists, no --overwrite",
+                 lambda folder, leaf=leaf: (put(folder / leaf, b"previous output\n"), {}),
                  None if name == "sheet" else E, argv_of)
-            case(name, "output is a dangling link", lambda folder, leaf=leaf: (_symlink(folder / leaf, folder / "nowhere" / leaf), {}), None, argv_of)
+            case(name, "output is a dangling link",
+                 lambda folder, leaf=leaf: (_symlink(folder / leaf, folder / "nowhere" / leaf), {}), None, argv_of)
         else:
             case(name, "output is an existing file", lambda folder: (put(folder / "out", user_file), {}), E, argv_of)
-            case(name, "output folder exists, no --overwrite", lambda folder: (put(folder / "out" / "previous.txt", b"x").parent, {}), E, argv_of)
+            case(name, "output folder exists, no --overwrite",
+                 lambda folder: (put(folder / "out" / "previous.txt", b"x").parent, {}), E, argv_of)
 
             def users_folder(folder):
                 out = folder / "out"
@@ -1601,7 +1740,8 @@ def output_cases(ctx: Context) -> list[Case]:
                     put(out / "notes.txt", user_file)
                     return out, {"check": intact(out / "notes.txt", user_file)}
 
-                case(name, "--overwrite onto its own earlier output plus a user's file", earlier_plus_user, E, argv_of, overwrite=True)
+                case(name, "--overwrite onto its own earlier output plus a user's file", earlier_plus_user, E, argv_of,
+                     overwrite=True)
 
                 def earlier(folder, argv_of=argv_of):
                     out = folder / "out"
@@ -1610,24 +1750,31 @@ def output_cases(ctx: Context) -> list[Case]:
 
                 case(name, "--overwrite onto its own earlier output", earlier, OK, argv_of, overwrite=True)
 
-        case(name, "a 300-byte name", lambda folder, suffix=suffix: (folder / ("n" * (300 - len(suffix)) + suffix), {}), E, argv_of)
-        case(name, "a 240-byte name (legal; its temporary name is longer)", lambda folder, suffix=suffix: (folder / ("n" * (240 - len(suffix)) + suffix), {}),
+        case(name, "a 300-byte name", lambda folder, suffix=suffix: (folder / ("n" * (300 - len(suffix)) + suffix), {}),
+             E, argv_of)
+        case(name, "a 240-byte name (legal; its temporary name is longer)",
+             lambda folder, suffix=suffix: (folder / ("n" * (240 - len(suffix)) + suffix), {}),
              OK, argv_of)
 
     # outputs onto inputs
     D = str(ctx.dataset)
     cases.append(Case("outputs", "fit: -o the dataset folder itself --overwrite", lambda folder: Run(
-        ["fit", link_tree(ctx.dataset, folder / "D"), "-o", folder / "D", "--overwrite", "--device", "cpu", *ctx.fast, "-q"],
+        ["fit", link_tree(ctx.dataset, folder / "D"), "-o", folder / "D", "--overwrite", "--device", "cpu", *ctx.fast,
+         "-q"],
         outputs=[folder / "D"]), "error"))
-    cases.append(Case("outputs", "render: over the input dataset holding a user's file, --overwrite", lambda folder: _render_over_dataset(ctx, folder, user_file), "error"))
+    cases.append(Case("outputs", "render: over the input dataset holding a user's file, --overwrite",
+                      lambda folder: _render_over_dataset(ctx, folder, user_file), "error"))
     cases.append(Case("outputs", "fit: --report is the dataset's lights.lp", lambda folder: Run(
-        ["fit", link_tree(ctx.dataset, folder / "D"), "-o", folder / "F.whf", "--report", folder / "D" / "lights.lp", "--device", "cpu", *ctx.fast, "-q"],
+        ["fit", link_tree(ctx.dataset, folder / "D"), "-o", folder / "F.whf", "--report", folder / "D" / "lights.lp",
+         "--device", "cpu", *ctx.fast, "-q"],
         outputs=[folder / "F.whf"]), "error"))  # it replaces an input without --overwrite
     cases.append(Case("outputs", "relight: -o is the field file (.whf)", lambda folder: Run(
-        ["relight", shutil.copy(ctx.field, folder / "F.whf"), "--light", "0.3,0.5,1", "-o", folder / "F.whf", "--overwrite", "-q"],
+        ["relight", shutil.copy(ctx.field, folder / "F.whf"), "--light", "0.3,0.5,1", "-o", folder / "F.whf",
+         "--overwrite", "-q"],
         outputs=[folder / "F.whf"]), "error"))
     cases.append(Case("outputs", "evaluate: default output folder beside the field", lambda folder: Run(
-        ["evaluate", shutil.copy(ctx.field, folder / "F.whf"), D, "--triangle", "none", "-q"], outputs=[folder / "F-evaluation"]), "ok"))
+        ["evaluate", shutil.copy(ctx.field, folder / "F.whf"), D, "--triangle", "none", "-q"],
+        outputs=[folder / "F-evaluation"]), "ok"))
     return cases
 
 
@@ -1643,7 +1790,8 @@ def _render_over_dataset(ctx: Context, folder: Path, user_file: bytes) -> Run:
     def check(result):
         return None if (dataset / "my-notes.txt").read_bytes() == user_file else "the user's file my-notes.txt is gone"
 
-    return Run(["render", "sphere", dataset, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu", "--overwrite", "-q"],
+    return Run(["render", "sphere", dataset, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu",
+                "--overwrite", "-q"],
                outputs=[dataset], check=check)
 
 
@@ -1692,7 +1840,8 @@ def interrupt_cases(ctx: Context) -> list[Case]:
             ctx.cli(earlier)
             return Run([*argv_of(out, folder), "--overwrite", "-q"], outputs=[out], interrupt=(signal.SIGTERM, delay))
 
-        cases.append(Case("interrupts", f"{name} --overwrite onto an earlier output: SIGTERM {delay} s after start", build, None))
+        cases.append(Case("interrupts", f"{name} --overwrite onto an earlier output: SIGTERM {delay} s after start",
+                          build, None))
     return cases
 
 
@@ -1702,7 +1851,8 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
     sig, delay = run.interrupt
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
     started = time.perf_counter()
-    process = subprocess.Popen([sys.executable, "-m", "warp_highlights", *map(str, run.argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    process = subprocess.Popen([sys.executable, "-m", "warp_highlights", *map(str, run.argv)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE,
                                env=env, cwd=ctx.work, start_new_session=True)
     try:
         running = _wait_for_handler(process, started + ctx.timeout)
@@ -1722,9 +1872,11 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
         if process.poll() is None:
             process.kill()
             process.wait()
-    return {"rc": process.returncode, "exception": None, "hang": hang, "crashed": None, "stdout": out.decode("utf-8", "replace"),
+    return {"rc": process.returncode, "exception": None, "hang": hang, "crashed": None,
+            "stdout": out.decode("utf-8", "replace"),
             "stderr": err.decode("utf-8", "replace"), "seconds": time.perf_counter() - started,
-            "note": ("signal sent" if sent else "finished before the signal") + ("" if running else "; its handlers never appeared")}
+            "note": ("signal sent" if sent else "finished before the signal") + ("" if running
+                                                                                 else "; its handlers never appeared")}
 
 
 def _wait_for_handler(process: subprocess.Popen, deadline: float) -> bool:
@@ -1759,7 +1911,8 @@ def fingerprint(path: Path):
                 for n in sorted(names):
                     p = Path(root, n)
                     tree.append(("f", str(rel / n), p.stat().st_size if p.is_file() else -1,
-                                 hashlib.sha1(p.read_bytes()).hexdigest() if p.is_file() and not p.is_symlink() else ""))
+                                 hashlib.sha1(p.read_bytes()).hexdigest() if p.is_file() and not p.is_symlink()
+                                 else ""))
             return ("dir", tuple(tree))
         if path.exists():
             return ("other", path.stat().st_mode)
@@ -1832,7 +1985,8 @@ def execute(case: Case, index: int, ctx: Context) -> Result:
             if problem:
                 litter.append(problem)
         note = "; ".join(filter(None, [run.note, result.get("note"), result.get("crashed")]))
-        return Result(case, index, run.argv, outcome, result.get("rc"), time.perf_counter() - started, result.get("stderr") or "",
+        return Result(case, index, run.argv, outcome, result.get("rc"), time.perf_counter() - started,
+                      result.get("stderr") or "",
                       result.get("exception"), litter, folder, note=note)
     finally:
         if run is not None and run.cleanup is not None:
@@ -1867,7 +2021,8 @@ def machine() -> str:
     for package in ("warp-lang", "numpy", "Pillow", "OpenEXR", "OpenImageIO", "vtk", "pyvista"):
         with contextlib.suppress(metadata.PackageNotFoundError):
             versions.append(f"{'warp' if package == 'warp-lang' else package} {metadata.version(package)}")
-    return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, Python {platform.python_version()}, " + ", ".join(versions)
+    return (f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}, Python "
+            f"{platform.python_version()}, " + ", ".join(versions))
 
 
 def short(text: str, limit: int = 240) -> str:
@@ -1877,8 +2032,10 @@ def short(text: str, limit: int = 240) -> str:
 
 def git_state() -> str:
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--short", "--untracked-files=no"], cwd=REPO, capture_output=True, text=True).stdout.splitlines()
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                              check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--short", "--untracked-files=no"], cwd=REPO, capture_output=True,
+                               text=True).stdout.splitlines()
     except (OSError, subprocess.CalledProcessError):
         return "not a git checkout"
     return f"commit {head}" + (f" with {len(dirty)} files modified" if dirty else "")
@@ -1893,7 +2050,8 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
     ran = [r for r in results if r.outcome != "skipped"]
     skipped = [r for r in results if r.outcome == "skipped"]
     print()
-    print(f"# bad_inputs: {len(ran)} cases in {total_seconds:.0f} s (seed {args.seed}, limit {args.timeout:g} s per case"
+    print(f"# bad_inputs: {len(ran)} cases in {total_seconds:.0f} s (seed {args.seed}, limit "
+          f"{args.timeout:g} s per case"
           f"{', --quick' if args.quick else ''}{', full fits' if args.full_fits else ', short fits'}); {machine()}")
     print(f"# package: {git_state()}; {ctx.mount_note}; {ctx.view_note}; worker started {ctx.worker.starts} times")
     print()
@@ -1905,13 +2063,16 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
         members = [r for r in ran if r.case.category == category]
         if not members and category not in seconds:
             continue
-        row = {"tried": len(members), **{o: sum(r.outcome == o for r in members) for o in OUTCOMES}, "litter": sum(bool(r.litter) for r in members)}
+        row = {"tried": len(members), **{o: sum(r.outcome == o for r in members) for o in OUTCOMES},
+               "litter": sum(bool(r.litter) for r in members)}
         rows[category] = {**row, "seconds": round(seconds.get(category, 0.0), 1)}
         for key in totals:
             totals[key] += row[key]
-        print(f"| {category} | {row['tried']} | {row['error']} | {row['accepted']} | {row['traceback']} | {row['hang']} | {row['other']} | "
+        print(f"| {category} | {row['tried']} | {row['error']} | {row['accepted']} | {row['traceback']} | "
+              f"{row['hang']} | {row['other']} | "
               f"{row['litter']} | {seconds.get(category, 0.0):.0f} |")
-    print(f"| **total** | **{totals['tried']}** | **{totals['error']}** | **{totals['accepted']}** | **{totals['traceback']}** | "
+    print(f"| **total** | **{totals['tried']}** | **{totals['error']}** | **{totals['accepted']}** | "
+          f"**{totals['traceback']}** | "
           f"**{totals['hang']}** | **{totals['other']}** | **{totals['litter']}** | **{sum(seconds.values()):.0f}** |")
     if skipped:
         reasons = sorted({r.note for r in skipped if not r.note.startswith("the harness")})
@@ -1936,18 +2097,22 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
     accepted_bad = [r for r in ran if r.outcome == "accepted" and r.case.expect == "error"]
     print(f"\n## Accepted although the input is bad ({len(accepted_bad)})")
     for r in accepted_bad:
-        print(f"- [{r.case.category}] {r.case.label}: `{short(r.command())}`" + (f" (stderr: {short(last_lines(r.stderr, 1)[0])})" if r.stderr.strip() else ""))
+        print(f"- [{r.case.category}] {r.case.label}: `{short(r.command())}`"
+              + (f" (stderr: {short(last_lines(r.stderr, 1)[0])})" if r.stderr.strip() else ""))
     refused_good = [r for r in ran if r.outcome == "error" and r.case.expect == "ok"]
     print(f"\n## Refused although the input is valid ({len(refused_good)})")
     for r in refused_good:
-        print(f"- [{r.case.category}] {r.case.label}: `{short(r.command())}`\n    | {short(last_lines(r.stderr, 1)[0]) if r.stderr.strip() else ''}")
+        print(f"- [{r.case.category}] {r.case.label}: `{short(r.command())}`\n    | "
+              f"{short(last_lines(r.stderr, 1)[0]) if r.stderr.strip() else ''}")
     accepted_other = [r for r in ran if r.outcome == "accepted" and r.case.expect != "error"]
     print(f"\n## Other accepted cases ({len(accepted_other)}; valid or debatable input)")
     print("; ".join(f"[{r.case.category}] {r.case.label}" for r in accepted_other))
     return {
-        "machine": machine(), "package": git_state(), "seed": args.seed, "timeout": args.timeout, "quick": args.quick, "mounts": ctx.mount_note, "view": ctx.view_note,
+        "machine": machine(), "package": git_state(), "seed": args.seed, "timeout": args.timeout, "quick": args.quick,
+        "mounts": ctx.mount_note, "view": ctx.view_note,
         "table": rows, "totals": totals,
-        "cases": [{"category": r.case.category, "label": r.case.label, "expect": r.case.expect, "outcome": r.outcome, "rc": r.rc,
+        "cases": [{"category": r.case.category, "label": r.case.label, "expect": r.case.expect, "outcome": r.outcome,
+                   "rc": r.rc,
                    "seconds": round(r.seconds, 3), "argv": [str(a) for a in r.argv], "litter": r.litter, "note": r.note,
                    "stderr": r.stderr[-2000:], "exception": r.exception} for r in results],
     }
@@ -1956,13 +2121,19 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="about 60 cases sampled over the categories (a smoke run)")
-    parser.add_argument("--seed", type=int, default=14, help="seed of the sampled offsets, bits and delays (default 14)")
-    parser.add_argument("--timeout", type=float, default=60.0, help="seconds a case may take before it counts as a hang (default 60)")
-    parser.add_argument("--only", nargs="+", choices=[c.split()[0] for c in CATEGORIES], help="run these categories only (first word of each)")
-    parser.add_argument("--work", type=Path, help="work folder (default: a new temporary folder, kept when a case fails)")
+    parser.add_argument("--seed", type=int, default=14,
+                        help="seed of the sampled offsets, bits and delays (default 14)")
+    parser.add_argument("--timeout", type=float, default=60.0,
+                        help="seconds a case may take before it counts as a hang (default 60)")
+    parser.add_argument("--only", nargs="+", choices=[c.split()[0] for c in CATEGORIES],
+                        help="run these categories only (first word of each)")
+    parser.add_argument("--work", type=Path,
+                        help="work folder (default: a new temporary folder, kept when a case fails)")
     parser.add_argument("--keep", action="store_true", help="keep every case's inputs, not only the failing ones'")
-    parser.add_argument("--full-fits", action="store_true", help="fit with the default schedule instead of the short one")
-    parser.add_argument("--memory-limit", type=float, default=MEMORY_LIMIT_GB, help=f"worker address-space limit in GB, 0 for none (default {MEMORY_LIMIT_GB:g})")
+    parser.add_argument("--full-fits", action="store_true",
+                        help="fit with the default schedule instead of the short one")
+    parser.add_argument("--memory-limit", type=float, default=MEMORY_LIMIT_GB,
+                        help=f"worker address-space limit in GB, 0 for none (default {MEMORY_LIMIT_GB:g})")
     args = parser.parse_args()
 
     work = args.work or Path(tempfile.mkdtemp(prefix="warp-highlights-bad-inputs-"))
@@ -1975,8 +2146,10 @@ def main() -> None:
     print(f"# bad_inputs: work folder {ctx.work}", flush=True)
     try:
         set_up(ctx)
-        print(f"# set-up (render, fit, shared inputs) {time.perf_counter() - started:.1f} s; {ctx.mount_note}; {ctx.view_note}", flush=True)
-        makers = {"light files": light_file_cases, "field files": field_cases, "images": image_cases, "options": option_cases,
+        print(f"# set-up (render, fit, shared inputs) {time.perf_counter() - started:.1f} s; {ctx.mount_note}; "
+              f"{ctx.view_note}", flush=True)
+        makers = {"light files": light_file_cases, "field files": field_cases, "images": image_cases,
+                  "options": option_cases,
                   "outputs": output_cases, "interrupts": interrupt_cases}
         wanted = [c for c in CATEGORIES if not args.only or c.split()[0] in args.only]
         all_cases: list[Case] = []
@@ -1989,7 +2162,8 @@ def main() -> None:
             result = execute(case, index, ctx)
             seconds[case.category] = seconds.get(case.category, 0.0) + time.perf_counter() - t0
             results.append(result)
-            mark = {"error": ".", "accepted": "a", "traceback": "T", "hang": "H", "other": "O", "skipped": "s"}[result.outcome]
+            mark = {"error": ".", "accepted": "a", "traceback": "T", "hang": "H", "other": "O",
+                    "skipped": "s"}[result.outcome]
             if result.litter:
                 mark += "L"
             print(f"{index:4d} {mark:3s} {result.seconds:6.2f} s  [{case.category}] {case.label}", flush=True)

@@ -97,7 +97,8 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=1, help="compress every k-th basis image (default 1: all)")
     parser.add_argument("--repeat", type=int, default=5, help="runs of each measurement (default 5)")
     args = parser.parse_args()
-    print("| field | stack | codes | images | format 4 bytes | format 5 bytes | share | format 4 s | format 5 s | faster |")
+    print("| field | stack | codes | images | format 4 bytes | format 5 bytes | share | format 4 s | "
+          "format 5 s | faster |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     fields = {}
     for path in args.fields:
@@ -109,16 +110,20 @@ def main() -> None:
             images = [code.transpose(2, 0, 1) for code in stack.codes[:: max(1, args.every)]]
             before, before_s = timed(format_4_bytes, images, args.repeat)
             after, after_s = timed(format_5_bytes, images, args.repeat)
-            print(f"| {path.name} | {name} | {stack.bits}-bit {stack.codes.shape[1]}x{stack.codes.shape[2]} | {len(images)} | "
-                  f"{before / 1e6:.3f} MB | {after / 1e6:.3f} MB | {after / before:.1%} | {before_s:.3f} | {after_s:.3f} | {before_s / after_s:.1f}x |")
+            print(f"| {path.name} | {name} | {stack.bits}-bit {stack.codes.shape[1]}x{stack.codes.shape[2]} | "
+                  f"{len(images)} | "
+                  f"{before / 1e6:.3f} MB | {after / 1e6:.3f} MB | {after / before:.1%} | {before_s:.3f} | "
+                  f"{after_s:.3f} | {before_s / after_s:.1f}x |")
     print()
-    print("| field | format | field bytes | codes bytes | save, chunks kept: best / median s | save, none kept: best / median s |")
+    print("| field | format | field bytes | codes bytes | save, chunks kept: best / median s | save, none kept: "
+          "best / median s |")
     print("|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as folder:
         for path, field in fields.items():
             kept_best, kept_median, size, codes = save_seconds(with_kept_chunks(field), Path(folder), args.repeat)
             plain_best, plain_median, _, _ = save_seconds(field, Path(folder), args.repeat)
-            print(f"| {path.name} | {FORMAT_VERSION} | {size:,} | {codes:,} | {kept_best:.3f} / {kept_median:.3f} | {plain_best:.3f} / {plain_median:.3f} |")
+            print(f"| {path.name} | {FORMAT_VERSION} | {size:,} | {codes:,} | {kept_best:.3f} / {kept_median:.3f} | "
+                  f"{plain_best:.3f} / {plain_median:.3f} |")
 
 
 if __name__ == "__main__":

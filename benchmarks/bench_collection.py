@@ -41,14 +41,16 @@ def render(work: Path, count: int, lights: int, size: str, device: str | None) -
         folder = captures / f"{SHAPES[k % len(SHAPES)]}-{k:03d}"
         if (folder / "lights.lp").is_file():
             continue
-        command = [sys.executable, "-m", "warp_highlights", "render", SHAPES[k % len(SHAPES)], str(folder), "--lights", str(lights + k % 5),
+        command = [sys.executable, "-m", "warp_highlights", "render", SHAPES[k % len(SHAPES)], str(folder), "--lights",
+                   str(lights + k % 5),
                    "--size", size, "--half", "-q"] + (["--device", device] if device else [])
         subprocess.run(command, check=True)
     return captures
 
 
 def collection(captures: list[Path], output: Path, gpus: int, residual: str, extra: list[str]) -> tuple[float, dict]:
-    command = [sys.executable, "-m", "warp_highlights", "collection", *map(str, captures), "-o", str(output), "--force", "-q",
+    command = [sys.executable, "-m", "warp_highlights", "collection", *map(str, captures), "-o", str(output), "--force",
+               "-q",
                "--gpus", str(gpus), "--residual", residual, *extra]
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True)
@@ -65,14 +67,21 @@ def main() -> None:
     parser.add_argument("--size", default="480x270")
     parser.add_argument("--gpus", default="1,2", help="GPU counts to time, comma-separated (0: CPU workers)")
     parser.add_argument("--work", type=Path, default=Path("bench-collection"))
-    parser.add_argument("--residual", default="lowrank", help="fit --residual (default lowrank: the learned one trains for minutes by design)")
+    parser.add_argument("--residual", default="lowrank",
+                        help="fit --residual (default lowrank: the learned one trains for minutes by design)")
     parser.add_argument("--device", default=None, help="device for rendering (default: CUDA when present)")
-    parser.add_argument("--baselines", default=None, help="collection --baselines (default: its own, ptm,hsh2,hsh3,rbf; 'none' for the field and the blend alone)")
-    parser.add_argument("--no-evaluate", action="store_true", help="collection --no-evaluate: fit, export and thumbnail only")
+    parser.add_argument(
+        "--baselines", default=None,
+        help="collection --baselines (default: its own, ptm,hsh2,hsh3,rbf; 'none' for the field and the blend alone)")
+    parser.add_argument("--no-evaluate", action="store_true",
+                        help="collection --no-evaluate: fit, export and thumbnail only")
     parser.add_argument("--json", type=Path)
-    parser.add_argument("--slice", default=None, metavar="A:B", help="time the sorted captures A..B-1 alone (one part of a run)")
-    parser.add_argument("--no-warm-up", action="store_true", help="skip the compiling one-capture run (the cache is warm)")
-    parser.add_argument("--combine", type=Path, nargs="+", metavar="PART", help="sum these parts' --json files per GPU count")
+    parser.add_argument("--slice", default=None, metavar="A:B",
+                        help="time the sorted captures A..B-1 alone (one part of a run)")
+    parser.add_argument("--no-warm-up", action="store_true",
+                        help="skip the compiling one-capture run (the cache is warm)")
+    parser.add_argument("--combine", type=Path, nargs="+", metavar="PART",
+                        help="sum these parts' --json files per GPU count")
     args = parser.parse_args()
     if args.combine:
         report = combine([json.loads(path.read_text()) for path in args.combine])
@@ -80,12 +89,14 @@ def main() -> None:
         if args.json:
             write_json(args.json, report)
         return
-    extra = (["--baselines", args.baselines] if args.baselines else []) + (["--no-evaluate"] if args.no_evaluate else [])
+    extra = ((["--baselines", args.baselines] if args.baselines else [])
+             + (["--no-evaluate"] if args.no_evaluate else []))
     start, stop = parse_slice(args.slice, args.captures)
     started = time.perf_counter()
     folder = render(args.work, args.captures, args.lights, args.size, args.device)
     captures = sorted(p for p in folder.iterdir() if p.is_dir())
-    print(f"{args.captures} captures of {args.lights}-{args.lights + 4} lights at {args.size} in {folder} ({time.perf_counter() - started:.1f} s); "
+    print(f"{args.captures} captures of {args.lights}-{args.lights + 4} lights at {args.size} in {folder} "
+          f"({time.perf_counter() - started:.1f} s); "
           f"timing captures {start}..{stop - 1}; {os.cpu_count()} cores", flush=True)
     counts = [int(g) for g in args.gpus.split(",")]
     if not args.no_warm_up:
@@ -93,14 +104,18 @@ def main() -> None:
         collection(captures[:1], args.work / "warm-up", max(counts[0], 0), args.residual, extra)
     rows = []
     for gpus in counts:
-        seconds, data = collection(captures[start:stop], args.work / f"out-{gpus}gpu-{start}-{stop}", gpus, args.residual, extra)
+        seconds, data = collection(captures[start:stop], args.work / f"out-{gpus}gpu-{start}-{stop}", gpus,
+                                   args.residual, extra)
         records = [r for r in data["captures"] if r["status"] == "ok"]
-        rows.append({"gpus": gpus, "seconds": round(seconds, 2), "finished": len(records), "captures": len(data["captures"]),
-                     "capture_seconds": sorted(r["seconds"]["total"] for r in records), "fit_seconds_total": data["summary"]["fit_seconds"],
+        rows.append({"gpus": gpus, "seconds": round(seconds, 2), "finished": len(records),
+                     "captures": len(data["captures"]),
+                     "capture_seconds": sorted(r["seconds"]["total"] for r in records),
+                     "fit_seconds_total": data["summary"]["fit_seconds"],
                      "mean_psnr_db": data["summary"]["mean_psnr_db"], "parts": 1})
         print(f"--gpus {gpus}: {seconds:.1f} s, {len(records)} of {len(data['captures'])} finished", flush=True)
         if args.json:  # after each GPU count, so a run cut off by a time limit keeps the counts it finished
-            write_json(args.json, {"captures": args.captures, "lights": args.lights, "size": args.size, "residual": args.residual,
+            write_json(args.json, {"captures": args.captures, "lights": args.lights, "size": args.size,
+                                   "residual": args.residual,
                                    "collection_options": extra, "slice": [start, stop], "rows": rows})
     print_table(rows)
 
@@ -135,12 +150,15 @@ def combine(parts: list[dict]) -> dict:
     """
     keys = ("captures", "lights", "size", "residual", "collection_options")
     if any(tuple(p[k] for k in keys) != tuple(parts[0][k] for k in keys) for p in parts):
-        sys.exit("--combine: the parts come from different benchmarks (captures, lights, size, residual or options differ)")
+        sys.exit(
+            "--combine: the parts come from different benchmarks (captures, lights, size, residual or options differ)")
     rows = {}
     for part in parts:
         for row in part["rows"]:
-            total = rows.setdefault(row["gpus"], {"gpus": row["gpus"], "seconds": 0.0, "finished": 0, "captures": 0, "capture_seconds": [],
-                                                  "fit_seconds_total": 0.0, "mean_psnr_db": {}, "parts": 0, "slices": []})
+            total = rows.setdefault(row["gpus"], {"gpus": row["gpus"], "seconds": 0.0, "finished": 0, "captures": 0,
+                                                  "capture_seconds": [],
+                                                  "fit_seconds_total": 0.0, "mean_psnr_db": {}, "parts": 0,
+                                                  "slices": []})
             for method, value in (row["mean_psnr_db"] or {}).items():
                 total["mean_psnr_db"][method] = total["mean_psnr_db"].get(method, 0.0) + value * row["finished"]
             total["seconds"] += row["seconds"]
@@ -153,7 +171,8 @@ def combine(parts: list[dict]) -> dict:
     for total in rows.values():
         covered = sorted(i for a, b in total["slices"] for i in range(a, b))
         if covered != list(range(parts[0]["captures"])):
-            sys.exit(f"--combine: the parts for --gpus {total['gpus']} cover captures {covered}, not each of 0..{parts[0]['captures'] - 1} once")
+            sys.exit(f"--combine: the parts for --gpus {total['gpus']} cover captures {covered}, not each of "
+                     f"0..{parts[0]['captures'] - 1} once")
         total["seconds"] = round(total["seconds"], 2)
         total["mean_psnr_db"] = {m: round(v / max(total["finished"], 1), 2) for m, v in total["mean_psnr_db"].items()}
     return {**{k: parts[0][k] for k in keys}, "rows": [rows[g] for g in sorted(rows)]}
@@ -167,7 +186,8 @@ def print_table(rows: list[dict]) -> None:
         what = f"{row['gpus']} GPU" + ("s" if row["gpus"] > 1 else "") if row["gpus"] else "CPU workers"
         times = row["capture_seconds"]
         median = f"{times[len(times) // 2]:.1f} s" if times else "-"
-        print(f"| {what} | {row['seconds']:.1f} s | {row['parts']} | {row['finished']} of {row['captures']} | {median} | "
+        print(f"| {what} | {row['seconds']:.1f} s | {row['parts']} | {row['finished']} of "
+              f"{row['captures']} | {median} | "
               f"{row['fit_seconds_total']:.1f} s | {base / row['seconds']:.2f}x |")
 
 

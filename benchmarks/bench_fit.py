@@ -48,7 +48,8 @@ def main() -> None:
     parser.add_argument("--device", default=None)
     parser.add_argument("--workers", type=int, default=None, help="CPU threads (default: one per core)")
     parser.add_argument("--repeat", type=int, default=1, help="timed fits after the warm-up (default 1)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], help="hyper-parameter override STAGE.NAME=VALUE")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        help="hyper-parameter override STAGE.NAME=VALUE")
     args = parser.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -61,15 +62,18 @@ def main() -> None:
         if folder is None:
             folder = Path(scratch) / args.shape
             started = time.perf_counter()
-            render_dataset(args.shape, folder, lights=LightSet.fibonacci_sphere(args.lights), heldout=None, material=default_material(args.shape),
+            render_dataset(args.shape, folder, lights=LightSet.fibonacci_sphere(args.lights), heldout=None,
+                           material=default_material(args.shape),
                            settings=RenderSettings(width=width, height=height), device=str(device), progress=False)
-            print(f"rendered {args.shape}: {args.lights} lights {width}x{height} in {time.perf_counter() - started:.1f} s")
+            print(f"rendered {args.shape}: {args.lights} lights {width}x{height} in "
+                  f"{time.perf_counter() - started:.1f} s")
         started = time.perf_counter()
         data = ReflectanceField.load(folder, progress=False, heldout=False, components=False)  # what fit loads
         load_seconds = time.perf_counter() - started
 
         # warm-up: compiles every kernel (cached on disk afterwards) with a very short fit
-        warm = settings.with_overrides(["estimation.iterations=2", "estimation.densify_until=1", "retarget.rigid_iterations=1", "retarget.iterations=1"])
+        warm = settings.with_overrides(["estimation.iterations=2", "estimation.densify_until=1",
+                                        "retarget.rigid_iterations=1", "retarget.iterations=1"])
         fit_field(data, settings=warm, device=device, workers=args.workers)
 
         best = None
@@ -88,26 +92,33 @@ def main() -> None:
     report = field.report
     stages = dict(report["seconds"])
     rows = [("loading images", load_seconds, 17.0)]
-    rows += [(name, stages.get(name, 0.0), THESIS_SECONDS.get(name)) for name in ("segmentation", "estimation", "retargeting", "paths", "triangulation")]
+    rows += [(name, stages.get(name, 0.0), THESIS_SECONDS.get(name))
+             for name in ("segmentation", "estimation", "retargeting", "paths", "triangulation")]
     rows.append(("total (without loading)", total, THESIS_SECONDS["total"] - 17.0))
     counts = report["estimation"]["gaussians_per_light"]
-    print(f"\n{data.light_count} lights, {report['directed_edges']} directed edges, {width}x{height}, {device} ({_device_name(device)}), "
+    print(f"\n{data.light_count} lights, {report['directed_edges']} directed edges, {width}x{height}, {device} "
+          f"({_device_name(device)}), "
           f"warp {wp.config.version}, workers {args.workers or 'default'}")
     print(f"Gaussians per light: mean {counts['mean']:.1f}, min {counts['min']:.0f}, max {counts['max']:.0f}; "
           f"estimation PSNR mean {report['estimation']['psnr_db']['mean']:.1f} dB; "
-          f"retargeting loss {report['retargeting']['source_loss']['mean']:.0f} -> {report['retargeting']['loss']['mean']:.0f}")
-    print(f"field file: {size / 1e6:.2f} MB (thesis estimate for 256 lights x 25 Gaussians: {THESIS_FIELD_BYTES / 1e6:.1f} MB); parts: "
+          f"retargeting loss {report['retargeting']['source_loss']['mean']:.0f} -> "
+          f"{report['retargeting']['loss']['mean']:.0f}")
+    print(f"field file: {size / 1e6:.2f} MB (thesis estimate for 256 lights x 25 Gaussians: "
+          f"{THESIS_FIELD_BYTES / 1e6:.1f} MB); parts: "
           + ", ".join(f"{k} {v / 1e6:.2f} MB" for k, v in field_size_report(field).items()))
     print("\n| stage | seconds | thesis (RTX 3080, 250 lights, 480x270) | speed-up |")
     print("|---|---|---|---|")
     comparable = data.light_count == 250 and (width, height) == (480, 270)
     for name, seconds, thesis in rows:
-        ratio = f"{thesis / seconds:.0f}x" if comparable and thesis and seconds > 0 else ("" if comparable else "n/a (other size)")
+        ratio = (f"{thesis / seconds:.0f}x" if comparable and thesis and seconds > 0
+                 else ("" if comparable else "n/a (other size)"))
         print(f"| {name} | {seconds:.2f} | {thesis if thesis is not None else ''} | {ratio} |")
     if os.environ.get("OUT"):
         out = Path(os.environ["OUT"]) / "bench_fit.json"
-        out.write_text(json.dumps({"device": str(device), "device_name": _device_name(device), "lights": data.light_count, "size": [width, height],
-                                   "load_seconds": load_seconds, "total_seconds": total, "file_bytes": size, "report": report}, indent=2))
+        out.write_text(json.dumps({"device": str(device), "device_name": _device_name(device),
+                                   "lights": data.light_count, "size": [width, height],
+                                   "load_seconds": load_seconds, "total_seconds": total, "file_bytes": size,
+                                   "report": report}, indent=2))
 
 
 def _device_name(device) -> str:

@@ -56,7 +56,8 @@ def main() -> None:
     for graphs, label in ((False, "eager launches"), (True, "captured graph replayed")):
         (first, result), (second, _) = runs[graphs]
         print(f"| {label} | {first:.2f}, {second:.2f} | {result.counts.mean():.2f} | {result.psnr.mean():.2f} |")
-    print(f"\ntwo eager runs the same: {same(runs[False][0][1], runs[False][1][1])}; eager and graph the same: {same(runs[False][0][1], runs[True][0][1])}")
+    print(f"\ntwo eager runs the same: {same(runs[False][0][1], runs[False][1][1])}; eager and graph the same: "
+          f"{same(runs[False][0][1], runs[True][0][1])}")
 
 
 if __name__ == "__main__":

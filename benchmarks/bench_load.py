@@ -44,7 +44,8 @@ def main() -> None:
     print("|---|---|---|---|---|")
     for folder in args.datasets:
         probe = ReflectanceField.load(folder, progress=False, heldout=False, components=False)
-        size = tuple(int(v) for v in args.size.split("x")) if args.size else (probe.width // 2, round(probe.width // 2 * probe.height / probe.width))
+        size = (tuple(int(v) for v in args.size.split("x")) if args.size
+                else (probe.width // 2, round(probe.width // 2 * probe.height / probe.width)))
         cases = [
             ("everything, 1 thread", dict(workers=1)),
             (f"everything, {LOAD_WORKERS} threads", dict()),

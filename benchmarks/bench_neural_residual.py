@@ -43,7 +43,8 @@ from warp_highlights.residual.learned import learn_residual  # noqa: E402
 from warp_highlights.residual.rate import gaussian_bytes  # noqa: E402
 
 
-def run_case(name: str, scale: str, device, seconds: float, scratch: Path, models: tuple[str, ...] = ("residual", "images")) -> dict:
+def run_case(name: str, scale: str, device, seconds: float, scratch: Path,
+             models: tuple[str, ...] = ("residual", "images")) -> dict:
     dataset = load_case(name, scale, device)
     size = SIZES[name][1 if scale == "gpu" else 0]
     started = time.perf_counter()
@@ -54,13 +55,17 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
     field_bytes = save_field(field, scratch / f"{name}.whf")
     queries = dataset.heldout.lights.directions
     truth = resize_stack(dataset.heldout.images, width, height)
-    evaluation = evaluate_field(field, dataset, device=device, methods=("circular", "alpha"), barycentric_face=None, baselines=BASELINES)
+    evaluation = evaluate_field(field, dataset, device=device, methods=("circular", "alpha"), barycentric_face=None,
+                                baselines=BASELINES)
     rows = {}
 
-    def add_row(label: str, psnr: np.ndarray, ssim: np.ndarray, bytes_per_pixel: float, extra: dict | None = None) -> None:
-        rows[label] = {"psnr_srgb_mean": float(psnr.mean()), "psnr_srgb_worst": float(psnr.min()), "ssim_mean": float(ssim.mean()),
+    def add_row(label: str, psnr: np.ndarray, ssim: np.ndarray, bytes_per_pixel: float,
+                extra: dict | None = None) -> None:
+        rows[label] = {"psnr_srgb_mean": float(psnr.mean()), "psnr_srgb_worst": float(psnr.min()),
+                       "ssim_mean": float(ssim.mean()),
                        "ssim_worst": float(ssim.min()), "bytes_per_pixel": bytes_per_pixel, **(extra or {})}
-        print(f"  {name} {label}: {psnr.mean():.2f} dB (worst {psnr.min():.2f}), SSIM {ssim.mean():.4f}", file=sys.stderr, flush=True)
+        print(f"  {name} {label}: {psnr.mean():.2f} dB (worst {psnr.min():.2f}), SSIM {ssim.mean():.4f}",
+              file=sys.stderr, flush=True)
 
     capture = field.light_count * dataset.channels
     sizes = {"circular": field_bytes / pixels, "alpha": float(capture), **evaluation.info["baseline_bytes_per_pixel"]}
@@ -78,7 +83,8 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
         learned.insert(0, ("learned residual + circular", own, field.residual.highlight_colour))
     for label, highlights, colour in learned:
         t = time.perf_counter()
-        residual, history = learn_residual(images, highlights, colour, dataset.lights.directions, factor=exposure, settings=settings, device=device,
+        residual, history = learn_residual(images, highlights, colour, dataset.lights.directions, factor=exposure,
+                                           settings=settings, device=device,
                                            log=lambda m: print(f"    {label}: {m}", file=sys.stderr, flush=True))
         train_seconds = time.perf_counter() - t
         if label.startswith("learned residual"):
@@ -93,12 +99,15 @@ def run_case(name: str, scale: str, device, seconds: float, scratch: Path, model
             gaussians = 0.0
         decode_seconds = (time.perf_counter() - t) / len(queries)
         psnr, ssim = srgb_scores(stack, truth)
-        code_bytes = 2.0 * residual.learned.codes.shape[2] + 4.0 * sum(w.size for w in residual.learned.weights) / pixels
+        code_bytes = (2.0 * residual.learned.codes.shape[2]
+                      + 4.0 * sum(w.size for w in residual.learned.weights) / pixels)
         add_row(label, psnr, ssim, code_bytes + gaussians,
-                {"train_seconds": train_seconds, "epochs": len(history), "final_mse": history[-1], "decode_seconds_per_image": decode_seconds})
+                {"train_seconds": train_seconds, "epochs": len(history), "final_mse": history[-1],
+                 "decode_seconds_per_image": decode_seconds})
         strips.append(stack)
     _save_worst(name, strips, truth)
-    return {"case": name, "size": [width, height], "lights": field.light_count, "heldout": len(queries), "fit_seconds": fit_seconds,
+    return {"case": name, "size": [width, height], "lights": field.light_count, "heldout": len(queries),
+            "fit_seconds": fit_seconds,
             "kept_gaussians": bool(field.estimated.active.any()), "rows": rows}
 
 
@@ -113,7 +122,8 @@ def _save_worst(name: str, stacks: list, truth: np.ndarray) -> None:
     from warp_highlights.io.images import display_rgb8
 
     psnr, _ = srgb_scores(np.clip(stacks[1], 0.0, None).astype(np.float32), truth)
-    rows = [np.concatenate([display_rgb8(np.clip(stack[q], 0.0, None)) for stack in stacks], axis=1) for q in np.argsort(psnr)[:3]]
+    rows = [np.concatenate([display_rgb8(np.clip(stack[q], 0.0, None)) for stack in stacks], axis=1)
+            for q in np.argsort(psnr)[:3]]
     Path(out).mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.concatenate(rows, axis=0)).save(Path(out) / f"{name}-worst.png")
 
@@ -122,7 +132,8 @@ def warm_up(device) -> None:
     """Compile the learned model's kernels before anything is timed."""
     rng = np.random.default_rng(0)
     lights = rng.normal(size=(4, 3))
-    neural.train_decoder(rng.uniform(size=(4, 2 * neural.BLOCK, 3)).astype(np.float32), lights / np.linalg.norm(lights, axis=1, keepdims=True),
+    neural.train_decoder(rng.uniform(size=(4, 2 * neural.BLOCK, 3)).astype(np.float32),
+                         lights / np.linalg.norm(lights, axis=1, keepdims=True),
                          device=device, epochs=1, batch=neural.BLOCK)
 
 
@@ -132,7 +143,8 @@ def main() -> None:
     parser.add_argument("--scale", choices=["cpu", "gpu"], default="gpu")
     parser.add_argument("--device", default=None)
     parser.add_argument("--seconds", type=float, default=90.0, help="training time per learned model")
-    parser.add_argument("--models", default="residual,images", help="learned models: residual (with the field's moving highlights), images (alone)")
+    parser.add_argument("--models", default="residual,images",
+                        help="learned models: residual (with the field's moving highlights), images (alone)")
     args = parser.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -143,11 +155,14 @@ def main() -> None:
     results = []
     with tempfile.TemporaryDirectory() as scratch:
         for name in [c.strip() for c in args.cases.split(",") if c.strip()]:
-            results.append(run_case(name, args.scale, device, args.seconds, Path(scratch), tuple(m.strip() for m in args.models.split(","))))
+            results.append(run_case(name, args.scale, device, args.seconds, Path(scratch),
+                                    tuple(m.strip() for m in args.models.split(","))))
     out = os.environ.get("OUT")
     if out:
         Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "bench_neural_residual.json").write_text(json.dumps({"device": str(device), "scale": args.scale, "seconds": args.seconds, "cases": results}, indent=1))
+        (Path(out) / "bench_neural_residual.json").write_text(json.dumps({"device": str(device), "scale": args.scale,
+                                                                          "seconds": args.seconds, "cases": results},
+                                                                         indent=1))
     print(f"\nfull images at held-out lights, {device}, learned models trained {args.seconds:.0f} s each\n")
     print("| case | method | 8-bit PSNR mean | worst | SSIM mean | worst | bytes/pixel | train (s) | epochs |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -155,8 +170,10 @@ def main() -> None:
         for label, row in result["rows"].items():
             train = f"{row['train_seconds']:.0f}" if "train_seconds" in row else ""
             epochs = str(row.get("epochs", ""))
-            print(f"| {result['case']} ({result['lights']} lights, {result['size'][0]}x{result['size'][1]}) | {label} | {row['psnr_srgb_mean']:.2f} | "
-                  f"{row['psnr_srgb_worst']:.2f} | {row['ssim_mean']:.4f} | {row['ssim_worst']:.4f} | {row['bytes_per_pixel']:.1f} | {train} | {epochs} |")
+            print(f"| {result['case']} ({result['lights']} lights, {result['size'][0]}x{result['size'][1]}) | {label} "
+                  f"| {row['psnr_srgb_mean']:.2f} | "
+                  f"{row['psnr_srgb_worst']:.2f} | {row['ssim_mean']:.4f} | {row['ssim_worst']:.4f} | "
+                  f"{row['bytes_per_pixel']:.1f} | {train} | {epochs} |")
 
 
 if __name__ == "__main__":

@@ -70,12 +70,14 @@ def load_case(name: str, scale: str, device) -> ReflectanceField:
     # rendered in memory (a GPU machine may have no EXR writer), with ground truth at the triangle centroids
     width, height = SIZES[name][1 if scale == "gpu" else 0]
     lights = LightSet.fibonacci_sphere(RENDERED_LIGHTS[scale])
-    renderer = Renderer(make_shape(name), material=default_material(name), settings=RenderSettings(width=width, height=height),
+    renderer = Renderer(make_shape(name), material=default_material(name),
+                        settings=RenderSettings(width=width, height=height),
                         rotation=view_rotation(name), device=str(device))
     centroids = LightSet(SphericalTriangulation(lights.directions).centroid_directions())
     captured, truth = renderer.render(lights.directions), renderer.render(centroids.directions)
     heldout = ReflectanceField(images=truth.full, lights=centroids, specular=truth.specular, diffuse=truth.diffuse)
-    return ReflectanceField(images=captured.full, lights=lights, specular=captured.specular, diffuse=captured.diffuse, heldout=heldout,
+    return ReflectanceField(images=captured.full, lights=lights, specular=captured.specular, diffuse=captured.diffuse,
+                            heldout=heldout,
                             meta={"heldout_protocol": "triangle centroids"})
 
 
@@ -87,19 +89,23 @@ def run_case(name: str, scale: str, device, scratch: Path, settings: FitSettings
     wp.synchronize_device(device)
     fit_seconds = time.perf_counter() - started
     field_bytes = save_field(field, scratch / f"{name}.whf")
-    evaluation = evaluate_field(field, dataset, device=device, methods=("circular", "alpha"), barycentric_face=None, baselines=BASELINES)
+    evaluation = evaluate_field(field, dataset, device=device, methods=("circular", "alpha"), barycentric_face=None,
+                                baselines=BASELINES)
     summary = evaluation.summary()
     pixels, channels, lights = field.width * field.height, dataset.channels, field.light_count
     capture = lights * channels  # 8-bit capture, bytes per pixel
     size_per_pixel = {"circular": field_bytes / pixels, "alpha": float(capture)}
-    size_per_pixel.update({method: float(value) for method, value in evaluation.info["baseline_bytes_per_pixel"].items()})
+    size_per_pixel.update({method: float(value)
+                           for method, value in evaluation.info["baseline_bytes_per_pixel"].items()})
     rows = []
     for method in ("circular", "alpha", *BASELINES):
         srgb, ssim, linear = (summary.get(kind, {}).get(method) for kind in ("full_srgb", "full_ssim", "full"))
         rows.append({
             "case": name, "method": method,
-            "psnr_srgb_mean": srgb["mean"], "psnr_srgb_worst": srgb["min"], "ssim_mean": ssim["mean"], "ssim_worst": ssim["min"],
-            "psnr_linear_mean": linear["mean"], "bytes_per_pixel": size_per_pixel[method], "share_of_capture": size_per_pixel[method] / capture,
+            "psnr_srgb_mean": srgb["mean"], "psnr_srgb_worst": srgb["min"], "ssim_mean": ssim["mean"],
+            "ssim_worst": ssim["min"],
+            "psnr_linear_mean": linear["mean"], "bytes_per_pixel": size_per_pixel[method],
+            "share_of_capture": size_per_pixel[method] / capture,
             "fit_seconds": fit_seconds if method == "circular" else None,
         })
     specular = summary.get("specular", {})
@@ -116,9 +122,11 @@ def run_case(name: str, scale: str, device, scratch: Path, settings: FitSettings
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="synth,statue,donut,teapot")
-    parser.add_argument("--scale", choices=["cpu", "gpu"], default="cpu", help="cpu: reduced sizes, 64 rendered lights; gpu: full sizes, 250")
+    parser.add_argument("--scale", choices=["cpu", "gpu"], default="cpu",
+                        help="cpu: reduced sizes, 64 rendered lights; gpu: full sizes, 250")
     parser.add_argument("--device", default=None)
-    parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE", help="fit setting, repeatable")
+    parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE",
+                        help="fit setting, repeatable")
     args = parser.parse_args()
     settings = FitSettings().with_overrides(args.set)
     wp.config.quiet = True
@@ -134,20 +142,25 @@ def main() -> None:
     out = os.environ.get("OUT")
     if out:
         Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "bench_quality.json").write_text(json.dumps({"device": str(device), "scale": args.scale, "settings": args.set, "cases": results}, indent=1))
+        (Path(out) / "bench_quality.json").write_text(json.dumps({"device": str(device), "scale": args.scale,
+                                                                  "settings": args.set, "cases": results}, indent=1))
     print(f"\nfull images at held-out lights, {device} ({args.scale} sizes)\n")
-    print("| case | method | 8-bit PSNR mean | worst | SSIM mean | worst | linear PSNR | bytes/pixel | share of 8-bit capture | fit (s) |")
+    print("| case | method | 8-bit PSNR mean | worst | SSIM mean | worst | linear PSNR | bytes/pixel | share of 8-bit "
+          "capture | fit (s) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for result in results:
         for row in result["rows"]:
             fit = "" if row["fit_seconds"] is None else f"{row['fit_seconds']:.1f}"
             label = f"{result['case']} ({result['lights']} lights, {result['size'][0]}x{result['size'][1]})"
-            print(f"| {label} | {row['method']} | {row['psnr_srgb_mean']:.2f} | {row['psnr_srgb_worst']:.2f} | {row['ssim_mean']:.3f} | "
-                  f"{row['ssim_worst']:.3f} | {row['psnr_linear_mean']:.2f} | {row['bytes_per_pixel']:.1f} | {100 * row['share_of_capture']:.0f}% | {fit} |")
+            print(f"| {label} | {row['method']} | {row['psnr_srgb_mean']:.2f} | {row['psnr_srgb_worst']:.2f} | "
+                  f"{row['ssim_mean']:.3f} | "
+                  f"{row['ssim_worst']:.3f} | {row['psnr_linear_mean']:.2f} | {row['bytes_per_pixel']:.1f} | "
+                  f"{100 * row['share_of_capture']:.0f}% | {fit} |")
     for result in results:
         share = result["specular_circular_beats_alpha"]
         if share is not None:
-            print(f"{result['case']}: on the specular part alone, circular beats alpha on {100 * share:.0f}% of {result['heldout']} held-out lights")
+            print(f"{result['case']}: on the specular part alone, circular beats alpha on {100 * share:.0f}% of "
+                  f"{result['heldout']} held-out lights")
 
 
 if __name__ == "__main__":

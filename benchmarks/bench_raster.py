@@ -49,7 +49,8 @@ def highlight_sets(problems: int, gaussians: int, seed: int) -> GaussianParams:
     which = rng.integers(0, 4, size=(problems, gaussians)) % clusters[:, None]
     centre = np.take_along_axis(centres, which[..., None].repeat(2, axis=-1), axis=1)
     params.mean[:] = centre + rng.normal(0, rpx_to_normalized(25), size=(problems, gaussians, 2))
-    params.sigma[:] = rpx_to_normalized(1) * rng.uniform(2, 20, size=(problems, gaussians, 1)) * rng.uniform(0.5, 1.0, size=(problems, gaussians, 2))
+    params.sigma[:] = (rpx_to_normalized(1) * rng.uniform(2, 20, size=(problems, gaussians, 1))
+                       * rng.uniform(0.5, 1.0, size=(problems, gaussians, 2)))
     params.theta[:] = rng.uniform(0, np.pi, size=(problems, gaussians))
     params.amplitude[:] = rng.uniform(0.5, 1.2, size=(problems, gaussians))
     params.active[:] = True
@@ -72,7 +73,8 @@ def timed(function, repeat: int, device) -> float:
     return min(times)
 
 
-def bench_case(problems: int, gaussians: int, device, repeat: int, settings: RasterSettings, lanes: int | None = None) -> dict:
+def bench_case(problems: int, gaussians: int, device, repeat: int, settings: RasterSettings,
+               lanes: int | None = None) -> dict:
     truth = highlight_sets(problems, gaussians, seed=problems * 1000 + gaussians)
     start = truth.copy()
     rng = np.random.default_rng(7)
@@ -140,7 +142,8 @@ def main() -> None:
     parser.add_argument("--cases", default="1x25,1x50,250x50,1488x25", help="comma-separated problems x Gaussians")
     parser.add_argument("--repeat", type=int, default=20)
     parser.add_argument("--tile-sizes", default="16", help="comma-separated culling tile sizes to compare")
-    parser.add_argument("--lanes", default="auto", help="comma-separated backward threads per Gaussian to compare (auto: 64 on CUDA, 1 on CPU)")
+    parser.add_argument("--lanes", default="auto",
+                        help="comma-separated backward threads per Gaussian to compare (auto: 64 on CUDA, 1 on CPU)")
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING  # no greeting or module-load lines around the table
     wp.init()
@@ -155,19 +158,24 @@ def main() -> None:
             row["tile_size"] = tile_size
             row["lanes"] = lanes or raster_lanes(device)
             rows.append(row)
-            print(f"  {row['case']:>8} tile {tile_size} lanes {row['lanes']}: fwd {row['forward_ms']:.2f} ms, fwd+bwd {row['fwd_bwd_ms']:.2f} ms", flush=True)
-    machine = {"device": str(device), "device_name": device.name, "warp": wp.__version__, "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "image": f"{WIDTH}x{HEIGHT}"}
+            print(f"  {row['case']:>8} tile {tile_size} lanes {row['lanes']}: fwd {row['forward_ms']:.2f} ms, fwd+bwd "
+                  f"{row['fwd_bwd_ms']:.2f} ms", flush=True)
+    machine = {"device": str(device), "device_name": device.name, "warp": wp.__version__,
+               "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(), "image": f"{WIDTH}x{HEIGHT}"}
     columns = ["forward_ms", "fwd_bwd_ms", "backward_ms", "adam_ms", "step_ms", "graph_step_ms"]
     print(f"\nbench_raster on {device} ({device.name}), warp {wp.__version__}, {WIDTH}x{HEIGHT}, best of {args.repeat}")
-    print(f"| case | tile | lanes | {' | '.join(c.removesuffix('_ms') + ' (ms)' for c in columns)} | bwd/fwd | Gaussians per tile (mean/max) |")
+    print(f"| case | tile | lanes | {' | '.join(c.removesuffix('_ms') + ' (ms)' for c in columns)} | bwd/fwd | "
+          f"Gaussians per tile (mean/max) |")
     print("|" + "---|" * (len(columns) + 5))
     for row in rows:
         cells = [f"{row[c]:.2f}" if c in row else "-" for c in columns]
         ratio = row["backward_ms"] / row["forward_ms"]
-        print(f"| {row['case']} | {row['tile_size']} | {row['lanes']} | {' | '.join(cells)} | {ratio:.2f} | {row['tiles_mean_per_tile']:.2f}/{row['tiles_max_per_tile']} |")
+        print(f"| {row['case']} | {row['tile_size']} | {row['lanes']} | {' | '.join(cells)} | {ratio:.2f} | "
+              f"{row['tiles_mean_per_tile']:.2f}/{row['tiles_max_per_tile']} |")
     for row in rows:
         if "kernel_ms" in row and row is rows[-1]:
-            print(f"kernel times of one step, {row['case']}: " + ", ".join(f"{name} {ms:.2f} ms" for name, ms in row["kernel_ms"].items()))
+            print(f"kernel times of one step, {row['case']}: "
+                  + ", ".join(f"{name} {ms:.2f} ms" for name, ms in row["kernel_ms"].items()))
     if os.environ.get("OUT"):
         path = Path(os.environ["OUT"]) / "bench_raster.json"
         path.write_text(json.dumps({"machine": machine, "rows": rows}, indent=2))

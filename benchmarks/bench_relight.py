@@ -55,7 +55,8 @@ def demo_field(device) -> tuple[HighlightField, ReflectanceField]:
     from warp_highlights.synth.shapes import make_shape
 
     lights = LightSet.fibonacci_sphere(64)
-    renderer = Renderer(make_shape("donut"), material=default_material("donut"), settings=RenderSettings(width=240, height=135),
+    renderer = Renderer(make_shape("donut"), material=default_material("donut"),
+                        settings=RenderSettings(width=240, height=135),
                         rotation=view_rotation("donut"), device=str(device))
     dataset = ReflectanceField(images=renderer.render(lights.directions).full, lights=lights)
     # the low-rank residual: a learned one trains for minutes on CUDA
@@ -103,7 +104,8 @@ def graph_device_ms(relighter: Relighter, directions: np.ndarray, method: str = 
     stream = device.stream
     start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
     medians = {}
-    for name, graph, set_direction in (("graph", query.slots[0].graph, query._set), ("kernels", capture.graph, set_kernels_direction)):
+    for name, graph, set_direction in (("graph", query.slots[0].graph, query._set),
+                                       ("kernels", capture.graph, set_kernels_direction)):
         times = []
         for direction in unit:
             set_direction(direction)  # each replay at a new direction, set outside the timed span
@@ -149,7 +151,8 @@ def bench_method(relighter: Relighter, method: str, *, repeat: int, batch: int) 
     sets = relighter.interpolated_sets(queries[: min(batch, 64)]) if method != "alpha" else None
     events = graph_device_ms(relighter, singles, method)
     return {
-        **{k: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))} for k, v in figures.items()},
+        **{k: {"median": float(np.median(v)), "p10": float(np.percentile(v, 10)), "p90": float(np.percentile(v, 90))}
+           for k, v in figures.items()},
         **{f"one_{k}_device_events_ms": v for k, v in events.items()},
         "gaussians_per_query": None if sets is None else float(sets.counts.mean()),
     }
@@ -161,11 +164,13 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, help="its dataset, for the alpha method")
     parser.add_argument("--device", default=None)
     parser.add_argument("--size", default="480x270", help="output WIDTHxHEIGHT (default 480x270, the thesis' size)")
-    parser.add_argument("--batch", type=int, default=496, help="queries in the batch (default 496: the thesis' centroids)")
+    parser.add_argument("--batch", type=int, default=496,
+                        help="queries in the batch (default 496: the thesis' centroids)")
     parser.add_argument("--repeat", type=int, default=200, help="single queries timed per method (default 200)")
     parser.add_argument("--methods", default="circular,straight,alpha")
     parser.add_argument("--diffuse", default="auto", help="diffuse part of I' (default auto)")
-    parser.add_argument("--no-graphs", action="store_true", help="single queries as separate launches, not one captured CUDA graph")
+    parser.add_argument("--no-graphs", action="store_true",
+                        help="single queries as separate launches, not one captured CUDA graph")
     args = parser.parse_args()
     wp.config.quiet = True
     wp.init()
@@ -186,21 +191,26 @@ def main() -> None:
             methods.remove("alpha")
         else:
             alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
-    relighter = Relighter(field, device=device, size=(width, height), diffuse=args.diffuse, graphs=False if args.no_graphs else None,
+    relighter = Relighter(field, device=device, size=(width, height), diffuse=args.diffuse,
+                          graphs=False if args.no_graphs else None,
                           alpha_specular=alpha_specular, alpha_images=alpha_images)
     results = {m: bench_method(relighter, m, repeat=args.repeat, batch=args.batch) for m in methods}
 
     name = device.name if device.is_cuda else (platform.processor() or platform.machine())
     cores = os.cpu_count()
     print(f"relight {source}: {field.light_count} lights, {field.estimated.counts.mean():.1f} Gaussians per light, "
-          f"output {width}x{height} x {relighter.channels} channels, {device} ({name}, {cores} cores), warp {wp.config.version}")
+          f"output {width}x{height} x {relighter.channels} channels, {device} ({name}, {cores} cores), warp "
+          f"{wp.config.version}")
     print(f"max batch per launch {relighter.max_batch}; medians in ms per query")
-    print(f"| method | Gaussians / query | one (launches, device) | one graph: kernels / with copies (CUDA events) | one (to host) | batch of {args.batch} (device) | batch (to host) |")
+    print(f"| method | Gaussians / query | one (launches, device) | one graph: kernels / with copies (CUDA events) | "
+          f"one (to host) | batch of {args.batch} (device) | batch (to host) |")
     print("|---|---|---|---|---|---|---|")
     for method, r in results.items():
         g = "-" if r["gaussians_per_query"] is None else f"{r['gaussians_per_query']:.1f}"
-        events = f"{r['one_kernels_device_events_ms']:.3f} / {r['one_graph_device_events_ms']:.3f}" if "one_graph_device_events_ms" in r else "-"
-        print(f"| {method} | {g} | {r['one_on_device_ms']['median']:.3f} | {events} | {r['one_to_host_ms']['median']:.3f} | "
+        events = (f"{r['one_kernels_device_events_ms']:.3f} / {r['one_graph_device_events_ms']:.3f}"
+                  if "one_graph_device_events_ms" in r else "-")
+        print(f"| {method} | {g} | {r['one_on_device_ms']['median']:.3f} | {events} | "
+              f"{r['one_to_host_ms']['median']:.3f} | "
               f"{r['batch_on_device_ms_per_query']['median']:.3f} | {r['batch_to_host_ms_per_query']['median']:.3f} |")
     print("thesis (RTX 3080, 480x270): 12 ms per interpolated image (donut), 11 ms (teapot)")
     if os.environ.get("OUT"):
@@ -209,7 +219,8 @@ def main() -> None:
         out.write_text(json.dumps({
             "source": source, "device": str(device), "device_name": name, "cpu_count": cores, "warp": wp.config.version,
             "size": [width, height], "batch": args.batch, "repeat": args.repeat, "lights": field.light_count,
-            "gaussians_per_light": float(field.estimated.counts.mean()), "max_batch": relighter.max_batch, "results": results,
+            "gaussians_per_light": float(field.estimated.counts.mean()), "max_batch": relighter.max_batch,
+            "results": results,
         }, indent=2))
 
 

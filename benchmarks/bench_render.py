@@ -42,7 +42,11 @@ def bench(shape: str, device: str, lights: np.ndarray, width: int, height: int, 
     """One (shape, device) measurement; times are the best of ``repeat`` after a warm-up (compilation)."""
     settings = RenderSettings(width=width, height=height, samples_per_pixel=samples, light_chunk=len(lights))
     mesh = make_shape(shape)
-    make = lambda: Renderer(mesh, material=default_material(shape), settings=settings, rotation=view_rotation(shape), device=device)  # noqa: E731
+
+    def make() -> Renderer:
+        return Renderer(mesh, material=default_material(shape), settings=settings, rotation=view_rotation(shape),
+                        device=device)
+
     make().shade_on_device(lights[:2])  # compile and load the kernels
     setup, renderer = min((_time(make, device) for _ in range(repeat)), key=lambda r: r[0])
     shade_times, copy_times = [], []
@@ -74,7 +78,8 @@ def main() -> None:
     parser.add_argument("--size", default="480x270")
     parser.add_argument("--samples", type=int, default=4)
     parser.add_argument("--shapes", default="donut,teapot")
-    parser.add_argument("--devices", default=None, help="comma-separated Warp devices (default: cpu and every CUDA device)")
+    parser.add_argument("--devices", default=None,
+                        help="comma-separated Warp devices (default: cpu and every CUDA device)")
     parser.add_argument("--repeat", type=int, default=2)
     args = parser.parse_args()
     wp.config.log_level = wp.LOG_WARNING
@@ -89,7 +94,8 @@ def main() -> None:
     ]
     print(f"\nrender benchmark: {args.lights} lights, {args.size}, {args.samples} samples/px, "
           f"warp {wp.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores")
-    header = f"{'device':<28} {'shape':<7} {'faces':>6} {'px hit':>7} {'setup s':>8} {'shade s':>8} {'copy s':>7} {'total s':>8} {'ms/light':>9}"
+    header = (f"{'device':<28} {'shape':<7} {'faces':>6} {'px hit':>7} {'setup s':>8} {'shade s':>8} {'copy s':>7} "
+              f"{'total s':>8} {'ms/light':>9}")
     print(header)
     print("-" * len(header))
     for r in rows:

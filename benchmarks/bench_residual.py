@@ -63,7 +63,8 @@ def main() -> None:
         seconds = time.perf_counter() - started
         chroma = "" if model.chroma is None else model.chroma.rank
         grown = "" if peak.host is None else f"{(peak.host - before) / 1e9:.2f} GB"
-        print(f"| {mode} | {seconds:.2f} | {grown} | {model.luminance.rank} | {chroma} | {model.luminance.bits} |", flush=True)
+        print(f"| {mode} | {seconds:.2f} | {grown} | {model.luminance.rank} | {chroma} | {model.luminance.bits} |",
+              flush=True)
         del model
     residual_module.HELD_STACK_SHARE = share
 

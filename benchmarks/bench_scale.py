@@ -29,7 +29,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 DEFAULT_CASES = "250x480x270,250x1920x1080,1000x1920x1080,100x3840x2160"
-STAGES = ("loading", "segmentation", "estimation", "retargeting", "move check", "residual compression", "learned residual", "saving")
+STAGES = ("loading", "segmentation", "estimation", "retargeting", "move check", "residual compression",
+          "learned residual", "saving")
 
 
 def parse_case(text: str) -> tuple[int, int, int]:
@@ -41,7 +42,8 @@ def render(folder: Path, lights: int, width: int, height: int, device: str | Non
     """Render the case unless ``folder`` holds it already; seconds taken (None: reused)."""
     if (folder / "lights.lp").is_file():
         return None
-    command = [sys.executable, "-m", "warp_highlights", "render", "donut", str(folder), "--lights", str(lights), "--size", f"{width}x{height}",
+    command = [sys.executable, "-m", "warp_highlights", "render", "donut", str(folder), "--lights", str(lights),
+               "--size", f"{width}x{height}",
                "--heldout", "none", "--half", "-q"]
     if device:
         command += ["--device", device]
@@ -52,7 +54,8 @@ def render(folder: Path, lights: int, width: int, height: int, device: str | Non
 
 def fit(folder: Path, field: Path, report: Path, device: str | None, residual: str, extra: list[str]) -> float:
     """Wall seconds of the whole ``fit`` command (load + fit + save)."""
-    command = [sys.executable, "-m", "warp_highlights", "fit", str(folder), "-o", str(field), "--report", str(report), "--overwrite",
+    command = [sys.executable, "-m", "warp_highlights", "fit", str(folder), "-o", str(field), "--report", str(report),
+               "--overwrite",
                "--residual", residual, "-q", *extra]
     if device:
         command += ["--device", device]
@@ -93,10 +96,14 @@ def query_times(field_path: Path, device: str | None, repeat: int) -> tuple[floa
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", default=DEFAULT_CASES, help=f"LIGHTSxWIDTHxHEIGHT, comma-separated (default {DEFAULT_CASES})")
-    parser.add_argument("--work", type=Path, default=Path("bench-scale"), help="folder for the rendered captures and the fields")
-    parser.add_argument("--device", default=None, help="Warp device for rendering, fitting and the query (default: CUDA when present)")
-    parser.add_argument("--residual", default="lowrank", help="fit --residual (default lowrank: the learned one trains for minutes by design)")
+    parser.add_argument("--cases", default=DEFAULT_CASES,
+                        help=f"LIGHTSxWIDTHxHEIGHT, comma-separated (default {DEFAULT_CASES})")
+    parser.add_argument("--work", type=Path, default=Path("bench-scale"),
+                        help="folder for the rendered captures and the fields")
+    parser.add_argument("--device", default=None,
+                        help="Warp device for rendering, fitting and the query (default: CUDA when present)")
+    parser.add_argument("--residual", default="lowrank",
+                        help="fit --residual (default lowrank: the learned one trains for minutes by design)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], help="fit --set, repeatable")
     parser.add_argument("--repeat", type=int, default=100, help="queries timed per field (default 100)")
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
@@ -118,27 +125,35 @@ def main() -> None:
         on_device, to_host, kernels = query_times(field, args.device, args.repeat)
         row = {
             "case": text, "lights": lights, "width": width, "height": height, "render_seconds": rendered,
-            "fit_command_seconds": round(seconds, 2), "stages": report["seconds"], "gaussian_size": report.get("gaussian_size"),
+            "fit_command_seconds": round(seconds, 2), "stages": report["seconds"],
+            "gaussian_size": report.get("gaussian_size"),
             "host_peak_bytes": host, "device_peak_bytes": device_peak or None, "memory": memory,
-            "field_bytes": field.stat().st_size, "query_on_device_ms": round(on_device, 3), "query_to_host_ms": round(to_host, 3),
+            "field_bytes": field.stat().st_size, "query_on_device_ms": round(on_device, 3),
+            "query_to_host_ms": round(to_host, 3),
             "query_kernels_ms": None if kernels is None else round(kernels, 3),
-            "residual": report.get("residual", {}) and {k: report["residual"][k] for k in ("luminance_rank", "chroma_rank", "basis_bits")},
+            "residual": report.get("residual", {}) and {k: report["residual"][k]
+                                                        for k in ("luminance_rank", "chroma_rank", "basis_bits")},
         }
         rows.append(row)
         stages = ", ".join(f"{k} {report['seconds'][k]:.1f}" for k in STAGES if k in report["seconds"])
-        print(f"{text}: fit {seconds:.1f} s ({stages}); host {host / 1e9:.1f} GB, device {device_peak / 1e9 if device_peak else float('nan'):.1f} GB; "
-              f"field {row['field_bytes'] / 1e6:.1f} MB; query {kernels if kernels is not None else float('nan'):.3f} ms of kernels on the device, "
+        print(f"{text}: fit {seconds:.1f} s ({stages}); host {host / 1e9:.1f} GB, device "
+              f"{device_peak / 1e9 if device_peak else float('nan'):.1f} GB; "
+              f"field {row['field_bytes'] / 1e6:.1f} MB; query {kernels if kernels is not None else float('nan'):.3f} "
+              f"ms of kernels on the device, "
               f"{on_device:.3f} ms with the copies into page-locked memory, {to_host:.3f} ms to host", flush=True)
-    print("\n| lights x size | whole fit | loading | segmentation | estimation | retargeting | residual compression | saving | "
+    print("\n| lights x size | whole fit | loading | segmentation | estimation | retargeting | residual "
+          "compression | saving | "
           "peak host | peak device | field | query (kernels / with copies / to host) |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         stage = lambda key: f"{row['stages'][key]:.1f} s" if key in row["stages"] else "-"
         device_text = f"{row['device_peak_bytes'] / 1e9:.1f} GB" if row["device_peak_bytes"] else "-"
-        print(f"| {row['lights']} x {row['width']}x{row['height']} | {row['fit_command_seconds']:.1f} s | {stage('loading')} | {stage('segmentation')} | "
+        print(f"| {row['lights']} x {row['width']}x{row['height']} | {row['fit_command_seconds']:.1f} s | "
+              f"{stage('loading')} | {stage('segmentation')} | "
               f"{stage('estimation')} | {stage('retargeting')} | {stage('residual compression')} | {stage('saving')} | "
               f"{row['host_peak_bytes'] / 1e9:.1f} GB | {device_text} | {row['field_bytes'] / 1e6:.1f} MB | "
-              f"{row['query_kernels_ms'] if row['query_kernels_ms'] is not None else '-'} / {row['query_on_device_ms']:.3f} / {row['query_to_host_ms']:.3f} ms |")
+              f"{row['query_kernels_ms'] if row['query_kernels_ms'] is not None else '-'} / "
+              f"{row['query_on_device_ms']:.3f} / {row['query_to_host_ms']:.3f} ms |")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2))
 

@@ -25,7 +25,8 @@ ROWS = [
     ("warp-highlights --help", ["-m", "warp_highlights", "--help"]),
     *[(f"warp-highlights {c} --help", ["-m", "warp_highlights", c, "--help"])
       for c in ("render", "info", "sheet", "fit", "relight", "animate", "evaluate", "collection", "view", "demo")],
-    ("warp-highlights fit --size big (usage error)", ["-m", "warp_highlights", "fit", "x", "-o", "y.whf", "--size", "big"]),
+    ("warp-highlights fit --size big (usage error)",
+     ["-m", "warp_highlights", "fit", "x", "-o", "y.whf", "--size", "big"]),
 ]
 HEAVY = ("warp", "scipy", "pyvista")
 
@@ -48,17 +49,20 @@ def main() -> None:
             started = time.perf_counter()
             subprocess.run([sys.executable, *arguments], capture_output=True)
             seconds.append(time.perf_counter() - started)
-        rows.append({"what": label, "median_s": statistics.median(seconds), "max_s": max(seconds), "imports": heavy_imports(arguments)})
+        rows.append({"what": label, "median_s": statistics.median(seconds), "max_s": max(seconds),
+                     "imports": heavy_imports(arguments)})
     print(f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}; "
           f"median of {args.repeat} fresh processes\n")
     print("| what | median (s) | max (s) | imported of warp/scipy/pyvista |")
     print("|---|---|---|---|")
     for row in rows:
-        print(f"| `{row['what']}` | {row['median_s']:.2f} | {row['max_s']:.2f} | {', '.join(row['imports']) or 'none'} |")
+        print(
+            f"| `{row['what']}` | {row['median_s']:.2f} | {row['max_s']:.2f} | {', '.join(row['imports']) or 'none'} |")
     if os.environ.get("OUT"):
         out = Path(os.environ["OUT"]) / "bench_startup.json"
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps({"cpu_count": os.cpu_count(), "python": platform.python_version(), "rows": rows}, indent=1))
+        out.write_text(json.dumps({"cpu_count": os.cpu_count(), "python": platform.python_version(), "rows": rows},
+                                  indent=1))
 
 
 if __name__ == "__main__":

@@ -45,7 +45,8 @@ def main() -> None:
         wp.synchronize_device(device)
         firsts.append(f"{(time.perf_counter() - started) * 1e3:.1f} ms")
         del block
-    rows.append(("the memory pool's first 1 MB / 400 MB / 1.6 GB", " / ".join(firsts) + f" (release threshold {wp.get_mempool_release_threshold(device)})"))
+    rows.append(("the memory pool's first 1 MB / 400 MB / 1.6 GB",
+                 " / ".join(firsts) + f" (release threshold {wp.get_mempool_release_threshold(device)})"))
 
     values = (args.gib << 30) // 4
     shape = (8, values // 8)  # Warp's dimensions stay under 2^31
@@ -56,11 +57,13 @@ def main() -> None:
     parts = 16
     started = time.perf_counter()
     with ThreadPoolExecutor(parts) as pool:
-        list(pool.map(lambda i: flat[i * (flat.size // parts) : (i + 1) * (flat.size // parts)].fill(1.0), range(parts)))
+        list(pool.map(lambda i: flat[i * (flat.size // parts) : (i + 1) * (flat.size // parts)].fill(1.0),
+                      range(parts)))
     rows.append((f"filling it from {parts} threads", f"{time.perf_counter() - started:.2f} s"))
     pageable = np.ones(shape, np.float32)
     on_device = wp.empty(shape, dtype=float, device=device)
-    for name, host in (("page-locked", pinned), ("pageable", wp.array(pageable, dtype=float, device="cpu", copy=False))):
+    for name, host in (("page-locked", pinned),
+                       ("pageable", wp.array(pageable, dtype=float, device="cpu", copy=False))):
         for direction in ("up", "down"):
             best = np.inf
             for _ in range(2):

@@ -38,7 +38,8 @@ PANEL_SETS = (("sphere", "image", "paths"), ("sphere",), ("image",), ("paths",))
 
 def time_moves(field, panels, *, device, moves: int, window_size, multi_samples: int) -> dict[str, float]:
     size = (window_size[0] * len(panels) // 3, window_size[1])
-    designer = LightDesigner(field, device=device, off_screen=True, panels=panels, window_size=size, multi_samples=multi_samples)
+    designer = LightDesigner(field, device=device, off_screen=True, panels=panels, window_size=size,
+                             multi_samples=multi_samples)
     try:
         designer.screenshot()  # the first draw builds VTK's buffers and shaders
         window = list(designer.plotter.window_size)
@@ -49,7 +50,8 @@ def time_moves(field, panels, *, device, moves: int, window_size, multi_samples:
             drawn = time.perf_counter()
             designer.plotter.render()
             finished = time.perf_counter()
-            rows.append((designer.timings["relight"], designer.timings["scene"], 1e3 * (finished - drawn), 1e3 * (finished - started)))
+            rows.append((designer.timings["relight"], designer.timings["scene"], 1e3 * (finished - drawn),
+                         1e3 * (finished - started)))
         faces = len({int(field.triangulation.locate(d).faces) for d in orbit(35.0, moves, turns=0.25)})
     finally:
         designer.close()
@@ -63,7 +65,8 @@ def main() -> None:
     parser.add_argument("field", type=Path)
     parser.add_argument("--device", default=None)
     parser.add_argument("--moves", type=int, default=40)
-    parser.add_argument("--window-size", default="1680x520", help="window for three panels; a single panel gets a third of the width")
+    parser.add_argument("--window-size", default="1680x520",
+                        help="window for three panels; a single panel gets a third of the width")
     args = parser.parse_args()
     import warp as wp
 
@@ -73,7 +76,8 @@ def main() -> None:
     device = str(wp.get_device(args.device))
     import vtk
 
-    print(f"# bench_view: {args.field.name} ({field.light_count} lights, {field.width}x{field.height}), relight on {device}, "
+    print(f"# bench_view: {args.field.name} ({field.light_count} lights, {field.width}x{field.height}), "
+          f"relight on {device}, "
           f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, VTK {vtk.vtkVersion.GetVTKVersion()}")
     results = {}
     from warp_highlights.view.viz import software_opengl
@@ -85,11 +89,13 @@ def main() -> None:
         for samples in (8, 0):
             r = time_moves(field, panels, device=device, moves=args.moves, window_size=window, multi_samples=samples)
             results[f"{','.join(panels)} msaa{samples}"] = r
-            print(f"| {', '.join(panels)} | {r['window'][0]}x{r['window'][1]} | {samples} | {r['relight']:.1f} | {r['scene']:.1f} | "
+            print(f"| {', '.join(panels)} | {r['window'][0]}x{r['window'][1]} | {samples} | {r['relight']:.1f} | "
+                  f"{r['scene']:.1f} | "
                   f"{r['draw']:.1f} | {r['move']:.1f} | {1e3 / r['move']:.1f} |")
     out = os.environ.get("OUT")
     if out:
-        Path(out, "bench_view.json").write_text(json.dumps({"field": str(args.field), "device": device, "results": results}, indent=2))
+        Path(out, "bench_view.json").write_text(json.dumps({"field": str(args.field), "device": device,
+                                                            "results": results}, indent=2))
 
 
 if __name__ == "__main__":

@@ -52,7 +52,8 @@ def measure(path: Path, browser, decode: str, screenshot: Path | None) -> dict:
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             page.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html?decode={decode}")
-            page.wait_for_function("window.whViewer !== undefined || document.getElementById('status').textContent.startsWith('error')",
+            page.wait_for_function("window.whViewer !== undefined || "
+                                   "document.getElementById('status').textContent.startsWith('error')",
                                    timeout=120_000, polling=5)
             if page.evaluate("window.whViewer === undefined"):
                 raise SystemExit(f"{path}: the page says {page.inner_text('#status')}")
@@ -79,7 +80,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("fields", nargs="+", type=Path)
     parser.add_argument("--chromium", default=shutil.which("chromium") or shutil.which("chromium-browser"))
-    parser.add_argument("--decode", choices=("auto", "load", "query"), default="auto", help="the page's low-rank decoding (default auto)")
+    parser.add_argument("--decode", choices=("auto", "load", "query"), default="auto",
+                        help="the page's low-rank decoding (default auto)")
     parser.add_argument("--screenshot", type=Path, help="save the first field's page here (PNG)")
     args = parser.parse_args()
     if args.chromium is None:
@@ -88,12 +90,15 @@ def main() -> None:
 
     with sync_playwright() as driver:
         browser = driver.chromium.launch(executable_path=args.chromium, args=SOFTWARE_GL)
-        rows = [measure(path, browser, args.decode, args.screenshot if i == 0 else None) for i, path in enumerate(args.fields)]
+        rows = [measure(path, browser, args.decode, args.screenshot if i == 0 else None)
+                for i, path in enumerate(args.fields)]
         browser.close()
-    print("\n| field | size | lights | page mode | first image (s) | all lights decoded (s) | frame (ms) | frames/s | export | field file |")
+    print("\n| field | size | lights | page mode | first image (s) | all lights decoded (s) | frame (ms) | frames/s | "
+          "export | field file |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['field']} | {r['size']} | {r['lights']} | {r['residual']} | {r['first_s']:.2f} | {r['ready_s']:.2f} | {r['frame_ms']:.1f} | "
+        print(f"| {r['field']} | {r['size']} | {r['lights']} | {r['residual']} | {r['first_s']:.2f} | "
+              f"{r['ready_s']:.2f} | {r['frame_ms']:.1f} | "
               f"{1000 / r['frame_ms']:.0f} | "
               f"{r['export_bytes'] / 1e6:.2f} MB | {r['field_bytes'] / 1e6:.2f} MB |")
     if any(math.isnan(r["frame_ms"]) for r in rows):

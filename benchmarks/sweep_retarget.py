@@ -46,18 +46,21 @@ def main() -> None:
     parser.add_argument("dataset", type=Path)
     parser.add_argument("--device", default=None)
     parser.add_argument("--size", help="working size WxH (default: the images')")
-    parser.add_argument("--grid", choices=["full", "defaults", "quick"], default="full", help="full sweep (default), only the defaults, or a small smoke test")
+    parser.add_argument("--grid", choices=["full", "defaults", "quick"], default="full",
+                        help="full sweep (default), only the defaults, or a small smoke test")
     args = parser.parse_args()
     wp.config.quiet = True
     device = wp.get_device(args.device)
     data = ReflectanceField.load(args.dataset, progress=False)
     if data.heldout is None or data.heldout.specular is None:
-        raise SystemExit("the dataset needs held-out lights with ground-truth specular images (render it with --heldout centroids)")
+        raise SystemExit(
+            "the dataset needs held-out lights with ground-truth specular images (render it with --heldout centroids)")
     width, height = (int(v) for v in args.size.split("x")) if args.size else (data.width, data.height)
     base = FitSettings()
 
     started = time.perf_counter()
-    seg = segment(resize_stack(data.images, width, height), data.lights.directions, settings=base.segmentation, device=device)
+    seg = segment(resize_stack(data.images, width, height), data.lights.directions, settings=base.segmentation,
+                  device=device)
     est = estimate(seg.specular_luminance, settings=base.estimation, raster=base.raster, device=device)
     wp.synchronize_device(device)
     estimation_seconds = time.perf_counter() - started
@@ -85,12 +88,15 @@ def main() -> None:
         grid += [(1.0, 0.1, 1e-3, t1, t2) for t1, t2 in [(0, 500), (50, 150), (100, 300), (200, 200), (400, 800)]]
         grid.append(defaults)
     rows = []
-    print("| c_fit | c_str | c_ene | T1 | T2 | seconds | fit loss | structure | circular PSNR | p5 | straight | circ > alpha |")
+    print("| c_fit | c_str | c_ene | T1 | T2 | seconds | fit loss | structure | circular PSNR | p5 | straight "
+          "| circ > alpha |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for c_fit, c_str, c_ene, t1, t2 in grid:
-        settings = replace(base, retarget=replace(base.retarget, c_fit=c_fit, c_str=c_str, c_ene=c_ene, rigid_iterations=t1, iterations=t2))
+        settings = replace(base, retarget=replace(base.retarget, c_fit=c_fit, c_str=c_str, c_ene=c_ene,
+                                                  rigid_iterations=t1, iterations=t2))
         t = time.perf_counter()
-        result = retarget(est.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device)
+        result = retarget(est.params, seg.specular_luminance, edges, settings=settings.retarget, raster=settings.raster,
+                          device=device)
         wp.synchronize_device(device)
         seconds = time.perf_counter() - t
         decisions = decide_paths(est.params.take(edges[:, 0]), result.params, settings.paths)
@@ -105,17 +111,22 @@ def main() -> None:
             image = raster.render(GaussianBatch.from_numpy(sets, device=device, requires_grad=False)).numpy()
             scores[method] = psnr(image, truth)
         row = {
-            "c_fit": c_fit, "c_str": c_str, "c_ene": c_ene, "rigid_iterations": t1, "iterations": t2, "seconds": seconds,
+            "c_fit": c_fit, "c_str": c_str, "c_ene": c_ene, "rigid_iterations": t1, "iterations": t2,
+            "seconds": seconds,
             "fit_loss": float(result.loss.mean()), "structure_loss": float(result.structure_loss.mean()),
-            "circular_mean": float(scores["circular"].mean()), "circular_p5": float(np.percentile(scores["circular"], 5)),
+            "circular_mean": float(scores["circular"].mean()),
+            "circular_p5": float(np.percentile(scores["circular"], 5)),
             "straight_mean": float(scores["straight"].mean()), "alpha_mean": float(alpha_psnr.mean()),
             "circular_beats_alpha": float(np.mean(scores["circular"] > alpha_psnr)),
         }
         rows.append(row)
-        print(f"| {c_fit:g} | {c_str:g} | {c_ene:g} | {t1} | {t2} | {seconds:.1f} | {row['fit_loss']:.1f} | {row['structure_loss']:.1f} | "
-              f"{row['circular_mean']:.2f} | {row['circular_p5']:.2f} | {row['straight_mean']:.2f} | {100 * row['circular_beats_alpha']:.0f}% |", flush=True)
+        print(f"| {c_fit:g} | {c_str:g} | {c_ene:g} | {t1} | {t2} | {seconds:.1f} | {row['fit_loss']:.1f} | "
+              f"{row['structure_loss']:.1f} | "
+              f"{row['circular_mean']:.2f} | {row['circular_p5']:.2f} | {row['straight_mean']:.2f} | "
+              f"{100 * row['circular_beats_alpha']:.0f}% |", flush=True)
     best = max(rows, key=lambda r: r["circular_mean"])
-    print(f"best circular mean: c_str {best['c_str']:g}, c_ene {best['c_ene']:g}, T1 {best['rigid_iterations']}, T2 {best['iterations']}: {best['circular_mean']:.2f} dB")
+    print(f"best circular mean: c_str {best['c_str']:g}, c_ene {best['c_ene']:g}, T1 {best['rigid_iterations']}, T2 "
+          f"{best['iterations']}: {best['circular_mean']:.2f} dB")
     if os.environ.get("OUT"):
         out = Path(os.environ["OUT"]) / "sweep_retarget.json"
         out.write_text(json.dumps({"dataset": str(args.dataset), "device": str(device), "size": [width, height],

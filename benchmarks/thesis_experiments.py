@@ -56,8 +56,10 @@ def main() -> None:
         field = args.work / f"{shape}.whf"
         evaluation = args.work / f"{shape}-evaluation"
         seconds = {
-            "render": run(["render", shape, str(data), "--lights", str(args.lights), "--size", args.size, "--overwrite", "-q", *device]),
-            "fit": run(["fit", str(data), "-o", str(field), "--report", str(args.work / f"{shape}-fit.json"), "--overwrite", "-q", *device]),
+            "render": run(["render", shape, str(data), "--lights", str(args.lights), "--size", args.size, "--overwrite",
+                           "-q", *device]),
+            "fit": run(["fit", str(data), "-o", str(field), "--report", str(args.work / f"{shape}-fit.json"),
+                        "--overwrite", "-q", *device]),
             "evaluate": run(["evaluate", str(field), str(data), "-o", str(evaluation), "--overwrite", "-q", *device]),
         }
         report = json.loads((evaluation / "report.json").read_text())
@@ -70,7 +72,8 @@ def main() -> None:
 
     print()
     print(f"{args.lights} Fibonacci lights, {args.size}, specular PSNR (dB) at every triangle centroid:")
-    print("| shape | triangles | method | mean | p5 | p95 | circular > alpha | Gaussians / light | fit s | evaluate s |")
+    print(
+        "| shape | triangles | method | mean | p5 | p95 | circular > alpha | Gaussians / light | fit s | evaluate s |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for shape, report, _fit, seconds in rows:
         specular = report["summary"]["specular"]
@@ -79,7 +82,8 @@ def main() -> None:
             share = f"{100 * specular['circular_beats_alpha']:.0f}%" if method == "circular" else ""
             per_light = f"{report['gaussians']['per_light']['mean']:.1f}" if method == "circular" else ""
             times = (f"{seconds['fit']:.1f}", f"{seconds['evaluate']:.1f}") if method == "circular" else ("", "")
-            print(f"| {shape} | {report['heldout']} | {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} | {share} | {per_light} | {times[0]} | {times[1]} |")
+            print(f"| {shape} | {report['heldout']} | {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} | "
+                  f"{share} | {per_light} | {times[0]} | {times[1]} |")
 
 
 if __name__ == "__main__":

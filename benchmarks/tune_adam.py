@@ -64,7 +64,8 @@ def converged(got: GaussianParams, truth: GaussianParams) -> np.ndarray:
     return np.all(mean_ok & sigma_ok & amplitude_ok & theta_ok, axis=1)
 
 
-def run_setting(settings: AdamSettings, truth, start, device, iterations: int, checkpoints: list[int], check_every: int = 20) -> tuple[np.ndarray, dict]:
+def run_setting(settings: AdamSettings, truth, start, device, iterations: int, checkpoints: list[int],
+                check_every: int = 20) -> tuple[np.ndarray, dict]:
     """Iteration at which each trial first converged (inf when never), and the share converged at each checkpoint."""
     count = truth.problem_count
     raster = Rasterizer(HEIGHT, WIDTH, device=device)
@@ -116,13 +117,16 @@ def main() -> None:
         row.update({f"converged_{c}": shares[c] for c in checkpoints})
         row["median_iterations"] = float(np.median(first))
         rows.append(row)
-        print(f"  length {length} amplitude {amplitude} theta {theta}: " + ", ".join(f"{row[f'converged_{c}']:.2f}@{c}" for c in checkpoints), flush=True)
+        print(f"  length {length} amplitude {amplitude} theta {theta}: " + ", ".join(f"{row[f'converged_{c}']:.2f}@{c}"
+                                                                                     for c in checkpoints), flush=True)
     print(f"\ntune_adam on {device} ({device.name}): {args.trials} trials, {WIDTH}x{HEIGHT}")
-    print("| lr mean/sigma (rpx) | lr amplitude | lr theta | " + " | ".join(f"converged @{c}" for c in checkpoints) + " | median iterations |")
+    print("| lr mean/sigma (rpx) | lr amplitude | lr theta | " + " | ".join(f"converged @{c}" for c in checkpoints)
+          + " | median iterations |")
     print("|" + "---|" * (len(checkpoints) + 4))
     for row in sorted(rows, key=lambda r: (-r[f"converged_{args.iterations}"], r["median_iterations"])):
         cells = " | ".join(f"{row[f'converged_{c}']:.2f}" for c in checkpoints)
-        print(f"| {row['lr_length_rpx']} | {row['lr_amplitude']} | {row['lr_theta']} | {cells} | {row['median_iterations']:.0f} |")
+        print(f"| {row['lr_length_rpx']} | {row['lr_amplitude']} | {row['lr_theta']} | {cells} | "
+              f"{row['median_iterations']:.0f} |")
     if os.environ.get("OUT"):
         path = Path(os.environ["OUT"]) / "tune_adam.json"
         path.write_text(json.dumps({"device": str(device), "trials": args.trials, "rows": rows}, indent=2))

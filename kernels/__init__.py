@@ -33,8 +33,11 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {},
     modules={
-        "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses", "neural": "neural", "optim": "optim", "raster": "raster",
-        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support", "gram": "gram", "rows": "rows",
-        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "tape": "tape", "warmup": "warmup",
+        "baselines": "baselines", "chunks": "chunks", "interpolation": "interpolation", "losses": "losses",
+        "neural": "neural", "optim": "optim", "raster": "raster",
+        "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support",
+        "gram": "gram", "rows": "rows",
+        "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "tape": "tape",
+        "warmup": "warmup",
     },
 )

@@ -36,7 +36,8 @@ def project_planes(matrix: wp.array2d(dtype=float), images: wp.array2d(dtype=flo
 
 
 @wp.kernel(enable_backward=False)
-def evaluate_planes(basis: wp.array2d(dtype=float), planes: wp.array2d(dtype=float), largest: wp.float64, out: wp.array2d(dtype=float)):
+def evaluate_planes(basis: wp.array2d(dtype=float), planes: wp.array2d(dtype=float), largest: wp.float64,
+                    out: wp.array2d(dtype=float)):
     """out[q, p] = sum_m basis[q, m] planes[m, p] (float64 sum), clamped to [0, largest]; NaN gives 0."""
     q, p = wp.tid()
     total = wp.float64(0.0)

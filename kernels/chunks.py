@@ -74,7 +74,8 @@ def map_chunks(function, chunks: list[slice], *, parallel: bool = True, threads:
             stop.set()
             raise
 
-    pool = ThreadPoolExecutor(max_workers=min(len(chunks), max(1, int(threads or len(chunks)))), thread_name_prefix="warp-highlights",
+    pool = ThreadPoolExecutor(max_workers=min(len(chunks), max(1, int(threads or len(chunks)))),
+                              thread_name_prefix="warp-highlights",
                               initializer=child_initializer())
     futures = [pool.submit(guarded, chunk) for chunk in chunks]
     try:

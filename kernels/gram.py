@@ -105,7 +105,8 @@ class CrossSum:
             raise ValueError("a sum is either of a block with itself (a Gram matrix) or of pairs of blocks, not both")
         self.symmetric = symmetric
         wp.launch_tiled(cross_tiles, dim=[_tiles(a.shape[0], TILE_ROWS), _tiles(b.shape[0], TILE_ROWS), PARTS],
-                        inputs=[a, b, int(symmetric)], outputs=[self.partials], block_dim=_BLOCK_DIM, device=self.device)
+                        inputs=[a, b, int(symmetric)], outputs=[self.partials], block_dim=_BLOCK_DIM,
+                        device=self.device)
 
     def value(self) -> np.ndarray:
         """The (rows, columns) float64 sum: the partial sums added in a fixed order."""
@@ -187,9 +188,11 @@ class DeviceProducts:
     def held_directions(self, count: int, shape: tuple) -> DeviceBasis | None:
         """A ``DeviceBasis`` for ``count`` principal images of ``shape`` (H, W, P), which ``project`` fills
         through ``keep``; None where they may not be held (``holds``)."""
-        return DeviceBasis(count, shape, self.device) if self.holds(DeviceBasis.nbytes(count, int(np.prod(shape)))) else None
+        return (DeviceBasis(count, shape, self.device) if self.holds(DeviceBasis.nbytes(count, int(np.prod(shape))))
+                else None)
 
-    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep: DeviceBasis | None = None,
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *,
+                keep: DeviceBasis | None = None,
                 columns: slice | None = None, host: bool = True) -> np.ndarray | None:
         """(r, w) float32 ``matrix`` (r, n) float64 @ ``block`` (n, w) float32 (on the host, or on the device
         already), summed in float64; written into ``out`` (a view will do) when given, and into
@@ -198,7 +201,8 @@ class DeviceProducts:
         if not host and keep is None:
             raise ValueError("a projection that does not come back to the host must be kept on the device")
         matrix = np.asarray(matrix, np.float64)
-        if self._matrix[0] is None or self._matrix[0].shape != matrix.shape or not np.array_equal(self._matrix[0], matrix):
+        if (self._matrix[0] is None or self._matrix[0].shape != matrix.shape
+            or not np.array_equal(self._matrix[0], matrix)):
             self._matrix = (matrix.copy(), wp.array(np.ascontiguousarray(matrix), dtype=wp.float64, device=self.device))
         left = self._matrix[1]
         right = block if isinstance(block, wp.array) else self.upload(block)
@@ -209,7 +213,8 @@ class DeviceProducts:
             raise ValueError(f"a projection of {shape} cannot go into {tuple(out.shape)}")
         product = wp.empty(shape, dtype=wp.float32, device=self.device)
         wp.launch_tiled(project_tiles, dim=[_tiles(left.shape[0], TILE_ROWS), _tiles(right.shape[1], TILE_DEPTH)],
-                        inputs=[left, right, _tiles(left.shape[1], TILE_ROWS)], outputs=[product], block_dim=_BLOCK_DIM, device=self.device)
+                        inputs=[left, right, _tiles(left.shape[1], TILE_ROWS)], outputs=[product], block_dim=_BLOCK_DIM,
+                        device=self.device)
         if keep is not None:
             if columns is None:
                 raise ValueError("a projection kept on the device needs its columns")

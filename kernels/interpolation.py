@@ -106,7 +106,8 @@ def deepest_faces(
     best = int(-1)
     depth = wp.float64(-2.0)
     for f in range(s, edge_normals.shape[0], depths.shape[1]):
-        margin = wp.min(wp.min(wp.dot(query, edge_normals[f, 0]), wp.dot(query, edge_normals[f, 1])), wp.dot(query, edge_normals[f, 2]))
+        margin = wp.min(wp.min(wp.dot(query, edge_normals[f, 0]), wp.dot(query, edge_normals[f, 1])),
+                        wp.dot(query, edge_normals[f, 2]))
         if margin > depth:
             depth = margin
             best = f
@@ -160,7 +161,8 @@ def locate_directions(
         for e in range(rim_face.shape[0]):
             off_plane = wp.dot(query, rim_normal[e])
             foot = wp.sqrt(wp.max(wp.float64(1.0) - off_plane * off_plane, wp.float64(0.0)))
-            over_arc = wp.dot(query, rim_along[e]) >= wp.float64(0.0) and wp.dot(query, rim_back[e]) >= wp.float64(0.0) and foot > wp.float64(1.0e-12)
+            over_arc = (wp.dot(query, rim_along[e]) >= wp.float64(0.0) and wp.dot(query, rim_back[e]) >= wp.float64(0.0)
+                        and foot > wp.float64(1.0e-12))
             closeness = wp.max(wp.dot(query, rim_start[e]), wp.dot(query, rim_end[e]))
             if over_arc:
                 closeness = foot
@@ -169,7 +171,8 @@ def locate_directions(
                 edge = e
         off_plane = wp.dot(query, rim_normal[edge])
         foot = wp.sqrt(wp.max(wp.float64(1.0) - off_plane * off_plane, wp.float64(0.0)))
-        if wp.dot(query, rim_along[edge]) >= wp.float64(0.0) and wp.dot(query, rim_back[edge]) >= wp.float64(0.0) and foot > wp.float64(1.0e-12):
+        if (wp.dot(query, rim_along[edge]) >= wp.float64(0.0) and wp.dot(query, rim_back[edge]) >= wp.float64(0.0)
+            and foot > wp.float64(1.0e-12)):
             inner = query - off_plane * rim_normal[edge]
             point = inner / wp.max(wp.length(inner), wp.float64(1.0e-300))
         elif wp.dot(query, rim_start[edge]) >= wp.dot(query, rim_end[edge]):
@@ -248,13 +251,15 @@ def interpolate_gaussians(
     mean_c = retargeted.mean[to_c, p]
     mean = la * mean_a + lb * mean_b + lc * mean_c
     if circular != 0:
-        mean = arc_position(mean_a, mean_b, delta_b, lb, straight_below) + arc_position(mean_a, mean_c, delta_c, lc, straight_below) - mean_a
+        mean = (arc_position(mean_a, mean_b, delta_b, lb, straight_below)
+                + arc_position(mean_a, mean_c, delta_c, lc, straight_below) - mean_a)
     sa = estimated.sigma[a, p]
     sb = retargeted.sigma[to_b, p]
     sc = retargeted.sigma[to_c, p]
     out.active[q, slot] = 1
     # only a^2 is drawn and fitting may flip a's sign: blend |a|, or a highlight would fade through 0
-    out.amplitude[q, slot] = la * wp.abs(estimated.amplitude[a, p]) + lb * wp.abs(retargeted.amplitude[to_b, p]) + lc * wp.abs(retargeted.amplitude[to_c, p])
+    out.amplitude[q, slot] = (la * wp.abs(estimated.amplitude[a, p]) + lb * wp.abs(retargeted.amplitude[to_b, p])
+                              + lc * wp.abs(retargeted.amplitude[to_c, p]))
     out.mean[q, slot] = mean
     out.sigma[q, slot] = wp.vec2(
         la * wp.abs(sa[0]) + lb * wp.abs(sb[0]) + lc * wp.abs(sc[0]),
@@ -277,11 +282,13 @@ def blend_images(
     q, i = wp.tid()
     f = faces[q]
     w = weights[q]
-    out[q, i] = w[0] * stack[face_vertices[f, 0], i] + w[1] * stack[face_vertices[f, 1], i] + w[2] * stack[face_vertices[f, 2], i]
+    out[q, i] = (w[0] * stack[face_vertices[f, 0], i] + w[1] * stack[face_vertices[f, 1], i]
+                 + w[2] * stack[face_vertices[f, 2], i])
 
 
 @wp.func
-def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coefficients: wp.array2d(dtype=float), q: int, i: int, plane: int) -> float:
+def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coefficients: wp.array2d(dtype=float),
+              q: int, i: int, plane: int) -> float:
     # coefficients[q] = (basis weights..., mean weight): the query's blend of the per-light rows
     # basis is pixel-major, (pixels, k, planes): one pixel's basis values are contiguous
     rank = coefficients.shape[1] - 1
@@ -292,8 +299,10 @@ def _low_rank(mean: wp.array2d(dtype=float), basis: wp.array3d(dtype=float), coe
 
 
 @wp.func
-def _low_rank_opponent(luminance_mean: wp.array2d(dtype=float), luminance_basis: wp.array3d(dtype=float), luminance_weights: wp.array2d(dtype=float),
-                       chroma_mean: wp.array2d(dtype=float), chroma_basis: wp.array3d(dtype=float), chroma_weights: wp.array2d(dtype=float),
+def _low_rank_opponent(luminance_mean: wp.array2d(dtype=float), luminance_basis: wp.array3d(dtype=float),
+                       luminance_weights: wp.array2d(dtype=float),
+                       chroma_mean: wp.array2d(dtype=float), chroma_basis: wp.array3d(dtype=float),
+                       chroma_weights: wp.array2d(dtype=float),
                        residual_scale: wp.array(dtype=float), q: int, i: int, channels: int) -> wp.vec3:
     # (Y, B - Y, R - Y) of the low-rank residual at pixel i for coefficient row q, times the residual scale; chroma 0
     # for grey
@@ -376,7 +385,8 @@ def compose_images(
             row = 0
         opponent = wp.vec3(0.0)
         if diffuse_mode == DIFFUSE_LOWRANK:
-            opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis, chroma_weights,
+            opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis,
+                                          chroma_weights,
                                           residual_scale, q, i, channels)
         for c in range(channels):
             value = 0.0
@@ -384,7 +394,8 @@ def compose_images(
                 m = lambert[i, c]
                 value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
             elif diffuse_mode == DIFFUSE_BLEND:
-                value = w[0] * float(diffuse_images[corner0, i, c]) + w[1] * float(diffuse_images[corner1, i, c]) + w[2] * float(diffuse_images[corner2, i, c])
+                value = (w[0] * float(diffuse_images[corner0, i, c]) + w[1] * float(diffuse_images[corner1, i, c])
+                         + w[2] * float(diffuse_images[corner2, i, c]))
             elif diffuse_mode == DIFFUSE_DECODED:
                 value = float(diffuse_images[q, i, c])
             elif diffuse_mode == DIFFUSE_LOWRANK:
@@ -395,7 +406,8 @@ def compose_images(
 
 
 @wp.kernel(enable_backward=False)
-def dequantise_basis(codes: wp.array3d(dtype=Any), low: wp.array(dtype=float), step: wp.array(dtype=float), basis: wp.array3d(dtype=float)):
+def dequantise_basis(codes: wp.array3d(dtype=Any), low: wp.array(dtype=float), step: wp.array(dtype=float),
+                     basis: wp.array3d(dtype=float)):
     """basis[i, j, p] = low[j] + codes[j, i, p] step[j]: basis image j's (pixels, planes) codes (uint8 or
     uint16) as float32 values, pixel-major (``compose_images``' layout), as ``residual.decode.stack_basis`` decodes
     them."""
@@ -421,7 +433,8 @@ def decode_low_rank(
     ``residual.decode.decoded_images`` gives."""
     light, i = wp.tid()
     channels = out.shape[2]
-    opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis, chroma_weights, residual_scale,
+    opponent = _low_rank_opponent(luminance_mean, luminance_basis, luminance_weights, chroma_mean, chroma_basis,
+                                  chroma_weights, residual_scale,
                                   light, i, channels)
     for c in range(channels):
         out[light, i, c] = wp.float16(wp.clamp(_opponent_channel(opponent, c, channels), -_FLOAT16_SAFE, _FLOAT16_SAFE))

@@ -55,7 +55,8 @@ def log_transform(image: wp.array3d(dtype=float), out: wp.array3d(dtype=float), 
 
 
 @wp.kernel(enable_backward=False)
-def log_l1_partials(image: wp.array3d(dtype=float), log_target: wp.array3d(dtype=float), partials: wp.array3d(dtype=float)):
+def log_l1_partials(image: wp.array3d(dtype=float), log_target: wp.array3d(dtype=float),
+                    partials: wp.array3d(dtype=float)):
     """Per (problem, row, lane): sum of |log2(1 + R) - log2(1 + S)| over the columns lane, lane + L, ...
 
     Neighbouring lanes read neighbouring pixels, so on a GPU a warp's loads are coalesced; on the CPU
@@ -141,7 +142,8 @@ def log_l1_backward(
 
 
 @wp.kernel(enable_backward=False)
-def clipped_square_error_rows(image: wp.array3d(dtype=float), target: wp.array3d(dtype=float), rows: wp.array2d(dtype=wp.float64)):
+def clipped_square_error_rows(image: wp.array3d(dtype=float), target: wp.array3d(dtype=float),
+                              rows: wp.array2d(dtype=wp.float64)):
     """rows[b, row] = sum over the row of (clip(R, 0, 1) - clip(S, 0, 1))^2, in float64."""
     b, row = wp.tid()
     total = wp.float64(0.0)
@@ -157,7 +159,8 @@ def clipped_mse(image: wp.array, target: wp.array) -> np.ndarray:
     if image.shape != target.shape or image.ndim != 3:
         raise InputError(f"image {image.shape} and target {target.shape} must be two (B, H, W) arrays of one shape")
     rows = wp.empty(image.shape[:2], dtype=wp.float64, device=image.device)
-    wp.launch(clipped_square_error_rows, dim=image.shape[:2], inputs=[image, target], outputs=[rows], device=image.device, record_tape=False)
+    wp.launch(clipped_square_error_rows, dim=image.shape[:2], inputs=[image, target], outputs=[rows],
+              device=image.device, record_tape=False)
     return rows.numpy().sum(axis=1) / (image.shape[1] * image.shape[2])
 
 
@@ -171,14 +174,16 @@ class LogL1Loss:
         self.device = wp.get_device(device if device is not None else getattr(target, "device", None))
         on_device = isinstance(target, wp.array) and target.device == self.device and target.dtype == wp.float32
         if not on_device:  # host data (or another device): one copy; device targets are used in place
-            target = wp.array(np.asarray(target.numpy() if isinstance(target, wp.array) else target, dtype=np.float32), dtype=float, device=self.device)
+            target = wp.array(np.asarray(target.numpy() if isinstance(target, wp.array) else target, dtype=np.float32),
+                              dtype=float, device=self.device)
         if target.ndim != 3:
             raise InputError(f"targets must have shape (problems, height, width), got {target.shape}")
         self.shape = target.shape
         self.target = target  # the adjoint compares with S itself
         self.log_target = wp.empty(self.shape, dtype=float, device=self.device)
         non_finite = wp.zeros(1, dtype=wp.int32, device=self.device)
-        wp.launch(log_transform, dim=self.shape, inputs=[target], outputs=[self.log_target, non_finite], device=self.device, record_tape=False)
+        wp.launch(log_transform, dim=self.shape, inputs=[target], outputs=[self.log_target, non_finite],
+                  device=self.device, record_tape=False)
         count = int(non_finite.numpy()[0])
         if count:
             raise InputError(f"targets have {count} non-finite pixels")
@@ -187,7 +192,8 @@ class LogL1Loss:
         lanes = 32 if self.device.is_cuda else 1
         self._partials = wp.empty((*self.shape[:2], lanes), dtype=float, device=self.device)
 
-    def __call__(self, image: wp.array, *, out: wp.array | None = None, weight: float = 1.0, value: bool = True) -> wp.array:
+    def __call__(self, image: wp.array, *, out: wp.array | None = None, weight: float = 1.0,
+                 value: bool = True) -> wp.array:
         """Per-problem loss of ``image`` (B, H, W); adds weight x loss to ``out`` (B,) and returns it.
 
         ``value=False`` records only the gradient and leaves ``out`` as it is: for optimisation steps
@@ -199,12 +205,14 @@ class LogL1Loss:
             pixels = self.shape[1] * self.shape[2]
             per_thread = 1 if self.device.is_cuda else self.shape[2]
             inputs = [image.flatten(), self.target.flatten(), out.grad, pixels, scale, per_thread]
-            wp.launch(log_l1_backward, dim=image.size // per_thread, inputs=inputs, outputs=[image.grad.flatten()], device=self.device, record_tape=False)
+            wp.launch(log_l1_backward, dim=image.size // per_thread, inputs=inputs, outputs=[image.grad.flatten()],
+                      device=self.device, record_tape=False)
 
         _record(backward, [out, image])
         return out
 
-    def of_render(self, raster, batch: GaussianBatch, *, image: wp.array, out: wp.array | None = None, weight: float = 1.0, value: bool = True) -> wp.array:
+    def of_render(self, raster, batch: GaussianBatch, *, image: wp.array, out: wp.array | None = None,
+                  weight: float = 1.0, value: bool = True) -> wp.array:
         """The loss of ``raster.render(batch, out=image)``, with one adjoint for both on the active tape.
 
         The same values and parameter gradients as ``self(raster.render(batch, out=image), ...)``,
@@ -221,7 +229,8 @@ class LogL1Loss:
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:
                 raise InputError("inside a wp.Tape the loss output needs requires_grad=True, or no gradient flows back")
-            tape.record_func(backward=lambda: raster.backward(batch, None, fit=(image, self.target, out.grad, scale)), arrays=[out, *batch.parameters()])
+            tape.record_func(backward=lambda: raster.backward(batch, None, fit=(image, self.target, out.grad, scale)),
+                             arrays=[out, *batch.parameters()])
         return out
 
     def _value(self, image: wp.array, out: wp.array | None, weight: float, value: bool) -> tuple[wp.array, float]:
@@ -231,9 +240,12 @@ class LogL1Loss:
         out = _output(out, self.shape[0], self.device)
         scale = float(weight) * self.pixel_area
         if value:
-            wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target], outputs=[self._partials], device=self.device, record_tape=False)
-            wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums], device=self.device, record_tape=False)
-            wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out], device=self.device, record_tape=False)
+            wp.launch(log_l1_partials, dim=self._partials.shape, inputs=[image, self.log_target],
+                      outputs=[self._partials], device=self.device, record_tape=False)
+            wp.launch(sum_lanes, dim=self.shape[:2], inputs=[self._partials], outputs=[self._row_sums],
+                      device=self.device, record_tape=False)
+            wp.launch(add_row_sums, dim=self.shape[0], inputs=[self._row_sums, scale], outputs=[out],
+                      device=self.device, record_tape=False)
         return out, scale
 
 
@@ -349,7 +361,8 @@ class StructureLoss:
 
     def _sums(self, problems: int, device) -> tuple[wp.array, wp.array]:
         if self._scratch is None or self._scratch[0] != (problems, str(device)):
-            self._scratch = ((problems, str(device)), wp.zeros(problems, dtype=wp.vec2, device=device), wp.zeros(problems, dtype=float, device=device))
+            self._scratch = ((problems, str(device)), wp.zeros(problems, dtype=wp.vec2, device=device),
+                             wp.zeros(problems, dtype=float, device=device))
         _, sums, scale_terms = self._scratch
         sums.zero_()
         scale_terms.zero_()
@@ -364,12 +377,16 @@ class StructureLoss:
         sums, scale_terms = self._sums(problems, device)
         common = [batch.arrays, self.reference.arrays]
         to_rpx = normalized_to_rpx(1.0)
-        wp.launch(structure_sums, dim=(problems, capacity), inputs=[*common, to_rpx], outputs=[sums], device=device, record_tape=False)
+        wp.launch(structure_sums, dim=(problems, capacity), inputs=[*common, to_rpx], outputs=[sums], device=device,
+                  record_tape=False)
         constants = [to_rpx, s.gamma_per_rpx, s.threshold_rpx, s.scale_eps_rpx, float(weight)]
-        wp.launch(structure_terms, dim=(problems, capacity), inputs=[*common, sums, *constants], outputs=[out, scale_terms], device=device, record_tape=False)
+        wp.launch(structure_terms, dim=(problems, capacity), inputs=[*common, sums, *constants],
+                  outputs=[out, scale_terms], device=device, record_tape=False)
 
         def backward():
-            wp.launch(structure_backward, dim=(problems, capacity), inputs=[*common, sums, scale_terms, out.grad, *constants], outputs=[batch.grad_arrays], device=device, record_tape=False)
+            wp.launch(structure_backward, dim=(problems, capacity),
+                      inputs=[*common, sums, scale_terms, out.grad, *constants], outputs=[batch.grad_arrays],
+                      device=device, record_tape=False)
 
         _record(backward, [out, *batch.parameters()])
         return out
@@ -396,7 +413,8 @@ def energy_terms(
     b, p = wp.tid()
     if g.active[b, p] == 0 or r.active[b, p] == 0:
         return
-    difference = gaussian_energy(r.amplitude[b, p], r.sigma[b, p], eps, area_scale) - gaussian_energy(g.amplitude[b, p], g.sigma[b, p], eps, area_scale)
+    difference = (gaussian_energy(r.amplitude[b, p], r.sigma[b, p], eps, area_scale)
+                  - gaussian_energy(g.amplitude[b, p], g.sigma[b, p], eps, area_scale))
     wp.atomic_add(out, b, weight * difference * difference)
 
 
@@ -423,7 +441,8 @@ def energy_backward(
     d_energy = -2.0 * difference * out_grad[b] * weight
     wp.atomic_add(grad.amplitude, b, p, d_energy * 4.0 * wp.pi * a * root * area_scale)
     # d sqrt(var_x var_y) / d sigma_x = sigma_x var_y / sqrt(var_x var_y)
-    wp.atomic_add(grad.sigma, b, p, d_energy * 2.0 * wp.pi * a * a * area_scale / root * wp.vec2(sig[0] * var_y, sig[1] * var_x))
+    wp.atomic_add(grad.sigma, b, p,
+                  d_energy * 2.0 * wp.pi * a * a * area_scale / root * wp.vec2(sig[0] * var_y, sig[1] * var_x))
 
 
 class EnergyLoss:
@@ -441,11 +460,14 @@ class EnergyLoss:
         problems, capacity = batch.shape
         device = batch.device
         out = _output(out, problems, device)
-        inputs = [batch.arrays, self.reference.arrays, self.settings.sigma_eps, normalized_to_rpx(1.0) ** 2, float(weight)]
-        wp.launch(energy_terms, dim=(problems, capacity), inputs=inputs, outputs=[out], device=device, record_tape=False)
+        inputs = [batch.arrays, self.reference.arrays, self.settings.sigma_eps, normalized_to_rpx(1.0) ** 2,
+                  float(weight)]
+        wp.launch(energy_terms, dim=(problems, capacity), inputs=inputs, outputs=[out], device=device,
+                  record_tape=False)
 
         def backward():
-            wp.launch(energy_backward, dim=(problems, capacity), inputs=[*inputs, out.grad], outputs=[batch.grad_arrays], device=device, record_tape=False)
+            wp.launch(energy_backward, dim=(problems, capacity), inputs=[*inputs, out.grad],
+                      outputs=[batch.grad_arrays], device=device, record_tape=False)
 
         _record(backward, [out, *batch.parameters()])
         return out
@@ -476,7 +498,8 @@ def total(losses: wp.array) -> wp.array:
     """
     out = wp.zeros(1, dtype=float, device=losses.device, requires_grad=True)
     wp.launch(sum_problems, dim=1, inputs=[losses], outputs=[out], device=losses.device, record_tape=False)
-    _record(lambda: wp.launch(spread_gradient, dim=losses.shape[0], inputs=[out.grad], outputs=[losses.grad], device=losses.device, record_tape=False), [out, losses])
+    _record(lambda: wp.launch(spread_gradient, dim=losses.shape[0], inputs=[out.grad], outputs=[losses.grad],
+                              device=losses.device, record_tape=False), [out, losses])
     return out
 
 
@@ -493,7 +516,8 @@ def _output(out: wp.array | None, problems: int, device) -> wp.array:
 
 def _check_reference(batch: GaussianBatch, reference: GaussianBatch) -> None:
     if batch.shape != reference.shape or batch.device != reference.device:
-        raise InputError(f"the batch ({batch.shape} on {batch.device}) and its reference ({reference.shape} on {reference.device}) must match")
+        raise InputError(f"the batch ({batch.shape} on {batch.device}) and its reference ({reference.shape} on "
+                         f"{reference.device}) must match")
 
 
 def _record(backward, arrays: list[wp.array]) -> None:

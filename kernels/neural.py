@@ -22,7 +22,8 @@ import warp as wp
 
 from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 
-__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "decode", "initial_model", "samples_fit", "train_decoder"]
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "decode", "initial_model",
+           "samples_fit", "train_decoder"]
 
 CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
@@ -49,7 +50,8 @@ def elu(x: float):
 
 
 @wp.kernel
-def gather_features(samples: wp.array[wp.int32], first: int, count: int, pixels: int, codes: wp.array2d[float], lights: wp.array[wp.vec3],
+def gather_features(samples: wp.array[wp.int32], first: int, count: int, pixels: int, codes: wp.array2d[float],
+                    lights: wp.array[wp.vec3],
                     features: wp.array2d[float]):
     """Column i of ``features`` (INPUTS, padded batch): sample s = samples[i] (or first + i when
     ``samples`` is empty) = light * pixels + pixel as [code of the pixel, light direction]; padding
@@ -68,20 +70,27 @@ def gather_features(samples: wp.array[wp.int32], first: int, count: int, pixels:
 
 
 @wp.kernel
-def decoder_tiles(features: wp.array2d[float], w0: wp.array2d[float], b0: wp.array2d[float], w1: wp.array2d[float], b1: wp.array2d[float],
-                  w2: wp.array2d[float], b2: wp.array2d[float], w3: wp.array2d[float], b3: wp.array2d[float], out: wp.array2d[float]):
+def decoder_tiles(features: wp.array2d[float], w0: wp.array2d[float], b0: wp.array2d[float], w1: wp.array2d[float],
+                  b1: wp.array2d[float],
+                  w2: wp.array2d[float], b2: wp.array2d[float], w3: wp.array2d[float], b3: wp.array2d[float],
+                  out: wp.array2d[float]):
     """The MLP on BLOCK columns of ``features`` per block: (OUTPUTS, BLOCK) values into ``out``."""
     block = wp.tid()
     x = wp.tile_load(features, shape=(INPUTS, BLOCK), offset=(0, block * BLOCK))
-    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w0, shape=(HIDDEN, INPUTS)), x) + wp.tile_broadcast(wp.tile_load(b0, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
-    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w1, shape=(HIDDEN, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b1, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
-    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w2, shape=(HIDDEN, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b2, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
-    y = wp.tile_matmul(wp.tile_load(w3, shape=(OUTPUTS, HIDDEN)), h) + wp.tile_broadcast(wp.tile_load(b3, shape=(OUTPUTS, 1)), shape=(OUTPUTS, BLOCK))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w0, shape=(HIDDEN, INPUTS)), x)
+                    + wp.tile_broadcast(wp.tile_load(b0, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w1, shape=(HIDDEN, HIDDEN)), h)
+                    + wp.tile_broadcast(wp.tile_load(b1, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    h = wp.tile_map(elu, wp.tile_matmul(wp.tile_load(w2, shape=(HIDDEN, HIDDEN)), h)
+                    + wp.tile_broadcast(wp.tile_load(b2, shape=(HIDDEN, 1)), shape=(HIDDEN, BLOCK)))
+    y = (wp.tile_matmul(wp.tile_load(w3, shape=(OUTPUTS, HIDDEN)), h)
+         + wp.tile_broadcast(wp.tile_load(b3, shape=(OUTPUTS, 1)), shape=(OUTPUTS, BLOCK)))
     wp.tile_store(out, y, offset=(0, block * BLOCK))
 
 
 @wp.kernel
-def squared_error(samples: wp.array[wp.int32], count: int, pixels: int, values: wp.array2d[float], targets: wp.array2d[wp.vec3],
+def squared_error(samples: wp.array[wp.int32], count: int, pixels: int, values: wp.array2d[float],
+                  targets: wp.array2d[wp.vec3],
                   weight: float, loss: wp.array[float]):
     """loss += weight |values[:, i] - targets[light, pixel]|^2 over the batch's first ``count`` columns."""
     i = wp.tid()
@@ -112,8 +121,10 @@ def _padded(count: int) -> int:
 
 
 def _arrays(model: NeuralDecoder, device, requires_grad: bool):
-    codes = wp.array(np.ascontiguousarray(model.codes, np.float32), dtype=float, device=device, requires_grad=requires_grad)
-    weights = [wp.array(np.ascontiguousarray(w, np.float32), dtype=float, device=device, requires_grad=requires_grad) for w in model.weights]
+    codes = wp.array(np.ascontiguousarray(model.codes, np.float32), dtype=float, device=device,
+                     requires_grad=requires_grad)
+    weights = [wp.array(np.ascontiguousarray(w, np.float32), dtype=float, device=device, requires_grad=requires_grad)
+               for w in model.weights]
     return codes, weights
 
 
@@ -131,8 +142,10 @@ class _Batch:
         size = _padded(count)
         if size > self.size:
             raise ValueError(f"{count} samples do not fit a batch of {self.size}")
-        wp.launch(gather_features, dim=size, inputs=[samples, first, count, pixels, codes, lights], outputs=[self.features], device=device)
-        wp.launch_tiled(decoder_tiles, dim=[size // BLOCK], inputs=[self.features, *weights], outputs=[self.values], block_dim=BLOCK, device=device)
+        wp.launch(gather_features, dim=size, inputs=[samples, first, count, pixels, codes, lights],
+                  outputs=[self.features], device=device)
+        wp.launch_tiled(decoder_tiles, dim=[size // BLOCK], inputs=[self.features, *weights], outputs=[self.values],
+                        block_dim=BLOCK, device=device)
 
 
 def decode(model: NeuralDecoder, lights: np.ndarray, *, device=None, batch: int = 1 << 20) -> np.ndarray:
@@ -154,7 +167,8 @@ def decode(model: NeuralDecoder, lights: np.ndarray, *, device=None, batch: int 
 
 
 @wp.kernel
-def store_decoded(values: wp.array2d[float], first: int, count: int, pixels: int, unit: float, out: wp.array3d[wp.float16]):
+def store_decoded(values: wp.array2d[float], first: int, count: int, pixels: int, unit: float,
+                  out: wp.array3d[wp.float16]):
     """out[q, pixel, c] = unit * decoded sRGB of values[c, i] for sample first + i = q * pixels + pixel,
     clipped to float16's range: the learned residual in the field's units for the compose kernel."""
     i = wp.tid()
@@ -197,8 +211,10 @@ class QueryDecoder:
             self._buffers = _Batch(size, self.device, False)
         for start in range(0, total, self.batch):
             count = min(self.batch, total - start)
-            self._buffers.run(self._no_samples, count, self.pixels, self.codes, directions, self.weights, self.device, first=start)
-            wp.launch(store_decoded, dim=count, inputs=[self._buffers.values, start, count, self.pixels, self.unit], outputs=[out], device=self.device)
+            self._buffers.run(self._no_samples, count, self.pixels, self.codes, directions, self.weights, self.device,
+                              first=start)
+            wp.launch(store_decoded, dim=count, inputs=[self._buffers.values, start, count, self.pixels, self.unit],
+                      outputs=[out], device=self.device)
 
 
 def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:
@@ -219,13 +235,16 @@ def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:
     weights = []
     for rows, cols in shapes:
         bound = 1.0 / np.sqrt(cols)
-        weights += [rng.uniform(-bound, bound, (rows, cols)).astype(np.float32), rng.uniform(-bound, bound, (rows, 1)).astype(np.float32)]
+        weights += [rng.uniform(-bound, bound, (rows, cols)).astype(np.float32),
+                    rng.uniform(-bound, bound, (rows, 1)).astype(np.float32)]
     return NeuralDecoder(codes.astype(np.float32), weights)
 
 
-def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16, lr: float = 3e-3,
+def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16,
+                  lr: float = 3e-3,
                   final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
-                  used: np.ndarray | None = None, initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
+                  used: np.ndarray | None = None,
+                  initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
     """Fit codes and weights to (n, P, 3) display-unit targets at (n, 3) lights: Adam on the mean
     squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
     geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` have passed since
@@ -238,7 +257,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
     targets = np.ascontiguousarray(targets, np.float32)
     n, pixels, _ = targets.shape
     if not samples_fit(n, pixels):
-        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn fewer or smaller images")
+        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn "
+                         f"fewer or smaller images")
     used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
     if not len(used) or used[0] < 0 or used[-1] >= n:
         raise ValueError(f"used must name some of the {n} lights")
@@ -276,7 +296,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
             with tape:
                 samples = order[start : start + count]
                 buffers.run(samples, count, pixels, codes, light_array, weights, device)
-                wp.launch(squared_error, dim=count, inputs=[samples, count, pixels, buffers.values, target_array, 1.0 / count], outputs=[loss], device=device)
+                wp.launch(squared_error, dim=count, inputs=[samples, count, pixels, buffers.values, target_array,
+                                                            1.0 / count], outputs=[loss], device=device)
             tape.backward(loss)
             optimizer.step(grads)
             tape.zero()
@@ -287,7 +308,8 @@ def train_decoder(targets: np.ndarray, lights: np.ndarray, *, device=None, epoch
         steps = -(-total // batch)
         history.append(float(epoch_loss.numpy()[0]) / steps)
         if log:
-            log(f"epoch {epoch + 1}/{epochs}: mse {history[-1]:.3e} (lr {optimizer.lr:.1e}, {time.perf_counter() - started:.1f} s)")
+            log(f"epoch {epoch + 1}/{epochs}: mse {history[-1]:.3e} (lr {optimizer.lr:.1e}, "
+                f"{time.perf_counter() - started:.1f} s)")
         if seconds is not None and time.perf_counter() - started > seconds:
             break
     model = NeuralDecoder(codes.numpy().copy(), [w.numpy().copy() for w in weights])

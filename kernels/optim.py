@@ -86,7 +86,8 @@ def adam_step(
 
 
 @wp.kernel(enable_backward=False)
-def reset_slots(mask: wp.array2d(dtype=wp.int32), first: wp.array3d(dtype=float), second: wp.array3d(dtype=float), steps: wp.array2d(dtype=wp.int32)):
+def reset_slots(mask: wp.array2d(dtype=wp.int32), first: wp.array3d(dtype=float), second: wp.array3d(dtype=float),
+                steps: wp.array2d(dtype=wp.int32)):
     """Zero the moments and step count of slots where mask != 0."""
     b, n = wp.tid()
     if mask[b, n] == 0:
@@ -152,4 +153,5 @@ class GaussianAdam:
             if mask.shape != shape:
                 raise InputError(f"reset mask must have shape {shape}, got {mask.shape}")
             device_mask = wp.array(mask.astype(np.int32), dtype=wp.int32, device=self.batch.device)
-        wp.launch(reset_slots, dim=shape, inputs=[device_mask], outputs=[self.first, self.second, self.steps], device=self.batch.device, record_tape=False)
+        wp.launch(reset_slots, dim=shape, inputs=[device_mask], outputs=[self.first, self.second, self.steps],
+                  device=self.batch.device, record_tape=False)

@@ -1,4 +1,4 @@
-"""The residual's basis images held and quantised on a Warp device: the codes of ``model.residual``'s
+"""The residual's basis images held and quantised on a Warp device: the codes of ``residual.quantise``'s
 rounding (``codes_in_place``: ``round((v - low) / step)`` in float64, halves to even, clipped to
 [0, L]) and their stored form (``io.codes``: each row less the row above, modulo 2^bits, zigzag-mapped,
 16-bit values as two byte planes, high bytes first), made where ``DeviceProducts.project`` made the
@@ -7,9 +7,8 @@ principal images. The host keeps no copy of those: their extremes (``extremes``)
 
 The arithmetic is the host's (a float32 value is exact in float64, the subtraction and the division
 are IEEE float64 on both, ``rint`` rounds halves to even as ``np.round`` does), so the codes are the
-host's bit for bit (``tests/test_quantise.py``). On the lent H100 a 3840x2160 capture's rate search
-quantised its 297 basis planes (2.5 G values) twice on the host's 16 threads, about 8 s of its 36 s
-compression; here it is a launch, and the host only compresses.
+host's bit for bit (``tests/test_quantise.py``). A 4K capture's rate search quantises hundreds of basis
+planes, billions of values, several times: here each time is a launch, and the host only compresses.
 """
 
 from __future__ import annotations
@@ -19,7 +18,8 @@ import warp as wp
 
 from .rows import DeviceRows
 
-__all__ = ["LAUNCH_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "row_extremes", "stored_rows"]
+__all__ = ["LAUNCH_BYTES", "DeviceBasis", "basis_codes8", "basis_codes16", "decoded_rows", "row_extremes",
+           "stored_rows"]
 
 wp.set_module_options({"enable_backward": False})
 
@@ -73,7 +73,8 @@ def basis_codes8(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.flo
 
 
 @wp.kernel
-def basis_codes16(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
+def basis_codes16(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64),
+                  step: wp.array(dtype=wp.float64),
                   levels: wp.float64, out: wp.array2d(dtype=wp.uint16)):
     """out[j, m]: the 16-bit code of basis[j, m]."""
     j, m = wp.tid()
@@ -81,8 +82,10 @@ def basis_codes16(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.fl
 
 
 @wp.kernel
-def decoded_rows(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64), levels: wp.float64,
-                 decoded_low: wp.array(dtype=wp.float32), decoded_step: wp.array(dtype=wp.float32), column: int, row: int,
+def decoded_rows(basis: wp.array2d(dtype=wp.float32), low: wp.array(dtype=wp.float64), step: wp.array(dtype=wp.float64),
+                 levels: wp.float64,
+                 decoded_low: wp.array(dtype=wp.float32), decoded_step: wp.array(dtype=wp.float32), column: int,
+                 row: int,
                  out: wp.array2d(dtype=wp.float32)):
     """out[row + j, x]: basis[j, column + x] quantised and decoded as the relighter decodes it,
     ``decoded_low[j] + code * decoded_step[j]`` in float32."""
@@ -109,8 +112,9 @@ def row_extremes(part: wp.array2d(dtype=wp.float32), lanes: int, first_row: int,
     wp.atomic_max(highs, first_row + i, high)
 
 
-_EXTREME_LANES = 256  # threads a row in ``row_extremes``: coalesced reads, few enough atomics (chosen, not swept: the extremes of the
+# threads a row in ``row_extremes``: coalesced reads, few enough atomics (chosen, not swept: the extremes of the
 # 1,254 principal images of a 1,000 x 1080p fit took 0.07 s in all)
+_EXTREME_LANES = 256
 
 
 class DeviceBasis(DeviceRows):
@@ -136,7 +140,8 @@ class DeviceBasis(DeviceRows):
         lows = wp.full(max(count, 1), np.inf, dtype=wp.float32, device=self.device)
         highs = wp.full(max(count, 1), -np.inf, dtype=wp.float32, device=self.device)
         for part, take, done in self.pieces(first, count, count):
-            wp.launch(row_extremes, dim=(take, min(_EXTREME_LANES, self.values)), inputs=[part, min(_EXTREME_LANES, self.values), done],
+            wp.launch(row_extremes, dim=(take, min(_EXTREME_LANES, self.values)),
+                      inputs=[part, min(_EXTREME_LANES, self.values), done],
                       outputs=[lows, highs], device=self.device)
         return lows.numpy()[:count].copy(), highs.numpy()[:count].copy()
 
@@ -149,8 +154,10 @@ class DeviceBasis(DeviceRows):
         _, width, planes = self.shape
         wide = 1 if bits == 16 else 0
         per_image = planes * (1 + wide) * len(rows) * width
-        if out.shape[0] != count or out.size != count * per_image or out.dtype != np.uint8 or not out.flags.c_contiguous:
-            raise ValueError(f"stored codes of {count} images need a contiguous ({count}, ...) uint8 array of {count * per_image} values, "
+        if (out.shape[0] != count or out.size != count * per_image or out.dtype != np.uint8
+            or not out.flags.c_contiguous):
+            raise ValueError(f"stored codes of {count} images need a contiguous ({count}, ...) uint8 array of "
+                             f"{count * per_image} values, "
                              f"got {out.shape} {out.dtype}")
         rows_on = wp.array(np.asarray(rows, np.int32), dtype=wp.int32, device=self.device)
         above_on = wp.array(np.asarray(above, np.int32), dtype=wp.int32, device=self.device)
@@ -159,7 +166,8 @@ class DeviceBasis(DeviceRows):
         for part, take, done in self.pieces(first, count, LAUNCH_BYTES // max(per_image, 1)):
             result = wp.empty(take * per_image, dtype=wp.uint8, device=self.device)
             wp.launch(stored_rows, dim=(take, planes, len(rows), width),
-                      inputs=[part, width, planes, rows_on, above_on, self.float64(low[done : done + take]), self.float64(step[done : done + take]),
+                      inputs=[part, width, planes, rows_on, above_on, self.float64(low[done : done + take]),
+                              self.float64(step[done : done + take]),
                               levels, wide], outputs=[result], device=self.device)
             wp.copy(wp.array(flat[done : done + take].reshape(-1), dtype=wp.uint8, device="cpu", copy=False), result)
         wp.synchronize_device(self.device)
@@ -172,17 +180,20 @@ class DeviceBasis(DeviceRows):
         values = int(np.prod(self.shape))
         kind, kernel = (wp.uint8, basis_codes8) if bits == 8 else (wp.uint16, basis_codes16)
         if out.shape != (count, values) or out.dtype != wp.dtype_to_numpy(kind) or not out.flags.c_contiguous:
-            raise ValueError(f"{bits}-bit codes of {count} images need a contiguous ({count}, {values}) array, got {out.shape} {out.dtype}")
+            raise ValueError(f"{bits}-bit codes of {count} images need a contiguous ({count}, {values}) array, got "
+                             f"{out.shape} {out.dtype}")
         levels = wp.float64((1 << bits) - 1)
         for part, take, done in self.pieces(first, count, LAUNCH_BYTES // max(values * out.itemsize, 1)):
             result = wp.empty((take, values), dtype=kind, device=self.device)
-            wp.launch(kernel, dim=(take, values), inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]), levels],
+            wp.launch(kernel, dim=(take, values), inputs=[part, self.float64(low[done : done + take]),
+                                                          self.float64(step[done : done + take]), levels],
                       outputs=[result], device=self.device)
             wp.copy(wp.array(out[done : done + take], dtype=kind, device="cpu", copy=False), result)
         wp.synchronize_device(self.device)
         return out
 
-    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray, decoded_step: np.ndarray,
+    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray,
+               decoded_step: np.ndarray,
                mean: np.ndarray, columns: slice) -> wp.array:
         """(1 + c, w) float32 on the device, for the stack's weights: row 0 the (w,) ``mean``, row 1 + j
         image ``first + j``'s values at ``columns`` quantised (float64 ``low``, ``step``, ``bits``) and
@@ -190,11 +201,14 @@ class DeviceBasis(DeviceRows):
         a rounding of the host's two)."""
         count, width = len(step), columns.stop - columns.start
         out = wp.empty((count + 1, width), dtype=wp.float32, device=self.device)
-        wp.copy(out, wp.array(np.ascontiguousarray(mean, np.float32), dtype=wp.float32, device=self.device), count=width)
+        wp.copy(out, wp.array(np.ascontiguousarray(mean, np.float32), dtype=wp.float32, device=self.device),
+                count=width)
         levels = wp.float64((1 << bits) - 1)
         for part, take, done in self.pieces(first, count, count):
             wp.launch(decoded_rows, dim=(take, width),
-                      inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]), levels,
-                              self.float32(decoded_low[done : done + take]), self.float32(decoded_step[done : done + take]),
+                      inputs=[part, self.float64(low[done : done + take]), self.float64(step[done : done + take]),
+                              levels,
+                              self.float32(decoded_low[done : done + take]),
+                              self.float32(decoded_step[done : done + take]),
                               columns.start, 1 + done], outputs=[out], device=self.device)
         return out

@@ -100,7 +100,8 @@ def frame_conic(frame: wp.vec4) -> wp.vec3:
     """Inverse covariance (A, B, C) with d^2 = A dx^2 + 2 B dx dy + C dy^2."""
     c = frame[0]
     s = frame[1]
-    return wp.vec3(c * c * frame[2] + s * s * frame[3], c * s * (frame[2] - frame[3]), s * s * frame[2] + c * c * frame[3])
+    return wp.vec3(c * c * frame[2] + s * s * frame[3], c * s * (frame[2] - frame[3]),
+                   s * s * frame[2] + c * c * frame[3])
 
 
 @wp.func
@@ -152,7 +153,8 @@ def slot_is_drawn(g: GaussianArrays, b: int, n: int, peak_scale: float) -> bool:
     The forward and the backward skip exactly the same slots (broken ones are left for pruning).
     """
     a = g.amplitude[b, n]
-    finite = wp.isfinite(a) and wp.isfinite(g.weight[b, n]) and wp.isfinite(g.mean[b, n]) and wp.isfinite(g.sigma[b, n]) and wp.isfinite(g.theta[b, n])
+    finite = (wp.isfinite(a) and wp.isfinite(g.weight[b, n]) and wp.isfinite(g.mean[b, n])
+              and wp.isfinite(g.sigma[b, n]) and wp.isfinite(g.theta[b, n]))
     return g.active[b, n] != 0 and finite and wp.isfinite(g.weight[b, n] * a * a * peak_scale)
 
 
@@ -249,7 +251,8 @@ def bin_tiles(
 def _pixel_of_tile(t: int, p: int, tile_shift: int, tiles_x: int) -> wp.vec2i:
     """(row, col) of pixel p (row-major within the tile) of tile t (row-major over the image)."""
     ty = t // tiles_x
-    return wp.vec2i((ty << tile_shift) + (p >> tile_shift), ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1)))
+    return wp.vec2i((ty << tile_shift) + (p >> tile_shift),
+                    ((t - ty * tiles_x) << tile_shift) + (p & ((1 << tile_shift) - 1)))
 
 
 @wp.func
@@ -315,7 +318,8 @@ def rasterize_tiles(
         t = (i - b * per_problem) >> (2 * tile_shift)
         at = _pixel_of_tile(t, i & (tile_pixels - 1), tile_shift, tiles_x)
         if at[0] < image.shape[1] and at[1] < image.shape[2]:
-            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0], at[1], h, cutoff2, tau)
+            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0],
+                                                 at[1], h, cutoff2, tau)
     else:
         i = wp.tid()
         b = i // tile_counts.shape[1]
@@ -376,7 +380,8 @@ def rasterize_drawn_tiles(
         t = drawn_tiles[k] - b * per_problem
         at = _pixel_of_tile(t, p, tile_shift, tiles_x)
         if at[0] < image.shape[1] and at[1] < image.shape[2]:
-            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0], at[1], float(image.shape[1]), cutoff2,
+            image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0],
+                                                 at[1], float(image.shape[1]), cutoff2,
                                                  tau)
         k += stride
 
@@ -508,7 +513,8 @@ class Rasterizer:
             thread walks the whole footprint, no idle lanes).
     """
 
-    def __init__(self, height: int, width: int, *, settings: RasterSettings | None = None, device=None, culling: bool = True, backward_lanes: int | None = None):
+    def __init__(self, height: int, width: int, *, settings: RasterSettings | None = None, device=None,
+                 culling: bool = True, backward_lanes: int | None = None):
         if int(height) < 1 or int(width) < 1:
             raise InputError(f"image size must be at least 1 x 1 pixels, got {width} x {height}")
         self.height = int(height)
@@ -544,7 +550,8 @@ class Rasterizer:
         self.boxes = wp.empty(shape, dtype=wp.vec4i, device=self.device)
         self.tile_lists = wp.empty((problems, self.tile_count, capacity), dtype=wp.int32, device=self.device)
         self.tile_counts = wp.empty((problems, self.tile_count), dtype=wp.int32, device=self.device)
-        self.drawn_tiles = wp.empty(problems * self.tile_count if self.device.is_cuda else 0, dtype=wp.int32, device=self.device)
+        self.drawn_tiles = wp.empty(problems * self.tile_count if self.device.is_cuda else 0, dtype=wp.int32,
+                                    device=self.device)
         self.drawn_count = wp.zeros(1, dtype=wp.int32, device=self.device)
         self._no_tiles = wp.empty(0, dtype=wp.int32, device=self.device)
         self._shape = shape
@@ -553,7 +560,8 @@ class Rasterizer:
         """A zeroed (B, H, W) image array with a gradient, for ``render(out=...)``."""
         return wp.zeros((problem_count, self.height, self.width), dtype=float, device=self.device, requires_grad=True)
 
-    def render(self, batch: GaussianBatch, *, out: wp.array | None = None, record: bool = True, drawn_only: bool = False) -> wp.array:
+    def render(self, batch: GaussianBatch, *, out: wp.array | None = None, record: bool = True,
+               drawn_only: bool = False) -> wp.array:
         """Rasterize every problem of ``batch``; returns (B, H, W) float32 (``out`` when given).
 
         Inside a ``wp.Tape``, ``tape.backward`` adds the parameter gradients to ``batch``'s
@@ -567,11 +575,13 @@ class Rasterizer:
             raise InputError(f"the batch is on {batch.device} but the rasterizer on {self.device}")
         problems, capacity = batch.shape
         if problems * self.tile_count * self.settings.tile_size**2 >= LAUNCH_PIXELS:  # also one image past it alone
-            raise InputError(f"{problems} images of {self.width} x {self.height} exceed one launch (2^31 pixels); render the batch in parts")
+            raise InputError(f"{problems} images of {self.width} x {self.height} exceed one launch (2^31 pixels); "
+                             f"render the batch in parts")
         if out is None:
             out = self.new_image(problems)
         elif out.shape != (problems, self.height, self.width) or out.dtype != wp.float32 or out.device != self.device:
-            raise InputError(f"out must be a float32 ({problems}, {self.height}, {self.width}) array on {self.device}, got {out.dtype.__name__} {out.shape}")
+            raise InputError(f"out must be a float32 ({problems}, {self.height}, {self.width}) array on {self.device}, "
+                             f"got {out.dtype.__name__} {out.shape}")
         self._buffers((problems, capacity))
         s = self.settings
         tau = s.cutoff_level
@@ -589,9 +599,11 @@ class Rasterizer:
         wp.launch(
             bin_tiles,
             dim=(problems, self.tile_count),
-            inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height, self.width, s.cutoff**2 * _CULL_SLACK,
+            inputs=[self.frames, batch.mean, self.scales, self.boxes, s.tile_size, self.tiles_x, self.height,
+                    self.width, s.cutoff**2 * _CULL_SLACK,
                     int(self.culling)],
-            outputs=[self.tile_lists, self.tile_counts, self.drawn_tiles if listed else self._no_tiles, self.drawn_count],
+            outputs=[self.tile_lists, self.tile_counts, self.drawn_tiles if listed else self._no_tiles,
+                     self.drawn_count],
             device=self.device,
             record_tape=False,
         )
@@ -601,7 +613,8 @@ class Rasterizer:
             wp.launch(
                 rasterize_drawn_tiles,
                 dim=launched,
-                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, self.drawn_tiles, self.drawn_count, shift, self.tiles_x, s.cutoff**2, tau, launched],
+                inputs=[self.frames, batch.mean, self.scales, self.tile_lists, self.tile_counts, self.drawn_tiles,
+                        self.drawn_count, shift, self.tiles_x, s.cutoff**2, tau, launched],
                 outputs=[out],
                 device=self.device,
                 record_tape=False,
@@ -611,7 +624,8 @@ class Rasterizer:
             wp.launch(
                 rasterize_tiles,
                 dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
-                inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts, shift, self.tiles_x, s.cutoff**2, tau, whole_tile],
+                inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts, shift,
+                        self.tiles_x, s.cutoff**2, tau, whole_tile],
                 outputs=[out],
                 device=self.device,
                 record_tape=False,
@@ -619,7 +633,8 @@ class Rasterizer:
         tape = active_tape() if record else None
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:
-                raise InputError("inside a wp.Tape the output image needs requires_grad=True (use Rasterizer.new_image) or no gradient reaches the Gaussians")
+                raise InputError("inside a wp.Tape the output image needs requires_grad=True (use "
+                                 "Rasterizer.new_image) or no gradient reaches the Gaussians")
             tape.record_func(backward=lambda: self.backward(batch, out.grad), arrays=[out, *batch.parameters()])
         return out
 
@@ -635,7 +650,8 @@ class Rasterizer:
         wp.launch(
             rasterize_backward,
             dim=(problems, capacity, self.backward_lanes),
-            inputs=[batch.arrays, image_grad, int(fit is not None), image, target, loss_grad, float(loss_scale), s.sigma_eps, s.cutoff, s.cutoff_level, self.backward_lanes],
+            inputs=[batch.arrays, image_grad, int(fit is not None), image, target, loss_grad, float(loss_scale),
+                    s.sigma_eps, s.cutoff, s.cutoff_level, self.backward_lanes],
             outputs=[batch.grad_arrays],
             device=self.device,
             record_tape=False,

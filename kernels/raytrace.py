@@ -63,7 +63,8 @@ class ShadingParameters:
 
 
 @wp.func
-def _terminator_safe_origin(mesh: wp.uint64, face: int, u: float, v: float, normals: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), hit: wp.vec3) -> wp.vec3:
+def _terminator_safe_origin(mesh: wp.uint64, face: int, u: float, v: float, normals: wp.array(dtype=wp.vec3),
+                            indices: wp.array(dtype=wp.int32), hit: wp.vec3) -> wp.vec3:
     """Lift a hit point of a flat triangle towards the smooth surface its vertex normals describe.
 
     A shadow ray from the flat facet itself is blocked by neighbouring facets near the shadow

@@ -33,7 +33,8 @@ import warp as wp
 
 from warp_highlights.model.errors import InputError
 
-__all__ = ["ResidualRegions", "Regions", "flatten_roots", "mark_above", "number_regions", "region_at", "region_moments", "region_sums", "unite_neighbours"]
+__all__ = ["ResidualRegions", "Regions", "flatten_roots", "mark_above", "number_regions", "region_at", "region_moments",
+           "region_sums", "unite_neighbours"]
 
 
 _FIRST_ROOTS = 1024
@@ -76,7 +77,8 @@ def _unite(parent: wp.array(dtype=wp.int32), i: int, k: int):
 
 
 @wp.kernel(enable_backward=False)
-def mark_above(target: wp.array3d(dtype=float), image: wp.array3d(dtype=float), threshold: float, parent: wp.array(dtype=wp.int32)):
+def mark_above(target: wp.array3d(dtype=float), image: wp.array3d(dtype=float), threshold: float,
+               parent: wp.array(dtype=wp.int32)):
     """parent[i] = i where target - image > threshold (float32 difference), else -1."""
     b, row, col = wp.tid()
     i = (b * target.shape[1] + row) * target.shape[2] + col
@@ -106,7 +108,8 @@ def unite_neighbours(parent: wp.array(dtype=wp.int32), height: int, width: int):
 
 
 @wp.kernel(enable_backward=False)
-def flatten_roots(parent: wp.array(dtype=wp.int32), roots: wp.array(dtype=wp.int32), root_count: wp.array(dtype=wp.int32)):
+def flatten_roots(parent: wp.array(dtype=wp.int32), roots: wp.array(dtype=wp.int32),
+                  root_count: wp.array(dtype=wp.int32)):
     """Point every marked pixel at its root; list the roots (in any order) while there is room."""
     i = wp.tid()
     if parent[i] < 0:
@@ -246,11 +249,13 @@ class ResidualRegions:
         """Label the regions where target - image > ``threshold`` (both (B, H, W) float32 here) and measure them."""
         for name, array in (("target", target), ("image", image)):
             if array.shape != self.shape or array.dtype != wp.float32 or array.device != self.device:
-                raise InputError(f"{name} must be a float32 {self.shape} array on {self.device}, got {array.dtype.__name__} {array.shape} on {array.device}")
+                raise InputError(f"{name} must be a float32 {self.shape} array on {self.device}, got "
+                                 f"{array.dtype.__name__} {array.shape} on {array.device}")
         count = self._labelled(target, image, float(threshold))
         if count == 0:
             empty = np.zeros(0)
-            return Regions(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), empty, empty, np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 3)))
+            return Regions(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), empty, empty,
+                           np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 3)))
         device = self.device
         area = wp.zeros(count, dtype=wp.int32, device=device)
         mass = wp.zeros(count, dtype=wp.float64, device=device)
@@ -258,8 +263,10 @@ class ResidualRegions:
         peak = wp.full(count, -np.inf, dtype=float, device=device)
         second = wp.zeros(count, dtype=wp.vec3d, device=device)
         peak_pixel = wp.full(count, -1, dtype=wp.int32, device=device)
-        wp.launch(region_sums, dim=self.shape, inputs=[target, image, self.parent], outputs=[area, mass, first, peak], device=device)
-        wp.launch(region_moments, dim=self.shape, inputs=[target, image, self.parent, mass, first, peak], outputs=[second, peak_pixel], device=device)
+        wp.launch(region_sums, dim=self.shape, inputs=[target, image, self.parent], outputs=[area, mass, first, peak],
+                  device=device)
+        wp.launch(region_moments, dim=self.shape, inputs=[target, image, self.parent, mass, first, peak],
+                  outputs=[second, peak_pixel], device=device)
         mass_host = mass.numpy()
         return Regions(
             problem=self._ordered // (self.shape[1] * self.shape[2]),
@@ -289,12 +296,14 @@ class ResidualRegions:
         wp.launch(mark_above, dim=self.shape, inputs=[target, image, threshold], outputs=[self.parent], device=device)
         wp.launch(unite_neighbours, dim=self.shape, inputs=[self.parent, height, width], device=device)
         self._count.zero_()
-        wp.launch(flatten_roots, dim=self.parent.size, inputs=[self.parent], outputs=[self._roots, self._count], device=device)
+        wp.launch(flatten_roots, dim=self.parent.size, inputs=[self.parent], outputs=[self._roots, self._count],
+                  device=device)
         count = int(self._count.numpy()[0])
         if count > self._roots.size:  # more regions than room: list them again with room for all
             self._roots = wp.empty(count, dtype=wp.int32, device=device)
             self._count.zero_()
-            wp.launch(flatten_roots, dim=self.parent.size, inputs=[self.parent], outputs=[self._roots, self._count], device=device)
+            wp.launch(flatten_roots, dim=self.parent.size, inputs=[self.parent], outputs=[self._roots, self._count],
+                      device=device)
         if count == 0:
             self._ordered = np.zeros(0, dtype=np.int64)
             return 0

@@ -21,7 +21,8 @@ from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
 from .tape import active_tape
 
-__all__ = ["RigidAdam", "RigidMotion", "apply_rigid", "apply_rigid_backward", "gather_images", "rigid_adam_step", "rotate_vec2"]
+__all__ = ["RigidAdam", "RigidMotion", "apply_rigid", "apply_rigid_backward", "gather_images", "rigid_adam_step",
+           "rotate_vec2"]
 
 
 @wp.func
@@ -158,7 +159,8 @@ class RigidMotion:
         if tape is not None and out.requires_grad:
 
             def backward():
-                wp.launch(apply_rigid_backward, dim=src.shape, inputs=[*inputs, out.grad_arrays], outputs=[self.motion.grad], device=src.device, record_tape=False)
+                wp.launch(apply_rigid_backward, dim=src.shape, inputs=[*inputs, out.grad_arrays],
+                          outputs=[self.motion.grad], device=src.device, record_tape=False)
 
             tape.record_func(backward=backward, arrays=[*out.parameters(), self.motion])
         return out
@@ -167,14 +169,16 @@ class RigidMotion:
 class RigidAdam:
     """Adam over the component motions of a ``RigidMotion`` (translation in rpx, rotation in radians)."""
 
-    def __init__(self, rigid: RigidMotion, *, lr_translation_rpx: float, lr_rotation: float, beta1: float = 0.9, beta2: float = 0.999, epsilon: float = 1e-8):
+    def __init__(self, rigid: RigidMotion, *, lr_translation_rpx: float, lr_rotation: float, beta1: float = 0.9,
+                 beta2: float = 0.999, epsilon: float = 1e-8):
         self.rigid = rigid
         shape = rigid.motion.shape
         device = rigid.motion.device
         self.first = wp.zeros(shape, dtype=wp.vec3, device=device)
         self.second = wp.zeros(shape, dtype=wp.vec3, device=device)
         self.steps = wp.zeros(shape, dtype=wp.int32, device=device)
-        self.constants = [rpx_to_normalized(lr_translation_rpx), float(lr_rotation), float(beta1), float(beta2), float(epsilon)]
+        self.constants = [rpx_to_normalized(lr_translation_rpx), float(lr_rotation), float(beta1), float(beta2),
+                          float(epsilon)]
 
     def step(self) -> None:
         r = self.rigid

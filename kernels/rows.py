@@ -40,7 +40,8 @@ class DeviceRows:
         if DeviceRows.nbytes(1, self.values) > PART_BYTES:
             raise ValueError(f"a row of {self.values} float32 values is larger than a part ({PART_BYTES} bytes)")
         self.part_rows = max(1, min(PART_BYTES // max(4 * self.values, 1), part_rows or self.count))
-        self.parts = [wp.empty((min(self.part_rows, self.count - start), self.values), dtype=wp.float32, device=self.device)
+        self.parts = [wp.empty((min(self.part_rows, self.count - start),
+                                self.values), dtype=wp.float32, device=self.device)
                       for start in range(0, self.count, self.part_rows)]
 
     @staticmethod
@@ -51,16 +52,19 @@ class DeviceRows:
     def place(self, block: wp.array, columns: slice) -> None:
         """Write a (count, w) device block of every row's values ``columns`` into the parts."""
         if block.shape[0] != self.count or block.shape[1] != columns.stop - columns.start:
-            raise ValueError(f"a block of {block.shape} does not fill {self.count} rows at columns {columns.start}..{columns.stop}")
+            raise ValueError(
+                f"a block of {block.shape} does not fill {self.count} rows at columns {columns.start}..{columns.stop}")
         for index, part in enumerate(self.parts):
-            wp.launch(place_rows, dim=(part.shape[0], block.shape[1]), inputs=[block, index * self.part_rows, columns.start], outputs=[part],
+            wp.launch(place_rows, dim=(part.shape[0], block.shape[1]),
+                      inputs=[block, index * self.part_rows, columns.start], outputs=[part],
                       device=self.device)
 
     def block(self, columns: slice) -> wp.array:
         """(count, w) float32 device copy of every row's values ``columns``."""
         out = wp.empty((self.count, columns.stop - columns.start), dtype=wp.float32, device=self.device)
         for index, part in enumerate(self.parts):
-            wp.launch(gather_rows, dim=(part.shape[0], out.shape[1]), inputs=[part, columns.start, index * self.part_rows], outputs=[out],
+            wp.launch(gather_rows, dim=(part.shape[0], out.shape[1]),
+                      inputs=[part, columns.start, index * self.part_rows], outputs=[out],
                       device=self.device)
         return out
 

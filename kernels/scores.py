@@ -42,8 +42,10 @@ def _code(value: wp.float32) -> wp.float32:
 
 
 @wp.kernel
-def _row_errors(images: wp.array2d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32), drawn: wp.array2d(dtype=wp.float32),
-                tint: wp.array2d(dtype=wp.float32), corners: wp.array2d(dtype=wp.int32), weights: wp.array2d(dtype=wp.float32),
+def _row_errors(images: wp.array2d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32),
+                drawn: wp.array2d(dtype=wp.float32),
+                tint: wp.array2d(dtype=wp.float32), corners: wp.array2d(dtype=wp.int32),
+                weights: wp.array2d(dtype=wp.float32),
                 truth: wp.array(dtype=wp.int32), scale: wp.float32, width: int, errors: wp.array3d(dtype=wp.float64)):
     """Thread (q, row): the sums of squared 8-bit errors of light q's moved and blended predictions over the row."""
     q, row = wp.tid()
@@ -77,7 +79,8 @@ def device_tint(tint: np.ndarray, height: int, width: int, device) -> wp.array:
     return wp.array(np.ascontiguousarray(rows), dtype=wp.float32, device=device)
 
 
-def prediction_errors(images: wp.array, own: wp.array, drawn: wp.array, tint: np.ndarray, corners: np.ndarray, weights: np.ndarray,
+def prediction_errors(images: wp.array, own: wp.array, drawn: wp.array, tint: np.ndarray, corners: np.ndarray,
+                      weights: np.ndarray,
                       truth: np.ndarray, *, scale: float, height: int, width: int) -> np.ndarray:
     """(m, 2) float64 sums of squared 8-bit errors of the moved and the blended predictions of m left-out lights.
 

@@ -34,7 +34,8 @@ from warp_highlights.model.threads import all_finite, mapped_empty
 from .chunks import DEVICE_SHARE, map_chunks, problem_chunks
 from .transfer import HALF_MAX, as_half, rows_down, rows_up, to_host
 
-__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "count_non_finite", "host_array", "luminance", "segment", "segment_in_bands", "segment_pixels",
+__all__ = ["LUMINANCE_WEIGHTS", "Segmentation", "band_rows", "count_non_finite", "host_array", "luminance", "segment",
+           "segment_in_bands", "segment_pixels",
            "shrink_by"]
 
 _MEDIAN_BISECTIONS = 26  # halvings of [0, max residual]: 2^-26 ~ float32 resolution (even: two a pass)
@@ -58,7 +59,8 @@ def _in_set(value: float, direction: wp.vec3, threshold: float, fit: wp.vec4, li
 
 
 @wp.func
-def _solve(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, limit: float) -> wp.vec4:
+def _solve(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4,
+           limit: float) -> wp.vec4:
     """Least-squares (nbar, k_a) over the set defined by (fit, limit); NaN vector when singular."""
     normal = wp.mat44()
     rhs = wp.vec4()
@@ -98,7 +100,8 @@ def _halves(lo: float, hi: float, low_count: int, middle_count: int, high_count:
 
 
 @wp.func
-def _median_residual(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, valid: int,
+def _median_residual(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float,
+                     fit: wp.vec4, valid: int,
                      largest: float) -> float:
     """The median residual |I_i - D~_i| over the ``valid`` valid lights: the mean of the ranks (valid - 1) // 2
     and valid // 2, each by ``_MEDIAN_BISECTIONS`` halvings of [0, largest].
@@ -242,7 +245,8 @@ def luminance(
     if channels == 1:
         out[light, pixel] = specular[light, pixel, 0]
     else:
-        out[light, pixel] = weights[0] * specular[light, pixel, 0] + weights[1] * specular[light, pixel, 1] + weights[2] * specular[light, pixel, 2]
+        out[light, pixel] = (weights[0] * specular[light, pixel, 0] + weights[1] * specular[light, pixel, 1]
+                             + weights[2] * specular[light, pixel, 2])
 
 
 @wp.kernel
@@ -270,7 +274,8 @@ def _shrunk_into(band: wp.array, factor: int, first_row: int, out: wp.array) -> 
     C])."""
     four = band if band.ndim == 4 else band.reshape(band.shape + (1,))
     target = out if out.ndim == 4 else out.reshape(out.shape + (1,))
-    wp.launch(shrink_by, dim=(four.shape[0], four.shape[1] // factor, four.shape[2] // factor, four.shape[3]), inputs=[four, factor, first_row],
+    wp.launch(shrink_by, dim=(four.shape[0], four.shape[1] // factor, four.shape[2] // factor, four.shape[3]),
+              inputs=[four, factor, first_row],
               outputs=[target], device=band.device)
 
 
@@ -295,7 +300,8 @@ class Segmentation:
             it was asked to keep them (``keep_images``) and one band held them all; else None.
     """
 
-    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid, shrunk_images=None, images=None):
+    def __init__(self, diffuse, specular, specular_luminance, lambert, valid_lights, iterations, min_valid,
+                 shrunk_images=None, images=None):
         self.shrunk_images = shrunk_images
         self.images = images
         self.diffuse = diffuse
@@ -307,7 +313,8 @@ class Segmentation:
         self.few_light_pixels = int(np.count_nonzero(valid_lights < min_valid))
 
 
-def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None, workers: int | None = None,
+def segment(images, directions, *, settings: SegmentationSettings | None = None, device=None,
+            workers: int | None = None,
             keep_diffuse: bool = True) -> Segmentation:
     """Split every image into diffuse and specular parts in one launch over all pixels and channels.
 
@@ -350,22 +357,27 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     else:  # host memory already: NumPy's threads
         finite = all_finite(flat.numpy())
     if not finite:
-        raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., replace_nonfinite=True))")
+        raise InputError("the images have non-finite pixels; replace them first (ReflectanceField.load(..., "
+                         "replace_nonfinite=True))")
     diffuse = wp.empty((n, columns) if keep_diffuse else (0, 0), dtype=float, device=device)
     specular = wp.empty((n, columns), dtype=float, device=device)
     lambert = wp.empty(columns, dtype=wp.vec4, device=device)
     status = wp.empty(columns, dtype=wp.vec2i, device=device)
     light_directions = wp.array(directions, dtype=wp.vec3, device=device)
-    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset,
+    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights),
+                 s.diffuse_floor, s.diffuse_offset,
                  int(keep_diffuse)]
 
     def run(part: slice, _stop) -> None:
         outputs = [diffuse[:, part] if keep_diffuse else diffuse, specular[:, part], lambert[part], status[part]]
-        wp.launch(segment_pixels, dim=part.stop - part.start, inputs=[flat[:, part], light_directions, *constants], outputs=outputs, device=device)
+        wp.launch(segment_pixels, dim=part.stop - part.start, inputs=[flat[:, part], light_directions, *constants],
+                  outputs=outputs, device=device)
 
     map_chunks(run, problem_chunks(columns, device, workers))
     target = wp.empty((n, height * width), dtype=float, device=device)
-    wp.launch(luminance, dim=(n, height * width), inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*LUMINANCE_WEIGHTS), channels], outputs=[target], device=device)
+    wp.launch(luminance, dim=(n, height * width),
+              inputs=[specular.reshape((n, height * width, channels)), wp.vec3(*LUMINANCE_WEIGHTS), channels],
+              outputs=[target], device=device)
     counts = status.numpy().reshape(height, width, channels, 2)
     return Segmentation(
         diffuse=diffuse.reshape(shape) if keep_diffuse else None,
@@ -383,7 +395,8 @@ def host_array(array) -> np.ndarray:
     return to_host(array)
 
 
-def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None, keep_specular: bool = True,
+def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: int | None = None,
+              keep_specular: bool = True,
               keep_diffuse: bool = True, specular_bytes: int = 4, target_share: float = 1.0) -> int:
     """Rows of an (n, H, W[, C]) stack one ``segment`` launch may take on ``device``: all of them where
     the images, the specular part, the diffuse part where kept and the specular luminance (float32)
@@ -403,15 +416,18 @@ def band_rows(shape: tuple, device, *, share: float = DEVICE_SHARE, host_free: i
     elif host_free is None or row_bytes * height <= share * host_free:
         return height
     else:
-        held = n * height * width * (channels * (specular_bytes * int(keep_specular) + 4 * int(keep_diffuse)) + 4 * target_share)
+        held = (n * height * width
+                * (channels * (specular_bytes * int(keep_specular) + 4 * int(keep_diffuse)) + 4 * target_share))
         budget = share * max(host_free - held, 0)
     return int(max(1, min(height, budget // row_bytes)))
 
 
-def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None, device=None,
+def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: SegmentationSettings | None = None,
+                     device=None,
                      workers: int | None = None, keep_specular: bool = True, keep_diffuse: bool = True,
                      specular_dtype=np.float32, shrink_target: Callable[[np.ndarray], np.ndarray] | None = None,
-                     target_rows: int = 1, shrink_factor: int = 1, target_on_device: bool = False, shrink_images: bool = False,
+                     target_rows: int = 1, shrink_factor: int = 1, target_on_device: bool = False,
+                     shrink_images: bool = False,
                      keep_images: bool = False) -> Segmentation:
     """``segment`` of the (n, H, W[, C]) NumPy ``images`` ``rows`` rows at a time, for stacks whose arrays
     do not fit the device (or the host) at once (``band_rows``): the same values (every pixel is
@@ -445,7 +461,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     factor = int(shrink_factor)
     on_device = target_on_device or factor > 1
     if factor < 1 or (on_device and (shrink_target is not None or height % factor or width % factor)):
-        raise ValueError(f"a {width}x{height} stack does not shrink by {factor} on the device (whole factors, not with shrink_target)")
+        raise ValueError(f"a {width}x{height} stack does not shrink by {factor} on the device (whole factors, not "
+                         f"with shrink_target)")
     if shrink_target is not None:
         if height % target_rows:
             raise ValueError(f"{height} rows do not shrink by whole bands of {target_rows}")
@@ -469,7 +486,8 @@ def segment_in_bands(images: np.ndarray, directions, *, rows: int, settings: Seg
     for top in range(0, height, rows):
         band = slice(top, min(top + rows, height))
         band_images = rows_up(np.asarray(images[:, band], np.float32), device, whole_bytes=whole)
-        part = segment(band_images, directions, settings=settings, device=device, workers=workers, keep_diffuse=keep_diffuse)
+        part = segment(band_images, directions, settings=settings, device=device, workers=workers,
+                       keep_diffuse=keep_diffuse)
         if shrunk_images is not None:
             low = slice(top // factor, band.stop // factor)
             if shrunk_band is None or shrunk_band.shape[1] != low.stop - low.start:

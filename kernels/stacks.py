@@ -35,21 +35,25 @@ _SQUARE_CHUNK = 4096  # values of a row each thread of ``row_squares`` sums
 
 
 @wp.func
-def _residual(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32), tint: wp.array2d(dtype=wp.float32),
+def _residual(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32),
+              tint: wp.array2d(dtype=wp.float32),
               i: int, p: int, c: int) -> wp.float64:
     return wp.float64(images[i, p, c] - own[i, p] * tint[p, c])
 
 
 @wp.func
-def _luminance(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32), tint: wp.array2d(dtype=wp.float32),
+def _luminance(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32),
+               tint: wp.array2d(dtype=wp.float32),
                i: int, p: int, wr: wp.float64, wg: wp.float64, wb: wp.float64) -> wp.float64:
     if images.shape[2] == 1:
         return _residual(images, own, tint, i, p, 0)
-    return wr * _residual(images, own, tint, i, p, 0) + wg * _residual(images, own, tint, i, p, 1) + wb * _residual(images, own, tint, i, p, 2)
+    return (wr * _residual(images, own, tint, i, p, 0) + wg * _residual(images, own, tint, i, p, 1)
+            + wb * _residual(images, own, tint, i, p, 2))
 
 
 @wp.kernel
-def luminance_squares(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32), tint: wp.array2d(dtype=wp.float32),
+def luminance_squares(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32),
+                      tint: wp.array2d(dtype=wp.float32),
                       wr: wp.float64, wg: wp.float64, wb: wp.float64, sums: wp.array(dtype=wp.float64)):
     """sums[p]: pixel p's sum over the lights of its residual luminance squared (images (n, pixels, C))."""
     p = wp.tid()
@@ -61,8 +65,10 @@ def luminance_squares(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtyp
 
 
 @wp.kernel
-def normalised_planes(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32), tint: wp.array2d(dtype=wp.float32),
-                      scale: wp.array(dtype=wp.float32), wr: wp.float64, wg: wp.float64, wb: wp.float64, first_light: int, column: int,
+def normalised_planes(images: wp.array3d(dtype=wp.float32), own: wp.array2d(dtype=wp.float32),
+                      tint: wp.array2d(dtype=wp.float32),
+                      scale: wp.array(dtype=wp.float32), wr: wp.float64, wg: wp.float64, wb: wp.float64,
+                      first_light: int, column: int,
                       luminance: wp.array2d(dtype=wp.float32), chroma: wp.array2d(dtype=wp.float32)):
     """Thread (i, p): light ``first_light + i``'s pixel p of the band, normalised: luminance[i, column + p]
     = Y / s, and (3 channels) chroma[i, 2 (column + p) + 0, 1] = (B - Y) / s, (R - Y) / s, as float32."""
@@ -130,7 +136,8 @@ class NormalisedStacks:
         return DeviceRows.nbytes(n, height * width * (1 if channels == 1 else 3))
 
     @classmethod
-    def make(cls, images: np.ndarray, own: np.ndarray, tint: np.ndarray, products, scale_of, *, held_images: wp.array | None = None,
+    def make(cls, images: np.ndarray, own: np.ndarray, tint: np.ndarray, products, scale_of, *,
+             held_images: wp.array | None = None,
              held_own: wp.array | None = None) -> NormalisedStacks:
         """The stacks of float32 ``images`` (n, H, W, C), ``own`` (n, H, W) and ``tint`` (H, W, C), the bands
         uploaded through ``products`` (``kernels.gram.DeviceProducts``); ``scale_of(mean_square)`` turns
@@ -154,22 +161,29 @@ class NormalisedStacks:
             if held_images is not None:
                 band_images = held_images[:, columns]
             else:
-                band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products, uploaded).reshape((n, pixels, channels))
-            band_own = held_own[:, columns] if held_own is not None else _rows_up(own[:, band].reshape(n, pixels), products, uploaded)
-            band_tint = wp.array(np.ascontiguousarray(tint[band].reshape(pixels, channels), np.float32), dtype=wp.float32, device=device)
+                band_images = _rows_up(images[:, band].reshape(n, pixels * channels), products,
+                                       uploaded).reshape((n, pixels, channels))
+            band_own = (held_own[:, columns] if held_own is not None
+                        else _rows_up(own[:, band].reshape(n, pixels), products, uploaded))
+            band_tint = wp.array(np.ascontiguousarray(tint[band].reshape(pixels, channels), np.float32),
+                                 dtype=wp.float32, device=device)
             sums = wp.empty(pixels, dtype=wp.float64, device=device)
-            wp.launch(luminance_squares, dim=pixels, inputs=[band_images, band_own, band_tint, *weights], outputs=[sums], device=device)
+            wp.launch(luminance_squares, dim=pixels, inputs=[band_images, band_own, band_tint, *weights],
+                      outputs=[sums], device=device)
             scale[band] = scale_of(sums.numpy().reshape(-1, width) / n)
             band_scale = wp.array(scale[band].reshape(-1), dtype=wp.float32, device=device)
             for index, part in enumerate(luminance.parts):
                 chroma_part = chroma.parts[index] if chroma is not None else unused
                 wp.launch(normalised_planes, dim=(part.shape[0], pixels),
-                          inputs=[band_images, band_own, band_tint, band_scale, *weights, index * luminance.part_rows, top * width],
+                          inputs=[band_images, band_own, band_tint, band_scale, *weights, index * luminance.part_rows,
+                                  top * width],
                           outputs=[part, chroma_part], device=device)
         chunks = -(-luminance.values // _SQUARE_CHUNK)
         partials = wp.zeros((n, chunks), dtype=wp.float64, device=device)
         for index, part in enumerate(luminance.parts):
-            wp.launch(row_squares, dim=(part.shape[0], chunks), inputs=[part, _SQUARE_CHUNK, index * luminance.part_rows], outputs=[partials],
+            wp.launch(row_squares, dim=(part.shape[0], chunks),
+                      inputs=[part, _SQUARE_CHUNK, index * luminance.part_rows], outputs=[partials],
                       device=device)
         squares = partials.numpy().sum(axis=1)
-        return cls(scale, squares, HeldStack(luminance, (height, width, 1)), None if chroma is None else HeldStack(chroma, (height, width, 2)))
+        return cls(scale, squares, HeldStack(luminance, (height, width, 1)),
+                   None if chroma is None else HeldStack(chroma, (height, width, 2)))

@@ -65,7 +65,8 @@ def gaussian_support(
         out[b, p] = -1.0
 
 
-def support_fractions(batch: GaussianBatch, targets, images: wp.array, *, settings: RasterSettings | None = None) -> np.ndarray:
+def support_fractions(batch: GaussianBatch, targets, images: wp.array, *,
+                      settings: RasterSettings | None = None) -> np.ndarray:
     """(B, N) float64 support of every slot of ``batch`` in ``images[targets[b]]`` (-1: draws nothing).
 
     Args:
@@ -79,7 +80,8 @@ def support_fractions(batch: GaussianBatch, targets, images: wp.array, *, settin
     problems, capacity = batch.shape
     targets = np.asarray(targets, dtype=np.int32).reshape(-1)
     if len(targets) != problems or (problems and (targets.min() < 0 or targets.max() >= images.shape[0])):
-        raise InputError(f"support needs one target image in 0..{images.shape[0] - 1} per set, got {len(targets)} for {problems} sets")
+        raise InputError(f"support needs one target image in 0..{images.shape[0] - 1} per set, got {len(targets)} for "
+                         f"{problems} sets")
     height, width = images.shape[1], images.shape[2]
     tau = s.cutoff_level
     frames = wp.empty((problems, capacity), dtype=wp.vec4, device=device)
@@ -88,10 +90,12 @@ def support_fractions(batch: GaussianBatch, targets, images: wp.array, *, settin
     unit = GaussianBatch(problems, capacity, device=device, requires_grad=False)
     for name in ("amplitude", "mean", "sigma", "theta", "active"):
         wp.copy(getattr(unit, name), getattr(batch, name))
-    wp.launch(prepare_gaussians, dim=(problems, capacity), inputs=[unit.arrays, s.sigma_eps, s.cutoff, 1.0 / (1.0 - tau), height, width],
+    wp.launch(prepare_gaussians, dim=(problems, capacity),
+              inputs=[unit.arrays, s.sigma_eps, s.cutoff, 1.0 / (1.0 - tau), height, width],
               outputs=[frames, scales, boxes], device=device, record_tape=False)
     out = wp.empty((problems, capacity), dtype=float, device=device)
     wp.launch(gaussian_support, dim=(problems, capacity),
-              inputs=[frames, unit.mean, scales, boxes, wp.array(targets, dtype=wp.int32, device=device), images, s.cutoff**2, tau],
+              inputs=[frames, unit.mean, scales, boxes, wp.array(targets, dtype=wp.int32, device=device), images,
+                      s.cutoff**2, tau],
               outputs=[out], device=device)
     return out.numpy().astype(np.float64)

@@ -25,7 +25,8 @@ import warp as wp
 
 from warp_highlights.model import threads
 
-__all__ = ["STAGED_MIN_BYTES", "STAGING_BYTES", "STAGING_SLOTS", "Staging", "as_half", "rows_down", "rows_up", "to_host"]
+__all__ = ["STAGED_MIN_BYTES", "STAGING_BYTES", "STAGING_SLOTS", "Staging", "as_half", "rows_down", "rows_up",
+           "to_host"]
 
 STAGED_MIN_BYTES = 1 << 30
 """Transfers of this many bytes or more (1 GiB) go through ``Staging``: a process whose transfers are
@@ -45,7 +46,8 @@ def to_host(array) -> np.ndarray:
     (``mapped_empty``), through ``Staging`` from ``STAGED_MIN_BYTES``."""
     if not isinstance(array, wp.array):
         return np.asarray(array)
-    if not (array.device.is_cuda or STAGE_ON_CPU) or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
+    if not (array.device.is_cuda
+            or STAGE_ON_CPU) or not wp.types.type_is_scalar(array.dtype) or not array.is_contiguous \
             or array.capacity < threads.PREFAULT_BYTES or threads.NUMPY_THREADS == 1:
         return array.numpy()
     host = threads.mapped_empty(array.shape, wp.dtype_to_numpy(array.dtype))
@@ -67,7 +69,8 @@ def rows_up(host: np.ndarray, device, *, whole_bytes: int = 0, rows=None) -> wp.
     kind = wp.dtype_from_numpy(host.dtype)
     if rows is not None:
         if host.ndim < 2:
-            raise ValueError(f"rows of an (n, ...) array of two or more axes are sent up, not of a {host.ndim}-axis one")
+            raise ValueError(
+                f"rows of an (n, ...) array of two or more axes are sent up, not of a {host.ndim}-axis one")
         rows = np.asarray(rows, np.int64).reshape(-1)
         out = wp.empty((len(rows),) + host.shape[1:], dtype=kind, device=device)
         if not len(rows):
@@ -99,7 +102,8 @@ def rows_down(array: wp.array, out: np.ndarray, *, whole_bytes: int = 0) -> np.n
     ``STAGED_MIN_BYTES`` of ``out`` or of ``whole_bytes``, as ``rows_up``); returns ``out``. Copies into
     pages not written yet stop at each: give ``out`` from ``mapped_empty``."""
     if tuple(out.shape) != tuple(array.shape) or out.dtype != wp.dtype_to_numpy(array.dtype) or not array.is_contiguous:
-        raise ValueError(f"a contiguous {array.dtype.__name__} {array.shape} array cannot come down into {out.dtype} {out.shape}")
+        raise ValueError(
+            f"a contiguous {array.dtype.__name__} {array.shape} array cannot come down into {out.dtype} {out.shape}")
     if len(out) and not out[0].flags.c_contiguous:  # the rows share their strides: one is all of them
         raise ValueError("each row of the host array must be contiguous")
     staging = Staging.of(array.device) if len(out) and staged(array.device, max(out.nbytes, whole_bytes)) else None
@@ -273,7 +277,8 @@ class Staging:
                 for index, (_, pieces) in enumerate(self._chunks(runs)):
                     slot = index % len(self.buffers)
                     self._wait(slot)  # the buffer's last copy up has ended
-                    self._host_copies([(self.views[slot][offset : offset + data.size], data) for _, data, offset in pieces])
+                    self._host_copies([(self.views[slot][offset : offset + data.size], data)
+                                       for _, data, offset in pieces])
                     for address, offset, size in self._device_copies(pieces):
                         self._copy(self._device_view(address, size), self._slot_view(slot, offset, size))
                     self._record(slot)

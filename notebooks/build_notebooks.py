@@ -165,8 +165,9 @@ edges:
 - **paths** decides, once per Gaussian and directed edge, which way it turns and around which centre.
 
 The default settings (`wh.FitSettings()`) are used unchanged: at this size the fit takes 10-20 s on a
-2-core CPU, nearly all of it in estimation and retargeting. `FitSettings().with_overrides(["estimation.iterations=300", ...])` changes any
-of them, as `--set` does on the command line.
+2-core CPU, nearly all of it in estimation and retargeting.
+`FitSettings().with_overrides(["estimation.iterations=300", ...])` changes any of them, as `--set` does on
+the command line.
 """),
     code("""
 t = time.perf_counter()
@@ -193,7 +194,8 @@ counts = field.counts
 angle = np.degrees(np.arccos(np.clip(dataset.lights.directions[:, 2], -1, 1)))
 fig, ax = plt.subplots(figsize=(6, 2.6))
 ax.scatter(angle, counts, s=14)
-ax.set(xlabel="angle between the light and the camera axis (deg)", ylabel="Gaussians", title=f"Gaussians per light: mean {counts.mean():.1f}, max {counts.max()}")
+ax.set(xlabel="angle between the light and the camera axis (deg)", ylabel="Gaussians",
+       title=f"Gaussians per light: mean {counts.mean():.1f}, max {counts.max()}")
 fig.tight_layout()
 plt.show()
 
@@ -207,7 +209,8 @@ crop = np.s_[max(rows.min() - 6, 0) : rows.max() + 7, max(cols.min() - 6, 0) : c
 top, left = crop[0].start, crop[1].start
 
 fig, axes = plt.subplots(1, 3, figsize=(12, 3.4 * (crop[0].stop - top) / (crop[1].stop - left) + 0.5))
-panels = ((truth, "ground-truth specular"), (fitted, "the fitted Gaussians, rasterized"), (0.4 * fitted, "their 2-sigma ellipses"))
+panels = ((truth, "ground-truth specular"), (fitted, "the fitted Gaussians, rasterized"),
+          (0.4 * fitted, "their 2-sigma ellipses"))
 for ax, (image, title) in zip(axes, panels):
     ax.imshow(display_rgb8(image[crop]), interpolation="nearest")
     ax.set_title(f"light {busiest}: {title}")
@@ -215,7 +218,8 @@ for ax, (image, title) in zip(axes, panels):
 H = field.height
 for p in np.flatnonzero(one.active[0]):
     (x, y), (sx, sy) = one.mean[0, p] * H - 0.5 - [left, top], np.abs(one.sigma[0, p]) * H  # pixel units of the crop
-    axes[2].add_patch(Ellipse((x, y), 4 * sx, 4 * sy, angle=np.degrees(one.theta[0, p]), fill=False, color="tab:orange", lw=1.0))
+    axes[2].add_patch(Ellipse((x, y), 4 * sx, 4 * sy, angle=np.degrees(one.theta[0, p]), fill=False,
+                              color="tab:orange", lw=1.0))
 fig.tight_layout()
 plt.show()
 """),
@@ -270,13 +274,15 @@ toward = np.array([0.3, 0.45, 0.85]) / np.linalg.norm([0.3, 0.45, 0.85])
 q = int(np.argmax(heldout.lights.directions @ toward))  # the held-out centroid nearest to a front-top light
 truth = luminance(heldout.specular[q : q + 1])[0]
 methods = ("circular", "straight", "alpha")
-results = {m: relighter.relight(heldout.lights.directions[q], method=m, full=False).specular for m in methods}  # one (3,) direction: (H, W)
+# one (3,) direction: (H, W)
+results = {m: relighter.relight(heldout.lights.directions[q], method=m, full=False).specular for m in methods}
 psnr = {m: float(psnr_excluding_black(results[m][None], truth[None])[0]) for m in methods}
 panels = [truth] + [results[m] for m in methods]
 rows, cols = np.nonzero(np.max(panels, axis=0) > 0.02)  # crop to the highlights
 crop = np.s_[max(rows.min() - 6, 0) : rows.max() + 7, max(cols.min() - 6, 0) : cols.max() + 7]
 show([image[crop] for image in panels], ["ground truth"] + [f"{m}: {psnr[m]:.1f} dB" for m in methods], panel_width=3.0,
-     suptitle=f"highlights S' at held-out light {q}, direction {np.round(heldout.lights.directions[q], 2).tolist()} (cropped)")
+     suptitle=f"highlights S' at held-out light {q}, "
+              f"direction {np.round(heldout.lights.directions[q], 2).tolist()} (cropped)")
 """),
     md("""
 ## 6. Evaluate at every held-out light
@@ -301,8 +307,8 @@ for kind, label in (("specular", "highlights S'"), ("full", "full images I'")):
         rows.append(f"| {label} | {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} |")
 shares = summary["specular"]
 rows.append("")
-rows.append(f"On the highlights, circular beats the alpha blend at {100 * shares['circular_beats_alpha']:.0f}% of the held-out "
-            f"lights and straight paths at {100 * shares['circular_beats_straight']:.0f}%.")
+rows.append(f"On the highlights, circular beats the alpha blend at {100 * shares['circular_beats_alpha']:.0f}% "
+            f"of the held-out lights and straight paths at {100 * shares['circular_beats_straight']:.0f}%.")
 display(Markdown("\\n".join(rows)))
 """),
     md("""
@@ -313,7 +319,8 @@ distribution of the three methods over all held-out lights.
 from warp_highlights.view.plots import plot_psnr_distributions
 
 png = plot_psnr_distributions(evaluation.specular_psnr, work / "psnr-specular.png",
-                              title=f"Specular PSNR at {len(evaluation.directions)} held-out lights (donut, {LIGHTS} lights)")
+                              title=f"Specular PSNR at {len(evaluation.directions)} held-out lights "
+                                    f"(donut, {LIGHTS} lights)")
 display(Image(filename=str(png), width=720))
 """),
     md("""
@@ -354,8 +361,8 @@ chord = np.linalg.norm(paths.end - paths.start, axis=1) * field.height
 bend = np.abs(np.degrees(paths.delta))
 rows = ["| path | from light | to light | chord (px) | arc (px) | turn (deg) |", "|---|---|---|---|---|---|"]
 for p in np.argsort(-chord)[:6]:
-    rows.append(f"| Gaussian {paths.gaussian[p]} | {paths.vertices[paths.corner[p]]} | {paths.vertices[paths.target[p]]} | "
-                f"{chord[p]:.1f} | {arc[p]:.1f} | {bend[p]:.1f} |")
+    rows.append(f"| Gaussian {paths.gaussian[p]} | {paths.vertices[paths.corner[p]]} | "
+                f"{paths.vertices[paths.target[p]]} | {chord[p]:.1f} | {arc[p]:.1f} | {bend[p]:.1f} |")
 display(Markdown(f"{paths.path_count} paths in triangle {face}; the six longest:\\n\\n" + "\\n".join(rows)))
 """),
 ]
@@ -447,7 +454,8 @@ class CoreWeightedL2:
     def __call__(self, image: wp.array) -> wp.array:
         # requires_grad: the loss' gradient (ones, from tape.backward) flows from here into image.grad
         loss = wp.zeros(image.shape[0], dtype=float, device=self.device, requires_grad=True)
-        wp.launch(core_weighted_l2, dim=image.shape, inputs=[image, self.target, self.weight, self.area], outputs=[loss], device=self.device)
+        wp.launch(core_weighted_l2, dim=image.shape, inputs=[image, self.target, self.weight, self.area],
+                  outputs=[loss], device=self.device)
         return loss
 """),
     md("""
@@ -485,12 +493,16 @@ analytic = batch.gradients()  # float64 copies of batch.<parameter>.grad
 print(f"loss {loss.numpy()[0]:.3f}")
 print("on the tape, in recording order:")
 for entry in tape.launches:
-    kind = f"kernel {entry[0].key} (adjoint generated by Warp)" if isinstance(entry, list) else f"{entry.__qualname__} (hand-written adjoint, record_func)"
+    if isinstance(entry, list):
+        kind = f"kernel {entry[0].key} (adjoint generated by Warp)"
+    else:
+        kind = f"{entry.__qualname__} (hand-written adjoint, record_func)"
     print("  ", kind)
 print("d loss / d mean of Gaussian 0 (batch.mean.grad[0, 0]):", batch.mean.grad.numpy()[0, 0])
 
 fig, axes = plt.subplots(1, 3, figsize=(9, 2.4))
-for ax, picture, title in zip(axes, (target[0], image.numpy()[0], loss_fn.weight.numpy()[0]), ("target S", "start R", "weight w(S)")):
+pictures = (target[0], image.numpy()[0], loss_fn.weight.numpy()[0])
+for ax, picture, title in zip(axes, pictures, ("target S", "start R", "weight w(S)")):
     ax.imshow(picture, cmap="magma")
     ax.set_title(title)
     ax.axis("off")
@@ -519,7 +531,8 @@ def render64(params, height, width):
             c, s = np.cos(params.theta[b, p]), np.sin(params.theta[b, p])
             dx, dy = x - params.mean[b, p, 0], y - params.mean[b, p, 1]
             u, v = c * dx + s * dy, c * dy - s * dx  # offset in the Gaussian's principal frame
-            d2 = u**2 / (params.sigma[b, p, 0] ** 2 + settings.sigma_eps) + v**2 / (params.sigma[b, p, 1] ** 2 + settings.sigma_eps)
+            d2 = (u**2 / (params.sigma[b, p, 0] ** 2 + settings.sigma_eps)
+                  + v**2 / (params.sigma[b, p, 1] ** 2 + settings.sigma_eps))
             peak = params.weight[b, p] * params.amplitude[b, p] ** 2
             out[b] += np.where(d2 < settings.cutoff**2, peak * (np.exp(-0.5 * d2) - tau) / (1.0 - tau), 0.0)
     return out
@@ -533,7 +546,8 @@ def loss64(params):
     return float((loss_fn.area * weight64 * (render64(params, HEIGHT, WIDTH) - target64) ** 2).sum())
 
 
-print(f"largest |float64 render - Warp render|: {np.abs(render64(current, HEIGHT, WIDTH) - image.numpy()).max():.2e} (peak {image.numpy().max():.2f})")
+difference = np.abs(render64(current, HEIGHT, WIDTH) - image.numpy()).max()
+print(f"largest |float64 render - Warp render|: {difference:.2e} (peak {image.numpy().max():.2f})")
 print(f"loss: float64 {loss64(current):.4f}, Warp {loss.numpy()[0]:.4f}")
 """),
     code("""
@@ -564,9 +578,9 @@ rasterizer's hand-written adjoint compose through the tape without any glue code
 Now the loss drives a fit: three problems in one batch (one launch per kernel for all three), each
 a highlight-like set (an arc of three needles, a sharp core beside a broad glow, one long streak) at
 160 x 90 pixels. The start is the true set with every Gaussian moved by a random offset of about 8
-reference pixels per coordinate, its sizes scaled by 0.7 to 1.4 and turned by about 0.3 rad. `GaussianAdam` takes one step per iteration from
-the gradients in the batch (its learning rates are per parameter group, lengths in reference pixels:
-`wh.AdamSettings`). `tape.zero()` clears the gradients for the next step.
+reference pixels per coordinate, its sizes scaled by 0.7 to 1.4 and turned by about 0.3 rad.
+`GaussianAdam` takes one step per iteration from the gradients in the batch (its learning rates are per
+parameter group, lengths in reference pixels: `wh.AdamSettings`). `tape.zero()` clears the gradients for the next step.
 """),
     code("""
 HEIGHT, WIDTH, STEPS = 90, 160, 400
@@ -613,8 +627,10 @@ def fit(loss_fn, steps=STEPS):
 
 
 core = fit(CoreWeightedL2(targets, device=device))
-print(f"{STEPS} steps, {core['ms_per_step']:.1f} ms per step (forward, backward, Adam and the host copies for the curves)")
-print("position error (rpx) per problem, start -> end:", np.round(core["error"][0], 2), "->", np.round(core["error"][-1], 3))
+print(f"{STEPS} steps, {core['ms_per_step']:.1f} ms per step "
+      "(forward, backward, Adam and the host copies for the curves)")
+print("position error (rpx) per problem, start -> end:", np.round(core["error"][0], 2), "->",
+      np.round(core["error"][-1], 3))
 """),
     code("""
 fig, axes = plt.subplots(1, 2, figsize=(10, 3))
@@ -632,7 +648,8 @@ before = raster.render(wh.GaussianBatch.from_numpy(start, device=device, require
 after = raster.render(core["batch"]).numpy()
 fig, axes = plt.subplots(3, 3, figsize=(9.5, 5.2))
 for b in range(3):
-    for c, (picture, title) in enumerate(((targets[b], "target"), (before[b], "start"), (after[b], f"after {STEPS} steps"))):
+    pictures = ((targets[b], "target"), (before[b], "start"), (after[b], f"after {STEPS} steps"))
+    for c, (picture, title) in enumerate(pictures):
         axes[b, c].imshow(picture, cmap="magma", vmin=0.0, vmax=targets.max())
         axes[b, c].set_title(f"{names[b]}: {title}")
         axes[b, c].axis("off")
@@ -650,7 +667,8 @@ of the two are not comparable, so the plot compares the distance from the true p
     code("""
 log_l1 = fit(wh.LogL1Loss(targets, device=device))
 print(f"LogL1Loss: {log_l1['ms_per_step']:.1f} ms per step; core-weighted L2: {core['ms_per_step']:.1f} ms per step")
-print("position error after", STEPS, "steps (rpx): LogL1", np.round(log_l1["error"][-1], 3), " core-weighted L2", np.round(core["error"][-1], 3))
+print("position error after", STEPS, "steps (rpx): LogL1", np.round(log_l1["error"][-1], 3),
+      " core-weighted L2", np.round(core["error"][-1], 3))
 
 fig, ax = plt.subplots(figsize=(6, 3))
 for b, name in enumerate(names):
@@ -667,10 +685,11 @@ they end differently. The squared error is smooth at the optimum, so Adam's step
 gradient and the arc and the core + glow converge to float32 precision; the L1 loss pulls equally
 hard however close the fit is, so Adam keeps stepping around the optimum by a few hundredths of a
 reference pixel. The long streak is the slow case for the squared error: sliding it along its own
-axis changes the image little, and that weak pull fades further as the error shrinks. To make a custom loss a built-in one, follow `kernels/losses.py`: keep the kernel
-off the tape (`record_tape=False`), reduce per row rather than with one atomic per pixel, and
-register a hand-written backward with `Tape.record_func`, checked against finite differences as
-above (the tests do that for every kernel with `tests/reference.py`).
+axis changes the image little, and that weak pull fades further as the error shrinks. To make a custom
+loss a built-in one, follow `kernels/losses.py`: keep the kernel off the tape (`record_tape=False`),
+reduce per row rather than with one atomic per pixel, and register a hand-written backward with
+`Tape.record_func`, checked against finite differences as above (the tests do that for every kernel with
+`tests/reference.py`).
 """),
 ]
 
@@ -707,7 +726,8 @@ def execute(nb, *, workdir: Path, timeout: int = 600):
     env = dict(os.environ)
     env[OUT_VARIABLE] = str(workdir)
     env["MPLBACKEND"] = "module://matplotlib_inline.backend_inline"
-    client = NotebookClient(nb, timeout=timeout, kernel_name="python3", record_timing=False, resources={"metadata": {"path": str(workdir)}})
+    client = NotebookClient(nb, timeout=timeout, kernel_name="python3", record_timing=False,
+                            resources={"metadata": {"path": str(workdir)}})
     client.execute(env=env)
     return nb
 
@@ -736,7 +756,8 @@ def strip_volatile(nb):
             if "image/png" in data:
                 data.pop("image/jpeg", None)  # pyvista's static backend sends both; keep the lossless one
             last = outputs[-1] if outputs else None
-            if last is not None and output.get("output_type") == "stream" and last.get("output_type") == "stream" and last.name == output.name:
+            if (last is not None and output.get("output_type") == "stream" and last.get("output_type") == "stream"
+                and last.name == output.name):
                 last.text += output.text  # one block per stream, as Jupyter shows it
             else:
                 outputs.append(output)
@@ -747,7 +768,8 @@ def strip_volatile(nb):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("names", nargs="*", metavar="NAME", help=f"notebooks to build: {', '.join(NOTEBOOKS)} (default: all)")
+    parser.add_argument("names", nargs="*", metavar="NAME",
+                        help=f"notebooks to build: {', '.join(NOTEBOOKS)} (default: all)")
     parser.add_argument("--execute", action="store_true", help="run each notebook and store its outputs")
     parser.add_argument("--timeout", type=int, default=600, help="seconds per cell when executing")
     args = parser.parse_args(argv)

@@ -81,7 +81,8 @@ def small_field(small_donut, tmp_path_factory) -> Path:
     from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", progress=False)
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images",
+                      progress=False)
     path = tmp_path_factory.mktemp("field") / "donut.whf"
     save_field(field, path)
     return path
@@ -105,6 +106,7 @@ def tiny_sphere(tmp_path_factory) -> tuple[Path, Path]:
 
     root = tmp_path_factory.mktemp("tiny-sphere")
     data, field = root / "sphere", root / "sphere.whf"
-    assert main(["render", "sphere", str(data), "--lights", "16", "--size", "32x18", "--samples", "1", "--device", "cpu", "-q"]) == 0
+    assert main(["render", "sphere", str(data), "--lights", "16", "--size", "32x18", "--samples", "1", "--device",
+                 "cpu", "-q"]) == 0
     assert main(["fit", str(data), "-o", str(field), "--diffuse", "images", "--device", "cpu", "-q", *TINY_FIT]) == 0
     return data, field

@@ -7,7 +7,8 @@ import numpy as np
 from warp_highlights.model.gaussians import GaussianParams
 
 
-def random_params(rng: np.random.Generator, problems: int, capacity: int, height: int, width: int, *, sigma_px=(0.3, 40.0), inactive: float = 0.25) -> GaussianParams:
+def random_params(rng: np.random.Generator, problems: int, capacity: int, height: int, width: int, *,
+                  sigma_px=(0.3, 40.0), inactive: float = 0.25) -> GaussianParams:
     """Gaussians sized ``sigma_px`` (pixels of this image, log-uniform), rotations in [-2 pi, 2 pi],
     means up to a quarter of the image outside it, weights in [0, 2], a share of free slots."""
     params = GaussianParams.empty(problems, capacity)
@@ -20,10 +21,12 @@ def random_params(rng: np.random.Generator, problems: int, capacity: int, height
     params.sigma[:] = np.exp(rng.uniform(low, high, shape + (2,))) / height * rng.choice([-1.0, 1.0], shape + (2,))
     params.theta[:] = rng.uniform(-2 * np.pi, 2 * np.pi, shape)
     params.weight[:] = rng.uniform(0.0, 2.0, shape)
-    return GaussianParams(**{name: getattr(params, name) for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
+    return GaussianParams(**{name: getattr(params, name)
+                             for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
 
 
-def inside_params(rng: np.random.Generator, problems: int, capacity: int, height: int, width: int, *, sigma_px=(1.0, 6.0)) -> GaussianParams:
+def inside_params(rng: np.random.Generator, problems: int, capacity: int, height: int, width: int, *,
+                  sigma_px=(1.0, 6.0)) -> GaussianParams:
     """All slots active, means well inside the image, moderate sizes: for gradient checks."""
     params = GaussianParams.empty(problems, capacity)
     shape = (problems, capacity)
@@ -33,7 +36,8 @@ def inside_params(rng: np.random.Generator, problems: int, capacity: int, height
     params.sigma[:] = rng.uniform(*sigma_px, shape + (2,)) / height
     params.theta[:] = rng.uniform(-np.pi, np.pi, shape)
     params.weight[:] = rng.uniform(0.5, 1.5, shape)
-    return GaussianParams(**{name: getattr(params, name) for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
+    return GaussianParams(**{name: getattr(params, name)
+                             for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
 
 
 def central_differences(function, params: GaussianParams, step: float = 1e-6) -> dict[str, np.ndarray]:

@@ -24,7 +24,8 @@ def distance2(params: GaussianParams, b: int, n: int, x: np.ndarray, y: np.ndarr
     return np.einsum("...i,ij,...j->...", d, inverse, d)
 
 
-def render(params: GaussianParams, height: int, width: int, settings: RasterSettings | None = None, *, truncate: bool = True) -> np.ndarray:
+def render(params: GaussianParams, height: int, width: int, settings: RasterSettings | None = None, *,
+           truncate: bool = True) -> np.ndarray:
     """(B, H, W) float64 image of every problem; ``truncate=False`` gives the plain Gaussian sum."""
     settings = settings or RasterSettings()
     x, y = pixel_grid(height, width)
@@ -60,13 +61,15 @@ def energy(params: GaussianParams, settings: RasterSettings | None = None) -> np
     return np.where(params.active, e * REFERENCE_HEIGHT_PX**2, 0.0)
 
 
-def energy_loss(params: GaussianParams, reference: GaussianParams, settings: RasterSettings | None = None) -> np.ndarray:
+def energy_loss(params: GaussianParams, reference: GaussianParams,
+                settings: RasterSettings | None = None) -> np.ndarray:
     """Per-problem sum over slots active in both of (E(reference) - E(current))^2."""
     both = params.active & reference.active
     return np.where(both, (energy(reference, settings) - energy(params, settings)) ** 2, 0.0).sum(axis=1)
 
 
-def structure_loss(params: GaussianParams, reference: GaussianParams, gamma: float = 4.0, threshold: float = 15.0, eps: float = 1e-6, *, thesis_form: bool = False) -> np.ndarray:
+def structure_loss(params: GaussianParams, reference: GaussianParams, gamma: float = 4.0, threshold: float = 15.0,
+                   eps: float = 1e-6, *, thesis_form: bool = False) -> np.ndarray:
     """Per-problem structure loss of retargeting (docs/method.md, Fitting step 5), by explicit pair loops (distances in
     rpx).
 
@@ -79,7 +82,8 @@ def structure_loss(params: GaussianParams, reference: GaussianParams, gamma: flo
         if not pairs:
             continue
         rho = np.array([np.linalg.norm(params.mean[b, p] - params.mean[b, q]) for p, q in pairs]) * REFERENCE_HEIGHT_PX
-        rho_ref = np.array([np.linalg.norm(reference.mean[b, p] - reference.mean[b, q]) for p, q in pairs]) * REFERENCE_HEIGHT_PX
+        rho_ref = (np.array([np.linalg.norm(reference.mean[b, p] - reference.mean[b, q]) for p, q in pairs])
+                   * REFERENCE_HEIGHT_PX)
         scale = rho.sum() / (rho_ref.sum() + eps)
         weight = (1 + np.tanh(gamma * (threshold - rho_ref))) / 2
         difference = rho * scale - rho_ref if thesis_form else rho - scale * rho_ref

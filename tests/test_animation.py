@@ -198,7 +198,8 @@ def test_through_directions_bad_arrays(directions):
 
 def test_parse_light_path_great_and_orbit():
     np.testing.assert_array_equal(parse_light_path("great:1,0,1:-1,0,1", 7), great_circle([1, 0, 1], [-1, 0, 1], 7))
-    np.testing.assert_array_equal(parse_light_path(" great: 0, 1 ,1 : 0,-1,1 ", 3), great_circle([0, 1, 1], [0, -1, 1], 3))
+    np.testing.assert_array_equal(parse_light_path(" great: 0, 1 ,1 : 0,-1,1 ", 3),
+                                  great_circle([0, 1, 1], [0, -1, 1], 3))
     np.testing.assert_array_equal(parse_light_path("orbit:30", 12), orbit(30.0, 12))
     np.testing.assert_array_equal(parse_light_path("ORBIT:-15.5:90", 8), orbit(-15.5, 8, start_azimuth_deg=90.0))
 
@@ -519,7 +520,8 @@ def test_mp4_ffmpeg_failure_is_an_input_error(tmp_path, monkeypatch, capfd):
     import imageio_ffmpeg
 
     write_frames = imageio_ffmpeg.write_frames
-    monkeypatch.setattr(imageio_ffmpeg, "write_frames", lambda *a, **k: write_frames(*a, **{**k, "codec": "no_such_encoder"}))
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames",
+                        lambda *a, **k: write_frames(*a, **{**k, "codec": "no_such_encoder"}))
     with pytest.raises(InputError) as excinfo:
         write_animation(_frames(30), tmp_path / "a.mp4")
     _one_line(excinfo, "ffmpeg could not write", "no_such_encoder")
@@ -722,7 +724,8 @@ def test_gif_of_an_orbit_stays_compact(small_field, tmp_path):
     from warp_highlights.cli import main
 
     out = tmp_path / "orbit.gif"
-    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "96", "--size", "240x135", "-o", str(out),
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "96", "--size", "240x135", "-o",
+                 str(out),
                  "--device", "cpu", "-q"]) == 0
     with Image.open(out) as im:
         assert im.n_frames == 96 and im.size == (240, 135)
@@ -740,7 +743,8 @@ def test_default_size_gif_is_at_most_a_quarter_at_equal_frames(small_field, tmp_
     field = load_field(small_field)
     monkeypatch.setitem(animation_module.DEFAULT_LONGER_SIDE, "gif", max(field.width, field.height) // 4)
     common = ["--path", "orbit:35", "--frames", "96", "--device", "cpu", "-q"]
-    assert main(["animate", str(small_field), *common, "--size", f"{field.width}x{field.height}", "-o", str(tmp_path / "full.gif")]) == 0
+    assert main(["animate", str(small_field), *common, "--size", f"{field.width}x{field.height}", "-o",
+                 str(tmp_path / "full.gif")]) == 0
     assert main(["animate", str(small_field), *common, "-o", str(tmp_path / "default.gif")]) == 0
     with Image.open(tmp_path / "default.gif") as im:
         assert im.n_frames == 96, "equal frames"
@@ -774,15 +778,18 @@ def test_animate_default_size_shrinks_web_animations_only(small_field, tmp_path,
     field = load_field(small_field)
     longest = max(field.width, field.height) // 2
     monkeypatch.setitem(animation_module.DEFAULT_LONGER_SIDE, "gif", longest)
-    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "a.gif"), "--device", "cpu"]) == 0
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "a.gif"),
+                 "--device", "cpu"]) == 0
     expected = animation_module.default_animation_size("gif", field.width, field.height)
     assert max(expected) == longest
     with Image.open(tmp_path / "a.gif") as im:
         assert im.size == expected
     assert f"animating at {expected[0]}x{expected[1]}" in capsys.readouterr().err, "the shrink is said"
-    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "frames"), "--device", "cpu", "-q"]) == 0
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "-o", str(tmp_path / "frames"),
+                 "--device", "cpu", "-q"]) == 0
     assert read_image(tmp_path / "frames" / "frame_0000.png").shape[:2] == (field.height, field.width)
-    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "--size", f"{field.width}x{field.height}",
+    assert main(["animate", str(small_field), "--path", "orbit:35", "--frames", "3", "--size",
+                 f"{field.width}x{field.height}",
                  "-o", str(tmp_path / "b.gif"), "--device", "cpu", "-q"]) == 0
     with Image.open(tmp_path / "b.gif") as im:
         assert im.size == (field.width, field.height), "--size wins over the default"

@@ -65,7 +65,8 @@ def test_project_and_evaluate_kernels_match_matrix_products(device):
 def test_evaluate_never_returns_negative_nan_or_inf(device):
     planes = np.array([[1.0, -1.0, np.nan, 3e38]], dtype=np.float32)
     basis = np.array([[1.0], [10.0]], dtype=np.float32)
-    out = kernels.evaluate(wp.array(basis, dtype=float, device=device), wp.array(planes, dtype=float, device=device)).numpy()
+    out = kernels.evaluate(wp.array(basis, dtype=float, device=device),
+                           wp.array(planes, dtype=float, device=device)).numpy()
     assert np.all(np.isfinite(out)) and np.all(out >= 0)
     np.testing.assert_array_equal(out[:, :3], [[1.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
     assert out[1, 3] == np.finfo(np.float32).max
@@ -85,7 +86,8 @@ def test_basis_matches_reference_including_lights_below_the_horizon(method):
 def test_hsh_orders_nest_and_are_orthonormal_on_the_hemisphere():
     """Gautron's basis is orthonormal over the hemisphere (solid angle): checked by a fine quadrature."""
     steps = 400  # midpoint rule in theta and phi
-    theta, phi = np.meshgrid((np.arange(steps) + 0.5) * (np.pi / 2 / steps), (np.arange(2 * steps) + 0.5) * (np.pi / steps), indexing="ij")
+    theta, phi = np.meshgrid((np.arange(steps) + 0.5) * (np.pi / 2 / steps),
+                             (np.arange(2 * steps) + 0.5) * (np.pi / steps), indexing="ij")
     d = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1).reshape(-1, 3)
     weight = (np.sin(theta) * (np.pi / 2 / steps) * (np.pi / steps)).reshape(-1)
     basis = hsh_basis(d, 3)
@@ -121,7 +123,8 @@ def test_images_in_the_span_are_reproduced_exactly(method, device):
     model = fit_baseline(method, images.astype(np.float32), lights, device=device)
     np.testing.assert_allclose(model.coefficients(), truth, atol=2e-5)
     queries = dome(6, seed=6)
-    np.testing.assert_allclose(model.relight(queries), relit_planes(baseline_terms(method, queries), truth), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(model.relight(queries), relit_planes(baseline_terms(method, queries), truth), rtol=1e-5,
+                               atol=1e-5)
     np.testing.assert_allclose(model.relight(lights), images, rtol=1e-5, atol=1e-5)
 
 
@@ -145,7 +148,8 @@ def test_rbf_loo_closed_form_equals_brute_force():
     values = np.random.default_rng(9).normal(size=(9, 4))
     for sigma, regularisation in [(0.3, 1e-6), (0.8, 1e-3)]:
         matrix = gaussian_rbf(lights, lights, sigma) + regularisation * np.eye(9)
-        np.testing.assert_allclose(rbf_loo_errors(matrix, values), rbf_loo_brute_force(lights, values, sigma, regularisation), rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(rbf_loo_errors(matrix, values),
+                                   rbf_loo_brute_force(lights, values, sigma, regularisation), rtol=1e-6, atol=1e-9)
 
 
 def test_rbf_sigma_is_the_loo_minimum_over_the_grid():
@@ -155,7 +159,9 @@ def test_rbf_sigma_is_the_loo_minimum_over_the_grid():
     assert len(candidates) == len(RBF_SIGMA_FACTORS) and model.sigma == candidates[np.argmin(errors)]
     values = images.reshape(16, -1).astype(np.float64)  # fewer pixels than the subsample: all of them
     k = len(candidates) // 2
-    np.testing.assert_allclose(errors[k], np.mean(rbf_loo_brute_force(lights, values, candidates[k], model.regularisation) ** 2), rtol=1e-6)
+    np.testing.assert_allclose(errors[k],
+                               np.mean(rbf_loo_brute_force(lights, values, candidates[k], model.regularisation) ** 2),
+                               rtol=1e-6)
     sigma, _, _ = choose_rbf_sigma(images, lights, candidates=[0.2, candidates[np.argmin(errors)], 3.0])
     assert sigma == model.sigma
 
@@ -197,7 +203,8 @@ def test_relight_in_chunks_equals_one_launch(device):
     whole = model.relight(queries)
     model.max_batch = 2
     np.testing.assert_array_equal(model.relight(queries), whole)
-    assert max(1, 256 * 2**20 // (4 * HEIGHT * WIDTH * CHANNELS)) == fit_baseline("ptm", stack(12), dome(12), device=device).max_batch
+    assert (max(1, 256 * 2**20 // (4 * HEIGHT * WIDTH * CHANNELS))
+            == fit_baseline("ptm", stack(12), dome(12), device=device).max_batch)
 
 
 def test_fits_are_linear_in_the_values():
@@ -222,10 +229,12 @@ def test_fits_are_linear_in_the_values():
         ("ptm", np.zeros((8, 0, 3)), dome(8), {}, "shape"),
         ("ptm", stack(8), dome(7), {}, "light directions must have shape"),
         ("ptm", stack(8), dome(8)[:, :2], {}, "light directions must have shape"),
-        ("ptm", np.where(np.arange(8)[:, None, None, None] == 3, np.nan, stack(8)), dome(8), {}, "image 3 has non-finite"),
+        ("ptm", np.where(np.arange(8)[:, None, None, None] == 3, np.nan, stack(8)), dome(8), {},
+         "image 3 has non-finite"),
         ("ptm", stack(8).astype(np.float64) * 1e40, dome(8), {}, "non-finite"),
         ("ptm", stack(8), np.where(np.arange(8)[:, None] == 2, 0.0, dome(8)), {}, "light direction 2 is zero"),
-        ("ptm", stack(8), np.where(np.arange(8)[:, None] == 1, np.inf, dome(8)), {}, "light direction 1 is zero or not finite"),
+        ("ptm", stack(8), np.where(np.arange(8)[:, None] == 1, np.inf, dome(8)), {},
+         "light direction 1 is zero or not finite"),
         ("ptm", stack(8), dome(8), {"sigma": 0.5}, "only to the rbf method"),
         ("rbf", stack(8), dome(8), {"sigma": 0.0}, "sigma must be a positive"),
         ("rbf", stack(8), dome(8), {"sigma": float("nan")}, "sigma must be a positive"),

@@ -55,7 +55,8 @@ def test_threaded_cpu_fit_leaves_the_default_device_alone():
     before = wp.get_device()
     target = np.zeros((4, 16, 16), dtype=np.float32)
     target[:, 6:9, 6:9] = 1.0
-    estimate(target, settings=EstimationSettings(iterations=30, densify_every=10, densify_until=20), device="cpu", workers=4)
+    estimate(target, settings=EstimationSettings(iterations=30, densify_every=10, densify_until=20), device="cpu",
+             workers=4)
     assert wp.get_device() == before
 
 
@@ -85,7 +86,8 @@ def test_chunks_not_in_parallel_run_in_order_on_this_thread():
 def test_chunks_hold_at_most_one_launchs_problems(count, workers, most):
     """``most_each`` (the rasterizer's bound per launch) splits a thread's or a device's chunk further; the
     slices still cover every problem once, in order, and are as equal as they can be."""
-    for chunks in (problem_chunks(count, "cpu", workers, most_each=most), memory_chunks(count, "cpu", workers, bytes_each=1.0, most_each=most)):
+    for chunks in (problem_chunks(count, "cpu", workers, most_each=most),
+                   memory_chunks(count, "cpu", workers, bytes_each=1.0, most_each=most)):
         covered = np.concatenate([np.arange(count)[c] for c in chunks])
         np.testing.assert_array_equal(covered, np.arange(count))
         sizes = [c.stop - c.start for c in chunks]

@@ -39,7 +39,8 @@ def test_render_dome_with_lights_file_and_no_heldout(tmp_path):
     lp = tmp_path / "dome.lp"
     write_lp(LightSet.fibonacci_dome(10), lp, [f"x{i}.jpg" for i in range(10)])
     out = tmp_path / "dome"
-    assert main(["render", "donut", str(out), "--lights-file", str(lp), "--heldout", "none", "--size", "32x18", "-q"]) == 0
+    assert (main(["render", "donut", str(out), "--lights-file", str(lp), "--heldout", "none", "--size", "32x18", "-q"])
+            == 0)
     field = ReflectanceField.load(out, progress=False)
     assert field.light_count == 10 and field.heldout is None
 
@@ -58,7 +59,8 @@ def test_info_summarises_a_dataset(tmp_path, capsys):
     low, high = summary["elevation_deg"]
     assert fields["elevation"] == f"{low:.4g} to {high:.4g} deg"
     assert not any(token in line for line in lines for token in ("None", "[", "]"))
-    assert fields["values"] == "{:.4g} to {:.4g}".format(*summary["value_range"]) and fields["mean value"] == f"{summary['mean_value']:.4g}"
+    assert (fields["values"] == "{:.4g} to {:.4g}".format(*summary["value_range"])
+            and fields["mean value"] == f"{summary['mean_value']:.4g}")
 
 
 def test_demo_renders_and_draws_a_contact_sheet(tmp_path):
@@ -81,7 +83,8 @@ def test_demo_fits_with_the_residual_it_is_given(choice, tmp_path, monkeypatch):
 
     monkeypatch.setattr(pipeline, "fit_field", stop)
     out = tmp_path / "demo"
-    assert main(["demo", str(out), "--lights", "8", "--size", "32x18", "--device", "cpu", "--residual", choice, "-q"]) == 130
+    assert (main(["demo", str(out), "--lights", "8", "--size", "32x18", "--device", "cpu", "--residual", choice, "-q"])
+            == 130)
     (settings,) = seen
     assert settings.residual.kind == choice
     assert not out.exists() and list(tmp_path.iterdir()) == []
@@ -189,8 +192,10 @@ def test_module_entry_point_reports_errors_without_traceback(tmp_path):
     assert result.returncode == 2
     # Warp's CUDA warning too would be a line here (test_cpu_runs_say_nothing_of_warp_or_cuda)
     lines = result.stderr.splitlines()
-    assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"]
-    version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True, timeout=300)
+    assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a "
+                     "PLY/OBJ/STL file"]
+    version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True,
+                             timeout=300)
     assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")
 
 
@@ -199,15 +204,19 @@ def test_render_accepts_a_mesh_file(tmp_path):
     mesh_path = tmp_path / "ball.ply"
     pv.Sphere(radius=2.0, theta_resolution=48, phi_resolution=24).save(mesh_path)
     out = tmp_path / "ball"
-    assert main(["render", str(mesh_path), str(out), "--lights", "6", "--size", "32x24", "--heldout", "none", "-q"]) == 0
+    assert (main(["render", str(mesh_path), str(out), "--lights", "6", "--size", "32x24", "--heldout", "none", "-q"])
+            == 0)
     field = ReflectanceField.load(out, progress=False)
     assert field.mask.mean() > 0.2 and field.specular.max() > 1.0
     assert json.loads((out / "meta.json").read_text())["shape"] == str(mesh_path)
 
 
-@pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"], ["collection", "--help"],
-                                       ["fit", "x", "-o", "y.whf", "--size", "big"], ["fit"], ["relight", "x.whf", "-o", "a.png"],
-                                       ["evaluate", "x.whf", "d", "--triangle", "foo"], ["evaluate", "x.whf", "d", "--heldout", "h", "--holdout-every", "3"]])
+@pytest.mark.parametrize("arguments", [["--help"], ["render", "--help"], ["view", "--help"], ["demo", "--help"],
+                                       ["collection", "--help"],
+                                       ["fit", "x", "-o", "y.whf", "--size", "big"], ["fit"],
+                                       ["relight", "x.whf", "-o", "a.png"],
+                                       ["evaluate", "x.whf", "d", "--triangle", "foo"],
+                                       ["evaluate", "x.whf", "d", "--heldout", "h", "--holdout-every", "3"]])
 def test_help_and_usage_errors_do_not_start_warp(arguments):
     """``--help`` and argument errors are answered before Warp, SciPy or pyvista are imported (they cost
     1 s on the 2-core CPU; benchmarks/bench_startup.py times it); importing the package prints nothing."""
@@ -215,7 +224,8 @@ def test_help_and_usage_errors_do_not_start_warp(arguments):
              "print('HEAVY', [m for m in ('warp', 'scipy', 'pyvista', 'distributed') if m in sys.modules], status)")
     run = subprocess.run([sys.executable, "-c", probe, *arguments], capture_output=True, text=True, timeout=120)
     assert run.stdout.splitlines()[-1] == f"HEAVY [] {0 if '--help' in arguments else 2}", run.stdout + run.stderr
-    quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True, timeout=120)
+    quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True,
+                           timeout=120)
     assert quiet.stdout == "" and quiet.stderr == ""
 
 
@@ -229,14 +239,18 @@ def test_cpu_runs_say_nothing_of_warp_or_cuda(tmp_path):
     capture, field = tmp_path / "sphere", tmp_path / "sphere.whf"
     commands = [["render", "sphere", str(capture), "--lights", "10", "--size", "32x18", "--device", "cpu"],
                 ["fit", str(capture), "-o", str(field), "--device", "cpu", "--residual", "lowrank"],
-                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "relit.png"), "--device", "cpu"],
+                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "relit.png"), "--device",
+                 "cpu"],
                 ["maps", str(field), "-o", str(tmp_path / "maps"), "--device", "cpu"],
                 ["info", str(capture)],
-                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "verbose.png"), "--device", "cpu", "-v"]]
+                ["relight", str(field), "--light", "0.3,0.4,0.866", "-o", str(tmp_path / "verbose.png"), "--device",
+                 "cpu", "-v"]]
     for command in commands:
-        run = subprocess.run([sys.executable, "-m", "warp_highlights", *command], capture_output=True, text=True, timeout=600)
+        run = subprocess.run([sys.executable, "-m", "warp_highlights", *command], capture_output=True, text=True,
+                             timeout=600)
         assert run.returncode == 0, run.stderr
-        warp_lines = [line for line in (run.stdout + run.stderr).splitlines() if "CUDA" in line or line.startswith("Warp ")]
+        warp_lines = [line for line in (run.stdout + run.stderr).splitlines()
+                      if "CUDA" in line or line.startswith("Warp ")]
         if "-v" not in command:
             assert warp_lines == [], f"{command[0]}: {warp_lines}"
         else:  # Warp says it started (and, without a driver, that it found none)
@@ -244,7 +258,8 @@ def test_cpu_runs_say_nothing_of_warp_or_cuda(tmp_path):
             assert _cuda_driver_present() or any("CUDA" in line for line in warp_lines), run.stdout + run.stderr
 
 
-@pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"], ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
+@pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"],
+                                       ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
                                        ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--exr"]])
 def test_animate_argument_errors_do_not_start_warp(arguments):
     """animate's path and output are checked by its own parsers (which read light files through SciPy) before Warp is
@@ -280,22 +295,28 @@ def test_python_messages_show_while_the_readers_quiet_descriptor_2(capfd):
 def test_the_console_ends_without_teardown_after_flushing_everything(tmp_path):
     """The process ends at once after ``main`` (``console._end``): what it printed and wrote is all there,
     into a pipe as into files, with ``main``'s status; a closed pipe is not an error of its own."""
-    helped = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True, text=True, timeout=300)
-    parser = subprocess.run([sys.executable, "-c", "from warp_highlights.cli.app import main; main(['render', '--help'])"],
+    helped = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True,
+                            text=True, timeout=300)
+    parser = subprocess.run([sys.executable, "-c",
+                             "from warp_highlights.cli.app import main; main(['render', '--help'])"],
                             capture_output=True, text=True, timeout=300)
     assert helped.returncode == 0 and helped.stdout == parser.stdout and len(helped.stdout) > 500
     out = tmp_path / "tiny"
-    made = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "sphere", str(out), "--lights", "6", "--size", "16x12",
+    made = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "sphere", str(out), "--lights", "6",
+                           "--size", "16x12",
                            "--heldout", "none", "--device", "cpu"], capture_output=True, text=True, timeout=300)
     assert made.returncode == 0 and "wrote" in made.stdout + made.stderr
     assert ReflectanceField.load(out, progress=False).light_count == 6
-    closed = subprocess.run(f"'{sys.executable}' -m warp_highlights render --help | head -c 10", shell=True, capture_output=True, text=True, timeout=300)
+    closed = subprocess.run(f"'{sys.executable}' -m warp_highlights render --help | head -c 10", shell=True,
+                            capture_output=True, text=True, timeout=300)
     assert closed.stdout == helped.stdout[:10] and "Traceback" not in closed.stderr
-    no_stdout = subprocess.run(f"'{sys.executable}' -m warp_highlights --version >&-", shell=True, capture_output=True, text=True, timeout=300)
+    no_stdout = subprocess.run(f"'{sys.executable}' -m warp_highlights --version >&-", shell=True, capture_output=True,
+                               text=True, timeout=300)
     assert no_stdout.returncode == 0 and "Traceback" not in no_stdout.stderr
     # buffered output is flushed too
     environment = {key: value for key, value in os.environ.items() if key != "PYTHONUNBUFFERED"}
-    buffered = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True, text=True, timeout=300,
+    buffered = subprocess.run([sys.executable, "-m", "warp_highlights", "render", "--help"], capture_output=True,
+                              text=True, timeout=300,
                               env=environment)
     assert buffered.stdout == helped.stdout
 

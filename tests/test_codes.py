@@ -124,7 +124,8 @@ def test_a_chunk_is_one_blosc_chunk_of_the_stored_bytes_made_alike_on_any_thread
     assert bytes(Blosc().decode(chunk)) == stored.tobytes()
     assert chunk_size(stored) == len(chunk) and stored_bytes(codes_from_stored(stored[None], 16)[0]) == len(chunk)
     large = stored_codes(RNG.integers(0, 9, size=(1, 700, 900)).astype(np.uint16))  # several blocks
-    assert set(parallel_map(compressed_chunk, [large] * 4)) == {compressed_chunk(large)}  # the main thread's (Blosc's threads) and the workers'
+    # the main thread's (Blosc's threads) and the workers'
+    assert set(parallel_map(compressed_chunk, [large] * 4)) == {compressed_chunk(large)}
 
 
 def _smooth_stack(n: int, h: int, w: int) -> np.ndarray:
@@ -145,7 +146,8 @@ def test_the_sampled_bytes_are_the_whole_images_stored_bytes_at_the_sampled_rows
     counted = sample.rows[sample.counted]
     stack = quantised_stack(principal, steps, bits=bits)
     expected = sum(chunk_size(stored_codes(code.transpose(2, 0, 1))[..., counted, :]) for code in stack.codes)
-    assert sample.bytes(steps, bits=bits) == pytest.approx(expected * 320 / len(counted) + sample.per_image * 3, rel=1e-12)
+    assert (sample.bytes(steps, bits=bits)
+            == pytest.approx(expected * 320 / len(counted) + sample.per_image * 3, rel=1e-12))
     assert RateSample(principal, 3, whole=True).bytes(steps, bits=bits) == float(component_bytes(stack).sum())
 
 
@@ -171,7 +173,8 @@ def _codes_entry(field, stack, path):
     return info, raw, lengths, np.load(io.BytesIO(_decoded(raw, lengths)))
 
 
-@pytest.mark.parametrize(("bits", "size", "rank"), [(8, None, None), (16, None, None), (16, (23, 7), None), (8, (9, 31), None), (16, None, 0)])
+@pytest.mark.parametrize(("bits", "size", "rank"),
+                         [(8, None, None), (16, None, None), (16, (23, 7), None), (8, (9, 31), None), (16, None, 0)])
 def test_the_file_holds_the_stored_codes_in_the_bytes_the_budget_counted(bits, size, rank, tmp_path):
     """The codes entry is stored as it is (no zip compression): the chunk of the ``.npy`` header of the
     stored array, then each image's chunk, their lengths in ``Y_codes.lengths.npy``. Its size is the
@@ -289,7 +292,8 @@ def test_the_rate_search_keeps_the_chunks_the_file_then_stores(whole, tmp_path, 
     # what the budget held to is what the entry holds: the measured chunks and the header's
     measured = float(component_bytes(kept).sum()) - kept.rank * (8 + 4 * len(kept.weights))
     header = io.BytesIO()
-    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": stored_shape(kept.rank, 1, field.height, field.width, 16)})
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False,
+                                                  "shape": stored_shape(kept.rank, 1, field.height, field.width, 16)})
     assert kept_info.compress_size == measured + len(real(header.getvalue()))
 
 
@@ -383,7 +387,8 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     assert len(calls) == 11
     sample.deflated(coarse, bits=8)
     assert len(calls) == 16
-    assert sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image and len(calls) == 16
+    assert (sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image
+            and len(calls) == 16)
 
 
 def test_a_kept_measurement_takes_the_chunks_it_holds_and_compresses_nothing_twice():
@@ -397,11 +402,13 @@ def test_a_kept_measurement_takes_the_chunks_it_holds_and_compresses_nothing_twi
     early = sample.deflated(steps[:2], bits=16)  # images 0 and 1 measured, no chunks kept
     measured = []
     real = sample._measured
-    sample._measured = lambda indices, *args, **kwargs: measured.append(indices.tolist()) or real(indices, *args, **kwargs)
+    sample._measured = (lambda indices, *args, **kwargs: measured.append(indices.tolist())
+                        or real(indices, *args, **kwargs))
     first = sample.deflated(steps, bits=16, keep=store)
     assert measured == [[2, 3]] and len(store) == 2 and np.array_equal(first[:2], early)
     chunks = dict(store._kept[0])
-    assert np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == [] and store._kept[0] == chunks
+    assert (np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == []
+            and store._kept[0] == chunks)
     stack = quantised_stack(principal, steps, bits=16)
     stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
     assert list(chunks.values()) == [compressed_chunk(image) for image in stored[2:]]

@@ -21,10 +21,13 @@ from warp_highlights.collection.captures import find_captures, fingerprint
 from warp_highlights.collection.gallery import write_gallery
 from warp_highlights.model.errors import InputError
 
-pytest.importorskip("distributed", reason="warp-highlights collection needs Dask distributed (pip install 'warp-highlights[collection]')")
+pytest.importorskip(
+    "distributed",
+    reason="warp-highlights collection needs Dask distributed (pip install 'warp-highlights[collection]')")
 
 # A fast fit for 16 lights of 48x27: what each capture of the tests gets (the commands' defaults otherwise)
-QUICK = ["--set", "estimation.iterations=150", "--set", "estimation.densify_until=100", "--set", "estimation.densify_every=50",
+QUICK = ["--set", "estimation.iterations=150", "--set", "estimation.densify_until=100", "--set",
+         "estimation.densify_every=50",
          "--set", "retarget.rigid_iterations=30", "--set", "retarget.iterations=60", "--set", "residual.check_lights=4"]
 GOOD = ("donut-a", "donut-b", "sphere-c", "teapot-d", "donut-e", "sphere-f")
 NO_HELDOUT = ("donut-e",)
@@ -32,7 +35,8 @@ NO_HELDOUT = ("donut-e",)
 
 def _render(folder: Path, shape: str, *extra: str) -> None:
     folder.parent.mkdir(parents=True, exist_ok=True)
-    assert main(["render", shape, str(folder), "--lights", "16", "--size", "48x27", "--samples", "1", "--device", "cpu", "-q", *extra]) == 0
+    assert main(["render", shape, str(folder), "--lights", "16", "--size", "48x27", "--samples", "1", "--device", "cpu",
+                 "-q", *extra]) == 0
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +46,8 @@ def captures(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("collection") / "captures"
     for name in GOOD:
         shape = name.split("-")[0]
-        _render(root / ("museum-a" if name < "sphere" else "museum-b") / name, shape, *(["--heldout", "none"] if name in NO_HELDOUT else []))
+        _render(root / ("museum-a" if name < "sphere" else "museum-b") / name, shape,
+                *(["--heldout", "none"] if name in NO_HELDOUT else []))
     broken = root / "museum-b" / "broken"
     _render(broken, "donut")
     first = sorted((broken / "images").iterdir())[0]
@@ -51,8 +56,10 @@ def captures(tmp_path_factory) -> Path:
 
 
 def _collection(*arguments: str, session: bool = False) -> subprocess.Popen:
-    command = [sys.executable, "-m", "warp_highlights", "collection", *arguments, "--workers", "2", "--device", "cpu", "-q", *QUICK]
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=session,
+    command = [sys.executable, "-m", "warp_highlights", "collection", *arguments, "--workers", "2", "--device", "cpu",
+               "-q", *QUICK]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=session,
                             env={**os.environ, "PYTHONWARNINGS": "ignore"})
 
 
@@ -104,7 +111,8 @@ def collected(captures, tmp_path_factory) -> tuple[Path, subprocess.CompletedPro
 
 def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
     lp = "1\nimage.png 0 0 1\n"
-    for folder in ("a/coin", "b/coin", "c/tablet", "c/tablet/Test", "synth/Dome", "synth/Test", "d/seal", "d/seal/images"):
+    for folder in ("a/coin", "b/coin", "c/tablet", "c/tablet/Test", "synth/Dome", "synth/Test", "d/seal",
+                   "d/seal/images"):
         (tmp_path / folder).mkdir(parents=True, exist_ok=True)
     for folder in ("a/coin", "b/coin", "c/tablet", "c/tablet/Test", "synth/Dome", "synth/Test", "d/seal"):
         (tmp_path / folder / "dirs.lp").write_text(lp)
@@ -128,7 +136,8 @@ def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
         (tmp_path / "order" / Path(layout).parent / "Test" / "dirs.lp").write_text(lp)
     paired = {c.name: c for c in find_captures([tmp_path / "order"])}
     assert sorted(paired) == ["objA", "objB"] and all(c.heldout.name == "Test" for c in paired.values())
-    assert [c.name for c in find_captures(str(tmp_path / "a/coin"))] == ["coin"] and find_captures([tmp_path / "a/coin"])[0].folder.is_absolute()
+    assert ([c.name for c in find_captures(str(tmp_path / "a/coin"))] == ["coin"]
+            and find_captures([tmp_path / "a/coin"])[0].folder.is_absolute())
     before = fingerprint(found["tablet"])
     (tmp_path / "c/tablet/Test/dirs.lp").write_text(lp + "\n")
     assert fingerprint(found["tablet"]) != before  # a held-out light file changed: the capture is redone
@@ -147,13 +156,15 @@ def test_every_good_capture_is_processed_and_the_corrupt_one_reported(collected)
     assert failure["step"] == "fit" and "damaged or not an image" in failure["error"]
     for name in GOOD:
         record = json.loads((output / name / "capture.json").read_text())
-        for relative in ("field.whf", "fit-report.json", "evaluation/report.json", "viewer/index.html", "viewer/manifest.json", "thumbnail.png"):
+        for relative in ("field.whf", "fit-report.json", "evaluation/report.json", "viewer/index.html",
+                         "viewer/manifest.json", "thumbnail.png"):
             assert (output / name / relative).is_file(), (name, relative)
         assert record["lights"] == 16 and record["size"] == [48, 27] and record["gaussians_per_light"] > 0
         methods = record["scores"]["methods"]
         assert {"circular", "alpha", "ptm", "hsh3", "rbf"} <= set(methods)
         assert all(np.isfinite(m["psnr_db"]) and 0 < m["ssim"] <= 1 for m in methods.values())
-        assert record["held_out_lights"] == ("lights 0, 5, 10, ... (a second fit)" if name in NO_HELDOUT else "heldout.lp")
+        assert (record["held_out_lights"]
+                == ("lights 0, 5, 10, ... (a second fit)" if name in NO_HELDOUT else "heldout.lp"))
         assert (output / name / "holdout-field.whf").is_file() == (name in NO_HELDOUT)
     assert not _leftovers(output)
     rows = _table_rows((output / "index.html").read_text())
@@ -195,7 +206,8 @@ def test_outputs_are_those_of_the_commands_run_by_hand(collected, captures, tmp_
             scored = "field.whf"
             if name in NO_HELDOUT:
                 scored = "holdout-field.whf"
-                assert main(["fit", str(capture), "-o", scored, "--holdout-every", "5", "--device", "cpu", "-q", *QUICK]) == 0
+                assert main(["fit", str(capture), "-o", scored, "--holdout-every", "5", "--device", "cpu", "-q",
+                             *QUICK]) == 0
             assert main(["evaluate", scored, str(capture), "-o", "evaluation", "--device", "cpu", "-q"]) == 0
             assert main(["export", "field.whf", "-o", "viewer", "-q"]) == 0
         finally:
@@ -214,7 +226,8 @@ def test_outputs_are_those_of_the_commands_run_by_hand(collected, captures, tmp_
 
 def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(captures, tmp_path):
     output = tmp_path / "interrupted"
-    run = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
+    run = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"),
+                      str(captures / "museum-b" / "sphere-f"),
                       "-o", str(output), "--no-evaluate", session=True)
     started = time.monotonic()
     while not _finished(output) and time.monotonic() - started < 300 and run.poll() is None:
@@ -234,7 +247,8 @@ def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(ca
     assert not _leftovers(output), _leftovers(output)
     # finished folders only
     assert sorted(p.name for p in output.iterdir() if not p.name.startswith(".")) == sorted(done)
-    rerun = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"), str(captures / "museum-b" / "sphere-f"),
+    rerun = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"),
+                        str(captures / "museum-b" / "sphere-f"),
                         "-o", str(output), "--no-evaluate")
     stdout, stderr = _communicate(rerun, 300)
     assert rerun.returncode == 0, stderr[-2000:]
@@ -250,10 +264,13 @@ def test_an_existing_scheduler_is_used_as_it_is(captures, tmp_path):
 
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         with pytest.raises(InputError, match="--workers and --gpus size a local cluster"):
-            run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, workers=2)
+            run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address,
+                workers=2)
         quick = JobOptions(fit_args=tuple(QUICK), evaluate=False, export=False)
-        result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick)
-        again = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address, device="cpu", options=quick,
+        result = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address,
+                     device="cpu", options=quick)
+        again = run([captures / "museum-a" / "donut-a"], tmp_path / "remote", scheduler=cluster.scheduler_address,
+                    device="cpu", options=quick,
                     # a second run on the same workers (its plugin, its commands: the first run's stop is not its own)
                     force=True)
     assert result.processed == ["donut-a"] and result.ok and again.processed == ["donut-a"] and again.ok
@@ -281,22 +298,27 @@ def test_an_output_folder_overlapping_a_capture_is_refused_and_nothing_is_touche
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     assert main(["collection", str(tmp_path / "shelf"), "-o", str(tmp_path / "shelf"), "--device", "cpu"]) == 2
     assert "this capture is where its output" in capsys.readouterr().err
-    assert main(["collection", str(tmp_path / "shelf" / "coin"), "-o", str(tmp_path / "shelf" / "coin" / "out"), "--device", "cpu"]) == 2
+    assert main(["collection", str(tmp_path / "shelf" / "coin"), "-o", str(tmp_path / "shelf" / "coin" / "out"),
+                 "--device", "cpu"]) == 2
     assert "inside the capture" in capsys.readouterr().err
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
 def test_the_gallery_lists_scores_and_failures(tmp_path):
-    ok = {"name": "coin", "status": "ok", "lights": 40, "size": [480, 270], "gaussians_per_light": 3.25, "fit_seconds": 2.5,
+    ok = {"name": "coin", "status": "ok", "lights": 40, "size": [480, 270], "gaussians_per_light": 3.25,
+          "fit_seconds": 2.5,
           "files": {"viewer": "viewer/index.html", "evaluation": "evaluation/report.json"},
-          "scores": {"lights": 8, "methods": {"circular": {"psnr_db": 33.1, "ssim": 0.95}, "alpha": {"psnr_db": 31.0, "ssim": 0.93},
+          "scores": {"lights": 8, "methods": {"circular": {"psnr_db": 33.1, "ssim": 0.95},
+                                              "alpha": {"psnr_db": 31.0, "ssim": 0.93},
                                               "rbf": {"psnr_db": 30.2, "ssim": 0.9}}}}
     bad = {"name": "seal<1>", "status": "failed", "step": "evaluate", "error": "no held-out lights & no Test/"}
     json_path, html_path = write_gallery(tmp_path, [ok, bad], title="museum")
     data = json.loads(json_path.read_text())
-    assert data["summary"]["finished"] == 1 and data["summary"]["failed"] == 1 and data["summary"]["circular_beats_alpha"] == "1 of 1"
+    assert (data["summary"]["finished"] == 1 and data["summary"]["failed"] == 1
+            and data["summary"]["circular_beats_alpha"] == "1 of 1")
     rows = _table_rows(html_path.read_text())
-    assert ["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · evaluation"] == rows[0][1:]
+    assert (["coin", "40", "480x270", "3.2", "2.5", "33.10", "31.00", "", "", "30.20", "viewer · evaluation"]
+            == rows[0][1:])
     # escaped in the page, read back as text
     assert rows[1][1] == "seal<1>" and "no held-out lights & no Test/" in rows[1][2]
     assert "seal&lt;1&gt;" in html_path.read_text() and "&amp; no Test/" in html_path.read_text()
@@ -345,13 +367,16 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         pytest.skip("no chromium on the PATH (apt install chromium)")
-    playwright = pytest.importorskip("playwright.sync_api", reason="Playwright for Python is not installed (pip install playwright)")
+    playwright = pytest.importorskip("playwright.sync_api",
+                                     reason="Playwright for Python is not installed (pip install playwright)")
     output, _ = collected
     server = make_server(output, 0)  # serve takes a collection's folder (index.html + collection.json)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         with playwright.sync_playwright() as driver:
-            browser = driver.chromium.launch(executable_path=chromium, args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+            browser = driver.chromium.launch(executable_path=chromium,
+                                             args=["--use-gl=angle", "--use-angle=swiftshader",
+                                                   "--enable-unsafe-swiftshader"])
             tab = browser.new_page()
             errors = []
             tab.on("pageerror", lambda error: errors.append(str(error)))
@@ -363,7 +388,9 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
             tab.screenshot(path=str(tmp_path / "gallery.png"))
             with tab.expect_navigation():
                 tab.click("text=viewer >> nth=1")
-            tab.wait_for_function("window.whReady === true || document.getElementById('status').textContent.startsWith('error')", timeout=120_000)
+            tab.wait_for_function(
+                "window.whReady === true || document.getElementById('status').textContent.startsWith('error')",
+                timeout=120_000)
             assert tab.evaluate("window.whReady") is True and "/viewer/" in tab.url
             browser.close()
     finally:
@@ -372,7 +399,8 @@ def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collec
     assert not errors
 
 
-@pytest.mark.parametrize("width,height,most", [(567, 534, 200), (534, 567, 200), (160, 160, 200), (3840, 2160, 960), (7952, 5304, 1000),
+@pytest.mark.parametrize("width,height,most", [(567, 534, 200), (534, 567, 200), (160, 160, 200), (3840, 2160, 960),
+                                               (7952, 5304, 1000),
                                                (6000, 4000, 1024), (4000, 6000, 1023), (1001, 999, 1000)])
 def test_max_side_gives_each_capture_a_size_fit_accepts(width, height, most, monkeypatch):
     """--max-side: the longer side at most PX, never enlarged, the aspect ratio as fit --size checks it (brute force:
@@ -394,7 +422,8 @@ def _command_environment(environment: dict) -> tuple[str | None, dict]:
     """On a worker: its own MALLOC_TRIM_THRESHOLD_, and the environment its commands would get."""
     from warp_highlights.collection.job import _Runner, _Steps
 
-    runner = _Runner(device=None, visible_gpu="0", cores=None, steps=_Steps(), linear=False, max_megapixels=None, environment=environment)
+    runner = _Runner(device=None, visible_gpu="0", cores=None, steps=_Steps(), linear=False, max_megapixels=None,
+                     environment=environment)
     return os.environ.get("MALLOC_TRIM_THRESHOLD_"), runner.env
 
 
@@ -410,7 +439,8 @@ def test_commands_get_the_launching_environment_back_from_dask(monkeypatch):
     environment = launch_environment()
     assert environment["MALLOC_TRIM_THRESHOLD_"] is None, environment
     assert environment["OMP_NUM_THREADS"] == "3", environment
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
         worker_trim, env = client.submit(_command_environment, environment, pure=False).result()
     assert worker_trim == "65536", "the premise: Dask's workers trim malloc at 64 KiB"
     assert "MALLOC_TRIM_THRESHOLD_" not in env, "the commands must not inherit the worker's trim threshold"

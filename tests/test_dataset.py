@@ -466,7 +466,8 @@ def test_fit_loads_only_what_it_uses_at_its_working_size(small_donut, tmp_path, 
     decoded = []
     for reader in ("read_image", "read_pixels"):  # the mask's reader, the images'
         real = getattr(dataset_module, reader)
-        monkeypatch.setattr(dataset_module, reader, lambda path, real=real, **k: decoded.append(path.name) or real(path, **k))
+        monkeypatch.setattr(dataset_module, reader,
+                            lambda path, real=real, **k: decoded.append(path.name) or real(path, **k))
     out = tmp_path / "field.whf"
     assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--device", "cpu", "-q", *TINY_FIT]) == 0
     lights = read_lp(small_donut / "lights.lp")
@@ -562,7 +563,8 @@ def test_loads_run_from_the_shared_threads_do_not_wait_for_ever(tmp_path, monkey
     def many_loads():
         count = 2 * threads.shared_pool()._max_workers
         outcome.extend(threads.parallel_map(
-            lambda _: ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=2).images, range(count)))
+            lambda _: ReflectanceField.load(folder, progress=False, heldout=False, components=False, workers=2).images,
+            range(count)))
 
     runner = threading.Thread(target=many_loads, daemon=True)
     runner.start()
@@ -622,8 +624,10 @@ def test_an_image_replaced_after_its_header_was_read_is_checked_again(tmp_path, 
         write_image(target, image.astype(np.float32))
 
     with pytest.raises(InputError) as excinfo:
-        ReflectanceField.load(folder, progress=False, heldout=False, components=False, max_pixels=1000, before_decoding=swap)
-    expected = {"larger": "over the limit", "grey": "channel(s) but the first image", "other size": "all images must share one size"}
+        ReflectanceField.load(folder, progress=False, heldout=False, components=False, max_pixels=1000,
+                              before_decoding=swap)
+    expected = {"larger": "over the limit", "grey": "channel(s) but the first image",
+                "other size": "all images must share one size"}
     _single_line_error(excinfo, "0003.exr", expected[replacement])
 
 

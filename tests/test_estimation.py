@@ -23,13 +23,15 @@ QUICK = EstimationSettings(iterations=400, densify_every=50, densify_until=300)
 
 def _render(sets: list[dict], height=54, width=96) -> np.ndarray:
     params = GaussianParams.from_sets(sets)
-    return Rasterizer(height, width, device="cpu").render(GaussianBatch.from_numpy(params, device="cpu", requires_grad=False)).numpy()
+    return Rasterizer(height, width,
+                      device="cpu").render(GaussianBatch.from_numpy(params, device="cpu", requires_grad=False)).numpy()
 
 
 def test_recovers_known_gaussians_with_few_of_them(device):
     truth = _render(
         [
-            {"amplitude": [1.4, 1.1], "mean": [[0.5, 0.4], [1.2, 0.6]], "sigma": [[0.06, 0.03], [0.04, 0.04]], "theta": [0.5, 0.0]},
+            {"amplitude": [1.4, 1.1], "mean": [[0.5, 0.4], [1.2, 0.6]], "sigma": [[0.06, 0.03], [0.04, 0.04]],
+             "theta": [0.5, 0.0]},
             {"amplitude": [1.6], "mean": [[0.9, 0.5]], "sigma": [[0.08, 0.02]], "theta": [-0.3]},
             {"amplitude": [0.0], "mean": [[0.9, 0.5]], "sigma": [[0.08, 0.02]], "theta": [0.0]},  # no highlight at all
         ]
@@ -50,16 +52,19 @@ def test_fits_the_segmented_donut(small_donut):
     assert result.counts.mean() <= 6.0
     assert result.psnr.mean() > 44.0 and result.psnr.min() > 25.0, (result.psnr.mean(), result.psnr.min())
     assert np.percentile(result.psnr, 10) > 38.0
-    np.testing.assert_allclose(result.psnr, psnr(_render_params(result.params), seg.specular_luminance.numpy()), atol=1e-4)
+    np.testing.assert_allclose(result.psnr, psnr(_render_params(result.params), seg.specular_luminance.numpy()),
+                               atol=1e-4)
 
 
 def _render_params(params: GaussianParams) -> np.ndarray:
-    return Rasterizer(54, 96, device="cpu").render(GaussianBatch.from_numpy(params, device="cpu", requires_grad=False)).numpy()
+    return Rasterizer(54, 96,
+                      device="cpu").render(GaussianBatch.from_numpy(params, device="cpu", requires_grad=False)).numpy()
 
 
 def test_chunks_on_threads_give_the_same_result_as_one_batch():
     rng = np.random.default_rng(0)
-    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]], "theta": [rng.uniform(0, 3)]} for _ in range(5)]
+    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]],
+             "theta": [rng.uniform(0, 3)]} for _ in range(5)]
     target = _render(sets)
     short = EstimationSettings(iterations=60, densify_every=20, densify_until=50)
     one = estimate(target, settings=short, device="cpu", workers=1)
@@ -78,7 +83,8 @@ def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_set
     import warp_highlights.fit.estimation as estimation_module
 
     rng = np.random.default_rng(5)
-    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]], "theta": [rng.uniform(0, 3)]} for _ in range(5)]
+    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]],
+             "theta": [rng.uniform(0, 3)]} for _ in range(5)]
     target = _render(sets)
     short = EstimationSettings(iterations=60, densify_every=20, densify_until=50)
     devices = ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else [])
@@ -88,7 +94,9 @@ def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_set
     monkeypatch.setattr(estimation_module, "problems_per_launch", lambda h, w, raster: 2)
     sizes = []
     original = estimation_module._Estimator.__init__
-    monkeypatch.setattr(estimation_module._Estimator, "__init__", lambda self, targets, *a, **k: sizes.append(targets.shape[0]) or original(self, targets, *a, **k))
+    monkeypatch.setattr(estimation_module._Estimator, "__init__",
+                        lambda self, targets, *a, **k: sizes.append(targets.shape[0]) or original(self, targets, *a,
+                                                                                                  **k))
     for device in devices:
         steps, sizes[:] = [], []
         parts = estimate(on[device], settings=short, device=device, workers=1, progress=steps.append)
@@ -97,7 +105,8 @@ def test_lights_over_one_launchs_images_are_estimated_in_parts_with_the_same_set
             if device == "cpu":
                 np.testing.assert_array_equal(getattr(parts.params, name), getattr(whole[device].params, name))
             else:  # the device's atomics may add in another order
-                np.testing.assert_allclose(getattr(parts.params, name), getattr(whole[device].params, name), rtol=1e-4, atol=1e-5)
+                np.testing.assert_allclose(getattr(parts.params, name), getattr(whole[device].params, name), rtol=1e-4,
+                                           atol=1e-5)
         assert sum(steps) == pytest.approx(short.iterations)
 
 
@@ -107,7 +116,8 @@ def test_graph_replay_gives_the_eager_result_bit_for_bit():
     import warp as wp
 
     rng = np.random.default_rng(3)
-    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]], "theta": [rng.uniform(0, 3)]} for _ in range(4)]
+    sets = [{"amplitude": [rng.uniform(0.8, 1.5)], "mean": [rng.uniform(0.2, 0.8, 2)], "sigma": [[0.05, 0.03]],
+             "theta": [rng.uniform(0, 3)]} for _ in range(4)]
     target = _render(sets)
     short = EstimationSettings(iterations=120, densify_every=30, densify_until=100)
     with pytest.raises(InputError, match="CUDA graphs need a CUDA device"):
@@ -138,7 +148,8 @@ def test_densify_places_a_gaussian_on_a_curved_highlight():
 
 def test_densify_places_a_gaussian_on_a_rendered_one():
     """Pixel centres sit at (col + 0.5) / H: the moments of a rendered Gaussian give back its parameters."""
-    truth = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
+    truth = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]],
+                                       "theta": [0.5]}])
     image = _render([{"amplitude": [1.5], "mean": [[0.83, 0.41]], "sigma": [[0.06, 0.035]], "theta": [0.5]}])
     estimator = _Estimator(_device_array(image), EstimationSettings(residual_threshold=0.01), QUICK_RASTER, "cpu")
     estimator._densify(estimator._regions())

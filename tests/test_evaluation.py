@@ -177,17 +177,20 @@ def test_evaluation_shapes_and_summary(evaluation, donut):
     field, dataset = donut
     q = dataset.heldout.light_count
     assert q == 2 * field.light_count - 4  # the centroids of a closed sphere's faces
-    assert evaluation.directions.shape == (q, 3) and evaluation.faces.shape == (q,) and evaluation.barycentric.shape == (q, 3)
+    assert (evaluation.directions.shape == (q, 3) and evaluation.faces.shape == (q,)
+            and evaluation.barycentric.shape == (q, 3))
     for scores in (evaluation.specular_psnr, evaluation.full_psnr):
         assert set(scores) == {"circular", "straight", "alpha"}
         for values in scores.values():
             assert values.shape == (q,) and np.all(np.isfinite(values))
     summary = evaluation.summary()
     assert set(summary) == {"specular", "full", "full_srgb", "full_ssim"}
-    assert set(summary["specular"]) == {"circular", "straight", "alpha", "circular_beats_alpha", "circular_beats_straight", "straight_beats_alpha"}
+    assert set(summary["specular"]) == {"circular", "straight", "alpha", "circular_beats_alpha",
+                                        "circular_beats_straight", "straight_beats_alpha"}
     assert summary["specular"]["circular"]["count"] == q
     assert summary["specular"]["circular"]["mean"] == pytest.approx(evaluation.specular_psnr["circular"].mean())
-    assert summary["specular"]["circular_beats_alpha"] == pytest.approx(np.mean(evaluation.specular_psnr["circular"] > evaluation.specular_psnr["alpha"]))
+    assert (summary["specular"]["circular_beats_alpha"]
+            == pytest.approx(np.mean(evaluation.specular_psnr["circular"] > evaluation.specular_psnr["alpha"])))
     # the method beats its baseline on this easy object (thesis Fig. 4.9)
     assert summary["specular"]["circular"]["mean"] > summary["specular"]["alpha"]["mean"]
     assert evaluation.gaussians_per_light.tolist() == field.estimated.counts.tolist()
@@ -220,8 +223,10 @@ def test_gaussian_psnr_matches_the_relighter(evaluation, donut, method):
     relighter = Relighter(field, device="cpu")
     relit = relighter.relight(dataset.heldout.lights.directions, method=method)
     specular_truth = _truth_specular(dataset.heldout.specular)
-    np.testing.assert_allclose(evaluation.specular_psnr[method], psnr_excluding_black(relit.specular, specular_truth), atol=1e-3)
-    np.testing.assert_allclose(evaluation.full_psnr[method], psnr_excluding_black(relit.full, dataset.heldout.images), atol=1e-3)
+    np.testing.assert_allclose(evaluation.specular_psnr[method], psnr_excluding_black(relit.specular, specular_truth),
+                               atol=1e-3)
+    np.testing.assert_allclose(evaluation.full_psnr[method], psnr_excluding_black(relit.full, dataset.heldout.images),
+                               atol=1e-3)
     rows = evaluation.example_queries
     np.testing.assert_allclose(evaluation.examples[method], relit.specular[rows], atol=1e-6)
 
@@ -233,7 +238,8 @@ def test_circular_and_straight_differ(evaluation):
 def test_report_is_strict_json(evaluation, donut):
     field, _ = donut
     report = json.loads(json.dumps(evaluation.to_dict(), allow_nan=False))
-    assert report["summary"]["specular"]["circular"]["mean"] == pytest.approx(evaluation.summary()["specular"]["circular"]["mean"])
+    assert (report["summary"]["specular"]["circular"]["mean"]
+            == pytest.approx(evaluation.summary()["specular"]["circular"]["mean"]))
     assert report["size"] == [field.width, field.height] and report["lights"] == field.light_count
     assert report["methods"] == ["circular", "straight", "alpha"]
     assert len(report["per_query"]["directions"]) == len(evaluation.directions)
@@ -300,7 +306,8 @@ def test_methods_subset_and_no_sweep(donut):
 
 def test_a_dataset_with_other_lights_is_refused(donut):
     field, dataset = donut
-    other = ReflectanceField(images=np.zeros((16, field.height, field.width, 3), np.float32), lights=LightSet.fibonacci_sphere(16))
+    other = ReflectanceField(images=np.zeros((16, field.height, field.width, 3), np.float32),
+                             lights=LightSet.fibonacci_sphere(16))
     with pytest.raises(InputError, match="32 lights but the dataset has 16") as error:
         evaluate_field(field, other, device="cpu")
     assert "\n" not in str(error.value)
@@ -352,7 +359,8 @@ def exposed(small_donut):
     from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", exposure=2.0,
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images",
+                      exposure=2.0,
                       size=(48, 27), progress=False)
     assert field.report["exposure"] == 2.0
     return field, dataset
@@ -382,7 +390,8 @@ def test_evaluate_the_real_dome_capture_at_its_test_lights(data_root, tmp_path):
 
     sample = data_root / "synthrti-object1-material5"
     field_path = tmp_path / "dome.whf"
-    assert main(["fit", str(sample / "Dome"), "-o", str(field_path), "--size", "80x80", "-q", *[a for o in FAST_FIT for a in ("--set", o)]]) == 0
+    assert main(["fit", str(sample / "Dome"), "-o", str(field_path), "--size", "80x80", "-q",
+                 *[a for o in FAST_FIT for a in ("--set", o)]]) == 0
     field = load_field(field_path)
     dataset = ReflectanceField.load(sample / "Dome", heldout=sample / "Test", progress=False)
     evaluation = evaluate_field(field, dataset, device="cpu", barycentric_face="auto")

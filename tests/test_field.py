@@ -478,8 +478,10 @@ def npy_entries(data: bytes) -> dict:
         if name.endswith(".npy.blosc"):
             lengths = np.load(io.BytesIO(contents[name.removesuffix(".npy.blosc") + ".lengths.npy"]))
             ends = np.cumsum(lengths)
-            arrays[name.removesuffix(".blosc")] = b"".join(bytes(Blosc().decode(blob[end - length : end])) for end, length in zip(ends, lengths))
-        elif name.endswith(".npy") and not (name.endswith(".lengths.npy") and name.replace(".lengths.npy", ".npy.blosc") in contents):
+            arrays[name.removesuffix(".blosc")] = b"".join(bytes(Blosc().decode(blob[end - length : end]))
+                                                           for end, length in zip(ends, lengths))
+        elif (name.endswith(".npy")
+              and not (name.endswith(".lengths.npy") and name.replace(".lengths.npy", ".npy.blosc") in contents)):
             arrays[name] = blob
     return arrays
 
@@ -997,13 +999,15 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
 
     expected = np.load(LEGACY / "legacy-v1-relit.npz")
     for method in ("circular", "straight"):
-        relit = Relighter(field, device="cpu", diffuse="auto", scale=1.0 / field.exposure).relight(expected["directions"], method=method)
+        relit = Relighter(field, device="cpu", diffuse="auto",
+                          scale=1.0 / field.exposure).relight(expected["directions"], method=method)
         np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
 
     again = tmp_path / "again.whf"
     save_field(field, again)
-    old_header, new_header = (json.loads(entries(data)["header.json"]) for data in (path.read_bytes(), again.read_bytes()))
+    old_header, new_header = (json.loads(entries(data)["header.json"])
+                              for data in (path.read_bytes(), again.read_bytes()))
     old, new = npy_entries(path.read_bytes()), npy_entries(again.read_bytes())
     assert list(new) == list(old)
     assert old_header.pop("library_version") == "0.1.0"
@@ -1088,18 +1092,21 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     field = load_field(path)
     luminance, chroma = field.residual.luminance, field.residual.chroma
     assert luminance.codes.shape == (8, 24, 40, 1) and luminance.codes.dtype == np.uint16 and chroma.rank == 0
-    assert hashlib.sha256(luminance.codes.tobytes()).hexdigest() == "598d2c92922649fa91e1ce7d604a3a4185161f6d0a32045ccc5b4c4cbc718cd9"
+    assert (hashlib.sha256(luminance.codes.tobytes()).hexdigest()
+            == "598d2c92922649fa91e1ce7d604a3a4185161f6d0a32045ccc5b4c4cbc718cd9")
     assert field_size_report(field)["total"] == path.stat().st_size == 26937
 
     expected = np.load(LEGACY / "legacy-v4-relit.npz")
     for method in ("circular", "straight"):
-        relit = Relighter(field, device="cpu", diffuse="auto", scale=1.0 / field.exposure).relight(expected["directions"], method=method)
+        relit = Relighter(field, device="cpu", diffuse="auto",
+                          scale=1.0 / field.exposure).relight(expected["directions"], method=method)
         np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
         np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
 
     again = tmp_path / "again.whf"
     save_field(field, again)
-    old_header, new_header = (json.loads(entries(data)["header.json"]) for data in (path.read_bytes(), again.read_bytes()))
+    old_header, new_header = (json.loads(entries(data)["header.json"])
+                              for data in (path.read_bytes(), again.read_bytes()))
     assert new_header["format_version"] == FORMAT_VERSION == 5
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")

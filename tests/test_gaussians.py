@@ -24,7 +24,8 @@ def test_numpy_round_trip_keeps_active_slots_and_zeroes_free_ones(device):
 def test_from_sets_packs_slots_in_order():
     params = GaussianParams.from_sets(
         [
-            {"amplitude": [1.0, 0.5], "mean": [[0.1, 0.2], [0.3, 0.4]], "sigma": [[0.01, 0.02]] * 2, "theta": [0.0, 1.0]},
+            {"amplitude": [1.0, 0.5], "mean": [[0.1, 0.2], [0.3, 0.4]], "sigma": [[0.01, 0.02]] * 2,
+             "theta": [0.0, 1.0]},
             {"amplitude": [0.7], "mean": [[0.5, 0.5]], "sigma": [[0.03, 0.03]], "theta": [0.2], "weight": [0.5]},
         ],
         capacity=4,
@@ -33,7 +34,8 @@ def test_from_sets_packs_slots_in_order():
     np.testing.assert_array_equal(params.counts, [2, 1])
     assert params.weight[1, 0] == 0.5 and params.weight[0, 1] == 1.0
     with pytest.raises(InputError, match="capacity is 1"):
-        GaussianParams.from_sets([{"amplitude": [1, 2], "mean": np.zeros((2, 2)), "sigma": np.ones((2, 2)), "theta": [0, 0]}], capacity=1)
+        GaussianParams.from_sets([{"amplitude": [1, 2], "mean": np.zeros((2, 2)), "sigma": np.ones((2, 2)),
+                                   "theta": [0, 0]}], capacity=1)
 
 
 def test_add_fills_lowest_free_slots_per_problem(device):
@@ -42,7 +44,8 @@ def test_add_fills_lowest_free_slots_per_problem(device):
     params.amplitude[0, [0, 2]] = 1.0
     batch = GaussianBatch.from_numpy(params, device=device)
     problems = np.array([0, 2, 0, 2, 2])
-    slots = batch.add(problems, amplitude=np.arange(5) + 1.0, mean=np.ones((5, 2)) * 0.5, sigma=np.full((5, 2), 0.01), theta=np.zeros(5))
+    slots = batch.add(problems, amplitude=np.arange(5) + 1.0, mean=np.ones((5, 2)) * 0.5, sigma=np.full((5, 2), 0.01),
+                      theta=np.zeros(5))
     np.testing.assert_array_equal(slots, [1, 0, 3, 1, 2])
     after = batch.numpy()
     np.testing.assert_array_equal(after.counts, [4, 0, 3])
@@ -72,9 +75,11 @@ def test_remove_frees_slots(device):
 
 def test_shape_and_value_errors():
     with pytest.raises(InputError, match="mean must have shape"):
-        GaussianParams(amplitude=np.zeros((1, 2)), mean=np.zeros((1, 3)), sigma=np.zeros((1, 2, 2)), theta=np.zeros((1, 2)), weight=np.ones((1, 2)), active=np.ones((1, 2)))
+        GaussianParams(amplitude=np.zeros((1, 2)), mean=np.zeros((1, 3)), sigma=np.zeros((1, 2, 2)),
+                       theta=np.zeros((1, 2)), weight=np.ones((1, 2)), active=np.ones((1, 2)))
     with pytest.raises(InputError, match="non-finite"):
-        GaussianParams(amplitude=np.array([[np.nan]]), mean=np.zeros((1, 1, 2)), sigma=np.zeros((1, 1, 2)), theta=np.zeros((1, 1)), weight=np.ones((1, 1)), active=np.ones((1, 1)))
+        GaussianParams(amplitude=np.array([[np.nan]]), mean=np.zeros((1, 1, 2)), sigma=np.zeros((1, 1, 2)),
+                       theta=np.zeros((1, 1)), weight=np.ones((1, 1)), active=np.ones((1, 1)))
     with pytest.raises(InputError, match="at least one"):
         GaussianBatch(0, 4, device="cpu")
     batch = GaussianBatch(2, 3, device="cpu")

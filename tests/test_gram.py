@@ -60,7 +60,8 @@ def test_projections_are_float64_sums_kept_as_float32(device):
     # the matrix is uploaded once for equal matrices, again when it changes (even in place)
     np.testing.assert_array_equal(products.project(matrix.copy(), block), projected)
     matrix[3, 7] += 1.0
-    np.testing.assert_allclose(products.project(matrix, block)[3], matrix[3] @ block.astype(np.float64), rtol=1e-6, atol=1e-5)
+    np.testing.assert_allclose(products.project(matrix, block)[3], matrix[3] @ block.astype(np.float64), rtol=1e-6,
+                               atol=1e-5)
     with pytest.raises(ValueError, match="kept on the device"):
         products.project(matrix, block, host=False)
 
@@ -119,7 +120,8 @@ def test_principal_images_and_weights_summed_on_the_device_are_the_host_s(device
         images = np.concatenate([stack[..., :1], stack[..., 1:] * 0.5, stack[..., :1] * 0.25], axis=-1)
         own, tint, scale = np.zeros((n, h, w), np.float32), np.ones((1, 1, 3), np.float32), np.ones((h, w), np.float32)
         host = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale)
-        there = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, products=products)
+        there = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale,
+                                          products=products)
     assert host.products is None and there.products is products
     _same_images(host, there, 8)
     steps = host.spans[:6] / 65535 * 40.0

@@ -51,7 +51,8 @@ def _bomb_png(path, width: int = 20000, height: int = 20000) -> None:
     packer = zlib.compressobj(9)
     data = b"".join(packer.compress(row) for _ in range(height)) + packer.flush()
     ihdr = struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", data) + _png_chunk(b"IEND", b""))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", ihdr) + _png_chunk(b"IDAT", data)
+                     + _png_chunk(b"IEND", b""))
 
 
 def _capture(folder, images, *, names=None, lights=None, suffix=".png"):
@@ -316,7 +317,8 @@ def test_a_capture_too_big_for_memory_is_refused_before_decoding(tmp_path, monke
         monkeypatch.setattr(dataset_module, reader, lambda *a, **k: pytest.fail("an image was decoded"))
     with pytest.raises(InputError) as excinfo:
         ReflectanceField.load(folder, progress=False, workers=1)
-    message = _one_line(excinfo, "loading needs about 100.8 kB", "(5 images of 40x30x3 as float32) but 50.0 kB is available")
+    message = _one_line(excinfo, "loading needs about 100.8 kB",
+                        "(5 images of 40x30x3 as float32) but 50.0 kB is available")
     assert str(folder) in message
 
 

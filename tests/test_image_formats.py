@@ -47,7 +47,8 @@ def test_tiff_8bit_and_float(tmp_path):
     np.testing.assert_array_equal(np.rint(read_image(tmp_path / "a.tif", linear=True) * 255).astype(np.uint8), levels)
     values = rng.uniform(0.0, 40.0, (5, 7, 3)).astype(np.float32)  # radiance beyond display white
     output = oiio.ImageOutput.create("tiff")
-    assert output.open(str(tmp_path / "f.tif"), oiio.ImageSpec(7, 5, 3, "float")) and output.write_image(values) and output.close()
+    assert (output.open(str(tmp_path / "f.tif"), oiio.ImageSpec(7, 5, 3, "float")) and output.write_image(values)
+            and output.close())
     np.testing.assert_array_equal(read_image(tmp_path / "f.tif"), values)  # a float TIFF holds linear values, as EXR
     assert image_encoding(tmp_path / "f.tif")["values"] == "linear" and image_encoding(tmp_path / "f.tif")["bits"] == 32
 
@@ -80,11 +81,13 @@ def _profile(name: str) -> bytes:
 def test_icc_profiles_are_converted_or_named_once(tmp_path, caplog, monkeypatch):
     picture = np.random.default_rng(2).integers(0, 256, (8, 8, 3)).astype(np.uint8)
     srgb = tmp_path / "srgb.jpg"
-    Image.fromarray(picture).save(srgb, quality=100, icc_profile=ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes())
+    Image.fromarray(picture).save(srgb, quality=100,
+                                  icc_profile=ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes())
     wide = tmp_path / "wide.jpg"
     Image.fromarray(picture).save(wide, quality=100, icc_profile=_profile("Test RGB wide"))
     lab = tmp_path / "lab.jpg"
-    Image.fromarray(picture).save(lab, quality=100, icc_profile=ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes())
+    Image.fromarray(picture).save(lab, quality=100,
+                                  icc_profile=ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes())
     monkeypatch.setattr(images_module, "_REPORTED_PROFILES", set())
     conversions = []
     convert = ImageCms.profileToProfile
@@ -110,7 +113,8 @@ def test_float_tiff_profile_is_named_and_its_values_kept(tmp_path, caplog, monke
 
     values = np.random.default_rng(5).random((5, 7, 3)).astype(np.float32) * 2.0
     spec = oiio.ImageSpec(7, 5, 3, "float")
-    spec.attribute("ICCProfile", oiio.TypeDesc("uint8[%d]" % len(_profile("Test RGB wide"))), np.frombuffer(_profile("Test RGB wide"), np.uint8))
+    spec.attribute("ICCProfile", oiio.TypeDesc("uint8[%d]" % len(_profile("Test RGB wide"))),
+                   np.frombuffer(_profile("Test RGB wide"), np.uint8))
     output = oiio.ImageOutput.create(str(tmp_path / "f.tif"))
     assert output.open(str(tmp_path / "f.tif"), spec) and output.write_image(values) and output.close()
     monkeypatch.setattr(images_module, "_REPORTED_PROFILES", set())
@@ -136,7 +140,8 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
     for i, (name, (lx, ly, lz)) in enumerate(zip(names, lights.directions)):
         shade = np.clip(0.15 + 0.6 * lz + 0.2 * (lx * x + ly * y), 0.0, 1.0)
         highlight = 0.8 * np.exp(-((x - 0.5 - 0.3 * lx) ** 2 + (y - 0.5 - 0.3 * ly) ** 2) / 0.004)
-        level = np.rint(np.clip(shade + highlight, 0.0, 1.0) * 65535.0)[..., None] * np.array([1.0, 0.9, 0.8]) + rng.integers(0, 7, (24, 32, 3))
+        level = (np.rint(np.clip(shade + highlight, 0.0, 1.0) * 65535.0)[..., None] * np.array([1.0, 0.9, 0.8])
+                 + rng.integers(0, 7, (24, 32, 3)))
         level = np.clip(level, 0, 65535).astype(np.uint16)
         codes.append(level)
         write_image(folder / name, level / 65535.0, bits=16, linear=True)
@@ -145,7 +150,8 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
     back = np.rint(dataset.images * 65535.0).astype(np.uint16)
     np.testing.assert_array_equal(back, np.stack(codes))
     assert np.any(np.stack(codes) % 257 != 0)  # not an 8-bit image in disguise
-    assert dataset.source == {"format": "TIFF" if suffix == ".tif" else "PNG", "bits": 16, "values": "linear", "profile": None, "size": [32, 24]}
+    assert dataset.source == {"format": "TIFF" if suffix == ".tif" else "PNG", "bits": 16, "values": "linear",
+                              "profile": None, "size": [32, 24]}
     field_path = tmp_path / "capture.whf"
     settings = [part for item in FAST_FIT + ["residual.check_lights=0"] for part in ("--set", item)]
     assert main(["fit", str(folder), "-o", str(field_path), "--linear", "--device", "cpu", "-q", *settings]) == 0
@@ -159,9 +165,11 @@ def test_16bit_capture_fits_and_relights_keeping_its_16_bits(tmp_path, suffix, c
         relit = read_image(out)
         assert np.all(np.isfinite(relit)) and relit.min() >= 0 and relit.max() > 0.05
     capsys.readouterr()
-    assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "-o", str(tmp_path / "relit.exr"), "--bits", "16", "-q"]) == 2
+    assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "-o", str(tmp_path / "relit.exr"), "--bits",
+                 "16", "-q"]) == 2
     assert "--bits 16 is for PNG and TIFF" in capsys.readouterr().err
-    assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "--light", "0.1,0,1", "-o", str(tmp_path / "many"), "--bits", "8", "-q"]) == 2
+    assert main(["relight", str(field_path), "--light", "0.2,0.3,0.9", "--light", "0.1,0,1", "-o",
+                 str(tmp_path / "many"), "--bits", "8", "-q"]) == 2
     assert "folder of EXR images" in capsys.readouterr().err and not (tmp_path / "many").exists()
 
 

@@ -102,7 +102,8 @@ def _foreign_exr(path, planes: dict) -> None:
     OpenEXR.File(header, {name: np.ascontiguousarray(plane) for name, plane in planes.items()}).write(str(path))
 
 
-@pytest.mark.parametrize("layout", ["RGB half", "RGB float", "RGBA half", "RGB mixed types", "RGB and Z", "Y", "one channel", "Y and A"])
+@pytest.mark.parametrize("layout", ["RGB half", "RGB float", "RGBA half", "RGB mixed types", "RGB and Z", "Y",
+                                    "one channel", "Y and A"])
 def test_exr_channel_layouts_read_as_each_channel_alone(tmp_path, layout):
     """R, G and B as OpenEXR groups them (one interleaved "RGB" or "RGBA" channel), or alone where it does
     not (mixed types): the values of each kept channel read alone, widened to float32; ``read_pixels`` the
@@ -128,9 +129,11 @@ def test_exr_channel_layouts_read_as_each_channel_alone(tmp_path, layout):
     }[layout]
     path = tmp_path / "a.exr"
     _foreign_exr(path, planes)
-    alone = {name: channel.pixels for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
+    alone = {name: channel.pixels
+             for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
     keep = ("R", "G", "B") if "R" in planes else ("Y",) if "Y" in planes else tuple(planes)
-    expected = np.stack([alone[name].astype(np.float32) for name in keep], axis=-1) if len(keep) == 3 else alone[keep[0]].astype(np.float32)
+    expected = (np.stack([alone[name].astype(np.float32) for name in keep], axis=-1) if len(keep) == 3
+                else alone[keep[0]].astype(np.float32))
     image = read_image(path)
     assert image.dtype == np.float32 and image.flags.writeable and image.flags.owndata
     np.testing.assert_array_equal(image, expected)

@@ -47,7 +47,8 @@ class Workload:
 WORKLOADS = {
     "render": Workload(
         "dataset",
-        ("render", "sphere", "{out}", "--lights", "16", "--size", "32x18", "--samples", "1", "--heldout", "none", "--device", "cpu"),
+        ("render", "sphere", "{out}", "--lights", "16", "--size", "32x18", "--samples", "1", "--heldout", "none",
+         "--device", "cpu"),
         ("render", "sphere", "{out}", "--lights", "64", "--size", "96x54", "--samples", "4", "--device", "cpu"),
     ),
     "fit": Workload(
@@ -63,11 +64,13 @@ WORKLOADS = {
     "animate": Workload(
         "frames",
         ("animate", "{field}", "--path", "orbit:35", "--frames", "3", "-o", "{out}", "--device", "cpu"),
-        ("animate", "{field}", "--path", "orbit:35", "--frames", "48", "--size", "320x180", "-o", "{out}", "--device", "cpu"),
+        ("animate", "{field}", "--path", "orbit:35", "--frames", "48", "--size", "320x180", "-o", "{out}", "--device",
+         "cpu"),
     ),
     "evaluate": Workload(
         "evaluation",
-        ("evaluate", "{field}", "{data}", "--triangle", "none", "--methods", "circular", "-o", "{out}", "--device", "cpu"),
+        ("evaluate", "{field}", "{data}", "--triangle", "none", "--methods", "circular", "-o", "{out}", "--device",
+         "cpu"),
         ("evaluate", "{field}", "{data}", "--steps", "3", "-o", "{out}", "--device", "cpu"),
     ),
     "demo": Workload(
@@ -166,11 +169,13 @@ def prepared(inputs, tmp_path_factory):
             assert main(earlier) == 0, f"writing the earlier {name} output failed"
             reference = root / "reference" / workload.target
             started = time.perf_counter()
-            result = subprocess.run(_cli(_argv(workload.new, inputs, reference)), env=inputs["env"], capture_output=True, text=True,
+            result = subprocess.run(_cli(_argv(workload.new, inputs, reference)), env=inputs["env"],
+                                    capture_output=True, text=True,
                                     timeout=RUN_TIMEOUT_S)
             seconds = time.perf_counter() - started
             assert result.returncode == 0, f"the undisturbed {name} run failed: {result.stderr[-3000:]}"
-            _prepared[name] = Prepared(workload, out, earlier + ["--overwrite"], _argv(workload.new, inputs, out) + ["--overwrite"],
+            _prepared[name] = Prepared(workload, out, earlier + ["--overwrite"],
+                                       _argv(workload.new, inputs, out) + ["--overwrite"],
                                        _snapshot(reference), seconds, inputs["env"])
         return _prepared[name]
 
@@ -197,7 +202,8 @@ def _delays(command: str, signame: str, longest: float) -> list[float]:
 def _check_new_output(prepared: Prepared, after: dict[str, str]) -> None:
     expected = prepared.expected_new
     assert sorted(after) == sorted(expected), "finished, but the output is not exactly the new one"
-    different = [name for name, digest in after.items() if not name.endswith(VOLATILE_SUFFIXES) and digest != expected[name]]
+    different = [name for name, digest in after.items()
+                 if not name.endswith(VOLATILE_SUFFIXES) and digest != expected[name]]
     assert not different, f"finished, but these differ from the new output: {different[:5]}"
 
 
@@ -225,7 +231,8 @@ def test_an_interrupt_keeps_the_earlier_output(command, signame, point, prepared
     _reset(state)
     before = _snapshot(state.out)
 
-    process = subprocess.Popen(_cli(state.new), env=state.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(_cli(state.new), env=state.env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True)
     time.sleep(delay)
     process.send_signal(signum)  # does nothing when it has already exited
     try:
@@ -250,7 +257,8 @@ def test_an_interrupt_keeps_the_earlier_output(command, signame, point, prepared
     elif sorted(after) == sorted(state.expected_new):
         content = "the new output's files"
     else:
-        content = "changed: " + ", ".join(sorted(n for n in set(before) | set(after) if before.get(n) != after.get(n))[:5])
+        content = ("changed: "
+                   + ", ".join(sorted(n for n in set(before) | set(after) if before.get(n) != after.get(n))[:5]))
     assert _stderr_problem(stderr) is None, f"{where}: {_stderr_problem(stderr)}"
     assert status in (interrupted_status, 0), (
         f"{where}: exit status {status}, expected {interrupted_status} (or 0); output {content}; "
@@ -264,7 +272,8 @@ def test_an_interrupt_keeps_the_earlier_output(command, signame, point, prepared
         if command == "fit":
             assert new_width == 32, f"{where}: finished, but the field is not the new one (32 pixels wide): {new_width}"
     else:
-        assert after == before, f"{where}: exit status {status} but the earlier output is not intact: {content}; stdout: {stdout[-300:]!r}"
+        assert after == before, (f"{where}: exit status {status} but the earlier output is not intact: {content}; "
+                                 f"stdout: {stdout[-300:]!r}")
 
 
 # --- SIGKILL ---------------------------------------------------------------------------------------
@@ -279,7 +288,8 @@ def test_a_killed_render_is_cleaned_up_by_the_next_one(inputs, tmp_path):
     before = _snapshot(out)
     new = _argv(workload.new, inputs, out) + ["--overwrite"]
 
-    process = subprocess.Popen(_cli(new), env=inputs["env"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(_cli(new), env=inputs["env"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
     prefix = f".{out.name}.partial-"
     deadline = time.monotonic() + RUN_TIMEOUT_S
     partial = []
@@ -288,7 +298,8 @@ def test_a_killed_render_is_cleaned_up_by_the_next_one(inputs, tmp_path):
         time.sleep(0.005)
     process.kill()
     _, stderr = process.communicate(timeout=RUN_TIMEOUT_S)
-    assert partial, f"no hidden {prefix}* entry appeared while render ran (exit status {process.returncode}): {stderr[-1500:]!r}"
+    assert partial, (f"no hidden {prefix}* entry appeared while render ran (exit status {process.returncode}): "
+                     f"{stderr[-1500:]!r}")
     assert process.returncode == -signal.SIGKILL, f"render ended before SIGKILL (status {process.returncode})"
     assert _snapshot(out) == before, "SIGKILL mid-way changed the earlier output"
 

@@ -100,7 +100,8 @@ def test_log_l1_without_its_value_records_the_same_gradient(device):
         gradients.append(pixels.grad.numpy())
     np.testing.assert_array_equal(gradients[0], gradients[1])
     r, s = image.astype(np.float64), np.maximum(target, 0.0).astype(np.float64)
-    expected = np.array([1.0, -3.0])[:, None, None] * 0.5 * reference.pixel_area(6) * np.sign(r - s) / ((1 + r) * np.log(2))
+    expected = (np.array([1.0, -3.0])[:, None, None] * 0.5 * reference.pixel_area(6) * np.sign(r - s)
+                / ((1 + r) * np.log(2)))
     np.testing.assert_allclose(gradients[0], expected, rtol=1e-5, atol=1e-6)
     assert np.all(gradients[0][:, 3, :4] == 0.0)
 
@@ -113,8 +114,10 @@ def test_fit_loss_gradient_through_the_rasterizer(device):
     fit = losses.LogL1Loss(target, device=device)
     value, got = _gradients_of(lambda: fit(raster.render(batch)), batch)
     current = batch.numpy()
-    np.testing.assert_allclose(value, reference.log_l1(reference.render(current, height, width), target, height), rtol=1e-5)
-    expected = central_differences(lambda p: reference.log_l1(reference.render(p, height, width), target, height).sum(), current)
+    np.testing.assert_allclose(value, reference.log_l1(reference.render(current, height, width), target, height),
+                               rtol=1e-5)
+    expected = central_differences(lambda p: reference.log_l1(reference.render(p, height, width), target, height).sum(),
+                                   current)
     for name in PARAMETERS:
         np.testing.assert_allclose(got[name], expected[name], atol=3e-4 * np.abs(expected[name]).max(), err_msg=name)
 
@@ -147,7 +150,8 @@ def test_fit_loss_of_a_render_has_one_adjoint_with_the_same_gradients(device):
     for name in PARAMETERS:
         assert np.abs(plain[name]).max() > 0, name
         if wp.get_device(device).is_cuda:
-            np.testing.assert_allclose(fused_gradients[name], plain[name], rtol=1e-5, atol=1e-6 * np.abs(plain[name]).max(), err_msg=name)
+            np.testing.assert_allclose(fused_gradients[name], plain[name], rtol=1e-5,
+                                       atol=1e-6 * np.abs(plain[name]).max(), err_msg=name)
         else:
             np.testing.assert_array_equal(fused_gradients[name], plain[name], err_msg=name)
 
@@ -183,7 +187,8 @@ def test_a_fitting_step_reads_the_image_only_where_gaussians_draw(device):
     assert full["weight"][0, 0] != 0.0
     for name in (*PARAMETERS, "weight"):
         if wp.get_device(device).is_cuda:
-            np.testing.assert_allclose(drawn[name], full[name], rtol=1e-5, atol=1e-6 * np.abs(full[name]).max(), err_msg=name)
+            np.testing.assert_allclose(drawn[name], full[name], rtol=1e-5, atol=1e-6 * np.abs(full[name]).max(),
+                                       err_msg=name)
         else:
             np.testing.assert_array_equal(drawn[name], full[name], err_msg=name)
 
@@ -239,7 +244,8 @@ def test_weighted_sum_of_all_three_losses(device):
     fixed, batch = _pair(device, seed=7, height=height, width=width, spread_rpx=12)
     target = np.random.default_rng(8).uniform(0, 1.5, (3, height, width)).astype(np.float32)
     raster = Rasterizer(height, width, device=device)
-    fit, structure, energy = losses.LogL1Loss(target, device=device), losses.StructureLoss(fixed), losses.EnergyLoss(fixed)
+    fit, structure, energy = (losses.LogL1Loss(target, device=device), losses.StructureLoss(fixed),
+                              losses.EnergyLoss(fixed))
     weights = (1.0, 0.05, 2e-3)
 
     def retarget_loss():

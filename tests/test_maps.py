@@ -46,14 +46,16 @@ def sphere_fits():
     )
     from warp_highlights.synth.shapes import make_shape
 
-    renderer = Renderer(make_shape("sphere"), material=default_material("sphere"), settings=RenderSettings(width=64, height=64),
+    renderer = Renderer(make_shape("sphere"), material=default_material("sphere"),
+                        settings=RenderSettings(width=64, height=64),
                         rotation=view_rotation("sphere"), device="cpu")
     everywhere = LightSet.fibonacci_sphere(48).directions
     dome = LightSet.fibonacci_sphere(96).directions
     fits = {}
     for name, directions in (("sphere", everywhere), ("dome", dome[dome[:, 2] > 0.05])):
         dataset = ReflectanceField(images=renderer.render(directions).full, lights=LightSet(directions))
-        fits[name] = (renderer, fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", progress=False))
+        fits[name] = (renderer,
+                      fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", progress=False))
     return fits
 
 
@@ -151,7 +153,8 @@ def test_fit_normals_matches_per_pixel_least_squares_and_rejects_highlights_and_
     for pixel in range(0, 200, 23):
         kept = fit.inliers[:, pixel]
         column = (directions[kept] @ fit.normals[pixel])[:, None]
-        np.testing.assert_allclose(albedo[pixel], np.linalg.lstsq(column, images[kept, pixel], rcond=None)[0][0], rtol=1e-9)
+        np.testing.assert_allclose(albedo[pixel], np.linalg.lstsq(column, images[kept, pixel], rcond=None)[0][0],
+                                   rtol=1e-9)
 
 
 def test_a_field_without_a_diffuse_part_has_no_maps(sphere_fits):
@@ -228,7 +231,8 @@ def test_dome_sample_normals_against_its_rendered_normal_map(data_root):
     if not (root / "normals.png").is_file():
         pytest.skip(f"no {root / 'normals.png'}")
     dataset = ReflectanceField.load(root, progress=False)
-    field = fit_field(dataset, size=(80, 80), settings=FitSettings().with_overrides(FAST_FIT), device="cpu", progress=False)
+    field = fit_field(dataset, size=(80, 80), settings=FitSettings().with_overrides(FAST_FIT), device="cpu",
+                      progress=False)
     truth = resize_stack((read_image(root / "normals.png", linear=True) * 2.0 - 1.0)[None], 80, 80)[0]
     truth /= np.linalg.norm(truth, axis=-1, keepdims=True)
     leaning, flat = (surface_maps(field, device="cpu", flatten=flatten) for flatten in (False, True))

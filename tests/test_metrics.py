@@ -46,7 +46,8 @@ def test_ssim_is_scikit_images():
     rng = np.random.default_rng(1)
     x, y = rng.integers(0, 256, (2, 20, 30, 3)).astype(np.uint8)
     assert ssim_8bit(x, y) == pytest.approx(structural_similarity(y, x, channel_axis=-1, data_range=255, win_size=7))
-    assert ssim_8bit(x[:5, :5], y[:5, :5]) == pytest.approx(structural_similarity(y[:5, :5], x[:5, :5], channel_axis=-1, data_range=255, win_size=5))
+    assert (ssim_8bit(x[:5, :5], y[:5, :5])
+            == pytest.approx(structural_similarity(y[:5, :5], x[:5, :5], channel_axis=-1, data_range=255, win_size=5)))
     assert ssim_8bit(x[:2, :2], y[:2, :2]) == 1.0  # too small for any window
     images, truth = rng.uniform(0, 1, (2, 3, 20, 30, 3))
     p, s = srgb_scores(images, truth)
@@ -61,7 +62,8 @@ def test_quality_is_computed_in_one_module():
             if path.relative_to(ROOT).as_posix() == "warp_highlights/quality/metrics.py":
                 continue
             text = path.read_text()
-            found += [f"{path.relative_to(ROOT)}: {needle}" for needle in ("log10(", "structural_similarity", "peak_signal_noise_ratio") if needle in text]
+            found += [f"{path.relative_to(ROOT)}: {needle}"
+                      for needle in ("log10(", "structural_similarity", "peak_signal_noise_ratio") if needle in text]
     assert found == []
 
 

@@ -89,7 +89,8 @@ def test_tape_gradients_match_central_differences(device):
     tape = wp.Tape()
     with tape:
         batch.run(samples, total, pixels, codes, light_array, weights, device)
-        wp.launch(neural.squared_error, dim=total, inputs=[samples, total, pixels, batch.values, target_array, 1.0 / total], outputs=[loss], device=device)
+        wp.launch(neural.squared_error, dim=total, inputs=[samples, total, pixels, batch.values, target_array,
+                                                           1.0 / total], outputs=[loss], device=device)
     tape.backward(loss)
 
     params = [model.codes.astype(np.float64)] + [w.astype(np.float64) for w in model.weights]
@@ -158,7 +159,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     assert field.report["residual"]["move_check"]["moves"] and verdict["lights"] == 6
     keeps = verdict["with_gaussians_psnr_db"] >= verdict["images_alone_psnr_db"]
     assert verdict["keeps_gaussians"] == keeps and bool(field.estimated.active.any()) == keeps
-    assert learned.unit == pytest.approx(field.exposure) and learned.codes.shape == (field.height, field.width, neural.CODE_SIZE)
+    assert (learned.unit == pytest.approx(field.exposure)
+            and learned.codes.shape == (field.height, field.width, neural.CODE_SIZE))
     path = tmp_path / "learned.whf"
     save_field(field, path)
     loaded = load_field(path)
@@ -179,16 +181,19 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     )
 
     capsys.readouterr()
-    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu"]) == 0
+    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device",
+                 "cpu"]) == 0
     assert capsys.readouterr().err.count("--residual lowrank") == 1
-    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu", "-q", "--overwrite"]) == 0
+    assert main(["relight", str(path), "--light", "0.3,0.2,0.93", "-o", str(tmp_path / "relit.png"), "--device", "cpu",
+                 "-q", "--overwrite"]) == 0
     assert "--residual lowrank" not in capsys.readouterr().err
 
     from test_field import load_error, rewrite
 
     data = path.read_bytes()
     broken = tmp_path / "broken.whf"
-    rewrite(data, broken, header=lambda h: {**h, "residual": {**h["residual"], "learned": {"unit": -1.0, "lights": 32}}})
+    rewrite(data, broken,
+            header=lambda h: {**h, "residual": {**h["residual"], "learned": {"unit": -1.0, "lights": 32}}})
     assert "residual.learned" in load_error(broken)
     rewrite(data, broken, drop=("residual/learned_w2.npy",))
     assert "learned_w2" in load_error(broken)
@@ -198,7 +203,8 @@ def test_learned_residual_needs_colour_images():
     from warp_highlights.model.config import ResidualSettings
 
     with pytest.raises(InputError, match="colour"):
-        learn_residual(np.zeros((4, 8, 8, 1), np.float32), np.zeros((4, 8, 8), np.float32), None, np.eye(3)[[0, 1, 2, 2]], factor=1.0,
+        learn_residual(np.zeros((4, 8, 8, 1), np.float32), np.zeros((4, 8, 8), np.float32), None,
+                       np.eye(3)[[0, 1, 2, 2]], factor=1.0,
                        settings=ResidualSettings(kind="learned"), device="cpu")
 
 
@@ -237,7 +243,8 @@ def test_training_never_reads_the_lights_left_out(device):
     with pytest.raises(ValueError, match="used"):
         neural.train_decoder(targets, directions, device=device, epochs=1, used=np.array([7]))
     _, fresh = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64)
-    _, going_on = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64, initial=first, lr=3e-4, final_lr=3e-4)
+    _, going_on = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64, initial=first, lr=3e-4,
+                                       final_lr=3e-4)
     assert going_on[0] < fresh[0]  # ``initial`` goes on from the trained model
     with pytest.raises(ValueError, match="initial codes"):
         neural.train_decoder(targets[:, :40], directions, device=device, epochs=1, initial=first)
@@ -257,16 +264,20 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     normals = np.dstack([rng.normal(0, 0.3, (6, 8)), rng.normal(0, 0.3, (6, 8)), np.ones((6, 8))])
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    images = (0.6 * np.clip(np.einsum("nc,hwc->nhw", directions, normals), 0, None)[..., None] * [1.0, 0.8, 0.6]).astype(np.float32)
+    images = (0.6 * np.clip(np.einsum("nc,hwc->nhw", directions, normals), 0, None)[..., None]
+              * [1.0, 0.8, 0.6]).astype(np.float32)
     own = np.zeros(images.shape[:3], np.float32)
     left_out = np.array([2, 6])
     settings = ResidualSettings(kind="learned", learned_epochs=4, learned_seconds=60.0)
-    same = check_learned(images, own, None, directions, left_out, np.zeros((2, 6, 8, 3), np.float32), factor=2.0, settings=settings, device="cpu")
+    same = check_learned(images, own, None, directions, left_out, np.zeros((2, 6, 8, 3), np.float32), factor=2.0,
+                         settings=settings, device="cpu")
     np.testing.assert_array_equal(same.lights, left_out)
     np.testing.assert_allclose(same.with_gaussians, same.images_alone)
     assert same.keeps_gaussians and same.report()["keeps_gaussians"]
-    model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu", used=np.array([0, 1, 3, 4, 5, 7, 8]))
-    want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0) for p, t in zip(learned_images(model.learned, directions[left_out]), images[left_out])]
+    model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu",
+                              used=np.array([0, 1, 3, 4, 5, 7, 8]))
+    want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0)
+            for p, t in zip(learned_images(model.learned, directions[left_out]), images[left_out])]
     np.testing.assert_allclose(same.images_alone, want, rtol=1e-6)
     blob = np.zeros((2, 6, 8, 3), np.float32)
     blob[:, 2:4, 3:6] = 1.5
@@ -333,7 +344,8 @@ def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donu
     data = ReflectanceField.load(small_donut, progress=False)
     stages = []
     learned = FitSettings().with_overrides(["residual.kind=learned"])
-    with pytest.raises(InputError, match=r"32 lights of 96x54 pass the learned residual's 2\^31 samples .* use --residual lowrank"):
+    with pytest.raises(InputError,
+                       match=r"32 lights of 96x54 pass the learned residual's 2\^31 samples .* use --residual lowrank"):
         fit_field(data, settings=learned, device="cpu", log=stages.append)
     assert stages == []  # refused before the first stage
     if wp.is_cuda_available():

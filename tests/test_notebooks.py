@@ -66,7 +66,8 @@ def test_committed_notebook_is_valid_executed_and_small(name):
     assert code, f"{path.name} has no code cells"
     assert not _errors(nb), f"{path.name} was committed with errors: {_errors(nb)}"
     unexecuted = [i for i, cell in enumerate(nb.cells) if cell.cell_type == "code" and cell.execution_count is None]
-    assert not unexecuted, f"{path.name}: cells {unexecuted} have no outputs; run python notebooks/build_notebooks.py --execute"
+    assert not unexecuted, (f"{path.name}: cells {unexecuted} have no outputs; run python "
+                            f"notebooks/build_notebooks.py --execute")
     figures = [o for cell in code for o in cell.outputs if "image/png" in o.get("data", {})]
     assert figures, f"{path.name} shows no inline figures"
     size = path.stat().st_size
@@ -104,7 +105,8 @@ def test_notebook_runs_top_to_bottom(name, tmp_path):
     seconds = time.perf_counter() - started
     print(f"{name}.ipynb ran in {seconds:.1f} s")
     assert not _errors(nb)
-    figures = [o for cell in nb.cells if cell.cell_type == "code" for o in cell.outputs if "image/png" in o.get("data", {})]
+    figures = [o for cell in nb.cells if cell.cell_type == "code" for o in cell.outputs
+               if "image/png" in o.get("data", {})]
     assert figures, "no inline figures: the kernel did not use matplotlib's inline backend"
     after = _notebook_folder_files()
     assert after == before, f"running {name}.ipynb wrote into notebooks/: {sorted(after - before)}"

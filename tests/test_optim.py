@@ -103,7 +103,8 @@ def _three_gaussians() -> GaussianParams:
             {
                 "amplitude": [1.1, 0.8, 0.9],
                 "mean": [[0.45, 0.40], [0.95, 0.55], [1.30, 0.35]],
-                "sigma": [[rpx_to_normalized(14), rpx_to_normalized(6)], [rpx_to_normalized(9), rpx_to_normalized(9)], [rpx_to_normalized(18), rpx_to_normalized(4)]],
+                "sigma": [[rpx_to_normalized(14), rpx_to_normalized(6)], [rpx_to_normalized(9), rpx_to_normalized(9)],
+                          [rpx_to_normalized(18), rpx_to_normalized(4)]],
                 "theta": [0.5, 0.0, 2.2],
             }
         ]

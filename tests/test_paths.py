@@ -545,7 +545,8 @@ def test_mismatched_shapes_are_an_input_error():
 def _dense_propagation(weight, mean_a, mean_b, parity_angle, active, length_scale):
     """Float64 reference of w' = M (M w): every slot of every edge, free ones zero (no packing)."""
     pair = active[:, :, None] & active[:, None, :]
-    distance2 = sum((means[:, :, None, axis] - means[:, None, :, axis]) ** 2 for means in (mean_a, mean_b) for axis in (0, 1))
+    distance2 = sum((means[:, :, None, axis] - means[:, None, :, axis]) ** 2 for means in (mean_a, mean_b)
+                    for axis in (0, 1))
     xi = np.where(pair, 1.0 / (1.0 + distance2 / length_scale**2), 0.0)
     eta = xi.sum(axis=-1)
     phi = np.sign(0.5 * np.pi - np.abs(parity_angle[:, :, None] - parity_angle[:, None, :]))

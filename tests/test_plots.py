@@ -167,7 +167,8 @@ def test_captions_of_a_wide_grid_fit_their_panels(tmp_path):
     from matplotlib.font_manager import FontProperties
     from matplotlib.textpath import TextPath
 
-    labels = [f"#{i} {key}\n{20 + i:.1f} dB" for i in range(3) for key in ("truth", "circular", "straight", "alpha", "ptm", "hsh2", "hsh3", "rbf")]
+    labels = [f"#{i} {key}\n{20 + i:.1f} dB" for i in range(3)
+              for key in ("truth", "circular", "straight", "alpha", "ptm", "hsh2", "hsh3", "rbf")]
     panel = plots._WIDTH_IN / 8
     size = plots.caption_fontsize(labels, panel)
     assert 4.0 < size <= 10.0
@@ -175,7 +176,8 @@ def test_captions_of_a_wide_grid_fit_their_panels(tmp_path):
                  for label in labels for line in label.split("\n"))
     assert widest <= panel * 72.0, (widest, panel * 72.0)
     assert plots.caption_fontsize(["a"], panel) == 10.0  # short captions keep the full size
-    _png(plots.plot_image_grid([np.full((20, 30), 0.5)] * len(labels), labels, tmp_path / "wide.png", columns=8, title="worst"))
+    _png(plots.plot_image_grid([np.full((20, 30), 0.5)] * len(labels), labels, tmp_path / "wide.png", columns=8,
+                               title="worst"))
 
 
 # --- atomic writes --------------------------------------------------------------------------------

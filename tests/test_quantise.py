@@ -68,18 +68,21 @@ def test_device_codes_and_stored_rows_are_the_host_s_bit_for_bit(device, bits, m
     planes = expected.reshape((count,) + shape).transpose(0, 3, 1, 2)  # (c, P, H, W)
     height, width = shape[0], shape[1]
     rows = np.arange(height)
-    whole = held.stored(1, low[1:], step[1:], bits, rows, rows - 1, out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (height, width), np.uint8))
+    whole = held.stored(1, low[1:], step[1:], bits, rows, rows - 1,
+                        out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (height, width), np.uint8))
     np.testing.assert_array_equal(whole, stored_codes(planes))
     # rows 3, 4 counted with row 2 above them; rows 7, 8 after a gap, 7 less row 4 (as the host subtracts)
     band = np.array([2, 3, 4, 7, 8])
     above = np.array([-1, 2, 3, 4, 7])
-    sampled = held.stored(1, low[1:], step[1:], bits, band, above, out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (len(band), width), np.uint8))
+    sampled = held.stored(1, low[1:], step[1:], bits, band, above,
+                          out=np.empty((count, shape[2]) + ((2,) if bits == 16 else ()) + (len(band), width), np.uint8))
     np.testing.assert_array_equal(sampled, stored_codes(planes[:, :, band]))
     columns = slice(5, 61)
     decoded_low, decoded_step = low[1:].astype(np.float32), (step[1:] * 0.75).astype(np.float32)
     mean = RNG.normal(size=columns.stop - columns.start).astype(np.float32)
     design = held.design(1, low[1:], step[1:], bits, decoded_low, decoded_step, mean, columns).numpy()
-    reference = np.vstack([mean[None], decoded_low[:, None] + expected[:, columns].astype(np.float32) * decoded_step[:, None]])
+    reference = np.vstack([mean[None],
+                           decoded_low[:, None] + expected[:, columns].astype(np.float32) * decoded_step[:, None]])
     if wp.get_device(device).is_cuda:
         # within a rounding: CUDA may fuse the multiply-add
         np.testing.assert_allclose(design, reference, rtol=2**-23, atol=0)
@@ -141,7 +144,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
             # a gap between the bands, each row with the one above
             assert np.any(np.diff(a.stored_rows) > 1) and np.all(a.above[1:] >= 0)
         subset = np.array([0, 2, 4, 5])  # runs of one and two images, the first two in one group
-        np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset), b.deflated(steps, bits=bits, images=subset))
+        np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset),
+                                      b.deflated(steps, bits=bits, images=subset))
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         # fewer images into the memory kept
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)
@@ -152,7 +156,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
             np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
     kept_there, kept_host = CompressedCodes(), CompressedCodes()
-    assert quantised_bytes(there, steps, bits=bits, keep=kept_there) == quantised_bytes(host, steps, bits=bits, keep=kept_host)
+    assert (quantised_bytes(there, steps, bits=bits, keep=kept_there)
+            == quantised_bytes(host, steps, bits=bits, keep=kept_host))
     assert kept_there._kept == kept_host._kept
     a, b = quantised_stack(there, steps, bits=bits), quantised_stack(host, steps, bits=bits)
     np.testing.assert_array_equal(a.codes, b.codes)

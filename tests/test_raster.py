@@ -44,7 +44,8 @@ def _render(params, height, width, device, **kwargs):
 @pytest.mark.parametrize("size", [(1, 1), (7, 5), (37, 61), (64, 48), (33, 100)])
 def test_forward_matches_numpy_on_random_batches(device, size):
     height, width = size
-    params = random_params(np.random.default_rng(height * 7 + width), 4, 9, height, width, sigma_px=(0.05, 3 * max(size)))
+    params = random_params(np.random.default_rng(height * 7 + width), 4, 9, height, width,
+                           sigma_px=(0.05, 3 * max(size)))
     image, stored = _render(params, height, width, device)
     expected = reference.render(stored, height, width)
     assert image.shape == (4, height, width) and image.dtype == np.float32
@@ -108,12 +109,15 @@ def test_the_drawn_tiles_kernel_sweeps_its_list_on_any_device(device):
     out = wp.array(stale, device=device)
     launched = 3 * 64  # three tiles of 8 x 8 a sweep
     wp.launch(rasterize_drawn_tiles, dim=launched,
-              inputs=[raster.frames, batch.mean, raster.scales, raster.tile_lists, raster.tile_counts, wp.array(listed, dtype=wp.int32, device=device),
-                      wp.array([len(drawn)], dtype=wp.int32, device=device), 3, raster.tiles_x, settings.cutoff**2, settings.cutoff_level, launched],
+              inputs=[raster.frames, batch.mean, raster.scales, raster.tile_lists, raster.tile_counts,
+                      wp.array(listed, dtype=wp.int32, device=device),
+                      wp.array([len(drawn)], dtype=wp.int32, device=device), 3, raster.tiles_x, settings.cutoff**2,
+                      settings.cutoff_level, launched],
               outputs=[out], device=device)
     tiles = np.zeros(counts.size, bool)
     tiles[drawn] = True
-    per_pixel = np.repeat(np.repeat(tiles.reshape(3, raster.tiles_y, raster.tiles_x), 8, axis=1), 8, axis=2)[:, :height, :width]
+    per_pixel = np.repeat(np.repeat(tiles.reshape(3, raster.tiles_y, raster.tiles_x), 8, axis=1), 8,
+                          axis=2)[:, :height, :width]
     np.testing.assert_array_equal(out.numpy()[per_pixel], full[per_pixel])
     np.testing.assert_array_equal(out.numpy()[~per_pixel], stale[~per_pixel])
 
@@ -130,7 +134,8 @@ def test_truncation_error_is_bounded_by_the_documented_cutoff_level(device):
 
 
 def test_truncated_gaussian_is_continuous_and_exact_at_the_peak(device):
-    params = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[5.5 / 11, 5.5 / 11]], "sigma": [[2 / 11, 1 / 11]], "theta": [0.3]}])
+    params = GaussianParams.from_sets([{"amplitude": [1.5], "mean": [[5.5 / 11, 5.5 / 11]], "sigma": [[2 / 11, 1 / 11]],
+                                        "theta": [0.3]}])
     image, _ = _render(params, 11, 11, device)
     assert image[0, 5, 5] == pytest.approx(2.25, rel=1e-6)
     stored = GaussianBatch.from_numpy(params, device=device).numpy()
@@ -252,7 +257,8 @@ def test_same_set_has_the_same_integral_at_any_resolution(device, height):
     image, stored = _render(params, height, width, device)
     settings = RasterSettings()
     c2, tau = settings.cutoff**2, settings.cutoff_level
-    root_det = np.sqrt((stored.sigma[..., 0] ** 2 + settings.sigma_eps) * (stored.sigma[..., 1] ** 2 + settings.sigma_eps))
+    root_det = np.sqrt((stored.sigma[..., 0] ** 2 + settings.sigma_eps)
+                       * (stored.sigma[..., 1] ** 2 + settings.sigma_eps))
     # integral of (exp(-d^2/2) - tau) / (1 - tau) over the cut-off ellipse
     integral = stored.weight * stored.amplitude**2 * 2 * np.pi * root_det * (1 - tau - tau * c2 / 2) / (1 - tau)
     assert image.sum() / height**2 == pytest.approx(integral.sum(), rel=2e-3)

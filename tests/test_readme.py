@@ -25,7 +25,8 @@ HISTORY = [
     re.compile(r"\b[Ss]ession(s|'s)?\b"),
     re.compile(r"\b[Ll]ent\b"),
     re.compile(r"\b[Bb]orrowed\b"),
-    re.compile(r"\b[Hh]elpers?\b(?! (function|functions|module|modules|class|classes|method|methods|script|scripts)\b)"),
+    re.compile(
+        r"\b[Hh]elpers?\b(?! (function|functions|module|modules|class|classes|method|methods|script|scripts)\b)"),
 ]
 
 
@@ -132,7 +133,8 @@ def test_the_readme_states_no_demo_figure_that_demo_json_does_not_give():
 @pytest.mark.slow
 def test_the_readme_demo_table_lists_what_demo_writes(tmp_path):
     out = tmp_path / "demo"
-    run = subprocess.run([sys.executable, "-m", "warp_highlights", "demo", str(out), "--lights", "16", "--size", "64x36",
+    run = subprocess.run([sys.executable, "-m", "warp_highlights", "demo", str(out), "--lights", "16", "--size",
+                          "64x36",
                           "--frames", "4", "--device", "cpu", "--residual", "lowrank", "-q"],
                          capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr

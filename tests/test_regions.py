@@ -37,7 +37,8 @@ def _reference(target: np.ndarray, image: np.ndarray, threshold: float) -> dict:
     mx = np.bincount(label, weights=weight * x, minlength=count) / mass
     my = np.bincount(label, weights=weight * y, minlength=count) / mass
     dx, dy = x - mx[label], y - my[label]
-    covariance = np.stack([np.bincount(label, weights=weight * a * b, minlength=count) / mass for a, b in ((dx, dx), (dx, dy), (dy, dy))], axis=1)
+    covariance = np.stack([np.bincount(label, weights=weight * a * b, minlength=count) / mass
+                           for a, b in ((dx, dx), (dx, dy), (dy, dy))], axis=1)
     peak = np.zeros(count)
     np.maximum.at(peak, label, weight)
     by_value = np.lexsort((weight, label))  # grouped by label, ascending residual: each group's last is its peak
@@ -92,7 +93,8 @@ def test_random_regions_match_scipy_and_numpy(device, density):
 
 
 @settings(max_examples=30, deadline=None)
-@given(problems=st.integers(1, 3), height=st.integers(1, 12), width=st.integers(1, 12), density=st.floats(0.0, 1.0), seed=st.integers(0, 2**31))
+@given(problems=st.integers(1, 3), height=st.integers(1, 12), width=st.integers(1, 12), density=st.floats(0.0, 1.0),
+       seed=st.integers(0, 2**31))
 def test_any_shape_matches_scipy(problems, height, width, density, seed):
     """Single rows and columns, empty and full images (CPU: exact)."""
     _check(*_random_case(np.random.default_rng(seed), problems, height, width, density), "cpu")
@@ -133,14 +135,16 @@ def test_more_regions_than_the_first_list_holds(device):
 
 def test_nothing_above_the_threshold(device):
     target = np.full((2, 8, 9), 0.1, np.float32)
-    found = ResidualRegions(target.shape, device).label(wp.array(target, device=device), wp.zeros_like(wp.array(target, device=device)), THRESHOLD)
+    found = ResidualRegions(target.shape, device).label(wp.array(target, device=device),
+                                                        wp.zeros_like(wp.array(target, device=device)), THRESHOLD)
     assert len(found) == 0 and found.centroid.shape == (0, 2) and found.covariance.shape == (0, 3)
 
 
 def test_bad_arguments_are_refused():
     regions = ResidualRegions((1, 4, 4), "cpu")
     with pytest.raises(InputError, match="must be a float32"):
-        regions.label(wp.zeros((1, 4, 5), dtype=float, device="cpu"), wp.zeros((1, 4, 4), dtype=float, device="cpu"), THRESHOLD)
+        regions.label(wp.zeros((1, 4, 5), dtype=float, device="cpu"), wp.zeros((1, 4, 4), dtype=float, device="cpu"),
+                      THRESHOLD)
     with pytest.raises(InputError, match="out of range"):
         regions.regions_at(np.array([16]))
     with pytest.raises(InputError, match="shape"):

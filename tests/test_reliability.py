@@ -53,27 +53,37 @@ class Cmd:
 
 COMMANDS = {
     "render": Cmd(("render", "sphere", "{out}", "--lights", "16", *SMALL_RENDER), "dataset", True),
-    "demo": Cmd(("demo", "{out}", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"), "demo", True),
-    "relight-exr": Cmd(("relight", "{field}", "--light", "0.3,0.5,1", "-o", "{out}", "--device", "cpu"), "relit.exr", False),
-    "relight-png": Cmd(("relight", "{field}", "--light", "0.3,0.5,1", "-o", "{out}", "--device", "cpu"), "relit.png", False),
+    "demo": Cmd(("demo", "{out}", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu"), "demo",
+                True),
+    "relight-exr": Cmd(("relight", "{field}", "--light", "0.3,0.5,1", "-o", "{out}", "--device", "cpu"), "relit.exr",
+                       False),
+    "relight-png": Cmd(("relight", "{field}", "--light", "0.3,0.5,1", "-o", "{out}", "--device", "cpu"), "relit.png",
+                       False),
     "relight-lights": Cmd(("relight", "{field}", "--lights", "{lp}", "-o", "{out}", "--device", "cpu"), "relit", True),
-    "animate-gif": Cmd(("animate", "{field}", "--path", "orbit:35", "--frames", "4", "-o", "{out}", "--device", "cpu"), "orbit.gif", False),
-    "animate-dir": Cmd(("animate", "{field}", "--path", "orbit:35", "--frames", "4", "-o", "{out}", "--device", "cpu"), "frames", True),
-    "evaluate": Cmd(("evaluate", "{field}", "{data}", "--triangle", "none", "-o", "{out}", "--device", "cpu"), "evaluation", True),
-    "fit": Cmd(("fit", "{data}", "-o", "{out}", "--report", "{report}", "--device", "cpu", *TINY_FIT), "field.whf", False),
+    "animate-gif": Cmd(("animate", "{field}", "--path", "orbit:35", "--frames", "4", "-o", "{out}", "--device", "cpu"),
+                       "orbit.gif", False),
+    "animate-dir": Cmd(("animate", "{field}", "--path", "orbit:35", "--frames", "4", "-o", "{out}", "--device", "cpu"),
+                       "frames", True),
+    "evaluate": Cmd(("evaluate", "{field}", "{data}", "--triangle", "none", "-o", "{out}", "--device", "cpu"),
+                    "evaluation", True),
+    "fit": Cmd(("fit", "{data}", "-o", "{out}", "--report", "{report}", "--device", "cpu", *TINY_FIT), "field.whf",
+               False),
     "sheet": Cmd(("sheet", "{data}", "-o", "{out}", "--count", "4", "--thumb-height", "18"), "sheet.png", False),
-    "view": Cmd(("view", "{field}", "--screenshot", "{out}", "--window-size", "240x120", "--device", "cpu"), "view.png", False),
+    "view": Cmd(("view", "{field}", "--screenshot", "{out}", "--window-size", "240x120", "--device", "cpu"), "view.png",
+                False),
 }
 
 FOLDER_VARIANTS = {
     # an earlier output (A) and the one written over it (B): B lacks some of A's files
-    "render": (("render", "sphere", "{out}", "--lights", "16", *SMALL_RENDER), ("render", "sphere", "{out}", "--lights", "12", *SMALL_RENDER)),
+    "render": (("render", "sphere", "{out}", "--lights", "16", *SMALL_RENDER),
+               ("render", "sphere", "{out}", "--lights", "12", *SMALL_RENDER)),
     "relight-lights": (("relight", "{field}", "--lights", "{lp}", "-o", "{out}", "--device", "cpu"),
                        ("relight", "{field}", "--lights", "{lp3}", "-o", "{out}", "--device", "cpu")),
     "animate-dir": (("animate", "{field}", "--path", "orbit:35", "--frames", "5", "-o", "{out}", "--device", "cpu"),
                     ("animate", "{field}", "--path", "orbit:35", "--frames", "3", "-o", "{out}", "--device", "cpu")),
     "evaluate": (("evaluate", "{field}", "{data}", "--triangle", "none", "-o", "{out}", "--device", "cpu"),
-                 ("evaluate", "{field}", "{data}", "--triangle", "none", "--methods", "circular,straight", "-o", "{out}", "--device", "cpu")),
+                 ("evaluate", "{field}", "{data}", "--triangle", "none", "--methods", "circular,straight", "-o",
+                  "{out}", "--device", "cpu")),
     "demo": (("demo", "{out}", "--lights", "9", "--size", "32x18", "--frames", "2", "--device", "cpu"),
              ("demo", "{out}", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu")),
 }  # fmt: skip
@@ -137,7 +147,8 @@ def _mount_tmpfs(folder: Path, options: str, request) -> bool:
     if os.environ.get("WARP_HIGHLIGHTS_TEST_NO_MOUNT") or shutil.which("mount") is None:
         return False
     try:
-        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True, timeout=30)
+        result = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(folder)], capture_output=True,
+                                timeout=30)
     except (OSError, subprocess.SubprocessError):
         return False
     if result.returncode != 0:
@@ -236,7 +247,8 @@ def _place(condition: str, tmp_path: Path, request, monkeypatch, *, free: int) -
         except OSError:
             return Place(condition, folder, "chmod 0555", {folder: [], tmp_path: ["ro"]})
         (folder / "probe").unlink()
-        pytest.skip("no read-only folder can be made here: mounting a tmpfs is not permitted and chmod does not stop this user (root)")
+        pytest.skip("no read-only folder can be made here: mounting a tmpfs is not permitted and chmod does not stop "
+                    "this user (root)")
     if condition == "full":
         root = tmp_path / "full"
         root.mkdir()
@@ -312,7 +324,8 @@ def _need(command: str, view_unavailable) -> None:
 
 @pytest.mark.parametrize("condition", ["read-only", "full", "missing parent"])
 @pytest.mark.parametrize("command", list(COMMANDS))
-def test_os_failure_is_one_line_exit_2_and_leaves_nothing(command, condition, inputs, warm, view_unavailable, tmp_path, request,
+def test_os_failure_is_one_line_exit_2_and_leaves_nothing(command, condition, inputs, warm, view_unavailable, tmp_path,
+                                                          request,
                                                           monkeypatch, capsys):
     _need(command, view_unavailable)
     cmd = COMMANDS[command]
@@ -324,11 +337,13 @@ def test_os_failure_is_one_line_exit_2_and_leaves_nothing(command, condition, in
     line = _one_error_line(capsys, argv[0], status)
     place.check_nothing_left()
     if condition != "full":
-        assert seconds < CHECK_SECONDS, f"{condition} found after {seconds:.2f} s ({place.how}): check it before the work; {line}"
+        assert seconds < CHECK_SECONDS, (f"{condition} found after {seconds:.2f} s ({place.how}): check it before "
+                                         f"the work; {line}")
 
 
 @pytest.mark.parametrize("command", list(COMMANDS))
-def test_an_existing_output_without_overwrite_is_refused_before_the_work(command, inputs, warm, view_unavailable, tmp_path, capsys):
+def test_an_existing_output_without_overwrite_is_refused_before_the_work(command, inputs, warm, view_unavailable,
+                                                                         tmp_path, capsys):
     _need(command, view_unavailable)
     cmd = COMMANDS[command]
     target = tmp_path / cmd.target
@@ -348,7 +363,8 @@ def test_an_existing_output_without_overwrite_is_refused_before_the_work(command
 
 
 @pytest.mark.parametrize("condition", ["read-only", "missing parent"])
-def test_an_unwritable_report_is_refused_before_the_fit(condition, inputs, warm, tmp_path, request, monkeypatch, capsys):
+def test_an_unwritable_report_is_refused_before_the_fit(condition, inputs, warm, tmp_path, request, monkeypatch,
+                                                        capsys):
     place = _place(condition, tmp_path, request, monkeypatch, free=0)
     fields = tmp_path / "fields"
     fields.mkdir()
@@ -367,7 +383,8 @@ def test_an_unwritable_report_is_refused_before_the_fit(condition, inputs, warm,
 
 
 def _folder_params(slow: bool):
-    return [pytest.param(name, marks=pytest.mark.slow) if slow and name in SLOW_FOLDERS else name for name in FOLDER_VARIANTS]
+    return [pytest.param(name, marks=pytest.mark.slow) if slow and name in SLOW_FOLDERS else name
+            for name in FOLDER_VARIANTS]
 
 
 @pytest.mark.parametrize("command", _folder_params(slow=False))
@@ -409,7 +426,8 @@ def test_a_folder_this_project_wrote_is_replaced_whole(command, inputs, warm, tm
     assert status == 0, capsys.readouterr().err[-2000:]
     new = _tree(out)
     assert sorted(new) == sorted(expected), "the replaced folder should hold exactly the new output"
-    different = [name for name, digest in new.items() if not name.endswith(VOLATILE_SUFFIXES) and digest != expected[name]]
+    different = [name for name, digest in new.items()
+                 if not name.endswith(VOLATILE_SUFFIXES) and digest != expected[name]]
     assert not different, f"not the new output: {different[:5]}"
     assert _listing(work) == ["out"], "left beside the output"
     assert not _temporaries(work)

@@ -28,7 +28,8 @@ from warp_highlights.relight.relighter import Relighter, face_edge_rows, relight
 HEIGHT, WIDTH = 27, 48
 
 
-def synthetic_field(lights: LightSet, *, capacity: int = 4, seed: int = 0, channels: int = 3, diffuse_images: bool = False) -> HighlightField:
+def synthetic_field(lights: LightSet, *, capacity: int = 4, seed: int = 0, channels: int = 3,
+                    diffuse_images: bool = False) -> HighlightField:
     """A field with random Gaussians, retargeted sets that move and turn them, and decided paths."""
     rng = np.random.default_rng(seed)
     n = len(lights)
@@ -111,7 +112,8 @@ def test_interpolated_sets_match_the_float64_reference(sphere_field, method, dev
     assert np.array_equal(sets.active, drawn)  # corners of weight 0 are left out, nothing else
     assert drawn.sum() > 200
     for name, tolerance in (("amplitude", 1e-5), ("mean", 2e-6), ("sigma", 1e-6), ("theta", 2e-5), ("weight", 1e-6)):
-        np.testing.assert_allclose(getattr(sets, name)[drawn], getattr(expected, name)[drawn], atol=tolerance, err_msg=name)
+        np.testing.assert_allclose(getattr(sets, name)[drawn], getattr(expected, name)[drawn], atol=tolerance,
+                                   err_msg=name)
     images = relighter.relight(queries, method=method, full=False).specular
     np.testing.assert_allclose(images, render_numpy(expected), atol=2e-4 * max(1.0, float(images.max())))
 
@@ -141,11 +143,13 @@ def test_arc_position_kernel_matches_the_path_identity(device):
     fraction[-50:] = 1.0
 
     @wp.kernel
-    def evaluate(a: wp.array(dtype=wp.vec2), b: wp.array(dtype=wp.vec2), d: wp.array(dtype=float), t: wp.array(dtype=float), out: wp.array(dtype=wp.vec2)):
+    def evaluate(a: wp.array(dtype=wp.vec2), b: wp.array(dtype=wp.vec2), d: wp.array(dtype=float),
+                 t: wp.array(dtype=float), out: wp.array(dtype=wp.vec2)):
         i = wp.tid()
         out[i] = arc_position(a[i], b[i], d[i], t[i], 1.0e-4)
 
-    arrays = [wp.array(x.astype(np.float32), dtype=dtype, device=device) for x, dtype in ((mean_a, wp.vec2), (mean_b, wp.vec2), (delta, float), (fraction, float))]
+    arrays = [wp.array(x.astype(np.float32), dtype=dtype, device=device)
+              for x, dtype in ((mean_a, wp.vec2), (mean_b, wp.vec2), (delta, float), (fraction, float))]
     out = wp.empty(count, dtype=wp.vec2, device=device)
     wp.launch(evaluate, dim=count, inputs=arrays, outputs=[out], device=device)
     got = out.numpy()
@@ -164,7 +168,8 @@ def test_a_query_at_a_light_renders_that_lights_estimated_set(sphere_field, devi
     lights = np.flatnonzero(field.estimated.counts > 0)[:8]
     images = relighter.relight(field.lights.directions[lights], full=False).specular
     raster = Rasterizer(HEIGHT, WIDTH, settings=FitSettings().raster, device=device)
-    expected = raster.render(GaussianBatch.from_numpy(field.estimated.take(lights), device=device, requires_grad=False)).numpy()
+    expected = raster.render(GaussianBatch.from_numpy(field.estimated.take(lights), device=device,
+                                                      requires_grad=False)).numpy()
     assert expected.max() > 0.1
     np.testing.assert_allclose(images, expected, rtol=1e-6, atol=1e-7)
 
@@ -201,9 +206,11 @@ def test_alpha_blend_is_exact(sphere_field, device):
     result = relighter.relight(queries, method="alpha")
     vertices = field.triangulation.faces[result.faces]
     weights = result.barycentric.astype(np.float32)
-    np.testing.assert_allclose(result.specular, np.einsum("qk,qkhw->qhw", weights, specular[vertices]), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(result.specular, np.einsum("qk,qkhw->qhw", weights, specular[vertices]), rtol=1e-6,
+                               atol=1e-6)
     halves = images.astype(np.float16).astype(np.float32)  # full images are kept as float16 on the device
-    np.testing.assert_allclose(result.full, 0.5 * np.einsum("qk,qkhwc->qhwc", weights, halves[vertices]), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(result.full, 0.5 * np.einsum("qk,qkhwc->qhwc", weights, halves[vertices]), rtol=1e-6,
+                               atol=1e-6)
     at_light = relighter.relight(field.lights.directions[3], method="alpha", full=False).specular
     np.testing.assert_allclose(at_light, specular[3], rtol=1e-6, atol=1e-6)
 
@@ -234,7 +241,8 @@ def test_other_output_sizes_render_the_same_gaussians(sphere_field):
     big = Relighter(field, device="cpu", size=(2 * WIDTH, 2 * HEIGHT), diffuse="lambert")
     result = big.relight(queries)
     sets = Relighter(field, device="cpu").interpolated_sets(queries)
-    np.testing.assert_allclose(result.specular, render_numpy(sets, 2 * HEIGHT, 2 * WIDTH), atol=2e-4 * max(1.0, float(result.specular.max())))
+    np.testing.assert_allclose(result.specular, render_numpy(sets, 2 * HEIGHT, 2 * WIDTH),
+                               atol=2e-4 * max(1.0, float(result.specular.max())))
     assert result.full.shape == (5, 2 * HEIGHT, 2 * WIDTH, 3)
     with pytest.raises(InputError, match="aspect ratio"):
         Relighter(field, size=(WIDTH, WIDTH))
@@ -326,8 +334,10 @@ def test_face_edge_rows_point_at_the_right_edges(sphere_field):
     rows = face_edge_rows(field.triangulation.faces, field.directed_edges, field.light_count)
     faces = field.triangulation.faces
     for k in range(3):
-        assert np.array_equal(field.directed_edges[rows[:, k, 0]], np.stack([faces[:, k], faces[:, (k + 1) % 3]], axis=1))
-        assert np.array_equal(field.directed_edges[rows[:, k, 1]], np.stack([faces[:, k], faces[:, (k + 2) % 3]], axis=1))
+        assert np.array_equal(field.directed_edges[rows[:, k, 0]],
+                              np.stack([faces[:, k], faces[:, (k + 1) % 3]], axis=1))
+        assert np.array_equal(field.directed_edges[rows[:, k, 1]],
+                              np.stack([faces[:, k], faces[:, (k + 2) % 3]], axis=1))
 
 
 def test_resample_image_shrinks_by_area_and_grows_linearly():
@@ -347,7 +357,8 @@ def test_resample_image_shrinks_by_area_and_grows_linearly():
     np.testing.assert_allclose(mixed, resample_image(resample_image(ramp, 12, 10), 12, 20), atol=1e-5)
 
 
-@pytest.mark.parametrize(("source", "target"), [((30, 40), (15, 20)), ((29, 41), (7, 10)), ((17, 23), (16, 22)), ((9, 13), (1, 1))])
+@pytest.mark.parametrize(("source", "target"),
+                         [((30, 40), (15, 20)), ((29, 41), (7, 10)), ((17, 23), (16, 22)), ((9, 13), (1, 1))])
 def test_resize_stack_is_the_exact_area_average(source, target):
     """Against a brute-force float64 overlap integral, integer and fractional factors, grey and colour."""
     rng = np.random.default_rng(sum(source))
@@ -367,7 +378,8 @@ def test_field_relight_shortcut_matches_the_relighter(sphere_field):
     direct = Relighter(sphere_field, device="cpu").relight(queries)
     assert np.array_equal(shortcut.full, direct.full)
     again = relight_field(sphere_field, queries, method="straight", device="cpu", diffuse="lambert")
-    assert np.array_equal(again.specular, Relighter(sphere_field, device="cpu").relight(queries, method="straight").specular)
+    assert np.array_equal(again.specular,
+                          Relighter(sphere_field, device="cpu").relight(queries, method="straight").specular)
 
 
 def test_a_gaussian_whose_fit_flipped_its_amplitude_sign_does_not_fade_through_zero():
@@ -377,7 +389,8 @@ def test_a_gaussian_whose_fit_flipped_its_amplitude_sign_does_not_fade_through_z
     flipped.amplitude = -flipped.amplitude
     mirrored = HighlightField(
         lights=field.lights, triangulation=field.triangulation, width=WIDTH, height=HEIGHT, estimated=field.estimated,
-        directed_edges=field.directed_edges, retargeted=flipped, path_delta=field.path_delta, path_centre=field.path_centre,
+        directed_edges=field.directed_edges, retargeted=flipped, path_delta=field.path_delta,
+        path_centre=field.path_centre,
         settings=field.settings, report={}, diffuse=field.diffuse,
     )
     queries = field.triangulation.centroid_directions()
@@ -438,11 +451,13 @@ def test_the_sliced_face_search_keeps_the_first_deepest_face(copies, device):
     best = wp.empty((len(queries), kernels.FACE_SLICES), dtype=wp.int32, device=device)
     as_vec3d = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.vec3d, device=device)
     directions = as_vec3d(queries)
-    wp.launch(kernels.deepest_faces, dim=depths.shape, inputs=[directions, as_vec3d(normals)], outputs=[depths, best], device=device)
+    wp.launch(kernels.deepest_faces, dim=depths.shape, inputs=[directions, as_vec3d(normals)], outputs=[depths, best],
+              device=device)
     rims = [as_vec3d(np.zeros((1, 3)))] * 5 + [wp.zeros(1, dtype=wp.int32, device=device)] * 2
     inverses = wp.array(np.tile(np.eye(3), (face_count, 1, 1)), dtype=wp.mat33d, device=device)
     out = [wp.empty(len(queries), dtype=t, device=device) for t in (wp.int32, wp.vec3, wp.vec3, wp.int32)]
-    wp.launch(kernels.locate_directions, dim=len(queries), inputs=[directions, depths, best, inverses, *rims, 0, 1e-12], outputs=out, device=device)
+    wp.launch(kernels.locate_directions, dim=len(queries), inputs=[directions, depths, best, inverses, *rims, 0, 1e-12],
+              outputs=out, device=device)
     faces = out[0].numpy()
     assert faces[0] == min(copies)
     margins = np.einsum("qc,fkc->qfk", queries, normals).min(axis=2)
@@ -458,7 +473,8 @@ def test_single_query_results_on_page_locked_memory_are_not_overwritten_while_he
     are all gone (a slice of one keeps its slot), and once every slot is held, results are copies."""
     from warp_highlights.relight.relighter import RESULT_SLOTS, result_slots
 
-    assert result_slots(270, 480, 3) == RESULT_SLOTS and result_slots(2160, 3840, 3) == 1 and result_slots(20000, 20000, 3) == 1
+    assert (result_slots(270, 480, 3) == RESULT_SLOTS and result_slots(2160, 3840, 3) == 1
+            and result_slots(20000, 20000, 3) == 1)
     if not wp.is_cuda_available():
         pytest.skip("page-locked single-query results need CUDA graphs")
     eager = Relighter(sphere_field, device="cuda:0", graphs=False)

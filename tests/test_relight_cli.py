@@ -68,7 +68,8 @@ def test_relight_to_png_is_the_same_image_in_srgb(small_field, field, tmp_path):
 def test_relight_at_double_size(small_field, field, tmp_path):
     out = tmp_path / "big.exr"
     size = f"{2 * field.width}x{2 * field.height}"
-    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--size", size, "--device", "cpu", "-q"]) == 0
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--size", size, "--device", "cpu",
+                 "-q"]) == 0
     image = read_image(out)
     assert image.shape == (2 * field.height, 2 * field.width, 3)
     expected = _relighter(field, size=(2 * field.width, 2 * field.height)).relight(np.array([0.3, 0.5, 1.0])).full
@@ -77,7 +78,8 @@ def test_relight_at_double_size(small_field, field, tmp_path):
 
 def test_relight_specular_only(small_field, field, tmp_path):
     out = tmp_path / "spec.exr"
-    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--specular-only", "--device", "cpu", "-q"]) == 0
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--specular-only", "--device", "cpu",
+                 "-q"]) == 0
     image = read_image(out)
     assert image.shape == (field.height, field.width)
     relit = _relighter(field).relight(np.array([0.3, 0.5, 1.0]), full=False)
@@ -99,10 +101,13 @@ def _check_folder(out: Path, field, directions: np.ndarray, *, method: str = "ci
 
 def test_relight_two_lights_into_a_folder(small_field, field, tmp_path, capsys):
     out = tmp_path / "two"
-    assert main(["relight", str(small_field), "--light", LIGHT, "--light=-2,0,1", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert main(["relight", str(small_field), "--light", LIGHT, "--light=-2,0,1", "-o", str(out), "--device", "cpu",
+                 "-q"]) == 0
     assert "2 images" in capsys.readouterr().out
     _check_folder(out, field, np.array([[0.3, 0.5, 1.0], [-2.0, 0.0, 1.0]]))
-    assert _tree(tmp_path) == ["two", *(f"two/{n}" for n in (".warp-highlights.json", "lights.lp", "relit_0000.exr", "relit_0001.exr"))]
+    assert (_tree(tmp_path)
+            == ["two", *(f"two/{n}"
+                         for n in (".warp-highlights.json", "lights.lp", "relit_0000.exr", "relit_0001.exr"))])
 
 
 def test_relight_a_light_with_a_negative_first_coordinate(small_field, tmp_path):
@@ -121,17 +126,20 @@ def test_relight_a_light_file_and_a_light(small_field, field, tmp_path):
     directions = np.array([[0.0, 0.0, 2.0], [1.0, 1.0, 0.5], [0.0, -1.0, 0.2]])
     write_lp(LightSet(directions / np.linalg.norm(directions, axis=1, keepdims=True)), lp)
     out = tmp_path / "many"
-    assert main(["relight", str(small_field), "--light", LIGHT, "--lights", str(lp), "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert main(["relight", str(small_field), "--light", LIGHT, "--lights", str(lp), "-o", str(out), "--device", "cpu",
+                 "-q"]) == 0
     _check_folder(out, field, np.concatenate([[[0.3, 0.5, 1.0]], directions]))
     # and again with --overwrite, fewer lights: the old images go
-    assert main(["relight", str(small_field), "--lights", str(lp), "-o", str(out), "--overwrite", "--device", "cpu", "-q"]) == 0
+    assert main(["relight", str(small_field), "--lights", str(lp), "-o", str(out), "--overwrite", "--device", "cpu",
+                 "-q"]) == 0
     _check_folder(out, field, directions)
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
 
 
 def test_relight_alpha_needs_the_dataset(small_field, tmp_path, capsys):
     out = tmp_path / "alpha.exr"
-    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "-o", str(out), "--device", "cpu",
+                 "-q"]) == 2
     assert "--dataset" in _error_line(capsys)
     assert _tree(tmp_path) == []
 
@@ -141,10 +149,12 @@ def test_relight_alpha_with_the_dataset(small_field, small_donut, field, tmp_pat
     from warp_highlights.relight.relighter import alpha_inputs
 
     out = tmp_path / "alpha.exr"
-    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "--dataset", str(small_donut), "-o", str(out),
+    assert main(["relight", str(small_field), "--light", LIGHT, "--method", "alpha", "--dataset", str(small_donut),
+                 "-o", str(out),
                  "--device", "cpu", "-q"]) == 0
     specular, images = alpha_inputs(field, ReflectanceField.load(small_donut, progress=False), device="cpu")
-    expected = _relighter(field, alpha_specular=specular, alpha_images=images).relight(np.array([0.3, 0.5, 1.0]), method="alpha").full
+    expected = _relighter(field, alpha_specular=specular, alpha_images=images).relight(np.array([0.3, 0.5, 1.0]),
+                                                                                       method="alpha").full
     image = read_image(out)
     np.testing.assert_allclose(image, expected, rtol=1e-3, atol=1e-3)  # the images are blended as float16
     circular = _relighter(field).relight(np.array([0.3, 0.5, 1.0])).full
@@ -160,7 +170,8 @@ def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path
     from warp_highlights.model.config import FitSettings
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images", exposure=2.0,
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", diffuse="images",
+                      exposure=2.0,
                       size=(48, 27), progress=False)
     path = tmp_path / "exposed.whf"
     save_field(field, path)
@@ -169,7 +180,8 @@ def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path
     captured = resize_stack(dataset.images, 48, 27)[light]
     for method in ("circular", "alpha"):
         out = tmp_path / f"{method}.exr"
-        assert main(["relight", str(path), f"--light={direction}", "--method", method, "--dataset", str(small_donut), "-o", str(out),
+        assert main(["relight", str(path), f"--light={direction}", "--method", method, "--dataset", str(small_donut),
+                     "-o", str(out),
                      "--device", "cpu", "-q"]) == 0
         image = read_image(out)
         ratio = image.sum() / captured.sum()
@@ -193,7 +205,8 @@ def test_relight_alpha_at_a_light_gives_its_captured_image(small_donut, tmp_path
         (["--light", LIGHT, "-o", "no/such/folder/x.png"], "does not exist"),
     ],
 )
-def test_relight_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments, expected):
+def test_relight_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments,
+                                                          expected):
     monkeypatch.chdir(tmp_path)
     assert main(["relight", str(small_field), *arguments, "--device", "cpu", "-q"]) == 2
     assert expected in _error_line(capsys)
@@ -209,7 +222,8 @@ def test_relight_keeps_an_existing_output(small_field, tmp_path, capsys):
     folder = tmp_path / "folder"
     folder.mkdir()
     (folder / "keep.txt").write_text("x")
-    assert main(["relight", str(small_field), "--light", LIGHT, "--light", "0,0,1", "-o", str(folder), "--device", "cpu", "-q"]) == 2
+    assert main(["relight", str(small_field), "--light", LIGHT, "--light", "0,0,1", "-o", str(folder), "--device",
+                 "cpu", "-q"]) == 2
     assert "--overwrite" in _error_line(capsys)
     assert _tree(folder) == ["keep.txt"]
 
@@ -235,7 +249,8 @@ def test_animate_an_orbit_to_a_gif(small_field, field, tmp_path, capsys):
     from PIL import Image
 
     out = tmp_path / "orbit.gif"
-    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu",
+                 "-q"]) == 0
     assert "6 frames" in capsys.readouterr().out
     with Image.open(out) as gif:
         assert gif.n_frames == 6 and gif.size == (field.width, field.height)
@@ -248,7 +263,8 @@ def test_animate_an_orbit_to_a_gif(small_field, field, tmp_path, capsys):
 
 def test_animate_to_a_folder_of_frames(small_field, field, tmp_path):
     out = tmp_path / "frames"
-    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "6", "-o", str(out), "--device", "cpu",
+                 "-q"]) == 0
     names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     assert len(names) == 6 and all(n.endswith(".png") for n in names)
     from warp_highlights.view.animation import orbit
@@ -264,7 +280,8 @@ def test_animate_compare_puts_the_methods_side_by_side(small_field, field, tmp_p
     from PIL import Image
 
     out = tmp_path / "compare.gif"
-    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "4", "--compare", "--methods", "circular,straight",
+    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "4", "--compare", "--methods",
+                 "circular,straight",
                  "-o", str(out), "--device", "cpu", "-q"]) == 0
     with Image.open(out) as gif:
         assert gif.n_frames == 4 and gif.size == (2 * field.width, field.height)
@@ -274,7 +291,8 @@ def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
     from warp_highlights.view.animation import great_circle
 
     out = tmp_path / "arc"
-    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr", "--specular-only", "-o", str(out),
+    assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr",
+                 "--specular-only", "-o", str(out),
                  "--device", "cpu", "-q"]) == 0
     names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     assert len(names) == 3 and all(n.endswith(".exr") for n in names)
@@ -285,7 +303,8 @@ def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
 
 def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, tmp_path):
     out = tmp_path / "compare"
-    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "2", "--compare", "--dataset", str(small_donut), "--exr",
+    assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "2", "--compare", "--dataset",
+                 str(small_donut), "--exr",
                  "--specular-only", "-o", str(out), "--device", "cpu", "-q"]) == 0
     frames = [read_image(p) for p in sorted(out.glob("frame_*"))]
     assert len(frames) == 2 and frames[0].shape == (field.height, 2 * field.width)
@@ -309,7 +328,8 @@ def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, t
         (["--path", "orbit:30", "-o", "x.gif", "--method", "alpha"], "--dataset"),
     ],
 )
-def test_animate_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments, expected):
+def test_animate_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path, monkeypatch, capsys, arguments,
+                                                          expected):
     monkeypatch.chdir(tmp_path)
     assert main(["animate", str(small_field), "--frames", "3", *arguments, "--device", "cpu", "-q"]) == 2
     assert expected in _error_line(capsys)
@@ -318,7 +338,8 @@ def test_animate_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path,
 
 # --- evaluate --------------------------------------------------------------------------------------
 
-PLOTS = ["barycentric-psnr.png", "examples.png", "gaussian-counts.png", "psnr-circular-vs-alpha.png", "psnr-full.png", "psnr-specular.png"]
+PLOTS = ["barycentric-psnr.png", "examples.png", "gaussian-counts.png", "psnr-circular-vs-alpha.png", "psnr-full.png",
+         "psnr-specular.png"]
 
 
 @pytest.fixture(scope="module")
@@ -329,14 +350,16 @@ def evaluated(small_field, small_donut, tmp_path_factory):
 
     text = io.StringIO()
     with contextlib.redirect_stdout(text):
-        status = main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device", "cpu", "-q"])
+        status = main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device",
+                       "cpu", "-q"])
     return status, out, text.getvalue()
 
 
 def test_evaluate_writes_a_report_and_plots(evaluated, small_field, field):
     status, out, text = evaluated
     assert status == 0
-    assert sorted(p.name for p in out.iterdir()) == sorted(PLOTS + ["worst-lights.png", "report.json", ".warp-highlights.json"])
+    assert (sorted(p.name for p in out.iterdir())
+            == sorted(PLOTS + ["worst-lights.png", "report.json", ".warp-highlights.json"]))
     report = json.loads((out / "report.json").read_text())
     specular = report["summary"]["specular"]
     for method in ("circular", "straight", "alpha"):
@@ -359,7 +382,8 @@ def test_evaluate_writes_a_report_and_plots(evaluated, small_field, field):
 def test_evaluate_keeps_an_existing_report(evaluated, small_field, small_donut, capsys):
     _, out, _ = evaluated
     before = (out / "report.json").read_bytes()
-    assert main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert main(["evaluate", str(small_field), str(small_donut), "--steps", "2", "-o", str(out), "--device", "cpu",
+                 "-q"]) == 2
     assert "--overwrite" in _error_line(capsys)
     assert (out / "report.json").read_bytes() == before
 
@@ -369,12 +393,14 @@ def test_evaluate_without_the_triangle_plot(small_field, small_donut, tmp_path, 
 
     field_path = tmp_path / "mine.whf"
     shutil.copy(small_field, field_path)
-    assert main(["evaluate", str(field_path), str(small_donut), "--triangle", "none", "--methods", "circular,alpha", "--device", "cpu", "-q"]) == 0
+    assert main(["evaluate", str(field_path), str(small_donut), "--triangle", "none", "--methods", "circular,alpha",
+                 "--device", "cpu", "-q"]) == 0
     out = tmp_path / "mine-evaluation"  # the default: beside the field
     names = sorted(p.name for p in out.iterdir())
     assert "barycentric-psnr.png" not in names and "psnr-circular-vs-alpha.png" in names
     report = json.loads((out / "report.json").read_text())
-    assert report["barycentric_sweep"] is None and set(report["summary"]["specular"]) == {"circular", "alpha", "circular_beats_alpha"}
+    assert (report["barycentric_sweep"] is None
+            and set(report["summary"]["specular"]) == {"circular", "alpha", "circular_beats_alpha"})
     assert "| straight |" not in capsys.readouterr().out
 
 
@@ -387,9 +413,11 @@ def test_evaluate_without_the_triangle_plot(small_field, small_donut, tmp_path, 
         (["--methods", ""], "methods"),
     ],
 )
-def test_evaluate_bad_input_is_one_line_and_writes_nothing(small_field, small_donut, tmp_path, capsys, arguments, expected):
+def test_evaluate_bad_input_is_one_line_and_writes_nothing(small_field, small_donut, tmp_path, capsys, arguments,
+                                                           expected):
     out = tmp_path / "report"
-    assert main(["evaluate", str(small_field), str(small_donut), *arguments, "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert (main(["evaluate", str(small_field), str(small_donut), *arguments, "-o", str(out), "--device", "cpu", "-q"])
+            == 2)
     assert expected in _error_line(capsys)
     assert _tree(tmp_path) == []
 
@@ -432,7 +460,8 @@ def test_demo_writes_an_index_of_what_it_made(tmp_path, capsys):
         path = out / name.rstrip("/")
         assert path.is_dir() if name.endswith("/") else path.is_file(), name
     # every file of the folder is in the index
-    assert sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir()) == sorted(listed + ["demo.json", "index.md", ".warp-highlights.json"])
+    assert (sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir())
+            == sorted(listed + ["demo.json", "index.md", ".warp-highlights.json"]))
     # the evaluation row names the plots it holds
     row = next(line for line in index.splitlines() if line.startswith("| `evaluation/`"))
     plots = re.findall(r"[\w-]+\.(?:png|json)", row)
@@ -463,13 +492,15 @@ def test_demo_refuses_a_file_as_its_folder(tmp_path, capsys):
     target = tmp_path / "notes.txt"
     target.write_text("keep me")
     for extra in ([], ["--overwrite"]):
-        assert main(["demo", str(target), "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu", "-q", *extra]) == 2
+        assert main(["demo", str(target), "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu", "-q",
+                     *extra]) == 2
         assert "notes.txt" in _error_line(capsys)
         assert target.read_text() == "keep me" and _tree(tmp_path) == ["notes.txt"]
 
 
 def test_demo_bad_options(tmp_path, capsys):
-    for extra, expected in ((["--lights", "3"], "use 4..2000"), (["--frames", "1"], "--frames"), (["--size", "64"], "WIDTHxHEIGHT")):
+    for extra, expected in ((["--lights", "3"], "use 4..2000"), (["--frames", "1"], "--frames"),
+                            (["--size", "64"], "WIDTHxHEIGHT")):
         assert main(["demo", str(tmp_path / "demo"), "--device", "cpu", "-q", *extra]) == 2
         assert expected in _error_line(capsys)
     assert _tree(tmp_path) == []
@@ -510,7 +541,8 @@ LEGACY_FIELD = Path(__file__).resolve().parent / "data" / "legacy-v1.whf"
 
 def test_relight_residual_of_a_field_from_before_residuals_is_one_line(tmp_path, capsys):
     out = tmp_path / "x.exr"
-    assert main(["relight", str(LEGACY_FIELD), "--light", LIGHT, "--diffuse", "residual", "-o", str(out), "--device", "cpu", "-q"]) == 2
+    assert main(["relight", str(LEGACY_FIELD), "--light", LIGHT, "--diffuse", "residual", "-o", str(out), "--device",
+                 "cpu", "-q"]) == 2
     line = _error_line(capsys)
     assert "residual" in line and "fit" in line
     assert _tree(tmp_path) == []
@@ -523,13 +555,15 @@ def test_fit_and_evaluate_with_every_kth_light_held_out(tiny_sphere, tmp_path, c
 
     data, _ = tiny_sphere
     field_path = tmp_path / "fold.whf"
-    assert main(["fit", str(data), "-o", str(field_path), "--holdout-every", "4", "--device", "cpu", "-q", *TINY_FIT]) == 0
+    assert (main(["fit", str(data), "-o", str(field_path), "--holdout-every", "4", "--device", "cpu", "-q", *TINY_FIT])
+            == 0)
     field = load_field(field_path)
     assert field.light_count == 12 and field.report["holdout_every"] == 4
     assert field.residual is not None and field.diffuse is None
     capsys.readouterr()
     out = tmp_path / "evaluation"
-    assert main(["evaluate", str(field_path), str(data), "-o", str(out), "--triangle", "none", "--baselines", "ptm,rbf", "--device", "cpu", "-q"]) == 0
+    assert main(["evaluate", str(field_path), str(data), "-o", str(out), "--triangle", "none", "--baselines", "ptm,rbf",
+                 "--device", "cpu", "-q"]) == 0
     table = capsys.readouterr().out
     assert "8-bit sRGB PSNR" in table and "| ptm |" in table and "| rbf |" in table
     report = json.loads((out / "report.json").read_text())
@@ -550,6 +584,7 @@ def test_fit_and_evaluate_with_every_kth_light_held_out(tiny_sphere, tmp_path, c
 )
 def test_evaluate_protocol_options_are_checked(tiny_sphere, tmp_path, capsys, arguments, expected):
     data, field = tiny_sphere
-    assert main(["evaluate", str(field), str(data), "-o", str(tmp_path / "e"), *arguments, "--device", "cpu", "-q"]) == 2
+    assert (main(["evaluate", str(field), str(data), "-o", str(tmp_path / "e"), *arguments, "--device", "cpu", "-q"])
+            == 2)
     assert expected in _error_line(capsys)
     assert not (tmp_path / "e").exists()

@@ -52,7 +52,8 @@ def _sphere_hits(renderer: Renderer) -> tuple[np.ndarray, np.ndarray]:
     s = renderer.settings
     t = math.tan(math.radians(s.fov_y_deg) / 2.0)
     cols, rows = np.meshgrid(np.arange(s.width) + 0.5, np.arange(s.height) + 0.5)
-    d = _unit(np.stack([(2 * cols / s.width - 1) * t * s.width / s.height, (1 - 2 * rows / s.height) * t, -np.ones_like(cols)], -1))
+    d = _unit(np.stack([(2 * cols / s.width - 1) * t * s.width / s.height, (1 - 2 * rows / s.height) * t,
+                        -np.ones_like(cols)], -1))
     o = renderer.camera_position
     b = d @ o
     disc = b * b - (o @ o - 1.0)
@@ -160,7 +161,8 @@ def test_shapes_render_finite_and_non_negative(shape):
 def test_render_is_deterministic_and_chunking_changes_nothing():
     lights = LightSet.fibonacci_sphere(7).directions
     whole = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=64), device="cpu").render(lights)
-    chunked = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=3), device="cpu").render(lights)
+    chunked = Renderer(torus(), settings=RenderSettings(width=64, height=36, light_chunk=3),
+                       device="cpu").render(lights)
     np.testing.assert_array_equal(whole.full, chunked.full)
 
 

@@ -85,7 +85,8 @@ def test_low_rank_stack_is_exact_for_a_stack_of_that_rank_up_to_8_bit_codes():
 def test_low_rank_error_falls_with_rank_and_the_mean_is_kept_as_float16():
     n, h, w = 20, 16, 12
     stack = RNG.random((n, h, w, 2)).astype(np.float32)
-    errors = [float(np.sqrt(((stack_light_images(fit_stack(stack, k), np.eye(n)) - stack) ** 2).mean())) for k in (1, 4, 10, 19)]
+    errors = [float(np.sqrt(((stack_light_images(fit_stack(stack, k), np.eye(n)) - stack) ** 2).mean()))
+              for k in (1, 4, 10, 19)]
     assert errors == sorted(errors, reverse=True)
     model = fit_stack(stack, 4)
     np.testing.assert_array_equal(model.mean, model.mean.astype(np.float16).astype(np.float32))
@@ -115,7 +116,8 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     capture = n * h * w * 3
     ranks = []
     for budget in (0.03, 0.06, 0.12, 0.5):
-        model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget, min_luminance_rank=1), other_bytes=500)
+        model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget, min_luminance_rank=1),
+                               other_bytes=500)
         stored = 500 + entry_bytes(model.luminance.mean.astype(np.float16)) + component_bytes(model.luminance).sum()
         stored += entry_bytes(model.chroma.mean.astype(np.float16)) + component_bytes(model.chroma).sum()
         assert stored <= budget * capture or model.luminance.rank == 1
@@ -184,7 +186,8 @@ def test_the_bits_are_those_of_the_lower_predicted_error_and_16_are_tried_only_w
     own = np.zeros((n, h, w), np.float32)
     searched = []
     real = build_module.allocate
-    monkeypatch.setattr(build_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
+    monkeypatch.setattr(build_module, "allocate",
+                        lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
     noisy = (1.0 + 0.3 * RNG.normal(size=(n, h, w, 1))).astype(np.float32)
     model = build_residual(noisy, own, None, settings=ResidualSettings(size_budget=0.1, min_luminance_rank=1))
     assert searched == [8] and model.luminance.bits == 8
@@ -225,7 +228,8 @@ def test_the_normalised_residual_read_block_by_block_is_the_held_stack():
     tint = RNG.uniform(0.5, 1.5, size=(h, w, 3)).astype(np.float32)
     scale = RNG.uniform(0.2, 1.0, size=(h, w)).astype(np.float32)
     y, chroma = to_opponent(images - own[..., None] * tint[None])
-    held = {"luminance": (y / scale).astype(np.float32).reshape(n, -1), "chroma": (chroma / scale[..., None]).astype(np.float32).reshape(n, -1)}
+    held = {"luminance": (y / scale).astype(np.float32).reshape(n, -1),
+            "chroma": (chroma / scale[..., None]).astype(np.float32).reshape(n, -1)}
     for kind, flat in held.items():
         source = NormalisedResidual(images, own, tint, scale, kind)
         assert source.light_count == n and source.shape == (h, w, 1 if kind == "luminance" else 2)
@@ -330,9 +334,11 @@ def test_principal_images_and_quantisation_in_blocks_match_a_float64_reference(m
     np.testing.assert_allclose(principal.directions, reference, atol=1e-6)
     steps = principal.spans[:5] / 255
     stack_model = quantised_stack(principal, steps, bits=8)
-    codes = np.round((principal.directions[1:6].astype(np.float64) - principal.directions[1:6].min(axis=1, keepdims=True)) / steps[:, None])
+    codes = np.round((principal.directions[1:6].astype(np.float64)
+                      - principal.directions[1:6].min(axis=1, keepdims=True)) / steps[:, None])
     np.testing.assert_array_equal(stack_model.codes.reshape(5, -1), codes.clip(0, 255))
-    design = np.concatenate([stack_model.mean.reshape(1, -1), stack_basis(stack_model).reshape(5, -1)]).astype(np.float64)
+    design = np.concatenate([stack_model.mean.reshape(1, -1),
+                             stack_basis(stack_model).reshape(5, -1)]).astype(np.float64)
     solution = np.linalg.solve(design @ design.T + 1e-12 * np.trace(design @ design.T) * np.eye(6), design @ flat.T)
     np.testing.assert_allclose(stack_model.weights, solution[1:].T, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(stack_model.mean_weights, solution[0], rtol=1e-5)
@@ -380,7 +386,8 @@ def test_a_relighter_decodes_on_the_device_where_the_basis_fits_beside_the_image
 
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
-    model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2, basis_bits=16))
+    model = build_residual(images, np.zeros((n, h, w), np.float32), None,
+                           settings=ResidualSettings(luminance_rank=4, chroma_rank=2, basis_bits=16))
     pixels = h * w
     needed = 4 * pixels * (4 * 1 + 2 * 2) + model.chroma.codes.nbytes + 2 * n * pixels * 3
     for free, expected in ((None, False), (needed / 0.75 - 1, False), (needed / 0.75 + 1, True)):
@@ -399,11 +406,13 @@ def test_decoded_images_match_the_float64_reference(band_values, monkeypatch):
     monkeypatch.setattr(residual_module, "DECODE_BAND_VALUES", band_values)
     n, h, w = 9, 10, 12
     images = RNG.uniform(0.0, 1.0, size=(n, h, w, 3)).astype(np.float32)
-    model = build_residual(images, np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=4, chroma_rank=2))
+    model = build_residual(images, np.zeros((n, h, w), np.float32), None,
+                           settings=ResidualSettings(luminance_rank=4, chroma_rank=2))
     decoded = decoded_images(model, block=4)
     assert decoded.dtype == np.float16 and decoded.shape == (n, h, w, 3)
     np.testing.assert_allclose(decoded, light_images(model, np.eye(n)), atol=2e-3)
-    grey = build_residual(images[..., :1], np.zeros((n, h, w), np.float32), None, settings=ResidualSettings(luminance_rank=3))
+    grey = build_residual(images[..., :1], np.zeros((n, h, w), np.float32), None,
+                          settings=ResidualSettings(luminance_rank=3))
     np.testing.assert_allclose(decoded_images(grey), light_images(grey, np.eye(n)), atol=2e-3)
     whole = ResidualModel(images=images)
     assert decoded_images(whole) is whole.images
@@ -464,8 +473,10 @@ def test_a_gaussian_whose_retargeting_lands_on_nothing_stays_in_the_residual():
     retargeted.mean[:2, 1] = [0.75, 0.72]
     specular = np.zeros((3, h, w), np.float32)
     for target in (1, 2):  # each neighbour holds a highlight where Gaussian 0 goes, nothing where 1 goes
-        specular[target] = render_reference(estimated.take([0]), h, w, RasterSettings())[0] * (np.arange(w)[None, :] < 20)
-    decision = decide_moving(estimated, retargeted, edges, wp.array(specular, dtype=float, device="cpu"), settings=ResidualSettings(), raster=RasterSettings())
+        specular[target] = (render_reference(estimated.take([0]), h, w, RasterSettings())[0]
+                            * (np.arange(w)[None, :] < 20))
+    decision = decide_moving(estimated, retargeted, edges, wp.array(specular, dtype=float, device="cpu"),
+                             settings=ResidualSettings(), raster=RasterSettings())
     assert decision.moving[0].tolist() == [True, False]
     everything = decide_moving(estimated, retargeted, edges, wp.array(specular, dtype=float, device="cpu"),
                                settings=ResidualSettings(move_support=0.0), raster=RasterSettings())
@@ -493,7 +504,8 @@ def donut_fields(small_donut, tmp_path_factory):
     dataset = ReflectanceField.load(small_donut, progress=False)
     fits = {}
     for name, extra in (("lowrank", []), ("images", ["residual.kind=images"])):
-        fits[name] = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT + extra), device="cpu", progress=False)
+        fits[name] = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT + extra), device="cpu",
+                               progress=False)
     return dataset, fits
 
 
@@ -512,7 +524,8 @@ def _reference_full(field, directions, scale) -> np.ndarray:
     return scale * np.maximum(residual + colour * specular[..., None], 0.0)
 
 
-@pytest.mark.parametrize("kind, decode", [("lowrank", "query"), ("lowrank", "load"), ("lowrank", "auto"), ("images", "auto")])
+@pytest.mark.parametrize("kind, decode",
+                         [("lowrank", "query"), ("lowrank", "load"), ("lowrank", "auto"), ("images", "auto")])
 def test_compose_matches_the_float64_reference(donut_fields, kind, decode, device):
     _, fits = donut_fields
     field = fits[kind]
@@ -545,7 +558,8 @@ def test_the_fit_reports_its_move_check_and_obeys_it(donut_fields):
         assert int(field.moving_mask.sum()) == residual["moving_gaussians"]
 
 
-def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_back_the_images(donut_fields, monkeypatch, tmp_path):
+def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_back_the_images(donut_fields, monkeypatch,
+                                                                                              tmp_path):
     """The move check's verdict is obeyed: no Gaussian kept, no highlight colour, the residual is the images."""
     import warp_highlights.fit.pipeline as pipeline
     from warp_highlights.fit.validation import MoveCheck
@@ -556,10 +570,12 @@ def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_ba
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=images"])
     field = fit_field(dataset, settings=settings, device="cpu", progress=False)
     residual = field.report["residual"]
-    assert residual["move_check"]["moves"] is False and residual["moving_gaussians"] == residual["staying_gaussians"] == 0
+    assert (residual["move_check"]["moves"] is False
+            and residual["moving_gaussians"] == residual["staying_gaussians"] == 0)
     assert not field.estimated.active.any() and not field.retargeted.active.any() and not field.moving_mask.any()
     assert field.residual.highlight_colour is None
-    np.testing.assert_allclose(field.residual.images.astype(np.float32), dataset.images.astype(np.float16).astype(np.float32))
+    np.testing.assert_allclose(field.residual.images.astype(np.float32),
+                               dataset.images.astype(np.float16).astype(np.float32))
     relit = Relighter(field, device="cpu").relight(dataset.lights.directions[:4]).full
     np.testing.assert_allclose(relit, np.maximum(field.residual.images[:4].astype(np.float32), 0.0), atol=1e-6)
     save_field(field, tmp_path / "blend.whf")
@@ -606,10 +622,16 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
         version = int(written_as.split()[1])
         data = path.read_bytes()
         residual_before = lambda r: {key: value for key, value in r.items() if key != "learned" or version > 2}
-        stacks = {name: getattr(field.residual, name) for name in ("luminance", "chroma") if getattr(field.residual, name) is not None}
-        codes = {f"residual__{'Y' if name == 'luminance' else 'C'}_codes": stack.codes.transpose(0, 3, 1, 2) for name, stack in stacks.items()}  # as they are
-        chunked = [f"residual/{prefix}_codes{suffix}" for prefix in ("Y", "C") for suffix in (".npy.blosc", ".lengths.npy")]  # version 5's
-        rewrite(data, path, header=lambda h: {**h, "format_version": version, "residual": residual_before(h["residual"])}, drop=chunked, **codes)
+        stacks = {name: getattr(field.residual, name) for name in ("luminance", "chroma")
+                  if getattr(field.residual, name) is not None}
+        # as they are
+        codes = {f"residual__{'Y' if name == 'luminance' else 'C'}_codes": stack.codes.transpose(0, 3, 1, 2)
+                 for name, stack in stacks.items()}
+        # version 5's
+        chunked = [f"residual/{prefix}_codes{suffix}" for prefix in ("Y", "C")
+                   for suffix in (".npy.blosc", ".lengths.npy")]
+        rewrite(data, path, header=lambda h: {**h, "format_version": version,
+                                              "residual": residual_before(h["residual"])}, drop=chunked, **codes)
     back = load_field(path)
     np.testing.assert_array_equal(back.moving, field.moving)
     a, b = field.residual, back.residual
@@ -625,7 +647,8 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
         assert a.scale is not None and a.scale.min() > 0
         np.testing.assert_array_equal(a.scale, b.scale)
     directions = np.array([[0.2, 0.4, 0.8]])
-    np.testing.assert_array_equal(Relighter(field, device="cpu").relight(directions).full, Relighter(back, device="cpu").relight(directions).full)
+    np.testing.assert_array_equal(Relighter(field, device="cpu").relight(directions).full,
+                                  Relighter(back, device="cpu").relight(directions).full)
     assert back.file_sizes["residual"] > 0
 
 
@@ -644,7 +667,8 @@ def test_a_field_without_chroma_basis_images_round_trips_and_relights(donut_fiel
     directions = np.array([[0.2, 0.4, 0.8], [-0.5, 0.3, 0.4]])
     for decode in ("query", "load"):
         relit = Relighter(back, device="cpu", residual_decode=decode).relight(directions).full
-        np.testing.assert_allclose(relit, _reference_full(plain, directions, 1.0), atol=2e-3 * max(1.0, float(relit.max())))
+        np.testing.assert_allclose(relit, _reference_full(plain, directions, 1.0),
+                                   atol=2e-3 * max(1.0, float(relit.max())))
 
 
 def test_an_unknown_residual_decode_is_refused(donut_fields):
@@ -682,15 +706,18 @@ def sample_fields(data_root):
 
     overrides = [value for flag, value in zip(TINY_FIT[::2], TINY_FIT[1::2])]
     fields = []
-    for name, heldout in (("synthrti-object1-material5/Dome", "synthrti-object1-material5/Test"), ("realrti-item11", None)):
+    for name, heldout in (("synthrti-object1-material5/Dome", "synthrti-object1-material5/Test"),
+                          ("realrti-item11", None)):
         folder = data_root / name
         if not folder.is_dir():
             pytest.skip(f"sample {name} not found under {data_root} (set WARP_HIGHLIGHTS_DATA)")
-        dataset = ReflectanceField.load(folder, heldout=None if heldout is None else data_root / heldout, progress=False)
+        dataset = ReflectanceField.load(folder, heldout=None if heldout is None else data_root / heldout,
+                                        progress=False)
         if heldout is None:
             dataset = dataset.split_every(5)
         size = (round(64 * dataset.width / dataset.height), 64)
-        field = fit_field(dataset, settings=FitSettings().with_overrides(overrides), size=size, device="cpu", progress=False)
+        field = fit_field(dataset, settings=FitSettings().with_overrides(overrides), size=size, device="cpu",
+                          progress=False)
         fields.append((field, dataset))
     return fields
 
@@ -709,7 +736,8 @@ def test_the_samples_relit_at_their_held_out_lights_beat_the_per_pixel_fits(samp
     from warp_highlights.relight.evaluation import evaluate_field
 
     for field, dataset in sample_fields:
-        summary = evaluate_field(field, dataset, device="cpu", methods=("circular", "alpha"), barycentric_face=None, baselines=("ptm",)).summary()
+        summary = evaluate_field(field, dataset, device="cpu", methods=("circular", "alpha"), barycentric_face=None,
+                                 baselines=("ptm",)).summary()
         srgb = summary["full_srgb"]
         assert srgb["circular"]["mean"] > srgb["ptm"]["mean"]
         assert srgb["circular"]["mean"] > srgb["alpha"]["mean"] - 2.5
@@ -720,7 +748,8 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
 
     n, h, w = 12, 9, 7
     stack = (RNG.normal(size=(n, 3)) @ RNG.normal(size=(3, h * w)) + 0.5).reshape(n, h, w, 1)
-    errors = {bits: np.abs(stack_light_images(fit_stack(stack, 3, bits=bits), np.eye(n)) - stack).max() for bits in (8, 16)}
+    errors = {bits: np.abs(stack_light_images(fit_stack(stack, 3, bits=bits), np.eye(n)) - stack).max()
+              for bits in (8, 16)}
     # 16-bit codes leave the float16 mean image as the larger error (about 1e-3 here)
     assert fit_stack(stack, 3, bits=16).codes.dtype == np.uint16 and errors[16] < errors[8] / 8
     with pytest.raises(InputError, match="8 or 16"):
@@ -757,7 +786,8 @@ def test_the_sampled_rate_search_keeps_the_exact_budget(monkeypatch):
     choice stay within the budget and spend as much of it as a search on exact bytes does."""
     n, h, w = 40, 320, 256
     yy, xx = np.mgrid[0:h, 0:w] / h
-    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy) * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
+    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy)
+                         * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
                          for i in range(24)])
     stack = np.einsum("nk,khw->nhw", RNG.normal(size=(n, 24)) * 0.85 ** np.arange(24), patterns)[..., None] + 1.0
     stack = stack + 1e-3 * RNG.normal(size=stack.shape)
@@ -785,7 +815,8 @@ def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_
     smooth = _patterned_stack(n, h, w, 1, 10, 0.8).astype(np.float32)
     searched = []
     real = build_module.allocate
-    monkeypatch.setattr(build_module, "allocate", lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
+    monkeypatch.setattr(build_module, "allocate",
+                        lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
     settings = ResidualSettings(size_budget=1.0)
     quick = build_residual(smooth, own, None, settings=settings)
     assert searched == [16] and quick.luminance.bits == 16
@@ -793,7 +824,8 @@ def test_where_the_finest_8_bit_codes_plainly_fit_only_16_bits_are_searched_and_
     monkeypatch.setattr(build_module, "finest_within", lambda plans, budget, *, bits: None)
     both = build_residual(smooth, own, None, settings=settings)
     assert searched == [8, 16]
-    assert np.array_equal(quick.luminance.codes, both.luminance.codes) and np.array_equal(quick.luminance.weights, both.luminance.weights)
+    assert (np.array_equal(quick.luminance.codes, both.luminance.codes)
+            and np.array_equal(quick.luminance.weights, both.luminance.weights))
 
 
 @settings(max_examples=80, deadline=None)
@@ -817,7 +849,8 @@ def _sampled_principal(seed: int) -> PrincipalImages:
     rng = np.random.default_rng(seed)
     n, h, w = 40, 320, 256
     yy, xx = np.mgrid[0:h, 0:w] / h
-    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy) * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
+    patterns = np.stack([np.sin((i + 1) * 3 * xx + i) * np.cos((i % 5 + 1) * 2 * yy)
+                         * np.exp(-((xx - 0.4) ** 2 + (yy - 0.5) ** 2) * (i % 3 + 1))
                          for i in range(24)])
     stack = np.einsum("nk,khw->nhw", rng.normal(size=(n, 24)) * 0.85 ** np.arange(24), patterns)[..., None] + 1.0
     return PrincipalImages.of(stack + 1e-3 * rng.normal(size=stack.shape))

@@ -107,9 +107,12 @@ def test_rigid_phase_recovers_a_moved_component():
     truth = np.zeros((1, 4, 3))
     truth[0, 0] = (6 / 270, -4 / 270, 0.15)
     target_params = _moved_numpy(params, labels, centroids, truth)
-    targets = np.stack([np.zeros((54, 96), np.float32), raster.render(GaussianBatch.from_numpy(target_params, device="cpu", requires_grad=False)).numpy()[0]])
+    targets = np.stack([np.zeros((54, 96), np.float32),
+                        raster.render(GaussianBatch.from_numpy(target_params, device="cpu",
+                                                               requires_grad=False)).numpy()[0]])
     two = params.take([0, 0])
-    result = retarget(two, targets, np.array([[0, 1]]), settings=RetargetSettings(rigid_iterations=300, iterations=0), device="cpu")
+    result = retarget(two, targets, np.array([[0, 1]]), settings=RetargetSettings(rigid_iterations=300, iterations=0),
+                      device="cpu")
     got = result.params
     np.testing.assert_allclose(got.mean[0, :3], target_params.mean[0, :3], atol=0.6 / 270)
     np.testing.assert_allclose(got.theta[0, :2], target_params.theta[0, :2], atol=0.02)
@@ -123,7 +126,8 @@ def test_graph_replay_gives_the_eager_result_bit_for_bit():
     raster = Rasterizer(54, 96, device="cpu")
     moved = params.copy()
     moved.mean = moved.mean + np.array([5 / 270, -3 / 270])
-    targets = np.stack([raster.render(GaussianBatch.from_numpy(p, device="cpu", requires_grad=False)).numpy()[0] for p in (params, moved)])
+    targets = np.stack([raster.render(GaussianBatch.from_numpy(p, device="cpu", requires_grad=False)).numpy()[0]
+                        for p in (params, moved)])
     two = params.take([0, 0])
     edges, settings = np.array([[0, 1], [1, 0]]), RetargetSettings(rigid_iterations=30, iterations=40)
     with pytest.raises(InputError, match="CUDA graphs need a CUDA device"):
@@ -168,7 +172,8 @@ def test_retargeting_in_parts_that_fit_the_device_gives_the_same_sets(donut_reta
     assert_same_but_for_atomics(parts, whole)
 
 
-def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(donut_retargeting, small_donut, monkeypatch):
+def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(donut_retargeting, small_donut,
+                                                                              monkeypatch):
     """Edges whose images would index past 2^31 pixels in one launch (a light stage's six edges per
     light) are retargeted in parts: forced here by a bound of 7 images per launch, on 2 threads. Each
     edge is its own problem: the same sets bit for bit, and the progress bar fills exactly once."""
@@ -185,7 +190,8 @@ def test_retargeting_over_one_launchs_images_runs_in_parts_with_the_same_sets(do
     monkeypatch.setattr(retargeting_module, "problems_per_launch", lambda h, w, raster: bounds.append((h, w)) or 7)
     original = retargeting_module._Retargeting.__init__
     monkeypatch.setattr(retargeting_module._Retargeting, "__init__",
-                        lambda self, source, *a, **k: sizes.append(source.problem_count) or original(self, source, *a, **k))
+                        lambda self, source, *a, **k: sizes.append(source.problem_count) or original(self, source, *a,
+                                                                                                     **k))
     steps = []
     parts = retarget(est.params, targets, edges, device="cpu", workers=2, progress=steps.append)
     assert bounds == [tuple(targets.shape[1:])]
@@ -234,7 +240,8 @@ def test_the_structure_term_keeps_the_layout(donut_retargeting, small_donut):
     free = retarget(est.params, seg.specular_luminance, edges, settings=RetargetSettings(c_str=0.0), device="cpu")
     # measured: mean structure loss 18.9 rpx^2 with the default c_str against 113 without the term,
     # for a fit loss 1% higher (272 against 269)
-    assert result.structure_loss.mean() < 0.5 * free.structure_loss.mean(), (result.structure_loss.mean(), free.structure_loss.mean())
+    assert (result.structure_loss.mean()
+            < 0.5 * free.structure_loss.mean()), (result.structure_loss.mean(), free.structure_loss.mean())
     assert result.loss.mean() < 1.15 * free.loss.mean()
 
 
@@ -261,7 +268,8 @@ def test_a_retargeted_gaussian_that_lost_its_energy_is_put_back_at_its_source():
     retargeted.amplitude[1, 1] = 1.0  # dimmer (share 0.44): kept
     eps = RasterSettings().sigma_eps
     energy = lambda p: p.amplitude**2 * np.sqrt((p.sigma[..., 0] ** 2 + eps) * (p.sigma[..., 1] ** 2 + eps))
-    assert (energy(retargeted) / energy(sources))[0, 1] < RetargetSettings().vanish_share < (energy(retargeted) / energy(sources))[1, 1]
+    assert ((energy(retargeted) / energy(sources))[0, 1] < RetargetSettings().vanish_share
+            < (energy(retargeted) / energy(sources))[1, 1])
     restored, vanished = restore_vanished(sources, retargeted, RetargetSettings().vanish_share, sigma_eps=eps)
     assert vanished.tolist() == [[False, True], [False, False]]
     for name in ("amplitude", "mean", "sigma", "theta", "weight"):

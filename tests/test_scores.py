@@ -45,7 +45,8 @@ def _reference64(images, own, drawn, tint, corners, weights, truth, scale):
     """The same in float64 throughout (the sRGB curve, rounding half to even)."""
     def shown(x):
         x = np.clip(np.nan_to_num(np.asarray(x, np.float64), nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
-        return np.round(np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055) * 255.0)
+        return np.round(np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+                        * 255.0)
 
     moving, blending = [], []
     images, own, weights = images.astype(np.float64), own.astype(np.float64), weights.astype(np.float64)
@@ -85,7 +86,8 @@ def test_device_scores_are_the_hosts_and_the_float64_reference(device, scale):
 def test_a_tint_of_one_colour_and_one_channel(device):
     images, own, drawn, tint, corners, weights, truth = _case(channels=1)
     tint = np.ones((1, 1, 1), np.float32)
-    host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth, np.float32(1.0))
+    host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth,
+                      np.float32(1.0))
     there = _device_psnr(device, images, own, drawn, tint, corners, weights, truth, 1.0)
     for ours, theirs in zip(there, host):
         np.testing.assert_allclose(ours, theirs, atol=0.02)
@@ -100,10 +102,12 @@ def _codes_of(values: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.float32
 def test_codes_are_display_rgb8s(device):
     """NaN black, +inf white, clipped, the sRGB curve, halves to even; the device's pow may move a code
     by one only where the value sits on a code's edge."""
-    values = np.concatenate([np.array([np.nan, np.inf, -np.inf, -0.5, 0.0, 0.0031308, 0.0031309, 0.5, 1.0, 7.0], np.float32),
+    values = np.concatenate([np.array([np.nan, np.inf, -np.inf, -0.5, 0.0, 0.0031308, 0.0031309, 0.5, 1.0, 7.0],
+                                      np.float32),
                              RNG.random(4000).astype(np.float32)])
     out = wp.zeros(len(values), dtype=wp.float32, device=device)
-    wp.launch(_codes_of, dim=len(values), inputs=[wp.array(values, dtype=wp.float32, device=device)], outputs=[out], device=device)
+    wp.launch(_codes_of, dim=len(values), inputs=[wp.array(values, dtype=wp.float32, device=device)], outputs=[out],
+              device=device)
     codes = out.numpy()
     expected = display_rgb8(values.reshape(-1, 1, 1))[:, 0, 0].astype(np.float32)
     np.testing.assert_array_equal(codes[:10], expected[:10])
@@ -121,7 +125,8 @@ def test_exact_halves_round_to_even(device):
     halves = values[(values * np.float32(12.92)) * np.float32(255.0) % 1 == 0.5]
     assert len(halves) >= 4
     out = wp.zeros(len(halves), dtype=wp.float32, device=device)
-    wp.launch(_codes_of, dim=len(halves), inputs=[wp.array(halves, dtype=wp.float32, device=device)], outputs=[out], device=device)
+    wp.launch(_codes_of, dim=len(halves), inputs=[wp.array(halves, dtype=wp.float32, device=device)], outputs=[out],
+              device=device)
     np.testing.assert_array_equal(out.numpy(), display_rgb8(halves.reshape(-1, 1, 1))[:, 0, 0])
 
 
@@ -141,7 +146,8 @@ def test_the_checks_device_scores_are_the_hosts(device, held, channels):
     scorer = _DeviceScores(images, own, tint, corners, truth, np.float32(0.6), wp.get_device(device), held=there)
     rows = np.array([1, 3, 4])
     moving, blending = scorer.psnr(rows, wp.array(drawn[rows], dtype=wp.float32, device=device), weights[rows])
-    host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth, np.float32(0.6))
+    host = _host_psnr(images, own, drawn, np.broadcast_to(tint, images.shape[1:]), corners, weights, truth,
+                      np.float32(0.6))
     # a code moved by one at an edge (a CPU's own pow or FMA too)
     np.testing.assert_allclose(moving, host[0][rows], atol=0.02)
     np.testing.assert_allclose(blending, host[1][rows], atol=0.02)
@@ -153,7 +159,8 @@ def test_selected_rows_go_up_in_their_order(device, staged, monkeypatch):
 
     if staged:  # through small page-locked buffers (or the CPU device's stand-ins), a row across two of them
         monkeypatch.setattr(transfer, "staged", lambda device, nbytes: True)
-        monkeypatch.setattr(transfer.Staging, "of", classmethod(lambda cls, device: cls(device, slot_bytes=37, slots=2)))
+        monkeypatch.setattr(transfer.Staging, "of",
+                            classmethod(lambda cls, device: cls(device, slot_bytes=37, slots=2)))
     host = RNG.random((6, 5, 3)).astype(np.float32)
     rows = np.array([4, 0, 4, 2])
     np.testing.assert_array_equal(rows_up(host, device, rows=rows).numpy(), host[rows])
@@ -170,19 +177,22 @@ def test_the_check_scores_on_the_device_as_on_the_host(monkeypatch):
 
     directions, edges, estimated, own, images = scene._scene()
     retargeted = scene._one_gaussian_sets(np.array([scene._highlight_at(directions[b]) for b in edges[:, 1]]))
-    settings = dataclasses.replace(validation.FitSettings(), retarget=dataclasses.replace(validation.FitSettings().retarget, rigid_iterations=0,
-                                                                                          iterations=0))
+    defaults = validation.FitSettings()
+    retarget = dataclasses.replace(defaults.retarget, rigid_iterations=0, iterations=0)
+    settings = dataclasses.replace(defaults, retarget=retarget)
     plan = validation.plan_check(directions, edges, 16)
     args = (plan, estimated, retargeted, edges, np.zeros(retargeted.active.shape, np.float32), estimated.active.copy())
     checks = []
     for device in ("cuda:0", "cpu"):
-        checks.append(validation.check_moving(*args, wp.array(own, dtype=float, device=device), images, own, None, factor=1.0, settings=settings,
+        checks.append(validation.check_moving(*args, wp.array(own, dtype=float, device=device), images, own, None,
+                                              factor=1.0, settings=settings,
                                               device=device))
     np.testing.assert_allclose(checks[0].moving_psnr, checks[1].moving_psnr, atol=0.02)
     np.testing.assert_allclose(checks[0].blend_psnr, checks[1].blend_psnr, atol=0.02)
     assert checks[0].moves == checks[1].moves
     held = validation_hold(images, own)
-    with_held = validation.check_moving(*args, wp.array(own, dtype=float, device="cuda:0"), images, own, None, factor=1.0, settings=settings,
+    with_held = validation.check_moving(*args, wp.array(own, dtype=float, device="cuda:0"), images, own, None,
+                                        factor=1.0, settings=settings,
                                         device="cuda:0", held=held)
     # the same images there: the same scores
     np.testing.assert_array_equal(with_held.moving_psnr, checks[0].moving_psnr)

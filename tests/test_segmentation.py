@@ -80,7 +80,8 @@ def test_kernel_matches_float64_reference(device):
 
 
 @wp.func
-def _bisected_rank(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4, rank: int,
+def _bisected_rank(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float,
+                   fit: wp.vec4, rank: int,
                    largest: float) -> float:
     """The rank-th smallest residual by one halving a pass (the kernel's former median, kept as the reference)."""
     lo = float(0.0)
@@ -100,8 +101,10 @@ def _bisected_rank(images: wp.array2d(dtype=float), directions: wp.array(dtype=w
 
 
 @wp.kernel
-def _medians(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), fits: wp.array(dtype=wp.vec4), threshold: float,
-             together: wp.array(dtype=float), apart: wp.array(dtype=float), residuals: wp.array2d(dtype=float), valid: wp.array(dtype=int)):
+def _medians(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), fits: wp.array(dtype=wp.vec4),
+             threshold: float,
+             together: wp.array(dtype=float), apart: wp.array(dtype=float), residuals: wp.array2d(dtype=float),
+             valid: wp.array(dtype=int)):
     q = wp.tid()
     fit = fits[q]
     count = int(0)
@@ -130,7 +133,8 @@ def test_median_two_halvings_a_pass_equals_one_a_pass_and_the_exact_median(devic
     threshold = SegmentationSettings().valid_threshold
     together, apart = wp.zeros(500, dtype=float, device=device), wp.zeros(500, dtype=float, device=device)
     residuals, valid = wp.zeros((61, 500), dtype=float, device=device), wp.zeros(500, dtype=int, device=device)
-    wp.launch(_medians, dim=500, inputs=[wp.array(columns, dtype=float, device=device), wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device),
+    wp.launch(_medians, dim=500, inputs=[wp.array(columns, dtype=float, device=device),
+                                         wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device),
                                          wp.array(fits, dtype=wp.vec4, device=device), threshold],
               outputs=[together, apart, residuals, valid], device=device)
     assert together.numpy().tobytes() == apart.numpy().tobytes()
@@ -168,7 +172,8 @@ def test_row_bands_give_the_whole_stack_s_segmentation(device):
         banded = segment_in_bands(images, directions, rows=rows, device=device)
         for name in ("diffuse", "specular", "specular_luminance"):
             assert isinstance(getattr(banded, name), np.ndarray)
-            np.testing.assert_array_equal(getattr(banded, name), host_array(getattr(whole, name)), err_msg=f"{name}, {rows} rows")
+            np.testing.assert_array_equal(getattr(banded, name), host_array(getattr(whole, name)),
+                                          err_msg=f"{name}, {rows} rows")
         for name in ("lambert", "valid_lights", "iterations"):
             np.testing.assert_array_equal(getattr(banded, name), getattr(whole, name), err_msg=name)
         assert banded.few_light_pixels == whole.few_light_pixels
@@ -179,7 +184,8 @@ def test_no_diffuse_part_made_leaves_the_rest_as_it_was(device):
     rng = np.random.default_rng(5)
     columns, directions = synthetic_columns(rng, 3 * 6 * 7, 30)
     images = columns.reshape(30, 6, 7, 3)
-    whole, lean = segment(images, directions, device=device), segment(images, directions, device=device, keep_diffuse=False)
+    whole, lean = (segment(images, directions, device=device),
+                   segment(images, directions, device=device, keep_diffuse=False))
     assert lean.diffuse is None
     for name in ("specular", "specular_luminance"):
         np.testing.assert_array_equal(host_array(getattr(lean, name)), host_array(getattr(whole, name)))
@@ -195,11 +201,15 @@ def test_shrink_by_is_the_float64_mean_of_each_block(device):
     out = wp.zeros((3, 8, 6), dtype=float, device=device)
     four = out.reshape((3, 8, 6, 1))
     # rows 0..3
-    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, 4:, :, None], device=device), 2, 0], outputs=[four], device=device)
-    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, :12, :, None], device=device), 3, 4], outputs=[four], device=device)
+    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, 4:, :, None], device=device), 2, 0],
+              outputs=[four], device=device)
+    wp.launch(shrink_by, dim=(3, 4, 6, 1), inputs=[wp.array(values[:, :12, :, None], device=device), 3, 4],
+              outputs=[four], device=device)
     reference = values.astype(np.float64)
-    np.testing.assert_allclose(out.numpy()[:, :4], reference[:, 4:12, :12].reshape(3, 4, 2, 6, 2).mean(axis=(2, 4)), rtol=1e-7)
-    np.testing.assert_allclose(out.numpy()[:, 4:], reference[:, :12, :18].reshape(3, 4, 3, 6, 3).mean(axis=(2, 4)), rtol=1e-7)
+    np.testing.assert_allclose(out.numpy()[:, :4], reference[:, 4:12, :12].reshape(3, 4, 2, 6, 2).mean(axis=(2, 4)),
+                               rtol=1e-7)
+    np.testing.assert_allclose(out.numpy()[:, 4:], reference[:, :12, :18].reshape(3, 4, 3, 6, 3).mean(axis=(2, 4)),
+                               rtol=1e-7)
 
 
 def test_bands_keep_the_luminance_on_the_device_shrunk_there(device):
@@ -218,7 +228,8 @@ def test_bands_keep_the_luminance_on_the_device_shrunk_there(device):
     expected = whole.astype(np.float64).reshape(30, 6, 2, 4, 2).mean(axis=(2, 4))
     shrunk = images.astype(np.float64).reshape(30, 6, 2, 4, 2, 3).mean(axis=(2, 4))
     for rows in (1, 5, 12):
-        banded = segment_in_bands(images, directions, rows=rows, device=device, shrink_factor=2, shrink_images=rows == 5)
+        banded = segment_in_bands(images, directions, rows=rows, device=device, shrink_factor=2,
+                                  shrink_images=rows == 5)
         assert isinstance(banded.specular_luminance, wp.array)
         np.testing.assert_allclose(banded.specular_luminance.numpy(), expected, rtol=1e-6, atol=1e-7)
         if rows == 5:  # the images themselves, shrunk as each band went up
@@ -237,7 +248,8 @@ def test_non_finite_pixels_are_counted_on_the_device(device):
     values = np.ones((4, 50), np.float32)
     values[1, 3], values[2, 7], values[3, 49] = np.nan, np.inf, -np.inf
     count = wp.zeros(1, dtype=wp.int32, device=device)
-    wp.launch(count_non_finite, dim=values.shape, inputs=[wp.array(values, device=device)], outputs=[count], device=device)
+    wp.launch(count_non_finite, dim=values.shape, inputs=[wp.array(values, device=device)], outputs=[count],
+              device=device)
     assert int(count.numpy()[0]) == 3
 
 
@@ -253,7 +265,8 @@ def test_bands_short_of_memory_keep_float16_specular_parts_and_shrink_the_lumina
     whole = segment(images, directions, device="cpu")
     shrunk = resize_stack(host_array(whole.specular_luminance), 5, 4)
     for rows in (1, 5, 8, 16):
-        banded = segment_in_bands(images, directions, rows=rows, device="cpu", keep_diffuse=False, specular_dtype=np.float16,
+        banded = segment_in_bands(images, directions, rows=rows, device="cpu", keep_diffuse=False,
+                                  specular_dtype=np.float16,
                                   shrink_target=lambda band: resize_stack(band, 5, band.shape[1] // 4), target_rows=4)
         np.testing.assert_array_equal(banded.specular_luminance, shrunk, err_msg=f"{rows} rows")
         assert banded.specular.dtype == np.float16
@@ -271,7 +284,8 @@ def test_the_images_sent_up_in_one_band_are_kept_where_asked(device):
         pytest.skip("CUDA devices only")
     rng = np.random.default_rng(5)
     directions = LightSet.fibonacci_sphere(12).directions
-    for images in (rng.uniform(0.0, 2.0, (12, 8, 10, 3)).astype(np.float32), rng.uniform(0.0, 2.0, (12, 8, 10)).astype(np.float32)):
+    for images in (rng.uniform(0.0, 2.0, (12, 8, 10, 3)).astype(np.float32),
+                   rng.uniform(0.0, 2.0, (12, 8, 10)).astype(np.float32)):
         whole = segment_in_bands(images, directions, rows=8, device=device, keep_images=True)
         assert (whole.images is not None) == device.startswith("cuda")
         if whole.images is not None:

@@ -50,7 +50,8 @@ def _host_planes(images, own, tint):
     scale = residual_scale(y)
     normalised = y / scale
     squares = np.sum(normalised**2, axis=(1, 2))
-    return scale, squares, normalised[..., None].astype(np.float32), None if chroma is None else (chroma / scale[..., None]).astype(np.float32)
+    return (scale, squares, normalised[..., None].astype(np.float32),
+            None if chroma is None else (chroma / scale[..., None]).astype(np.float32))
 
 
 @pytest.mark.parametrize("channels", [3, 1])
@@ -75,7 +76,8 @@ def test_device_stacks_are_the_host_s_to_a_float32_rounding(device, channels, mo
     np.testing.assert_allclose(held[:, same], luminance[:, same], rtol=2e-6, atol=1e-6)
     np.testing.assert_allclose(made.squares, squares, rtol=1e-5)
     # the lights split as the chroma rows split
-    assert made.luminance.shape == (height, width, 1) and made.luminance.light_count == n and len(made.luminance.rows.parts) == (3 if channels == 3 else 2)
+    assert (made.luminance.shape == (height, width, 1) and made.luminance.light_count == n
+            and len(made.luminance.rows.parts) == (3 if channels == 3 else 2))
     if channels == 1:
         assert made.chroma is None
         return
@@ -104,7 +106,8 @@ def test_stacks_from_images_held_there_are_those_from_uploaded_bands(device, hel
     uploads.clear()
     held_images = wp.array(images.reshape(n, height * width, channels), dtype=wp.float32, device=device)
     held = wp.array(own.reshape(n, height * width), dtype=wp.float32, device=device) if held_own else None
-    there = NormalisedStacks.make(images, own, tint, DeviceProducts(device), scale_of=_scale_of_mean_square, held_images=held_images, held_own=held)
+    there = NormalisedStacks.make(images, own, tint, DeviceProducts(device), scale_of=_scale_of_mean_square,
+                                  held_images=held_images, held_own=held)
     assert bands >= 4 and len(uploads) == (0 if held_own else bands)  # only what is not held goes up
     np.testing.assert_array_equal(there.scale, uploaded.scale)
     np.testing.assert_array_equal(there.squares, uploaded.squares)
@@ -130,7 +133,8 @@ def test_principal_images_of_device_stacks_are_those_of_the_host_stacks(device):
     stack = quantised_stack(there, steps, bits=8)
     reference = quantised_stack(host, steps, bits=8)
     assert np.mean(stack.codes == reference.codes) > 0.99
-    np.testing.assert_allclose(stack_light_images(stack, np.eye(n)), stack_light_images(reference, np.eye(n)), atol=2e-2 * np.abs(stack_light_images(reference, np.eye(n))).max())
+    np.testing.assert_allclose(stack_light_images(stack, np.eye(n)), stack_light_images(reference, np.eye(n)),
+                               atol=2e-2 * np.abs(stack_light_images(reference, np.eye(n))).max())
 
 
 @pytest.mark.parametrize("what_is_held", ["stacks and principal images", "stacks"])

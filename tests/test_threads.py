@@ -12,7 +12,8 @@ from warp_highlights.model.threads import all_finite, mapped_empty
 
 
 @settings(max_examples=60, deadline=None)
-@given(length=st.integers(0, 70), bad=st.sampled_from([np.nan, np.inf, -np.inf, None]), where=st.floats(0, 1), dtype=st.sampled_from([np.float16, np.float32, np.float64]))
+@given(length=st.integers(0, 70), bad=st.sampled_from([np.nan, np.inf, -np.inf, None]), where=st.floats(0, 1),
+       dtype=st.sampled_from([np.float16, np.float32, np.float64]))
 def test_all_finite_is_numpy_s_check_wherever_the_bad_value_is(length, bad, where, dtype):
     array = np.ones((length, 3, 2), dtype)
     if bad is not None and length:
@@ -41,7 +42,8 @@ def test_mapped_empty_is_an_empty_array_of_the_shape_and_type(monkeypatch, cores
     monkeypatch.setattr(threads.np, "empty", lambda shape, dtype: np.full(shape, 0xAB, dtype))
     filled = []
     real_map = threads.parallel_map
-    monkeypatch.setattr(threads, "parallel_map", lambda function, items: filled.extend(items) or real_map(function, items))
+    monkeypatch.setattr(threads, "parallel_map",
+                        lambda function, items: filled.extend(items) or real_map(function, items))
     array = mapped_empty((7, 13, 3), np.uint16)
     assert array.shape == (7, 13, 3) and array.dtype == np.uint16 and array.flags.c_contiguous and array.flags.writeable
     threaded = limit == 64 and cores > 1

@@ -91,11 +91,13 @@ def test_staged_transfers_move_every_byte_in_place(device, small_staging, monkey
 
 def test_staging_chunks_cover_every_run_once_and_fill_each_buffer(device, small_staging):
     staging = small_staging.Staging(device, slot_bytes=10, slots=2)
-    runs = [(1000, np.arange(25, dtype=np.uint8)), (5000, np.arange(3, dtype=np.uint8)), (7000, np.arange(12, dtype=np.uint8))]
+    runs = [(1000, np.arange(25, dtype=np.uint8)), (5000, np.arange(3, dtype=np.uint8)),
+            (7000, np.arange(12, dtype=np.uint8))]
     chunks = staging._chunks(runs)
     assert [used for used, _ in chunks] == [10, 10, 10, 10]
     pieces = [(address, data.size, offset) for _, chunk in chunks for address, data, offset in chunk]
-    assert pieces[0] == (1000, 10, 0) and pieces[2] == (1020, 5, 0) and pieces[3] == (5000, 3, 5) and pieces[4] == (7000, 2, 8)
+    assert (pieces[0] == (1000, 10, 0) and pieces[2] == (1020, 5, 0) and pieces[3] == (5000, 3, 5)
+            and pieces[4] == (7000, 2, 8))
     assert sum(size for _, size, _ in pieces) == 40
 
 
@@ -105,7 +107,8 @@ def test_as_half_rounds_as_numpy_does(device):
     from warp_highlights.kernels.transfer import as_half
 
     rng = np.random.default_rng(9)
-    values = np.concatenate([rng.normal(size=500) * 10.0 ** rng.integers(-9, 6, 500), [0.0, -0.0, 65504.0, 65520.0, 1e9, 2.0**-25, 1 + 2.0**-11]])
+    values = np.concatenate([rng.normal(size=500) * 10.0 ** rng.integers(-9, 6, 500),
+                             [0.0, -0.0, 65504.0, 65520.0, 1e9, 2.0**-25, 1 + 2.0**-11]])
     for shape in [(values.size,), (7, values.size // 7)]:
         part = values[: int(np.prod(shape))].astype(np.float32).reshape(shape)
         half = as_half(wp.array(part, dtype=float, device=device))
@@ -240,7 +243,8 @@ def test_a_band_s_rows_go_in_one_device_copy_a_buffer(device, small_staging, mon
     band = stack[:, 2:5]  # 40 runs of 84 bytes: 3360 bytes, 4 buffers' worth
     copies = []
     real = small_staging.Staging._copy
-    monkeypatch.setattr(small_staging.Staging, "_copy", lambda self, destination, source: copies.append(source.size) or real(self, destination, source))
+    monkeypatch.setattr(small_staging.Staging, "_copy",
+                        lambda self, destination, source: copies.append(source.size) or real(self, destination, source))
     up = rows_up(band, device)
     assert copies == [1000, 1000, 1000, 360]
     copies.clear()
@@ -269,6 +273,7 @@ def test_the_host_s_peak_memory_needs_no_warp():
 
     probe = ("from warp_highlights.model.memory import PeakMemory\n"
              "with PeakMemory('cpu') as peak:\n    x = bytearray(1 << 20)\n"
-             "from warp._src import context\nprint(context.runtime is None, peak.host is not None, peak.device is None)")
+             "from warp._src import context\nprint(context.runtime is None, peak.host is not None, "
+             "peak.device is None)")
     run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert run.stdout.split() == ["True", "True", "True"], run.stderr

@@ -189,10 +189,12 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     directions = dataset.lights.directions
     n = len(directions)
     triangulations = {j: SphericalTriangulation(directions[np.delete(np.arange(n), j)]) for j in check.lights}
-    wanted = {(int(a), int(b)) for j, tri in triangulations.items() for a, b in np.delete(np.arange(n), j)[tri.directed_edges()]}
+    wanted = {(int(a), int(b)) for j, tri in triangulations.items()
+              for a, b in np.delete(np.arange(n), j)[tri.directed_edges()]}
     extra = np.array(sorted(wanted - {tuple(e) for e in edges.tolist()}), dtype=np.int32)
     more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu").params
-    more, _ = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+    more, _ = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share,
+                               sigma_eps=settings.raster.sigma_eps)
     every_edge = np.concatenate([edges, extra])
     every_set = GaussianParams.concatenate([retargeted, more], axis=0)
     paths = decide_paths(estimated.take(every_edge[:, 0]), every_set, settings.paths)
@@ -207,7 +209,8 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
             lights=LightSet(directions[others]), triangulation=tri, width=images.shape[2], height=images.shape[1],
             estimated=estimated.take(others), directed_edges=local, retargeted=every_set.take(rows),
             path_delta=paths.delta[rows].astype(np.float32), path_centre=paths.centre[rows].astype(np.float32),
-            settings=settings.to_dict(), report={}, residual=ResidualModel(images=residual[others].astype(np.float16), highlight_colour=colour),
+            settings=settings.to_dict(), report={},
+            residual=ResidualModel(images=residual[others].astype(np.float16), highlight_colour=colour),
             moving=moving[others],
         )
         relit = Relighter(field, device="cpu", scale=1.0 / factor).relight(directions[light][None]).full[0]

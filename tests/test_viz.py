@@ -48,7 +48,8 @@ def plotter():
 def _rotate(axis: np.ndarray, angle: float, vector: np.ndarray) -> np.ndarray:
     """Rodrigues' rotation, the brute-force reference for great-circle arcs."""
     axis = axis / np.linalg.norm(axis)
-    return vector * np.cos(angle) + np.cross(axis, vector) * np.sin(angle) + axis * (axis @ vector) * (1 - np.cos(angle))
+    return (vector * np.cos(angle) + np.cross(axis, vector) * np.sin(angle)
+            + axis * (axis @ vector) * (1 - np.cos(angle)))
 
 
 def _cells(mesh) -> list[np.ndarray]:
@@ -278,7 +279,8 @@ def test_circular_paths_are_arcs_about_the_stored_centres(field):
         rotation = np.array([[np.cos(half), -np.sin(half)], [np.sin(half), np.cos(half)]])
         np.testing.assert_allclose(rotation @ (paths.start[p] - centre) + centre, paths.circular[p, 4], atol=2e-5)
     assert turning > 0
-    np.testing.assert_allclose(paths.circular, circular_position(paths.start[:, None], paths.end[:, None], paths.delta[:, None],
+    np.testing.assert_allclose(paths.circular, circular_position(paths.start[:, None], paths.end[:, None],
+                                                                 paths.delta[:, None],
                                                                  np.linspace(0, 1, 9)[None], straight_below))
 
 
@@ -292,7 +294,8 @@ def test_gaussian_paths_reject_a_missing_face(field):
 def test_ellipse_outlines_lie_at_two_sigma():
     from warp_highlights.model.gaussians import GaussianParams
 
-    params = GaussianParams.from_sets([{"amplitude": [1.0, 0.5], "mean": [[0.5, 0.4], [0.9, 0.2]], "sigma": [[0.05, 0.02], [0.01, 0.03]],
+    params = GaussianParams.from_sets([{"amplitude": [1.0, 0.5], "mean": [[0.5, 0.4], [0.9, 0.2]],
+                                        "sigma": [[0.05, 0.02], [0.01, 0.03]],
                                         "theta": [0.7, -0.3]}])
     outlines = viz.gaussian_ellipses(params, sigmas=2.0, samples=13)
     assert outlines.shape == (2, 13, 2)
@@ -392,7 +395,8 @@ def test_dragging_the_handle_moves_the_light_on_the_sphere_and_the_image_follows
     move the mouse, release. The light follows on the unit sphere, the image is re-rendered, and each
     move draws the window once."""
     monkeypatch.setenv("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    designer = LightDesigner(field, device="cpu", off_screen=False, window_size=(600, 300), panels=("sphere", "image"), multi_samples=0)
+    designer = LightDesigner(field, device="cpu", off_screen=False, window_size=(600, 300), panels=("sphere", "image"),
+                             multi_samples=0)
     try:
         plotter = designer.plotter
         plotter.show(auto_close=False, interactive=False)
@@ -481,7 +485,9 @@ def test_designer_panels_agree_on_the_triangle_at_a_light(field):
             designer.set_direction(field.lights.directions[light], render=False)
             designer.plotter.subplot(0, 0)
             corners = np.asarray(_actor_mesh(designer.plotter, "query corners").points)
-            np.testing.assert_allclose(corners, field.triangulation.directions[designer._paths.vertices] * viz.LINE_RADIUS, atol=1e-6)
+            np.testing.assert_allclose(corners,
+                                       field.triangulation.directions[designer._paths.vertices] * viz.LINE_RADIUS,
+                                       atol=1e-6)
             assert designer._paths.face == designer._face
     finally:
         designer.close()

@@ -68,6 +68,7 @@ def test_work_in_the_background_returns_raises_or_stops():
         with InBackground(wait_for_stop, name="stoppable") as background:
             started.wait(5)
             raise KeyError("the caller's own error")  # the with block cancels the work
-    assert background.stop.is_set() and not [thread for thread in threading.enumerate() if thread.name.startswith("stoppable")]
+    assert (background.stop.is_set()
+            and not [thread for thread in threading.enumerate() if thread.name.startswith("stoppable")])
     with pytest.raises(RuntimeError, match="stopped"):
         background.result()  # what the work raised once stopped

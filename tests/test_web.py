@@ -26,7 +26,8 @@ def browser():
     """Headless Chromium (software GL) through Playwright, for the module."""
     if CHROMIUM is None:
         pytest.skip("no chromium on the PATH (apt install chromium)")
-    playwright = pytest.importorskip("playwright.sync_api", reason="Playwright for Python is not installed (pip install playwright)")
+    playwright = pytest.importorskip("playwright.sync_api",
+                                     reason="Playwright for Python is not installed (pip install playwright)")
     with playwright.sync_playwright() as driver:
         launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
         yield launched
@@ -83,8 +84,10 @@ def fields(small_field, tmp_path_factory):
     weights = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32) for shape in NEURAL_LAYER_SHAPES)
     codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)
     variants = {
-        "images": dataclasses.replace(residual, images=decoded_images(residual), luminance=None, chroma=None, scale=None),
-        "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count), luminance=None, chroma=None, scale=None),
+        "images": dataclasses.replace(residual, images=decoded_images(residual), luminance=None, chroma=None,
+                                      scale=None),
+        "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count),
+                                       luminance=None, chroma=None, scale=None),
     }
     root = tmp_path_factory.mktemp("web-fields")
     paths = {"lowrank": small_field}
@@ -122,8 +125,10 @@ def _expected(field, relighter, direction, method: str) -> np.ndarray:
     if method != "alpha":
         return _rgb8(relighter.relight(np.asarray(direction, dtype=np.float64), method=method).full)
     location = field.triangulation.locate(np.asarray(direction, dtype=np.float64))
-    corners = relighter.relight(field.lights.directions[np.asarray(location.vertices).reshape(3)], method="circular").full
-    return _rgb8(np.tensordot(np.asarray(location.barycentric, dtype=np.float64).reshape(3), corners.astype(np.float64), axes=1))
+    corners = relighter.relight(field.lights.directions[np.asarray(location.vertices).reshape(3)],
+                                method="circular").full
+    return _rgb8(np.tensordot(np.asarray(location.barycentric, dtype=np.float64).reshape(3), corners.astype(np.float64),
+                              axes=1))
 
 
 def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float = 0.0) -> list[float]:
@@ -157,7 +162,8 @@ def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float
 def test_the_page_relights_as_relight_does(browser, exported, fields, kind, decode, methods):
     with served(exported[kind]) as url, opened(browser, f"{url}?decode={decode}") as tab:
         mode = tab.evaluate("whViewer.mode")
-        assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images", "learned": "learned"}[kind]
+        assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images",
+                        "learned": "learned"}[kind]
         if mode == "decoded":
             assert tab.evaluate("whViewer.decodedCount()") == tab.evaluate("whViewer.manifest.lights")
         _check_page(tab, fields[kind], methods)
@@ -168,7 +174,8 @@ def test_frames_before_the_lights_are_decoded_decode_the_stack(browser, exported
     """A fresh viewer draws from the low-rank stack until a triangle's corners are decoded, then from the layers."""
     with served(exported["lowrank"]) as url, opened(browser, url) as tab:
         tab.evaluate("""async () => { const { Viewer } = await import('./viewer.js');
-          window.fresh = await Viewer.load(document.createElement('canvas'), new URL('manifest.json', location.href)); }""")
+          window.fresh = await Viewer.load(document.createElement('canvas'),
+                                           new URL('manifest.json', location.href)); }""")
         assert tab.evaluate("fresh.decodedCount()") == 0
         tab.evaluate("fresh.setLight([0.3, 0.5, 1.0])")
         assert tab.evaluate("fresh.drawnWith") == "stack"
@@ -182,7 +189,8 @@ def test_frames_before_the_lights_are_decoded_decode_the_stack(browser, exported
         # a browser that cannot make the layers (out of memory, no float16 targets) keeps drawing per pixel
         tab.evaluate("""async () => { const { Viewer } = await import('./viewer.js');
           window.failing = await Viewer.load(document.createElement('canvas'), new URL('manifest.json', location.href));
-          failing.prepareLayers = () => { throw new Error('no room'); }; failing.setLight([0.3, 0.5, 1.0]); await failing.decodeRest(); }""")
+          failing.prepareLayers = () => { throw new Error('no room'); };
+          failing.setLight([0.3, 0.5, 1.0]); await failing.decodeRest(); }""")
         assert tab.evaluate("[failing.decodeError, failing.mode, failing.decodedCount()]") == ["no room", "stack", 0]
         tab.evaluate("failing.setLight([0.3, 0.5, 1.0])")
         assert tab.evaluate("failing.drawnWith") == "stack"
@@ -207,8 +215,10 @@ def test_the_exposure_slider_scales_the_linear_image(browser, exported, fields):
     with served(exported["lowrank"]) as url, opened(browser, url) as tab:
         _check_page(tab, fields["lowrank"], ["circular"], DIRECTIONS[:2], stops=1.0)
         brighter = tab.evaluate("Array.from(whViewer.pixels()).reduce((a, b) => a + b, 0)")
-        tab.evaluate("() => { const e = document.getElementById('exposure'); e.value = '-1.5'; e.dispatchEvent(new Event('input')); }")
-        tab.wait_for_function("whViewer.exposureStops === -1.5 && document.getElementById('stops').textContent === '-1.5 EV'")
+        tab.evaluate("() => { const e = document.getElementById('exposure'); e.value = '-1.5'; e.dispatchEvent(new "
+                     "Event('input')); }")
+        tab.wait_for_function(
+            "whViewer.exposureStops === -1.5 && document.getElementById('stops').textContent === '-1.5 EV'")
         assert tab.evaluate("Array.from(whViewer.pixels()).reduce((a, b) => a + b, 0)") < 0.8 * brighter
 
 
@@ -264,7 +274,8 @@ def test_view_and_the_page_show_the_same_direction_and_image(browser, exported, 
                 np.testing.assert_allclose(shown, designer.direction, atol=5e-4)
                 location = field.triangulation.locate(designer.direction)
                 face = tab.evaluate("whViewer.location.face")
-                assert sorted(field.triangulation.faces[face]) == sorted(np.asarray(location.vertices).reshape(3).tolist())
+                assert (sorted(field.triangulation.faces[face])
+                        == sorted(np.asarray(location.vertices).reshape(3).tolist()))
                 assert psnr_8bit(_canvas(tab, field.width, field.height), _rgb8(designer.image)) >= 40.0
             assert tab.errors == []
     finally:
@@ -296,7 +307,8 @@ def test_dragging_moves_the_light_and_changes_the_image(browser, exported, field
         tab.mouse.up()
         assert tab.inner_text("#direction") == text
         tab.evaluate("""([x, y]) => {
-          const image = document.getElementById('image'), at = (type, u, v) => image.dispatchEvent(new PointerEvent(type, {
+          const image = document.getElementById('image');
+          const at = (type, u, v) => image.dispatchEvent(new PointerEvent(type, {
             pointerId: 7, pointerType: 'touch', isPrimary: true, bubbles: true, clientX: u, clientY: v}));
           at('pointerdown', x, y); at('pointermove', x + 5, y - 5); at('pointerup', x + 5, y - 5);
         }""", [image["x"] + 0.1 * image["width"], image["y"] + 0.5 * image["height"]])
@@ -306,7 +318,8 @@ def test_dragging_moves_the_light_and_changes_the_image(browser, exported, field
 
 def test_the_triangulation_overlay_shows_the_current_triangle(browser, exported):
     centroid_pixel = """(face) => {  // the disc's pixel at the face's centroid direction, RGB
-      const a = whViewer.arrays, d = [0, 0, 0], disc = document.getElementById('disc'), r = disc.width / 2 - 4, c = disc.width / 2;
+      const a = whViewer.arrays, d = [0, 0, 0], disc = document.getElementById('disc');
+      const r = disc.width / 2 - 4, c = disc.width / 2;
       for (let k = 0; k < 3; k++) for (let i = 0; i < 3; i++) d[i] += a.directions[3 * a.faces[3 * face + k] + i];
       const l = Math.hypot(...d);
       const x = Math.round(c + d[0] / l * r), y = Math.round(c - d[1] / l * r);
@@ -321,7 +334,8 @@ def test_the_triangulation_overlay_shows_the_current_triangle(browser, exported)
         assert yellowish(tab.evaluate(centroid_pixel, first))
         tab.evaluate("whSetLight(-0.5, -0.2, 1.0, 'circular')")
         second = tab.evaluate("whViewer.location.face")
-        assert second != first and yellowish(tab.evaluate(centroid_pixel, second)) and not yellowish(tab.evaluate(centroid_pixel, first))
+        assert (second != first and yellowish(tab.evaluate(centroid_pixel, second))
+                and not yellowish(tab.evaluate(centroid_pixel, first)))
         assert tab.errors == []
 
 
@@ -344,8 +358,10 @@ def test_the_single_file_page_inlines_the_module_without_clashes(fields):
     from warp_highlights.web.export import _STATIC, single_file_page
 
     page = single_file_page(load_field(fields["lowrank"])).decode("utf-8")
-    assert 'from "./viewer.js"' not in page and page.lower().count("</script") == 2 and "<!--" not in page.split("<main>")[1]
-    declared = lambda text: set(re.findall(r"^(?:export )?(?:async )?(?:const|let|function|class) (\w+)", text, re.MULTILINE))
+    assert ('from "./viewer.js"' not in page and page.lower().count("</script") == 2
+            and "<!--" not in page.split("<main>")[1])
+    declared = lambda text: set(re.findall(r"^(?:export )?(?:async )?(?:const|let|function|class) (\w+)", text,
+                                           re.MULTILINE))
     module = (_STATIC / "index.html").read_text().split('<script type="module">')[1]
     shared = declared((_STATIC / "viewer.js").read_text()) & declared(module)
     assert shared == set(), shared
@@ -359,7 +375,8 @@ def test_the_arrays_are_gzipped_only_where_that_saves():
     manifest = {"arrays": {name: {"file": f"{name}.bin"} for name in arrays}}
     encoded = encoded_arrays(manifest, arrays)
     assert [name for name, spec in manifest["arrays"].items() if spec.get("encoding") == "gzip"] == ["zeros"]
-    assert manifest["arrays"]["zeros"]["file"] == "zeros.bin.gz" and gzip.decompress(encoded["zeros"]) == arrays["zeros"].tobytes()
+    assert (manifest["arrays"]["zeros"]["file"] == "zeros.bin.gz"
+            and gzip.decompress(encoded["zeros"]) == arrays["zeros"].tobytes())
     assert all(encoded[name] == arrays[name].tobytes() for name in ("empty", "small", "noise"))
 
 
@@ -401,7 +418,8 @@ def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
     stack, spec = field.residual.chroma, manifest["arrays"]["chroma_codes"]
     packed = _read_array(exported["lowrank"], spec)  # (G, H, W, 4)
     items = packed.transpose(1, 2, 0, 3).reshape(field.height, field.width, -1)[..., : stack.rank * 2]
-    np.testing.assert_array_equal(items.reshape(field.height, field.width, stack.rank, 2), stack.codes.transpose(1, 2, 0, 3))
+    np.testing.assert_array_equal(items.reshape(field.height, field.width, stack.rank, 2),
+                                  stack.codes.transpose(1, 2, 0, 3))
 
 
 def test_export_refuses_bad_output_and_fields_it_cannot_show(small_field, tmp_path, capsys):

@@ -32,7 +32,8 @@ def _attach_checkout_kernels() -> None:
     folder = _Path(__file__).resolve().parent.parent / "kernels"
     if name in _sys.modules or _importlib_util.find_spec(name) is not None or not (folder / "__init__.py").is_file():
         return
-    spec = _importlib_util.spec_from_file_location(name, folder / "__init__.py", submodule_search_locations=[str(folder)])
+    spec = _importlib_util.spec_from_file_location(name, folder / "__init__.py",
+                                                   submodule_search_locations=[str(folder)])
     module = _importlib_util.module_from_spec(spec)
     _sys.modules[name] = module
     spec.loader.exec_module(module)

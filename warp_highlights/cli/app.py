@@ -240,7 +240,8 @@ def python_stderr_apart():
     except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
         yield
         return
-    stream = io.TextIOWrapper(io.FileIO(copy, "w"), encoding=original.encoding or "utf-8", errors="backslashreplace", line_buffering=True,
+    stream = io.TextIOWrapper(io.FileIO(copy, "w"), encoding=original.encoding or "utf-8", errors="backslashreplace",
+                              line_buffering=True,
                               write_through=True)
     sys.stderr = stream
     try:

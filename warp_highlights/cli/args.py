@@ -59,7 +59,8 @@ class Command:
 def add_common_options(parser: argparse.ArgumentParser) -> None:
     """Add -q/--quiet and -v/--verbose, which every command takes."""
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars; warnings and errors only")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug messages too, and Warp's own (its start, kernel compilation)")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="debug messages too, and Warp's own (its start, kernel compilation)")
 
 
 def in_range(kind: type, low: float, high: float, *, unit: str = ""):
@@ -102,9 +103,11 @@ def exposure_option(text: str):
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is neither 'auto' nor a number; use auto or a factor > 0, e.g. 4") from None
+        raise argparse.ArgumentTypeError(
+            f"'{text}' is neither 'auto' nor a number; use auto or a factor > 0, e.g. 4") from None
     if not (MIN_EXPOSURE <= value <= MAX_EXPOSURE):
-        raise argparse.ArgumentTypeError(f"{text} is out of range; use auto or a factor in {MIN_EXPOSURE:g}..{MAX_EXPOSURE:g}, e.g. 4")
+        raise argparse.ArgumentTypeError(
+            f"{text} is out of range; use auto or a factor in {MIN_EXPOSURE:g}..{MAX_EXPOSURE:g}, e.g. 4")
     return value
 
 
@@ -133,7 +136,8 @@ def add_pixel_limit_option(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument(
         "--max-megapixels", type=in_range(float, 0.001, 100_000.0), default=DEFAULT_MAX_PIXELS / 1e6, metavar="MP",
-        help=f"refuse images larger than this many megapixels (default {DEFAULT_MAX_PIXELS / 1e6:g}; raise it for larger scans)",
+        help=f"refuse images larger than this many megapixels (default {DEFAULT_MAX_PIXELS / 1e6:g}; raise it "
+             f"for larger scans)",
     )
 
 

@@ -48,19 +48,24 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
         help="held-out ground truth: 'centroids' (every triangle centroid, the default), 'none', or a .lp file",
     )
     image = parser.add_argument_group("image")
-    image.add_argument("--size", type=size_option(), default=f"{settings.width}x{settings.height}", help="WIDTHxHEIGHT (default 480x270)")
+    image.add_argument("--size", type=size_option(), default=f"{settings.width}x{settings.height}",
+                       help="WIDTHxHEIGHT (default 480x270)")
     image.add_argument("--samples", type=in_range(int, 1, 1024), default=settings.samples_per_pixel,
                        help="samples per pixel, a square number up to 1024 (default 4)")
     image.add_argument("--fov", type=in_range(float, 1.0, 169.0, unit="degrees"), default=settings.fov_y_deg,
                        help="vertical field of view, 1..169 degrees (default 30)")
     image.add_argument("--gray", action="store_true", help="single-channel luminance images instead of RGB")
     image.add_argument("--half", action="store_true", help="store EXR as half floats (smaller files)")
-    image.add_argument("--seed", type=in_range(int, 0, 2**32 - 1), default=settings.seed, help="seed of the pixel-sample jitter")
+    image.add_argument("--seed", type=in_range(int, 0, 2**32 - 1), default=settings.seed,
+                       help="seed of the pixel-sample jitter")
     surface = parser.add_argument_group("material (defaults depend on the shape)")
     surface.add_argument("--albedo", type=triple_option("albedo"), help="diffuse colour R,G,B, linear, each in [0, 1]")
-    surface.add_argument("--ambient", type=in_range(float, 0.0, 100.0), help=f"ambient radiance, 0..100 (donut: {material.ambient})")
-    surface.add_argument("--specular", type=in_range(float, 0.0, 100.0), help=f"specular strength, 0..100 (donut: {material.specular})")
-    surface.add_argument("--shininess", type=in_range(float, 1.0, 1e6), help=f"Blinn-Phong exponent, 1..1e6 (donut: {material.shininess:g})")
+    surface.add_argument("--ambient", type=in_range(float, 0.0, 100.0),
+                         help=f"ambient radiance, 0..100 (donut: {material.ambient})")
+    surface.add_argument("--specular", type=in_range(float, 0.0, 100.0),
+                         help=f"specular strength, 0..100 (donut: {material.specular})")
+    surface.add_argument("--shininess", type=in_range(float, 1.0, 1e6),
+                         help=f"Blinn-Phong exponent, 1..1e6 (donut: {material.shininess:g})")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
@@ -76,7 +81,8 @@ def _info_arguments(parser: argparse.ArgumentParser) -> None:
 def _sheet_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="dataset folder")
     parser.add_argument("-o", "--output", type=Path, required=True, help="PNG file to write")
-    parser.add_argument("--count", type=in_range(int, 1, 100), default=12, help="number of lights shown, 1..100 (default 12)")
+    parser.add_argument("--count", type=in_range(int, 1, 100), default=12,
+                        help="number of lights shown, 1..100 (default 12)")
     parser.add_argument("--thumb-height", type=in_range(int, 16, 1024, unit="pixels"), default=135,
                         help="height of each tile, 16..1024 pixels (default 135)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
@@ -123,7 +129,8 @@ def _run_render(args) -> int:
 
     width, height = args.size
     settings = RenderSettings(
-        width=width, height=height, samples_per_pixel=args.samples, fov_y_deg=args.fov, colour=not args.gray, seed=args.seed
+        width=width, height=height, samples_per_pixel=args.samples, fov_y_deg=args.fov, colour=not args.gray,
+        seed=args.seed
     )
     check_output_folder(args.out, overwrite=args.overwrite, legacy=dataset_folder_entry)
     material = _material(args)
@@ -172,11 +179,13 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
     free = shutil.disk_usage(parent).free
     if needed > free:
         raise InputError(
-            f"rendering {images} images of {settings.width}x{settings.height} into {out} needs about {bytes_text(needed)} "
+            f"rendering {images} images of {settings.width}x{settings.height} into {out} needs about "
+            f"{bytes_text(needed)} "
             f"but the disk has {bytes_text(free)} free; choose fewer lights, a smaller --size, --half, or another disk"
         )
     if not quiet and images * settings.width * settings.height > 2e8:
-        logging.getLogger(__name__).info(f"render: {images} images of {settings.width}x{settings.height} (about {bytes_text(needed)}); "
+        logging.getLogger(__name__).info(f"render: {images} images of {settings.width}x{settings.height} (about "
+                                         f"{bytes_text(needed)}); "
                                          "this takes a while")
 
 
@@ -193,7 +202,8 @@ def _run_info(args) -> int:
     return 0
 
 
-_SUMMARY_LABELS = {"elevation_deg": "elevation", "value_range": "values", "mean_value": "mean value", "ground_truth": "ground truth",
+_SUMMARY_LABELS = {"elevation_deg": "elevation", "value_range": "values", "mean_value": "mean value",
+                   "ground_truth": "ground truth",
                    "mask_pixels": "mask", "heldout_lights": "held-out lights"}
 _SUMMARY_UNITS = {"elevation_deg": " deg", "mask_pixels": " pixels"}
 
@@ -225,7 +235,8 @@ def _run_sheet(args) -> int:
     if args.output.suffix.lower() != ".png":
         raise InputError(f"contact sheet '{args.output}' must be a .png file")
     check_output_file(args.output, overwrite=args.overwrite)
-    field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
+    field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet,
+                                  max_pixels=pixel_limit(args))
     path = save_contact_sheet(field, args.output, count=args.count, thumb_height=args.thumb_height)
     print(f"wrote {path}")
     return 0
@@ -236,6 +247,7 @@ COMMANDS = (
             description="Ray-trace a shape under many distant lights and write a dataset folder (images/, specular/, "
             "diffuse/, lights.lp, held-out ground truth, mask.png, meta.json)."),
     Command("info", _info_arguments, _run_info, help="check a dataset folder and summarise it"),
-    Command("sheet", _sheet_arguments, _run_sheet, help="contact sheet PNG of a dataset: full, specular, diffuse per light"),
+    Command("sheet", _sheet_arguments, _run_sheet,
+            help="contact sheet PNG of a dataset: full, specular, diffuse per light"),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -21,12 +21,16 @@ ORBIT_ELEVATION_DEG = 35.0
 
 def _demo_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", type=Path, nargs="?", default=Path("warp-highlights-demo"), help="output folder")
-    parser.add_argument("--lights", type=in_range(int, 4, 2000), default=64, help="number of lights, 4..2000 (default 64)")
-    parser.add_argument("--size", type=size_option(), default="240x135", help="image size WIDTHxHEIGHT (default 240x135)")
-    parser.add_argument("--frames", type=in_range(int, 2, 10_000), default=72, help="frames of each animation, 2..10000 (default 72)")
+    parser.add_argument("--lights", type=in_range(int, 4, 2000), default=64,
+                        help="number of lights, 4..2000 (default 64)")
+    parser.add_argument("--size", type=size_option(), default="240x135",
+                        help="image size WIDTHxHEIGHT (default 240x135)")
+    parser.add_argument("--frames", type=in_range(int, 2, 10_000), default=72,
+                        help="frames of each animation, 2..10000 (default 72)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--residual", choices=["auto", "lowrank", "learned"], default="auto",
-                        help="the fit's residual, as fit --residual takes it (default auto: learned on CUDA, minutes; lowrank elsewhere, seconds)")
+                        help="the fit's residual, as fit --residual takes it (default auto: learned on CUDA, minutes; "
+                             "lowrank elsewhere, seconds)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
 
 
@@ -40,13 +44,15 @@ def _run_demo(args) -> int:
     check_output_folder(out, overwrite=args.overwrite, legacy=demo_folder_entry)
     settings = FitSettings().with_overrides(residual_overrides(args.residual))
     started = time.perf_counter()
-    index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device, progress=not args.quiet,
+    index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device,
+                     progress=not args.quiet,
                      overwrite=args.overwrite, settings=settings)
     print(f"demo finished in {time.perf_counter() - started:.0f} s: see {index}")
     return 0
 
 
-DEMO_FILES = frozenset({"donut-contact-sheet.png", "donut.whf", "relit.png", "orbit.gif", "orbit-highlights.gif", "index.md",
+DEMO_FILES = frozenset({"donut-contact-sheet.png", "donut.whf", "relit.png", "orbit.gif", "orbit-highlights.gif",
+                        "index.md",
                         "demo.json"})
 """The files at the top of a demo folder, beside its ``donut/`` dataset and ``evaluation/``."""
 
@@ -65,7 +71,8 @@ def demo_folder_entry(relative: str) -> bool:
     return relative in DEMO_FILES
 
 
-def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135), frames: int = 72, device=None, progress: bool = True,
+def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135), frames: int = 72, device=None,
+             progress: bool = True,
              log=None, overwrite: bool = False, settings=None) -> Path:
     """Render, fit, evaluate and animate the donut into ``out``; returns the index file.
 
@@ -93,7 +100,8 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     out.parent.mkdir(parents=True, exist_ok=True)
     transaction = FolderTransaction(out, kind="demo", overwrite=overwrite, legacy=demo_folder_entry)
     try:
-        _make_demo(transaction.temporary, out, lights=lights, size=size, frames=frames, device=device, progress=progress, log=log,
+        _make_demo(transaction.temporary, out, lights=lights, size=size, frames=frames, device=device,
+                   progress=progress, log=log,
                    settings=settings)
         transaction.commit()
     finally:
@@ -101,7 +109,8 @@ def run_demo(out: Path, *, lights: int = 64, size: tuple[int, int] = (240, 135),
     return out / "index.md"
 
 
-def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], frames: int, device, progress: bool, log, settings) -> None:
+def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], frames: int, device, progress: bool, log,
+               settings) -> None:
     """The demo's files into ``work`` (the temporary folder that becomes ``out``)."""
     from ..fit.pipeline import fit_field
     from ..io.atomic import atomic_file
@@ -126,11 +135,14 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
         log(f"{name:>9} {steps[name]:6.1f} s  {line}")
 
     t = time.perf_counter()
-    folder = render_dataset("donut", work / "donut", lights=LightSet.fibonacci_sphere(lights), material=default_material("donut"),
-                            settings=RenderSettings(width=width, height=height), device=device, overwrite=True, progress=progress)
+    folder = render_dataset("donut", work / "donut", lights=LightSet.fibonacci_sphere(lights),
+                            material=default_material("donut"),
+                            settings=RenderSettings(width=width, height=height), device=device, overwrite=True,
+                            progress=progress)
     dataset = ReflectanceField.load(folder, progress=False)
     sheet = save_contact_sheet(dataset, work / "donut-contact-sheet.png")
-    made += [("donut/", f"the rendered dataset: {lights} lights + {dataset.heldout.light_count} held-out triangle centroids, {width}x{height}, with ground truth"),
+    made += [("donut/", f"the rendered dataset: {lights} lights + {dataset.heldout.light_count} held-out triangle "
+                        f"centroids, {width}x{height}, with ground truth"),
              (sheet.name, "contact sheet: full, specular and diffuse images of 12 lights")]
     step("render", t, f"{out / folder.name}")
 
@@ -138,12 +150,14 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     field = fit_field(dataset, settings=settings, device=device, progress=progress)
     field_path = work / "donut.whf"
     save_field(field, field_path)
-    made.append((field_path.name, f"the fitted highlight field ({field_path.stat().st_size / 1e6:.2f} MB; warp-highlights relight/animate/evaluate read it)"))
+    made.append((field_path.name, f"the fitted highlight field ({field_path.stat().st_size / 1e6:.2f} MB; "
+                                  f"warp-highlights relight/animate/evaluate read it)"))
     step("fit", t, f"{field.estimated.counts.mean():.1f} Gaussians per light -> {field_path.name}")
 
     t = time.perf_counter()
     alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
-    evaluation = evaluate_field(field, dataset, device=device, alpha_stacks=(alpha_specular, alpha_images), baselines=("ptm", "hsh3", "rbf"))
+    evaluation = evaluate_field(field, dataset, device=device, alpha_stacks=(alpha_specular, alpha_images),
+                                baselines=("ptm", "hsh3", "rbf"))
     report = evaluation.to_dict() | {"field": str(out / field_path.name), "dataset": str(out / folder.name)}
     written = write_evaluation(work / "evaluation", evaluation, report, overwrite=True, title="donut")
     made.append(("evaluation/", "report.json and plots: " + ", ".join(written)))
@@ -151,8 +165,10 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     full, ssim = report["summary"]["full_srgb"], report["summary"]["full_ssim"]
     # too few lights leave some out
     full_methods = [m for m in ("circular", "straight", "alpha", "ptm", "hsh3", "rbf") if m in full]
-    step("evaluate", t, "specular PSNR " + ", ".join(f"{m} {summary[m]['mean']:.2f} dB" for m in ("circular", "straight", "alpha"))
-         + "; full image 8-bit PSNR " + ", ".join(f"{m} {full[m]['mean']:.2f} dB" for m in ("circular", "alpha", "rbf") if m in full))
+    step("evaluate", t,
+         "specular PSNR " + ", ".join(f"{m} {summary[m]['mean']:.2f} dB" for m in ("circular", "straight", "alpha"))
+         + "; full image 8-bit PSNR " + ", ".join(f"{m} {full[m]['mean']:.2f} dB" for m in ("circular", "alpha", "rbf")
+                                                  if m in full))
 
     t = time.perf_counter()
     relighter = Relighter(field, device=device, alpha_specular=alpha_specular, alpha_images=alpha_images)
@@ -161,12 +177,15 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     made.append(("relit.png", f"one relit image, light at azimuth 0, elevation {ORBIT_ELEVATION_DEG:g} deg"))
     circular = relighter.relight(path, method="circular")
     write_animation(iter(circular.full), work / "orbit.gif", fps=24, frame_count=frames, overwrite=True)
-    made.append(("orbit.gif", f"{frames} frames, the light orbiting at {ORBIT_ELEVATION_DEG:g} deg elevation (circular paths, residual transfer)"))
+    made.append(("orbit.gif", f"{frames} frames, the light orbiting at {ORBIT_ELEVATION_DEG:g} deg elevation (circular "
+                              f"paths, residual transfer)"))
     alpha = relighter.relight(path, method="alpha", full=False)
     straight = relighter.relight(path, method="straight", full=False)
-    panels = (np.concatenate([c, s, a], axis=1) for c, s, a in zip(circular.specular, straight.specular, alpha.specular))
+    panels = (np.concatenate([c, s, a], axis=1)
+              for c, s, a in zip(circular.specular, straight.specular, alpha.specular))
     write_animation(panels, work / "orbit-highlights.gif", fps=24, frame_count=frames, overwrite=True)
-    made.append(("orbit-highlights.gif", "the highlights alone, side by side, left to right: circular, straight, alpha blend (watch them glide vs cross-fade)"))
+    made.append(("orbit-highlights.gif", "the highlights alone, side by side, left to right: circular, straight, alpha "
+                                         "blend (watch them glide vs cross-fade)"))
     step("animate", t, f"{frames} frames x 4 renders")
 
     total = time.perf_counter() - started
@@ -184,11 +203,13 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
         "",
         "| method | mean | p5 | p95 |",
         "|---|---|---|---|",
-        *[f"| {m} | {summary[m]['mean']:.2f} | {summary[m]['p5']:.2f} | {summary[m]['p95']:.2f} |" for m in ("circular", "straight", "alpha")],
+        *[f"| {m} | {summary[m]['mean']:.2f} | {summary[m]['p5']:.2f} | {summary[m]['p95']:.2f} |"
+          for m in ("circular", "straight", "alpha")],
         "",
         f"Circular beats the alpha blend on {100 * summary['circular_beats_alpha']:.0f}% of the held-out lights.",
         "",
-        "Full images at the same lights, as RTI users score them (8-bit sRGB PSNR in dB and SSIM), next to the classic RTI fits:",
+        "Full images at the same lights, as RTI users score them (8-bit sRGB PSNR in dB and SSIM), next to the "
+        "classic RTI fits:",
         "",
         "| method | PSNR mean | worst | SSIM mean |",
         "|---|---|---|---|",
@@ -206,7 +227,8 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
 
 COMMANDS = (
     Command("demo", _demo_arguments, _run_demo, help="the built-in synthetic default, end to end",
-            description="Render the built-in donut at a CPU-friendly size (with held-out ground truth), fit a highlight "
+            description="Render the built-in donut at a CPU-friendly size (with held-out ground truth), "
+                        "fit a highlight "
             "field, evaluate it against the ground truth, and animate the light: everything goes into one "
             "folder with an index.md."),
 )

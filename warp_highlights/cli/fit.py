@@ -26,7 +26,9 @@ __all__ = ["COMMANDS"]
 def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, nargs="?", help="dataset folder (a .lp light file and its images)")
     parser.add_argument("-o", "--output", type=Path, help="highlight-field file to write (e.g. donut.whf); required")
-    parser.add_argument("--size", type=size_option("working size"), help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
+    parser.add_argument(
+        "--size", type=size_option("working size"),
+        help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
     parser.add_argument(
             "--set",
             dest="overrides",
@@ -37,29 +39,41 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
             "(repeatable; --list-settings shows them all)",
         )
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
-                        help="fit without lights 0, K, 2K, ... of the dataset, to score them later (evaluate FIELD DATASET)")
-    parser.add_argument("--list-settings", action="store_true", help="print every hyper-parameter with its default and exit")
+                        help="fit without lights 0, K, 2K, ... of the dataset, to score them later "
+                             "(evaluate FIELD DATASET)")
+    parser.add_argument("--list-settings", action="store_true",
+                        help="print every hyper-parameter with its default and exit")
     parser.add_argument("--residual", choices=list(RESIDUAL_KINDS), default=None,
-                        help="what relighting adds the moved highlights to (the images minus their own highlights), the setting "
-                        "residual.kind: lowrank (low-rank 8- or 16-bit bases, about a quarter of the 8-bit capture; seconds), learned "
-                        "(9 numbers per pixel and an MLP, trained for up to residual.learned_seconds, twice where a check decides "
-                        "whether it keeps the moving Gaussians or learns the images alone; minutes, for a GPU), images (uncompressed "
-                        "float16, exact at the captured lights), none (then use --diffuse), or auto (default: learned on CUDA, lowrank "
+                        help="what relighting adds the moved highlights to (the images minus their own "
+                             "highlights), the setting "
+                        "residual.kind: lowrank (low-rank 8- or 16-bit bases, about a quarter of the 8-bit capture; "
+                        "seconds), learned "
+                        "(9 numbers per pixel and an MLP, trained for up to residual.learned_seconds, twice where "
+                        "a check decides "
+                        "whether it keeps the moving Gaussians or learns the images alone; minutes, for a GPU), "
+                        "images (uncompressed "
+                        "float16, exact at the captured lights), none (then use --diffuse), or auto (default: learned "
+                        "on CUDA, lowrank "
                         "elsewhere)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
-                        help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images (images), or not (default none)")
+                        help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images "
+                             "(images), or not (default none)")
     parser.add_argument(
             "--exposure",
             type=exposure_option,
             default=None,
-            help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the thresholds assume "
-            "display white is 1 (default: auto for JPEG/PNG/TIFF photographs, 1 for EXR/HDR radiance); relighting undoes it",
+            help="multiply the radiance by this before fitting, or 'auto' (99.9th percentile -> 1); the "
+                 "thresholds assume "
+            "display white is 1 (default: auto for JPEG/PNG/TIFF photographs, 1 for EXR/HDR radiance); "
+            "relighting undoes it",
         )
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
-    parser.add_argument("--workers", type=in_range(int, 1, 4096), help="CPU threads for the fitting stages, 1..4096 (default: one per core)")
+    parser.add_argument("--workers", type=in_range(int, 1, 4096),
+                        help="CPU threads for the fitting stages, 1..4096 (default: one per core)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--report", type=Path, help="also write the fit report as JSON to this file")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing output files (the field and the report)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing output files (the field and the report)")
     add_pixel_limit_option(parser)
 
 
@@ -136,7 +150,8 @@ def _run_fit(args) -> int:
         load_started = time.perf_counter()
         _thread_lock_for_progress_bars()
         with PeakMemory("cpu") as peak:
-            loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args), size=size,
+            loaded = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet,
+                                           max_pixels=pixel_limit(args), size=size,
                                            heldout=False, components=False, stop=stop, before_decoding=before_decoding)
         return loaded, peak, time.perf_counter() - load_started
 
@@ -163,7 +178,8 @@ def _run_fit(args) -> int:
         if warmup is not None:
             warmup.join()
     field = fit_field(  # its stage lines reach stderr through the warp_highlights logger (-q hides them)
-        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure, workers=args.workers, progress=not args.quiet
+        dataset, settings=settings, device=device, size=size, diffuse=args.diffuse, exposure=args.exposure,
+        workers=args.workers, progress=not args.quiet
     )
     del dataset
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
@@ -195,7 +211,8 @@ def _peak_text(memory: dict) -> str:
 
     parts = []
     for kind in ("host", "device"):
-        peaks = {stage: values[f"{kind}_peak_bytes"] for stage, values in memory.items() if values.get(f"{kind}_peak_bytes") is not None}
+        peaks = {stage: values[f"{kind}_peak_bytes"] for stage, values in memory.items()
+                 if values.get(f"{kind}_peak_bytes") is not None}
         if peaks:
             stage = max(peaks, key=peaks.get)
             parts.append(f"{kind} {bytes_text(peaks[stage])} ({stage})")
@@ -218,42 +235,56 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     count, quality = est["gaussians_per_light"], est["psnr_db"]
     print(f"wrote {output} ({written / 1e6:.2f} MB) in {seconds:.1f} s on {report['device']}")
     print(
-        f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges {report['directed_edges']}, "
-        f"working size {report['size'][0]}x{report['size'][1]}{_gaussian_size_text(report)}, exposure x{report['exposure']:.3g}"
+        f"  lights {report['lights']} ({'dome' if report['dome'] else 'full sphere'}), directed edges "
+        f"{report['directed_edges']}, "
+        f"working size {report['size'][0]}x{report['size'][1]}{_gaussian_size_text(report)}, exposure "
+        f"x{report['exposure']:.3g}"
     )
     print("  stage times: " + ", ".join(f"{name} {value:.1f} s" for name, value in report["seconds"].items()))
     print("  peak memory: " + _peak_text(report["memory"]))
     kept = (report.get("residual") or {}).get("kept_gaussians")
     print(f"  Gaussians per light: mean {count['mean']:.1f}, min {count['min']:.0f}, max {count['max']:.0f}"
           + (" (estimated; the field keeps none, see the checks below)" if kept == 0 else ""))
-    print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min {quality['min']:.1f}")
-    print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} -> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
-    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer than 4 lit samples)")
+    print(f"  estimation PSNR (dB): mean {quality['mean']:.1f}, 5th percentile {quality['p5']:.1f}, min "
+          f"{quality['min']:.1f}")
+    print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} "
+          f"-> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
+    print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer "
+          f"than 4 lit samples)")
     residual = report.get("residual")
     if residual:
-        kind = (f"low rank (luminance {residual['luminance_rank']}" + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
+        kind = (f"low rank (luminance {residual['luminance_rank']}"
+                + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
                 + f", {residual['basis_bits']}-bit)"
-                if residual["compressed"] else f"learned ({residual['learned']['epochs']} epochs)" if residual.get("learned") else "uncompressed images")
-        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} blend in place; "
+                if residual["compressed"] else f"learned ({residual['learned']['epochs']} epochs)"
+                if residual.get("learned") else "uncompressed images")
+        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} "
+              f"blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
         check = residual.get("move_check") or {}
         if check.get("lights"):
-            verdict = "the Gaussians move" if check["moves"] else "the highlights stay in the residual (the field keeps no Gaussians)"
+            verdict = ("the Gaussians move" if check["moves"]
+                       else "the highlights stay in the residual (the field keeps no Gaussians)")
             print(f"  move check at {check['lights']} left-out lights: moving {check['moving_psnr_db']:.2f} dB, "
                   f"blending {check['blend_psnr_db']:.2f} dB (8-bit sRGB): {verdict}")
         learned = residual.get("learned_check") or {}
         if learned.get("lights"):
-            verdict = "the learned residual keeps them" if learned["keeps_gaussians"] else "the images are learned alone (the field keeps no Gaussians)"
-            print(f"  learned check at {learned['lights']} left-out lights: residual + moved Gaussians {learned['with_gaussians_psnr_db']:.2f} dB, "
+            verdict = ("the learned residual keeps them" if learned["keeps_gaussians"]
+                       else "the images are learned alone (the field keeps no Gaussians)")
+            print(f"  learned check at {learned['lights']} left-out lights: residual + moved Gaussians "
+                  f"{learned['with_gaussians_psnr_db']:.2f} dB, "
                   f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
     parts = field_size_report(field)
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 
 
 COMMANDS = (
-    Command("fit", _fit_arguments, _run_fit, help="fit a highlight field to a dataset (segmentation, estimation, retargeting)",
-            description="Segment every image into diffuse and specular parts, fit a few Gaussians to each specular image, "
-            "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths and which of them "
+    Command("fit", _fit_arguments, _run_fit,
+            help="fit a highlight field to a dataset (segmentation, estimation, retargeting)",
+            description="Segment every image into diffuse and specular parts, fit a few Gaussians to each "
+                        "specular image, "
+            "re-fit every set onto its neighbours in the light triangulation, decide the Gaussians' paths "
+            "and which of them "
             "move, keep each image's residual (the image minus its own moving highlights, compressed), and "
             "write everything to one highlight-field file.", check=_check_fit),
 )

@@ -20,7 +20,8 @@ MAP_FILES = {
     "normals.exr": "float32 RGB = the unit normal (x, y, z) itself, components in [-1, 1]",
     "albedo.png": "16-bit sRGB: the diffuse value under a unit light along the normal (clipped to 1)",
     "albedo.exr": "float32 linear albedo, the input's units (not clipped)",
-    "highlight-colour.png": "16-bit sRGB: the highlight colour c(x) scaled so its largest channel is 1 (its hue and saturation)",
+    "highlight-colour.png": "16-bit sRGB: the highlight colour c(x) scaled so its largest channel is 1 (its hue "
+                            "and saturation)",
     "highlight-colour.exr": "float32 linear c(x) as relighting uses it (luminance 1; white where the field keeps none)",
     "mask.png": "8-bit grey: 255 where a normal was estimated, 0 elsewhere (background, never lit)",
     "maps.json": "what was written, the conventions, and counts",
@@ -30,12 +31,16 @@ MAP_FILES = {
 
 def _maps_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    parser.add_argument("-o", "--output", type=Path, required=True, help="output folder for the maps (PNG 16-bit and EXR each, mask, maps.json)")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="output folder for the maps (PNG 16-bit and EXR each, mask, maps.json)")
     parser.add_argument("--flatten", action="store_true",
-                        help="for flat objects (coins, tablets, paintings): remove the linear trend of the normals' slopes over the image, "
-                        "the lean away from the centre that a dome's near lights give (keeps the mean tilt; takes shape from curved objects)")
+                        help="for flat objects (coins, tablets, paintings): remove the linear trend of the normals' "
+                             "slopes over the image, "
+                        "the lean away from the centre that a dome's near lights give (keeps the mean tilt; takes "
+                        "shape from curved objects)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder written by warp-highlights")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing output folder written by warp-highlights")
 
 
 def _maps_folder_entry(relative: str) -> bool:
@@ -74,8 +79,10 @@ def _run_maps(args) -> int:
         summary = _summary(args.field, field, maps, flattened=args.flatten)
         (temporary / "maps.json").write_text(json.dumps(summary, indent=1) + "\n")
     share = summary["pixels_with_normal"] / max(field.width * field.height, 1)
-    print(f"wrote normal, albedo and highlight-colour maps to {output} ({field.width}x{field.height}; normals on {100 * share:.0f}% of the "
-          f"pixels; highlight colour {'per pixel' if maps.coloured_highlights else 'white: the field keeps no coloured highlights'})")
+    print(f"wrote normal, albedo and highlight-colour maps to {output} ({field.width}x{field.height}; normals on "
+          f"{100 * share:.0f}% of the "
+          f"pixels; highlight colour "
+          f"{'per pixel' if maps.coloured_highlights else 'white: the field keeps no coloured highlights'})")
     return 0
 
 
@@ -90,7 +97,8 @@ def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
         "files": MAP_FILES,
         "normal_frame": "x right, y up the image, z towards the camera: the frame of the .lp light directions",
         "flattened": flattened,
-        "albedo_units": "linear, the input's units (the fit's exposure undone); the diffuse value under a unit light along the normal",
+        "albedo_units": "linear, the input's units (the fit's exposure undone); the diffuse value under a unit light "
+                        "along the normal",
         "pixels_with_normal": int(maps.mask.sum()),
         "lit_lights_median": float(np.median(lit)) if lit.size else 0.0,
         "albedo_clipped_in_png_share": float(np.mean(np.any(albedo > 1.0, axis=-1))) if albedo.size else 0.0,
@@ -100,10 +108,15 @@ def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
 
 
 COMMANDS = (
-    Command("maps", _maps_arguments, _run_maps, help="write normal, albedo and highlight-colour maps of a fitted field (PNG 16-bit and EXR)",
-            description="Estimate per-pixel surface normals and albedo from the field's captured images (a robust Lambertian fit "
-            "per pixel, highlights and shadows left out) and write them with the field's highlight colour into a folder: "
-            "normals.png/.exr, albedo.png/.exr, highlight-colour.png/.exr, mask.png and maps.json. Normals are in the frame "
-            "of the .lp light directions (x right, y up the image, z towards the camera); the PNG encodes (n + 1) / 2."),
+    Command("maps", _maps_arguments, _run_maps,
+            help="write normal, albedo and highlight-colour maps of a fitted field (PNG 16-bit and EXR)",
+            description="Estimate per-pixel surface normals and albedo from the field's captured images (a robust "
+                        "Lambertian fit "
+            "per pixel, highlights and shadows left out) and write them with the field's highlight colour "
+            "into a folder: "
+            "normals.png/.exr, albedo.png/.exr, highlight-colour.png/.exr, mask.png and maps.json. Normals "
+            "are in the frame "
+            "of the .lp light directions (x right, y up the image, z towards the camera); the PNG "
+            "encodes (n + 1) / 2."),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -35,26 +35,38 @@ highlights (1 float32) on the device and again on the host, plus the 8-bit or EX
 
 def _relight_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    parser.add_argument("--light", action="append", default=[], metavar="X,Y,Z", help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. --light -0.5,0.2,1; repeatable")
-    parser.add_argument("--lights", type=Path, metavar="FILE.lp", help="also relight every direction of this .lp light file")
+    parser.add_argument("--light", action="append", default=[], metavar="X,Y,Z",
+                        help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. "
+                             "--light -0.5,0.2,1; repeatable")
+    parser.add_argument("--lights", type=Path, metavar="FILE.lp",
+                        help="also relight every direction of this .lp light file")
     parser.add_argument("-o", "--output", type=Path, required=True,
-                        help="image file (.exr linear; .png, .tif or .jpg sRGB) for one light; a folder for several (EXR images + lights.lp)")
+                        help="image file (.exr linear; .png, .tif or .jpg sRGB) for one light; a folder for several "
+                             "(EXR images + lights.lp)")
     parser.add_argument("--bits", choices=["auto", "8", "16"], default="auto",
-                        help="bits per channel of a PNG or TIFF output (default auto: 16 where the field was fitted to a capture of more than 8 bits)")
+                        help="bits per channel of a PNG or TIFF output (default auto: 16 where the field was fitted to "
+                             "a capture of more than 8 bits)")
     _add_relight_options(parser)
     parser.add_argument("--overwrite", action="store_true", help="replace existing output")
 
 
 def _animate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file")
-    parser.add_argument("--path", required=True, help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
-    parser.add_argument("-o", "--output", type=Path, required=True, help=".gif, .webp (lossless), .apng, .mp4 (needs imageio-ffmpeg) or a folder of frames")
-    parser.add_argument("--frames", type=in_range(int, 1, 100_000), default=96, help="number of frames, 1..100000 (default 96)")
-    parser.add_argument("--fps", type=in_range(float, 0.01, 1000.0), default=24.0, help="frames per second, 0.01..1000 (default 24; GIF up to 50)")
-    parser.add_argument("--compare", action="store_true", help="show each method of --methods side by side in every frame")
-    parser.add_argument("--methods", default="circular,alpha", help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
+    parser.add_argument("--path", required=True,
+                        help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help=".gif, .webp (lossless), .apng, .mp4 (needs imageio-ffmpeg) or a folder of frames")
+    parser.add_argument("--frames", type=in_range(int, 1, 100_000), default=96,
+                        help="number of frames, 1..100000 (default 96)")
+    parser.add_argument("--fps", type=in_range(float, 0.01, 1000.0), default=24.0,
+                        help="frames per second, 0.01..1000 (default 24; GIF up to 50)")
+    parser.add_argument("--compare", action="store_true",
+                        help="show each method of --methods side by side in every frame")
+    parser.add_argument("--methods", default="circular,alpha",
+                        help="methods for --compare, comma-separated (default circular,alpha; alpha needs --dataset)")
     parser.add_argument("--exr", action="store_true", help="frames folder as linear EXR instead of PNG")
-    _add_relight_options(parser, size_help="output WIDTHxHEIGHT of each panel, with the field's aspect ratio (default: the field's "
+    _add_relight_options(parser, size_help="output WIDTHxHEIGHT of each panel, with the field's aspect ratio "
+                                           "(default: the field's "
                          "size, at most 480 px on its longer side for GIF, WebP and APNG and 1920 px for MP4)")
     parser.add_argument("--overwrite", action="store_true", help="replace existing output")
 
@@ -62,31 +74,45 @@ def _animate_arguments(parser: argparse.ArgumentParser) -> None:
 def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file")
     parser.add_argument("dataset", type=Path, help="the dataset folder the field was fitted to, with held-out lights")
-    parser.add_argument("-o", "--output", type=Path, help="output folder (default: FIELD's name + '-evaluation' beside it)")
-    parser.add_argument("--heldout", type=Path, help="folder with the held-out lights and images, if not inside DATASET")
-    parser.add_argument("--methods", default="circular,straight,alpha", help="comma-separated (default circular,straight,alpha)")
+    parser.add_argument("-o", "--output", type=Path,
+                        help="output folder (default: FIELD's name + '-evaluation' beside it)")
+    parser.add_argument("--heldout", type=Path,
+                        help="folder with the held-out lights and images, if not inside DATASET")
+    parser.add_argument("--methods", default="circular,straight,alpha",
+                        help="comma-separated (default circular,straight,alpha)")
     parser.add_argument("--baselines", default="ptm,hsh2,hsh3,rbf",
-                        help="classic RTI methods fitted to the same lights and scored on the full images, comma-separated from "
+                        help="classic RTI methods fitted to the same lights and scored on the full images, "
+                             "comma-separated from "
                         "ptm, hsh2, hsh3, rbf, or 'none' (default ptm,hsh2,hsh3,rbf; RBF's sigma by leave-one-out)")
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
-                        help="for a capture without held-out lights: hold out lights 0, K, 2K, ... of DATASET and score them; FIELD "
+                        help="for a capture without held-out lights: hold out lights 0, K, 2K, ... of DATASET and "
+                             "score them; FIELD "
                         "must be fitted to the rest (fit --holdout-every K); default: what FIELD was fitted with")
-    parser.add_argument("--triangle", default="auto", help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
-    parser.add_argument("--steps", type=in_range(int, 1, 100), default=10, help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
+    parser.add_argument(
+        "--triangle", default="auto",
+        help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
+    parser.add_argument("--steps", type=in_range(int, 1, 100), default=10,
+                        help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     add_pixel_limit_option(parser)
 
 
-def _add_relight_options(parser: argparse.ArgumentParser, *, size_help: str = "output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)") -> None:
-    parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular", help="interpolation (default circular; alpha needs --dataset)")
+def _add_relight_options(
+        parser: argparse.ArgumentParser, *,
+        size_help: str = "output WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)") -> None:
+    parser.add_argument("--method", choices=["circular", "straight", "alpha"], default="circular",
+                        help="interpolation (default circular; alpha needs --dataset)")
     parser.add_argument("--size", type=size_option("output size"), help=size_help)
     parser.add_argument("--diffuse", choices=["auto", "residual", "lambert", "images", "none"], default="auto",
-                        help="what the moved highlights are added to: residual transfer (the captured images minus their own highlights, "
-                        "blended), the Lambertian model, the blended diffuse images, or nothing (default auto: the first the field stores)")
+                        help="what the moved highlights are added to: residual transfer (the captured images minus "
+                             "their own highlights, "
+                        "blended), the Lambertian model, the blended diffuse images, or nothing (default auto: the "
+                        "first the field stores)")
     parser.add_argument("--specular-only", action="store_true", help="write the highlights S' alone")
-    parser.add_argument("--specular-colour", type=triple_option("specular colour"), help="colour of the highlights R,G,B, each >= 0 (default 1,1,1: white light)")
+    parser.add_argument("--specular-colour", type=triple_option("specular colour"),
+                        help="colour of the highlights R,G,B, each >= 0 (default 1,1,1: white light)")
     parser.add_argument("--dataset", type=Path, help="the dataset the field was fitted to (for --method alpha)")
     parser.add_argument("--linear", action="store_true", help="the dataset's PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
@@ -119,10 +145,12 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
     alpha_specular = alpha_images = None
     if "alpha" in methods:
         if args.dataset is None:
-            raise InputError("--method alpha blends the captured images: pass --dataset DATASET (the folder the field was fitted to)")
+            raise InputError("--method alpha blends the captured images: pass --dataset DATASET (the folder the "
+                             "field was fitted to)")
         from ..io.dataset import ReflectanceField
 
-        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
+        dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet,
+                                        max_pixels=pixel_limit(args))
         alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
     exposure = field.exposure
     return Relighter(
@@ -156,11 +184,13 @@ def _run_relight(args) -> int:
     output = Path(args.output)
     several = len(directions) > 1
     if several and output.suffix.lower() in IMAGE_EXTENSIONS:
-        raise InputError(f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
+        raise InputError(
+            f"{len(directions)} lights make {len(directions)} images: give -o a folder name, not {output.name}")
     if not several and output.suffix.lower() not in IMAGE_EXTENSIONS:
         raise InputError(f"output {output} needs an image suffix: .exr (linear radiance), .png, .tif or .jpg (sRGB)")
     if several and args.bits != "auto":
-        raise InputError(f"--bits {args.bits} is for one PNG or TIFF image; {len(directions)} lights make a folder of EXR images (floats)")
+        raise InputError(f"--bits {args.bits} is for one PNG or TIFF image; {len(directions)} lights make a folder of "
+                         f"EXR images (floats)")
     if several:
         check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry)
     else:
@@ -170,16 +200,20 @@ def _run_relight(args) -> int:
     exposure = field.exposure
     started = time.perf_counter()
     if not several:
-        relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method, full=not args.specular_only)
+        relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method,
+                                  full=not args.specular_only)
         seconds = time.perf_counter() - started
-        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure), bits=_output_bits(args, field, output))
+        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure),
+                    bits=_output_bits(args, field, output))
         clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
         print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
         return 0
     _write_image_folder(output, relighter, np.asarray(directions, dtype=np.float64), method=args.method,
-                        specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite, progress=not args.quiet)
+                        specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite,
+                        progress=not args.quiet)
     seconds = time.perf_counter() - started
-    print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, {args.method}, "
+    print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, "
+          f"{args.method}, "
           f"{1000 * seconds / len(directions):.2f} ms per light with writing)")
     return 0
 
@@ -188,7 +222,8 @@ def _output_bits(args, field, output: Path) -> int:
     """``--bits`` for this output: 16 or 8 for PNG/TIFF (auto: 16 after a capture of more than 8 bits), else 8."""
     if output.suffix.lower() not in (".png", ".tif", ".tiff"):
         if args.bits == "16":
-            raise InputError(f"--bits 16 is for PNG and TIFF outputs; {output.name} is {output.suffix} (EXR keeps floats, JPEG has 8 bits)")
+            raise InputError(f"--bits 16 is for PNG and TIFF outputs; {output.name} is {output.suffix} (EXR keeps "
+                             f"floats, JPEG has 8 bits)")
         return 8
     if args.bits != "auto":
         return int(args.bits)
@@ -198,10 +233,12 @@ def _output_bits(args, field, output: Path) -> int:
 
 def _relit_folder_entry(relative: str) -> bool:
     """A file of a relit-images folder (how one written before manifests existed is recognised)."""
-    return relative == "lights.lp" or (relative.startswith("relit_") and relative.endswith(".exr") and "/" not in relative)
+    return (relative == "lights.lp"
+            or (relative.startswith("relit_") and relative.endswith(".exr") and "/" not in relative))
 
 
-def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, method: str, specular_only: bool, exposure: float,
+def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, method: str, specular_only: bool,
+                        exposure: float,
                         overwrite: bool, progress: bool) -> None:
     """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself. Relit in
     batches of ``relighter.max_batch``, so memory stays bounded whatever the number of lights."""
@@ -221,7 +258,8 @@ def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, meth
             chunk = directions[start : start + relighter.max_batch]
             relit = relighter.relight(chunk, method=method, full=not specular_only)
             for i in range(len(chunk)):
-                write_image(temporary / names[start + i], _output_image(relit, i, specular_only=specular_only, exposure=exposure))
+                write_image(temporary / names[start + i],
+                            _output_image(relit, i, specular_only=specular_only, exposure=exposure))
             bar.update(len(chunk))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         write_lp(LightSet(unit), temporary / "lights.lp", filenames=names)
@@ -271,10 +309,12 @@ def _run_animate(args) -> int:
 
     started = time.perf_counter()
     with tqdm(total=len(directions), unit="frame", desc="animate", disable=args.quiet, leave=False) as bar:
-        path = write_animation(frames(), args.output, fps=args.fps, frame_count=len(directions), overwrite=args.overwrite,
+        path = write_animation(frames(), args.output, fps=args.fps, frame_count=len(directions),
+                               overwrite=args.overwrite,
                                progress=lambda done: bar.update(done - bar.n), frames_format=frames_format)
     label = " | ".join(methods)
-    print(f"wrote {path}: {len(directions)} frames of {label}, {relighter.width}x{relighter.height}, {time.perf_counter() - started:.1f} s")
+    print(f"wrote {path}: {len(directions)} frames of {label}, {relighter.width}x{relighter.height}, "
+          f"{time.perf_counter() - started:.1f} s")
     return 0
 
 
@@ -322,7 +362,8 @@ def _run_evaluate(args) -> int:
     device = check_device(args.device)
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
-        raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces 0..{field.triangulation.face_count - 1}")
+        raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces "
+                         f"0..{field.triangulation.face_count - 1}")
     baselines = parse_baselines(args.baselines)
     # with --heldout: refused by _check_evaluate
     holdout_every = args.holdout_every or field.report.get("holdout_every")
@@ -331,7 +372,8 @@ def _run_evaluate(args) -> int:
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
     with scoring_processes():  # every method's scores in the same few worker processes
-        evaluation = evaluate_field(field, dataset, device=device, methods=methods, barycentric_face=None if triangle == "none" else triangle,
+        evaluation = evaluate_field(field, dataset, device=device, methods=methods,
+                                    barycentric_face=None if triangle == "none" else triangle,
                                     # its steps reach stderr through the logger
                                     barycentric_steps=args.steps, baselines=baselines)
     report = evaluation.to_dict()
@@ -371,16 +413,22 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
             if scores:
                 excluded = max(int(np.isnan(v).sum()) for v in scores.values())
                 what = "specular highlights S'" if kind == "specular" else "full images I' = D' + S'"
-                plots.plot_psnr_distributions(scores, temporary / f"psnr-{kind}.png", title=f"{title}: PSNR of the {what} at {len(evaluation.directions)} held-out lights", excluded=excluded)
+                plots.plot_psnr_distributions(
+                    scores, temporary / f"psnr-{kind}.png",
+                    title=f"{title}: PSNR of the {what} at {len(evaluation.directions)} held-out lights",
+                    excluded=excluded)
         scores = evaluation.specular_psnr or evaluation.full_psnr
         if "circular" in scores and "alpha" in scores:
-            plots.plot_psnr_pairs(scores["circular"], scores["alpha"], temporary / "psnr-circular-vs-alpha.png", title=f"{title}: per held-out light")
+            plots.plot_psnr_pairs(scores["circular"], scores["alpha"], temporary / "psnr-circular-vs-alpha.png",
+                                  title=f"{title}: per held-out light")
         if evaluation.gaussians_per_light is not None:
-            plots.plot_gaussian_counts(evaluation.gaussians_per_light, temporary / "gaussian-counts.png", per_query=evaluation.gaussians_per_query, title=f"{title}: Gaussians")
+            plots.plot_gaussian_counts(evaluation.gaussians_per_light, temporary / "gaussian-counts.png",
+                                       per_query=evaluation.gaussians_per_query, title=f"{title}: Gaussians")
         sweep = evaluation.barycentric_sweep
         if sweep is not None and "skipped" not in sweep:
             labels = tuple(f"light {v}" for v in sweep["vertices"])
-            plots.plot_barycentric_psnr(sweep["weights"], sweep["specular_psnr"], temporary / "barycentric-psnr.png", corner_labels=labels,
+            plots.plot_barycentric_psnr(sweep["weights"], sweep["specular_psnr"], temporary / "barycentric-psnr.png",
+                                        corner_labels=labels,
                                         title=f"{title}: PSNR inside triangle {sweep['face']}")
         if evaluation.examples and len(evaluation.example_queries):
             order = [k for k in ("truth", "circular", "straight", "alpha") if k in evaluation.examples]
@@ -388,10 +436,13 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
             for row, query in enumerate(evaluation.example_queries):
                 for key in order:
                     images.append(evaluation.examples[key][row])
-                    score = "" if key == "truth" or key not in evaluation.specular_psnr else f" {evaluation.specular_psnr[key][query]:.1f} dB"
+                    score = ("" if key == "truth" or key not in evaluation.specular_psnr
+                             else f" {evaluation.specular_psnr[key][query]:.1f} dB")
                     labels.append(f"#{query} {key}{score}")
-            plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order), title=f"{title}: specular highlights at held-out lights")
-        if evaluation.full_examples and evaluation.full_example_queries is not None and len(evaluation.full_example_queries):
+            plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order),
+                                  title=f"{title}: specular highlights at held-out lights")
+        if (evaluation.full_examples and evaluation.full_example_queries is not None
+            and len(evaluation.full_example_queries)):
             order = ["truth"] + [k for k in evaluation.full_examples if k != "truth"]
             images, labels = [], []
             for row, query in enumerate(evaluation.full_example_queries):
@@ -418,34 +469,42 @@ def print_evaluation_table(report: dict) -> None:
         srgb, ssim = summary.get("full_srgb", {}), summary.get("full_ssim", {})
         extra = kind == "full" and bool(srgb)
         print(f"{kind} {'image' if kind == 'full' else 'highlights'} {where}:")
-        print("| method | linear PSNR mean | p5 | p95 |" + (" 8-bit sRGB PSNR mean | worst | SSIM mean | worst |" if extra else ""))
+        print("| method | linear PSNR mean | p5 | p95 |"
+              + (" 8-bit sRGB PSNR mean | worst | SSIM mean | worst |" if extra else ""))
         print("|---|---|---|---|" + ("---|---|---|---|" if extra else ""))
         for method in methods:
             s = part.get(method)
             if s and s["mean"] is not None:
                 row = f"| {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} |"
                 if extra and method in srgb:
-                    row += f" {srgb[method]['mean']:.2f} | {srgb[method]['min']:.2f} | {ssim[method]['mean']:.3f} | {ssim[method]['min']:.3f} |"
+                    row += (f" {srgb[method]['mean']:.2f} | {srgb[method]['min']:.2f} | {ssim[method]['mean']:.3f} | "
+                            f"{ssim[method]['min']:.3f} |")
                 print(row)
         share = part.get("circular_beats_alpha")
         if share is not None:
             print(f"circular beats alpha on {100 * share:.0f}% of the held-out lights")
     if report.get("baselines_left_out"):
-        print(f"left out (more coefficients than the {report['lights']} lights): {', '.join(report['baselines_left_out'])}")
+        print(f"left out (more coefficients than the {report['lights']} lights): "
+              f"{', '.join(report['baselines_left_out'])}")
     gaussians = report["gaussians"]["per_light"]
     print(f"Gaussians per light: mean {gaussians['mean']:.1f}, max {gaussians['max']}")
 
 
 COMMANDS = (
     Command("relight", _relight_arguments, _run_relight, help="render a fitted field for one or more light directions",
-            description="Relight a highlight field: locate each light direction in the triangulation, move the Gaussians "
-            "along their paths, rasterize the highlights and add them to the blended residual (the captured images minus their own highlights).",
+            description="Relight a highlight field: locate each light direction in the triangulation, "
+                        "move the Gaussians "
+            "along their paths, rasterize the highlights and add them to the blended residual (the captured images "
+            "minus their own highlights).",
             check=_check_relight),
-    Command("animate", _animate_arguments, _run_animate, help="render a fitted field along a light path: GIF, WebP, APNG, MP4 or a folder of frames",
-            description="Move the light along a path and write the relit frames. Paths: great:X,Y,Z:X,Y,Z (great circle "
+    Command("animate", _animate_arguments, _run_animate,
+            help="render a fitted field along a light path: GIF, WebP, APNG, MP4 or a folder of frames",
+            description="Move the light along a path and write the relit frames. Paths: "
+                        "great:X,Y,Z:X,Y,Z (great circle "
             "between two directions), orbit:ELEVATION[:START_AZIMUTH] (degrees; a full turn at that elevation), "
             "list:FILE (a .lp or x y z text file, visited in order).", check=_check_animate),
-    Command("evaluate", _evaluate_arguments, _run_evaluate, help="score a fitted field against held-out ground truth: JSON report and plots",
+    Command("evaluate", _evaluate_arguments, _run_evaluate,
+            help="score a fitted field against held-out ground truth: JSON report and plots",
             description="Relight the field at every held-out light of the dataset (the triangle centroids for rendered "
             "data) with the circular, straight and alpha-blend methods and compare with the ground truth (PSNR, "
             "peak 1). Writes report.json and PNG plots into the output folder.", check=_check_evaluate),

@@ -17,16 +17,23 @@ def _view_arguments(parser: argparse.ArgumentParser) -> None:
     from ..view.panels import PANELS
 
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
-    parser.add_argument("--light", metavar="X,Y,Z", help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
-    parser.add_argument("--method", choices=["circular", "straight"], default="circular", help="interpolation (default circular)")
-    parser.add_argument("--size", type=size_option("relit image size"), help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
-    parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto", help="diffuse part D' (default auto)")
+    parser.add_argument("--light", metavar="X,Y,Z",
+                        help="first light direction (default: the centroid of the triangle (0.3, 0.4, 1) falls in)")
+    parser.add_argument("--method", choices=["circular", "straight"], default="circular",
+                        help="interpolation (default circular)")
+    parser.add_argument("--size", type=size_option("relit image size"),
+                        help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
+    parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto",
+                        help="diffuse part D' (default auto)")
     parser.add_argument("--specular-only", action="store_true", help="show the highlights S' alone")
-    parser.add_argument("--panels", default=",".join(PANELS), help=f"panels left to right, comma-separated (default {','.join(PANELS)})")
-    parser.add_argument("--window-size", type=size_option("window size"), help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
+    parser.add_argument("--panels", default=",".join(PANELS),
+                        help=f"panels left to right, comma-separated (default {','.join(PANELS)})")
+    parser.add_argument("--window-size", type=size_option("window size"),
+                        help="window WIDTHxHEIGHT in pixels (default 560x520 per panel)")
     parser.add_argument("--screenshot", type=Path, metavar="PNG", help="render off screen into this PNG and exit")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing screenshot")
-    parser.add_argument("--device", default=None, help="Warp device for relighting: cpu, cuda, cuda:N (default: CUDA when present)")
+    parser.add_argument("--device", default=None,
+                        help="Warp device for relighting: cpu, cuda, cuda:N (default: CUDA when present)")
 
 
 def _run_view(args) -> int:
@@ -44,15 +51,18 @@ def _run_view(args) -> int:
             raise InputError(f"screenshot '{screenshot}' must be a .png file")
         check_output_file(screenshot, overwrite=args.overwrite)
     elif not has_display():
-        raise InputError("there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")
+        raise InputError(
+            "there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")
     device = check_device(args.device)
     field = load_field(args.field)
     note = learned_on_cpu_note(field, device)
     if note:
         logging.getLogger(__name__).info(note)
     started = time.perf_counter()
-    designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size, diffuse=args.diffuse,
-                             specular_only=args.specular_only, panels=panels, window_size=window_size, off_screen=screenshot is not None)
+    designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size,
+                             diffuse=args.diffuse,
+                             specular_only=args.specular_only, panels=panels, window_size=window_size,
+                             off_screen=screenshot is not None)
     try:
         if screenshot is not None:
             picture = designer.screenshot(screenshot)
@@ -66,7 +76,8 @@ def _run_view(args) -> int:
 
 
 COMMANDS = (
-    Command("view", _view_arguments, _run_view, help="look at a fitted field: light sphere, relit image, Gaussian paths; drag the light",
+    Command("view", _view_arguments, _run_view,
+            help="look at a fitted field: light sphere, relit image, Gaussian paths; drag the light",
             description="Open the light designer: the light sphere with the triangulation (a dome's rim in red), the "
             "current light and its triangle; the object relit for that light; and the paths of the triangle's "
             "Gaussians over the image plane (thick: circular, thin: straight, one colour per Gaussian). Drag "

@@ -13,11 +13,14 @@ __all__ = ["COMMANDS"]
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("-o", "--output", type=Path, required=True,
-                        help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with --single-file the HTML file")
+                        help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with "
+                             "--single-file the HTML file")
     parser.add_argument("--single-file", action="store_true",
-                        help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: mail services cap a "
+                        help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: "
+                             "mail services cap a "
                         "message at 20-25 MB and mailing adds a third)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output written by warp-highlights")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing output written by warp-highlights")
 
 
 def _viewer_entry(relative: str) -> bool:
@@ -45,14 +48,18 @@ def _run_export(args) -> int:
     with atomic_folder(output, kind="web viewer", overwrite=args.overwrite, legacy=_viewer_entry) as temporary:
         export_viewer(field, temporary)
         size = sum(p.stat().st_size for p in temporary.iterdir())
-    print(f"wrote the viewer of {args.field} to {output} ({bytes_text(size)}; the field file: {bytes_text(Path(args.field).stat().st_size)}); "
+    print(f"wrote the viewer of {args.field} to {output} ({bytes_text(size)}; the field file: "
+          f"{bytes_text(Path(args.field).stat().st_size)}); "
           f"open it with: warp-highlights serve {output}")
     return 0
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("folder", type=Path, help="a folder written by warp-highlights export, or a collection's output folder (its gallery)")
-    parser.add_argument("--port", type=in_range(int, 0, 65535), default=8000, help="port on 127.0.0.1 (default 8000; 0: any free one)")
+    parser.add_argument(
+        "folder", type=Path,
+        help="a folder written by warp-highlights export, or a collection's output folder (its gallery)")
+    parser.add_argument("--port", type=in_range(int, 0, 65535), default=8000,
+                        help="port on 127.0.0.1 (default 8000; 0: any free one)")
 
 
 def _run_serve(args) -> int:
@@ -69,13 +76,19 @@ def _run_serve(args) -> int:
 
 
 COMMANDS = (
-    Command("export", _export_arguments, _run_export, help="write a fitted field as a static web page that relights it in the browser (WebGL2)",
-            description="Write a viewer of the field into a folder: index.html, viewer.js, manifest.json and the field's arrays "
-            "(little-endian binaries). The page locates the light in the triangulation, moves the Gaussians along their "
-            "circular paths and adds the residual, as relight does. Browsers refuse to load it from file://: serve it with "
-            "warp-highlights serve, or write one file that opens from disk with --single-file. Every residual kind (low rank, "
+    Command("export", _export_arguments, _run_export,
+            help="write a fitted field as a static web page that relights it in the browser (WebGL2)",
+            description="Write a viewer of the field into a folder: index.html, viewer.js, manifest.json and the "
+                        "field's arrays "
+            "(little-endian binaries). The page locates the light in the triangulation, moves the "
+            "Gaussians along their "
+            "circular paths and adds the residual, as relight does. Browsers refuse to load it from "
+            "file://: serve it with "
+            "warp-highlights serve, or write one file that opens from disk with --single-file. Every residual "
+            "kind (low rank, "
             "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights."),
     Command("serve", _serve_arguments, _run_serve, help="serve an exported viewer on 127.0.0.1 (this computer only)",
-            description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable from other hosts."),
+            description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable "
+                        "from other hosts."),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

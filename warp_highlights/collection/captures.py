@@ -72,14 +72,16 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
         if folder.name == HELDOUT_FOLDER and _has_light_file(folder.parent):
             return  # the held-out lights of the capture above
         sibling = folder.parent / HELDOUT_FOLDER
-        if folder.name != HELDOUT_FOLDER and _has_light_file(sibling) and not _has_light_file(folder.parent) and _only_capture_beside(sibling):
+        if (folder.name != HELDOUT_FOLDER and _has_light_file(sibling) and not _has_light_file(folder.parent)
+            and _only_capture_beside(sibling)):
             found.append((folder, folder.parent, sibling))  # SynthRTI: OBJECT/Dome beside OBJECT/Test, named OBJECT
             return
         inside = folder / HELDOUT_FOLDER
         found.append((folder, folder, inside if _has_light_file(inside) else None))
         return
     try:
-        entries = sorted((e for e in os.scandir(folder) if e.is_dir() and not e.name.startswith(".") and e.name not in _SKIPPED),
+        entries = sorted((e for e in os.scandir(folder)
+                          if e.is_dir() and not e.name.startswith(".") and e.name not in _SKIPPED),
                          key=lambda e: e.name)
     except OSError as error:
         raise InputError(f"{folder}: cannot list the folder ({error.strerror}); check its permissions") from None
@@ -94,14 +96,16 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
 def _only_capture_beside(heldout: Path) -> bool:
     """Whether exactly one folder beside ``heldout`` (a ``Test/``) has a light file: the capture it belongs to."""
     try:
-        return sum(1 for p in heldout.parent.iterdir() if p.is_dir() and p.name != HELDOUT_FOLDER and _has_light_file(p)) == 1
+        return sum(1 for p in heldout.parent.iterdir()
+                   if p.is_dir() and p.name != HELDOUT_FOLDER and _has_light_file(p)) == 1
     except OSError:
         return False
 
 
 def _has_light_file(folder: Path) -> bool:
     try:
-        return folder.is_dir() and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir())
+        return (folder.is_dir()
+                and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir()))
     except OSError:
         return False
 
@@ -140,8 +144,10 @@ def fingerprint(capture: Capture) -> str:
         if root is None:
             continue
         for folder, subfolders, files in os.walk(root):
-            subfolders[:] = sorted(d for d in subfolders if not d.startswith(".") and not (Path(folder) == capture.folder and d == HELDOUT_FOLDER
-                                                                                            and capture.heldout is not None))
+            subfolders[:] = sorted(d for d in subfolders if not d.startswith(".") and not (Path(
+                folder) == capture.folder and d == HELDOUT_FOLDER
+                                                                                            and capture.heldout
+                                                                                           is not None))
             for name in sorted(files):
                 if name.startswith("."):
                     continue
@@ -150,7 +156,8 @@ def fingerprint(capture: Capture) -> str:
                     stat = path.stat()
                 except OSError:
                     continue
-                digest.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode("utf-8", "surrogateescape"))
+                digest.update(f"{path.relative_to(root)}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode(
+                    "utf-8", "surrogateescape"))
     return digest.hexdigest()[:32]
 
 

@@ -30,7 +30,8 @@ def summary(records: list[dict]) -> dict:
         for method, score in record["scores"]["methods"].items():
             if isinstance(score.get("psnr_db"), (int, float)):
                 methods.setdefault(method, []).append(score["psnr_db"])
-    wins = [_psnr(r, "circular") > _psnr(r, "alpha") for r in scored if _psnr(r, "circular") is not None and _psnr(r, "alpha") is not None]
+    wins = [_psnr(r, "circular") > _psnr(r, "alpha") for r in scored
+            if _psnr(r, "circular") is not None and _psnr(r, "alpha") is not None]
     return {
         "captures": len(records),
         "finished": len(ok),
@@ -68,22 +69,27 @@ def _page(title: str, data: dict) -> str:
     for record in data["captures"]:
         name = e(record["name"])
         if record.get("status") != "ok":
-            rows.append(f'<tr class="failed"><td></td><td>{name}</td><td colspan="{4 + len(GALLERY_METHODS) + 1}">failed at '
+            rows.append(f'<tr class="failed"><td></td><td>{name}</td><td '
+                        f'colspan="{4 + len(GALLERY_METHODS) + 1}">failed at '
                         f'{e(str(record.get("step") or "?"))}: {e(str(record.get("error") or ""))}</td></tr>')
             continue
         scores = [_psnr(record, m) for m in GALLERY_METHODS]
         best = max((v for v in scores if v is not None), default=None)
-        cells = "".join(f'<td class="num{" best" if v is not None and v == best else ""}">{"" if v is None else f"{v:.2f}"}</td>' for v in scores)
+        cells = "".join(
+            f'<td class="num{" best" if v is not None and v == best else ""}">{"" if v is None else f"{v:.2f}"}</td>'
+            for v in scores)
         size = record.get("size") or ["?", "?"]
         viewer = (record.get("files") or {}).get("viewer")
         link = f'<a href="{e(record["name"])}/{e(viewer)}">viewer</a>' if viewer else ""
         evaluation = (record.get("files") or {}).get("evaluation")
         # its plots and report.json
-        report = f' · <a href="{e(record["name"])}/{e(str(Path(evaluation).parent))}/">evaluation</a>' if evaluation else ""
+        report = (f' · <a href="{e(record["name"])}/{e(str(Path(evaluation).parent))}/">evaluation</a>' if evaluation
+                  else "")
         gaussians = record.get("gaussians_per_light")
         rows.append(
             f'<tr><td><img src="{name}/thumbnail.png" alt="{name}" loading="lazy"></td><td>{name}</td>'
-            f'<td class="num">{e(str(record.get("lights")))}</td><td class="num">{e(str(size[0]))}x{e(str(size[1]))}</td>'
+            f'<td class="num">{e(str(record.get("lights")))}</td><td '
+            f'class="num">{e(str(size[0]))}x{e(str(size[1]))}</td>'
             f'<td class="num">{"" if gaussians is None else f"{gaussians:.1f}"}</td>'
             f'<td class="num">{record.get("fit_seconds") or 0:.1f}</td>{cells}<td>{link}{report}</td></tr>')
     heads = "".join(f'<th class="num">{e(m)}</th>' for m in GALLERY_METHODS)
@@ -101,13 +107,18 @@ tr.failed td {{ color: #a00; }}
 img {{ max-width: 160px; display: block; }}
 </style></head><body>
 <h1>{e(title)}</h1>
-<p>{s["finished"]} of {s["captures"]} captures finished{f', {s["failed"]} failed' if s["failed"] else ''}; fitting took {s["fit_seconds"]:.0f} s in all.
+<p>{s["finished"]} of {s["captures"]} captures finished{f', {s["failed"]} failed' if s["failed"] else ''};
+fitting took {s["fit_seconds"]:.0f} s in all.
 {f'Mean 8-bit sRGB PSNR of the full images at the held-out lights: {means}.' if means else ''}
-{f'The moving highlights beat the alpha blend on {e(s["circular_beats_alpha"])} captures.' if s["circular_beats_alpha"] else ''}
-The viewers need a web server: <code>warp-highlights serve {e(title)}</code>. Figures for programs: <a href="{COLLECTION_JSON}">{COLLECTION_JSON}</a>.</p>
+{f'The moving highlights beat the alpha blend on {e(s["circular_beats_alpha"])} captures.'
+   if s["circular_beats_alpha"] else ''}
+The viewers need a web server: <code>warp-highlights serve {e(title)}</code>.
+Figures for programs: <a href="{COLLECTION_JSON}">{COLLECTION_JSON}</a>.</p>
 <table>
-<thead><tr><th></th><th>capture</th><th class="num">lights</th><th class="num">size</th><th class="num">Gaussians / light</th><th class="num">fit (s)</th>{heads}<th></th></tr>
-<tr><th></th><th></th><th></th><th></th><th></th><th></th><th class="num" colspan="{len(GALLERY_METHODS)}">PSNR (dB) at held-out lights, 8-bit sRGB</th><th></th></tr></thead>
+<thead><tr><th></th><th>capture</th><th class="num">lights</th><th class="num">size</th>
+<th class="num">Gaussians / light</th><th class="num">fit (s)</th>{heads}<th></th></tr>
+<tr><th></th><th></th><th></th><th></th><th></th><th></th>
+<th class="num" colspan="{len(GALLERY_METHODS)}">PSNR (dB) at held-out lights, 8-bit sRGB</th><th></th></tr></thead>
 <tbody>
 {chr(10).join(rows)}
 </tbody></table>

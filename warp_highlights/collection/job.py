@@ -103,7 +103,8 @@ class _Steps:
 
 
 def process_capture(capture: Capture, output, options: JobOptions, *, device: str | None = None,
-                    visible_gpu: str | None = None, cores: list[int] | None = None, replace: bool = False, fingerprint: str | None = None,
+                    visible_gpu: str | None = None, cores: list[int] | None = None, replace: bool = False,
+                    fingerprint: str | None = None,
                     run_id: str = "", environment: dict[str, str | None] | None = None) -> dict:
     """Fit, score, export and thumbnail one capture into ``output/<name>``; returns its record (``capture.json``).
 
@@ -124,24 +125,29 @@ def process_capture(capture: Capture, output, options: JobOptions, *, device: st
     started = time.perf_counter()
     target = Path(output) / capture.name
     steps = _Steps()
-    run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear, max_megapixels=options.max_megapixels,
+    run = _Runner(device=device, visible_gpu=visible_gpu, cores=cores, steps=steps, linear=options.linear,
+                  max_megapixels=options.max_megapixels,
                   run_id=run_id, environment=environment)
     fit_args = list(options.fit_args) + _size_arguments(capture, options.max_side)
     with atomic_folder(target, kind="collection capture", overwrite=replace) as folder:
-        run(folder, "fit", ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *fit_args],
+        run(folder, "fit",
+            ["fit", str(capture.folder.resolve()), "-o", "field.whf", "--report", "fit-report.json", *fit_args],
             device_option=True, reads_images=True)
         if options.evaluate:
             scored = "field.whf"
             if not capture.has_heldout:
                 scored = "holdout-field.whf"
-                run(folder, "holdout fit", ["fit", str(capture.folder.resolve()), "-o", scored, "--report", "holdout-fit-report.json",
-                                            "--holdout-every", str(options.holdout_every), *fit_args], device_option=True, reads_images=True)
+                run(folder, "holdout fit", ["fit", str(capture.folder.resolve()), "-o", scored, "--report",
+                                            "holdout-fit-report.json",
+                                            "--holdout-every", str(options.holdout_every), *fit_args],
+                    device_option=True, reads_images=True)
             heldout = ["--heldout", str(capture.heldout.resolve())] if capture.heldout is not None else []
             run(folder, "evaluate", ["evaluate", scored, str(capture.folder.resolve()), *heldout, "-o", "evaluation",
                                      "--baselines", options.baselines or "none"], device_option=True, reads_images=True)
         if options.export:
             run(folder, "export", ["export", "field.whf", "-o", "viewer"])
-        run(folder, "thumbnail", ["relight", "field.whf", "--light", ",".join(f"{v:g}" for v in THUMBNAIL_LIGHT), "-o", "thumbnail-full.png",
+        run(folder, "thumbnail", ["relight", "field.whf", "--light", ",".join(f"{v:g}" for v in THUMBNAIL_LIGHT), "-o",
+                                  "thumbnail-full.png",
                                   "--bits", "8"], device_option=True)
         _shrink(folder / "thumbnail-full.png", folder / "thumbnail.png")
         record = _record(capture, folder, options, steps.seconds, time.perf_counter() - started)
@@ -157,7 +163,8 @@ def _size_arguments(capture: Capture, max_side: int | None) -> list[str]:
     try:
         width, height = image_size(capture)
     except (InputError, OSError) as error:
-        raise CaptureFailed("size", str(error) if isinstance(error, InputError) else f"{error.strerror or error}", bad_input=True) from None
+        raise CaptureFailed("size", str(error) if isinstance(error, InputError) else f"{error.strerror or error}",
+                            bad_input=True) from None
     if max(width, height) <= max_side:
         return []
     long, short = max(width, height), min(width, height)
@@ -201,7 +208,8 @@ def stop_children(run_id: str = "") -> None:
 class _Runner:
     """Runs ``python -m warp_highlights ...`` in a folder, as a child that ends with this process."""
 
-    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None, run_id: str = "",
+    def __init__(self, *, device, visible_gpu, cores, steps: _Steps, linear: bool, max_megapixels: float | None,
+                 run_id: str = "",
                  environment: dict[str, str | None] | None = None):
         self.device, self.cores, self.steps, self.run_id = device, cores, steps, run_id
         self.linear, self.max_megapixels = linear, max_megapixels
@@ -214,7 +222,8 @@ class _Runner:
         if visible_gpu is not None:
             self.env["CUDA_VISIBLE_DEVICES"] = str(visible_gpu)
 
-    def __call__(self, folder: Path, step: str, arguments: list[str], *, device_option: bool = False, reads_images: bool = False) -> None:
+    def __call__(self, folder: Path, step: str, arguments: list[str], *, device_option: bool = False,
+                 reads_images: bool = False) -> None:
         if self._stopped():
             raise KeyboardInterrupt
         command = [sys.executable, "-m", "warp_highlights", *arguments, "-q"]
@@ -226,7 +235,8 @@ class _Runner:
             command += ["--max-megapixels", f"{self.max_megapixels:g}"]
         started = time.perf_counter()
         child = subprocess.Popen(command, cwd=folder, env=self.env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.PIPE, text=True, errors="replace", preexec_fn=_child_setup(self.cores))
+                                 stderr=subprocess.PIPE, text=True, errors="replace",
+                                 preexec_fn=_child_setup(self.cores))
         with _children_lock:
             _children.setdefault(self.run_id, set()).add(child)
             stopped = self.run_id in _stopped
@@ -303,7 +313,9 @@ def _record(capture: Capture, folder: Path, options: JobOptions, seconds: dict, 
         "status": "ok",
         "capture": str(capture.folder.resolve()),
         "heldout": str(capture.heldout.resolve()) if capture.heldout is not None else None,
-        "held_out_lights": "folder" if capture.heldout is not None else ("heldout.lp" if capture.has_heldout else f"lights 0, {options.holdout_every}, {2 * options.holdout_every}, ... (a second fit)"),
+        "held_out_lights": "folder" if capture.heldout is not None
+        else ("heldout.lp" if capture.has_heldout
+              else f"lights 0, {options.holdout_every}, {2 * options.holdout_every}, ... (a second fit)"),
         "options": options.key(),
         "lights": fit_report.get("lights"),
         "size": fit_report.get("size"),
@@ -312,7 +324,8 @@ def _record(capture: Capture, folder: Path, options: JobOptions, seconds: dict, 
         "fit_seconds": seconds.get("fit"),
         "seconds": {**seconds, "total": round(total, 3)},
         "scores": None,
-        "files": {"field": "field.whf", "thumbnail": "thumbnail.png", "viewer": "viewer/index.html" if options.export else None,
+        "files": {"field": "field.whf", "thumbnail": "thumbnail.png",
+                  "viewer": "viewer/index.html" if options.export else None,
                   "evaluation": "evaluation/report.json" if options.evaluate else None},
         "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }

@@ -64,8 +64,10 @@ class CollectionResult:
         return not self.failed and not self.failed_before
 
 
-def run(captures, output, *, options: JobOptions | None = None, force: bool = False, retry_failed: bool = False, scheduler: str | None = None,
-        workers: int | None = None, gpus: int | None = None, device: str | None = None, progress: bool = False) -> CollectionResult:
+def run(captures, output, *, options: JobOptions | None = None, force: bool = False, retry_failed: bool = False,
+        scheduler: str | None = None,
+        workers: int | None = None, gpus: int | None = None, device: str | None = None,
+        progress: bool = False) -> CollectionResult:
     """Fit, score and export every capture into ``output/<name>``, skipping those finished with the same options.
 
     Args:
@@ -96,7 +98,8 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
     if device is not None and not re.fullmatch(r"cpu|cuda(:\d+)?", device):
         raise InputError(f"--device {device}: give cpu, cuda or cuda:N")
     if scheduler is not None and (workers is not None or gpus is not None):
-        raise InputError("--workers and --gpus size a local cluster; with --scheduler the cluster is sized where it was started")
+        raise InputError(
+            "--workers and --gpus size a local cluster; with --scheduler the cluster is sized where it was started")
     plan = None if scheduler is not None else _plan_workers(len(found), workers=workers, gpus=gpus, device=device)
     options = dataclasses.replace(options, device=_device_kind(plan, device))
     found = _keep_earlier_names(found, target)
@@ -126,7 +129,8 @@ def run(captures, output, *, options: JobOptions | None = None, force: bool = Fa
         if plan is not None:
             # no idle workers: the cores shared by those that run
             plan = _plan_workers(len(todo), workers=workers, gpus=gpus, device=device)
-        _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, plan=plan, device=device, progress=progress)
+        _run_on_cluster(todo, output, options, records, result, scheduler=scheduler, plan=plan, device=device,
+                        progress=progress)
     result.records = [records[c.name] for c in found if c.name in records]
     write_gallery(output, result.records + _other_finished(output, found))
     return result
@@ -141,7 +145,8 @@ def visible_gpus() -> list[str]:
     if nvidia_smi is None:
         return []
     try:
-        listing = subprocess.run([nvidia_smi, "--list-gpus"], capture_output=True, text=True, timeout=30, check=False).stdout
+        listing = subprocess.run([nvidia_smi, "--list-gpus"], capture_output=True, text=True, timeout=30,
+                                 check=False).stdout
     except (OSError, subprocess.SubprocessError):
         return []
     return [str(k) for k, line in enumerate(line for line in listing.splitlines() if line.startswith("GPU "))]
@@ -186,10 +191,12 @@ def _check_apart(found: list[Capture], output: Path) -> None:
                 continue
             source = source.resolve()
             if out == source or source in out.parents:
-                raise InputError(f"{output}: the output folder is inside the capture {source}; write the collection somewhere else")
+                raise InputError(
+                    f"{output}: the output folder is inside the capture {source}; write the collection somewhere else")
             slot = out / capture.name
             if source == slot or slot in source.parents:
-                raise InputError(f"{source}: this capture is where its output {slot} would go; give another output folder (-o)")
+                raise InputError(
+                    f"{source}: this capture is where its output {slot} would go; give another output folder (-o)")
 
 
 def _output_folder(output) -> Path:
@@ -201,7 +208,8 @@ def _output_folder(output) -> Path:
     try:
         output.mkdir(exist_ok=True)
     except OSError as error:
-        raise InputError(f"{output}: cannot create the output folder ({error.strerror}); check the permissions") from None
+        raise InputError(
+            f"{output}: cannot create the output folder ({error.strerror}); check the permissions") from None
     return output
 
 
@@ -228,7 +236,8 @@ def _earlier_failures(output: Path) -> dict[str, dict]:
         captures = json.loads((output / COLLECTION_JSON).read_text()).get("captures") or []
     except (OSError, ValueError, AttributeError):
         return {}
-    return {r["name"]: r for r in captures if isinstance(r, dict) and r.get("status") == "failed" and isinstance(r.get("name"), str)
+    return {r["name"]: r for r in captures
+            if isinstance(r, dict) and r.get("status") == "failed" and isinstance(r.get("name"), str)
             # only failures the capture's own files cause (bad input); a full disk or a lost worker is retried
             and r.get("repeatable")}
 
@@ -236,15 +245,18 @@ def _earlier_failures(output: Path) -> dict[str, dict]:
 def _plan_workers(todo: int, *, workers: int | None, gpus: int | None, device: str | None) -> list[dict]:
     """One entry per local worker: the GPU its commands see (as their cuda:0), or its CPU cores."""
     if device not in (None, "cpu", "cuda", "cuda:0"):
-        raise InputError(f"--device {device}: a local cluster gives each worker one GPU, which its commands see as cuda:0; choose the GPUs "
+        raise InputError(f"--device {device}: a local cluster gives each worker one GPU, which its commands see as "
+                         f"cuda:0; choose the GPUs "
                          "with --gpus or CUDA_VISIBLE_DEVICES, or give --device cpu or cuda")
     available = visible_gpus()
     if gpus is not None and gpus > len(available):
-        raise InputError(f"--gpus {gpus}: this machine shows {len(available)} GPU(s)" + (f" ({', '.join(available)})" if available else ""))
+        raise InputError(f"--gpus {gpus}: this machine shows {len(available)} GPU(s)"
+                         + (f" ({', '.join(available)})" if available else ""))
     if gpus == 0 and device in ("cuda", "cuda:0"):
         raise InputError("--gpus 0 runs CPU workers; leave out --device cuda, or give --gpus N")
     if device in ("cuda", "cuda:0") and not available:
-        raise InputError("--device cuda: this machine shows no GPU (nvidia-smi); leave out --device, or give --device cpu")
+        raise InputError(
+            "--device cuda: this machine shows no GPU (nvidia-smi); leave out --device, or give --device cpu")
     chosen = available[: gpus if gpus is not None else len(available)]
     if chosen and device != "cpu":
         count = max(1, min(workers or len(chosen), len(chosen), todo))
@@ -269,7 +281,8 @@ def launch_environment() -> dict[str, str | None]:
     return {key: os.environ.get(key) for key in sorted(keys)}
 
 
-def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool, stamp: str, pins: dict, default: dict, run_id: str,
+def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool, stamp: str, pins: dict, default: dict,
+               run_id: str,
                environment: dict | None = None) -> dict:
     """The task: one capture on the worker that runs it (pinned as ``pins`` says for that worker's name, else
     ``default``; its commands with ``environment`` over the worker's). Returns its record, or a failure record: nothing
@@ -279,26 +292,32 @@ def _on_worker(capture: Capture, output: str, options: JobOptions, replace: bool
     pin = pins.get(str(get_worker().name), default)
     try:
         return process_capture(capture, output, options, device=pin.get("device"), visible_gpu=pin.get("visible_gpu"),
-                               cores=pin.get("cores"), replace=replace, fingerprint=stamp, run_id=run_id, environment=environment)
+                               cores=pin.get("cores"), replace=replace, fingerprint=stamp, run_id=run_id,
+                               environment=environment)
     except CaptureFailed as failure:
         return _failure(capture, options, stamp, failure.step, failure.message, repeatable=failure.bad_input)
     except (InputError, OSError) as error:  # the output folder refused (a file edited by the user), a full disk
-        message = str(error) if isinstance(error, InputError) else f"{error.strerror or error} ({error.filename or output})"
+        message = (str(error) if isinstance(error, InputError)
+                   else f"{error.strerror or error} ({error.filename or output})")
         return _failure(capture, options, stamp, "output", message)
     except KeyboardInterrupt:  # its commands were stopped (Ctrl-C, the cluster closing): nothing was left
-        return _failure(capture, options, stamp, "interrupted", "stopped before it finished (its worker was closing); run the collection again")
+        return _failure(capture, options, stamp, "interrupted",
+                        "stopped before it finished (its worker was closing); run the collection again")
     except Exception as error:  # a bug, or a library's surprise: this capture's failure, with what it was
         return _failure(capture, options, stamp, "internal", f"{type(error).__name__}: {error}")
 
 
-def _failure(capture: Capture, options: JobOptions, stamp: str, step: str, message: str, *, repeatable: bool = False) -> dict:
+def _failure(capture: Capture, options: JobOptions, stamp: str, step: str, message: str, *,
+             repeatable: bool = False) -> dict:
     """A failed capture's record. ``repeatable``: its own files caused it (a rerun with the same files and options skips
     it)."""
-    return {"name": capture.name, "status": "failed", "capture": str(capture.folder.resolve()), "options": options.key(),
+    return {"name": capture.name, "status": "failed", "capture": str(capture.folder.resolve()),
+            "options": options.key(),
             "fingerprint": stamp, "step": step, "error": message, "repeatable": repeatable}
 
 
-def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, result: CollectionResult, *, scheduler, plan, device,
+def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, result: CollectionResult, *, scheduler,
+                    plan, device,
                     progress: bool) -> None:
     try:
         from distributed import Client, LocalCluster, as_completed
@@ -306,23 +325,27 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
 
         from .plugin import StopChildren
     except ImportError:
-        raise InputError("warp-highlights collection needs Dask distributed: pip install 'warp-highlights[collection]'") from None
+        raise InputError(
+            "warp-highlights collection needs Dask distributed: pip install 'warp-highlights[collection]'") from None
     run_id = uuid.uuid4().hex[:12]
     stack = contextlib.ExitStack()
     try:
         stack.callback(_sweep, output, [c.name for c, _, _ in todo])  # last: once the workers are gone
         if scheduler is None:
-            cluster = stack.enter_context(LocalCluster(n_workers=len(plan), threads_per_worker=1, processes=True, dashboard_address="127.0.0.1:0",
+            cluster = stack.enter_context(LocalCluster(n_workers=len(plan), threads_per_worker=1, processes=True,
+                                                       dashboard_address="127.0.0.1:0",
                                                        silence_logs=logging.ERROR, memory_limit=0))
             pins = {str(k): pin for k, pin in enumerate(plan)}  # LocalCluster names its workers 0, 1, ...
             client = stack.enter_context(Client(cluster))
-            where = ", ".join(f"GPU {p['visible_gpu']}" if "visible_gpu" in p else f"{len(p['cores'])} cores" for p in plan)
+            where = ", ".join(f"GPU {p['visible_gpu']}" if "visible_gpu" in p else f"{len(p['cores'])} cores"
+                              for p in plan)
             log.info("local cluster: %d workers (%s)", len(plan), where)
         else:
             try:
                 client = stack.enter_context(Client(scheduler, timeout="30s"))
             except (OSError, TimeoutError, ValueError) as error:
-                raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({error}); check the address and that it runs") from None
+                raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({error}); check the address and "
+                                 f"that it runs") from None
             pins = {}
         with contextlib.suppress(Exception):
             result.dashboard = client.dashboard_link
@@ -335,8 +358,10 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
         stack.callback(_quietly, client.unregister_worker_plugin, plugin.name)
         default = {"device": device} if device is not None else {}  # a running cluster's workers: --device alone
         environment = launch_environment()
-        futures = {client.submit(_on_worker, capture, str(output), options, replace, stamp, pins, default, run_id, environment,
-                                 key=f"capture-{capture.name}-{run_id}", pure=False): capture for capture, replace, stamp in todo}
+        futures = {client.submit(_on_worker, capture, str(output), options, replace, stamp, pins, default, run_id,
+                                 environment,
+                                 key=f"capture-{capture.name}-{run_id}", pure=False): capture
+                   for capture, replace, stamp in todo}
         stack.callback(_quietly, client.cancel, list(futures))  # on any way out: nothing queued starts
         bar = _bar(progress, len(todo), len(result.skipped))
         if bar is not None:
@@ -349,7 +374,8 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
                 continue
             except Exception as error:  # the worker died under it (KilledWorker), a lost connection
                 record = _failure(capture, options, fingerprint(capture), "worker",
-                                  f"{type(error).__name__}: {error}; the worker running it was lost (out of memory?), see the Dask workers' logs")
+                                  f"{type(error).__name__}: {error}; the worker running it was lost (out of memory?), "
+                                  f"see the Dask workers' logs")
             records[capture.name] = record
             (result.processed if record["status"] == "ok" else result.failed).append(capture.name)
             if record["status"] != "ok":
@@ -379,4 +405,5 @@ def _bar(enabled: bool, total: int, skipped: int):
         return None
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=f"captures ({skipped} finished before)" if skipped else "captures", unit="capture", leave=True)
+    return tqdm(total=total, desc=f"captures ({skipped} finished before)" if skipped else "captures", unit="capture",
+                leave=True)

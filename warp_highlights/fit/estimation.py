@@ -102,7 +102,8 @@ def estimate(
         source = np.ascontiguousarray(targets.numpy() if isinstance(targets, wp.array) else targets, dtype=np.float32)
     if source.ndim != 3:
         raise InputError(f"estimation targets must have shape (lights, height, width), got {tuple(source.shape)}")
-    chunks = problem_chunks(source.shape[0], device, workers, most_each=problems_per_launch(source.shape[1], source.shape[2], raster))
+    chunks = problem_chunks(source.shape[0], device, workers,
+                            most_each=problems_per_launch(source.shape[1], source.shape[2], raster))
     graphs = device.is_cuda if graphs is None else bool(graphs)
     if graphs and not device.is_cuda:
         raise InputError("CUDA graphs need a CUDA device; estimate on the CPU with graphs=False")
@@ -112,10 +113,12 @@ def estimate(
             device_targets = source if len(chunks) == 1 else source[chunk]
         else:
             device_targets = wp.array(source[chunk], dtype=float, device=device)
-        return _Estimator(device_targets, s, raster, device).run(stop, chunk_progress(progress, chunk, source.shape[0]), graphs=graphs)
+        return _Estimator(device_targets, s, raster, device).run(stop, chunk_progress(progress, chunk, source.shape[0]),
+                                                                 graphs=graphs)
 
     # a device's parts (over one launch's pixels) run in turn; the CPU's on at most ``workers`` threads
-    parts = map_chunks(run, chunks, parallel=not device.is_cuda, threads=workers if workers is not None else core_count())
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda,
+                       threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])
     loss, psnr_db, added, pruned = (np.concatenate([p[k] for p in parts]) for k in range(1, 5))
     return EstimationResult(params=params, loss=loss, psnr=psnr_db, added=added, pruned=pruned)
@@ -141,7 +144,8 @@ class _Estimator:
 
     def run(self, stop, progress, *, graphs: bool = False) -> tuple:
         s = self.s
-        step = ReplayedStep(adam_iteration(wp.Tape(), self.loss, self.ones, self._losses, self.adam), self.batch.device, graphs=graphs)
+        step = ReplayedStep(adam_iteration(wp.Tape(), self.loss, self.ones, self._losses, self.adam), self.batch.device,
+                            graphs=graphs)
         for iteration in range(s.iterations):
             if stop.is_set():
                 raise Cancelled
@@ -158,7 +162,8 @@ class _Estimator:
         self.loss.zero_()
         self.raster.render(self.batch, out=self.image)
         self.fit(self.image, out=self.loss)
-        return self.batch.numpy(), self.loss.numpy().astype(np.float64), psnr_of_mse(clipped_mse(self.image, self.fit.target)), self.added, self.pruned
+        return (self.batch.numpy(), self.loss.numpy().astype(np.float64),
+                psnr_of_mse(clipped_mse(self.image, self.fit.target)), self.added, self.pruned)
 
     def _losses(self) -> None:
         self.fit.of_render(self.raster, self.batch, image=self.image, out=self.loss, value=False)
@@ -231,5 +236,6 @@ class _Estimator:
             pixel = 1.0 / self.height
             thickness = area[chosen[off_region]] * pixel**2 / (np.sqrt(12.0) * np.sqrt(major[off_region]) + pixel)
             sigma[off_region] = np.maximum(thickness / np.sqrt(12.0), floor)[:, None]
-        self.batch.add(region_problem[chosen], amplitude=np.sqrt(regions.peak[chosen]), mean=mean, sigma=sigma, theta=theta)
+        self.batch.add(region_problem[chosen], amplitude=np.sqrt(regions.peak[chosen]), mean=mean, sigma=sigma,
+                       theta=theta)
         self.added += np.bincount(region_problem[chosen], minlength=self.batch.problem_count)

@@ -22,7 +22,8 @@ class MoveDecision:
     support: np.ndarray
 
 
-def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray, specular_luminance: wp.array,
+def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray,
+                  specular_luminance: wp.array,
                   *, settings: ResidualSettings, raster: RasterSettings) -> MoveDecision:
     """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``."""
     n, capacity = estimated.active.shape

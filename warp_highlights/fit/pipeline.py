@@ -106,7 +106,8 @@ def fit_field(
     # the move check's left-out lights, host work that depends on the lights alone, planned in a thread while the device
     # fits (the fit's thread mostly waits for it)
     if residual and device.is_cuda:
-        planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, settings.residual.check_lights), name="check-plan")
+        planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges,
+                                                        settings.residual.check_lights), name="check-plan")
     try:
         with timer.stage("segmentation"):
             images = resize_stack(dataset.images, width, height)
@@ -120,20 +121,27 @@ def fit_field(
             # the bytes to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by
             # band where the Gaussians' rows divide the working rows
             on_host = not device.is_cuda
-            shrink_rows = height // gaussian_height if on_host and height % gaussian_height == 0 and gaussian_height < height else 1
+            shrink_rows = (height // gaussian_height
+                           if on_host and height % gaussian_height == 0 and gaussian_height < height else 1)
             # on CUDA: the Gaussians' targets shrunk there where the sizes divide by one whole factor
             whole = height // gaussian_height
-            shrink_factor = whole if not on_host and whole > 1 and height == whole * gaussian_height and width == whole * gaussian_width else 1
-            rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None, keep_specular=keep_specular,
-                             keep_diffuse=diffuse == "images", specular_bytes=2, target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
+            shrink_factor = (whole if not on_host and whole > 1 and height == whole * gaussian_height
+                             and width == whole * gaussian_width else 1)
+            rows = band_rows(images.shape, device, host_free=available_memory() if on_host else None,
+                             keep_specular=keep_specular,
+                             keep_diffuse=diffuse == "images", specular_bytes=2,
+                             target_share=1.0 / max(shrink_rows, shrink_factor) ** 2)
             # a small capture's images, sent up for the segmentation in one band, stay there for the move check and the
             # residual's stacks
-            holds_up = residual and not learned and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device)
+            holds_up = (residual and not learned
+                        and holds_images(images.shape if images.ndim == 4 else images.shape + (1,), device))
             # row bands (one where it fits), the parts in host memory: on CUDA each image's rows go up and come down as
             # they are
             if rows < height or not on_host:
-                shrink = (lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows)) if shrink_rows > 1 else None
-                seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation, device=device, workers=workers,
+                shrink = ((lambda band: resize_stack(band, gaussian_width, band.shape[1] // shrink_rows))
+                          if shrink_rows > 1 else None)
+                seg = segment_in_bands(images, dataset.lights.directions, rows=rows, settings=settings.segmentation,
+                                       device=device, workers=workers,
                                        keep_specular=keep_specular, keep_diffuse=diffuse == "images",
                                        specular_dtype=np.float16, shrink_target=shrink, target_rows=shrink_rows,
                                        shrink_factor=shrink_factor, target_on_device=not on_host,
@@ -141,7 +149,8 @@ def fit_field(
                                        shrink_images=shrink_factor > 1 and residual and not learned,
                                        keep_images=holds_up)
             else:
-                seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device, workers=workers, keep_diffuse=diffuse == "images")
+                seg = segment(images, dataset.lights.directions, settings=settings.segmentation, device=device,
+                              workers=workers, keep_diffuse=diffuse == "images")
             # what the Gaussians are fitted to, shrunk where the images are large
             specular_luminance = seg.specular_luminance
             # not shrunk band by band already
@@ -157,14 +166,20 @@ def fit_field(
             images_up = seg.images  # the images as sent up, where kept there (``holds_up``)
             seg.diffuse = seg.specular = seg.specular_luminance = seg.shrunk_images = seg.images = None
             wp.synchronize_device(device)
-        with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations, dataset.light_count) as advance:
-            estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster, device=device, workers=workers, progress=advance)
-        with timer.stage("retargeting"), _bar(progress, "retargeting", settings.retarget.rigid_iterations + settings.retarget.iterations, len(edges)) as advance:
-            retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget, raster=settings.raster, device=device, workers=workers, progress=advance)
+        with timer.stage("estimation"), _bar(progress, "estimation", settings.estimation.iterations,
+                                             dataset.light_count) as advance:
+            estimated = estimate(specular_luminance, settings=settings.estimation, raster=settings.raster,
+                                 device=device, workers=workers, progress=advance)
+        with timer.stage("retargeting"), _bar(progress, "retargeting",
+                                              settings.retarget.rigid_iterations + settings.retarget.iterations,
+                                              len(edges)) as advance:
+            retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget,
+                                  raster=settings.raster, device=device, workers=workers, progress=advance)
         with timer.stage("paths"):
             source = estimated.params
             edge_sources = source.take(edges[:, 0])
-            sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+            sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share,
+                                              sigma_eps=settings.raster.sigma_eps)
             decisions = decide_paths(edge_sources, sets, settings.paths)
 
         moving = source.active.copy()
@@ -176,7 +191,8 @@ def fit_field(
         check = learned_check = None
         if residual:
             with timer.stage("residual"):
-                decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual, raster=settings.raster)
+                decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual,
+                                         raster=settings.raster)
                 moving = decision.moving
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
                 own_up = render_own_on_device(source, height, width, raster=settings.raster, device=device)
@@ -190,26 +206,38 @@ def fit_field(
             with timer.stage("move check"):
                 # held there, where small (the segmentation's upload, the own highlights' render), for the check's
                 # scores and the compressed residual's stacks
-                held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device, images_up=images_up, own_up=own_up)
+                held = None if learned else hold_images(images if images.ndim == 4 else images[..., None], own, device,
+                                                        images_up=images_up, own_up=own_up)
                 images_up = own_up = None  # held (or not needed): the stages after read them through ``held`` alone
-                plan = planning.result() if planning is not None and moving.any() else plan_check(dataset.lights.directions, edges,
-                                                                                                      settings.residual.check_lights if moving.any() else 0)
+                if planning is not None and moving.any():
+                    plan = planning.result()
+                else:
+                    lights = settings.residual.check_lights if moving.any() else 0
+                    plan = plan_check(dataset.lights.directions, edges, lights)
                 iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
                 check_images, check_own, check_colour = images, own, colour
                 if (gaussian_width, gaussian_height) != (width, height) and not learned:
                     # a decision, not an output: scored where the Gaussians were fitted (a 4K capture: 16 times fewer
                     # pixels)
-                    check_images = shrunk_images if shrunk_images is not None else resize_stack(images, gaussian_width, gaussian_height)
-                    check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster, device=device)
+                    check_images = (shrunk_images if shrunk_images is not None
+                                    else resize_stack(images, gaussian_width, gaussian_height))
+                    check_own = render_own(source, gaussian_height, gaussian_width, raster=settings.raster,
+                                           device=device)
                     check_colour = None if colour is None else resample_image(colour, gaussian_width, gaussian_height)
                 with _bar(progress, "move check", iterations, len(plan.missing)) as advance:
-                    check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance, check_images, check_own, check_colour,
-                                         factor=factor, settings=settings, device=device, workers=workers, progress=advance,
-                                         keep=settings.residual.learned_check if learned else 0, held=held if check_images is images else None)
+                    check = check_moving(plan, source, sets, edges, path_delta, moving, specular_luminance,
+                                         check_images, check_own, check_colour,
+                                         factor=factor, settings=settings, device=device, workers=workers,
+                                         progress=advance,
+                                         keep=settings.residual.learned_check if learned else 0,
+                                         held=held if check_images is images else None)
             if learned and check.moves and len(check.kept_lights):
-                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs, 1) as advance:
-                    learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights, check.kept_highlights,
-                                                  factor=factor, settings=settings.residual, device=device, progress=advance)
+                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs,
+                                                        1) as advance:
+                    learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights,
+                                                  check.kept_highlights,
+                                                  factor=factor, settings=settings.residual, device=device,
+                                                  progress=advance)
             if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
                 # blending beat moving at the left-out lights (or the images learned alone beat the learned
                 # residual with its Gaussians): the highlights stay in the residual (the images themselves)
@@ -217,7 +245,8 @@ def fit_field(
                 # one free slot each
                 kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)
                 moving = np.zeros((len(source.active), 1), dtype=bool)
-                path_delta, path_centre = np.zeros((len(edges), 1), np.float32), np.zeros((len(edges), 1, 2), np.float32)
+                path_delta, path_centre = (np.zeros((len(edges), 1), np.float32),
+                                           np.zeros((len(edges), 1, 2), np.float32))
                 own, colour = np.zeros_like(own), None
                 if held is not None:
                     held.own = None  # the residual's stacks read the zeros from the host
@@ -227,13 +256,17 @@ def fit_field(
                 # the learned check's winner goes on learning from every light (the ones it left out too);
                 # without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
-                with timer.stage("learned residual"), _bar(progress, "learned residual", settings.residual.learned_epochs, 1) as advance:
-                    residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions, factor=factor,
-                                                                     settings=settings.residual, device=device, log=log, progress=advance,
+                with timer.stage("learned residual"), _bar(progress, "learned residual",
+                                                           settings.residual.learned_epochs, 1) as advance:
+                    residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
+                                                                     factor=factor,
+                                                                     settings=settings.residual, device=device, log=log,
+                                                                     progress=advance,
                                                                      initial=winner, tune=winner is not None)
             else:
                 with timer.stage("residual compression"):
-                    residual_model = build_residual(images, own, colour, settings=settings.residual, other_bytes=gaussian_bytes(kept, kept_retargeted),
+                    residual_model = build_residual(images, own, colour, settings=settings.residual,
+                                                    other_bytes=gaussian_bytes(kept, kept_retargeted),
                                                     device=device, held_images=held)
             held = None
     finally:  # an error or Ctrl-C meanwhile: the plan not left running (it is host work of a fraction of a second)
@@ -294,10 +327,12 @@ def fit_field(
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if residual_model.compressed else None,
             "highlight_colour": residual_model.highlight_colour is not None,
-            "learned": None if learned_history is None else {"epochs": len(learned_history), "final_mse": float(learned_history[-1]),
+            "learned": None if learned_history is None else {"epochs": len(learned_history),
+                                                             "final_mse": float(learned_history[-1]),
                                                              "continued_from_check": learned_check is not None},
         },
-        "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum() else 0.0},
+        "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum()
+                  else 0.0},
         "per_light": {"gaussians": counts.tolist(), "psnr_db": np.round(estimated.psnr, 3).tolist()},
     }
     return HighlightField(
@@ -344,7 +379,8 @@ def exposure_factor(images: np.ndarray, exposure: float | str) -> float:
                 stride += 1
             level = float(np.percentile(sample[:, ::stride, ::stride], 99.9))
             if not np.isfinite(level) or level <= 0:
-                raise InputError("cannot pick an exposure automatically: the images are black; pass --exposure with a factor")
+                raise InputError(
+                    "cannot pick an exposure automatically: the images are black; pass --exposure with a factor")
             return 1.0 / level
     if not (np.isfinite(exposure) and exposure > 0):
         raise InputError(f"exposure must be a positive number or 'auto', got {exposure}")

@@ -105,9 +105,11 @@ def retarget(
     labels = components.labels[edges[:, 0]]
     centroids = components.centroid_of_slot()[edges[:, 0]]
     on_device = isinstance(targets, wp.array) and targets.device == device
-    all_targets = targets if on_device else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device)
+    all_targets = (targets if on_device
+                   else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device))
     image_bytes = 4 * all_targets.shape[1] * all_targets.shape[2]
-    chunks = memory_chunks(len(edges), device, workers, bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
+    chunks = memory_chunks(len(edges), device, workers,
+                           bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
                            most_each=problems_per_launch(all_targets.shape[1], all_targets.shape[2], raster))
 
     def run(chunk: slice, stop) -> tuple:
@@ -116,7 +118,8 @@ def retarget(
         return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
     # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads
-    parts = map_chunks(run, chunks, parallel=not device.is_cuda, threads=workers if workers is not None else core_count())
+    parts = map_chunks(run, chunks, parallel=not device.is_cuda,
+                       threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])
     losses = [np.concatenate([p[k] for p in parts]) for k in range(1, 6)]
     return RetargetResult(params, *losses)
@@ -125,7 +128,8 @@ def retarget(
 class _Retargeting:
     """One batch of directed edges on one device."""
 
-    def __init__(self, source_params: GaussianParams, all_targets: wp.array, target_rows, labels, centroids, settings: RetargetSettings, raster: RasterSettings, device):
+    def __init__(self, source_params: GaussianParams, all_targets: wp.array, target_rows, labels, centroids,
+                 settings: RetargetSettings, raster: RasterSettings, device):
         self.s = settings
         problems = source_params.problem_count
         _, height, width = all_targets.shape
@@ -133,7 +137,9 @@ class _Retargeting:
         self.source = GaussianBatch.from_numpy(source_params, device=device, requires_grad=False)
         self.moving = GaussianBatch.from_numpy(source_params, device=device)
         targets = wp.empty((problems, height, width), dtype=float, device=device)
-        wp.launch(gather_images, dim=targets.shape, inputs=[all_targets, wp.array(np.asarray(target_rows, dtype=np.int32), dtype=wp.int32, device=device)], outputs=[targets], device=device)
+        wp.launch(gather_images, dim=targets.shape,
+                  inputs=[all_targets, wp.array(np.asarray(target_rows, dtype=np.int32), dtype=wp.int32,
+                                                device=device)], outputs=[targets], device=device)
         self.raster = Rasterizer(height, width, settings=raster, device=device)
         self.fit = LogL1Loss(targets)
         self.structure = StructureLoss(self.source, settings.structure)
@@ -155,7 +161,8 @@ class _Retargeting:
         tape = wp.Tape()
 
         def iterate(step_count: int, losses, optimiser) -> None:
-            step = ReplayedStep(adam_iteration(tape, self.loss, self.ones, losses, optimiser), self.moving.device, graphs=graphs)
+            step = ReplayedStep(adam_iteration(tape, self.loss, self.ones, losses, optimiser), self.moving.device,
+                                graphs=graphs)
             for iteration in range(step_count):
                 if stop.is_set():
                     raise Cancelled
@@ -169,7 +176,8 @@ class _Retargeting:
             self.rigid.apply(self.moving)
             self.fit.of_render(self.raster, self.moving, image=self.image, out=self.loss, value=False)
 
-        rigid_adam = RigidAdam(self.rigid, lr_translation_rpx=s.lr_translation_rpx, lr_rotation=s.lr_rotation, beta1=s.adam.beta1, beta2=s.adam.beta2, epsilon=s.adam.epsilon)
+        rigid_adam = RigidAdam(self.rigid, lr_translation_rpx=s.lr_translation_rpx, lr_rotation=s.lr_rotation,
+                               beta1=s.adam.beta1, beta2=s.adam.beta2, epsilon=s.adam.epsilon)
         iterate(s.rigid_iterations, rigid_losses, rigid_adam)
         self.rigid.apply(self.moving)
         rigid_loss = self._fit_loss(self.moving)
@@ -196,7 +204,8 @@ class _Retargeting:
         return params, source_loss, rigid_loss, loss, structure.numpy().astype(np.float64), restored
 
 
-def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share: float, *, sigma_eps: float) -> tuple[GaussianParams, np.ndarray]:
+def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share: float, *,
+                     sigma_eps: float) -> tuple[GaussianParams, np.ndarray]:
     """Retargeted slots that kept less than ``share`` of their source's energy (``gaussian_energy_rpx``)
     put back at their source: the Gaussian found nothing to follow on the target (its highlight
     vanishes there, e.g. into a shadow) and keeps its shape along that edge instead of shrinking to a
@@ -208,7 +217,8 @@ def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share:
     vanished = retargeted.active & sources.active & (after < share * before)
     if not vanished.any():
         return retargeted, vanished
-    kept = GaussianParams(**{name: np.where(vanished.reshape(vanished.shape + (1,) * (getattr(retargeted, name).ndim - 2)),
+    kept = GaussianParams(**{name: np.where(vanished.reshape(vanished.shape
+                                                             + (1,) * (getattr(retargeted, name).ndim - 2)),
                                             getattr(sources, name), getattr(retargeted, name))
                              for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
     return kept, vanished

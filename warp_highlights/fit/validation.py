@@ -202,10 +202,12 @@ def check_moving(
     _, height, width = own.shape
     all_edges, all_sets, all_delta = edges, retargeted, np.asarray(path_delta, np.float64)
     if len(missing):
-        extra = retarget(estimated, specular_luminance, missing, settings=settings.retarget, raster=settings.raster, device=device,
+        extra = retarget(estimated, specular_luminance, missing, settings=settings.retarget, raster=settings.raster,
+                         device=device,
                          workers=workers, progress=progress)
         extra_sources = estimated.take(missing[:, 0])
-        extra_sets, _ = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share, sigma_eps=settings.raster.sigma_eps)
+        extra_sets, _ = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share,
+                                         sigma_eps=settings.raster.sigma_eps)
         extra_delta = decide_paths(extra_sources, extra_sets, settings.paths).delta.astype(np.float32)
         joined = np.concatenate([edges, missing])
         order = np.lexsort((joined[:, 1], joined[:, 0]))
@@ -222,7 +224,8 @@ def check_moving(
     tint = np.ones((1, 1, images.shape[-1]), np.float32) if colour is None else np.asarray(colour, np.float32)
     scale = np.float32(1.0 / factor)
     moving_psnr, blend_psnr = np.empty(len(loo.lights)), np.empty(len(loo.lights))
-    kept_rows = np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64)) if keep > 0 else np.zeros(0, np.int64)
+    kept_rows = (np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64))
+                 if keep > 0 else np.zeros(0, np.int64))
     kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     # lights scored at once, in threads
@@ -232,8 +235,10 @@ def check_moving(
     if raster.device.is_cuda and not len(kept_rows):
         there = held is not None and held.own is not None
         needed = np.arange(len(images)) if there else np.unique(np.concatenate([corners.ravel(), loo.lights]))
-        if there or len(needed) * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory:
-            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device, needed=needed, held=held)
+        if (there
+            or len(needed) * (images[0].nbytes + own[0].size * 4) <= _DEVICE_SCORE_SHARE * raster.device.free_memory):
+            scored = _DeviceScores(images, own, tint, corners, loo.lights, scale, raster.device, needed=needed,
+                                   held=held)
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn_there = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False))
@@ -257,7 +262,8 @@ def check_moving(
 
         for group in range(0, len(rows), at_once):
             parallel_map(lambda q, drawn=drawn, start=start: score(q, drawn[q - start]), rows[group : group + at_once])
-    return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows], kept if len(kept_rows) else None)
+    return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows],
+                     kept if len(kept_rows) else None)
 
 
 class _DeviceScores:
@@ -265,14 +271,16 @@ class _DeviceScores:
     (their corners and themselves) go up once; ``psnr`` scores a chunk of lights in one launch
     (``kernels.scores.prediction_errors``), to a few thousandths of a dB of the host's ``psnr_8bit``."""
 
-    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, corners: np.ndarray, lights: np.ndarray, scale, device, *,
+    def __init__(self, images: np.ndarray, own: np.ndarray, tint: np.ndarray, corners: np.ndarray, lights: np.ndarray,
+                 scale, device, *,
                  needed: np.ndarray | None = None, held=None):
         n, self.height, self.width, _ = images.shape
         if held is not None and held.own is not None:  # every image there already
             self.needed = np.arange(n)
             self.images, self.own = held.images.reshape((n, -1)), held.own
         else:  # the lights' corners and the lights themselves (sorted indices), given or found here
-            self.needed = np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)])) if needed is None else needed
+            self.needed = (np.unique(np.concatenate([np.asarray(corners).ravel(), np.asarray(lights)]))
+                           if needed is None else needed)
             self.images = rows_up(images.reshape(n, -1), device, rows=self.needed)
             self.own = rows_up(np.asarray(own, np.float32).reshape(n, -1), device, rows=self.needed)
         self.channels = int(np.shape(tint)[-1])
@@ -282,8 +290,10 @@ class _DeviceScores:
     def psnr(self, rows: np.ndarray, drawn: wp.array, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(len(rows),) 8-bit sRGB PSNR (dB) of the moved and the blended predictions of checked lights ``rows``,
         ``drawn`` (len(rows), H, W) their moved highlights there."""
-        errors = prediction_errors(self.images, self.own, drawn.reshape((len(rows), self.height * self.width)), self.tint,
+        errors = prediction_errors(self.images, self.own, drawn.reshape((len(rows), self.height * self.width)),
+                                   self.tint,
                                    np.searchsorted(self.needed, self.corners[rows]), weights,
-                                   np.searchsorted(self.needed, self.lights[rows]), scale=self.scale, height=self.height, width=self.width)
+                                   np.searchsorted(self.needed, self.lights[rows]), scale=self.scale,
+                                   height=self.height, width=self.width)
         values = self.height * self.width * self.channels * 255.0**2
         return psnr_of_mse(errors[:, 0] / values), psnr_of_mse(errors[:, 1] / values)

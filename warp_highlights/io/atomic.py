@@ -69,7 +69,8 @@ STALE_FOREIGN_HOST_SECONDS = 24 * 3600
 """A partial output from another machine (shared storage) counts as stale after this long: its
 process cannot be asked whether it is alive, and no command of this project runs a day."""
 
-_TAG_PATTERN = re.compile(r"^\.(?P<name>.+)\.(?P<state>partial|replaced)-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}$")
+_TAG_PATTERN = re.compile(
+    r"^\.(?P<name>.+)\.(?P<state>partial|replaced)-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}$")
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
 
@@ -181,7 +182,8 @@ def _unraisable(unraisable) -> None:
     traceback but delivered again shortly, where it can stop the work; anything else goes to the
     hook there was before."""
     signum = _received_signal
-    if isinstance(unraisable.exc_value, KeyboardInterrupt) and signum is not None and _import_retries < _MAX_IMPORT_RETRIES:
+    if (isinstance(unraisable.exc_value, KeyboardInterrupt) and signum is not None
+        and _import_retries < _MAX_IMPORT_RETRIES):
         _deliver_again(signum)
         return
     _previous_unraisable(unraisable)
@@ -192,7 +194,8 @@ def _swallowing(frame) -> bool:
     weakref callback or ``__del__``, which the interpreter runs with errors printed and ignored."""
     while frame is not None:
         code = frame.f_code
-        if code.co_filename.startswith("<frozen importlib") or code.co_name == "__del__" or code.co_filename.endswith(_WEAKREF_FILE):
+        if (code.co_filename.startswith("<frozen importlib") or code.co_name == "__del__"
+            or code.co_filename.endswith(_WEAKREF_FILE)):
             return True
         frame = frame.f_back
     return False
@@ -419,7 +422,8 @@ def check_folder_target(path, *, overwrite: bool, legacy: Callable[[str], bool] 
     problem = _foreign_file(path, legacy)
     if problem is not None:
         name, why = problem
-        raise InputError(f"output folder {path} holds {name}, {why}; it is not replaced: move that file or choose another folder")
+        raise InputError(
+            f"output folder {path} holds {name}, {why}; it is not replaced: move that file or choose another folder")
     _check_parent(path)
 
 

@@ -38,7 +38,8 @@ import numpy as np
 
 from ..model.threads import parallel_map, submit
 
-__all__ = ["CODES_LEVEL", "CompressedCodes", "chunk_size", "codes_from_differences", "codes_from_stored", "compressed_chunk", "stored_bytes",
+__all__ = ["CODES_LEVEL", "CompressedCodes", "chunk_size", "codes_from_differences", "codes_from_stored",
+           "compressed_chunk", "stored_bytes",
            "stored_codes", "stored_shape"]
 
 CODES_LEVEL = 1
@@ -66,7 +67,8 @@ def stored_codes(codes: np.ndarray) -> np.ndarray:
     difference[..., :1, :] = codes[..., :1, :]
     signed = difference.view(np.int8 if codes.dtype == np.uint8 else np.int16)
     zigzag = np.left_shift(difference, 1)  # 2d, modulo 2^bits ...
-    zigzag ^= np.right_shift(signed, 8 * codes.dtype.itemsize - 1).view(codes.dtype)  # ... its bits flipped where d < 0: -2d - 1
+    # ... its bits flipped where d < 0: -2d - 1
+    zigzag ^= np.right_shift(signed, 8 * codes.dtype.itemsize - 1).view(codes.dtype)
     if codes.dtype == np.uint8:
         return zigzag
     stored = np.empty(codes.shape[:-2] + (2,) + codes.shape[-2:], np.uint8)

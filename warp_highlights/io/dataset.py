@@ -235,7 +235,8 @@ class ReflectanceField:
         if workers < 1:
             raise InputError(f"workers must be >= 1, got {workers}")
         # a decoding thread's image, its finite mask, its shrunk copy
-        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]), decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))
+        _check_memory(folder, sum(g.file_count for g in groups), (height, width, *shape[2:]),
+                      decoding=min(workers, sum(g.file_count for g in groups)) * int(1.5 * np.prod(shape)))
         if before_decoding is not None:
             before_decoding(sum(g.file_count for g in groups) * height * width * int(np.prod(shape[2:])) * 4)
         # while the images decode
@@ -243,7 +244,8 @@ class ReflectanceField:
         try:
             with tqdm(total=sum(g.file_count for g in groups), desc=f"loading {folder.name}", unit="image",
                       disable=None if progress else True, leave=False) as bar:
-                reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar, max_pixels=max_pixels, headers=headers,
+                reader = _StackReader(linear=linear, replace_nonfinite=replace_nonfinite, bar=bar,
+                                      max_pixels=max_pixels, headers=headers,
                                       size=(width, height), workers=workers, stop=stop)
                 fields = [cls(*reader.read_group(g), root=g.light_file.parent) for g in groups]
         except BaseException:  # a bad image or Ctrl-C: the mask's read not left running
@@ -275,13 +277,16 @@ class ReflectanceField:
             raise InputError(f"--holdout-every must be at least 2 (every k-th light held out), got {k}")
         held = np.arange(self.light_count) % k == 0
         if self.light_count - held.sum() < 4:
-            raise InputError(f"holding out every {k}th of {self.light_count} lights leaves {self.light_count - held.sum()}; a fit needs at least 4")
+            raise InputError(f"holding out every {k}th of {self.light_count} lights leaves "
+                             f"{self.light_count - held.sum()}; a fit needs at least 4")
 
         def part(mask) -> ReflectanceField:
-            names = None if self.lights.filenames is None else [n for n, keep in zip(self.lights.filenames, mask) if keep]
+            names = (None if self.lights.filenames is None
+                     else [n for n, keep in zip(self.lights.filenames, mask) if keep])
             pick = lambda a: None if a is None else a[mask].copy()
             return ReflectanceField(self.images[mask].copy(), LightSet(self.lights.directions[mask], names),
-                                    specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask, root=self.root,
+                                    specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask,
+                                    root=self.root,
                                     source=self.source)
 
         train = part(~held)
@@ -343,7 +348,8 @@ class DatasetWriter:
         self.overwrite = overwrite
         self.half = half
         self.folder.parent.mkdir(parents=True, exist_ok=True)
-        self._transaction = FolderTransaction(self.folder, kind="dataset", overwrite=overwrite, legacy=dataset_folder_entry)
+        self._transaction = FolderTransaction(self.folder, kind="dataset", overwrite=overwrite,
+                                              legacy=dataset_folder_entry)
         self._tmp = self._transaction.temporary
         self._written = {group: {kind: set() for kind in ("full", *_COMPONENTS)} for group in _GROUP_FOLDERS}
         self._shape: tuple[int, ...] | None = None
@@ -374,7 +380,8 @@ class DatasetWriter:
             for offset, image in enumerate(stack)
         ]
         # EXR compression runs in C++ without the GIL: a few threads keep every core and the disk busy.
-        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * core_count()) or 1, thread_name_prefix=WRITER_THREAD_PREFIX)
+        pool = ThreadPoolExecutor(max_workers=min(len(jobs), 2 * core_count()) or 1,
+                                  thread_name_prefix=WRITER_THREAD_PREFIX)
         try:
             # Signals held while threads start: one raised inside Thread.start (it waits for the thread)
             # leaves that thread out of the pool's records, so shutdown() would not wait for it to stop writing.
@@ -459,7 +466,8 @@ class DatasetWriter:
         elif stack.shape[1:] != self._shape:
             raise ValueError(f"image chunk of shape {stack.shape[1:]} after chunks of shape {self._shape}")
         if not np.isfinite(stack).all():
-            raise ValueError(f"image chunk holds {int((~np.isfinite(stack)).sum())} non-finite values; nothing is written")
+            raise ValueError(
+                f"image chunk holds {int((~np.isfinite(stack)).sum())} non-finite values; nothing is written")
         return stack
 
     def _check_complete(self, group: str, count: int) -> None:
@@ -523,7 +531,8 @@ class _ShapeCheck:
             )
 
 
-def _planned_shape(groups: list[_ImageGroup], max_pixels: int | None) -> tuple[tuple[int, ...], dict[Path, ImageHeader]]:
+def _planned_shape(groups: list[_ImageGroup],
+                   max_pixels: int | None) -> tuple[tuple[int, ...], dict[Path, ImageHeader]]:
     """The common image shape, ``(H, W)`` or ``(H, W, 3)``, from every image's header (no pixel decoded), and
     the headers by path (the decoders do not read them again)."""
     shapes = _ShapeCheck()
@@ -634,7 +643,8 @@ class _StackReader:
                 self.shapes.check(path, shape)
                 first = first or (path, decoded)
                 if decoded != first[1]:  # a stored shape that passed the check but decoded to another one
-                    raise InputError(f"{path}: decoded to shape {decoded} but the first image {first[0]} to {first[1]}; "
+                    raise InputError(f"{path}: decoded to shape {decoded} but the first image {first[0]} "
+                                     f"to {first[1]}; "
                                      "save both in one format")
                 if bad:
                     self.nonfinite_count += bad
@@ -751,7 +761,8 @@ def _read_meta(path: Path) -> dict:
     except UnicodeDecodeError as exc:
         raise InputError(f"{path}: not UTF-8 text ({exc.reason})") from exc
     except RecursionError:
-        raise InputError(f"{path}: JSON nested too deeply to read; it is damaged or not a dataset's meta.json") from None
+        raise InputError(
+            f"{path}: JSON nested too deeply to read; it is damaged or not a dataset's meta.json") from None
     if not isinstance(meta, dict):
         raise InputError(f"{path}: expected a JSON object {{...}}, got {type(meta).__name__}")
     return meta

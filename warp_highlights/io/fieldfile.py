@@ -1,6 +1,7 @@
-"""The highlight field's file: ``save_field``, ``load_field``; the one place that knows its layout.
+"""The highlight field's file: ``save_field``, ``load_field``; the one place that knows its layout. It holds
+one thing, the file format (every version's reader and the current writer), so it stays one module.
 
-The model it stores is :class:`warp_highlights.model.field.HighlightField` (method.md section 8).
+The model it stores is :class:`warp_highlights.model.field.HighlightField` (``docs/file-format.md``).
 
 File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
@@ -132,10 +133,12 @@ threads before the writer reaches them; smaller ones deflated by the zip (the ti
 deflate takes on the writer's thread, serially, was most of a dome field's save)."""
 _CHUNK_BYTES = 1 << 22  # such an array is cut into chunks of about this many bytes (4 MiB), a thread compressing each
 _ARRAY_LEVEL = 1
-"""Zstandard level inside those chunks, after Blosc's byte shuffle (float16 diffuse images of the 480x270
-donut: 82% of zlib's level-6 bytes in a fifth of its seconds; levels 3 and 5: 78% and 75% in 2 and 4 times level 1's)."""
+"""Zstandard level inside those chunks, after Blosc's byte shuffle: on float16 diffuse images, fewer bytes than
+zlib's level 6 in a fraction of its time; higher levels save a few percent more in several times the time
+(``benchmarks/bench_codes.py``)."""
 _CHUNKED = ".blosc"
-"""What a chunked ``.npy`` entry's name adds to the array's name (``X.npy.blosc``, its chunks' lengths in ``X.lengths.npy``)."""
+"""What a chunked ``.npy`` entry's name adds to the array's name (``X.npy.blosc``, its chunks' lengths in
+``X.lengths.npy``)."""
 
 _HEADER = "header.json"
 _DIRECTIONS = "lights/directions.npy"
@@ -209,7 +212,8 @@ def load_field(path) -> HighlightField:
     """
     path = Path(path)
     if path.exists() and not path.is_dir() and not path.is_file():  # a FIFO or a device would block or never end
-        raise InputError(f"{path} is not a regular file (a pipe or a device?); give a field file written by warp-highlights fit")
+        raise InputError(
+            f"{path} is not a regular file (a pipe or a device?); give a field file written by warp-highlights fit")
     try:
         stream = open(path, "rb")  # noqa: SIM115 (closed below; open errors reported apart from read errors)
     except FileNotFoundError:
@@ -311,7 +315,8 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
     entries = [(name, _chunked(array)) for name, array in arrays]
     chunked = [entry for _, entry in entries if isinstance(entry, _Ahead)]
     try:
-        for chunks in chunked:  # each chunked entry's first chunks made in threads while the writer stores the entries before it
+        # each chunked entry's first chunks made in threads while the writer stores the entries before it
+        for chunks in chunked:
             chunks.start(2)
         with zipfile.ZipFile(stream, "w") as archive:
             with archive.open(_entry_info(_HEADER), "w") as entry:
@@ -334,7 +339,8 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
 
 def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     """The header layout and the (name, array) entries of a residual model, planes channel-first."""
-    layout = {"channels": residual.channels, "compressed": residual.compressed, "highlight_colour": residual.highlight_colour is not None,
+    layout = {"channels": residual.channels, "compressed": residual.compressed,
+              "highlight_colour": residual.highlight_colour is not None,
               "scale": residual.scale is not None}
     arrays = []
     layout["learned"] = None
@@ -435,7 +441,8 @@ class _CodeChunks(_Ahead):
     def _chunk(self, index: int) -> bytes:
         if index == 0:
             return compressed_chunk(_npy_header(np.uint8, self.shape))
-        return self.chunks.piece(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))  # Blosc (off the main thread) and hashlib let go of the GIL
+        # Blosc (off the main thread) and hashlib let go of the GIL
+        return self.chunks.piece(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))
 
 
 class _ArrayChunks(_Ahead):
@@ -491,7 +498,8 @@ _DEFLATED_LENGTH_BYTES = 8
 def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
     """The ``.npy`` header (format 1.0) of a C-ordered array of ``dtype`` and ``shape``."""
     buffer = io.BytesIO()
-    np.lib.format.write_array_header_1_0(buffer, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False,
+    np.lib.format.write_array_header_1_0(buffer, {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                                  "fortran_order": False,
                                                   "shape": tuple(shape)})
     return buffer.getvalue()
 
@@ -499,14 +507,16 @@ def _npy_header(dtype: np.dtype, shape: tuple) -> bytes:
 def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray) -> None:
     """One ``.npy`` entry the zip deflates (zip64 where it may pass the 2 GiB limit of plain zip)."""
     with archive.open(_entry_info(name), "w", force_zip64=array.nbytes > 2**30) as entry:
-        np.lib.format.write_array(entry, array, allow_pickle=False)  # a strided view is written in buffered chunks, never copied whole
+        # a strided view is written in buffered chunks, never copied whole
+        np.lib.format.write_array(entry, array, allow_pickle=False)
 
 
 def _write_chunks(archive: zipfile.ZipFile, name: str, chunks: _Ahead) -> None:
     """``name`` (``X.npy``) as ``X.npy.blosc``, the Blosc ``chunks`` one after another, stored as they are,
     and ``X.lengths.npy``, each chunk's bytes (<i8)."""
     lengths = []
-    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w", force_zip64=chunks.nbytes > 2**30) as entry:
+    with archive.open(_entry_info(name + _CHUNKED, zipfile.ZIP_STORED), "w",
+                      force_zip64=chunks.nbytes > 2**30) as entry:
         for chunk in chunks:
             entry.write(chunk)
             lengths.append(len(chunk))
@@ -964,7 +974,8 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
     images, stacks, learned = None, {}, None
     if layout.get("learned") is not None:
         part = layout["learned"]
-        if not isinstance(part, dict) or not isinstance(part.get("unit"), (int, float)) or not math.isfinite(part["unit"]) or part["unit"] <= 0:
+        if (not isinstance(part, dict) or not isinstance(part.get("unit"), (int, float))
+            or not math.isfinite(part["unit"]) or part["unit"] <= 0):
             raise _corrupt(path, "header entry residual.learned must be null or hold a unit > 0 and a light count")
         lights = _header_int(path, part, "lights", 1, 10**7)
         codes = read(_LEARNED_CODES, "<f2", (NEURAL_CODE_SIZE, height, width)).transpose(1, 2, 0)
@@ -987,7 +998,8 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
             if bits not in (8, 16):
                 raise _corrupt(path, f"header entry residual.{name}.bits must be 8 or 16, got {bits!r}")
             prefix = _STACK_PREFIX[name]
-            mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4", (planes, height, width))
+            mean = read(prefix + "mean.npy", "<f2" if part["mean_dtype"] == "float16" else "<f4",
+                        (planes, height, width))
             if version >= 4:  # version 5: the differences zigzag-mapped (io.codes); 4: as they are
                 stored = read(prefix + "codes.npy", "<u1", stored_shape(rank, planes, height, width, bits))
                 codes = codes_from_stored(stored, bits) if version >= 5 else codes_from_differences(stored, bits)
@@ -1001,7 +1013,8 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
                 mean_weights=read(prefix + "mean_weights.npy", "<f4", (n,)),
             )
         if "luminance" not in stacks or (channels == 3) != ("chroma" in stacks):
-            raise _corrupt(path, f"a compressed {channels}-channel residual needs a luminance stack{' and a chroma stack' if channels == 3 else ' only'}")
+            raise _corrupt(path, f"a compressed {channels}-channel residual needs a luminance "
+                                 f"stack{' and a chroma stack' if channels == 3 else ' only'}")
     scale = None
     if layout.get("scale", False) is not False:
         if layout.get("scale") is not True:
@@ -1011,7 +1024,8 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
     if with_colour:
         colour = colour_from_codes(read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0))
     try:
-        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale,
+        return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"),
+                             highlight_colour=colour, scale=scale,
                              learned=learned)
     except InputError as exc:
         raise _corrupt(path, str(exc)) from None

@@ -165,7 +165,8 @@ def read_image(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_M
     return pixels.astype(np.float32) if Path(path).suffix.lower() == ".exr" or pixels.dtype != np.float32 else pixels
 
 
-def read_pixels(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS, header: ImageHeader | None = None) -> np.ndarray:
+def read_pixels(path, *, linear: bool = False, max_pixels: int | None = DEFAULT_MAX_PIXELS,
+                header: ImageHeader | None = None) -> np.ndarray:
     """:func:`read_image`'s values before its float32 copy: an EXR's channels as stored (float16, float32
     or uint32; an ``(H, W, 3)`` view of its interleaved R, G, B, or ``(H, W)``), any other file as
     ``read_image`` returns it. Widened to float32 (``astype``, or copied into a float32 array) they are
@@ -214,7 +215,8 @@ def write_image(path, image, *, half: bool = False, bits: int = 8, linear: bool 
         if suffix == ".exr":
             _write_exr(tmp, image, half=half)
         elif bits == 16 or suffix in _TIFF_SUFFIXES:
-            _write_with_oiio(tmp, "tiff" if suffix in _TIFF_SUFFIXES else "png", encode_levels(image, 2**bits - 1, linear=linear))
+            _write_with_oiio(tmp, "tiff" if suffix in _TIFF_SUFFIXES else "png",
+                             encode_levels(image, 2**bits - 1, linear=linear))
         else:
             _write_with_pillow(tmp, suffix, encode_levels(image, 2**bits - 1, linear=linear))
 
@@ -297,7 +299,8 @@ def image_encoding(path, *, linear: bool = False) -> dict:
     spec = _oiio_spec(path)
     stored = str(spec.format)
     floating = stored in _OIIO_FLOATS
-    bits = spec.get_int_attribute("oiio:BitsPerSample", 0) or {"uint8": 8, "uint16": 16, "half": 16, "float": 32, "double": 64}.get(stored, 16)
+    bits = (spec.get_int_attribute("oiio:BitsPerSample", 0)
+            or {"uint8": 8, "uint16": 16, "half": 16, "float": 32, "double": 64}.get(stored, 16))
     icc = spec.getattribute("ICCProfile")
     profile = _icc_profile(bytes(np.asarray(icc, dtype=np.uint8)))[0] if icc is not None and len(icc) else None
     name = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(suffix, "TIFF")
@@ -497,7 +500,8 @@ def _exr_header(path: Path, max_pixels: int | None) -> tuple[int, int, list[str]
         windows = [tuple(int(v) for corner in header["dataWindow"] for v in corner) for header in headers]
         names = [channel.name for channel in headers[0]["channels"]]
         grouped = {"R", "G", "B"} <= set(names) and all(
-            channel.xSampling == channel.ySampling == 1 for channel in headers[0]["channels"] if channel.name in ("R", "G", "B", "A"))
+            channel.xSampling == channel.ySampling == 1 for channel in headers[0]["channels"]
+            if channel.name in ("R", "G", "B", "A"))
         deep = any(header.get("type") in (OpenEXR.deepscanline, OpenEXR.deeptile) for header in headers)
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, KeyError, UnicodeError, ...)
         raise _unreadable(path, exc) from exc
@@ -566,10 +570,12 @@ def _read_exr(path: Path, max_pixels: int | None, *, header: ImageHeader | None 
                 except Exception:  # noqa: BLE001 (R, G and B of several pixel types are not grouped: read apart below)
                     channels = {}
                 interleaved = next((channels[name] for name in ("RGB", "RGBA") if name in channels), None)
-                if isinstance(interleaved, np.ndarray) and interleaved.shape in ((height, width, 3), (height, width, 4)):
+                if (isinstance(interleaved, np.ndarray)
+                    and interleaved.shape in ((height, width, 3), (height, width, 4))):
                     return interleaved[..., :3]
             if not all(name in channels for name in keep):  # not grouped as above (or not read): each channel alone
-                channels = {name: channel.pixels for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
+                channels = {name: channel.pixels
+                            for name, channel in OpenEXR.File(str(path), separate_channels=True).channels().items()}
     except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, UnicodeError, ...)
         raise _unreadable(path, exc) from exc
     planes = [channels.get(name) for name in keep]
@@ -653,12 +659,14 @@ def _to_srgb(path: Path, levels: np.ndarray, icc: bytes) -> np.ndarray:
     converted = source is not None and levels.dtype == np.uint8
     if converted:
         try:
-            levels = np.asarray(ImageCms.profileToProfile(Image.fromarray(levels), source, ImageCms.createProfile("sRGB"), outputMode="RGB"))
+            levels = np.asarray(ImageCms.profileToProfile(Image.fromarray(levels), source,
+                                                          ImageCms.createProfile("sRGB"), outputMode="RGB"))
         except ImageCms.PyCMSError:
             converted = False
     if name not in _REPORTED_PROFILES:
         _REPORTED_PROFILES.add(name)
-        done = ("converted to sRGB" if converted else "read as linear sRGB (convert the capture to sRGB for exact colours)"
+        done = ("converted to sRGB" if converted
+                else "read as linear sRGB (convert the capture to sRGB for exact colours)"
                 if levels.dtype.kind == "f" else "read as sRGB (convert the capture to sRGB for exact colours)")
         logging.getLogger(__name__).warning(f"{path}: colour profile '{name}', not sRGB: {done}")
     return levels
@@ -712,7 +720,9 @@ def _write_failure(path: Path, message: str) -> OSError:
     except OSError:
         full = False
     code = errno.ENOSPC if full else errno.EIO
-    return OSError(code, f"{os.strerror(code)} ({message.strip().splitlines()[0] if message.strip() else 'write failed'})", str(path))
+    return OSError(code,
+                   f"{os.strerror(code)} ({message.strip().splitlines()[0] if message.strip() else 'write failed'})",
+                   str(path))
 
 
 def _write_with_pillow(path: Path, suffix: str, levels: np.ndarray) -> None:

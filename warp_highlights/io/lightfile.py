@@ -113,7 +113,8 @@ def _parse_count(path: Path, number: int, text: str) -> int:
     if not _COUNT.match(token):
         raise InputError(f"{path}:{number}: the first line must be the light count, got {_clip(text)!r}")
     if len(token.lstrip("+-0")) > 18:  # int() refuses over 4300 digits; no capture has 10**18 lights
-        raise InputError(f"{path}:{number}: the light count {_clip(token)} is absurdly large; give the number of lights")
+        raise InputError(
+            f"{path}:{number}: the light count {_clip(token)} is absurdly large; give the number of lights")
     if int(token) < 1:
         raise InputError(f"{path}:{number}: the light count must be positive, got {int(token)}")
     return int(token)

@@ -67,6 +67,7 @@ def working_size(width: int, height: int, requested: tuple[int, int] | None) -> 
             f"use e.g. {round(width * new_height / height)}x{new_height}"
         )
     if new_width > width or new_height > height:
-        raise InputError(f"working size {new_width}x{new_height} is larger than the {width}x{height} images; only downsampling is supported")
+        raise InputError(f"working size {new_width}x{new_height} is larger than the {width}x{height} images; only "
+                         f"downsampling is supported")
     return new_width, new_height
 

@@ -92,8 +92,10 @@ class RasterSettings:
     tile_size: int = 16
 
     def __post_init__(self):
-        _require(math.isfinite(self.cutoff) and 1.0 <= self.cutoff <= 12.0, f"cutoff must be in [1, 12] Mahalanobis units, got {self.cutoff}")
-        _require(math.isfinite(self.sigma_eps_rpx2) and self.sigma_eps_rpx2 > 0, f"sigma_eps_rpx2 must be > 0, got {self.sigma_eps_rpx2}")
+        _require(math.isfinite(self.cutoff) and 1.0 <= self.cutoff <= 12.0,
+                 f"cutoff must be in [1, 12] Mahalanobis units, got {self.cutoff}")
+        _require(math.isfinite(self.sigma_eps_rpx2) and self.sigma_eps_rpx2 > 0,
+                 f"sigma_eps_rpx2 must be > 0, got {self.sigma_eps_rpx2}")
         _require(self.tile_size in (4, 8, 16, 32), f"tile_size must be 4, 8, 16 or 32 pixels, got {self.tile_size}")
 
     @property
@@ -123,9 +125,12 @@ class StructureLossSettings:
     scale_eps_rpx: float = 1e-6
 
     def __post_init__(self):
-        _require(math.isfinite(self.gamma_per_rpx) and self.gamma_per_rpx > 0, f"gamma_per_rpx must be > 0, got {self.gamma_per_rpx}")
-        _require(math.isfinite(self.threshold_rpx) and self.threshold_rpx > 0, f"threshold_rpx must be > 0, got {self.threshold_rpx}")
-        _require(math.isfinite(self.scale_eps_rpx) and self.scale_eps_rpx > 0, f"scale_eps_rpx must be > 0, got {self.scale_eps_rpx}")
+        _require(math.isfinite(self.gamma_per_rpx) and self.gamma_per_rpx > 0,
+                 f"gamma_per_rpx must be > 0, got {self.gamma_per_rpx}")
+        _require(math.isfinite(self.threshold_rpx) and self.threshold_rpx > 0,
+                 f"threshold_rpx must be > 0, got {self.threshold_rpx}")
+        _require(math.isfinite(self.scale_eps_rpx) and self.scale_eps_rpx > 0,
+                 f"scale_eps_rpx must be > 0, got {self.scale_eps_rpx}")
 
 
 @dataclass(frozen=True)
@@ -193,10 +198,13 @@ class SegmentationSettings:
     diffuse_offset: float = 0.01
 
     def __post_init__(self):
-        _require(math.isfinite(self.valid_threshold) and self.valid_threshold >= 0, f"valid_threshold must be >= 0, got {self.valid_threshold}")
-        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1, f"outlier_factor must be >= 1, got {self.outlier_factor}")
+        _require(math.isfinite(self.valid_threshold) and self.valid_threshold >= 0,
+                 f"valid_threshold must be >= 0, got {self.valid_threshold}")
+        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1,
+                 f"outlier_factor must be >= 1, got {self.outlier_factor}")
         _require(1 <= int(self.max_iterations) <= 100, f"max_iterations must be in [1, 100], got {self.max_iterations}")
-        _require(int(self.min_valid_lights) >= 4, f"min_valid_lights must be >= 4 (the fit has 4 unknowns), got {self.min_valid_lights}")
+        _require(int(self.min_valid_lights) >= 4,
+                 f"min_valid_lights must be >= 4 (the fit has 4 unknowns), got {self.min_valid_lights}")
         for name in ("diffuse_floor", "diffuse_offset", "outlier_floor"):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0, f"{name} must be >= 0, got {value}")
@@ -250,17 +258,25 @@ class EstimationSettings:
     adam: AdamSettings = AdamSettings()
 
     def __post_init__(self):
-        _require(1 <= int(self.iterations) <= MAX_ITERATIONS, f"iterations must be in [1, {MAX_ITERATIONS}], got {self.iterations}")
-        _require(1 <= int(self.densify_every) <= MAX_ITERATIONS, f"densify_every must be in [1, {MAX_ITERATIONS}], got {self.densify_every}")
+        _require(1 <= int(self.iterations) <= MAX_ITERATIONS,
+                 f"iterations must be in [1, {MAX_ITERATIONS}], got {self.iterations}")
+        _require(1 <= int(self.densify_every) <= MAX_ITERATIONS,
+                 f"densify_every must be in [1, {MAX_ITERATIONS}], got {self.densify_every}")
         _require(1 <= int(self.densify_until) <= MAX_ITERATIONS,
-                 f"densify_until must be in [1, {MAX_ITERATIONS}] (no add round means no Gaussians), got {self.densify_until}")
-        _require(math.isfinite(self.residual_threshold) and self.residual_threshold > 0, f"residual_threshold must be > 0, got {self.residual_threshold}")
-        _require(math.isfinite(self.min_region_area_rpx2) and self.min_region_area_rpx2 >= 0, f"min_region_area_rpx2 must be >= 0, got {self.min_region_area_rpx2}")
+                 f"densify_until must be in [1, {MAX_ITERATIONS}] (no add round means no Gaussians), got "
+                 f"{self.densify_until}")
+        _require(math.isfinite(self.residual_threshold) and self.residual_threshold > 0,
+                 f"residual_threshold must be > 0, got {self.residual_threshold}")
+        _require(math.isfinite(self.min_region_area_rpx2) and self.min_region_area_rpx2 >= 0,
+                 f"min_region_area_rpx2 must be >= 0, got {self.min_region_area_rpx2}")
         _require(int(self.max_new_per_round) >= 1, f"max_new_per_round must be >= 1, got {self.max_new_per_round}")
-        _require(math.isfinite(self.prune_energy) and self.prune_energy >= 0, f"prune_energy must be >= 0, got {self.prune_energy}")
-        _require(math.isfinite(self.prune_outside_sigmas) and self.prune_outside_sigmas >= 0, f"prune_outside_sigmas must be >= 0, got {self.prune_outside_sigmas}")
+        _require(math.isfinite(self.prune_energy) and self.prune_energy >= 0,
+                 f"prune_energy must be >= 0, got {self.prune_energy}")
+        _require(math.isfinite(self.prune_outside_sigmas) and self.prune_outside_sigmas >= 0,
+                 f"prune_outside_sigmas must be >= 0, got {self.prune_outside_sigmas}")
         _require(1 <= int(self.capacity) <= 1024, f"capacity must be in [1, 1024], got {self.capacity}")
-        _require(math.isfinite(self.max_pixels_per_rpx) and self.max_pixels_per_rpx >= 0, f"max_pixels_per_rpx must be >= 0 (0: never shrink), got {self.max_pixels_per_rpx}")
+        _require(math.isfinite(self.max_pixels_per_rpx) and self.max_pixels_per_rpx >= 0,
+                 f"max_pixels_per_rpx must be >= 0 (0: never shrink), got {self.max_pixels_per_rpx}")
 
     def gaussian_size(self, width: int, height: int) -> tuple[int, int]:
         """(width, height) the Gaussians are fitted at for a ``width`` x ``height`` working size: shrunk
@@ -337,9 +353,12 @@ class RetargetSettings:
     vanish_share: float = 0.01
 
     def __post_init__(self):
-        _require(math.isfinite(self.vanish_share) and 0 <= self.vanish_share < 1, f"vanish_share must be in [0, 1), got {self.vanish_share}")
-        _require(0 <= int(self.rigid_iterations) <= MAX_ITERATIONS, f"rigid_iterations must be in [0, {MAX_ITERATIONS}], got {self.rigid_iterations}")
-        _require(0 <= int(self.iterations) <= MAX_ITERATIONS, f"iterations must be in [0, {MAX_ITERATIONS}], got {self.iterations}")
+        _require(math.isfinite(self.vanish_share) and 0 <= self.vanish_share < 1,
+                 f"vanish_share must be in [0, 1), got {self.vanish_share}")
+        _require(0 <= int(self.rigid_iterations) <= MAX_ITERATIONS,
+                 f"rigid_iterations must be in [0, {MAX_ITERATIONS}], got {self.rigid_iterations}")
+        _require(0 <= int(self.iterations) <= MAX_ITERATIONS,
+                 f"iterations must be in [0, {MAX_ITERATIONS}], got {self.iterations}")
         for name in ("c_fit", "c_str", "c_ene", "lr_translation_rpx", "lr_rotation"):
             value = getattr(self, name)
             _require(math.isfinite(value) and value >= 0, f"{name} must be a finite number >= 0, got {value}")
@@ -368,8 +387,10 @@ class PathSettings:
     compare_rotations: bool = True
 
     def __post_init__(self):
-        _require(math.isfinite(self.straight_below) and self.straight_below >= 0, f"straight_below must be >= 0, got {self.straight_below}")
-        _require(math.isfinite(self.length_scale_rpx) and self.length_scale_rpx > 0, f"length_scale_rpx must be > 0, got {self.length_scale_rpx}")
+        _require(math.isfinite(self.straight_below) and self.straight_below >= 0,
+                 f"straight_below must be >= 0, got {self.straight_below}")
+        _require(math.isfinite(self.length_scale_rpx) and self.length_scale_rpx > 0,
+                 f"length_scale_rpx must be > 0, got {self.length_scale_rpx}")
 
 
 RESIDUAL_KINDS = ("auto", "lowrank", "learned", "images", "none")
@@ -493,18 +514,27 @@ class ResidualSettings:
 
     def __post_init__(self):
         _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")
-        _require(math.isfinite(self.size_budget) and 0 < self.size_budget <= 10, f"size_budget must be in (0, 10], got {self.size_budget}")
-        _require(0 <= int(self.luminance_rank) <= 1024, f"luminance_rank must be in [0, 1024], got {self.luminance_rank}")
-        _require(1 <= int(self.max_luminance_rank) <= 1024, f"max_luminance_rank must be in [1, 1024], got {self.max_luminance_rank}")
-        _require(1 <= int(self.min_luminance_rank) <= int(self.max_luminance_rank), f"min_luminance_rank must be in [1, max_luminance_rank], got {self.min_luminance_rank}")
+        _require(math.isfinite(self.size_budget) and 0 < self.size_budget <= 10,
+                 f"size_budget must be in (0, 10], got {self.size_budget}")
+        _require(0 <= int(self.luminance_rank) <= 1024,
+                 f"luminance_rank must be in [0, 1024], got {self.luminance_rank}")
+        _require(1 <= int(self.max_luminance_rank) <= 1024,
+                 f"max_luminance_rank must be in [1, 1024], got {self.max_luminance_rank}")
+        _require(1 <= int(self.min_luminance_rank) <= int(self.max_luminance_rank),
+                 f"min_luminance_rank must be in [1, max_luminance_rank], got {self.min_luminance_rank}")
         _require(0 <= int(self.chroma_rank) <= 1024, f"chroma_rank must be in [0, 1024], got {self.chroma_rank}")
         _require(int(self.basis_bits) in (0, 8, 16), f"basis_bits must be 0 (choose), 8 or 16, got {self.basis_bits}")
-        _require(math.isfinite(self.move_support) and 0 <= self.move_support <= 1, f"move_support must be in [0, 1], got {self.move_support}")
+        _require(math.isfinite(self.move_support) and 0 <= self.move_support <= 1,
+                 f"move_support must be in [0, 1], got {self.move_support}")
         _require(0 <= int(self.check_lights) <= 100000, f"check_lights must be in [0, 100000], got {self.check_lights}")
-        _require(math.isfinite(self.colour_prior) and self.colour_prior > 0, f"colour_prior must be > 0, got {self.colour_prior}")
-        _require(math.isfinite(self.learned_seconds) and self.learned_seconds > 0, f"learned_seconds must be > 0, got {self.learned_seconds}")
-        _require(1 <= int(self.learned_epochs) <= 100000, f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
-        _require(0 <= int(self.learned_batch) <= 1 << 24, f"learned_batch must be in [0, 16777216], got {self.learned_batch}")
+        _require(math.isfinite(self.colour_prior) and self.colour_prior > 0,
+                 f"colour_prior must be > 0, got {self.colour_prior}")
+        _require(math.isfinite(self.learned_seconds) and self.learned_seconds > 0,
+                 f"learned_seconds must be > 0, got {self.learned_seconds}")
+        _require(1 <= int(self.learned_epochs) <= 100000,
+                 f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
+        _require(0 <= int(self.learned_batch) <= 1 << 24,
+                 f"learned_batch must be in [0, 16777216], got {self.learned_batch}")
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
         _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds > 0,
                  f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
@@ -550,13 +580,19 @@ class MapSettings:
     min_lit_lights: int = 4
 
     def __post_init__(self):
-        _require(math.isfinite(self.lit_percentile) and 0 <= self.lit_percentile <= 100, f"lit_percentile must be in [0, 100], got {self.lit_percentile}")
-        _require(math.isfinite(self.lit_fraction) and 0 <= self.lit_fraction < 1, f"lit_fraction must be in [0, 1), got {self.lit_fraction}")
-        _require(math.isfinite(self.black_level) and self.black_level >= 0, f"black_level must be >= 0, got {self.black_level}")
-        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1, f"outlier_factor must be >= 1, got {self.outlier_factor}")
-        _require(math.isfinite(self.outlier_floor) and self.outlier_floor >= 0, f"outlier_floor must be >= 0, got {self.outlier_floor}")
+        _require(math.isfinite(self.lit_percentile) and 0 <= self.lit_percentile <= 100,
+                 f"lit_percentile must be in [0, 100], got {self.lit_percentile}")
+        _require(math.isfinite(self.lit_fraction) and 0 <= self.lit_fraction < 1,
+                 f"lit_fraction must be in [0, 1), got {self.lit_fraction}")
+        _require(math.isfinite(self.black_level) and self.black_level >= 0,
+                 f"black_level must be >= 0, got {self.black_level}")
+        _require(math.isfinite(self.outlier_factor) and self.outlier_factor >= 1,
+                 f"outlier_factor must be >= 1, got {self.outlier_factor}")
+        _require(math.isfinite(self.outlier_floor) and self.outlier_floor >= 0,
+                 f"outlier_floor must be >= 0, got {self.outlier_floor}")
         _require(1 <= int(self.iterations) <= 100, f"iterations must be in [1, 100], got {self.iterations}")
-        _require(int(self.min_lit_lights) >= 3, f"min_lit_lights must be >= 3 (a normal and an albedo), got {self.min_lit_lights}")
+        _require(int(self.min_lit_lights) >= 3,
+                 f"min_lit_lights must be >= 3 (a normal and an albedo), got {self.min_lit_lights}")
 
 
 @dataclass(frozen=True)
@@ -594,12 +630,14 @@ class FitSettings:
             node = values
             for part in path[:-1]:
                 if not isinstance(node.get(part), dict):
-                    raise InputError(f"override '{text}': no settings group '{part}'; groups: {', '.join(_groups(values))}")
+                    raise InputError(
+                        f"override '{text}': no settings group '{part}'; groups: {', '.join(_groups(values))}")
                 node = node[part]
             name = path[-1]
             if name not in node or isinstance(node[name], dict):
                 settings = [k for k, v in node.items() if not isinstance(v, dict)]
-                choices = f"choose from: {', '.join(settings)}" if settings else f"'{name}' is a group; name a setting in it, e.g. {name}.<setting>"
+                choices = (f"choose from: {', '.join(settings)}" if settings
+                           else f"'{name}' is a group; name a setting in it, e.g. {name}.<setting>")
                 raise InputError(f"override '{text}': no setting '{name}' here; {choices}")
             node[name] = _parse_like(node[name], raw.strip(), text)
         return FitSettings.from_dict(values)
@@ -613,8 +651,10 @@ def _residual_kind_of_booleans(values: dict) -> dict:
     """Residual settings with the older booleans (``_RESIDUAL_BOOLEANS``) replaced by the ``kind`` they chose."""
     if not any(name in values for name in _RESIDUAL_BOOLEANS) or "kind" in values:
         return values
-    compressed, learned, on_cuda = (values.get(name, default) for name, default in zip(_RESIDUAL_BOOLEANS, (True, False, True)))
-    kind = "learned" if learned is True else "images" if compressed is False else "auto" if on_cuda is True else "lowrank"
+    compressed, learned, on_cuda = (values.get(name, default)
+                                    for name, default in zip(_RESIDUAL_BOOLEANS, (True, False, True)))
+    kind = ("learned" if learned is True else "images" if compressed is False else "auto" if on_cuda is True
+            else "lowrank")
     return {"kind": kind, **{name: value for name, value in values.items() if name not in _RESIDUAL_BOOLEANS}}
 
 

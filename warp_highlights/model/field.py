@@ -238,9 +238,11 @@ class HighlightField:
         if self.residual is not None:
             if not isinstance(self.residual, ResidualModel):
                 raise InputError(f"residual must be a ResidualModel or None, got {type(self.residual).__name__}")
-            if (self.residual.height, self.residual.width) != (self.height, self.width) or self.residual.light_count != n:
+            if ((self.residual.height, self.residual.width) != (self.height, self.width)
+                or self.residual.light_count != n):
                 raise InputError(
-                    f"the residual model has {self.residual.light_count} lights of {self.residual.width} x {self.residual.height} "
+                    f"the residual model has {self.residual.light_count} lights of {self.residual.width} x "
+                    f"{self.residual.height} "
                     f"pixels but the field has {n} of {self.width} x {self.height}"
                 )
         if self.moving is not None:
@@ -322,7 +324,8 @@ class HighlightField:
                 f"diffuse: Lambertian, {self.diffuse.channel_count} channel(s){images}"
             )
         if self.moving is not None:
-            lines.append(f"moving Gaussians: {int(self.moving.sum())} of {int(self.estimated.active.sum())} (the rest blend in place)")
+            lines.append(f"moving Gaussians: {int(self.moving.sum())} of {int(self.estimated.active.sum())} (the rest "
+                         f"blend in place)")
         if self.residual is not None:
             lines.append(self.residual.describe())
         if self.file_sizes is not None:

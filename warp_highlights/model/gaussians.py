@@ -245,7 +245,8 @@ class GaussianBatch(_SlotShape):
 
     def clone(self, *, requires_grad: bool | None = None) -> GaussianBatch:
         """A new batch on the same device with the same contents."""
-        copy = GaussianBatch(*self.shape, device=self.device, requires_grad=self.requires_grad if requires_grad is None else requires_grad)
+        copy = GaussianBatch(*self.shape, device=self.device,
+                             requires_grad=self.requires_grad if requires_grad is None else requires_grad)
         copy.copy_from(self)
         return copy
 

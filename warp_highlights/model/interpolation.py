@@ -43,7 +43,8 @@ def move_sets(estimated: GaussianParams, retargeted: GaussianParams, directed_ed
     vertices = np.asarray(vertices, dtype=np.int64)
     weights = np.asarray(barycentric, dtype=np.float64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or weights.shape != vertices.shape:
-        raise InputError(f"vertices and barycentric must both have shape (Q, 3), got {vertices.shape} and {weights.shape}")
+        raise InputError(
+            f"vertices and barycentric must both have shape (Q, 3), got {vertices.shape} and {weights.shape}")
     light_count = len(estimated.active)
     parts = []
     for k in range(3):
@@ -88,8 +89,10 @@ def _moved_vertex_set(source: GaussianParams, retargeted: GaussianParams, path_d
     to_b = to_c = retargeted
     active = source.active[a]
     # only a^2 is drawn and fitting may flip a's sign: blend |a| (like |sigma|)
-    amplitude = la[:, None] * np.abs(source.amplitude[a]) + lb[:, None] * np.abs(to_b.amplitude[ab]) + lc[:, None] * np.abs(to_c.amplitude[ac])
-    sigma = la[:, None, None] * np.abs(source.sigma[a]) + lb[:, None, None] * np.abs(to_b.sigma[ab]) + lc[:, None, None] * np.abs(to_c.sigma[ac])
+    amplitude = (la[:, None] * np.abs(source.amplitude[a]) + lb[:, None] * np.abs(to_b.amplitude[ab])
+                 + lc[:, None] * np.abs(to_c.amplitude[ac]))
+    sigma = (la[:, None, None] * np.abs(source.sigma[a]) + lb[:, None, None] * np.abs(to_b.sigma[ab])
+             + lc[:, None, None] * np.abs(to_c.sigma[ac]))
     delta_b = path_delta[ab].astype(np.float64)
     delta_c = path_delta[ac].astype(np.float64)
     theta = source.theta[a] + lb[:, None] * delta_b + lc[:, None] * delta_c

@@ -101,7 +101,8 @@ class PeakMemory:
             import warp as wp
 
             device = wp.get_device(device)  # None: Warp's default device
-            self._device = device if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled else None
+            self._device = (device if device.is_cuda and device.is_mempool_supported and device.is_mempool_enabled
+                            else None)
         self.host: int | None = None
         self.device: int | None = None
         self._stop = threading.Event()

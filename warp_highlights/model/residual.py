@@ -1,6 +1,6 @@
 """The residual of a fitted field: what each captured image holds beyond its own moving highlights.
 
-Relighting by residual transfer (method.md section 6) composes ``I'(w) = R~(w) + c(x) S'(w)``, where
+Relighting by residual transfer (``docs/method.md``, "The residual") composes ``I'(w) = R~(w) + c(x) S'(w)``, where
 ``R_i = I_i - c(x) R(x; G_i)`` is light i's captured image minus its own fitted highlights,
 ``R~`` interpolates those residuals over the triangulation with the query's barycentric weights, and
 ``c(x)`` is the per-pixel highlight colour. A :class:`ResidualModel` stores the residuals as one of
@@ -34,7 +34,8 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE", "NEURAL_LAYER_SHAPES",
+__all__ = ["COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
+           "NEURAL_LAYER_SHAPES",
            "NeuralResidual", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
@@ -132,11 +133,14 @@ class LowRankStack:
         ranges = finite_array(self.ranges, np.float32, "residual basis ranges")
         weights = finite_array(self.weights, np.float32, "residual weights")
         if mean.ndim != 3 or codes.ndim != 4 or codes.shape[1:] != mean.shape:
-            raise InputError(f"residual basis {codes.shape} does not match its mean image {mean.shape}: expected (k, H, W, P)")
+            raise InputError(
+                f"residual basis {codes.shape} does not match its mean image {mean.shape}: expected (k, H, W, P)")
         k = len(codes)
         if ranges.shape != (k, 2) or weights.ndim != 2 or weights.shape[1] != k:
-            raise InputError(f"residual ranges {ranges.shape} and weights {weights.shape} must be ({k}, 2) and (n, {k})")
-        mean_weights = np.ones(len(weights), np.float32) if self.mean_weights is None else finite_array(self.mean_weights, np.float32, "residual mean weights")
+            raise InputError(
+                f"residual ranges {ranges.shape} and weights {weights.shape} must be ({k}, 2) and (n, {k})")
+        mean_weights = (np.ones(len(weights), np.float32) if self.mean_weights is None
+                        else finite_array(self.mean_weights, np.float32, "residual mean weights"))
         if mean_weights.shape != (len(weights),):
             raise InputError(f"residual mean weights must have shape ({len(weights)},), got {mean_weights.shape}")
         object.__setattr__(self, "mean", mean)
@@ -212,13 +216,16 @@ class NeuralResidual:
         if codes.ndim != 3 or codes.shape[2] != NEURAL_CODE_SIZE:
             raise InputError(f"learned residual codes must have shape (H, W, {NEURAL_CODE_SIZE}), got {codes.shape}")
         if len(self.weights) != len(NEURAL_LAYER_SHAPES):
-            raise InputError(f"a learned residual has {len(NEURAL_LAYER_SHAPES)} weight arrays, got {len(self.weights)}")
+            raise InputError(
+                f"a learned residual has {len(NEURAL_LAYER_SHAPES)} weight arrays, got {len(self.weights)}")
         weights = tuple(finite_array(w, np.float32, "learned residual weights") for w in self.weights)
         for w, shape in zip(weights, NEURAL_LAYER_SHAPES):
             if w.shape != shape:
-                raise InputError(f"learned residual weights must have shapes {list(NEURAL_LAYER_SHAPES)}, got {[x.shape for x in weights]}")
+                raise InputError(f"learned residual weights must have shapes {list(NEURAL_LAYER_SHAPES)}, got "
+                                 f"{[x.shape for x in weights]}")
         if not (np.isfinite(self.unit) and self.unit > 0) or int(self.light_count) < 1:
-            raise InputError(f"a learned residual needs a unit > 0 and at least one light, got {self.unit} and {self.light_count}")
+            raise InputError(
+                f"a learned residual needs a unit > 0 and at least one light, got {self.unit} and {self.light_count}")
         object.__setattr__(self, "codes", codes)
         object.__setattr__(self, "weights", weights)
         object.__setattr__(self, "unit", float(self.unit))
@@ -249,7 +256,8 @@ class ResidualModel:
 
     def __post_init__(self):
         if sum(part is not None for part in (self.images, self.luminance, self.learned)) != 1:
-            raise InputError("a residual model holds exactly one of: the residual images, a low-rank luminance stack, a learned residual")
+            raise InputError("a residual model holds exactly one of: the residual images, a low-rank luminance stack, "
+                             "a learned residual")
         if self.learned is not None and (self.chroma is not None or self.scale is not None):
             raise InputError("a learned residual takes no chroma stack and no scale")
         if self.images is not None:
@@ -265,16 +273,19 @@ class ResidualModel:
                 raise InputError(f"the residual luminance stack must have 1 plane, got {lum.mean.shape[2]}")
             if self.chroma is not None:
                 if self.chroma.mean.shape != lum.mean.shape[:2] + (2,) or len(self.chroma.weights) != len(lum.weights):
-                    raise InputError("the residual chroma stack must have 2 planes of the luminance's size and the same light count")
+                    raise InputError(
+                        "the residual chroma stack must have 2 planes of the luminance's size and the same light count")
         if self.scale is not None:
             scale = finite_array(self.scale, np.float32, "residual scale")
             if self.images is not None or scale.shape != (self.height, self.width) or np.any(scale <= 0):
-                raise InputError(f"a residual scale goes with low-rank stacks and must be ({self.height}, {self.width}) values > 0, got {scale.shape}")
+                raise InputError(f"a residual scale goes with low-rank stacks and must be ({self.height}, "
+                                 f"{self.width}) values > 0, got {scale.shape}")
             object.__setattr__(self, "scale", scale)
         if self.highlight_colour is not None:
             colour = finite_array(self.highlight_colour, np.float32, "highlight colour")
             if colour.shape != (self.height, self.width, self.channels) or np.any(colour < 0):
-                raise InputError(f"highlight colour must be ({self.height}, {self.width}, {self.channels}) values >= 0, got {colour.shape}")
+                raise InputError(f"highlight colour must be ({self.height}, {self.width}, {self.channels}) values >= "
+                                 f"0, got {colour.shape}")
             object.__setattr__(self, "highlight_colour", colour)
 
     @property

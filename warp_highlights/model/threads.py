@@ -9,7 +9,8 @@ from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "cancel_and_wait", "child_initializer", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "cancel_and_wait", "child_initializer", "core_count",
+           "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
 
 
 def core_count() -> int:
@@ -120,7 +121,8 @@ def all_finite(array) -> bool:
     if array.ndim == 0 or len(array) < 2 or NUMPY_THREADS == 1:
         return bool(np.isfinite(array).all())
     step = -(-len(array) // (4 * NUMPY_THREADS))
-    return all(parallel_map(lambda start: bool(np.isfinite(array[start : start + step]).all()), range(0, len(array), step)))
+    return all(parallel_map(lambda start: bool(np.isfinite(array[start : start + step]).all()),
+                            range(0, len(array), step)))
 
 
 PREFAULT_BYTES = 1 << 26

@@ -17,7 +17,8 @@ from .._api import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     dict.fromkeys(
-        ["psnr", "psnr_of_mse", "psnr_excluding_black", "psnr_8bit", "srgb_psnr", "ssim_8bit", "srgb_scores", "scoring_processes"],
+        ["psnr", "psnr_of_mse", "psnr_excluding_black", "psnr_8bit", "srgb_psnr", "ssim_8bit", "srgb_scores",
+         "scoring_processes"],
         "metrics",
     ),
 )

@@ -27,7 +27,8 @@ import numpy as np
 from ..io.images import display_rgb8
 from ..model.threads import core_count, parallel_map
 
-__all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "psnr_of_mse", "scoring_processes", "srgb_psnr", "srgb_scores", "ssim_8bit"]
+__all__ = ["psnr", "psnr_8bit", "psnr_excluding_black", "psnr_of_mse", "scoring_processes", "srgb_psnr", "srgb_scores",
+           "ssim_8bit"]
 
 
 def psnr(image, reference, *, cap: float = 100.0) -> np.ndarray:
@@ -58,7 +59,8 @@ def psnr_excluding_black(images: np.ndarray, truth: np.ndarray, *, cap: float = 
         b = np.clip(truth[q].astype(np.float64).reshape(-1), 0.0, 1.0)
         return float(((a - b) ** 2).mean()), bool(a.max() <= 0.0 and b.max() <= 0.0)
 
-    mse, black = (np.array(values) for values in zip(*parallel_map(one, range(len(images))))) if len(images) else (np.zeros(0), np.zeros(0, bool))
+    mse, black = ((np.array(values) for values in zip(*parallel_map(one, range(len(images))))) if len(images)
+                  else (np.zeros(0), np.zeros(0, bool)))
     with np.errstate(divide="ignore"):
         value = np.minimum(10.0 * np.log10(1.0 / mse), cap)
     return np.where(black, np.nan, value)
@@ -89,7 +91,8 @@ def ssim_8bit(a: np.ndarray, b: np.ndarray) -> float:
 
     small = min(a.shape[0], a.shape[1])
     window = min(7, small if small % 2 else small - 1) if small >= 3 else None  # odd, as SSIM needs
-    return 1.0 if window is None else float(structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window))
+    return (1.0 if window is None
+            else float(structural_similarity(b, a, channel_axis=-1, data_range=255, win_size=window)))
 
 
 def srgb_scores(images: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

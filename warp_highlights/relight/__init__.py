@@ -30,10 +30,12 @@ from .._api import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
-        **dict.fromkeys(["Relighter", "RelitImages", "relight_field", "RELIGHT_METHODS", "DIFFUSE_MODES", "alpha_inputs"], "relighter"),
+        **dict.fromkeys(["Relighter", "RelitImages", "relight_field", "RELIGHT_METHODS", "DIFFUSE_MODES",
+                         "alpha_inputs"], "relighter"),
         **dict.fromkeys(["interpolate_sets", "INTERPOLATION_METHODS"], "interpolation"),
         **dict.fromkeys(["evaluate_field", "Evaluation", "psnr_excluding_black", "srgb_scores"], "evaluation"),
-        **dict.fromkeys(["fit_baseline", "BaselineModel", "BASELINE_METHODS", "baseline_basis", "choose_rbf_sigma"], "baselines"),
+        **dict.fromkeys(["fit_baseline", "BaselineModel", "BASELINE_METHODS", "baseline_basis", "choose_rbf_sigma"],
+                        "baselines"),
         **dict.fromkeys(["surface_maps", "SurfaceMaps"], "maps"),
     },
 )

@@ -97,7 +97,8 @@ def hsh_basis(directions, order: int) -> np.ndarray:
     s = np.sqrt(np.maximum(t - t * t, 0.0))
     terms = [np.full_like(t, 1.0 / np.sqrt(2.0 * np.pi))]
     if order >= 2:
-        terms += [np.sqrt(6.0 / np.pi) * s * np.cos(phi), np.sqrt(1.5 / np.pi) * (2.0 * t - 1.0), np.sqrt(6.0 / np.pi) * s * np.sin(phi)]
+        terms += [np.sqrt(6.0 / np.pi) * s * np.cos(phi), np.sqrt(1.5 / np.pi) * (2.0 * t - 1.0),
+                  np.sqrt(6.0 / np.pi) * s * np.sin(phi)]
     if order >= 3:
         c = np.sqrt(30.0 / np.pi)
         terms += [
@@ -116,7 +117,8 @@ def baseline_basis(method: str, directions) -> np.ndarray:
         return ptm_basis(directions)
     if method in ("hsh2", "hsh3"):
         return hsh_basis(directions, int(method[-1]))
-    raise InputError(f"baseline_basis takes ptm, hsh2 or hsh3, got '{method}' (rbf depends on its lights: use BaselineModel.basis)")
+    raise InputError(
+        f"baseline_basis takes ptm, hsh2 or hsh3, got '{method}' (rbf depends on its lights: use BaselineModel.basis)")
 
 
 def rbf_kernel(directions, centres, sigma: float) -> np.ndarray:
@@ -138,7 +140,8 @@ def rbf_loo_errors(matrix: np.ndarray, values: np.ndarray) -> np.ndarray:
     return (inverse @ np.asarray(values, dtype=np.float64)) / np.diag(inverse)[:, None]
 
 
-def choose_rbf_sigma(images, directions, *, regularisation: float = RBF_REGULARISATION, candidates=None, pixels: int = RBF_LOO_PIXELS, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray]:
+def choose_rbf_sigma(images, directions, *, regularisation: float = RBF_REGULARISATION, candidates=None,
+                     pixels: int = RBF_LOO_PIXELS, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray]:
     """The RBF sigma with the least mean squared leave-one-out error over a subsample of pixels.
 
     Args:
@@ -166,14 +169,16 @@ def choose_rbf_sigma(images, directions, *, regularisation: float = RBF_REGULARI
         np.fill_diagonal(chord, np.inf)
         spacing = float(np.median(chord.min(axis=1)))
         if not spacing > 0.0:
-            raise InputError("most lights coincide with another; the rbf sigma cannot be chosen from their spacing; pass sigma")
+            raise InputError(
+                "most lights coincide with another; the rbf sigma cannot be chosen from their spacing; pass sigma")
         candidates = RBF_SIGMA_FACTORS * spacing
     candidates = np.asarray(candidates, dtype=np.float64).reshape(-1)
     if candidates.size == 0 or not np.all(np.isfinite(candidates) & (candidates > 0)):
         raise InputError("rbf sigma candidates must be positive finite numbers")
     flat = images.reshape(n, -1, images.shape[3])
     count = flat.shape[1]
-    chosen = np.sort(np.random.default_rng(seed).choice(count, size=pixels, replace=False)) if count > pixels else slice(None)
+    chosen = (np.sort(np.random.default_rng(seed).choice(count, size=pixels, replace=False)) if count > pixels
+              else slice(None))
     values = flat[:, chosen].reshape(n, -1).astype(np.float64)
     errors = np.empty(len(candidates))
     for k, sigma in enumerate(candidates):
@@ -198,7 +203,8 @@ class BaselineModel:
         max_batch: queries per relight launch (default: about 256 MB of output per launch).
     """
 
-    def __init__(self, method: str, planes: wp.array2d, lights: np.ndarray, shape: tuple[int, int, int], *, sigma=None, regularisation=None, loo=None):
+    def __init__(self, method: str, planes: wp.array2d, lights: np.ndarray, shape: tuple[int, int, int], *, sigma=None,
+                 regularisation=None, loo=None):
         self.method = method
         self.sigma = sigma
         self.regularisation = regularisation
@@ -245,7 +251,8 @@ class BaselineModel:
         return images[0] if single else images
 
 
-def fit_baseline(method: str, images, directions, *, device=None, sigma: float | None = None, regularisation: float | None = None) -> BaselineModel:
+def fit_baseline(method: str, images, directions, *, device=None, sigma: float | None = None,
+                 regularisation: float | None = None) -> BaselineModel:
     """Fit an RTI baseline to images of one object under n light directions.
 
     Args:
@@ -277,12 +284,14 @@ def fit_baseline(method: str, images, directions, *, device=None, sigma: float |
             loo = (candidates, errors)
         elif not (_is_number(sigma) and sigma > 0):
             raise InputError(f"rbf sigma must be a positive number (chord units), got {sigma}")
-        return BaselineModel(method, stack, lights, (height, width, channels), sigma=float(sigma), regularisation=float(regularisation), loo=loo)
+        return BaselineModel(method, stack, lights, (height, width, channels), sigma=float(sigma),
+                             regularisation=float(regularisation), loo=loo)
     if sigma is not None or regularisation is not None:
         raise InputError(f"sigma and regularisation apply only to the rbf method, not {method}; leave them out")
     count = _COEFFICIENTS[method]
     if n < count:
-        raise InputError(f"{method} has {count} coefficients but only {n} lights were given; use at least {count} lights or a method with fewer coefficients")
+        raise InputError(f"{method} has {count} coefficients but only {n} lights were given; use at least {count} "
+                         f"lights or a method with fewer coefficients")
     pseudo_inverse = np.linalg.pinv(baseline_basis(method, lights), rcond=PINV_RCOND)
     matrix = wp.array(pseudo_inverse.astype(np.float32), dtype=float, device=device)
     planes = kernels.project(matrix, stack)
@@ -299,7 +308,8 @@ def minimum_lights(method: str) -> int:
 
 def _is_number(value) -> bool:
     """A finite real number (not a bool)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool) and bool(np.isfinite(value))
+    return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+            and bool(np.isfinite(value)))
 
 
 def _rbf_system(lights: np.ndarray, sigma: float, regularisation: float) -> np.ndarray:
@@ -317,16 +327,19 @@ def _checked_inputs(images, directions) -> tuple[np.ndarray, np.ndarray]:
     if images.ndim == 3:
         images = images[..., None]
     if images.ndim != 4 or min(images.shape) < 1:
-        raise InputError(f"images must have shape (n, H, W) or (n, H, W, C) with every size >= 1, got {np.shape(images)}")
+        raise InputError(
+            f"images must have shape (n, H, W) or (n, H, W, C) with every size >= 1, got {np.shape(images)}")
     bad = np.flatnonzero(~np.isfinite(images).reshape(len(images), -1).all(axis=1))
     if bad.size:
-        raise InputError(f"image {bad[0]} has non-finite values (NaN, inf, or beyond float32); replace them before fitting")
+        raise InputError(
+            f"image {bad[0]} has non-finite values (NaN, inf, or beyond float32); replace them before fitting")
     try:
         lights = np.array(directions, dtype=np.float64, ndmin=2)
     except (TypeError, ValueError):
         raise InputError("light directions must be numbers of shape (n, 3)") from None
     if lights.shape != (len(images), 3):
-        raise InputError(f"light directions must have shape (n, 3) with n = {len(images)} images, got {np.shape(directions)}")
+        raise InputError(
+            f"light directions must have shape (n, 3) with n = {len(images)} images, got {np.shape(directions)}")
     scale = np.abs(lights).max(axis=1)  # divide by the largest component first: no overflow or underflow
     bad = np.flatnonzero(~(np.isfinite(scale) & (scale > 0.0)))
     if bad.size:

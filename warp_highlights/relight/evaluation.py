@@ -84,7 +84,8 @@ class Evaluation:
     def summary(self) -> dict:
         """Per kind (specular, full) and method: mean, p5, p95, ... of the PSNR; and win shares."""
         result = {}
-        kinds = (("specular", self.specular_psnr), ("full", self.full_psnr), ("full_srgb", self.full_srgb_psnr), ("full_ssim", self.full_ssim))
+        kinds = (("specular", self.specular_psnr), ("full", self.full_psnr), ("full_srgb", self.full_srgb_psnr),
+                 ("full_ssim", self.full_ssim))
         for kind, scores in kinds:
             if not scores:
                 continue
@@ -219,7 +220,8 @@ def evaluate_field(
     if "alpha" in methods:
         say("segmenting the dataset for the alpha blend")
         alpha_specular, alpha_images = alpha_stacks or alpha_inputs(f, dataset, device=device)
-    relighter = Relighter(f, device=device, scale=1.0 / exposure, alpha_specular=alpha_specular, alpha_images=alpha_images)
+    relighter = Relighter(f, device=device, scale=1.0 / exposure, alpha_specular=alpha_specular,
+                          alpha_images=alpha_images)
     seconds["set_up"] = time.perf_counter() - started
 
     directions = heldout.lights.directions
@@ -230,7 +232,8 @@ def evaluate_field(
     if truth_full.ndim == 3:
         truth_full = truth_full[..., None]
     compare_full = (f.diffuse is not None or f.residual is not None) and truth_full.shape[-1] == relighter.channels
-    examples_at = np.unique(np.linspace(0, len(directions) - 1, min(example_count, len(directions))).round().astype(int))
+    examples_at = np.unique(np.linspace(0, len(directions) - 1,
+                                        min(example_count, len(directions))).round().astype(int))
 
     result = Evaluation(directions=directions, faces=np.zeros(0, int), barycentric=np.zeros((0, 3)))
     for method in methods:
@@ -278,7 +281,8 @@ def evaluate_field(
 
     if barycentric_face is not None:
         t = time.perf_counter()
-        result.barycentric_sweep = _barycentric_sweep(relighter, dataset, result, methods, barycentric_face, barycentric_steps, exposure, device, say)
+        result.barycentric_sweep = _barycentric_sweep(relighter, dataset, result, methods, barycentric_face,
+                                                      barycentric_steps, exposure, device, say)
         seconds["barycentric_sweep"] = time.perf_counter() - t
     seconds["total"] = time.perf_counter() - started
     result.seconds = seconds
@@ -294,12 +298,14 @@ def evaluate_field(
         "baselines_left_out": left_out,
         "rbf_sigma": float(models["rbf"].sigma) if "rbf" in models else None,
         "baseline_bytes_per_pixel": {name: int(model.bytes_per_pixel_8bit) for name, model in models.items()},
-        "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full", result.full_psnr)) if scores],
+        "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full",
+                                                                                    result.full_psnr)) if scores],
     }
     return result
 
 
-def _score_baselines(result: Evaluation, baselines, dataset, truth_full, width: int, height: int, device, say, seconds) -> dict:
+def _score_baselines(result: Evaluation, baselines, dataset, truth_full, width: int, height: int, device, say,
+                     seconds) -> dict:
     """Fit each classic RTI method to the dataset's lights and score it like the field's methods."""
     images = resize_stack(dataset.images, width, height)
     if images.ndim == 3:
@@ -340,13 +346,15 @@ def _keep_worst_examples(result: Evaluation, relighter, models: dict, truth_full
 def _check_finite(chunk, method: str) -> None:
     for name, images in (("specular", chunk.specular), ("full", chunk.full)):
         if images is not None and not np.all(np.isfinite(images)):
-            raise InputError(f"the {method} method gave non-finite {name} images; the field file may be damaged (refit it)")
+            raise InputError(
+                f"the {method} method gave non-finite {name} images; the field file may be damaged (refit it)")
 
 
 def luminance(stack: np.ndarray) -> np.ndarray:
     """(..., H, W, 3) -> (..., H, W) Rec. 709 luminance; single-channel stacks pass through."""
     stack = np.asarray(stack, dtype=np.float32)
-    return (stack @ np.asarray(LUMINANCE_WEIGHTS, dtype=np.float32)) if stack.shape[-1] == 3 and stack.ndim == 4 else stack
+    return ((stack @ np.asarray(LUMINANCE_WEIGHTS, dtype=np.float32)) if stack.shape[-1] == 3 and stack.ndim == 4
+            else stack)
 
 
 def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposure, device, say) -> dict:
@@ -365,10 +373,12 @@ def _barycentric_sweep(relighter, dataset, result, methods, face, steps, exposur
         face = int(result.faces[median])
     face = int(face)
     if not 0 <= face < f.triangulation.face_count:
-        raise InputError(f"triangle {face} does not exist: the triangulation has {f.triangulation.face_count} faces (0..{f.triangulation.face_count - 1})")
+        raise InputError(f"triangle {face} does not exist: the triangulation has {f.triangulation.face_count} faces "
+                         f"(0..{f.triangulation.face_count - 1})")
     renderer = renderer_from_meta(dataset.meta or {}, device=str(device))
     if renderer is None:
-        return {"skipped": "ground truth inside a triangle needs a synthetic dataset of a built-in shape (its meta.json)"}
+        return {
+            "skipped": "ground truth inside a triangle needs a synthetic dataset of a built-in shape (its meta.json)"}
     vertices = f.triangulation.faces[face]
     weights = barycentric_grid(steps)
     points = weights @ f.lights.directions[vertices]
@@ -394,4 +404,5 @@ def _count_stats(counts) -> dict | None:
     counts = np.asarray(counts)
     if counts.size == 0:
         return {"mean": 0.0, "min": 0, "max": 0, "total": 0}
-    return {"mean": float(counts.mean()), "median": float(np.median(counts)), "min": int(counts.min()), "max": int(counts.max()), "total": int(counts.sum())}
+    return {"mean": float(counts.mean()), "median": float(np.median(counts)), "min": int(counts.min()),
+            "max": int(counts.max()), "total": int(counts.sum())}

@@ -16,7 +16,8 @@ from ..model.interpolation import INTERPOLATION_METHODS, edge_rows, move_sets
 __all__ = ["INTERPOLATION_METHODS", "edge_rows", "interpolate_sets"]
 
 
-def interpolate_sets(field, vertices: np.ndarray, barycentric: np.ndarray, *, method: str = "circular") -> GaussianParams:
+def interpolate_sets(field, vertices: np.ndarray, barycentric: np.ndarray, *,
+                     method: str = "circular") -> GaussianParams:
     """(Q, 3N) interpolated sets for queries given by their triangle vertices (Q, 3) and weights (Q, 3).
 
     Args:

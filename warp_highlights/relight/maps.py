@@ -71,7 +71,8 @@ class SurfaceMaps:
     coloured_highlights: bool
 
 
-def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSettings | None = None, progress=None) -> SurfaceMaps:
+def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSettings | None = None,
+                 progress=None) -> SurfaceMaps:
     """Normal, albedo and highlight-colour maps of a ``HighlightField`` (see the module docstring).
 
     ``settings``: which lights light a pixel (``MapSettings``, default its defaults).
@@ -83,13 +84,16 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
         InputError: the field holds no diffuse part (fitted with neither a residual nor a diffuse model).
     """
     if field.residual is None and field.diffuse is None:
-        raise InputError("the field holds only highlights (no residual or diffuse model), so it has no normals or albedo; "
+        raise InputError("the field holds only highlights (no residual or diffuse model), so it has no "
+                         "normals or albedo; "
                          "fit it again without --residual none")
     settings = settings or MapSettings()
     channels = field.residual.channels if field.residual is not None else field.diffuse.channel_count
     pixels = field.width * field.height
-    check_memory(field.light_count * pixels * (4 * channels + 9), f"surface maps of {field.light_count} lights at {field.width}x{field.height}",
-                 "fit the field at a smaller --size", detail="the captured images as float32, their luminance as float64")
+    check_memory(field.light_count * pixels * (4 * channels + 9),
+                 f"surface maps of {field.light_count} lights at {field.width}x{field.height}",
+                 "fit the field at a smaller --size",
+                 detail="the captured images as float32, their luminance as float64")
     relighter = Relighter(field, device=device, scale=1.0)  # field units; the albedo leaves them below
     directions = field.lights.directions
     # (n, H, W, C): the captured images, as the field keeps them
@@ -106,7 +110,8 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
     normals = fit.normals.reshape(field.height, field.width, 3)
     if flatten:
         normals = flatten_normals(normals, mask)
-    albedo = channel_albedo(captured.reshape(len(directions), -1, channels), directions, normals.reshape(-1, 3), fit.inliers)
+    albedo = channel_albedo(captured.reshape(len(directions), -1, channels), directions, normals.reshape(-1, 3),
+                            fit.inliers)
     del captured
     albedo = np.where(mask[..., None], albedo.reshape(field.height, field.width, channels), 0.0) / field.exposure
     colour = None if field.residual is None else field.residual.highlight_colour
@@ -175,7 +180,8 @@ def fit_normals(luminance: np.ndarray, directions: np.ndarray, *, settings: MapS
     return NormalFit(normals=normals, mask=mask, inliers=inliers)
 
 
-def _fit_block(values: np.ndarray, directions: np.ndarray, settings: MapSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fit_block(values: np.ndarray, directions: np.ndarray,
+               settings: MapSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     typical = np.percentile(values, settings.lit_percentile, axis=0)
     black = typical < max(settings.black_level, _MIN_NBAR)
     lit = values >= settings.lit_fraction * typical[None, :]
@@ -230,5 +236,6 @@ def channel_albedo(images: np.ndarray, directions: np.ndarray, normals: np.ndarr
         shading = np.maximum(directions @ np.asarray(normals[block], dtype=np.float64).T, 0.0) * inliers[:, block]
         energy = np.sum(shading**2, axis=0)
         sums = np.einsum("np,npc->pc", shading, np.asarray(images[:, block], dtype=np.float64))
-        albedo[block] = np.where(energy[:, None] > 0, np.maximum(sums, 0.0) / np.where(energy > 0, energy, 1.0)[:, None], 0.0)
+        albedo[block] = np.where(energy[:, None] > 0,
+                                 np.maximum(sums, 0.0) / np.where(energy > 0, energy, 1.0)[:, None], 0.0)
     return albedo

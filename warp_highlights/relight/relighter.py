@@ -175,11 +175,13 @@ class Relighter:
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
-        if self.diffuse == kernels.DIFFUSE_LOWRANK and decode_on_load(field.residual, self.width * self.height, residual_decode, self.device):
+        if (self.diffuse == kernels.DIFFUSE_LOWRANK
+            and decode_on_load(field.residual, self.width * self.height, residual_decode, self.device)):
             self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
-            raise InputError(f"specular colour must be 1 or 3 finite numbers >= 0, got {np.asarray(specular_colour).tolist()}")
+            raise InputError(
+                f"specular colour must be 1 or 3 finite numbers >= 0, got {np.asarray(specular_colour).tolist()}")
         colour = np.broadcast_to(colour, (3,))
         self.specular_colour = wp.vec3(*colour.astype(np.float32))
         if not (np.isfinite(scale) and scale > 0):
@@ -191,10 +193,12 @@ class Relighter:
         self._alpha_images = self._upload_stack(alpha_images, "alpha images", channels=True)
         if self._alpha_images is not None and self._alpha_images.shape[2] != self.channels:
             if field.diffuse is not None or field.residual is not None:
-                raise InputError(f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
+                raise InputError(
+                    f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
             self.channels = self._alpha_images.shape[2]
             self._upload_colour()
-        pixel_bytes = 4 * self.height * self.width * (1 + self.channels) + (2 * 3 * self.height * self.width if self._learned is not None else 0)
+        pixel_bytes = (4 * self.height * self.width * (1 + self.channels)
+                       + (2 * 3 * self.height * self.width if self._learned is not None else 0))
         default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
@@ -205,7 +209,8 @@ class Relighter:
         if self.graphs and not self.device.is_cuda:
             raise InputError("CUDA graphs need a CUDA device; relight on the CPU with graphs=False")
         if self.graphs and self._learned is not None:
-            raise InputError("a learned residual's decoder grows its buffers with the batch: relight it with graphs=False")
+            raise InputError(
+                "a learned residual's decoder grows its buffers with the batch: relight it with graphs=False")
         self._graphs: dict[tuple[str, bool], _SingleQuery] = {}
 
     # --- set-up ------------------------------------------------------------------------------------
@@ -219,7 +224,8 @@ class Relighter:
         self._path_delta = wp.array(field.path_delta.astype(np.float32), dtype=float, device=device)
         tri = field.triangulation
         self._face_vertices = wp.array(tri.faces.astype(np.int32), dtype=wp.int32, device=device)
-        self._face_edges = wp.array(face_edge_rows(tri.faces, field.directed_edges, field.light_count), dtype=wp.int32, device=device)
+        self._face_edges = wp.array(face_edge_rows(tri.faces, field.directed_edges, field.light_count), dtype=wp.int32,
+                                    device=device)
         tables = tri._locate_tables
         vec3d = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.vec3d, device=device)
         self._edge_normals = vec3d(tables.edge_normals.transpose(1, 0, 2))
@@ -245,7 +251,8 @@ class Relighter:
         self._learned = None
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
-            codes = resample_image(learned.codes.astype(np.float32), self.width, self.height).reshape(-1, learned.codes.shape[2])
+            codes = resample_image(learned.codes.astype(np.float32), self.width,
+                                   self.height).reshape(-1, learned.codes.shape[2])
             self._learned = QueryDecoder(codes, learned.weights, learned.unit, device=device)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
@@ -259,15 +266,18 @@ class Relighter:
             if residual.chroma is not None:
                 self._stacks["chroma"] = LowRankArrays.upload(residual.chroma, self.width, self.height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
-        self._diffuse_images = images if isinstance(images, wp.array) else wp.array(images, dtype=wp.float16, device=device)
-        self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float, device=device)
+        self._diffuse_images = (images if isinstance(images, wp.array)
+                                else wp.array(images, dtype=wp.float16, device=device))
+        self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float,
+                                        device=device)
         self._upload_colour()
 
     def _upload_images(self, source) -> wp.array:
         """The per-light images of ``source`` (a residual, decoded here, or a diffuse model's images) at the
         output size on the device, (n, H W, C) float16: a low-rank residual decoded on a CUDA device
         where it can be (``decode_residual``), else made on the host ``_DECODE_BLOCK`` lights at a time."""
-        if source is self.field.residual and self.device.is_cuda and decodes_on_device(source, self.width, self.height, self.device):
+        if (source is self.field.residual and self.device.is_cuda
+            and decodes_on_device(source, self.width, self.height, self.device)):
             return decode_residual(source, self.device)
         if source is self.field.residual:
             blocks, count, channels = decoded_blocks(source, block=_DECODE_BLOCK), source.light_count, source.channels
@@ -278,8 +288,11 @@ class Relighter:
         pixels = self.height * self.width
         out = wp.empty((count, pixels, channels), dtype=wp.float16, device=self.device)
         for start, block in blocks:
-            shrunk = np.stack([resample_image(image, self.width, self.height) for image in block]) if block.shape[1:3] != (self.height, self.width) else block
-            out[start : start + len(block)].assign(np.ascontiguousarray(shrunk, dtype=np.float16).reshape(len(block), pixels, channels))
+            shrunk = (np.stack([resample_image(image, self.width, self.height) for image in block])
+                      if block.shape[1:3] != (self.height, self.width) else block)
+            out[start : start + len(block)].assign(np.ascontiguousarray(shrunk, dtype=np.float16).reshape(len(block),
+                                                                                                          pixels,
+                                                                                                          channels))
         return out
 
     def _upload_colour(self) -> None:
@@ -307,8 +320,10 @@ class Relighter:
             stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
         if channels:
             if np.abs(stack).max() > _FLOAT16_MAX:
-                raise InputError(f"{what} exceed the float16 range ({_FLOAT16_MAX:g}) they are kept in; scale them down")
-            return wp.array(stack.reshape(n, self.height * self.width, -1).astype(np.float16), dtype=wp.float16, device=self.device)
+                raise InputError(
+                    f"{what} exceed the float16 range ({_FLOAT16_MAX:g}) they are kept in; scale them down")
+            return wp.array(stack.reshape(n, self.height * self.width, -1).astype(np.float16), dtype=wp.float16,
+                            device=self.device)
         return wp.array(stack.reshape(n, -1), dtype=float, device=self.device)
 
     def _chunk_buffers(self, count: int) -> _DeviceQueries:
@@ -323,7 +338,8 @@ class Relighter:
 
     # --- the pipeline ------------------------------------------------------------------------------
 
-    def launch(self, directions: np.ndarray, *, method: str = "circular", full: bool = True, render: bool = True) -> _DeviceQueries:
+    def launch(self, directions: np.ndarray, *, method: str = "circular", full: bool = True,
+               render: bool = True) -> _DeviceQueries:
         """Run the kernels for at most ``max_batch`` directions; the results stay on the device.
 
         Returns the chunk's buffers: ``specular`` (Q, H, W) unless not ``render``, ``full``
@@ -333,13 +349,15 @@ class Relighter:
         method = _checked_method(method)
         directions = unit_query_directions(directions)
         if len(directions) > self.max_batch:
-            raise InputError(f"launch takes at most max_batch={self.max_batch} queries, got {len(directions)}; use relight()")
+            raise InputError(
+                f"launch takes at most max_batch={self.max_batch} queries, got {len(directions)}; use relight()")
         buffers = self._chunk_buffers(len(directions))
         buffers.directions.assign(directions)
         buffers.unit.assign(directions.astype(np.float32))
         return self._run(buffers, self.raster, method=method, full=full, render=render)
 
-    def _run(self, buffers: _DeviceQueries, raster: Rasterizer, *, method: str, full: bool, render: bool = True) -> _DeviceQueries:
+    def _run(self, buffers: _DeviceQueries, raster: Rasterizer, *, method: str, full: bool,
+             render: bool = True) -> _DeviceQueries:
         """The kernels of ``launch`` on buffers whose directions are set: device work only (capturable)."""
         self._locate(buffers)
         if method == "alpha":
@@ -348,7 +366,8 @@ class Relighter:
         wp.launch(
             kernels.interpolate_gaussians,
             dim=(buffers.count, 3, self.capacity),
-            inputs=[self._estimated.arrays, self._retargeted.arrays, self._path_delta, self._moving, self._face_vertices, self._face_edges,
+            inputs=[self._estimated.arrays, self._retargeted.arrays, self._path_delta, self._moving,
+                    self._face_vertices, self._face_edges,
                     buffers.faces, buffers.weights, int(method == "circular"), self.straight_below],
             outputs=[buffers.sets.arrays],
             device=self.device,
@@ -360,7 +379,8 @@ class Relighter:
             images = self._diffuse_images
             if self._learned is not None:
                 if buffers.decoded is None:
-                    buffers.decoded = wp.empty((buffers.count, self.height * self.width, 3), dtype=wp.float16, device=self.device)
+                    buffers.decoded = wp.empty((buffers.count, self.height * self.width, 3), dtype=wp.float16,
+                                               device=self.device)
                 # at the direction as located: clamped to a dome's rim
                 self._learned.decode(buffers.located, buffers.decoded)
                 images = buffers.decoded
@@ -373,14 +393,16 @@ class Relighter:
         wp.launch(
             kernels.locate_directions,
             dim=buffers.count,
-            inputs=[buffers.directions, buffers.depths, buffers.best_faces, self._inverses, *self._rims, self._is_dome, _INSIDE_TOLERANCE],
+            inputs=[buffers.directions, buffers.depths, buffers.best_faces, self._inverses, *self._rims, self._is_dome,
+                    _INSIDE_TOLERANCE],
             outputs=[buffers.faces, buffers.weights, buffers.located, buffers.clamped],
             device=self.device,
         )
 
     def _alpha(self, buffers: _DeviceQueries, *, full: bool) -> None:
         if self._alpha_specular is None:
-            raise InputError("the alpha method needs the specular images of the lights (alpha_specular; on the command line, --dataset)")
+            raise InputError("the alpha method needs the specular images of the lights (alpha_specular; on the command "
+                             "line, --dataset)")
         wp.launch(
             kernels.blend_images,
             dim=(buffers.count, self.height * self.width),
@@ -390,28 +412,35 @@ class Relighter:
         )
         if full:
             if self._alpha_images is None:
-                raise InputError("the alpha method's full images need the images of the lights (alpha_images; on the command line, --dataset)")
-            self._compose(buffers, buffers.specular, add_specular=False, mode=kernels.DIFFUSE_BLEND, images=self._alpha_images)
+                raise InputError("the alpha method's full images need the images of the lights (alpha_images; on the "
+                                 "command line, --dataset)")
+            self._compose(buffers, buffers.specular, add_specular=False, mode=kernels.DIFFUSE_BLEND,
+                          images=self._alpha_images)
 
-    def _compose(self, buffers: _DeviceQueries, specular: wp.array, *, add_specular: bool, mode: int, images: wp.array) -> None:
+    def _compose(self, buffers: _DeviceQueries, specular: wp.array, *, add_specular: bool, mode: int,
+                 images: wp.array) -> None:
         pixels = self.height * self.width
         coefficients = []
         for name in ("luminance", "chroma"):
             stack = self._stacks[name]
             out = buffers.coefficients.get(name)
             if out is None or out.shape != (buffers.count, stack.rank + 1):
-                out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank + 1), dtype=float, device=self.device)
+                out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank + 1), dtype=float,
+                                                            device=self.device)
             if mode == kernels.DIFFUSE_LOWRANK and stack.uploaded:
                 wp.launch(kernels.blend_images, dim=(buffers.count, stack.rank + 1),
-                          inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out], device=self.device)
+                          inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out],
+                          device=self.device)
             coefficients.append(out)
         lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
         per_thread = 1 if self.device.is_cuda else self.width  # a CPU thread's start costs about a pixel: one per row
         wp.launch(
             kernels.compose_images,
             dim=(buffers.count, (pixels + per_thread - 1) // per_thread),
-            inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour, int(add_specular), mode, self._lambert, images,
-                    lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1], self._residual_scale,
+            inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour,
+                    int(add_specular), mode, self._lambert, images,
+                    lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis, coefficients[1],
+                    self._residual_scale,
                     self._face_vertices, buffers.faces, buffers.weights, buffers.unit, self.scale, per_thread],
             outputs=[buffers.full],
             device=self.device,
@@ -451,7 +480,8 @@ class Relighter:
                 progress(stop)
         result = RelitImages(specular, images, faces, barycentric, clamped)
         if single:
-            result = RelitImages(specular[0], None if images is None else images[0], faces[0], barycentric[0], clamped[0])
+            result = RelitImages(specular[0], None if images is None else images[0], faces[0], barycentric[0],
+                                 clamped[0])
         return result
 
     def _single_query(self, direction: np.ndarray, method: str, full: bool) -> RelitImages:
@@ -478,12 +508,14 @@ class Relighter:
         queries = unit_query_directions(directions)
         parts = []
         for start in range(0, len(queries), self.max_batch):
-            parts.append(self.launch(queries[start : start + self.max_batch], method=method, full=False, render=False).sets.numpy())
+            parts.append(self.launch(queries[start : start + self.max_batch], method=method, full=False,
+                                     render=False).sets.numpy())
         return GaussianParams.concatenate(parts, axis=0)
 
 
 def relight_field(
-    field, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None, diffuse: str = "auto"
+    field, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None,
+    diffuse: str = "auto"
 ) -> RelitImages:
     """Images of a ``HighlightField`` for light direction(s): S' in the field's units, I' = D' + S'
     in the input's (divided by the fit's ``exposure``), NumPy float32.
@@ -535,10 +567,12 @@ def alpha_inputs(field, dataset, *, device=None) -> tuple[np.ndarray, np.ndarray
 def check_same_lights(field, dataset) -> None:
     """Raise ``InputError`` unless ``dataset`` has the lights ``field`` was fitted to (same order)."""
     if dataset.light_count != field.light_count:
-        raise InputError(f"the field was fitted to {field.light_count} lights but the dataset has {dataset.light_count}; pass the dataset it was fitted to")
+        raise InputError(f"the field was fitted to {field.light_count} lights but the dataset has "
+                         f"{dataset.light_count}; pass the dataset it was fitted to")
     gap = float(np.abs(dataset.lights.directions - field.lights.directions).max())
     if gap > 1e-5:
-        raise InputError(f"the dataset's light directions differ from the field's (by up to {gap:.2g}); pass the dataset it was fitted to")
+        raise InputError(f"the dataset's light directions differ from the field's (by up to {gap:.2g}); pass the "
+                         f"dataset it was fitted to")
 
 
 def face_edge_rows(faces: np.ndarray, directed_edges: np.ndarray, light_count: int) -> np.ndarray:
@@ -569,7 +603,8 @@ class _SingleQuery:
         device = relighter.device
         self.device = device
         self.full = full
-        self.buffers = _DeviceQueries(1, relighter.capacity, relighter.height, relighter.width, relighter.channels, device)
+        self.buffers = _DeviceQueries(1, relighter.capacity, relighter.height, relighter.width, relighter.channels,
+                                      device)
         self.raster = Rasterizer(relighter.height, relighter.width, settings=relighter.raster.settings, device=device)
         b = self.buffers
         self.inputs = [(b.directions, _pinned_like(b.directions)), (b.unit, _pinned_like(b.unit))]
@@ -585,7 +620,8 @@ class _SingleQuery:
     def _capture(self) -> _ResultSlot:
         b = self.buffers
         outputs = {name: (_pinned_like(array), array) for name, array in
-                   (("specular", b.specular), ("faces", b.faces), ("weights", b.weights), ("clamped", b.clamped)) + ((("full", b.full),) if self.full else ())}
+                   (("specular", b.specular), ("faces", b.faces), ("weights", b.weights), ("clamped", b.clamped))
+                   + ((("full", b.full),) if self.full else ())}
         with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
             for target, source in self.inputs:
                 wp.copy(target, source)
@@ -671,7 +707,8 @@ class _ResultSlot:
             self.leases = [weakref.ref(lease) for lease in leases]
             specular = np.asarray(leases[0])
             images = None if images is None else np.asarray(leases[1])
-        return RelitImages(specular, images, host["faces"][0].copy(), host["weights"][0].astype(np.float64), host["clamped"][0] != 0)
+        return RelitImages(specular, images, host["faces"][0].copy(), host["weights"][0].astype(np.float64),
+                           host["clamped"][0] != 0)
 
 
 def _copy_to_host(chunk: _DeviceQueries, specular: np.ndarray, images: np.ndarray | None) -> None:
@@ -719,19 +756,23 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
     """The compose mode for ``diffuse``, and whether its image stack is the residual's."""
     model, residual = field.diffuse, field.residual
     if diffuse == "auto":
-        diffuse = "residual" if residual is not None else "images" if model is not None and model.images is not None else "lambert" if model is not None else "none"
+        diffuse = ("residual" if residual is not None else "images" if model is not None and model.images is not None
+                   else "lambert" if model is not None else "none")
     if diffuse == "none":
         return kernels.DIFFUSE_NONE, False
     if diffuse == "residual":
         if residual is None:
-            raise InputError("diffuse 'residual' needs a field fitted with a residual (fit --residual lowrank or images; fields before version 0.2 have none)")
+            raise InputError("diffuse 'residual' needs a field fitted with a residual (fit --residual lowrank or "
+                             "images; fields before version 0.2 have none)")
         if residual.learned is not None:
             return kernels.DIFFUSE_DECODED, False
         return (kernels.DIFFUSE_LOWRANK, False) if residual.compressed else (kernels.DIFFUSE_BLEND, True)
     if model is None:
-        raise InputError(f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")
+        raise InputError(
+            f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")
     if diffuse == "images" and model.images is None:
-        raise InputError("diffuse 'images' needs a field fitted with --diffuse images (this one stores only the Lambertian model)")
+        raise InputError(
+            "diffuse 'images' needs a field fitted with --diffuse images (this one stores only the Lambertian model)")
     return (kernels.DIFFUSE_LAMBERT if diffuse == "lambert" else kernels.DIFFUSE_BLEND), False
 
 

@@ -46,7 +46,8 @@ __all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "NormalisedResid
 
 LUMINANCE_GAIN = 3.0
 """Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
-CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2 + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
+CHROMA_GAIN = 1.0 + 0.5 * ((LUMINANCE_WEIGHTS[0] / LUMINANCE_WEIGHTS[1]) ** 2
+                           + (LUMINANCE_WEIGHTS[2] / LUMINANCE_WEIGHTS[1]) ** 2)
 """The same for the chroma planes (B - Y, R - Y), averaged: an error in B - Y moves B and, by wb / wg, G."""
 HELD_STACK_SHARE = 0.25
 """The normalised luminance and chroma stacks (float32, as large as the images) are held while they take
@@ -59,7 +60,8 @@ principal images' host copy goes to that mapped file, where the device has no ro
 stay there, and the host keeps no copy)."""
 
 
-def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings, other_bytes: int = 0,
+def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings,
+                   other_bytes: int = 0,
                    device=None, held_images: HeldImages | None = None) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
     On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
@@ -83,7 +85,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     if images.ndim == 3:
         images = images[..., None]
     n, height, width, channels = images.shape
-    tint = np.broadcast_to(np.ones((1, 1, channels), np.float32) if colour is None else colour, (height, width, channels))
+    tint = np.broadcast_to(np.ones((1, 1, channels), np.float32) if colour is None else colour,
+                           (height, width, channels))
     if settings.kind == "images":
         stored = np.empty(images.shape, np.float16)
 
@@ -106,8 +109,10 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
             held_images.images = held_images.own = None
         light_scale = np.sqrt(stacks.squares / (height * width))
         luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
-        chroma = None if stacks.chroma is None else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products)
-        return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes, n * height * width * channels)
+        chroma = (None if stacks.chroma is None
+                  else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products))
+        return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes,
+                           n * height * width * channels)
     # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
     # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
@@ -116,7 +121,8 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
     def normalise(band: slice) -> np.ndarray:  # the bands in threads; returns each light's sum of squares over the band
         residual = residual_of(images[:, band], own[:, band], tint[band])
-        y, opponent = (residual[..., 0].astype(np.float64), None) if channels == 1 else to_opponent(residual, with_chroma=chroma_stack is not None)
+        y, opponent = ((residual[..., 0].astype(np.float64), None) if channels == 1
+                       else to_opponent(residual, with_chroma=chroma_stack is not None))
         scale[band] = residual_scale(y)
         normalised = y / scale[band]
         if luminance_stack is not None:
@@ -130,11 +136,15 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     if held:
         luminance = PrincipalImages.of(luminance_stack, light_scale, products=products)
         chroma = None if chroma_stack is None else PrincipalImages.of(chroma_stack, light_scale, products=products)
-    else:  # read from the images a block at a time (three passes each instead of one), never held whole; the principal
-        # directions, as large, in a file mapped into memory (paged out as memory runs short), or on the device where the
-        # products are summed there and it has room for them (no host copy then)
-        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale, spill=True, products=products)
-        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "chroma"), light_scale, spill=True,
+    else:
+        # read from the images a block at a time (three passes each instead of one), never held whole; the principal
+        # directions, as large, in a file mapped into memory (paged out as memory runs short), or on the device where
+        # the products are summed there and it has room for them (no host copy then)
+        luminance = PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale, "luminance"), light_scale,
+                                              spill=True, products=products)
+        chroma = None if channels == 1 else PrincipalImages.of_source(NormalisedResidual(images, own, tint, scale,
+                                                                                         "chroma"), light_scale,
+                                                                      spill=True,
                                                                       products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
     return _compressed(luminance, chroma, scale, colour, settings, other_bytes, n * height * width * channels)
@@ -146,22 +156,26 @@ def _device_products(device) -> DeviceProducts | None:
     return DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
 
 
-def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray, colour: np.ndarray | None,
+def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray,
+                colour: np.ndarray | None,
                 settings: ResidualSettings, other_bytes: int, capture_values: int) -> ResidualModel:
     """``build_residual``'s model from the stacks' principal images: the bits and steps chosen within the
     size budget (of ``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
     n = luminance.light_count
     budget = settings.size_budget * capture_values
-    stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]  # the other planes the file deflates, in threads (4K: 1.7 s on one)
+    # the other planes the file deflates, in threads (4K: 1.7 s on one)
+    stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]
     stored += [colour_codes(colour)] if colour is not None else []
     stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
-    fixed = other_bytes + FILE_BYTES + (LIGHT_BYTES + 8) * n + sum(parallel_map(entry_bytes, stored)) + (4 * n if chroma is not None else 0)
+    fixed = (other_bytes + FILE_BYTES + (LIGHT_BYTES + 8) * n + sum(parallel_map(entry_bytes, stored))
+             + (4 * n if chroma is not None else 0))
     # both widths when the settings leave it open: 8-bit first, measured on every row only if 16 bits do
     # not beat it (its every image at the finest 8-bit step is plain from the sampled bytes alone, and
     # the whole images' bytes can only make it coarser)
     options = []
     for bits in (8, 16) if settings.basis_bits == 0 else (settings.basis_bits,):
-        options.append(_quantisation(luminance, chroma, settings, bits, budget - fixed, plain_finest=bits == 8 and settings.basis_bits == 0))
+        options.append(_quantisation(luminance, chroma, settings, bits, budget - fixed,
+                                     plain_finest=bits == 8 and settings.basis_bits == 0))
         if bits == 8 and settings.basis_bits == 0 and not options[-1].finer_with_16_bits:
             break  # 16-bit codes would hold the same quantisation in more bytes
     choice = min(options, key=lambda option: option.distortion)  # the first on ties: 8 bits
@@ -170,7 +184,8 @@ def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scal
         choice = min(options, key=lambda option: option.distortion)
     stacks = {name: quantised_stack(principal, choice.steps[name], bits=choice.bits, deflated=choice.deflated.get(name))
               for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
-    return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour, scale=scale)
+    return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour,
+                         scale=scale)
 
 
 @dataclass(frozen=True)
@@ -184,17 +199,20 @@ class _Quantisation:
     distortion: float
     finer_with_16_bits: bool
     checked: bool = True  # False: ``finest_within``'s choice, its bytes not yet measured on every row
-    deflated: dict = dataclasses.field(default_factory=dict)  # by name: the pieces its last measurement on every row deflated
+    # by name: the pieces its last measurement on every row deflated
+    deflated: dict = dataclasses.field(default_factory=dict)
 
 
-def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int, left: float,
+def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int,
+                  left: float,
                   *, plain_finest: bool = False) -> _Quantisation:
     """The steps of both stacks at ``bits`` within ``left`` bytes: a stack whose rank the settings fix,
     each image over its whole range; the others by ``allocate``, or by ``finest_within`` where
     ``plain_finest`` is set, no rank is fixed and the sampled bytes make the choice plain (unchecked)."""
     levels = code_levels(bits)
     steps, plans, distortion, finer, deflated = {}, {}, 0.0, False, {}
-    for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN), ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
+    for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN),
+                                              ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
         if principal is None:
             continue
         if fixed_rank:
@@ -257,9 +275,11 @@ class NormalisedResidual:
             elif self.kind == "luminance":
                 out[lights] = (luminance_of(residual) / self.scale[pixels]).astype(np.float32)
             else:
-                out[lights] = (to_opponent(residual)[1] / self.scale[pixels, None]).astype(np.float32).reshape(len(residual), -1)
+                out[lights] = (to_opponent(residual)[1]
+                               / self.scale[pixels, None]).astype(np.float32).reshape(len(residual), -1)
 
         step = max(1, -(-self.light_count // (2 * NUMPY_THREADS)))
-        parallel_map(part, [slice(start, min(start + step, self.light_count)) for start in range(0, self.light_count, step)])
+        parallel_map(part,
+                     [slice(start, min(start + step, self.light_count)) for start in range(0, self.light_count, step)])
         offset = first * self.planes
         return out[:, columns.start - offset : columns.stop - offset]

@@ -20,7 +20,8 @@ from ..model.residual import (
 from ..model.threads import parallel_map
 from .opponent import decode_display, from_opponent
 
-__all__ = ["band_basis", "decoded_blocks", "decoded_images", "learned_images", "light_images", "stack_basis", "stack_images", "stack_light_images"]
+__all__ = ["band_basis", "decoded_blocks", "decoded_images", "learned_images", "light_images", "stack_basis",
+           "stack_images", "stack_light_images"]
 
 DECODE_BAND_VALUES = 1 << 20
 """Basis values (rows x width x rank) ``decoded_blocks`` dequantises in a thread at a time (4 MB of float32)."""
@@ -44,7 +45,8 @@ def stack_images(stack: LowRankStack, weights: np.ndarray, mean_weights=1.0) -> 
     weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
     flat = weights @ stack_basis(stack).reshape(stack.rank, stack.mean.size).astype(np.float64)
     mean_weights = np.broadcast_to(np.asarray(mean_weights, dtype=np.float64).reshape(-1), (len(weights),))
-    return flat.reshape((len(weights),) + stack.mean.shape) + mean_weights[:, None, None, None] * stack.mean.astype(np.float64)
+    return (flat.reshape((len(weights),) + stack.mean.shape)
+            + mean_weights[:, None, None, None] * stack.mean.astype(np.float64))
 
 
 def stack_light_images(stack: LowRankStack, blend: np.ndarray) -> np.ndarray:
@@ -105,7 +107,8 @@ def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
     """R~ for (Q, n) per-light blend weights: (Q, H, W, C) float64 (the float64 reference)."""
     weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
     if residual.learned is not None:
-        raise InputError("a learned residual is decoded per query direction (learned.images), not blended from light weights")
+        raise InputError(
+            "a learned residual is decoded per query direction (learned.images), not blended from light weights")
     if residual.images is not None:
         return np.einsum("qn,nhwc->qhwc", weights, residual.images.astype(np.float64))
     scale = 1.0 if residual.scale is None else residual.scale.astype(np.float64)

@@ -14,7 +14,8 @@ from ..model.memory import device_free_memory
 from ..model.residual import LowRankStack, ResidualModel, code_levels
 from .decode import stack_basis
 
-__all__ = ["DECODED_RESIDUAL_BYTES", "DECODED_RESIDUAL_SHARE", "RESIDUAL_DECODES", "LowRankArrays", "decode_on_load", "decode_residual", "decodes_on_device"]
+__all__ = ["DECODED_RESIDUAL_BYTES", "DECODED_RESIDUAL_SHARE", "RESIDUAL_DECODES", "LowRankArrays", "decode_on_load",
+           "decode_residual", "decodes_on_device"]
 
 RESIDUAL_DECODES = ("auto", "query", "load")
 """How a ``Relighter`` decodes a low-rank residual (its ``residual_decode`` argument)."""
@@ -56,7 +57,8 @@ class LowRankArrays:
 
     @classmethod
     def empty(cls, device, planes: int) -> LowRankArrays:
-        return cls(wp.zeros((1, planes), dtype=float, device=device), wp.zeros((1, 1, planes), dtype=float, device=device),
+        return cls(wp.zeros((1, planes), dtype=float, device=device),
+                   wp.zeros((1, 1, planes), dtype=float, device=device),
                    wp.zeros((1, 1), dtype=float, device=device), 0, uploaded=False)
 
     @classmethod
@@ -69,15 +71,18 @@ class LowRankArrays:
         weights = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1)
         array = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.float32), dtype=float, device=device)
         if stack.rank and stack.mean.shape[:2] == (height, width):
-            codes = wp.array(stack.codes.reshape(stack.rank, height * width, planes), dtype=wp.uint16 if stack.bits == 16 else wp.uint8, device=device)
+            codes = wp.array(stack.codes.reshape(stack.rank, height * width, planes),
+                             dtype=wp.uint16 if stack.bits == 16 else wp.uint8, device=device)
             low = stack.ranges[:, 0]
             # float32, as decode.stack_basis
             step = (stack.ranges[:, 1] - stack.ranges[:, 0]) / np.float32(code_levels(stack.bits))
             basis = wp.empty((height * width, stack.rank, planes), dtype=float, device=device)
-            wp.launch(kernels.dequantise_basis, dim=(stack.rank, height * width), inputs=[codes, array(low), array(step)], outputs=[basis], device=device)
+            wp.launch(kernels.dequantise_basis, dim=(stack.rank, height * width),
+                      inputs=[codes, array(low), array(step)], outputs=[basis], device=device)
             return cls(array(mean), basis, array(weights), stack.rank)
         if stack.rank:
-            basis = np.stack([resample_image(image, width, height) for image in stack_basis(stack)]).reshape(stack.rank, height * width, planes)
+            basis = np.stack([resample_image(image, width, height)
+                              for image in stack_basis(stack)]).reshape(stack.rank, height * width, planes)
             basis = basis.transpose(1, 0, 2)  # pixel-major: a pixel's k values are contiguous
         else:
             basis = np.zeros((height * width, 1, planes), np.float32)
@@ -90,12 +95,14 @@ def decode_residual(residual: ResidualModel, device) -> wp.array:
     (to float32 rounding). The basis is held on the device meanwhile (``decodes_on_device``)."""
     pixels = residual.height * residual.width
     lum = LowRankArrays.upload(residual.luminance, residual.width, residual.height, device)
-    chroma = LowRankArrays.empty(device, 2) if residual.chroma is None else LowRankArrays.upload(residual.chroma, residual.width, residual.height, device)
+    chroma = (LowRankArrays.empty(device, 2) if residual.chroma is None
+              else LowRankArrays.upload(residual.chroma, residual.width, residual.height, device))
     scale = np.ones(1, np.float32) if residual.scale is None else residual.scale.reshape(-1)
     out = wp.empty((residual.light_count, pixels, residual.channels), dtype=wp.float16, device=device)
     wp.launch(kernels.decode_low_rank, dim=(residual.light_count, pixels),
               inputs=[lum.mean, lum.basis, lum.weights, chroma.mean, chroma.basis, chroma.weights,
-                      wp.array(np.ascontiguousarray(scale, np.float32), dtype=float, device=device)], outputs=[out], device=device)
+                      wp.array(np.ascontiguousarray(scale, np.float32), dtype=float, device=device)], outputs=[out],
+              device=device)
     return out
 
 

@@ -23,7 +23,9 @@ from ..model.residual import (
 )
 from ..model.threads import parallel_map
 
-__all__ = ["BAND_VALUES", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HeldImages", "SCALE_FLOOR", "highlight_colour", "hold_images", "holds_images", "render_own", "render_own_on_device", "residual_of", "residual_scale", "row_bands", "scale_of_mean_square"]
+__all__ = ["BAND_VALUES", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HeldImages", "SCALE_FLOOR", "highlight_colour",
+           "hold_images", "holds_images", "render_own", "render_own_on_device", "residual_of", "residual_scale",
+           "row_bands", "scale_of_mean_square"]
 
 SCALE_FLOOR = 2.0**-10
 """Smallest residual scale s(x), field units (1 = display white): about a quarter of an 8-bit sRGB step
@@ -74,7 +76,8 @@ def hold_images(images: np.ndarray, own: np.ndarray, device, *, images_up: wp.ar
     return HeldImages(images_up.reshape((n, height * width, channels)), own_up.reshape((n, height * width)))
 
 
-def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings, device) -> wp.array:
+def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, raster: RasterSettings,
+                         device) -> wp.array:
     """(n, H, W) float32 on ``device``: R(x; G_i), every light's own Gaussians drawn as the relighter draws them
     (in parts where the lights' pixels pass one launch's 2^31, e.g. 100 lights of 24 megapixels)."""
     rasterizer = Rasterizer(height, width, settings=raster, device=device)
@@ -84,7 +87,8 @@ def render_own_on_device(estimated: GaussianParams, height: int, width: int, *, 
     own = wp.empty((n, height, width), dtype=float, device=device)
     for start in range(0, n, most):
         rows = np.arange(start, min(start + most, n))
-        rasterizer.render(GaussianBatch.from_numpy(estimated.take(rows), device=device, requires_grad=False), out=own[start:rows[-1] + 1])
+        rasterizer.render(GaussianBatch.from_numpy(estimated.take(rows), device=device, requires_grad=False),
+                          out=own[start:rows[-1] + 1])
     return own
 
 
@@ -105,7 +109,8 @@ def highlight_colour(specular: np.ndarray, own: np.ndarray, *, prior: float) -> 
 
     # float64 a band of rows at a time (no float64 copy of the whole stack), the bands in threads
     def sums(band: slice) -> None:
-        numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64), specular[:, band].astype(np.float64))
+        numerator[band] = np.einsum("nhw,nhwc->hwc", own[:, band].astype(np.float64),
+                                    specular[:, band].astype(np.float64))
 
     parallel_map(sums, row_bands(specular))
     denominator = numerator @ np.asarray(LUMINANCE_WEIGHTS)

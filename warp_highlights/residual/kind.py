@@ -32,7 +32,8 @@ def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tup
         from ..kernels.neural import samples_fit
 
         if not samples_fit(light_count, size[0] * size[1]):
-            too_many = f"{light_count} lights of {size[0]}x{size[1]} pass the learned residual's 2^31 samples (lights x pixels)"
+            too_many = (f"{light_count} lights of {size[0]}x{size[1]} pass the learned residual's 2^31 samples "
+                        f"(lights x pixels)")
             if kind == "learned":
                 raise InputError(f"{too_many}; use --residual lowrank, or a smaller --size")
             _LOG.warning("%s: the residual is compressed to low rank instead", too_many)

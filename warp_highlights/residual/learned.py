@@ -28,7 +28,8 @@ _TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning ra
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
 
-def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *, factor: float,
+def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *,
+                   factor: float,
                    settings: ResidualSettings, device, log=None, progress=None, used: np.ndarray | None = None,
                    initial: NeuralResidual | None = None, tune: bool = False) -> tuple[ResidualModel, list[float]]:
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
@@ -51,12 +52,16 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
             log(f"learned residual: {message}")
 
-    rates = {"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune else {"seconds": float(settings.learned_seconds)}
-    start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32), [np.asarray(w, np.float32) for w in initial.weights])
+    rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune
+             else {"seconds": float(settings.learned_seconds)})
+    start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
+                                                       [np.asarray(w, np.float32) for w in initial.weights])
     batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if wp.get_device(device).is_cuda else LEARNED_BATCH_CPU)
-    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), batch=batch, log=say, used=used,
+    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), batch=batch,
+                                   log=say, used=used,
                                    initial=start, **rates)
-    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights), float(factor), n)
+    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights),
+                             float(factor), n)
     return ResidualModel(learned=learned, highlight_colour=colour), history
 
 
@@ -88,8 +93,10 @@ class LearnedCheck:
         }
 
 
-def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, lights: np.ndarray,
-                  highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device, progress=None) -> LearnedCheck:
+def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
+                  lights: np.ndarray,
+                  highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device,
+                  progress=None) -> LearnedCheck:
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
@@ -106,7 +113,8 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     truth = np.asarray(images[lights], np.float32) * scale
     scores, models = [], []
     for own_images, tint, added in ((own, colour, highlights), (np.zeros_like(own), None, np.zeros_like(highlights))):
-        model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device, progress=progress, used=used)
+        model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device,
+                                  progress=progress, used=used)
         # as the relighter clamps
         predicted = np.maximum(learned_images(model.learned, directions[lights]) + added, 0.0)
         scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))

@@ -14,7 +14,8 @@ import numpy as np
 from ..model.errors import InputError
 from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
 
-__all__ = ["ArraySource", "HeldDirections", "PrincipalImages", "StackProducts", "StackSource", "column_slices", "spilled_empty", "uploaded_block"]
+__all__ = ["ArraySource", "HeldDirections", "PrincipalImages", "StackProducts", "StackSource", "column_slices",
+           "spilled_empty", "uploaded_block"]
 
 
 class StackSource(Protocol):
@@ -43,7 +44,8 @@ class StackProducts(Protocol):
 
     def cross_sum(self, rows: int, columns: int): ...
 
-    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep=None, columns: slice | None = None,
+    def project(self, matrix: np.ndarray, block: np.ndarray, out: np.ndarray | None = None, *, keep=None,
+                columns: slice | None = None,
                 host: bool = True) -> np.ndarray | None: ...
 
     def held_directions(self, count: int, shape: tuple) -> HeldDirections | None:
@@ -70,7 +72,8 @@ class HeldDirections(Protocol):
     def stored(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, rows: np.ndarray, above: np.ndarray,
                out: np.ndarray) -> np.ndarray: ...
 
-    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray, decoded_step: np.ndarray,
+    def design(self, first: int, low: np.ndarray, step: np.ndarray, bits: int, decoded_low: np.ndarray,
+               decoded_step: np.ndarray,
                mean: np.ndarray, columns: slice):
         """The weights' (1 + c, w) design block there: ``mean`` and the images' decoded codes at ``columns``."""
 
@@ -134,10 +137,12 @@ class PrincipalImages:
 
     def __post_init__(self):
         if self.directions is None and self.held is None:
-            raise InputError("principal images need their directions on the host or held on a device (host_directions() copies them down)")
+            raise InputError("principal images need their directions on the host or held on a device "
+                             "(host_directions() copies them down)")
 
     @classmethod
-    def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None, *, products: StackProducts | None = None) -> PrincipalImages:
+    def of(cls, stack: np.ndarray, light_scale: np.ndarray | None = None, *,
+           products: StackProducts | None = None) -> PrincipalImages:
         """The principal images of an (n, H, W, P) array (kept as float32)."""
         stack = np.asarray(stack)
         flat = np.ascontiguousarray(stack.reshape(len(stack), -1), dtype=np.float32)
@@ -155,7 +160,8 @@ class PrincipalImages:
         n = source.light_count
         pixels = int(np.prod(source.shape))
         if light_scale is None:
-            light_scale = np.sqrt(sum((np.sum(np.square(block), axis=1) for block in _blocks(source)), np.zeros(n)) / max(pixels, 1))
+            light_scale = np.sqrt(sum((np.sum(np.square(block), axis=1) for block in _blocks(source)), np.zeros(n))
+                                  / max(pixels, 1))
         light_scale = _floored(light_scale, n)
         factor = 1.0 / light_scale
         if products is None:
@@ -180,14 +186,16 @@ class PrincipalImages:
                 held = products.held_directions(len(order), tuple(source.shape))
             directions = None
             if held is None:
-                directions = spilled_empty((len(order), pixels), np.float32) if spill else mapped_empty((len(order), pixels), np.float32)
+                directions = (spilled_empty((len(order), pixels), np.float32) if spill
+                              else mapped_empty((len(order), pixels), np.float32))
             if products is None:
                 for columns, block in zip(column_slices(n, pixels), _blocks(source, light_scale)):
                     directions[:, columns] = projection @ block
             else:
                 scaled = projection * factor[None, :]
                 for columns in column_slices(n, pixels):
-                    products.project(scaled, uploaded_block(products, source, columns), out=None if held is not None else directions[:, columns], keep=held,
+                    products.project(scaled, uploaded_block(products, source, columns),
+                                     out=None if held is not None else directions[:, columns], keep=held,
                                      columns=columns, host=held is None)
         first = (held.rows(0, 1)[0] if directions is None else directions[0]).astype(np.float64)
         rms = np.sqrt(max(float(np.trace(gram)), 0.0) / max(n * pixels, 1))  # of the normalised images

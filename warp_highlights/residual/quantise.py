@@ -11,7 +11,8 @@ from ..model.residual import FLOAT16_SAFE, DeflatedPieces, LowRankStack, code_le
 from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
 from .principal import HeldDirections, PrincipalImages, column_slices, uploaded_block
 
-__all__ = ["clamped_steps", "codes_in_place", "fit_stack", "quantisation_grid", "quantise_basis", "quantised_codes", "quantised_stack"]
+__all__ = ["clamped_steps", "codes_in_place", "fit_stack", "quantisation_grid", "quantise_basis", "quantised_codes",
+           "quantised_stack"]
 
 
 def clamped_steps(steps: np.ndarray, span: np.ndarray, levels: int) -> np.ndarray:
@@ -19,14 +20,16 @@ def clamped_steps(steps: np.ndarray, span: np.ndarray, levels: int) -> np.ndarra
     return np.maximum(np.asarray(steps, dtype=np.float64), np.maximum(np.asarray(span, np.float64), 1e-300) / levels)
 
 
-def quantisation_grid(lows: np.ndarray, highs: np.ndarray, steps: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
+def quantisation_grid(lows: np.ndarray, highs: np.ndarray, steps: np.ndarray,
+                      levels: int) -> tuple[np.ndarray, np.ndarray]:
     """(low, step) float64 of each basis image's codes: from its minimum, ``clamped_steps`` apart."""
     low = np.asarray(lows, np.float64)
     return low, clamped_steps(steps, np.asarray(highs, np.float64) - low, levels)
 
 
 def quantise_basis(basis: np.ndarray | None, steps: np.ndarray, *, bits: int, lows: np.ndarray | None = None,
-                   highs: np.ndarray | None = None, held: HeldDirections | None = None, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                   highs: np.ndarray | None = None, held: HeldDirections | None = None,
+                   first: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(k, M) basis images as ``bits``-bit codes with steps ``steps`` (each at least its span over the
     levels, so its codes fit), from each image's minimum: (codes (k, M) uint8 or uint16, ranges (k, 2)
     float32 (low, low + step x levels)), as ``LowRankStack`` stores them. ``lows``, ``highs``: the
@@ -37,13 +40,15 @@ def quantise_basis(basis: np.ndarray | None, steps: np.ndarray, *, bits: int, lo
     if basis is None:
         if held is None or lows is None or highs is None:
             raise InputError("quantise_basis needs the basis images, or their device copy and their extremes")
-        basis = np.broadcast_to(np.zeros((), np.float32), (len(steps), held.values))  # the shape alone: the device makes the codes
+        # the shape alone: the device makes the codes
+        basis = np.broadcast_to(np.zeros((), np.float32), (len(steps), held.values))
     basis = np.asarray(basis)
     k = len(basis)
     lows = basis.min(axis=1) if lows is None and k else lows
     highs = basis.max(axis=1) if highs is None and k else highs
     if k and (np.shape(lows) != (k,) or np.shape(highs) != (k,)):
-        raise InputError(f"quantise_basis needs one minimum and maximum per basis image ({k}), got {np.shape(lows)} and {np.shape(highs)}")
+        raise InputError(f"quantise_basis needs one minimum and maximum per basis image ({k}), got {np.shape(lows)} "
+                         f"and {np.shape(highs)}")
     low, steps = quantisation_grid(lows, highs, steps, levels) if k else (np.zeros(0), np.zeros(0))
     codes = mapped_empty(basis.shape, np.uint8 if bits == 8 else np.uint16)
     if held is not None and k:
@@ -62,7 +67,8 @@ _QUANTISE_CHUNK = 1 << 18
 2-core CPU a 3840x2160 plane took 10-13 ms in chunks of 2^15-2^18 values, 35 ms whole)."""
 
 
-def quantised_codes(values: np.ndarray, low: np.ndarray, step: np.ndarray, levels: int, *, out: np.ndarray) -> np.ndarray:
+def quantised_codes(values: np.ndarray, low: np.ndarray, step: np.ndarray, levels: int, *,
+                    out: np.ndarray) -> np.ndarray:
     """``codes_in_place`` of (k, ...) ``values`` (float32, any strides) with image j's ``low[j]`` and
     ``step[j]``, written into ``out`` (uint8 or uint16, the same shape): the same codes, rounded in
     float64 ``_QUANTISE_CHUNK`` values at a time (several small images a chunk, a large one in bands)."""
@@ -120,7 +126,8 @@ def fit_stack(stack: np.ndarray, rank: int, *, light_scale: np.ndarray | None = 
     return quantised_stack(principal, principal.spans[:rank] / levels, bits=bits)
 
 
-def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8, deflated: DeflatedPieces | None = None) -> LowRankStack:
+def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8,
+                    deflated: DeflatedPieces | None = None) -> LowRankStack:
     """The stack of ``principal``'s mean image (float16) and its first k = len(``steps``) further
     principal images, basis image j quantised with step ``steps[j]`` (in the units of a unit-norm
     image; at least its span over the ``bits``' levels, so its codes fit). Then every image's mean
@@ -131,10 +138,12 @@ def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int 
     if k > principal.count - 1:
         raise InputError(f"{k} basis images asked of a stack of {principal.count - 1}")
     basis = None if principal.directions is None else principal.directions[1 : k + 1]
-    codes, ranges = quantise_basis(basis, steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k], held=principal.held, first=1)
+    codes, ranges = quantise_basis(basis, steps, bits=bits, lows=principal.lows[:k], highs=principal.highs[:k],
+                                   held=principal.held, first=1)
     mean = principal.mean
     # the mean as the file keeps it: float16 unless a value is beyond its range
-    mean32 = mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < FLOAT16_SAFE else mean.astype(np.float32)
+    mean32 = (mean.astype(np.float16).astype(np.float32) if np.abs(mean).max(initial=0.0) < FLOAT16_SAFE
+              else mean.astype(np.float32))
     shape = principal.shape
     n, pixels = principal.light_count, principal.values
     model = LowRankStack(mean32.reshape(shape), codes.reshape((k,) + shape), ranges, np.zeros((n, k), np.float32))
@@ -144,7 +153,8 @@ def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int 
     products = principal.products
     held = principal.held if products is not None else None
     if held is not None:  # the design's planes decoded where the images are held: no host pass, no upload
-        quantised_low, quantised_step = quantisation_grid(principal.lows[:k], principal.highs[:k], steps, code_levels(bits))
+        quantised_low, quantised_step = quantisation_grid(principal.lows[:k], principal.highs[:k], steps,
+                                                          code_levels(bits))
     normal, right = np.zeros((k + 1, k + 1)), np.zeros((k + 1, n))
     normal_sum = right_sum = None
     if products is not None:  # float32 design and stack blocks, summed in float64 there: the same products
@@ -156,10 +166,12 @@ def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int 
             right_sum.add(uploaded, uploaded_block(products, principal.source, columns))
             continue
         shape = (k + 1, columns.stop - columns.start)
-        design = np.empty(shape, np.float64) if products is None else products.staging(shape)  # there: filled where the upload reads it
+        # there: filled where the upload reads it
+        design = np.empty(shape, np.float64) if products is None else products.staging(shape)
         design[0] = mean32[columns]
 
-        def planes(rows: slice, columns=columns, design=design) -> None:  # threads, a few basis images each, in float32 (as decoded)
+        # threads, a few basis images each, in float32 (as decoded)
+        def planes(rows: slice, columns=columns, design=design) -> None:
             part = design[1:][rows]
             np.multiply(codes[rows, columns], step[rows, None], out=part, dtype=np.float32, casting="unsafe")
             np.add(part, low[rows, None], out=part, dtype=np.float32, casting="unsafe")
@@ -176,4 +188,5 @@ def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int 
         normal, right = normal_sum.value(), right_sum.value()
     normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
     solution = np.linalg.solve(normal, right)
-    return LowRankStack(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32), solution[0].astype(np.float32), deflated=deflated)
+    return LowRankStack(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32),
+                        solution[0].astype(np.float32), deflated=deflated)

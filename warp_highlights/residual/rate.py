@@ -30,42 +30,61 @@ from .inputs import BAND_VALUES
 from .principal import PrincipalImages
 from .quantise import clamped_steps, quantised_codes
 
-__all__ = ["FILE_BYTES", "LIGHT_BYTES", "RateSample", "StackPlan", "allocate", "allocate_steps", "component_bytes", "entry_bytes", "finest_within", "gaussian_bytes", "quantised_bytes", "sampled_rows"]
+__all__ = ["FILE_BYTES", "LIGHT_BYTES", "RateSample", "StackPlan", "allocate", "allocate_steps", "component_bytes",
+           "entry_bytes", "finest_within", "gaussian_bytes", "quantised_bytes", "sampled_rows"]
 
-_TASKS_PER_THREAD = 4  # the rate search hands out a group's images in about this many tasks per thread (at 480x270, 249 tasks of one image each
-# cost more to hand out than to deflate)
-_STORED_GROUP_BYTES = 1 << 26  # the rate search's stored codes made on a device: up to this much a group (64 MiB; two groups held), so
-# small images come in a few launches and copies rather than one round of them per NUMPY_THREADS images (at 480x270 a round cost
-# about 4 ms, mostly the waits of its small uploads); at least NUMPY_THREADS images a group (one per deflating thread) whatever their size
+_TASKS_PER_THREAD = 4
+"""The rate search hands out a group's images in about this many tasks per thread (one small image a task
+costs more to hand out than to compress)."""
+_STORED_GROUP_BYTES = 1 << 26
+"""The rate search's stored codes made on a device: up to this many bytes a group (64 MiB, two groups held),
+so that small images come in a few launches and copies rather than one round of them per ``NUMPY_THREADS``
+images; at least ``NUMPY_THREADS`` images a group (one per compressing thread) whatever their size."""
 _PARAMETER_BYTES = 24  # six float32 per Gaussian
 _PATH_BYTES = 12  # delta and centre (float32) per retargeted Gaussian
-FILE_BYTES = 6144  # the header, the zip's own records and the rest of a field file's small entries
-LIGHT_BYTES = 48  # a light's direction (float64) and its two faces (int32)
+FILE_BYTES = 6144
+"""The header, the zip's own records and the rest of a field file's small entries, bytes."""
+LIGHT_BYTES = 48
+"""A light's direction (float64) and its two faces (int32), bytes."""
 _BUDGET_SLACK = 0.01  # allocate_steps stops once the bytes are within this share under the budget
 _SEARCH_STEPS = 16  # _search's evaluations at most
-_SEARCH_DEPTH = 35.0  # the search's finest distortion: this far (natural log) under the top energy, far below any 16-bit quantisation noise
-_SEARCH_START = 12.0  # a first search starts this far under the top energy (where the default budget binds, both samples and the 64- and 250-light donuts ended 9.4-16.1 under)
+_SEARCH_DEPTH = 35.0
+"""The search's finest distortion: this far (natural log) under the top energy, far below any 16-bit
+quantisation noise."""
+_SEARCH_START = 12.0
+"""A first search starts this far under the top energy: where the default budget binds, the searches of
+``benchmarks/bench_residual.py`` and ``bench_quality.py`` end about this far under."""
 _SEARCH_STRIDE = 8.0  # a secant step moves the log distortion at most this far ...
 _SEARCH_MIN_STEP = 0.05  # ... and at least this far
 _MODEL_TOLERANCE = 1e-9  # _modelled_distortion's roots (offset in bits, log distortion) to within this
 _MODEL_OFFSET_RANGE = 40.0  # the model's constant bits a value is sought within this far of none
-_SEARCH_NARROWEST = 1e-3  # _search stops once the bracket is narrower than this (log distortion: a 0.1% change of the steps' squares)
+_SEARCH_NARROWEST = 1e-3
+"""_search stops once the bracket is narrower than this (log distortion: a 0.1% change of the steps' squares)."""
 _SEARCH_GUARD = 0.02  # a regula falsi step within this share of the bracket from an end bisects instead
-_BYTES_PER_HALVING = 1.0 / 8.0  # deflated bytes a value gains per halving of its step (one bit: the high-rate rule), the first step's slope where
-# the high-rate model of the bytes (``_modelled_distortion``) fits no offset
+_BYTES_PER_HALVING = 1.0 / 8.0
+"""Stored bytes a value gains per halving of its step (one bit: the high-rate rule): the first step's slope
+where the high-rate model of the bytes (``_modelled_distortion``) fits no offset."""
 _SLOPE_FLOOR = 0.02  # the smallest fall of log bytes per unit of log distortion a secant step assumes
-_RATE_BAND_ROWS = 8  # the rate search deflates bands of this many whole rows ...
-_RATE_SHARE = 0.0625  # ... together this share of the rows (the sampled bytes are calibrated on whole images: they need to follow the bytes' trend, not
-# their level; at 1,000 x 1080p an 8th of the rows ran 2% over the whole images, a 32nd 5%, both within 0.1% once calibrated; a 16th for margin) ...
-_RATE_MIN_VALUES = 1 << 13  # ... and at least this many values a basis image (else every row: small images are deflated whole; 1 << 14 took
-# 40 of 270 rows at 480x270, 24 now: the calibration keeps one exact measurement on the 64-light donut, and the samples forced on the
-# dome and statue gave their quality to the hundredth, benchmarks/README.md "Twelfth session")
-_RATE_ROUNDS = 3  # searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes
-_ESTIMATE_SLACK = 0.004  # the searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their errors were 0.1-0.6%)
-_FIRST_SLACK = 0.05  # the first search, on uncalibrated sampled bytes (2-5% off), stops within this share under the budget
-_CALIBRATION_EVERY = 8  # the first search's answer: every this many-th kept image deflated whole, to scale the sampled bytes ...
+_RATE_BAND_ROWS = 8  # the rate search compresses bands of this many whole rows ...
+_RATE_SHARE = 0.0625
+"""... together this share of the rows. The sampled bytes are calibrated on whole images, so they need to
+follow the bytes' trend, not their level; a 16th of the rows leaves a margin over the 32nd that already
+follows it once calibrated."""
+_RATE_MIN_VALUES = 1 << 13
+"""... and at least this many values a basis image; else every row (a small image is compressed whole)."""
+_RATE_ROUNDS = 3
+"""Searches on the calibrated sampled bytes, each followed by an exact measurement, before a search on exact bytes."""
+_ESTIMATE_SLACK = 0.004
+"""The searches on calibrated sampled bytes stop within this share of the middle of the budget's window (their
+errors are a fraction of a percent)."""
+_FIRST_SLACK = 0.05
+"""The first search, on uncalibrated sampled bytes (a few percent off), stops within this share under the budget."""
+_CALIBRATION_EVERY = 8
+"""The first search's answer: every this many-th kept image compressed whole, to scale the sampled bytes ..."""
 _CALIBRATION_LEAST = 8  # ... at least this many images a stack (every image of a stack of fewer than twice as many)
-_FINEST_MARGIN = 0.05  # finest_within trusts sampled bytes this far under the budget (uncalibrated samples were 0-4% off the whole
+_FINEST_MARGIN = 0.05
+"""``finest_within`` trusts sampled bytes this far under the budget (uncalibrated samples are a few percent off the
+whole images; a wrong "plain" choice is measured on every row after all)."""
 
 
 def entry_bytes(array: np.ndarray) -> int:
@@ -75,13 +94,15 @@ def entry_bytes(array: np.ndarray) -> int:
 
 def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int:
     """Stored bytes of a field's Gaussians and paths before deflate (an upper bound of what they take)."""
-    return int(estimated.active.sum()) * (_PARAMETER_BYTES + 2) + int(retargeted.active.sum()) * (_PARAMETER_BYTES + _PATH_BYTES) + 2 * len(estimated.active)
+    return (int(estimated.active.sum()) * (_PARAMETER_BYTES + 2)
+            + int(retargeted.active.sum()) * (_PARAMETER_BYTES + _PATH_BYTES) + 2 * len(estimated.active))
 
 
 def component_bytes(stack: LowRankStack) -> np.ndarray:
     """(k,) stored bytes of each basis image of ``stack``: its codes' Blosc chunk (planes first, as the
     file stores them: ``io.codes``), its range and its per-light weights."""
-    return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes], dtype=np.float64)
+    return np.array([stored_bytes(code.transpose(2, 0, 1)) + 8 + 4 * len(stack.weights) for code in stack.codes],
+                    dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -93,7 +114,8 @@ class StackPlan:
     gain: float
     most: int
     floor: int = 0
-    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)  # the last exact measurement's chunks
+    # the last exact measurement's chunks
+    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)
 
     @property
     def energies(self) -> np.ndarray:
@@ -167,31 +189,37 @@ class RateSample:
             self.rows = np.union1d(counted, above[above >= 0])
             self.counted = np.isin(self.rows, counted)
             positions = np.flatnonzero(self.counted)
-            self.stored_rows = self.rows[positions]  # the rows the sample counts, each less the row before it in ``rows``
+            # the rows the sample counts, each less the row before it in ``rows``
+            self.stored_rows = self.rows[positions]
             self.above = np.where(positions > 0, self.rows[np.maximum(positions - 1, 0)], -1)
-        self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))  # whole image bytes per sampled byte
+        # whole image bytes per sampled byte
+        self.scale = 1.0 if whole else height / int(np.count_nonzero(self.counted))
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
         self._stored: np.ndarray | None = None  # two groups of the held images' stored codes, host memory used again
-        self._memo: dict[tuple, tuple] = {}  # (image, step, bits) -> (deflated bytes, content key or None): what was measured
+        # (image, step, bits) -> (deflated bytes, content key or None): what was measured
+        self._memo: dict[tuple, tuple] = {}
 
     @property
     def exact(self) -> bool:
         return self.scale == 1.0
 
-    def bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, calibration: float = 1.0) -> float:
+    def bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None,
+              calibration: float = 1.0) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
         (``deflated``, scaled to the whole images and by ``calibration``, the whole images' bytes per
         scaled sampled byte, with each image's range and weights). ``keep`` (an ``exact`` sample only):
         hold the images' deflated pieces there, in place of what it held, for the field writer."""
-        return calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale + self.per_image * len(steps)
+        return (calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale
+                + self.per_image * len(steps))
 
-    def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None, images: np.ndarray | None = None) -> np.ndarray:
-        """(len(``steps``),) int64 stored bytes (``io.codes.chunk_size``) of each of the first len(``steps``) basis images
-        at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
-        (the others 0). Compressed in threads (Blosc lets go of the GIL off the main thread). An image is deflated once per
-        step and bits: a measurement remembers each image's bytes, and a later one at the same step
-        takes them instead of deflating it again (and, where ``keep`` is given, its piece where ``keep``
+    def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None,
+                 images: np.ndarray | None = None) -> np.ndarray:
+        """(len(``steps``),) int64 stored bytes (``io.codes.chunk_size``) of each of the first len(``steps``) basis
+        images at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
+        (the others 0). Compressed in threads (Blosc lets go of the GIL off the main thread). An image is compressed
+        once per step and bits: a measurement remembers each image's bytes, and a later one at the same step
+        takes them instead of compressing it again (and, where ``keep`` is given, its piece where ``keep``
         still holds it: else the field writer deflates that image, if it is kept)."""
         if keep is not None and not self.exact:
             raise ValueError("only a sample of every row can keep its deflated pieces")
@@ -214,9 +242,11 @@ class RateSample:
                 continue
             lengths[index] = known[0]
             piece = None if keep is None or known[1] is None else keep.held(known[1])
-            if piece is not None:  # else not held (dropped, or never kept): the field writer deflates it, where it is kept
+            # else not held (dropped, or never kept): the field writer deflates it, where it is kept
+            if piece is not None:
                 pieces[known[1]] = piece
-        for index, length, key, piece in self._measured(np.asarray(measure, np.int64), steps, bits, keyed=keep is not None):
+        for index, length, key, piece in self._measured(np.asarray(measure, np.int64), steps, bits,
+                                                        keyed=keep is not None):
             lengths[index] = length
             self._memo[(index, float(steps[index]), bits)] = (length, key)
             if keep is not None:
@@ -242,11 +272,14 @@ class RateSample:
             return (index, len(piece), CompressedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
 
         if self.held is not None:
-            return self._deflated_from_device(indices, steps, bits, lambda images: [deflate(index, image) for index, image in images])
+            return self._deflated_from_device(indices, steps, bits,
+                                              lambda images: [deflate(index, image) for index, image in images])
         levels = code_levels(bits)
 
-        def group(images: slice) -> list:  # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
-            rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2)  # (c, P, rows, W), rounded in float64 as quantise_basis rounds
+        # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
+        def group(images: slice) -> list:
+            # (c, P, rows, W), rounded in float64 as quantise_basis rounds
+            rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2)
             codes = quantised_codes(rows, self.low[images], steps[images], levels, out=np.empty(rows.shape, kind))
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
             return [deflate(images.start + offset, image) for offset, image in enumerate(stored)]
@@ -278,12 +311,15 @@ class RateSample:
                 at = 0
                 for run in runs:  # a run of consecutive images a launch
                     size = run.stop - run.start
-                    self.held.stored(1 + run.start, self.low[run], steps[run], bits, self.stored_rows, self.above, out=stored[at : at + size])
+                    self.held.stored(1 + run.start, self.low[run], steps[run], bits, self.stored_rows, self.above,
+                                     out=stored[at : at + size])
                     at += size
                 images = list(zip([index for run in runs for index in range(run.start, run.stop)], stored))
-                share = max(1, -(-len(images) // (_TASKS_PER_THREAD * NUMPY_THREADS)))  # a few images a task: small images cost more to hand out than to deflate
+                # a few images a task: small images cost more to hand out than to deflate
+                share = max(1, -(-len(images) // (_TASKS_PER_THREAD * NUMPY_THREADS)))
                 pending[slot] = []
-                for start in range(0, len(images), share):  # the shared threads; each tracked as it is submitted (Ctrl-C)
+                # the shared threads; each tracked as it is submitted (Ctrl-C)
+                for start in range(0, len(images), share):
                     pending[slot].append(submit(pieces, images[start : start + share]))
                     results.append(pending[slot][-1])
         except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
@@ -317,7 +353,8 @@ def _index_runs(indices: np.ndarray, size: int) -> list[slice]:
     return runs
 
 
-def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None) -> float:
+def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int,
+                    keep: CompressedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
     ``quantise.quantised_stack`` does (``component_bytes``, without fitting the weights): every row
     deflated (the pieces held in ``keep`` when given)."""
@@ -353,9 +390,12 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
         return np.inf, [plan.steps(np.inf, levels) for plan in plans]
     samples = _rate_samples(plans)
     if all(sample.exact for sample in samples):
-        return _search(plans, budget_bytes, levels, top, lambda steps: sum(sample.bytes(step, bits=bits, keep=plan.deflated)
-                                                                           for plan, sample, step in zip(plans, samples, steps)))[:2]
-    wholes = [sample if sample.exact else RateSample(plan.principal, sample.shape[0], whole=True) for plan, sample in zip(plans, samples)]
+        return _search(plans, budget_bytes, levels, top, lambda steps: sum(sample.bytes(step, bits=bits,
+                                                                                        keep=plan.deflated)
+                                                                           for plan, sample, step in zip(plans, samples,
+                                                                                                         steps)))[:2]
+    wholes = [sample if sample.exact else RateSample(plan.principal, sample.shape[0], whole=True)
+              for plan, sample in zip(plans, samples)]
     ratios = np.ones(len(plans))  # each plan's whole-image bytes per (scaled) sampled byte
 
     def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
@@ -364,29 +404,37 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
 
     def exact(steps: list[np.ndarray]) -> float:
         try:
-            return sum(whole.bytes(step, bits=bits, keep=plan.deflated) for plan, whole, step in zip(plans, wholes, steps))
+            return sum(whole.bytes(step, bits=bits, keep=plan.deflated)
+                       for plan, whole, step in zip(plans, wholes, steps))
         finally:
             for whole in wholes:
                 whole.release()
 
-    def ratio(plan: StackPlan, sample: RateSample, whole: RateSample, step: np.ndarray, images: np.ndarray | None = None) -> float:
-        """Whole bytes per scaled sampled byte of ``images`` (all: an exact measurement's, remembered, nothing deflated or kept again;
-        a subset: deflated whole now, their pieces kept for the exact measurement that follows)."""
-        sampled = float(sample.deflated(step, bits=bits, images=images).sum()) * sample.scale  # remembered: nothing deflated again
+    def ratio(plan: StackPlan, sample: RateSample, whole: RateSample, step: np.ndarray,
+              images: np.ndarray | None = None) -> float:
+        """Whole bytes per scaled sampled byte of ``images`` (all: an exact measurement's, remembered, nothing
+        compressed or kept again; a subset: compressed whole now, their chunks kept for the exact measurement that
+        follows)."""
+        # remembered: nothing deflated again
+        sampled = float(sample.deflated(step, bits=bits, images=images).sum()) * sample.scale
         try:
-            exact_bytes = float(whole.deflated(step, bits=bits, images=images, keep=None if images is None else plan.deflated).sum())
+            exact_bytes = float(whole.deflated(step, bits=bits, images=images,
+                                               keep=None if images is None else plan.deflated).sum())
         finally:
             whole.release()
         return exact_bytes / sampled if sampled > 0 else 1.0
 
-    finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]  # everything kept, as finely as the codes go
-    start, _, _ = _search(plans, budget_bytes, levels, top, estimated, slack=_FIRST_SLACK)  # where to calibrate: near the answer will do
+    # everything kept, as finely as the codes go
+    finest = [plan.steps(np.exp(np.log(top) - _SEARCH_DEPTH), levels) for plan in plans]
+    # where to calibrate: near the answer will do
+    start, _, _ = _search(plans, budget_bytes, levels, top, estimated, slack=_FIRST_SLACK)
     steps = [plan.steps(np.exp(start), levels) for plan in plans]
     for index, (plan, sample, whole, step) in enumerate(zip(plans, samples, wholes, steps)):
         if not sample.exact and len(step):
             every = max(1, min(_CALIBRATION_EVERY, len(step) // _CALIBRATION_LEAST))
             ratios[index] = ratio(plan, sample, whole, step, np.arange(every // 2, len(step), every))
-    aim = (1.0 - 0.5 * (_BUDGET_SLACK - _ESTIMATE_SLACK)) * budget_bytes  # the estimates' window in the middle of the budget's
+    # the estimates' window in the middle of the budget's
+    aim = (1.0 - 0.5 * (_BUDGET_SLACK - _ESTIMATE_SLACK)) * budget_bytes
     for _ in range(_RATE_ROUNDS):
         log_distortion, steps, _ = _search(plans, aim, levels, top, estimated, start=start, slack=_ESTIMATE_SLACK)
         stored = exact(steps)
@@ -398,7 +446,8 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
             if not sample.exact and len(step):
                 ratios[index] = ratio(plan, sample, whole, step)
         start = log_distortion
-    return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]  # the sample misled the search (a rare image's bytes): search on exact bytes
+    # the sample misled the search (a rare image's bytes): search on exact bytes
+    return _search(plans, budget_bytes, levels, top, exact, start=start)[:2]
 
 
 def _top_energy(plans: list[StackPlan]) -> float:
@@ -408,7 +457,8 @@ def _top_energy(plans: list[StackPlan]) -> float:
 
 def _rate_samples(plans: list[StackPlan]) -> list[RateSample]:
     """The ``RateSample`` of each plan's images that any distortion may keep."""
-    return [RateSample(plan.principal, max(int(np.count_nonzero(plan.energies > 0)), min(plan.floor, len(plan.energies)))) for plan in plans]
+    return [RateSample(plan.principal, max(int(np.count_nonzero(plan.energies > 0)),
+                                           min(plan.floor, len(plan.energies)))) for plan in plans]
 
 
 def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple[float, list[np.ndarray]] | None:
@@ -430,14 +480,15 @@ def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> 
 
 def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measure, *,
             start: float | None = None, slack: float = _BUDGET_SLACK) -> tuple[float, list[np.ndarray], float]:
-    """(log distortion, steps, their measured bytes) of the smallest common distortion whose ``measure``d bytes are at most
-    ``limit``, stopping within ``slack`` (a share) under it: secant steps on log bytes from ``start``
+    """(log distortion, steps, their measured bytes) of the smallest common distortion whose ``measure``d bytes are at
+    most ``limit``, stopping within ``slack`` (a share) under it: secant steps on log bytes from ``start``
     (default ``_SEARCH_START`` under the top energy; the first step to where ``_modelled_distortion`` meets
     the middle of the window, else its slope from ``_BYTES_PER_HALVING``), Illinois regula falsi once the
     limit is bracketed, until the bracket is narrower than ``_SEARCH_NARROWEST`` (the bytes jump across
     it, as where an image enters the kept set: its fitting end is the answer). Everything kept as finely
     as the codes go, when that fits; the floor alone when even that does not."""
-    lowest, highest = np.log(top) - _SEARCH_DEPTH, np.log(top) + 1.0  # from far below any 16-bit quantisation noise to nothing kept (but the floor)
+    # from far below any 16-bit quantisation noise to nothing kept (but the floor)
+    lowest, highest = np.log(top) - _SEARCH_DEPTH, np.log(top) + 1.0
     target = np.log(1.0 - 0.5 * slack)  # log(bytes / limit) in the middle of the window
 
     def excess(log_distortion: float) -> tuple[float, float, list[np.ndarray]]:
@@ -476,14 +527,17 @@ def _search(plans: list[StackPlan], limit: float, levels: int, top: float, measu
             middle = b - fb * width / (fb - fa) if fb != fa else 0.5 * (a + b)
             x = middle if a + _SEARCH_GUARD * width < middle < b - _SEARCH_GUARD * width else 0.5 * (a + b)
         else:
-            modelled = None if previous is not None else _modelled_distortion(plans, levels, x, total, limit * np.exp(target), lowest, highest)
-            if modelled is not None:  # the first step: to where the high-rate model, fitted to this measurement, meets the window's middle
+            modelled = (None if previous is not None
+                        else _modelled_distortion(plans, levels, x, total, limit * np.exp(target), lowest, highest))
+            # the first step: to where the high-rate model, fitted to this measurement, meets the window's middle
+            if modelled is not None:
                 slope = -f / (modelled - x) if modelled != x else -_SLOPE_FLOOR
             elif previous is not None and previous[0] != x and previous[1] != f:
                 slope = (f - previous[1]) / (x - previous[0])
             else:  # bytes fall by _BYTES_PER_HALVING a value that follows the distortion, per halving of the step
                 values = sum(plan.changing_values(step, levels) for plan, step in zip(plans, steps))
-                slope = -_BYTES_PER_HALVING / (2.0 * np.log(2.0)) * values / max(total, 1.0)  # the step goes as sqrt(distortion)
+                # the step goes as sqrt(distortion)
+                slope = -_BYTES_PER_HALVING / (2.0 * np.log(2.0)) * values / max(total, 1.0)
             step = -f / min(slope, -_SLOPE_FLOOR)
             step = float(np.clip(step, -_SEARCH_STRIDE, _SEARCH_STRIDE))
             step = step if abs(step) >= _SEARCH_MIN_STEP else np.copysign(_SEARCH_MIN_STEP, step)

@@ -19,7 +19,8 @@ from .._api import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
-        **dict.fromkeys(["render_dataset", "Renderer", "RenderSettings", "Material", "RenderedImages", "default_material"], "render"),
+        **dict.fromkeys(["render_dataset", "Renderer", "RenderSettings", "Material", "RenderedImages",
+                         "default_material"], "render"),
         **dict.fromkeys(["make_shape", "TriangleMesh", "load_mesh", "SHAPE_NAMES"], "shapes"),
     },
 )

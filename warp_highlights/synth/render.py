@@ -26,7 +26,8 @@ from ..model.triangulation import SphericalTriangulation
 from .settings import Material, RenderSettings
 from .shapes import TriangleMesh, make_shape
 
-__all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset", "renderer_from_meta", "view_rotation"]
+__all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset",
+           "renderer_from_meta", "view_rotation"]
 
 CHUNK_MEMORY_SHARE = 0.25
 """Share of the free memory one launch's images may take (the images are copied out and written in
@@ -95,7 +96,8 @@ class Renderer:
             points=self._points,
             indices=wp.array(scene.faces.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
         )
-        camera = raytrace.make_camera(self.camera_position, self.settings.fov_y_deg, self.settings.width, self.settings.height)
+        camera = raytrace.make_camera(self.camera_position, self.settings.fov_y_deg, self.settings.width,
+                                      self.settings.height)
         self._samples = raytrace.trace_camera(
             self._mesh,
             self._normals,
@@ -177,7 +179,8 @@ class Renderer:
             shape = (0, self.settings.height, self.settings.width) + ((3,) if self.settings.colour else ())
             empty = np.zeros(shape, np.float32)
             return RenderedImages(0, empty, empty.copy(), empty.copy())
-        return RenderedImages(0, *(np.concatenate([getattr(p, k) for p in parts]) for k in ("full", "diffuse", "specular")))
+        return RenderedImages(0, *(np.concatenate([getattr(p, k) for p in parts])
+                                   for k in ("full", "diffuse", "specular")))
 
     def describe(self) -> dict:
         """What meta.json records about the scene."""
@@ -233,7 +236,8 @@ def render_dataset(
     from ..io.dataset import DatasetWriter
 
     started = time.perf_counter()
-    with tqdm(total=len(lights), unit="light", desc=f"render {shape}: preparing", disable=not progress, leave=False) as bar:
+    with tqdm(total=len(lights), unit="light", desc=f"render {shape}: preparing", disable=not progress,
+              leave=False) as bar:
         mesh = make_shape(shape)
         shape_name = mesh.name if Path(shape).suffix == "" else str(shape)
         material = material or default_material(shape)
@@ -249,7 +253,8 @@ def render_dataset(
         with DatasetWriter(folder, overwrite=overwrite, half=half) as writer:
             for group, light_set in groups:
                 for images in renderer.render_chunks(light_set.directions):
-                    writer.write_images(group, images.start, images.full, specular=images.specular, diffuse=images.diffuse)
+                    writer.write_images(group, images.start, images.full, specular=images.specular,
+                                        diffuse=images.diffuse)
                     bar.update(len(images.full))
             meta = {
                 "generator": f"warp-highlights {__version__} render",

@@ -76,7 +76,8 @@ class RenderSettings:
             raise InputError(f"image size must be positive, got {self.width}x{self.height}")
         root = math.isqrt(max(self.samples_per_pixel, 0))
         if self.samples_per_pixel < 1 or root * root != self.samples_per_pixel:
-            raise InputError(f"samples per pixel must be a square number (1, 4, 9, 16, ...), got {self.samples_per_pixel}")
+            raise InputError(
+                f"samples per pixel must be a square number (1, 4, 9, 16, ...), got {self.samples_per_pixel}")
         if not 0 < self.fov_y_deg < 170:
             raise InputError(f"field of view must be between 0 and 170 degrees, got {self.fov_y_deg}")
         if not 0 < self.fill <= 1:

@@ -54,7 +54,8 @@ __all__ = [
     "write_animation",
 ]
 
-ANIMATION_OUTPUTS = ".gif, .webp, .apng, .mp4, or a folder (a name without suffix, or an existing folder) of PNG/EXR frames"
+ANIMATION_OUTPUTS = (".gif, .webp, .apng, .mp4, or a folder (a name without suffix, or an existing folder) "
+                     "of PNG/EXR frames")
 """What :func:`write_animation` can write, for messages and help texts."""
 
 LIGHT_PATH_FORMS = "great:x,y,z:x,y,z, orbit:ELEVATION_DEG[:START_AZIMUTH_DEG] or list:FILE"
@@ -659,7 +660,8 @@ def _check_held_frames(frame_count: int, shape: tuple[int, ...], kind: str) -> N
     from ..model.memory import check_memory
 
     frame_bytes = int(np.prod(shape[:2])) * (3 if len(shape) == 3 else 1)
-    check_memory(2 * frame_count * frame_bytes, f"a {kind.upper()} of {frame_count} frames", "write fewer frames, a .gif, an .mp4 or a frames folder",
+    check_memory(2 * frame_count * frame_bytes, f"a {kind.upper()} of {frame_count} frames",
+                 "write fewer frames, a .gif, an .mp4 or a frames folder",
                  detail=f"{frame_count} frames of {shape[1]}x{shape[0]}, held twice by the encoder")
 
 
@@ -686,7 +688,8 @@ def _write_webp(frames: Iterator[np.ndarray], path: Path, *, fps: float, progres
 def _write_apng(frames: Iterator[np.ndarray], path: Path, *, fps: float, progress) -> None:
     """Animated PNG through Pillow, looping forever (identical neighbours become one frame of their summed duration)."""
     images = _pillow_frames(frames, progress)
-    images[0].save(path, format="PNG", save_all=True, append_images=images[1:], duration=list(itertools.islice(_frame_durations(fps, 1000.0), len(images))),
+    images[0].save(path, format="PNG", save_all=True, append_images=images[1:],
+                   duration=list(itertools.islice(_frame_durations(fps, 1000.0), len(images))),
                    loop=0, default_image=False, disposal=0, blend=0)
 
 

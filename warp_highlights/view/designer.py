@@ -84,8 +84,10 @@ class LightDesigner:
             (meshes refilled and texts set, plus the draw when :meth:`set_direction` draws).
     """
 
-    def __init__(self, field, *, direction=None, method: str = "circular", device=None, size=None, diffuse: str = "auto",
-                 specular_only: bool = False, panels=PANELS, window_size=None, off_screen: bool = False, multi_samples: int | None = None):
+    def __init__(self, field, *, direction=None, method: str = "circular", device=None, size=None,
+                 diffuse: str = "auto",
+                 specular_only: bool = False, panels=PANELS, window_size=None, off_screen: bool = False,
+                 multi_samples: int | None = None):
         from ..relight.relighter import Relighter
 
         panels = check_panels(panels)
@@ -98,7 +100,8 @@ class LightDesigner:
             window_size = (_PANEL_SIZE[0] * len(panels), _PANEL_SIZE[1])
         if multi_samples is None:
             multi_samples = 0 if not off_screen and viz.software_opengl() else 8
-        self.plotter = viz.new_plotter(off_screen=off_screen, window_size=window_size, shape=(1, len(panels)), multi_samples=multi_samples)
+        self.plotter = viz.new_plotter(off_screen=off_screen, window_size=window_size, shape=(1, len(panels)),
+                                       multi_samples=multi_samples)
         self.plotter.set_background(_BACKGROUND)
         self.interactive = not off_screen
         self.timings: dict[str, float] = {}
@@ -127,7 +130,8 @@ class LightDesigner:
         if self._panel("sphere"):
             viz.plot_triangulation(self.field, plotter=plotter)
             if self.interactive:
-                self._widget = plotter.add_sphere_widget(self._on_handle_moved, center=tuple(self.direction), radius=_HANDLE_RADIUS,
+                self._widget = plotter.add_sphere_widget(self._on_handle_moved, center=tuple(self.direction),
+                                                         radius=_HANDLE_RADIUS,
                                                          color="#f1c40f", interaction_event="always", pass_widget=False)
         if self._panel("image"):
             viz.plot_image(np.zeros((self.relighter.height, self.relighter.width), dtype=np.float32), plotter=plotter)
@@ -160,7 +164,8 @@ class LightDesigner:
     def _draw_sphere(self, location) -> None:
         if not self._panel("sphere"):
             return
-        viz.plot_query(self.field.triangulation, self.direction, plotter=self.plotter, handle=not self.interactive, location=location)
+        viz.plot_query(self.field.triangulation, self.direction, plotter=self.plotter, handle=not self.interactive,
+                       location=location)
         corners = ", ".join(str(int(v)) for v in location.vertices)
         weights = ", ".join(f"{w:.2f}" for w in location.barycentric)
         lines = [f"light {describe_direction(self.direction)}   (grey arrow: towards the camera)",
@@ -169,7 +174,8 @@ class LightDesigner:
             lines.append("outside the dome: relit at the nearest rim point (red)")
         viz.put_text(self.plotter, "\n".join(lines), "sphere text", color=_TEXT)
         if self.interactive:
-            viz.put_text(self.plotter, "drag the yellow handle to move the light", "sphere help", position="lower_left", color=_TEXT)
+            viz.put_text(self.plotter, "drag the yellow handle to move the light", "sphere help", position="lower_left",
+                         color=_TEXT)
 
     def _draw_image(self, relit, relight_ms: float) -> None:
         if not self._panel("image"):
@@ -179,7 +185,8 @@ class LightDesigner:
         viz.put_text(self.plotter, f"{self.method} paths, {what}, {self.relighter.width}x{self.relighter.height}\n"
                      f"relit in {relight_ms:.1f} ms on {self.relighter.device}", "image text", color=_TEXT)
         if self.interactive:
-            viz.put_text(self.plotter, "m: circular / straight    h: highlights / full image", "image help", position="lower_left", color=_TEXT)
+            viz.put_text(self.plotter, "m: circular / straight    h: highlights / full image", "image help",
+                         position="lower_left", color=_TEXT)
 
     def _draw_paths(self, relit, location) -> None:
         if not self._panel("paths"):
@@ -192,7 +199,8 @@ class LightDesigner:
         viz.plot_paths(self.field, self.direction, plotter=self.plotter, method=self.method, background=relit.specular,
                        paths=self._paths, frame=frame, location=location)
         count = len(np.unique(self._paths.gaussian))
-        viz.put_text(self.plotter, f"paths of the {count} Gaussians of triangle {self._face}\nthick: circular, thin: straight, dot: start, "
+        viz.put_text(self.plotter, f"paths of the {count} Gaussians of triangle {self._face}\nthick: circular, thin: "
+                                   f"straight, dot: start, "
                      f"outline: now ({self.method}, 1 sigma)", "paths text", color=_TEXT)
 
     def _on_handle_moved(self, centre) -> None:

@@ -139,7 +139,7 @@ def plot_psnr_distributions(
                fontsize=8.5, frameon=False)
 
     notes = [(f"{excluded} quer{'y' if excluded == 1 else 'ies'} left out: interpolated and ground-truth image "
-              "both all black (method.md section 7).")]
+              "both all black (docs/method.md).")]
     dropped = {name: int(scores[name].size - values.size) for name, values in finite.items()}
     if any(dropped.values()):
         counts = ", ".join(f"{name} {count}" for name, count in dropped.items() if count)

@@ -44,15 +44,18 @@ def contact_sheet(field, *, count: int = 12, thumb_height: int = 135, columns: i
     cell_width = len(layers) * thumb_width + (len(layers) - 1) * _GAP
     cell_height = thumb_height + _LABEL_HEIGHT
     rows = -(-len(indices) // columns)
-    canvas = Image.new("RGB", (columns * cell_width + (columns + 1) * _GAP * 3, rows * cell_height + (rows + 1) * _GAP), (24, 24, 24))
+    canvas = Image.new("RGB", (columns * cell_width + (columns + 1) * _GAP * 3, rows * cell_height + (rows + 1) * _GAP),
+                       (24, 24, 24))
     draw = ImageDraw.Draw(canvas)
     for slot, light in enumerate(indices):
         x0 = _GAP * 3 + (slot % columns) * (cell_width + _GAP * 3)
         y0 = _GAP + (slot // columns) * (cell_height + _GAP)
         direction = field.lights.directions[light]
-        draw.text((x0, y0), f"#{light}  ({direction[0]:+.2f}, {direction[1]:+.2f}, {direction[2]:+.2f})", fill=(220, 220, 220))
+        draw.text((x0, y0), f"#{light}  ({direction[0]:+.2f}, {direction[1]:+.2f}, {direction[2]:+.2f})",
+                  fill=(220, 220, 220))
         for k, layer in enumerate(layers):
-            tile = Image.fromarray(display_rgb8(layer[light])).resize((thumb_width, thumb_height), Image.Resampling.LANCZOS)
+            tile = Image.fromarray(display_rgb8(layer[light])).resize((thumb_width, thumb_height),
+                                                                      Image.Resampling.LANCZOS)
             canvas.paste(tile, (x0 + k * (thumb_width + _GAP), y0 + _LABEL_HEIGHT))
     return np.asarray(canvas)
 

@@ -100,7 +100,8 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def new_plotter(*, off_screen: bool | None = None, window_size: tuple[int, int] = (900, 700), shape: tuple[int, int] = (1, 1),
+def new_plotter(*, off_screen: bool | None = None, window_size: tuple[int, int] = (900, 700),
+                shape: tuple[int, int] = (1, 1),
                 multi_samples: int | None = None):
     """A ``pyvista.Plotter``; off screen when asked or when there is no display (then VTK renders
     through EGL instead of probing for an X server). ``multi_samples``: MSAA samples (default
@@ -118,7 +119,8 @@ def new_plotter(*, off_screen: bool | None = None, window_size: tuple[int, int] 
     if multi_samples is not None:
         theme = copy.deepcopy(pv.global_theme)
         theme.multi_samples = int(multi_samples)
-    return pv.Plotter(off_screen=off_screen, window_size=tuple(int(v) for v in window_size), shape=shape, border=False, theme=theme)
+    return pv.Plotter(off_screen=off_screen, window_size=tuple(int(v) for v in window_size), shape=shape, border=False,
+                      theme=theme)
 
 
 def software_opengl() -> bool:
@@ -159,8 +161,10 @@ def great_circle_arcs(starts, ends, *, segments: int = _ARC_SEGMENTS, radius: fl
     with np.errstate(divide="ignore", invalid="ignore"):
         sin_angle = np.sin(angle)
         short = sin_angle < 1e-9
-        wa = np.where(short[:, None], 1.0 - t[None], np.sin((1.0 - t[None]) * angle[:, None]) / np.where(short, 1.0, sin_angle)[:, None])
-        wb = np.where(short[:, None], t[None], np.sin(t[None] * angle[:, None]) / np.where(short, 1.0, sin_angle)[:, None])
+        wa = np.where(short[:, None], 1.0 - t[None],
+                      np.sin((1.0 - t[None]) * angle[:, None]) / np.where(short, 1.0, sin_angle)[:, None])
+        wb = np.where(short[:, None], t[None],
+                      np.sin(t[None] * angle[:, None]) / np.where(short, 1.0, sin_angle)[:, None])
     points = wa[..., None] * a[:, None] + wb[..., None] * b[:, None]
     points = radius * points / np.linalg.norm(points, axis=-1, keepdims=True)
     return pv.PolyData(points.reshape(-1, 3), lines=_polyline_cells(len(a), segments + 1))
@@ -222,7 +226,8 @@ def _triangle_grid(level: int) -> tuple[np.ndarray, np.ndarray]:
     return weights, connectivity
 
 
-def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, labels: bool = False, sphere: bool = True, camera: bool = True):
+def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, labels: bool = False,
+                       sphere: bool = True, camera: bool = True):
     """Draw the light sphere: the unit sphere, the lights, the triangulation's edges and (for a dome) its
     boundary; with ``direction``, also the query and its triangle (:func:`plot_query`).
 
@@ -243,7 +248,8 @@ def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, 
     triangulation = getattr(field_or_triangulation, "triangulation", field_or_triangulation)
     plotter = plotter if plotter is not None else new_plotter()
     if sphere:
-        plotter.add_mesh(pv.Sphere(radius=1.0, theta_resolution=96, phi_resolution=48), color=_COLOURS["sphere"], smooth_shading=True,
+        plotter.add_mesh(pv.Sphere(radius=1.0, theta_resolution=96, phi_resolution=48), color=_COLOURS["sphere"],
+                         smooth_shading=True,
                          ambient=0.35, diffuse=0.65, specular=0.1, name="sphere", pickable=False)
     lines = triangulation_lines(triangulation)
     plotter.add_mesh(lines, color=_COLOURS["edges"], line_width=1.5, name="edges", pickable=False)
@@ -251,12 +257,15 @@ def plot_triangulation(field_or_triangulation, *, plotter=None, direction=None, 
     if rim.n_cells:
         plotter.add_mesh(rim, color=_COLOURS["boundary"], line_width=4, name="boundary", pickable=False)
     points = light_points(triangulation, radius=LINE_RADIUS)
-    plotter.add_mesh(points, color=_COLOURS["lights"], point_size=9, render_points_as_spheres=True, name="lights", pickable=False)
+    plotter.add_mesh(points, color=_COLOURS["lights"], point_size=9, render_points_as_spheres=True, name="lights",
+                     pickable=False)
     if labels:
-        plotter.add_point_labels(points.points * 1.04, [str(k) for k in range(triangulation.light_count)], font_size=9, point_size=1,
+        plotter.add_point_labels(points.points * 1.04, [str(k) for k in range(triangulation.light_count)], font_size=9,
+                                 point_size=1,
                                  shape=None, name="light labels")
     if camera:
-        plotter.add_mesh(pv.Arrow(start=(0, 0, 1.05), direction=(0, 0, 1), scale=0.45, tip_length=0.3, shaft_radius=0.02),
+        plotter.add_mesh(pv.Arrow(start=(0, 0, 1.05), direction=(0, 0, 1), scale=0.45, tip_length=0.3,
+                                  shaft_radius=0.02),
                          color=_COLOURS["camera"], name="camera", pickable=False)
     if direction is not None:
         plot_query(triangulation, direction, plotter=plotter)
@@ -290,13 +299,16 @@ def plot_query(triangulation, direction, *, plotter, handle: bool = True, locati
     location = triangulation.locate(direction) if location is None else location
     corners = triangulation.directions[location.vertices]
     put_mesh(plotter, spherical_triangle(*corners), "query triangle", color=_COLOURS["triangle"], opacity=0.55)
-    put_mesh(plotter, great_circle_arcs(corners, np.roll(corners, -1, axis=0)), "query triangle edges", color=_COLOURS["triangle"], line_width=4)
-    put_mesh(plotter, pv.PolyData(corners * LINE_RADIUS), "query corners", color=_COLOURS["triangle"], point_size=14, render_points_as_spheres=True)
+    put_mesh(plotter, great_circle_arcs(corners, np.roll(corners, -1, axis=0)), "query triangle edges",
+             color=_COLOURS["triangle"], line_width=4)
+    put_mesh(plotter, pv.PolyData(corners * LINE_RADIUS), "query corners", color=_COLOURS["triangle"], point_size=14,
+             render_points_as_spheres=True)
     put_mesh(plotter, pv.Line((0.0, 0.0, 0.0), tuple(1.25 * direction)), "query", color=_COLOURS["query"], line_width=4)
     if handle:
         put_mesh(plotter, pv.Sphere(radius=0.05, center=tuple(direction)), "query handle", color=_COLOURS["query"])
     if bool(location.clamped):
-        put_mesh(plotter, pv.Sphere(radius=0.035, center=tuple(location.directions * LINE_RADIUS)), "clamped", color=_COLOURS["clamped"])
+        put_mesh(plotter, pv.Sphere(radius=0.035, center=tuple(location.directions * LINE_RADIUS)), "clamped",
+                 color=_COLOURS["clamped"])
     else:
         hide(plotter, "clamped")
     return location
@@ -324,7 +336,8 @@ def image_plane(image):
     colours = display_rgb8(image)
     height, width = colours.shape[:2]
     aspect = width / height
-    plane = pv.Plane(center=(0.5 * aspect, -0.5, 0.0), direction=(0.0, 0.0, 1.0), i_size=aspect, j_size=1.0, i_resolution=1,
+    plane = pv.Plane(center=(0.5 * aspect, -0.5, 0.0), direction=(0.0, 0.0, 1.0), i_size=aspect, j_size=1.0,
+                     i_resolution=1,
                      j_resolution=1)
     texture = pv.Texture(colours)
     texture.interpolate = False
@@ -337,7 +350,8 @@ def update_image(texture, image) -> None:
     pv_image = texture.to_image()
     width, height = pv_image.dimensions[:2]
     if colours.shape[:2] != (height, width):
-        raise InputError(f"the image is {colours.shape[1]} x {colours.shape[0]} pixels but the texture {width} x {height}")
+        raise InputError(
+            f"the image is {colours.shape[1]} x {colours.shape[0]} pixels but the texture {width} x {height}")
     pixels = pv_image.point_data.active_scalars
     pixels[:] = colours[::-1].reshape(-1, 3)  # VTK stores the bottom row first
     pv_image.Modified()
@@ -412,7 +426,8 @@ class GaussianPaths:
         import pyvista as pv
 
         points = {"circular": self.circular, "straight": self.straight}[check_path_method(method)]
-        mesh = pv.PolyData(to_plane(points, lift=lift).reshape(-1, 3), lines=_polyline_cells(len(points), points.shape[1]))
+        mesh = pv.PolyData(to_plane(points, lift=lift).reshape(-1, 3),
+                           lines=_polyline_cells(len(points), points.shape[1]))
         mesh.cell_data["gaussian"] = self.gaussian
         return mesh
 
@@ -456,7 +471,8 @@ def gaussian_colours(count: int) -> np.ndarray:
     return hsv_to_rgb(np.stack([hues, np.full(count, 0.75), np.ones(count)], axis=-1)).reshape(count, 3)
 
 
-def gaussian_ellipses(params, rows=None, *, sigmas: float = _ELLIPSE_SIGMAS, samples: int = _ELLIPSE_SAMPLES) -> np.ndarray:
+def gaussian_ellipses(params, rows=None, *, sigmas: float = _ELLIPSE_SIGMAS,
+                      samples: int = _ELLIPSE_SAMPLES) -> np.ndarray:
     """Outlines (G, S, 2) of active Gaussians at ``sigmas`` Mahalanobis units, image heights.
 
     Args:
@@ -473,7 +489,8 @@ def gaussian_ellipses(params, rows=None, *, sigmas: float = _ELLIPSE_SIGMAS, sam
     return mean[:, None] + rotated
 
 
-def plot_paths(field, direction, *, plotter=None, method: str = "circular", background=None, paths: GaussianPaths | None = None,
+def plot_paths(field, direction, *, plotter=None, method: str = "circular", background=None,
+               paths: GaussianPaths | None = None,
                interpolated=None, methods=PATH_METHODS, frame: str | None = "paths", location=None):
     """Draw the Gaussian paths of the triangle a light direction falls in, over the image plane.
 
@@ -526,13 +543,15 @@ def plot_paths(field, direction, *, plotter=None, method: str = "circular", back
             continue
         lines.cell_data["colour"] = _to_rgb8(colours[paths.gaussian])
         wide = name == "circular"
-        put_mesh(plotter, lines, f"paths {name}", scalars="colour", rgb=True, line_width=4.5 if wide else 2.0, opacity=1.0 if wide else 0.75,
+        put_mesh(plotter, lines, f"paths {name}", scalars="colour", rgb=True, line_width=4.5 if wide else 2.0,
+                 opacity=1.0 if wide else 0.75,
                  lighting=False, show_scalar_bar=False)
     starts, first = np.unique(paths.gaussian, return_index=True)
     if len(starts):
         dots = pv.PolyData(to_plane(paths.start[first], lift=2 * _PATH_LIFT))
         dots.point_data["colour"] = _to_rgb8(colours[starts])
-        put_mesh(plotter, dots, "path starts", scalars="colour", rgb=True, point_size=10, render_points_as_spheres=True, show_scalar_bar=False)
+        put_mesh(plotter, dots, "path starts", scalars="colour", rgb=True, point_size=10, render_points_as_spheres=True,
+                 show_scalar_bar=False)
     else:
         hide(plotter, "path starts")
     outlines = _plot_current_gaussians(plotter, interpolated, colours)
@@ -552,11 +571,13 @@ def _plot_current_gaussians(plotter, interpolated, colours: np.ndarray) -> np.nd
     if not len(active):
         hide(plotter, "gaussians now")
         return outlines
-    mesh = pv.PolyData(to_plane(outlines, lift=3 * _PATH_LIFT).reshape(-1, 3), lines=_polyline_cells(len(outlines), outlines.shape[1]))
+    mesh = pv.PolyData(to_plane(outlines, lift=3 * _PATH_LIFT).reshape(-1, 3),
+                       lines=_polyline_cells(len(outlines), outlines.shape[1]))
     alpha = np.clip(interpolated.weight[0][active], 0.15, 1.0)
     rgba = np.concatenate([colours[active], alpha[:, None]], axis=1)
     mesh.cell_data["colour"] = np.round(255 * rgba).astype(np.uint8)
-    put_mesh(plotter, mesh, "gaussians now", scalars="colour", rgba=True, line_width=2.5, lighting=False, show_scalar_bar=False)
+    put_mesh(plotter, mesh, "gaussians now", scalars="colour", rgba=True, line_width=2.5, lighting=False,
+             show_scalar_bar=False)
     return outlines
 
 

@@ -22,7 +22,8 @@ from ..model.residual import (
 )
 from ..relight.relighter import face_edge_rows, rim_tables
 
-__all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays", "export_viewer", "single_file_page"]
+__all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays",
+           "export_viewer", "single_file_page"]
 
 WEB_FORMAT = 2
 """Version of the exported layout that viewer.js reads."""
@@ -45,7 +46,8 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
     """The manifest and the arrays (little-endian, row-major) of ``field``'s viewer."""
     residual = field.residual
     if residual is None:
-        raise InputError("the web viewer needs a field with a residual (fields before version 0.2 have none: fit it again)")
+        raise InputError(
+            "the web viewer needs a field with a residual (fields before version 0.2 have none: fit it again)")
     arrays: dict[str, np.ndarray] = {}
     tri = field.triangulation
     arrays["directions"] = field.lights.directions.astype("<f8")
@@ -66,7 +68,8 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
     arrays["path_delta"] = field.path_delta.astype("<f4")
     most = 3 * int(field.estimated.active.sum(axis=1).max(initial=0))
     if most > MAX_PAGE_GAUSSIANS:
-        raise InputError(f"a query of this field draws up to {most} Gaussians; the web viewer draws at most {MAX_PAGE_GAUSSIANS} "
+        raise InputError(f"a query of this field draws up to {most} Gaussians; the web viewer draws at most "
+                         f"{MAX_PAGE_GAUSSIANS} "
                          f"(fit with a smaller estimation.capacity)")
     channels = residual.channels
     if residual.highlight_colour is not None:
@@ -76,7 +79,8 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
     if residual.learned is not None:
         kind, details = "learned", _learned_arrays(residual.learned, arrays)
     elif residual.compressed:
-        kind, details = "lowrank", {name: _stack_arrays(name, stack, arrays) for name, stack in (("luminance", residual.luminance), ("chroma", residual.chroma))
+        kind, details = "lowrank", {name: _stack_arrays(name, stack, arrays)
+                                    for name, stack in (("luminance", residual.luminance), ("chroma", residual.chroma))
                                     if stack is not None}
     else:
         kind, details = "images", {}
@@ -85,11 +89,14 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
     manifest = {
         "format": "warp-highlights web viewer", "version": WEB_FORMAT,
         "width": field.width, "height": field.height, "channels": channels, "lights": field.light_count,
-        "faces": int(tri.face_count), "capacity": field.capacity, "max_gaussians": max(most, 1), "is_dome": rim is not None,
-        "exposure": float(field.exposure), "cutoff": float(settings.raster.cutoff), "sigma_eps": float(settings.raster.sigma_eps),
+        "faces": int(tri.face_count), "capacity": field.capacity, "max_gaussians": max(most, 1),
+        "is_dome": rim is not None,
+        "exposure": float(field.exposure), "cutoff": float(settings.raster.cutoff),
+        "sigma_eps": float(settings.raster.sigma_eps),
         "straight_below": float(settings.paths.straight_below), "colour_step": COLOUR_STEP,
         "residual": {"kind": kind, **details},
-        "arrays": {name: {"file": f"{name}.bin", "dtype": array.dtype.str, "shape": list(array.shape)} for name, array in arrays.items()},
+        "arrays": {name: {"file": f"{name}.bin", "dtype": array.dtype.str, "shape": list(array.shape)}
+                   for name, array in arrays.items()},
     }
     return manifest, arrays
 
@@ -130,23 +137,28 @@ def single_file_page(field, *, limit: int | None = None) -> bytes:
     limit = SINGLE_FILE_LIMIT if limit is None else limit
     manifest, arrays = export_arrays(field)
     encoded = encoded_arrays(manifest, arrays)
-    embedded = {"manifest": manifest, "arrays": {name: base64.b64encode(data).decode("ascii") for name, data in encoded.items()}}
+    embedded = {"manifest": manifest,
+                "arrays": {name: base64.b64encode(data).decode("ascii") for name, data in encoded.items()}}
     page = (_STATIC / "index.html").read_text()
     viewer = (_STATIC / "viewer.js").read_text()
     if _IMPORT_LINE not in page or _EMBED_MARK not in page or re.search(r"</script|<!--", viewer, re.IGNORECASE):
         raise RuntimeError("web/static/index.html or viewer.js changed: single_file_page cannot inline them")
     page = page.replace(_IMPORT_LINE, viewer)
-    page = page.replace(_EMBED_MARK, f'<script type="application/json" id="embedded-field">{json.dumps(embedded)}</script>')
+    page = page.replace(_EMBED_MARK,
+                        f'<script type="application/json" id="embedded-field">{json.dumps(embedded)}</script>')
     data = page.encode("utf-8")
     if len(data) > limit:
-        raise InputError(f"a single-file viewer of this field would be {len(data) / 2**20:.1f} MiB, over the {limit / 2**20:.0f} MiB that mail "
-                         f"services take; export it as a folder (without --single-file) and serve it, or fit a smaller --size")
+        raise InputError(f"a single-file viewer of this field would be {len(data) / 2**20:.1f} MiB, over the "
+                         f"{limit / 2**20:.0f} MiB that mail "
+                         f"services take; export it as a folder (without --single-file) and serve it, or fit "
+                         f"a smaller --size")
     return data
 
 
 def _gaussian_table(params) -> np.ndarray:
     """(B, N, 6) float32: |a|, mu_x, mu_y, |sigma_x|, |sigma_y|, theta per slot."""
-    return np.concatenate([np.abs(params.amplitude)[..., None], params.mean, np.abs(params.sigma), params.theta[..., None]], axis=2).astype("<f4")
+    return np.concatenate([np.abs(params.amplitude)[..., None], params.mean, np.abs(params.sigma),
+                           params.theta[..., None]], axis=2).astype("<f4")
 
 
 def _compact(values: np.ndarray) -> np.ndarray:
@@ -173,7 +185,8 @@ def _stack_arrays(name: str, stack, arrays: dict) -> dict:
     packed = np.zeros((height, width, 4 * groups), dtype=stack.codes.dtype)
     packed[..., : rank * planes] = items
     bits = 8 if stack.codes.dtype == np.uint8 else 16
-    arrays[f"{name}_codes"] = np.ascontiguousarray(packed.reshape(height, width, groups, 4).transpose(2, 0, 1, 3), dtype="u1" if bits == 8 else "<u2")
+    arrays[f"{name}_codes"] = np.ascontiguousarray(packed.reshape(height, width, groups, 4).transpose(2, 0, 1, 3),
+                                                   dtype="u1" if bits == 8 else "<u2")
     arrays[f"{name}_ranges"] = stack.ranges.astype("<f4")
     arrays[f"{name}_weights"] = stack.weights.astype("<f4")
     mean_weights = np.ones(len(stack.weights), np.float32) if stack.mean_weights is None else stack.mean_weights
@@ -184,7 +197,8 @@ def _stack_arrays(name: str, stack, arrays: dict) -> dict:
 def _learned_arrays(learned, arrays: dict) -> dict:
     """Add a learned residual's codes, three to a texel (3, H, W, 3) float16, and its eight weight arrays."""
     height, width, _ = learned.codes.shape
-    arrays["learned_codes"] = np.ascontiguousarray(learned.codes.reshape(height, width, NEURAL_CODE_SIZE // 3, 3).transpose(2, 0, 1, 3), dtype="<f2")
+    arrays["learned_codes"] = np.ascontiguousarray(learned.codes.reshape(height, width, NEURAL_CODE_SIZE // 3,
+                                                                         3).transpose(2, 0, 1, 3), dtype="<f2")
     for index, weights in enumerate(learned.weights):
         arrays[f"learned_{'wb'[index % 2]}{index // 2}"] = np.ascontiguousarray(weights, dtype="<f4")
     return {"unit": float(learned.unit)}
