@@ -30,8 +30,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from warp_highlights.io.fieldfile import load_field
-from warp_highlights.view.animation import orbit
 from warp_highlights.view.designer import LightDesigner
+from warp_highlights.view.light_paths import orbit
 
 PANEL_SETS = (("sphere", "image", "paths"), ("sphere",), ("image",), ("paths",))
 

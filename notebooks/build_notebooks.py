@@ -241,7 +241,7 @@ The highlights move continuously with the light. Four directions on a circle at 
 elevation (the orbit `warp-highlights animate --path orbit:35` draws), one batch of queries:
 """),
     code("""
-from warp_highlights.view.animation import orbit
+from warp_highlights.view.light_paths import orbit
 
 directions = orbit(35.0, 4)
 frames = wh.relight_field(field, directions, device=device)

@@ -14,15 +14,8 @@ from warp_highlights.io.lightfile import write_lp
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
 from warp_highlights.view import animation as animation_module
-from warp_highlights.view.animation import (
-    animation_kind,
-    check_animation_output,
-    great_circle,
-    orbit,
-    parse_light_path,
-    through_directions,
-    write_animation,
-)
+from warp_highlights.view.animation import animation_kind, check_animation_output, write_animation
+from warp_highlights.view.light_paths import great_circle, orbit, parse_light_path, through_directions
 
 Image = pytest.importorskip("PIL.Image")
 

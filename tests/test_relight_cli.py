@@ -267,7 +267,7 @@ def test_animate_to_a_folder_of_frames(small_field, field, tmp_path):
                  "-q"]) == 0
     names = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     assert len(names) == 6 and all(n.endswith(".png") for n in names)
-    from warp_highlights.view.animation import orbit
+    from warp_highlights.view.light_paths import orbit
 
     expected = np.clip(_relighter(field).relight(orbit(30, 6)).full, 0, 1)
     for i, name in enumerate(names):
@@ -288,7 +288,7 @@ def test_animate_compare_puts_the_methods_side_by_side(small_field, field, tmp_p
 
 
 def test_animate_a_great_circle_to_exr_frames(small_field, field, tmp_path):
-    from warp_highlights.view.animation import great_circle
+    from warp_highlights.view.light_paths import great_circle
 
     out = tmp_path / "arc"
     assert main(["animate", str(small_field), "--path", "great:1,0,1:-1,0,1", "--frames", "3", "--exr",
@@ -308,7 +308,7 @@ def test_animate_compare_with_the_alpha_blend(small_field, small_donut, field, t
                  "--specular-only", "-o", str(out), "--device", "cpu", "-q"]) == 0
     frames = [read_image(p) for p in sorted(out.glob("frame_*"))]
     assert len(frames) == 2 and frames[0].shape == (field.height, 2 * field.width)
-    from warp_highlights.view.animation import orbit
+    from warp_highlights.view.light_paths import orbit
 
     circular = _relighter(field).relight(orbit(30, 2), full=False).specular
     np.testing.assert_allclose(frames[1][:, : field.width], circular[1], rtol=1e-6, atol=1e-7)  # left: circular

@@ -121,7 +121,8 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     from ..relight.evaluation import evaluate_field
     from ..relight.relighter import Relighter, alpha_inputs
     from ..synth.render import RenderSettings, default_material, render_dataset
-    from ..view.animation import orbit, write_animation
+    from ..view.animation import write_animation
+    from ..view.light_paths import orbit
     from ..view.preview import save_contact_sheet
     from .relight import write_evaluation
 

@@ -277,12 +277,8 @@ def _parse_methods(text: str) -> tuple[str, ...]:
 
 def _run_animate(args) -> int:
     from ..io.fieldfile import load_field
-    from ..view.animation import (
-        check_animation_output,
-        default_animation_size,
-        parse_light_path,
-        write_animation,
-    )
+    from ..view.animation import check_animation_output, default_animation_size, write_animation
+    from ..view.light_paths import parse_light_path
 
     frames_format = "exr" if args.exr else "png"
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
@@ -341,7 +337,8 @@ def _check_relight(args) -> None:
 
 
 def _check_animate(args) -> None:
-    from ..view.animation import animation_kind, parse_light_path
+    from ..view.animation import animation_kind
+    from ..view.light_paths import parse_light_path
 
     kind = animation_kind(args.output)  # an unknown suffix is refused
     if args.exr and kind != "frames":

@@ -21,8 +21,8 @@ __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
         "LightDesigner": "designer",
-        **dict.fromkeys(["orbit", "great_circle", "through_directions", "parse_light_path", "write_animation"],
-                        "animation"),
+        **dict.fromkeys(["orbit", "great_circle", "through_directions", "parse_light_path"], "light_paths"),
+        "write_animation": "animation",
         **dict.fromkeys(["contact_sheet", "save_contact_sheet"], "preview"),
     },
     modules={"viz": "viz", "plots": "plots"},
