@@ -43,8 +43,8 @@ __all__ = ["CODES_LEVEL", "CompressedCodes", "chunk_size", "codes_from_differenc
            "stored_codes", "stored_shape"]
 
 CODES_LEVEL = 1
-"""Zstandard level inside each basis image's Blosc chunk (on the dome's and the statue's codes, levels 3
-and 5 gave 101-103% and 97-100% of level 1's bytes in 2-3 and 4-6 times its seconds)."""
+"""Zstandard level inside each basis image's Blosc chunk: on the samples' codes, higher levels gave about the
+same bytes in several times the seconds."""
 
 
 def stored_shape(rank: int, planes: int, height: int, width: int, bits: int) -> tuple:
