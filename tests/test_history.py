@@ -36,10 +36,11 @@ DIVIDER = re.compile(r"^\s*#\s*-{3}.*-{3}\s*$")  # "# --- helpers ----": a secti
 
 
 def searched_files() -> list[Path]:
-    """The package's files (warp_highlights/, kernels/) and the benchmark scripts."""
+    """The package's files (warp_highlights/, kernels/), the benchmark scripts and their recorded results."""
     files = [p for folder in ("warp_highlights", "kernels") for p in (ROOT / folder).rglob("*")
              if p.suffix in SUFFIXES and p.is_file() and "__pycache__" not in p.parts]
-    return sorted(files + sorted((ROOT / "benchmarks").glob("*.py")))
+    results = sorted((ROOT / "benchmarks" / "results").glob("*.json"))  # recorded runs: their notes and machines
+    return sorted(files + sorted((ROOT / "benchmarks").glob("*.py")) + results)
 
 
 def prose(path: Path, text: str) -> list[tuple[int, str]]:
@@ -67,7 +68,8 @@ def history_lines(path: Path, text: str) -> list[str]:
 def test_the_search_covers_the_package_and_the_benchmarks():
     names = {p.relative_to(ROOT).as_posix() for p in searched_files()}
     assert {"warp_highlights/__init__.py", "warp_highlights/model/config.py", "kernels/raster.py",
-            "benchmarks/bench_quality.py", "warp_highlights/web/static/viewer.js"} <= names
+            "benchmarks/bench_quality.py", "warp_highlights/web/static/viewer.js",
+            "benchmarks/results/bench_quality_cpu.json"} <= names
     assert not any(name.startswith("tests/") for name in names)
 
 
@@ -117,3 +119,11 @@ def test_the_search_finds_a_planted_docstring_string_and_page_line(planted):
 def test_the_search_lets_ordinary_code_and_words_pass(legitimate):
     assert history_lines(Path("m.py"), legitimate + "\n") == []
     assert history_lines(Path("page.html"), "<style>body { background: #000; color: #111 }</style>\n") == []
+
+
+def test_no_file_name_tells_how_the_software_was_made():
+    """Recorded results are named by what and where they measured, and the commit, not by a working session."""
+    folders = ("warp_highlights", "kernels", "benchmarks", "docs", "tests", "notebooks")
+    names = [p.relative_to(ROOT).as_posix() for folder in folders for p in (ROOT / folder).rglob("*") if p.is_file()]
+    assert "benchmarks/results/bench_quality_cpu.json" in names
+    assert [name for name in names if re.search(r"(?i)session|issue\d", name)] == []
