@@ -212,7 +212,7 @@ def test_learned_residual_checks_its_arrays():
     weights = tuple(np.zeros(shape, np.float32) for shape in NEURAL_LAYER_SHAPES)
     good = NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, 2.0, 7)
     model = ResidualModel(learned=good)
-    assert (model.height, model.width, model.channels, model.light_count, model.compressed) == (4, 5, 3, 7, False)
+    assert (model.height, model.width, model.channels, model.light_count, model.kind) == (4, 5, 3, 7, "learned")
     with pytest.raises(InputError, match="codes"):
         NeuralResidual(np.zeros((4, 5, 8), np.float16), weights, 2.0, 7)
     with pytest.raises(InputError, match="weight arrays"):

@@ -79,7 +79,7 @@ def fields(small_field, tmp_path_factory):
 
     field = load_field(small_field)
     residual = field.residual
-    assert residual.compressed and residual.learned is None
+    assert residual.kind == "lowrank" and residual.learned is None
     rng = np.random.default_rng(7)
     weights = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32) for shape in NEURAL_LAYER_SHAPES)
     codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)

@@ -253,11 +253,14 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
           f"than 4 lit samples)")
     residual = report.get("residual")
     if residual:
-        kind = (f"low rank (luminance {residual['luminance_rank']}"
-                + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
-                + f", {residual['basis_bits']}-bit)"
-                if residual["compressed"] else f"learned ({residual['learned']['epochs']} epochs)"
-                if residual.get("learned") else "uncompressed images")
+        if residual["kind"] == "lowrank":
+            kind = (f"low rank (luminance {residual['luminance_rank']}"
+                    + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
+                    + f", {residual['basis_bits']}-bit)")
+        elif residual["kind"] == "learned":
+            kind = f"learned ({residual['learned']['epochs']} epochs)"
+        else:
+            kind = "uncompressed images"
         print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} "
               f"blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")

@@ -339,7 +339,7 @@ def _write_archive(field: HighlightField, stream, *, lambert_half: bool) -> dict
 
 def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     """The header layout and the (name, array) entries of a residual model, planes channel-first."""
-    layout = {"channels": residual.channels, "compressed": residual.compressed,
+    layout = {"channels": residual.channels, "compressed": residual.kind == "lowrank",
               "highlight_colour": residual.highlight_colour is not None,
               "scale": residual.scale is not None}
     arrays = []

@@ -294,11 +294,6 @@ class ResidualModel:
         return "lowrank" if self.luminance is not None else "learned" if self.learned is not None else "images"
 
     @property
-    def compressed(self) -> bool:
-        """True for a low-rank stack (not for uncompressed images, nor for a learned residual)."""
-        return self.luminance is not None
-
-    @property
     def light_count(self) -> int:
         if self.learned is not None:
             return self.learned.light_count

@@ -766,7 +766,7 @@ def _diffuse_mode(field, diffuse: str) -> tuple[int, bool]:
                              "images; fields before version 0.2 have none)")
         if residual.learned is not None:
             return kernels.DIFFUSE_DECODED, False
-        return (kernels.DIFFUSE_LOWRANK, False) if residual.compressed else (kernels.DIFFUSE_BLEND, True)
+        return (kernels.DIFFUSE_LOWRANK, False) if residual.kind == "lowrank" else (kernels.DIFFUSE_BLEND, True)
     if model is None:
         raise InputError(
             f"diffuse '{diffuse}' needs a field fitted with a diffuse model (fit --diffuse lambert or images)")

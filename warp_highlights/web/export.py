@@ -78,7 +78,7 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
         arrays["scale"] = _compact(residual.scale)
     if residual.learned is not None:
         kind, details = "learned", _learned_arrays(residual.learned, arrays)
-    elif residual.compressed:
+    elif residual.kind == "lowrank":
         kind, details = "lowrank", {name: _stack_arrays(name, stack, arrays)
                                     for name, stack in (("luminance", residual.luminance), ("chroma", residual.chroma))
                                     if stack is not None}
