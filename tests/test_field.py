@@ -988,7 +988,6 @@ LEGACY = Path(__file__).resolve().parent / "data"
 
 def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_same(tmp_path):
     """tests/data/legacy-v1.whf was written by the flat-package version (commit 6f21722)."""
-    from warp_highlights.relight.relighter import Relighter
 
     path = LEGACY / "legacy-v1.whf"
     field = load_field(path)
@@ -997,17 +996,10 @@ def test_a_field_written_before_the_layout_change_loads_relights_and_saves_the_s
     assert field.diffuse is not None and field.diffuse.images is not None
     assert field_size_report(field)["total"] == path.stat().st_size == 60165
 
-    expected = np.load(LEGACY / "legacy-v1-relit.npz")
-    for method in ("circular", "straight"):
-        relit = Relighter(field, device="cpu", diffuse="auto",
-                          scale=1.0 / field.exposure).relight(expected["directions"], method=method)
-        np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
-
+    _assert_relights_as_recorded(field, "legacy-v1-relit.npz")
     again = tmp_path / "again.whf"
     save_field(field, again)
-    old_header, new_header = (json.loads(entries(data)["header.json"])
-                              for data in (path.read_bytes(), again.read_bytes()))
+    old_header, new_header = _headers(path, again)
     old, new = npy_entries(path.read_bytes()), npy_entries(again.read_bytes())
     assert list(new) == list(old)
     assert old_header.pop("library_version") == "0.1.0"
@@ -1083,7 +1075,6 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     that version relit, and is written back in the current format with every array the same."""
     import hashlib
 
-    from warp_highlights.relight.relighter import Relighter
 
     path = LEGACY / "legacy-v4.whf"
     with zipfile.ZipFile(path) as archive:
@@ -1096,17 +1087,10 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
             == "598d2c92922649fa91e1ce7d604a3a4185161f6d0a32045ccc5b4c4cbc718cd9")
     assert field_size_report(field)["total"] == path.stat().st_size == 26937
 
-    expected = np.load(LEGACY / "legacy-v4-relit.npz")
-    for method in ("circular", "straight"):
-        relit = Relighter(field, device="cpu", diffuse="auto",
-                          scale=1.0 / field.exposure).relight(expected["directions"], method=method)
-        np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
-
+    _assert_relights_as_recorded(field, "legacy-v4-relit.npz")
     again = tmp_path / "again.whf"
     save_field(field, again)
-    old_header, new_header = (json.loads(entries(data)["header.json"])
-                              for data in (path.read_bytes(), again.read_bytes()))
+    old_header, new_header = _headers(path, again)
     assert new_header["format_version"] == FORMAT_VERSION == 5
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")
@@ -1118,3 +1102,21 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     assert new == old  # every other array's .npy file byte for byte
     reloaded = load_field(again)
     np.testing.assert_array_equal(reloaded.residual.luminance.codes, luminance.codes)
+
+
+def _assert_relights_as_recorded(field, recorded: str) -> None:
+    """``field`` relit at the directions ``tests/data/RECORDED`` holds gives the images recorded there (circular and
+    straight paths, specular and full)."""
+    from warp_highlights.relight.relighter import Relighter
+
+    expected = np.load(LEGACY / recorded)
+    for method in ("circular", "straight"):
+        relit = Relighter(field, device="cpu", diffuse="auto",
+                          scale=1.0 / field.exposure).relight(expected["directions"], method=method)
+        np.testing.assert_allclose(relit.specular, expected[f"{method}_specular"], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(relit.full, expected[f"{method}_full"], rtol=1e-5, atol=1e-6)
+
+
+def _headers(*paths: Path) -> tuple[dict, ...]:
+    """The ``header.json`` of each field file."""
+    return tuple(json.loads(entries(path.read_bytes())["header.json"]) for path in paths)

@@ -82,15 +82,13 @@ class LearnedCheck:
         return not len(self.lights) or float(np.mean(self.with_gaussians)) >= float(np.mean(self.images_alone))
 
     def report(self) -> dict:
-        """Plain figures for the fit report."""
-        if not len(self.lights):
-            return {"lights": 0, "keeps_gaussians": True}
-        return {
-            "lights": int(len(self.lights)),
-            "with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
-            "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3),
-            "keeps_gaussians": self.keeps_gaussians,
-        }
+        """Plain figures for the fit report: the lights checked, the verdict and, where any were checked, both
+        models' mean scores."""
+        scores = {}
+        if len(self.lights):
+            scores = {"with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
+                      "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3)}
+        return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians}
 
 
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
