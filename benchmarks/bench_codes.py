@@ -74,7 +74,7 @@ def with_kept_chunks(field):
         kept = CompressedCodes()
         stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]
         kept.keep({CompressedCodes.key(image): compressed_chunk(image) for image in stored})
-        stacks[name] = dataclasses.replace(stack, deflated=kept)
+        stacks[name] = dataclasses.replace(stack, chunks=kept)
     return dataclasses.replace(field, residual=dataclasses.replace(residual, **stacks))
 
 

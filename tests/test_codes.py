@@ -275,10 +275,10 @@ def test_the_rate_search_keeps_the_chunks_the_file_then_stores(whole, tmp_path, 
     plan = StackPlan(principal, 1.0, principal.count - 1)
     budget = 0.5 * float(component_bytes(quantised_stack(principal, principal.spans / code_levels(16), bits=16)).sum())
     _, (steps,) = allocate([plan], budget, bits=16)
-    assert len(plan.deflated) == len(steps) > 0
-    kept = quantised_stack(principal, steps, bits=16, deflated=plan.deflated)
+    assert len(plan.chunks) == len(steps) > 0
+    kept = quantised_stack(principal, steps, bits=16, chunks=plan.chunks)
     plain = quantised_stack(principal, steps, bits=16)
-    assert plain.deflated is None
+    assert plain.chunks is None
     for name in ("codes", "ranges", "weights", "mean_weights"):  # the chunks change nothing of the model
         np.testing.assert_array_equal(getattr(kept, name), getattr(plain, name))
     compressed = []
@@ -306,7 +306,7 @@ def test_chunks_kept_for_other_codes_are_not_used(tmp_path):
     coarse, fine = (principal.spans / code_levels(16) * factor for factor in (40.0, 2.0))
     store = CompressedCodes()
     RateSample(principal, len(coarse), whole=True).bytes(coarse, bits=16, keep=store)
-    stale = quantised_stack(principal, fine, bits=16, deflated=store)
+    stale = quantised_stack(principal, fine, bits=16, chunks=store)
     fresh = quantised_stack(principal, fine, bits=16)
     _codes_entry(field, stale, tmp_path / "stale.whf")
     _codes_entry(field, fresh, tmp_path / "fresh.whf")
@@ -329,8 +329,8 @@ def test_the_latest_two_measurements_are_kept():
     for image in images:
         store.keep({CompressedCodes.key(image): b"kept"})
     assert len(store) == 1
-    assert store.piece(images[2]) == b"kept" and store.piece(images[1]) == b"kept"
-    assert store.piece(images[0]) == compressed_chunk(images[0])  # dropped: compressed now
+    assert store.chunk(images[2]) == b"kept" and store.chunk(images[1]) == b"kept"
+    assert store.chunk(images[0]) == compressed_chunk(images[0])  # dropped: compressed now
 
 
 @pytest.mark.parametrize("chunk", [1 << 15, 7, 1])
@@ -357,7 +357,7 @@ def test_codes_rounded_a_chunk_at_a_time_are_those_of_the_whole(monkeypatch, chu
 
 @pytest.mark.parametrize("whole", [False, True])
 def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
-    """``RateSample.deflated``: each image's bytes at the sample's rows (a subset measures only its
+    """``RateSample.chunk_bytes``: each image's bytes at the sample's rows (a subset measures only its
     images, the same bytes, the others 0); an image measured before at the same step and bits is not
     compressed again, another step or bit depth is."""
     import warp_highlights.residual.rate as residual_module
@@ -369,9 +369,9 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     monkeypatch.setattr(residual_module, "compressed_chunk", lambda data: calls.append(1) or real(data))
     sample = RateSample(principal, 5, whole=whole)
     assert sample.exact == whole
-    subset = sample.deflated(steps, bits=16, images=np.array([3, 1, 3]))
+    subset = sample.chunk_bytes(steps, bits=16, images=np.array([3, 1, 3]))
     assert len(calls) == 2 and not subset[[0, 2, 4]].any() and subset[[1, 3]].all()
-    every = sample.deflated(steps, bits=16)
+    every = sample.chunk_bytes(steps, bits=16)
     assert len(calls) == 5
     np.testing.assert_array_equal(every[[1, 3]], subset[[1, 3]])
     stack = quantised_stack(principal, steps, bits=16)
@@ -380,12 +380,12 @@ def test_a_rate_sample_compresses_each_image_once_per_step(monkeypatch, whole):
     np.testing.assert_array_equal(every, expected)
     changed = steps.copy()
     changed[2] *= 2.0
-    sample.deflated(changed, bits=16)
+    sample.chunk_bytes(changed, bits=16)
     assert len(calls) == 6
     coarse = principal.spans[:5] / 255 * np.array([2.0, 3.0, 4.0, 5.0, 6.0])  # steps both bit depths keep as they are
-    sample.deflated(coarse, bits=16)
+    sample.chunk_bytes(coarse, bits=16)
     assert len(calls) == 11
-    sample.deflated(coarse, bits=8)
+    sample.chunk_bytes(coarse, bits=8)
     assert len(calls) == 16
     assert (sample.bytes(steps[:3], bits=16) == float(every[:3].sum()) * sample.scale + 3 * sample.per_image
             and len(calls) == 16)
@@ -399,15 +399,15 @@ def test_a_kept_measurement_takes_the_chunks_it_holds_and_compresses_nothing_twi
     steps = principal.spans[:4] / code_levels(16) * np.array([2.0, 5.0, 9.0, 30.0])
     sample = RateSample(principal, 4, whole=True)
     store = CompressedCodes()
-    early = sample.deflated(steps[:2], bits=16)  # images 0 and 1 measured, no chunks kept
+    early = sample.chunk_bytes(steps[:2], bits=16)  # images 0 and 1 measured, no chunks kept
     measured = []
     real = sample._measured
     sample._measured = (lambda indices, *args, **kwargs: measured.append(indices.tolist())
                         or real(indices, *args, **kwargs))
-    first = sample.deflated(steps, bits=16, keep=store)
+    first = sample.chunk_bytes(steps, bits=16, keep=store)
     assert measured == [[2, 3]] and len(store) == 2 and np.array_equal(first[:2], early)
     chunks = dict(store._kept[0])
-    assert (np.array_equal(sample.deflated(steps, bits=16, keep=store), first) and measured[-1] == []
+    assert (np.array_equal(sample.chunk_bytes(steps, bits=16, keep=store), first) and measured[-1] == []
             and store._kept[0] == chunks)
     stack = quantised_stack(principal, steps, bits=16)
     stored = [stored_codes(code.transpose(2, 0, 1)) for code in stack.codes]

@@ -144,8 +144,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
             # a gap between the bands, each row with the one above
             assert np.any(np.diff(a.stored_rows) > 1) and np.all(a.above[1:] >= 0)
         subset = np.array([0, 2, 4, 5])  # runs of one and two images, the first two in one group
-        np.testing.assert_array_equal(a.deflated(steps, bits=bits, images=subset),
-                                      b.deflated(steps, bits=bits, images=subset))
+        np.testing.assert_array_equal(a.chunk_bytes(steps, bits=bits, images=subset),
+                                      b.chunk_bytes(steps, bits=bits, images=subset))
         assert a.bytes(steps, bits=bits) == b.bytes(steps, bits=bits)
         # fewer images into the memory kept
         assert a.bytes(steps[:3] * 2, bits=bits) == b.bytes(steps[:3] * 2, bits=bits)
@@ -154,7 +154,8 @@ def test_the_rate_search_and_the_stack_quantise_held_images_as_the_host_does(dev
             real = residual_module.compressed_chunk
             slow.setattr(residual_module, "compressed_chunk", lambda data: time.sleep(0.02) or real(data))
             fresh = RateSample(there, 6, whole=whole)  # three groups of two images in two slots, each measured once
-            np.testing.assert_array_equal(fresh.deflated(steps * 1.5, bits=bits), b.deflated(steps * 1.5, bits=bits))
+            np.testing.assert_array_equal(fresh.chunk_bytes(steps * 1.5, bits=bits),
+                                          b.chunk_bytes(steps * 1.5, bits=bits))
     kept_there, kept_host = CompressedCodes(), CompressedCodes()
     assert (quantised_bytes(there, steps, bits=bits, keep=kept_there)
             == quantised_bytes(host, steps, bits=bits, keep=kept_host))

@@ -204,7 +204,7 @@ def test_the_bits_are_those_of_the_lower_predicted_error_and_16_are_tried_only_w
 
 def test_the_search_lands_in_the_window_under_the_budget():
     """On exact bytes, the search stays within the budget and spends nearly all of it (it aims at 1%
-    under; deflated bytes are not smooth in the steps, so a few % where no step lands closer), wherever
+    under; compressed bytes are not smooth in the steps, so a few % where no step lands closer), wherever
     the budget is between the floor alone and everything kept; its distortion gives its steps."""
     n, h, w = 30, 36, 48
     principal = PrincipalImages.of(_patterned_stack(n, h, w, 1, 16, 0.8))
@@ -775,7 +775,7 @@ def test_16_bit_bases_quantise_finer_and_round_trip_through_the_file(donut_field
 
 
 def test_sampled_rows_are_spread_bands_or_every_row():
-    assert np.array_equal(sampled_rows(54, 96, 1), np.arange(54))  # a small image is deflated whole
+    assert np.array_equal(sampled_rows(54, 96, 1), np.arange(54))  # a small image is compressed whole
     rows = sampled_rows(1080, 1920, 1)
     assert len(rows) % 8 == 0 and len(rows) >= rate_module._RATE_SHARE * 1080 and len(np.unique(rows)) == len(rows)
     bands = rows.reshape(-1, 8)
@@ -861,7 +861,7 @@ def _sampled_principal(seed: int) -> PrincipalImages:
 
 
 def test_the_rate_search_deflates_no_image_twice_at_one_step_and_keeps_the_budget(monkeypatch):
-    """On images large enough for a sampled search, no image of any sample is deflated twice at the same
+    """On images large enough for a sampled search, no image of any sample is compressed twice at the same
     step and bits, and the exact bytes of the answer stay within the budget (within 1% under it where
     no image's entry makes the bytes jump by more than that: most budgets here)."""
     principal = _sampled_principal(2)
@@ -894,21 +894,21 @@ def test_calibration_absorbs_a_sample_s_bias_in_one_exact_measurement(monkeypatc
     lands in the budget's 1% window (uncalibrated, it would land about 6% under it and measure again)."""
     principal = _sampled_principal(2)
     plan = StackPlan(principal, 1.0, principal.count - 1)
-    real_deflated, real_bytes = RateSample.deflated, RateSample.bytes
+    real_chunk_bytes, real_bytes = RateSample.chunk_bytes, RateSample.bytes
     whole = RateSample(principal, principal.count - 1, whole=True)
     exact = []
 
     # the sample: each image's whole bytes, 6% over, per sampled row
     def biased(self, steps, *, bits, keep=None, images=None):
         if self.exact:
-            return real_deflated(self, steps, bits=bits, keep=keep, images=images)
-        return np.rint(real_deflated(whole, steps, bits=bits, images=images) * 1.06 / self.scale).astype(np.int64)
+            return real_chunk_bytes(self, steps, bits=bits, keep=keep, images=images)
+        return np.rint(real_chunk_bytes(whole, steps, bits=bits, images=images) * 1.06 / self.scale).astype(np.int64)
 
     def counted(self, steps, *, bits, keep=None, calibration=1.0):
         exact.append(self.exact)
         return real_bytes(self, steps, bits=bits, keep=keep, calibration=calibration)
 
-    monkeypatch.setattr(RateSample, "deflated", biased)
+    monkeypatch.setattr(RateSample, "chunk_bytes", biased)
     monkeypatch.setattr(RateSample, "bytes", counted)
     steps = allocate_steps([plan], budget, bits=16)[0]
     assert exact.count(True) == 1

@@ -167,7 +167,7 @@ class CompressedCodes:
                 return chunks[key]
         return None
 
-    def piece(self, stored: np.ndarray) -> bytes:
+    def chunk(self, stored: np.ndarray) -> bytes:
         """The chunk of ``stored``: the one held for its content, else compressed now (nothing hashed
         where nothing is held: a field loaded and saved again)."""
         if not self._kept:

@@ -427,12 +427,12 @@ class _Ahead:
 class _CodeChunks(_Ahead):
     """A low-rank stack's (k, H, W, P) basis codes as ``io.codes`` stores them: the Blosc chunk of the
     ``.npy`` header of the stored (``stored_shape``) uint8 array, then each image's chunk, in order,
-    taken from the stack's ``deflated`` (what the fit's rate search compressed,
+    taken from the stack's ``chunks`` (what the fit's rate search compressed,
     ``io.codes.CompressedCodes``) or compressed here, in threads."""
 
     def __init__(self, stack: LowRankStack):
         self.codes = stack.codes
-        self.chunks = stack.deflated if stack.deflated is not None else CompressedCodes()
+        self.chunks = stack.chunks if stack.chunks is not None else CompressedCodes()
         rank, height, width, planes = self.codes.shape
         self.shape = stored_shape(rank, planes, height, width, 8 if self.codes.dtype == np.uint8 else 16)
         self.nbytes = math.prod(self.shape)
@@ -442,7 +442,7 @@ class _CodeChunks(_Ahead):
         if index == 0:
             return compressed_chunk(_npy_header(np.uint8, self.shape))
         # Blosc (off the main thread) and hashlib let go of the GIL
-        return self.chunks.piece(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))
+        return self.chunks.chunk(stored_codes(self.codes[index - 1].transpose(2, 0, 1)))
 
 
 class _ArrayChunks(_Ahead):

@@ -34,7 +34,7 @@ import numpy as np
 
 from .errors import InputError, finite_array
 
-__all__ = ["COLOUR_STEP", "DeflatedPieces", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
+__all__ = ["COLOUR_STEP", "CompressedChunks", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
            "NEURAL_LAYER_SHAPES",
            "NeuralResidual", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes"]
 
@@ -77,10 +77,10 @@ def code_levels(bits: int) -> int:
 
 
 
-class DeflatedPieces(Protocol):
+class CompressedChunks(Protocol):
     """Where the field writer finds a basis image's stored codes already compressed (``io.codes.CompressedCodes``)."""
 
-    def piece(self, stored: np.ndarray) -> bytes: ...
+    def chunk(self, stored: np.ndarray) -> bytes: ...
 
 
 
@@ -113,7 +113,7 @@ class LowRankStack:
         ranges: (k, 2) float32 (low, high) per basis image.
         weights: (n, k) float32 per-light weights.
         mean_weights: (n,) float32 per-light weight of the mean image (None: all 1).
-        deflated: the basis images' codes compressed as the field file stores them (``io.codes.CompressedCodes``,
+        chunks: the basis images' codes compressed as the field file stores them (``io.codes.CompressedCodes``,
             found by content), where the fit's rate search measured them; the field writer compresses
             what it does not find there. Not part of the model (never compared, never stored).
     """
@@ -123,7 +123,7 @@ class LowRankStack:
     ranges: np.ndarray
     weights: np.ndarray
     mean_weights: np.ndarray | None = None
-    deflated: DeflatedPieces | None = field(default=None, repr=False, compare=False)
+    chunks: CompressedChunks | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         mean = finite_array(self.mean, np.float32, "residual mean")

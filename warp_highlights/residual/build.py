@@ -72,7 +72,7 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
 
     Compressed, a stack whose rank the settings fix keeps that many basis images, each quantised over
     its whole range. Otherwise the whole field is kept within ``size_budget`` of the 8-bit capture,
-    counting ``other_bytes`` (the Gaussians and paths) and the deflated size of every stored array:
+    counting ``other_bytes`` (the Gaussians and paths) and the compressed size of every stored array:
     ``allocate_steps`` chooses, for the luminance and chroma together, how many basis images to keep
     and how finely to quantise each, so that each adds the same squared RGB error (at most
     ``max_luminance_rank`` luminance images, at least ``min_luminance_rank``). The codes are 8 or 16
@@ -163,7 +163,7 @@ def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scal
     size budget (of ``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
     n = luminance.light_count
     budget = settings.size_budget * capture_values
-    # the other planes the file deflates, in threads (4K: 1.7 s on one)
+    # the other planes the file compresses, in threads (4K: 1.7 s on one)
     stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]
     stored += [colour_codes(colour)] if colour is not None else []
     stored += [chroma.mean.astype(np.float16)] if chroma is not None else []
@@ -182,7 +182,7 @@ def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scal
     if not choice.checked:
         options[0] = _quantisation(luminance, chroma, settings, 8, budget - fixed)
         choice = min(options, key=lambda option: option.distortion)
-    stacks = {name: quantised_stack(principal, choice.steps[name], bits=choice.bits, deflated=choice.deflated.get(name))
+    stacks = {name: quantised_stack(principal, choice.steps[name], bits=choice.bits, chunks=choice.chunks.get(name))
               for name, principal in (("luminance", luminance), ("chroma", chroma)) if principal is not None}
     return ResidualModel(luminance=stacks["luminance"], chroma=stacks.get("chroma"), highlight_colour=colour,
                          scale=scale)
@@ -199,8 +199,8 @@ class _Quantisation:
     distortion: float
     finer_with_16_bits: bool
     checked: bool = True  # False: ``finest_within``'s choice, its bytes not yet measured on every row
-    # by name: the pieces its last measurement on every row deflated
-    deflated: dict = dataclasses.field(default_factory=dict)
+    # by name: the chunks its last measurement on every row compressed
+    chunks: dict = dataclasses.field(default_factory=dict)
 
 
 def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, settings: ResidualSettings, bits: int,
@@ -210,7 +210,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
     each image over its whole range; the others by ``allocate``, or by ``finest_within`` where
     ``plain_finest`` is set, no rank is fixed and the sampled bytes make the choice plain (unchecked)."""
     levels = code_levels(bits)
-    steps, plans, distortion, finer, deflated = {}, {}, 0.0, False, {}
+    steps, plans, distortion, finer, chunks = {}, {}, 0.0, False, {}
     for name, principal, fixed_rank, gain in (("luminance", luminance, settings.luminance_rank, LUMINANCE_GAIN),
                                               ("chroma", chroma, settings.chroma_rank, CHROMA_GAIN)):
         if principal is None:
@@ -219,13 +219,13 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             rank = min(fixed_rank, principal.count - 1)
             steps[name] = principal.spans[:rank] / levels
             distortion += StackPlan(principal, gain, rank).distortion(steps[name])
-            deflated[name] = CompressedCodes()
-            left -= quantised_bytes(principal, steps[name], bits=bits, keep=deflated[name])
+            chunks[name] = CompressedCodes()
+            left -= quantised_bytes(principal, steps[name], bits=bits, keep=chunks[name])
             finer = finer or rank > 0
         else:
             most = min(settings.max_luminance_rank, principal.count - 1) if name == "luminance" else principal.count - 1
             plans[name] = StackPlan(principal, gain, most, settings.min_luminance_rank if name == "luminance" else 0)
-            deflated[name] = plans[name].deflated
+            chunks[name] = plans[name].chunks
     checked = True
     if plans:
         plain = finest_within(list(plans.values()), left, bits=bits) if plain_finest and not steps else None
@@ -236,7 +236,7 @@ def _quantisation(luminance: PrincipalImages, chroma: PrincipalImages | None, se
             distortion += plan.distortion(plan_steps)
             fine = plan.steps(np.exp(log_distortion), code_levels(16))
             finer = finer or len(fine) != len(plan_steps) or not np.array_equal(fine, plan_steps)
-    return _Quantisation(bits, steps, distortion, finer, checked, deflated)
+    return _Quantisation(bits, steps, distortion, finer, checked, chunks)
 
 
 class NormalisedResidual:

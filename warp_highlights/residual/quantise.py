@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.errors import InputError
-from ..model.residual import FLOAT16_SAFE, DeflatedPieces, LowRankStack, code_levels
+from ..model.residual import FLOAT16_SAFE, CompressedChunks, LowRankStack, code_levels
 from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
 from .principal import HeldDirections, PrincipalImages, column_slices, uploaded_block
 
@@ -89,7 +89,7 @@ def quantised_codes(values: np.ndarray, low: np.ndarray, step: np.ndarray, level
 
 
 def _chunks(shape: tuple, limit: int):
-    """Index tuples that cover an array of ``shape`` in pieces of at most ``limit`` values (whole rows of
+    """Index tuples that cover an array of ``shape`` in chunks of at most ``limit`` values (whole rows of
     the trailing axes where they fit; one value at least)."""
     if not shape:
         yield ()
@@ -127,12 +127,12 @@ def fit_stack(stack: np.ndarray, rank: int, *, light_scale: np.ndarray | None = 
 
 
 def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int = 8,
-                    deflated: DeflatedPieces | None = None) -> LowRankStack:
+                    chunks: CompressedChunks | None = None) -> LowRankStack:
     """The stack of ``principal``'s mean image (float16) and its first k = len(``steps``) further
     principal images, basis image j quantised with step ``steps[j]`` (in the units of a unit-norm
     image; at least its span over the ``bits``' levels, so its codes fit). Then every image's mean
     weight and basis weights are fitted to it by least squares against the stored planes, so
-    quantisation only costs what they cannot represent. ``deflated``: kept as the stack's (see the
+    quantisation only costs what they cannot represent. ``chunks``: kept as the stack's (see the
     class)."""
     k = len(steps)
     if k > principal.count - 1:
@@ -189,4 +189,4 @@ def quantised_stack(principal: PrincipalImages, steps: np.ndarray, *, bits: int 
     normal[np.diag_indices_from(normal)] += max(1e-12 * float(np.trace(normal)), 1e-30)  # a black stack: weights 0
     solution = np.linalg.solve(normal, right)
     return LowRankStack(model.mean, model.codes, model.ranges, solution[1:].T.astype(np.float32),
-                        solution[0].astype(np.float32), deflated=deflated)
+                        solution[0].astype(np.float32), chunks=chunks)

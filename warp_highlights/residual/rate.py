@@ -1,6 +1,6 @@
 """The residual's rate search: how many basis images each stack keeps and how finely each is quantised so
 that the whole field file fits its size budget, every kept image adding the same squared RGB error.
-The bytes are the deflated codes as the field file stores them: estimated from sampled rows,
+The bytes are the compressed codes as the field file stores them: estimated from sampled rows,
 calibrated on whole images, and measured exactly before the answer is taken.
 """
 
@@ -93,7 +93,7 @@ def entry_bytes(array: np.ndarray) -> int:
 
 
 def gaussian_bytes(estimated: GaussianParams, retargeted: GaussianParams) -> int:
-    """Stored bytes of a field's Gaussians and paths before deflate (an upper bound of what they take)."""
+    """Stored bytes of a field's Gaussians and paths before compress (an upper bound of what they take)."""
     return (int(estimated.active.sum()) * (_PARAMETER_BYTES + 2)
             + int(retargeted.active.sum()) * (_PARAMETER_BYTES + _PATH_BYTES) + 2 * len(estimated.active))
 
@@ -115,7 +115,7 @@ class StackPlan:
     most: int
     floor: int = 0
     # the last exact measurement's chunks
-    deflated: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)
+    chunks: CompressedCodes = dataclasses.field(default_factory=CompressedCodes, repr=False, compare=False)
 
     @property
     def energies(self) -> np.ndarray:
@@ -151,7 +151,7 @@ class StackPlan:
 
 
 def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
-    """Rows of an (H, W, P) basis image that the rate search deflates: bands of ``_RATE_BAND_ROWS``
+    """Rows of an (H, W, P) basis image that the rate search compresses: bands of ``_RATE_BAND_ROWS``
     whole rows, one in the middle of each of equal strips of the image, together ``_RATE_SHARE`` of
     the rows and at least ``_RATE_MIN_VALUES`` values; every row where that is half of them or more."""
     wanted = max(int(np.ceil(_RATE_SHARE * height)), int(np.ceil(_RATE_MIN_VALUES / max(width * planes, 1))))
@@ -164,13 +164,13 @@ def sampled_rows(height: int, width: int, planes: int) -> np.ndarray:
 
 
 class RateSample:
-    """What the rate search deflates of a ``PrincipalImages``' first ``count`` basis images: their
+    """What the rate search compresses of a ``PrincipalImages``' first ``count`` basis images: their
     ``sampled_rows`` (every row where ``whole``), planes first and stored as the file stores them
     (``io.codes``: a band's first row less the row above it, quantised for that), quantised from
     the whole images' minima and spans as ``quantise_basis`` does. ``bytes`` estimates a quantisation's
     stored bytes from them; on every row it is exactly ``component_bytes`` of ``quantise.quantised_stack``.
     Where the principal images are held on a device (``PrincipalImages.held``), they are quantised
-    and stored there, and the host deflates what comes back."""
+    and stored there, and the host compresses what comes back."""
 
     def __init__(self, principal: PrincipalImages, count: int, *, whole: bool = False):
         height, width, planes = principal.shape
@@ -197,7 +197,7 @@ class RateSample:
         self.values = (height if whole else len(self.rows)) * width * planes  # values an image quantises
         self.per_image = 8 + 4 * principal.light_count  # the range and the per-light weights
         self._stored: np.ndarray | None = None  # two groups of the held images' stored codes, host memory used again
-        # (image, step, bits) -> (deflated bytes, content key or None): what was measured
+        # (image, step, bits) -> (compressed bytes, content key or None): what was measured
         self._memo: dict[tuple, tuple] = {}
 
     @property
@@ -207,22 +207,22 @@ class RateSample:
     def bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None,
               calibration: float = 1.0) -> float:
         """Stored bytes of the first len(``steps``) basis images quantised with ``steps`` at ``bits``
-        (``deflated``, scaled to the whole images and by ``calibration``, the whole images' bytes per
+        (``chunks``, scaled to the whole images and by ``calibration``, the whole images' bytes per
         scaled sampled byte, with each image's range and weights). ``keep`` (an ``exact`` sample only):
-        hold the images' deflated pieces there, in place of what it held, for the field writer."""
-        return (calibration * float(self.deflated(steps, bits=bits, keep=keep).sum()) * self.scale
+        hold the images' compressed chunks there, in place of what it held, for the field writer."""
+        return (calibration * float(self.chunk_bytes(steps, bits=bits, keep=keep).sum()) * self.scale
                 + self.per_image * len(steps))
 
-    def deflated(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None,
+    def chunk_bytes(self, steps: np.ndarray, *, bits: int, keep: CompressedCodes | None = None,
                  images: np.ndarray | None = None) -> np.ndarray:
         """(len(``steps``),) int64 stored bytes (``io.codes.chunk_size``) of each of the first len(``steps``) basis
         images at the sample's rows (not scaled), quantised with ``steps`` at ``bits``; ``images``: only these indices
         (the others 0). Compressed in threads (Blosc lets go of the GIL off the main thread). An image is compressed
         once per step and bits: a measurement remembers each image's bytes, and a later one at the same step
-        takes them instead of compressing it again (and, where ``keep`` is given, its piece where ``keep``
-        still holds it: else the field writer deflates that image, if it is kept)."""
+        takes them instead of compressing it again (and, where ``keep`` is given, its chunk where ``keep``
+        still holds it: else the field writer compresses that image, if it is kept)."""
         if keep is not None and not self.exact:
-            raise ValueError("only a sample of every row can keep its deflated pieces")
+            raise ValueError("only a sample of every row can keep its compressed chunks")
         count = len(steps)
         lengths = np.zeros(count, np.int64)
         if not count:
@@ -234,25 +234,25 @@ class RateSample:
         wanted = np.arange(count) if images is None else np.unique(np.asarray(images, np.int64))
         if len(wanted) and (wanted[0] < 0 or wanted[-1] >= count):
             raise IndexError(f"images {wanted.tolist()} are not all among the {count} measured")
-        pieces, measure = {}, []
+        chunks, measure = {}, []
         for index in wanted.tolist():
             known = self._memo.get((index, float(steps[index]), bits))
             if known is None:
                 measure.append(index)
                 continue
             lengths[index] = known[0]
-            piece = None if keep is None or known[1] is None else keep.held(known[1])
-            # else not held (dropped, or never kept): the field writer deflates it, where it is kept
-            if piece is not None:
-                pieces[known[1]] = piece
-        for index, length, key, piece in self._measured(np.asarray(measure, np.int64), steps, bits,
+            chunk = None if keep is None or known[1] is None else keep.held(known[1])
+            # else not held (dropped, or never kept): the field writer compresses it, where it is kept
+            if chunk is not None:
+                chunks[known[1]] = chunk
+        for index, length, key, chunk in self._measured(np.asarray(measure, np.int64), steps, bits,
                                                         keyed=keep is not None):
             lengths[index] = length
             self._memo[(index, float(steps[index]), bits)] = (length, key)
             if keep is not None:
-                pieces[key] = piece
+                chunks[key] = chunk
         if keep is not None:
-            keep.keep(pieces)
+            keep.keep(chunks)
         return lengths
 
     def release(self) -> None:
@@ -261,19 +261,19 @@ class RateSample:
         self._stored = None
 
     def _measured(self, indices: np.ndarray, steps: np.ndarray, bits: int, *, keyed: bool) -> list:
-        """(index, deflated bytes, content key or None, piece or None) of each image ``indices`` (sorted),
-        the key and piece where ``keyed``; runs of consecutive images a few at a time."""
+        """(index, compressed bytes, content key or None, chunk or None) of each image ``indices`` (sorted),
+        the key and chunk where ``keyed``; runs of consecutive images a few at a time."""
         if not len(indices):
             return []
         kind = np.uint8 if bits == 8 else np.uint16
 
-        def deflate(index: int, image: np.ndarray) -> tuple:
-            piece = compressed_chunk(image)
-            return (index, len(piece), CompressedCodes.key(image), piece) if keyed else (index, len(piece), None, None)
+        def compress(index: int, image: np.ndarray) -> tuple:
+            chunk = compressed_chunk(image)
+            return (index, len(chunk), CompressedCodes.key(image), chunk) if keyed else (index, len(chunk), None, None)
 
         if self.held is not None:
-            return self._deflated_from_device(indices, steps, bits,
-                                              lambda images: [deflate(index, image) for index, image in images])
+            return self._stored_from_device(indices, steps, bits,
+                                              lambda images: [compress(index, image) for index, image in images])
         levels = code_levels(bits)
 
         # a few images in a few NumPy calls (small images: a call per image would hold the GIL more than it works)
@@ -282,17 +282,17 @@ class RateSample:
             rows = self.images[images][:, self.rows].transpose(0, 3, 1, 2)
             codes = quantised_codes(rows, self.low[images], steps[images], levels, out=np.empty(rows.shape, kind))
             stored = stored_codes(codes)[..., self.counted, :]  # each band's first row less the row above it
-            return [deflate(images.start + offset, image) for offset, image in enumerate(stored)]
+            return [compress(images.start + offset, image) for offset, image in enumerate(stored)]
 
         size = max(1, min(-(-len(indices) // NUMPY_THREADS), BAND_VALUES // max(self.values, 1)))
         return [entry for part in parallel_map(group, _index_runs(indices, size)) for entry in part]
 
-    def _deflated_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, pieces) -> list:
-        """The entries ``pieces`` makes of the held images ``indices`` (it takes a list of (index, stored codes) and
+    def _stored_from_device(self, indices: np.ndarray, steps: np.ndarray, bits: int, chunks) -> list:
+        """The entries ``chunks`` makes of the held images ``indices`` (it takes a list of (index, stored codes) and
         returns an entry for each), the images quantised with ``steps`` and stored at the sample's rows: a
         group of at least ``NUMPY_THREADS`` images (more, up to ``_STORED_GROUP_BYTES``, where they are
         small; a launch for each run of consecutive images) at a time made there (``HeldDirections.stored``)
-        into one of two slots of host memory, deflated in threads (a few images a task) while the next
+        into one of two slots of host memory, compressed in threads (a few images a task) while the next
         group is made and copied into the other."""
         _, width, planes = self.shape[1:]
         tail = (planes,) + ((2,) if bits == 16 else ()) + (len(self.stored_rows), width)
@@ -305,7 +305,7 @@ class RateSample:
         try:
             for number, runs in enumerate(_packed(_index_runs(indices, group), group)):
                 slot, count = number % 2, sum(run.stop - run.start for run in runs)
-                gather(pending[slot])  # the slot's last group deflated: free to fill again
+                gather(pending[slot])  # the slot's last group compressed: free to fill again
                 offset = slot * group * per_image
                 stored = self._stored[offset : offset + count * per_image].reshape((count,) + tail)
                 at = 0
@@ -315,14 +315,14 @@ class RateSample:
                                      out=stored[at : at + size])
                     at += size
                 images = list(zip([index for run in runs for index in range(run.start, run.stop)], stored))
-                # a few images a task: small images cost more to hand out than to deflate
+                # a few images a task: small images cost more to hand out than to compress
                 share = max(1, -(-len(images) // (_TASKS_PER_THREAD * NUMPY_THREADS)))
                 pending[slot] = []
                 # the shared threads; each tracked as it is submitted (Ctrl-C)
                 for start in range(0, len(images), share):
-                    pending[slot].append(submit(pieces, images[start : start + share]))
+                    pending[slot].append(submit(chunks, images[start : start + share]))
                     results.append(pending[slot][-1])
-        except BaseException:  # an error or Ctrl-C: the pieces not started dropped, the running ones waited for
+        except BaseException:  # an error or Ctrl-C: the chunks not started dropped, the running ones waited for
             cancel_and_wait(results)
             raise
         return [entry for part in gather(results) for entry in part]
@@ -330,7 +330,7 @@ class RateSample:
 
 def _packed(runs: list[slice], size: int) -> list[list[slice]]:
     """Consecutive ``runs`` (each at most ``size`` long) in groups of at most ``size`` indices together
-    (every 8th image of a stack, one a run, still deflated ``size`` at a time)."""
+    (every 8th image of a stack, one a run, still compressed ``size`` at a time)."""
     groups, group, count = [], [], 0
     for run in runs:
         if group and count + run.stop - run.start > size:
@@ -357,7 +357,7 @@ def quantised_bytes(principal: PrincipalImages, steps: np.ndarray, *, bits: int,
                     keep: CompressedCodes | None = None) -> float:
     """Stored bytes of ``principal``'s first basis images quantised with ``steps`` as
     ``quantise.quantised_stack`` does (``component_bytes``, without fitting the weights): every row
-    deflated (the pieces held in ``keep`` when given)."""
+    compressed (the chunks held in ``keep`` when given)."""
     return RateSample(principal, len(steps), whole=True).bytes(steps, bits=bits, keep=keep)
 
 
@@ -372,17 +372,17 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     """``allocate_steps``' choice and its common distortion (squared RGB error per kept image,
     normalised units; ``inf`` for the floor alone).
 
-    Each plan's ``deflated`` keeps the pieces of the last measurement made on every row (the field
-    writer stores them rather than deflating the same codes again). The deflated bytes fall with the
+    Each plan's ``chunks`` keeps the chunks of the last measurement made on every row (the field
+    writer stores them rather than compressing the same codes again). The compressed bytes fall with the
     log distortion, nearly linearly: ``_search`` takes secant steps on log bytes, then Illinois regula
     falsi once the budget is bracketed. It runs on bytes estimated from ``sampled_rows`` (a sixteenth
     of a large image's rows), each plan's sampled bytes scaled by its whole images' bytes per sampled
-    byte: first by none, then by those of every ``_CALIBRATION_EVERY``-th kept image deflated whole at
+    byte: first by none, then by those of every ``_CALIBRATION_EVERY``-th kept image compressed whole at
     that search's answer (the samples' bands run 2-6% over or under whole images, alike for every
     image of a capture), then by those of the exact bytes of the last answer, until the exact bytes
     are within 1% under the budget or ``_RATE_ROUNDS`` searches have run; then the search runs on the
     exact bytes. The budget holds for the exact bytes (unless even the floor alone exceeds it). No
-    image is deflated twice at the same step (``RateSample.deflated``); the whole images' host buffers
+    image is compressed twice at the same step (``RateSample.chunk_bytes``); the whole images' host buffers
     are let go after each measurement."""
     levels = code_levels(bits)
     top = _top_energy(plans)
@@ -391,20 +391,20 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
     samples = _rate_samples(plans)
     if all(sample.exact for sample in samples):
         return _search(plans, budget_bytes, levels, top, lambda steps: sum(sample.bytes(step, bits=bits,
-                                                                                        keep=plan.deflated)
+                                                                                        keep=plan.chunks)
                                                                            for plan, sample, step in zip(plans, samples,
                                                                                                          steps)))[:2]
     wholes = [sample if sample.exact else RateSample(plan.principal, sample.shape[0], whole=True)
               for plan, sample in zip(plans, samples)]
     ratios = np.ones(len(plans))  # each plan's whole-image bytes per (scaled) sampled byte
 
-    def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its pieces, as ``exact`` does
-        return sum(sample.bytes(step, bits=bits, keep=plan.deflated if sample.exact else None, calibration=calibration)
+    def estimated(steps: list[np.ndarray]) -> float:  # a sample of every row keeps its chunks, as ``exact`` does
+        return sum(sample.bytes(step, bits=bits, keep=plan.chunks if sample.exact else None, calibration=calibration)
                    for plan, sample, step, calibration in zip(plans, samples, steps, ratios))
 
     def exact(steps: list[np.ndarray]) -> float:
         try:
-            return sum(whole.bytes(step, bits=bits, keep=plan.deflated)
+            return sum(whole.bytes(step, bits=bits, keep=plan.chunks)
                        for plan, whole, step in zip(plans, wholes, steps))
         finally:
             for whole in wholes:
@@ -415,11 +415,11 @@ def allocate(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> tuple
         """Whole bytes per scaled sampled byte of ``images`` (all: an exact measurement's, remembered, nothing
         compressed or kept again; a subset: compressed whole now, their chunks kept for the exact measurement that
         follows)."""
-        # remembered: nothing deflated again
-        sampled = float(sample.deflated(step, bits=bits, images=images).sum()) * sample.scale
+        # remembered: nothing compressed again
+        sampled = float(sample.chunk_bytes(step, bits=bits, images=images).sum()) * sample.scale
         try:
-            exact_bytes = float(whole.deflated(step, bits=bits, images=images,
-                                               keep=None if images is None else plan.deflated).sum())
+            exact_bytes = float(whole.chunk_bytes(step, bits=bits, images=images,
+                                               keep=None if images is None else plan.chunks).sum())
         finally:
             whole.release()
         return exact_bytes / sampled if sampled > 0 else 1.0
@@ -466,7 +466,7 @@ def finest_within(plans: list[StackPlan], budget_bytes: float, *, bits: int) -> 
     ``bits``-bit codes go, when those bytes are at least ``_FINEST_MARGIN`` under the budget (then
     ``allocate`` ends there too, unless the sample misjudges the whole images by that much); else None.
     Checked on every row only by ``allocate``: for a caller that may not keep this choice. Small images,
-    which the rate search deflates whole, are left to ``allocate`` (nothing to save, one deflate to lose)."""
+    which the rate search compresses whole, are left to ``allocate`` (nothing to save, one compress to lose)."""
     levels = code_levels(bits)
     top = _top_energy(plans)
     samples = _rate_samples(plans)
