@@ -18,6 +18,7 @@ import pytest
 
 from warp_highlights.io import fieldfile
 from warp_highlights.io.fieldfile import FORMAT_VERSION, MAGIC, field_size_report, load_field, save_field
+from warp_highlights.model.config import RESIDUAL_BOOLEANS
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.field import DiffuseModel, HighlightField
 from warp_highlights.model.gaussians import GaussianParams
@@ -1086,6 +1087,9 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     assert (hashlib.sha256(luminance.codes.tobytes()).hexdigest()
             == "598d2c92922649fa91e1ce7d604a3a4185161f6d0a32045ccc5b4c4cbc718cd9")
     assert field_size_report(field)["total"] == path.stat().st_size == 26937
+    # its settings' residual booleans (the defaults: compressed, learned on CUDA) read as the kind it holds
+    assert "kind" not in json.loads(entries(path.read_bytes())["header.json"])["settings"]["residual"]
+    assert field.fit_settings().residual.kind == "lowrank"
 
     _assert_relights_as_recorded(field, "legacy-v4-relit.npz")
     again = tmp_path / "again.whf"
@@ -1094,6 +1098,9 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     assert new_header["format_version"] == FORMAT_VERSION == 5
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")
+    # the settings' residual booleans saved as the kind they resolved to; the rest of the header as it was
+    old_residual, new_residual = old_header["settings"].pop("residual"), new_header["settings"].pop("residual")
+    assert new_residual == {"kind": "lowrank", **{k: v for k, v in old_residual.items() if k not in RESIDUAL_BOOLEANS}}
     assert new_header == old_header
     old, new = npy_entries(path.read_bytes()), npy_entries(again.read_bytes())
     assert list(new) == list(old)

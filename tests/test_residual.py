@@ -381,7 +381,7 @@ def test_the_residual_decoded_on_a_device_is_the_host_s(bits, device):
 
 
 def test_a_relighter_decodes_on_the_device_where_the_basis_fits_beside_the_images(monkeypatch):
-    """``_decodes_on_device``: the residual's own size, and its float32 basis, codes and float16 images
+    """``residual.device.decodes_on_device``: the residual's own size, and its float32 basis, codes and float16 images
     within the share of the free device memory; else the host decodes."""
 
     n, h, w = 9, 10, 12
@@ -589,7 +589,8 @@ def test_the_default_field_relights_every_captured_light_close_to_its_image(donu
     field = fits["lowrank"]
     assert field.residual.kind == "lowrank" and field.report["residual"]["luminance_rank"] >= 1
     # "auto", resolved once when the fit started: low rank on the CPU, as the report and the stored settings say
-    assert (field.report["residual"]["requested_kind"], field.report["residual"]["kind"]) == ("auto", "lowrank")
+    assert field.report["residual_kind"] == {"requested": "auto", "resolved": "lowrank"}
+    assert field.report["residual"]["kind"] == "lowrank"
     assert field.fit_settings().residual.kind == "lowrank"
     assert fits["images"].residual.kind == fits["images"].report["residual"]["kind"] == "images"
     relit = Relighter(field, device="cpu").relight(dataset.lights.directions).full

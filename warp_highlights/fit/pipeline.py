@@ -291,6 +291,7 @@ def fit_field(
         "gaussian_size": [gaussian_width, gaussian_height],  # where the Gaussians were estimated and retargeted
         "lights": dataset.light_count,
         "exposure": factor,
+        "residual_kind": {"requested": requested_kind, "resolved": kind},  # ResidualSettings.kind, resolved once
         "directed_edges": len(edges),
         "dome": bool(triangulation.is_dome),
         "seconds": timer.seconds,
@@ -321,7 +322,6 @@ def fit_field(
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
             "kind": kind,
-            "requested_kind": requested_kind,
             "luminance_rank": residual_model.luminance.rank if kind == "lowrank" else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if kind == "lowrank" else None,

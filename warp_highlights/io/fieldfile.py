@@ -92,6 +92,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
+from ..model.config import RESIDUAL_BOOLEANS
 from ..model.errors import InputError
 from ..model.field import MAX_CAPACITY, DiffuseModel, HighlightField
 from ..model.gaussians import GaussianParams
@@ -361,7 +362,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
         prefix = _STACK_PREFIX[name]
         arrays += [
             (prefix + "mean.npy", stack.mean.transpose(2, 0, 1).astype("<f2" if half else "<f4")),
-            (prefix + "codes.npy", stack),  # a Blosc chunk an image (io.codes: _CodeChunks)
+            (prefix + "codes.npy", stack),  # a Blosc chunk an image, as io.codes stores them (_CodeChunks)
             (prefix + "ranges.npy", stack.ranges.astype("<f4")),
             (prefix + "weights.npy", stack.weights.astype("<f4")),
             (prefix + "mean_weights.npy", stack.mean_weights.astype("<f4")),
@@ -626,6 +627,16 @@ def _read_field(path: Path, stream) -> HighlightField:
             raise _not_a_field(path, f"a zip archive without {_HEADER}")
         header = _read_header(path, archive)
         return _build_field(path, archive, names, header, stream)
+
+
+def _resolved_residual_kind(settings: dict, residual: ResidualModel | None) -> dict:
+    """Settings stored before ``ResidualSettings.kind`` (its booleans ``RESIDUAL_BOOLEANS``): the kind the field
+    holds in their place, as a fit now stores the kind it resolved."""
+    group = settings.get("residual")
+    if not isinstance(group, dict) or "kind" in group or not any(name in group for name in RESIDUAL_BOOLEANS):
+        return settings
+    kept = {name: value for name, value in group.items() if name not in RESIDUAL_BOOLEANS}
+    return {**settings, "residual": {"kind": "none" if residual is None else residual.kind, **kept}}
 
 
 def _read_header(path: Path, archive: zipfile.ZipFile) -> dict:
@@ -939,6 +950,7 @@ def _build_field(
     if residual_layout is not None:
         residual = _read_residual(path, residual_layout, read, n, height, width, header["format_version"])
 
+    settings = _resolved_residual_kind(settings, residual)
     try:
         field = HighlightField(
             lights=lights,

@@ -643,19 +643,19 @@ class FitSettings:
         return FitSettings.from_dict(values)
 
 
-_RESIDUAL_BOOLEANS = ("compressed", "learned", "learned_on_cuda")
+RESIDUAL_BOOLEANS = ("compressed", "learned", "learned_on_cuda")
 """The residual settings that ``ResidualSettings.kind`` replaced, as older field files store them."""
 
 
 def _residual_kind_of_booleans(values: dict) -> dict:
-    """Residual settings with the older booleans (``_RESIDUAL_BOOLEANS``) replaced by the ``kind`` they chose."""
-    if not any(name in values for name in _RESIDUAL_BOOLEANS) or "kind" in values:
+    """Residual settings with the older booleans (``RESIDUAL_BOOLEANS``) replaced by the ``kind`` they chose."""
+    if not any(name in values for name in RESIDUAL_BOOLEANS) or "kind" in values:
         return values
     compressed, learned, on_cuda = (values.get(name, default)
-                                    for name, default in zip(_RESIDUAL_BOOLEANS, (True, False, True)))
+                                    for name, default in zip(RESIDUAL_BOOLEANS, (True, False, True)))
     kind = ("learned" if learned is True else "images" if compressed is False else "auto" if on_cuda is True
             else "lowrank")
-    return {"kind": kind, **{name: value for name, value in values.items() if name not in _RESIDUAL_BOOLEANS}}
+    return {"kind": kind, **{name: value for name, value in values.items() if name not in RESIDUAL_BOOLEANS}}
 
 
 def _groups(values: dict, prefix: str = "") -> list[str]:

@@ -108,7 +108,7 @@ def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
     weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
     if residual.learned is not None:
         raise InputError(
-            "a learned residual is decoded per query direction (learned.images), not blended from light weights")
+            "a learned residual is decoded per query direction (learned_images), not blended from light weights")
     if residual.images is not None:
         return np.einsum("qn,nhwc->qhwc", weights, residual.images.astype(np.float64))
     scale = 1.0 if residual.scale is None else residual.scale.astype(np.float64)
