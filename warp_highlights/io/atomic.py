@@ -8,9 +8,15 @@ leaves either the old output or the new one, never a mix.
 
 Every folder written here holds a manifest, ``.warp-highlights.json``, listing its files with their
 sizes and modification times. With ``overwrite`` an existing folder is replaced only when it is
-empty, or when the manifest lists every file in it, unchanged (a file the user added or edited since
-is never deleted), or, for folders written before manifests existed, when every file is one the
-writer makes (``legacy``).
+empty, or when the manifest is of the same kind and lists every file in it, unchanged (a file the
+user added or edited since is never deleted), or, for folders written before manifests existed,
+when every file is one the writer makes (``legacy``). Only a regular file is ever replaced by a
+file: a device, FIFO or socket is refused, with ``overwrite`` or not, at the first check and again
+just before the rename.
+
+Without ``overwrite`` the final step creates the target exclusively (``link`` for a file,
+``renameat2(RENAME_NOREPLACE)`` for a folder), so of two writers racing for one new name one
+fails with one line; with ``overwrite`` the later one wins whole.
 
 Cleanup: the temporary names a process creates are registered until renamed or removed;
 ``remove_partials`` removes what is left (the CLI calls it as every command ends), and a run that writes NAME
@@ -35,6 +41,7 @@ import re
 import shutil
 import signal
 import socket
+import stat
 import sys
 import threading
 import time
@@ -71,6 +78,7 @@ process cannot be asked whether it is alive, and no command of this project runs
 
 _TAG_PATTERN = re.compile(
     r"^\.(?P<name>.+)\.(?P<state>partial|replaced)-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}$")
+_RENAME_NOREPLACE = 1
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
 
@@ -85,6 +93,7 @@ _IMPORT_RETRY_SECONDS = 0.05
 _MAX_IMPORT_RETRIES = 40  # 2 s: an import taking longer (or main() run from an import) is interrupted anyway
 _import_retries = 0
 _retry_timers: list[threading.Timer] = []
+_exclusive: set[str] = set()  # absolute outputs checked without overwrite: created exclusively, never replaced
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM arrived (``kill``, a job scheduler's time limit); handled wherever Ctrl-C is."""
@@ -126,6 +135,7 @@ def end_of_command() -> int | None:
     while _retry_timers:
         _retry_timers.pop().cancel()
     _import_retries = 0
+    _exclusive.clear()
     return held
 
 
@@ -341,14 +351,35 @@ def _is_stale(match: re.Match, candidate: Path) -> bool:
 
 
 def check_file_target(path, *, overwrite: bool) -> None:
-    """Raise ``InputError`` unless a file may be written at ``path``: it is new or ``overwrite`` is
-    set, it is not a folder, and its folder exists and takes new files (tried, not guessed)."""
+    """Raise ``InputError`` unless a file may be written at ``path``: it is new, or a regular file and
+    ``overwrite`` is set (never a folder, device, FIFO or socket), and its folder exists and takes
+    new files (tried, not guessed). Without ``overwrite`` the later :func:`atomic_file` for ``path``
+    creates it exclusively even when called with ``overwrite=True``."""
     path = _as_target(path)
     if path.is_dir():
         raise InputError(f"output {path} is a folder; give a file name")
+    _refuse_special(path)
     if path.exists() and not overwrite:
         raise InputError(f"output {path} exists; pass --overwrite to replace it")
     _check_parent(path)
+    key = os.path.abspath(path)
+    if overwrite:
+        _exclusive.discard(key)
+    else:
+        _exclusive.add(key)
+
+
+def _refuse_special(path: Path) -> None:
+    """InputError if ``path`` (followed through links) is a device, FIFO or socket: never replaced."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return  # missing (or a dangling link): nothing but a name would be replaced
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return
+    what = ("a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    raise InputError(f"output {path} is {what}; it is never replaced, --overwrite or not: give a file name")
 
 
 @contextlib.contextmanager
@@ -360,18 +391,22 @@ def atomic_file(path, *, overwrite: bool = True, durable: bool = False, checked:
 
     Args:
         path: The file to write.
-        overwrite: Replace an existing file (checked again just before the rename).
+        overwrite: Replace an existing regular file; without it (or after :func:`check_file_target`
+            without it) the file is created exclusively, so a file that appeared meanwhile stays.
         durable: ``fsync`` the file and its folder, so the new content survives a power loss.
         checked: Clean stale temporaries and check the target first. False skips both, for the many
             files written inside a folder that is itself temporary (or already checked).
 
     Raises:
-        InputError: ``path`` is a folder, exists without ``overwrite``, or its folder is missing.
+        InputError: ``path`` is a folder, a device, FIFO or socket, exists (or appeared while
+            writing) without ``overwrite``, or its folder is missing.
     """
     path = _as_target(path)
+    key = os.path.abspath(path)
+    exclusive = not overwrite or key in _exclusive
     if checked:
         clean_stale_partials(path)
-        check_file_target(path, overwrite=overwrite)
+        check_file_target(path, overwrite=not exclusive)
     temporary = _temporary_path(path)
     try:
         with _naming_failures(path):
@@ -379,10 +414,15 @@ def atomic_file(path, *, overwrite: bool = True, durable: bool = False, checked:
         if durable:
             _fsync(temporary)
         with deferred_signals():
-            if not overwrite and path.exists():
-                raise InputError(f"output {path} appeared while it was being written; nothing was replaced")
-            os.replace(temporary, path)
+            if exclusive:
+                _create_exclusively(temporary, path)
+            else:
+                _refuse_special(path)  # it may have changed since the first check
+                if path.is_dir():
+                    raise InputError(f"output {path} became a folder while it was being written; nothing was replaced")
+                os.replace(temporary, path)
             _forget(temporary)
+            _exclusive.discard(key)  # the claim is used: a later write of the same path states its own
             _mark_committed(path)
         if durable:
             _fsync(path.parent)
@@ -393,20 +433,59 @@ def atomic_file(path, *, overwrite: bool = True, durable: bool = False, checked:
                 _forget(temporary)
 
 
+def _create_exclusively(temporary: Path, path: Path) -> None:
+    """Put the file ``temporary`` at ``path`` only if nothing is there (``link``, then the temporary
+    name removed; ``renameat2(RENAME_NOREPLACE)`` or a last check where links are not supported)."""
+    try:
+        os.link(temporary, path, follow_symlinks=False)
+    except FileExistsError:
+        raise InputError(_appeared(path)) from None
+    except OSError as error:
+        if error.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK, errno.ENOSYS):
+            raise
+        _rename_new(temporary, path)  # a file system without hard links
+        return
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(temporary)
+
+
+def _appeared(path: Path) -> str:
+    return (f"output {path} appeared while it was being written; nothing was replaced: choose another name or "
+            f"pass --overwrite")
+
+
+def _rename_new(source: Path, path: Path) -> None:
+    """Rename ``source`` to ``path``, refusing (InputError) when ``path`` exists: one
+    ``renameat2(RENAME_NOREPLACE)`` call where the system has it, else a check just before the rename."""
+    if _renameat2(source, path, _RENAME_NOREPLACE):
+        return
+    if os.path.lexists(path):
+        raise InputError(_appeared(path))
+    os.rename(source, path)
+
+
 # --- folders ---------------------------------------------------------------------------------------
 
 
-def check_folder_target(path, *, overwrite: bool, legacy: Callable[[str], bool] | None = None) -> None:
+def check_folder_target(path, *, overwrite: bool, legacy: Callable[[str], bool] | None = None,
+                        kind: str | None = None) -> None:
     """Raise ``InputError`` unless :func:`atomic_folder` may write ``path``.
 
     A new or empty folder is fine. An existing one needs ``overwrite`` and must have been written by
     this project: its manifest lists every file in it, unchanged since (size and modification time),
     or, with no manifest (an older output), ``legacy`` accepts the relative path of every file in it.
-    Anything else is refused, so no user's file is ever deleted.
+    A folder whose manifest names another ``kind`` (a dataset where relit images go) is refused,
+    ``overwrite`` or not. Anything else is refused, so no user's file is ever deleted.
     """
     path = _as_target(path)
     if path.exists() and not path.is_dir():
+        _refuse_special(path)
         raise InputError(f"output {path} is a file, not a folder; give a folder name")
+    if kind is not None and path.is_dir():
+        found = _manifest_kind(path)
+        if found is not None and found != kind:
+            raise InputError(f"output folder {path} holds a warp-highlights {found}, not {kind}; it is never "
+                             f"replaced, --overwrite or not: choose another folder")
     if not path.exists():
         _check_parent(path)
         return
@@ -448,7 +527,7 @@ class FolderTransaction:
     def __init__(self, path, *, kind: str, overwrite: bool, legacy: Callable[[str], bool] | None = None):
         self.path, self.kind, self.overwrite, self.legacy = _as_target(path), kind, overwrite, legacy
         clean_stale_partials(self.path)
-        check_folder_target(self.path, overwrite=overwrite, legacy=legacy)
+        check_folder_target(self.path, overwrite=overwrite, legacy=legacy, kind=kind)
         with deferred_signals():
             self.temporary = _temporary_path(self.path)
             try:
@@ -469,11 +548,16 @@ class FolderTransaction:
         old = None
         try:
             _write_manifest(self.temporary, self.kind)
-            check_folder_target(self.path, overwrite=self.overwrite, legacy=self.legacy)  # nothing appeared meanwhile
+            # nothing appeared meanwhile, and the target is still of this kind
+            check_folder_target(self.path, overwrite=self.overwrite, legacy=self.legacy, kind=self.kind)
             with deferred_signals():
-                old = _swap_in(self.temporary, self.path) if self.path.exists() else None
+                if self.overwrite:
+                    old = _swap_in(self.temporary, self.path) if self.path.exists() else None
+                    if old is None:
+                        os.rename(self.temporary, self.path)
+                else:
+                    old = self._place_new()
                 if old is None:
-                    os.rename(self.temporary, self.path)
                     _forget(self.temporary)
                 self.state = "committed"
                 _mark_committed(self.path)
@@ -484,6 +568,21 @@ class FolderTransaction:
             _remove(old)
             _forget(old)
         return self.path
+
+    def _place_new(self) -> Path | None:
+        """Without overwrite: rename into place only if nothing is there (of two writers, one fails
+        here); an empty folder that was there is swapped out. Returns where that now is, or None."""
+        try:
+            _rename_new(self.temporary, self.path)
+            return None
+        except InputError:
+            try:
+                empty = self.path.is_dir() and not self.path.is_symlink() and not os.listdir(self.path)
+            except OSError:
+                empty = False
+            if not empty:
+                raise
+        return _swap_in(self.temporary, self.path)
 
     def abort(self) -> None:
         """Remove the temporary folder; ``path`` stays as it was. Safe to call twice."""
@@ -539,6 +638,12 @@ def _swap_in(temporary: Path, path: Path) -> Path:
 
 def _exchange(a: Path, b: Path) -> bool:
     """Swap two paths in one system call (Linux renameat2); False where that is not available."""
+    return _renameat2(a, b, _RENAME_EXCHANGE)
+
+
+def _renameat2(a: Path, b: Path, flags: int) -> bool:
+    """``renameat2(a, b, flags)`` (Linux); False where the call or the flag is not available. EEXIST
+    (``RENAME_NOREPLACE`` onto an existing name) is an InputError; other failures an OSError."""
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -547,12 +652,14 @@ def _exchange(a: Path, b: Path) -> bool:
     except (OSError, AttributeError, TypeError):
         return False
     renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    result = renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    result = renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), flags)
     if result == 0:
         return True
     code = ctypes.get_errno()
     if code in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
-        return False  # a file system (or kernel) without the exchange: use two renames
+        return False  # a file system (or kernel) without this call or flag: the caller falls back
+    if code == errno.EEXIST and flags == _RENAME_NOREPLACE:
+        raise InputError(_appeared(b))
     raise OSError(code, os.strerror(code), str(b))
 
 
@@ -596,6 +703,18 @@ def _foreign_file(path: Path, legacy: Callable[[str], bool] | None) -> tuple[str
         if [status.st_size, status.st_mtime_ns] != listed[relative]:
             return relative, "which was changed after warp-highlights wrote it"
     return None
+
+
+def _manifest_kind(path: Path) -> str | None:
+    """The ``kind`` a warp-highlights manifest in ``path`` names; None if none, unreadable or unnamed."""
+    try:
+        manifest = json.loads((path / MANIFEST_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    if not isinstance(manifest, dict) or manifest.get("written_by") != "warp-highlights":
+        return None
+    kind = manifest.get("kind")
+    return kind if isinstance(kind, str) else None
 
 
 def _manifest_files(path: Path) -> dict[str, list[int]] | None:
