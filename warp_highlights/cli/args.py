@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +16,7 @@ __all__ = [
     "add_common_options",
     "add_pixel_limit_option",
     "check_device",
+    "check_not_input",
     "check_output_file",
     "check_output_folder",
     "exposure_option",
@@ -199,19 +202,77 @@ def parse_direction(text: str) -> tuple[float, float, float]:
     return tuple(values)
 
 
-def check_output_file(path: Path, *, overwrite: bool) -> None:
-    """Raise ``InputError`` unless a file may be written at ``path`` (new, or ``overwrite``; its folder
-    exists and takes files); removes what killed runs left for it. Before any work starts."""
+def check_output_file(path: Path, *, overwrite: bool, inputs=()) -> None:
+    """Raise ``InputError`` unless a file may be written at ``path`` (new, or a regular file with
+    ``overwrite``; its folder exists and takes files; not one of the command's ``inputs`` nor inside
+    an input folder); removes what killed runs left for it. Before any work starts."""
     from ..io.atomic import check_file_target, clean_stale_partials
 
+    check_not_input(path, inputs)
     clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
     check_file_target(path, overwrite=overwrite)
 
 
-def check_output_folder(path: Path, *, overwrite: bool, legacy=None) -> None:
+def check_output_folder(path: Path, *, overwrite: bool, legacy=None, kind: str | None = None, inputs=()) -> None:
     """Raise ``InputError`` unless an output folder may be written at ``path`` (new or empty, or with
-    ``overwrite`` one this project wrote; its parent exists and takes files). Before any work starts."""
+    ``overwrite`` one this project wrote, of this ``kind``; its parent exists and takes files; neither
+    holding nor inside one of the command's ``inputs``). Before any work starts."""
     from ..io.atomic import check_folder_target, clean_stale_partials
 
+    check_not_input(path, inputs)
     clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
-    check_folder_target(path, overwrite=overwrite, legacy=legacy)
+    check_folder_target(path, overwrite=overwrite, legacy=legacy, kind=kind)
+
+
+def check_not_input(output, inputs) -> None:
+    """Raise ``InputError`` if ``output`` is one of ``inputs`` (files or folders the command reads),
+    lies inside an input folder, or is a folder holding an input; compared by real path and by
+    (device, inode), so links and other names of the same file are caught. None inputs are skipped."""
+    output = Path(output)
+    own = _identities(output)
+    for given in inputs:
+        if given is None:
+            continue
+        given = Path(given)
+        try:
+            status = given.stat()
+        except OSError:
+            continue  # a missing input is reported by the command's reading
+        identity = (status.st_dev, status.st_ino)
+        real = Path(os.path.realpath(given))
+        if identity == own[0] or real == own[1]:
+            raise InputError(f"output {output} is the command's input {given}; give the output another name")
+        if given.is_dir() and (identity in own[2] or real in own[3]):
+            raise InputError(f"output {output} lies inside the input folder {given}; write it elsewhere")
+        if output.is_dir() and _inside(given, output):
+            raise InputError(f"output folder {output} holds the command's input {given}; choose another folder")
+
+
+def _identities(path: Path) -> tuple:
+    """``path``'s (device, inode) or None, its real path, and the same for each of its parent folders."""
+    try:
+        status = path.stat()
+        identity = (status.st_dev, status.st_ino)
+    except OSError:
+        identity = None
+    real = Path(os.path.realpath(path))
+    parents, reals = set(), set(real.parents)
+    for parent in Path(os.path.abspath(path)).parents:
+        with contextlib.suppress(OSError):
+            status = parent.stat()
+            parents.add((status.st_dev, status.st_ino))
+    for parent in real.parents:
+        with contextlib.suppress(OSError):
+            status = parent.stat()
+            parents.add((status.st_dev, status.st_ino))
+    return identity, real, parents, reals
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` lies inside ``folder`` (by real path or by the folders' device and inode)."""
+    _, real, parents, _ = _identities(path)
+    try:
+        status = folder.stat()
+    except OSError:
+        return False
+    return (status.st_dev, status.st_ino) in parents or Path(os.path.realpath(folder)) in real.parents

@@ -132,7 +132,8 @@ def _run_render(args) -> int:
         width=width, height=height, samples_per_pixel=args.samples, fov_y_deg=args.fov, colour=not args.gray,
         seed=args.seed
     )
-    check_output_folder(args.out, overwrite=args.overwrite, legacy=dataset_folder_entry)
+    inputs = [p for p in (args.lights_file, Path(args.shape), Path(args.heldout)) if p and p.is_file()]
+    check_output_folder(args.out, overwrite=args.overwrite, legacy=dataset_folder_entry, kind="dataset", inputs=inputs)
     material = _material(args)
     lights, heldout = _light_sets(args)
     _check_disk_space(args.out, lights, heldout, settings, half=args.half, quiet=args.quiet)
@@ -234,7 +235,7 @@ def _run_sheet(args) -> int:
 
     if args.output.suffix.lower() != ".png":
         raise InputError(f"contact sheet '{args.output}' must be a .png file")
-    check_output_file(args.output, overwrite=args.overwrite)
+    check_output_file(args.output, overwrite=args.overwrite, inputs=[args.dataset])
     field = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet,
                                   max_pixels=pixel_limit(args))
     path = save_contact_sheet(field, args.output, count=args.count, thumb_height=args.thumb_height)

@@ -41,7 +41,7 @@ def _run_demo(args) -> int:
     width, height = args.size
     device = check_device(args.device)
     out = Path(args.out)
-    check_output_folder(out, overwrite=args.overwrite, legacy=demo_folder_entry)
+    check_output_folder(out, overwrite=args.overwrite, legacy=demo_folder_entry, kind="demo")
     settings = FitSettings().with_overrides(residual_overrides(args.residual))
     started = time.perf_counter()
     index = run_demo(out, lights=args.lights, size=(width, height), frames=args.frames, device=device,

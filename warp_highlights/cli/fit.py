@@ -115,11 +115,11 @@ def _run_fit(args) -> int:
         _print_settings(settings.to_dict())
         return 0
     output = Path(args.output)
-    check_output_file(output, overwrite=args.overwrite)
+    check_output_file(output, overwrite=args.overwrite, inputs=[args.dataset])
     if args.report is not None:
         if Path(args.report).resolve() == output.resolve():
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
-        check_output_file(Path(args.report), overwrite=args.overwrite)
+        check_output_file(Path(args.report), overwrite=args.overwrite, inputs=[args.dataset])
     size = args.size
     from ..io.dataset import LoadStopped, ReflectanceField
     from ..kernels.warmup import DeviceWarmup, InBackground

@@ -58,7 +58,8 @@ def _run_maps(args) -> int:
     from .relight import learned_on_cpu_note
 
     output = Path(args.output)
-    check_output_folder(output, overwrite=args.overwrite, legacy=_maps_folder_entry)
+    check_output_folder(output, overwrite=args.overwrite, legacy=_maps_folder_entry, kind="surface maps",
+                        inputs=[args.field])
     field = load_field(args.field)
     device = check_device(args.device)
     note = learned_on_cpu_note(field, device)

@@ -16,6 +16,7 @@ from .args import (
     Command,
     add_pixel_limit_option,
     check_device,
+    check_not_input,
     check_output_file,
     check_output_folder,
     in_range,
@@ -182,6 +183,7 @@ def _run_relight(args) -> int:
     if not directions:
         raise InputError(NO_LIGHT)
     output = Path(args.output)
+    inputs = [args.field, args.lights, args.dataset]
     several = len(directions) > 1
     if several and output.suffix.lower() in IMAGE_EXTENSIONS:
         raise InputError(
@@ -192,9 +194,10 @@ def _run_relight(args) -> int:
         raise InputError(f"--bits {args.bits} is for one PNG or TIFF image; {len(directions)} lights make a folder of "
                          f"EXR images (floats)")
     if several:
-        check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry)
+        check_output_folder(output, overwrite=args.overwrite, legacy=_relit_folder_entry, kind="relit images",
+                            inputs=inputs)
     else:
-        check_output_file(output, overwrite=args.overwrite)
+        check_output_file(output, overwrite=args.overwrite, inputs=inputs)
     field = load_field(args.field)
     relighter = _make_relighter(args, field, methods=(args.method,))
     exposure = field.exposure
@@ -281,6 +284,7 @@ def _run_animate(args) -> int:
     from ..view.light_paths import parse_light_path
 
     frames_format = "exr" if args.exr else "png"
+    check_not_input(args.output, [args.field, args.dataset])
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
@@ -355,7 +359,8 @@ def _run_evaluate(args) -> int:
     methods = _parse_methods(args.methods)
     triangle = _triangle_choice(args.triangle)
     output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
-    check_output_folder(output, overwrite=args.overwrite, legacy=evaluation_folder_entry)
+    check_output_folder(output, overwrite=args.overwrite, legacy=evaluation_folder_entry, kind="evaluation",
+                        inputs=[args.field, args.dataset, args.heldout])
     device = check_device(args.device)
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:

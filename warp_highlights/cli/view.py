@@ -49,7 +49,7 @@ def _run_view(args) -> int:
     if screenshot is not None:
         if screenshot.suffix.lower() != ".png":
             raise InputError(f"screenshot '{screenshot}' must be a .png file")
-        check_output_file(screenshot, overwrite=args.overwrite)
+        check_output_file(screenshot, overwrite=args.overwrite, inputs=[args.field])
     elif not has_display():
         raise InputError(
             "there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")

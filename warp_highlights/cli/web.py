@@ -36,14 +36,15 @@ def _run_export(args) -> int:
 
     output = Path(args.output)
     if args.single_file:
-        check_output_file(output, overwrite=args.overwrite)
+        check_output_file(output, overwrite=args.overwrite, inputs=[args.field])
         field = load_field(args.field)
         page = single_file_page(field)
         with atomic_file(output, overwrite=args.overwrite) as temporary:
             temporary.write_bytes(page)
         print(f"wrote the viewer of {args.field} to {output} ({bytes_text(len(page))}, one file: open it in a browser)")
         return 0
-    check_output_folder(output, overwrite=args.overwrite, legacy=_viewer_entry)
+    check_output_folder(output, overwrite=args.overwrite, legacy=_viewer_entry, kind="web viewer",
+                        inputs=[args.field])
     field = load_field(args.field)
     with atomic_folder(output, kind="web viewer", overwrite=args.overwrite, legacy=_viewer_entry) as temporary:
         export_viewer(field, temporary)
