@@ -121,7 +121,7 @@ def _run_fit(args) -> int:
             raise InputError(f"--report {args.report} is the field file itself; give the report its own name")
         check_output_file(Path(args.report), overwrite=args.overwrite, inputs=[args.dataset])
     size = args.size
-    from ..io.dataset import LoadStopped, ReflectanceField
+    from ..io.dataset import LoadStopped, ReflectanceField, capture_fingerprint
     from ..kernels.warmup import DeviceWarmup, InBackground
     from ..model.memory import PeakMemory
 
@@ -172,6 +172,7 @@ def _run_fit(args) -> int:
             if resolve_kind(settings.residual.kind, device) == "lowrank" and not background.done():
                 import scipy.optimize  # noqa: F401 (imported while the images load, not after)
             dataset, loading, load_seconds = background.result() or load_images(background.stop)
+        capture = capture_fingerprint(dataset)  # the whole capture, before any hold-out split
         if args.holdout_every:
             dataset = dataset.split_every(args.holdout_every)
     finally:
@@ -185,6 +186,7 @@ def _run_fit(args) -> int:
     field.report["seconds"] = {"loading": round(load_seconds, 3), **field.report["seconds"]}
     if args.holdout_every:
         field.report["holdout_every"] = int(args.holdout_every)
+    field.report["capture"] = capture
     saving_started = time.perf_counter()
     with PeakMemory(device) as saving:
         written = save_field(field, output)

@@ -96,6 +96,7 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
+    _add_other_capture_option(parser, "DATASET")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     add_pixel_limit_option(parser)
 
@@ -116,8 +117,30 @@ def _add_relight_options(
                         help="colour of the highlights R,G,B, each >= 0 (default 1,1,1: white light)")
     parser.add_argument("--dataset", type=Path, help="the dataset the field was fitted to (for --method alpha)")
     parser.add_argument("--linear", action="store_true", help="the dataset's PNG/JPEG values are linear, not sRGB")
+    _add_other_capture_option(parser, "--dataset")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     add_pixel_limit_option(parser)
+
+
+def _add_other_capture_option(parser: argparse.ArgumentParser, name: str) -> None:
+    parser.add_argument("--other-capture", action="store_true",
+                        help=f"use {name} though it differs from the capture the field was fitted to (light "
+                             "directions, image names, sizes or pixels), e.g. the same capture re-encoded")
+
+
+def check_same_capture(args, field, dataset, dataset_path) -> None:
+    """Refuse, in one line, a dataset other than the capture ``field`` was fitted to (see
+    ``io.dataset.capture_fingerprint``), unless ``--other-capture``; a field that records no capture passes."""
+    from ..io.dataset import capture_differences, capture_fingerprint
+
+    recorded = field.report.get("capture")
+    if not isinstance(recorded, dict) or getattr(args, "other_capture", False):
+        return
+    differences = capture_differences(recorded, capture_fingerprint(dataset))
+    if differences:
+        raise InputError(f"{args.field} was fitted to another capture than {dataset_path}: {', '.join(differences)}; "
+                         "pass the dataset it was fitted to, or --other-capture if this one holds the same images "
+                         "(e.g. re-encoded)")
 
 
 def learned_on_cpu_note(field, device) -> str | None:
@@ -152,6 +175,7 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
 
         dataset = ReflectanceField.load(args.dataset, linear=args.linear, progress=not args.quiet,
                                         max_pixels=pixel_limit(args))
+        check_same_capture(args, field, dataset, args.dataset)
         alpha_specular, alpha_images = alpha_inputs(field, dataset, device=device)
     exposure = field.exposure
     return Relighter(
@@ -371,6 +395,7 @@ def _run_evaluate(args) -> int:
     holdout_every = args.holdout_every or field.report.get("holdout_every")
     dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
+    check_same_capture(args, field, dataset, args.dataset)
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
     with scoring_processes():  # every method's scores in the same few worker processes

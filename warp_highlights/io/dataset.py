@@ -11,6 +11,7 @@ This module holds one thing: a dataset folder on disk, read (``ReflectanceField`
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import re
@@ -45,7 +46,8 @@ from .images import (
 )
 from .lightfile import read_lp, write_lp
 
-__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "dataset_folder_entry", "find_light_file"]
+__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "capture_differences", "capture_fingerprint",
+           "dataset_folder_entry", "find_light_file"]
 
 
 class LoadStopped(Exception):
@@ -794,3 +796,92 @@ def _json_default(value):
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"meta value of type {type(value).__name__} is not JSON-serialisable")
+
+
+FINGERPRINT_GRID = 8
+"""A fingerprint's content digest of an image: the mean of each cell of an 8x8 grid over the image (fewer
+cells along a side shorter than 8 pixels), channels averaged, scaled by the brightest cell, in 8 bits."""
+FINGERPRINT_TOLERANCE = 12
+"""Largest difference, in 8-bit levels of the brightest cell, between a recorded and a recomputed digest
+cell that still counts as the same image: a cell averages 1/64 of the image, so decoders that differ by a
+level or two per pixel (JPEG builds) agree well within it, while another object or a moved one differs by
+tens of levels (the 32-light donut and sphere renders of the tests: 255)."""
+
+
+def _text_digest(lines) -> str:
+    return hashlib.sha256("\n".join(lines).encode("utf-8")).hexdigest()[:16]
+
+
+def _image_digest(path: Path) -> str:
+    """One image's content digest (see ``FINGERPRINT_GRID``): hex text of 8-bit cells, row by row."""
+    image = np.nan_to_num(read_image(path, linear=True, max_pixels=None).astype(np.float64),
+                          nan=0.0, posinf=0.0, neginf=0.0)
+    if image.ndim == 3:
+        image = image.mean(axis=2)
+    rows, columns = min(FINGERPRINT_GRID, image.shape[0]), min(FINGERPRINT_GRID, image.shape[1])
+    cells = np.array([[cell.mean() for cell in np.array_split(band, columns, axis=1)]
+                      for band in np.array_split(image, rows, axis=0)])
+    top = cells.max()
+    scaled = np.clip(cells / top, 0.0, 1.0) if top > 0 else np.zeros_like(cells)
+    return bytes(np.rint(255.0 * scaled).astype(np.uint8).ravel()).hex()
+
+
+def capture_fingerprint(dataset: ReflectanceField) -> dict:
+    """What identifies the capture a dataset was loaded from, as JSON values for a field's report.
+
+    The rule: the fingerprint describes the dataset's light file (``lights.lp`` or its one ``.lp``) and the
+    image files it lists, all of them, as stored: never the held-out lights (``heldout.lp``, which ``fit``
+    does not read) nor the split of ``--holdout-every`` (computed before it, so a field fitted to part of a
+    capture matches the whole), and not the working size, ``--linear`` or the exposure. Keys: ``lights``
+    (count), ``directions`` (a hash of the directions rounded to 4 decimals), ``names`` (a hash of the image
+    names), ``size`` (the files' [width, height] in pixels), ``channels``, and ``digest``: the ``images``
+    (indices of the first, middle and last image) and their ``cells`` (``_image_digest``; compared within
+    ``FINGERPRINT_TOLERANCE``, not hashed, so another decoder of the same files still matches).
+
+    Raises:
+        InputError: the dataset was not loaded from a folder (no root or image names).
+    """
+    names = dataset.lights.filenames
+    if dataset.root is None or not names:
+        raise InputError("a capture's fingerprint needs a dataset loaded from a folder (its light file and images)")
+    directions = np.round(np.asarray(dataset.lights.directions, dtype=np.float64), 4) + 0.0  # no -0.0
+    size = (dataset.source or {}).get("size") or [dataset.width, dataset.height]
+    count = len(names)
+    indices = sorted({0, count // 2, count - 1})
+    return {
+        "lights": count,
+        "directions": _text_digest(",".join(f"{v:.4f}" for v in row) for row in directions),
+        "names": _text_digest(str(name).replace("\\", "/") for name in names),
+        "size": [int(size[0]), int(size[1])],
+        "channels": dataset.channels,
+        "digest": {"images": indices, "cells": [_image_digest(dataset.root / names[i]) for i in indices]},
+    }
+
+
+def capture_differences(recorded: dict, current: dict) -> list[str]:
+    """How the capture ``current`` (``capture_fingerprint``) differs from the ``recorded`` one, in words
+    (empty: the same capture)."""
+    differences = []
+    if recorded.get("lights") != current["lights"]:
+        differences.append(f"{current['lights']} lights, not {recorded.get('lights')}")
+    elif recorded.get("directions") != current["directions"]:
+        differences.append("other light directions")
+    if recorded.get("names") != current["names"]:
+        differences.append("other image names")
+    if list(recorded.get("size") or []) != current["size"] or recorded.get("channels") != current["channels"]:
+        width, height = (list(recorded.get("size") or []) + ["?", "?"])[:2]
+        differences.append(f"{current['size'][0]}x{current['size'][1]} images of {current['channels']} channels, "
+                           f"not {width}x{height} of {recorded.get('channels')}")
+    digest, now = recorded.get("digest") or {}, current["digest"]
+    if digest.get("images") == now["images"] and len(digest.get("cells") or []) == len(now["cells"]):
+        for index, old, new in zip(now["images"], digest["cells"], now["cells"]):
+            try:
+                apart = np.abs(np.frombuffer(bytes.fromhex(old), np.uint8).astype(int)
+                               - np.frombuffer(bytes.fromhex(new), np.uint8).astype(int))
+            except ValueError:  # a digest of another shape (another grid)
+                apart = np.array([255])
+            if apart.size == 0 or apart.max() > FINGERPRINT_TOLERANCE:
+                differences.append(f"other pixels (image {index} differs by up to "
+                                   f"{int(apart.max()) if apart.size else 255} of 255 levels)")
+                break
+    return differences
