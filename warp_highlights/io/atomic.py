@@ -705,25 +705,27 @@ def _foreign_file(path: Path, legacy: Callable[[str], bool] | None) -> tuple[str
     return None
 
 
-def _manifest_kind(path: Path) -> str | None:
-    """The ``kind`` a warp-highlights manifest in ``path`` names; None if none, unreadable or unnamed."""
+def _manifest(path: Path) -> dict | None:
+    """The warp-highlights manifest in the folder ``path``; None if absent, unreadable or not this project's."""
     try:
         manifest = json.loads((path / MANIFEST_NAME).read_text(encoding="utf-8"))
     except (OSError, ValueError, RecursionError):
         return None
     if not isinstance(manifest, dict) or manifest.get("written_by") != "warp-highlights":
         return None
-    kind = manifest.get("kind")
+    return manifest
+
+
+def _manifest_kind(path: Path) -> str | None:
+    """The ``kind`` a warp-highlights manifest in ``path`` names; None if none, unreadable or unnamed."""
+    kind = (_manifest(path) or {}).get("kind")
     return kind if isinstance(kind, str) else None
 
 
 def _manifest_files(path: Path) -> dict[str, list[int]] | None:
     """The manifest's files as ``{relative path: [bytes, mtime_ns]}``; None if absent or unreadable."""
-    try:
-        manifest = json.loads((path / MANIFEST_NAME).read_text(encoding="utf-8"))
-    except (OSError, ValueError, RecursionError):
-        return None
-    if not isinstance(manifest, dict) or manifest.get("written_by") != "warp-highlights":
+    manifest = _manifest(path)
+    if manifest is None:
         return None
     files = manifest.get("files")
     if not isinstance(files, dict):
