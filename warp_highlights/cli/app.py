@@ -29,6 +29,7 @@ from ..io.atomic import (
 )
 from ..model.errors import InputError
 from . import collection, dataset, demo, fit, maps, relight, view, web
+from .cache import prepare_kernel_cache
 
 __all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OneLineParser", "main"]
 
@@ -70,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_INPUT_ERROR
         with python_stderr_apart() if console else contextlib.nullcontext():
             _quiet_warp(verbose=args.verbose)  # after parsing: --help and usage errors never import Warp
-            _init_warp(verbose=args.verbose)
+            started = _start_warp(args)
+            if started is not None:
+                return started
             with messages_to_stderr(quiet=args.quiet, verbose=args.verbose):
                 return _run(args)
     except KeyboardInterrupt as interruption:  # before the command started: nothing was written
@@ -86,10 +89,12 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args) -> int:
     """Run the parsed command; every failure becomes one line on stderr and an exit status."""
     name = f"warp-highlights {args.command}"
+    stdout = sys.stdout = _WatchedStream(sys.stdout)
     try:
         try:
             return args.run(args) or 0
         finally:
+            sys.stdout = stdout.stream
             end_of_command()  # a signal held back once the outputs were in place: the command finished
             remove_partials()  # whatever the command had started to write, on any way out
     except InputError as error:
@@ -99,7 +104,13 @@ def _run(args) -> int:
     except KeyboardInterrupt:
         message, status = "interrupted; nothing partial was left behind", EXIT_INTERRUPTED
     except OSError as error:
-        message, status = f"error: {describe_os_error(error)}", EXIT_INPUT_ERROR
+        if error.filename is None and stdout.failed is not None:
+            _silence_stdout()
+            message = (f"error: could not print the summary on stdout ({error.strerror or error}); the outputs "
+                       "finished before it are in place")
+        else:
+            message = f"error: {describe_os_error(error)}"
+        status = EXIT_INPUT_ERROR
     except MemoryError:
         message, status = ("error: not enough memory for this request; use a smaller --size, fewer lights or frames, "
                            "or a machine with more memory"), EXIT_INPUT_ERROR
@@ -114,6 +125,39 @@ def _run(args) -> int:
     _close_progress_bars()
     print(f"{name}: {message}", file=sys.stderr)
     return status
+
+
+class _WatchedStream:
+    """A text stream passed through, remembering the first error its writes or flushes raised (``failed``)."""
+
+    def __init__(self, stream):
+        self.stream, self.failed = stream, None
+
+    def write(self, text):
+        try:
+            return self.stream.write(text)
+        except OSError as error:
+            self.failed = self.failed or error
+            raise
+
+    def flush(self):
+        try:
+            return self.stream.flush()
+        except OSError as error:
+            self.failed = self.failed or error
+            raise
+
+    def __getattr__(self, name):
+        return getattr(self.stream, name)
+
+
+def _silence_stdout() -> None:
+    """Point standard output at the null device, so that what it could not take fails no more (Python's
+    last flush at exit included)."""
+    with contextlib.suppress(AttributeError, OSError, ValueError, io.UnsupportedOperation):
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
 
 
 def _install_signal_handlers():
@@ -199,6 +243,24 @@ def _build_parser() -> argparse.ArgumentParser:
             command.add_to(commands)
     parser._command_parsers = dict(commands.choices)
     return parser
+
+
+def _start_warp(args) -> int | None:
+    """Warp's kernel cache checked (or moved under the temporary folder, with one warning line) and Warp
+    started; None when it did, else the exit status after one line on stderr."""
+    name = f"warp-highlights {args.command}"
+    try:
+        warning = prepare_kernel_cache()
+        if warning is not None:
+            print(f"{name}: {warning}", file=sys.stderr)
+        _init_warp(verbose=args.verbose)
+    except InputError as error:
+        print(f"{name}: error: {error}", file=sys.stderr)
+        return EXIT_INPUT_ERROR
+    except OSError as error:
+        print(f"{name}: error: Warp could not start: {describe_os_error(error, action='create')}", file=sys.stderr)
+        return EXIT_INPUT_ERROR
+    return None
 
 
 def _init_warp(*, verbose: bool) -> None:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
+import logging
 import os
 import re
 from dataclasses import dataclass
@@ -15,6 +17,8 @@ __all__ = ["HELDOUT_FOLDER", "Capture", "find_captures", "fingerprint", "image_s
 HELDOUT_FOLDER = "Test"
 """A capture's held-out lights in a folder of their own (the SynthRTI layout: ``Dome/`` beside ``Test/``, or
 ``Test/`` inside the capture); ``heldout.lp`` inside the capture (what ``render`` writes) works as well."""
+
+log = logging.getLogger(__name__)
 
 _SKIPPED = {"__pycache__", "node_modules"}
 
@@ -80,17 +84,33 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
         found.append((folder, folder, inside if _has_light_file(inside) else None))
         return
     try:
-        entries = sorted((e for e in os.scandir(folder)
-                          if e.is_dir() and not e.name.startswith(".") and e.name not in _SKIPPED),
-                         key=lambda e: e.name)
+        with os.scandir(folder) as listing:
+            entries = sorted((e for e in listing if not e.name.startswith(".") and e.name not in _SKIPPED
+                              and _is_folder(e)), key=lambda e: e.name)
     except OSError as error:
-        raise InputError(f"{folder}: cannot list the folder ({error.strerror}); check its permissions") from None
+        advice = _ADVICE.get(error.errno, "check its permissions")
+        raise InputError(f"{folder}: cannot list the folder ({error.strerror}); {advice}") from None
     with_lights = {e.name for e in entries if _has_light_file(Path(e.path))}
     for entry in entries:
         if entry.name == HELDOUT_FOLDER and len(with_lights - {HELDOUT_FOLDER}) == 1:
             # the held-out lights of the capture beside it (OBJECT/Dome and OBJECT/Test), whatever the names' order
             continue
         _search(Path(entry.path), found, seen)
+
+
+_ADVICE = {errno.ELOOP: "a symbolic link on the way points back at itself; fix or remove it",
+           errno.ENOENT: "it went away meanwhile; run again"}
+
+
+def _is_folder(entry: os.DirEntry) -> bool:
+    """Whether a folder entry is a folder (links followed); an entry that cannot be followed (a link loop, a link
+    to nothing readable) is skipped with a warning naming it."""
+    try:
+        return entry.is_dir()
+    except OSError as error:
+        log.warning("%s: skipped, it cannot be followed (%s); %s", entry.path, error.strerror,
+                    _ADVICE.get(error.errno, "check its permissions"))
+        return False
 
 
 def _only_capture_beside(heldout: Path) -> bool:

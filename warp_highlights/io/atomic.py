@@ -787,21 +787,34 @@ _ADVICE = {
     errno.EPERM: "check its permissions or choose another location",
     errno.EROFS: "choose an output on a writable disk",
     errno.ENOSPC: "free some space or choose an output on another disk",
-    errno.EDQUOT: "free some space or choose an output on another disk",
+    errno.EDQUOT: "free some space within the quota or choose an output on another disk",
+    errno.EFBIG: "raise the limit (ulimit -f unlimited) or write a smaller output",
     errno.ENOENT: "a folder on the way does not exist; create it first",
     errno.ENOTDIR: "a part of the path is a file, not a folder; fix the path",
     errno.EISDIR: "that is a folder; give a file name",
     errno.ENAMETOOLONG: "the name is too long for the file system; choose a shorter name",
     errno.EEXIST: "something appeared there meanwhile; choose another name or pass --overwrite",
+    errno.ELOOP: "a symbolic link on the way points back at itself; fix or remove the link",
+    errno.EMLINK: "the folder holds too many entries; choose another location",
+    errno.ENXIO: "it is a device or socket with nothing behind it; give a regular file",
+    errno.ETXTBSY: "a running program uses that file; choose another name",
     errno.EIO: "check the disk",
     errno.EMFILE: "too many open files; raise the limit (ulimit -n) or process fewer lights at once",
+    errno.ENFILE: "the system has too many open files; close some programs or try again later",
 }
-_WRITING_ERRNOS = (errno.EROFS, errno.ENOSPC, errno.EDQUOT)
+_REASONS = {
+    errno.EDQUOT: "the disk quota is exceeded",
+    errno.EFBIG: "the file size limit (ulimit -f) was reached",
+}
+"""The true reason where the system's own words mislead (``File too large`` for a per-process limit)."""
+_WRITING_ERRNOS = (errno.EROFS, errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+_CACHE_ADVICE = "set WARP_CACHE_PATH to a folder on a writable disk"
 
 
 def describe_os_error(error: OSError, *, path=None, action: str | None = None) -> str:
     """One line for an operating-system failure: what, which file (the output it was for, not a
-    temporary name) and what to do.
+    temporary name) and what to do. A failure inside Warp's kernel cache names the cache and
+    ``WARP_CACHE_PATH``.
 
     Args:
         error: The failure.
@@ -813,9 +826,26 @@ def describe_os_error(error: OSError, *, path=None, action: str | None = None) -
     where = _public_name(raw) if raw else "the output"
     if action is None:
         action = "write" if (path is not None or ".partial-" in raw or error.errno in _WRITING_ERRNOS) else "access"
-    reason = error.strerror or str(error) or type(error).__name__
+    reason = _REASONS.get(error.errno) or error.strerror or str(error) or type(error).__name__
+    cache = _kernel_cache_folder()
+    if raw and cache is not None and _is_within(raw, cache):
+        return f"cannot {action} Warp's kernel cache {cache} ({where}): {reason}; {_CACHE_ADVICE}"
     advice = _ADVICE.get(error.errno, "check the path and the disk")
     return f"cannot {action} {where}: {reason}; {advice}"
+
+
+def _kernel_cache_folder() -> str | None:
+    """The folder Warp compiles kernels into, once Warp has been imported and configured; else None."""
+    warp = sys.modules.get("warp")
+    folder = getattr(getattr(warp, "config", None), "kernel_cache_dir", None)
+    return str(folder) if folder else None
+
+
+def _is_within(path: str, folder: str) -> bool:
+    try:
+        return os.path.commonpath([os.path.abspath(path), os.path.abspath(folder)]) == os.path.abspath(folder)
+    except ValueError:  # different drives
+        return False
 
 
 def _public_name(text: str) -> str:

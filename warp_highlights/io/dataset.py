@@ -682,7 +682,9 @@ class _StackReader:
             return
         what = f"{self.nonfinite_count} non-finite pixel values (NaN or inf), first in {self.nonfinite_file}"
         if not self.replace_nonfinite:
-            raise InputError(f"{what}; fix the images or pass replace_nonfinite=True to replace them by 0")
+            raise InputError(f"{what}; the command line does not replace them: fix or re-export those images "
+                             "with finite values, or load the capture in Python with "
+                             "ReflectanceField.load(folder, replace_nonfinite=True), which replaces them by 0")
         warnings.warn(f"{what}; replaced by 0", stacklevel=3)
 
 

@@ -50,6 +50,7 @@ __all__ = [
     "ImageHeader",
     "display_rgb8",
     "encode_levels",
+    "file_kind",
     "image_encoding",
     "image_header",
     "image_shape",
@@ -351,9 +352,18 @@ def _stamped_image(path) -> tuple[Path, str, tuple[int, int]]:
         status = path.stat()
     except (OSError, ValueError):  # as Path.is_file: missing, unreadable folder, bad name
         status = None
-    if status is None or not stat.S_ISREG(status.st_mode):
+    if status is None:
         raise InputError(f"{path}: image file not found")
+    if not stat.S_ISREG(status.st_mode):
+        raise InputError(f"{path}: is not a regular file but {file_kind(status.st_mode)}; give an image file")
     return path, suffix, (status.st_size, status.st_mtime_ns)
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``os.stat`` mode ``mode`` is, in words ("a folder", "a FIFO (named pipe)", ...)."""
+    kinds = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"), (stat.S_ISCHR, "a character device"),
+             (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+    return next((words for test, words in kinds if test(mode)), "a special file")
 
 
 def _check_pixels(path: Path, size: str, pixels: int, max_pixels: int | None) -> None:
@@ -600,8 +610,8 @@ def _write_exr(path: Path, image: np.ndarray, *, half: bool) -> None:
         raise _as_os_error(error, path) from None
 
 
-_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT, errno.ENOTDIR,
-                 errno.ENAMETOOLONG, errno.EIO)
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT,
+                 errno.ENOTDIR, errno.ENAMETOOLONG, errno.EIO)
 
 
 def _as_os_error(error: Exception, path: Path) -> Exception:
@@ -709,10 +719,13 @@ def _write_with_oiio(path: Path, format_name: str, levels: np.ndarray) -> None:
 
 def _write_failure(path: Path, message: str) -> OSError:
     """OpenImageIO's write complaint -> an OSError with the errno it names, or ENOSPC when the disk
-    holding ``path`` is full, else EIO (its messages carry no errno)."""
+    holding ``path`` is full, EFBIG when the file reached the process's size limit (``ulimit -f``), else EIO
+    (its messages carry no errno)."""
     error = _as_os_error(RuntimeError(message), path)
     if isinstance(error, OSError):
         return error
+    if _at_size_limit(path):
+        return OSError(errno.EFBIG, os.strerror(errno.EFBIG), str(path))
     import shutil
 
     try:
@@ -723,6 +736,17 @@ def _write_failure(path: Path, message: str) -> OSError:
     return OSError(code,
                    f"{os.strerror(code)} ({message.strip().splitlines()[0] if message.strip() else 'write failed'})",
                    str(path))
+
+
+def _at_size_limit(path: Path) -> bool:
+    """Whether ``path`` is as large as the process may make a file (``RLIMIT_FSIZE``, where there is one)."""
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        return limit != resource.RLIM_INFINITY and path.stat().st_size >= limit
+    except (ImportError, OSError, ValueError):
+        return False
 
 
 def _write_with_pillow(path: Path, suffix: str, levels: np.ndarray) -> None:

@@ -174,7 +174,15 @@ def _check_files(path: Path, filenames: list[str], line_numbers: list[int]) -> N
     folder = path.parent
     for name, number in zip(filenames, line_numbers):
         if not _is_file(folder / name):
-            raise InputError(f"{path}:{number}: image {name!r} not found in {folder}; fix the name or add the image")
+            try:
+                mode = (folder / name).stat().st_mode
+            except (OSError, ValueError):
+                raise InputError(
+                    f"{path}:{number}: image {name!r} not found in {folder}; fix the name or add the image") from None
+            from .images import file_kind
+
+            raise InputError(f"{path}:{number}: image {name!r} in {folder} is not a regular file but "
+                             f"{file_kind(mode)}; replace it by the image file")
 
 
 def _clip(text: str, limit: int = 60) -> str:
