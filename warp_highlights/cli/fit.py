@@ -255,11 +255,12 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
           f"than 4 lit samples)")
     residual = report.get("residual")
     if residual:
-        if residual["kind"] == "lowrank":
+        resolved = report["residual_kind"]["resolved"]
+        if resolved == "lowrank":
             kind = (f"low rank (luminance {residual['luminance_rank']}"
                     + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
                     + f", {residual['basis_bits']}-bit)")
-        elif residual["kind"] == "learned":
+        elif resolved == "learned":
             kind = f"learned ({residual['learned']['epochs']} epochs)"
         else:
             kind = "uncompressed images"

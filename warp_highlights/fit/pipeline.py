@@ -321,7 +321,6 @@ def fit_field(
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
-            "kind": kind,
             "luminance_rank": residual_model.luminance.rank if kind == "lowrank" else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if kind == "lowrank" else None,

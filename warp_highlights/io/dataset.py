@@ -816,13 +816,14 @@ def _text_digest(lines) -> str:
 
 def _image_digest(path: Path) -> str:
     """One image's content digest (see ``FINGERPRINT_GRID``): hex text of 8-bit cells, row by row."""
+    from .resample import resample_image
+
     image = np.nan_to_num(read_image(path, linear=True, max_pixels=None).astype(np.float64),
                           nan=0.0, posinf=0.0, neginf=0.0)
     if image.ndim == 3:
         image = image.mean(axis=2)
     rows, columns = min(FINGERPRINT_GRID, image.shape[0]), min(FINGERPRINT_GRID, image.shape[1])
-    cells = np.array([[cell.mean() for cell in np.array_split(band, columns, axis=1)]
-                      for band in np.array_split(image, rows, axis=0)])
+    cells = resample_image(image.astype(np.float32), columns, rows).astype(np.float64)  # each cell its area's mean
     top = cells.max()
     scaled = np.clip(cells / top, 0.0, 1.0) if top > 0 else np.zeros_like(cells)
     return bytes(np.rint(255.0 * scaled).astype(np.uint8).ravel()).hex()
