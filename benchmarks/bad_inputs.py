@@ -23,10 +23,13 @@ cpu``), derives the bad inputs from them, and runs every case, in these categori
 - ``outputs``: every command that writes, into a read-only folder and a full file system (tmpfs
   mounts), a missing parent, a file where a folder is expected and back, an existing output without
   ``--overwrite``, ``--overwrite`` onto a folder holding a user's file, names over 255 bytes;
-- ``interrupts``: SIGINT and SIGTERM sent to running commands (subprocesses: the one category that
-  cannot run in-process).
+- ``interrupts``: SIGINT and SIGTERM sent to running commands (in subprocesses);
+- ``targets``, ``races``, ``environment``, ``captures``, ``serve`` (``harm_cases.py``): outputs that are
+  devices, FIFOs, sockets, folders of another kind or the command's own inputs; two processes writing
+  one name at once; a read-only home or kernel cache, the file size limit and a full standard output;
+  a field used with another capture's images; requests that must not block or leak the local server.
 
-Cases run in-process through ``warp_highlights.cli.main`` (Warp and the kernels load once), in a
+Most cases run in-process through ``warp_highlights.cli.main`` (Warp and the kernels load once), in a
 worker process, so that a crash (a C library killing the process) or a hang that ignores SIGALRM costs
 the case and not the run: the worker is restarted. Every case passes ``-q`` (no progress bars, which
 would be lines on stderr too); stdout and stderr are captured at the Python level and at the file
@@ -41,8 +44,12 @@ each command line; ``--full-fits`` drops them). Outcomes of a case:
 - ``hang``: not finished within ``--timeout`` seconds (SIGALRM in the worker);
 - ``other``: anything else (another exit status, several lines, a crash of the process);
 - ``litter`` (counted besides the outcome): a hidden ``.*.partial-*``/``.*.replaced-*`` entry left
-  anywhere in the case's folder or the shared inputs, an output that a failed command created or
-  changed, or a user's file that ``--overwrite`` removed.
+  anywhere in the case's folder or the shared inputs, or an output that a failed command created or
+  changed;
+- ``data lost`` (counted besides the outcome): a path the case protects (an input, a user's file, a
+  device) or the shared inputs changed or removed, whatever the exit status, or two racing writers
+  that both said they wrote one name;
+- ``failed check``: the case's own check found a wrong message or a missing or mixed output.
 
 Prints the table (and every failing case with a command line that reproduces it; the inputs of
 failing cases are kept in the work folder). Writes everything to $OUT/bad_inputs.json when OUT is set.
@@ -86,8 +93,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-CATEGORIES = ("light files", "field files", "images", "options", "outputs", "interrupts")
-COMMANDS = ("render", "info", "sheet", "fit", "relight", "animate", "evaluate", "view", "demo")
+CATEGORIES = ("light files", "field files", "images", "options", "outputs", "interrupts", "targets", "races",
+              "environment", "captures", "serve")
+COMMANDS = ("render", "info", "sheet", "fit", "relight", "animate", "evaluate", "view", "demo", "export", "maps",
+            "serve", "collection")
 OUTCOMES = ("error", "accepted", "traceback", "hang", "other")
 LITTER_NAME = re.compile(r"^\..+\.(partial|replaced)-")
 GRACE_SECONDS = 30.0
@@ -275,7 +284,12 @@ class Run:
     outputs: list = field(default_factory=list)
     """Paths the command may write: after a failure each must be as it was before."""
     check: Callable[[dict], str | None] | None = None
-    """Further check after the run: a problem (counted as litter) or None."""
+    """Further check after the run: a problem (a failed check: a wrong message, a missing output) or None."""
+    protected: list = field(default_factory=list)
+    """Paths that must be exactly as they were after the run, whatever its outcome (inputs, a user's files,
+    devices): a change is data lost."""
+    runner: Callable[[Run, Context], dict] | None = None
+    """Runs the case instead of the worker (subprocesses: several at once, another environment, a server)."""
     cleanup: Callable[[], None] | None = None
     note: str = ""
     interrupt: tuple[int, float] | None = None
@@ -304,10 +318,12 @@ class Result:
     litter: list
     folder: Path
     note: str = ""
+    lost: list = field(default_factory=list)
+    problems: list = field(default_factory=list)
 
     @property
     def failing(self) -> bool:
-        return self.outcome in ("traceback", "hang", "other") or bool(self.litter)
+        return self.outcome in ("traceback", "hang", "other") or bool(self.litter or self.lost or self.problems)
 
     def command(self) -> str:
         line = "warp-highlights " + shlex.join(str(a) for a in self.argv)
@@ -432,7 +448,8 @@ def set_up(ctx: Context) -> None:
     ctx.cases.mkdir(parents=True)
     ctx.cli(["render", "sphere", ctx.dataset, "--lights", "16", "--size", "32x18", "--samples", "1", "--heldout",
              "centroids", "--device", "cpu", "-q"])
-    ctx.cli(["fit", ctx.dataset, "-o", ctx.field, "--device", "cpu", "-q"])
+    # a Lambertian diffuse part, so that the field file holds every kind of entry the cases damage
+    ctx.cli(["fit", ctx.dataset, "-o", ctx.field, "--diffuse", "lambert", "--device", "cpu", "-q"])
     view = ctx.worker.run(["view", str(ctx.field), "--screenshot", str(ctx.base / "view-check.png"), "-q"],
                           max(ctx.timeout, 300.0))
     ctx.view_ok = view.get("rc") == 0
@@ -728,9 +745,10 @@ def light_file_cases(ctx: Context) -> list[Case]:
         ("lights.lp is a dangling link", symlink("/nonexistent/lights.lp"), (E, E)),
         ("two .lp files and no lights.lp", two_files, (E, E)),
         ("no .lp file at all", lambda folder: None, (E, E)),
-        ("heldout.lp malformed", ("heldout", bad_heldout("3\nfoo 1 2\n")), (E, E)),
+        # fit reads no held-out lights: only info refuses these
+        ("heldout.lp malformed", ("heldout", bad_heldout("3\nfoo 1 2\n")), (E, None)),
         ("heldout.lp lists missing images",
-         ("heldout", bad_heldout(lp_text(["heldout/h0000.exr", "heldout/h0001.exr"], dirs[:2] + 0.1))), (E, E)),
+         ("heldout", bad_heldout(lp_text(["heldout/h0000.exr", "heldout/h0001.exr"], dirs[:2] + 0.1))), (E, None)),
     ]
     cases = []
     for label, content, (expect_info, expect_fit) in variants:
@@ -762,6 +780,8 @@ _DELETE = object()
 
 
 def field_cases(ctx: Context) -> list[Case]:
+    from warp_highlights.io.fieldfile import FORMAT_VERSION
+
     raw = ctx.field.read_bytes()
     with zipfile.ZipFile(io.BytesIO(raw)) as archive:
         entries = {info.filename: archive.read(info.filename) for info in archive.infolist()}
@@ -836,6 +856,7 @@ def field_cases(ctx: Context) -> list[Case]:
     delta = array("paths/delta.npy")
     centre = array("paths/centre.npy")
     lambert = array("diffuse/lambert.npy")
+    scale = array("residual/scale.npy")
     mask_png = (ctx.dataset / "mask.png").read_bytes()
 
     def big_header() -> bytes:
@@ -901,7 +922,7 @@ def field_cases(ctx: Context) -> list[Case]:
         ("header.json nested 100000 deep", zipped({"header.json": b"[" * 100_000 + b"]" * 100_000}), E),
         ("header.json of 256 MB (a zip bomb)", big_header(), E),
         ("header.json with trailing NUL bytes", zipped({"header.json": entries["header.json"] + b"\x00" * 64}), E),
-        ("future format version 2", with_header(format_version=2), E),
+        (f"future format version {FORMAT_VERSION + 1}", with_header(format_version=FORMAT_VERSION + 1), E),
         ("format version 10^30", with_header(format_version=10**30), E),
         ("format version '1' (a string)", with_header(format_version="1"), E),
         ("format version true", with_header(format_version=True), E),
@@ -963,6 +984,8 @@ def field_cases(ctx: Context) -> list[Case]:
         ("path rotations inf", with_array("paths/delta.npy", np.full_like(delta, np.inf)), E),
         ("path centres 1e30", with_array("paths/centre.npy", np.full_like(centre, 1e30)), None),
         ("Lambertian diffuse all inf", with_array("diffuse/lambert.npy", np.full_like(lambert, np.inf)), E),
+        ("residual scale all inf", with_array("residual/scale.npy", np.full_like(scale, np.inf)), E),
+        ("residual scale negative", with_array("residual/scale.npy", -np.abs(scale) - 1), E),
         ("a .npy header claiming 10^12 x 3 values", zipped({"lights/directions.npy": npy_with_header(
             {"descr": "<f8", "fortran_order": False, "shape": (10**12, 3)}, directions.tobytes())}), E),
         ("an object (pickle) .npy",
@@ -1301,7 +1324,8 @@ def image_cases(ctx: Context) -> list[Case]:
                 out = folder / "sheet.png"
                 return Run(["sheet", dataset, "-o", out, *limit, "-q"], outputs=[out])
 
-            cases.append(Case("images", f"{command}: {label}", build, expect))
+            held_out_only = "held-out" in label and command == "fit"  # fit reads no held-out lights
+            cases.append(Case("images", f"{command}: {label}", build, None if held_out_only else expect))
     return cases
 
 
@@ -1536,7 +1560,7 @@ def option_cases(ctx: Context) -> list[Case]:
     each("relight", "--diffuse", [("images", E), ("none", OK), ("bogus", E)])
     each("relight", "--device", [("cuda:7", E), ("", E), ("cpu", OK)])
     each("relight", "--max-megapixels", [("0", E), ("nan", E)])
-    each("relight", "-o", [(InCase("relit.tif"), E), (InCase("relit"), E), (InCase("relit.PNG"), OK),
+    each("relight", "-o", [(InCase("relit.tif"), OK), (InCase("relit"), E), (InCase("relit.PNG"), OK),
                            (InCase("relit.jpg"), None),
                            (InCase("relit.exr"), OK), ("", E)])
 
@@ -1654,21 +1678,10 @@ def output_cases(ctx: Context) -> list[Case]:
             out, extra = make(folder)
             argv = [*argv_of(out, folder), *(["--overwrite"] if overwrite else []), "-q"]
             run = Run(argv, outputs=[out] + extra.get("outputs", []), cleanup=extra.get("cleanup"),
-                      note=extra.get("note", ""),
-                      check=extra.get("check"))
+                      note=extra.get("note", ""), protected=extra.get("protected", []))
             return run
 
         cases.append(Case("outputs", f"{name}: {label}", build, expect))
-
-    def intact(path: Path, content: bytes):
-        def check(result):
-            if not path.is_file():
-                return f"the user's file {path} is gone"
-            if path.read_bytes() != content:
-                return f"the user's file {path} was changed"
-            return None
-
-        return check
 
     for name, kind, suffix, argv_of in writers(ctx):
         leaf = "out" + suffix
@@ -1714,7 +1727,7 @@ def output_cases(ctx: Context) -> list[Case]:
             def folder_there(folder, leaf=leaf):
                 out = folder / leaf
                 put(out / "mine.txt", user_file)
-                return out, {"check": intact(out / "mine.txt", user_file)}
+                return out, {"protected": [out / "mine.txt"]}
 
             case(name, "output is an existing folder", folder_there, E, argv_of)
             case(name, "output exists, no --overwrite",
@@ -1730,7 +1743,7 @@ def output_cases(ctx: Context) -> list[Case]:
             def users_folder(folder):
                 out = folder / "out"
                 put(out / "thesis.txt", user_file)
-                return out, {"check": intact(out / "thesis.txt", user_file)}
+                return out, {"protected": [out / "thesis.txt"]}
 
             case(name, "--overwrite onto a folder holding a user's file", users_folder, E, argv_of, overwrite=True)
             if name in ("render", "relight --lights to a folder", "animate to a frames folder"):
@@ -1738,7 +1751,7 @@ def output_cases(ctx: Context) -> list[Case]:
                     out = folder / "out"
                     ctx.cli([*argv_of(out, folder), "-q"])
                     put(out / "notes.txt", user_file)
-                    return out, {"check": intact(out / "notes.txt", user_file)}
+                    return out, {"protected": [out / "notes.txt"]}
 
                 case(name, "--overwrite onto its own earlier output plus a user's file", earlier_plus_user, E, argv_of,
                      overwrite=True)
@@ -1786,13 +1799,9 @@ def _symlink(link: Path, target: Path) -> Path:
 def _render_over_dataset(ctx: Context, folder: Path, user_file: bytes) -> Run:
     dataset = link_tree(ctx.dataset, folder / "D")
     put(dataset / "my-notes.txt", user_file)
-
-    def check(result):
-        return None if (dataset / "my-notes.txt").read_bytes() == user_file else "the user's file my-notes.txt is gone"
-
     return Run(["render", "sphere", dataset, "--lights", "8", "--size", "32x18", "--samples", "1", "--device", "cpu",
                 "--overwrite", "-q"],
-               outputs=[dataset], check=check)
+               outputs=[dataset], protected=[dataset])
 
 
 # --- category 6: interrupts (subprocesses) ----------------------------------------------------------
@@ -1967,12 +1976,21 @@ def execute(case: Case, index: int, ctx: Context) -> Result:
             return Result(case, index, [], "skipped", None, 0.0, "", None, [], folder,
                           note=f"the harness could not build this case: {type(error).__name__}: {error}")
         before = {path: fingerprint(path) for path in run.outputs}
+        kept = {path: fingerprint(path) for path in [*run.protected, ctx.base]}
         seen = litter_in(folder) | litter_in(ctx.base)
-        if run.interrupt is None:
+        if run.runner is not None:
+            result = run.runner(run, ctx)
+        elif run.interrupt is None:
             result = ctx.worker.run([str(a) for a in run.argv], ctx.timeout)
         else:
             result = run_interrupted(run, ctx)
         outcome = classify(result, run.argv, run.interrupt)
+        lost = list(result.get("lost") or [])
+        for path, was in kept.items():
+            now = fingerprint(path)
+            if now != was:
+                lost.append(f"{path} was {'removed' if now is None else 'changed'}"
+                            + (" (a shared input of every case)" if path == ctx.base else ""))
         litter = sorted((litter_in(folder) | litter_in(ctx.base)) - seen)
         if outcome != "accepted":
             for path, was in before.items():
@@ -1980,14 +1998,15 @@ def execute(case: Case, index: int, ctx: Context) -> Result:
                 if now != was:
                     what = "created" if was is None else ("removed" if now is None else "changed")
                     litter.append(f"{path} was {what} by the failed command")
+        problems = []
         if run.check is not None:
             problem = run.check(result)
             if problem:
-                litter.append(problem)
+                problems.append(problem)
         note = "; ".join(filter(None, [run.note, result.get("note"), result.get("crashed")]))
         return Result(case, index, run.argv, outcome, result.get("rc"), time.perf_counter() - started,
                       result.get("stderr") or "",
-                      result.get("exception"), litter, folder, note=note)
+                      result.get("exception"), litter, folder, note=note, lost=lost, problems=problems)
     finally:
         if run is not None and run.cleanup is not None:
             with contextlib.suppress(Exception):
@@ -2055,25 +2074,27 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
           f"{', --quick' if args.quick else ''}{', full fits' if args.full_fits else ', short fits'}); {machine()}")
     print(f"# package: {git_state()}; {ctx.mount_note}; {ctx.view_note}; worker started {ctx.worker.starts} times")
     print()
-    print("| category | tried | one-line errors | accepted | tracebacks | hangs | other | litter | seconds |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    totals = dict.fromkeys(("tried", *OUTCOMES, "litter"), 0)
+    print("| category | tried | one-line errors | accepted | tracebacks | hangs | other | litter | data lost | "
+          "failed checks | seconds |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    totals = dict.fromkeys(("tried", *OUTCOMES, "litter", "lost", "problems"), 0)
     rows = {}
     for category in CATEGORIES:
         members = [r for r in ran if r.case.category == category]
         if not members and category not in seconds:
             continue
         row = {"tried": len(members), **{o: sum(r.outcome == o for r in members) for o in OUTCOMES},
-               "litter": sum(bool(r.litter) for r in members)}
+               "litter": sum(bool(r.litter) for r in members), "lost": sum(bool(r.lost) for r in members),
+               "problems": sum(bool(r.problems) for r in members)}
         rows[category] = {**row, "seconds": round(seconds.get(category, 0.0), 1)}
         for key in totals:
             totals[key] += row[key]
         print(f"| {category} | {row['tried']} | {row['error']} | {row['accepted']} | {row['traceback']} | "
               f"{row['hang']} | {row['other']} | "
-              f"{row['litter']} | {seconds.get(category, 0.0):.0f} |")
+              f"{row['litter']} | {row['lost']} | {row['problems']} | {seconds.get(category, 0.0):.0f} |")
     print(f"| **total** | **{totals['tried']}** | **{totals['error']}** | **{totals['accepted']}** | "
-          f"**{totals['traceback']}** | "
-          f"**{totals['hang']}** | **{totals['other']}** | **{totals['litter']}** | **{sum(seconds.values()):.0f}** |")
+          f"**{totals['traceback']}** | **{totals['hang']}** | **{totals['other']}** | **{totals['litter']}** | "
+          f"**{totals['lost']}** | **{totals['problems']}** | **{sum(seconds.values()):.0f}** |")
     if skipped:
         reasons = sorted({r.note for r in skipped if not r.note.startswith("the harness")})
         print(f"\nSkipped {len(skipped)} cases: " + "; ".join(reasons))
@@ -2082,14 +2103,19 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
                 print(f"- [{r.case.category}] {r.case.label}: {r.note}")
 
     failing = [r for r in ran if r.failing]
-    print(f"\n## Failing cases ({len(failing)}): traceback, hang, other, litter")
+    print(f"\n## Failing cases ({len(failing)}): traceback, hang, other, litter, data lost, failed check")
     for r in failing:
         tags = ([r.outcome] if r.outcome in ("traceback", "hang", "other") else []) + (["litter"] if r.litter else [])
+        tags += (["data lost"] if r.lost else []) + (["failed check"] if r.problems else [])
         print(f"\n- **{' + '.join(tags)}** [{r.case.category}] {r.case.label} (exit {r.rc}, {r.seconds:.1f} s)")
         print(f"  $ {r.command()}")
         print(f"  inputs kept in {r.folder}" + (f"; {r.note}" if r.note else ""))
         for item in r.litter:
             print(f"  litter: {item}")
+        for item in r.lost:
+            print(f"  data lost: {item}")
+        for item in r.problems:
+            print(f"  failed check: {item}")
         detail = r.exception or r.stderr
         for line in last_lines(detail, 8 if r.exception or "Traceback" in (r.stderr or "") else 3):
             print(f"    | {line[:300]}")
@@ -2113,7 +2139,8 @@ def report(results: list[Result], seconds: dict, ctx: Context, args, total_secon
         "table": rows, "totals": totals,
         "cases": [{"category": r.case.category, "label": r.case.label, "expect": r.case.expect, "outcome": r.outcome,
                    "rc": r.rc,
-                   "seconds": round(r.seconds, 3), "argv": [str(a) for a in r.argv], "litter": r.litter, "note": r.note,
+                   "seconds": round(r.seconds, 3), "argv": [str(a) for a in r.argv], "litter": r.litter, "lost": r.lost,
+                   "problems": r.problems, "note": r.note,
                    "stderr": r.stderr[-2000:], "exception": r.exception} for r in results],
     }
 
@@ -2148,9 +2175,14 @@ def main() -> None:
         set_up(ctx)
         print(f"# set-up (render, fit, shared inputs) {time.perf_counter() - started:.1f} s; {ctx.mount_note}; "
               f"{ctx.view_note}", flush=True)
+        # harm_cases imports its Case, Run and tools from here
+        sys.modules.setdefault("bad_inputs", sys.modules[__name__])
+        from harm_cases import capture_cases, environment_cases, race_cases, serve_cases, target_cases
+
         makers = {"light files": light_file_cases, "field files": field_cases, "images": image_cases,
-                  "options": option_cases,
-                  "outputs": output_cases, "interrupts": interrupt_cases}
+                  "options": option_cases, "outputs": output_cases, "interrupts": interrupt_cases,
+                  "targets": target_cases, "races": race_cases, "environment": environment_cases,
+                  "captures": capture_cases, "serve": serve_cases}
         wanted = [c for c in CATEGORIES if not args.only or c.split()[0] in args.only]
         all_cases: list[Case] = []
         for category in wanted:
@@ -2166,6 +2198,10 @@ def main() -> None:
                     "skipped": "s"}[result.outcome]
             if result.litter:
                 mark += "L"
+            if result.lost:
+                mark += "D"
+            if result.problems:
+                mark += "C"
             print(f"{index:4d} {mark:3s} {result.seconds:6.2f} s  [{case.category}] {case.label}", flush=True)
             if not (args.keep or result.failing):
                 shutil.rmtree(result.folder, ignore_errors=True)

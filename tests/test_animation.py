@@ -228,6 +228,8 @@ def test_parse_light_path_lp_list(tmp_path):
         ("", ["unknown kind"]),
         ("list:", ["list:FILE"]),
         ("list:/no/such/dir/path.txt", ["not found"]),
+        ("list:/dev/zero", ["not a regular file but a character device"]),
+        ("list:/tmp", ["not a regular file but a folder"]),
     ],
 )
 def test_parse_light_path_errors_are_one_line_naming_the_spec(spec, fragments):

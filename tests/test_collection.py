@@ -304,6 +304,21 @@ def test_an_output_folder_overlapping_a_capture_is_refused_and_nothing_is_touche
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
+def test_an_output_folder_of_other_files_is_refused_and_nothing_is_touched(tmp_path, capsys):
+    """The gallery's index.html must never replace a web site's own; a rendered dataset is not a collection."""
+    _render(tmp_path / "shelf" / "coin", "donut")
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("<p>the museum's home page</p>")
+    _render(tmp_path / "renders", "sphere")
+    before = {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    for output in (site, tmp_path / "renders"):
+        assert main(["collection", str(tmp_path / "shelf"), "-o", str(output), "--device", "cpu"]) == 2
+        err = capsys.readouterr().err
+        assert "not a warp-highlights collection" in err and len(err.splitlines()) == 1, err
+    assert {p.relative_to(tmp_path): p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
 def test_the_gallery_lists_scores_and_failures(tmp_path):
     ok = {"name": "coin", "status": "ok", "lights": 40, "size": [480, 270], "gaussians_per_light": 3.25,
           "fit_seconds": 2.5,

@@ -197,6 +197,71 @@ def test_two_writers_without_overwrite_exactly_one_wins(tmp_path, write):
     assert sorted(os.listdir(tmp_path)) == sorted(f"out{i}" for i in range(RACE_REPETITIONS))  # no temporaries
 
 
+def test_two_writers_onto_an_empty_folder_exactly_one_wins(tmp_path):
+    for repetition in range(RACE_REPETITIONS):
+        target = tmp_path / f"out{repetition}"
+        target.mkdir()  # made by the user beforehand: new, as far as the rules go
+        done, errors = _race(target, _write_folder, overwrite=False)
+        assert len(done) == 1 and len(errors) == 1, (done, errors)
+        assert sorted(os.listdir(target)) == [MANIFEST_NAME, f"{done[0]}.exr"]
+    assert sorted(os.listdir(tmp_path)) == sorted(f"out{i}" for i in range(RACE_REPETITIONS))
+
+
+def _without_renameat2_or_links(monkeypatch) -> None:
+    """The system of a file system without hard links, on a kernel without renameat2."""
+    import errno
+
+    from warp_highlights.io import atomic
+
+    def no_link(*args, **kwargs):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(atomic, "_renameat2", lambda *args: False)
+    monkeypatch.setattr(atomic.os, "link", no_link)
+
+
+@pytest.mark.parametrize("write", [_write_file, _write_folder], ids=["file", "folder"])
+def test_without_renameat2_a_lock_file_keeps_two_writers_apart(tmp_path, monkeypatch, write):
+    _without_renameat2_or_links(monkeypatch)
+    for repetition in range(RACE_REPETITIONS):
+        target = tmp_path / f"out{repetition}"
+        done, errors = _race(target, write, overwrite=False)
+        assert len(done) == 1 and len(errors) == 1, (done, errors)
+        assert "\n" not in errors[0] and "--overwrite" in errors[0]
+        if target.is_file():
+            assert target.read_text() == done[0] * 1000
+        else:
+            assert sorted(os.listdir(target)) == [MANIFEST_NAME, f"{done[0]}.exr"]
+    assert sorted(os.listdir(tmp_path)) == sorted(f"out{i}" for i in range(RACE_REPETITIONS))  # no lock left
+
+
+def test_a_lock_of_a_process_that_ended_is_taken_over_and_a_live_one_is_not(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+
+    from warp_highlights.io.atomic import _stable_host_tag
+
+    _without_renameat2_or_links(monkeypatch)
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    lock = tmp_path / ".a.png.lock"
+    lock.write_text(f"{_stable_host_tag()} {ended.stdout.strip()}\n")
+    with atomic_file(tmp_path / "a.png", overwrite=False) as temporary:
+        temporary.write_bytes(b"new")
+    assert (tmp_path / "a.png").read_bytes() == b"new" and not lock.exists()
+
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        (tmp_path / ".b.png.lock").write_text(f"{_stable_host_tag()} {live.pid}\n")
+        with pytest.raises(InputError, match="appeared while it was being written"):
+            with atomic_file(tmp_path / "b.png", overwrite=False) as temporary:
+                temporary.write_bytes(b"new")
+    finally:
+        live.kill()
+        live.wait()
+    assert not (tmp_path / "b.png").exists()
+    assert sorted(os.listdir(tmp_path)) == [".b.png.lock", "a.png"]  # the live writer's lock stays
+
+
 def test_two_writers_with_overwrite_the_later_wins_whole(tmp_path):
     for repetition in range(RACE_REPETITIONS):
         target = tmp_path / f"out{repetition}"
@@ -228,6 +293,30 @@ def test_output_that_is_an_input_or_inside_one_is_refused(tmp_path):
     with pytest.raises(InputError, match="holds the command's input"):
         check_output_folder(data, overwrite=True, inputs=[data / "lights.lp"])
     check_output_file(tmp_path / "other.whf", overwrite=False, inputs=[data, field, None])
+
+
+def test_a_capture_image_is_never_replaced_one_by_one(tmp_path):
+    photos = tmp_path / "coin"
+    (photos / "jpg").mkdir(parents=True)
+    for name in ("a.jpg", "b.jpg", "notes.txt"):
+        (photos / "jpg" / name).write_bytes(b"photo " + name.encode())
+    (photos / "dirs.lp").write_text("2\njpg/a.jpg 0 0 1\njpg\\b.jpg 0 1 1\n")  # a backslash, as Windows tools write
+    (photos / "broken.lp").write_text("not a light file")
+    (tmp_path / "shelf").symlink_to(photos)
+    for output in (photos / "jpg" / "a.jpg", photos / "jpg" / "b.jpg", tmp_path / "shelf" / "jpg" / "a.jpg"):
+        with pytest.raises(InputError, match="is an image of the capture .*dirs.lp; .* never replaced"):
+            check_output_file(output, overwrite=True)
+    check_output_file(photos / "jpg" / "notes.txt", overwrite=True)  # not an image of the capture
+    check_output_file(photos / "jpg" / "new.png", overwrite=True)  # a new file beside them
+    assert (photos / "jpg" / "a.jpg").read_bytes() == b"photo a.jpg"
+
+
+def test_a_file_of_an_output_folder_is_replaced_only_with_its_folder(tmp_path):
+    folder = tmp_path / "renders"
+    _dataset_like(folder)
+    with pytest.raises(InputError, match="is a file of the dataset folder .*renders"):
+        check_output_file(folder / "image.png", overwrite=True)
+    check_output_file(folder / "other.png", overwrite=True)
 
 
 @pytest.fixture(scope="module")
@@ -308,3 +397,68 @@ def test_a_claim_is_used_once(tmp_path):
     with atomic_file(target, checked=False) as temporary:  # a later write that asks to replace
         temporary.write_bytes(b"second")
     assert target.read_bytes() == b"second"
+
+
+# --- two commands at once --------------------------------------------------------------------------
+
+
+def _together(commands: list[list[str]]) -> list[tuple[int, str, str]]:
+    """Start ``python -m warp_highlights`` for each argument list at once; (status, stdout, stderr) of each."""
+    import subprocess
+    import sys
+
+    processes = [subprocess.Popen([sys.executable, "-m", "warp_highlights", *map(str, arguments)],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for arguments in commands]
+    results = []
+    for process in processes:
+        out, err = process.communicate(timeout=300)
+        results.append((process.returncode, out, err))
+    return results
+
+
+def _one_wrote(results, command: str, target: Path) -> None:
+    wrote = [r for r in results if r[0] == 0]
+    refused = [r for r in results if r[0] != 0]
+    assert len(wrote) == 1 and len(refused) == 1, results
+    assert f"wrote {target}" in wrote[0][1]
+    status, _, err = refused[0]
+    assert status == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith(f"warp-highlights {command}: error: output {target}"), err
+
+
+def test_two_relights_to_one_new_name_exactly_one_writes(tiny_sphere, tmp_path):
+    _, field = tiny_sphere
+    for repetition in range(RACE_REPETITIONS):
+        target = tmp_path / f"relit{repetition}.png"
+        results = _together([["relight", field, "--light", light, "-o", target, "-q"]
+                             for light in ("0.3,0.5,1", "-0.3,0.5,1")])
+        _one_wrote(results, "relight", target)
+    assert sorted(os.listdir(tmp_path)) == sorted(f"relit{i}.png" for i in range(RACE_REPETITIONS))
+
+
+@pytest.mark.slow
+def test_two_fits_to_one_new_name_exactly_one_writes(tiny_sphere, tmp_path):
+    from conftest import TINY_FIT
+    from warp_highlights.io.fieldfile import load_field
+
+    data, _ = tiny_sphere
+    for repetition in range(RACE_REPETITIONS):
+        target = tmp_path / f"field{repetition}.whf"
+        results = _together([["fit", data, "-o", target, "--device", "cpu", "-q", *TINY_FIT]] * 2)
+        _one_wrote(results, "fit", target)
+        assert len(load_field(target).lights.directions) == 16
+    assert sorted(os.listdir(tmp_path)) == sorted(f"field{i}.whf" for i in range(RACE_REPETITIONS))
+
+
+def test_two_relights_with_overwrite_leave_one_whole_image(tiny_sphere, tmp_path):
+    from warp_highlights.io.images import read_image
+
+    _, field = tiny_sphere
+    target = tmp_path / "relit.png"
+    for _ in range(5):
+        results = _together([["relight", field, "--light", light, "-o", target, "--overwrite", "-q"]
+                             for light in ("0.3,0.5,1", "-0.3,0.5,1")])
+        assert [r[0] for r in results] == [0, 0], results
+        assert read_image(target).shape == (18, 32, 3)
+    assert os.listdir(tmp_path) == ["relit.png"]

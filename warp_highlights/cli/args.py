@@ -209,6 +209,8 @@ def check_output_file(path: Path, *, overwrite: bool, inputs=()) -> None:
     from ..io.atomic import check_file_target, clean_stale_partials
 
     check_not_input(path, inputs)
+    if overwrite:
+        check_not_capture_image(path)
     clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
     check_file_target(path, overwrite=overwrite)
 
@@ -222,6 +224,50 @@ def check_output_folder(path: Path, *, overwrite: bool, legacy=None, kind: str |
     check_not_input(path, inputs)
     clean_stale_partials(path)  # first: a killed run's replaced output may come back and count
     check_folder_target(path, overwrite=overwrite, legacy=legacy, kind=kind)
+
+
+CAPTURE_LIGHT_FILES_READ = 20
+"""Light files (``*.lp``) read per folder when looking for the capture an existing output belongs to."""
+
+
+def check_not_capture_image(output) -> None:
+    """Raise ``InputError`` if the existing file ``output`` is an image listed by a light file
+    (``*.lp``) in its folder or the folder above, or a file of an output folder this project wrote
+    (listed by its manifest): a capture's images, and the files of a dataset, are never replaced one
+    by one, by any command, ``--overwrite`` or not. Light files that cannot be read are passed over."""
+    from ..io.atomic import enclosing_output
+    from ..io.lightfile import read_lp
+
+    output = Path(output)
+    try:
+        if not output.is_file():
+            return
+    except (OSError, ValueError):
+        return
+    owner = enclosing_output(output)
+    if owner is not None:
+        raise InputError(f"output {output} is a file of the {owner[1]} folder {owner[0]} (warp-highlights wrote it); "
+                         f"it is replaced only with its whole folder: write elsewhere")
+    for folder in dict.fromkeys((output.parent, output.parent.parent)):
+        try:
+            light_files = sorted(folder.glob("*.lp"))[:CAPTURE_LIGHT_FILES_READ]
+        except OSError:
+            continue
+        for light_file in light_files:
+            try:
+                names = read_lp(light_file, check_files=False).filenames
+            except (InputError, OSError, ValueError, UnicodeError):
+                continue
+            if any(_same_file(folder / name, output) for name in names):
+                raise InputError(f"output {output} is an image of the capture {light_file}; a capture's images are "
+                                 f"never replaced, --overwrite or not: write elsewhere")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):  # missing, or a name no file can have
+        return False
 
 
 def check_not_input(output, inputs) -> None:

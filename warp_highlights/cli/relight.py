@@ -16,6 +16,7 @@ from .args import (
     Command,
     add_pixel_limit_option,
     check_device,
+    check_not_capture_image,
     check_not_input,
     check_output_file,
     check_output_folder,
@@ -309,6 +310,8 @@ def _run_animate(args) -> int:
 
     frames_format = "exr" if args.exr else "png"
     check_not_input(args.output, [args.field, args.dataset])
+    if args.overwrite:
+        check_not_capture_image(args.output)
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)

@@ -205,12 +205,27 @@ def _output_folder(output) -> Path:
         raise InputError(f"{output}: exists and is not a folder; give a folder for the collection's outputs")
     if not output.parent.is_dir():
         raise InputError(f"{output}: its folder {output.parent} does not exist; create it first")
+    if output.is_dir() and not _is_collection(output):
+        raise InputError(f"{output}: holds files that are not a warp-highlights collection (no {COLLECTION_JSON}, "
+                         f"no finished capture), which its gallery could replace; give a new or empty folder")
     try:
         output.mkdir(exist_ok=True)
     except OSError as error:
         raise InputError(
             f"{output}: cannot create the output folder ({error.strerror}); check the permissions") from None
     return output
+
+
+def _is_collection(folder: Path) -> bool:
+    """Whether ``folder`` is empty (hidden entries aside), or a collection written before: it holds
+    ``collection.json`` or a finished capture's folder."""
+    try:
+        entries = [entry for entry in os.scandir(folder) if not entry.name.startswith(".")]
+    except OSError as error:
+        raise InputError(f"{folder}: cannot list the output folder ({error.strerror}); check its permissions") from None
+    if not entries or (folder / COLLECTION_JSON).is_file():
+        return True
+    return any(entry.is_dir(follow_symlinks=False) and read_record(entry.path) is not None for entry in entries)
 
 
 def _same_work(record: dict, capture: Capture, options: JobOptions, stamp: str) -> bool:

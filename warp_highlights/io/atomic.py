@@ -15,8 +15,9 @@ file: a device, FIFO or socket is refused, with ``overwrite`` or not, at the fir
 just before the rename.
 
 Without ``overwrite`` the final step creates the target exclusively (``link`` for a file,
-``renameat2(RENAME_NOREPLACE)`` for a folder), so of two writers racing for one new name one
-fails with one line; with ``overwrite`` the later one wins whole.
+``renameat2(RENAME_NOREPLACE)`` for a folder; where neither exists, a ``.NAME.lock`` file created
+exclusively is held for the last check and the rename), so of two writers racing for one new name
+one fails with one line; with ``overwrite`` the later one wins whole.
 
 Cleanup: the temporary names a process creates are registered until renamed or removed;
 ``remove_partials`` removes what is left (the CLI calls it as every command ends), and a run that writes NAME
@@ -63,6 +64,7 @@ __all__ = [
     "clean_stale_partials",
     "deferred_signals",
     "describe_os_error",
+    "enclosing_output",
     "end_of_command",
     "handle_termination",
     "received_signal",
@@ -316,7 +318,7 @@ def clean_stale_partials(path) -> list[Path]:
         if not match or match["name"] != short:
             continue
         candidate = parent / entry
-        if candidate in _live or not _is_stale(match, candidate):
+        if candidate in _live or not _is_stale(match["host"], int(match["pid"]), candidate):
             continue
         with deferred_signals():
             if match["state"] == "replaced" and not path.exists():
@@ -329,13 +331,14 @@ def clean_stale_partials(path) -> list[Path]:
     return cleaned
 
 
-def _is_stale(match: re.Match, candidate: Path) -> bool:
-    if match["host"] != _stable_host_tag():
+def _is_stale(host: str, pid: int, candidate: Path) -> bool:
+    """Whether ``candidate``, made by process ``pid`` of the machine tagged ``host``, was left by a
+    process that no longer runs (on another machine: when it is older than ``STALE_FOREIGN_HOST_SECONDS``)."""
+    if host != _stable_host_tag():
         try:
             return time.time() - candidate.lstat().st_mtime > STALE_FOREIGN_HOST_SECONDS
         except OSError:
             return False
-    pid = int(match["pid"])
     if pid == os.getpid() or os.name != "posix":
         return False  # ours (another thread's, maybe), or no safe liveness test (os.kill ends processes on Windows)
     try:
@@ -459,9 +462,46 @@ def _rename_new(source: Path, path: Path) -> None:
     ``renameat2(RENAME_NOREPLACE)`` call where the system has it, else a check just before the rename."""
     if _renameat2(source, path, _RENAME_NOREPLACE):
         return
-    if os.path.lexists(path):
-        raise InputError(_appeared(path))
-    os.rename(source, path)
+    with _name_lock(path):
+        if os.path.lexists(path):
+            raise InputError(_appeared(path))
+        os.rename(source, path)
+
+
+@contextlib.contextmanager
+def _name_lock(path: Path) -> Iterator[None]:
+    """Hold ``.NAME.lock`` beside ``path`` (created exclusively, holding ``<host> <pid>``) for a check
+    and rename on systems without ``renameat2``: of two writers one holds it, the other is refused
+    (InputError). A lock left by a process that no longer runs is taken over once."""
+    lock = path.with_name(f".{_short_name(path.name)}.lock")
+    for attempt in range(2):
+        try:
+            descriptor = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            break
+        except FileExistsError:
+            if attempt or not _lock_is_stale(lock):
+                raise InputError(_appeared(path)) from None
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(lock)
+    with _live_lock:
+        _live[lock] = path
+    try:
+        with os.fdopen(descriptor, "w") as file:
+            file.write(f"{_stable_host_tag()} {os.getpid()}\n")
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock)
+        _forget(lock)
+
+
+def _lock_is_stale(lock: Path) -> bool:
+    """Whether the name lock ``lock`` was left by a process that no longer runs."""
+    try:
+        host, pid = lock.read_text().split()
+        return _is_stale(host, int(pid), lock)
+    except (OSError, ValueError):
+        return False  # being written right now, or unreadable: not ours to take
 
 
 # --- folders ---------------------------------------------------------------------------------------
@@ -556,7 +596,7 @@ class FolderTransaction:
                     if old is None:
                         os.rename(self.temporary, self.path)
                 else:
-                    old = self._place_new()
+                    self._place_new()
                 if old is None:
                     _forget(self.temporary)
                 self.state = "committed"
@@ -569,20 +609,22 @@ class FolderTransaction:
             _forget(old)
         return self.path
 
-    def _place_new(self) -> Path | None:
+    def _place_new(self) -> None:
         """Without overwrite: rename into place only if nothing is there (of two writers, one fails
-        here); an empty folder that was there is swapped out. Returns where that now is, or None."""
+        here); an empty folder that was there is removed first."""
         try:
             _rename_new(self.temporary, self.path)
-            return None
+            return
         except InputError:
-            try:
-                empty = self.path.is_dir() and not self.path.is_symlink() and not os.listdir(self.path)
-            except OSError:
-                empty = False
-            if not empty:
+            if self.path.is_symlink():
                 raise
-        return _swap_in(self.temporary, self.path)
+            try:
+                os.rmdir(self.path)  # an empty folder only; of two writers one removes it
+            except FileNotFoundError:
+                pass  # another writer removed it: the one whose rename comes first wins
+            except OSError:
+                raise InputError(_appeared(self.path)) from None
+        _rename_new(self.temporary, self.path)
 
     def abort(self) -> None:
         """Remove the temporary folder; ``path`` stays as it was. Safe to call twice."""
@@ -734,6 +776,17 @@ def _manifest_files(path: Path) -> dict[str, list[int]] | None:
         return {str(name): [int(entry["bytes"]), int(entry["mtime_ns"])] for name, entry in files.items()}
     except (TypeError, KeyError, ValueError):
         return None
+
+
+def enclosing_output(path, *, levels: int = 3) -> tuple[Path, str] | None:
+    """The output folder of this project whose manifest lists the file ``path`` (looked for in its
+    folder and up to ``levels`` folders in all), with that folder's kind; None where none does."""
+    path = Path(os.path.abspath(path))
+    for folder in list(path.parents)[:levels]:
+        files = _manifest_files(folder)
+        if files is not None and path.relative_to(folder).as_posix() in files:
+            return folder, _manifest_kind(folder) or "output"
+    return None
 
 
 def _as_target(path) -> Path:

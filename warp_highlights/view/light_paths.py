@@ -287,9 +287,24 @@ def _parse_list(rest: str, frames: int) -> np.ndarray:
     return through_directions(directions, frames)
 
 
+DIRECTION_FILE_MAX_BYTES = 64 << 20
+"""Largest direction file read, in bytes (some million lines: more than any light path needs)."""
+
+
 def _read_direction_file(path: Path) -> np.ndarray:
     """Text file of one direction a line (``x y z`` or ``x,y,z``; blank lines, ``#`` comments) -> (K, 3)."""
+    import stat
+
+    from ..io.images import file_kind
+
     try:
+        status = path.stat()
+        if not stat.S_ISREG(status.st_mode):
+            raise InputError(f"{path}: the direction file is not a regular file but {file_kind(status.st_mode)}; "
+                             f"give a text file of 'x y z' lines")
+        if status.st_size > DIRECTION_FILE_MAX_BYTES:
+            raise InputError(f"{path}: the direction file has {status.st_size} bytes, more than a light path "
+                             f"needs ({DIRECTION_FILE_MAX_BYTES >> 20} MB at most); give a text file of 'x y z' lines")
         text = path.read_text(encoding="utf-8-sig")
     except FileNotFoundError:
         raise InputError(f"{path}: direction file not found") from None
