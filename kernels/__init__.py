@@ -11,6 +11,7 @@ the module of its concern, with a float64 NumPy reference and a gradient check i
 - ``support``: how much of each retargeted Gaussian its target image holds (the move decision).
 - ``retarget``: rigid motions of connected components and the image gather (retargeting phase 1).
 - ``interpolation``: locate queries, interpolate Gaussian sets, compose relit images.
+- ``upsample``: relit images larger than the field, composed from the field's arrays at its own size.
 - ``baselines``: the classic RTI fits (PTM, HSH, RBF) as per-pixel linear maps: project and evaluate.
 - ``neural``: a learned per-pixel residual (code + MLP, NeuralRTI-style) trained with tiles and the tape.
 - ``raytrace``: the synthetic-data renderer's camera rays and shading over a ``wp.Mesh``.
@@ -38,6 +39,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         "raytrace": "raytrace", "retarget": "retarget", "segmentation": "segmentation", "support": "support",
         "gram": "gram", "rows": "rows",
         "stacks": "stacks", "quantise": "quantise", "transfer": "transfer", "regions": "regions", "tape": "tape",
-        "warmup": "warmup",
+        "warmup": "warmup", "upsample": "upsample",
     },
 )

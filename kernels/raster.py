@@ -43,6 +43,7 @@ from warp_highlights.model.config import RasterSettings
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianArrays, GaussianBatch
 
+from .chunks import map_chunks, problem_chunks
 from .losses import log_l1_factor, log_l1_gradient
 from .tape import active_tape
 
@@ -66,6 +67,11 @@ LAUNCH_PIXELS = 2**31
 
 _BOX_MARGIN = 1  # pixels added around computed ranges; the per-pixel test decides membership
 
+THREADED_TILES = 1024
+"""Fewest tiles a CPU ``render`` splits over its ``threads`` (a thread's start costs about a small tile list's
+drawing; 1024 tiles of 16 x 16 pixels are a 512 x 512 image)."""
+PARTS_PER_THREAD = 8
+"""Parts a threaded CPU ``render`` splits its tiles into, per thread (highlights cover some rows of tiles only)."""
 DRAWN_TILES_PER_SWEEP = 8192
 """Tiles one sweep of ``rasterize_drawn_tiles`` covers (2M threads at 16 x 16 tiles: more than an H100
 holds at once, so that the sweep is not what limits it; chosen so, not swept); more listed tiles take
@@ -296,6 +302,7 @@ def rasterize_tiles(
     cutoff2: float,
     tau: float,
     whole_tile: int,
+    first_tile: int,
     image: wp.array3d(dtype=float),
 ):
     """Per pixel: the sum of the truncated Gaussians listed for its tile.
@@ -307,7 +314,8 @@ def rasterize_tiles(
     one launch index per tile: the per-pixel index divisions would cost more than the drawing of the
     mostly empty tiles of a highlight image. That thread clears the tile, then adds the listed Gaussians
     one after the other (the same sums in the same order as a pixel's loop), each over the part of its
-    pixel box inside the tile only, with its parameters loaded once.
+    pixel box inside the tile only, with its parameters loaded once; launch index k draws tile
+    ``first_tile`` + k of the batch's tiles (problem-major), so that threads can share one image.
     """
     h = float(image.shape[1])
     if whole_tile == 0:
@@ -321,7 +329,7 @@ def rasterize_tiles(
             image[b, at[0], at[1]] = _tile_pixel(frames, means, scales, tile_lists, b, t, tile_counts[b, t], at[0],
                                                  at[1], h, cutoff2, tau)
     else:
-        i = wp.tid()
+        i = wp.tid() + first_tile
         b = i // tile_counts.shape[1]
         t = i - b * tile_counts.shape[1]
         if whole_tile == 2 and tile_counts[b, t] == 0:
@@ -511,10 +519,12 @@ class Rasterizer:
         backward_lanes: threads per Gaussian in the backward pass; default 64 on CUDA (two warps
             reading coalesced rows; 16/32/64 measured, 64 fastest by 1-10%), 1 on the CPU (one
             thread walks the whole footprint, no idle lanes).
+        threads: CPU threads that draw one ``render``'s tiles (Warp runs a CPU launch on one thread):
+            for large images rendered alone (relighting); 1 where the caller runs threads of its own.
     """
 
     def __init__(self, height: int, width: int, *, settings: RasterSettings | None = None, device=None,
-                 culling: bool = True, backward_lanes: int | None = None):
+                 culling: bool = True, backward_lanes: int | None = None, threads: int = 1):
         if int(height) < 1 or int(width) < 1:
             raise InputError(f"image size must be at least 1 x 1 pixels, got {width} x {height}")
         self.height = int(height)
@@ -527,6 +537,9 @@ class Rasterizer:
         if int(backward_lanes) < 1:
             raise InputError(f"backward_lanes must be >= 1, got {backward_lanes}")
         self.backward_lanes = int(backward_lanes)
+        if int(threads) < 1:
+            raise InputError(f"threads must be >= 1, got {threads}")
+        self.threads = int(threads)
         tile = self.settings.tile_size
         self.tiles_x = -(-self.width // tile)
         self.tiles_y = -(-self.height // tile)
@@ -621,15 +634,17 @@ class Rasterizer:
             )
         else:
             whole_tile = 0 if self.device.is_cuda else (2 if drawn_only else 1)
-            wp.launch(
-                rasterize_tiles,
-                dim=problems * self.tile_count * (1 if whole_tile else s.tile_size**2),
-                inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts, shift,
-                        self.tiles_x, s.cutoff**2, tau, whole_tile],
-                outputs=[out],
-                device=self.device,
-                record_tape=False,
-            )
+            launched = problems * self.tile_count * (1 if whole_tile else s.tile_size**2)
+
+            def draw(part: slice, stop=None) -> None:
+                wp.launch(rasterize_tiles, dim=part.stop - part.start,
+                          inputs=[self.frames, batch.mean, self.scales, self.boxes, self.tile_lists, self.tile_counts,
+                                  shift, self.tiles_x, s.cutoff**2, tau, whole_tile, part.start],
+                          outputs=[out], device=self.device, record_tape=False)
+
+            # tiles cost what their Gaussians cover: many parts, taken by the threads as they come, share the work
+            parts = PARTS_PER_THREAD * self.threads if whole_tile and launched >= THREADED_TILES else 1
+            map_chunks(draw, problem_chunks(launched, self.device, parts), threads=self.threads)
         tape = active_tape() if record else None
         if tape is not None and batch.requires_grad:
             if not out.requires_grad:

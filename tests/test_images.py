@@ -7,6 +7,7 @@ import pytest
 
 from warp_highlights.io import images as images_module
 from warp_highlights.io.images import (
+    encode_levels,
     image_size,
     linear_to_srgb,
     read_image,
@@ -64,6 +65,30 @@ def test_srgb_round_trip_and_dtypes():
     np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)
     assert srgb_to_linear(x.astype(np.float32)).dtype == np.float32
     assert linear_to_srgb(np.arange(3)).dtype == np.float64
+
+
+def test_8_bit_srgb_codes_are_those_of_the_float64_curve():
+    """The table lookup gives exactly the rounded float64 sRGB code, at every code's start and around it."""
+    rng = np.random.default_rng(3)
+    starts = srgb_to_linear((np.arange(1, 256) - 0.5) / 255)
+    # a code's start itself is a tie (rounds half up here, half to even in np.rint), and within a few float64
+    # steps of it the reference's power function rounds either way: probed a billionth on each side
+    probes = np.concatenate([rng.random(200_000), rng.random(50_000) ** 8, starts * (1 - 1e-9), starts * (1 + 1e-9),
+                             [0.0, 1.0, -1.0, 2.0, np.nan, np.inf, -np.inf]])
+    probes = probes[: len(probes) // 7 * 7]
+    for dtype in (np.float64, np.float32):
+        values = probes.astype(dtype)
+        reference = np.rint(linear_to_srgb(np.clip(np.nan_to_num(values.astype(np.float64), nan=0.0), 0, 1)) * 255)
+        codes = encode_levels(values.reshape(-1, 7, 1), 255, linear=False)
+        assert codes.dtype == np.uint8 and codes.shape == (len(values) // 7, 7, 1)
+        np.testing.assert_array_equal(codes.reshape(-1), reference)
+
+
+def test_16_bit_and_linear_codes_round_the_clipped_value():
+    values = np.array([-0.5, 0.0, 0.25, 0.5, 1.0, 3.0, np.nan], np.float32)
+    assert encode_levels(values, 255, linear=True).tolist() == [0, 0, 64, 128, 255, 255, 0]
+    expected = np.rint(linear_to_srgb(np.clip(np.nan_to_num(values.astype(np.float64)), 0, 1)) * 65535)
+    assert np.abs(encode_levels(values, 65535, linear=False).astype(np.int64) - expected).max() <= 1
 
 
 # --- EXR ------------------------------------------------------------------------------------------

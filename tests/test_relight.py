@@ -235,6 +235,57 @@ def test_full_image_is_diffuse_plus_coloured_specular(sphere_field, diffuse, dev
     np.testing.assert_allclose(result.full, expected, rtol=1e-5, atol=1e-5)
 
 
+def _grown(stack: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Each image of ``stack`` resampled to ``width`` x ``height`` on the host, float64."""
+    return np.stack([resample_image(image, width, height) for image in stack]).astype(np.float64)
+
+
+@pytest.mark.parametrize("diffuse", ["lambert", "images", "none"])
+def test_a_larger_output_composes_as_the_arrays_resampled_on_the_host(sphere_field, diffuse, device):
+    """Relit at 2.5 x 3 times the field's size (the aspect ratio kept within a pixel) from the field's arrays
+    at their own size: the Lambertian planes, the diffuse images and the highlights' colour resampled on the
+    host give the same image, to float rounding."""
+    field = sphere_field
+    width, height = 120, 68
+    colour = (1.0, 0.5, 0.25)
+    relighter = Relighter(field, device=device, size=(width, height), diffuse=diffuse, specular_colour=colour,
+                          scale=2.0)
+    assert relighter.upsampled
+    queries = random_directions(np.random.default_rng(21), 5)
+    result = relighter.relight(queries)
+    unit = queries / np.linalg.norm(queries, axis=1, keepdims=True)
+    if diffuse == "lambert":
+        planes = resample_image(field.diffuse.lambert.reshape(HEIGHT, WIDTH, -1), width, height)
+        planes = planes.reshape(height, width, 3, 4).astype(np.float64)
+        expected = np.maximum(np.einsum("hwck,qk->qhwc", planes[..., :3], unit), 0.0) + planes[..., 3]
+    elif diffuse == "images":
+        vertices = field.triangulation.faces[result.faces]
+        blended = np.einsum("qk,qkhwc->qhwc", result.barycentric, field.diffuse.images.astype(np.float64)[vertices])
+        expected = _grown(blended, width, height)
+    else:
+        expected = np.zeros_like(result.full, dtype=np.float64)
+    expected = 2.0 * np.maximum(expected + np.asarray(colour) * result.specular[..., None], 0.0)
+    np.testing.assert_allclose(result.full, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_the_alpha_blend_at_a_larger_size_is_the_blend_resampled(sphere_field, device):
+    field = sphere_field
+    rng = np.random.default_rng(22)
+    specular = rng.uniform(0, 2, size=(field.light_count, HEIGHT, WIDTH)).astype(np.float32)
+    images = rng.uniform(0, 2, size=(field.light_count, HEIGHT, WIDTH, 3)).astype(np.float32)
+    width, height = 96, 54
+    relighter = Relighter(field, device=device, size=(width, height), alpha_specular=specular, alpha_images=images,
+                          scale=0.5)
+    result = relighter.relight(random_directions(rng, 7), method="alpha")
+    vertices = field.triangulation.faces[result.faces]
+    weights = result.barycentric
+    blended = np.einsum("qk,qkhw->qhw", weights, specular.astype(np.float64)[vertices])
+    np.testing.assert_allclose(result.specular, _grown(blended, width, height), rtol=1e-5, atol=1e-5)
+    halves = images.astype(np.float16).astype(np.float64)  # full images are kept as float16 on the device
+    full = np.einsum("qk,qkhwc->qhwc", weights, halves[vertices])
+    np.testing.assert_allclose(result.full, 0.5 * _grown(full, width, height), rtol=1e-5, atol=1e-5)
+
+
 def test_other_output_sizes_render_the_same_gaussians(sphere_field):
     field = sphere_field
     queries = random_directions(np.random.default_rng(13), 5)

@@ -22,6 +22,7 @@ from warp_highlights.fit.moving import decide_moving
 from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import FORMAT_VERSION, load_field, save_field
+from warp_highlights.io.resample import resample_image
 from warp_highlights.kernels.support import support_fractions
 from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSettings
 from warp_highlights.model.errors import InputError
@@ -534,6 +535,56 @@ def test_compose_matches_the_float64_reference(donut_fields, kind, decode, devic
     expected = _reference_full(field, directions, 2.0)
     tolerance = 1e-4 if decode == "query" else 2e-3  # else float16 residual images on the device
     np.testing.assert_allclose(got, expected, atol=tolerance * max(1.0, np.abs(expected).max()))
+
+
+def _reference_full_larger(field, directions, scale, width: int, height: int, *, apart: bool) -> np.ndarray:
+    """``_reference_full`` at a larger output size, as the field's arrays resampled to it on the host
+    (``resample_image``) compose: the residual (its linear part and its per-pixel scale ``apart`` when the
+    low-rank basis is read per query, else the decoded images) and c(x) each resampled."""
+    tri = field.triangulation
+    location = tri.locate(directions)
+    weights = np.zeros((len(directions), field.light_count))
+    for k in range(3):
+        np.add.at(weights, (np.arange(len(directions)), tri.faces[location.faces, k]), location.barycentric[:, k])
+    residual = light_images(field.residual, weights).astype(np.float64)
+    lowrank_scale = apart and field.residual.scale is not None
+    if lowrank_scale:  # decoded = scale x linear part: the two are resampled apart
+        residual = residual / field.residual.scale[None, ..., None]
+    grown = np.stack([resample_image(image, width, height) for image in residual]).astype(np.float64)
+    if lowrank_scale:
+        grown *= resample_image(field.residual.scale, width, height)[None, ..., None]
+    sets = Relighter(field, device="cpu").interpolated_sets(directions)
+    specular = render_reference(sets, height, width, field.fit_settings().raster)
+    colour = (1.0 if field.residual.highlight_colour is None
+              else resample_image(field.residual.highlight_colour, width, height).astype(np.float64))
+    return scale * np.maximum(grown + colour * specular[..., None], 0.0)
+
+
+@pytest.mark.parametrize("kind, decode", [("lowrank", "query"), ("lowrank", "load"), ("images", "auto")])
+def test_a_larger_output_is_the_host_resampled_composition(donut_fields, kind, decode, device, monkeypatch):
+    """Relit at 2.5 times the field's size from its arrays at their own size: the image the arrays resampled on
+    the host give (float rounding; float16 images where they are decoded once), and no array is resampled to
+    the output size on the host."""
+    import warp_highlights.relight.relighter as relighter_module
+
+    _, fits = donut_fields
+    field = fits[kind]
+    width, height = round(2.5 * field.width), round(2.5 * field.height)
+    sizes = []
+
+    def recording(image, w, h):
+        sizes.append((w, h))
+        return resample_image(image, w, h)
+
+    monkeypatch.setattr(relighter_module, "resample_image", recording)
+    directions = np.array([[0.3, 0.2, 0.9], [-0.6, 0.1, 0.5], [0.1, -0.9, -0.3]])
+    relighter = Relighter(field, device=device, size=(width, height), scale=2.0, residual_decode=decode)
+    got = relighter.relight(directions).full
+    assert relighter.upsampled and (width, height) not in sizes
+    expected = _reference_full_larger(field, directions, 2.0, width, height, apart=decode == "query")
+    tolerance = 1e-4 if decode == "query" else 2e-3  # else float16 residual images
+    np.testing.assert_allclose(got, expected, atol=tolerance * max(1.0, np.abs(expected).max()))
+    assert got.min() >= 0
 
 
 def test_residual_transfer_gives_back_the_captured_images(donut_fields):

@@ -551,12 +551,51 @@ def _decode_levels(levels: np.ndarray, *, linear: bool) -> np.ndarray:
     return _srgb_table(count)[levels]
 
 
+ENCODE_BLOCK = 1 << 20
+"""Values encoded at a time by ``encode_levels`` (its temporaries stay a few MB)."""
+_SRGB8_CELLS = 1 << 16
+"""Cells of [0, 1] in ``encode_levels``' 8-bit table: narrower than the closest two code starts (3e-4 apart)."""
+
+
 def encode_levels(image: np.ndarray, top: int, *, linear: bool) -> np.ndarray:
-    """Linear float image -> integer codes 0..top (uint8 or uint16), sRGB-encoded unless ``linear``."""
-    values = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0)
-    if not linear:
-        values = linear_to_srgb(values)
-    return np.rint(values * top).astype(np.uint8 if top == 255 else np.uint16)
+    """Linear float image -> integer codes 0..top (uint8 or uint16), sRGB-encoded unless ``linear``: the
+    code nearest to the encoded value, NaN as 0, clipped to [0, 1] first.
+
+    8-bit sRGB codes come from a table over ``_SRGB8_CELLS`` cells of [0, 1], each holding the code at
+    its start and the one value inside it where the next code begins (float64): two reads and a
+    comparison per value, the codes of rounding ``linear_to_srgb`` in float64 (but at exact ties),
+    several times faster than the power function. A block of values at a time."""
+    kind = np.uint8 if top == 255 else np.uint16
+    image = np.asarray(image)
+    flat = image.reshape(-1)
+    codes = np.empty(flat.shape, kind)
+    table = _srgb8_table() if top == 255 and not linear else None
+    for first in range(0, flat.size, ENCODE_BLOCK):
+        block = np.clip(np.nan_to_num(flat[first : first + ENCODE_BLOCK], nan=0.0), 0.0, 1.0)
+        if table is not None:
+            start_codes, next_starts = table
+            cells = np.minimum((block * _SRGB8_CELLS).astype(np.int32), _SRGB8_CELLS - 1)
+            codes[first : first + ENCODE_BLOCK] = start_codes[cells] + (block >= next_starts[cells])
+        else:
+            encoded = block if linear else linear_to_srgb(block)
+            codes[first : first + ENCODE_BLOCK] = np.rint(encoded * top)
+    return codes.reshape(image.shape)
+
+
+@lru_cache(maxsize=1)
+def _srgb8_table() -> tuple[np.ndarray, np.ndarray]:
+    """Per cell of [0, 1]: the 8-bit sRGB code at its start (uint8) and where in it the next code begins
+    (float32; 2 where no code begins in it)."""
+    starts = srgb_to_linear((np.arange(1, 256, dtype=np.float64) - 0.5) / 255)  # where code k begins, k = 1..255
+    edges = np.arange(_SRGB8_CELLS, dtype=np.float64) / _SRGB8_CELLS
+    start_codes = np.searchsorted(starts, edges, side="right").astype(np.uint8)
+    following = np.searchsorted(starts, edges, side="right")  # index of the next start after each cell's start
+    next_starts = np.full(_SRGB8_CELLS, 2.0)
+    has_next = following < len(starts)
+    inside = has_next.copy()
+    inside[has_next] = starts[following[has_next]] < edges[has_next] + 1.0 / _SRGB8_CELLS
+    next_starts[inside] = starts[following[inside]]
+    return start_codes, next_starts
 
 
 def _read_exr(path: Path, max_pixels: int | None, *, header: ImageHeader | None = None) -> np.ndarray:

@@ -35,11 +35,14 @@ import warp as wp
 
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
+from ..kernels import upsample
+from ..kernels.chunks import map_chunks, problem_chunks
 from ..kernels.neural import QueryDecoder
 from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
+from ..model.threads import core_count
 from ..model.triangulation import unit_query_directions
 from ..residual.decode import decoded_blocks
 from ..residual.device import (
@@ -74,6 +77,7 @@ _DECODE_BLOCK = 16  # lights decoded, resampled and uploaded at a time: the host
 _CHUNK_BYTES = 256 * 2**20
 _INSIDE_TOLERANCE = 1e-12  # as SphericalTriangulation.locate
 _FLOAT16_MAX = float(np.finfo(np.float16).max)
+_THREADED_PIXELS = 1 << 18  # output pixels from which a CPU compose is split over the cores (a 512 x 512 image)
 _KEPT_BUFFER_SETS = 3  # query counts whose device buffers are kept (a full chunk, the last chunk, one query)
 
 
@@ -115,7 +119,10 @@ class _DeviceQueries:
         self.specular = wp.empty((count, height, width), dtype=float, device=device)
         self.full = wp.empty((count, height * width, channels), dtype=float, device=device)
         self.coefficients: dict[str, wp.array] = {}  # per-query blended low-rank weights, by stack
-        self.decoded = None  # (count, H W, 3) float16: a learned residual decoded for these queries, made on first use
+        self.decoded = None  # (count, pixels, 3) float16: a learned residual decoded for these queries (first use)
+        # at the field's size, for an output larger than the field (made on first use): each query's residual term
+        # (count, pixels, C) and the alpha method's specular blend (count, pixels)
+        self.source = self.source_specular = None
         self.staging_specular = self.staging_full = None  # pinned host copies (CUDA), made on first use
 
 
@@ -126,7 +133,9 @@ class Relighter:
         field: the fitted field.
         device: Warp device (default: Warp's default device).
         size: output (width, height) in pixels; default the field's size. Must keep the field's aspect
-            ratio (to within a pixel); the diffuse model is resampled to it.
+            ratio (to within a pixel). A smaller output gets the field's arrays resampled to it once
+            (area average); a larger one reads them at the field's size, by bilinear interpolation at
+            every output pixel (``kernels.upsample``), while the highlights are drawn at the output size.
         diffuse: one of ``DIFFUSE_MODES``.
         specular_colour: colour of the light per channel, multiplying the highlights c(x) S' (white
             by default; c(x) is the field's per-pixel highlight colour, white when it has none).
@@ -170,13 +179,18 @@ class Relighter:
         self.field = field
         self.device = wp.get_device(device)
         self.width, self.height = _output_size(field, size)
+        # the size the field's per-pixel arrays are held at: the output's, or the field's for a larger output
+        self.source_width, self.source_height = _source_size(field, self.width, self.height)
+        self.upsampled = (self.source_width, self.source_height) != (self.width, self.height)
         settings = field.fit_settings()
         self.straight_below = float(settings.paths.straight_below)
-        self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device)
+        threads = 1 if self.device.is_cuda else core_count()  # a CPU launch runs on one thread: large images split
+        self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device,
+                                 threads=threads)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
         if (self.diffuse == kernels.DIFFUSE_LOWRANK
-            and decode_on_load(field.residual, self.width * self.height, residual_decode, self.device)):
+            and decode_on_load(field.residual, self.source_width * self.source_height, residual_decode, self.device)):
             self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
@@ -197,8 +211,9 @@ class Relighter:
                     f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
             self.channels = self._alpha_images.shape[2]
             self._upload_colour()
-        pixel_bytes = (4 * self.height * self.width * (1 + self.channels)
-                       + (2 * 3 * self.height * self.width if self._learned is not None else 0))
+        source_pixels = self.source_height * self.source_width if self.upsampled else 0
+        pixel_bytes = (4 * self.height * self.width * (1 + self.channels) + 4 * source_pixels * (1 + self.channels)
+                       + (2 * 3 * self.source_height * self.source_width if self._learned is not None else 0))
         default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
@@ -249,35 +264,38 @@ class Relighter:
         self._stacks = {name: LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
         residual_scale = np.ones(1, np.float32)
         self._learned = None
+        width, height = self.source_width, self.source_height
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
-            codes = resample_image(learned.codes.astype(np.float32), self.width,
-                                   self.height).reshape(-1, learned.codes.shape[2])
+            codes = resample_image(learned.codes.astype(np.float32), width, height).reshape(-1, learned.codes.shape[2])
             self._learned = QueryDecoder(codes, learned.weights, learned.unit, device=device)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
-            planes = resample_image(model.lambert.reshape(model.height, model.width, -1), self.width, self.height)
-            lambert = planes.reshape(self.height * self.width, model.channel_count, 4)
+            planes = resample_image(model.lambert.reshape(model.height, model.width, -1), width, height)
+            lambert = planes.reshape(height * width, model.channel_count, 4)
         elif self.diffuse == kernels.DIFFUSE_BLEND:
             images = self._upload_images(residual if self._residual_images else model)
         elif self.diffuse == kernels.DIFFUSE_LOWRANK:
-            self._stacks["luminance"] = LowRankArrays.upload(residual.luminance, self.width, self.height, device)
+            self._stacks["luminance"] = LowRankArrays.upload(residual.luminance, width, height, device)
             if residual.scale is not None:
-                residual_scale = resample_image(residual.scale, self.width, self.height).reshape(-1)
+                residual_scale = resample_image(residual.scale, width, height).reshape(-1)
             if residual.chroma is not None:
-                self._stacks["chroma"] = LowRankArrays.upload(residual.chroma, self.width, self.height, device)
+                self._stacks["chroma"] = LowRankArrays.upload(residual.chroma, width, height, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
         self._diffuse_images = (images if isinstance(images, wp.array)
                                 else wp.array(images, dtype=wp.float16, device=device))
         self._residual_scale = wp.array(np.ascontiguousarray(residual_scale, dtype=np.float32), dtype=float,
                                         device=device)
+        self._unit_scale = wp.ones(1, dtype=float, device=device)
         self._upload_colour()
 
     def _upload_images(self, source) -> wp.array:
         """The per-light images of ``source`` (a residual, decoded here, or a diffuse model's images) at the
-        output size on the device, (n, H W, C) float16: a low-rank residual decoded on a CUDA device
-        where it can be (``decode_residual``), else made on the host ``_DECODE_BLOCK`` lights at a time."""
+        size the field's arrays are held at (``source_width`` x ``source_height``) on the device, (n, pixels,
+        C) float16: a low-rank residual decoded on a CUDA device where it can be (``decode_residual``), else
+        made on the host ``_DECODE_BLOCK`` lights at a time."""
+        width, height = self.source_width, self.source_height
         if (source is self.field.residual and self.device.is_cuda
-            and decodes_on_device(source, self.width, self.height, self.device)):
+            and decodes_on_device(source, width, height, self.device)):
             return decode_residual(source, self.device)
         if source is self.field.residual:
             blocks, count, channels = decoded_blocks(source, block=_DECODE_BLOCK), source.light_count, source.channels
@@ -285,22 +303,24 @@ class Relighter:
             images = source.images
             blocks = ((start, images[start : start + _DECODE_BLOCK]) for start in range(0, len(images), _DECODE_BLOCK))
             count, channels = len(images), images.shape[3]
-        pixels = self.height * self.width
+        pixels = height * width
         out = wp.empty((count, pixels, channels), dtype=wp.float16, device=self.device)
         for start, block in blocks:
-            shrunk = (np.stack([resample_image(image, self.width, self.height) for image in block])
-                      if block.shape[1:3] != (self.height, self.width) else block)
+            shrunk = (np.stack([resample_image(image, width, height) for image in block])
+                      if block.shape[1:3] != (height, width) else block)
             out[start : start + len(block)].assign(np.ascontiguousarray(shrunk, dtype=np.float16).reshape(len(block),
                                                                                                           pixels,
                                                                                                           channels))
         return out
 
     def _upload_colour(self) -> None:
-        """c(x) per output pixel and channel, (H W, C) float32, or one white row."""
+        """c(x) per pixel (at ``source_width`` x ``source_height``) and channel, (pixels, C) float32, or one
+        white row."""
         residual = self.field.residual
         colour = np.ones((1, self.channels), dtype=np.float32)
         if residual is not None and residual.highlight_colour is not None and residual.channels == self.channels:
-            colour = resample_image(residual.highlight_colour, self.width, self.height).reshape(-1, self.channels)
+            colour = resample_image(residual.highlight_colour, self.source_width,
+                                    self.source_height).reshape(-1, self.channels)
             colour = np.maximum(colour, 0.0)
         self._pixel_colour = wp.array(np.ascontiguousarray(colour, dtype=np.float32), dtype=float, device=self.device)
 
@@ -316,13 +336,14 @@ class Relighter:
             raise InputError(f"{what} must have shape (n={n}, H, W{', C' if channels else ''}), got {stack.shape}")
         if not np.all(np.isfinite(stack)):
             raise InputError(f"{what} contain non-finite values")
-        if stack.shape[1:3] != (self.height, self.width):
-            stack = np.stack([resample_image(image, self.width, self.height) for image in stack])
+        width, height = self.source_width, self.source_height
+        if stack.shape[1:3] != (height, width):
+            stack = np.stack([resample_image(image, width, height) for image in stack])
         if channels:
             if np.abs(stack).max() > _FLOAT16_MAX:
                 raise InputError(
                     f"{what} exceed the float16 range ({_FLOAT16_MAX:g}) they are kept in; scale them down")
-            return wp.array(stack.reshape(n, self.height * self.width, -1).astype(np.float16), dtype=wp.float16,
+            return wp.array(stack.reshape(n, height * width, -1).astype(np.float16), dtype=wp.float16,
                             device=self.device)
         return wp.array(stack.reshape(n, -1), dtype=float, device=self.device)
 
@@ -379,7 +400,7 @@ class Relighter:
             images = self._diffuse_images
             if self._learned is not None:
                 if buffers.decoded is None:
-                    buffers.decoded = wp.empty((buffers.count, self.height * self.width, 3), dtype=wp.float16,
+                    buffers.decoded = wp.empty((buffers.count, self._learned.pixels, 3), dtype=wp.float16,
                                                device=self.device)
                 # at the direction as located: clamped to a dome's rim
                 self._learned.decode(buffers.located, buffers.decoded)
@@ -403,13 +424,25 @@ class Relighter:
         if self._alpha_specular is None:
             raise InputError("the alpha method needs the specular images of the lights (alpha_specular; on the command "
                              "line, --dataset)")
-        wp.launch(
-            kernels.blend_images,
-            dim=(buffers.count, self.height * self.width),
-            inputs=[self._alpha_specular, self._face_vertices, buffers.faces, buffers.weights],
-            outputs=[buffers.specular.reshape((buffers.count, self.height * self.width))],
-            device=self.device,
-        )
+        blended = buffers.specular.reshape((buffers.count, self.height * self.width))
+        if self.upsampled:
+            if buffers.source_specular is None:
+                buffers.source_specular = wp.empty((buffers.count, self.source_width * self.source_height),
+                                                   dtype=float, device=self.device)
+            blended = buffers.source_specular
+        wp.launch(kernels.blend_images, dim=blended.shape,
+                  inputs=[self._alpha_specular, self._face_vertices, buffers.faces, buffers.weights], outputs=[blended],
+                  device=self.device)
+        if self.upsampled:
+            per_thread = self._pixels_per_thread()
+            pixels = self.height * self.width
+
+            def part(chunk: slice, stop=None) -> None:
+                wp.launch(upsample.upsample_images, dim=(buffers.count, chunk.stop - chunk.start),
+                          inputs=[blended, self.width, self.source_width, self.source_height, per_thread, chunk.start],
+                          outputs=[buffers.specular.reshape((buffers.count, pixels))], device=self.device)
+
+            map_chunks(part, self._parts((pixels + per_thread - 1) // per_thread))
         if full:
             if self._alpha_images is None:
                 raise InputError("the alpha method's full images need the images of the lights (alpha_images; on the "
@@ -433,7 +466,11 @@ class Relighter:
                           device=self.device)
             coefficients.append(out)
         lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
-        per_thread = 1 if self.device.is_cuda else self.width  # a CPU thread's start costs about a pixel: one per row
+        per_thread = self._pixels_per_thread()
+        if self.upsampled:
+            self._compose_upsampled(buffers, specular, add_specular=add_specular, mode=mode, images=images,
+                                    coefficients=coefficients, per_thread=per_thread)
+            return
         wp.launch(
             kernels.compose_images,
             dim=(buffers.count, (pixels + per_thread - 1) // per_thread),
@@ -445,6 +482,45 @@ class Relighter:
             outputs=[buffers.full],
             device=self.device,
         )
+
+    def _compose_upsampled(self, buffers: _DeviceQueries, specular: wp.array, *, add_specular: bool, mode: int,
+                           images: wp.array, coefficients: list, per_thread: int) -> None:
+        """``_compose`` for an output larger than the field: each query's residual term at the field's
+        size, then read by bilinear interpolation at every output pixel (``kernels.upsample``)."""
+        source_pixels = self.source_width * self.source_height
+        if buffers.source is None:
+            buffers.source = wp.zeros((buffers.count, source_pixels, self.channels), dtype=float, device=self.device)
+        lum, chroma = self._stacks["luminance"], self._stacks["chroma"]
+        if mode in (kernels.DIFFUSE_BLEND, kernels.DIFFUSE_LOWRANK, kernels.DIFFUSE_DECODED):
+            wp.launch(upsample.residual_at_source, dim=(buffers.count, source_pixels),
+                      inputs=[mode, images, lum.mean, lum.basis, coefficients[0], chroma.mean, chroma.basis,
+                              coefficients[1], self._unit_scale, self._face_vertices, buffers.faces, buffers.weights],
+                      outputs=[buffers.source], device=self.device)
+        pixels = self.height * self.width
+
+        def part(chunk: slice, stop=None) -> None:
+            wp.launch(
+                upsample.compose_upsampled,
+                dim=(buffers.count, chunk.stop - chunk.start),
+                inputs=[specular.reshape((buffers.count, pixels)), self.specular_colour, self._pixel_colour,
+                        int(add_specular), mode, self._lambert, buffers.source, self._residual_scale, buffers.unit,
+                        self.width, self.source_width, self.source_height, self.scale, per_thread, chunk.start],
+                outputs=[buffers.full],
+                device=self.device,
+            )
+
+        map_chunks(part, self._parts((pixels + per_thread - 1) // per_thread))
+
+    def _parts(self, count: int) -> list[slice]:
+        """``range(count)`` of a compose launch's threads in one part on CUDA, else one part per CPU core
+        (Warp runs a CPU launch on one thread) where the image is large enough to pay for the threads."""
+        threads = 1 if self.device.is_cuda or self.height * self.width < _THREADED_PIXELS else core_count()
+        return problem_chunks(count, self.device, threads)
+
+    def _pixels_per_thread(self) -> int:
+        """Output pixels a compose thread does: 1 on CUDA; a row on the CPU, where a thread's start costs about
+        as much as a pixel."""
+        return 1 if self.device.is_cuda else self.width
 
     # --- host-facing API ---------------------------------------------------------------------------
 
@@ -749,6 +825,14 @@ def _output_size(field, size) -> tuple[int, int]:
             f"output size {width}x{height} changes the field's aspect ratio ({field.width}x{field.height}); "
             f"use e.g. {round(field.width * height / field.height)}x{height}"
         )
+    return width, height
+
+
+def _source_size(field, width: int, height: int) -> tuple[int, int]:
+    """The size the field's per-pixel arrays are held at for a ``width`` x ``height`` output: the field's own
+    when the output is at least as large along both axes (read by interpolation), else the output's."""
+    if width >= field.width and height >= field.height:
+        return field.width, field.height
     return width, height
 
 
