@@ -1,4 +1,4 @@
-"""Shared fixtures: Warp devices to test on, and the sample datasets."""
+"""Shared fixtures: Warp devices to test on, the sample datasets, and the figures ``view.plots`` draws."""
 
 from __future__ import annotations
 
@@ -110,3 +110,41 @@ def tiny_sphere(tmp_path_factory) -> tuple[Path, Path]:
                  "cpu", "-q"]) == 0
     assert main(["fit", str(data), "-o", str(field), "--diffuse", "images", "--device", "cpu", "-q", *TINY_FIT]) == 0
     return data, field
+
+
+@pytest.fixture
+def drawn_figures(monkeypatch) -> dict:
+    """Every figure ``view.plots`` writes during the test, by file name, to find its panels in the PNG."""
+    from warp_highlights.view import plots
+
+    figures = {}
+    save = plots._save
+
+    def keep(fig, path):
+        figures[Path(path).name] = fig
+        return save(fig, path)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    return figures
+
+
+def panel_pixels(figure, png) -> list[tuple[str, object]]:
+    """``(title, pixels)`` of every titled panel of ``figure``, in order: the RGB pixels of the inner 80% of
+    the panel, read from the PNG the figure was written to (same DPI, so figure pixels are PNG pixels)."""
+    import numpy as np
+    from PIL import Image
+
+    with Image.open(png) as image:
+        pixels = np.asarray(image.convert("RGB"))
+    height = pixels.shape[0]
+    assert abs(height - figure.bbox.height) < 1
+    panels = []
+    for ax in figure.axes:
+        if not ax.get_title():
+            continue
+        box = ax.get_window_extent()
+        dx, dy = 0.1 * box.width, 0.1 * box.height
+        rows = slice(round(height - box.y1 + dy), round(height - box.y0 - dy))
+        columns = slice(round(box.x0 + dx), round(box.x1 - dx))
+        panels.append((ax.get_title(), pixels[rows, columns]))
+    return panels

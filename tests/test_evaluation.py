@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import panel_pixels
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import load_field
 from warp_highlights.model.errors import InputError
@@ -198,6 +199,92 @@ def test_evaluation_shapes_and_summary(evaluation, donut):
     assert set(evaluation.examples) == {"circular", "straight", "alpha", "truth"}
     assert evaluation.examples["truth"].shape == (len(evaluation.example_queries), field.height, field.width)
     assert evaluation.info["heldout"] == q and evaluation.info["measured"] == ["specular", "full"]
+
+
+def _figure_words(figure) -> str:
+    """Every title and text of a figure, one string."""
+    words = [figure.get_suptitle(), *(t.get_text() for t in figure.texts)]
+    for ax in figure.axes:
+        words += [ax.get_title(), *(t.get_text() for t in ax.texts)]
+    return "\n".join(words)
+
+
+def _check_example_panels(figure, png, evaluation) -> list[str]:
+    """No panel of examples.png is one flat value: where the method's S' is flat its note is written in
+    the panel (the notes are returned), elsewhere the image is drawn."""
+    order = [k for k in ("truth", "circular", "straight", "alpha") if k in evaluation.examples]
+    panels = panel_pixels(figure, png)
+    assert len(panels) == len(order) * len(evaluation.example_queries)
+    notes = []
+    for index, (title, pixels) in enumerate(panels):
+        row, key = divmod(index, len(order))
+        assert title.startswith(f"#{evaluation.example_queries[row]} {order[key]}")
+        assert np.ptp(pixels) > 0, f"panel {title!r} of examples.png is blank"
+        image = evaluation.examples[order[key]][row]
+        ax = [a for a in figure.axes if a.get_title() == title][0]
+        if np.ptp(image) > 0.01:
+            assert ax.images and not ax.texts
+        elif not ax.images:
+            notes.append(ax.texts[0].get_text().replace("\n", " "))
+    return notes
+
+
+def test_pictures_of_a_field_that_keeps_no_gaussians_say_so(tmp_path, drawn_figures):
+    """A field whose highlights all stay in its residual: S' of circular and straight is zero, so their
+    panels of examples.png say that the field moves no highlights; the counts histogram sits on 0 .. 1
+    and its title says none is kept; the full-image PSNR names the model (residual + highlights)."""
+    from warp_highlights.cli.relight import write_evaluation
+
+    rng = np.random.default_rng(5)
+    queries, lights, height, width = 11, 43, 18, 16
+    scores = {m: rng.normal(38.0, 2.0, queries) for m in ("circular", "straight", "alpha", "ptm")}
+    picked = np.array([0, 3, 7, 10])
+    evaluation = Evaluation(
+        directions=np.tile([0.0, 0.0, 1.0], (queries, 1)), faces=np.arange(queries),
+        barycentric=np.full((queries, 3), 1 / 3), full_psnr=scores,
+        full_srgb_psnr={m: v - 6.0 for m, v in scores.items()}, full_ssim={m: np.full(queries, 0.9) for m in scores},
+        full_examples={m: rng.random((3, height, width, 3)) for m in ("truth", *scores)},
+        full_example_queries=np.array([5, 4, 2]),
+        gaussians_per_light=np.zeros(lights, int), gaussians_per_query=np.zeros(queries, int),
+        example_queries=picked,
+        examples={"circular": np.zeros((4, height, width)), "straight": np.zeros((4, height, width)),
+                  "alpha": rng.random((4, height, width)) * 0.3},
+        info={"heldout": queries, "highlights_added_to": "residual", "moving_gaussians": 0},
+    )
+    folder = tmp_path / "ev"
+    written = write_evaluation(folder, evaluation, evaluation.to_dict(), overwrite=False, title="statue")
+    assert {"examples.png", "gaussian-counts.png", "psnr-full.png", "worst-lights.png"} <= set(written)
+
+    notes = _check_example_panels(drawn_figures["examples.png"], folder / "examples.png", evaluation)
+    assert len(notes) == 8  # circular and straight at every example light
+    assert all(note.startswith("the field moves no highlights") and "residual" in note for note in notes)
+
+    counts = drawn_figures["gaussian-counts.png"]
+    assert counts.get_suptitle().endswith("no Gaussians kept: every light's highlights are in the residual")
+    for ax in counts.axes:
+        assert ax.get_xlim() == pytest.approx((-0.5, 1.5))
+
+    full = _figure_words(drawn_figures["psnr-full.png"])
+    assert "PSNR of the full images I' = residual + highlights at 11 held-out lights" in full
+    assert "circular, straight: the blended residual alone (the field keeps no Gaussians" in full
+    for figure in drawn_figures.values():
+        assert "D' + S'" not in _figure_words(figure)
+
+
+def test_every_example_panel_of_a_fitted_field_shows_something(evaluation, tmp_path, drawn_figures):
+    """The fitted donut (it keeps Gaussians): every panel of examples.png is drawn or, where its S' is
+    flat, says why; the full-image PSNR names the model the field relights with."""
+    from warp_highlights.cli.relight import write_evaluation
+
+    folder = tmp_path / "ev"
+    write_evaluation(folder, evaluation, evaluation.to_dict(), overwrite=False, title="donut")
+    notes = _check_example_panels(drawn_figures["examples.png"], folder / "examples.png", evaluation)
+    assert not any("moves no highlights" in note for note in notes)
+    added = {"residual": "residual", "images": "diffuse images", "lambert": "Lambertian diffuse"}
+    base = added[evaluation.info["highlights_added_to"]]
+    words = _figure_words(drawn_figures["psnr-full.png"])
+    assert f"I' = {base} + highlights" in words and "Gaussians moved along circular or straight paths" in words
+    assert "no Gaussians kept" not in drawn_figures["gaussian-counts.png"].get_suptitle()
 
 
 def test_alpha_psnr_matches_a_numpy_blend(evaluation, donut, alpha_specular):

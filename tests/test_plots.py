@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import panel_pixels
 from warp_highlights.model.errors import InputError
 from warp_highlights.view import plots
 
@@ -122,6 +123,44 @@ def test_gaussian_counts(tmp_path):
     _png(plots.plot_gaussian_counts(np.array([7]), tmp_path / "single.png", title="one light"))
 
 
+def _visible_ticks(axis_ax) -> np.ndarray:
+    low, high = axis_ax.get_xlim()
+    ticks = np.asarray(axis_ax.get_xticks())
+    return ticks[(ticks >= low) & (ticks <= high)]
+
+
+@pytest.mark.parametrize("counts", [np.array([9, 12, 12, 17, 41]), np.array([3]), np.zeros(43, int)])
+def test_gaussian_count_axes_run_from_zero_to_the_largest_count_plus_one(tmp_path, drawn_figures, counts):
+    """Counts are integers >= 0: the x axis covers 0 .. max + 1 (half a bar either side, so every bar is
+    whole), with integer ticks, none negative; nothing is drawn left of 0."""
+    plots.plot_gaussian_counts(counts, tmp_path / "counts.png", per_query=counts[:3])
+    figure = drawn_figures["counts.png"]
+    for ax in figure.axes:
+        top = int(ax.get_xlim()[1] - 0.5)
+        assert ax.get_xlim() == pytest.approx((-0.5, top + 0.5))
+        assert top in (counts.max() + 1, counts[:3].max() + 1)
+        ticks = _visible_ticks(ax)
+        assert len(ticks) >= 2 and ticks.min() == 0 and np.all(ticks == np.round(ticks))
+        bars = [patch for patch in ax.patches if patch.get_height() > 0]
+        assert min(bar.get_x() for bar in bars) >= -0.5
+        assert sum(bar.get_height() for bar in bars) == len(counts if ax is figure.axes[0] else counts[:3])
+
+
+def test_gaussian_counts_say_when_none_is_kept(tmp_path, drawn_figures):
+    note = "no Gaussians kept: every light's highlights are in the residual"
+    plots.plot_gaussian_counts(np.zeros(43), tmp_path / "none.png", per_query=np.zeros(11), title="statue",
+                               none_kept=note)
+    figure = drawn_figures["none.png"]
+    assert figure.get_suptitle() == f"statue\n{note}"
+    for ax in figure.axes:
+        assert ax.get_xlim() == pytest.approx((-0.5, 1.5))
+        assert not ax.lines  # no mean, median and maximum lines piled on the one bar
+    _png(tmp_path / "none.png")
+    plots.plot_gaussian_counts(np.array([0, 4, 2]), tmp_path / "some.png", title="donut", none_kept=note)
+    assert drawn_figures["some.png"].get_suptitle() == "donut"
+    assert len(drawn_figures["some.png"].axes[0].lines) == 3
+
+
 def test_barycentric_psnr_with_difference_panel(tmp_path, barycentric, scores):
     points = plots.barycentric_to_plane(barycentric)
     distance = np.linalg.norm(points - [0.5, 0.3], axis=1)
@@ -159,6 +198,38 @@ def test_image_grid_of_comparisons(tmp_path):
     images = [rng.random((24, 32)) for _ in range(4)] + [rng.random((24, 32, 3)), rng.random((24, 32, 1))]
     labels = ["truth", "circular", "straight", "alpha", "rgb", "one channel"]
     _png(plots.plot_image_grid(images, labels, tmp_path / "grid.png", columns=4, title="query 3"))
+
+
+def test_a_blank_panel_with_a_note_says_it_and_is_never_a_flat_square(tmp_path, drawn_figures):
+    """A panel whose image shows as one flat value writes its note instead (text on a framed panel); an image
+    with content is drawn even when it has a note; without a note a flat image is drawn as it is."""
+    rng = np.random.default_rng(4)
+    images = [np.zeros((30, 40)), rng.random((30, 40)) * 0.5, np.full((30, 40), 1e-6), np.zeros((30, 40))]
+    labels = ["#0 circular", "#0 alpha", "#1 circular", "#1 flat, no note"]
+    notes = ["the field moves no highlights", "never shown", "no highlight at this light", None]
+    path = plots.plot_image_grid(images, labels, tmp_path / "grid.png", columns=2, blank_notes=notes)
+    figure = drawn_figures["grid.png"]
+    panels = dict(panel_pixels(figure, path))
+    axes = {ax.get_title(): ax for ax in figure.axes}
+    for label in ("#0 circular", "#1 circular"):
+        assert [t.get_text().replace("\n", " ") for t in axes[label].texts] == [notes[labels.index(label)]]
+        assert not axes[label].images and np.ptp(panels[label]) > 100  # dark text on light grey
+    assert axes["#0 alpha"].images and not axes["#0 alpha"].texts and np.ptp(panels["#0 alpha"]) > 0
+    assert axes["#1 flat, no note"].images and np.ptp(panels["#1 flat, no note"]) == 0
+    with pytest.raises(InputError, match="4 images but 1 blank notes"):
+        plots.plot_image_grid(images, labels, tmp_path / "bad.png", blank_notes=["one"])
+
+
+def test_statistics_boxes_of_many_methods_stay_apart(tmp_path, drawn_figures, scores):
+    """Seven methods (three of the field's, four baselines): no two statistics boxes overlap."""
+    many = {**scores, **{name: scores["alpha"] - 3.0 for name in ("ptm", "hsh2", "hsh3", "rbf")}}
+    plots.plot_psnr_distributions(many, tmp_path / "psnr.png", notes=["what each method's images are"])
+    figure = drawn_figures["psnr.png"]
+    boxes = sorted((text.get_bbox_patch().get_window_extent() for text in figure.axes[0].texts),
+                   key=lambda box: box.x0)
+    assert len(boxes) == 7
+    assert all(left.x1 < right.x0 for left, right in zip(boxes, boxes[1:], strict=False))
+    assert "what each method's images are" in figure.texts[-1].get_text()
 
 
 def test_captions_of_a_wide_grid_fit_their_panels(tmp_path):

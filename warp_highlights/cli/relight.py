@@ -433,27 +433,38 @@ def evaluation_folder_entry(relative: str) -> bool:
     return "/" not in relative and (relative == "report.json" or relative.endswith(".png"))
 
 
+_ADDED_TO_WORDS = {"residual": "residual", "images": "diffuse images", "lambert": "Lambertian diffuse"}
+"""How a figure names what the full image adds the highlights to (``evaluation.highlights_added_to``)."""
+
+
 def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool, title: str) -> list[str]:
     """report.json and the plots into ``folder`` (written beside it, then swapped in); returns the file names."""
     from ..io.atomic import atomic_folder
     from ..view import plots
 
+    added_to = evaluation.info.get("highlights_added_to")
+    base = _ADDED_TO_WORDS.get(added_to, "diffuse model")
+    kept = evaluation.gaussians_per_light is not None and bool(np.any(evaluation.gaussians_per_light > 0))
+    moving = kept and evaluation.info.get("moving_gaussians", 1) > 0
     with atomic_folder(folder, kind="evaluation", overwrite=overwrite, legacy=evaluation_folder_entry) as temporary:
         for kind, scores in (("specular", evaluation.specular_psnr), ("full", evaluation.full_psnr)):
             if scores:
                 excluded = max(int(np.isnan(v).sum()) for v in scores.values())
-                what = "specular highlights S'" if kind == "specular" else "full images I' = D' + S'"
+                what = "specular highlights S'" if kind == "specular" else f"full images I' = {base} + highlights"
                 plots.plot_psnr_distributions(
                     scores, temporary / f"psnr-{kind}.png",
                     title=f"{title}: PSNR of the {what} at {len(evaluation.directions)} held-out lights",
-                    excluded=excluded)
+                    excluded=excluded, notes=_method_notes(scores, kind, base=base, kept=kept, moving=moving))
         scores = evaluation.specular_psnr or evaluation.full_psnr
         if "circular" in scores and "alpha" in scores:
             plots.plot_psnr_pairs(scores["circular"], scores["alpha"], temporary / "psnr-circular-vs-alpha.png",
                                   title=f"{title}: per held-out light")
         if evaluation.gaussians_per_light is not None:
+            where = ("every light's highlights are in the residual" if added_to == "residual"
+                     else "the relit images have no highlights")
             plots.plot_gaussian_counts(evaluation.gaussians_per_light, temporary / "gaussian-counts.png",
-                                       per_query=evaluation.gaussians_per_query, title=f"{title}: Gaussians")
+                                       per_query=evaluation.gaussians_per_query, title=f"{title}: Gaussians",
+                                       none_kept=f"no Gaussians kept: {where}")
         sweep = evaluation.barycentric_sweep
         if sweep is not None and "skipped" not in sweep:
             labels = tuple(f"light {v}" for v in sweep["vertices"])
@@ -462,15 +473,16 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
                                         title=f"{title}: PSNR inside triangle {sweep['face']}")
         if evaluation.examples and len(evaluation.example_queries):
             order = [k for k in ("truth", "circular", "straight", "alpha") if k in evaluation.examples]
-            images, labels = [], []
+            images, labels, notes = [], [], []
             for row, query in enumerate(evaluation.example_queries):
                 for key in order:
                     images.append(evaluation.examples[key][row])
                     score = ("" if key == "truth" or key not in evaluation.specular_psnr
                              else f" {evaluation.specular_psnr[key][query]:.1f} dB")
                     labels.append(f"#{query} {key}{score}")
+                    notes.append(_blank_example_note(key, images[-1], kept=kept, added_to=added_to))
             plots.plot_image_grid(images, labels, temporary / "examples.png", columns=len(order),
-                                  title=f"{title}: specular highlights at held-out lights")
+                                  title=f"{title}: specular highlights S' at held-out lights", blank_notes=notes)
         if (evaluation.full_examples and evaluation.full_example_queries is not None
             and len(evaluation.full_example_queries)):
             order = ["truth"] + [k for k in evaluation.full_examples if k != "truth"]
@@ -485,6 +497,46 @@ def write_evaluation(folder: Path, evaluation, report: dict, *, overwrite: bool,
         (temporary / "report.json").write_text(json.dumps(report, indent=2, allow_nan=False))
         names = sorted(p.name for p in temporary.iterdir())
     return names
+
+
+def _method_notes(scores: dict, kind: str, *, base: str, kept: bool, moving: bool) -> list[str]:
+    """Footnote lines of a PSNR figure: what each method's images are."""
+    from ..relight.baselines import BASELINE_METHODS
+
+    gaussian = [m for m in ("circular", "straight") if m in scores]
+    baselines = [m for m in scores if m in BASELINE_METHODS]
+    notes = []
+    if gaussian:
+        moved = "circular or straight paths" if len(gaussian) == 2 else f"{gaussian[0]} paths"
+        if kept:
+            what = "the highlights" if kind == "specular" else f"the blended {base} plus the highlights"
+            what += (f", the Gaussians moved along {moved}" if moving
+                     else ", the corner lights' Gaussians drawn in place (none of them moves)")
+        else:
+            where = ": its highlights are in the residual" if base == "residual" else ""
+            what = "no highlights" if kind == "specular" else f"the blended {base} alone"
+            what += f" (the field keeps no Gaussians{where})"
+        notes.append(f"{', '.join(gaussian)}: {what}.")
+    if "alpha" in scores:
+        blended = "captured images" if kind == "full" else "specular images"
+        notes.append(f"alpha: the barycentric blend of the three corner lights' {blended}.")
+    if baselines:
+        notes.append(f"{', '.join(baselines)}: classic RTI models fitted to the same training lights.")
+    return notes
+
+
+def _blank_example_note(key: str, image: np.ndarray, *, kept: bool, added_to: str | None) -> str:
+    """What a panel of examples.png says when its S' would show as one flat value."""
+    peak = float(np.nanmax(image)) if np.size(image) else 0.0
+    level = "S' = 0 everywhere" if not peak > 0 else f"S' at most {peak:.1g}, under one display step"
+    if key in ("circular", "straight"):
+        if not kept:
+            where = "; its highlights stay in the residual" if added_to == "residual" else ""
+            return f"the field moves no highlights: it keeps no Gaussians{where}"
+        return f"no highlight at this light ({level})"
+    if key == "alpha":
+        return f"no highlight in the three corner lights' specular images here ({level})"
+    return f"no highlight in the ground truth at this light ({level})"
 
 
 def print_evaluation_table(report: dict) -> None:

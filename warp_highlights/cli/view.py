@@ -24,7 +24,8 @@ def _view_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=size_option("relit image size"),
                         help="relit image WIDTHxHEIGHT with the field's aspect ratio (default: the field's size)")
     parser.add_argument("--diffuse", choices=["auto", "lambert", "images", "none"], default="auto",
-                        help="diffuse part D' (default auto)")
+                        help="what the highlights S' are added to: auto (the field's residual when it has one, "
+                             "else its diffuse model), lambert, images or none (default auto)")
     parser.add_argument("--specular-only", action="store_true", help="show the highlights S' alone")
     parser.add_argument("--panels", default=",".join(PANELS),
                         help=f"panels left to right, comma-separated (default {','.join(PANELS)})")

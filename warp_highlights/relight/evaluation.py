@@ -38,7 +38,8 @@ from ..quality.metrics import psnr_excluding_black, srgb_scores
 from .baselines import BASELINE_METHODS, fit_baseline, minimum_lights
 from .relighter import RELIGHT_METHODS, Relighter, alpha_inputs, check_same_lights
 
-__all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "psnr_excluding_black", "srgb_scores", "summarize"]
+__all__ = ["Evaluation", "barycentric_grid", "evaluate_field", "highlights_added_to", "psnr_excluding_black",
+           "srgb_scores", "summarize"]
 
 _WORST_EXAMPLES = 3  # held-out lights (the worst of the first method) whose full images are kept
 
@@ -300,8 +301,22 @@ def evaluate_field(
         "baseline_bytes_per_pixel": {name: int(model.bytes_per_pixel_8bit) for name, model in models.items()},
         "measured": [kind for kind, scores in (("specular", result.specular_psnr), ("full",
                                                                                     result.full_psnr)) if scores],
+        "highlights_added_to": highlights_added_to(f) if compare_full else None,
+        "moving_gaussians": int(f.moving_mask.sum()),  # of the estimated sets; the others are drawn in place
     }
     return result
+
+
+def highlights_added_to(highlight_field) -> str | None:
+    """What the relighter's full image I' adds the highlights S' to for this field (``diffuse="auto"``,
+    ``relighter.DIFFUSE_MODES``): "residual" (I' = R~ + c S', the blended residual), "images" (the
+    blended diffuse images) or "lambert" (the Lambertian model); None for a field with neither."""
+    if highlight_field.residual is not None:
+        return "residual"
+    model = highlight_field.diffuse
+    if model is None:
+        return None
+    return "images" if model.images is not None else "lambert"
 
 
 def _score_baselines(result: Evaluation, baselines, dataset, truth_full, width: int, height: int, device, say,

@@ -88,7 +88,8 @@ class RelitImages:
     Attributes:
         specular: (Q, H, W) S', the specular luminance in the field's units (the fit's exposure
             applied; ``scale`` is not).
-        full: (Q, H, W, C) I' = scale (D' + colour S'), or None when not asked for.
+        full: (Q, H, W, C) I' = scale (B + colour S'), B the blended residual (or the diffuse model the
+            relighter was asked for), or None when not asked for.
         faces: (Q,) face of the triangulation each query fell in.
         barycentric: (Q, 3) weights of that face's corners (``triangulation.faces`` order).
         clamped: (Q,) bool, True where the query lay outside a dome and was moved onto its rim.
@@ -593,8 +594,9 @@ def relight_field(
     field, directions, *, method: str = "circular", device=None, size: tuple[int, int] | None = None,
     diffuse: str = "auto"
 ) -> RelitImages:
-    """Images of a ``HighlightField`` for light direction(s): S' in the field's units, I' = D' + S'
-    in the input's (divided by the fit's ``exposure``), NumPy float32.
+    """Images of a ``HighlightField`` for light direction(s): S' in the field's units, I' (the blended
+    residual plus the highlights, or ``diffuse``'s model plus them) in the input's (divided by the fit's
+    ``exposure``), NumPy float32.
 
     A shortcut for ``Relighter(field, device=..., size=..., diffuse=..., scale=1 / field.exposure)
     .relight(directions, method=...)``; the relighter (the field's arrays on the device) is kept with

@@ -66,7 +66,8 @@ def barycentric_to_plane(barycentric) -> np.ndarray:
 
 
 def plot_psnr_distributions(
-    scores: Mapping[str, np.ndarray], path, *, title: str | None = None, excluded: int = 0
+    scores: Mapping[str, np.ndarray], path, *, title: str | None = None, excluded: int = 0,
+    notes: Sequence[str] = (),
 ) -> Path:
     """Violin plot of the per-query PSNR of each interpolation method (thesis Fig. 4.3).
 
@@ -81,6 +82,7 @@ def plot_psnr_distributions(
         title: Figure title; a default describes the plot.
         excluded: Number of queries left out before scoring because both the interpolated and the
             ground-truth image were all black (docs/method.md, Evaluation); stated in the footnote.
+        notes: Further footnote lines (e.g. what each method's images are made of).
 
     Returns:
         The path of the written PNG.
@@ -95,6 +97,12 @@ def plot_psnr_distributions(
     if isinstance(excluded, bool) or not isinstance(excluded, (int, np.integer)) or excluded < 0:
         raise InputError(f"{where}: excluded must be a count >= 0, got {excluded!r}")
     finite = {name: _finite(values) for name, values in scores.items()}
+    # the statistics boxes side by side: each fits its method's slot of the plot's width, padding included
+    # (the percentiles on two lines where many methods make the slots narrow)
+    slot_in = 0.8 * _WIDTH_IN / len(finite)
+    stacked = caption_fontsize([_summary_text(_summary(v)) for v in finite.values() if v.size], slot_in) < 7.5
+    texts = [_summary_text(_summary(values), stacked=stacked) for values in finite.values() if values.size]
+    box_size = caption_fontsize(texts, slot_in, largest=8.5)
 
     fig = _new_figure(_WIDTH_IN, 5.6)
     ax = fig.add_subplot()
@@ -120,8 +128,8 @@ def plot_psnr_distributions(
                   zorder=3)
         ax.scatter([position], [stats["mean"]], marker="D", s=36, facecolor="white", edgecolor="black",
                    zorder=4)
-        ax.text(position, 0.98, _summary_text(stats), transform=ax.get_xaxis_transform(), ha="center",
-                va="top", fontsize=8.5, bbox={"boxstyle": "round,pad=0.3", "facecolor": "white",
+        ax.text(position, 0.98, _summary_text(stats, stacked=stacked), transform=ax.get_xaxis_transform(), ha="center",
+                va="top", fontsize=box_size, bbox={"boxstyle": "round,pad=0.3", "facecolor": "white",
                                               "edgecolor": colour, "alpha": 0.9})
 
     ax.set_xticks(positions, [f"{name}\nn = {values.size}" for name, values in finite.items()])
@@ -138,13 +146,14 @@ def plot_psnr_distributions(
     fig.legend(handles=_distribution_legend_handles(), loc="lower right", bbox_to_anchor=(0.995, 0.0), ncols=2,
                fontsize=8.5, frameon=False)
 
-    notes = [(f"{excluded} quer{'y' if excluded == 1 else 'ies'} left out: interpolated and ground-truth image "
-              "both all black (docs/method.md).")]
+    lines = [notes] if isinstance(notes, str) else [str(line) for line in notes]  # above the legend's row
     dropped = {name: int(scores[name].size - values.size) for name, values in finite.items()}
     if any(dropped.values()):
         counts = ", ".join(f"{name} {count}" for name, count in dropped.items() if count)
-        notes.append(f"Non-finite PSNR values dropped: {counts}.")
-    _footnote(fig, notes)
+        lines.append(f"Non-finite PSNR values dropped: {counts}.")
+    lines.append(f"{excluded} quer{'y' if excluded == 1 else 'ies'} left out: interpolated and ground-truth image "
+                 "both all black (docs/method.md).")
+    _footnote(fig, lines)
     return _save(fig, path)
 
 
@@ -223,12 +232,14 @@ def plot_psnr_pairs(
 
 
 def plot_gaussian_counts(
-    per_light: np.ndarray, path, *, per_query: np.ndarray | None = None, title: str | None = None
+    per_light: np.ndarray, path, *, per_query: np.ndarray | None = None, title: str | None = None,
+    none_kept: str = "no Gaussians kept",
 ) -> Path:
     """Histogram of the number of Gaussians per light, optionally beside the count per interpolated query.
 
-    Integer bins (one per count); the mean, median and maximum are drawn as lines and given in the
-    legend.
+    Integer bins (one per count, centred on it) on an x axis from 0 to the largest count + 1 with
+    integer ticks; the mean, median and maximum are drawn as lines and given in the legend. When every
+    light's count is 0 the title says so (``none_kept``) and a panel of zeros draws no lines.
 
     Args:
         per_light: 1-D count of Gaussians in each light's estimated set (non-negative integers).
@@ -236,6 +247,7 @@ def plot_gaussian_counts(
         per_query: Optional 1-D count of active Gaussians in each interpolated query set; drawn as a
             second panel.
         title: Figure title; a default describes the plot.
+        none_kept: What the title adds when every per-light count is 0 (e.g. where the highlights went).
 
     Returns:
         The path of the written PNG.
@@ -259,7 +271,8 @@ def plot_gaussian_counts(
         ax.set_xlabel(xlabel)
         ax.set_ylabel(f"number of {ylabel}")
         ax.set_title(f"{heading}: {counts.size} {ylabel}", fontsize=10)
-    fig.suptitle(title or "Gaussians per set")
+    heading = title or "Gaussians per set"
+    fig.suptitle(f"{heading}\n{none_kept}" if panels[0][0].max() == 0 else heading)
     return _save(fig, path)
 
 
@@ -352,12 +365,15 @@ def plot_barycentric_psnr(
 
 
 def plot_image_grid(
-    images: Sequence[np.ndarray], labels: Sequence[str], path, *, columns: int = 4, title: str | None = None
+    images: Sequence[np.ndarray], labels: Sequence[str], path, *, columns: int = 4, title: str | None = None,
+    blank_notes: Sequence[str | None] | None = None,
 ) -> Path:
     """A grid of linear images shown sRGB-encoded, e.g. "truth / circular / straight / alpha".
 
     Values are clipped to [0, 1] (NaN shown as black) and encoded by :func:`images.display_rgb8`,
-    so the figure shows them as an 8-bit sRGB PNG of the image would.
+    so the figure shows them as an 8-bit sRGB PNG of the image would. A panel whose displayed image
+    is one flat value and that has a note in ``blank_notes`` shows the note (on light grey, framed)
+    instead of a flat square.
 
     Args:
         images: Linear float images, each ``(H, W)`` (grey) or ``(H, W, 3)`` (RGB); sizes may differ.
@@ -366,13 +382,15 @@ def plot_image_grid(
         path: Target ``.png`` file; missing parent folders are made.
         columns: Images per row.
         title: Figure title; none by default.
+        blank_notes: None, or one entry per image: what to write in its panel when the image shows as
+            one flat value (e.g. why a method's highlights are empty), or None to draw it anyway.
 
     Returns:
         The path of the written PNG.
 
     Raises:
-        InputError: No images, a label count different from the image count, an image of another
-            shape, ``columns`` < 1, or a target that is not a ``.png`` file.
+        InputError: No images, a label or note count different from the image count, an image of
+            another shape, ``columns`` < 1, or a target that is not a ``.png`` file.
     """
     where = "plot_image_grid"
     path = _checked_png_path(where, path)
@@ -382,6 +400,10 @@ def plot_image_grid(
         raise InputError(f"{where}: no images given; pass at least one")
     if len(labels) != len(images):
         raise InputError(f"{where}: {len(images)} images but {len(labels)} labels; pass one label per image")
+    notes = [None] * len(images) if blank_notes is None else [None if n is None else str(n) for n in blank_notes]
+    if isinstance(blank_notes, str) or len(notes) != len(images):
+        raise InputError(f"{where}: {len(images)} images but {len(notes)} blank notes; pass one note (or None) "
+                         "per image")
     if isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
         raise InputError(f"{where}: columns must be an integer >= 1, got {columns!r}")
 
@@ -396,8 +418,12 @@ def plot_image_grid(
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax in axes:
         ax.set_axis_off()
-    for ax, image, label in zip(axes, images, labels, strict=False):
-        ax.imshow(display_rgb8(image), interpolation="nearest")
+    for ax, image, label, note in zip(axes, images, labels, notes, strict=False):
+        shown = display_rgb8(image)
+        if note is not None and shown.min() == shown.max():
+            _note_panel(ax, note, image.shape[0] / image.shape[1], panel_width)
+        else:
+            ax.imshow(shown, interpolation="nearest")
         ax.set_title(label, fontsize=fontsize)
     if title:
         fig.suptitle(title)
@@ -439,6 +465,10 @@ def _footnote(fig, lines: Sequence[str]) -> None:
     """Small left-aligned notes under the plot; the layout leaves room for them."""
     if not lines:
         return
+    import textwrap
+
+    characters = int(0.97 * fig.get_figwidth() * 72.0 / (_CHAR_WIDTH_EM * _FOOTNOTE_PT))
+    lines = [wrapped for line in lines for wrapped in textwrap.wrap(line, characters, subsequent_indent="  ")]
     height_pt = fig.get_figheight() * 72.0
     share = min(0.3, (len(lines) * _FOOTNOTE_PT * 1.4 + 8.0) / height_pt)
     fig.get_layout_engine().set(rect=(0.0, share, 1.0, 1.0 - share))
@@ -516,9 +546,10 @@ def _summary(values: np.ndarray) -> dict[str, float]:
     return {"mean": float(np.mean(values)), "p5": float(p5), "p95": float(p95)}
 
 
-def _summary_text(stats: Mapping[str, float], unit: str = "dB") -> str:
-    """Two lines: the mean, then the 5th and 95th percentiles."""
-    return f"mean {stats['mean']:.1f} {unit}\n5%: {stats['p5']:.1f}  95%: {stats['p95']:.1f}"
+def _summary_text(stats: Mapping[str, float], unit: str = "dB", *, stacked: bool = False) -> str:
+    """Two lines: the mean, then the 5th and 95th percentiles (``stacked``: each percentile on its own line)."""
+    between = "\n" if stacked else "  "
+    return f"mean {stats['mean']:.1f} {unit}\n5%: {stats['p5']:.1f}{between}95%: {stats['p95']:.1f}"
 
 
 def _pair_caption(first: np.ndarray, second: np.ndarray, first_name: str) -> str:
@@ -546,23 +577,46 @@ def _distribution_legend_handles() -> list:
 
 
 def _count_histogram(ax, counts: np.ndarray) -> None:
-    """Integer-bin histogram of ``counts`` with mean, median and maximum lines."""
+    """Integer-bin histogram of ``counts`` on 0 .. max + 1, with mean, median and maximum lines (none
+    when every count is 0: they would all lie on the one bar)."""
     from matplotlib.ticker import MaxNLocator
 
-    low, high = int(counts.min()), int(counts.max())
-    bins = np.arange(low - 0.5, high + 1.5)
+    high = int(counts.max())
+    bins = np.arange(-0.5, high + 1.5)  # one bin per count 0 .. max, centred on it
     ax.hist(counts, bins=bins, color="#1f77b4", alpha=0.8, edgecolor="white" if len(bins) <= 80 else "none",
             linewidth=0.6)
-    mean, median = float(counts.mean()), float(np.median(counts))
-    ax.axvline(mean, color="black", linestyle="--", linewidth=1.2, label=f"mean {mean:.1f}")
-    ax.axvline(median, color="#ff7f0e", linestyle=":", linewidth=1.8, label=f"median {median:g}")
-    ax.axvline(high, color="#d62728", linestyle="-.", linewidth=1.2, label=f"max {high}")
-    ax.set_xlim(low - 1.5, high + 1.5)
-    ax.set_ylim(0, ax.get_ylim()[1] * 1.2)  # head room for the legend
+    if high > 0:
+        mean, median = float(counts.mean()), float(np.median(counts))
+        ax.axvline(mean, color="black", linestyle="--", linewidth=1.2, label=f"mean {mean:.1f}")
+        ax.axvline(median, color="#ff7f0e", linestyle=":", linewidth=1.8, label=f"median {median:g}")
+        ax.axvline(high, color="#d62728", linestyle="-.", linewidth=1.2, label=f"max {high}")
+        ax.legend(loc="upper left", fontsize=8.5, framealpha=0.9)
+        ax.set_ylim(0, ax.get_ylim()[1] * 1.2)  # head room for the legend
+    ax.set_xlim(-0.5, high + 1.5)  # counts 0 .. max + 1, each bar whole
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.legend(loc="upper left", fontsize=8.5, framealpha=0.9)
     ax.grid(axis="y", alpha=0.3)
+
+
+def _note_panel(ax, note: str, aspect: float, panel_width_in: float) -> None:
+    """``note`` written, wrapped to the panel, on a light grey framed panel of the image's aspect
+    (height / width) in place of an image that would show one flat value."""
+    import textwrap
+
+    from matplotlib.patches import Rectangle
+
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_box_aspect(aspect)
+    ax.add_patch(Rectangle((0.0, 0.0), 1.0, 1.0, transform=ax.transAxes, facecolor="0.93", edgecolor="0.6",
+                           linewidth=0.8, clip_on=False))
+    width_pt, height_pt = 0.85 * panel_width_in * 72.0, 0.85 * panel_width_in * aspect * 72.0
+    for size in (9.0, 8.0, 7.0, 6.0, 5.0):  # the largest font at which the wrapped note fits the panel
+        text = textwrap.fill(note, max(8, int(width_pt / (_CHAR_WIDTH_EM * size))))
+        if (text.count("\n") + 1) * size * 1.25 <= height_pt:
+            break
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", fontsize=size, color="0.2",
+            style="italic", linespacing=1.25)
 
 
 def _triangle_panel(ax, points, values, name, corner_labels, style, *, unit_sign: bool):
