@@ -216,7 +216,8 @@ def test_render_accepts_a_mesh_file(tmp_path):
                                        ["fit", "x", "-o", "y.whf", "--size", "big"], ["fit"],
                                        ["relight", "x.whf", "-o", "a.png"],
                                        ["evaluate", "x.whf", "d", "--triangle", "foo"],
-                                       ["evaluate", "x.whf", "d", "--heldout", "h", "--holdout-every", "3"]])
+                                       ["evaluate", "x.whf", "d", "--heldout", "h", "--holdout-every", "3"],
+                                       ["export", "x.whf", "--single-file", "-o", "x.png"]])
 def test_help_and_usage_errors_do_not_start_warp(arguments):
     """``--help`` and argument errors are answered before Warp, SciPy or pyvista are imported (they cost
     1 s on the 2-core CPU; benchmarks/bench_startup.py times it); importing the package prints nothing."""
@@ -227,6 +228,25 @@ def test_help_and_usage_errors_do_not_start_warp(arguments):
     quiet = subprocess.run([sys.executable, "-c", "import warp_highlights"], capture_output=True, text=True,
                            timeout=120)
     assert quiet.stdout == "" and quiet.stderr == ""
+
+
+@pytest.mark.parametrize("command", ["fit", "relight", "animate", "export", "maps", "sheet", "collection", "evaluate"])
+def test_usage_shows_which_commands_require_o(command, capsys):
+    """``-o`` is required (shown bare in the usage line) wherever there is no default output; evaluate has one."""
+    import re
+
+    assert main([command, "--help"]) == 0
+    usage = " ".join(capsys.readouterr().out.split("\n\n")[0].split())
+    assert ("[-o OUTPUT]" in usage) == (command == "evaluate") and re.search(r"(^|[ \[])-o OUTPUT", usage), usage
+
+
+def test_fit_without_o_says_it_is_required_and_list_settings_needs_none(capsys):
+    assert main(["fit", "data/donut"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("warp-highlights fit: error: the following arguments are required: -o/--output (see "
+                   "warp-highlights fit --help)\n")
+    assert main(["fit", "--list-settings"]) == 0 and main(["fit", "--list-settings", "-o", "x.whf"]) == 0
+    assert "estimation.iterations=" in capsys.readouterr().out
 
 
 @pytest.mark.slow
@@ -260,7 +280,8 @@ def test_cpu_runs_say_nothing_of_warp_or_cuda(tmp_path):
 
 @pytest.mark.parametrize("arguments", [["animate", "x.whf", "--path", "bogus", "-o", "a.gif"],
                                        ["animate", "x.whf", "--path", "orbit:35", "-o", "a.avi"],
-                                       ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--exr"]])
+                                       ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--exr"],
+                                       ["animate", "x.whf", "--path", "orbit:35", "-o", "a.gif", "--compare"]])
 def test_animate_argument_errors_do_not_start_warp(arguments):
     """animate's path and output are checked by its own parsers (which read light files through SciPy) before Warp is
     imported."""

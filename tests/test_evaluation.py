@@ -488,3 +488,10 @@ def test_evaluate_the_real_dome_capture_at_its_test_lights(data_root, tmp_path):
         assert summary[method]["count"] == 20
         assert 15.0 < summary[method]["mean"] < 60.0
     assert evaluation.barycentric_sweep == {"skipped": "needs specular ground truth and the circular and alpha methods"}
+    # the command finds Test/ beside Dome/ by itself (as a collection does) and scores the same lights
+    out = tmp_path / "evaluation"
+    assert main(["evaluate", str(field_path), str(sample / "Dome"), "-o", str(out), "--methods", "circular",
+                 "--baselines", "none", "--triangle", "none", "--device", "cpu", "-q"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["heldout"] == 20
+    assert report["summary"]["full"]["circular"]["mean"] == pytest.approx(summary["circular"]["mean"], abs=1e-6)

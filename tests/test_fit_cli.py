@@ -173,7 +173,7 @@ def test_interrupted_fit_leaves_nothing_behind(small_donut, tmp_path, monkeypatc
     "arguments, message",
     [
         (["fit", "{missing}", "-o", "{out}"], "dataset folder not found"),
-        (["fit", "{data}"], "-o FIELD"),
+        (["fit", "{data}"], "the following arguments are required: -o/--output"),
         (["fit", "{data}", "-o", "{out}", "--report", "{out}"], "its own name"),
         (["fit", "{data}", "-o", "{out}", "--set", "paths=3"], "is a group"),
         (["fit", "{data}", "-o", "{out}", "--set", "estimation.iterations=10.5"], "integer"),

@@ -336,6 +336,70 @@ def test_animate_bad_input_is_one_line_and_writes_nothing(small_field, tmp_path,
     assert _tree(tmp_path) == []
 
 
+def test_animate_compare_without_the_dataset_speaks_of_what_was_given(small_field, tmp_path, capsys):
+    for methods, shown in (([], "circular,alpha"), (["--methods", "alpha,straight"], "alpha,straight")):
+        assert main(["animate", str(small_field), "--path", "orbit:30", "--frames", "2", "--compare", *methods, "-o",
+                     str(tmp_path / "x.gif"), "--device", "cpu", "-q"]) == 2
+        line = _error_line(capsys)
+        assert f"--compare shows each method of --methods ({shown}), and alpha blends the captured images" in line
+        assert "--dataset DATASET" in line and "--methods without alpha" in line and "--method alpha" not in line
+    assert _tree(tmp_path) == []
+
+
+# --- lights outside the dome -----------------------------------------------------------------------
+
+
+def _warnings(err: str) -> list[str]:
+    return [line for line in err.splitlines() if "warning:" in line]
+
+
+def test_relight_outside_the_dome_says_so_on_stderr_even_with_q(tmp_path, capsys):
+    field = load_field(LEGACY_FIELD)
+    assert field.triangulation.is_dome
+    out = tmp_path / "behind.exr"
+    assert main(["relight", str(LEGACY_FIELD), "--light", "0,0,-1", "-o", str(out), "--device", "cpu", "-q"]) == 0
+    captured = capsys.readouterr()
+    assert "(outside the dome: moved onto its rim)" in captured.out
+    [line] = _warnings(captured.err)
+    assert captured.err.count("\n") == 1
+    rim = field.triangulation.locate(np.array([0.0, 0.0, -1.0])).directions
+    text = ",".join(f"{v + 0.0:.3f}" for v in np.round(rim, 3))
+    assert line == (f"  warning: the light 0.000,0.000,-1.000 lies outside the captured lights: moved onto the "
+                     f"dome's rim, to {text} (x,y,z); the image is that of the nearest captured direction on the rim")
+    # the image is the one at that rim direction
+    moved = tmp_path / "rim.exr"
+    assert main(["relight", str(LEGACY_FIELD), "--light", ",".join(f"{v:.17g}" for v in rim), "-o", str(moved),
+                 "--device", "cpu", "-q"]) == 0
+    assert _warnings(capsys.readouterr().err) == []
+    np.testing.assert_allclose(read_image(out), read_image(moved), atol=1e-5)
+    # a light inside: no warning, no note
+    assert main(["relight", str(LEGACY_FIELD), "--light", "0.1,0.2,1", "-o", str(tmp_path / "in.exr"), "--device",
+                 "cpu", "-q"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and "outside the dome" not in captured.out
+
+
+def test_relight_lights_and_animate_outside_the_dome_count_them_in_one_line(tmp_path, capsys):
+    lp = tmp_path / "query.lp"
+    directions = np.array([[0.0, 0.0, -1.0], [0.1, 0.2, 1.0], [1.0, 0.0, -0.2]])
+    write_lp(LightSet(directions / np.linalg.norm(directions, axis=1, keepdims=True)), lp)
+    assert main(["relight", str(LEGACY_FIELD), "--lights", str(lp), "-o", str(tmp_path / "many"), "--device", "cpu",
+                 "-q"]) == 0
+    assert _warnings(capsys.readouterr().err) == [
+        "  warning: 2 of 3 lights lie outside the captured lights: moved onto the dome's rim, relit as the nearest "
+        "captured directions on the rim"]
+    # an orbit below the horizon: every frame
+    assert main(["animate", str(LEGACY_FIELD), "--path", "orbit:-30", "--frames", "4", "-o", str(tmp_path / "below"),
+                 "--device", "cpu", "-q"]) == 0
+    assert _warnings(capsys.readouterr().err) == [
+        "  warning: the light of 4 of 4 frames lies outside the captured lights: moved onto the dome's rim, relit as "
+        "the nearest captured directions on the rim"]
+    # a path inside the dome: nothing
+    assert main(["animate", str(LEGACY_FIELD), "--path", "great:0.3,0.1,1:-0.3,0.1,1", "--frames", "3", "-o",
+                 str(tmp_path / "inside"), "--device", "cpu", "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
 # --- evaluate --------------------------------------------------------------------------------------
 
 PLOTS = ["barycentric-psnr.png", "examples.png", "gaussian-counts.png", "psnr-circular-vs-alpha.png", "psnr-full.png",
@@ -429,8 +493,65 @@ def test_evaluate_needs_heldout_lights(small_field, small_donut, tmp_path, capsy
     shutil.copytree(small_donut, copy)
     (copy / "heldout.lp").unlink()
     assert main(["evaluate", str(small_field), str(copy), "-o", str(tmp_path / "report"), "--device", "cpu", "-q"]) == 2
-    assert "held-out" in _error_line(capsys)
+    line = _error_line(capsys)
+    assert f"{copy} has no held-out lights (no heldout.lp, no Test/ folder inside or beside it)" in line
+    # both ways out, the field's refit included
+    assert "--heldout FOLDER" in line and "--holdout-every K" in line and f"fit {copy} --holdout-every K" in line
+    assert "render" not in line
     assert not (tmp_path / "report").exists()
+
+
+def _test_folder_layout(data: Path, root: Path, where: str) -> tuple[Path, Path]:
+    """``data`` (a rendered capture with ``heldout.lp``) as a SynthRTI-style capture: its lights in ``Dome/``, its
+    held-out lights and images in a ``Test/`` folder ``where`` ("beside" or "inside") it; returns (Dome, Test)."""
+    import shutil
+
+    dome = root / "object" / "Dome"
+    shutil.copytree(data, dome, ignore=shutil.ignore_patterns("heldout*", "h*.exr"))
+    test = (dome if where == "inside" else dome.parent) / "Test"
+    shutil.copytree(data / "heldout", test / "heldout")
+    shutil.copytree(data / "specular", test / "specular", ignore=shutil.ignore_patterns("0*.exr"))
+    shutil.copy(data / "heldout.lp", test / "lights.lp")
+    return dome, test
+
+
+@pytest.mark.parametrize("where", ["beside", "inside"])
+def test_evaluate_finds_a_test_folder_as_the_collection_does(tiny_sphere, tmp_path, capsys, where):
+    """A ``Test/`` folder beside the capture (``OBJECT/Dome`` and ``OBJECT/Test``) or inside it is found, said in one
+    line, and scored exactly as the same lights in ``heldout.lp``."""
+    import shutil
+
+    from warp_highlights.collection.captures import find_captures
+
+    data, field = tiny_sphere
+    dome, test = _test_folder_layout(data, tmp_path / "layout", where)
+    assert [c.heldout for c in find_captures(tmp_path / "layout")] == [test]  # the runner's choice
+    options = ["--triangle", "none", "--baselines", "none", "--methods", "circular", "--device", "cpu"]
+    assert main(["evaluate", str(field), str(dome) + "/", "-o", str(tmp_path / "found"), *options]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "held-out lights from" in line]
+    assert said == [f"  held-out lights from {test} (the Test/ folder {where} {dome}; --heldout FOLDER takes another)"]
+    assert main(["evaluate", str(field), str(data), "-o", str(tmp_path / "heldout-lp"), *options]) == 0
+    assert "held-out lights from" not in capsys.readouterr().err  # heldout.lp: nothing to say
+    found, inside = (json.loads((tmp_path / name / "report.json").read_text()) for name in ("found", "heldout-lp"))
+    assert found["heldout"] == 28 and found["summary"] == inside["summary"]
+    # an explicit --heldout wins over the found folder, and --holdout-every does not look for one
+    other = tmp_path / "other"
+    shutil.copytree(test, other)
+    assert main(["evaluate", str(field), str(dome), "--heldout", str(other), "-o", str(tmp_path / "given"), *options,
+                 "-q"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_evaluate_holdout_every_on_a_field_fitted_to_every_light(tiny_sphere, tmp_path, capsys):
+    data, field = tiny_sphere
+    assert main(["evaluate", str(field), str(data), "--holdout-every", "4", "-o", str(tmp_path / "e"), "--device",
+                 "cpu", "-q"]) == 2
+    line = _error_line(capsys)
+    assert line.startswith(f"warp-highlights evaluate: error: {field} was fitted to every light of {data} (16)")
+    assert f"refit with 'fit {data} --holdout-every 4 -o FIELD'" in line and "Test/ folder" in line
+    assert "pass the dataset it was fitted to" not in line
+    assert _tree(tmp_path) == []
 
 
 def test_evaluate_a_dataset_without_a_renderer_skips_the_triangle_plot(small_field, small_donut, tmp_path):
@@ -573,6 +694,12 @@ def test_fit_and_evaluate_with_every_kth_light_held_out(tiny_sphere, tmp_path, c
     assert set(srgb) == {"circular", "straight", "alpha", "ptm", "rbf"} and all(len(v) == 4 for v in srgb.values())
     assert all(0 <= s <= 1 for values in report["per_query"]["full_ssim"].values() for s in values)
     assert (out / "worst-lights.png").is_file()
+    # another K than the field's names the field's
+    assert main(["evaluate", str(field_path), str(data), "-o", str(tmp_path / "other"), "--holdout-every", "3",
+                 "--device", "cpu", "-q"]) == 2
+    line = _error_line(capsys)
+    assert "fitted with --holdout-every 4: evaluate it with --holdout-every 4" in line
+    assert not (tmp_path / "other").exists()
 
 
 @pytest.mark.parametrize(

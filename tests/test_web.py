@@ -391,6 +391,57 @@ def test_the_single_file_page_has_a_size_limit(fields, tmp_path, capsys, monkeyp
     assert list(tmp_path.iterdir()) == []
 
 
+def test_the_single_file_page_gets_html_added_or_its_suffix_refused(small_field, tmp_path, capsys):
+    from warp_highlights.cli import main
+
+    bare = tmp_path / "statue-single"
+    assert main(["export", str(small_field), "--single-file", "-o", str(bare), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"wrote the viewer of {small_field} to {bare}.html (") and f".html added to {bare})" in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["statue-single.html"]
+    assert (tmp_path / "statue-single.html").read_bytes().lstrip().lower().startswith(b"<!doctype html")
+    # a name with .html is kept as it is, and says nothing of it
+    assert main(["export", str(small_field), "--single-file", "-o", str(tmp_path / "page.HTML"), "-q"]) == 0
+    assert "added" not in capsys.readouterr().out and (tmp_path / "page.HTML").is_file()
+    for name in ("statue.png", "statue.v2"):
+        assert main(["export", str(small_field), "--single-file", "-o", str(tmp_path / name), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"warp-highlights export: error: -o {tmp_path / name}: --single-file writes an HTML page; give "
+                       "a name ending in .html (or no suffix: .html is added)\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["page.HTML", "statue-single.html"]
+
+
+@pytest.mark.parametrize(("signame", "status"), [("SIGINT", 130), ("SIGTERM", 143)])
+def test_serve_stopped_says_it_stopped_serving(tmp_path, signame, status):
+    """Ctrl-C (or SIGTERM) ends ``serve`` with one line saying what stopped, not that partial output was removed: it
+    writes nothing."""
+    import os
+    import select
+    import signal
+    import subprocess
+    import sys
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("<!doctype html>")
+    (site / "manifest.json").write_text("{}")
+    process = subprocess.Popen([sys.executable, "-m", "warp_highlights", "serve", str(site), "--port", "0"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        ready, _, _ = select.select([process.stdout], [], [], 120)
+        assert ready and "http://127.0.0.1:" in process.stdout.readline()
+        process.send_signal(getattr(signal, signame))
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    stopped = f"warp-highlights serve: stopped serving {site}" + (" (SIGTERM)" if signame == "SIGTERM" else "")
+    assert (process.returncode, err) == (status, stopped + "\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["site"]
+
+
 def _read_array(folder, spec) -> np.ndarray:
     data = (folder / spec["file"]).read_bytes()
     data = gzip.decompress(data) if spec.get("encoding") == "gzip" else data

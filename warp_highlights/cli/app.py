@@ -100,9 +100,13 @@ def _run(args) -> int:
     except InputError as error:
         message, status = f"error: {error}", EXIT_INPUT_ERROR
     except Terminated:
-        message, status = "terminated (SIGTERM); nothing partial was left behind", EXIT_TERMINATED
+        stopped = getattr(args, "stopped", None)
+        message = f"{stopped(args)} (SIGTERM)" if stopped else "terminated (SIGTERM); nothing partial was left behind"
+        status = EXIT_TERMINATED
     except KeyboardInterrupt:
-        message, status = "interrupted; nothing partial was left behind", EXIT_INTERRUPTED
+        stopped = getattr(args, "stopped", None)
+        message = stopped(args) if stopped else "interrupted; nothing partial was left behind"
+        status = EXIT_INTERRUPTED
     except OSError as error:
         if error.filename is None and stdout.failed is not None:
             _silence_stdout()

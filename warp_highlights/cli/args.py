@@ -42,6 +42,8 @@ class Command:
         description: The text at the top of its own ``--help``; None for none.
         check: Checks the parsed arguments among themselves (raising ``InputError``) before Warp is
             imported, so that a wrong combination is answered at once; None for none.
+        stopped: The line that Ctrl-C (or SIGTERM) ends the command with, for a command that writes nothing
+            (``serve``); None: "interrupted; nothing partial was left behind".
     """
 
     name: str
@@ -50,13 +52,14 @@ class Command:
     help: str
     description: str | None = None
     check: Callable[[argparse.Namespace], None] | None = None
+    stopped: Callable[[argparse.Namespace], str] | None = None
 
     def add_to(self, commands) -> None:
         """Add the command to ``commands``, what ``ArgumentParser.add_subparsers`` returned."""
         parser = commands.add_parser(self.name, help=self.help, description=self.description)
         self.arguments(parser)
         add_common_options(parser)
-        parser.set_defaults(run=self.run, check=self.check)
+        parser.set_defaults(run=self.run, check=self.check, stopped=self.stopped)
 
 
 def add_common_options(parser: argparse.ArgumentParser) -> None:

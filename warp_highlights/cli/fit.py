@@ -25,7 +25,8 @@ __all__ = ["COMMANDS"]
 
 def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, nargs="?", help="dataset folder (a .lp light file and its images)")
-    parser.add_argument("-o", "--output", type=Path, help="highlight-field file to write (e.g. donut.whf); required")
+    output = parser.add_argument("-o", "--output", type=Path, required=True,
+                                 help="highlight-field file to write (e.g. donut.whf)")
     parser.add_argument(
         "--size", type=size_option("working size"),
         help="working resolution WIDTHxHEIGHT, same aspect ratio, at most the images' size (default: the images' size)")
@@ -41,8 +42,8 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout-every", type=in_range(int, 2, 1000), metavar="K",
                         help="fit without lights 0, K, 2K, ... of the dataset, to score them later "
                              "(evaluate FIELD DATASET)")
-    parser.add_argument("--list-settings", action="store_true",
-                        help="print every hyper-parameter with its default and exit")
+    parser.add_argument("--list-settings", action=_ListSettings, output=output,
+                        help="print every hyper-parameter with its default and exit (no DATASET or -o needed)")
     parser.add_argument("--residual", choices=list(RESIDUAL_KINDS), default=None,
                         help="what relighting adds the moved highlights to (the images minus their own "
                              "highlights), the setting "
@@ -77,6 +78,18 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
     add_pixel_limit_option(parser)
 
 
+class _ListSettings(argparse.Action):
+    """``--list-settings``: a flag that makes ``-o`` optional for this run (nothing is written)."""
+
+    def __init__(self, option_strings, dest, *, output: argparse.Action, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=False, **kwargs)
+        self.output = output
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, True)
+        self.output.required = False  # argparse checks the required options after every argument is read
+
+
 EARLY_LOAD_BYTES = 1 << 29
 """``fit`` decodes a capture of at most this many float32 bytes (512 MiB: 250 lights at 480x270 are 389 MB) while Warp
 starts, and a larger one only once Warp has found the device: a wrong ``--device`` then costs at most a short
@@ -101,7 +114,7 @@ def _thread_lock_for_progress_bars() -> None:
 
 
 def _check_fit(args) -> None:
-    if not args.list_settings and (args.dataset is None or args.output is None):
+    if not args.list_settings and args.dataset is None:
         raise InputError("fit needs a DATASET folder and -o FIELD, e.g. warp-highlights fit data/donut -o donut.whf")
 
 

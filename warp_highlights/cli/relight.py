@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -235,15 +236,40 @@ def _run_relight(args) -> int:
                     bits=_output_bits(args, field, output))
         clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
         print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
+        if relit.clamped[0]:
+            _warn_outside_one(field, directions[0])
         return 0
-    _write_image_folder(output, relighter, np.asarray(directions, dtype=np.float64), method=args.method,
-                        specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite,
-                        progress=not args.quiet)
+    moved = _write_image_folder(output, relighter, np.asarray(directions, dtype=np.float64), method=args.method,
+                                specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite,
+                                progress=not args.quiet)
     seconds = time.perf_counter() - started
     print(f"wrote {len(directions)} images and lights.lp to {output} ({relighter.width}x{relighter.height}, "
           f"{args.method}, "
           f"{1000 * seconds / len(directions):.2f} ms per light with writing)")
+    if moved:
+        _warn_outside_many(f"{moved} of {len(directions)} lights {'lies' if moved == 1 else 'lie'}")
     return 0
+
+
+def _direction_text(direction) -> str:
+    """A unit direction as x,y,z rounded to 3 decimals (no negative zero)."""
+    return ",".join(f"{round(float(v), 3) + 0.0:.3f}" for v in direction)
+
+
+def _warn_outside_one(field, direction) -> None:
+    """One warning line: ``direction`` lies outside the captured lights and was relit on the dome's rim."""
+    location = field.triangulation.locate(np.asarray(direction, dtype=np.float64))
+    given = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+    logging.getLogger(__name__).warning(
+        f"warning: the light {_direction_text(given)} lies outside the captured lights: moved onto the dome's rim, to "
+        f"{_direction_text(location.directions)} (x,y,z); the image is that of the nearest captured direction on the "
+        "rim")
+
+
+def _warn_outside_many(text: str) -> None:
+    """One warning line: ``text`` (how many lights or frames lay outside the captured lights), how they were relit."""
+    logging.getLogger(__name__).warning(f"warning: {text} outside the captured lights: moved onto the dome's rim, "
+                                        "relit as the nearest captured directions on the rim")
 
 
 def _output_bits(args, field, output: Path) -> int:
@@ -267,9 +293,10 @@ def _relit_folder_entry(relative: str) -> bool:
 
 def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, method: str, specular_only: bool,
                         exposure: float,
-                        overwrite: bool, progress: bool) -> None:
+                        overwrite: bool, progress: bool) -> int:
     """Images relit_0000.exr ... and a lights.lp naming them: the folder is a dataset itself. Relit in
-    batches of ``relighter.max_batch``, so memory stays bounded whatever the number of lights."""
+    batches of ``relighter.max_batch``, so memory stays bounded whatever the number of lights. Returns how
+    many directions lay outside the captured lights (relit on the dome's rim)."""
     from tqdm import tqdm
 
     from ..io.atomic import atomic_folder
@@ -282,15 +309,18 @@ def _write_image_folder(folder: Path, relighter, directions: np.ndarray, *, meth
     ) as bar:
         digits = max(4, len(str(len(directions) - 1)))
         names = [f"relit_{i:0{digits}d}.exr" for i in range(len(directions))]
+        moved = 0
         for start in range(0, len(directions), relighter.max_batch):
             chunk = directions[start : start + relighter.max_batch]
             relit = relighter.relight(chunk, method=method, full=not specular_only)
+            moved += int(np.count_nonzero(relit.clamped))
             for i in range(len(chunk)):
                 write_image(temporary / names[start + i],
                             _output_image(relit, i, specular_only=specular_only, exposure=exposure))
             bar.update(len(chunk))
         unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
         write_lp(LightSet(unit), temporary / "lights.lp", filenames=names)
+    return moved
 
 
 def _parse_methods(text: str) -> tuple[str, ...]:
@@ -324,10 +354,14 @@ def _run_animate(args) -> int:
     relighter = _make_relighter(args, field, methods=methods)
     exposure = field.exposure
 
+    moved = 0
+
     def frames():
+        nonlocal moved
         for start in range(0, len(directions), relighter.max_batch):
             chunk = directions[start : start + relighter.max_batch]
             panels = [relighter.relight(chunk, method=m, full=not args.specular_only) for m in methods]
+            moved += int(np.count_nonzero(panels[0].clamped))
             for i in range(len(chunk)):
                 images = [_output_image(p, i, specular_only=args.specular_only, exposure=exposure) for p in panels]
                 yield np.concatenate(images, axis=1)
@@ -342,6 +376,8 @@ def _run_animate(args) -> int:
     label = " | ".join(methods)
     print(f"wrote {path}: {len(directions)} frames of {label}, {relighter.width}x{relighter.height}, "
           f"{time.perf_counter() - started:.1f} s")
+    if moved:
+        _warn_outside_many(f"the light of {moved} of {len(directions)} frames lies")
     return 0
 
 
@@ -375,10 +411,14 @@ def _check_animate(args) -> None:
     if args.exr and kind != "frames":
         raise InputError(f"{args.output}: --exr writes a folder of EXR frames; give a folder name")
     parse_light_path(args.path, args.frames)
+    if args.compare and args.dataset is None and "alpha" in (m.strip() for m in args.methods.split(",")):
+        raise InputError(f"--compare shows each method of --methods ({args.methods}), and alpha blends the captured "
+                         "images: pass --dataset DATASET (the folder the field was fitted to), or --methods without "
+                         "alpha, e.g. --methods circular,straight")
 
 
 def _run_evaluate(args) -> int:
-    from ..io.dataset import ReflectanceField
+    from ..io.dataset import ReflectanceField, find_heldout_folder
     from ..io.fieldfile import load_field
     from ..quality.metrics import scoring_processes
     from ..relight.evaluation import evaluate_field
@@ -386,19 +426,23 @@ def _run_evaluate(args) -> int:
     methods = _parse_methods(args.methods)
     triangle = _triangle_choice(args.triangle)
     output = Path(args.output) if args.output else Path(args.field).with_name(Path(args.field).stem + "-evaluation")
+    found = find_heldout_folder(args.dataset) if args.heldout is None else None
     check_output_folder(output, overwrite=args.overwrite, legacy=evaluation_folder_entry, kind="evaluation",
-                        inputs=[args.field, args.dataset, args.heldout])
+                        inputs=[args.field, args.dataset, args.heldout or found])
     device = check_device(args.device)
     field = load_field(args.field)
     if isinstance(triangle, int) and not 0 <= triangle < field.triangulation.face_count:
         raise InputError(f"--triangle {triangle} does not exist: the field's triangulation has faces "
                          f"0..{field.triangulation.face_count - 1}")
     baselines = parse_baselines(args.baselines)
+    fitted_every = field.report.get("holdout_every")
     # with --heldout: refused by _check_evaluate
-    holdout_every = args.holdout_every or field.report.get("holdout_every")
-    dataset = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
+    holdout_every = args.holdout_every or fitted_every
+    heldout = args.heldout or (None if holdout_every else _found_heldout(args, found))
+    dataset = ReflectanceField.load(args.dataset, heldout=heldout, linear=args.linear, progress=not args.quiet,
                                     max_pixels=pixel_limit(args))
     check_same_capture(args, field, dataset, args.dataset)
+    _check_holdout_every(args, field, dataset, fitted_every)
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
     with scoring_processes():  # every method's scores in the same few worker processes
@@ -413,6 +457,41 @@ def _run_evaluate(args) -> int:
     print_evaluation_table(report)
     print(f"wrote {output}: " + ", ".join(written))
     return 0
+
+
+def _found_heldout(args, found: Path | None) -> Path | None:
+    """The held-out folder ``evaluate`` uses without ``--heldout`` or a hold-out protocol: ``found`` (a ``Test/``
+    beside or inside DATASET, said in one line), else None where DATASET holds ``heldout.lp``; ``InputError``
+    naming the options that give held-out lights where it holds none."""
+    from ..io.dataset import HELDOUT_FOLDER
+
+    dataset = Path(args.dataset)
+    if found is not None:
+        where = "inside" if found.parent == Path(os.path.abspath(dataset)) else "beside"
+        logging.getLogger(__name__).info(f"held-out lights from {found} (the {HELDOUT_FOLDER}/ folder {where} "
+                                         f"{dataset}; --heldout FOLDER takes another)")
+        return found
+    if dataset.is_dir() and not (dataset / "heldout.lp").is_file():
+        raise InputError(f"{dataset} has no held-out lights (no heldout.lp, no {HELDOUT_FOLDER}/ folder inside or "
+                         f"beside it): pass --heldout FOLDER (other lights of the same capture, with their images), "
+                         f"or --holdout-every K to score lights 0, K, 2K, ... with a field fitted without them "
+                         f"('fit {dataset} --holdout-every K -o FIELD')")
+    return None  # heldout.lp, or a missing folder that loading reports
+
+
+def _check_holdout_every(args, field, dataset, fitted_every) -> None:
+    """Refuse, in one line, ``--holdout-every K`` with a field that was not fitted without those lights."""
+    every = args.holdout_every
+    if not every:
+        return
+    if fitted_every and int(fitted_every) != every:
+        raise InputError(f"{args.field} was fitted with --holdout-every {fitted_every}: evaluate it with "
+                         f"--holdout-every {fitted_every} (or without the option, which takes the field's)")
+    if not fitted_every and dataset.light_count == field.light_count:
+        raise InputError(f"{args.field} was fitted to every light of {args.dataset} ({field.light_count}), so none "
+                         f"is held out: refit with 'fit {args.dataset} --holdout-every {every} -o FIELD' to score it "
+                         "at held-out lights (or, where the capture has held-out lights, evaluate it without "
+                         "--holdout-every: a Test/ folder or --heldout FOLDER)")
 
 
 def parse_baselines(text: str) -> tuple[str, ...]:

@@ -5,16 +5,20 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..model.errors import InputError
 from .args import Command, check_output_file, check_output_folder, in_range
 
 __all__ = ["COMMANDS"]
+
+PAGE_SUFFIXES = (".html", ".htm")
+"""The file endings ``export --single-file`` takes for its page (a name without one gets ``.html``)."""
 
 
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with "
-                             "--single-file the HTML file")
+                             "--single-file the HTML file (.html is added to a name without a suffix)")
     parser.add_argument("--single-file", action="store_true",
                         help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: "
                              "mail services cap a "
@@ -36,12 +40,17 @@ def _run_export(args) -> int:
 
     output = Path(args.output)
     if args.single_file:
+        added = not output.suffix
+        if added:
+            output = output.with_name(output.name + ".html")
         check_output_file(output, overwrite=args.overwrite, inputs=[args.field])
         field = load_field(args.field)
         page = single_file_page(field)
         with atomic_file(output, overwrite=args.overwrite) as temporary:
             temporary.write_bytes(page)
-        print(f"wrote the viewer of {args.field} to {output} ({bytes_text(len(page))}, one file: open it in a browser)")
+        note = f"; .html added to {args.output}" if added else ""
+        print(f"wrote the viewer of {args.field} to {output} ({bytes_text(len(page))}, one file: open it in a "
+              f"browser{note})")
         return 0
     check_output_folder(output, overwrite=args.overwrite, legacy=_viewer_entry, kind="web viewer",
                         inputs=[args.field])
@@ -53,6 +62,13 @@ def _run_export(args) -> int:
           f"{bytes_text(Path(args.field).stat().st_size)}); "
           f"open it with: warp-highlights serve {output}")
     return 0
+
+
+def _check_export(args) -> None:
+    suffix = Path(args.output).suffix
+    if args.single_file and suffix and suffix.lower() not in PAGE_SUFFIXES:
+        raise InputError(f"-o {args.output}: --single-file writes an HTML page; give a name ending in .html (or no "
+                         "suffix: .html is added)")
 
 
 def _serve_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,6 +92,11 @@ def _run_serve(args) -> int:
     return 0
 
 
+def _stopped_serving(args) -> str:
+    """What Ctrl-C ends ``serve`` with: it wrote nothing, so nothing was removed either."""
+    return f"stopped serving {args.folder}"
+
+
 COMMANDS = (
     Command("export", _export_arguments, _run_export,
             help="write a fitted field as a static web page that relights it in the browser (WebGL2)",
@@ -87,9 +108,11 @@ COMMANDS = (
             "file://: serve it with "
             "warp-highlights serve, or write one file that opens from disk with --single-file. Every residual "
             "kind (low rank, "
-            "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights."),
+            "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights.",
+            check=_check_export),
     Command("serve", _serve_arguments, _run_serve, help="serve an exported viewer on 127.0.0.1 (this computer only)",
             description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable "
-                        "from other hosts."),
+                        "from other hosts.",
+            stopped=_stopped_serving),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""

@@ -10,13 +10,10 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from ..io.dataset import HELDOUT_FOLDER, find_heldout_folder, has_light_file
 from ..model.errors import InputError
 
 __all__ = ["HELDOUT_FOLDER", "Capture", "find_captures", "fingerprint", "image_size"]
-
-HELDOUT_FOLDER = "Test"
-"""A capture's held-out lights in a folder of their own (the SynthRTI layout: ``Dome/`` beside ``Test/``, or
-``Test/`` inside the capture); ``heldout.lp`` inside the capture (what ``render`` writes) works as well."""
 
 log = logging.getLogger(__name__)
 
@@ -72,16 +69,13 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
     if real in seen:
         return
     seen.add(real)
-    if _has_light_file(folder):
-        if folder.name == HELDOUT_FOLDER and _has_light_file(folder.parent):
+    if has_light_file(folder):
+        if folder.name == HELDOUT_FOLDER and has_light_file(folder.parent):
             return  # the held-out lights of the capture above
-        sibling = folder.parent / HELDOUT_FOLDER
-        if (folder.name != HELDOUT_FOLDER and _has_light_file(sibling) and not _has_light_file(folder.parent)
-            and _only_capture_beside(sibling)):
-            found.append((folder, folder.parent, sibling))  # SynthRTI: OBJECT/Dome beside OBJECT/Test, named OBJECT
-            return
-        inside = folder / HELDOUT_FOLDER
-        found.append((folder, folder, inside if _has_light_file(inside) else None))
+        heldout = find_heldout_folder(folder)
+        # SynthRTI: OBJECT/Dome beside OBJECT/Test, named OBJECT
+        named = folder.parent if heldout is not None and heldout.parent != Path(os.path.abspath(folder)) else folder
+        found.append((folder, named, heldout))
         return
     try:
         with os.scandir(folder) as listing:
@@ -90,7 +84,7 @@ def _search(folder: Path, found: list, seen: set[Path]) -> None:
     except OSError as error:
         advice = _ADVICE.get(error.errno, "check its permissions")
         raise InputError(f"{folder}: cannot list the folder ({error.strerror}); {advice}") from None
-    with_lights = {e.name for e in entries if _has_light_file(Path(e.path))}
+    with_lights = {e.name for e in entries if has_light_file(Path(e.path))}
     for entry in entries:
         if entry.name == HELDOUT_FOLDER and len(with_lights - {HELDOUT_FOLDER}) == 1:
             # the held-out lights of the capture beside it (OBJECT/Dome and OBJECT/Test), whatever the names' order
@@ -110,23 +104,6 @@ def _is_folder(entry: os.DirEntry) -> bool:
     except OSError as error:
         log.warning("%s: skipped, it cannot be followed (%s); %s", entry.path, error.strerror,
                     _ADVICE.get(error.errno, "check its permissions"))
-        return False
-
-
-def _only_capture_beside(heldout: Path) -> bool:
-    """Whether exactly one folder beside ``heldout`` (a ``Test/``) has a light file: the capture it belongs to."""
-    try:
-        return sum(1 for p in heldout.parent.iterdir()
-                   if p.is_dir() and p.name != HELDOUT_FOLDER and _has_light_file(p)) == 1
-    except OSError:
-        return False
-
-
-def _has_light_file(folder: Path) -> bool:
-    try:
-        return (folder.is_dir()
-                and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir()))
-    except OSError:
         return False
 
 

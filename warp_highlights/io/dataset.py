@@ -14,6 +14,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
 import re
 import threading
 import warnings
@@ -46,8 +47,8 @@ from .images import (
 )
 from .lightfile import read_lp, write_lp
 
-__all__ = ["DatasetWriter", "LoadStopped", "ReflectanceField", "capture_differences", "capture_fingerprint",
-           "dataset_folder_entry", "find_light_file"]
+__all__ = ["HELDOUT_FOLDER", "DatasetWriter", "LoadStopped", "ReflectanceField", "capture_differences",
+           "capture_fingerprint", "dataset_folder_entry", "find_heldout_folder", "find_light_file", "has_light_file"]
 
 
 class LoadStopped(Exception):
@@ -711,6 +712,42 @@ def find_light_file(folder: Path) -> Path:
         names = ", ".join(p.name for p in candidates)
         raise InputError(f"{folder}: several light files ({names}); keep one or name it lights.lp")
     return candidates[0]
+
+
+HELDOUT_FOLDER = "Test"
+"""A capture's held-out lights in a folder of their own (the SynthRTI layout: ``Dome/`` beside ``Test/``, or
+``Test/`` inside the capture); ``heldout.lp`` inside the capture (what ``render`` writes) works as well."""
+
+
+def has_light_file(folder: Path) -> bool:
+    """Whether ``folder`` is a folder holding a light file (a ``*.lp`` other than ``heldout.lp``)."""
+    try:
+        return (folder.is_dir()
+                and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir()))
+    except OSError:
+        return False
+
+
+def find_heldout_folder(folder) -> Path | None:
+    """The folder of held-out lights and images that belongs to the capture in ``folder``: a ``Test/`` beside it
+    (``OBJECT/Dome`` and ``OBJECT/Test``, where ``OBJECT`` holds no light file and no other capture), else a
+    ``Test/`` inside it; None for neither (``heldout.lp`` in the folder is ``ReflectanceField.load``'s own)."""
+    folder = Path(os.path.abspath(folder))
+    sibling = folder.parent / HELDOUT_FOLDER
+    if (folder.name != HELDOUT_FOLDER and has_light_file(sibling) and not has_light_file(folder.parent)
+            and _only_capture_beside(sibling)):
+        return sibling
+    inside = folder / HELDOUT_FOLDER
+    return inside if has_light_file(inside) else None
+
+
+def _only_capture_beside(heldout: Path) -> bool:
+    """Whether exactly one folder beside ``heldout`` (a ``Test/``) has a light file: the capture it belongs to."""
+    try:
+        return sum(1 for p in heldout.parent.iterdir()
+                   if p.is_dir() and p.name != HELDOUT_FOLDER and has_light_file(p)) == 1
+    except OSError:
+        return False
 
 
 def _heldout_group(folder: Path, heldout) -> _ImageGroup | None:

@@ -211,8 +211,9 @@ def evaluate_field(
     heldout = dataset.heldout
     if heldout is None or heldout.light_count == 0:
         raise InputError(
-            "the dataset has no held-out lights to compare with: render it with held-out lights "
-            "(warp-highlights render ... --heldout centroids) or pass --heldout FOLDER"
+            "the dataset has no held-out lights to compare with: pass --heldout FOLDER (other lights of the same "
+            "capture, with their images), or --holdout-every K with a field fitted without lights 0, K, 2K, ... "
+            "(fit DATASET --holdout-every K)"
         )
     exposure = f.exposure
     seconds = {}
