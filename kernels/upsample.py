@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from warp_highlights.model.gaussians import GaussianArrays
+
 from .interpolation import (
     DIFFUSE_BLEND,
     DIFFUSE_DECODED,
@@ -27,7 +29,7 @@ from .interpolation import (
     _opponent_channel,
 )
 
-__all__ = ["compose_upsampled", "residual_at_source", "source_axis", "upsample_images"]
+__all__ = ["compose_upsampled", "residual_at_source", "source_axis", "upsample_images", "widen_narrow_gaussians"]
 
 
 @wp.func
@@ -196,3 +198,21 @@ def upsample_images(
         top = (1.0 - fx) * source[q, y0 * source_width + x0] + fx * source[q, y0 * source_width + x1]
         bottom = (1.0 - fx) * source[q, y1 * source_width + x0] + fx * source[q, y1 * source_width + x1]
         out[q, i] = (1.0 - fy) * top + fy * bottom
+
+
+@wp.kernel(enable_backward=False)
+def widen_narrow_gaussians(sets: GaussianArrays, least: float, eps: float):
+    """Each Gaussian of ``sets`` at least ``least`` wide along each axis (normalised units), its amplitude scaled
+    so that a^2 sqrt((sigma_x^2 + eps)(sigma_y^2 + eps)), the light it adds, is kept; wider ones are left
+    exactly as they are (drawn larger than the field: ``RasterSettings.upsampled_min_sigma_px``)."""
+    q, n = wp.tid()
+    sigma = sets.sigma[q, n]
+    sx = wp.abs(sigma[0])
+    sy = wp.abs(sigma[1])
+    if sx >= least and sy >= least:
+        return
+    wx = wp.max(sx, least)
+    wy = wp.max(sy, least)
+    kept = wp.sqrt(wp.sqrt((sx * sx + eps) * (sy * sy + eps)) / wp.sqrt((wx * wx + eps) * (wy * wy + eps)))
+    sets.amplitude[q, n] = sets.amplitude[q, n] * kept
+    sets.sigma[q, n] = wp.vec2(wx, wy)

@@ -42,6 +42,19 @@ def render(params: GaussianParams, height: int, width: int, settings: RasterSett
     return images
 
 
+def widened(params: GaussianParams, least: float, eps: float) -> GaussianParams:
+    """``kernels.upsample.widen_narrow_gaussians``: every Gaussian at least ``least`` wide along each axis
+    (normalised units), a^2 sqrt((sigma_x^2 + eps)(sigma_y^2 + eps)) kept; wider ones as they are."""
+    out = params.copy()
+    sx, sy = np.abs(params.sigma[..., 0]), np.abs(params.sigma[..., 1])
+    narrow = (sx < least) | (sy < least)
+    wx, wy = np.maximum(sx, least), np.maximum(sy, least)
+    kept = np.sqrt(np.sqrt((sx**2 + eps) * (sy**2 + eps)) / np.sqrt((wx**2 + eps) * (wy**2 + eps)))
+    out.amplitude = np.where(narrow, params.amplitude * kept, params.amplitude)
+    out.sigma = np.where(narrow[..., None], np.stack([wx, wy], axis=-1), params.sigma)
+    return out
+
+
 def pixel_area(height: int) -> float:
     """Area of one pixel in rpx^2 for an image ``height`` pixels tall."""
     return (REFERENCE_HEIGHT_PX / height) ** 2

@@ -286,6 +286,29 @@ def test_the_alpha_blend_at_a_larger_size_is_the_blend_resampled(sphere_field, d
     np.testing.assert_allclose(result.full, 0.5 * _grown(full, width, height), rtol=1e-5, atol=1e-5)
 
 
+def test_narrow_gaussians_are_widened_with_their_light_kept(device):
+    """``widen_narrow_gaussians`` against its float64 reference; a widened Gaussian adds the same light (its
+    integral over a fine grid), and one at least the least width is left bit for bit."""
+    from warp_highlights.kernels.upsample import widen_narrow_gaussians
+
+    rng = np.random.default_rng(23)
+    params = inside_params(rng, 3, 8, HEIGHT, WIDTH, sigma_px=(0.05, 3.0))
+    least, eps = 0.7 / HEIGHT, FitSettings().raster.sigma_eps
+    params.sigma[0, 0] = (least, least)  # exactly the least width: unchanged
+    batch = GaussianBatch.from_numpy(params, device=device, requires_grad=False)
+    wp.launch(widen_narrow_gaussians, dim=batch.shape, inputs=[batch.arrays, least, eps], device=device)
+    got, expected = batch.numpy(), reference.widened(params, least, eps)
+    np.testing.assert_allclose(got.sigma, expected.sigma, rtol=1e-6)
+    np.testing.assert_allclose(got.amplitude, expected.amplitude, rtol=1e-5)
+    wide = (np.abs(params.sigma) >= least).all(axis=-1)
+    assert wide.any() and (~wide).any()
+    np.testing.assert_array_equal(got.amplitude[wide], params.amplitude[wide].astype(np.float32))
+    fine = 16  # light added: the untruncated images' sums on a grid 16 times finer
+    before = reference.render(params, fine * HEIGHT, fine * WIDTH, truncate=False).sum(axis=(1, 2))
+    after = reference.render(expected, fine * HEIGHT, fine * WIDTH, truncate=False).sum(axis=(1, 2))
+    np.testing.assert_allclose(after, before, rtol=0.02)
+
+
 def test_other_output_sizes_render_the_same_gaussians(sphere_field):
     field = sphere_field
     queries = random_directions(np.random.default_rng(13), 5)

@@ -76,6 +76,50 @@ def test_relight_at_double_size(small_field, field, tmp_path):
     np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-7)
 
 
+def test_a_large_relight_counts_its_memory_and_says_its_time(small_field, field, tmp_path):
+    """Relit at 20 times the field's width: the memory the command grows by stays within its up-front estimate
+    (``relight_bytes``); the line gives the command's time."""
+    import subprocess
+    import sys
+
+    from warp_highlights.relight.relighter import relight_bytes
+
+    width, height = 20 * field.width, 20 * field.height
+    out = tmp_path / "big.png"
+    script = (
+        "import resource, sys\n"
+        "from warp_highlights.cli import main\n"
+        "field, out, size = sys.argv[1:4]\n"
+        "small = ['relight', field, '--light', '0.3,0.5,1', '-o', out + '.small.png', '--device', 'cpu', '-q']\n"
+        "assert main(small) == 0\n"
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+        "assert main(['relight', field, '--light', '0.3,0.5,1', '--size', size, '-o', out, '--device', 'cpu']) == 0\n"
+        "print('grew', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before)\n")
+    run = subprocess.run([sys.executable, "-c", script, str(small_field), str(out), f"{width}x{height}"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    grew = 1024 * int(run.stdout.split("grew")[1])
+    estimate = relight_bytes(field, width, height)
+    assert 0 < grew <= 1.1 * estimate, (grew, estimate)
+    line = [text for text in run.stdout.splitlines() if text.startswith("wrote")][-1]
+    assert re.search(rf"\({width}x{height}, circular, [0-9.]+ s: relit in [0-9.]+ ms, written in [0-9.]+ ms\)", line)
+    assert read_image(out).shape == (height, width, 3)
+
+
+def test_a_large_relight_shows_its_stages(small_field, field, tmp_path, capsys, monkeypatch):
+    import warp_highlights.cli.relight as relight_cli
+
+    size = f"{2 * field.width}x{2 * field.height}"
+    monkeypatch.setattr(relight_cli, "STAGE_BAR_PIXELS", 4 * field.width * field.height)
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(tmp_path / "a.png"), "--size", size,
+                 "--device", "cpu"]) == 0
+    err = capsys.readouterr().err
+    assert all(stage in err for stage in ("relight: preparing", "relight: relighting", "relight: writing")), err
+    assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(tmp_path / "b.png"), "--size", size,
+                 "--device", "cpu", "-q"]) == 0
+    assert "relight:" not in capsys.readouterr().err
+
+
 def test_relight_specular_only(small_field, field, tmp_path):
     out = tmp_path / "spec.exr"
     assert main(["relight", str(small_field), "--light", LIGHT, "-o", str(out), "--specular-only", "--device", "cpu",

@@ -18,6 +18,7 @@ import warp_highlights.residual.device as device_module
 import warp_highlights.residual.rate as rate_module
 from conftest import FAST_FIT
 from reference import render as render_reference
+from reference import widened
 from warp_highlights.fit.moving import decide_moving
 from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.io.dataset import ReflectanceField
@@ -553,8 +554,10 @@ def _reference_full_larger(field, directions, scale, width: int, height: int, *,
     grown = np.stack([resample_image(image, width, height) for image in residual]).astype(np.float64)
     if lowrank_scale:
         grown *= resample_image(field.residual.scale, width, height)[None, ..., None]
-    sets = Relighter(field, device="cpu").interpolated_sets(directions)
-    specular = render_reference(sets, height, width, field.fit_settings().raster)
+    raster = field.fit_settings().raster
+    sets = widened(Relighter(field, device="cpu").interpolated_sets(directions),
+                   raster.upsampled_min_sigma_px / field.height, raster.sigma_eps)
+    specular = render_reference(sets, height, width, raster)
     colour = (1.0 if field.residual.highlight_colour is None
               else resample_image(field.residual.highlight_colour, width, height).astype(np.float64))
     return scale * np.maximum(grown + colour * specular[..., None], 0.0)

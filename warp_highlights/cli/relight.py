@@ -30,9 +30,9 @@ from .args import (
 
 __all__ = ["COMMANDS", "parse_baselines", "print_evaluation_table", "write_evaluation"]
 
-RELIT_BYTES_PER_PIXEL = 48
-"""Memory one relit pixel takes at most, for the up-front check: the full image (3 float32) and the
-highlights (1 float32) on the device and again on the host, plus the 8-bit or EXR encoding."""
+STAGE_BAR_PIXELS = 8_000_000
+"""Output pixels from which one relit image shows a bar over its stages (preparing, relighting, writing): an 8 MP
+image (3840 x 2160) takes a few seconds on a 2-core CPU (benchmarks/bench_relight_size.py)."""
 
 
 
@@ -155,10 +155,11 @@ def learned_on_cpu_note(field, device) -> str | None:
             "0.23 s on 2 cores); a field fitted with 'fit --residual lowrank' relights in milliseconds here")
 
 
-def _make_relighter(args, field, *, methods: tuple[str, ...]):
-    """A Relighter for the command's options; loads the dataset when a method needs it."""
-    from ..model.memory import check_memory
-    from ..relight.relighter import Relighter, alpha_inputs
+def _make_relighter(args, field, *, methods: tuple[str, ...], queries: int = 1):
+    """A Relighter for the command's options, once the memory it and ``queries`` relit at a time take is
+    known to be there; loads the dataset when a method needs it."""
+    from ..model.memory import bytes_text, check_memory
+    from ..relight.relighter import Relighter, alpha_inputs, default_queries, relight_bytes
 
     device = check_device(args.device)
     note = learned_on_cpu_note(field, device)
@@ -166,7 +167,11 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
         logging.getLogger(__name__).info(note)
     size = args.size
     width, height = size or (field.width, field.height)
-    check_memory(RELIT_BYTES_PER_PIXEL * width * height, f"relighting at {width}x{height}", "use a smaller --size")
+    at_once = max(1, min(int(queries), default_queries(field, width, height)))
+    needed = relight_bytes(field, width, height, queries=at_once, alpha="alpha" in methods)
+    check_memory(needed, f"relighting at {width}x{height}", "use a smaller --size",
+                 detail=f"the field's arrays, {at_once} image{'s' if at_once > 1 else ''} at a time and the writing; "
+                        f"{bytes_text(needed)} in all")
     colour = args.specular_colour or (1.0, 1.0, 1.0)
     alpha_specular = alpha_images = None
     if "alpha" in methods:
@@ -186,11 +191,13 @@ def _make_relighter(args, field, *, methods: tuple[str, ...]):
     )
 
 
-def _output_image(relit, index: int, *, specular_only: bool, exposure: float) -> np.ndarray:
-    """The image to write: I' (dataset units) or S' (brought back to the dataset's units too)."""
+def _output_image(relit, index: int | None, *, specular_only: bool, exposure: float) -> np.ndarray:
+    """The image to write: I' (dataset units) or S' (brought back to the dataset's units too); ``index`` picks
+    one of a batch, None takes a single query's images."""
+    pick = (lambda array: array) if index is None else (lambda array: array[index])
     if specular_only or relit.full is None:
-        return relit.specular[index] / exposure
-    image = relit.full[index]
+        return pick(relit.specular) / exposure
+    image = pick(relit.full)
     return image[..., 0] if image.shape[-1] == 1 else image
 
 
@@ -200,7 +207,6 @@ HELDOUT_OR_HOLDOUT = "give either --heldout FOLDER or --holdout-every K, not bot
 
 def _run_relight(args) -> int:
     from ..io.fieldfile import load_field
-    from ..io.images import write_image
     from ..io.lightfile import read_lp
 
     directions = [parse_direction(text) for text in args.light]
@@ -224,21 +230,12 @@ def _run_relight(args) -> int:
                             inputs=inputs)
     else:
         check_output_file(output, overwrite=args.overwrite, inputs=inputs)
+    if not several:
+        return _relight_one(args, directions[0], output)
     field = load_field(args.field)
-    relighter = _make_relighter(args, field, methods=(args.method,))
+    relighter = _make_relighter(args, field, methods=(args.method,), queries=len(directions))
     exposure = field.exposure
     started = time.perf_counter()
-    if not several:
-        relit = relighter.relight(np.asarray(directions, dtype=np.float64), method=args.method,
-                                  full=not args.specular_only)
-        seconds = time.perf_counter() - started
-        write_image(output, _output_image(relit, 0, specular_only=args.specular_only, exposure=exposure),
-                    bits=_output_bits(args, field, output))
-        clamped = " (outside the dome: moved onto its rim)" if relit.clamped[0] else ""
-        print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {1000 * seconds:.1f} ms){clamped}")
-        if relit.clamped[0]:
-            _warn_outside_one(field, directions[0])
-        return 0
     moved = _write_image_folder(output, relighter, np.asarray(directions, dtype=np.float64), method=args.method,
                                 specular_only=args.specular_only, exposure=exposure, overwrite=args.overwrite,
                                 progress=not args.quiet)
@@ -248,6 +245,40 @@ def _run_relight(args) -> int:
           f"{1000 * seconds / len(directions):.2f} ms per light with writing)")
     if moved:
         _warn_outside_many(f"{moved} of {len(directions)} lights {'lies' if moved == 1 else 'lie'}")
+    return 0
+
+
+def _relight_one(args, direction, output: Path) -> int:
+    """``relight`` of one light into one image; the time printed is the command's, from loading the field to the
+    image written, with a bar over the stages for a large image."""
+    from tqdm import tqdm
+
+    from ..io.fieldfile import load_field
+    from ..io.images import write_image
+
+    started = time.perf_counter()
+    pixels = args.size[0] * args.size[1] if args.size else 0
+    with tqdm(total=3, desc="relight: preparing", unit="stage", leave=False,
+              disable=args.quiet or pixels < STAGE_BAR_PIXELS) as bar:
+        field = load_field(args.field)
+        relighter = _make_relighter(args, field, methods=(args.method,))
+        bar.update()
+        bar.set_description("relight: relighting")
+        relit_at = time.perf_counter()
+        relit = relighter.relight(np.asarray(direction, dtype=np.float64), method=args.method,
+                                  full=not args.specular_only)
+        bar.update()
+        bar.set_description("relight: writing")
+        written_at = time.perf_counter()
+        write_image(output, _output_image(relit, None, specular_only=args.specular_only, exposure=field.exposure),
+                    bits=_output_bits(args, field, output))
+        bar.update()
+    done = time.perf_counter()
+    clamped = " (outside the dome: moved onto its rim)" if relit.clamped else ""
+    print(f"wrote {output} ({relighter.width}x{relighter.height}, {args.method}, {done - started:.2f} s: relit in "
+          f"{1000 * (written_at - relit_at):.1f} ms, written in {1000 * (done - written_at):.1f} ms){clamped}")
+    if relit.clamped:
+        _warn_outside_one(field, direction)
     return 0
 
 
@@ -351,7 +382,7 @@ def _run_animate(args) -> int:
         if args.size != (field.width, field.height):
             logging.getLogger(__name__).info(f"animating at {args.size[0]}x{args.size[1]}, the {kind.upper()} default "
                                              f"(the field is {field.width}x{field.height}; --size sets another)")
-    relighter = _make_relighter(args, field, methods=methods)
+    relighter = _make_relighter(args, field, methods=methods, queries=len(directions))
     exposure = field.exposure
 
     moved = 0

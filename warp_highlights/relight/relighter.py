@@ -61,7 +61,9 @@ __all__ = [
     "RelitImages",
     "alpha_inputs",
     "check_same_lights",
+    "default_queries",
     "face_edge_rows",
+    "relight_bytes",
     "relight_field",
 ]
 
@@ -184,6 +186,8 @@ class Relighter:
         self.source_width, self.source_height = _source_size(field, self.width, self.height)
         self.upsampled = (self.source_width, self.source_height) != (self.width, self.height)
         settings = field.fit_settings()
+        # narrower Gaussians, unresolved by the field's pixels, are widened when drawn larger (normalised units)
+        self._least_sigma = (raster or settings.raster).upsampled_min_sigma_px / field.height
         self.straight_below = float(settings.paths.straight_below)
         threads = 1 if self.device.is_cuda else core_count()  # a CPU launch runs on one thread: large images split
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device,
@@ -191,7 +195,8 @@ class Relighter:
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
         self.channels = _field_channels(field)
         if (self.diffuse == kernels.DIFFUSE_LOWRANK
-            and decode_on_load(field.residual, self.source_width * self.source_height, residual_decode, self.device)):
+            # decided by the output's pixels, as when every array was resampled to it: the same images whatever size
+            and decode_on_load(field.residual, self.width * self.height, residual_decode, self.device)):
             self.diffuse, self._residual_images = kernels.DIFFUSE_BLEND, True
         colour = np.asarray(specular_colour, dtype=np.float64).reshape(-1)
         if colour.size not in (1, 3) or not np.all(np.isfinite(colour)) or np.any(colour < 0):
@@ -212,10 +217,7 @@ class Relighter:
                     f"alpha images have {self._alpha_images.shape[2]} channels, the field's images {self.channels}")
             self.channels = self._alpha_images.shape[2]
             self._upload_colour()
-        source_pixels = self.source_height * self.source_width if self.upsampled else 0
-        pixel_bytes = (4 * self.height * self.width * (1 + self.channels) + 4 * source_pixels * (1 + self.channels)
-                       + (2 * 3 * self.source_height * self.source_width if self._learned is not None else 0))
-        default_batch = max(1, _CHUNK_BYTES // pixel_bytes)
+        default_batch = default_queries(field, self.width, self.height)
         self.max_batch = int(max_batch) if max_batch is not None else default_batch
         if self.max_batch < 1:
             raise InputError(f"max_batch must be >= 1, got {max_batch}")
@@ -396,6 +398,9 @@ class Relighter:
         )
         if not render:
             return buffers
+        if self.upsampled and self._least_sigma > 0:
+            wp.launch(upsample.widen_narrow_gaussians, dim=(buffers.count, 3 * self.capacity),
+                      inputs=[buffers.sets.arrays, self._least_sigma, raster.settings.sigma_eps], device=self.device)
         raster.render(buffers.sets, out=buffers.specular)
         if full:
             images = self._diffuse_images
@@ -828,6 +833,62 @@ def _output_size(field, size) -> tuple[int, int]:
             f"use e.g. {round(field.width * height / field.height)}x{height}"
         )
     return width, height
+
+
+def _query_bytes(field, width: int, height: int) -> int:
+    """Device bytes one query's images take in a ``Relighter`` of ``field`` at ``width`` x ``height``: S' and I'
+    at the output size, and at the field's size its residual term (a larger output) and a learned decode."""
+    channels = _field_channels(field)
+    source_width, source_height = _source_size(field, width, height)
+    source = source_width * source_height
+    upsampled = source != width * height
+    learned = field.residual is not None and field.residual.learned is not None
+    return (4 * width * height * (1 + channels) + (4 * source * (1 + channels) if upsampled else 0)
+            + (2 * 3 * source if learned else 0))
+
+
+def default_queries(field, width: int, height: int) -> int:
+    """Queries a ``Relighter`` of ``field`` at ``width`` x ``height`` launches at a time by default: as many as
+    fit in ``_CHUNK_BYTES`` of images, at least one."""
+    return max(1, _CHUNK_BYTES // _query_bytes(field, width, height))
+
+
+def relight_bytes(field, width: int, height: int, *, queries: int = 1, alpha: bool = False) -> int:
+    """Bytes of memory relighting ``field`` at ``width`` x ``height`` takes, ``queries`` at a time, up to the
+    images written (on the CPU all of it is host memory; on CUDA the part on the device is about as large): the
+    field's arrays as a ``Relighter`` holds them (at the output size when it is smaller than the field, else at
+    the field's), the rasterizer's tile lists, each query's images on the device and their host copies, the
+    alpha method's captured stacks, and what writing one image takes (16-bit codes, the encoder's copy, the file
+    read back to check it)."""
+    channels = _field_channels(field)
+    source_width, source_height = _source_size(field, width, height)
+    source = source_width * source_height
+    pixels = width * height
+    n = field.light_count
+    held = 0
+    residual = field.residual
+    if residual is not None:
+        if residual.luminance is not None:  # float32 basis and mean read per query, or n decoded float16 images
+            stacks = [stack for stack in (residual.luminance, residual.chroma) if stack is not None]
+            basis = sum(4 * source * (stack.rank + 1) * stack.mean.shape[2] for stack in stacks)
+            held += max(basis, 2 * n * source * residual.channels)
+        elif residual.images is not None:
+            held += 2 * n * source * residual.channels
+        elif residual.learned is not None:
+            held += 4 * source * residual.learned.codes.shape[2]
+        held += 4 * source * (1 + residual.channels)  # the per-pixel scale and highlight colour
+    if field.diffuse is not None:
+        held += 16 * source * field.diffuse.channel_count
+        if field.diffuse.images is not None:
+            held += 2 * n * source * field.diffuse.channel_count
+    if alpha:  # float16 images and float32 specular on the device, their float32 host copies while uploaded
+        held += n * source * (4 + 2 * channels) + n * source * 4 * (1 + channels)
+    tile = field.fit_settings().raster.tile_size
+    tiles = -(-width // tile) * -(-height // tile)
+    raster = queries * tiles * (3 * field.capacity + 1) * 4
+    images = queries * (_query_bytes(field, width, height) + 4 * pixels * (1 + channels))
+    written = 8 * pixels * channels  # 16-bit codes, the encoder's copy, and the file read back and compared
+    return held + raster + images + written
 
 
 def _source_size(field, width: int, height: int) -> tuple[int, int]:
