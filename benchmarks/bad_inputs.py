@@ -1870,13 +1870,7 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
         if process.poll() is None:
             process.send_signal(sig)
             sent = True
-        try:
-            out, err = process.communicate(timeout=ctx.timeout)
-            hang = False
-        except subprocess.TimeoutExpired:
-            process.kill()
-            out, err = process.communicate()
-            hang = True
+        out, err, hang = finish(process, ctx.timeout)
     finally:
         if process.poll() is None:
             process.kill()
@@ -1886,6 +1880,17 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
             "stderr": err.decode("utf-8", "replace"), "seconds": time.perf_counter() - started,
             "note": ("signal sent" if sent else "finished before the signal") + ("" if running
                                                                                  else "; its handlers never appeared")}
+
+
+def finish(process: subprocess.Popen, timeout: float) -> tuple:
+    """(stdout, stderr, hung) of ``process`` once it ends; killed (hung True) when it runs past ``timeout`` s."""
+    try:
+        out, err = process.communicate(timeout=timeout)
+        return out, err, False
+    except subprocess.TimeoutExpired:
+        process.kill()
+        out, err = process.communicate()
+        return out, err, True
 
 
 def _wait_for_handler(process: subprocess.Popen, deadline: float) -> bool:

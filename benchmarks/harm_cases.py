@@ -36,7 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from bad_inputs import REPO, Case, Context, Run, Skip, link_tree, put, writers
+from bad_inputs import REPO, Case, Context, Run, Skip, finish, link_tree, put, writers
 
 RACE_REPEATS = 3
 """Times each two-writer race is run (each a case of its own)."""
@@ -79,13 +79,7 @@ def subprocess_runner(*, env: dict | None = None, file_size_limit: int | None = 
             process = subprocess.Popen(_command(run.argv), stdout=out, stderr=subprocess.PIPE, text=True,
                                        env=env or _environment(), cwd=ctx.work, preexec_fn=limits,
                                        start_new_session=True)
-            hang = False
-            try:
-                stdout, stderr = process.communicate(timeout=ctx.timeout)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                stdout, stderr = process.communicate()
-                hang = True
+            stdout, stderr, hang = finish(process, ctx.timeout)
         return {"rc": process.returncode, "exception": None, "hang": hang, "crashed": None,
                 "stdout": stdout or "", "stderr": stderr or "", "seconds": time.perf_counter() - started}
 
@@ -102,12 +96,8 @@ def race_runner(argvs: list[list], target: Path, *, overwrite: bool) -> Callable
                                       env=_environment(), cwd=ctx.work, start_new_session=True) for argv in argvs]
         results, hang = [], False
         for process in processes:
-            try:
-                out, err = process.communicate(timeout=ctx.timeout)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                out, err = process.communicate()
-                hang = True
+            out, err, hung = finish(process, ctx.timeout)
+            hang = hang or hung
             results.append((process.returncode, out, err))
         wrote = [r for r in results if r[0] == 0]
         refused = [r for r in results if r[0] != 0]
@@ -439,6 +429,17 @@ def _other_capture(ctx: Context) -> Path:
     return ctx.cached("other capture", make)
 
 
+def _says(present: list[str], absent: list[str], what: str) -> Callable[[dict], str | None]:
+    """A check that stderr holds every phrase of ``present`` and none of ``absent`` (it says ``what``)."""
+    def check(result):
+        text = result.get("stderr") or ""
+        if any(phrase not in text for phrase in present) or any(phrase in text for phrase in absent):
+            return f"the message does not say {what}: {text.strip()[:200]}"
+        return None
+
+    return check
+
+
 def capture_cases(ctx: Context) -> list[Case]:
     F, D = str(ctx.field), str(ctx.dataset)
     cases = []
@@ -474,12 +475,7 @@ def capture_cases(ctx: Context) -> list[Case]:
         (capture / "images" / first).unlink()
         write_image(capture / "images" / first, image)
 
-        def check(result):
-            text = result.get("stderr") or ""
-            if "pass replace_nonfinite" in text or "non-finite" not in text:
-                return f"the message does not say what is wrong and what to do: {text.strip()[:200]}"
-            return None
-
+        check = _says(["non-finite"], ["pass replace_nonfinite"], "what is wrong and what to do")
         return Run(["fit", capture, "-o", folder / "F.whf", "--device", "cpu", *ctx.fast, "-q"], check=check)
 
     cases.append(Case("captures", "fit: an EXR holding NaN", nonfinite, "error"))
@@ -494,12 +490,7 @@ def capture_cases(ctx: Context) -> list[Case]:
             else:
                 image.symlink_to("/dev/zero")
 
-            def check(result):
-                text = result.get("stderr") or ""
-                if "not found" in text or "not a regular file" not in text:
-                    return f"the message does not say what the file is: {text.strip()[:200]}"
-                return None
-
+            check = _says(["not a regular file"], ["not found"], "what the file is")
             return Run(["fit", capture, "-o", folder / "F.whf", "--device", "cpu", *ctx.fast, "-q"], check=check)
 
         cases.append(Case("captures", f"fit: an image that is a {kind}", build, "error"))
@@ -551,12 +542,7 @@ def serve_runner(request: Callable[[str, Path], str | None]) -> Callable[[Run, C
                 base = line.split("http://", 1)[1].split("/", 1)[0]
                 problem = request(f"http://{base}", Path(run.argv[1]))
             process.send_signal(signal.SIGINT)
-            try:
-                out, err = process.communicate(timeout=ctx.timeout)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                out, err = process.communicate()
-                hang = True
+            out, err, hang = finish(process, ctx.timeout)
         finally:
             if process.poll() is None:
                 process.kill()

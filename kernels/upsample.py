@@ -29,7 +29,15 @@ from .interpolation import (
     _opponent_channel,
 )
 
-__all__ = ["compose_upsampled", "residual_at_source", "source_axis", "upsample_images", "widen_narrow_gaussians"]
+__all__ = [
+    "compose_upsampled",
+    "residual_at_source",
+    "source_axis",
+    "source_taps",
+    "source_weights",
+    "upsample_images",
+    "widen_narrow_gaussians",
+]
 
 
 @wp.func
@@ -87,12 +95,29 @@ def residual_at_source(
 
 
 @wp.func
-def _bilinear(array: wp.array2d(dtype=float), i00: int, i01: int, i10: int, i11: int, fy: float, fx: float,
-              c: int) -> float:
-    # column c of ``array`` between the four source pixels (flattened indices) around an output pixel
-    top = (1.0 - fx) * array[i00, c] + fx * array[i01, c]
-    bottom = (1.0 - fx) * array[i10, c] + fx * array[i11, c]
-    return (1.0 - fy) * top + fy * bottom
+def source_taps(i: int, width: int, height: int, source_width: int, source_height: int) -> wp.vec4i:
+    """The four source pixels (flattened: top left, top right, bottom left, bottom right) around output pixel
+    ``i`` of a ``width`` x ``height`` image read from a ``source_width`` x ``source_height`` one."""
+    y = i // width
+    y0 = int(source_axis(y, height, source_height)[0])
+    x0 = int(source_axis(i - y * width, width, source_width)[0])
+    y1 = wp.min(y0 + 1, source_height - 1)
+    x1 = wp.min(x0 + 1, source_width - 1)
+    return wp.vec4i(y0 * source_width + x0, y0 * source_width + x1, y1 * source_width + x0, y1 * source_width + x1)
+
+
+@wp.func
+def source_weights(i: int, width: int, height: int, source_width: int, source_height: int) -> wp.vec2:
+    """(weight of the bottom row, weight of the right column) of ``source_taps``' four pixels."""
+    y = i // width
+    return wp.vec2(source_axis(y, height, source_height)[1], source_axis(i - y * width, width, source_width)[1])
+
+
+@wp.func
+def _between(v00: float, v01: float, v10: float, v11: float, weights: wp.vec2) -> float:
+    # bilinear: along x in each row, then along y
+    return (1.0 - weights[0]) * ((1.0 - weights[1]) * v00 + weights[1] * v01) + weights[0] * (
+        (1.0 - weights[1]) * v10 + weights[1] * v11)
 
 
 @wp.kernel(enable_backward=False)
@@ -129,40 +154,26 @@ def compose_upsampled(
     one_scale = residual_scale.shape[0] == 1
     first = t * pixels_per_thread
     for i in range(first, wp.min(first + pixels_per_thread, out.shape[1])):
-        y = i // width
-        x = i - y * width
-        along_y = source_axis(y, height, source_height)
-        along_x = source_axis(x, width, source_width)
-        y0 = int(along_y[0])
-        x0 = int(along_x[0])
-        y1 = wp.min(y0 + 1, source_height - 1)
-        x1 = wp.min(x0 + 1, source_width - 1)
-        fy = along_y[1]
-        fx = along_x[1]
-        i00 = y0 * source_width + x0
-        i01 = y0 * source_width + x1
-        i10 = y1 * source_width + x0
-        i11 = y1 * source_width + x1
+        k = source_taps(i, width, height, source_width, source_height)
+        f = source_weights(i, width, height, source_width, source_height)
         s = residual_scale[0]
         if diffuse_mode == DIFFUSE_LOWRANK and not one_scale:
-            s = ((1.0 - fy) * ((1.0 - fx) * residual_scale[i00] + fx * residual_scale[i01])
-                 + fy * ((1.0 - fx) * residual_scale[i10] + fx * residual_scale[i11]))
+            s = _between(residual_scale[k[0]], residual_scale[k[1]], residual_scale[k[2]], residual_scale[k[3]], f)
         for c in range(channels):
             value = float(0.0)
             if diffuse_mode == DIFFUSE_LAMBERT:
-                m = ((1.0 - fy) * ((1.0 - fx) * lambert[i00, c] + fx * lambert[i01, c])
-                     + fy * ((1.0 - fx) * lambert[i10, c] + fx * lambert[i11, c]))
+                m = (1.0 - f[0]) * ((1.0 - f[1]) * lambert[k[0], c] + f[1] * lambert[k[1], c]) + f[0] * (
+                    (1.0 - f[1]) * lambert[k[2], c] + f[1] * lambert[k[3], c])
                 value = wp.max(m[0] * omega[0] + m[1] * omega[1] + m[2] * omega[2], 0.0) + m[3]
             elif diffuse_mode == DIFFUSE_BLEND or diffuse_mode == DIFFUSE_DECODED or diffuse_mode == DIFFUSE_LOWRANK:
-                top = (1.0 - fx) * source[q, i00, c] + fx * source[q, i01, c]
-                bottom = (1.0 - fx) * source[q, i10, c] + fx * source[q, i11, c]
-                value = (1.0 - fy) * top + fy * bottom
+                value = _between(source[q, k[0], c], source[q, k[1], c], source[q, k[2], c], source[q, k[3], c], f)
                 if diffuse_mode == DIFFUSE_LOWRANK:
                     value = s * value
             if add_specular != 0:
                 colour = pixel_colour[0, c]
                 if not one_colour:
-                    colour = _bilinear(pixel_colour, i00, i01, i10, i11, fy, fx, c)
+                    colour = _between(pixel_colour[k[0], c], pixel_colour[k[1], c], pixel_colour[k[2], c],
+                                      pixel_colour[k[3], c], f)
                 value += specular_colour[c] * colour * specular[q, i]
             out[q, i, c] = scale * wp.max(value, 0.0)
 
@@ -185,19 +196,9 @@ def upsample_images(
     height = out.shape[1] // width
     first = t * pixels_per_thread
     for i in range(first, wp.min(first + pixels_per_thread, out.shape[1])):
-        y = i // width
-        x = i - y * width
-        along_y = source_axis(y, height, source_height)
-        along_x = source_axis(x, width, source_width)
-        y0 = int(along_y[0])
-        x0 = int(along_x[0])
-        y1 = wp.min(y0 + 1, source_height - 1)
-        x1 = wp.min(x0 + 1, source_width - 1)
-        fy = along_y[1]
-        fx = along_x[1]
-        top = (1.0 - fx) * source[q, y0 * source_width + x0] + fx * source[q, y0 * source_width + x1]
-        bottom = (1.0 - fx) * source[q, y1 * source_width + x0] + fx * source[q, y1 * source_width + x1]
-        out[q, i] = (1.0 - fy) * top + fy * bottom
+        k = source_taps(i, width, height, source_width, source_height)
+        f = source_weights(i, width, height, source_width, source_height)
+        out[q, i] = _between(source[q, k[0]], source[q, k[1]], source[q, k[2]], source[q, k[3]], f)
 
 
 @wp.kernel(enable_backward=False)

@@ -228,12 +228,13 @@ plt.show()
 
 `wh.relight_field(field, directions)` takes any light directions (x right, y up, z towards the
 camera). It finds each direction's triangle, moves every corner's Gaussians along their stored paths
-by the barycentric weights, rasterizes them and adds the diffuse model: `I' = D' + S'`. It returns
+by the barycentric weights, rasterizes them, and adds them, in the highlights' colour c(x), to the
+field's residual blended for that direction: `I' = residual + c(x) S'`. It returns
 NumPy images (`RelitImages`: `.full`, `.specular`, `.faces`, `.barycentric`).
 """),
     code("""
 relit = wh.relight_field(field, query, device=device)
-show([relit.full[0], relit.specular[0]], ["relit image I' = D' + S'", "its highlights S'"],
+show([relit.full[0], relit.specular[0]], ["relit image I' = residual + c(x) S'", "its highlights S'"],
      suptitle=f"light {np.round(query[0] / np.linalg.norm(query), 2).tolist()} (not one of the {LIGHTS} lights)")
 """),
     md("""

@@ -325,12 +325,16 @@ def capture(tiny_sphere):
     return data, field, sorted(data.glob("*.lp"))[0]
 
 
-def test_export_over_its_field_is_refused(capture, capsys):
+def test_export_over_its_field_is_refused(capture, capsys, tmp_path):
     _, field, _ = capture
     before = _digest(field)
     status = main(["export", str(field), "--single-file", "-o", str(field), "--overwrite"])
+    assert "give a name ending in .html" in _one_line_error(capsys, status, "export")
+    alias = tmp_path / "page.html"  # the field under a page's name: a hard link
+    os.link(field, alias)
+    status = main(["export", str(field), "--single-file", "-o", str(alias), "--overwrite"])
     assert "is the command's input" in _one_line_error(capsys, status, "export")
-    assert _digest(field) == before
+    assert _digest(field) == before and _digest(alias)[alias.name] == before[field.name]
 
 
 @pytest.mark.parametrize("option", ["-o", "--report"])

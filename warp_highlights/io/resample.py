@@ -36,11 +36,10 @@ def resample_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 def _resample(array: np.ndarray, first: int, size: tuple[int, int]) -> np.ndarray:
     """``array`` with its axes ``first`` and ``first + 1`` resampled to ``size``, the others kept."""
-    from skimage.transform import resize, resize_local_mean
-
     now = array.shape[first : first + 2]
     if now == size:
         return array
+    from skimage.transform import resize, resize_local_mean
     shape = lambda rows_cols: array.shape[:first] + rows_cols + array.shape[first + 2 :]
     shrunk = (min(now[0], size[0]), min(now[1], size[1]))
     if shrunk != now and now[0] % shrunk[0] == 0 and now[1] % shrunk[1] == 0:
