@@ -1858,7 +1858,8 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
     """Run the command in a subprocess; once main() has installed its handlers (SIGTERM is caught),
     wait the delay and send the signal."""
     sig, delay = run.interrupt
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
+               PYTHONFAULTHANDLER="1")  # a hang's stacks, on the SIGABRT that ``finish`` sends
     started = time.perf_counter()
     process = subprocess.Popen([sys.executable, "-m", "warp_highlights", *map(str, run.argv)], stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE,
@@ -1883,13 +1884,18 @@ def run_interrupted(run: Run, ctx: Context) -> dict:
 
 
 def finish(process: subprocess.Popen, timeout: float) -> tuple:
-    """(stdout, stderr, hung) of ``process`` once it ends; killed (hung True) when it runs past ``timeout`` s."""
+    """(stdout, stderr, hung) of ``process`` once it ends; past ``timeout`` s it is sent SIGABRT (with
+    PYTHONFAULTHANDLER set, Python prints every thread's stack on stderr), then killed: hung True."""
     try:
         out, err = process.communicate(timeout=timeout)
         return out, err, False
     except subprocess.TimeoutExpired:
-        process.kill()
-        out, err = process.communicate()
+        process.send_signal(signal.SIGABRT)
+        try:
+            out, err = process.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            out, err = process.communicate()
         return out, err, True
 
 

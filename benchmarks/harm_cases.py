@@ -48,7 +48,8 @@ SERVE_ANSWER_SECONDS = 5.0
 
 
 def _environment(**changes) -> dict:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")])),
+               PYTHONFAULTHANDLER="1")  # a hang's stacks, on the SIGABRT that ``finish`` sends
     for name, value in changes.items():
         if value is None:
             env.pop(name, None)
