@@ -157,6 +157,302 @@ def test_fit_normals_matches_per_pixel_least_squares_and_rejects_highlights_and_
                                    rtol=1e-9)
 
 
+# --- the outlier rules: a pixel-by-pixel float64 reference and a synthetic crease ---------------------------
+
+CREASE_ROWS, CREASE_COLUMNS = slice(4, 18), slice(10, 14)
+TWO_LIGHT = ((2, 11), (2, 12))  # crease pixels sunlit by two lights only
+SATURATED = (8, 4)  # a bright pixel, clipped at white under the lights near its normal
+PIT = (17, 3)  # a single pixel in cast shadow like the crease's floor
+GLOSSY = (slice(4, 18), slice(19, 21))  # a dark glossy strip: highlights near the mirror direction
+
+
+def _crease_scene(seed: int = 3, *, highlights: bool = False):
+    """A 22x24 grey relief (albedo about 0.5, ambient light 8% of it) under 42 dome lights, with a
+    crease whose walls let only the lights with |x| < 0.2 (11 of them) reach its floor, two pixels
+    there sunlit by two lights, a single pixel shadowed as the floor is, a pixel of albedo 1.6
+    (without ambient light) clipped at 1, the capture's white, a dark glossy strip (albedo 0.03, Phong
+    highlights of exponent 20) and, with ``highlights``, a bright sample on some pixels. Returns
+    (directions, true normals, albedo, (n, H, W) values)."""
+    from warp_highlights.model.lights import LightSet
+
+    rng = np.random.default_rng(seed)
+    height, width = 22, 24
+    directions = LightSet.fibonacci_sphere(120).directions
+    directions = directions[directions[:, 2] > 0.3]
+    v, u = np.mgrid[0:height, 0:width] / np.array([height, width])[:, None, None]
+    normals = np.stack([0.15 * np.sin(6 * u), 0.1 * np.cos(5 * v), np.ones_like(u)], axis=-1)
+    rho = 0.5 + 0.05 * np.sin(3 * u + 2 * v)
+    visible = np.ones((len(directions), height, width), dtype=bool)
+    visible[:, CREASE_ROWS, CREASE_COLUMNS] = (np.abs(directions[:, 0]) < 0.2)[:, None, None]
+    visible[(slice(None),) + PIT] = np.abs(directions[:, 0]) < 0.2
+    pair = np.argsort(np.abs(directions[:, 0]))[:2]
+    for y, x in TWO_LIGHT:
+        visible[:, y, x] = False
+        visible[pair, y, x] = True
+    normals[SATURATED] = [0.42, 0.0, np.sqrt(1.0 - 0.42**2)]
+    rho[SATURATED] = 1.6
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    ambient = np.full((height, width), 0.08)
+    ambient[SATURATED] = 0.0
+    shading = np.maximum(np.einsum("nk,hwk->nhw", directions, normals), 0.0)
+    values = rho[None] * (shading * visible + ambient[None]) + rng.normal(scale=1e-3, size=visible.shape)
+    rho[GLOSSY] = 0.03
+    mirror = 2.0 * normals[GLOSSY][..., 2:3] * normals[GLOSSY] - [0.0, 0.0, 1.0]
+    lobe = 0.8 * np.maximum(np.einsum("nk,hwk->nhw", directions, mirror), 0.0) ** 20
+    values[(slice(None),) + GLOSSY] = 0.03 * shading[(slice(None),) + GLOSSY] + lobe
+    if highlights:
+        values[5, 14:20, 2:8] += 1.5
+    return directions, normals, rho, np.clip(values, 0.0, 1.0)
+
+
+def _reference_robust_fit(v, directions, start, lit, typical, settings, *, shadows):
+    """One pixel's robust fit, as the module docstring states it: rho n and its lights."""
+    used = start.copy()
+    for _ in range(settings.iterations):
+        scaled = np.linalg.lstsq(directions[used], v[used], rcond=None)[0]
+        predicted = directions @ scaled
+        residual = np.abs(v - predicted)
+        base = used if shadows else lit
+        median = np.median(residual[base]) if base.any() else 0.0
+        kept = lit & (residual <= max(settings.outlier_factor * median, settings.outlier_floor * typical))
+        if shadows:
+            kept &= v >= settings.shadow_ratio * predicted
+        if kept.sum() < settings.min_lit_lights:
+            kept = used
+        if np.array_equal(kept, used):
+            break
+        used = kept
+    return np.linalg.lstsq(directions[used], v[used], rcond=None)[0], used
+
+
+def _reference_scores(v, directions, scaled, used, settings):
+    """Whether the fit explains its values: at ``min_explained``, and at all (more than their mean)."""
+    mean = v[used].mean()
+    spread = np.sum((v[used] - mean) ** 2)
+    residual = np.sum((v[used] - directions[used] @ scaled) ** 2)
+    noise = used.sum() * (settings.noise_tolerance * mean) ** 2
+    return residual <= (1.0 - settings.min_explained) * spread + noise, residual <= spread + noise
+
+
+def _reference_fit_normals(values, directions, usable, shape, settings):
+    """``fit_normals`` pixel by pixel in float64 NumPy, from the rules in the module docstring and
+    ``MapSettings``: (normals, mask, inliers, surface, shadow_fit)."""
+    count, pixels = values.shape
+    height, width = shape
+    first = []
+    for p in range(pixels):
+        v, ok = values[:, p], usable[:, p]
+        surface = np.percentile(v, settings.lit_percentile) >= max(settings.black_level, 1e-6)
+        typical = np.percentile(v[ok], settings.lit_percentile) if ok.any() else np.nan
+        with np.errstate(invalid="ignore"):
+            lit = ok & surface & (v >= settings.lit_fraction * typical)
+        typical = 0.0 if np.isnan(typical) else typical
+        scaled, used = _reference_robust_fit(v, directions, lit, lit, typical, settings, shadows=False)
+        first.append((surface, lit, typical, scaled, used) + _reference_scores(v, directions, scaled, used, settings))
+    albedo = np.array([np.linalg.norm(f[3]) if f[0] else 0.0 for f in first]).reshape(height, width)
+    radius = settings.neighbourhood
+    padded = np.pad(albedo, radius, mode="edge")
+    candidates = {}
+    for p in range(pixels):
+        surface, lit, typical, scaled, used, explained, _ = first[p]
+        y, x = divmod(p, width)
+        reference = np.percentile(padded[y:y + 2 * radius + 1, x:x + 2 * radius + 1], settings.lit_percentile)
+        if not (surface and not explained and np.linalg.norm(scaled) < settings.dark_ratio * reference):
+            continue
+        v, ok = values[:, p], usable[:, p]
+        bright = lit & (v >= settings.shadow_fraction * np.percentile(v[ok], settings.shadow_percentile))
+        if bright.sum() < settings.min_lit_lights:
+            bright = lit
+        again, again_used = _reference_robust_fit(v, directions, bright, lit, typical, settings, shadows=True)
+        level = np.linalg.norm(again)
+        sunlit = np.sum(again_used & (directions @ (again / level) >= settings.shadow_fraction))
+        again_explained, _ = _reference_scores(v, directions, again, again_used, settings)
+        if (again_explained and sunlit >= settings.min_lit_lights
+                and settings.dark_ratio * reference <= level <= reference / settings.dark_ratio):
+            candidates[p] = (again, again_used)
+    taken = np.zeros((height, width), dtype=bool)
+    for p in candidates:
+        taken[divmod(p, width)] = True
+    support = np.pad(taken, settings.shadow_window)
+    size = 2 * settings.shadow_window + 1
+    normals = np.tile([0.0, 0.0, 1.0], (pixels, 1))
+    mask, shadow, surfaces = (np.zeros(pixels, dtype=bool) for _ in range(3))
+    inliers = np.zeros((count, pixels), dtype=bool)
+    for p in range(pixels):
+        surface, _, _, scaled, used, _, shading = first[p]
+        y, x = divmod(p, width)
+        surfaces[p] = surface
+        if p in candidates and support[y:y + size, x:x + size].sum() >= settings.shadow_support:
+            (scaled, used), shadow[p] = candidates[p], True
+        length = np.linalg.norm(scaled)
+        spread = np.linalg.eigvalsh(directions[used].T @ directions[used])[0] if used.any() else 0.0
+        if (surface and (shading or shadow[p]) and used.sum() >= settings.min_lit_lights and length > 1e-6
+                and spread >= settings.min_spread and scaled[2] > 0):
+            normals[p], mask[p], inliers[:, p] = scaled / length, True, used
+    return normals, mask, inliers, surfaces, shadow & mask
+
+
+def _check_against_reference(luminance, directions, usable, shape, settings) -> None:
+    from warp_highlights.relight.maps import fit_normals
+
+    fit = fit_normals(luminance, directions, usable=usable, shape=shape, settings=settings)
+    normals, mask, inliers, surface, shadow = _reference_fit_normals(luminance, directions, usable, shape, settings)
+    np.testing.assert_array_equal(fit.surface, surface)
+    np.testing.assert_array_equal(fit.shadow_fit, shadow)
+    np.testing.assert_array_equal(fit.mask, mask)
+    np.testing.assert_array_equal(fit.inliers, inliers)
+    np.testing.assert_allclose(fit.normals, normals, atol=1e-7)
+
+
+@pytest.mark.parametrize("highlights", [False, True])
+def test_fit_normals_matches_its_pixel_by_pixel_float64_reference(highlights):
+    """Every decision of the batched fit (lit, shadowed and clipped lights, the shadow fit, its checks,
+    the determined pixels) and every normal, against the reference above on the synthetic crease."""
+    from warp_highlights.model.config import MapSettings
+
+    directions, _, _, values = _crease_scene(highlights=highlights)
+    count, height, width = values.shape
+    luminance, usable = values.reshape(count, -1), (values < 0.98).reshape(count, -1)
+    shadow = _reference_fit_normals(luminance, directions, usable, (height, width), MapSettings())[4]
+    assert np.count_nonzero(shadow) >= 20  # the crease's floor
+    _check_against_reference(luminance, directions, usable, (height, width), MapSettings())
+
+
+@pytest.mark.parametrize("support", [1, 5])
+def test_fit_normals_matches_its_reference_on_the_coin_samples_rim(data_root, support):
+    """On a 24x24 patch of the coin sample (its rim: dark metal beside the brighter paper, clipped
+    highlights), where shadow fits are tried and most are refused; with a support of 1 the checks
+    before it decide."""
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.config import MapSettings
+
+    root = data_root / "realrti-item10"
+    if not (root / "dirs.lp").is_file():
+        pytest.skip(f"no {root}")
+    dataset = ReflectanceField.load(root, progress=False)
+    patch = np.asarray(dataset.images[:, 300:324, 150:174], dtype=np.float64)
+    count = patch.shape[0]
+    luminance = (patch @ np.array([0.2126, 0.7152, 0.0722])).reshape(count, -1)
+    usable = ~np.any(patch >= 0.98, axis=3).reshape(count, -1)
+    _check_against_reference(luminance, dataset.lights.directions, usable, (24, 24),
+                             MapSettings(shadow_support=support))
+
+
+def test_a_synthetic_crease_no_longer_makes_outliers():
+    """The crease floor sunlit by a quarter of the lights, two pixels sunlit by two, a single shadowed
+    pixel, a clipped pixel: with the earlier rules (no shadow fit, no clipped lights left out, every fit
+    trusted) they were dark dots with bent normals; now the floor is fitted from its sunlit lights, the
+    other shadowed pixels take their neighbours' normal and albedo, the clipped lights leave the fit,
+    and a dark glossy strip keeps its fits."""
+    from warp_highlights.model.config import MapSettings
+    from warp_highlights.relight.maps import channel_albedo, fill_from_neighbours, fit_normals
+
+    directions, truth, rho, values = _crease_scene()
+    count, height, width = values.shape
+    luminance, usable = values.reshape(count, -1), (values < 0.98).reshape(count, -1)
+
+    def maps(fit):
+        albedo = channel_albedo(values.reshape(count, -1, 1), directions, fit.normals, fit.inliers)
+        known = np.concatenate([fit.normals, albedo], axis=1).reshape(height, width, 4)
+        known, mask = fill_from_neighbours(known, fit.mask.reshape(height, width), fit.surface.reshape(height, width),
+                                           MapSettings().neighbourhood)
+        normals = known[..., :3] / np.linalg.norm(known[..., :3], axis=-1, keepdims=True)
+        return _angles_deg(normals, truth), known[..., 3] / rho, mask
+
+    earlier = MapSettings(dark_ratio=0.0, min_spread=0.0, noise_tolerance=1e6)
+    before_angles, before_albedo, before_mask = maps(fit_normals(luminance, directions, settings=earlier))
+    fit = fit_normals(luminance, directions, usable=usable, shape=(height, width))
+    angles, albedo, mask = maps(fit)
+    floor = (CREASE_ROWS, CREASE_COLUMNS)
+    assert before_mask.all() and mask.all()
+    # the crease floor: albedo at the ambient level before (0.12 of the true one), now the true one
+    # (plus the 8% ambient light)
+    assert before_albedo[floor].max() < 0.2 and before_angles[floor].max() > 6.0
+    assert np.all(np.abs(albedo[floor] - 1.08) < 0.05) and angles[floor].max() < 5.0
+    for pixel in TWO_LIGHT:
+        assert before_albedo[pixel] < 0.2
+        assert abs(albedo[pixel] - 1.08) < 0.1 and angles[pixel] < 5.0
+    # the clipped pixel: bent towards the lights that do not clip before, now fitted to those alone
+    assert before_angles[SATURATED] > 5.0 and before_albedo[SATURATED] < 0.9
+    assert angles[SATURATED] < 0.5 and abs(albedo[SATURATED] - 1.0) < 0.01
+    # the single shadowed pixel: no shadow fit without shadowed neighbours, and its first fit finds no
+    # shading (it explains less than the mean): its neighbours' normal
+    assert before_angles[PIT] > 5.0 and angles[PIT] < 2.0 and not fit.shadow_fit[PIT[0] * width + PIT[1]]
+    # the glossy strip, dark beside brighter pixels and poorly explained by its first fit, keeps it:
+    # its shadow fits found its highlights, not sunlit lights
+    assert not fit.shadow_fit.reshape(height, width)[GLOSSY].any()
+    # everything else is as it was
+    rest = np.ones((height, width), dtype=bool)
+    for pixel in (floor, SATURATED, PIT) + TWO_LIGHT:
+        rest[pixel] = False
+    np.testing.assert_allclose(angles[rest], before_angles[rest], atol=1e-6)
+
+
+def test_lights_close_together_determine_no_normal():
+    """A pixel lit only by 20 lights within 3 degrees of each other (a third of the capture's; no ambient
+    light): its normal equations are ill conditioned, so it has no normal of its own; a pixel lit by
+    every light has one."""
+    from warp_highlights.model.config import MapSettings
+    from warp_highlights.model.lights import LightSet
+    from warp_highlights.relight.maps import fit_normals
+
+    rng = np.random.default_rng(2)
+    spread = LightSet.fibonacci_sphere(100).directions
+    spread = spread[spread[:, 2] > 0.3][:40]
+    centre = np.array([0.3, 0.1, 0.95]) / np.linalg.norm([0.3, 0.1, 0.95])
+    cluster = centre + rng.normal(scale=0.02, size=(20, 3))
+    directions = np.concatenate([spread, cluster / np.linalg.norm(cluster, axis=1, keepdims=True)])
+    values = np.zeros((len(directions), 2))
+    values[:, 0] = 0.5 * directions[:, 2]  # lit by all
+    values[40:, 1] = 0.5 * directions[40:, 2]  # lit by the cluster only
+    fit = fit_normals(values, directions)
+    assert fit.surface.all() and fit.mask.tolist() == [True, False]
+    assert fit_normals(values, directions, settings=MapSettings(min_spread=0.0)).mask.all()
+
+
+def test_fill_from_neighbours_takes_the_mean_a_ring_at_a_time():
+    from warp_highlights.relight.maps import fill_from_neighbours
+
+    values = np.zeros((5, 7, 2))
+    values[..., 0] = np.arange(7)[None, :]
+    values[..., 1] = 1.0
+    known = np.zeros((5, 7), dtype=bool)
+    known[:, 0] = True
+    targets = np.ones((5, 7), dtype=bool)
+    targets[0, :] = False  # not the object: stays unknown
+    filled, mask = fill_from_neighbours(values, known, targets, radius=2)
+    np.testing.assert_array_equal(mask[1:, :3], True)
+    assert not mask[1:, 3:].any() and not mask[0, 1:].any()
+    np.testing.assert_allclose(filled[mask][:, 1], 1.0)
+    np.testing.assert_allclose(filled[2, 1, 0], 0.0)  # the mean of its known neighbours (column 0)
+    np.testing.assert_allclose(filled[2, 6, 0], 6.0)  # unknown: as it was
+
+
+def test_white_level_is_the_exposure_for_files_that_clip():
+    from types import SimpleNamespace
+
+    from warp_highlights.relight.maps import white_level
+
+    def field(source):
+        return SimpleNamespace(exposure=4.0, report={"input": source})
+
+    assert white_level(field({"format": "JPEG", "bits": 8, "values": "sRGB"})) == 4.0
+    assert white_level(field({"format": "TIFF", "bits": 16, "values": "sRGB"})) == 4.0
+    assert white_level(field({"format": "EXR", "bits": 32, "values": "linear"})) is None
+    assert white_level(field({"format": "TIFF", "bits": 32, "values": "linear"})) is None
+    assert white_level(field(None)) is None
+
+
+def test_map_settings_refuse_values_outside_their_range():
+    from warp_highlights.model.config import MapSettings
+    from warp_highlights.model.errors import InputError
+
+    for name, value in (("saturation", 0.0), ("min_explained", 1.5), ("shadow_ratio", 1.0), ("dark_ratio", -1.0),
+                        ("min_spread", -0.1), ("shadow_support", 0), ("neighbourhood", -1)):
+        with pytest.raises(InputError, match=name):
+            MapSettings(**{name: value})
+
+
 def test_a_field_without_a_diffuse_part_has_no_maps(sphere_fits):
     from warp_highlights.model.errors import InputError
     from warp_highlights.relight.maps import surface_maps
@@ -188,6 +484,8 @@ def test_maps_command_writes_every_map_in_its_encoding(tiny_sphere, tmp_path, ca
     assert np.all(albedo >= 0) and np.all(np.isfinite(albedo)) and np.any(albedo[mask] > 0)
     summary = json.loads((output / "maps.json").read_text())
     assert summary["pixels_with_normal"] == int(mask.sum())
+    assert 0 <= summary["pixels_from_neighbours"] <= summary["pixels_with_normal"]
+    assert 0 <= summary["pixels_shadow_fit"] <= summary["pixels_with_normal"]
     assert summary["normal_frame"].startswith("x right, y up the image, z towards the camera")
 
 

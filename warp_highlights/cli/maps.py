@@ -23,7 +23,8 @@ MAP_FILES = {
     "highlight-colour.png": "16-bit sRGB: the highlight colour c(x) scaled so its largest channel is 1 (its hue "
                             "and saturation)",
     "highlight-colour.exr": "float32 linear c(x) as relighting uses it (luminance 1; white where the field keeps none)",
-    "mask.png": "8-bit grey: 255 where a normal was estimated, 0 elsewhere (background, never lit)",
+    "mask.png": "8-bit grey: 255 where the maps hold a normal (the pixel's own, or its neighbours' where its own "
+                "lights do not determine one), 0 elsewhere (background, never lit)",
     "maps.json": "what was written, the conventions, and counts",
 }
 """The files of a maps folder and what each holds."""
@@ -89,7 +90,7 @@ def _run_maps(args) -> int:
 
 def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
     """maps.json: the files, the conventions and what the estimate rests on."""
-    lit = maps.lit_lights[maps.mask]
+    lit = maps.lit_lights[maps.mask & ~maps.filled]
     albedo = maps.albedo[maps.mask]
     return {
         "field": str(path),
@@ -101,6 +102,8 @@ def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
         "albedo_units": "linear, the input's units (the fit's exposure undone); the diffuse value under a unit light "
                         "along the normal",
         "pixels_with_normal": int(maps.mask.sum()),
+        "pixels_from_neighbours": int(maps.filled.sum()),
+        "pixels_shadow_fit": int(maps.shadow_fit.sum()),
         "lit_lights_median": float(np.median(lit)) if lit.size else 0.0,
         "albedo_clipped_in_png_share": float(np.mean(np.any(albedo > 1.0, axis=-1))) if albedo.size else 0.0,
         "highlight_colour": "per pixel" if maps.coloured_highlights else "white",

@@ -555,17 +555,22 @@ class ResidualSettings:
 @dataclass(frozen=True)
 class MapSettings:
     """Surface maps of a fitted field (``relight.maps``, ``warp-highlights maps``): which lights count
-    in a pixel's photometric-stereo fit of its normal and albedo.
+    in a pixel's photometric-stereo fit of its normal and albedo, and when a pixel's own lights do not
+    determine them.
 
     Chosen on the dome sample (against the normal map its renderer wrote, flattened) and the rendered
     sphere (against the analytic normals), from the captured images themselves: with one threshold
     for the whole image, segmentation's 0.05, the dark dome sample (median pixel 0.025) kept too few
     lights, and its normals erred several times more than with a threshold relative to each pixel
-    (tests/test_maps.py holds both captures to their normals).
+    (tests/test_maps.py holds both captures to their normals). The shadow fit and the checks after it
+    were chosen on the statue sample (its creases, lit by a quarter of the lights or fewer) and a
+    rendered donut under 64 dome lights (its hole in cast shadow; against the renderer's normals), and
+    leave every pixel of the dome sample as it was.
 
     Attributes:
         lit_percentile: a pixel's typical lit value is this percentile of its luminance over the lights
-            (75: a quarter of the lights may be highlights, three quarters shadow).
+            (75: a quarter of the lights may be highlights, three quarters shadow); a neighbourhood's
+            typical albedo is this percentile of its pixels' (``neighbourhood``).
         lit_fraction: a light lights the pixel when its value is at least this share of the typical
             one (0.1: the rendered sphere's ambient 0.02 under an albedo of 0.6 is 3%; at 5% of the
             75th percentile, shadowed samples counted and bent its normals).
@@ -579,8 +584,51 @@ class MapSettings:
             exactly Lambertian pixel's residuals are rounding noise, as in segmentation's floor).
         iterations: fits per pixel at most, the first included (the sets stop changing in 2-4 on the
             samples).
-        min_lit_lights: pixels lit by fewer lights have no normal (3 unknowns; one more lets an
-            outlier show).
+        min_lit_lights: pixels lit by fewer lights have no normal of their own (3 unknowns; one more
+            lets an outlier show); a shadow fit needs as many sunlit ones.
+        saturation: a light whose value reaches this share of the capture's white in any channel is
+            left out of the pixel's fit (clipped: its shading is unknown). Only for captures in 8- or
+            16-bit files (PNG, JPEG, sRGB TIFF), whose white is 1 times the fit's exposure; 0.98
+            (8-bit sRGB level 252) leaves room for the residual's error near white. 1.6% of the coin
+            sample's lights are clipped; left out, its normals stray less from their 5x5 median
+            (6.06 -> 5.99 degrees, mean inside the coin).
+        min_explained: a fit that explains less than this share of its values' variance (R^2, beyond
+            ``noise_tolerance``) is suspect where it is also dark (``dark_ratio``), and a shadow fit
+            must explain at least as much. A pixel in cast shadow under most lights, fitted to its
+            ambient values, explains 0.26-0.70 (5th-95th percentile of the statue sample's dark
+            dots) and under 0.2 in the rendered donut's hole; every pixel of the dome sample explains
+            over 0.92 and 95% of the statue's over 0.86. Metal explains less everywhere (the coin's
+            median 0.6), which is why a suspect fit must be dark as well.
+        noise_tolerance: residuals up to this share of the mean value used always count as explained
+            (8-bit quantisation and JPEG noise: about 1% of mid-grey values), so a fit of nearly equal
+            values (a surface facing one ring of lights) is not refused for their small variance.
+        dark_ratio: a suspect fit's albedo is under this share of its neighbourhood's, and a shadow fit's
+            within a factor 1 / ``dark_ratio`` of it (0.5: the shadow fits accepted on the statue
+            sample have 0.68-1.5 of their neighbourhood's albedo, 5th-95th percentile).
+        shadow_percentile: the shadow fit starts from the lights at least ``shadow_fraction`` of this
+            percentile of the pixel's values (90: the brightest tenth, above a pixel's cast shadows
+            when a tenth of the lights or more are sunlit, and below its few highlights).
+        shadow_fraction: see ``shadow_percentile``; a sunlit light has n . w at least this (0.25: the
+            statue's shadowed values are 7-30% of its sunlit ones, the room's ambient light).
+        shadow_ratio: in the shadow fit, a light whose value is below this share of the fitted shading
+            is in cast shadow and leaves the next fit (0.3: the cast-shadowed lights are at 0.2 of it
+            on the statue sample and 0.08 in the donut's hole (medians), the kept lights at 0.55 or
+            more on the statue, 1st percentile).
+        shadow_window: the shadow fit is kept only where at least ``shadow_support`` pixels of the
+            (2 ``shadow_window`` + 1)^2 window around a pixel (itself included) took it too: a cast
+            shadow covers a region. 2 and 5: in 5x5 windows the statue's shadow fits have a median of
+            10 such pixels and the donut's 17, while on the coin's rim single pixels fitted their
+            highlights (median 2, bright dots in the albedo).
+        shadow_support: see ``shadow_window``.
+        min_spread: the smallest eigenvalue of the sum of w w^T over the lights of a pixel's fit (w
+            their directions; a count of lights) must be at least this, or the normal is not
+            determined: 0.1 refuses lights within about 10 degrees of each other, along which 1%
+            noise turns the normal by 2 degrees or more (one pixel of the donut and the coin samples
+            each).
+        neighbourhood: the window radius, in pixels at the field's working size, of a fit's
+            neighbourhood albedo (``dark_ratio``), and the farthest an undetermined pixel of the
+            object takes its neighbours' normal and albedo. 8: the statue's creases are 2-6 pixels
+            wide at 567x534.
     """
 
     lit_percentile: float = 75.0
@@ -590,6 +638,17 @@ class MapSettings:
     outlier_floor: float = 1e-3
     iterations: int = 5
     min_lit_lights: int = 4
+    saturation: float = 0.98
+    min_explained: float = 0.8
+    noise_tolerance: float = 0.02
+    shadow_percentile: float = 90.0
+    shadow_fraction: float = 0.25
+    shadow_ratio: float = 0.3
+    min_spread: float = 0.1
+    dark_ratio: float = 0.5
+    shadow_window: int = 2
+    shadow_support: int = 5
+    neighbourhood: int = 8
 
     def __post_init__(self):
         _require(math.isfinite(self.lit_percentile) and 0 <= self.lit_percentile <= 100,
@@ -605,6 +664,26 @@ class MapSettings:
         _require(1 <= int(self.iterations) <= 100, f"iterations must be in [1, 100], got {self.iterations}")
         _require(int(self.min_lit_lights) >= 3,
                  f"min_lit_lights must be >= 3 (a normal and an albedo), got {self.min_lit_lights}")
+        _require(math.isfinite(self.saturation) and self.saturation > 0,
+                 f"saturation must be > 0 (a share of white), got {self.saturation}")
+        _require(math.isfinite(self.min_explained) and self.min_explained <= 1,
+                 f"min_explained must be <= 1 (a share of variance), got {self.min_explained}")
+        _require(math.isfinite(self.noise_tolerance) and self.noise_tolerance >= 0,
+                 f"noise_tolerance must be >= 0, got {self.noise_tolerance}")
+        _require(math.isfinite(self.shadow_percentile) and 0 <= self.shadow_percentile <= 100,
+                 f"shadow_percentile must be in [0, 100], got {self.shadow_percentile}")
+        _require(math.isfinite(self.shadow_fraction) and 0 <= self.shadow_fraction < 1,
+                 f"shadow_fraction must be in [0, 1), got {self.shadow_fraction}")
+        _require(math.isfinite(self.shadow_ratio) and 0 <= self.shadow_ratio < 1,
+                 f"shadow_ratio must be in [0, 1), got {self.shadow_ratio}")
+        _require(math.isfinite(self.min_spread) and self.min_spread >= 0,
+                 f"min_spread must be >= 0, got {self.min_spread}")
+        _require(math.isfinite(self.dark_ratio) and self.dark_ratio >= 0,
+                 f"dark_ratio must be >= 0, got {self.dark_ratio}")
+        _require(0 <= int(self.shadow_window) <= 100, f"shadow_window must be in [0, 100], got {self.shadow_window}")
+        _require(int(self.shadow_support) >= 1, f"shadow_support must be >= 1, got {self.shadow_support}")
+        _require(0 <= int(self.neighbourhood) <= 10_000,
+                 f"neighbourhood must be in [0, 10000] pixels, got {self.neighbourhood}")
 
 
 @dataclass(frozen=True)
