@@ -34,7 +34,7 @@ from bench_quality import BASELINES, SIZES, load_case  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
 from warp_highlights.io.fieldfile import save_field  # noqa: E402
-from warp_highlights.kernels import neural  # noqa: E402
+from warp_highlights.kernels import neural, neural_training  # noqa: E402
 from warp_highlights.relight.evaluation import evaluate_field, resize_stack, srgb_scores  # noqa: E402
 from warp_highlights.relight.relighter import Relighter
 from warp_highlights.residual.decode import learned_images  # noqa: E402
@@ -132,7 +132,7 @@ def warm_up(device) -> None:
     """Compile the learned model's kernels before anything is timed."""
     rng = np.random.default_rng(0)
     lights = rng.normal(size=(4, 3))
-    neural.train_decoder(rng.uniform(size=(4, 2 * neural.BLOCK, 3)).astype(np.float32),
+    neural_training.train_decoder(rng.uniform(size=(4, 2 * neural.BLOCK, 3)).astype(np.float32),
                          lights / np.linalg.norm(lights, axis=1, keepdims=True),
                          device=device, epochs=1, batch=neural.BLOCK)
 

@@ -1,6 +1,6 @@
 """The learned residual (``kernels.neural``, ``fit --residual learned``) against float64 NumPy: values,
-tape gradients against central differences, training that lowers the loss, and a learned field fitted,
-saved, loaded and relit as the reference says."""
+training that lowers the loss, and a learned field fitted, saved, loaded and relit as the reference says
+(the training step's gradients: ``test_neural_training.py``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import warp as wp
 
 import reference
 from conftest import FAST_FIT
-from warp_highlights.kernels import neural
+from warp_highlights.kernels import neural, neural_training
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import (
     NEURAL_LAYER_SHAPES,
@@ -75,45 +75,6 @@ def test_initial_codes_are_the_leading_components():
     np.testing.assert_allclose(codes.T @ codes / 200, np.eye(neural.CODE_SIZE), atol=1e-4)
 
 
-def test_tape_gradients_match_central_differences(device):
-    directions, targets = _problem(seed=1, lights=5, pixels=40)
-    model = neural.initial_model(targets, seed=2)
-    codes, weights = neural._arrays(model, device, True)
-    pixels = len(model.codes)
-    total = len(directions) * pixels
-    batch = neural._Batch(neural._padded(total), device, True)
-    samples = wp.array(np.arange(total, dtype=np.int32), dtype=wp.int32, device=device)
-    loss = wp.zeros(1, dtype=float, device=device, requires_grad=True)
-    target_array = wp.array(targets, dtype=wp.vec3, device=device)
-    light_array = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device)
-    tape = wp.Tape()
-    with tape:
-        batch.run(samples, total, pixels, codes, light_array, weights, device)
-        wp.launch(neural.squared_error, dim=total, inputs=[samples, total, pixels, batch.values, target_array,
-                                                           1.0 / total], outputs=[loss], device=device)
-    tape.backward(loss)
-
-    params = [model.codes.astype(np.float64)] + [w.astype(np.float64) for w in model.weights]
-
-    def mse(values):
-        return np.mean(np.sum((reference.neural_decoder(values[0], values[1:], directions) - targets) ** 2, axis=-1))
-
-    assert loss.numpy()[0] == pytest.approx(mse(params), rel=1e-5)
-    arrays = [codes, *weights]
-    rng = np.random.default_rng(0)
-    for which in range(len(params)):
-        gradient = arrays[which].grad.numpy()
-        for _ in range(2):
-            index = tuple(rng.integers(0, s) for s in params[which].shape)
-            step = 1e-4
-            plus = [p.copy() for p in params]
-            minus = [p.copy() for p in params]
-            plus[which][index] += step
-            minus[which][index] -= step
-            numeric = (mse(plus) - mse(minus)) / (2 * step)
-            assert gradient[index] == pytest.approx(numeric, rel=2e-3, abs=2e-6), (which, index)
-
-
 def test_training_learns_a_smooth_reflectance(device):
     """Lambertian pixels with random normals and albedos: 150 epochs fit them far below their variance."""
     rng = np.random.default_rng(4)
@@ -125,7 +86,8 @@ def test_training_learns_a_smooth_reflectance(device):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     albedo = rng.uniform(0.2, 0.9, (64, 3))
     targets = encode_display(np.clip(lights @ normals.T, 0.0, None)[..., None] * albedo[None]).astype(np.float32)
-    model, history = neural.train_decoder(targets, lights, device=device, epochs=150, batch=192, lr=1e-2, final_lr=1e-3)
+    model, history = neural_training.train_decoder(targets, lights, device=device, epochs=150, batch=192, lr=1e-2,
+                                                   final_lr=1e-3)
     assert len(history) == 150 and np.all(np.isfinite(history))
     variance = float(np.mean(np.sum((targets - targets.mean(axis=(0, 1))) ** 2, axis=-1)))
     assert history[-1] < 0.05 * variance
@@ -149,7 +111,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     from warp_highlights.relight.relighter import Relighter
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2"])
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2",
+                                                     "residual.learned_tune_epochs=2"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None
@@ -229,25 +192,26 @@ def test_training_never_reads_the_lights_left_out(device):
     """``used`` leaves lights out of the codes' start and of every step: other targets there change nothing."""
     directions, targets = _problem(seed=6, lights=7, pixels=50)
     used = np.array([0, 2, 3, 5, 6])
-    first, history = neural.train_decoder(targets, directions, device=device, epochs=3, batch=64, used=used)
+    first, history = neural_training.train_decoder(targets, directions, device=device, epochs=3, batch=64, used=used)
     changed = targets.copy()
     changed[[1, 4]] = np.random.default_rng(1).uniform(-3.0, 3.0, changed[[1, 4]].shape)
-    second, again = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64, used=used)
+    second, again = neural_training.train_decoder(changed, directions, device=device, epochs=3, batch=64, used=used)
     np.testing.assert_allclose(second.codes, first.codes, rtol=1e-5, atol=1e-6)
     for got, want in zip(second.weights, first.weights):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(again, history, rtol=1e-5)
     # all lights: the changed ones count
-    whole, _ = neural.train_decoder(changed, directions, device=device, epochs=3, batch=64)
+    whole, _ = neural_training.train_decoder(changed, directions, device=device, epochs=3, batch=64)
     assert not np.allclose(whole.codes, first.codes, atol=1e-3)
     with pytest.raises(ValueError, match="used"):
-        neural.train_decoder(targets, directions, device=device, epochs=1, used=np.array([7]))
-    _, fresh = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64)
-    _, going_on = neural.train_decoder(targets, directions, device=device, epochs=1, batch=64, initial=first, lr=3e-4,
+        neural_training.train_decoder(targets, directions, device=device, epochs=1, used=np.array([7]))
+    _, fresh = neural_training.train_decoder(targets, directions, device=device, epochs=1, batch=64)
+    _, going_on = neural_training.train_decoder(targets, directions, device=device, epochs=1, batch=64, initial=first,
+                                                lr=3e-4,
                                        final_lr=3e-4)
     assert going_on[0] < fresh[0]  # ``initial`` goes on from the trained model
-    with pytest.raises(ValueError, match="initial codes"):
-        neural.train_decoder(targets[:, :40], directions, device=device, epochs=1, initial=first)
+    with pytest.raises(ValueError, match="codes of 40 pixels"):
+        neural_training.train_decoder(targets[:, :40], directions, device=device, epochs=1, initial=first)
 
 
 def test_learned_check_scores_both_models_at_the_left_out_lights():
@@ -290,7 +254,7 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
 def test_training_time_counts_from_the_first_step():
     """``seconds`` bounds training after the first step (which compiles the kernels): a tiny bound runs one epoch."""
     directions, targets = _problem(seed=5)
-    _, history = neural.train_decoder(targets, directions, device="cpu", epochs=50, batch=128, seconds=1e-9)
+    _, history = neural_training.train_decoder(targets, directions, device="cpu", epochs=50, batch=128, seconds=1e-9)
     assert len(history) == 1
 
 
@@ -339,7 +303,7 @@ def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donu
     monkeypatch.setattr(neural, "MAX_SAMPLES", 4 * 10 - 1)
     targets = np.zeros((4, 10, 3), np.float32)
     with pytest.raises(ValueError, match="4 lights of 10 pixels pass the learned residual's 32-bit sample index"):
-        neural.train_decoder(targets, np.tile([[0.0, 0.0, 1.0]], (4, 1)), device="cpu", epochs=1)
+        neural_training.train_decoder(targets, np.tile([[0.0, 0.0, 1.0]], (4, 1)), device="cpu", epochs=1)
     assert neural.samples_fit(3, 13) and not neural.samples_fit(4, 10)
     data = ReflectanceField.load(small_donut, progress=False)
     stages = []

@@ -256,8 +256,9 @@ def fit_field(
                 # the learned check's winner goes on learning from every light (the ones it left out too);
                 # without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
-                with timer.stage("learned residual"), _bar(progress, "learned residual",
-                                                           settings.residual.learned_epochs, 1) as advance:
+                epochs = (settings.residual.learned_tune_epochs if winner is not None
+                          else settings.residual.learned_epochs)
+                with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
                                                                      factor=factor,
                                                                      settings=settings.residual, device=device, log=log,

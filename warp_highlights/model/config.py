@@ -412,6 +412,14 @@ LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
 LEARNED_BATCH_CPU = 1 << 11
 """The same on the CPU (``ResidualSettings.learned_batch`` says where both came from)."""
+LEARNED_TILE = (64, 8, 256)
+"""The learned residual's training step on the device (``kernels.neural_training.make_train_tiles``): samples
+per tile, tiles per block (the weights' gradients add up in the block), threads per block; the fastest of
+those ``benchmarks/bench_learned_training.py --parts tiles`` tries on an NVIDIA H200."""
+LEARNED_MATHDX = False
+"""Whether the learned residual's tile products use cuBLASDx (``enable_mathdx_gemm``): on an NVIDIA H200 it
+made the first training step compile for 357 s instead of 17 s and trained no faster (58 against 64 million
+samples a second, ``benchmarks/bench_learned_training.py``)."""
 
 
 @dataclass(frozen=True)
@@ -518,11 +526,12 @@ class ResidualSettings:
     check_lights: int = 48
     highlight_colour: bool = True
     colour_prior: float = 0.01
-    learned_seconds: float = 120.0
-    learned_epochs: int = 400
+    learned_seconds: float = 10.0
+    learned_epochs: int = 200
     learned_batch: int = 0
     learned_check: int = 6
-    learned_tune_seconds: float = 30.0
+    learned_tune_seconds: float = 5.0
+    learned_tune_epochs: int = 40
 
     def __post_init__(self):
         _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")
@@ -550,6 +559,8 @@ class ResidualSettings:
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
         _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds > 0,
                  f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
+        _require(1 <= int(self.learned_tune_epochs) <= 100000,
+                 f"learned_tune_epochs must be in [1, 100000], got {self.learned_tune_epochs}")
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels.neural import NeuralDecoder, train_decoder
+from ..kernels.neural import NeuralDecoder
+from ..kernels.neural_training import train_decoder, train_decoders
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, ResidualSettings
 from ..model.errors import InputError
 from ..model.residual import (
@@ -37,32 +38,59 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
     ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after
     each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
-    go on training; ``tune``: for ``settings.learned_tune_seconds`` at the final learning rate (the learned
-    check's winner learning the lights it left out). Returns it and the loss per epoch."""
+    go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
+    rate (the learned check's winner learning the lights it left out). Returns it and the loss per epoch."""
+    targets = _targets(images, own, colour, factor)
+    n, height, width, _ = np.shape(images)
+    start = None if initial is None else [NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
+                                                        [np.asarray(w, np.float32) for w in initial.weights])]
+    models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
+                             used=used, initial=start, tune=tune)
+    return _residual_model(models[0], height, width, factor, n, colour), history[0]
+
+
+def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
+    """(n, H*W, 3) float32: the residual of the images minus their own highlights in colour c, in signed sRGB
+    display units (the field's units over ``factor``)."""
     images = np.asarray(images, dtype=np.float32)
     if images.ndim != 4 or images.shape[3] != 3:
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
     n, height, width, _ = images.shape
     tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
-    targets = encode_display(residual_of(images, own, tint) / np.float32(factor)).reshape(n, height * width, 3)
+    return encode_display(residual_of(images, own, tint) / np.float32(factor)).reshape(n, height * width, 3)
 
-    def say(message: str) -> None:  # once an epoch
+
+def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float, lights: int,
+                    colour: np.ndarray | None) -> ResidualModel:
+    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights),
+                             float(factor), lights)
+    return ResidualModel(learned=learned, highlight_colour=colour)
+
+
+def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
+           progress=None, used=None, initial: list[NeuralDecoder] | None = None,
+           tune: bool = False) -> tuple[list[NeuralDecoder], list[list[float]]]:
+    """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
+    the other on the CPU; returns them and each one's loss per epoch."""
+    device = wp.get_device(device)
+
+    def say(message: str) -> None:  # once an epoch, for every model learning
         if progress is not None:
-            progress(1)
+            progress(len(targets) if device.is_cuda else 1)
         if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
             log(f"learned residual: {message}")
 
-    rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds)} if tune
-             else {"seconds": float(settings.learned_seconds)})
-    start = None if initial is None else NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
-                                                       [np.asarray(w, np.float32) for w in initial.weights])
-    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if wp.get_device(device).is_cuda else LEARNED_BATCH_CPU)
-    model, history = train_decoder(targets, directions, device=device, epochs=int(settings.learned_epochs), batch=batch,
-                                   log=say, used=used,
-                                   initial=start, **rates)
-    learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights),
-                             float(factor), n)
-    return ResidualModel(learned=learned, highlight_colour=colour), history
+    rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds),
+              "epochs": int(settings.learned_tune_epochs)} if tune
+             else {"seconds": float(settings.learned_seconds), "epochs": int(settings.learned_epochs)})
+    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if device.is_cuda else LEARNED_BATCH_CPU)
+    options = dict(device=device, batch=batch, log=say, used=used, **rates)
+    if device.is_cuda:
+        models, history = train_decoders(np.stack(targets), directions, initial=initial, **options)
+        return models, [list(map(float, history[:, m])) for m in range(len(targets))]
+    trained = [train_decoder(target, directions, initial=None if initial is None else initial[m], **options)
+               for m, target in enumerate(targets)]
+    return [model for model, _ in trained], [history for _, history in trained]
 
 
 @dataclass(frozen=True)
@@ -98,10 +126,11 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
-    (NeuralRTI). At each left-out light the first plus ``highlights`` (m, H, W, 3), the Gaussians moved
-    there from the other lights' triangle (``MoveCheck.kept_highlights``), and the second are scored
-    against the image in 8-bit sRGB. Both train in full because the ranking changes with training
-    (a short run favours the residual, whose Gaussians carry the highlights from the start).
+    (NeuralRTI); on CUDA both learn side by side in the same launches. At each left-out light the first plus
+    ``highlights`` (m, H, W, 3), the Gaussians moved there from the other lights' triangle
+    (``MoveCheck.kept_highlights``), and the second are scored against the image in 8-bit sRGB. Both train in
+    full because the ranking changes with training (a short run favours the residual, whose Gaussians carry the
+    highlights from the start).
     ``progress(1)`` after each epoch."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
@@ -109,13 +138,15 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     used = np.setdiff1d(np.arange(len(images)), lights)
     scale = np.float32(1.0 / factor)
     truth = np.asarray(images[lights], np.float32) * scale
+    n, height, width, _ = np.shape(images)
+    targets = [_targets(images, own, colour, factor), _targets(images, np.zeros_like(own), None, factor)]
+    trained, _ = _train(targets, directions, settings=settings, device=device, progress=progress, used=used)
     scores, models = [], []
-    for own_images, tint, added in ((own, colour, highlights), (np.zeros_like(own), None, np.zeros_like(highlights))):
-        model, _ = learn_residual(images, own_images, tint, directions, factor=factor, settings=settings, device=device,
-                                  progress=progress, used=used)
+    for model, tint, added in zip(trained, (colour, None), (highlights, np.zeros_like(highlights))):
+        residual = _residual_model(model, height, width, factor, n, tint)
         # as the relighter clamps
-        predicted = np.maximum(learned_images(model.learned, directions[lights]) + added, 0.0)
+        predicted = np.maximum(learned_images(residual.learned, directions[lights]) + added, 0.0)
         scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
-        models.append(model)
+        models.append(residual)
     check = LearnedCheck(lights, scores[0], scores[1])
     return dataclasses.replace(check, winner=models[0] if check.keeps_gaussians else models[1])

@@ -1,0 +1,372 @@
+"""Training the learned residual's decoder (``kernels.neural``) on the device: a fused step with a
+hand-written adjoint, Adam on the device, samples shuffled on the device, a CUDA graph per step.
+
+One step is five launches, none of which needs a host value, so a CUDA graph replays it:
+
+1. ``gather_batch``: ``batch`` (light, pixel) samples of the current epoch's shuffle (a keyed Feistel
+   permutation of the used samples, ``shuffled_sample``), their features [code, light direction] and
+   targets, for every model;
+2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the MLP forward, the squared error and the
+   whole backward pass (tile matrix products), the weights' gradients added to the gradient buffer
+   and the features' gradients stored;
+3. ``scatter_code_gradients``: the features' gradients added to their pixels' codes;
+4. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
+   buffer), the learning rate of the step's epoch from the device's step counter; it zeroes the
+   gradients it used;
+5. ``advance``: the step counter + 1.
+
+``M`` models (the learned check's two candidates) train side by side in the same launches, on the
+same samples, each with its own targets. Loss values stay on the device until an epoch's end.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from warp_highlights.model.config import LEARNED_MATHDX, LEARNED_TILE
+
+from .neural import CODE_SIZE, HIDDEN, INPUTS, OUTPUTS, NeuralDecoder, elu, initial_model, samples_fit
+
+__all__ = ["DecoderTrainer", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder", "train_decoders"]
+
+_MODULE_OPTIONS = {"enable_backward": False, "enable_mathdx_gemm": LEARNED_MATHDX, "max_unroll": 0}
+# the hand-written adjoint is the only one: no tape, no generated backward code to compile
+wp.set_module_options(_MODULE_OPTIONS)
+
+ADAM_BETA1 = 0.9
+ADAM_BETA2 = 0.999
+ADAM_EPSILON = 1e-8
+"""Adam's constants: those of ``warp.optim.Adam`` and PyTorch's default."""
+
+_WEIGHT_SHAPES = ((HIDDEN, INPUTS), (HIDDEN, 1), (HIDDEN, HIDDEN), (HIDDEN, 1), (HIDDEN, HIDDEN), (HIDDEN, 1),
+                  (OUTPUTS, HIDDEN), (OUTPUTS, 1))
+
+
+@wp.func
+def elu_gradient(upstream: float, output: float):
+    """d elu / d input times ``upstream``, from elu's output (1 above 0, else output + 1 = exp(input))."""
+    return wp.where(output > 0.0, upstream, upstream * (output + 1.0))
+
+
+@wp.func
+def _round_value(value: wp.int64, key: int, round_index: int, mask: wp.int64):
+    state = wp.rand_init(key * 8 + round_index, int(value))
+    return wp.int64(wp.randi(state)) & mask
+
+
+@wp.func
+def shuffled_sample(position: wp.int64, total: wp.int64, key: int, half_bits: int):
+    """The ``position``-th of ``total`` samples in the shuffle keyed ``key``: a four-round Feistel
+    permutation of [0, 4^half_bits), walked until it lands below ``total`` (a bijection of [0, total))."""
+    mask = (wp.int64(1) << wp.int64(half_bits)) - wp.int64(1)
+    x = position
+    done = bool(False)
+    while not done:
+        left = x >> wp.int64(half_bits)
+        right = x & mask
+        for r in range(4):
+            mixed = left ^ _round_value(right, key, r, mask)
+            left = right
+            right = mixed
+        x = (left << wp.int64(half_bits)) | right
+        done = x < total
+    return x
+
+
+@wp.kernel
+def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bits: int, seed: int,
+                 used: wp.array[wp.int32], pixels: int, codes: wp.array3d[float], lights: wp.array[wp.vec3],
+                 targets: wp.array3d[wp.vec3],
+                 samples: wp.array[wp.int64], features: wp.array3d[float], batch_targets: wp.array3d[float]):
+    """Sample i of this step: its (used light, pixel) index into ``samples``, and for each model m its
+    features (INPUTS, batch) and targets (OUTPUTS, batch)."""
+    i = wp.tid()
+    position = step[0] * wp.int64(batch) + wp.int64(i)
+    epoch = position / total
+    sample = shuffled_sample(position - epoch * total, total, seed * 65599 + int(epoch), half_bits)
+    light = used[int(sample / wp.int64(pixels))]
+    pixel = int(sample % wp.int64(pixels))
+    samples[i] = wp.int64(light) * wp.int64(pixels) + wp.int64(pixel)
+    direction = lights[light]
+    for m in range(codes.shape[0]):
+        for k in range(CODE_SIZE):
+            features[m, k, i] = codes[m, pixel, k]
+        for k in range(3):
+            features[m, CODE_SIZE + k, i] = direction[k]
+        target = targets[m, light, pixel]
+        for c in range(OUTPUTS):
+            batch_targets[m, c, i] = target[c]
+
+
+@functools.cache
+def make_train_tiles(columns: int, sub_batches: int):
+    """The fused step's kernel for tiles of ``columns`` samples, each tile block looping over
+    ``sub_batches`` of them: the weights' gradients add up in the block (shared memory) and reach the
+    gradient buffer once a block, which keeps the atomic adds on those few thousand numbers from
+    serialising the launch."""
+
+    @wp.kernel(module="unique", module_options=_MODULE_OPTIONS)
+    def train_tiles(features: wp.array3d[float], batch_targets: wp.array3d[float], scale: float,
+                    w0: wp.array3d[float], b0: wp.array3d[float], w1: wp.array3d[float], b1: wp.array3d[float],
+                    w2: wp.array3d[float], b2: wp.array3d[float], w3: wp.array3d[float], b3: wp.array3d[float],
+                    g0: wp.array3d[float], c0: wp.array3d[float], g1: wp.array3d[float], c1: wp.array3d[float],
+                    g2: wp.array3d[float], c2: wp.array3d[float], g3: wp.array3d[float], c3: wp.array3d[float],
+                    feature_gradients: wp.array3d[float], loss: wp.array2d[float]):
+        """Model m, ``sub_batches`` tiles of ``columns`` samples: loss += scale * sum |y - t|^2; the
+        gradients of that term added into g* (weights) and c* (biases); d loss / d features stored."""
+        m, block = wp.tid()
+        weight0 = wp.tile_load(w0[m], shape=(HIDDEN, INPUTS))
+        weight1 = wp.tile_load(w1[m], shape=(HIDDEN, HIDDEN))
+        weight2 = wp.tile_load(w2[m], shape=(HIDDEN, HIDDEN))
+        weight3 = wp.tile_load(w3[m], shape=(OUTPUTS, HIDDEN))
+        bias0 = wp.tile_broadcast(wp.tile_load(b0[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
+        bias1 = wp.tile_broadcast(wp.tile_load(b1[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
+        bias2 = wp.tile_broadcast(wp.tile_load(b2[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
+        bias3 = wp.tile_broadcast(wp.tile_load(b3[m], shape=(OUTPUTS, 1)), shape=(OUTPUTS, columns))
+        sum0 = wp.tile_zeros(shape=(HIDDEN, INPUTS), dtype=float)
+        sum1 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float)
+        sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float)
+        sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float)
+        bias_sum0 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
+        bias_sum1 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
+        bias_sum2 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
+        bias_sum3 = wp.tile_zeros(shape=(OUTPUTS, 1), dtype=float)
+        squares = wp.tile_zeros(shape=(1,), dtype=float)
+        ones = wp.tile_ones(shape=(columns, 1), dtype=float)
+        for sub in range(sub_batches):
+            offset = (block * sub_batches + sub) * columns
+            x = wp.tile_load(features[m], shape=(INPUTS, columns), offset=(0, offset))
+            h1 = wp.tile_map(elu, wp.tile_matmul(weight0, x) + bias0)
+            h2 = wp.tile_map(elu, wp.tile_matmul(weight1, h1) + bias1)
+            h3 = wp.tile_map(elu, wp.tile_matmul(weight2, h2) + bias2)
+            error = (wp.tile_matmul(weight3, h3) + bias3
+                     - wp.tile_load(batch_targets[m], shape=(OUTPUTS, columns), offset=(0, offset)))
+            squares += wp.tile_sum(wp.tile_map(wp.mul, error, error))
+            d = error * (2.0 * scale)  # d loss / d y
+            wp.tile_matmul(d, wp.tile_transpose(h3), sum3)
+            wp.tile_matmul(d, ones, bias_sum3)
+            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight3), d), h3)
+            wp.tile_matmul(d, wp.tile_transpose(h2), sum2)
+            wp.tile_matmul(d, ones, bias_sum2)
+            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight2), d), h2)
+            wp.tile_matmul(d, wp.tile_transpose(h1), sum1)
+            wp.tile_matmul(d, ones, bias_sum1)
+            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight1), d), h1)
+            wp.tile_matmul(d, wp.tile_transpose(x), sum0)
+            wp.tile_matmul(d, ones, bias_sum0)
+            wp.tile_store(feature_gradients[m], wp.tile_matmul(wp.tile_transpose(weight0), d), offset=(0, offset))
+        wp.tile_atomic_add(loss[m], squares * scale)
+        wp.tile_atomic_add(g0[m], sum0)
+        wp.tile_atomic_add(c0[m], bias_sum0)
+        wp.tile_atomic_add(g1[m], sum1)
+        wp.tile_atomic_add(c1[m], bias_sum1)
+        wp.tile_atomic_add(g2[m], sum2)
+        wp.tile_atomic_add(c2[m], bias_sum2)
+        wp.tile_atomic_add(g3[m], sum3)
+        wp.tile_atomic_add(c3[m], bias_sum3)
+
+    return train_tiles
+
+
+@wp.kernel
+def scatter_code_gradients(samples: wp.array[wp.int64], pixels: int, feature_gradients: wp.array3d[float],
+                           code_gradients: wp.array3d[float]):
+    """Each sample's code gradient added to its pixel's, for every model."""
+    i = wp.tid()
+    pixel = int(samples[i] % wp.int64(pixels))
+    for m in range(code_gradients.shape[0]):
+        for k in range(CODE_SIZE):
+            wp.atomic_add(code_gradients, m, pixel, k, feature_gradients[m, k, i])
+
+
+@wp.kernel
+def adam_flat(step: wp.array[wp.int64], batch: int, total: wp.int64, epochs: int, lr: float, final_lr: float,
+              params: wp.array[float], gradients: wp.array[float], first: wp.array[float], second: wp.array[float]):
+    """Adam on every parameter; the learning rate decays geometrically from ``lr`` (first epoch) to
+    ``final_lr`` (epoch ``epochs``); the gradient is zeroed once used."""
+    i = wp.tid()
+    t = step[0] + wp.int64(1)
+    epoch = (step[0] * wp.int64(batch)) / total
+    fraction = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
+    rate = lr * wp.pow(final_lr / lr, fraction)
+    g = gradients[i]
+    gradients[i] = 0.0
+    m = ADAM_BETA1 * first[i] + (1.0 - ADAM_BETA1) * g
+    v = ADAM_BETA2 * second[i] + (1.0 - ADAM_BETA2) * g * g
+    first[i] = m
+    second[i] = v
+    correction1 = 1.0 - wp.pow(ADAM_BETA1, float(t))
+    correction2 = 1.0 - wp.pow(ADAM_BETA2, float(t))
+    params[i] = params[i] - rate * (m / correction1) / (wp.sqrt(v / correction2) + ADAM_EPSILON)
+
+
+@wp.kernel
+def advance(step: wp.array[wp.int64]):
+    step[0] = step[0] + wp.int64(1)
+
+
+def _feistel_half_bits(total: int) -> int:
+    """Half the bits of the smallest power of 4 >= total (at least 1)."""
+    return max(1, math.ceil(math.log2(max(total, 2)) / 2))
+
+
+class _FlatParameters:
+    """Codes (M, P, CODE_SIZE) and the eight weight arrays (M, rows, cols) of M models as views of one flat
+    float32 buffer, with a gradient buffer of the same layout."""
+
+    def __init__(self, models: list[NeuralDecoder], device):
+        count, pixels = len(models), len(models[0].codes)
+        shapes = [(count, pixels, CODE_SIZE)] + [(count, *shape) for shape in _WEIGHT_SHAPES]
+        sizes = [int(np.prod(shape)) for shape in shapes]
+        host = np.concatenate([np.stack([m.codes for m in models]).ravel()]
+                              + [np.stack([m.weights[k] for m in models]).ravel() for k in range(len(_WEIGHT_SHAPES))])
+        self.size = int(sum(sizes))
+        self.flat = wp.array(host.astype(np.float32), dtype=float, device=device)
+        self.gradient = wp.zeros(self.size, dtype=float, device=device)
+        self.shapes = shapes
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        self.views = [self.flat[int(a):int(b)].reshape(shape) for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
+        self.gradients = [self.gradient[int(a):int(b)].reshape(shape)
+                          for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
+
+    def models(self) -> list[NeuralDecoder]:
+        arrays = [view.numpy() for view in self.views]
+        return [NeuralDecoder(arrays[0][m].copy(), [a[m].copy() for a in arrays[1:]]) for m in range(len(arrays[0]))]
+
+
+@dataclass
+class DecoderTrainer:
+    """The device state of M decoders learning (M, n, P, 3) display-unit targets at (n, 3) lights from
+    the ``used`` lights, ``batch`` samples a step; ``steps(k)`` runs k steps (a CUDA graph on CUDA)."""
+
+    targets: np.ndarray
+    lights: np.ndarray
+    used: np.ndarray
+    models: list[NeuralDecoder]
+    batch: int
+    epochs: int
+    lr: float = 3e-3
+    final_lr: float = 3e-4
+    seed: int = 0
+    device: object = None
+    tile: tuple[int, int, int] = LEARNED_TILE
+
+    def __post_init__(self):
+        device = self.device = wp.get_device(self.device)
+        count, n, pixels, _ = self.targets.shape
+        self.pixels = pixels
+        self.total = len(self.used) * pixels
+        columns, sub_batches, self.threads = self.tile
+        unit = columns * sub_batches  # samples per tile block
+        self.batch = max(unit, -(-int(self.batch) // unit) * unit)
+        self.blocks = self.batch // unit
+        self.kernel = make_train_tiles(columns, sub_batches)
+        self.params = _FlatParameters(self.models, device)
+        self.first = wp.zeros(self.params.size, dtype=float, device=device)
+        self.second = wp.zeros(self.params.size, dtype=float, device=device)
+        self.step = wp.zeros(1, dtype=wp.int64, device=device)
+        self.loss = wp.zeros((count, 1), dtype=float, device=device)
+        self.target_array = wp.array(np.ascontiguousarray(self.targets, np.float32), dtype=wp.vec3, device=device)
+        self.light_array = wp.array(np.asarray(self.lights, np.float32), dtype=wp.vec3, device=device)
+        self.used_array = wp.array(np.asarray(self.used, np.int32), dtype=wp.int32, device=device)
+        self.samples = wp.zeros(self.batch, dtype=wp.int64, device=device)
+        self.features = wp.zeros((count, INPUTS, self.batch), dtype=float, device=device)
+        self.batch_targets = wp.zeros((count, OUTPUTS, self.batch), dtype=float, device=device)
+        self.feature_gradients = wp.zeros((count, INPUTS, self.batch), dtype=float, device=device)
+        self.half_bits = _feistel_half_bits(self.total)
+        self.graph = None
+
+    @property
+    def steps_per_epoch(self) -> int:
+        return -(-self.total // self.batch)
+
+    def _launch_step(self) -> None:
+        device, p, count = self.device, self.params, len(self.models)
+        wp.launch(gather_batch, dim=self.batch,
+                  inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
+                          p.views[0], self.light_array, self.target_array],
+                  outputs=[self.samples, self.features, self.batch_targets], device=device)
+        wp.launch_tiled(self.kernel, dim=[count, self.blocks],
+                        inputs=[self.features, self.batch_targets, 1.0 / self.batch, *p.views[1:], *p.gradients[1:]],
+                        outputs=[self.feature_gradients, self.loss], block_dim=self.threads, device=device)
+        wp.launch(scatter_code_gradients, dim=self.batch, inputs=[self.samples, self.pixels, self.feature_gradients],
+                  outputs=[p.gradients[0]], device=device)
+        wp.launch(adam_flat, dim=p.size,
+                  inputs=[self.step, self.batch, self.total, self.epochs, self.lr, self.final_lr],
+                  outputs=[p.flat, p.gradient, self.first, self.second], device=device)
+        wp.launch(advance, dim=1, outputs=[self.step], device=device)
+
+    def steps(self, count: int) -> None:
+        """Run ``count`` training steps (queued; ``losses`` or ``result`` waits for them)."""
+        if self.device.is_cuda and self.graph is None and count > 1:
+            self._launch_step()  # loads the modules outside the capture
+            count -= 1
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self._launch_step()
+            self.graph = capture.graph
+        for _ in range(count):
+            if self.graph is not None:
+                wp.capture_launch(self.graph)
+            else:
+                self._launch_step()
+
+    def losses(self) -> np.ndarray:
+        """(M,) the loss summed over the steps since the last call (a mean squared error a step), then zeroed."""
+        values = self.loss.numpy()[:, 0].astype(np.float64)
+        self.loss.zero_()
+        return values
+
+    def result(self) -> list[NeuralDecoder]:
+        return self.params.models()
+
+
+def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16,
+                   lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
+                   used: np.ndarray | None = None,
+                   initial: list[NeuralDecoder] | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
+    """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by
+    side: Adam on the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the
+    learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds``
+    of training have passed; compiling the kernels is not counted). ``used``: the lights learned from
+    (default all; the others' targets are never read). ``initial``: models to go on training (default:
+    ``initial_model`` of each model's used targets). Returns the models and the (epochs run, M) mean loss
+    of each epoch."""
+    device = wp.get_device(device)
+    targets = np.ascontiguousarray(targets, np.float32)
+    count, n, pixels, _ = targets.shape
+    if not samples_fit(n, pixels):
+        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn "
+                         f"fewer or smaller images")
+    used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
+    if not len(used) or used[0] < 0 or used[-1] >= n:
+        raise ValueError(f"used must name some of the {n} lights")
+    models = [initial_model(targets[m][used], seed=seed) for m in range(count)] if initial is None else list(initial)
+    if len(models) != count or any(m.codes.shape != (pixels, CODE_SIZE) for m in models):
+        raise ValueError(f"initial models must be {count}, each with codes of {pixels} pixels")
+    trainer = DecoderTrainer(targets, lights, used, models, batch, epochs, lr, final_lr, seed, device)
+    trainer.steps(1)  # compiles and loads the kernels (minutes on a fresh CUDA machine): not training time
+    wp.synchronize_device(device)
+    started = time.perf_counter()
+    history = []
+    for epoch in range(epochs):
+        trainer.steps(trainer.steps_per_epoch - (epoch == 0))
+        history.append(trainer.losses() / trainer.steps_per_epoch)  # waits for the epoch's steps
+        if log:
+            log(f"epoch {epoch + 1}/{epochs}: mse {history[-1].mean():.3e} ({time.perf_counter() - started:.1f} s)")
+        if seconds is not None and time.perf_counter() - started > seconds:
+            break
+    return trainer.result(), np.asarray(history)
+
+
+def train_decoder(targets: np.ndarray, lights: np.ndarray, *, initial: NeuralDecoder | None = None,
+                  **options) -> tuple[NeuralDecoder, list[float]]:
+    """``train_decoders`` for one model: (n, P, 3) targets; returns the model and its mean loss per epoch."""
+    models, history = train_decoders(np.asarray(targets)[None], lights,
+                                      initial=None if initial is None else [initial], **options)
+    return models[0], [float(v) for v in history[:, 0]]

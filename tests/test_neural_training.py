@@ -1,0 +1,136 @@
+"""The learned residual's training step (``kernels.neural_training``) against float64 NumPy: the device
+shuffle is a permutation of each epoch's samples, the fused step's loss and gradients match central
+differences of the reference decoder, Adam matches its float64 formula, and models trained side by side
+equal models trained alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+import reference
+from warp_highlights.kernels import neural, neural_training
+
+
+def _problem(seed=0, lights=5, pixels=40, models=2):
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(lights, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    targets = rng.uniform(0.0, 1.0, (models, lights, pixels, 3)).astype(np.float32)
+    return directions, targets
+
+
+@wp.kernel
+def _shuffle_all(total: wp.int64, key: int, half_bits: int, out: wp.array[wp.int64]):
+    i = wp.tid()
+    out[i] = neural_training.shuffled_sample(wp.int64(i), total, key, half_bits)
+
+
+@pytest.mark.parametrize("total", [1, 2, 7, 64, 1000, 4097])
+def test_the_shuffle_is_a_permutation_of_every_epoch(device, total):
+    """Each key orders [0, total) anew, every sample exactly once (brute force over all positions)."""
+    half_bits = neural_training._feistel_half_bits(total)
+    assert 4**half_bits >= total
+    orders = []
+    for key in (0, 1, 977):
+        out = wp.zeros(total, dtype=wp.int64, device=device)
+        wp.launch(_shuffle_all, dim=total, inputs=[total, key, half_bits], outputs=[out], device=device)
+        order = out.numpy()
+        np.testing.assert_array_equal(np.sort(order), np.arange(total))
+        orders.append(order)
+    if total >= 64:  # shuffled, and differently for each key
+        assert not np.array_equal(orders[0], np.arange(total)) and not np.array_equal(orders[0], orders[1])
+
+
+def _one_step_gradients(trainer):
+    """The first three launches of a step (no Adam): the step's samples, loss and gradients."""
+    trainer_launch = trainer.device
+    p = trainer.params
+    wp.launch(neural_training.gather_batch, dim=trainer.batch,
+              inputs=[trainer.step, trainer.batch, trainer.total, trainer.half_bits, trainer.seed, trainer.used_array,
+                      trainer.pixels, p.views[0], trainer.light_array, trainer.target_array],
+              outputs=[trainer.samples, trainer.features, trainer.batch_targets], device=trainer_launch)
+    wp.launch_tiled(trainer.kernel, dim=[len(trainer.models), trainer.blocks],
+                    inputs=[trainer.features, trainer.batch_targets, 1.0 / trainer.batch, *p.views[1:],
+                            *p.gradients[1:]],
+                    outputs=[trainer.feature_gradients, trainer.loss], block_dim=trainer.threads,
+                    device=trainer_launch)
+    wp.launch(neural_training.scatter_code_gradients, dim=trainer.batch,
+              inputs=[trainer.samples, trainer.pixels, trainer.feature_gradients], outputs=[p.gradients[0]],
+              device=trainer_launch)
+    return trainer.samples.numpy(), trainer.loss.numpy()[:, 0], [g.numpy() for g in p.gradients]
+
+
+def test_the_fused_step_gradients_match_central_differences(device):
+    """Two models, a batch that runs into the second epoch (repeated samples), lights 1 and 3 left out: the
+    step's loss is the mean squared error over its samples and every gradient (codes and the eight weight
+    arrays) that of the float64 reference decoder."""
+    directions, targets = _problem(seed=1)
+    used = np.array([0, 2, 4])
+    models = [neural.initial_model(targets[m][used], seed=m + 2) for m in range(2)]
+    trainer = neural_training.DecoderTrainer(targets, directions, used, models, 150, 10, device=device,
+                                             tile=(32, 3, 32))  # 2 blocks of 3 tiles
+    assert trainer.batch == 192 and trainer.blocks == 2 and trainer.total == 120
+    samples, loss, gradients = _one_step_gradients(trainer)
+    light, pixel = samples // 40, samples % 40
+    assert set(light) <= set(used) and len(np.unique(samples)) == 120  # the first epoch whole, then the second's start
+    rng = np.random.default_rng(0)
+    for m in range(2):
+        params = [models[m].codes.astype(np.float64)] + [w.astype(np.float64) for w in models[m].weights]
+
+        def mse(values, m=m):
+            decoded = reference.neural_decoder(values[0], values[1:], directions)
+            return np.sum((decoded[light, pixel] - targets[m][light, pixel]) ** 2) / len(samples)
+
+        assert loss[m] == pytest.approx(mse(params), rel=1e-5)
+        for which in range(len(params)):
+            gradient = gradients[which][m]
+            for _ in range(3):
+                index = tuple(int(rng.integers(0, s)) for s in params[which].shape)
+                if which == 0:
+                    index = (int(pixel[rng.integers(len(pixel))]), index[1])  # a pixel the step saw
+                plus = [p.copy() for p in params]
+                minus = [p.copy() for p in params]
+                plus[which][index] += 1e-4
+                minus[which][index] -= 1e-4
+                numeric = (mse(plus) - mse(minus)) / 2e-4
+                assert gradient[index] == pytest.approx(numeric, rel=2e-3, abs=2e-6), (m, which, index)
+        unseen = np.setdiff1d(np.arange(40), pixel)
+        assert np.all(gradients[0][m][unseen] == 0.0)
+
+
+def test_adam_matches_its_formula(device):
+    """One flat Adam launch: moments, bias correction, the epoch's learning rate; the gradient zeroed."""
+    rng = np.random.default_rng(3)
+    params, grads = rng.normal(size=50), rng.normal(size=50)
+    first, second = rng.normal(size=50) * 0.1, rng.uniform(0.0, 0.1, 50)
+    arrays = [wp.array(a.astype(np.float32), dtype=float, device=device) for a in (params, grads, first, second)]
+    step = wp.array(np.array([7], np.int64), dtype=wp.int64, device=device)
+    batch, total, epochs, lr, final_lr = 64, 100, 10, 3e-3, 3e-4
+    wp.launch(neural_training.adam_flat, dim=50, inputs=[step, batch, total, epochs, lr, final_lr], outputs=arrays,
+              device=device)
+    epoch = 7 * 64 // 100
+    rate = lr * (final_lr / lr) ** (epoch / (epochs - 1))
+    m = 0.9 * first + 0.1 * grads
+    v = 0.999 * second + 0.001 * grads**2
+    want = params - rate * (m / (1 - 0.9**8)) / (np.sqrt(v / (1 - 0.999**8)) + 1e-8)
+    np.testing.assert_allclose(arrays[0].numpy(), want, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(arrays[2].numpy(), m, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(arrays[3].numpy(), v, rtol=1e-4, atol=1e-9)
+    assert not arrays[1].numpy().any()
+
+
+def test_models_side_by_side_learn_as_each_alone(device):
+    """Two models in the same launches see the same samples and end as each would trained on its own."""
+    directions, targets = _problem(seed=4, lights=4, pixels=48)
+    together, history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64)
+    assert history.shape == (3, 2) and np.all(np.isfinite(history))
+    for m in range(2):
+        alone, alone_history = neural_training.train_decoder(targets[m], directions, device=device, epochs=3, batch=64)
+        np.testing.assert_allclose(together[m].codes, alone.codes, rtol=1e-4, atol=1e-5)
+        for got, want in zip(together[m].weights, alone.weights):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(history[:, m], alone_history, rtol=1e-4)
+    with pytest.raises(ValueError, match="initial models"):
+        neural_training.train_decoders(targets, directions, device=device, epochs=1, initial=together[:1])
