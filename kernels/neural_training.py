@@ -239,6 +239,16 @@ class _FlatParameters:
         arrays = [view.numpy() for view in self.views]
         return [NeuralDecoder(arrays[0][m].copy(), [a[m].copy() for a in arrays[1:]]) for m in range(len(arrays[0]))]
 
+    def one_model(self, flat: np.ndarray, m: int) -> np.ndarray:
+        """Model m's part of a buffer of this layout (parameters, a gradient, Adam's moments), in the layout of
+        one model."""
+        parts, start = [], 0
+        for shape in self.shapes:
+            size = int(np.prod(shape))
+            parts.append(flat[start:start + size].reshape(shape[0], -1)[m])
+            start += size
+        return np.concatenate(parts)
+
 
 @dataclass
 class DecoderTrainer:
@@ -325,18 +335,32 @@ class DecoderTrainer:
     def result(self) -> list[NeuralDecoder]:
         return self.params.models()
 
+    def keep(self, m: int) -> DecoderTrainer:
+        """A trainer of model m alone that goes on where this one is (parameters, Adam's moments, step)."""
+        wp.synchronize_device(self.device)
+        models = self.result()
+        alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used, [models[m]], self.batch, self.epochs,
+                               self.lr, self.final_lr, self.seed, self.device, self.tile)
+        for mine, theirs in ((self.first, alone.first), (self.second, alone.second)):
+            theirs.assign(self.params.one_model(mine.numpy(), m))
+        alone.step.assign(self.step.numpy())
+        return alone
+
 
 def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16,
                    lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
                    used: np.ndarray | None = None,
-                   initial: list[NeuralDecoder] | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
+                   initial: list[NeuralDecoder] | None = None, settle=None,
+                   settle_epoch: int = 0) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by
     side: Adam on the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the
     learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds``
     of training have passed; compiling the kernels is not counted). ``used``: the lights learned from
     (default all; the others' targets are never read). ``initial``: models to go on training (default:
-    ``initial_model`` of each model's used targets). Returns the models and the (epochs run, M) mean loss
-    of each epoch."""
+    ``initial_model`` of each model's used targets). ``settle(models)``, called once after ``settle_epoch``
+    epochs with the models as they are, may return the index of the one model that goes on (the others
+    stop there: their loss is NaN from then on) or None (all go on). Returns the models and the (epochs
+    run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     count, n, pixels, _ = targets.shape
@@ -353,15 +377,26 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     trainer.steps(1)  # compiles and loads the kernels (minutes on a fresh CUDA machine): not training time
     wp.synchronize_device(device)
     started = time.perf_counter()
-    history = []
+    history, going_on, stopped = [], list(range(count)), None
     for epoch in range(epochs):
         trainer.steps(trainer.steps_per_epoch - (epoch == 0))
-        history.append(trainer.losses() / trainer.steps_per_epoch)  # waits for the epoch's steps
+        row = np.full(count, np.nan)
+        row[going_on] = trainer.losses() / trainer.steps_per_epoch  # waits for the epoch's steps
+        history.append(row)
         if log:
-            log(f"epoch {epoch + 1}/{epochs}: mse {history[-1].mean():.3e} ({time.perf_counter() - started:.1f} s)")
+            log(f"epoch {epoch + 1}/{epochs}: mse {np.nanmean(row):.3e} ({time.perf_counter() - started:.1f} s)")
         if seconds is not None and time.perf_counter() - started > seconds:
             break
-    return trainer.result(), np.asarray(history)
+        if settle is not None and epoch + 1 == settle_epoch and count > 1 and epoch + 1 < epochs:
+            kept = settle(trainer.result())
+            if kept is not None:
+                stopped = trainer.result()
+                trainer, going_on = trainer.keep(int(kept)), [int(kept)]
+    models = trainer.result()
+    if stopped is not None:
+        stopped[going_on[0]] = models[0]
+        models = stopped
+    return models, np.asarray(history)
 
 
 def train_decoder(targets: np.ndarray, lights: np.ndarray, *, initial: NeuralDecoder | None = None,

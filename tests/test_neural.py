@@ -259,8 +259,9 @@ def test_training_time_counts_from_the_first_step():
 
 
 def test_the_residual_kind_is_resolved_for_the_device_and_the_capture():
-    """"auto" learns on CUDA and compresses elsewhere; a concrete kind stays as it is; a learned residual past the
-    decoder's 2^31 samples is refused where asked for and falls back to low rank where "auto" chose it."""
+    """"auto" learns on CUDA and compresses elsewhere and for one-channel captures; a concrete kind stays as it is; a
+    learned residual past the decoder's 2^31 samples is refused where asked for and falls back to low rank where
+    "auto" chose it."""
     from warp_highlights.residual.kind import CONCRETE_KINDS, resolve_kind
 
     assert resolve_kind("auto", "cpu") == "lowrank"
@@ -274,6 +275,12 @@ def test_the_residual_kind_is_resolved_for_the_device_and_the_capture():
         resolve_kind("learned", "cpu", light_count=1 << 16, size=(1 << 8, 1 << 8))
     with pytest.raises(InputError, match="residual kind must be one of"):
         resolve_kind("compressed", "cpu")
+    # one channel (grey, infrared, a band): "auto" compresses on every device, "learned" is refused before any work
+    for device in ["cpu"] + (["cuda:0"] if wp.is_cuda_available() else []):
+        assert resolve_kind("auto", device, channels=1) == "lowrank"
+        assert resolve_kind("auto", device, channels=3) == ("learned" if device.startswith("cuda") else "lowrank")
+        with pytest.raises(InputError, match="fit grey captures with --residual lowrank"):
+            resolve_kind("learned", device, channels=1)
 
 
 def test_fields_stored_with_the_residual_booleans_read_as_their_kind():

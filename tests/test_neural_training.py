@@ -134,3 +134,42 @@ def test_models_side_by_side_learn_as_each_alone(device):
         np.testing.assert_allclose(history[:, m], alone_history, rtol=1e-4)
     with pytest.raises(ValueError, match="initial models"):
         neural_training.train_decoders(targets, directions, device=device, epochs=1, initial=together[:1])
+
+
+def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device):
+    """``settle`` keeps model 1 after the first of three epochs: model 0 is returned as it was then (its loss NaN
+    afterwards), model 1 ends as if it had learned alone all along (parameters, Adam's moments and the step carried
+    over); None keeps both."""
+    directions, targets = _problem(seed=7, lights=4, pixels=48)
+    seen = []
+
+    def keep_second(models):
+        seen.append(models)
+        return 1
+
+    models, history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
+                                                     settle=keep_second, settle_epoch=1)
+    assert len(seen) == 1 and np.isnan(history[1:, 0]).all() and np.isfinite(history[:, 1]).all()
+    np.testing.assert_array_equal(models[0].codes, seen[0][0].codes)
+    alone, alone_history = neural_training.train_decoder(targets[1], directions, device=device, epochs=3, batch=64)
+    np.testing.assert_allclose(models[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
+    for got, want in zip(models[1].weights, alone.weights):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(history[:, 1], alone_history, rtol=1e-4)
+    both, both_history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
+                                                        settle=lambda models: None, settle_epoch=1)
+    assert np.isfinite(both_history).all()
+    np.testing.assert_allclose(both[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
+def test_a_model_trained_on_cuda_decodes_the_same_on_the_cpu():
+    """The trained decoder, decoded by Warp on CUDA and on the CPU and by the float64 reference, agrees within float
+    tolerance; the CUDA training step's gradients were checked above with the other devices."""
+    directions, targets = _problem(seed=8, lights=6, pixels=256, models=1)
+    model, _ = neural_training.train_decoder(targets[0], directions, device="cuda:0", epochs=5, batch=512)
+    on_cuda = neural.decode(model, directions, device="cuda:0")
+    on_cpu = neural.decode(model, directions, device="cpu")
+    np.testing.assert_allclose(on_cuda, on_cpu, rtol=1e-4, atol=2e-5)
+    np.testing.assert_allclose(on_cpu, reference.neural_decoder(model.codes, model.weights, directions), rtol=1e-4,
+                               atol=2e-5)

@@ -94,7 +94,8 @@ def fit_field(
     width, height = working_size(dataset.width, dataset.height, size)
     requested_kind = settings.residual.kind
     # once: the stages read it
-    kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height))
+    kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height),
+                        channels=dataset.channels)
     settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, kind=kind))
     residual = kind != "none"
     learned = kind == "learned"

@@ -488,31 +488,42 @@ class ResidualSettings:
             (metals, coloured plastics); False keeps white highlights.
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
-        learned_seconds: the learned residual's training time at most, seconds (each of the learned
-            check's two models, or the one model without it): on an NVIDIA H100, 120 s take the
-            250-light donut and the dome sample to 41.35 and 41.02 dB at their held-out lights, ahead
-            of the low-rank field on the donut (``benchmarks/bench_neural_residual.py --seconds 120``).
-        learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them);
-            400, so that ``learned_seconds`` ends training on any capture bigger than the dome.
+        learned_seconds: the learned residual's training time at most, seconds (the learned check's two
+            models together, or the one model without it; compiling the kernels is not counted): 10, so that
+            the statue sample (43 lights, 567x534, 13 million samples an epoch) fits in about 15 s on an NVIDIA
+            H200, where 200 epochs would take 13 s (``benchmarks/bench_learned_training.py``).
+        learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them): 200; on an
+            NVIDIA H200 the dome sample's images learned alone reach 44.09 / 46.50 / 47.56 / 48.57 dB at its
+            Test lights after 25 / 50 / 100 / 200 epochs, 5.2 s for 200 (``bench_learned_training.py``).
         learned_batch: (light, pixel) samples per Adam step; 0 (default) by device: 65,536 on CUDA
-            (a step that fills the GPU; the ``learned_seconds`` figures are at it), 2,048 on the CPU,
+            (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), 2,048 on the CPU,
             where a step costs little beyond its samples: a large batch gives a small capture only a
             few steps an epoch and leaves it undertrained in the time given, while below 2,048 the
             dome sample gained nothing more.
         learned_check: where the move check keeps the Gaussians, this many of its left-out lights
             (spread) decide whether the learned residual keeps them too (``residual.learned.check_learned``):
-            two models learn without those lights, each for ``learned_seconds``, the residual (scored
-            with the Gaussians moved there) and the images alone (NeuralRTI); the better one goes on
-            learning from every light. 6, an eighth of the dome sample's 49 lights, spread like the
-            move check's: on an NVIDIA H100 the two kinds differ by 7 dB on the dome sample (the
-            images alone ahead) and by 2.3 dB the other way on the 250-light donut
-            (``benchmarks/bench_neural_residual.py``), far more than 6 lights' spread. Both models
-            train in full because the ranking turns with training: after a few tens of steps the
-            model with the Gaussians leads on the dome sample, after thousands the images alone do.
-            0 keeps the Gaussians unchecked (one model, trained once).
+            two models learn without those lights, side by side on CUDA, the residual (scored with the
+            Gaussians moved there) and the images alone (NeuralRTI); the better one goes on learning from
+            every light. 6, an eighth of the dome sample's 49 lights, spread like the move check's: on an
+            NVIDIA H100 the two kinds differed by 7 dB on the dome sample (the images alone ahead) and by
+            2.3 dB the other way on the 250-light donut (``benchmarks/bench_neural_residual.py``), far more
+            than 6 lights' spread. 0 keeps the Gaussians unchecked (one model, trained once).
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
-            left-out ones included, at the final learning rate (3e-4), seconds: a quarter of
-            ``learned_seconds``, for 6 lights out of 43-250.
+            left-out ones included, at the final learning rate (3e-4), seconds at most: half of
+            ``learned_seconds``.
+        learned_tune_epochs: its epochs at most: 40, a fifth of ``learned_epochs``, for 6 lights out of 43-250.
+        learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
+            scored; where their order has settled (``learned_settle_margin_db``), the loser stops and
+            the winner learns on alone, in half the time a step of both takes. 0.25: the ranking turns
+            early in training (after a few tens of steps the residual with its Gaussians leads on the
+            dome sample, after thousands the images alone do), and by 50 epochs of 200 it no longer
+            does there: the images alone led by 8.0 dB after 60 epochs of a 60-epoch run, by 9.4 dB after
+            120 and by 11.5-12.6 dB after 200 (``bench_learned_training.py``, the fit's report).
+        learned_settle_margin_db: the gap in mean 8-bit sRGB PSNR at the check's lights that counts as
+            settled, dB: 3, well under the dome sample's gaps at the end of runs of 60 to 200 epochs
+            (8.0-12.6 dB) and above the 2.3 dB by which the 250-light donut's two kinds ended apart: such
+            a close race learns both to the end. (How far a gap moves after a quarter of training has not
+            been measured on captures beyond these two.)
     """
 
     kind: str = "auto"
@@ -532,6 +543,8 @@ class ResidualSettings:
     learned_check: int = 6
     learned_tune_seconds: float = 5.0
     learned_tune_epochs: int = 40
+    learned_settle_fraction: float = 0.25
+    learned_settle_margin_db: float = 3.0
 
     def __post_init__(self):
         _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")
@@ -561,6 +574,10 @@ class ResidualSettings:
                  f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
         _require(1 <= int(self.learned_tune_epochs) <= 100000,
                  f"learned_tune_epochs must be in [1, 100000], got {self.learned_tune_epochs}")
+        _require(math.isfinite(self.learned_settle_fraction) and 0 < self.learned_settle_fraction <= 1,
+                 f"learned_settle_fraction must be in (0, 1], got {self.learned_settle_fraction}")
+        _require(math.isfinite(self.learned_settle_margin_db) and self.learned_settle_margin_db >= 0,
+                 f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
 
 
 @dataclass(frozen=True)

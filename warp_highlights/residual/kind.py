@@ -18,15 +18,22 @@ CONCRETE_KINDS = tuple(kind for kind in RESIDUAL_KINDS if kind != "auto")
 _LOG = logging.getLogger(__name__)
 
 
-def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tuple[int, int] | None = None) -> str:
+def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tuple[int, int] | None = None,
+                 channels: int | None = None) -> str:
     """The concrete kind for ``kind`` (``RESIDUAL_KINDS``) on a Warp ``device``: "auto" is "learned" on a CUDA
     device and "lowrank" elsewhere. Given ``light_count`` and the working ``size`` (width, height), a learned
     residual past the decoder's 2^31 (light, pixel) samples is refused where asked for (``InputError``) and
-    replaced by "lowrank", with a warning, where "auto" chose it."""
+    replaced by "lowrank", with a warning, where "auto" chose it. A capture of one ``channels`` (grey, infrared,
+    one band) has a low-rank residual under "auto": the learned decoder draws colour."""
     if kind not in RESIDUAL_KINDS:
         raise InputError(f"residual kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{kind}'")
     if kind != "auto" and kind != "learned":
         return kind
+    if channels == 1:
+        if kind == "learned":
+            raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank "
+                             "(or auto)")
+        return "lowrank"
     concrete = kind if kind == "learned" else "learned" if wp.get_device(device).is_cuda else "lowrank"
     if concrete == "learned" and light_count is not None and size is not None:
         from ..kernels.neural import samples_fit

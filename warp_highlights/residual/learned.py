@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from ..kernels.neural import NeuralDecoder
+from ..kernels.neural import NeuralDecoder, decode
 from ..kernels.neural_training import train_decoder, train_decoders
 from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, ResidualSettings
 from ..model.errors import InputError
@@ -21,7 +21,7 @@ from ..model.residual import (
 from ..quality.metrics import srgb_psnr
 from .decode import learned_images
 from .inputs import residual_of
-from .opponent import encode_display
+from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "check_learned", "learn_residual"]
 
@@ -69,14 +69,16 @@ def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float
 
 def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
-           tune: bool = False) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           tune: bool = False, settle=None) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU; returns them and each one's loss per epoch."""
+    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``: on CUDA, called once
+    ``learned_settle_fraction`` of the epochs have run, returns the index of the one model to go on, or None."""
     device = wp.get_device(device)
+    learning = [len(targets) if device.is_cuda else 1]  # models that advance the bar an epoch
 
     def say(message: str) -> None:  # once an epoch, for every model learning
         if progress is not None:
-            progress(len(targets) if device.is_cuda else 1)
+            progress(learning[0])
         if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
             log(f"learned residual: {message}")
 
@@ -86,7 +88,14 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
     batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if device.is_cuda else LEARNED_BATCH_CPU)
     options = dict(device=device, batch=batch, log=say, used=used, **rates)
     if device.is_cuda:
-        models, history = train_decoders(np.stack(targets), directions, initial=initial, **options)
+        def settled(models):
+            kept = settle(models)
+            learning[0] = len(targets) if kept is None else 1
+            return kept
+
+        epoch = max(1, round(settings.learned_settle_fraction * options["epochs"]))
+        models, history = train_decoders(np.stack(targets), directions, initial=initial,
+                                         settle=None if settle is None else settled, settle_epoch=epoch, **options)
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
     trained = [train_decoder(target, directions, initial=None if initial is None else initial[m], **options)
                for m, target in enumerate(targets)]
@@ -97,12 +106,14 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
 class LearnedCheck:
     """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the learned
     residual plus the moved highlights (``with_gaussians``) and of the images learned alone, and the
-    winner's model (learned without those lights)."""
+    winner's model (learned without those lights); ``settled_epoch``: the epoch after which the loser stopped
+    learning, its order settled (None: both learned to the end)."""
 
     lights: np.ndarray
     with_gaussians: np.ndarray
     images_alone: np.ndarray
     winner: ResidualModel | None = None
+    settled_epoch: int | None = None
 
     @property
     def keeps_gaussians(self) -> bool:
@@ -116,7 +127,8 @@ class LearnedCheck:
         if len(self.lights):
             scores = {"with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
                       "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3)}
-        return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians}
+        return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians,
+                "settled_epoch": self.settled_epoch}
 
 
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
@@ -129,8 +141,9 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     (NeuralRTI); on CUDA both learn side by side in the same launches. At each left-out light the first plus
     ``highlights`` (m, H, W, 3), the Gaussians moved there from the other lights' triangle
     (``MoveCheck.kept_highlights``), and the second are scored against the image in 8-bit sRGB. Both train in
-    full because the ranking changes with training (a short run favours the residual, whose Gaussians carry the
-    highlights from the start).
+    until their order has settled (``learned_settle_fraction`` of the epochs, a gap of
+    ``learned_settle_margin_db`` or more; else both to the end), as it changes with training (a short run
+    favours the residual, whose Gaussians carry the highlights from the start).
     ``progress(1)`` after each epoch."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
@@ -140,13 +153,41 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     truth = np.asarray(images[lights], np.float32) * scale
     n, height, width, _ = np.shape(images)
     targets = [_targets(images, own, colour, factor), _targets(images, np.zeros_like(own), None, factor)]
-    trained, _ = _train(targets, directions, settings=settings, device=device, progress=progress, used=used)
-    scores, models = [], []
-    for model, tint, added in zip(trained, (colour, None), (highlights, np.zeros_like(highlights))):
-        residual = _residual_model(model, height, width, factor, n, tint)
-        # as the relighter clamps
-        predicted = np.maximum(learned_images(residual.learned, directions[lights]) + added, 0.0)
-        scores.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
-        models.append(residual)
-    check = LearnedCheck(lights, scores[0], scores[1])
+    tints, added = (colour, None), (highlights, np.zeros_like(highlights))
+    settled_at = []
+
+    def score(models) -> list[np.ndarray]:
+        rows = []
+        for model, tint, extra in zip(models, tints, added):
+            residual = _residual_model(model, height, width, factor, n, tint)
+            predicted = np.maximum(_decoded(residual.learned, directions[lights], device) + extra, 0.0)  # as relit
+            rows.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
+        return rows
+
+    def settle(models) -> int | None:  # the order settled well ahead of the end: the loser stops there
+        first, second = score(models)
+        gap = float(np.mean(first) - np.mean(second))
+        if abs(gap) < settings.learned_settle_margin_db:
+            return None
+        settled_at.append(round(settings.learned_settle_fraction * settings.learned_epochs))
+        return 0 if gap > 0 else 1
+
+    trained, _ = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
+                        settle=settle)
+    scores = score(trained)
+    models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
+    check = LearnedCheck(lights, scores[0], scores[1], settled_epoch=settled_at[0] if settled_at else None)
     return dataclasses.replace(check, winner=models[0] if check.keeps_gaussians else models[1])
+
+
+def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
+    """(Q, H, W, 3) the learned residual (field units) at (Q, 3) directions: decoded on a CUDA device, else by the
+    float64 reference."""
+    device = wp.get_device(device)
+    if not device.is_cuda:
+        return learned_images(learned, directions)
+    height, width, _ = learned.codes.shape
+    model = NeuralDecoder(learned.codes.reshape(height * width, -1).astype(np.float32),
+                          [np.asarray(w, np.float32) for w in learned.weights])
+    values = decode(model, np.asarray(directions, np.float32), device=device)
+    return learned.unit * decode_display(values).reshape(len(values), height, width, 3)
