@@ -239,6 +239,12 @@ def fit_field(
                                                   check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device,
                                                   progress=advance)
+                verdict = learned_check.report()
+                settled = learned_check.settled_epoch
+                log(f"learned check at {verdict['lights']} lights: with the Gaussians "
+                    f"{verdict['with_gaussians_psnr_db']:.2f} dB, the images alone "
+                    f"{verdict['images_alone_psnr_db']:.2f} dB"
+                    + ("" if settled is None else f" (settled after {settled} epochs)"))
             if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
                 # blending beat moving at the left-out lights (or the images learned alone beat the learned
                 # residual with its Gaussians): the highlights stay in the residual (the images themselves)
