@@ -1,0 +1,328 @@
+"""The learned residual (``kernels.neural``'s model) trained and decoded on the CPU in NumPy float32.
+
+The forward and backward passes are written out as matrix products over a batch of (light, pixel)
+samples, rows = samples, so that the BLAS library spreads them over every core; the element-wise
+steps run in place in buffers allocated once. ``train_decoder_cpu`` has the arguments, the loss,
+the Adam steps and the schedule of ``kernels.neural.train_decoder``; ``decode_cpu`` decodes a
+learned residual for query directions, the first layer's code part computed once per pixel.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+
+import numpy as np
+
+try:
+    from threadpoolctl import threadpool_limits
+except ImportError:  # BLAS threads its own products
+    threadpool_limits = None
+
+from ..kernels.neural import NeuralDecoder, initial_model, samples_fit
+from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
+from ..model.threads import NUMPY_THREADS, parallel_map
+
+__all__ = ["BATCH_CPU", "decode_cpu", "train_decoder_cpu"]
+
+CODE = NEURAL_CODE_SIZE
+HIDDEN = NEURAL_LAYER_SHAPES[0][0]
+INPUTS = NEURAL_LAYER_SHAPES[0][1]  # code + light direction
+BATCH_CPU = 1 << 13
+"""Samples per Adam step of ``train_decoder_cpu`` (``benchmarks/bench_cpu_learned.py``)."""
+DECODE_CHUNK = 1 << 13
+"""Pixels ``decode_cpu`` decodes at a time (its buffers stay in the cache)."""
+_BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8  # warp.optim.Adam's defaults, as kernels.neural uses it
+
+
+class _Parameters:
+    """Codes and weights as views into one flat float32 vector (and its gradient's), so that one Adam
+    step is a few passes over the vector. The first layer is held as (HIDDEN, INPUTS + 1): w0 | b0."""
+
+    def __init__(self, model: NeuralDecoder):
+        pixels = len(model.codes)
+        w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in model.weights)
+        parts = [np.asarray(model.codes, np.float32), np.concatenate([w0, b0], axis=1), w1, b1.reshape(-1), w2,
+                 b2.reshape(-1), w3, b3.reshape(-1)]
+        sizes = [p.size for p in parts]
+        self.flat = np.concatenate([p.reshape(-1) for p in parts]).astype(np.float32)
+        self.grad = np.zeros_like(self.flat)
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        shapes = [(pixels, CODE)] + [p.shape for p in parts[1:]]
+
+        def views(vector):
+            return [vector[a:b].reshape(s) for a, b, s in zip(offsets[:-1], offsets[1:], shapes)]
+
+        self.codes, self.w0, self.w1, self.b1, self.w2, self.b2, self.w3, self.b3 = views(self.flat)
+        self.g_codes, self.g_w0, self.g_w1, self.g_b1, self.g_w2, self.g_b2, self.g_w3, self.g_b3 = views(self.grad)
+
+    def model(self) -> NeuralDecoder:
+        """The current codes and the eight weight arrays (copies)."""
+        return NeuralDecoder(self.codes.copy(), [self.w0[:, :INPUTS].copy(), self.w0[:, INPUTS:].copy(),
+                                                 self.w1.copy(), self.b1.reshape(-1, 1).copy(), self.w2.copy(),
+                                                 self.b2.reshape(-1, 1).copy(), self.w3.copy(),
+                                                 self.b3.reshape(-1, 1).copy()])
+
+
+class _Adam:
+    """warp.optim.Adam over a flat float32 vector: m, v and the step count t as that optimizer keeps them;
+    the vector's parts stepped by ``threads`` threads."""
+
+    def __init__(self, size: int, threads: int = 1):
+        self.m = np.zeros(size, np.float32)
+        self.v = np.zeros(size, np.float32)
+        self.scratch = np.empty(size, np.float32)
+        self.bounds = np.linspace(0, size, max(1, min(int(threads), size)) + 1).astype(np.int64)
+        self.t = 0
+
+    def step(self, params: np.ndarray, grad: np.ndarray, lr: float) -> None:
+        """params -= lr m^ / (sqrt(v^) + eps) after m, v take in ``grad``, in place."""
+        self.t += 1
+        # sqrt(v / c2) + eps = sqrt(v) / sqrt(c2) + eps; m / c1 folded into the step
+        root = np.float32(1.0 / np.sqrt(1.0 - _BETA2**self.t))
+        rate = np.float32(lr / (1.0 - _BETA1**self.t))
+
+        def part(i: int) -> None:
+            a, b = self.bounds[i], self.bounds[i + 1]
+            m, v, s, g = self.m[a:b], self.v[a:b], self.scratch[a:b], grad[a:b]
+            np.multiply(g, np.float32(1.0 - _BETA1), out=s)
+            m *= np.float32(_BETA1)
+            m += s
+            np.multiply(g, g, out=s)
+            s *= np.float32(1.0 - _BETA2)
+            v *= np.float32(_BETA2)
+            v += s
+            np.sqrt(v, out=s)
+            s *= root
+            s += np.float32(_EPS)
+            np.divide(m, s, out=s)
+            s *= rate
+            params[a:b] -= s
+
+        parallel_map(part, range(len(self.bounds) - 1))
+
+
+@contextmanager
+def blas_on_one_thread():
+    """A context that yields the threads to split NumPy work over: the cores (``NUMPY_THREADS``), the BLAS
+    library held to one thread each meanwhile (threadpoolctl); 1 where threadpoolctl is missing, BLAS left
+    to thread its own products. A BLAS library threading its products stalls for milliseconds at a time
+    when another process takes a core (ten times slower on a busy 2-core machine), one thread each does not."""
+    if threadpool_limits is None or NUMPY_THREADS == 1:
+        yield 1
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield NUMPY_THREADS
+
+
+def _elu(z: np.ndarray, out: np.ndarray, scratch: np.ndarray, zeros: np.ndarray) -> None:
+    """out = elu(z) = max(z, exp(min(z, 0)) - 1), element-wise (as kernels.neural.elu)."""
+    np.minimum(z, zeros, out=scratch)
+    np.exp(scratch, out=scratch)
+    scratch -= np.float32(1.0)
+    np.maximum(z, scratch, out=out)
+
+
+def _elu_backward(h: np.ndarray, grad: np.ndarray, scratch: np.ndarray, zeros: np.ndarray) -> None:
+    """grad *= elu'(z) from the output h = elu(z): 1 where h > 0, else h + 1."""
+    np.minimum(h, zeros, out=scratch)
+    scratch += np.float32(1.0)
+    grad *= scratch
+
+
+class _Worker:
+    """One thread's share of a batch: buffers for ``size`` samples (rows), its forward and backward pass, and
+    its own gradient of the weights (a flat vector laid out as ``_Parameters.grad`` past the codes)."""
+
+    def __init__(self, size: int, pixels: int, weight_count: int):
+        f = np.float32
+        self.x = np.empty((size, INPUTS + 1), f)
+        self.x[:, INPUTS] = 1.0  # the first layer's bias
+        self.z = np.empty((size, HIDDEN), f)
+        self.h = [np.empty((size, HIDDEN), f) for _ in range(3)]
+        self.grad = np.empty((size, HIDDEN), f)
+        self.grad_in = np.empty((size, HIDDEN), f)
+        self.scratch = np.empty((size, HIDDEN), f)
+        self.zeros = np.zeros((size, HIDDEN), f)
+        self.ones = np.ones(size, f)
+        self.y = np.empty((size, 3), f)
+        self.target = np.empty((size, 3), f)
+        self.light = np.empty(size, np.int64)
+        self.pixel = np.empty(size, np.int64)
+        self.pixels = pixels
+        self.weight_grad = np.zeros(weight_count, f)
+
+    def run(self, samples: np.ndarray, scale: float, p: _Parameters, lights: np.ndarray, targets: np.ndarray,
+            code_grad: np.ndarray, slots: np.ndarray) -> float:
+        """Squared error summed over RGB and the samples = light * pixels + pixel; the gradient of ``scale``
+        times it: the weights' into ``weight_grad``, each sample's code row into ``code_grad`` and its
+        place in the flat codes (pixel * CODE + k) into ``slots``."""
+        n = len(samples)
+        x, z, scratch, zeros = self.x[:n], self.z[:n], self.scratch[:n], self.zeros[:n]
+        h = [a[:n] for a in self.h]
+        light, pixel = self.light[:n], self.pixel[:n]
+        np.divmod(samples, self.pixels, out=(light, pixel))
+        np.take(p.codes, pixel, axis=0, out=x[:, :CODE], mode="clip")
+        np.take(lights, light, axis=0, out=x[:, CODE:INPUTS], mode="clip")
+        np.take(targets, samples, axis=0, out=self.target[:n], mode="clip")
+        # forward
+        np.matmul(x, p.w0.T, out=z)
+        _elu(z, h[0], scratch, zeros)
+        for w, b, before, after in ((p.w1, p.b1, h[0], h[1]), (p.w2, p.b2, h[1], h[2])):
+            np.matmul(before, w.T, out=z)
+            z += b
+            _elu(z, after, scratch, zeros)
+        error = self.y[:n]
+        np.matmul(h[2], p.w3.T, out=error)
+        error += p.b3
+        error -= self.target[:n]
+        flat = error.reshape(-1)
+        squared = float(np.dot(flat, flat))
+        # backward from d (scale * squared) / d y = 2 scale error
+        error *= np.float32(2.0 * scale)
+        g_w0, g_w1, g_b1, g_w2, g_b2, g_w3, g_b3 = _weight_views(self.weight_grad, p)
+        ones = self.ones[:n]
+        np.matmul(error.T, h[2], out=g_w3)
+        np.matmul(ones, error, out=g_b3)
+        grad, grad_in = self.grad[:n], self.grad_in[:n]
+        np.matmul(error, p.w3, out=grad)
+        for w, g_w, g_b, out, before in ((p.w2, g_w2, g_b2, h[2], h[1]), (p.w1, g_w1, g_b1, h[1], h[0])):
+            _elu_backward(out, grad, scratch, zeros)
+            np.matmul(grad.T, before, out=g_w)
+            np.matmul(ones, grad, out=g_b)
+            np.matmul(grad, w, out=grad_in)
+            grad, grad_in = grad_in, grad
+        _elu_backward(h[0], grad, scratch, zeros)
+        np.matmul(grad.T, x, out=g_w0)
+        np.matmul(grad, p.w0[:, :CODE], out=code_grad)
+        np.multiply(pixel[:, None], CODE, out=slots)
+        slots += np.arange(CODE)
+        return squared
+
+
+def _weight_views(vector: np.ndarray, p: _Parameters) -> list[np.ndarray]:
+    """Views of a flat weight vector shaped as ``p``'s weights (w0 | b0, w1, b1, w2, b2, w3, b3)."""
+    views, start = [], 0
+    for like in (p.w0, p.w1, p.b1, p.w2, p.b2, p.w3, p.b3):
+        views.append(vector[start : start + like.size].reshape(like.shape))
+        start += like.size
+    return views
+
+
+class _Batch:
+    """A step's forward and backward pass over a batch of at most ``size`` samples, its rows split among
+    ``threads`` workers; the gradient lands in ``_Parameters.grad`` (every entry)."""
+
+    def __init__(self, size: int, pixels: int, weight_count: int, threads: int = 1):
+        self.threads = max(1, min(int(threads), size))
+        share = -(-size // self.threads)
+        self.workers = [_Worker(share, pixels, weight_count) for _ in range(self.threads)]
+        self.code_grad = np.empty((size, CODE), np.float32)
+        self.slots = np.empty((size, CODE), np.int64)
+
+    def step(self, samples: np.ndarray, p: _Parameters, lights: np.ndarray, targets: np.ndarray) -> float:
+        """Loss (mean over the samples of the squared error summed over RGB) of samples = light * pixels +
+        pixel, and its gradient."""
+        n = len(samples)
+        bounds = np.linspace(0, n, min(self.threads, n) + 1).astype(np.int64)
+
+        def part(i: int) -> float:
+            a, b = bounds[i], bounds[i + 1]
+            return self.workers[i].run(samples[a:b], 1.0 / n, p, lights, targets, self.code_grad[a:b],
+                                       self.slots[a:b])
+
+        squared = sum(parallel_map(part, range(len(bounds) - 1)))
+        weights = p.grad[p.codes.size :]
+        np.copyto(weights, self.workers[0].weight_grad)
+        for worker in self.workers[1 : len(bounds) - 1]:
+            weights += worker.weight_grad
+        # the codes' gradient: every sample's row added to its pixel's (one bincount over pixel x CODE slots)
+        p.g_codes.reshape(-1)[:] = np.bincount(self.slots[:n].reshape(-1), weights=self.code_grad[:n].reshape(-1),
+                                               minlength=p.g_codes.size)
+        return squared / n
+
+
+def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, epochs: int = 40, batch: int = BATCH_CPU,
+                      lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
+                      used: np.ndarray | None = None,
+                      initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
+    """``kernels.neural.train_decoder`` on the CPU in NumPy: fit codes and weights to (n, P, 3) display-unit
+    targets at (n, 3) lights by Adam on the mean squared error over shuffled (light, pixel) samples, ``batch``
+    a step, the learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until
+    ``seconds`` have passed since the first step). ``used``: the lights to learn from (default all; the
+    others' targets are never read); ``initial``: a model to go on training (default ``initial_model`` of
+    the used lights' targets). Returns the model and the mean loss of each epoch."""
+    targets = np.ascontiguousarray(targets, np.float32)
+    n, pixels, _ = targets.shape
+    if not samples_fit(n, pixels):
+        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn "
+                         f"fewer or smaller images")
+    used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
+    if not len(used) or used[0] < 0 or used[-1] >= n:
+        raise ValueError(f"used must name some of the {n} lights")
+    model = initial_model(targets[used], seed=seed) if initial is None else initial
+    if model.codes.shape != (pixels, CODE):
+        raise ValueError(f"initial codes {model.codes.shape} do not match {pixels} pixels")
+    lights = np.ascontiguousarray(np.asarray(lights, np.float32).reshape(n, 3))
+    flat_targets = targets.reshape(n * pixels, 3)
+    total = len(used) * pixels
+    params = _Parameters(model)
+    rng = np.random.default_rng(seed)
+    history = []
+    started = None
+    with blas_on_one_thread() as threads:
+        adam = _Adam(params.flat.size, threads)
+        buffers = _Batch(min(int(batch), total), pixels, params.flat.size - params.codes.size, threads)
+        for epoch in range(epochs):
+            rate = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
+            shuffled = rng.permutation(total)
+            if len(used) < n:  # sample index = light * pixels + pixel, over the used lights only
+                shuffled = used[shuffled // pixels] * pixels + shuffled % pixels
+            epoch_loss = 0.0
+            for start in range(0, total, batch):
+                epoch_loss += buffers.step(shuffled[start : start + batch], params, lights, flat_targets)
+                adam.step(params.flat, params.grad, rate)
+                if started is None:
+                    started = time.perf_counter()
+            history.append(epoch_loss / -(-total // batch))
+            if log:
+                log(f"epoch {epoch + 1}/{epochs}: mse {history[-1]:.3e} (lr {rate:.1e}, "
+                    f"{time.perf_counter() - started:.1f} s)")
+            if seconds is not None and time.perf_counter() - started > seconds:
+                break
+    return params.model(), history
+
+
+def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray) -> np.ndarray:
+    """(Q, P, 3) float32 display-unit values of a learned residual with (P, CODE) codes and its eight weight
+    arrays at (Q, 3) unit directions; the first layer's code part is computed once per pixel."""
+    codes = np.asarray(codes, np.float32).reshape(-1, CODE)
+    w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in weights)
+    directions = np.asarray(directions, np.float32).reshape(-1, 3)
+    pixels = len(codes)
+    out = np.empty((len(directions), pixels, 3), np.float32)
+    code_part = codes @ w0[:, :CODE].T  # (P, HIDDEN)
+    # per direction: its light part and the bias, one row
+    light_part = directions @ w0[:, CODE:].T + b0.reshape(1, -1)
+    size = min(DECODE_CHUNK, pixels)
+    f = np.float32
+    z, scratch, h = np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f)
+    zeros = np.zeros((size, HIDDEN), f)
+    w1t, w2t, w3t = w1.T, w2.T, w3.T
+    b1, b2, b3 = b1.reshape(-1), b2.reshape(-1), b3.reshape(-1)
+    for q in range(len(directions)):
+        for start in range(0, pixels, size):
+            stop = min(start + size, pixels)
+            k = stop - start
+            zk, sk, hk, ok = z[:k], scratch[:k], h[:k], zeros[:k]
+            np.add(code_part[start:stop], light_part[q], out=zk)
+            _elu(zk, hk, sk, ok)
+            np.matmul(hk, w1t, out=zk)
+            zk += b1
+            _elu(zk, hk, sk, ok)
+            np.matmul(hk, w2t, out=zk)
+            zk += b2
+            _elu(zk, hk, sk, ok)
+            np.matmul(hk, w3t, out=out[q, start:stop])
+            out[q, start:stop] += b3
+    return out
