@@ -43,24 +43,21 @@ def test_gradients_match_central_differences():
     rng = np.random.default_rng(3)
     samples = rng.choice(5 * 40, 40, replace=False)
     params = cpu_training._Parameters(model)
-    batch = cpu_training._Batch(128, 40, params.flat.size - params.codes.size, threads=2)
+    batch = cpu_training._Batch(128, 40, params.flat.size - params.codes.size, threads=2)  # two workers' sums
     loss = batch.step(samples, params, directions, targets.reshape(-1, 3))
-    got = params.model()
-    gradient = cpu_training._Parameters(neural.NeuralDecoder(params.g_codes.copy(), [
-        params.g_w0[:, :12], params.g_w0[:, 12:], params.g_w1, params.g_b1.reshape(-1, 1), params.g_w2,
-        params.g_b2.reshape(-1, 1), params.g_w3, params.g_b3.reshape(-1, 1)])).model()
+    np.testing.assert_array_equal(params.codes, model.codes)  # a step computes, Adam moves
+    grads = [params.g_codes, params.g_w0[:, :12], params.g_w0[:, 12:], params.g_w1, params.g_b1.reshape(-1, 1),
+             params.g_w2, params.g_b2.reshape(-1, 1), params.g_w3, params.g_b3.reshape(-1, 1)]
     lights, pixels = np.divmod(samples, 40)
     want_values = [model.codes.astype(np.float64)] + [w.astype(np.float64) for w in model.weights]
-    np.testing.assert_array_equal(got.codes, model.codes)
 
     def mse(values):
         decoded = reference.neural_decoder(values[0], values[1:], directions)[lights, pixels]
         return np.mean(np.sum((decoded - targets[lights, pixels]) ** 2, axis=-1))
 
     assert loss == pytest.approx(mse(want_values), rel=1e-5)
-    grads = [gradient.codes] + gradient.weights
     unsampled = np.setdiff1d(np.arange(40), pixels)
-    assert len(unsampled) and np.all(gradient.codes[unsampled] == 0.0)
+    assert len(unsampled) and np.all(params.g_codes[unsampled] == 0.0)
     repeated = np.flatnonzero(np.bincount(pixels, minlength=40) > 1)
     for which, value in enumerate(want_values):
         picks = [tuple(rng.integers(0, s) for s in value.shape) for _ in range(4)]
@@ -105,6 +102,14 @@ def test_decode_matches_the_reference_and_warp(monkeypatch):
     np.testing.assert_allclose(got, reference.neural_decoder(model.codes, model.weights, directions), atol=2e-5,
                                rtol=1e-4)
     np.testing.assert_allclose(got, neural.decode(model, directions, device="cpu"), atol=2e-5, rtol=1e-4)
+    # the code part computed per chunk (a large image) gives the same values; one direction into ``out``
+    monkeypatch.setattr(cpu_training, "CODE_PART_BYTES", 0)
+    decoder = cpu_training.CpuDecoder(model.codes, model.weights)
+    assert decoder.code_part is None
+    np.testing.assert_allclose(decoder.decode(directions), got, rtol=1e-6, atol=1e-6)
+    out = np.full((1, 150, 3), np.nan, np.float32)
+    assert decoder.decode(directions[2], out=out) is out
+    np.testing.assert_allclose(out[0], got[2], rtol=1e-6, atol=1e-6)
 
 
 def test_one_epoch_matches_warp_training():
@@ -156,9 +161,11 @@ def test_unused_lights_are_never_read():
 
 def test_seconds_stop_training_and_bad_arguments_raise():
     directions, targets = _problem(lights=3, pixels=30)
-    _, history = train_decoder_cpu(targets, directions, epochs=50, batch=16, seconds=0.0)
+    _, history = train_decoder_cpu(targets, directions, device="cpu", epochs=50, batch=16, seconds=0.0)
     assert len(history) == 1
     with pytest.raises(ValueError, match="used"):
         train_decoder_cpu(targets, directions, used=np.array([3]))
+    with pytest.raises(ValueError, match="on the CPU"):
+        train_decoder_cpu(targets, directions, device="cuda:0")
     with pytest.raises(ValueError, match="initial codes"):
         train_decoder_cpu(targets, directions, initial=neural.initial_model(targets[:, :20]))

@@ -1,10 +1,11 @@
 """The learned residual (``kernels.neural``'s model) trained and decoded on the CPU in NumPy float32.
 
 The forward and backward passes are written out as matrix products over a batch of (light, pixel)
-samples, rows = samples, so that the BLAS library spreads them over every core; the element-wise
-steps run in place in buffers allocated once. ``train_decoder_cpu`` has the arguments, the loss,
-the Adam steps and the schedule of ``kernels.neural.train_decoder``; ``decode_cpu`` decodes a
-learned residual for query directions, the first layer's code part computed once per pixel.
+samples (rows), the rows split among one thread per core, each with BLAS on one thread
+(``blas_on_one_thread``), the element-wise steps in place in buffers allocated once.
+``train_decoder_cpu`` has the arguments, the loss, the Adam steps and the schedule of
+``kernels.neural.train_decoder``; ``CpuDecoder`` and ``decode_cpu`` decode a learned residual at query
+directions, the first layer's code part computed once per pixel for every direction.
 """
 
 from __future__ import annotations
@@ -15,23 +16,27 @@ from contextlib import contextmanager
 import numpy as np
 
 try:
-    from threadpoolctl import threadpool_limits
+    import threadpoolctl
 except ImportError:  # BLAS threads its own products
-    threadpool_limits = None
+    threadpoolctl = None
 
 from ..kernels.neural import NeuralDecoder, initial_model, samples_fit
 from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 from ..model.threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["BATCH_CPU", "decode_cpu", "train_decoder_cpu"]
+__all__ = ["BATCH_CPU", "CpuDecoder", "blas_on_one_thread", "decode_cpu", "train_decoder_cpu"]
 
 CODE = NEURAL_CODE_SIZE
 HIDDEN = NEURAL_LAYER_SHAPES[0][0]
 INPUTS = NEURAL_LAYER_SHAPES[0][1]  # code + light direction
-BATCH_CPU = 1 << 13
-"""Samples per Adam step of ``train_decoder_cpu`` (``benchmarks/bench_cpu_learned.py``)."""
-DECODE_CHUNK = 1 << 13
-"""Pixels ``decode_cpu`` decodes at a time (its buffers stay in the cache)."""
+BATCH_CPU = 1 << 12
+"""Samples per Adam step of ``train_decoder_cpu``: on 2 cores, 180 s of the images learned alone gave the statue
+34.5 dB at 2,048 and 4,096 and 33.3 at 8,192 (fewer steps), the dome 48.7 dB at 2,048 and 4,096; 4,096 trains
+1.4x as many samples a second as 2,048 (``benchmarks/bench_cpu_learned.py``)."""
+DECODE_CHUNK = 1 << 12
+"""Pixels ``CpuDecoder`` decodes at a time (a thread's buffers stay in its cache)."""
+CODE_PART_BYTES = 1 << 28
+"""``CpuDecoder`` keeps the first layer's code part of every pixel up to this size (256 MiB: 1.4 megapixels)."""
 _BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8  # warp.optim.Adam's defaults, as kernels.neural uses it
 
 
@@ -78,9 +83,9 @@ class _Adam:
     def step(self, params: np.ndarray, grad: np.ndarray, lr: float) -> None:
         """params -= lr m^ / (sqrt(v^) + eps) after m, v take in ``grad``, in place."""
         self.t += 1
-        # sqrt(v / c2) + eps = sqrt(v) / sqrt(c2) + eps; m / c1 folded into the step
-        root = np.float32(1.0 / np.sqrt(1.0 - _BETA2**self.t))
-        rate = np.float32(lr / (1.0 - _BETA1**self.t))
+        # lr m^ / (sqrt(v^) + eps) = (lr sqrt(c2) / c1) m / (sqrt(v) + eps sqrt(c2)), c = 1 - beta^t
+        root = np.sqrt(1.0 - _BETA2**self.t)
+        rate, eps = np.float32(lr * root / (1.0 - _BETA1**self.t)), np.float32(_EPS * root)
 
         def part(i: int) -> None:
             a, b = self.bounds[i], self.bounds[i + 1]
@@ -93,13 +98,15 @@ class _Adam:
             v *= np.float32(_BETA2)
             v += s
             np.sqrt(v, out=s)
-            s *= root
-            s += np.float32(_EPS)
+            s += eps
             np.divide(m, s, out=s)
             s *= rate
             params[a:b] -= s
 
         parallel_map(part, range(len(self.bounds) - 1))
+
+
+_CONTROLLER = None
 
 
 @contextmanager
@@ -108,26 +115,23 @@ def blas_on_one_thread():
     library held to one thread each meanwhile (threadpoolctl); 1 where threadpoolctl is missing, BLAS left
     to thread its own products. A BLAS library threading its products stalls for milliseconds at a time
     when another process takes a core (ten times slower on a busy 2-core machine), one thread each does not."""
-    if threadpool_limits is None or NUMPY_THREADS == 1:
+    global _CONTROLLER
+    if threadpoolctl is None or NUMPY_THREADS == 1:
         yield 1
         return
-    with threadpool_limits(limits=1, user_api="blas"):
+    if _CONTROLLER is None:  # finds the BLAS libraries loaded (milliseconds): once
+        _CONTROLLER = threadpoolctl.ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
         yield NUMPY_THREADS
 
 
-def _elu(z: np.ndarray, out: np.ndarray, scratch: np.ndarray, zeros: np.ndarray) -> None:
-    """out = elu(z) = max(z, exp(min(z, 0)) - 1), element-wise (as kernels.neural.elu)."""
-    np.minimum(z, zeros, out=scratch)
-    np.exp(scratch, out=scratch)
-    scratch -= np.float32(1.0)
-    np.maximum(z, scratch, out=out)
-
-
-def _elu_backward(h: np.ndarray, grad: np.ndarray, scratch: np.ndarray, zeros: np.ndarray) -> None:
-    """grad *= elu'(z) from the output h = elu(z): 1 where h > 0, else h + 1."""
-    np.minimum(h, zeros, out=scratch)
-    scratch += np.float32(1.0)
-    grad *= scratch
+def _elu(z: np.ndarray, out: np.ndarray, slope: np.ndarray, zeros: np.ndarray) -> None:
+    """out = elu(z) = max(z, exp(min(z, 0)) - 1) (as kernels.neural.elu) and slope = elu'(z) = exp(min(z, 0)),
+    element-wise."""
+    np.minimum(z, zeros, out=slope)
+    np.exp(slope, out=slope)
+    np.subtract(slope, np.float32(1.0), out=out)
+    np.maximum(z, out, out=out)
 
 
 class _Worker:
@@ -142,7 +146,7 @@ class _Worker:
         self.h = [np.empty((size, HIDDEN), f) for _ in range(3)]
         self.grad = np.empty((size, HIDDEN), f)
         self.grad_in = np.empty((size, HIDDEN), f)
-        self.scratch = np.empty((size, HIDDEN), f)
+        self.slope = [np.empty((size, HIDDEN), f) for _ in range(3)]
         self.zeros = np.zeros((size, HIDDEN), f)
         self.ones = np.ones(size, f)
         self.y = np.empty((size, 3), f)
@@ -158,8 +162,8 @@ class _Worker:
         times it: the weights' into ``weight_grad``, each sample's code row into ``code_grad`` and its
         place in the flat codes (pixel * CODE + k) into ``slots``."""
         n = len(samples)
-        x, z, scratch, zeros = self.x[:n], self.z[:n], self.scratch[:n], self.zeros[:n]
-        h = [a[:n] for a in self.h]
+        x, z, zeros = self.x[:n], self.z[:n], self.zeros[:n]
+        h, slope = [a[:n] for a in self.h], [a[:n] for a in self.slope]
         light, pixel = self.light[:n], self.pixel[:n]
         np.divmod(samples, self.pixels, out=(light, pixel))
         np.take(p.codes, pixel, axis=0, out=x[:, :CODE], mode="clip")
@@ -167,11 +171,11 @@ class _Worker:
         np.take(targets, samples, axis=0, out=self.target[:n], mode="clip")
         # forward
         np.matmul(x, p.w0.T, out=z)
-        _elu(z, h[0], scratch, zeros)
-        for w, b, before, after in ((p.w1, p.b1, h[0], h[1]), (p.w2, p.b2, h[1], h[2])):
-            np.matmul(before, w.T, out=z)
+        _elu(z, h[0], slope[0], zeros)
+        for k, (w, b) in enumerate(((p.w1, p.b1), (p.w2, p.b2))):
+            np.matmul(h[k], w.T, out=z)
             z += b
-            _elu(z, after, scratch, zeros)
+            _elu(z, h[k + 1], slope[k + 1], zeros)
         error = self.y[:n]
         np.matmul(h[2], p.w3.T, out=error)
         error += p.b3
@@ -186,13 +190,13 @@ class _Worker:
         np.matmul(ones, error, out=g_b3)
         grad, grad_in = self.grad[:n], self.grad_in[:n]
         np.matmul(error, p.w3, out=grad)
-        for w, g_w, g_b, out, before in ((p.w2, g_w2, g_b2, h[2], h[1]), (p.w1, g_w1, g_b1, h[1], h[0])):
-            _elu_backward(out, grad, scratch, zeros)
-            np.matmul(grad.T, before, out=g_w)
+        for k, (w, g_w, g_b) in ((2, (p.w2, g_w2, g_b2)), (1, (p.w1, g_w1, g_b1))):
+            grad *= slope[k]
+            np.matmul(grad.T, h[k - 1], out=g_w)
             np.matmul(ones, grad, out=g_b)
             np.matmul(grad, w, out=grad_in)
             grad, grad_in = grad_in, grad
-        _elu_backward(h[0], grad, scratch, zeros)
+        grad *= slope[0]
         np.matmul(grad.T, x, out=g_w0)
         np.matmul(grad, p.w0[:, :CODE], out=code_grad)
         np.multiply(pixel[:, None], CODE, out=slots)
@@ -236,22 +240,25 @@ class _Batch:
         np.copyto(weights, self.workers[0].weight_grad)
         for worker in self.workers[1 : len(bounds) - 1]:
             weights += worker.weight_grad
-        # the codes' gradient: every sample's row added to its pixel's (one bincount over pixel x CODE slots)
-        p.g_codes.reshape(-1)[:] = np.bincount(self.slots[:n].reshape(-1), weights=self.code_grad[:n].reshape(-1),
-                                               minlength=p.g_codes.size)
+        # the codes' gradient: every sample's row added to its pixel's (pixel x CODE slots of the flat codes)
+        p.g_codes.fill(0.0)
+        np.add.at(p.g_codes.reshape(-1), self.slots[:n].reshape(-1), self.code_grad[:n].reshape(-1))
         return squared / n
 
 
-def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, epochs: int = 40, batch: int = BATCH_CPU,
-                      lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
-                      used: np.ndarray | None = None,
+def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40,
+                      batch: int = BATCH_CPU, lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0,
+                      seconds: float | None = None, log=None, used: np.ndarray | None = None,
                       initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
     """``kernels.neural.train_decoder`` on the CPU in NumPy: fit codes and weights to (n, P, 3) display-unit
     targets at (n, 3) lights by Adam on the mean squared error over shuffled (light, pixel) samples, ``batch``
     a step, the learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until
     ``seconds`` have passed since the first step). ``used``: the lights to learn from (default all; the
     others' targets are never read); ``initial``: a model to go on training (default ``initial_model`` of
-    the used lights' targets). Returns the model and the mean loss of each epoch."""
+    the used lights' targets); ``device``: None or the CPU (as ``train_decoder`` takes it). Returns the model and
+    the mean loss of each epoch."""
+    if device is not None and str(device) != "cpu":
+        raise ValueError(f"train_decoder_cpu trains on the CPU, not on {device}")
     targets = np.ascontiguousarray(targets, np.float32)
     n, pixels, _ = targets.shape
     if not samples_fit(n, pixels):
@@ -293,36 +300,66 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, epochs: int = 
     return params.model(), history
 
 
+class CpuDecoder:
+    """A learned residual decoded on the CPU for query directions: the first layer's code part
+    (P, HIDDEN) computed once for every pixel (once per call and chunk of pixels where it would pass
+    ``CODE_PART_BYTES``), the pixels decoded in chunks of ``DECODE_CHUNK`` spread over the threads.
+
+    Args:
+        codes: (P, CODE) float32 per pixel; weights: the eight arrays (``NEURAL_LAYER_SHAPES``).
+    """
+
+    def __init__(self, codes: np.ndarray, weights):
+        self.codes = np.ascontiguousarray(np.asarray(codes, np.float32).reshape(-1, CODE))
+        w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in weights)
+        self.code_weights = np.ascontiguousarray(w0[:, :CODE].T)
+        self.light_weights, self.b0 = w0[:, CODE:].T.astype(np.float32), b0.reshape(-1)
+        self.layers = [(np.ascontiguousarray(w.T), b.reshape(-1)) for w, b in ((w1, b1), (w2, b2), (w3, b3))]
+        self.code_part = None
+        if self.codes.nbytes // CODE * HIDDEN <= CODE_PART_BYTES:
+            with blas_on_one_thread():
+                self.code_part = self.codes @ self.code_weights
+
+    def decode(self, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """(Q, 3) unit directions -> (Q, P, 3) float32 display units (into ``out`` when given)."""
+        directions = np.asarray(directions, np.float32).reshape(-1, 3)
+        pixels = len(self.codes)
+        if out is None:
+            out = np.empty((len(directions), pixels, 3), np.float32)
+        light_part = directions @ self.light_weights + self.b0  # (Q, HIDDEN): each direction's part and the bias
+        size = min(DECODE_CHUNK, pixels)
+        chunks = [slice(start, min(start + size, pixels)) for start in range(0, pixels, size)]
+        with blas_on_one_thread() as threads:
+            groups = [chunks[i::threads] for i in range(min(threads, len(chunks)))]
+            parallel_map(lambda group: self._decode_chunks(group, size, light_part, out), groups)
+        return out
+
+    def _decode_chunks(self, chunks: list[slice], size: int, light_part: np.ndarray, out: np.ndarray) -> None:
+        f = np.float32
+        z, slope, h, zeros = (np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f),
+                              np.zeros((size, HIDDEN), f))
+        own_part = np.empty((size, HIDDEN), f) if self.code_part is None else None
+        for rows in chunks:
+            k = rows.stop - rows.start
+            zk, sk, hk, ok = z[:k], slope[:k], h[:k], zeros[:k]
+            if own_part is None:
+                codes = self.code_part[rows]
+            else:  # the code part of these pixels, once for every direction
+                codes = own_part[:k]
+                np.matmul(self.codes[rows], self.code_weights, out=codes)
+            for q in range(len(light_part)):
+                np.add(codes, light_part[q], out=zk)
+                _elu(zk, hk, sk, ok)
+                for w, b in self.layers[:2]:
+                    np.matmul(hk, w, out=zk)
+                    zk += b
+                    _elu(zk, hk, sk, ok)
+                w, b = self.layers[2]
+                np.matmul(hk, w, out=out[q, rows])
+                out[q, rows] += b
+
+
 def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray) -> np.ndarray:
     """(Q, P, 3) float32 display-unit values of a learned residual with (P, CODE) codes and its eight weight
-    arrays at (Q, 3) unit directions; the first layer's code part is computed once per pixel."""
-    codes = np.asarray(codes, np.float32).reshape(-1, CODE)
-    w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in weights)
-    directions = np.asarray(directions, np.float32).reshape(-1, 3)
-    pixels = len(codes)
-    out = np.empty((len(directions), pixels, 3), np.float32)
-    code_part = codes @ w0[:, :CODE].T  # (P, HIDDEN)
-    # per direction: its light part and the bias, one row
-    light_part = directions @ w0[:, CODE:].T + b0.reshape(1, -1)
-    size = min(DECODE_CHUNK, pixels)
-    f = np.float32
-    z, scratch, h = np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f)
-    zeros = np.zeros((size, HIDDEN), f)
-    w1t, w2t, w3t = w1.T, w2.T, w3.T
-    b1, b2, b3 = b1.reshape(-1), b2.reshape(-1), b3.reshape(-1)
-    for q in range(len(directions)):
-        for start in range(0, pixels, size):
-            stop = min(start + size, pixels)
-            k = stop - start
-            zk, sk, hk, ok = z[:k], scratch[:k], h[:k], zeros[:k]
-            np.add(code_part[start:stop], light_part[q], out=zk)
-            _elu(zk, hk, sk, ok)
-            np.matmul(hk, w1t, out=zk)
-            zk += b1
-            _elu(zk, hk, sk, ok)
-            np.matmul(hk, w2t, out=zk)
-            zk += b2
-            _elu(zk, hk, sk, ok)
-            np.matmul(hk, w3t, out=out[q, start:stop])
-            out[q, start:stop] += b3
-    return out
+    arrays at (Q, 3) unit directions (``CpuDecoder``)."""
+    return CpuDecoder(codes, weights).decode(directions)
