@@ -2,11 +2,12 @@
 kernels (``kernels.neural``), and the images learned alone at held-out lights.
 
     python benchmarks/bench_cpu_learned.py                        # speed, then the dome and the statue, 180 s each
-    python benchmarks/bench_cpu_learned.py --cases synth --seconds 60 --batches 8192,32768
+    python benchmarks/bench_cpu_learned.py --cases synth --seconds 60 --batches 2048,8192
 
 Speed: (light, pixel) samples a second of a few seconds of training on dome-sized targets (49 lights of 160 x
 160) by ``train_decoder_cpu`` and by ``kernels.neural.train_decoder`` on Warp's CPU device (its kernels
-compiled first), and milliseconds to decode one 480 x 270 image (``decode_cpu``, best of a few).
+compiled first), and milliseconds to decode one 480 x 270 image (``CpuDecoder``, ``CpuQueryDecoder``,
+``decode_cpu``: best and median of 9).
 Quality: the captured images learned alone (NeuralRTI: the residual is the image, no Gaussians), as
 ``fit --residual learned`` learns them (``residual.learned.learn_residual``, its ``train_decoder`` the NumPy
 one), the epochs those samples a second fit in ``--seconds`` (``--seconds`` the limit too), scored in
@@ -44,6 +45,7 @@ from warp_highlights.residual import learned as learned_module  # noqa: E402
 from warp_highlights.residual.cpu_training import (  # noqa: E402
     BATCH_CPU,
     CpuDecoder,
+    CpuQueryDecoder,
     decode_cpu,
     train_decoder_cpu,
 )
@@ -99,7 +101,12 @@ def speed(batches: list[int], seconds: float) -> tuple[dict, list[str]]:
     model = neural.initial_model(targets[:, :1000])
     codes = np.random.default_rng(1).normal(size=(480 * 270, 9)).astype(np.float32)
     decoder = CpuDecoder(codes, model.weights)
-    for label, decode in (("CpuDecoder.decode (code part kept)", lambda: decoder.decode(lights[:1])),
+    query = CpuQueryDecoder(codes, model.weights, 1.0)
+    half = np.empty((1, len(codes), 3), np.float16)
+    for label, decode in (("CpuDecoder.decode (code part kept), float32 display units",
+                           lambda: decoder.decode(lights[:1])),
+                          ("CpuQueryDecoder.decode (the relighter's), float16 field units",
+                           lambda: query.decode(lights[:1], half)),
                           ("decode_cpu (code part computed too)", lambda: decode_cpu(codes, model.weights,
                                                                                       lights[:1]))):
         times = []
@@ -150,7 +157,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", default="synth,statue")
     parser.add_argument("--seconds", type=float, default=180.0, help="training time per learned model")
-    parser.add_argument("--batches", default=f"{BATCH_CPU}", help="NumPy batch sizes to measure and learn with")
+    parser.add_argument("--batches", default=f"{BATCH_CPU}", help="NumPy batch sizes to learn the cases with")
+    parser.add_argument("--speed-batches", default="2048,4096,8192,16384", help="NumPy batch sizes to time too")
     parser.add_argument("--epochs", type=int, default=None,
                         help="the schedule's epochs (default: those the measured rate fits in --seconds)")
     parser.add_argument("--speed-seconds", type=float, default=4.0, help="training time of each speed figure")
@@ -166,7 +174,8 @@ def main() -> None:
               f"({NUMPY_THREADS} NumPy threads), {datetime.datetime.now():%Y-%m-%d %H:%M}, commit {commit}, "
               f"numpy {np.__version__}")
     print(header, flush=True)
-    rates, rows = ({b: args.rate for b in batches}, []) if args.no_speed else speed(batches, args.speed_seconds)
+    timed = sorted(set(batches) | {int(b) for b in args.speed_batches.split(",") if b.strip()})
+    rates, rows = ({b: args.rate for b in batches}, []) if args.no_speed else speed(timed, args.speed_seconds)
     if rows:
         print("\n| what | figure | load |\n|---|---|---|\n" + "\n".join(rows), flush=True)
     _route_training()

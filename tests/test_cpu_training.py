@@ -169,3 +169,23 @@ def test_seconds_stop_training_and_bad_arguments_raise():
         train_decoder_cpu(targets, directions, device="cuda:0")
     with pytest.raises(ValueError, match="initial codes"):
         train_decoder_cpu(targets, directions, initial=neural.initial_model(targets[:, :20]))
+
+
+def test_query_decoder_stores_field_units_as_warps():
+    """CpuQueryDecoder into Warp CPU arrays: float16 field units as kernels.neural.QueryDecoder stores them."""
+    import warp as wp
+
+    directions, targets = _problem(lights=3, pixels=200)
+    model = neural.initial_model(targets, seed=4)
+    model.codes[:] *= 4.0
+    queries = wp.array(directions, dtype=wp.vec3, device="cpu")
+    got = wp.zeros((3, 200, 3), dtype=wp.float16, device="cpu")
+    cpu_training.CpuQueryDecoder(model.codes, model.weights, 2.5, device="cpu").decode(queries, got)
+    want = wp.zeros((3, 200, 3), dtype=wp.float16, device="cpu")
+    neural.QueryDecoder(model.codes, model.weights, 2.5, device="cpu").decode(queries, want)
+    got, want = got.numpy().astype(np.float32), want.numpy().astype(np.float32)
+    np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-4)
+    values = reference.neural_decoder(model.codes, model.weights, directions)
+    assert np.any(values < 0) and np.any(np.abs(values) < 0.04045) and np.any(values > 0.04045)  # every branch
+    linear = np.where(np.abs(values) > 0.04045, ((np.abs(values) + 0.055) / 1.055) ** 2.4, np.abs(values) / 12.92)
+    np.testing.assert_allclose(got, np.sign(values) * linear * 2.5, rtol=2e-3, atol=1e-4)

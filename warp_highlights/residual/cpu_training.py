@@ -24,7 +24,7 @@ from ..kernels.neural import NeuralDecoder, initial_model, samples_fit
 from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 from ..model.threads import NUMPY_THREADS, parallel_map
 
-__all__ = ["BATCH_CPU", "CpuDecoder", "blas_on_one_thread", "decode_cpu", "train_decoder_cpu"]
+__all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "blas_on_one_thread", "decode_cpu", "train_decoder_cpu"]
 
 CODE = NEURAL_CODE_SIZE
 HIDDEN = NEURAL_LAYER_SHAPES[0][0]
@@ -320,25 +320,30 @@ class CpuDecoder:
             with blas_on_one_thread():
                 self.code_part = self.codes @ self.code_weights
 
-    def decode(self, directions: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """(Q, 3) unit directions -> (Q, P, 3) float32 display units (into ``out`` when given)."""
+    def decode(self, directions: np.ndarray, out: np.ndarray | None = None, unit: float | None = None) -> np.ndarray:
+        """(Q, 3) unit directions -> (Q, P, 3) float32 display units, or with ``unit`` (field units per display
+        unit) float16 field units as ``kernels.neural.store_decoded`` stores them; into ``out`` when given."""
         directions = np.asarray(directions, np.float32).reshape(-1, 3)
         pixels = len(self.codes)
         if out is None:
-            out = np.empty((len(directions), pixels, 3), np.float32)
+            out = np.empty((len(directions), pixels, 3), np.float32 if unit is None else np.float16)
+        if out.shape != (len(directions), pixels, 3):
+            raise ValueError(f"out has shape {out.shape}, not {(len(directions), pixels, 3)}")
         light_part = directions @ self.light_weights + self.b0  # (Q, HIDDEN): each direction's part and the bias
         size = min(DECODE_CHUNK, pixels)
         chunks = [slice(start, min(start + size, pixels)) for start in range(0, pixels, size)]
         with blas_on_one_thread() as threads:
             groups = [chunks[i::threads] for i in range(min(threads, len(chunks)))]
-            parallel_map(lambda group: self._decode_chunks(group, size, light_part, out), groups)
+            parallel_map(lambda group: self._decode_chunks(group, size, light_part, out, unit), groups)
         return out
 
-    def _decode_chunks(self, chunks: list[slice], size: int, light_part: np.ndarray, out: np.ndarray) -> None:
+    def _decode_chunks(self, chunks: list[slice], size: int, light_part: np.ndarray, out: np.ndarray,
+                       unit: float | None) -> None:
         f = np.float32
         z, slope, h, zeros = (np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f),
                               np.zeros((size, HIDDEN), f))
         own_part = np.empty((size, HIDDEN), f) if self.code_part is None else None
+        y = np.empty((size, 3), f) if unit is not None else None
         for rows in chunks:
             k = rows.stop - rows.start
             zk, sk, hk, ok = z[:k], slope[:k], h[:k], zeros[:k]
@@ -355,8 +360,53 @@ class CpuDecoder:
                     zk += b
                     _elu(zk, hk, sk, ok)
                 w, b = self.layers[2]
-                np.matmul(hk, w, out=out[q, rows])
-                out[q, rows] += b
+                values = out[q, rows] if unit is None else y[:k]
+                np.matmul(hk, w, out=values)
+                values += b
+                if unit is not None:
+                    _store_field_units(values, unit, sk[:, :3], out[q, rows])
+
+
+def _store_field_units(values: np.ndarray, unit: float, scratch: np.ndarray, out: np.ndarray) -> None:
+    """out = unit sign(v) srgb^-1(|v|) of the display-unit values v, clipped to float16's range (as
+    ``kernels.neural.store_decoded``); ``values`` and ``scratch`` are overwritten."""
+    negative = values < 0.0
+    np.abs(values, out=scratch)
+    low = scratch <= np.float32(0.04045)
+    np.add(scratch, np.float32(0.055), out=values)
+    values *= np.float32(1.0 / 1.055)
+    np.power(values, np.float32(2.4), out=values)
+    scratch *= np.float32(1.0 / 12.92)
+    np.copyto(values, scratch, where=low)
+    values *= np.float32(unit)
+    np.negative(values, out=values, where=negative)
+    np.clip(values, np.float32(-6.0e4), np.float32(6.0e4), out=values)
+    np.copyto(out, values, casting="same_kind")
+
+
+class CpuQueryDecoder:
+    """``kernels.neural.QueryDecoder``'s interface on the CPU (``CpuDecoder``): the relighter's learned residual.
+
+    Args:
+        codes: (P, CODE) float32 per output pixel; weights: the eight arrays; unit: field units per display
+        unit; device, batch: accepted as ``QueryDecoder`` takes them (the CPU; chunks of ``DECODE_CHUNK``).
+    """
+
+    def __init__(self, codes: np.ndarray, weights, unit: float, *, device=None, batch: int | None = None):
+        if device is not None and str(device) != "cpu":
+            raise ValueError(f"CpuQueryDecoder decodes on the CPU, not on {device}")
+        self.decoder = CpuDecoder(codes, weights)
+        self.pixels = len(self.decoder.codes)
+        self.unit = float(unit)
+
+    def decode(self, directions, out) -> None:
+        """(Q,) vec3 unit directions -> out (Q, P, 3) float16, field units (Warp CPU arrays or NumPy arrays)."""
+        self.decoder.decode(_host(directions), out=_host(out), unit=self.unit)
+
+
+def _host(array) -> np.ndarray:
+    """A NumPy view of a Warp CPU array (its memory), or the NumPy array itself."""
+    return array if isinstance(array, np.ndarray) else array.numpy()
 
 
 def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray) -> np.ndarray:
