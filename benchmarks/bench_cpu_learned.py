@@ -5,7 +5,7 @@ kernels (``kernels.neural``), and the images learned alone at held-out lights.
     python benchmarks/bench_cpu_learned.py --cases synth --seconds 60 --batches 2048,8192
 
 Speed: (light, pixel) samples a second of a few seconds of training on dome-sized targets (49 lights of 160 x
-160) by ``train_decoder_cpu`` and by ``kernels.neural.train_decoder`` on Warp's CPU device (its kernels
+160) by ``train_decoder_cpu`` and by ``kernels.neural_training.train_decoder`` on Warp's CPU device (its kernels
 compiled first), and milliseconds to decode one 480 x 270 image (``CpuDecoder``, ``CpuQueryDecoder``,
 ``decode_cpu``: best and median of 9).
 Quality: the captured images learned alone (NeuralRTI: the residual is the image, no Gaussians), as
@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_quality import SIZES, load_case  # noqa: E402
 
-from warp_highlights.kernels import neural  # noqa: E402
+from warp_highlights.kernels import neural, neural_training  # noqa: E402
 from warp_highlights.model.config import LEARNED_BATCH_CPU, ResidualSettings  # noqa: E402
 from warp_highlights.model.threads import NUMPY_THREADS  # noqa: E402
 from warp_highlights.quality.metrics import srgb_scores  # noqa: E402
@@ -88,11 +88,11 @@ def speed(batches: list[int], seconds: float) -> tuple[dict, list[str]]:
     targets, lights = dome_problem()
     rows, rates = [], {}
     started = time.perf_counter()
-    warp_cpu = lambda t, l, **k: neural.train_decoder(t, l, device="cpu", **k)  # noqa: E731
+    warp_cpu = lambda t, l, **k: neural_training.train_decoder(t, l, device="cpu", **k)  # noqa: E731
     warp_cpu(targets[:2, :128], lights[:2], epochs=1, batch=64)  # compile
     # Warp's CPU kernels run one thread: 6 of the lights (an epoch in seconds), every pixel (Adam steps them all)
     rate = training_rate(warp_cpu, targets[:6], lights[:6], seconds, LEARNED_BATCH_CPU)
-    rows.append(f"| train, kernels.neural.train_decoder (Warp, CPU), batch {LEARNED_BATCH_CPU} | "
+    rows.append(f"| train, kernels.neural_training.train_decoder (Warp, CPU), batch {LEARNED_BATCH_CPU} | "
                 f"{rate / 1e3:.1f} k samples/s | {load()} |")
     for batch in batches:
         rates[batch] = training_rate(train_decoder_cpu, targets, lights, seconds, batch)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import reference
-from warp_highlights.kernels import neural
+from warp_highlights.kernels import neural, neural_training
 from warp_highlights.residual import cpu_training
 from warp_highlights.residual.cpu_training import decode_cpu, train_decoder_cpu
 from warp_highlights.residual.opponent import encode_display
@@ -113,13 +113,13 @@ def test_decode_matches_the_reference_and_warp(monkeypatch):
 
 
 def test_one_epoch_matches_warp_training():
-    """The same seed shuffles the samples alike: one epoch of four steps, the last one short, ends where
-    kernels.neural.train_decoder (Warp, CPU) ends, within float32 rounding."""
-    directions, targets = _problem(seed=6, lights=5, pixels=60)
-    used = np.array([0, 2, 3, 4])
-    kwargs = {"epochs": 1, "batch": 64, "lr": 1e-2, "seed": 7, "used": used}
+    """One epoch of one full-batch step (every used sample once, in any order) ends where the device's fused step
+    (``kernels.neural_training.train_decoder`` on Warp's CPU) ends, within float32 rounding."""
+    directions, targets = _problem(seed=6, lights=5, pixels=128)
+    used = np.array([0, 2, 3, 4])  # 512 samples: one step of the device's 512-sample unit
+    kwargs = {"epochs": 1, "batch": 512, "lr": 1e-2, "seed": 7, "used": used}
     model, history = train_decoder_cpu(targets, directions, **kwargs)
-    want, want_history = neural.train_decoder(targets, directions, device="cpu", **kwargs)
+    want, want_history = neural_training.train_decoder(targets, directions, device="cpu", **kwargs)
     assert history[0] == pytest.approx(want_history[0], rel=1e-5)
     np.testing.assert_allclose(model.codes, want.codes, atol=1e-5)
     for got, expected in zip(model.weights, want.weights):

@@ -46,16 +46,13 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="print every hyper-parameter with its default and exit (no DATASET or -o needed)")
     parser.add_argument("--residual", choices=list(RESIDUAL_KINDS), default=None,
                         help="what relighting adds the moved highlights to (the images minus their own "
-                             "highlights), the setting "
-                        "residual.kind: lowrank (low-rank 8- or 16-bit bases, about a quarter of the 8-bit capture; "
-                        "seconds), learned "
-                        "(9 numbers per pixel and an MLP, trained for up to residual.learned_seconds, twice where "
-                        "a check decides "
-                        "whether it keeps the moving Gaussians or learns the images alone; minutes, for a GPU), "
-                        "images (uncompressed "
-                        "float16, exact at the captured lights), none (then use --diffuse), or auto (default: learned "
-                        "on CUDA, lowrank "
-                        "elsewhere)")
+                             "highlights), the setting residual.kind: lowrank (low-rank 8- or 16-bit bases, about a "
+                             "quarter of the 8-bit capture; seconds), learned (9 numbers per pixel and an MLP, "
+                             "trained for up to residual.learned_epochs or learned_seconds: about 10 s on a GPU, 2 "
+                             "minutes on a CPU; where the Gaussians move, a check decides whether it keeps them or "
+                             "learns the images alone), images (uncompressed float16, exact at the captured "
+                             "lights), none (then use --diffuse), or auto (default: learned on CUDA, lowrank "
+                             "elsewhere and for one-channel captures)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images "
                              "(images), or not (default none)")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -56,16 +55,12 @@ def _run_maps(args) -> int:
     from ..io.fieldfile import load_field
     from ..io.images import write_image
     from ..relight.maps import surface_maps
-    from .relight import learned_on_cpu_note
 
     output = Path(args.output)
     check_output_folder(output, overwrite=args.overwrite, legacy=_maps_folder_entry, kind="surface maps",
                         inputs=[args.field])
     field = load_field(args.field)
     device = check_device(args.device)
-    note = learned_on_cpu_note(field, device)
-    if note:
-        logging.getLogger(__name__).info(note)
     with tqdm(total=field.light_count, unit="light", desc="maps", disable=args.quiet, leave=False) as bar:
         maps = surface_maps(field, device=device, flatten=args.flatten, progress=lambda done: bar.update(done - bar.n))
     colour = maps.highlight_colour

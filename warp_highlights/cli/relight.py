@@ -145,16 +145,6 @@ def check_same_capture(args, field, dataset, dataset_path) -> None:
                          "(e.g. re-encoded)")
 
 
-def learned_on_cpu_note(field, device) -> str | None:
-    """The line that says a learned residual relights slowly on this device (None: it does not)."""
-    import warp as wp
-
-    if field.residual is None or field.residual.learned is None or wp.get_device(device).is_cuda:
-        return None
-    return ("note: this field's residual is learned, which the CPU decodes slowly (about 1.3 GFLOP per 480x270 image: "
-            "0.23 s on 2 cores); a field fitted with 'fit --residual lowrank' relights in milliseconds here")
-
-
 def _make_relighter(args, field, *, methods: tuple[str, ...], queries: int = 1):
     """A Relighter for the command's options, once the memory it and ``queries`` relit at a time take is
     known to be there; loads the dataset when a method needs it."""
@@ -162,9 +152,6 @@ def _make_relighter(args, field, *, methods: tuple[str, ...], queries: int = 1):
     from ..relight.relighter import Relighter, alpha_inputs, default_queries, relight_bytes
 
     device = check_device(args.device)
-    note = learned_on_cpu_note(field, device)
-    if note:
-        logging.getLogger(__name__).info(note)
     size = args.size
     width, height = size or (field.width, field.height)
     at_once = max(1, min(int(queries), default_queries(field, width, height)))

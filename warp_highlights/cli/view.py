@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import time
 from pathlib import Path
 
@@ -41,7 +40,6 @@ def _run_view(args) -> int:
     from ..io.fieldfile import load_field
     from ..view.designer import LightDesigner, check_panels
     from ..view.viz import has_display
-    from .relight import learned_on_cpu_note
 
     direction = parse_direction(args.light) if args.light else None
     size, window_size = args.size, args.window_size
@@ -56,9 +54,6 @@ def _run_view(args) -> int:
             "there is no display for a window (DISPLAY is not set): pass --screenshot out.png to render off screen")
     device = check_device(args.device)
     field = load_field(args.field)
-    note = learned_on_cpu_note(field, device)
-    if note:
-        logging.getLogger(__name__).info(note)
     started = time.perf_counter()
     designer = LightDesigner(field, direction=direction, method=args.method, device=device, size=size,
                              diffuse=args.diffuse,

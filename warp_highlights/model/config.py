@@ -410,8 +410,16 @@ RESIDUAL_KINDS = ("auto", "lowrank", "learned", "images", "none")
 
 LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
-LEARNED_BATCH_CPU = 1 << 11
+LEARNED_BATCH_CPU = 1 << 12
 """The same on the CPU (``ResidualSettings.learned_batch`` says where both came from)."""
+LEARNED_SECONDS_CUDA = 10.0
+"""A learned residual's training time at most on CUDA when ``ResidualSettings.learned_seconds`` is 0, seconds."""
+LEARNED_SECONDS_CPU = 120.0
+"""The same on the CPU (``ResidualSettings.learned_seconds`` says where both came from)."""
+LEARNED_TUNE_SECONDS_CUDA = 5.0
+"""The learned check's winner's time on every light at most on CUDA when ``learned_tune_seconds`` is 0, seconds."""
+LEARNED_TUNE_SECONDS_CPU = 15.0
+"""The same on the CPU."""
 LEARNED_TILE = (64, 8, 256)
 """The learned residual's training step on the device (``kernels.neural_training.make_train_tiles``): samples
 per tile, tiles per block (the weights' gradients add up in the block), threads per block; the fastest of
@@ -489,17 +497,20 @@ class ResidualSettings:
         colour_prior: pull of c(x) towards white, as the weight of a white sample in units of
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
         learned_seconds: the learned residual's training time at most, seconds (the learned check's two
-            models together, or the one model without it; compiling the kernels is not counted): 10, so that
-            the statue sample (43 lights, 567x534, 13 million samples an epoch) fits in about 15 s on an NVIDIA
-            H200, where 200 epochs would take 13 s (``benchmarks/bench_learned_training.py``).
+            models together, or the one model without it; compiling the kernels is not counted); 0 (default)
+            by device: 10 on CUDA, so that the statue sample (43 lights, 567x534, 13 million samples an
+            epoch) fits in about 15 s on an NVIDIA H200, where 200 epochs would take 13 s
+            (``benchmarks/bench_learned_training.py``); 120 on the CPU, so that a whole fit of a
+            192-pixel capture of about 40 lights stays within 3 minutes on 2 cores, where NumPy trains
+            about 1.8 million samples a second (``benchmarks/bench_cpu_learned.py``).
         learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them): 200; on an
             NVIDIA H200 the dome sample's images learned alone reach 44.09 / 46.50 / 47.56 / 48.57 dB at its
             Test lights after 25 / 50 / 100 / 200 epochs, 5.2 s for 200 (``bench_learned_training.py``).
         learned_batch: (light, pixel) samples per Adam step; 0 (default) by device: 65,536 on CUDA
-            (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), 2,048 on the CPU,
-            where a step costs little beyond its samples: a large batch gives a small capture only a
-            few steps an epoch and leaves it undertrained in the time given, while below 2,048 the
-            dome sample gained nothing more.
+            (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), 4,096 on the CPU
+            (as good as 2,048 after 180 s on the dome sample and the statue, 48.66 / 34.48 dB against
+            48.73 / 34.46, at 1.4 times its samples a second; 8,192 fell to 33.31 dB on the statue:
+            ``benchmarks/bench_cpu_learned.py``).
         learned_check: where the move check keeps the Gaussians, this many of its left-out lights
             (spread) decide whether the learned residual keeps them too (``residual.learned.check_learned``):
             two models learn without those lights, side by side on CUDA, the residual (scored with the
@@ -509,8 +520,8 @@ class ResidualSettings:
             2.3 dB the other way on the 250-light donut (``benchmarks/bench_neural_residual.py``), far more
             than 6 lights' spread. 0 keeps the Gaussians unchecked (one model, trained once).
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
-            left-out ones included, at the final learning rate (3e-4), seconds at most: half of
-            ``learned_seconds``.
+            left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
+            device: 5 on CUDA, 15 on the CPU (half and an eighth of ``learned_seconds``).
         learned_tune_epochs: its epochs at most: 40, a fifth of ``learned_epochs``, for 6 lights out of 43-250.
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored; where their order has settled (``learned_settle_margin_db``), the loser stops and
@@ -537,11 +548,11 @@ class ResidualSettings:
     check_lights: int = 48
     highlight_colour: bool = True
     colour_prior: float = 0.01
-    learned_seconds: float = 10.0
+    learned_seconds: float = 0.0
     learned_epochs: int = 200
     learned_batch: int = 0
     learned_check: int = 6
-    learned_tune_seconds: float = 5.0
+    learned_tune_seconds: float = 0.0
     learned_tune_epochs: int = 40
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
@@ -563,15 +574,15 @@ class ResidualSettings:
         _require(0 <= int(self.check_lights) <= 100000, f"check_lights must be in [0, 100000], got {self.check_lights}")
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0,
                  f"colour_prior must be > 0, got {self.colour_prior}")
-        _require(math.isfinite(self.learned_seconds) and self.learned_seconds > 0,
-                 f"learned_seconds must be > 0, got {self.learned_seconds}")
+        _require(math.isfinite(self.learned_seconds) and self.learned_seconds >= 0,
+                 f"learned_seconds must be >= 0 (0: by device), got {self.learned_seconds}")
         _require(1 <= int(self.learned_epochs) <= 100000,
                  f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
         _require(0 <= int(self.learned_batch) <= 1 << 24,
                  f"learned_batch must be in [0, 16777216], got {self.learned_batch}")
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
-        _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds > 0,
-                 f"learned_tune_seconds must be > 0, got {self.learned_tune_seconds}")
+        _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds >= 0,
+                 f"learned_tune_seconds must be >= 0 (0: by device), got {self.learned_tune_seconds}")
         _require(1 <= int(self.learned_tune_epochs) <= 100000,
                  f"learned_tune_epochs must be in [1, 100000], got {self.learned_tune_epochs}")
         _require(math.isfinite(self.learned_settle_fraction) and 0 < self.learned_settle_fraction <= 1,

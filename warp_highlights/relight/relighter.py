@@ -44,6 +44,7 @@ from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.threads import core_count
 from ..model.triangulation import unit_query_directions
+from ..residual.cpu_training import CpuQueryDecoder
 from ..residual.decode import decoded_blocks
 from ..residual.device import (
     RESIDUAL_DECODES,
@@ -271,7 +272,8 @@ class Relighter:
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
             codes = resample_image(learned.codes.astype(np.float32), width, height).reshape(-1, learned.codes.shape[2])
-            self._learned = QueryDecoder(codes, learned.weights, learned.unit, device=device)
+            decoder = QueryDecoder if device.is_cuda else CpuQueryDecoder  # NumPy's threads on the CPU
+            self._learned = decoder(codes, learned.weights, learned.unit, device=device)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), width, height)
             lambert = planes.reshape(height * width, model.channel_count, 4)

@@ -4,7 +4,7 @@ The forward and backward passes are written out as matrix products over a batch 
 samples (rows), the rows split among one thread per core, each with BLAS on one thread
 (``blas_on_one_thread``), the element-wise steps in place in buffers allocated once.
 ``train_decoder_cpu`` has the arguments, the loss, the Adam steps and the schedule of
-``kernels.neural.train_decoder``; ``CpuDecoder`` and ``decode_cpu`` decode a learned residual at query
+``kernels.neural_training.train_decoder``; ``CpuDecoder`` and ``decode_cpu`` decode a learned residual at query
 directions, the first layer's code part computed once per pixel for every direction.
 """
 
@@ -250,7 +250,7 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
                       batch: int = BATCH_CPU, lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0,
                       seconds: float | None = None, log=None, used: np.ndarray | None = None,
                       initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
-    """``kernels.neural.train_decoder`` on the CPU in NumPy: fit codes and weights to (n, P, 3) display-unit
+    """``kernels.neural_training.train_decoder`` on the CPU in NumPy: fit codes and weights to (n, P, 3) display-unit
     targets at (n, 3) lights by Adam on the mean squared error over shuffled (light, pixel) samples, ``batch``
     a step, the learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until
     ``seconds`` have passed since the first step). ``used``: the lights to learn from (default all; the

@@ -11,21 +11,29 @@ import numpy as np
 import warp as wp
 
 from ..kernels.neural import NeuralDecoder, decode
-from ..kernels.neural_training import train_decoder, train_decoders
-from ..model.config import LEARNED_BATCH_CPU, LEARNED_BATCH_CUDA, ResidualSettings
+from ..kernels.neural_training import train_decoders
+from ..model.config import (
+    LEARNED_BATCH_CPU,
+    LEARNED_BATCH_CUDA,
+    LEARNED_SECONDS_CPU,
+    LEARNED_SECONDS_CUDA,
+    LEARNED_TUNE_SECONDS_CPU,
+    LEARNED_TUNE_SECONDS_CUDA,
+    ResidualSettings,
+)
 from ..model.errors import InputError
 from ..model.residual import (
     NeuralResidual,
     ResidualModel,
 )
 from ..quality.metrics import srgb_psnr
-from .decode import learned_images
+from .cpu_training import decode_cpu, train_decoder_cpu
 from .inputs import residual_of
 from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "check_learned", "learn_residual"]
 
-_TUNE_RATE = 3e-4  # the learned check's winner goes on at the final learning rate of train_decoder's schedule
+_FIRST_RATE, _TUNE_RATE = 3e-3, 3e-4  # the learning rate's schedule; the check's winner goes on at its final rate
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
 
@@ -82,24 +90,62 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
         if log is not None and message.startswith(_EVERY_FEW_EPOCHS):
             log(f"learned residual: {message}")
 
-    rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "seconds": float(settings.learned_tune_seconds),
-              "epochs": int(settings.learned_tune_epochs)} if tune
-             else {"seconds": float(settings.learned_seconds), "epochs": int(settings.learned_epochs)})
-    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if device.is_cuda else LEARNED_BATCH_CPU)
-    options = dict(device=device, batch=batch, log=say, used=used, **rates)
-    if device.is_cuda:
+    on_cuda = device.is_cuda
+    seconds = learned_seconds(settings, on_cuda, tune)
+    rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "epochs": int(settings.learned_tune_epochs)} if tune
+             else {"lr": _FIRST_RATE, "final_lr": _TUNE_RATE, "epochs": int(settings.learned_epochs)})
+    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if on_cuda else LEARNED_BATCH_CPU)
+    options = dict(device=device, batch=batch, log=say, used=used, seconds=seconds, **rates)
+    epoch = max(1, round(settings.learned_settle_fraction * rates["epochs"]))
+    if on_cuda:
         def settled(models):
             kept = settle(models)
             learning[0] = len(targets) if kept is None else 1
             return kept
 
-        epoch = max(1, round(settings.learned_settle_fraction * options["epochs"]))
         models, history = train_decoders(np.stack(targets), directions, initial=initial,
                                          settle=None if settle is None else settled, settle_epoch=epoch, **options)
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
-    trained = [train_decoder(target, directions, initial=None if initial is None else initial[m], **options)
-               for m, target in enumerate(targets)]
-    return [model for model, _ in trained], [history for _, history in trained]
+    if settle is None or len(targets) < 2 or epoch >= rates["epochs"]:
+        trained = [train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
+                                     **{**options, "seconds": seconds / len(targets)})
+                   for m, target in enumerate(targets)]
+        return [model for model, _ in trained], [history for _, history in trained]
+    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle)
+
+
+def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = False) -> float:
+    """The training time at most, seconds: the setting, or where it is 0 the device's default."""
+    if tune:
+        return float(settings.learned_tune_seconds) or (LEARNED_TUNE_SECONDS_CUDA if on_cuda
+                                                       else LEARNED_TUNE_SECONDS_CPU)
+    return float(settings.learned_seconds) or (LEARNED_SECONDS_CUDA if on_cuda else LEARNED_SECONDS_CPU)
+
+
+def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_epoch: int, settle):
+    """The learned check's models on the CPU, one after the other in two parts: each its first ``settle_epoch``
+    epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both).
+    The second part goes on from the first's models with the schedule's learning rates, its Adam moments
+    new; the time is shared in proportion to the epochs each part learns."""
+    epochs, lr, final_lr = options["epochs"], options["lr"], options["final_lr"]
+    rate_at = lambda epoch: lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))  # noqa: E731
+    count, seconds = len(targets), options["seconds"]
+    share = seconds / (count * settle_epoch + (epochs - settle_epoch))  # seconds an epoch if one wins
+    first = dict(options, epochs=settle_epoch, final_lr=rate_at(settle_epoch - 1), seconds=share * settle_epoch)
+    models, histories = [], []
+    for m, target in enumerate(targets):
+        model, history = train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
+                                           **first)
+        models.append(model)
+        histories.append(history)
+    kept = settle(models)
+    going_on = range(count) if kept is None else [int(kept)]
+    rest = dict(options, epochs=epochs - settle_epoch, lr=rate_at(settle_epoch),
+                seconds=max(share, (seconds - share * count * settle_epoch) / len(going_on)))
+    for m in going_on:
+        models[m], history = train_decoder_cpu(targets[m], directions, initial=models[m], **rest)
+        histories[m] = histories[m] + history
+    return models, histories
 
 
 @dataclass(frozen=True)
@@ -181,13 +227,13 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
 
 
 def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
-    """(Q, H, W, 3) the learned residual (field units) at (Q, 3) directions: decoded on a CUDA device, else by the
-    float64 reference."""
+    """(Q, H, W, 3) the learned residual (field units) at (Q, 3) directions, decoded on the device (NumPy on the
+    CPU)."""
     device = wp.get_device(device)
-    if not device.is_cuda:
-        return learned_images(learned, directions)
     height, width, _ = learned.codes.shape
-    model = NeuralDecoder(learned.codes.reshape(height * width, -1).astype(np.float32),
-                          [np.asarray(w, np.float32) for w in learned.weights])
-    values = decode(model, np.asarray(directions, np.float32), device=device)
+    codes = learned.codes.reshape(height * width, -1).astype(np.float32)
+    weights = [np.asarray(w, np.float32) for w in learned.weights]
+    directions = np.asarray(directions, np.float32)
+    values = (decode(NeuralDecoder(codes, weights), directions, device=device) if device.is_cuda
+              else decode_cpu(codes, weights, directions))
     return learned.unit * decode_display(values).reshape(len(values), height, width, 3)
