@@ -39,7 +39,7 @@ from ..residual.inputs import (
     render_own_on_device,
 )
 from ..residual.kind import resolve_kind
-from ..residual.learned import check_learned, learn_residual
+from ..residual.learned import check_learned, learn_residual, learned_epochs
 from ..residual.rate import gaussian_bytes
 from .estimation import estimate
 from .moving import decide_moving
@@ -233,7 +233,8 @@ def fit_field(
                                          keep=settings.residual.learned_check if learned else 0,
                                          held=held if check_images is images else None)
             if learned and check.moves and len(check.kept_lights):
-                with timer.stage("learned check"), _bar(progress, "learned check", 2 * settings.residual.learned_epochs,
+                epochs = learned_epochs(settings.residual, wp.get_device(device).is_cuda)
+                with timer.stage("learned check"), _bar(progress, "learned check", 2 * epochs,
                                                         1) as advance:
                     learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights,
                                                   check.kept_highlights,
@@ -264,7 +265,7 @@ def fit_field(
                 # without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
                 epochs = (settings.residual.learned_tune_epochs if winner is not None
-                          else settings.residual.learned_epochs)
+                          else learned_epochs(settings.residual, wp.get_device(device).is_cuda))
                 with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
                                                                      factor=factor,

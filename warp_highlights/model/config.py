@@ -412,7 +412,11 @@ LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
 LEARNED_BATCH_CPU = 1 << 12
 """The same on the CPU (``ResidualSettings.learned_batch`` says where both came from)."""
-LEARNED_SECONDS_CUDA = 10.0
+LEARNED_EPOCHS_CUDA = 260
+"""A learned residual's epochs on CUDA when ``ResidualSettings.learned_epochs`` is 0."""
+LEARNED_EPOCHS_CPU = 200
+"""The same on the CPU (``ResidualSettings.learned_epochs`` says where both came from)."""
+LEARNED_SECONDS_CUDA = 7.5
 """A learned residual's training time at most on CUDA when ``ResidualSettings.learned_seconds`` is 0, seconds."""
 LEARNED_SECONDS_CPU = 120.0
 """The same on the CPU (``ResidualSettings.learned_seconds`` says where both came from)."""
@@ -498,14 +502,16 @@ class ResidualSettings:
             (display white)^2 per light: where the Gaussians draw little, c(x) stays white.
         learned_seconds: the learned residual's training time at most, seconds (the learned check's two
             models together, or the one model without it; compiling the kernels is not counted); 0 (default)
-            by device: 10 on CUDA, so that the statue sample (43 lights, 567x534, 13 million samples an
-            epoch) fits in about 15 s on an NVIDIA H200, where 200 epochs would take 13 s
-            (``benchmarks/bench_learned_training.py``); 120 on the CPU, so that a whole fit of a
-            192-pixel capture of about 40 lights stays within 3 minutes on 2 cores, where NumPy trains
-            about 1.8 million samples a second (``benchmarks/bench_cpu_learned.py``).
-        learned_epochs: its epochs at most (the learning rate decays from 3e-3 to 3e-4 over them): 200; on an
-            NVIDIA H200 the dome sample's images learned alone reach 44.09 / 46.50 / 47.56 / 48.57 dB at its
-            Test lights after 25 / 50 / 100 / 200 epochs, 5.2 s for 200 (``bench_learned_training.py``).
+            by device: 7.5 on CUDA, so that the statue sample (43 lights, 567x534, 13 million samples an
+            epoch) fits in 13.6 s on an NVIDIA H200 (16.7 s with 10); 120 on the CPU, so that a whole fit
+            of a 192-pixel capture of about 40 lights stays within 3 minutes on 2 cores, where NumPy
+            trains about 1.8 million samples a second (``benchmarks/bench_cpu_learned.py``).
+        learned_epochs: the epochs of the learning rate's schedule (from 3e-3 to 3e-4), at most; 0
+            (default) by device: 260 on CUDA, where the dome sample's images learned alone reach 44.09 /
+            46.50 / 47.56 / 48.57 dB at its Test lights after 25 / 50 / 100 / 200 epochs (5.2 s for 200)
+            and its whole fit 48.23 dB with 200 and 48.68 dB with 260 (14.0 s), 48.66 with 280
+            (``benchmarks/bench_learned_training.py``); 200 on the CPU, where ``learned_seconds`` ends
+            training first on a 192-pixel capture.
         learned_batch: (light, pixel) samples per Adam step; 0 (default) by device: 65,536 on CUDA
             (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), 4,096 on the CPU
             (as good as 2,048 after 180 s on the dome sample and the statue, 48.66 / 34.48 dB against
@@ -521,15 +527,17 @@ class ResidualSettings:
             than 6 lights' spread. 0 keeps the Gaussians unchecked (one model, trained once).
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
             left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
-            device: 5 on CUDA, 15 on the CPU (half and an eighth of ``learned_seconds``).
-        learned_tune_epochs: its epochs at most: 40, a fifth of ``learned_epochs``, for 6 lights out of 43-250.
+            device: 5 on CUDA, 15 on the CPU (two thirds and an eighth of ``learned_seconds``).
+        learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``, for 6 lights out of
+            43-250.
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored; where their order has settled (``learned_settle_margin_db``), the loser stops and
             the winner learns on alone, in half the time a step of both takes. 0.25: the ranking turns
             early in training (after a few tens of steps the residual with its Gaussians leads on the
-            dome sample, after thousands the images alone do), and by 50 epochs of 200 it no longer
-            does there: the images alone led by 8.0 dB after 60 epochs of a 60-epoch run, by 9.4 dB after
-            120 and by 11.5-12.6 dB after 200 (``bench_learned_training.py``, the fit's report).
+            dome sample, after thousands the images alone do); at the end the images alone led by 8.0 dB
+            after a 60-epoch run, 9.4 dB after 120 and 11.5-12.6 dB after 200, and runs that settled at
+            epoch 50-70 left the residual at 35.9-36.1 dB against the images alone's final 45.5-46.4
+            (``bench_learned_training.py``, the fits' reports).
         learned_settle_margin_db: the gap in mean 8-bit sRGB PSNR at the check's lights that counts as
             settled, dB: 3, well under the dome sample's gaps at the end of runs of 60 to 200 epochs
             (8.0-12.6 dB) and above the 2.3 dB by which the 250-light donut's two kinds ended apart: such
@@ -549,7 +557,7 @@ class ResidualSettings:
     highlight_colour: bool = True
     colour_prior: float = 0.01
     learned_seconds: float = 0.0
-    learned_epochs: int = 200
+    learned_epochs: int = 0
     learned_batch: int = 0
     learned_check: int = 6
     learned_tune_seconds: float = 0.0
@@ -576,8 +584,8 @@ class ResidualSettings:
                  f"colour_prior must be > 0, got {self.colour_prior}")
         _require(math.isfinite(self.learned_seconds) and self.learned_seconds >= 0,
                  f"learned_seconds must be >= 0 (0: by device), got {self.learned_seconds}")
-        _require(1 <= int(self.learned_epochs) <= 100000,
-                 f"learned_epochs must be in [1, 100000], got {self.learned_epochs}")
+        _require(0 <= int(self.learned_epochs) <= 100000,
+                 f"learned_epochs must be in [0, 100000] (0: by device), got {self.learned_epochs}")
         _require(0 <= int(self.learned_batch) <= 1 << 24,
                  f"learned_batch must be in [0, 16777216], got {self.learned_batch}")
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")

@@ -15,6 +15,8 @@ from ..kernels.neural_training import train_decoders
 from ..model.config import (
     LEARNED_BATCH_CPU,
     LEARNED_BATCH_CUDA,
+    LEARNED_EPOCHS_CPU,
+    LEARNED_EPOCHS_CUDA,
     LEARNED_SECONDS_CPU,
     LEARNED_SECONDS_CUDA,
     LEARNED_TUNE_SECONDS_CPU,
@@ -44,7 +46,8 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most, ``learned_batch`` samples a step; ``progress(1)`` after
+    ``settings.learned_seconds`` or ``learned_epochs`` at most (``learned_seconds``, ``learned_epochs``),
+    ``learned_batch`` samples a step; ``progress(1)`` after
     each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
     go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
     rate (the learned check's winner learning the lights it left out). Returns it and the loss per epoch."""
@@ -93,7 +96,7 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
     on_cuda = device.is_cuda
     seconds = learned_seconds(settings, on_cuda, tune)
     rates = ({"lr": _TUNE_RATE, "final_lr": _TUNE_RATE, "epochs": int(settings.learned_tune_epochs)} if tune
-             else {"lr": _FIRST_RATE, "final_lr": _TUNE_RATE, "epochs": int(settings.learned_epochs)})
+             else {"lr": _FIRST_RATE, "final_lr": _TUNE_RATE, "epochs": learned_epochs(settings, on_cuda)})
     batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if on_cuda else LEARNED_BATCH_CPU)
     options = dict(device=device, batch=batch, log=say, used=used, seconds=seconds, **rates)
     epoch = max(1, round(settings.learned_settle_fraction * rates["epochs"]))
@@ -112,6 +115,11 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
     return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle)
+
+
+def learned_epochs(settings: ResidualSettings, on_cuda: bool) -> int:
+    """The epochs of the learning rate's schedule: the setting, or where it is 0 the device's default."""
+    return int(settings.learned_epochs) or (LEARNED_EPOCHS_CUDA if on_cuda else LEARNED_EPOCHS_CPU)
 
 
 def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = False) -> float:
@@ -215,7 +223,8 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
         gap = float(np.mean(first) - np.mean(second))
         if abs(gap) < settings.learned_settle_margin_db:
             return None
-        settled_at.append(round(settings.learned_settle_fraction * settings.learned_epochs))
+        settled_at.append(max(1, round(settings.learned_settle_fraction
+                                       * learned_epochs(settings, wp.get_device(device).is_cuda))))
         return 0 if gap > 0 else 1
 
     trained, _ = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
