@@ -26,7 +26,7 @@ from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 wp.set_module_options({"enable_backward": False, "enable_mathdx_gemm": LEARNED_MATHDX})
 
 __all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "decode", "initial_model",
-           "samples_fit"]
+           "samples_fit", "used_lights"]
 
 CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
@@ -44,6 +44,18 @@ at most this many light x pixel pairs (1,035 lights of 1920x1080, 258 of 3840x21
 def samples_fit(lights: int, pixels: int) -> bool:
     """Whether ``lights`` images of ``pixels`` each can be learned (their sample indices fit 32 bits)."""
     return int(lights) * int(pixels) <= MAX_SAMPLES
+
+
+def used_lights(lights: int, pixels: int, used) -> np.ndarray:
+    """The sorted indices of the lights a training learns from (``used``, default all), once ``lights``
+    images of ``pixels`` are known to fit the sample index (ValueError otherwise)."""
+    if not samples_fit(lights, pixels):
+        raise ValueError(f"{lights} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); "
+                         f"learn fewer or smaller images")
+    used = np.arange(lights) if used is None else np.unique(np.asarray(used, dtype=np.int64))
+    if not len(used) or used[0] < 0 or used[-1] >= lights:
+        raise ValueError(f"used must name some of the {lights} lights")
+    return used
 """Samples per tile block."""
 
 

@@ -31,7 +31,7 @@ import warp as wp
 
 from warp_highlights.model.config import LEARNED_MATHDX, LEARNED_TILE
 
-from .neural import CODE_SIZE, HIDDEN, INPUTS, OUTPUTS, NeuralDecoder, elu, initial_model, samples_fit
+from .neural import CODE_SIZE, HIDDEN, INPUTS, OUTPUTS, NeuralDecoder, elu, initial_model, used_lights
 
 __all__ = ["DecoderTrainer", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder", "train_decoders"]
 
@@ -364,12 +364,7 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     count, n, pixels, _ = targets.shape
-    if not samples_fit(n, pixels):
-        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn "
-                         f"fewer or smaller images")
-    used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
-    if not len(used) or used[0] < 0 or used[-1] >= n:
-        raise ValueError(f"used must name some of the {n} lights")
+    used = used_lights(n, pixels, used)
     models = [initial_model(targets[m][used], seed=seed) for m in range(count)] if initial is None else list(initial)
     if len(models) != count or any(m.codes.shape != (pixels, CODE_SIZE) for m in models):
         raise ValueError(f"initial models must be {count}, each with codes of {pixels} pixels")

@@ -20,7 +20,7 @@ try:
 except ImportError:  # BLAS threads its own products
     threadpoolctl = None
 
-from ..kernels.neural import NeuralDecoder, initial_model, samples_fit
+from ..kernels.neural import NeuralDecoder, initial_model, used_lights
 from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 from ..model.threads import NUMPY_THREADS, parallel_map
 
@@ -261,12 +261,7 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
         raise ValueError(f"train_decoder_cpu trains on the CPU, not on {device}")
     targets = np.ascontiguousarray(targets, np.float32)
     n, pixels, _ = targets.shape
-    if not samples_fit(n, pixels):
-        raise ValueError(f"{n} lights of {pixels} pixels pass the learned residual's 32-bit sample index (2^31); learn "
-                         f"fewer or smaller images")
-    used = np.arange(n) if used is None else np.unique(np.asarray(used, dtype=np.int64))
-    if not len(used) or used[0] < 0 or used[-1] >= n:
-        raise ValueError(f"used must name some of the {n} lights")
+    used = used_lights(n, pixels, used)
     model = initial_model(targets[used], seed=seed) if initial is None else initial
     if model.codes.shape != (pixels, CODE):
         raise ValueError(f"initial codes {model.codes.shape} do not match {pixels} pixels")
