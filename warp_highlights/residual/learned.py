@@ -82,8 +82,9 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``: on CUDA, called once
-    ``learned_settle_fraction`` of the epochs have run, returns the index of the one model to go on, or None."""
+    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``, called once
+    ``learned_settle_fraction`` of the epochs have run, returns the index of the one model to go on, or None
+    (on the CPU in two parts: ``_train_settling_on_cpu``)."""
     device = wp.get_device(device)
     learning = [len(targets) if device.is_cuda else 1]  # models that advance the bar an epoch
 
