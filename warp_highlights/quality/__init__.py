@@ -10,15 +10,18 @@
 - ``ssim_8bit``: scikit-image's SSIM of two 8-bit RGB images.
 - ``srgb_scores``: (Q,) PSNR and SSIM of linear image stacks shown in 8-bit sRGB.
 - ``scoring_processes``: a scope in which ``srgb_scores`` of large stacks runs in worker processes.
+- ``motion_scores``: ghosts, position error and flicker of relit frames along a light path.
+- ``MotionScores``: those scores per frame, and their means.
 """
 
 from .._api import lazy_exports
 
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
-    dict.fromkeys(
+    {**dict.fromkeys(
         ["psnr", "psnr_of_mse", "psnr_excluding_black", "psnr_8bit", "srgb_psnr", "ssim_8bit", "srgb_scores",
          "scoring_processes"],
         "metrics",
     ),
+     **dict.fromkeys(["motion_scores", "MotionScores"], "motion")},
 )
