@@ -59,6 +59,7 @@ class ShadingParameters:
 
     shininess: float  # Blinn-Phong exponent of (n . h)
     lobe_normalisation: float  # (shininess + 8) / (8 pi): the lobe keeps its energy as it sharpens
+    alpha: float  # GGX roughness; 0 selects the Blinn-Phong lobe
     samples_per_pixel: int
 
 
@@ -135,6 +136,20 @@ def trace_camera_samples(
     shadow_origin[row, col, s] = origin + shadow_bias * geometric
 
 
+@wp.func
+def _ggx_radiance(cos_h: float, cos_l: float, cos_v: float, alpha: float):
+    """GGX (Trowbridge-Reitz) lobe times n.l: D(h) G(l, v) / (4 n.v), Smith's separable shadowing;
+    cos_l > 0; a surface seen edge-on (n.v <= 0) reflects nothing."""
+    if cos_v <= 0.0:
+        return 0.0
+    a2 = alpha * alpha
+    t = cos_h * cos_h * (a2 - 1.0) + 1.0
+    d = a2 / (wp.pi * t * t)
+    g_l = 2.0 * cos_l / (cos_l + wp.sqrt(a2 + (1.0 - a2) * cos_l * cos_l))
+    g_v = 2.0 * cos_v / (cos_v + wp.sqrt(a2 + (1.0 - a2) * cos_v * cos_v))
+    return d * g_l * g_v / (4.0 * cos_v)
+
+
 @wp.kernel
 def shade_lights(
     mesh: wp.uint64,
@@ -149,7 +164,8 @@ def shade_lights(
     irradiance: wp.array2d(dtype=wp.float32),
     specular: wp.array2d(dtype=wp.float32),
 ):
-    """One thread per (light, covered pixel): average diffuse cosine and specular lobe over the samples."""
+    """One thread per (light, covered pixel): average diffuse cosine and specular lobe (Blinn-Phong or
+    GGX, ``params.alpha``) over the samples."""
     light, p = wp.tid()
     row = pixel_rows[p]
     col = pixel_cols[p]
@@ -165,10 +181,14 @@ def shade_lights(
             continue
         if wp.mesh_query_ray_anyhit(mesh, shadow_origin[row, col, s], omega, 1.0e10):
             continue
-        half_vector = wp.normalize(omega + view_direction[row, col, s])
-        lobe = wp.pow(wp.max(wp.dot(normal, half_vector), 0.0), params.shininess)
+        view = view_direction[row, col, s]
+        half_vector = wp.normalize(omega + view)
+        cos_h = wp.max(wp.dot(normal, half_vector), 0.0)
         diffuse_sum += cosine
-        specular_sum += params.lobe_normalisation * lobe * cosine
+        if params.alpha > 0.0:
+            specular_sum += _ggx_radiance(cos_h, cosine, wp.dot(normal, view), params.alpha)
+        else:
+            specular_sum += params.lobe_normalisation * wp.pow(cos_h, params.shininess) * cosine
     scale = 1.0 / float(params.samples_per_pixel)
     irradiance[light, p] = diffuse_sum * scale
     specular[light, p] = specular_sum * scale
@@ -181,19 +201,20 @@ def compose_images(
     coverage: wp.array(dtype=wp.float32),
     irradiance: wp.array2d(dtype=wp.float32),
     specular_radiance: wp.array2d(dtype=wp.float32),
-    albedo: wp.array(dtype=wp.float32),
+    albedo: wp.array2d(dtype=wp.float32),
     ambient: wp.array(dtype=wp.float32),
-    specular_colour: wp.array(dtype=wp.float32),
+    specular_colour: wp.array2d(dtype=wp.float32),
     full: wp.array4d(dtype=wp.float32),
     diffuse: wp.array4d(dtype=wp.float32),
     specular: wp.array4d(dtype=wp.float32),
 ):
-    """One thread per (light, covered pixel, channel): write the colour images (background stays 0)."""
+    """One thread per (light, covered pixel, channel): write the colour images (background stays 0);
+    albedo and specular colour per covered pixel (a texture) and channel."""
     light, p, c = wp.tid()
     row = pixel_rows[p]
     col = pixel_cols[p]
-    d = albedo[c] * irradiance[light, p] + ambient[c] * coverage[p]
-    s = specular_colour[c] * specular_radiance[light, p]
+    d = albedo[p, c] * irradiance[light, p] + ambient[c] * coverage[p]
+    s = specular_colour[p, c] * specular_radiance[light, p]
     diffuse[light, row, col, c] = d
     specular[light, row, col, c] = s
     full[light, row, col, c] = d + s
@@ -287,12 +308,16 @@ def shade_and_compose(
 ) -> tuple[wp.array, wp.array, wp.array]:
     """Shade every light of ``light_directions`` ((L, 3) unit vectors) in two launches.
 
+    Args:
+        albedo, specular_colour: (C,) for a uniform material, or (P, C) per covered pixel (a texture).
+        ambient: (C,).
+
     Returns:
-        (full, diffuse, specular) device arrays of shape (L, H, W, C), C = len(albedo).
+        (full, diffuse, specular) device arrays of shape (L, H, W, C), C = albedo's last axis.
     """
     light_count = len(light_directions)
     pixel_count = samples.covered_pixel_count
-    channels = len(albedo)
+    channels = np.shape(albedo)[-1]
     lights = wp.array(np.asarray(light_directions, dtype=np.float32), dtype=wp.vec3, device=device)
     irradiance = wp.zeros((light_count, pixel_count), dtype=wp.float32, device=device)
     specular_radiance = wp.zeros((light_count, pixel_count), dtype=wp.float32, device=device)
@@ -332,9 +357,9 @@ def shade_and_compose(
             samples.coverage,
             irradiance,
             specular_radiance,
-            _float_array(albedo, device),
+            _per_pixel(albedo, pixel_count, device),
             _float_array(ambient, device),
-            _float_array(specular_colour, device),
+            _per_pixel(specular_colour, pixel_count, device),
         ],
         outputs=[full, diffuse, specular],
         device=device,
@@ -342,11 +367,13 @@ def shade_and_compose(
     return full, diffuse, specular
 
 
-def make_shading_parameters(*, shininess: float, samples_per_pixel: int) -> ShadingParameters:
-    """Fill :class:`ShadingParameters`; the lobe normalisation follows from the shininess."""
+def make_shading_parameters(*, shininess: float, samples_per_pixel: int, roughness: float = 0.0) -> ShadingParameters:
+    """Fill :class:`ShadingParameters`; the lobe normalisation follows from the shininess; roughness > 0
+    selects the GGX lobe."""
     params = ShadingParameters()
     params.shininess = float(shininess)
     params.lobe_normalisation = (float(shininess) + 8.0) / (8.0 * math.pi)
+    params.alpha = float(roughness)
     params.samples_per_pixel = int(samples_per_pixel)
     return params
 
@@ -367,6 +394,14 @@ def _run_split(launch, count: int, device) -> None:
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for future in [pool.submit(launch, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]:
             future.result()
+
+
+def _per_pixel(values, pixel_count: int, device) -> wp.array:
+    """(P, C) float32 device array of per-pixel values, a (C,) constant repeated for every pixel."""
+    values = np.asarray(values, dtype=np.float32)
+    if values.ndim == 1:
+        values = np.broadcast_to(values, (pixel_count, len(values)))
+    return wp.array(np.ascontiguousarray(values), dtype=wp.float32, device=device)
 
 
 def _float_array(values, device) -> wp.array:

@@ -192,8 +192,8 @@ def test_module_entry_point_reports_errors_without_traceback(tmp_path):
     assert result.returncode == 2
     # Warp's CUDA warning too would be a line here (test_cpu_runs_say_nothing_of_warp_or_cuda)
     lines = result.stderr.splitlines()
-    assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere or a path to a "
-                     "PLY/OBJ/STL file"]
+    assert lines == ["warp-highlights render: error: unknown shape 'cube': use donut, teapot, sphere, coin, bumpy or a "
+                     "path to a PLY/OBJ/STL file"]
     version = subprocess.run([sys.executable, "-m", "warp_highlights", "--version"], capture_output=True, text=True,
                              timeout=300)
     assert version.returncode == 0 and version.stdout.startswith("warp-highlights ")

@@ -296,7 +296,7 @@ def test_input_errors_are_single_lines(tmp_path):
     assert str(unknown) in _single_line_error(lambda: load_mesh(unknown))
     assert "folder" in _single_line_error(lambda: load_mesh(tmp_path))
     message = _single_line_error(lambda: make_shape("cube"))
-    assert message == "unknown shape 'cube': use donut, teapot, sphere or a path to a PLY/OBJ/STL file"
+    assert message == "unknown shape 'cube': use donut, teapot, sphere, coin, bumpy or a path to a PLY/OBJ/STL file"
 
 
 def test_point_cloud_has_no_triangles(tmp_path):

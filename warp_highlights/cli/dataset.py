@@ -29,9 +29,10 @@ __all__ = ["COMMANDS"]
 
 
 def _render_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..synth.settings import Material, RenderSettings
+    from ..synth.settings import TEXTURES, Material, RenderSettings
 
-    parser.add_argument("shape", help="donut, teapot, sphere, or a mesh file pyvista reads (PLY/OBJ/STL)")
+    parser.add_argument("shape", help="donut, teapot, sphere, coin (a relief plate seen from above), bumpy (a donut "
+                        "with small bumps), or a mesh file pyvista reads (PLY/OBJ/STL)")
     parser.add_argument("out", type=Path, help="dataset folder to create")
 
     material, settings = Material(), RenderSettings()
@@ -66,15 +67,22 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
                          help=f"specular strength, 0..100 (donut: {material.specular})")
     surface.add_argument("--shininess", type=in_range(float, 1.0, 1e6),
                          help=f"Blinn-Phong exponent, 1..1e6 (donut: {material.shininess:g})")
+    surface.add_argument("--roughness", type=in_range(float, 0.0, 1.0),
+                         help="GGX microfacet roughness alpha, 0..1, in place of the Blinn-Phong lobe: 0.05 is "
+                         "polished metal, 0.3 satin (0: Blinn-Phong; coin: 0.15)")
+    surface.add_argument("--texture", choices=TEXTURES,
+                         help="albedo pattern: none, or tiles (a checkerboard of two materials, the second pale "
+                         "and nearly matte)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing dataset folder")
 
 
 def _info_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images)")
+    parser.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images), or a highlight-"
+                        "field file (.whf): its lights, Gaussians, how many move and what they carry, its residual")
     parser.add_argument("--heldout", type=Path, help="folder with held-out lights and images, if not inside DATASET")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
-    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON (a field: its fit report)")
     add_pixel_limit_option(parser)
 
 
@@ -117,7 +125,8 @@ def _material(args):
     from ..synth.render import default_material
 
     material = default_material(args.shape)
-    changes = {k: getattr(args, k) for k in ("ambient", "specular", "shininess") if getattr(args, k) is not None}
+    changes = {k: getattr(args, k) for k in ("ambient", "specular", "shininess", "roughness", "texture")
+               if getattr(args, k) is not None}
     if args.albedo is not None:
         changes["albedo"] = args.albedo
     return replace(material, **changes)
@@ -193,6 +202,13 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
 def _run_info(args) -> int:
     from ..io.dataset import ReflectanceField
 
+    if args.dataset.is_file():
+        from ..io.fieldfile import load_field
+
+        field = load_field(args.dataset)
+        print(json.dumps(field.report, indent=2) if args.json else field.describe())
+        return 0
+
     field = ReflectanceField.load(args.dataset, heldout=args.heldout, linear=args.linear, progress=not args.quiet,
                                   max_pixels=pixel_limit(args))
     summary = field.summary()
@@ -247,7 +263,7 @@ COMMANDS = (
     Command("render", _render_arguments, _run_render, help="render a synthetic reflectance field with ground truth",
             description="Ray-trace a shape under many distant lights and write a dataset folder (images/, specular/, "
             "diffuse/, lights.lp, held-out ground truth, mask.png, meta.json)."),
-    Command("info", _info_arguments, _run_info, help="check a dataset folder and summarise it"),
+    Command("info", _info_arguments, _run_info, help="check a dataset folder, or a field file, and summarise it"),
     Command("sheet", _sheet_arguments, _run_sheet,
             help="contact sheet PNG of a dataset: full, specular, diffuse per light"),
 )

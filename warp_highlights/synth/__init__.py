@@ -5,10 +5,10 @@ Imports the model, io and the kernels (ARCHITECTURE.md). The teapot's control po
 - ``render_dataset``: ray-trace a shape under many lights into a dataset folder, with ground truth.
 - ``Renderer``: a mesh on a device; light directions -> full, specular and diffuse images.
 - ``RenderSettings``: image size, samples per pixel, field of view, colour, seed.
-- ``Material``: Lambertian albedo and ambient plus a normalised Blinn-Phong lobe.
+- ``Material``: Lambertian albedo and ambient plus a Blinn-Phong or GGX lobe, uniform or in tiles of two.
 - ``RenderedImages``: one light chunk's full, specular and diffuse images.
 - ``default_material``: the built-in material of each synthetic shape.
-- ``make_shape``: a built-in shape by name (donut, teapot, sphere) or a mesh file by path.
+- ``make_shape``: a built-in shape by name (donut, teapot, sphere, coin, bumpy) or a mesh file by path.
 - ``TriangleMesh``: an indexed triangle mesh with outward winding and smooth vertex normals.
 - ``load_mesh``: read any mesh file pyvista reads (PLY, OBJ, STL, ...).
 - ``SHAPE_NAMES``: the built-in shapes.

@@ -24,7 +24,7 @@ from ..model.errors import InputError
 from ..model.lights import LightSet
 from ..model.triangulation import SphericalTriangulation
 from .settings import Material, RenderSettings
-from .shapes import TriangleMesh, make_shape
+from .shapes import SHAPE_NAMES, TriangleMesh, make_shape
 
 __all__ = ["Material", "RenderSettings", "RenderedImages", "Renderer", "default_material", "render_dataset",
            "renderer_from_meta", "view_rotation"]
@@ -37,7 +37,7 @@ threads beside them)."""
 def view_rotation(shape: str) -> np.ndarray:
     """3x3 rotation that shows ``shape`` from a pleasant three-quarter view (identity for mesh files)."""
     shape = shape.lower()
-    if shape in ("donut", "torus"):
+    if shape in ("donut", "torus", "bumpy"):
         return _rotation_x(math.radians(40.0))
     if shape == "teapot":
         return _rotation_x(math.radians(20.0)) @ _rotation_y(math.radians(-25.0))
@@ -51,6 +51,8 @@ def default_material(shape: str) -> Material:
         return Material(albedo=(0.52, 0.58, 0.68), ambient=0.02, specular=0.5, shininess=150.0)
     if shape == "sphere":
         return Material(albedo=(0.6, 0.6, 0.6), ambient=0.02, specular=0.5, shininess=120.0)
+    if shape == "coin":  # worn bronze: a dark base under a GGX lobe
+        return Material(albedo=(0.3, 0.2, 0.11), ambient=0.02, specular=0.6, roughness=0.15)
     return Material()
 
 
@@ -96,6 +98,7 @@ class Renderer:
             points=self._points,
             indices=wp.array(scene.faces.astype(np.int32).ravel(), dtype=wp.int32, device=self.device),
         )
+        self._tile_share = None
         camera = raytrace.make_camera(self.camera_position, self.settings.fov_y_deg, self.settings.width,
                                       self.settings.height)
         self._samples = raytrace.trace_camera(
@@ -108,7 +111,8 @@ class Renderer:
             device=self.device,
         )
         self._params = raytrace.make_shading_parameters(
-            shininess=self.material.shininess, samples_per_pixel=self.settings.samples_per_pixel
+            shininess=self.material.shininess, samples_per_pixel=self.settings.samples_per_pixel,
+            roughness=self.material.roughness,
         )
 
     @property
@@ -128,11 +132,32 @@ class Renderer:
         return {name: getattr(self._samples, name).numpy() for name in names}
 
     def _colours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        albedo = np.asarray(self.material.albedo, dtype=np.float64)
+        """Albedo and specular colour, (C,) or per covered pixel (P, C) for a texture, and the ambient (C,)."""
+        material = self.material
+        albedo = np.asarray(material.albedo, dtype=np.float64)
+        if material.texture == "tiles":
+            albedo = np.stack([albedo, np.asarray(material.tile_albedo, dtype=np.float64)])  # (2, 3)
         if not self.settings.colour:
-            albedo = np.array([albedo @ np.asarray(LUMINANCE_WEIGHTS)])
-        channels = len(albedo)
-        return albedo, np.full(channels, self.material.ambient), np.full(channels, self.material.specular)
+            albedo = (albedo @ np.asarray(LUMINANCE_WEIGHTS))[..., None]
+        channels = albedo.shape[-1]
+        ambient = np.full(channels, material.ambient)
+        if material.texture == "none":
+            return albedo, ambient, np.full(channels, material.specular)
+        share = self._second_tile_share()[:, None]  # (P, 1): of each pixel's samples on the second tiles
+        specular = material.specular * (1.0 - share + share * material.tile_specular)
+        return (1.0 - share) * albedo[0] + share * albedo[1], ambient, np.repeat(specular, channels, axis=1)
+
+    def _second_tile_share(self) -> np.ndarray:
+        """(P,) share of each covered pixel's hit samples that land on the second material's tiles: cells
+        of ``tile_size`` in the scene's frame, alternating like a checkerboard."""
+        if self._tile_share is None:
+            rows, cols = self._samples.pixel_rows.numpy(), self._samples.pixel_cols.numpy()
+            hits = self._samples.hit_mask.numpy()[rows, cols].astype(np.float64)  # (P, S)
+            points = self._samples.shadow_origin.numpy()[rows, cols]  # (P, S, 3)
+            cells = np.floor(points / self.material.tile_size).astype(np.int64).sum(axis=-1)
+            second = (cells % 2 == 1) * hits
+            self._tile_share = second.sum(axis=1) / np.maximum(hits.sum(axis=1), 1.0)
+        return self._tile_share
 
     def shade_on_device(self, directions: np.ndarray) -> tuple[wp.array, wp.array, wp.array]:
         """(full, diffuse, specular) device arrays (L, H, W, C) for ``directions``, all in one batch."""
@@ -196,7 +221,11 @@ class Renderer:
             "view_rotation": (np.eye(3) if self.rotation is None else np.asarray(self.rotation)).tolist(),
             "mesh": {"name": self.mesh.name, "vertices": self.mesh.vertex_count, "faces": self.mesh.face_count},
             "light_model": "distant light of intensity 1; diffuse = albedo * max(n.l, 0) * visibility + ambient; "
-            "specular = specular * (shininess + 8) / (8 pi) * max(n.h, 0)^shininess * max(n.l, 0) * visibility",
+            + ("specular = specular * D_GGX(n.h; roughness) * G_Smith(n.l, n.v) / (4 n.v) * visibility"
+               if self.material.roughness > 0 else
+               "specular = specular * (shininess + 8) / (8 pi) * max(n.h, 0)^shininess * max(n.l, 0) * visibility")
+            + ("; albedo and specular alternate with tile_albedo and specular * tile_specular on a checkerboard of "
+               "tile_size cells" if self.material.texture == "tiles" else ""),
             "colour_space": "linear Rec.709" if self.settings.colour else "linear luminance (Rec.709 weights)",
         }
 
@@ -313,7 +342,7 @@ def renderer_from_meta(meta: dict, *, device: str | None = None) -> Renderer | N
     """
     try:
         shape = str(meta["shape"]).strip().lower()
-        if shape not in ("donut", "torus", "teapot", "sphere"):
+        if shape not in (*SHAPE_NAMES, "torus"):
             return None
         material = Material(**meta["material"])
         settings = RenderSettings(**meta["settings"])

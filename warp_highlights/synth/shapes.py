@@ -21,10 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from ..model.errors import InputError
+from .relief import bump_height, coin_height
 
 __all__ = [
     "SHAPE_NAMES",
     "TriangleMesh",
+    "bumpy_torus",
+    "coin",
     "load_mesh",
     "make_shape",
     "signed_volume",
@@ -35,8 +38,9 @@ __all__ = [
     "weld_vertices",
 ]
 
-SHAPE_NAMES = ("donut", "teapot", "sphere")
-"""Names of the built-in shapes accepted by :func:`make_shape` ("torus" is an alias of "donut")."""
+SHAPE_NAMES = ("donut", "teapot", "sphere", "coin", "bumpy")
+"""Names of the built-in shapes accepted by :func:`make_shape` ("torus" is an alias of "donut"): "coin" is a
+relief plate facing the camera, "bumpy" a donut with small bumps all over."""
 
 _MESH_SUFFIXES = "PLY/OBJ/STL"
 _RELATIVE_WELD_TOLERANCE = 1e-7
@@ -331,6 +335,28 @@ def torus(
     return TriangleMesh(points, faces, normals, "donut")
 
 
+def bumpy_torus(*, major_segments: int = 384, minor_segments: int = 192) -> TriangleMesh:
+    """The donut of :func:`torus` with small random bumps (``relief.bump_height``) pushed along its
+    normals; finer than the smooth donut so that each bump is a few dozen triangles."""
+    smooth = torus(major_segments=major_segments, minor_segments=minor_segments)
+    points = smooth.points + bump_height(smooth.points)[:, None] * smooth.normals
+    return TriangleMesh(points, smooth.faces, vertex_normals(points, smooth.faces), "bumpy")
+
+
+def coin(*, resolution: int = 384) -> TriangleMesh:
+    """A square plate over [-1, 1]^2 facing +z with a coin's relief (``relief.coin_height``) on it, the
+    way an RTI dome sees a coin: from above. ``resolution`` vertices along each side (>= 8)."""
+    if resolution < 8:
+        raise InputError(f"coin resolution {resolution} is too coarse: use at least 8")
+    axis = np.linspace(-1.0, 1.0, resolution)
+    y, x = np.meshgrid(axis[::-1], axis, indexing="ij")  # rows from the top (+y), columns to the right
+    points = np.stack([x, y, coin_height(x, y)], axis=-1).reshape(-1, 3)
+    faces = _grid_faces(resolution, resolution)
+    if _doubled_area_normals(points, faces)[:, 2].sum() < 0:
+        faces = faces[:, ::-1].copy()
+    return TriangleMesh(points, faces, vertex_normals(points, faces), "coin")
+
+
 def _icosahedron() -> tuple[np.ndarray, np.ndarray]:
     """Unit icosahedron: (12, 3) points and (20, 3) outward faces (from the convex hull)."""
     from scipy.spatial import ConvexHull
@@ -586,11 +612,12 @@ def _orient_outward(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def make_shape(name_or_path: str, **kwargs) -> TriangleMesh:
-    """A built-in shape by name ("donut"/"torus", "teapot", "sphere"), or a mesh file by path.
+    """A built-in shape by name (``SHAPE_NAMES``; "torus" is "donut"), or a mesh file by path.
 
     Args:
         name_or_path: Shape name (case-insensitive) or mesh file path.
-        **kwargs: Keyword arguments of :func:`torus`, :func:`teapot` or :func:`sphere`; none for files.
+        **kwargs: Keyword arguments of the shape's builder (:func:`torus`, :func:`teapot`, :func:`sphere`,
+            :func:`coin`, :func:`bumpy_torus`); none for files.
 
     Returns:
         The mesh.
@@ -598,7 +625,8 @@ def make_shape(name_or_path: str, **kwargs) -> TriangleMesh:
     Raises:
         InputError: Unknown name, or a mesh file that cannot be used.
     """
-    builders = {"donut": torus, "torus": torus, "teapot": teapot, "sphere": sphere}
+    builders = {"donut": torus, "torus": torus, "teapot": teapot, "sphere": sphere, "coin": coin,
+                "bumpy": bumpy_torus}
     key = str(name_or_path).strip().lower()
     if key in builders:
         return builders[key](**kwargs)
@@ -611,5 +639,5 @@ def make_shape(name_or_path: str, **kwargs) -> TriangleMesh:
             )
         return load_mesh(path)
     raise InputError(
-        f"unknown shape {str(name_or_path)!r}: use donut, teapot, sphere or a path to a {_MESH_SUFFIXES} file"
+        f"unknown shape {str(name_or_path)!r}: use {', '.join(SHAPE_NAMES)} or a path to a {_MESH_SUFFIXES} file"
     )
