@@ -4,7 +4,8 @@ One problem per directed edge i -> j of the triangulation (6n - 12 on a full sph
 start from G_i and fit S_j.
 
 - Phase 1 (``rigid_iterations``): each connected component of G_i moves as a rigid body (one
-  translation and rotation per component), loss L_fit only.
+  translation and rotation per component), loss L_fit only, from the offset where the component
+  best lies on S_j (a grid search: ``kernels/search.py``).
 - Phase 2 (``iterations``): every parameter, loss c_fit L_fit + c_str L_str + c_ene L_ene, with the
   structure and energy terms measured against G_i.
 
@@ -23,9 +24,10 @@ from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.retarget import RigidAdam, RigidMotion, gather_images
+from ..kernels.search import image_headings, searched_translations
 from ..kernels.tape import ReplayedStep, adam_iteration
 from ..model.components import ConnectedComponents
-from ..model.config import RasterSettings, RetargetSettings
+from ..model.config import RasterSettings, RetargetSettings, rpx_to_normalized
 from ..model.errors import InputError
 from ..model.gaussians import GaussianBatch, GaussianParams
 from ..model.threads import core_count
@@ -71,6 +73,7 @@ def retarget(
     workers: int | None = None,
     progress=None,
     graphs: bool | None = None,
+    directions: np.ndarray | None = None,
 ) -> RetargetResult:
     """Fit every source set ``estimated[i]`` to the target image ``targets[j]`` for each edge (i, j).
 
@@ -86,6 +89,8 @@ def retarget(
             parts (each part's iterations times its share of the edges).
         graphs: replay each phase's iteration captured as a CUDA graph (the same kernels in the same
             order); default: on CUDA.
+        directions: (n, 3) the lights' directions: the way each edge's highlights go in the image guides
+            phase 1's start (``kernels.search.image_headings``); None: any way.
     """
     s = settings or RetargetSettings()
     raster = raster or RasterSettings()
@@ -108,13 +113,15 @@ def retarget(
     all_targets = (targets if on_device
                    else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device))
     image_bytes = 4 * all_targets.shape[1] * all_targets.shape[2]
+    headings = None if directions is None else image_headings(directions, edges)
     chunks = memory_chunks(len(edges), device, workers,
                            bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
                            most_each=problems_per_launch(all_targets.shape[1], all_targets.shape[2], raster))
 
     def run(chunk: slice, stop) -> tuple:
         source = estimated.take(edges[chunk, 0])
-        job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device)
+        job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device,
+                           headings=None if headings is None else headings[chunk])
         return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
     # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads
@@ -129,7 +136,7 @@ class _Retargeting:
     """One batch of directed edges on one device."""
 
     def __init__(self, source_params: GaussianParams, all_targets: wp.array, target_rows, labels, centroids,
-                 settings: RetargetSettings, raster: RasterSettings, device):
+                 settings: RetargetSettings, raster: RasterSettings, device, *, headings=None):
         self.s = settings
         problems = source_params.problem_count
         _, height, width = all_targets.shape
@@ -145,6 +152,13 @@ class _Retargeting:
         self.structure = StructureLoss(self.source, settings.structure)
         self.energy = EnergyLoss(self.source, raster)
         self.rigid = RigidMotion(self.source, labels, centroids)
+        # phase 1 starts where each component best lies on its target (kernels/search.py)
+        searched_translations(self.source, self.rigid.labels, targets, self.rigid.motion,
+                              radius=settings.search_radius, step=rpx_to_normalized(settings.search_step_rpx),
+                              prior_width=settings.search_prior, gain=settings.search_gain,
+                              margin=settings.search_margin,
+                              exclusion=rpx_to_normalized(settings.search_exclusion_rpx), headings=headings,
+                              side_width=settings.search_side)
         self.image = self.raster.new_image(problems)
         self.loss = wp.zeros(problems, dtype=float, device=device, requires_grad=True)
         self.ones = wp.ones(problems, dtype=float, device=device)

@@ -179,6 +179,7 @@ def check_moving(
     progress=None,
     keep: int = 0,
     held=None,
+    directions: np.ndarray | None = None,
 ) -> MoveCheck:
     """Score moving against blending at the left-out lights of ``plan``.
 
@@ -195,6 +196,7 @@ def check_moving(
         keep: keep the moved highlights of this many checked lights, spread over them (for the
             learned residual's check, ``residual.learned.check_learned``).
         held: ``images`` and ``own`` on the CUDA device already (``residual.inputs.HeldImages``), scored there.
+        directions: (n, 3) the lights' directions, for retargeting's start (``fit.retargeting.retarget``).
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
@@ -203,7 +205,7 @@ def check_moving(
     all_edges, all_sets, all_delta = edges, retargeted, np.asarray(path_delta, np.float64)
     if len(missing):
         extra = retarget(estimated, specular_luminance, missing, settings=settings.retarget, raster=settings.raster,
-                         device=device,
+                         device=device, directions=directions,
                          workers=workers, progress=progress)
         extra_sources = estimated.take(missing[:, 0])
         extra_sets, _ = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share,

@@ -340,16 +340,23 @@ class RetargetSettings:
         adam: phase 2 learning rates.
         structure: the structure loss' neighbourhood weights.
         components: when two Gaussians belong to one component.
-        vanish_share: a retargeted Gaussian left with less energy than this share of its source's
-            has found nothing to follow on the target (its highlight vanishes there, e.g. into a
-            shadow or off the surface) and is put back at its source: along that edge it stays as it
-            is, as the alpha blend would keep it, instead of shrinking to a point. On the 250-light
-            donut a small highlight that is missing at some lights made such collapsed Gaussians
-            (energy share 0.2%), which cost circular its lead over alpha at the centroids of their
-            triangles; putting them back raised the share of centroids where circular beats alpha
-            from 90.7% to 94.4%, at 0.05 and at 0.01 alike (benchmarks/thesis_experiments.py). 0.01,
-            the smaller, changes the full images least (benchmarks/bench_quality.py). 0 keeps every
-            retargeted Gaussian.
+        search_radius, search_step_rpx, search_prior, search_side, search_gain, search_margin,
+            search_exclusion_rpx: phase 1's start (``kernels/search.py``): every component tries the offsets
+            of a grid of ``search_step_rpx`` within ``search_radius`` image heights, each scored by its
+            overlap with the target blurred by the step, times a prior of width ``search_prior`` image
+            heights along the way the half-vector moves the highlight on the image and ``search_side``
+            across it; it starts from the best where that scores ``search_gain`` times staying (it has
+            all but lost its highlight) and ``search_margin`` times every offset further than
+            ``search_exclusion_rpx`` from it (an ambiguous match, e.g. among the glints of a bumpy
+            surface, keeps its place). Between far-apart lights a sharp highlight moves further than
+            its size and the rigid phase's gradient finds nothing to follow: on the sharp donut of
+            benchmarks/bench_motion.py (160x90, 16 dome lights) no Gaussian moved without the search
+            and the field equalled the blend (28.2 dB along the paths); with it 205 moved and it scored
+            31.7 dB. The values were set on that benchmark's sharp donut and tiled teapot (16 and 49
+            lights) against bench_quality's 64-light donut and teapot, which the search must leave
+            alone: a smaller gain or a wider prior cost the tiled teapot up to 1.4 dB at 49 lights
+            (highlights that vanish on its matte tiles were sent to other highlights). 0 radius: no
+            search (the rigid phase from the source, as method.md describes).
     """
 
     rigid_iterations: int = 50
@@ -363,10 +370,31 @@ class RetargetSettings:
     structure: StructureLossSettings = StructureLossSettings()
     components: ComponentSettings = ComponentSettings()
     vanish_share: float = 0.01
+    search_radius: float = 0.35
+    search_step_rpx: float = 4.0
+    search_prior: float = 0.1
+    search_side: float = 0.05
+    search_gain: float = 20.0
+    search_margin: float = 1.5
+    search_exclusion_rpx: float = 12.0
 
     def __post_init__(self):
         _require(math.isfinite(self.vanish_share) and 0 <= self.vanish_share < 1,
                  f"vanish_share must be in [0, 1), got {self.vanish_share}")
+        _require(math.isfinite(self.search_radius) and 0 <= self.search_radius <= 2,
+                 f"search_radius must be in [0, 2] image heights, got {self.search_radius}")
+        _require(math.isfinite(self.search_step_rpx) and 0.5 <= self.search_step_rpx <= 270,
+                 f"search_step_rpx must be in [0.5, 270], got {self.search_step_rpx}")
+        _require(math.isfinite(self.search_prior) and self.search_prior > 0,
+                 f"search_prior must be > 0, got {self.search_prior}")
+        _require(math.isfinite(self.search_side) and self.search_side > 0,
+                 f"search_side must be > 0, got {self.search_side}")
+        _require(math.isfinite(self.search_gain) and self.search_gain >= 1,
+                 f"search_gain must be >= 1, got {self.search_gain}")
+        _require(math.isfinite(self.search_margin) and self.search_margin >= 1,
+                 f"search_margin must be >= 1, got {self.search_margin}")
+        _require(math.isfinite(self.search_exclusion_rpx) and self.search_exclusion_rpx >= 0,
+                 f"search_exclusion_rpx must be >= 0, got {self.search_exclusion_rpx}")
         _require(0 <= int(self.rigid_iterations) <= MAX_ITERATIONS,
                  f"rigid_iterations must be in [0, {MAX_ITERATIONS}], got {self.rigid_iterations}")
         _require(0 <= int(self.iterations) <= MAX_ITERATIONS,

@@ -1,0 +1,215 @@
+"""Retargeting's coarse start: for every connected component of every edge's source set, the translation
+on a grid that best lays it onto the target's (blurred) specular image.
+
+Between lights far apart (a sparse capture) a sharp highlight travels further than its own size, and
+the rigid phase's gradient, which only sees the overlap of the component with the target, has nothing
+to follow. So before it, every component tries every offset t of a disc of candidates:
+
+    score(t) = prior(t) * sum_{p in component} w_p a_p^2 * T_blur(mu_p + t)
+
+(the Gaussians' peaks times the target blurred by about the grid step, sampled at the moved centres).
+The prior says nearer is likelier (a Gaussian of width r in |t|) and, where the lights' half-vectors
+tell which way a highlight goes (``image_headings``), that it goes that way or back (narrower across
+that line). It starts from the best offset where it scores at least
+``gain`` times the unmoved component and ``margin`` times every offset further than ``exclusion`` from it: a
+highlight that could have gone to several places (glints on a bumpy surface, which do not travel but
+fade where they are) keeps its place. One thread per (edge, component slot); ``blur_rows`` and
+``blur_cols`` blur the targets in two launches.
+"""
+
+# ruff: noqa: UP018  (Warp declares a mutable kernel local with float(0.0) / int(0))
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from warp_highlights.model.gaussians import GaussianBatch
+
+__all__ = ["blur_cols", "blur_rows", "blurred", "candidate_offsets", "image_headings", "search_translations",
+           "searched_translations"]
+
+
+@wp.kernel(enable_backward=False)
+def blur_rows(images: wp.array3d(dtype=float), sigma: float, radius: int, out: wp.array3d(dtype=float)):
+    """out = images convolved along each row with a unit-sum Gaussian of ``sigma`` pixels (zeros beyond)."""
+    b, row, col = wp.tid()
+    width = images.shape[2]
+    total = float(0.0)
+    norm = float(0.0)
+    for k in range(-radius, radius + 1):
+        weight = wp.exp(-0.5 * float(k * k) / (sigma * sigma))
+        norm += weight
+        c = col + k
+        if c >= 0 and c < width:
+            total += weight * images[b, row, c]
+    out[b, row, col] = total / norm
+
+
+@wp.kernel(enable_backward=False)
+def blur_cols(images: wp.array3d(dtype=float), sigma: float, radius: int, out: wp.array3d(dtype=float)):
+    """The same along each column."""
+    b, row, col = wp.tid()
+    height = images.shape[1]
+    total = float(0.0)
+    norm = float(0.0)
+    for k in range(-radius, radius + 1):
+        weight = wp.exp(-0.5 * float(k * k) / (sigma * sigma))
+        norm += weight
+        r = row + k
+        if r >= 0 and r < height:
+            total += weight * images[b, r, col]
+    out[b, row, col] = total / norm
+
+
+@wp.func
+def _sample(images: wp.array3d(dtype=float), b: int, point: wp.vec2, height: float) -> float:
+    # nearest pixel of a point in image heights; 0 outside the image
+    col = int(wp.floor(point[0] * height))
+    row = int(wp.floor(point[1] * height))
+    if row < 0 or col < 0 or row >= images.shape[1] or col >= images.shape[2]:
+        return 0.0
+    return images[b, row, col]
+
+
+@wp.func
+def _prior(offset: wp.vec2, heading: wp.vec2, width: float, side_width: float) -> float:
+    # Gaussian in the offset's length; where the edge has a heading (a unit vector), narrower across it
+    across = float(0.0)
+    if wp.length(heading) > 0.0:
+        along = wp.dot(offset, heading)
+        across = wp.dot(offset, offset) - along * along
+        return wp.exp(-0.5 * (along * along / (width * width) + across / (side_width * side_width)))
+    return wp.exp(-0.5 * wp.dot(offset, offset) / (width * width))
+
+
+@wp.kernel(enable_backward=False)
+def search_translations(
+    mean: wp.array2d(dtype=wp.vec2),
+    amplitude: wp.array2d(dtype=float),
+    weight: wp.array2d(dtype=float),
+    active: wp.array2d(dtype=wp.int32),
+    labels: wp.array2d(dtype=wp.int32),
+    targets: wp.array3d(dtype=float),
+    offsets: wp.array(dtype=wp.vec2),
+    heading: wp.array(dtype=wp.vec2),
+    prior_width: float,
+    side_width: float,
+    gain: float,
+    margin: float,
+    exclusion: float,
+    motion: wp.array2d(dtype=wp.vec3),
+):
+    """motion[b, c] = (t_x, t_y, 0) of component c's best offset where it beats staying by ``gain`` and
+    every offset further than ``exclusion`` from it by ``margin``."""
+    b, c = wp.tid()
+    capacity = mean.shape[1]
+    members = int(0)
+    for p in range(capacity):
+        if active[b, p] != 0 and labels[b, p] == c:
+            members += 1
+    if members == 0:
+        return
+    height = float(targets.shape[1])
+    stay = float(0.0)
+    for p in range(capacity):
+        if active[b, p] != 0 and labels[b, p] == c:
+            stay += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p], height)
+    best = float(0.0)
+    best_k = int(-1)
+    for k in range(offsets.shape[0]):
+        offset = offsets[k]
+        score = float(0.0)
+        for p in range(capacity):
+            if active[b, p] != 0 and labels[b, p] == c:
+                score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset,
+                                                                                    height)
+        score *= _prior(offset, heading[b], prior_width, side_width)
+        if score > best:
+            best = score
+            best_k = k
+    if best_k < 0 or best <= gain * stay:
+        return
+    # unambiguous: no offset away from the best (another glint, another highlight) scores near it
+    found = offsets[best_k]
+    rival = float(0.0)
+    for k in range(offsets.shape[0]):
+        offset = offsets[k]
+        if wp.length(offset - found) > exclusion:
+            score = float(0.0)
+            for p in range(capacity):
+                if active[b, p] != 0 and labels[b, p] == c:
+                    score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset,
+                                                                                        height)
+            rival = wp.max(rival, score * _prior(offset, heading[b], prior_width, side_width))
+    if best > margin * rival:
+        motion[b, c] = wp.vec3(found[0], found[1], 0.0)
+
+
+def image_headings(directions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E, 2) float32 unit image-plane directions (x right, y down, as the Gaussians' means) in which a
+    highlight moves along each directed edge (source, target) of lights ``directions`` ((n, 3): x right,
+    y up, z to the camera): the change of the half-vector h = (l + v) / |l + v| for a camera along +z,
+    projected on the image. A highlight sits where the surface's normal is h, so on a convex surface it
+    moves with h (on a concave one against it: the prior is symmetric). Zero where h barely changes."""
+    directions = np.asarray(directions, dtype=np.float64)
+    half = directions + np.array([0.0, 0.0, 1.0])
+    half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-12)
+    change = half[edges[:, 1]] - half[edges[:, 0]]
+    image = np.stack([change[:, 0], -change[:, 1]], axis=1)
+    length = np.linalg.norm(image, axis=1, keepdims=True)
+    return np.where(length > 1e-6, image / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+
+
+def candidate_offsets(radius: float, step: float) -> np.ndarray:
+    """(K, 2) float32 offsets of a square grid of ``step`` inside the disc of ``radius`` (image heights),
+    the zero offset first."""
+    count = int(math.floor(radius / step))
+    axis = np.arange(-count, count + 1) * step
+    x, y = np.meshgrid(axis, axis, indexing="xy")
+    grid = np.stack([x.ravel(), y.ravel()], axis=1)
+    grid = grid[np.hypot(grid[:, 0], grid[:, 1]) <= radius + 1e-12]
+    order = np.argsort(np.hypot(grid[:, 0], grid[:, 1]), kind="stable")
+    return np.ascontiguousarray(grid[order], dtype=np.float32)
+
+
+def blurred(images: wp.array, sigma_px: float) -> wp.array:
+    """(B, H, W) ``images`` blurred by a Gaussian of ``sigma_px`` pixels (two launches; a new array)."""
+    radius = max(1, int(math.ceil(3.0 * sigma_px)))
+    across = wp.empty_like(images)
+    out = wp.empty_like(images)
+    wp.launch(blur_rows, dim=images.shape, inputs=[images, float(sigma_px), radius], outputs=[across],
+              device=images.device)
+    wp.launch(blur_cols, dim=images.shape, inputs=[across, float(sigma_px), radius], outputs=[out],
+              device=images.device)
+    return out
+
+
+def searched_translations(source: GaussianBatch, labels: wp.array, targets: wp.array, motion: wp.array, *,
+                          radius: float, step: float, prior_width: float, gain: float, margin: float,
+                          exclusion: float, headings: np.ndarray | None = None, side_width: float = 1.0) -> None:
+    """Write into ``motion`` ((B, N) vec3, zeros) each component's searched start (``search_translations``).
+
+    Args:
+        source: the edges' source sets; labels: (B, N) int32 component of each slot.
+        targets: (B, H, W) each edge's target specular luminance (blurred here by ``step``).
+        radius, step, prior_width: the disc of offsets, its grid step and the prior's width, in image
+            heights.
+        headings: (B, 2) the way each edge's highlights are expected to go in the image (unit vectors,
+            ``image_headings``; zero: no expectation), across which the prior is ``side_width`` wide.
+        gain, margin: how much better than staying, and than any offset further than ``exclusion``
+            (image heights) from it, an offset must score to be taken.
+    """
+    if radius <= 0.0 or source.problem_count == 0:
+        return
+    offsets = wp.array(candidate_offsets(radius, step), dtype=wp.vec2, device=source.device)
+    smooth = blurred(targets, max(step * targets.shape[1], 0.5))
+    if headings is None:
+        headings = np.zeros((source.problem_count, 2), np.float32)
+    heading = wp.array(np.ascontiguousarray(headings, dtype=np.float32), dtype=wp.vec2, device=source.device)
+    wp.launch(search_translations, dim=source.shape,
+              inputs=[source.mean, source.amplitude, source.weight, source.active, labels, smooth, offsets, heading,
+                      float(prior_width), float(side_width), float(gain), float(margin), float(exclusion)],
+              outputs=[motion], device=source.device)
