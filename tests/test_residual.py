@@ -610,6 +610,29 @@ def test_the_fit_reports_its_move_check_and_obeys_it(donut_fields):
             assert check["moves"] == (check["moving_psnr_db"] > check["blend_psnr_db"])
         assert (residual["moving_gaussians"] > 0) == check["moves"]
         assert int(field.moving_mask.sum()) == residual["moving_gaussians"]
+        assert 0.0 <= residual["moving_specular_share"] <= 1.0
+        assert (residual["moving_specular_share"] > 0.2) == check["moves"]  # the donut's highlights are Gaussians
+
+
+def test_the_moving_share_is_what_the_moving_gaussians_draw_of_the_specular_energy():
+    """Against the float64 reference rasterizer: one moving Gaussian of three draws a known part of a
+    specular stack."""
+    from warp_highlights.fit.pipeline import moving_energy_share
+
+    gaussians = GaussianParams.empty(2, 2)
+    gaussians = dataclasses.replace(gaussians, amplitude=np.array([[0.8, 0.5], [0.6, 0.0]]),
+                                    mean=np.array([[[0.5, 0.5], [1.2, 0.4]], [[0.9, 0.6], [0.0, 0.0]]]),
+                                    sigma=np.full((2, 2, 2), 0.08), active=np.array([[True, True], [True, False]]))
+    moving = np.array([[True, False], [False, False]])
+    raster = RasterSettings()
+    specular = render_reference(gaussians, 40, 72, raster) + 0.05  # all drawn, plus what no Gaussian explains
+    only = dataclasses.replace(gaussians, amplitude=np.where(moving, gaussians.amplitude, 0.0))
+    expected = render_reference(only, 40, 72, raster).sum() / specular.sum()
+    share = moving_energy_share(gaussians, moving, wp.array(specular.astype(np.float32), device="cpu"), raster=raster,
+                                device="cpu")
+    assert 0.1 < share < 0.9 and share == pytest.approx(expected, rel=1e-4)  # float32 sums
+    assert moving_energy_share(gaussians, moving & False, wp.array(specular.astype(np.float32), device="cpu"),
+                               raster=raster, device="cpu") == 0.0
 
 
 def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_back_the_images(donut_fields, monkeypatch,

@@ -274,8 +274,10 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             kind = f"learned ({residual['learned']['epochs']} epochs)"
         else:
             kind = "uncompressed images"
-        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move, {residual['staying_gaussians']} "
-              f"blend in place; "
+        share = residual.get("moving_specular_share")
+        carried = "" if share is None else f" (carrying {100 * share:.0f}% of the specular energy)"
+        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move{carried}, "
+              f"{residual['staying_gaussians']} blend in place; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
         check = residual.get("move_check") or {}
         if check.get("lights"):

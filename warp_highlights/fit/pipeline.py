@@ -47,7 +47,7 @@ from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
 from .validation import check_moving, plan_check
 
-__all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field"]
+__all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field", "moving_energy_share"]
 
 _LOG = logging.getLogger(__name__)
 
@@ -175,6 +175,7 @@ def fit_field(
                                               settings.retarget.rigid_iterations + settings.retarget.iterations,
                                               len(edges)) as advance:
             retargeted = retarget(estimated.params, specular_luminance, edges, settings=settings.retarget,
+                                  directions=dataset.lights.directions,
                                   raster=settings.raster, device=device, workers=workers, progress=advance)
         with timer.stage("paths"):
             source = estimated.params
@@ -231,7 +232,8 @@ def fit_field(
                                          factor=factor, settings=settings, device=device, workers=workers,
                                          progress=advance,
                                          keep=settings.residual.learned_check if learned else 0,
-                                         held=held if check_images is images else None)
+                                         held=held if check_images is images else None,
+                                         directions=dataset.lights.directions)
             if learned and check.moves and len(check.kept_lights):
                 epochs = learned_epochs(settings.residual, wp.get_device(device).is_cuda)
                 with timer.stage("learned check"), _bar(progress, "learned check", 2 * epochs,
@@ -290,6 +292,8 @@ def fit_field(
         diffuse_model = DiffuseModel(lambert=lambert, images=diffuse_images)
 
     counts = estimated.counts
+    moving_share = (moving_energy_share(kept, moving, specular_luminance, raster=settings.raster, device=device)
+                    if residual_model is not None else None)
     report = {
         "version": __version__,
         "device": str(device),
@@ -327,6 +331,8 @@ def fit_field(
             "moving_gaussians": int(moving.sum()),
             "staying_gaussians": int(kept.active.sum() - moving.sum()),
             "kept_gaussians": int(kept.active.sum()),
+            # what the moving Gaussians carry of the specular part the segmentation found
+            "moving_specular_share": moving_share,
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
@@ -358,6 +364,19 @@ def fit_field(
         residual=residual_model,
         moving=moving if residual_model is not None else None,
     )
+
+
+def moving_energy_share(gaussians: GaussianParams, moving: np.ndarray, specular_luminance: wp.array, *,
+                        raster, device) -> float:
+    """Share of the segmented specular energy (the sum of ``specular_luminance``, (n, H, W), over every
+    light and pixel) that the moving Gaussians draw there, in [0, 1]."""
+    total = float(wp.utils.array_sum(specular_luminance.flatten())) if specular_luminance.size else 0.0
+    if total <= 0.0 or not moving.any():
+        return 0.0
+    only_moving = dataclasses.replace(gaussians, amplitude=np.where(moving, gaussians.amplitude, 0.0))
+    drawn = render_own_on_device(only_moving, specular_luminance.shape[1], specular_luminance.shape[2],
+                                 raster=raster, device=device)
+    return float(np.clip(float(wp.utils.array_sum(drawn.flatten())) / total, 0.0, 1.0))
 
 
 def default_exposure(dataset: ReflectanceField) -> float | str:

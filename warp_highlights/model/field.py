@@ -300,6 +300,24 @@ class HighlightField:
         value = self.report.get("exposure")
         return float(value) if isinstance(value, (int, float)) and math.isfinite(value) and value > 0 else 1.0
 
+    def _motion_figures(self) -> str:
+        """What the fit report says of the moving Gaussians: their share of the specular energy and the
+        checks' scores ('' where the report has none)."""
+        residual = self.report.get("residual") if isinstance(self.report.get("residual"), dict) else {}
+        parts = []
+        share = residual.get("moving_specular_share")
+        if isinstance(share, (int, float)):
+            parts.append(f"carrying {100 * share:.0f}% of the specular energy")
+        check = residual.get("move_check") or {}
+        if check.get("lights"):
+            parts.append(f"move check at {check['lights']} left-out lights: moving {check['moving_psnr_db']:.2f} dB, "
+                         f"blending {check['blend_psnr_db']:.2f} dB")
+        learned = residual.get("learned_check") or {}
+        if learned.get("lights"):
+            parts.append(f"learned check: with the Gaussians {learned['with_gaussians_psnr_db']:.2f} dB, the images "
+                         f"alone {learned['images_alone_psnr_db']:.2f} dB")
+        return "".join(f"; {part}" for part in parts)
+
     def describe(self) -> str:
         """A short multi-line summary (lights, triangulation, Gaussians, diffuse, file size if known)."""
         counts = self.counts
@@ -325,7 +343,7 @@ class HighlightField:
             )
         if self.moving is not None:
             lines.append(f"moving Gaussians: {int(self.moving.sum())} of {int(self.estimated.active.sum())} (the rest "
-                         f"blend in place)")
+                         f"blend in place)" + self._motion_figures())
         if self.residual is not None:
             lines.append(self.residual.describe())
         if self.file_sizes is not None:
