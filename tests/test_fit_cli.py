@@ -52,6 +52,21 @@ def test_fit_writes_a_field_and_a_report(fitted, capsys):
     assert report["estimation"]["gaussians_per_light"]["mean"] == pytest.approx(field.counts.mean())
     assert report["retargeting"]["improved_share"] > 0.9
     assert field.fit_settings().estimation.iterations == 300  # the overrides are stored
+    residual = report["residual"]
+    assert 0.0 <= residual["moving_specular_share"] <= 1.0
+
+
+def test_info_on_a_field_says_how_much_moves(fitted, capsys):
+    out, report_path = fitted
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    report = json.loads(report_path.read_text())["residual"]
+    moving = next(line for line in lines if line.startswith("moving Gaussians:"))
+    assert moving.startswith(f"moving Gaussians: {report['moving_gaussians']} of ")
+    assert f"carrying {100 * report['moving_specular_share']:.0f}% of the specular energy" in moving
+    assert main(["info", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["residual"] == report
 
 
 def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
@@ -441,3 +456,40 @@ def test_a_small_capture_s_images_are_held_from_the_segmentation_s_upload(small_
                  "-q", *TINY_FIT]) == 0
     assert len(kept) == 1 and kept[0] is not None and len(handed) == 1
     assert handed[0]["images_up"] is kept[0] and handed[0]["own_up"] is not None
+
+
+def test_evaluate_scores_a_light_path_against_rendered_truth(fitted, small_donut, tmp_path, capsys):
+    """``evaluate --path``: every frame scored, with the highlights' motion; on the donut, moving highlights
+    leave fewer ghosts and sit nearer the truth than the blend's."""
+    out, _ = fitted
+    capsys.readouterr()
+    assert main(["evaluate", str(out), str(small_donut), "--path", "orbit:35", "--frames", "12", "--baselines",
+                 "none", "--triangle", "none", "--methods", "circular,alpha", "-o", str(tmp_path / "ev"), "-q",
+                 "--device", "cpu"]) == 0
+    printed = capsys.readouterr().out
+    assert "along orbit:35 (12 frames, ground truth rendered anew):" in printed
+    path = json.loads((tmp_path / "ev" / "report.json").read_text())["path"]
+    assert path["frames"] == 12 and path["spec"] == "orbit:35"
+    for method in ("circular", "alpha"):
+        scores = path[method]
+        assert len(scores["psnr_db"]["per_frame"]) == 12 and len(scores["flicker_levels"]["per_frame"]) == 11
+        assert 15 < scores["psnr_db"]["mean"] < 60 and 0 < scores["ssim"]["mean"] <= 1
+    assert path["circular"]["ghost_share"]["mean"] < path["alpha"]["ghost_share"]["mean"]
+    assert path["circular"]["position_error_rpx"]["mean"] < path["alpha"]["position_error_rpx"]["mean"]
+
+
+def test_evaluate_refuses_a_path_without_a_renderer(fitted, small_donut, tmp_path, capsys):
+    """A dataset whose meta.json names no built-in shape cannot give ground truth along a path: one line, exit 2,
+    nothing written."""
+    import shutil
+
+    out, _ = fitted
+    copy = tmp_path / "copy"
+    shutil.copytree(small_donut, copy)
+    (copy / "meta.json").unlink()
+    capsys.readouterr()
+    assert main(["evaluate", str(out), str(copy), "--path", "orbit:35", "-o", str(tmp_path / "ev"), "-q",
+                 "--device", "cpu"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "has no ground truth along a path" in error[0]
+    assert not (tmp_path / "ev").exists()

@@ -96,6 +96,11 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
         help="triangle for the PSNR-inside-a-triangle plot: a face index, 'auto' (the median one) or 'none'")
     parser.add_argument("--steps", type=in_range(int, 1, 100), default=10,
                         help="barycentric grid steps for that plot, 1..100 (default 10: 66 points)")
+    parser.add_argument("--path", help="also score every frame of a light path (e.g. orbit:35, great:-1,0.2,1:1,0.2,1) "
+                        "against ground truth rendered anew, with the motion of the highlights (ghosts, position, "
+                        "flicker): datasets made by 'warp-highlights render' of a built-in shape")
+    parser.add_argument("--frames", type=in_range(int, 2, 10_000), default=96,
+                        help="frames along --path, 2..10000 (default 96)")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     _add_other_capture_option(parser, "DATASET")
@@ -463,16 +468,32 @@ def _run_evaluate(args) -> int:
     _check_holdout_every(args, field, dataset, fitted_every)
     if args.holdout_every or (holdout_every and dataset.light_count != field.light_count):
         dataset = dataset.split_every(int(holdout_every))
+    path = renderer = None
+    if args.path:
+        from ..relight.path_scores import path_renderer
+        from ..view.light_paths import parse_light_path
+
+        path = parse_light_path(args.path, args.frames)
+        renderer = path_renderer(dataset, device)  # refused in one line before any work where there is none
     with scoring_processes():  # every method's scores in the same few worker processes
         evaluation = evaluate_field(field, dataset, device=device, methods=methods,
                                     barycentric_face=None if triangle == "none" else triangle,
                                     # its steps reach stderr through the logger
                                     barycentric_steps=args.steps, baselines=baselines)
+        if path is not None:
+            from ..relight.path_scores import score_path
+
+            path_scores = score_path(field, dataset, path, methods=[m for m in methods if m != "straight"] or methods,
+                                     device=device, renderer=renderer)
     report = evaluation.to_dict()
     report["field"] = str(args.field)
     report["dataset"] = str(args.dataset)
+    if path is not None:
+        report["path"] = {"spec": args.path, **path_scores}
     written = write_evaluation(output, evaluation, report, overwrite=args.overwrite, title=Path(args.field).stem)
     print_evaluation_table(report)
+    if path is not None:
+        print_path_table(report["path"])
     print(f"wrote {output}: " + ", ".join(written))
     return 0
 
@@ -634,6 +655,19 @@ def _blank_example_note(key: str, image: np.ndarray, *, kept: bool, added_to: st
     if key == "alpha":
         return f"no highlight in the three corner lights' specular images here ({level})"
     return f"no highlight in the ground truth at this light ({level})"
+
+
+def print_path_table(scores: dict) -> None:
+    """``evaluate --path``'s scores as a Markdown table on stdout (means over the frames)."""
+    print(f"along {scores['spec']} ({scores['frames']} frames, ground truth rendered anew):")
+    print("| method | 8-bit sRGB PSNR | SSIM | ghost share | position error (rpx) | flicker (8-bit levels) |")
+    print("|---|---|---|---|---|---|")
+    names = ("psnr_db", "ssim", "ghost_share", "position_error_rpx", "flicker_levels")
+    for method, values in scores.items():
+        if isinstance(values, dict):
+            cells = ["n/a" if values[k]["mean"] is None else f"{values[k]['mean']:.{3 if k == 'ssim' else 2}f}"
+                     for k in names]
+            print(f"| {method} | " + " | ".join(cells) + " |")
 
 
 def print_evaluation_table(report: dict) -> None:

@@ -14,6 +14,8 @@ render ground truth for an evaluation), never fit (ARCHITECTURE.md).
 - ``INTERPOLATION_METHODS``: ``circular`` and ``straight``.
 - ``evaluate_field``: score methods against held-out ground truth: PSNR per query, summaries.
 - ``Evaluation``: what ``evaluate_field`` measured; ``to_dict()`` is the JSON report.
+- ``score_path``: a field scored along a light path against ground truth rendered at every frame (motion too).
+- ``path_renderer``: the renderer that made a dataset, for that ground truth.
 - ``psnr_excluding_black``: PSNR per image (dB, peak 1); NaN where both images are all black.
 - ``srgb_scores``: PSNR and SSIM per image of linear images shown as 8-bit sRGB.
 - ``fit_baseline``: fit an RTI baseline (PTM, HSH, RBF) to images and light directions on a device.
@@ -37,5 +39,6 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["fit_baseline", "BaselineModel", "BASELINE_METHODS", "baseline_basis", "choose_rbf_sigma"],
                         "baselines"),
         **dict.fromkeys(["surface_maps", "SurfaceMaps"], "maps"),
+        **dict.fromkeys(["score_path", "path_renderer"], "path_scores"),
     },
 )
