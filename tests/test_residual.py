@@ -1033,3 +1033,14 @@ def test_own_highlights_past_one_launch_are_drawn_in_parts_into_one_stack(device
     assert parts.shape == (5, 27, 48)
     np.testing.assert_array_equal(parts.numpy(), whole)
     assert (whole.reshape(5, -1).max(axis=1) > 0.1).all()
+
+
+def test_the_learned_checks_winner_learns_its_unseen_lights_as_long_as_a_whole_training_would():
+    from warp_highlights.model.config import LEARNED_EPOCHS_CPU, LEARNED_EPOCHS_CUDA, ResidualSettings
+    from warp_highlights.residual.learned import tune_epochs
+
+    settings = ResidualSettings()
+    assert tune_epochs(settings, True, 6, 250) == settings.learned_tune_epochs == 40  # a few of many lights
+    assert tune_epochs(settings, True, 6, 16) == int(np.ceil(6 / 16 * LEARNED_EPOCHS_CUDA)) == 98
+    assert tune_epochs(settings, False, 6, 16) == int(np.ceil(6 / 16 * LEARNED_EPOCHS_CPU))
+    assert tune_epochs(ResidualSettings(learned_epochs=1000), True, 6, 16) == 375

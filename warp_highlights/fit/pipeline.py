@@ -39,7 +39,7 @@ from ..residual.inputs import (
     render_own_on_device,
 )
 from ..residual.kind import resolve_kind
-from ..residual.learned import check_learned, learn_residual, learned_epochs
+from ..residual.learned import check_learned, learn_residual, learned_epochs, tune_epochs
 from ..residual.rate import gaussian_bytes
 from .estimation import estimate
 from .moving import decide_moving
@@ -266,14 +266,16 @@ def fit_field(
                 # the learned check's winner goes on learning from every light (the ones it left out too);
                 # without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
-                epochs = (settings.residual.learned_tune_epochs if winner is not None
-                          else learned_epochs(settings.residual, wp.get_device(device).is_cuda))
+                cuda = wp.get_device(device).is_cuda
+                epochs = (tune_epochs(settings.residual, cuda, len(learned_check.lights), dataset.light_count)
+                          if winner is not None else learned_epochs(settings.residual, cuda))
                 with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
                                                                      factor=factor,
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
-                                                                     initial=winner, tune=winner is not None)
+                                                                     initial=winner, tune=winner is not None,
+                                                                     epochs=epochs)
             else:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,

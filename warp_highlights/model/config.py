@@ -557,7 +557,10 @@ class ResidualSettings:
             left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
             device: 5 on CUDA, 15 on the CPU (two thirds and an eighth of ``learned_seconds``).
         learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``, for 6 lights out of
-            43-250.
+            43-250; where the check's lights are a larger share of the capture, that share of
+            ``learned_epochs`` (``residual.learned.tune_epochs``): on the 16-light renders of
+            benchmarks/bench_motion.py (an H200) the default learned field, its winner trained on 10
+            lights and tuned 40 epochs, scored 0.9-2.5 dB below the learned residual alone.
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored; where their order has settled (``learned_settle_margin_db``), the loser stops and
             the winner learns on alone, in half the time a step of both takes. 0.25: the ranking turns
