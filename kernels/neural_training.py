@@ -335,15 +335,20 @@ class DecoderTrainer:
     def result(self) -> list[NeuralDecoder]:
         return self.params.models()
 
-    def keep(self, m: int) -> DecoderTrainer:
-        """A trainer of model m alone that goes on where this one is (parameters, Adam's moments, step)."""
+    def keep(self, m: int, used: np.ndarray | None = None) -> DecoderTrainer:
+        """A trainer of model m alone that goes on where this one is (parameters, Adam's moments, step);
+        ``used``: the lights it learns from from now on (default this trainer's), its step counter moved to
+        the same epoch of the new sample count, so the learning rate's schedule goes on from there."""
         wp.synchronize_device(self.device)
         models = self.result()
-        alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used, [models[m]], self.batch, self.epochs,
-                               self.lr, self.final_lr, self.seed, self.device, self.tile)
+        alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used if used is None else np.asarray(used),
+                               [models[m]], self.batch, self.epochs, self.lr, self.final_lr, self.seed, self.device,
+                               self.tile)
         for mine, theirs in ((self.first, alone.first), (self.second, alone.second)):
             theirs.assign(self.params.one_model(mine.numpy(), m))
-        alone.step.assign(self.step.numpy())
+        step = int(self.step.numpy()[0])
+        epochs_done = round(step / self.steps_per_epoch)
+        alone.step.assign(np.array([step if used is None else epochs_done * alone.steps_per_epoch], np.int64))
         return alone
 
 
@@ -351,7 +356,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
                    lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
                    used: np.ndarray | None = None,
                    initial: list[NeuralDecoder] | None = None, settle=None,
-                   settle_epoch: int = 0) -> tuple[list[NeuralDecoder], np.ndarray]:
+                   settle_epoch: int = 0,
+                   settle_used: np.ndarray | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by
     side: Adam on the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the
     learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds``
@@ -359,12 +365,14 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     (default all; the others' targets are never read). ``initial``: models to go on training (default:
     ``initial_model`` of each model's used targets). ``settle(models)``, called once after ``settle_epoch``
     epochs with the models as they are, may return the index of the one model that goes on (the others
-    stop there: their loss is NaN from then on) or None (all go on). Returns the models and the (epochs
-    run, M) mean loss of each epoch."""
+    stop there: their loss is NaN from then on) or None (all go on); the one that goes on learns from
+    ``settle_used`` lights from then on (default ``used``). Returns the models and the (epochs run, M)
+    mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     count, n, pixels, _ = targets.shape
     used = used_lights(n, pixels, used)
+    settle_used = None if settle_used is None else used_lights(n, pixels, settle_used)
     models = [initial_model(targets[m][used], seed=seed) for m in range(count)] if initial is None else list(initial)
     if len(models) != count or any(m.codes.shape != (pixels, CODE_SIZE) for m in models):
         raise ValueError(f"initial models must be {count}, each with codes of {pixels} pixels")
@@ -386,7 +394,7 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
             kept = settle(trainer.result())
             if kept is not None:
                 stopped = trainer.result()
-                trainer, going_on = trainer.keep(int(kept)), [int(kept)]
+                trainer, going_on = trainer.keep(int(kept), used=settle_used), [int(kept)]
     models = trainer.result()
     if stopped is not None:
         stopped[going_on[0]] = models[0]

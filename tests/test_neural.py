@@ -256,8 +256,8 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
 
 def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled():
     """On the CPU the check's models learn one after the other: both the first half of the schedule, then, their
-    order settled (a margin of 0 dB), the winner alone the second half from where it was, at the schedule's rates;
-    the loser is scored as it was at the half."""
+    order settled (a margin of 0 dB), the winner alone the second half from where it was, at the schedule's rates,
+    from every light (the verdict is taken); both are scored as they were at the half."""
     from warp_highlights.model.config import ResidualSettings
     from warp_highlights.residual import cpu_training
     from warp_highlights.residual.learned import _targets, check_learned
@@ -284,13 +284,18 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     start, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=3e-3, final_lr=halfway,
                                               **{**options, "seconds": 60.0 / 6 * 2})
     end, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=3e-3 * 0.1 ** (2 / 3), final_lr=3e-4,
-                                            initial=start, **options)
+                                            initial=start, **{**options, "used": None})
     np.testing.assert_allclose(check.winner.learned.codes.reshape(-1, 9).astype(np.float32),
                                end.codes.astype(np.float16).astype(np.float32), atol=1e-3)
-    scaled = [srgb_psnr(np.maximum(p + b, 0) / 2.0, t / 2.0) for p, b, t in
-              zip(learned_images(NeuralResidual(first.codes.reshape(6, 8, -1).astype(np.float16), tuple(first.weights),
-                                                 2.0, 9), directions[left_out]), blob, images[left_out])]
-    np.testing.assert_allclose(check.with_gaussians, scaled, rtol=1e-4)
+    assert check.learned_every_light and len(check.history) == 4
+
+    def scores(model, added):
+        relit = learned_images(NeuralResidual(model.codes.reshape(6, 8, -1).astype(np.float16), tuple(model.weights),
+                                              2.0, 9), directions[left_out])
+        return [srgb_psnr(np.maximum(p + b, 0) / 2.0, t / 2.0) for p, b, t in zip(relit, added, images[left_out])]
+
+    np.testing.assert_allclose(check.with_gaussians, scores(first, blob), rtol=1e-4)
+    np.testing.assert_allclose(check.images_alone, scores(start, np.zeros_like(blob)), rtol=1e-4)
 
 
 def test_training_time_counts_from_the_first_step():

@@ -162,6 +162,28 @@ def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device)
     np.testing.assert_allclose(both[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
 
 
+def test_the_kept_model_can_go_on_with_more_lights_at_the_same_point_of_its_schedule(device):
+    """``settle_used``: after settling, the winner learns every light. Its step counter lands on the same epoch
+    of the larger sample count (the learning rate goes on from where it was), and it learns the lights it had
+    never seen: on them it ends far closer than the model kept on its first lights."""
+    directions, targets = _problem(seed=9, lights=5, pixels=512)
+    used = np.array([0, 1, 2])
+    trainer = neural_training.DecoderTrainer(targets, directions, used, [neural_training.initial_model(t[used])
+                                                                          for t in targets], 512, 4, device=device)
+    trainer.steps(2 * trainer.steps_per_epoch)
+    alone = trainer.keep(1, used=np.arange(5))
+    assert int(alone.step.numpy()[0]) == 2 * alone.steps_per_epoch and alone.steps_per_epoch > trainer.steps_per_epoch
+    kwargs = dict(device=device, epochs=24, batch=512, used=used, settle=lambda models: 1, settle_epoch=2)
+    narrow, _ = neural_training.train_decoders(targets, directions, **kwargs)
+    wide, history = neural_training.train_decoders(targets, directions, settle_used=np.arange(5), **kwargs)
+    assert np.isfinite(history[:, 1]).all()
+    from warp_highlights.residual.cpu_training import decode_cpu
+
+    errors = [float(np.mean((decode_cpu(m[1].codes, m[1].weights, directions[3:]) - targets[1, 3:]) ** 2))
+              for m in (narrow, wide)]
+    assert errors[1] < 0.8 * errors[0]
+
+
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs a CUDA device")
 def test_a_model_trained_on_cuda_decodes_the_same_on_the_cpu():
     """The trained decoder, decoded by Warp on CUDA and on the CPU and by the float64 reference, agrees within float

@@ -263,12 +263,15 @@ def fit_field(
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
             if learned:
-                # the learned check's winner goes on learning from every light (the ones it left out too);
-                # without a check, one model learns from every light
+                # the learned check's winner goes on learning from every light (the ones it left out too) where it
+                # has not learned them since its verdict settled; without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
                 cuda = wp.get_device(device).is_cuda
                 epochs = (tune_epochs(settings.residual, cuda, len(learned_check.lights), dataset.light_count)
                           if winner is not None else learned_epochs(settings.residual, cuda))
+            if learned and learned_check is not None and learned_check.learned_every_light:
+                residual_model, learned_history = learned_check.winner, list(learned_check.history)
+            elif learned:
                 with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
                                                                      factor=factor,
@@ -276,7 +279,7 @@ def fit_field(
                                                                      progress=advance,
                                                                      initial=winner, tune=winner is not None,
                                                                      epochs=epochs)
-            else:
+            if not learned:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,
                                                     other_bytes=gaussian_bytes(kept, kept_retargeted),

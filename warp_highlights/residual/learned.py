@@ -83,11 +83,13 @@ def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float
 
 def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
-           tune: bool = False, settle=None, epochs: int | None = None) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           tune: bool = False, settle=None, epochs: int | None = None,
+           settle_used=None) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
     the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``, called once
     ``learned_settle_fraction`` of the epochs have run, returns the index of the one model to go on, or None
-    (on the CPU in two parts: ``_train_settling_on_cpu``)."""
+    (on the CPU in two parts: ``_train_settling_on_cpu``); that one learns from the ``settle_used`` lights from
+    then on (default ``used``)."""
     device = wp.get_device(device)
     learning = [len(targets) if device.is_cuda else 1]  # models that advance the bar an epoch
 
@@ -111,14 +113,15 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
             return kept
 
         models, history = train_decoders(np.stack(targets), directions, initial=initial,
-                                         settle=None if settle is None else settled, settle_epoch=epoch, **options)
+                                         settle=None if settle is None else settled, settle_epoch=epoch,
+                                         settle_used=settle_used, **options)
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
     if settle is None or len(targets) < 2 or epoch >= rates["epochs"]:
         trained = [train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
                                      **{**options, "seconds": seconds / len(targets)})
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
-    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle)
+    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used)
 
 
 def learned_epochs(settings: ResidualSettings, on_cuda: bool) -> int:
@@ -143,11 +146,13 @@ def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = Fals
     return float(settings.learned_seconds) or (LEARNED_SECONDS_CUDA if on_cuda else LEARNED_SECONDS_CPU)
 
 
-def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_epoch: int, settle):
+def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_epoch: int, settle,
+                           settle_used=None):
     """The learned check's models on the CPU, one after the other in two parts: each its first ``settle_epoch``
     epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both).
     The second part goes on from the first's models with the schedule's learning rates, its Adam moments
-    new; the time is shared in proportion to the epochs each part learns."""
+    new, a lone winner from the ``settle_used`` lights (default the first part's); the time is shared in
+    proportion to the epochs each part learns."""
     epochs, lr, final_lr = options["epochs"], options["lr"], options["final_lr"]
     rate_at = lambda epoch: lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))  # noqa: E731
     count, seconds = len(targets), options["seconds"]
@@ -163,6 +168,8 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
     going_on = range(count) if kept is None else [int(kept)]
     rest = dict(options, epochs=epochs - settle_epoch, lr=rate_at(settle_epoch),
                 seconds=max(share, (seconds - share * count * settle_epoch) / len(going_on)))
+    if kept is not None and settle_used is not None:
+        rest["used"] = settle_used
     for m in going_on:
         models[m], history = train_decoder_cpu(targets[m], directions, initial=models[m], **rest)
         histories[m] = histories[m] + history
@@ -173,14 +180,18 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
 class LearnedCheck:
     """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the learned
     residual plus the moved highlights (``with_gaussians``) and of the images learned alone, and the
-    winner's model (learned without those lights); ``settled_epoch``: the epoch after which the loser stopped
-    learning, its order settled (None: both learned to the end)."""
+    winner's model; ``settled_epoch``: the epoch after which the loser stopped learning, its order settled
+    (None: both learned to the end, without those lights), and the scores are those of that epoch;
+    ``learned_every_light``: the winner learned from every light after it (the check's lights too), so it
+    needs no more training; ``history``: its loss per epoch."""
 
     lights: np.ndarray
     with_gaussians: np.ndarray
     images_alone: np.ndarray
     winner: ResidualModel | None = None
     settled_epoch: int | None = None
+    learned_every_light: bool = False
+    history: tuple = ()
 
     @property
     def keeps_gaussians(self) -> bool:
@@ -236,16 +247,22 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
         gap = float(np.mean(first) - np.mean(second))
         if abs(gap) < settings.learned_settle_margin_db:
             return None
-        settled_at.append(max(1, round(settings.learned_settle_fraction
-                                       * learned_epochs(settings, wp.get_device(device).is_cuda))))
+        settled_at.append((max(1, round(settings.learned_settle_fraction
+                                        * learned_epochs(settings, wp.get_device(device).is_cuda))), first, second))
         return 0 if gap > 0 else 1
 
-    trained, _ = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
-                        settle=settle)
-    scores = score(trained)
+    # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
+    trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
+                                settle=settle, settle_used=np.arange(n))
     models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
-    check = LearnedCheck(lights, scores[0], scores[1], settled_epoch=settled_at[0] if settled_at else None)
-    return dataclasses.replace(check, winner=models[0] if check.keeps_gaussians else models[1])
+    if settled_at:  # scored when the order settled, while the left-out lights were still left out
+        epoch, first, second = settled_at[0]
+        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True)
+    else:
+        check = LearnedCheck(lights, *score(trained))
+    keeps = check.keeps_gaussians
+    return dataclasses.replace(check, winner=models[0] if keeps else models[1],
+                               history=tuple(histories[0 if keeps else 1]))
 
 
 def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
