@@ -262,8 +262,18 @@ def test_load_mesh_round_trip_comes_back_outward(tmp_path, suffix, inverted):
 
 
 def test_make_shape_by_name_and_path(tmp_path):
-    assert SHAPE_NAMES == ("donut", "teapot", "sphere")
+    assert SHAPE_NAMES == ("donut", "teapot", "sphere", "coin", "bumpy")
     assert make_shape("donut", major_segments=16, minor_segments=8).vertex_count == 128
+    plate = make_shape("coin", resolution=33)
+    assert plate.vertex_count == 33 * 33 and plate.normals[:, 2].min() > 0.5  # a plate facing the camera (+z)
+    assert np.all(np.abs(plate.points[:, :2]) <= 1.0) and plate.points[:, 2].max() > 0.03  # raised relief on it
+    bumpy = make_shape("bumpy", major_segments=48, minor_segments=24)
+    smooth = make_shape("donut", major_segments=48, minor_segments=24)
+    offsets = np.einsum("ij,ij->i", bumpy.points - smooth.points, smooth.normals)
+    np.testing.assert_allclose(bumpy.points - smooth.points, offsets[:, None] * smooth.normals, atol=1e-12)
+    assert 0.003 < offsets.std() < 0.01 and bumpy.name == "bumpy"  # bumps along the normals, ~1.5% of the tube
+    with pytest.raises(InputError, match="coin resolution"):
+        make_shape("coin", resolution=4)
     assert make_shape(" Torus ", major_segments=16, minor_segments=8).name == "donut"
     assert make_shape("sphere", subdivisions=1).face_count == 80
     assert make_shape("teapot", subdivisions=2).name == "teapot"

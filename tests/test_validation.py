@@ -192,7 +192,8 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     wanted = {(int(a), int(b)) for j, tri in triangulations.items()
               for a, b in np.delete(np.arange(n), j)[tri.directed_edges()]}
     extra = np.array(sorted(wanted - {tuple(e) for e in edges.tolist()}), dtype=np.int32)
-    more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu").params
+    more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu",
+                    directions=directions).params
     more, _ = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share,
                                sigma_eps=settings.raster.sigma_eps)
     every_edge = np.concatenate([edges, extra])
