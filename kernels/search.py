@@ -13,8 +13,8 @@ tell which way a highlight goes (``image_headings``), that it goes that way or b
 that line). It starts from the best offset where it scores at least
 ``gain`` times the unmoved component and ``margin`` times every offset further than ``exclusion`` from it: a
 highlight that could have gone to several places (glints on a bumpy surface, which do not travel but
-fade where they are) keeps its place. One thread per (edge, component slot); ``blur_rows`` and
-``blur_cols`` blur the targets in two launches.
+fade where they are) keeps its place. One thread per (edge, component slot); ``blur_along`` blurs the
+targets in two launches.
 """
 
 # ruff: noqa: UP018  (Warp declares a mutable kernel local with float(0.0) / int(0))
@@ -28,39 +28,25 @@ import warp as wp
 
 from warp_highlights.model.gaussians import GaussianBatch
 
-__all__ = ["blur_cols", "blur_rows", "blurred", "candidate_offsets", "image_headings", "search_translations",
+__all__ = ["blur_along", "blurred", "candidate_offsets", "image_headings", "search_translations",
            "searched_translations"]
 
 
 @wp.kernel(enable_backward=False)
-def blur_rows(images: wp.array3d(dtype=float), sigma: float, radius: int, out: wp.array3d(dtype=float)):
-    """out = images convolved along each row with a unit-sum Gaussian of ``sigma`` pixels (zeros beyond)."""
+def blur_along(images: wp.array3d(dtype=float), sigma: float, radius: int, across_rows: int,
+               out: wp.array3d(dtype=float)):
+    """out = images convolved with a unit-sum Gaussian of ``sigma`` pixels (zeros beyond the image) along each
+    row (``across_rows`` 0) or each column (1)."""
     b, row, col = wp.tid()
-    width = images.shape[2]
     total = float(0.0)
     norm = float(0.0)
     for k in range(-radius, radius + 1):
         weight = wp.exp(-0.5 * float(k * k) / (sigma * sigma))
         norm += weight
-        c = col + k
-        if c >= 0 and c < width:
-            total += weight * images[b, row, c]
-    out[b, row, col] = total / norm
-
-
-@wp.kernel(enable_backward=False)
-def blur_cols(images: wp.array3d(dtype=float), sigma: float, radius: int, out: wp.array3d(dtype=float)):
-    """The same along each column."""
-    b, row, col = wp.tid()
-    height = images.shape[1]
-    total = float(0.0)
-    norm = float(0.0)
-    for k in range(-radius, radius + 1):
-        weight = wp.exp(-0.5 * float(k * k) / (sigma * sigma))
-        norm += weight
-        r = row + k
-        if r >= 0 and r < height:
-            total += weight * images[b, r, col]
+        r = row + k * across_rows
+        c = col + k * (1 - across_rows)
+        if r >= 0 and r < images.shape[1] and c >= 0 and c < images.shape[2]:
+            total += weight * images[b, r, c]
     out[b, row, col] = total / norm
 
 
@@ -72,6 +58,19 @@ def _sample(images: wp.array3d(dtype=float), b: int, point: wp.vec2, height: flo
     if row < 0 or col < 0 or row >= images.shape[1] or col >= images.shape[2]:
         return 0.0
     return images[b, row, col]
+
+
+@wp.func
+def _lies_on(mean: wp.array2d(dtype=wp.vec2), amplitude: wp.array2d(dtype=float), weight: wp.array2d(dtype=float),
+             active: wp.array2d(dtype=wp.int32), labels: wp.array2d(dtype=wp.int32), targets: wp.array3d(dtype=float),
+             b: int, c: int, offset: wp.vec2) -> float:
+    # the component's peaks times the target at its moved centres
+    height = float(targets.shape[1])
+    score = float(0.0)
+    for p in range(mean.shape[1]):
+        if active[b, p] != 0 and labels[b, p] == c:
+            score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset, height)
+    return score
 
 
 @wp.func
@@ -105,28 +104,18 @@ def search_translations(
     """motion[b, c] = (t_x, t_y, 0) of component c's best offset where it beats staying by ``gain`` and
     every offset further than ``exclusion`` from it by ``margin``."""
     b, c = wp.tid()
-    capacity = mean.shape[1]
     members = int(0)
-    for p in range(capacity):
+    for p in range(mean.shape[1]):
         if active[b, p] != 0 and labels[b, p] == c:
             members += 1
     if members == 0:
         return
-    height = float(targets.shape[1])
-    stay = float(0.0)
-    for p in range(capacity):
-        if active[b, p] != 0 and labels[b, p] == c:
-            stay += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p], height)
+    stay = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, wp.vec2(0.0, 0.0))
     best = float(0.0)
     best_k = int(-1)
     for k in range(offsets.shape[0]):
-        offset = offsets[k]
-        score = float(0.0)
-        for p in range(capacity):
-            if active[b, p] != 0 and labels[b, p] == c:
-                score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset,
-                                                                                    height)
-        score *= _prior(offset, heading[b], prior_width, side_width)
+        score = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, offsets[k])
+        score *= _prior(offsets[k], heading[b], prior_width, side_width)
         if score > best:
             best = score
             best_k = k
@@ -136,14 +125,9 @@ def search_translations(
     found = offsets[best_k]
     rival = float(0.0)
     for k in range(offsets.shape[0]):
-        offset = offsets[k]
-        if wp.length(offset - found) > exclusion:
-            score = float(0.0)
-            for p in range(capacity):
-                if active[b, p] != 0 and labels[b, p] == c:
-                    score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset,
-                                                                                        height)
-            rival = wp.max(rival, score * _prior(offset, heading[b], prior_width, side_width))
+        if wp.length(offsets[k] - found) > exclusion:
+            score = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, offsets[k])
+            rival = wp.max(rival, score * _prior(offsets[k], heading[b], prior_width, side_width))
     if best > margin * rival:
         motion[b, c] = wp.vec3(found[0], found[1], 0.0)
 
@@ -180,9 +164,9 @@ def blurred(images: wp.array, sigma_px: float) -> wp.array:
     radius = max(1, int(math.ceil(3.0 * sigma_px)))
     across = wp.empty_like(images)
     out = wp.empty_like(images)
-    wp.launch(blur_rows, dim=images.shape, inputs=[images, float(sigma_px), radius], outputs=[across],
+    wp.launch(blur_along, dim=images.shape, inputs=[images, float(sigma_px), radius, 0], outputs=[across],
               device=images.device)
-    wp.launch(blur_cols, dim=images.shape, inputs=[across, float(sigma_px), radius], outputs=[out],
+    wp.launch(blur_along, dim=images.shape, inputs=[across, float(sigma_px), radius, 1], outputs=[out],
               device=images.device)
     return out
 
