@@ -222,6 +222,24 @@ def test_the_exposure_slider_scales_the_linear_image(browser, exported, fields):
         assert tab.evaluate("Array.from(whViewer.pixels()).reduce((a, b) => a + b, 0)") < 0.8 * brighter
 
 
+def test_the_page_says_how_much_of_the_image_moves(browser, exported, fields):
+    """The status line gives the moving Gaussians and the share of the specular energy they carry, as the
+    fit report has them."""
+    from warp_highlights.io.fieldfile import load_field
+
+    field = load_field(fields["lowrank"])
+    share = field.report["residual"]["moving_specular_share"]
+    moving, total = int(field.moving_mask.sum()), int(field.estimated.active.sum())
+    manifest = json.loads((exported["lowrank"] / "manifest.json").read_text())
+    assert manifest["motion"] == {"moving": moving, "gaussians": total, "specular_share": share}
+    with served(exported["lowrank"]) as url, opened(browser, url) as tab:
+        status = tab.text_content("#status")
+    percent = int(np.floor(100 * share + 0.5))  # as Math.round
+    expected = (f"{moving} of {total} Gaussians move ({percent}% of the specular energy)" if moving
+                else "no Gaussian moves: the highlights blend")
+    assert expected in status, status
+
+
 def test_a_learned_field_offers_no_alpha_blend(browser, exported):
     with served(exported["learned"]) as url, opened(browser, url) as tab:
         assert tab.eval_on_selector("#method option[value=alpha]", "o => o.disabled")

@@ -95,10 +95,20 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
         "sigma_eps": float(settings.raster.sigma_eps),
         "straight_below": float(settings.paths.straight_below), "colour_step": COLOUR_STEP,
         "residual": {"kind": kind, **details},
+        "motion": _motion_summary(field),
         "arrays": {name: {"file": f"{name}.bin", "dtype": array.dtype.str, "shape": list(array.shape)}
                    for name, array in arrays.items()},
     }
     return manifest, arrays
+
+
+def _motion_summary(field) -> dict:
+    """How much of the image moves, for the page's status line: the moving and estimated Gaussians, and the
+    share of the specular energy the moving ones carry (from the fit report; None where it has none)."""
+    residual = field.report.get("residual") if isinstance(field.report.get("residual"), dict) else {}
+    share = residual.get("moving_specular_share")
+    return {"moving": int(field.moving_mask.sum()), "gaussians": int(field.estimated.active.sum()),
+            "specular_share": float(share) if isinstance(share, (int, float)) else None}
 
 
 def encoded_arrays(manifest: dict, arrays: dict[str, np.ndarray]) -> dict[str, bytes]:
