@@ -614,7 +614,7 @@ def test_the_fit_reports_its_move_check_and_obeys_it(donut_fields):
         assert (residual["moving_specular_share"] > 0.2) == check["moves"]  # the donut's highlights are Gaussians
 
 
-def test_the_moving_share_is_what_the_moving_gaussians_draw_of_the_specular_energy():
+def test_the_moving_share_is_what_the_moving_gaussians_draw_of_the_specular_energy(monkeypatch):
     """Against the float64 reference rasterizer: one moving Gaussian of three draws a known part of a
     specular stack."""
     from warp_highlights.fit.pipeline import moving_energy_share
@@ -631,6 +631,14 @@ def test_the_moving_share_is_what_the_moving_gaussians_draw_of_the_specular_ener
     share = moving_energy_share(gaussians, moving, wp.array(specular.astype(np.float32), device="cpu"), raster=raster,
                                 device="cpu")
     assert 0.1 < share < 0.9 and share == pytest.approx(expected, rel=1e-4)  # float32 sums
+    import warp_highlights.fit.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "_SHARE_BYTES", 1)  # one light's images at a time: the same share
+    both = moving | np.array([[False, False], [True, False]])  # a moving Gaussian in each light
+    only = dataclasses.replace(gaussians, amplitude=np.where(both, gaussians.amplitude, 0.0))
+    assert moving_energy_share(gaussians, both, wp.array(specular.astype(np.float32), device="cpu"), raster=raster,
+                               device="cpu") == pytest.approx(render_reference(only, 40, 72, raster).sum()
+                                                              / specular.sum(), rel=1e-4)
     assert moving_energy_share(gaussians, moving & False, wp.array(specular.astype(np.float32), device="cpu"),
                                raster=raster, device="cpu") == 0.0
 

@@ -53,6 +53,8 @@ _LOG = logging.getLogger(__name__)
 
 DIFFUSE_CHOICES = ("lambert", "images", "none")
 
+_SHARE_BYTES = 256 * 2**20  # the moving Gaussians' energy share draws their lights' images in parts of this size
+
 
 def fit_field(
     dataset: ReflectanceField,
@@ -379,9 +381,15 @@ def moving_energy_share(gaussians: GaussianParams, moving: np.ndarray, specular_
     if total <= 0.0 or not moving.any():
         return 0.0
     only_moving = dataclasses.replace(gaussians, amplitude=np.where(moving, gaussians.amplitude, 0.0))
-    drawn = render_own_on_device(only_moving, specular_luminance.shape[1], specular_luminance.shape[2],
-                                 raster=raster, device=device)
-    return float(np.clip(float(wp.utils.array_sum(drawn.flatten())) / total, 0.0, 1.0))
+    lights = np.flatnonzero(moving.any(axis=1))
+    _, height, width = specular_luminance.shape
+    step = max(1, _SHARE_BYTES // (4 * height * width))  # lights drawn at once: a bounded image stack
+    drawn = 0.0
+    for start in range(0, len(lights), step):
+        part = render_own_on_device(only_moving.take(lights[start:start + step]), height, width, raster=raster,
+                                    device=device)
+        drawn += float(wp.utils.array_sum(part.flatten()))
+    return float(np.clip(drawn / total, 0.0, 1.0))
 
 
 def default_exposure(dataset: ReflectanceField) -> float | str:
