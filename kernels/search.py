@@ -28,8 +28,8 @@ import warp as wp
 
 from warp_highlights.model.gaussians import GaussianBatch
 
-__all__ = ["blur_along", "blurred", "candidate_offsets", "image_headings", "search_translations",
-           "searched_translations"]
+__all__ = ["blur_along", "blurred", "candidate_offsets", "component_members", "image_headings", "search_blur_px",
+           "search_translations", "searched_translations"]
 
 
 @wp.kernel(enable_backward=False)
@@ -61,15 +61,14 @@ def _sample(images: wp.array3d(dtype=float), b: int, point: wp.vec2, height: flo
 
 
 @wp.func
-def _lies_on(mean: wp.array2d(dtype=wp.vec2), amplitude: wp.array2d(dtype=float), weight: wp.array2d(dtype=float),
-             active: wp.array2d(dtype=wp.int32), labels: wp.array2d(dtype=wp.int32), targets: wp.array3d(dtype=float),
-             b: int, c: int, offset: wp.vec2) -> float:
+def _lies_on(mean: wp.array2d(dtype=wp.vec2), peak: wp.array2d(dtype=float), members: wp.array2d(dtype=wp.int32),
+             first: int, count: int, targets: wp.array3d(dtype=float), b: int, offset: wp.vec2) -> float:
     # the component's peaks times the target at its moved centres
     height = float(targets.shape[1])
     score = float(0.0)
-    for p in range(mean.shape[1]):
-        if active[b, p] != 0 and labels[b, p] == c:
-            score += weight[b, p] * amplitude[b, p] * amplitude[b, p] * _sample(targets, b, mean[b, p] + offset, height)
+    for k in range(count):
+        p = members[b, first + k]
+        score += peak[b, p] * _sample(targets, b, mean[b, p] + offset, height)
     return score
 
 
@@ -87,10 +86,10 @@ def _prior(offset: wp.vec2, heading: wp.vec2, width: float, side_width: float) -
 @wp.kernel(enable_backward=False)
 def search_translations(
     mean: wp.array2d(dtype=wp.vec2),
-    amplitude: wp.array2d(dtype=float),
-    weight: wp.array2d(dtype=float),
-    active: wp.array2d(dtype=wp.int32),
-    labels: wp.array2d(dtype=wp.int32),
+    peak: wp.array2d(dtype=float),
+    members: wp.array2d(dtype=wp.int32),
+    starts: wp.array2d(dtype=wp.int32),
+    counts: wp.array2d(dtype=wp.int32),
     targets: wp.array3d(dtype=float),
     offsets: wp.array(dtype=wp.vec2),
     heading: wp.array(dtype=wp.vec2),
@@ -102,19 +101,18 @@ def search_translations(
     motion: wp.array2d(dtype=wp.vec3),
 ):
     """motion[b, c] = (t_x, t_y, 0) of component c's best offset where it beats staying by ``gain`` and
-    every offset further than ``exclusion`` from it by ``margin``."""
+    every offset further than ``exclusion`` from it by ``margin``; ``members[b, starts[b, c] + k]`` for k <
+    ``counts[b, c]`` are its slots, ``peak`` each slot's weight x amplitude^2."""
     b, c = wp.tid()
-    members = int(0)
-    for p in range(mean.shape[1]):
-        if active[b, p] != 0 and labels[b, p] == c:
-            members += 1
-    if members == 0:
+    count = counts[b, c]
+    if count == 0:
         return
-    stay = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, wp.vec2(0.0, 0.0))
+    first = starts[b, c]
+    stay = _lies_on(mean, peak, members, first, count, targets, b, wp.vec2(0.0, 0.0))
     best = float(0.0)
     best_k = int(-1)
     for k in range(offsets.shape[0]):
-        score = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, offsets[k])
+        score = _lies_on(mean, peak, members, first, count, targets, b, offsets[k])
         score *= _prior(offsets[k], heading[b], prior_width, side_width)
         if score > best:
             best = score
@@ -126,10 +124,23 @@ def search_translations(
     rival = float(0.0)
     for k in range(offsets.shape[0]):
         if wp.length(offsets[k] - found) > exclusion:
-            score = _lies_on(mean, amplitude, weight, active, labels, targets, b, c, offsets[k])
+            score = _lies_on(mean, peak, members, first, count, targets, b, offsets[k])
             rival = wp.max(rival, score * _prior(offsets[k], heading[b], prior_width, side_width))
     if best > margin * rival:
         motion[b, c] = wp.vec3(found[0], found[1], 0.0)
+
+
+def component_members(labels: np.ndarray, active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(B, N) int32 slots of each set ordered by component, and (B, N) int32 start and count of component c
+    in that order (count 0 where c is no active slot's label)."""
+    problems, capacity = labels.shape
+    keyed = np.where(active, labels, capacity)  # free slots last
+    members = np.argsort(keyed, axis=1, kind="stable").astype(np.int32)
+    counts = np.zeros((problems, capacity + 1), np.int32)
+    np.add.at(counts, (np.repeat(np.arange(problems), capacity), keyed.ravel()), 1)
+    counts = counts[:, :capacity]
+    starts = (np.cumsum(counts, axis=1) - counts).astype(np.int32)
+    return members, starts, counts
 
 
 def image_headings(directions: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -159,6 +170,11 @@ def candidate_offsets(radius: float, step: float) -> np.ndarray:
     return np.ascontiguousarray(grid[order], dtype=np.float32)
 
 
+def search_blur_px(step: float, height: int) -> float:
+    """The targets' blur, pixels: one grid step (``step`` image heights) of an image ``height`` pixels high."""
+    return max(step * height, 0.5)
+
+
 def blurred(images: wp.array, sigma_px: float) -> wp.array:
     """(B, H, W) ``images`` blurred by a Gaussian of ``sigma_px`` pixels (two launches; a new array)."""
     radius = max(1, int(math.ceil(3.0 * sigma_px)))
@@ -178,7 +194,8 @@ def searched_translations(source: GaussianBatch, labels: wp.array, targets: wp.a
 
     Args:
         source: the edges' source sets; labels: (B, N) int32 component of each slot.
-        targets: (B, H, W) each edge's target specular luminance (blurred here by ``step``).
+        targets: (B, H, W) each edge's target specular luminance blurred by ``step`` (``blurred`` of the
+            lights' images, ``search_blur_px``, then gathered per edge: each light's image is blurred once).
         radius, step, prior_width: the disc of offsets, its grid step and the prior's width, in image
             heights.
         headings: (B, 2) the way each edge's highlights are expected to go in the image (unit vectors,
@@ -189,11 +206,16 @@ def searched_translations(source: GaussianBatch, labels: wp.array, targets: wp.a
     if radius <= 0.0 or source.problem_count == 0:
         return
     offsets = wp.array(candidate_offsets(radius, step), dtype=wp.vec2, device=source.device)
-    smooth = blurred(targets, max(step * targets.shape[1], 0.5))
+    smooth = targets
     if headings is None:
         headings = np.zeros((source.problem_count, 2), np.float32)
-    heading = wp.array(np.ascontiguousarray(headings, dtype=np.float32), dtype=wp.vec2, device=source.device)
+    device = source.device
+    heading = wp.array(np.ascontiguousarray(headings, dtype=np.float32), dtype=wp.vec2, device=device)
+    params = source.numpy()
+    peak = wp.array((params.weight * params.amplitude**2).astype(np.float32), dtype=float, device=device)
+    members, starts, counts = (wp.array(a, dtype=wp.int32, device=device)
+                               for a in component_members(labels.numpy(), params.active))
     wp.launch(search_translations, dim=source.shape,
-              inputs=[source.mean, source.amplitude, source.weight, source.active, labels, smooth, offsets, heading,
+              inputs=[source.mean, peak, members, starts, counts, smooth, offsets, heading,
                       float(prior_width), float(side_width), float(gain), float(margin), float(exclusion)],
-              outputs=[motion], device=source.device)
+              outputs=[motion], device=device)

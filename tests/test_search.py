@@ -12,6 +12,7 @@ from warp_highlights.kernels.raster import Rasterizer
 from warp_highlights.kernels.search import (
     blurred,
     candidate_offsets,
+    component_members,
     image_headings,
     searched_translations,
 )
@@ -38,6 +39,16 @@ def test_blur_matches_a_float64_reference(device):
     images = np.random.default_rng(1).random((2, 17, 23)).astype(np.float32)
     got = blurred(wp.array(images, dtype=float, device=device), 1.7).numpy()
     np.testing.assert_allclose(got, _blur_reference(images, 1.7), rtol=1e-5, atol=1e-6)
+
+
+def test_component_members_list_each_components_active_slots():
+    labels = np.array([[2, 0, 2, 1, 0], [0, 0, 0, 0, 0]])
+    active = np.array([[True, True, True, False, True], [False, False, False, False, False]])
+    members, starts, counts = component_members(labels, active)
+    np.testing.assert_array_equal(counts, [[2, 0, 2, 0, 0], [0, 0, 0, 0, 0]])
+    for c in range(5):
+        slots = members[0, starts[0, c]:starts[0, c] + counts[0, c]]
+        assert sorted(slots.tolist()) == sorted(np.flatnonzero(active[0] & (labels[0] == c)).tolist())
 
 
 def test_offsets_fill_the_disc_nearest_first():

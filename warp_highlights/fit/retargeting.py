@@ -24,7 +24,7 @@ from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
 from ..kernels.raster import Rasterizer, problems_per_launch
 from ..kernels.retarget import RigidAdam, RigidMotion, gather_images
-from ..kernels.search import image_headings, searched_translations
+from ..kernels.search import blurred, image_headings, search_blur_px, searched_translations
 from ..kernels.tape import ReplayedStep, adam_iteration
 from ..model.components import ConnectedComponents
 from ..model.config import RasterSettings, RetargetSettings, rpx_to_normalized
@@ -114,6 +114,9 @@ def retarget(
                    else wp.array(np.ascontiguousarray(targets, dtype=np.float32), dtype=float, device=device))
     image_bytes = 4 * all_targets.shape[1] * all_targets.shape[2]
     headings = None if directions is None else image_headings(directions, edges)
+    # phase 1's search reads each light's image blurred by its grid step, blurred once here for every edge
+    smooth = (blurred(all_targets, search_blur_px(rpx_to_normalized(s.search_step_rpx), all_targets.shape[1]))
+              if s.search_radius > 0 else None)
     chunks = memory_chunks(len(edges), device, workers,
                            bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
                            most_each=problems_per_launch(all_targets.shape[1], all_targets.shape[2], raster))
@@ -121,7 +124,7 @@ def retarget(
     def run(chunk: slice, stop) -> tuple:
         source = estimated.take(edges[chunk, 0])
         job = _Retargeting(source, all_targets, edges[chunk, 1], labels[chunk], centroids[chunk], s, raster, device,
-                           headings=None if headings is None else headings[chunk])
+                           headings=None if headings is None else headings[chunk], smooth=smooth)
         return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
     # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads
@@ -136,29 +139,32 @@ class _Retargeting:
     """One batch of directed edges on one device."""
 
     def __init__(self, source_params: GaussianParams, all_targets: wp.array, target_rows, labels, centroids,
-                 settings: RetargetSettings, raster: RasterSettings, device, *, headings=None):
+                 settings: RetargetSettings, raster: RasterSettings, device, *, headings=None, smooth=None):
         self.s = settings
         problems = source_params.problem_count
         _, height, width = all_targets.shape
         self.source_params = source_params
         self.source = GaussianBatch.from_numpy(source_params, device=device, requires_grad=False)
         self.moving = GaussianBatch.from_numpy(source_params, device=device)
+        rows = wp.array(np.asarray(target_rows, dtype=np.int32), dtype=wp.int32, device=device)
         targets = wp.empty((problems, height, width), dtype=float, device=device)
-        wp.launch(gather_images, dim=targets.shape,
-                  inputs=[all_targets, wp.array(np.asarray(target_rows, dtype=np.int32), dtype=wp.int32,
-                                                device=device)], outputs=[targets], device=device)
+        wp.launch(gather_images, dim=targets.shape, inputs=[all_targets, rows], outputs=[targets], device=device)
         self.raster = Rasterizer(height, width, settings=raster, device=device)
         self.fit = LogL1Loss(targets)
         self.structure = StructureLoss(self.source, settings.structure)
         self.energy = EnergyLoss(self.source, raster)
         self.rigid = RigidMotion(self.source, labels, centroids)
         # phase 1 starts where each component best lies on its target (kernels/search.py)
-        searched_translations(self.source, self.rigid.labels, targets, self.rigid.motion,
-                              radius=settings.search_radius, step=rpx_to_normalized(settings.search_step_rpx),
-                              prior_width=settings.search_prior, gain=settings.search_gain,
-                              margin=settings.search_margin,
-                              exclusion=rpx_to_normalized(settings.search_exclusion_rpx), headings=headings,
-                              side_width=settings.search_side)
+        if smooth is not None:
+            smooth_targets = wp.empty((problems, height, width), dtype=float, device=device)
+            wp.launch(gather_images, dim=targets.shape, inputs=[smooth, rows], outputs=[smooth_targets], device=device)
+            searched_translations(self.source, self.rigid.labels, smooth_targets, self.rigid.motion,
+                                  radius=settings.search_radius, step=rpx_to_normalized(settings.search_step_rpx),
+                                  prior_width=settings.search_prior, gain=settings.search_gain,
+                                  margin=settings.search_margin,
+                                  exclusion=rpx_to_normalized(settings.search_exclusion_rpx), headings=headings,
+                                  side_width=settings.search_side)
+            del smooth_targets
         self.image = self.raster.new_image(problems)
         self.loss = wp.zeros(problems, dtype=float, device=device, requires_grad=True)
         self.ones = wp.ones(problems, dtype=float, device=device)
