@@ -1043,12 +1043,11 @@ def test_own_highlights_past_one_launch_are_drawn_in_parts_into_one_stack(device
     assert (whole.reshape(5, -1).max(axis=1) > 0.1).all()
 
 
-def test_the_learned_checks_winner_learns_its_unseen_lights_as_long_as_a_whole_training_would():
-    from warp_highlights.model.config import LEARNED_EPOCHS_CPU, LEARNED_EPOCHS_CUDA, ResidualSettings
-    from warp_highlights.residual.learned import tune_epochs
+def test_the_learned_checks_winner_learns_anew_where_its_unseen_lights_are_many():
+    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual.learned import learns_anew
 
-    settings = ResidualSettings()
-    assert tune_epochs(settings, True, 6, 250) == settings.learned_tune_epochs == 40  # a few of many lights
-    assert tune_epochs(settings, True, 6, 16) == int(np.ceil(6 / 16 * LEARNED_EPOCHS_CUDA)) == 98
-    assert tune_epochs(settings, False, 6, 16) == int(np.ceil(6 / 16 * LEARNED_EPOCHS_CPU))
-    assert tune_epochs(ResidualSettings(learned_epochs=1000), True, 6, 16) == 375
+    settings = ResidualSettings()  # 40 tune epochs; 260 epochs on CUDA, 200 on the CPU
+    assert not learns_anew(settings, True, 6, 250) and not learns_anew(settings, True, 6, 49)  # 7, 32 <= 40
+    assert learns_anew(settings, True, 6, 16) and learns_anew(settings, False, 6, 16)  # 98, 75 > 40
+    assert not learns_anew(ResidualSettings(learned_tune_epochs=100), True, 6, 16)

@@ -39,7 +39,7 @@ from ..residual.inputs import (
     render_own_on_device,
 )
 from ..residual.kind import resolve_kind
-from ..residual.learned import check_learned, learn_residual, learned_epochs, tune_epochs
+from ..residual.learned import check_learned, learn_residual, learned_epochs, learns_anew
 from ..residual.rate import gaussian_bytes
 from .estimation import estimate
 from .moving import decide_moving
@@ -269,8 +269,11 @@ def fit_field(
                 # has not learned them since its verdict settled; without a check, one model learns from every light
                 winner = None if learned_check is None else learned_check.winner.learned
                 cuda = wp.get_device(device).is_cuda
-                epochs = (tune_epochs(settings.residual, cuda, len(learned_check.lights), dataset.light_count)
-                          if winner is not None else learned_epochs(settings.residual, cuda))
+                if winner is not None and learns_anew(settings.residual, cuda, len(learned_check.lights),
+                                                      dataset.light_count):
+                    winner = None  # its lights too few without the check's: the decided residual learned anew
+                epochs = (settings.residual.learned_tune_epochs if winner is not None
+                          else learned_epochs(settings.residual, cuda))
             if learned and learned_check is not None and learned_check.learned_every_light:
                 residual_model, learned_history = learned_check.winner, list(learned_check.history)
             elif learned:
@@ -279,8 +282,7 @@ def fit_field(
                                                                      factor=factor,
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
-                                                                     initial=winner, tune=winner is not None,
-                                                                     epochs=epochs)
+                                                                     initial=winner, tune=winner is not None)
             if not learned:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,

@@ -557,10 +557,11 @@ class ResidualSettings:
             left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
             device: 5 on CUDA, 15 on the CPU (two thirds and an eighth of ``learned_seconds``).
         learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``, for 6 lights out of
-            43-250; where the check's lights are a larger share of the capture, that share of
-            ``learned_epochs`` (``residual.learned.tune_epochs``): on the 16-light renders of
-            benchmarks/bench_motion.py (an H200) the default learned field, its winner trained on 10
-            lights and tuned 40 epochs, scored 0.9-2.5 dB below the learned residual alone.
+            43-250. Where the check's lights are a larger share of the capture than these epochs are of a
+            whole training (``residual.learned.learns_anew``: 6 of 16 lights), the decided residual learns
+            anew from every light instead: on the 16-light bumpy donut of benchmarks/bench_motion.py (2-core
+            CPU) the tuned winner scored 28.50 dB along the paths, learning anew 30.44 (the learned residual
+            alone's).
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored; where their order has settled (``learned_settle_margin_db``), the loser stops and
             the winner learns on alone, in half the time a step of both takes. 0.25: the ranking turns
