@@ -26,7 +26,7 @@ import math
 import numpy as np
 import warp as wp
 
-from warp_highlights.model.gaussians import GaussianBatch
+from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
 __all__ = ["blur_along", "blurred", "candidate_offsets", "component_members", "image_headings", "search_blur_px",
            "search_translations", "searched_translations"]
@@ -75,7 +75,6 @@ def _lies_on(mean: wp.array2d(dtype=wp.vec2), peak: wp.array2d(dtype=float), mem
 @wp.func
 def _prior(offset: wp.vec2, heading: wp.vec2, width: float, side_width: float) -> float:
     # Gaussian in the offset's length; where the edge has a heading (a unit vector), narrower across it
-    across = float(0.0)
     if wp.length(heading) > 0.0:
         along = wp.dot(offset, heading)
         across = wp.dot(offset, offset) - along * along
@@ -187,13 +186,15 @@ def blurred(images: wp.array, sigma_px: float) -> wp.array:
     return out
 
 
-def searched_translations(source: GaussianBatch, labels: wp.array, targets: wp.array, motion: wp.array, *,
+def searched_translations(source: GaussianBatch, params: GaussianParams, labels: np.ndarray, targets: wp.array,
+                          motion: wp.array, *,
                           radius: float, step: float, prior_width: float, gain: float, margin: float,
                           exclusion: float, headings: np.ndarray | None = None, side_width: float = 1.0) -> None:
     """Write into ``motion`` ((B, N) vec3, zeros) each component's searched start (``search_translations``).
 
     Args:
-        source: the edges' source sets; labels: (B, N) int32 component of each slot.
+        source: the edges' source sets on the device, ``params`` the same on the host; labels: (B, N) component
+            of each slot.
         targets: (B, H, W) each edge's target specular luminance blurred by ``step`` (``blurred`` of the
             lights' images, ``search_blur_px``, then gathered per edge: each light's image is blurred once).
         radius, step, prior_width: the disc of offsets, its grid step and the prior's width, in image
@@ -205,17 +206,15 @@ def searched_translations(source: GaussianBatch, labels: wp.array, targets: wp.a
     """
     if radius <= 0.0 or source.problem_count == 0:
         return
-    offsets = wp.array(candidate_offsets(radius, step), dtype=wp.vec2, device=source.device)
-    smooth = targets
+    device = source.device
+    offsets = wp.array(candidate_offsets(radius, step), dtype=wp.vec2, device=device)
     if headings is None:
         headings = np.zeros((source.problem_count, 2), np.float32)
-    device = source.device
     heading = wp.array(np.ascontiguousarray(headings, dtype=np.float32), dtype=wp.vec2, device=device)
-    params = source.numpy()
     peak = wp.array((params.weight * params.amplitude**2).astype(np.float32), dtype=float, device=device)
     members, starts, counts = (wp.array(a, dtype=wp.int32, device=device)
-                               for a in component_members(labels.numpy(), params.active))
+                               for a in component_members(np.asarray(labels), params.active))
     wp.launch(search_translations, dim=source.shape,
-              inputs=[source.mean, peak, members, starts, counts, smooth, offsets, heading,
+              inputs=[source.mean, peak, members, starts, counts, targets, offsets, heading,
                       float(prior_width), float(side_width), float(gain), float(margin), float(exclusion)],
               outputs=[motion], device=device)

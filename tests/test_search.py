@@ -138,7 +138,7 @@ def test_search_matches_a_float64_reference(device):
     motion = wp.zeros((3, 3), dtype=wp.vec3, device=device)
     batch = GaussianBatch.from_numpy(sets, device=device, requires_grad=False)
     targets_up = wp.array(targets, dtype=float, device=device)
-    searched_translations(batch, wp.array(labels, dtype=wp.int32, device=device), targets_up, motion, radius=radius,
+    searched_translations(batch, sets, labels, blurred(targets_up, step * height), motion, radius=radius,
                           step=step, prior_width=0.5, gain=4.0, margin=1.5, exclusion=0.1, headings=headings,
                           side_width=0.05)
     smooth = _blur_reference(targets, step * height)

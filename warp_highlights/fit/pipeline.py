@@ -264,26 +264,26 @@ def fit_field(
                     held.own = None  # the residual's stacks read the zeros from the host
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
-            if learned:
-                # the learned check's winner goes on learning from every light (the ones it left out too) where it
-                # has not learned them since its verdict settled; without a check, one model learns from every light
+            if learned and learned_check is not None and learned_check.learned_every_light:
+                # the check's winner learned from every light once its verdict settled
+                residual_model, learned_history = learned_check.winner, list(learned_check.history)
+            elif learned:
+                # the check's winner goes on learning from every light (the ones it left out too), or, where those
+                # were too many, the decided residual learns anew; without a check, one model learns every light
                 winner = None if learned_check is None else learned_check.winner.learned
                 cuda = wp.get_device(device).is_cuda
                 if winner is not None and learns_anew(settings.residual, cuda, len(learned_check.lights),
                                                       dataset.light_count):
-                    winner = None  # its lights too few without the check's: the decided residual learned anew
+                    winner = None
                 epochs = (settings.residual.learned_tune_epochs if winner is not None
                           else learned_epochs(settings.residual, cuda))
-            if learned and learned_check is not None and learned_check.learned_every_light:
-                residual_model, learned_history = learned_check.winner, list(learned_check.history)
-            elif learned:
                 with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
                     residual_model, learned_history = learn_residual(images, own, colour, dataset.lights.directions,
                                                                      factor=factor,
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
                                                                      initial=winner, tune=winner is not None)
-            if not learned:
+            else:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,
                                                     other_bytes=gaussian_bytes(kept, kept_retargeted),

@@ -158,7 +158,7 @@ class _Retargeting:
         if smooth is not None:
             smooth_targets = wp.empty((problems, height, width), dtype=float, device=device)
             wp.launch(gather_images, dim=targets.shape, inputs=[smooth, rows], outputs=[smooth_targets], device=device)
-            searched_translations(self.source, self.rigid.labels, smooth_targets, self.rigid.motion,
+            searched_translations(self.source, source_params, labels, smooth_targets, self.rigid.motion,
                                   radius=settings.search_radius, step=rpx_to_normalized(settings.search_step_rpx),
                                   prior_width=settings.search_prior, gain=settings.search_gain,
                                   margin=settings.search_margin,
