@@ -1460,8 +1460,9 @@ def option_cases(ctx: Context) -> list[Case]:
                                       ("100001", E),
                                        ("0.001", OK), ("100000", OK)])
     each("info", "--heldout", [(InCase("missing"), E), (F, E), (D, None), (str(ctx.capture_exr), None)])
-    for dataset, expect in [(InCase("missing"), E), (F, E), ("", E), ("/", E), ("/proc", E), (str(ctx.base), E)]:
+    for dataset, expect in [(InCase("missing"), E), ("", E), ("/", E), ("/proc", E), (str(ctx.base), E)]:
         add("info", [("@", 1, dataset)], expect, label=f"dataset {dataset!r}")
+    add("info", [("@", 1, F)], OK, label="a field file (described)")
     add("info", [("--json", True)], OK)
 
     # sheet

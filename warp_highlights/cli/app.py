@@ -23,6 +23,7 @@ from ..io.atomic import (
     Terminated,
     describe_os_error,
     end_of_command,
+    guard_stopping,
     handle_termination,
     received_signal,
     remove_partials,
@@ -48,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line (``argv``, default the process's arguments); returns the exit status."""
     console = argv is None
     previous = _install_signal_handlers()
+    if console:
+        guard_stopping()  # a process that a signal did not stop in time is ended (never a library caller's)
     try:
         parser = _build_parser()
         argv = _attach_negative_values(sys.argv[1:] if argv is None else list(argv), _value_options(parser))

@@ -26,7 +26,10 @@ and puts back a ``.NAME.replaced-*`` whose replacement never arrived.
 
 Signals: ``handle_termination`` makes SIGTERM raise :class:`Terminated` (a ``KeyboardInterrupt``, so
 every cleanup written for Ctrl-C runs for it too), and ``deferred_signals`` holds SIGINT/SIGTERM back
-during the few statements that rename or remove, so cleanup is never cut half-way.
+during the few statements that rename or remove, so cleanup is never cut half-way. In a command-line
+process, ``guard_stopping`` makes sure a signal ends it even where the main thread cannot take the
+interruption (blocked in native code or on a lock): ``STOP_GRACE_SECONDS`` after the signal a watching
+thread removes the temporary outputs itself, prints one line and ends the process with 128 + the signal.
 
 This module holds one thing: outputs that appear whole, with the signal handling that keeps them so.
 """
@@ -66,6 +69,7 @@ __all__ = [
     "describe_os_error",
     "enclosing_output",
     "end_of_command",
+    "guard_stopping",
     "handle_termination",
     "received_signal",
     "remove_partials",
@@ -77,6 +81,11 @@ MANIFEST_NAME = ".warp-highlights.json"
 STALE_FOREIGN_HOST_SECONDS = 24 * 3600
 """A partial output from another machine (shared storage) counts as stale after this long: its
 process cannot be asked whether it is alive, and no command of this project runs a day."""
+
+STOP_GRACE_SECONDS = 20.0
+"""After SIGINT or SIGTERM, how long a command-line process may take to stop by itself before
+``guard_stopping`` ends it: the commands' own cleanup takes well under a second (the interrupts of
+``benchmarks/bad_inputs.py`` end within 0.4 s), and the bad-input harness calls a process hung after 60 s."""
 
 _TAG_PATTERN = re.compile(
     r"^\.(?P<name>.+)\.(?P<state>partial|replaced)-(?P<host>[0-9a-f]{6})-(?P<pid>\d+)-[0-9a-f]{8}$")
@@ -96,6 +105,9 @@ _MAX_IMPORT_RETRIES = 40  # 2 s: an import taking longer (or main() run from an 
 _import_retries = 0
 _retry_timers: list[threading.Timer] = []
 _exclusive: set[str] = set()  # absolute outputs checked without overwrite: created exclusively, never replaced
+_resent = 0  # signals this process sent itself (``_deliver_again``) that the stop guard has not yet seen
+_resent_lock = threading.Lock()
+_guard: _StopGuard | None = None
 
 class Terminated(KeyboardInterrupt):
     """SIGTERM arrived (``kill``, a job scheduler's time limit); handled wherever Ctrl-C is."""
@@ -181,10 +193,115 @@ def _deliver_again(signum: int) -> None:
     """Send ``signum`` to this process again in ``_IMPORT_RETRY_SECONDS`` (``end_of_command`` cancels it)."""
     global _import_retries
     _import_retries += 1
-    timer = threading.Timer(_IMPORT_RETRY_SECONDS, os.kill, (os.getpid(), signum))
+    timer = threading.Timer(_IMPORT_RETRY_SECONDS, _send_again, (signum,))
     timer.daemon = True
     _retry_timers.append(timer)
     timer.start()
+
+
+def _send_again(signum: int) -> None:
+    global _resent
+    with _resent_lock:
+        _resent += 1
+    os.kill(os.getpid(), signum)
+
+
+def _take_resent() -> bool:
+    """Whether a signal the stop guard reads is one this process sent itself (counted off)."""
+    global _resent
+    with _resent_lock:
+        if _resent:
+            _resent -= 1
+            return True
+    return False
+
+
+def guard_stopping() -> None:
+    """In a command-line process, after :func:`handle_termination`: end the process if a SIGINT or SIGTERM
+    has not stopped it within ``STOP_GRACE_SECONDS`` (unless it was held back because the command's outputs
+    are in place and it is finishing). The signal reaches a watching thread through
+    ``signal.set_wakeup_fd``, which the interpreter writes as the signal arrives, whatever the main thread is
+    doing. Only from the main thread, once a process; never in a library caller's process."""
+    global _guard
+    if _guard is None and threading.current_thread() is threading.main_thread():
+        _guard = _StopGuard()
+
+
+class _StopGuard:
+    """The watching thread of :func:`guard_stopping` and the socket the interpreter writes signals to."""
+
+    def __init__(self):
+        self._reader, writer = socket.socketpair()
+        writer.setblocking(False)
+        self._writer = writer  # kept open for as long as the process runs
+        signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+        # a forked child's signals are not this process's: it forks without the guard, which the parent takes back
+        os.register_at_fork(before=_unguard, after_in_parent=self._take_back, after_in_child=_unguarded_child)
+        threading.Thread(target=self._watch, name="stop-guard", daemon=True).start()
+
+    def _take_back(self) -> None:
+        if _guard is self:
+            with contextlib.suppress(ValueError):  # forked from a thread other than the main one: never let go
+                signal.set_wakeup_fd(self._writer.fileno(), warn_on_full_buffer=False)
+
+    def _watch(self) -> None:
+        signum, deadline = None, None
+        while True:
+            self._reader.settimeout(None if deadline is None else max(0.0, deadline - time.monotonic()))
+            try:
+                data = self._reader.recv(64)
+            except TimeoutError:
+                if _hold_after_output and _output_committed:  # finishing with its outputs in place: let it
+                    deadline = time.monotonic() + STOP_GRACE_SECONDS
+                    continue
+                _end_process(signum)
+            except OSError:
+                return
+            if not data:
+                return
+            for byte in data:
+                if byte in (signal.SIGINT, signal.SIGTERM) and deadline is None and not _take_resent():
+                    signum, deadline = byte, time.monotonic() + STOP_GRACE_SECONDS
+
+
+def _unguard() -> None:
+    with contextlib.suppress(ValueError):  # only the main thread may; a child forked from another lets go itself
+        signal.set_wakeup_fd(-1)
+
+
+def _unguarded_child() -> None:
+    """In a forked child: signals no longer written to the parent's guard (the child has no watching thread)."""
+    global _guard
+    _guard = None
+    _unguard()
+
+
+def _end_process(signum: int) -> None:
+    """Remove this process's temporary outputs, say so in one line and end it with 128 + ``signum``, from
+    the stop guard's thread; nothing here waits on a lock the blocked main thread may hold."""
+    leftovers = {}
+    if _live_lock.acquire(timeout=1.0):
+        try:
+            leftovers = dict(_live)
+            _live.clear()
+        finally:
+            _live_lock.release()
+    else:
+        for _ in range(10):
+            with contextlib.suppress(RuntimeError):  # changed while copied
+                leftovers = dict(_live)
+                break
+    _clean_up(leftovers)
+    stopped = "terminated (SIGTERM)" if signum == signal.SIGTERM else "interrupted"
+    line = (f"warp-highlights: {stopped}; the command had not stopped {STOP_GRACE_SECONDS:g} s later and was ended; "
+            "nothing partial was left behind\n")
+    try:  # the command's own stderr (file descriptor 2 may point at the null device while native decoders run)
+        descriptor = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        descriptor = 2
+    with contextlib.suppress(OSError):
+        os.write(descriptor, line.encode())
+    os._exit(128 + signum)
 
 
 def _unraisable(unraisable) -> None:
@@ -285,14 +402,19 @@ def remove_partials() -> list[Path]:
         with _live_lock:
             leftovers = dict(_live)
             _live.clear()
-        for temporary, target in sorted(leftovers.items()):
-            match = _TAG_PATTERN.match(temporary.name)
-            if match and match["state"] == "replaced" and not target.exists() and temporary.exists():
-                with contextlib.suppress(OSError):
-                    os.rename(temporary, target)
-                    continue
-            _remove(temporary)
+        _clean_up(leftovers)
     return sorted(leftovers)
+
+
+def _clean_up(leftovers: dict[Path, Path]) -> None:
+    """Remove the temporary outputs (temporary -> target); put back a ``.replaced-*`` whose target is missing."""
+    for temporary, target in sorted(leftovers.items()):
+        match = _TAG_PATTERN.match(temporary.name)
+        if match and match["state"] == "replaced" and not target.exists() and temporary.exists():
+            with contextlib.suppress(OSError):
+                os.rename(temporary, target)
+                continue
+        _remove(temporary)
 
 
 def clean_stale_partials(path) -> list[Path]:
