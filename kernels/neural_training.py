@@ -358,16 +358,15 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
                    initial: list[NeuralDecoder] | None = None, settle=None,
                    settle_epoch: int = 0,
                    settle_used: np.ndarray | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
-    """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by
-    side: Adam on the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the
-    learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds``
-    of training have passed; compiling the kernels is not counted). ``used``: the lights learned from
-    (default all; the others' targets are never read). ``initial``: models to go on training (default:
-    ``initial_model`` of each model's used targets). ``settle(models)``, called once after ``settle_epoch``
-    epochs with the models as they are, may return the index of the one model that goes on (the others
-    stop there: their loss is NaN from then on) or None (all go on); the one that goes on learns from
-    ``settle_used`` lights from then on (default ``used``). Returns the models and the (epochs run, M)
-    mean loss of each epoch."""
+    """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by side: Adam on
+    the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
+    geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` of training have passed;
+    compiling the kernels and ``settle``'s scoring are not counted). ``used``: the lights learned from (default all;
+    the others' targets are never read). ``initial``: models to go on training (default: ``initial_model`` of each
+    model's used targets). ``settle(models)``, called once after ``settle_epoch`` epochs with the models as they
+    are, may return the index of the one model that goes on (the others stop there: their loss is NaN from then on)
+    or None (all go on); the one that goes on learns from ``settle_used`` lights from then on (default ``used``).
+    Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
     count, n, pixels, _ = targets.shape
@@ -391,10 +390,14 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
         if seconds is not None and time.perf_counter() - started > seconds:
             break
         if settle is not None and epoch + 1 == settle_epoch and count > 1 and epoch + 1 < epochs:
+            scoring = time.perf_counter()
             kept = settle(trainer.result())
             if kept is not None:
                 stopped = trainer.result()
                 trainer, going_on = trainer.keep(int(kept), used=settle_used), [int(kept)]
+            # scoring is not training: on a fresh machine it compiles the decoding kernels, seconds that the
+            # training clock would otherwise lose (the dome sample's first fit stopped 1 epoch after settling)
+            started += time.perf_counter() - scoring
     models = trainer.result()
     if stopped is not None:
         stopped[going_on[0]] = models[0]

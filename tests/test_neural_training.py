@@ -162,6 +162,22 @@ def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device)
     np.testing.assert_allclose(both[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
 
 
+def test_the_settle_scoring_is_not_training_time(device):
+    """``seconds`` counts training only: a ``settle`` that takes longer than the whole budget (on a fresh machine
+    its scoring compiles the decoding kernels) leaves the winner its epochs."""
+    import time
+
+    directions, targets = _problem(seed=5, lights=4, pixels=48)
+
+    def slow_settle(models):
+        time.sleep(1.5)
+        return 1
+
+    _, history = neural_training.train_decoders(targets, directions, device=device, epochs=6, batch=64, seconds=1.0,
+                                                settle=slow_settle, settle_epoch=2)
+    assert len(history) == 6 and np.isfinite(history[:, 1]).all()
+
+
 def test_the_kept_model_can_go_on_with_more_lights_at_the_same_point_of_its_schedule(device):
     """``settle_used``: after settling, the winner learns every light. Its step counter lands on the same epoch
     of the larger sample count (the learning rate goes on from where it was), and it learns the lights it had
