@@ -6,6 +6,7 @@ drawn is read back from the plotter's actors; screenshots are rendered off scree
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 
 import numpy as np
@@ -429,6 +430,25 @@ def test_dragging_the_handle_moves_the_light_on_the_sphere_and_the_image_follows
         assert np.abs(after.astype(int) - before).max() > 20
     finally:
         designer.close()
+
+
+def test_designer_says_how_much_of_the_image_moves(field):
+    """The image panel's text carries the field's moving Gaussians and the share of the specular energy they carry,
+    as the fit report has them."""
+    designer = LightDesigner(field, off_screen=True, window_size=(400, 200), panels=("image",))
+    try:
+        designer.plotter.subplot(0, 0)
+        text = designer.plotter.renderer.actors["image text"].GetText(2)
+    finally:
+        designer.close()
+    share = field.report["residual"]["moving_specular_share"]
+    line = field.motion_line()
+    assert line in text.splitlines()
+    assert line == (f"{int(field.moving_mask.sum())} of {int(field.estimated.active.sum())} Gaussians move "
+                    f"({100 * share:.0f}% of the specular energy)")
+    legacy = dataclasses.replace(field, report={})  # a field written before the report had the share
+    counts = f"{int(field.moving_mask.sum())} of {int(field.estimated.active.sum())}"
+    assert legacy.motion_line() == f"{counts} Gaussians move"
 
 
 def test_designer_redraws_paths_only_for_a_new_triangle(field):

@@ -300,6 +300,15 @@ class HighlightField:
         value = self.report.get("exposure")
         return float(value) if isinstance(value, (int, float)) and math.isfinite(value) and value > 0 else 1.0
 
+    def motion_line(self) -> str:
+        """'N of M Gaussians move (X% of the specular energy)': how much of the image moves, as the viewers say it
+        (the share from the fit report; left out where it has none)."""
+        residual = self.report.get("residual") if isinstance(self.report.get("residual"), dict) else {}
+        share = residual.get("moving_specular_share")
+        carried = f" ({100 * share:.0f}% of the specular energy)" if isinstance(share, (int, float)) else ""
+        total = int(self.estimated.active.sum())
+        return f"{int(self.moving_mask.sum())} of {total} Gaussian{'' if total == 1 else 's'} move{carried}"
+
     def _motion_figures(self) -> str:
         """What the fit report says of the moving Gaussians: their share of the specular energy and the
         checks' scores ('' where the report has none)."""

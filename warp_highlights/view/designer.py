@@ -28,6 +28,7 @@ _PANEL_SIZE = (560, 520)  # default pixels per panel (width, height)
 _BACKGROUND = "#1f2329"
 _TEXT = "#e8eaed"
 _HANDLE_RADIUS = 0.06
+_TEXT_HEADROOM = 0.1  # image heights left free above the relit image for its three lines of text
 
 
 def default_direction(triangulation) -> np.ndarray:
@@ -134,7 +135,8 @@ class LightDesigner:
                                                          radius=_HANDLE_RADIUS,
                                                          color="#f1c40f", interaction_event="always", pass_widget=False)
         if self._panel("image"):
-            viz.plot_image(np.zeros((self.relighter.height, self.relighter.width), dtype=np.float32), plotter=plotter)
+            viz.plot_image(np.zeros((self.relighter.height, self.relighter.width), dtype=np.float32), plotter=plotter,
+                           headroom=_TEXT_HEADROOM)
         if self.interactive:
             plotter.add_key_event("m", self._toggle_method)
             plotter.add_key_event("h", self._toggle_highlights)
@@ -183,7 +185,8 @@ class LightDesigner:
         viz.plot_image(self.image, plotter=self.plotter, frame=False)
         what = "highlights S'" if self.specular_only else "full image"
         viz.put_text(self.plotter, f"{self.method} paths, {what}, {self.relighter.width}x{self.relighter.height}\n"
-                     f"relit in {relight_ms:.1f} ms on {self.relighter.device}", "image text", color=_TEXT)
+                     f"relit in {relight_ms:.1f} ms on {self.relighter.device}\n{self.field.motion_line()}",
+                     "image text", color=_TEXT)
         if self.interactive:
             viz.put_text(self.plotter, "m: circular / straight    h: highlights / full image", "image help",
                          position="lower_left", color=_TEXT)

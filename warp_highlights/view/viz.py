@@ -358,11 +358,13 @@ def update_image(texture, image) -> None:
     texture.Modified()
 
 
-def plot_image(image, *, plotter=None, name: str = "image", dim: float = 1.0, frame: bool = True):
+def plot_image(image, *, plotter=None, name: str = "image", dim: float = 1.0, frame: bool = True,
+               headroom: float = 0.0):
     """Draw a linear image on the image plane (``dim`` scales it, e.g. 0.55 under paths); returns the plotter.
 
     An image actor of the same ``name`` and size is updated in place (cheap enough for every frame of
-    a drag); ``frame`` points the camera straight at the image, filling the view.
+    a drag); ``frame`` points the camera straight at the image, filling the view but for ``headroom``
+    (a share of the image height) left free above it for text.
     """
     plotter = plotter if plotter is not None else new_plotter()
     image = np.asarray(image, dtype=np.float32) * np.float32(dim)
@@ -376,7 +378,7 @@ def plot_image(image, *, plotter=None, name: str = "image", dim: float = 1.0, fr
         plotter.add_mesh(plane, texture=texture, name=name, pickable=False, lighting=False)
     if frame:
         aspect = image.shape[1] / image.shape[0]
-        _look_at(plotter, (0.0, aspect, -1.0, 0.0))
+        _look_at(plotter, (0.0, aspect, -1.0, float(headroom)))
     return plotter
 
 
