@@ -29,12 +29,14 @@ from warp_highlights.model.config import FitSettings, RasterSettings, ResidualSe
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 from warp_highlights.model.residual import ResidualModel
+from warp_highlights.quality.metrics import srgb_psnr
 from warp_highlights.relight.relighter import Relighter
 from warp_highlights.residual.build import (
     CHROMA_GAIN,
     LUMINANCE_GAIN,
     NormalisedResidual,
     build_residual,
+    captured_psnr,
 )
 from warp_highlights.residual.decode import (
     decoded_images,
@@ -118,17 +120,43 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     capture = n * h * w * 3
     ranks = []
     for budget in (0.03, 0.06, 0.12, 0.5):
-        model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget, min_luminance_rank=1),
-                               other_bytes=500)
+        model = build_residual(images, own, None, settings=ResidualSettings(size_budget=budget, min_luminance_rank=1,
+                                                                            min_captured_psnr_db=0), other_bytes=500)
         stored = 500 + entry_bytes(model.luminance.mean.astype(np.float16)) + component_bytes(model.luminance).sum()
         stored += entry_bytes(model.chroma.mean.astype(np.float16)) + component_bytes(model.chroma).sum()
         assert stored <= budget * capture or model.luminance.rank == 1
         ranks.append(model.luminance.rank)
     assert ranks == sorted(ranks) and ranks[0] < ranks[-1] <= ResidualSettings().max_luminance_rank
-    floored = build_residual(images, own, None, settings=ResidualSettings(size_budget=0.01), other_bytes=500)
+    floored = build_residual(images, own, None, settings=ResidualSettings(size_budget=0.01, min_captured_psnr_db=0),
+                             other_bytes=500)
     assert floored.luminance.rank == ResidualSettings().min_luminance_rank  # the floor holds whatever the budget
     fixed = build_residual(images, own, None, settings=ResidualSettings(luminance_rank=5))
     assert fixed.luminance.rank == 5
+
+
+def test_the_budget_grows_until_the_captured_lights_come_back_at_the_floor():
+    """A stack of texture-like noise (no low rank to find) within 20% of the capture comes back far below 40 dB; the
+    floor grows the budget by half at a time until it holds (or the cap binds), and the report says where it ended;
+    ``captured_psnr`` is the decoded residual plus the own highlights scored against the images."""
+    n, h, w = 12, 24, 32
+    images = (0.3 + 0.1 * RNG.random((n, h, w, 3))).astype(np.float32)
+    own = np.zeros((n, h, w), np.float32)
+    own[:, 8:12, 10:14] = 0.2
+    tint = np.ones((h, w, 3), np.float32)
+    plain = build_residual(images, own, None, settings=ResidualSettings(size_budget=0.2, min_captured_psnr_db=0))
+    assert captured_psnr(plain, images, own, tint) < 36
+    report = {}
+    grown = build_residual(images, own, None, settings=ResidualSettings(size_budget=0.2), report=report)
+    assert report["captured_psnr_db"] >= 40 and 0.2 < report["size_budget"] <= 1.0
+    decoded = decoded_images(grown).astype(np.float32) + own[..., None] * tint
+    reference = np.mean([srgb_psnr(decoded[i], images[i]) for i in range(n)])
+    assert report["captured_psnr_db"] == pytest.approx(reference, abs=1e-3)
+    capped = {}
+    build_residual(images, own, None, settings=ResidualSettings(size_budget=0.2, max_size_budget=0.4), report=capped)
+    assert capped["size_budget"] == pytest.approx(0.4) and capped["captured_psnr_db"] < 40
+    darker = {}  # display units: the same images shown at half their brightness
+    build_residual(images, own, None, settings=ResidualSettings(size_budget=1.0), display_scale=0.5, report=darker)
+    assert darker["captured_psnr_db"] != pytest.approx(report["captured_psnr_db"], abs=0.01)
 
 
 def _patterned_stack(n, h, w, planes, rank, decay):
@@ -191,7 +219,8 @@ def test_the_bits_are_those_of_the_lower_predicted_error_and_16_are_tried_only_w
     monkeypatch.setattr(build_module, "allocate",
                         lambda plans, budget, *, bits: searched.append(bits) or real(plans, budget, bits=bits))
     noisy = (1.0 + 0.3 * RNG.normal(size=(n, h, w, 1))).astype(np.float32)
-    model = build_residual(noisy, own, None, settings=ResidualSettings(size_budget=0.1, min_luminance_rank=1))
+    model = build_residual(noisy, own, None, settings=ResidualSettings(size_budget=0.1, min_luminance_rank=1,
+                                                                        min_captured_psnr_db=0))
     assert searched == [8] and model.luminance.bits == 8
     smooth = _patterned_stack(n, h, w, 1, 12, 0.8).astype(np.float32)
     searched.clear()

@@ -191,6 +191,7 @@ def fit_field(
         path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
         residual_model = None
         learned_history = None
+        compression: dict = {}  # the low-rank residual's budget and captured-light score
         support_median = None
         check = learned_check = None
         if residual:
@@ -287,7 +288,13 @@ def fit_field(
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,
                                                     other_bytes=gaussian_bytes(kept, kept_retargeted),
-                                                    device=device, held_images=held)
+                                                    device=device, held_images=held, display_scale=1.0 / factor,
+                                                    report=compression)
+                budget = settings.residual.size_budget
+                if compression.get("size_budget", budget) > budget:
+                    log(f"the residual gave the captured lights back at under "
+                        f"{settings.residual.min_captured_psnr_db:g} dB within {100 * budget:.0f}% of the capture; "
+                        f"it takes {100 * compression['size_budget']:.0f}% ({compression['captured_psnr_db']:.1f} dB)")
             held = None
     finally:  # an error or Ctrl-C meanwhile: the plan not left running (it is host work of a fraction of a second)
         if planning is not None:
@@ -348,6 +355,9 @@ def fit_field(
             "luminance_rank": residual_model.luminance.rank if kind == "lowrank" else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if kind == "lowrank" else None,
+            # the share of the 8-bit capture the low-rank residual was given, and its captured lights' score
+            "size_budget": compression.get("size_budget"),
+            "captured_psnr_db": compression.get("captured_psnr_db"),
             "highlight_colour": residual_model.highlight_colour is not None,
             "learned": None if learned_history is None else {"epochs": len(learned_history),
                                                              "final_mse": float(learned_history[-1]),

@@ -22,6 +22,8 @@ from ..model.residual import (
     colour_codes,
 )
 from ..model.threads import NUMPY_THREADS, mapped_empty, parallel_map
+from ..quality.metrics import srgb_psnr
+from .decode import decoded_blocks
 from .inputs import (
     HeldImages,
     residual_of,
@@ -42,7 +44,7 @@ from .rate import (
     quantised_bytes,
 )
 
-__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "NormalisedResidual", "build_residual"]
+__all__ = ["CHROMA_GAIN", "HELD_STACK_SHARE", "LUMINANCE_GAIN", "NormalisedResidual", "build_residual", "captured_psnr"]
 
 LUMINANCE_GAIN = 3.0
 """Squared RGB error per unit of squared luminance error: an error in Y shifts R, G and B alike."""
@@ -62,7 +64,8 @@ stay there, and the host keeps no copy)."""
 
 def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, *, settings: ResidualSettings,
                    other_bytes: int = 0,
-                   device=None, held_images: HeldImages | None = None) -> ResidualModel:
+                   device=None, held_images: HeldImages | None = None, display_scale: float = 1.0,
+                   report: dict | None = None) -> ResidualModel:
     """The ``ResidualModel`` of (n, H, W, C) images (field units) and their own (n, H, W) highlights.
     On a CUDA ``device`` the stacks' products (Gram matrices, projections, the weights' normal
     equations) are summed there (``kernels.gram``); elsewhere by the host's BLAS. There too, where they
@@ -80,6 +83,11 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     predicts (``StackPlan.distortion``); 16 bits are not tried where 8-bit codes already hold every
     kept image's step (16-bit codes would store the same quantisation in more bytes). ``held_images``:
     the images (and, where not None, ``own``) on the device already (``HeldImages``), read there.
+
+    Where the rate search decides a rank and the field gives the captured lights back below
+    ``min_captured_psnr_db`` (``captured_psnr``; ``display_scale`` takes field units to display units), the budget
+    grows by half at a time up to ``max_size_budget``. ``report``, where given, receives the budget used
+    (``size_budget``, a share of the capture) and the captured lights' score (``captured_psnr_db``).
     """
     images = np.asarray(images, dtype=np.float32)
     if images.ndim == 3:
@@ -111,8 +119,9 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
         luminance = PrincipalImages.of_source(stacks.luminance, light_scale, spill=not held, products=products)
         chroma = (None if stacks.chroma is None
                   else PrincipalImages.of_source(stacks.chroma, light_scale, spill=not held, products=products))
-        return _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes,
-                           n * height * width * channels)
+        return _floored(lambda share: _compressed(luminance, chroma, stacks.scale, colour, settings, other_bytes,
+                                                  n * height * width * channels, share),
+                        images, own, tint, settings, display_scale, report)
     # s(x), each light's sum of squares of its normalised luminance and, where they fit the memory, the
     # normalised luminance and chroma stacks (float32), a band of rows at a time (float64 inside)
     scale = np.empty((height, width), np.float32)
@@ -147,7 +156,9 @@ def build_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                                                                       spill=True,
                                                                       products=products)
     luminance_stack = chroma_stack = None  # the principal images hold them now
-    return _compressed(luminance, chroma, scale, colour, settings, other_bytes, n * height * width * channels)
+    return _floored(lambda share: _compressed(luminance, chroma, scale, colour, settings, other_bytes,
+                                              n * height * width * channels, share),
+                    images, own, tint, settings, display_scale, report)
 
 
 def _device_products(device) -> DeviceProducts | None:
@@ -156,13 +167,49 @@ def _device_products(device) -> DeviceProducts | None:
     return DeviceProducts(device) if device is not None and wp.get_device(device).is_cuda else None
 
 
+_BUDGET_GROWTH = 1.5
+"""The size budget's factor a step while the captured lights come back below ``min_captured_psnr_db``."""
+
+
+def _floored(compressed, images: np.ndarray, own: np.ndarray, tint: np.ndarray, settings: ResidualSettings,
+             display_scale: float, report: dict | None) -> ResidualModel:
+    """``compressed(share)`` (the model within ``share`` of the capture) at ``size_budget``, and at budgets grown by
+    ``_BUDGET_GROWTH`` up to ``max_size_budget`` while it gives the captured lights back below
+    ``min_captured_psnr_db`` (only where the rate search decides a rank: fixed ranks ignore the budget)."""
+    share = settings.size_budget
+    floor = settings.min_captured_psnr_db if not (settings.luminance_rank and settings.chroma_rank) else 0.0
+    while True:
+        model = compressed(share)
+        score = captured_psnr(model, images, own, tint, display_scale) if floor > 0 or report is not None else None
+        if floor <= 0 or score >= floor or share >= settings.max_size_budget:
+            break
+        share = min(share * _BUDGET_GROWTH, settings.max_size_budget)
+    if report is not None:
+        report.update(size_budget=float(share), captured_psnr_db=round(float(score), 3))
+    return model
+
+
+def captured_psnr(model: ResidualModel, images: np.ndarray, own: np.ndarray, tint: np.ndarray,
+                  display_scale: float = 1.0) -> float:
+    """Mean 8-bit sRGB PSNR (dB) over the captured lights of the (n, H, W, C) ``images`` (field units) against what
+    the field gives back there: the decoded residual plus each light's ``own`` highlights in colour ``tint``,
+    both times ``display_scale``."""
+    scores = []
+    for start, block in decoded_blocks(model, block=8):
+        for k, decoded in enumerate(block):
+            i = start + k
+            given = (decoded.astype(np.float32) + own[i][..., None] * tint) * np.float32(display_scale)
+            scores.append(srgb_psnr(given, images[i] * np.float32(display_scale)))
+    return float(np.mean(scores))
+
+
 def _compressed(luminance: PrincipalImages, chroma: PrincipalImages | None, scale: np.ndarray,
                 colour: np.ndarray | None,
-                settings: ResidualSettings, other_bytes: int, capture_values: int) -> ResidualModel:
-    """``build_residual``'s model from the stacks' principal images: the bits and steps chosen within the
-    size budget (of ``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
+                settings: ResidualSettings, other_bytes: int, capture_values: int, share: float) -> ResidualModel:
+    """``build_residual``'s model from the stacks' principal images: the bits and steps chosen within ``share``
+    of the capture (``capture_values`` 8-bit values), the stacks quantised and their weights fitted."""
     n = luminance.light_count
-    budget = settings.size_budget * capture_values
+    budget = share * capture_values
     # the other planes as the file stores them, planes first (io.fieldfile), measured in threads
     stored = [luminance.mean.astype(np.float16), scale.astype(np.float16)]
     stored += [colour_codes(colour).transpose(2, 0, 1)] if colour is not None else []
