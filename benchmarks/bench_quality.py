@@ -2,7 +2,7 @@
 
     python benchmarks/bench_quality.py                          # CPU sizes: samples reduced, 64-light donut/teapot
     python benchmarks/bench_quality.py --scale gpu --device cuda:0   # full-size samples, 250-light donut/teapot
-    python benchmarks/bench_quality.py --cases synth,statue     # a subset
+    python benchmarks/bench_quality.py --cases synth,statue     # a subset (also: coin, multi)
     python benchmarks/bench_quality.py --set residual.kind=learned   # any fit setting, as `fit --set` takes it
 
 Per case: fit a field with the defaults (timed), save it (bytes), then ``evaluate_field`` at the
@@ -13,6 +13,9 @@ PSNR and SSIM (scikit-image) over the whole image, as RTI users measure, and lin
 - ``synth``: the rendered dome sample (``$WARP_HIGHLIGHTS_DATA/synthrti-object1-material5``), scored
   at its 20 ``Test/`` lights;
 - ``statue``: the photographed statue (``realrti-item11``), every 5th light held out;
+- ``coin``: the photographed coin (``realrti-item10``), every 5th light held out, and ``multi``: the rendered
+  textured multi-object dome (``synthrti-multi-object2-material5``) at its 20 ``Test/`` lights (neither among the
+  default cases);
 - ``donut``, ``teapot``: rendered here (Fibonacci lights, held-out triangle centroids, ground truth).
 
 Size per pixel: the field file, the alpha blend's 8-bit images (lights x channels), a baseline's
@@ -54,6 +57,8 @@ BASELINES = ("ptm", "hsh2", "hsh3", "rbf")
 SIZES = {  # case -> (cpu size, gpu size); None: the images' own size
     "synth": ((160, 160), None),
     "statue": ((192, 181), None),
+    "coin": ((166, 168), None),
+    "multi": ((160, 160), None),
     "donut": ((240, 135), (480, 270)),
     "teapot": ((240, 135), (480, 270)),
 }
@@ -65,8 +70,12 @@ def load_case(name: str, scale: str, device) -> ReflectanceField:
     if name == "synth":
         root = data / "synthrti-object1-material5"
         return ReflectanceField.load(root / "Dome", heldout=root / "Test", progress=False)
-    if name == "statue":
-        return ReflectanceField.load(data / "realrti-item11", progress=False).split_every(5)
+    if name == "multi":
+        root = data / "synthrti-multi-object2-material5"
+        return ReflectanceField.load(root / "Dome", heldout=root / "Test", progress=False)
+    if name in ("statue", "coin"):
+        return ReflectanceField.load(data / ("realrti-item11" if name == "statue" else "realrti-item10"),
+                                     progress=False).split_every(5)
     # rendered in memory (a GPU machine may have no EXR writer), with ground truth at the triangle centroids
     width, height = SIZES[name][1 if scale == "gpu" else 0]
     lights = LightSet.fibonacci_sphere(RENDERED_LIGHTS[scale])

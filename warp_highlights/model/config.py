@@ -495,8 +495,9 @@ class ResidualSettings:
             lights back at 23.6 dB and scored 22.37 dB at its held-out lights against the alpha blend's 24.69;
             at 50 / 70 / 100%: 34.8 / 43.0 / 54.1 dB and 24.51 / 24.67 / 24.69. The coin photographs (1 in 5
             held out): 29.4 dB and 21.83 against 22.51 at 24%, 43.6 dB and 22.48 at 50%. The dome sample (59.7 dB)
-            and the statue (47.0 dB) keep 24% (``benchmarks/bench_quality.py``, ``--set
-            residual.size_budget=...``). 0 turns the floor off.
+            and the statue (47.0 dB) keep 24% (2-core CPU, ``benchmarks/bench_quality.py --cases coin,multi --set
+            residual.min_captured_psnr_db=0 --set residual.size_budget=...``; the JSON's ``residual`` has the
+            captured lights' score). 0 turns the floor off.
         max_size_budget: how far ``min_captured_psnr_db`` may grow the budget: 1, the 8-bit capture's size
             (what the alpha blend keeps).
         luminance_rank: basis images of the luminance, each quantised over its whole range; 0
