@@ -192,6 +192,7 @@ def fit_field(
         residual_model = None
         learned_history = None
         compression: dict = {}  # the low-rank residual's budget and captured-light score
+        anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
         check = learned_check = None
         if residual:
@@ -265,17 +266,18 @@ def fit_field(
                     held.own = None  # the residual's stacks read the zeros from the host
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
-            if learned and learned_check is not None and learned_check.learned_every_light:
+            cuda = wp.get_device(device).is_cuda
+            # where the check's left-out lights are a large share of the capture, its winner (fitted without them
+            # for a while) is not kept: the decided residual learns anew from every light
+            anew = learned_check is not None and learns_anew(settings.residual, cuda, len(learned_check.lights),
+                                                             dataset.light_count)
+            if learned and learned_check is not None and learned_check.learned_every_light and not anew:
                 # the check's winner learned from every light once its verdict settled
                 residual_model, learned_history = learned_check.winner, list(learned_check.history)
             elif learned:
-                # the check's winner goes on learning from every light (the ones it left out too), or, where those
-                # were too many, the decided residual learns anew; without a check, one model learns every light
-                winner = None if learned_check is None else learned_check.winner.learned
-                cuda = wp.get_device(device).is_cuda
-                if winner is not None and learns_anew(settings.residual, cuda, len(learned_check.lights),
-                                                      dataset.light_count):
-                    winner = None
+                # the check's winner goes on learning from every light (the ones it left out too), or learns anew
+                # (above); without a check, one model learns every light
+                winner = None if learned_check is None or anew else learned_check.winner.learned
                 epochs = (settings.residual.learned_tune_epochs if winner is not None
                           else learned_epochs(settings.residual, cuda))
                 with timer.stage("learned residual"), _bar(progress, "learned residual", epochs, 1) as advance:
@@ -361,7 +363,8 @@ def fit_field(
             "highlight_colour": residual_model.highlight_colour is not None,
             "learned": None if learned_history is None else {"epochs": len(learned_history),
                                                              "final_mse": float(learned_history[-1]),
-                                                             "continued_from_check": learned_check is not None},
+                                                             "continued_from_check": learned_check is not None
+                                                             and not anew},
         },
         "paths": {"negative_share": float(decisions.negative[source.active[edges[:, 0]]].mean()) if counts.sum()
                   else 0.0},
