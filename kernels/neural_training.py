@@ -363,9 +363,10 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` of training have passed;
     compiling the kernels and ``settle``'s scoring are not counted). ``used``: the lights learned from (default all;
     the others' targets are never read). ``initial``: models to go on training (default: ``initial_model`` of each
-    model's used targets). ``settle(models)``, called once after ``settle_epoch`` epochs with the models as they
-    are, may return the index of the one model that goes on (the others stop there: their loss is NaN from then on)
-    or None (all go on); the one that goes on learns from ``settle_used`` lights from then on (default ``used``).
+    model's used targets). ``settle(models)``, called after every ``settle_epoch`` epochs with the models as they
+    are while more than one learns, may return the index of the one model that goes on (the others stop there: their
+    loss is NaN from then on) or None (all go on, to be asked again); the one that goes on learns from
+    ``settle_used`` lights from then on (default ``used``).
     Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
@@ -389,7 +390,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
             log(f"epoch {epoch + 1}/{epochs}: mse {np.nanmean(row):.3e} ({time.perf_counter() - started:.1f} s)")
         if seconds is not None and time.perf_counter() - started > seconds:
             break
-        if settle is not None and epoch + 1 == settle_epoch and count > 1 and epoch + 1 < epochs:
+        if (settle is not None and settle_epoch > 0 and (epoch + 1) % settle_epoch == 0 and len(going_on) > 1
+                and epoch + 1 < epochs):
             scoring = time.perf_counter()
             kept = settle(trainer.result())
             if kept is not None:

@@ -162,6 +162,22 @@ def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device)
     np.testing.assert_allclose(both[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
 
 
+def test_an_order_not_settled_is_asked_again_after_each_settle_epoch(device):
+    """``settle`` returning None leaves both models learning and is asked again ``settle_epoch`` epochs later; once it
+    names a model the other stops there and it is not asked again."""
+    directions, targets = _problem(seed=6, lights=4, pixels=48)
+    asked = []
+
+    def second_time(models):
+        asked.append(len(asked))
+        return None if len(asked) == 1 else 0
+
+    _, history = neural_training.train_decoders(targets, directions, device=device, epochs=5, batch=64,
+                                                settle=second_time, settle_epoch=1)
+    assert asked == [0, 1]
+    assert np.isfinite(history[:2, 1]).all() and np.isnan(history[2:, 1]).all() and np.isfinite(history[:, 0]).all()
+
+
 def test_the_settle_scoring_is_not_training_time(device):
     """``seconds`` counts training only: a ``settle`` that takes longer than the whole budget (on a fresh machine
     its scoring compiles the decoding kernels) leaves the winner its epochs."""

@@ -83,10 +83,10 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None, settle_used=None) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``, called once
-    ``learned_settle_fraction`` of the epochs have run, returns the index of the one model to go on, or None
-    (on the CPU in two parts: ``_train_settling_on_cpu``); that one learns from the ``settle_used`` lights from
-    then on (default ``used``)."""
+    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``, called after each
+    ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
+    ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
+    ``settle_used`` lights from then on (default ``used``)."""
     device = wp.get_device(device)
     learning = [len(targets) if device.is_cuda else 1]  # models that advance the bar an epoch
 
@@ -216,9 +216,9 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     (NeuralRTI); on CUDA both learn side by side in the same launches. At each left-out light the first plus
     ``highlights`` (m, H, W, 3), the Gaussians moved there from the other lights' triangle
     (``MoveCheck.kept_highlights``), and the second are scored against the image in 8-bit sRGB. Both train in
-    until their order has settled (``learned_settle_fraction`` of the epochs, a gap of
-    ``learned_settle_margin_db`` or more; else both to the end), as it changes with training (a short run
-    favours the residual, whose Gaussians carry the highlights from the start).
+    until their order has settled (a gap of ``learned_settle_margin_db`` or more, asked after each
+    ``learned_settle_fraction`` of the epochs on CUDA, after the first on the CPU; else both to the end), as it
+    changes with training (a short run favours the residual, whose Gaussians carry the highlights from the start).
     ``progress(1)`` after each epoch."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
@@ -239,13 +239,17 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
             rows.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
         return rows
 
+    asked = [0]
+
     def settle(models) -> int | None:  # the order settled well ahead of the end: the loser stops there
+        asked[0] += 1  # after each learned_settle_fraction of the epochs on CUDA, once on the CPU
         first, second = score(models)
         gap = float(np.mean(first) - np.mean(second))
         if abs(gap) < settings.learned_settle_margin_db:
             return None
-        settled_at.append((max(1, round(settings.learned_settle_fraction
-                                        * learned_epochs(settings, wp.get_device(device).is_cuda))), first, second))
+        settled_at.append((asked[0] * max(1, round(settings.learned_settle_fraction
+                                                   * learned_epochs(settings, wp.get_device(device).is_cuda))),
+                           first, second))
         return 0 if gap > 0 else 1
 
     # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
