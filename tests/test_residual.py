@@ -134,7 +134,7 @@ def test_the_automatic_rank_keeps_the_residual_within_its_size_budget():
     assert fixed.luminance.rank == 5
 
 
-def test_the_budget_grows_until_the_captured_lights_come_back_at_the_floor():
+def test_the_budget_grows_until_the_captured_lights_come_back_at_the_floor(monkeypatch):
     """A stack of texture-like noise (no low rank to find) within 20% of the capture comes back far below 40 dB; the
     floor grows the budget by half at a time until it holds (or the cap binds), and the report says where it ended;
     ``captured_psnr`` is the decoded residual plus the own highlights scored against the images."""
@@ -154,6 +154,11 @@ def test_the_budget_grows_until_the_captured_lights_come_back_at_the_floor():
     capped = {}
     build_residual(images, own, None, settings=ResidualSettings(size_budget=0.2, max_size_budget=0.4), report=capped)
     assert capped["size_budget"] == pytest.approx(0.4) and capped["captured_psnr_db"] < 40
+    monkeypatch.setattr(build_module, "SCORED_LIGHTS", 5)  # of many lights, 5 spread evenly are scored
+    spread = [0, 3, 6, 8, 11]
+    assert captured_psnr(grown, images, own, tint) == pytest.approx(
+        np.mean([srgb_psnr(decoded[i], images[i]) for i in spread]), abs=1e-3)
+    monkeypatch.undo()
     darker = {}  # display units: the same images shown at half their brightness
     build_residual(images, own, None, settings=ResidualSettings(size_budget=1.0), display_scale=0.5, report=darker)
     assert darker["captured_psnr_db"] != pytest.approx(report["captured_psnr_db"], abs=0.01)

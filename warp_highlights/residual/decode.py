@@ -20,8 +20,8 @@ from ..model.residual import (
 from ..model.threads import parallel_map
 from .opponent import decode_display, from_opponent
 
-__all__ = ["band_basis", "decoded_blocks", "decoded_images", "learned_images", "light_images", "stack_basis",
-           "stack_images", "stack_light_images"]
+__all__ = ["band_basis", "decoded_blocks", "decoded_images", "decoded_lights", "learned_images", "light_images",
+           "stack_basis", "stack_images", "stack_light_images"]
 
 DECODE_BAND_VALUES = 1 << 20
 """Basis values (rows x width x rank) ``decoded_blocks`` dequantises in a thread at a time (4 MB of float32)."""
@@ -79,28 +79,37 @@ def decoded_blocks(residual: ResidualModel, *, block: int = 16) -> Iterator[tupl
         for start in range(0, n, block):
             yield start, residual.images[start : start + block]
         return
+    for start in range(0, n, block):
+        yield start, decoded_lights(residual, np.arange(start, min(n, start + block)))
+
+
+def decoded_lights(residual: ResidualModel, lights: np.ndarray) -> np.ndarray:
+    """(b, H, W, C) float16: the residual images of the (b,) captured ``lights`` (a low-rank residual's decoded in
+    float32 a band of rows at a time in threads, the basis dequantised a band at a time, never whole)."""
+    lights = np.asarray(lights, dtype=np.int64)
+    if residual.images is not None:
+        return residual.images[lights]
+    if residual.learned is not None:
+        raise InputError("a learned residual is decoded per query direction, not per captured light")
     scale = np.ones((residual.height, residual.width), np.float32) if residual.scale is None else residual.scale
     stacks = [stack for stack in (residual.luminance, residual.chroma) if stack is not None]
     rows_a_band = max(1, DECODE_BAND_VALUES // max(residual.width * max(stack.rank for stack in stacks), 1))
     bands = [slice(top, min(top + rows_a_band, residual.height)) for top in range(0, residual.height, rows_a_band)]
-    for start in range(0, n, block):
-        stop = min(n, start + block)
-        out = np.empty((stop - start, residual.height, residual.width, residual.channels), np.float16)
+    out = np.empty((len(lights), residual.height, residual.width, residual.channels), np.float16)
 
-        # the bands in threads: the basis dequantised a band at a time, never whole
-        def band(rows: slice, start=start, stop=stop, out=out) -> None:
-            parts = []
-            for stack in stacks:
-                basis = band_basis(stack, rows)
-                light = np.tensordot(stack.weights[start:stop], basis, axes=1)
-                light += stack.mean_weights[start:stop, None, None, None] * stack.mean[rows]
-                parts.append(light)
-            y = parts[0][..., 0] * scale[rows]
-            rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[rows, :, None])
-            out[:, rows] = np.clip(rgb, -FLOAT16_SAFE, FLOAT16_SAFE)
+    def band(rows: slice) -> None:
+        parts = []
+        for stack in stacks:
+            basis = band_basis(stack, rows)
+            light = np.tensordot(stack.weights[lights], basis, axes=1)
+            light += stack.mean_weights[lights, None, None, None] * stack.mean[rows]
+            parts.append(light)
+        y = parts[0][..., 0] * scale[rows]
+        rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[rows, :, None])
+        out[:, rows] = np.clip(rgb, -FLOAT16_SAFE, FLOAT16_SAFE)
 
-        parallel_map(band, bands)
-        yield start, out
+    parallel_map(band, bands)
+    return out
 
 
 def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
