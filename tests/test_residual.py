@@ -164,6 +164,30 @@ def test_the_budget_grows_until_the_captured_lights_come_back_at_the_floor(monke
     assert darker["captured_psnr_db"] != pytest.approx(report["captured_psnr_db"], abs=0.01)
 
 
+def test_a_fit_whose_residual_needs_more_than_its_budget_says_so(small_donut):
+    """The fit's report has the low-rank residual's budget and its captured lights' score; where the floor grew the
+    budget, the fit says so in one line (a floor set out of reach here: the budget grows to the cap)."""
+    from conftest import FAST_FIT
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    said = []
+    field = fit_field(dataset, device="cpu", progress=False, log=said.append,
+                      settings=FitSettings().with_overrides(FAST_FIT + ["residual.kind=lowrank",
+                                                                        "residual.min_captured_psnr_db=99",
+                                                                        "residual.max_size_budget=0.5"]))
+    residual = field.report["residual"]
+    assert residual["size_budget"] == pytest.approx(0.5) and residual["captured_psnr_db"] < 99
+    grew = [line for line in said if line.startswith("the residual gave the captured lights back")]
+    assert grew == [f"the residual gave the captured lights back at under 99 dB within 24% of the capture; it takes "
+                    f"50% ({residual['captured_psnr_db']:.1f} dB)"]
+    plain = fit_field(dataset, device="cpu", progress=False, log=said.append,
+                      settings=FitSettings().with_overrides(FAST_FIT + ["residual.kind=lowrank"]))
+    assert plain.report["residual"]["size_budget"] == pytest.approx(0.24)
+    assert plain.report["residual"]["captured_psnr_db"] >= 40
+
+
 def _patterned_stack(n, h, w, planes, rank, decay):
     yy, xx = np.mgrid[0:h, 0:w] / h
     patterns = np.stack([np.sin((i + 1) * xx + i) * np.cos((i % 5 + 1) * yy) for i in range(rank)])
