@@ -79,6 +79,9 @@ def test_fit_summary_and_working_size(small_donut, tmp_path, capsys):
         assert expected in text
     field = load_field(out)
     assert (field.width, field.height) == (48, 27) and field.diffuse is None
+    residual = field.report["residual"]
+    assert (f"{100 * residual['size_budget']:.0f}% of the capture, the captured lights back at "
+            f"{residual['captured_psnr_db']:.1f} dB)") in text
 
 
 def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, capsys):

@@ -267,9 +267,12 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
     if residual:
         resolved = report["residual_kind"]["resolved"]
         if resolved == "lowrank":
+            budget, captured = residual.get("size_budget"), residual.get("captured_psnr_db")
             kind = (f"low rank (luminance {residual['luminance_rank']}"
                     + (f", chroma {residual['chroma_rank']}" if residual["chroma_rank"] else "")
-                    + f", {residual['basis_bits']}-bit)")
+                    + f", {residual['basis_bits']}-bit"
+                    + (f"; {100 * budget:.0f}% of the capture, the captured lights back at {captured:.1f} dB"
+                       if budget is not None and captured is not None else "") + ")")
         elif resolved == "learned":
             kind = f"learned ({residual['learned']['epochs']} epochs)"
         else:
