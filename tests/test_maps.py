@@ -121,6 +121,89 @@ def test_flatten_removes_a_linear_trend_of_the_slopes_and_keeps_the_rest():
     np.testing.assert_array_equal(flat[~mask], unit(leaning).astype(np.float32)[~mask])
     # nothing to remove
     np.testing.assert_allclose(flatten_normals(unit(relief + tilt), mask), unit(relief + tilt), atol=1e-6)
+    # levelled, the median slope leaves as well: the typical orientation faces the camera
+    levelled = flatten_normals(unit(leaning), mask, level=True)
+    median = np.median((relief + tilt)[mask], axis=0)
+    np.testing.assert_allclose(levelled[mask], unit(relief + tilt - median)[mask], atol=1e-6)
+    np.testing.assert_array_equal(levelled[~mask], unit(leaning).astype(np.float32)[~mask])
+    assert np.allclose(np.median(levelled[mask][:, :2], axis=0), 0.0, atol=1e-6)
+
+
+def test_normal_lean_measures_the_trend_at_the_corners_and_the_tilt():
+    from warp_highlights.relight.maps import NormalLean, flatten_normals, normal_lean
+
+    height, width = 30, 50
+    v, u = np.mgrid[0:height, 0:width]
+    u = (u + 0.5) / width * 2.0 - 1.0
+    v = (v + 0.5) / height * 2.0 - 1.0
+    slopes = np.stack([0.3 * u + 0.1, -0.2 * v - 0.05], axis=-1)
+    normals = np.concatenate([slopes, np.ones((height, width, 1))], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    mask = np.ones((height, width), bool)
+    lean = normal_lean(normals, mask)
+    corner = np.hypot(0.3 * (1 - 1 / width), 0.2 * (1 - 1 / height))  # the outermost pixel centres
+    assert lean.edge_deg == pytest.approx(np.degrees(np.arctan(corner)), abs=1e-6)
+    assert lean.tilt_deg == pytest.approx(np.degrees(np.arctan(np.hypot(0.1, 0.05))), abs=1e-6)
+    flat = normal_lean(flatten_normals(normals, mask), mask)
+    assert flat.edge_deg < 1e-4 and flat.tilt_deg == pytest.approx(lean.tilt_deg, abs=1e-4)
+    level = normal_lean(flatten_normals(normals, mask, level=True), mask)
+    assert level.edge_deg < 1e-4 and level.tilt_deg < 1e-4
+    assert normal_lean(normals, np.zeros_like(mask)) == NormalLean(0.0, 0.0)
+
+
+def _near_lit_plate(size: int, distance: float, tilt_deg: float):
+    """A Lambertian plate with three bumps, spanning [-1, 1] across the frame, turned ``tilt_deg``
+    about the image's vertical axis, lit by point lights at ``distance`` (plate half-widths) from its
+    centre along the light file's directions, with the inverse-square fall-off: (dataset, true
+    normals (H, W, 3), (H, W) bool: the flat base)."""
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.lights import LightSet
+
+    v, u = np.mgrid[0:size, 0:size]
+    u = (u + 0.5) / size * 2.0 - 1.0
+    v = 1.0 - (v + 0.5) / size * 2.0  # y up the image
+    height, gx, gy = (np.zeros_like(u) for _ in range(3))
+    for cx, cy, radius, amplitude in ((-0.4, 0.3, 0.25, 0.08), (0.35, -0.35, 0.2, 0.06), (0.3, 0.45, 0.15, -0.04)):
+        bump = amplitude * np.exp(-((u - cx) ** 2 + (v - cy) ** 2) / (2 * radius ** 2))
+        height += bump
+        gx -= bump * (u - cx) / radius ** 2
+        gy -= bump * (v - cy) / radius ** 2
+    base = np.abs(gx) + np.abs(gy) < 0.02
+    angle = np.radians(tilt_deg)
+    turn = np.array([[np.cos(angle), 0.0, np.sin(angle)], [0.0, 1.0, 0.0], [-np.sin(angle), 0.0, np.cos(angle)]])
+    normals = np.stack([-gx, -gy, np.ones_like(u)], axis=-1)
+    normals = (normals / np.linalg.norm(normals, axis=-1, keepdims=True)) @ turn.T
+    points = np.stack([u, v, height], axis=-1) @ turn.T
+    directions = LightSet.fibonacci_sphere(120).directions
+    directions = directions[directions[:, 2] > 0.2]
+    towards = distance * directions[:, None, None, :] - points[None]
+    reach = np.linalg.norm(towards, axis=-1)
+    shading = np.maximum(np.sum(towards / reach[..., None] * normals[None], axis=-1), 0.0) * (distance / reach) ** 2
+    images = shading[..., None] * np.array([0.44, 0.40, 0.36]) + 0.01
+    return ReflectanceField(images=images.astype(np.float32), lights=LightSet(directions)), normals, base
+
+
+def test_flattening_a_plate_lit_by_near_lights_against_its_true_normals():
+    """Near lights (3 half-widths away) turn a tilted plate's fitted normals by tens of degrees towards
+    the frame's edges. ``trend`` gives back the true normals, tilt included, within a few degrees;
+    ``level`` makes the base face the camera; the relief keeps its shape."""
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.model.config import FitSettings
+    from warp_highlights.relight.maps import surface_maps
+
+    dataset, truth, base = _near_lit_plate(64, distance=3.0, tilt_deg=8.0)
+    field = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", progress=False)
+    facing = np.array([0.0, 0.0, 1.0])
+    maps = {mode: surface_maps(field, device="cpu", flatten=mode) for mode in (False, "trend", "level")}
+    assert np.median(_angles_deg(maps[False].normals, truth)[base]) > 15.0
+    assert maps[False].lean.edge_deg > 20.0 and 6.0 < maps[False].lean.tilt_deg < 11.0
+    assert np.median(_angles_deg(maps["trend"].normals, truth)[base]) < 3.0
+    assert np.median(_angles_deg(maps["trend"].normals, truth)[~base]) < 2.5
+    assert np.median(_angles_deg(maps["level"].normals, facing)[base]) < 3.0
+    assert np.median(_angles_deg(maps[False].normals, facing)[base]) > 15.0
+    assert all(m.lean == maps[False].lean for m in maps.values())  # measured before flattening
+    with pytest.raises(ValueError, match="flatten"):
+        surface_maps(field, device="cpu", flatten="sideways")
 
 
 def test_fit_normals_matches_per_pixel_least_squares_and_rejects_highlights_and_shadows():
@@ -487,6 +570,27 @@ def test_maps_command_writes_every_map_in_its_encoding(tiny_sphere, tmp_path, ca
     assert 0 <= summary["pixels_from_neighbours"] <= summary["pixels_with_normal"]
     assert 0 <= summary["pixels_shadow_fit"] <= summary["pixels_with_normal"]
     assert summary["normal_frame"].startswith("x right, y up the image, z towards the camera")
+    assert summary["flattened"] == "no" and summary["lean_before_flattening_deg"]["trend_at_corners"] > 4.0
+
+
+def test_maps_command_suggests_flatten_where_the_normals_lean_and_flattens_when_asked(tiny_sphere, tmp_path, capsys):
+    """The sphere's normals lean (its shape): without --flatten the command says how much and names
+    the option; with it, maps.json says which flattening was done and the command says nothing more."""
+    from warp_highlights.cli import main
+
+    _, field = tiny_sphere
+    assert main(["maps", str(field), "-o", str(tmp_path / "plain"), "--device", "cpu", "-q"]) == 0
+    note = capsys.readouterr().err.strip().splitlines()
+    assert len(note) == 1 and "--flatten" in note[0] and "degrees" in note[0]
+    for given, mode in ((["--flatten"], "trend"), (["--flatten", "level"], "level")):
+        output = tmp_path / mode
+        assert main(["maps", str(field), "-o", str(output), "--device", "cpu", "-q", *given]) == 0
+        assert capsys.readouterr().err == ""
+        assert json.loads((output / "maps.json").read_text())["flattened"] == mode
+    bad = tmp_path / "bad"
+    assert main(["maps", str(field), "-o", str(bad), "--device", "cpu", "-q", "--flatten", "sideways"]) == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert len(error) == 1 and "--flatten" in error[0] and not bad.exists()
 
 
 def test_maps_command_refuses_an_existing_folder_and_writes_nothing(tiny_sphere, tmp_path, capsys):

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from .. import __version__
+from ..model.config import FLATTEN_MODES, MapSettings
 from .args import Command, check_device, check_output_folder
 
 __all__ = ["COMMANDS", "MAP_FILES"]
@@ -33,11 +35,12 @@ def _maps_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output folder for the maps (PNG 16-bit and EXR each, mask, maps.json)")
-    parser.add_argument("--flatten", action="store_true",
-                        help="for flat objects (coins, tablets, paintings): remove the linear trend of the normals' "
-                             "slopes over the image, "
-                        "the lean away from the centre that a dome's near lights give (keeps the mean tilt; takes "
-                        "shape from curved objects)")
+    parser.add_argument("--flatten", nargs="?", const="trend", choices=FLATTEN_MODES, default=None,
+                        help="for flat objects and reliefs (coins, tablets, paintings, carved panels): 'trend' (the "
+                             "default when given bare) removes the linear trend of the normals' slopes over the "
+                             "image, the lean away from the centre that lights at a finite distance give, and keeps "
+                             "the object's tilt; 'level' removes that tilt too, so the typical orientation (the "
+                             "base) faces the camera. Takes shape from curved objects")
     parser.add_argument("--device", default=None, help="Warp device: cpu, cuda, cuda:N (default: CUDA when present)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing output folder written by warp-highlights")
@@ -73,9 +76,15 @@ def _run_maps(args) -> int:
         write_image(temporary / "highlight-colour.png", colour / np.where(peak > 0, peak, 1.0), bits=16)
         write_image(temporary / "highlight-colour.exr", colour)
         write_image(temporary / "mask.png", maps.mask.astype(np.float32), linear=True)
-        summary = _summary(args.field, field, maps, flattened=args.flatten)
+        summary = _summary(args.field, field, maps, flattened=args.flatten or "no")
         (temporary / "maps.json").write_text(json.dumps(summary, indent=1) + "\n")
     share = summary["pixels_with_normal"] / max(field.width * field.height, 1)
+    lean = maps.lean
+    if not args.flatten and lean.edge_deg > MapSettings().lean_hint_deg:
+        print(f"note: the normals lean {lean.edge_deg:.0f} degrees more at the frame's corners than at its centre "
+              f"(near lights do this to a flat object; a curved shape does it too): for a flat object or a relief, "
+              f"pass --flatten, or --flatten level to make its base face the camera as well (tilted "
+              f"{lean.tilt_deg:.0f} degrees)", file=sys.stderr)
     print(f"wrote normal, albedo and highlight-colour maps to {output} ({field.width}x{field.height}; normals on "
           f"{100 * share:.0f}% of the "
           f"pixels; highlight colour "
@@ -83,7 +92,7 @@ def _run_maps(args) -> int:
     return 0
 
 
-def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
+def _summary(path: Path, field, maps, *, flattened: str) -> dict:
     """maps.json: the files, the conventions and what the estimate rests on."""
     lit = maps.lit_lights[maps.mask & ~maps.filled]
     albedo = maps.albedo[maps.mask]
@@ -94,6 +103,8 @@ def _summary(path: Path, field, maps, *, flattened: bool) -> dict:
         "files": MAP_FILES,
         "normal_frame": "x right, y up the image, z towards the camera: the frame of the .lp light directions",
         "flattened": flattened,
+        "lean_before_flattening_deg": {"trend_at_corners": round(maps.lean.edge_deg, 2),
+                                       "tilt": round(maps.lean.tilt_deg, 2)},
         "albedo_units": "linear, the input's units (the fit's exposure undone); the diffuse value under a unit light "
                         "along the normal",
         "pixels_with_normal": int(maps.mask.sum()),

@@ -658,6 +658,11 @@ class ResidualSettings:
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
 
 
+FLATTEN_MODES = ("trend", "level")
+"""``maps --flatten`` choices: ``trend`` removes the normals' slopes' linear trend over the image and
+keeps the object's median tilt; ``level`` removes that tilt too (a base that faces the camera)."""
+
+
 @dataclass(frozen=True)
 class MapSettings:
     """Surface maps of a fitted field (``relight.maps``, ``warp-highlights maps``): which lights count
@@ -735,6 +740,12 @@ class MapSettings:
             neighbourhood albedo (``dark_ratio``), and the farthest an undetermined pixel of the
             object takes its neighbours' normal and albedo. 8: the statue's creases are 2-6 pixels
             wide at 567x534.
+        lean_hint_deg: ``maps`` without ``--flatten`` suggests it when the slopes' linear trend turns
+            the normals at the frame's corners more than this many degrees (``NormalLean.edge_deg``).
+            4: the dome sample's near lights turn its nearly flat relief's normals 5.4 degrees at the
+            corners (3.2 degrees median from its renderer's normals, 0.4 flattened); the coin sample's
+            trend is 1.9. Curved objects have a trend of their own (the rendered donut's 48), which
+            is why this only suggests.
     """
 
     lit_percentile: float = 75.0
@@ -755,8 +766,11 @@ class MapSettings:
     shadow_window: int = 2
     shadow_support: int = 5
     neighbourhood: int = 8
+    lean_hint_deg: float = 4.0
 
     def __post_init__(self):
+        _require(math.isfinite(self.lean_hint_deg) and self.lean_hint_deg >= 0,
+                 f"lean_hint_deg must be >= 0, got {self.lean_hint_deg}")
         _require(math.isfinite(self.lit_percentile) and 0 <= self.lit_percentile <= 100,
                  f"lit_percentile must be in [0, 100], got {self.lit_percentile}")
         _require(math.isfinite(self.lit_fraction) and 0 <= self.lit_fraction < 1,

@@ -41,12 +41,16 @@ Why not segmentation's fit, which has nbar too: its ambient term k_a trades off 
 lights' elevations span little (the statue's 0.38-0.99), and its normals leant far over (8.6
 degrees median from these, 1.3% facing away from the camera), with one threshold for the whole image.
 
-Lights at a finite distance (every real dome) make a flat object's normals lean away from the image
-centre, because the ``.lp`` file gives one direction per light for the whole object: on the dome
-sample by 3.2 degrees (median, 0.38 flattened) against the normals its renderer wrote. ``flatten`` removes that trend:
-it fits a plane to each slope (n_x / n_z and n_y / n_z) over the image and subtracts it, keeping the
-mean tilt. It is for flat objects (coins, tablets, paintings): on a curved object it takes away true
-shape.
+Lights at a finite distance (every real dome, a handheld light) make a flat object's normals lean
+away from the image centre, because the ``.lp`` file gives one direction per light for the whole
+object: on the dome sample by 3.2 degrees (median, 0.38 flattened) against the normals its renderer
+wrote; on a plate lit from 3 half-widths away, by tens of degrees (tests/test_maps.py). ``flatten``
+removes that trend: it fits a plane to each slope (n_x / n_z and n_y / n_z) over the image and
+subtracts it, keeping the mean tilt; ``level`` also subtracts the median slope left, so that the
+object's typical orientation (a relief's or a coin's base) faces the camera: a whole-object tilt, or
+a bias in the light directions, cannot be told apart from a tilted object, so this is the user's
+call. Both are for flat objects and reliefs (coins, tablets, paintings, carved panels): on a curved
+object they take away true shape. ``SurfaceMaps.lean`` says how much there was (``normal_lean``).
 
 A pixel is in the ``mask`` where its own lights determine its normal or its neighbours' fill it;
 elsewhere (black background, pixels farther than ``neighbourhood`` from any determined one) the normal
@@ -59,19 +63,35 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.config import MapSettings
+from ..model.config import FLATTEN_MODES, MapSettings
 from ..model.errors import InputError
 from ..model.memory import check_memory
 from ..model.residual import LUMINANCE_WEIGHTS
 from .relighter import Relighter
 
-__all__ = ["NormalFit", "SurfaceMaps", "channel_albedo", "fill_from_neighbours", "fit_normals", "flatten_normals",
-           "surface_maps", "white_level"]
+__all__ = ["NormalFit", "NormalLean", "SurfaceMaps", "channel_albedo", "fill_from_neighbours", "fit_normals",
+           "flatten_normals", "normal_lean", "surface_maps", "white_level"]
 
 _FLAT = np.array([0.0, 0.0, 1.0], dtype=np.float32)  # the normal of a pixel without an estimate
 _MIN_NBAR = 1e-6  # |rho n| below this (field units) is no surface: a black or never-lit pixel
 _PIXELS_PER_BLOCK = 65_536  # pixels solved at once: bounds the (lights x pixels) temporaries
 _CLIPPED_FORMATS = ("PNG", "JPEG")  # integer files whose 1 is white (sRGB TIFFs too: ``white_level``)
+
+
+@dataclass(frozen=True)
+class NormalLean:
+    """How a normal map leans as a whole (``normal_lean``), in degrees.
+
+    Attributes:
+        edge_deg: how much farther from the camera axis the slopes' linear trend turns a normal at the
+            frame's farthest corner than at its centre (near lights make a flat object's normals lean
+            away from the centre; a curved object's own shape has such a trend too).
+        tilt_deg: the median normal's angle to the camera axis once that trend is removed (the object
+            tilted as a whole, or a bias in the light directions).
+    """
+
+    edge_deg: float
+    tilt_deg: float
 
 
 @dataclass(frozen=True)
@@ -90,6 +110,7 @@ class SurfaceMaps:
             normal and albedo (in ``mask``).
         shadow_fit: (H, W) bool, pixels whose normal and albedo come from the shadow fit (cast shadows
             under most lights).
+        lean: how the normals leaned as a whole before any flattening (``NormalLean``).
     """
 
     normals: np.ndarray
@@ -100,6 +121,7 @@ class SurfaceMaps:
     coloured_highlights: bool
     filled: np.ndarray
     shadow_fit: np.ndarray
+    lean: NormalLean
 
 
 def white_level(field) -> float | None:
@@ -111,12 +133,13 @@ def white_level(field) -> float | None:
     return float(field.exposure) if clipped else None
 
 
-def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSettings | None = None,
+def surface_maps(field, *, device=None, flatten: bool | str = False, settings: MapSettings | None = None,
                  progress=None) -> SurfaceMaps:
     """Normal, albedo and highlight-colour maps of a ``HighlightField`` (see the module docstring).
 
     ``settings``: which lights light a pixel (``MapSettings``, default its defaults).
-    ``flatten``: remove the slopes' linear trend over the image (``flatten_normals``; flat objects only).
+    ``flatten``: False, or one of ``FLATTEN_MODES`` (True: ``trend``): remove the slopes' linear trend
+    over the image, and with ``level`` the median tilt too (``flatten_normals``; flat objects and reliefs).
     ``progress``: optional callable(lights_done) while the captured images are relit (the long part
     for a learned residual on the CPU).
 
@@ -127,6 +150,10 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
         raise InputError("the field holds only highlights (no residual or diffuse model), so it has no "
                          "normals or albedo; "
                          "fit it again without --residual none")
+    if flatten is True:
+        flatten = "trend"
+    if flatten not in (False, None, *FLATTEN_MODES):
+        raise ValueError(f"flatten must be False or one of {FLATTEN_MODES}, not {flatten!r}")
     settings = settings or MapSettings()
     channels = field.residual.channels if field.residual is not None else field.diffuse.channel_count
     pixels = field.width * field.height
@@ -163,8 +190,9 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
     length = np.linalg.norm(normals, axis=2, keepdims=True)
     mask &= length[..., 0] > 0
     normals = np.where(mask[..., None], normals / np.where(length > 0, length, 1.0), _FLAT)
+    lean = normal_lean(normals, mask)
     if flatten:
-        normals = flatten_normals(normals, mask)
+        normals = flatten_normals(normals, mask, level=flatten == "level")
     albedo = np.where(mask[..., None], albedo, 0.0) / field.exposure
     colour = None if field.residual is None else field.residual.highlight_colour
     if colour is None:
@@ -178,6 +206,7 @@ def surface_maps(field, *, device=None, flatten: bool = False, settings: MapSett
         coloured_highlights=field.residual is not None and field.residual.highlight_colour is not None,
         filled=filled & mask,
         shadow_fit=fit.shadow_fit.reshape(shape) & mask,
+        lean=lean,
     )
 
 
@@ -211,31 +240,60 @@ def _sum_3x3(image: np.ndarray) -> np.ndarray:
     return sum(padded[dy:dy + height, dx:dx + width] for dy in range(3) for dx in range(3))
 
 
-def flatten_normals(normals: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(H, W, 3) unit normals with the linear trend of their slopes over the image removed.
-
-    The slopes n_x / n_z and n_y / n_z of the ``mask`` pixels are each fitted, by least squares, with
-    a + b u + c v (u, v the pixel centre in [-1, 1] across the image) and b u + c v is subtracted:
-    the mean tilt stays. Pixels outside ``mask`` are returned unchanged; fewer than 3 pixels in
-    ``mask`` change nothing. float64 arithmetic, float32 result.
-    """
+def _slope_trend(normals: np.ndarray, mask: np.ndarray):
+    """The slopes (n_x / n_z, n_y / n_z) of (H, W, 3) ``normals``, their least-squares linear trend
+    b u + c v over the ``mask`` pixels (u, v the pixel centre in [-1, 1] across the image; the constant
+    a absorbs the mean) and the median of what is left there: (slopes (H, W, 2), trend (H, W, 2),
+    median (2,)), float64."""
     normals = np.asarray(normals, dtype=np.float64)
     height, width = normals.shape[:2]
-    if np.count_nonzero(mask) < 3:
-        return normals.astype(np.float32)
     v, u = np.mgrid[0:height, 0:width]
     u = (u + 0.5) / width * 2.0 - 1.0
     v = (v + 0.5) / height * 2.0 - 1.0
     design = np.stack([np.ones(np.count_nonzero(mask)), u[mask], v[mask]], axis=1)
     slopes = normals[..., :2] / normals[..., 2:3]  # finite: mask pixels face the camera (n_z > 0)
-    flat = normals.copy()
+    trend = np.zeros_like(slopes)
     for axis in range(2):
         coefficients = np.linalg.lstsq(design, slopes[..., axis][mask], rcond=None)[0]
-        slopes[..., axis] -= coefficients[1] * u + coefficients[2] * v
-    tilted = np.concatenate([slopes, np.ones((height, width, 1))], axis=2)
-    tilted /= np.linalg.norm(tilted, axis=2, keepdims=True)
-    flat[mask] = tilted[mask]
+        trend[..., axis] = coefficients[1] * u + coefficients[2] * v
+    return slopes, trend, np.median((slopes - trend)[mask], axis=0)
+
+
+def _unit_from_slopes(slopes: np.ndarray) -> np.ndarray:
+    """(..., 3) unit normals whose n_x / n_z and n_y / n_z are the (..., 2) ``slopes`` (n_z > 0)."""
+    normals = np.concatenate([slopes, np.ones(slopes.shape[:-1] + (1,))], axis=-1)
+    return normals / np.linalg.norm(normals, axis=-1, keepdims=True)
+
+
+def flatten_normals(normals: np.ndarray, mask: np.ndarray, *, level: bool = False) -> np.ndarray:
+    """(H, W, 3) unit normals with the linear trend of their slopes over the image removed.
+
+    The slopes n_x / n_z and n_y / n_z of the ``mask`` pixels are each fitted, by least squares, with
+    a + b u + c v (u, v the pixel centre in [-1, 1] across the image) and b u + c v is subtracted:
+    the mean tilt stays. ``level``: the median of the slopes left is subtracted as well, so the
+    object's typical orientation (a relief's or a coin's base) faces the camera. Pixels outside
+    ``mask`` are returned unchanged; fewer than 3 pixels in ``mask`` change nothing. float64
+    arithmetic, float32 result.
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    if np.count_nonzero(mask) < 3:
+        return normals.astype(np.float32)
+    slopes, trend, median = _slope_trend(normals, mask)
+    flat = normals.copy()
+    flat[mask] = _unit_from_slopes(slopes - trend - (median if level else 0.0))[mask]
     return flat.astype(np.float32)
+
+
+def normal_lean(normals: np.ndarray, mask: np.ndarray) -> NormalLean:
+    """How (H, W, 3) unit ``normals`` lean as a whole over the ``mask`` pixels (``NormalLean``); zeros
+    with fewer than 3 pixels."""
+    if np.count_nonzero(mask) < 3:
+        return NormalLean(0.0, 0.0)
+    _, trend, median = _slope_trend(normals, mask)
+    corners = trend[[0, 0, -1, -1], [0, -1, 0, -1]]  # the trend is zero at the centre
+    edge = float(np.degrees(np.arctan(np.linalg.norm(corners, axis=-1).max())))
+    tilt = float(np.degrees(np.arctan(np.linalg.norm(median))))
+    return NormalLean(edge_deg=edge, tilt_deg=tilt)
 
 
 @dataclass(frozen=True)
