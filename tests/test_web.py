@@ -71,10 +71,11 @@ def _export(field_path, folder) -> None:
 
 @pytest.fixture(scope="module")
 def fields(small_field, tmp_path_factory):
-    """The fitted small donut (low-rank residual) and two variants of it, saved: its residual
-    uncompressed, and a learned residual of random weights (the page's decoder against the reference)."""
+    """The fitted small donut (low-rank residual) and three variants of it, saved: its residual
+    uncompressed, and a learned residual of random weights (the page's decoder against the reference), with
+    the fitted decoder's shape and with a smaller one (two hidden layers of 20 and 13 units)."""
     from warp_highlights.io.fieldfile import load_field, save_field
-    from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual
+    from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, decoder_layer_shapes
     from warp_highlights.residual.decode import decoded_images
 
     field = load_field(small_field)
@@ -82,11 +83,15 @@ def fields(small_field, tmp_path_factory):
     assert residual.kind == "lowrank" and residual.learned is None
     rng = np.random.default_rng(7)
     weights = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32) for shape in NEURAL_LAYER_SHAPES)
+    student = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32)
+                    for shape in decoder_layer_shapes((20, 13)))
     codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)
     variants = {
         "images": dataclasses.replace(residual, images=decoded_images(residual), luminance=None, chroma=None,
                                       scale=None),
         "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count),
+                                       luminance=None, chroma=None, scale=None),
+        "student": dataclasses.replace(residual, learned=NeuralResidual(codes, student, 0.3, field.light_count),
                                        luminance=None, chroma=None, scale=None),
     }
     root = tmp_path_factory.mktemp("web-fields")
@@ -158,12 +163,13 @@ def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float
     ("lowrank", "query", ["circular", "straight", "alpha"]),
     ("images", "auto", ["circular", "straight", "alpha"]),
     ("learned", "auto", ["circular", "straight"]),
+    ("student", "auto", ["circular", "straight"]),
 ])  # fmt: skip
 def test_the_page_relights_as_relight_does(browser, exported, fields, kind, decode, methods):
     with served(exported[kind]) as url, opened(browser, f"{url}?decode={decode}") as tab:
         mode = tab.evaluate("whViewer.mode")
         assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images",
-                        "learned": "learned"}[kind]
+                        "learned": "learned", "student": "learned"}[kind]
         if mode == "decoded":
             assert tab.evaluate("whViewer.decodedCount()") == tab.evaluate("whViewer.manifest.lights")
         _check_page(tab, fields[kind], methods)

@@ -29,12 +29,12 @@ from ..io.atomic import (
     remove_partials,
 )
 from ..model.errors import InputError
-from . import collection, dataset, demo, fit, maps, relight, view, web
+from . import collection, dataset, demo, distil, fit, maps, relight, view, web
 from .cache import prepare_kernel_cache
 
 __all__ = ["COMMAND_MODULES", "EXIT_INPUT_ERROR", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "OneLineParser", "main"]
 
-COMMAND_MODULES = (dataset, fit, relight, maps, web, collection, view, demo)
+COMMAND_MODULES = (dataset, fit, distil, relight, maps, web, collection, view, demo)
 """The modules whose ``COMMANDS`` make up the command line, in the order ``--help`` lists them."""
 
 EXIT_INPUT_ERROR = 2

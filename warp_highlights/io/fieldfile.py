@@ -3,7 +3,7 @@ one thing, the file format (every version's reader and the current writer), so i
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (``docs/file-format.md``).
 
-File format (version 5; any file name, ``.whf`` suggested): a zip archive written through
+File format (version 6; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
 entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
 zip (``numpy.load`` can open those), or, for the basis codes and arrays of 64 KiB or more, the
@@ -51,8 +51,10 @@ entry                           dtype, shape     contents
 ``residual/scale.npy``          <f2 (H, W)       optional: per-pixel scale s(x) of the low-rank stacks
 ``residual/learned_codes.npy``  <f2 (9, H, W)    version 3, optional: a learned residual's per-pixel
                                                  codes (header ``residual.learned``: unit, lights)
-``residual/learned_w0.npy``,    <f4              its MLP's weights and biases (``model.residual.
-``..._b0``, ... ``..._b3``                       NEURAL_LAYER_SHAPES``)
+``residual/learned_w0.npy``,    <f4              its MLP's weights and biases, one pair per layer
+``..._b0``, ... ``..._b3``                       (``model.residual.decoder_layer_shapes`` of the
+                                                 header's ``residual.learned.hidden``: version 6;
+                                                 before, the fitted decoder's ``NEURAL_HIDDEN``)
 ==============================  ===============  =================================================
 
 (The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
@@ -73,6 +75,9 @@ Version 3 files store the basis codes as they are (see ``residual/Y_codes.npy.bl
 Version 4 files store the basis codes' row differences without the zigzag in a deflated
 ``residual/Y_codes.npy`` (``io.codes.codes_from_differences`` reads them), and every array as a
 deflated ``.npy`` entry; they load unchanged.
+
+Version 5 files have no ``residual.learned.hidden``: their decoder is the fitted one (``NEURAL_HIDDEN``, eight
+arrays); they load unchanged.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -99,12 +104,14 @@ from ..model.gaussians import GaussianParams
 from ..model.lights import LightSet
 from ..model.residual import (
     NEURAL_CODE_SIZE,
-    NEURAL_LAYER_SHAPES,
+    NEURAL_HIDDEN,
+    NEURAL_MAX_HIDDEN,
     LowRankStack,
     NeuralResidual,
     ResidualModel,
     colour_codes,
     colour_from_codes,
+    decoder_layer_shapes,
 )
 from ..model.threads import NUMPY_THREADS, cancel_and_wait, submit
 from ..model.triangulation import SphericalTriangulation
@@ -124,7 +131,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "array_entry_bytes", "field_size_report", 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _CHUNKED_BYTES = 1 << 16
@@ -157,7 +164,13 @@ _RESIDUAL_IMAGES = "residual/images.npy"
 _RESIDUAL_COLOUR = "residual/colour.npy"
 _RESIDUAL_SCALE = "residual/scale.npy"
 _LEARNED_CODES = "residual/learned_codes.npy"
-_LEARNED_WEIGHTS = tuple(f"residual/learned_{kind}{layer}.npy" for layer in range(4) for kind in ("w", "b"))
+
+
+def _learned_weight_names(layers: int) -> tuple[str, ...]:
+    """The entries of a learned residual's decoder of ``layers`` layers (hidden and output): w0, b0, ..."""
+    return tuple(f"residual/learned_{kind}{layer}.npy" for layer in range(layers) for kind in ("w", "b"))
+
+
 _STACK_PREFIX = {"luminance": "residual/Y_", "chroma": "residual/C_"}
 
 _PARAMETER_COLUMNS = ("amplitude", "mean_x", "mean_y", "sigma_x", "sigma_y", "theta")
@@ -347,9 +360,10 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     layout["learned"] = None
     if residual.learned is not None:
         learned = residual.learned
-        layout["learned"] = {"unit": learned.unit, "lights": learned.light_count}
+        layout["learned"] = {"unit": learned.unit, "lights": learned.light_count, "hidden": list(learned.hidden)}
         arrays.append((_LEARNED_CODES, learned.codes.transpose(2, 0, 1).astype("<f2")))
-        arrays += [(name, weight.astype("<f4")) for name, weight in zip(_LEARNED_WEIGHTS, learned.weights)]
+        names = _learned_weight_names(len(learned.hidden) + 1)
+        arrays += [(name, weight.astype("<f4")) for name, weight in zip(names, learned.weights)]
     if residual.images is not None:
         arrays.append((_RESIDUAL_IMAGES, residual.images.transpose(0, 3, 1, 2).astype("<f2")))
     for name in ("luminance", "chroma"):
@@ -991,7 +1005,13 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
             raise _corrupt(path, "header entry residual.learned must be null or hold a unit > 0 and a light count")
         lights = _header_int(path, part, "lights", 1, 10**7)
         codes = read(_LEARNED_CODES, "<f2", (NEURAL_CODE_SIZE, height, width)).transpose(1, 2, 0)
-        weights = tuple(read(name, "<f4", shape) for name, shape in zip(_LEARNED_WEIGHTS, NEURAL_LAYER_SHAPES))
+        hidden = part.get("hidden", list(NEURAL_HIDDEN))
+        if (not isinstance(hidden, list) or not 1 <= len(hidden) <= NEURAL_MAX_HIDDEN
+                or not all(_is_int(w) and 1 <= w <= NEURAL_HIDDEN[0] for w in hidden)):
+            raise _corrupt(path, f"header entry residual.learned.hidden must list 1 to {NEURAL_MAX_HIDDEN} layer "
+                                 f"widths of 1 to {NEURAL_HIDDEN[0]}, got {hidden!r}")
+        weights = tuple(read(name, "<f4", shape) for name, shape in zip(_learned_weight_names(len(hidden) + 1),
+                                                                       decoder_layer_shapes(hidden)))
         try:
             learned = NeuralResidual(codes, weights, float(part["unit"]), lights)
         except InputError as exc:

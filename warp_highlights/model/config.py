@@ -21,6 +21,7 @@ __all__ = [
     "REFERENCE_HEIGHT_PX",
     "AdamSettings",
     "ComponentSettings",
+    "DistilSettings",
     "EstimationSettings",
     "FitSettings",
     "MapSettings",
@@ -656,6 +657,45 @@ class ResidualSettings:
                  f"learned_settle_fraction must be in (0, 1], got {self.learned_settle_fraction}")
         _require(math.isfinite(self.learned_settle_margin_db) and self.learned_settle_margin_db >= 0,
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
+
+
+@dataclass(frozen=True)
+class DistilSettings:
+    """A smaller decoder distilled from a learned residual's (``residual.distil``, ``warp-highlights distil``).
+
+    Attributes:
+        hidden: the student's hidden layers' widths. DISTIL_HIDDEN_PLACEHOLDER
+        seconds: training time at most (0: no limit but ``epochs``). DISTIL_SECONDS_PLACEHOLDER
+        epochs: passes over the pool's (direction, pixel) samples at most; the learning rate falls from
+            3e-3 to 3e-4 over them (or over ``seconds`` where that ends first), as the fitted decoder's.
+        epochs_per_round: the new directions between the lights are drawn anew every this many epochs.
+        pool_factor: a round's directions are the captured ones and (``pool_factor`` - 1) times as many
+            between them (2: as many new as captured; the student learns the relighting between the
+            lights, where the teacher's outputs are as cheap as at them).
+        batch: samples a step (the fitted decoder's CPU batch, ``BATCH_CPU``).
+        learn_codes: the per-pixel codes learn along with the student (from the teacher's), rather than stay
+            the teacher's. LEARN_CODES_PLACEHOLDER
+        seed: the student's first weights and the samples drawn.
+    """
+
+    hidden: tuple = (24, 24)
+    seconds: float = 120.0
+    epochs: int = 60
+    epochs_per_round: int = 4
+    pool_factor: float = 2.0
+    batch: int = 4096
+    learn_codes: bool = True
+    seed: int = 0
+
+    def __post_init__(self):
+        _require(1 <= len(self.hidden) <= 3 and all(int(w) >= 1 for w in self.hidden),
+                 f"hidden must hold 1 to 3 widths of at least 1, got {self.hidden}")
+        _require(math.isfinite(self.seconds) and self.seconds >= 0, f"seconds must be >= 0, got {self.seconds}")
+        _require(int(self.epochs) >= 1 and int(self.epochs_per_round) >= 1,
+                 f"epochs and epochs_per_round must be >= 1, got {self.epochs} and {self.epochs_per_round}")
+        _require(math.isfinite(self.pool_factor) and self.pool_factor > 1,
+                 f"pool_factor must be > 1, got {self.pool_factor}")
+        _require(int(self.batch) >= 1, f"batch must be >= 1, got {self.batch}")
 
 
 FLATTEN_MODES = ("trend", "level")

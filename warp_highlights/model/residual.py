@@ -35,8 +35,9 @@ import numpy as np
 from .errors import InputError, finite_array
 
 __all__ = ["COLOUR_STEP", "CompressedChunks", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
-           "NEURAL_LAYER_SHAPES",
-           "NeuralResidual", "ResidualModel", "code_levels", "colour_codes", "colour_from_codes"]
+           "NEURAL_HIDDEN", "NEURAL_INPUTS", "NEURAL_LAYER_SHAPES", "NEURAL_MAX_HIDDEN", "NeuralResidual",
+           "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "decoder_layer_shapes",
+           "decoder_widths", "parse_hidden", "standard_decoder"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -187,8 +188,73 @@ class LowRankStack:
 
 NEURAL_CODE_SIZE = 9
 """Numbers per pixel of a learned residual (``kernels.neural.CODE_SIZE``)."""
-NEURAL_LAYER_SHAPES = ((48, 12), (48, 1), (48, 48), (48, 1), (48, 48), (48, 1), (3, 48), (3, 1))
-"""Shapes of a learned residual's weights w0, b0, ..., w3, b3 (``kernels.neural``)."""
+NEURAL_INPUTS = NEURAL_CODE_SIZE + 3
+"""A decoder's inputs: the pixel's code and the unit light direction (x, y, z)."""
+NEURAL_HIDDEN = (48, 48, 48)
+"""The hidden layers' widths of the decoder a fit learns (``kernels.neural``; NeuralRTI: three of 50)."""
+
+
+def decoder_layer_shapes(hidden) -> tuple:
+    """Shapes of the weight and bias arrays w0, b0, ..., of a decoder with ``hidden`` layer widths: each
+    hidden layer (width, inputs) and (width, 1), then the RGB output's (3, last width) and (3, 1)."""
+    widths = [NEURAL_INPUTS, *map(int, hidden), 3]
+    return tuple(shape for inputs, outputs in zip(widths[:-1], widths[1:]) for shape in ((outputs, inputs),
+                                                                                         (outputs, 1)))
+
+
+NEURAL_LAYER_SHAPES = decoder_layer_shapes(NEURAL_HIDDEN)
+"""Shapes of a fitted learned residual's weights w0, b0, ..., w3, b3 (``kernels.neural``)."""
+NEURAL_MAX_HIDDEN = len(NEURAL_HIDDEN)
+"""A decoder has 1 to this many hidden layers, each at most as wide as the fitted decoder's
+(``NEURAL_HIDDEN``): a smaller one (``residual.distil``) decodes exactly through the fitted decoder's
+kernels once embedded in its shape (``standard_decoder``)."""
+
+
+def parse_hidden(text: str) -> tuple[int, ...]:
+    """'24,24' -> (24, 24): 1 to ``NEURAL_MAX_HIDDEN`` widths of 1 to the fitted decoder's (InputError)."""
+    try:
+        widths = tuple(int(part) for part in str(text).split(","))
+    except ValueError:
+        widths = ()
+    if not 1 <= len(widths) <= NEURAL_MAX_HIDDEN or not all(1 <= w <= NEURAL_HIDDEN[0] for w in widths):
+        raise InputError(f"hidden layers must be 1 to {NEURAL_MAX_HIDDEN} comma-separated widths of 1 to "
+                         f"{NEURAL_HIDDEN[0]} (e.g. 24,24), got {text!r}")
+    return widths
+
+
+def decoder_widths(weights) -> tuple[int, ...]:
+    """The hidden layers' widths of a decoder's weight arrays (w0, b0, ...)."""
+    return tuple(int(np.shape(w)[0]) for w in list(weights)[0:-2:2])
+
+
+def standard_decoder(weights) -> tuple:
+    """The eight float32 arrays (``NEURAL_LAYER_SHAPES``) of a decoder that computes exactly what ``weights``
+    (1 to ``NEURAL_MAX_HIDDEN`` hidden layers no wider than ``NEURAL_HIDDEN``) computes, up to float32
+    rounding: each layer padded with zero units, and missing hidden layers passing their input on.
+
+    A passing layer adds 1 and its successor takes the 1 back: an ELU's output is >= -1, so the ELU
+    of (h + 1) is h + 1 itself."""
+    weights = [np.asarray(w, np.float32) for w in weights]
+    widths = decoder_widths(weights)
+    if len(widths) == NEURAL_MAX_HIDDEN and all(w.shape == s for w, s in zip(weights, NEURAL_LAYER_SHAPES)):
+        return tuple(weights)
+    layers = [[w, b.reshape(-1)] for w, b in zip(weights[0::2], weights[1::2])]
+    last = len(widths)  # the output layer's index
+    for _ in range(NEURAL_MAX_HIDDEN - len(widths)):  # pass the last hidden layer's values on, shifted by 1
+        layers.insert(last, [np.eye(widths[-1], dtype=np.float32), np.ones(widths[-1], np.float32)])
+    if len(widths) < NEURAL_MAX_HIDDEN:
+        w_out, b_out = layers[-1]
+        layers[-1] = [w_out, b_out - w_out.sum(axis=1)]  # the shift taken back
+        for k in range(last + 1, NEURAL_MAX_HIDDEN):
+            layers[k][1] = np.zeros(widths[-1], np.float32)  # already shifted
+    standard = []
+    for (w, b), (w_shape, b_shape) in zip(layers, zip(NEURAL_LAYER_SHAPES[0::2], NEURAL_LAYER_SHAPES[1::2])):
+        padded = np.zeros(w_shape, np.float32)
+        padded[:w.shape[0], :w.shape[1]] = w
+        bias = np.zeros(b_shape, np.float32)
+        bias[:len(b), 0] = b
+        standard += [padded, bias]
+    return tuple(standard)
 
 
 
@@ -201,7 +267,8 @@ class NeuralResidual:
 
     Attributes:
         codes: (H, W, 9) float16 per-pixel codes.
-        weights: the MLP's eight float32 arrays (``NEURAL_LAYER_SHAPES``).
+        weights: the MLP's float32 arrays w0, b0, ... (``decoder_layer_shapes``): the fitted decoder's eight
+            (``NEURAL_LAYER_SHAPES``), or a smaller one's (1 to ``NEURAL_MAX_HIDDEN`` hidden layers no wider).
         unit: field units per display unit (the fit's exposure factor).
         light_count: lights it was trained on.
     """
@@ -211,18 +278,31 @@ class NeuralResidual:
     unit: float
     light_count: int
 
+    @property
+    def hidden(self) -> tuple[int, ...]:
+        """The decoder's hidden layers' widths (``NEURAL_HIDDEN`` for a fitted one)."""
+        return decoder_widths(self.weights)
+
+    @property
+    def standard_weights(self) -> tuple:
+        """The decoder as the fitted decoder's eight arrays, computing the same (``standard_decoder``)."""
+        return standard_decoder(self.weights)
+
     def __post_init__(self):
         codes = finite_array(self.codes, np.float16, "learned residual codes")
         if codes.ndim != 3 or codes.shape[2] != NEURAL_CODE_SIZE:
             raise InputError(f"learned residual codes must have shape (H, W, {NEURAL_CODE_SIZE}), got {codes.shape}")
-        if len(self.weights) != len(NEURAL_LAYER_SHAPES):
-            raise InputError(
-                f"a learned residual has {len(NEURAL_LAYER_SHAPES)} weight arrays, got {len(self.weights)}")
         weights = tuple(finite_array(w, np.float32, "learned residual weights") for w in self.weights)
-        for w, shape in zip(weights, NEURAL_LAYER_SHAPES):
-            if w.shape != shape:
-                raise InputError(f"learned residual weights must have shapes {list(NEURAL_LAYER_SHAPES)}, got "
-                                 f"{[x.shape for x in weights]}")
+        layers = len(weights) // 2 - 1
+        if len(weights) % 2 or not 1 <= layers <= NEURAL_MAX_HIDDEN:
+            raise InputError(f"a learned residual's decoder has 1 to {NEURAL_MAX_HIDDEN} hidden layers: 4 to "
+                             f"{2 * NEURAL_MAX_HIDDEN + 2} weight arrays, got {len(weights)}")
+        widths = decoder_widths(weights)
+        expected = decoder_layer_shapes(widths)
+        if (any(w.shape != shape for w, shape in zip(weights, expected))
+                or any(not 1 <= width <= limit for width, limit in zip(widths, NEURAL_HIDDEN))):
+            raise InputError(f"learned residual weights must have shapes {list(expected)} with hidden layers of 1 to "
+                             f"{NEURAL_HIDDEN[0]} units, got {[x.shape for x in weights]}")
         if not (np.isfinite(self.unit) and self.unit > 0) or int(self.light_count) < 1:
             raise InputError(
                 f"a learned residual needs a unit > 0 and at least one light, got {self.unit} and {self.light_count}")
@@ -323,7 +403,8 @@ class ResidualModel:
         if self.images is not None:
             kind = f"{self.light_count} residual images (float16)"
         elif self.learned is not None:
-            kind = f"learned ({NEURAL_CODE_SIZE} numbers per pixel and an MLP)"
+            layers = "-".join(map(str, self.learned.hidden))
+            kind = f"learned ({NEURAL_CODE_SIZE} numbers per pixel and an MLP, hidden layers {layers})"
         else:
             chroma = f" + chroma rank {self.chroma.rank}" if self.chroma is not None else ""
             kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"

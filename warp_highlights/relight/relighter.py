@@ -272,8 +272,10 @@ class Relighter:
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
             codes = resample_image(learned.codes.astype(np.float32), width, height).reshape(-1, learned.codes.shape[2])
-            decoder = QueryDecoder if device.is_cuda else CpuQueryDecoder  # NumPy's threads on the CPU
-            self._learned = decoder(codes, learned.weights, learned.unit, device=device)
+            if device.is_cuda:  # the fitted decoder's tile kernels, a smaller decoder embedded in its shape
+                self._learned = QueryDecoder(codes, learned.standard_weights, learned.unit, device=device)
+            else:  # NumPy's threads on the CPU, at the decoder's own size
+                self._learned = CpuQueryDecoder(codes, learned.weights, learned.unit, device=device)
         if self.diffuse == kernels.DIFFUSE_LAMBERT:
             planes = resample_image(model.lambert.reshape(model.height, model.width, -1), width, height)
             lambert = planes.reshape(height * width, model.channel_count, 4)

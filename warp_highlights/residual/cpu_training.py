@@ -21,7 +21,7 @@ except ImportError:  # BLAS threads its own products
     threadpoolctl = None
 
 from ..kernels.neural import NeuralDecoder, initial_model, used_lights
-from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
+from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES, decoder_widths
 from ..model.threads import NUMPY_THREADS, parallel_map
 
 __all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "blas_on_one_thread", "decode_cpu", "train_decoder_cpu"]
@@ -297,21 +297,25 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
 
 class CpuDecoder:
     """A learned residual decoded on the CPU for query directions: the first layer's code part
-    (P, HIDDEN) computed once for every pixel (once per call and chunk of pixels where it would pass
+    (P, first hidden width) computed once for every pixel (once per call and chunk of pixels where it would pass
     ``CODE_PART_BYTES``), the pixels decoded in chunks of ``DECODE_CHUNK`` spread over the threads.
 
     Args:
-        codes: (P, CODE) float32 per pixel; weights: the eight arrays (``NEURAL_LAYER_SHAPES``).
+        codes: (P, CODE) float32 per pixel; weights: the decoder's arrays w0, b0, ... (any
+            ``model.residual.decoder_layer_shapes``: the fitted decoder or a smaller one).
     """
 
     def __init__(self, codes: np.ndarray, weights):
         self.codes = np.ascontiguousarray(np.asarray(codes, np.float32).reshape(-1, CODE))
-        w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in weights)
+        weights = [np.asarray(w, np.float32) for w in weights]
+        self.widths = decoder_widths(weights)
+        w0, b0 = weights[0], weights[1]
         self.code_weights = np.ascontiguousarray(w0[:, :CODE].T)
         self.light_weights, self.b0 = w0[:, CODE:].T.astype(np.float32), b0.reshape(-1)
-        self.layers = [(np.ascontiguousarray(w.T), b.reshape(-1)) for w, b in ((w1, b1), (w2, b2), (w3, b3))]
+        # the hidden layers after the first, then the output layer
+        self.layers = [(np.ascontiguousarray(w.T), b.reshape(-1)) for w, b in zip(weights[2::2], weights[3::2])]
         self.code_part = None
-        if self.codes.nbytes // CODE * HIDDEN <= CODE_PART_BYTES:
+        if self.codes.nbytes // CODE * self.widths[0] <= CODE_PART_BYTES:
             with blas_on_one_thread():
                 self.code_part = self.codes @ self.code_weights
 
@@ -335,32 +339,35 @@ class CpuDecoder:
     def _decode_chunks(self, chunks: list[slice], size: int, light_part: np.ndarray, out: np.ndarray,
                        unit: float | None) -> None:
         f = np.float32
-        z, slope, h, zeros = (np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f), np.empty((size, HIDDEN), f),
-                              np.zeros((size, HIDDEN), f))
+        # per hidden layer: its pre-activation, elu's kept exponent, its values, zeros
+        buffers = [tuple(np.empty((size, width), f) for _ in range(3)) + (np.zeros((size, width), f),)
+                   for width in self.widths]
         # the hidden layers' biases a row each: an add of whole arrays runs twice as fast as a broadcast one
-        biases = [np.broadcast_to(b, (size, HIDDEN)).copy() for _, b in self.layers[:2]]
-        own_part = np.empty((size, HIDDEN), f) if self.code_part is None else None
+        biases = [np.broadcast_to(b, (size, len(b))).copy() for _, b in self.layers[:-1]]
+        own_part = np.empty((size, self.widths[0]), f) if self.code_part is None else None
         if unit is not None:  # the output layer's values, two buffers and a mask for their conversion
             y, scratch, linear, low = (np.empty((size, 3), f), np.empty((size, 3), f), np.empty((size, 3), f),
                                        np.empty((size, 3), bool))
         for rows in chunks:
             k = rows.stop - rows.start
-            zk, sk, hk, ok = z[:k], slope[:k], h[:k], zeros[:k]
             if own_part is None:
                 codes = self.code_part[rows]
             else:  # the code part of these pixels, once for every direction
                 codes = own_part[:k]
                 np.matmul(self.codes[rows], self.code_weights, out=codes)
             for q in range(len(light_part)):
-                np.add(codes, light_part[q], out=zk)
-                _elu(zk, hk, sk, ok)
-                for (w, _), b in zip(self.layers[:2], biases):
-                    np.matmul(hk, w, out=zk)
-                    zk += b[:k]
-                    _elu(zk, hk, sk, ok)
-                w, b = self.layers[2]
+                z, slope, h, zeros = (buffer[:k] for buffer in buffers[0])
+                np.add(codes, light_part[q], out=z)
+                _elu(z, h, slope, zeros)
+                for (w, _), b, layer in zip(self.layers[:-1], biases, buffers[1:]):
+                    z, slope, following, zeros = (buffer[:k] for buffer in layer)
+                    np.matmul(h, w, out=z)
+                    z += b[:k]
+                    _elu(z, following, slope, zeros)
+                    h = following
+                w, b = self.layers[-1]
                 values = y[:k] if unit is not None else out[q, rows]
-                np.matmul(hk, w, out=values)
+                np.matmul(h, w, out=values)
                 values += b
                 if unit is not None:
                     _store_field_units(values, unit, scratch[:k], linear[:k], low[:k], out[q, rows])
@@ -409,6 +416,6 @@ def _host(array) -> np.ndarray:
 
 
 def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray) -> np.ndarray:
-    """(Q, P, 3) float32 display-unit values of a learned residual with (P, CODE) codes and its eight weight
+    """(Q, P, 3) float32 display-unit values of a learned residual with (P, CODE) codes and its decoder's weight
     arrays at (Q, 3) unit directions (``CpuDecoder``)."""
     return CpuDecoder(codes, weights).decode(directions)

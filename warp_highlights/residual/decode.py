@@ -129,14 +129,17 @@ def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
 
 
 def learned_images(learned: NeuralResidual, directions) -> np.ndarray:
-    """(Q, H, W, 3) float64 residuals at (Q, 3) unit directions (the float64 reference of the relighter's decode)."""
-    w0, b0, w1, b1, w2, b2, w3, b3 = (w.astype(np.float64) for w in learned.weights)
+    """(Q, H, W, 3) float64 residuals at (Q, 3) unit directions (the float64 reference of the relighter's decode),
+    for a decoder of any shape."""
+    weights = [w.astype(np.float64) for w in learned.weights]
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float64)
     elu = lambda v: np.where(v > 0, v, np.expm1(np.minimum(v, 0.0)))
     out = []
     for direction in np.asarray(directions, dtype=np.float64).reshape(-1, 3):
-        x = np.concatenate([codes, np.broadcast_to(direction, (len(codes), 3))], axis=1).T
-        y = w3 @ elu(w2 @ elu(w1 @ elu(w0 @ x + b0) + b1) + b2) + b3
+        h = np.concatenate([codes, np.broadcast_to(direction, (len(codes), 3))], axis=1).T
+        for w, b in zip(weights[0:-2:2], weights[1:-2:2]):
+            h = elu(w @ h + b)
+        y = weights[-2] @ h + weights[-1]
         out.append(learned.unit * decode_display(y.T).reshape(height, width, 3))
     return np.stack(out)

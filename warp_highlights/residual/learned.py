@@ -272,8 +272,7 @@ def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndar
     device = wp.get_device(device)
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(height * width, -1).astype(np.float32)
-    weights = [np.asarray(w, np.float32) for w in learned.weights]
     directions = np.asarray(directions, np.float32)
-    values = (decode(NeuralDecoder(codes, weights), directions, device=device) if device.is_cuda
-              else decode_cpu(codes, weights, directions))
+    values = (decode(NeuralDecoder(codes, list(learned.standard_weights)), directions, device=device) if device.is_cuda
+              else decode_cpu(codes, learned.weights, directions))
     return learned.unit * decode_display(values).reshape(len(values), height, width, 3)

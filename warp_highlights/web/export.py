@@ -19,6 +19,7 @@ from ..model.residual import (
     NEURAL_CODE_SIZE,
     colour_codes,
     colour_from_codes,
+    decoder_layer_shapes,
 )
 from ..relight.relighter import face_edge_rows, rim_tables
 
@@ -205,10 +206,14 @@ def _stack_arrays(name: str, stack, arrays: dict) -> dict:
 
 
 def _learned_arrays(learned, arrays: dict) -> dict:
-    """Add a learned residual's codes, three to a texel (3, H, W, 3) float16, and its eight weight arrays."""
+    """Add a learned residual's codes, three to a texel (3, H, W, 3) float16, and its decoder's weight arrays, each
+    hidden layer padded with zero units to a multiple of 4 (the page's vec4s; the same values)."""
     height, width, _ = learned.codes.shape
     arrays["learned_codes"] = np.ascontiguousarray(learned.codes.reshape(height, width, NEURAL_CODE_SIZE // 3,
                                                                          3).transpose(2, 0, 1, 3), dtype="<f2")
-    for index, weights in enumerate(learned.weights):
-        arrays[f"learned_{'wb'[index % 2]}{index // 2}"] = np.ascontiguousarray(weights, dtype="<f4")
-    return {"unit": float(learned.unit)}
+    padded = [-(-w // 4) * 4 for w in learned.hidden]
+    for index, (weights, shape) in enumerate(zip(learned.weights, decoder_layer_shapes(padded))):
+        wide = np.zeros(shape, dtype="<f4")
+        wide[:weights.shape[0], :weights.shape[1]] = weights
+        arrays[f"learned_{'wb'[index % 2]}{index // 2}"] = wide
+    return {"unit": float(learned.unit), "hidden": padded}

@@ -203,31 +203,44 @@ vec3 residual(ivec2 pixel) {
 }`;
 }
 
-function learnedSource() {
+function decoderLayout(m) {
+  // the learned residual's decoder in vec4s: hidden widths (multiples of 4), and the Decoder block's offsets (in
+  // vec4s) of w0 (a row of 3 vec4s per unit: the 9 code inputs, then the direction's three, which the first bias
+  // takes in per frame), each hidden bias, the output layer's rows and bias, and the unit
+  const hidden = (m.residual && m.residual.hidden) || [48, 48, 48];
+  const groups = hidden.map((w) => w / 4);
+  const biases = [];
+  let at = 3 * hidden[0];
+  for (const g of groups) { biases.push(at); at += g; }
+  const out = at, outBias = out + 3 * groups[groups.length - 1], unit = outBias + 1;
+  return { hidden, groups, biases, out, outBias, unit, vec4s: unit + 1 };
+}
+
+function learnedSource(m) {
   // R(x, d) = unit * decode_display(MLP(z(x), d)), the direction folded into the first bias (PORTING.md 1.5c)
-  const layer = (out, weights, bias, input, width) => {
-    const dots = (row) => Array.from({ length: width }, (_, q) => `dot(${weights}[${row} * ${width} + ${q}], ${input}[${q}])`).join(" + ");
-    return `  for (int r = 0; r < 12; r++) {
-    vec4 v = vec4(${[0, 1, 2, 3].map((t) => dots(`(4 * r + ${t})`)).join(",\n                  ")}) + ${bias}[r];
-    ${out}[r] = max(v, 0.0) + exp(min(v, 0.0)) - 1.0;
+  const L = decoderLayout(m), G = L.groups, last = G.length - 1;
+  const layer = (k, input, inGroups) => {
+    const weights = k === 0 ? "decoder" : `w${k}`, bias = `decoder[${L.biases[k]} + r]`;
+    const dots = (row) => Array.from({ length: inGroups }, (_, q) => `dot(${weights}[${row} * ${inGroups} + ${q}], ${input}[${q}])`).join(" + ");
+    return `  for (int r = 0; r < ${G[k]}; r++) {
+    vec4 v = vec4(${[0, 1, 2, 3].map((t) => dots(`(4 * r + ${t})`)).join(",\n                  ")}) + ${bias};
+    h${k}[r] = max(v, 0.0) + exp(min(v, 0.0)) - 1.0;
   }`;
   };
+  const hiddenBlocks = G.slice(1).map((g, i) => `layout(std140) uniform Hidden${i + 1} { vec4 w${i + 1}[${4 * g * G[i]}]; };`).join("\n");
   return `
 uniform sampler2DArray learnedCodes;
-layout(std140) uniform Decoder { vec4 w0[144]; vec4 b0[12]; vec4 b1[12]; vec4 b2[12]; vec4 w3[36]; vec4 b3; float unit; };
-layout(std140) uniform Hidden1 { vec4 w1[576]; };
-layout(std140) uniform Hidden2 { vec4 w2[576]; };
+layout(std140) uniform Decoder { vec4 decoder[${L.vec4s}]; };
+${hiddenBlocks}
 float decodeDisplay(float y) { float t = abs(y); return sign(y) * (t <= 0.04045 ? t / 12.92 : pow((t + 0.055) / 1.055, 2.4)); }
 vec3 residual(ivec2 pixel) {
   vec3 c0 = texelFetch(learnedCodes, ivec3(pixel, 0), 0).rgb, c1 = texelFetch(learnedCodes, ivec3(pixel, 1), 0).rgb, c2 = texelFetch(learnedCodes, ivec3(pixel, 2), 0).rgb;
   vec4 z[3] = vec4[3](vec4(c0, c1.r), vec4(c1.gb, c2.rg), vec4(c2.b, 0.0, 0.0, 0.0));
-  vec4 h0[12]; vec4 h1[12]; vec4 h2[12];
-${layer("h0", "w0", "b0", "z", 3)}
-${layer("h1", "w1", "b1", "h0", 12)}
-${layer("h2", "w2", "b2", "h1", 12)}
-  vec3 y = b3.xyz;
-  for (int q = 0; q < 12; q++) y += vec3(dot(w3[q], h2[q]), dot(w3[12 + q], h2[q]), dot(w3[24 + q], h2[q]));
-  vec3 r = clamp(unit * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
+  ${G.map((g, k) => `vec4 h${k}[${g}];`).join(" ")}
+${G.map((g, k) => layer(k, k === 0 ? "z" : `h${k - 1}`, k === 0 ? 3 : G[k - 1])).join("\n")}
+  vec3 y = decoder[${L.outBias}].xyz;
+  for (int q = 0; q < ${G[last]}; q++) y += vec3(dot(decoder[${L.out} + q], h${last}[q]), dot(decoder[${L.out + G[last]} + q], h${last}[q]), dot(decoder[${L.out + 2 * G[last]} + q], h${last}[q]));
+  vec3 r = clamp(decoder[${L.unit}].x * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
   // float16, as Relighter keeps it
   return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);
 }`;
@@ -456,17 +469,19 @@ export class Viewer {
   }
 
   uploadDecoder() {
-    // the learned residual's weights in std140 blocks: rows of vec4, the code columns of w0 padded to 12
-    const a = this.arrays, decoder = new Float32Array(217 * 4 + 4);
+    // the learned residual's weights in std140 blocks (decoderLayout): rows of vec4, the direction's columns of w0
+    // zeroed (the first bias takes them in per frame)
+    const a = this.arrays, L = decoderLayout(this.manifest), G = L.groups, last = G.length - 1;
+    const decoder = new Float32Array(4 * L.vec4s);
     decoder.set(a.learned_w0);
-    for (let i = 0; i < 48; i++) for (let j = 9; j < 12; j++) decoder[i * 12 + j] = 0;
-    decoder.set(a.learned_b0, 144 * 4); decoder.set(a.learned_b1, 156 * 4); decoder.set(a.learned_b2, 168 * 4);
-    decoder.set(a.learned_w3, 180 * 4); decoder.set(a.learned_b3, 216 * 4); decoder[217 * 4] = this.manifest.residual.unit;
+    for (let i = 0; i < L.hidden[0]; i++) for (let j = 9; j < 12; j++) decoder[i * 12 + j] = 0;
+    G.forEach((_, k) => decoder.set(a[`learned_b${k}`], 4 * L.biases[k]));
+    decoder.set(a[`learned_w${last + 1}`], 4 * L.out); decoder.set(a[`learned_b${last + 1}`], 4 * L.outBias);
+    decoder[4 * L.unit] = this.manifest.residual.unit;
     this.decoderValues = decoder;
     const program = this.programs.learned;
     this.uniformBlock(program, "Decoder", decoder);
-    this.uniformBlock(program, "Hidden1", new Float32Array(a.learned_w1));
-    this.uniformBlock(program, "Hidden2", new Float32Array(a.learned_w2));
+    for (let k = 1; k <= last; k++) this.uniformBlock(program, `Hidden${k}`, new Float32Array(a[`learned_w${k}`]));
   }
 
   // --- per light and per frame --------------------------------------------------------------------
@@ -619,9 +634,10 @@ export class Viewer {
       this.setStack(program, w, corners);
     } else {
       const d = this.location.located, v = this.decoderValues, w0 = this.arrays.learned_w0, b0 = this.arrays.learned_b0;
-      for (let i = 0; i < 48; i++) v[144 * 4 + i] = b0[i] + w0[i * 12 + 9] * d[0] + w0[i * 12 + 10] * d[1] + w0[i * 12 + 11] * d[2];
+      const L = decoderLayout(m), first = 4 * L.biases[0];
+      for (let i = 0; i < L.hidden[0]; i++) v[first + i] = b0[i] + w0[i * 12 + 9] * d[0] + w0[i * 12 + 10] * d[1] + w0[i * 12 + 11] * d[2];
       gl.bindBuffer(gl.UNIFORM_BUFFER, this.blocks.Decoder.buffer);
-      gl.bufferSubData(gl.UNIFORM_BUFFER, 144 * 16, v.subarray(144 * 4, 156 * 4));
+      gl.bufferSubData(gl.UNIFORM_BUFFER, first * 4, v.subarray(first, first + L.hidden[0]));
     }
     program.set("specularColour", "3f", ...this.specularColour);
     program.set("scale", "1f", Math.pow(2, this.exposureStops) / m.exposure);

@@ -1,0 +1,223 @@
+"""A smaller decoder for a learned residual, distilled from the fitted one (``warp-highlights distil``).
+
+The student keeps the fitted residual's per-pixel codes and learns a decoder of fewer or narrower hidden
+layers (``model.residual.decoder_layer_shapes``) to reproduce the fitted decoder (the teacher), as
+DisK-NeuralRTI distils NeuralRTI's: its targets are the teacher's outputs, in the same signed sRGB display
+units, at the captured light directions and at as many new ones drawn inside the captured lights'
+triangles, drawn anew every round, so it learns the relighting between the lights as well as at them.
+Training is NumPy float32 on the CPU (the student is small; ``cpu_training``'s Adam and thread split),
+for ``DistilSettings.seconds`` or ``epochs`` at most; the codes do not change. Its agreement with the
+teacher is measured in 8-bit sRGB PSNR on the residual at the captured lights and at directions between
+them that it never learned from.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..model.config import DistilSettings
+from ..model.errors import InputError
+from ..model.memory import check_memory
+from ..model.residual import (
+    NEURAL_CODE_SIZE,
+    NeuralResidual,
+    decoder_layer_shapes,
+    parse_hidden,
+)
+from ..model.threads import parallel_map
+from ..quality.metrics import srgb_psnr
+from .cpu_training import CpuDecoder, _Adam, blas_on_one_thread
+from .opponent import decode_display
+
+__all__ = ["DistilReport", "decoder_multiply_adds", "distil_decoder", "directions_between", "parse_hidden"]
+
+_FIRST_RATE, _FINAL_RATE = 3e-3, 3e-4  # the learning rate's schedule (the fitted decoder's, ``residual.learned``)
+_NOVEL_SEED = 12_345  # the directions the agreement is measured at between the lights: the same for every student
+
+
+@dataclass(frozen=True)
+class DistilReport:
+    """What a distillation did: the student's and teacher's hidden widths, multiply-adds per decoded pixel,
+    epochs and seconds trained, and the student's 8-bit sRGB PSNR (dB) against the teacher's residual at
+    the captured lights (``captured_psnr_db``) and at as many directions between them
+    (``between_psnr_db``), means over the lights."""
+
+    hidden: tuple[int, ...]
+    teacher_hidden: tuple[int, ...]
+    multiply_adds: int
+    teacher_multiply_adds: int
+    epochs: float
+    seconds: float
+    captured_psnr_db: float
+    between_psnr_db: float
+
+    def to_dict(self) -> dict:
+        """Plain figures for the field's report (``report["distilled"]``)."""
+        return {"hidden": list(self.hidden), "teacher_hidden": list(self.teacher_hidden),
+                "multiply_adds": self.multiply_adds, "teacher_multiply_adds": self.teacher_multiply_adds,
+                "epochs": round(self.epochs, 2), "seconds": round(self.seconds, 2),
+                "captured_psnr_db": round(self.captured_psnr_db, 3), "between_psnr_db": round(self.between_psnr_db, 3)}
+
+
+def decoder_multiply_adds(hidden) -> int:
+    """Multiply-adds of one decoded pixel and light through a decoder of ``hidden`` widths."""
+    return int(sum(rows * cols for rows, cols in decoder_layer_shapes(hidden)[0::2]))
+
+
+def directions_between(directions: np.ndarray, faces: np.ndarray, count: int, rng) -> np.ndarray:
+    """(count, 3) unit directions drawn uniformly in barycentric coordinates inside random faces (F, 3) of
+    the (n, 3) light directions' triangulation: where relighting interpolates."""
+    faces = np.asarray(faces, dtype=np.int64)
+    if not len(faces):
+        raise InputError("the field's lights have no triangle to draw directions between")
+    picked = faces[rng.integers(0, len(faces), count)]
+    weights = rng.dirichlet(np.ones(3), count)
+    points = np.einsum("qk,qkd->qd", weights, np.asarray(directions, np.float64)[picked])
+    return (points / np.linalg.norm(points, axis=1, keepdims=True)).astype(np.float32)
+
+
+def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, faces: np.ndarray, *,
+                   settings: DistilSettings | None = None, log=None, progress=None) -> tuple[NeuralResidual,
+                                                                                               DistilReport]:
+    """A ``NeuralResidual`` with ``learned``'s codes and a decoder of ``hidden`` widths trained to reproduce
+    ``learned``'s at the field's (n, 3) light ``directions`` and between them (inside the triangulation's
+    ``faces``), and its ``DistilReport``. ``progress(fraction)`` as training goes, ``log`` a line a round."""
+    settings = settings or DistilSettings()
+    hidden = parse_hidden(",".join(str(int(w)) for w in hidden))
+    height, width, _ = learned.codes.shape
+    codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32)
+    teacher = CpuDecoder(codes, learned.weights)
+    directions = np.asarray(directions, np.float32)
+    rng = np.random.default_rng(settings.seed)
+    parameters = _Student(hidden, rng, codes if settings.learn_codes else None)
+    adam = _Adam(parameters.flat.size, threads=1)
+    pixels = len(codes)
+    batch = int(settings.batch)
+    pool_size = len(directions) + max(1, int(round(len(directions) * (settings.pool_factor - 1))))
+    steps_per_round = max(1, int(np.ceil(pixels * pool_size * settings.epochs_per_round / batch)))
+    rounds = max(1, int(np.ceil(settings.epochs / settings.epochs_per_round)))
+    total_steps = rounds * steps_per_round
+    started = time.perf_counter()
+    step, epochs, spent = 0, 0.0, 0.0
+    check_memory(pool_size * pixels * 3 * 2, f"distilling a decoder at {width}x{height}",
+                 "distil a field fitted at a smaller --size",
+                 detail="the teacher's outputs at the lights and between them")
+    with blas_on_one_thread() as threads:
+        workers = [_Worker(parameters) for _ in range(threads)]
+        for round_index in range(rounds):
+            novel = directions_between(directions, faces, pool_size - len(directions), rng)
+            pool = np.concatenate([directions, novel])
+            targets = teacher.decode(pool).astype(np.float16)  # (D, P, 3) display units
+            for _ in range(steps_per_round):
+                spent = (time.perf_counter() - started) / settings.seconds if settings.seconds else 0.0
+                done = max(step / max(total_steps - 1, 1), spent)
+                if spent >= 1.0:
+                    break
+                rate = _FIRST_RATE * (_FINAL_RATE / _FIRST_RATE) ** min(done, 1.0)
+                lights = rng.integers(0, len(pool), batch)
+                chosen = rng.integers(0, pixels, batch)
+                shards = np.array_split(np.arange(batch), len(workers))
+                current = parameters.views(parameters.flat)[-1] if settings.learn_codes else codes
+                parallel_map(lambda k: workers[k].gradient(current[chosen[shards[k]]], chosen[shards[k]],
+                                                           pool[lights[shards[k]]],
+                                                           targets[lights[shards[k]], chosen[shards[k]]]),
+                             range(len(workers)))
+                parameters.grad[:] = sum(worker.grad for worker in workers) / np.float32(batch)
+                adam.step(parameters.flat, parameters.grad, rate)
+                step += 1
+                if progress is not None:
+                    progress(min(done, 1.0))
+            epochs = step * batch / (pixels * pool_size)  # passes over a pool's samples
+            if log is not None:
+                log(f"distil: round {round_index + 1}/{rounds}, {epochs:.1f} epochs, "
+                    f"{time.perf_counter() - started:.1f} s")
+            if spent >= 1.0:
+                break
+    seconds = time.perf_counter() - started
+    student_codes = learned.codes
+    if settings.learn_codes:
+        student_codes = parameters.views(parameters.flat)[-1].reshape(learned.codes.shape).astype(np.float16)
+    student = NeuralResidual(student_codes, tuple(parameters.weights()), learned.unit, learned.light_count)
+    between = directions_between(directions, faces, len(directions), np.random.default_rng(_NOVEL_SEED))
+    report = DistilReport(hidden=hidden, teacher_hidden=learned.hidden, multiply_adds=decoder_multiply_adds(hidden),
+                          teacher_multiply_adds=decoder_multiply_adds(learned.hidden), epochs=epochs, seconds=seconds,
+                          captured_psnr_db=agreement(student, learned, directions),
+                          between_psnr_db=agreement(student, learned, between))
+    return student, report
+
+
+def agreement(student: NeuralResidual, teacher: NeuralResidual, directions: np.ndarray) -> float:
+    """Mean 8-bit sRGB PSNR (dB) of ``student``'s residual against ``teacher``'s at (Q, 3) directions (display
+    units: the field's over its unit), each decoded with its own codes."""
+    height, width, _ = teacher.codes.shape
+    decoders = [CpuDecoder(model.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32), model.weights)
+                for model in (student, teacher)]
+    scores = []
+    for direction in np.asarray(directions, np.float32).reshape(-1, 3):
+        a, b = (decode_display(decoder.decode(direction[None])[0]).reshape(height, width, 3) for decoder in decoders)
+        scores.append(srgb_psnr(np.maximum(a, 0.0), np.maximum(b, 0.0)))
+    return float(np.mean(scores))
+
+
+class _Student:
+    """The student decoder's weights and biases, then the per-pixel codes where they learn too, as views into
+    one flat float32 vector (and its gradient's); the weights start uniform in +-1/sqrt(fan-in) as the
+    fitted decoder's do, the codes as the teacher's."""
+
+    def __init__(self, hidden: tuple[int, ...], rng, codes: np.ndarray | None = None):
+        self.shapes = decoder_layer_shapes(hidden)
+        sizes = [rows * cols for rows, cols in self.shapes]
+        fan_in = [self.shapes[i - i % 2][1] for i in range(len(self.shapes))]  # a bias: its weight's
+        parts = [rng.uniform(-1.0, 1.0, size) / np.sqrt(fan) for size, fan in zip(sizes, fan_in)]
+        self.learns_codes = codes is not None
+        if self.learns_codes:
+            parts.append(np.asarray(codes, np.float32).reshape(-1))
+            self.shapes = (*self.shapes, np.shape(codes))
+            sizes.append(int(np.size(codes)))
+        self.flat = np.concatenate(parts).astype(np.float32)
+        self.grad = np.zeros_like(self.flat)
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)])
+
+    def views(self, vector: np.ndarray) -> list[np.ndarray]:
+        """w0, b0, ... (and the codes) as views into ``vector``."""
+        return [vector[a:b].reshape(s) for a, b, s in zip(self.offsets[:-1], self.offsets[1:], self.shapes)]
+
+    def weights(self) -> list[np.ndarray]:
+        """Copies of w0, b0, ... in ``decoder_layer_shapes`` order."""
+        return [w.copy() for w in self.views(self.flat)[:len(self.shapes) - self.learns_codes]]
+
+
+class _Worker:
+    """One thread's share of a batch: the student's forward and backward pass over its samples (rows) and
+    its own gradient of the flat vector (summed, not averaged)."""
+
+    def __init__(self, student: _Student):
+        self.student = student
+        self.grad = np.zeros_like(student.flat)
+
+    def gradient(self, codes: np.ndarray, pixels: np.ndarray | None, directions: np.ndarray,
+                 targets: np.ndarray) -> None:
+        """grad = d/dtheta of sum over the rows of |decoder(codes, directions) - targets|^2 / 2 (display units);
+        ``pixels``: the rows' pixels, whose codes' gradient it takes too where the student learns its codes."""
+        parts = self.student.views(self.student.flat)
+        grads = self.student.views(self.grad)
+        layers = parts[:len(parts) - self.student.learns_codes]
+        self.grad[:] = 0.0
+        x = np.concatenate([codes, directions], axis=1)  # (B, 12)
+        values, slopes = [x], []
+        for w, b in zip(layers[0:-2:2], layers[1:-2:2]):
+            z = values[-1] @ w.T + b[:, 0]
+            e = np.expm1(np.minimum(z, 0.0))
+            values.append(np.maximum(z, e))
+            slopes.append(np.where(z > 0, np.float32(1.0), e + np.float32(1.0)))
+        error = values[-1] @ layers[-2].T + layers[-1][:, 0] - targets.astype(np.float32)  # d loss / d output
+        for k in range(len(layers) // 2 - 1, -1, -1):
+            grads[2 * k][:] = error.T @ values[k]
+            grads[2 * k + 1][:, 0] = error.sum(axis=0)
+            if k:
+                error = (error @ layers[2 * k]) * slopes[k - 1]
+        if self.student.learns_codes:
+            np.add.at(grads[-1], pixels, error @ layers[0][:, :NEURAL_CODE_SIZE])
