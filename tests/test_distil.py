@@ -95,22 +95,32 @@ def test_the_cpu_decoder_of_a_smaller_decoder_matches_its_reference(hidden):
     np.testing.assert_allclose(out, reference, atol=2e-3 * max(1.0, np.abs(reference).max()))
 
 
-def test_the_student_s_gradient_matches_central_differences():
+@pytest.mark.parametrize("learns_codes", [False, True])
+def test_the_student_s_gradient_matches_central_differences(learns_codes):
+    """Weights, biases and (where they learn) the codes of the rows' pixels, some pixels taken twice."""
     from warp_highlights.residual.distil import _Student, _Worker
 
-    student = _Student((5, 4), np.random.default_rng(3))
+    rng = np.random.default_rng(4)
+    codes = rng.normal(size=(4, 9))
+    student = _Student((5, 4), np.random.default_rng(3), codes if learns_codes else None)
     student.flat = student.flat.astype(np.float64)
     student.grad = np.zeros_like(student.flat)
     worker = _Worker(student)
-    rng = np.random.default_rng(4)
-    codes, directions, targets = rng.normal(size=(11, 9)), rng.normal(size=(11, 3)), rng.normal(size=(11, 3))
+    pixels = np.array([0, 2, 2, 3, 1, 0, 2, 3, 3, 1, 2])
+    directions, targets = rng.normal(size=(11, 3)), rng.normal(size=(11, 3))
+
+    def current_codes():
+        return student.views(student.flat)[-1] if learns_codes else codes
 
     def loss() -> float:
-        x = np.concatenate([codes, directions], axis=1).T
-        return 0.5 * float(np.sum((_reference(student.views(student.flat), x).T - targets) ** 2))
+        x = np.concatenate([current_codes()[pixels], directions], axis=1).T
+        weights = student.views(student.flat)[:len(student.shapes) - learns_codes]
+        return 0.5 * float(np.sum((_reference(weights, x).T - targets) ** 2))
 
-    worker.gradient(codes, directions, targets)
+    worker.gradient(current_codes()[pixels], pixels, directions, targets)
     analytic = worker.grad.copy()
+    weight_count = sum(rows * cols for rows, cols in decoder_layer_shapes((5, 4)))
+    assert analytic.size == weight_count + learns_codes * codes.size
     step = 1e-6
     for i in range(student.flat.size):
         kept = student.flat[i]
@@ -168,16 +178,20 @@ def test_a_distilled_decoder_learns_its_teacher(learned_field):
     lines = []
     student, report = distil_decoder(teacher, (24, 24), directions, faces,
                                      settings=DistilSettings(epochs=12, seconds=0), log=lines.append)
-    assert student.hidden == (24, 24) and np.array_equal(student.codes, teacher.codes)
+    assert student.hidden == (24, 24) and student.codes.shape == teacher.codes.shape
+    assert not np.array_equal(student.codes, teacher.codes)  # they learn too (DistilSettings.learn_codes)
     assert student.unit == teacher.unit and student.light_count == teacher.light_count
     assert report.multiply_adds == 12 * 24 + 24 * 24 + 24 * 3 and report.teacher_multiply_adds == 5328
     assert report.epochs == pytest.approx(12, rel=0.01) and len(lines) == 3
     # training brings it closer to the teacher, at the lights and between them
     first = agreement(untrained, teacher, directions)
     assert report.captured_psnr_db > first + 3.0 and report.between_psnr_db > 30.0
-    again, same = distil_decoder(teacher, (24, 24), directions, faces, settings=DistilSettings(epochs=12, seconds=0))
-    for a, b in zip(again.weights, student.weights):  # the seed fixes every draw
+    again, _ = distil_decoder(teacher, (24, 24), directions, faces, settings=DistilSettings(epochs=12, seconds=0))
+    for a, b in zip((again.codes, *again.weights), (student.codes, *student.weights)):  # the seed fixes every draw
         np.testing.assert_array_equal(a, b)
+    fixed, fixed_report = distil_decoder(teacher, (24, 24), directions, faces,
+                                         settings=DistilSettings(epochs=12, seconds=0, learn_codes=False))
+    assert np.array_equal(fixed.codes, teacher.codes) and fixed_report.captured_psnr_db > first + 3.0
 
 
 def test_distil_command_writes_a_field_that_saves_loads_and_relights(learned_field, tmp_path, capsys):

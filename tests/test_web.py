@@ -479,7 +479,7 @@ def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
     for kind, folder in exported.items():
         manifest = json.loads((folder / "manifest.json").read_text())
         assert manifest["format"] == "warp-highlights web viewer" and manifest["version"] == WEB_FORMAT
-        assert manifest["residual"]["kind"] == kind
+        assert manifest["residual"]["kind"] == {"student": "learned"}.get(kind, kind)
         for name, spec in manifest["arrays"].items():
             size = np.dtype(spec["dtype"]).itemsize * int(np.prod(spec["shape"]))
             assert _read_array(folder, spec).nbytes == size, name
@@ -488,6 +488,14 @@ def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
     manifest = json.loads((exported["images"] / "manifest.json").read_text())
     assert manifest["arrays"]["images"]["dtype"] == "<f2" and manifest["arrays"]["colour"]["dtype"] == "|u1"
     assert json.loads((exported["learned"] / "manifest.json").read_text())["arrays"]["learned_codes"]["dtype"] == "<f2"
+    # a smaller decoder's hidden layers padded with zero units to whole vec4s: the same values
+    student = json.loads((exported["student"] / "manifest.json").read_text())
+    assert student["residual"]["hidden"] == [20, 16]
+    assert [student["arrays"][f"learned_{k}"]["shape"] for k in ("w0", "w1", "w2")] == [[20, 12], [16, 20], [3, 16]]
+    padded = _read_array(exported["student"], student["arrays"]["learned_w1"])
+    kept = load_field(fields["student"]).residual.learned.weights[2]
+    np.testing.assert_array_equal(padded[:13], kept)
+    assert not padded[13:].any() and not _read_array(exported["student"], student["arrays"]["learned_w2"])[:, 13:].any()
     # the packed low-rank codes give back the field's codes
     field, manifest = load_field(fields["lowrank"]), json.loads((exported["lowrank"] / "manifest.json").read_text())
     stack, spec = field.residual.chroma, manifest["arrays"]["chroma_codes"]

@@ -1,14 +1,14 @@
 """A smaller decoder for a learned residual, distilled from the fitted one (``warp-highlights distil``).
 
-The student keeps the fitted residual's per-pixel codes and learns a decoder of fewer or narrower hidden
-layers (``model.residual.decoder_layer_shapes``) to reproduce the fitted decoder (the teacher), as
-DisK-NeuralRTI distils NeuralRTI's: its targets are the teacher's outputs, in the same signed sRGB display
-units, at the captured light directions and at as many new ones drawn inside the captured lights'
-triangles, drawn anew every round, so it learns the relighting between the lights as well as at them.
-Training is NumPy float32 on the CPU (the student is small; ``cpu_training``'s Adam and thread split),
-for ``DistilSettings.seconds`` or ``epochs`` at most; the codes do not change. Its agreement with the
-teacher is measured in 8-bit sRGB PSNR on the residual at the captured lights and at directions between
-them that it never learned from.
+The student is a decoder of fewer or narrower hidden layers (``model.residual.decoder_layer_shapes``) over
+the same kind of per-pixel code, trained to reproduce the fitted decoder (the teacher), as DisK-NeuralRTI
+distils NeuralRTI's: its targets are the teacher's outputs, in the same signed sRGB display units, at the
+captured light directions and at as many new ones drawn inside the captured lights' triangles, drawn anew
+every round, so it learns the relighting between the lights as well as at them. Its codes start as the
+teacher's and learn along (``DistilSettings.learn_codes``). Training is NumPy float32 on the CPU (the
+student is small; ``cpu_training``'s Adam and thread split), for ``DistilSettings.seconds`` or ``epochs``
+at most. Its agreement with the teacher is measured in 8-bit sRGB PSNR on the residual at the captured
+lights and at directions between them that it never learned from.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from ..model.residual import (
     decoder_layer_shapes,
     parse_hidden,
 )
-from ..model.threads import parallel_map
+from ..model.threads import NUMPY_THREADS, parallel_map
 from ..quality.metrics import srgb_psnr
 from .cpu_training import CpuDecoder, _Adam, blas_on_one_thread
 from .opponent import decode_display
@@ -82,9 +82,10 @@ def directions_between(directions: np.ndarray, faces: np.ndarray, count: int, rn
 def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, faces: np.ndarray, *,
                    settings: DistilSettings | None = None, log=None, progress=None) -> tuple[NeuralResidual,
                                                                                                DistilReport]:
-    """A ``NeuralResidual`` with ``learned``'s codes and a decoder of ``hidden`` widths trained to reproduce
-    ``learned``'s at the field's (n, 3) light ``directions`` and between them (inside the triangulation's
-    ``faces``), and its ``DistilReport``. ``progress(fraction)`` as training goes, ``log`` a line a round."""
+    """A ``NeuralResidual`` with a decoder of ``hidden`` widths (and ``learned``'s codes, learning along where
+    ``settings.learn_codes``) trained to reproduce ``learned``'s at the field's (n, 3) light ``directions`` and
+    between them (inside the triangulation's ``faces``), and its ``DistilReport``. ``progress(fraction)`` as
+    training goes, ``log`` a line a round."""
     settings = settings or DistilSettings()
     hidden = parse_hidden(",".join(str(int(w)) for w in hidden))
     height, width, _ = learned.codes.shape
@@ -93,7 +94,7 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
     directions = np.asarray(directions, np.float32)
     rng = np.random.default_rng(settings.seed)
     parameters = _Student(hidden, rng, codes if settings.learn_codes else None)
-    adam = _Adam(parameters.flat.size, threads=1)
+    adam = _Adam(parameters.flat.size, threads=NUMPY_THREADS)
     pixels = len(codes)
     batch = int(settings.batch)
     pool_size = len(directions) + max(1, int(round(len(directions) * (settings.pool_factor - 1))))
