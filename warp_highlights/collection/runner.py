@@ -347,9 +347,12 @@ def _run_on_cluster(todo, output: Path, options: JobOptions, records: dict, resu
     try:
         stack.callback(_sweep, output, [c.name for c, _, _ in todo])  # last: once the workers are gone
         if scheduler is None:
+            # Dask's own log lines off but its critical ones: a worker whose heartbeat meets the scheduler already
+            # closed at the end logs an error with its traceback; what a capture did, a lost worker included, the
+            # command says itself
             cluster = stack.enter_context(LocalCluster(n_workers=len(plan), threads_per_worker=1, processes=True,
                                                        dashboard_address="127.0.0.1:0",
-                                                       silence_logs=logging.ERROR, memory_limit=0))
+                                                       silence_logs=logging.CRITICAL, memory_limit=0))
             pins = {str(k): pin for k, pin in enumerate(plan)}  # LocalCluster names its workers 0, 1, ...
             client = stack.enter_context(Client(cluster))
             where = ", ".join(f"GPU {p['visible_gpu']}" if "visible_gpu" in p else f"{len(p['cores'])} cores"
