@@ -220,7 +220,8 @@ def test_distil_command_writes_a_field_that_saves_loads_and_relights(learned_fie
     want = np.clip(learned_images(small.residual.learned, directions) + highlights, 0.0, None)
     np.testing.assert_allclose(relit, want, atol=2e-3 * max(1.0, float(np.abs(want).max())))
     assert main(["info", str(output)]) == 0
-    assert "hidden layers 16-16" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "hidden layers 16-16" in said and "distilled from 48-48-48" in said
 
 
 def test_distil_command_refuses_what_it_cannot_do(learned_field, tiny_sphere, tmp_path, capsys):

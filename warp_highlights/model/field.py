@@ -354,7 +354,13 @@ class HighlightField:
             lines.append(f"moving Gaussians: {int(self.moving.sum())} of {int(self.estimated.active.sum())} (the rest "
                          f"blend in place)" + self._motion_figures())
         if self.residual is not None:
-            lines.append(self.residual.describe())
+            distilled = (self.report or {}).get("distilled") if self.residual.learned is not None else None
+            line = self.residual.describe()
+            if isinstance(distilled, dict):  # ``warp-highlights distil``'s figures
+                teacher = "-".join(map(str, distilled.get("teacher_hidden", [])))
+                line += (f"; distilled from {teacher}: its images back at {distilled.get('captured_psnr_db')} dB "
+                         f"at the lights, {distilled.get('between_psnr_db')} dB between")
+            lines.append(line)
         if self.file_sizes is not None:
             where = f" ({self.file_path})" if self.file_path is not None else ""
             lines.append(f"file: {_format_bytes(self.file_sizes['total'])}{where}")
