@@ -82,12 +82,12 @@ def directions_between(directions: np.ndarray, faces: np.ndarray, count: int, rn
 def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, faces: np.ndarray, *,
                    settings: DistilSettings | None = None, log=None, progress=None) -> tuple[NeuralResidual,
                                                                                                DistilReport]:
-    """A ``NeuralResidual`` with a decoder of ``hidden`` widths (and ``learned``'s codes, learning along where
-    ``settings.learn_codes``) trained to reproduce ``learned``'s at the field's (n, 3) light ``directions`` and
-    between them (inside the triangulation's ``faces``), and its ``DistilReport``. ``progress(fraction)`` as
-    training goes, ``log`` a line a round."""
+    """A ``NeuralResidual`` with a decoder of ``hidden`` widths (None: ``settings.hidden``) and ``learned``'s codes
+    (learning along where ``settings.learn_codes``), trained to reproduce ``learned``'s at the field's (n, 3) light
+    ``directions`` and between them (inside the triangulation's ``faces``), and its ``DistilReport``.
+    ``progress(fraction)`` as training goes, ``log`` a line a round."""
     settings = settings or DistilSettings()
-    hidden = parse_hidden(",".join(str(int(w)) for w in hidden))
+    hidden = parse_hidden(",".join(str(int(w)) for w in (settings.hidden if hidden is None else hidden)))
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32)
     teacher = CpuDecoder(codes, learned.weights)
