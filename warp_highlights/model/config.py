@@ -664,13 +664,13 @@ class DistilSettings:
     """A smaller decoder distilled from a learned residual's (``residual.distil``, ``warp-highlights distil``).
 
     Attributes:
-        hidden: the student's hidden layers' widths. (16, 16): 10.7 times fewer multiply-adds than the fitted
-            decoder; distilled for 60 epochs on a 2-core CPU, the dome sample's Test lights lost 0.22 dB (48.39
-            against 48.61) and the statue's held-out lights 2.68 dB (31.82 against 34.50), where 24-24 lost
-            1.28 and 2.38 dB and 48-48 0.50 and 1.73; one hidden layer lost 8 and 3 dB
-            (``benchmarks/bench_decoder_size.py``).
-        seconds: training time at most (0: no limit but ``epochs``). 120: the 60 epochs of a 16-16 student
-            took 100 s for the dome sample at 160x160 and 121 s for the statue at 192x181 on 2 cores.
+        hidden: the student's hidden layers' widths. (24, 24, 24): 3.5 times fewer multiply-adds than the fitted
+            decoder; distilled for 60 epochs on a 2-core CPU, the dome sample's Test lights lost 0.02 dB (48.59
+            against 48.61) and the statue's held-out lights 1.28 dB (33.26 against 34.54, above its low-rank
+            field's 33.01). Depth matters more than width: 16-16-16 lost 0.14 and 1.67 dB, 16-16 0.22 and
+            2.68, 48-48 0.50 and 1.73, one hidden layer 8 and 3 (``benchmarks/bench_decoder_size.py``).
+        seconds: training time at most (0: no limit but ``epochs``). 120: the 60 epochs of a 24-24-24 student
+            took 118 s for the dome sample at 160x160 and 146 s for the statue at 192x181 on 2 cores.
         epochs: passes over the pool's (direction, pixel) samples at most; the learning rate falls from
             3e-3 to 3e-4 over them (or over ``seconds`` where that ends first), as the fitted decoder's.
         epochs_per_round: the new directions between the lights are drawn anew every this many epochs.
@@ -685,7 +685,7 @@ class DistilSettings:
         seed: the student's first weights and the samples drawn.
     """
 
-    hidden: tuple = (16, 16)
+    hidden: tuple = (24, 24, 24)
     seconds: float = 120.0
     epochs: int = 60
     epochs_per_round: int = 4
