@@ -68,11 +68,11 @@ def _run_distil(args) -> int:
 COMMANDS = (
     Command("distil", _distil_arguments, _run_distil,
             help="write a field whose learned residual decodes through a smaller decoder (faster on the CPU)",
-            description="Distil the learned residual's decoder into one of fewer or narrower layers that keeps the "
-                        "per-pixel codes, trained to give the fitted decoder's images back at the captured lights "
-                        "and between them; writes a new field file and says how close it came (8-bit sRGB PSNR "
-                        "against the fitted decoder). Relighting on the CPU decodes the smaller decoder; a GPU and "
-                        "the web page decode it in the fitted decoder's shape.",
+            description="Distil the learned residual's decoder into one of fewer or narrower layers, trained (its "
+                        "per-pixel codes learning along) to give the fitted decoder's images back at the captured "
+                        "lights and between them; writes a new field file and says how close it came (8-bit sRGB "
+                        "PSNR against the fitted decoder). The CPU and the web page decode the smaller decoder at its "
+                        "own size (faster); a GPU decodes it through the fitted decoder's kernels.",
             check=_check),
 )
 """The subcommands of this module, in the order ``warp-highlights --help`` lists them."""
