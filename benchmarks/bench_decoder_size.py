@@ -3,6 +3,7 @@ CPU decoding speed, on the two samples.
 
     python benchmarks/bench_decoder_size.py                   # the dome and the statue; about 30 minutes on 2 cores
     python benchmarks/bench_decoder_size.py --cases synth --teacher-seconds 60 --students "24,24 16"
+    python benchmarks/bench_decoder_size.py --cases statue --students 24,24 --epochs 40 --fixed-codes
 
 For each case the captured images are learned alone (NeuralRTI: the residual is the image) as
 ``fit --residual learned`` learns them on the CPU (``--teacher-seconds``), then each student decoder is
@@ -12,8 +13,9 @@ sRGB PSNR / SSIM at the held-out lights (the dome sample at 160 x 160 at its Tes
 192 x 181 with every 5th light held out: ``bench_quality.load_case``), and against the teacher's images
 at the captured lights and between them (``distil.agreement``). Size: the decoder's weights (float32)
 and multiply-adds per pixel; speed: milliseconds to decode one 480 x 270 image on this machine's CPU
-(``CpuDecoder``, best and median of 9). The per-pixel codes are the same for every decoder (9 numbers a
-pixel, float16 in the field file).
+(``CpuDecoder``, best and median of 9). Each student's per-pixel codes (9 numbers a pixel, float16 in the field
+file) start as the teacher's and learn along; ``--fixed-codes`` distils each student once more with the teacher's
+codes kept.
 """
 
 from __future__ import annotations
@@ -71,7 +73,7 @@ def scored(learned, dataset, truth) -> tuple[float, float, float]:
 
 
 def run_case(name: str, teacher_seconds: float, students: list[tuple[int, ...]], seconds: float,
-             epochs: int) -> list[dict]:
+             epochs: int, fixed_codes: bool) -> list[dict]:
     dataset = load_case(name, "cpu", "cpu")
     width, height = SIZES[name][0]
     images = resize_stack(dataset.images, width, height).astype(np.float32)
@@ -82,18 +84,21 @@ def run_case(name: str, teacher_seconds: float, students: list[tuple[int, ...]],
     residual, history = learned_module.learn_residual(images, np.zeros(images.shape[:3], np.float32), None,
                                                       directions, factor=1.0, settings=settings, device="cpu")
     teacher = residual.learned
-    rows = [{"case": name, "hidden": teacher.hidden, "train": time.perf_counter() - started,
+    rows = [{"case": name, "hidden": teacher.hidden, "codes": "its own", "train": time.perf_counter() - started,
              "epochs": f"{len(history)}", "scores": scored(teacher, dataset, truth), "captured": None,
              "between": None, "load": load()}]
     print(f"  {rows[-1]}", file=sys.stderr, flush=True)
     faces = SphericalTriangulation(directions).faces
     for hidden in students:
-        student, report = distil_decoder(teacher, hidden, directions, faces,
-                                         settings=DistilSettings(hidden=hidden, seconds=seconds, epochs=epochs))
-        rows.append({"case": name, "hidden": hidden, "train": report.seconds, "epochs": f"{report.epochs:.1f}",
-                     "scores": scored(student, dataset, truth), "captured": report.captured_psnr_db,
-                     "between": report.between_psnr_db, "load": load()})
-        print(f"  {rows[-1]}", file=sys.stderr, flush=True)
+        for learn_codes in (True, False) if fixed_codes else (True,):
+            student, report = distil_decoder(teacher, hidden, directions, faces,
+                                             settings=DistilSettings(hidden=hidden, seconds=seconds, epochs=epochs,
+                                                                     learn_codes=learn_codes))
+            rows.append({"case": name, "hidden": hidden, "codes": "learning" if learn_codes else "the teacher's",
+                         "train": report.seconds, "epochs": f"{report.epochs:.1f}",
+                         "scores": scored(student, dataset, truth), "captured": report.captured_psnr_db,
+                         "between": report.between_psnr_db, "load": load()})
+            print(f"  {rows[-1]}", file=sys.stderr, flush=True)
     return rows
 
 
@@ -104,6 +109,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=0.0,
                         help="distillation time at most each (default 0: --epochs alone, the same on any machine)")
     parser.add_argument("--epochs", type=int, default=DistilSettings().epochs, help="distillation epochs each")
+    parser.add_argument("--fixed-codes", action="store_true",
+                        help="each student once more with the teacher's codes kept (DistilSettings.learn_codes off)")
     parser.add_argument("--students", default="48,48 32,32 24,24 16,16 32",
                         help="the students' hidden widths, space-separated (e.g. '24,24 16')")
     args = parser.parse_args()
@@ -122,22 +129,24 @@ def main() -> None:
         weights = [rng.normal(size=shape).astype(np.float32) * 0.2 for shape in decoder_layer_shapes(hidden)]
         speeds[hidden] = decode_ms(weights)
     rows = [row for name in args.cases.split(",") if name.strip()
-            for row in run_case(name.strip(), args.teacher_seconds, students, args.seconds, args.epochs)]
+            for row in run_case(name.strip(), args.teacher_seconds, students, args.seconds, args.epochs,
+                                args.fixed_codes)]
     limit = f"{args.epochs} epochs" + (f" or {args.seconds:.0f} s" if args.seconds else "")
     print(f"\nthe images learned alone ({args.teacher_seconds:.0f} s), then each student distilled for "
-          f"{limit}, its codes learning too; 8-bit sRGB PSNR / SSIM at the held-out lights; agreement with the "
+          f"{limit}; 8-bit sRGB PSNR / SSIM at the held-out lights; agreement with the "
           f"fitted decoder at the captured lights and between them; CPU decode of one 480x270 image "
           f"({NUMPY_THREADS} threads)\n")
-    print("| case | hidden layers | weights | multiply-adds / pixel | train (s) | epochs | PSNR (dB) | worst | SSIM "
-          "| vs fitted decoder: captured / between (dB) | decode 480x270 best / median (ms) | load |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| case | hidden layers | codes | weights | multiply-adds / pixel | train (s) | epochs | PSNR (dB) | worst "
+          "| SSIM | vs fitted decoder: captured / between (dB) | decode 480x270 best / median (ms) | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         hidden = r["hidden"]
         count = sum(a * b for a, b in decoder_layer_shapes(hidden))
         psnr, worst, ssim = r["scores"]
         versus = "the fitted decoder" if r["between"] is None else f"{r['captured']:.2f} / {r['between']:.2f}"
         best, median = speeds[tuple(hidden)]
-        print(f"| {r['case']} | {'-'.join(map(str, hidden))} | {count} | {decoder_multiply_adds(hidden)} | "
+        print(f"| {r['case']} | {'-'.join(map(str, hidden))} | {r['codes']} | {count} | "
+              f"{decoder_multiply_adds(hidden)} | "
               f"{r['train']:.0f} | {r['epochs']} | {psnr:.2f} | {worst:.2f} | {ssim:.4f} | {versus} | "
               f"{best:.1f} / {median:.1f} | {r['load']} |")
 
