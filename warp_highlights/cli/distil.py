@@ -52,7 +52,7 @@ def _run_distil(args) -> int:
     hidden = parse_hidden(args.hidden)
     settings = dataclasses.replace(DistilSettings(), hidden=hidden, seconds=float(args.seconds))
     with tqdm(total=100, unit="%", desc="distil", disable=args.quiet, leave=False) as bar:
-        student, report = distil_decoder(residual.learned, hidden, field.lights.directions, field.triangulation.faces,
+        student, report = distil_decoder(residual.learned, None, field.lights.directions, field.triangulation.faces,
                                          settings=settings, progress=lambda done: bar.update(round(100 * done) - bar.n))
     smaller = dataclasses.replace(field, residual=dataclasses.replace(residual, learned=student),
                                   report={**(field.report or {}), "distilled": report.to_dict()})
