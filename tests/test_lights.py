@@ -1,14 +1,17 @@
-"""LightSet: Fibonacci generators and the liberal .lp reader/writer."""
+"""LightSet: Fibonacci generators, the liberal .lp reader/writer and relight's .dome/.relight light files."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from warp_highlights.io.lightfile import read_lp, write_lp
+from warp_highlights.io.dataset import ReflectanceField, find_light_file
+from warp_highlights.io.images import write_image
+from warp_highlights.io.lightfile import images_in_order, read_lights, read_lp, write_lp
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.lights import LightSet
 
@@ -189,7 +192,8 @@ def test_lp_count_line_may_carry_more_tokens(tmp_path):
         ("2\na.jpg 0 0 1\nb.jpg 0.5 0,5 1\n", 3, "'0,5' is not a number"),  # mixed marks: no guessing
         ("1\na.jpg 0 0 nan\n", 2, "not a number"),
         ("1\na.jpg 0 1_0 1\n", 2, "not a number"),
-        ("1\n0 0 1\n", 2, "expected '<image file> <x> <y> <z>'"),
+        ("1\na.jpg 0 1\n", 2, "expected '<image file> <x> <y> <z>'"),
+        ("2\n0 0 1\nb.jpg 0 1 0\n", 2, "expected '<image file> <x> <y> <z>'"),  # names on some lines only
         ("-2\na.jpg 0 0 1\n", 1, "must be positive"),
         ("0\n", 1, "must be positive"),
         ("two\na.jpg 0 0 1\n", 1, "light count"),
@@ -244,3 +248,128 @@ def test_real_lp_files(data_root):
     for lights in (dome, test, item):
         np.testing.assert_allclose(np.linalg.norm(lights.directions, axis=1), 1.0, atol=1e-12)
         assert np.all(lights.directions[:, 2] > 0.0)  # upper hemisphere only
+
+
+# --- light files in the wild: no names, a fifth column, sub-folders, relight's JSON ------------------
+
+
+def test_lp_without_names_pairs_the_folder_images_in_natural_order(tmp_path):
+    images = ["img10.jpg", "IMG2.jpg", "img1.png"]
+    path = _write_lp(tmp_path, "3\n0 0 1\n1\t0\t1\n0,0 1,0 1,0\n", images=images + ["notes.txt", ".hidden.jpg"])
+    assert images_in_order(tmp_path) == ["img1.png", "IMG2.jpg", "img10.jpg"]
+    lights = read_lp(path)
+    assert lights.filenames == ["img1.png", "IMG2.jpg", "img10.jpg"]
+    s = math.sqrt(0.5)
+    np.testing.assert_allclose(lights.directions, [[0, 0, 1], [s, 0, s], [0, s, s]], atol=1e-15)
+
+
+def test_lp_without_names_needs_as_many_images(tmp_path):
+    path = _write_lp(tmp_path, "3\n0 0 1\n1 0 1\n0 1 1\n", images=["a.jpg", "b.jpg"])
+    with pytest.raises(InputError) as excinfo:
+        read_lp(path)
+    assert "3 directions without image names" in _single_line_error(excinfo, path)
+    assert "holds 2 images" in str(excinfo.value)
+    assert read_lp(path, check_files=False).filenames is None  # directions alone, for --lights and paths
+
+
+def test_lp_fifth_column_is_ignored(tmp_path):
+    path = _write_lp(tmp_path, "2\na.jpg 0 0 1 0.9\nsub/b b.jpg 1 0 0 1,1\n", images=["a.jpg", "sub/b b.jpg"])
+    lights = read_lp(path)
+    assert lights.filenames == ["a.jpg", "sub/b b.jpg"]
+    np.testing.assert_allclose(lights.directions, [[0, 0, 1], [1, 0, 0]])
+
+
+def test_lp_name_ending_in_a_number_is_not_a_fifth_column(tmp_path):
+    path = _write_lp(tmp_path, "2\nscan 1 0 0 1\nscan 2 1 0 0\n", images=["scan 1", "scan 2"])
+    assert read_lp(path).filenames == ["scan 1", "scan 2"]
+
+
+def test_lp_images_in_a_sub_folder_load_as_a_dataset(tmp_path):
+    for i, name in enumerate(["jpg/a.png", "jpg/b.png", "jpg/c.png", "jpg/d.png"]):
+        (tmp_path / "jpg").mkdir(exist_ok=True)
+        write_image(tmp_path / name, np.full((6, 8, 3), 0.1 + 0.2 * i, np.float32))
+    _write_lp(tmp_path, "4\njpg/a.png 0 0 1\njpg\\b.png 1 0 1\njpg/c.png 0 1 1\njpg/d.png -1 0 1\n", name="lights.lp")
+    field = ReflectanceField.load(tmp_path)
+    assert field.light_count == 4 and field.images.shape == (4, 6, 8, 3)
+    np.testing.assert_allclose(field.images[3], 0.7, atol=0.01)
+
+
+def _dome(directions, configuration="directional", positions=None) -> dict:
+    vectors = lambda rows: [{"x": x, "y": y, "z": z} for x, y, z in rows]  # noqa: E731
+    dome = {"label": "test dome", "domeDiameter": 800.0, "verticalOffset": 0.0, "lightConfiguration": configuration,
+            "directions": vectors(directions), "positionsSphere": [], "positions3d": [], "ledAdjust": []}
+    if positions is not None:
+        dome["positions3d" if configuration == "lights3d" else "positionsSphere"] = vectors(positions)
+    return dome
+
+
+def test_dome_file_pairs_images_and_keeps_positions(tmp_path):
+    directions = [[0, 0, 1], [0.6, 0, 0.8], [0, -0.6, 0.8]]
+    positions = [[0, 0, 400], [240, 0, 320], [0, -240, 320]]
+    (tmp_path / "rig.dome").write_text(json.dumps(_dome(directions, "spherical", positions)))
+    for name in ("p01.jpg", "p02.jpg", "p03.jpg"):
+        (tmp_path / name).write_bytes(b"")
+    lights = read_lights(tmp_path / "rig.dome")
+    assert lights.filenames == ["p01.jpg", "p02.jpg", "p03.jpg"]
+    np.testing.assert_allclose(lights.directions, directions, atol=1e-15)
+    np.testing.assert_allclose(lights.positions, positions)
+    assert lights.take([2, 0]).positions.tolist() == [positions[2], positions[0]]
+    assert read_lights(tmp_path / "rig.dome").take(np.array([True, False, True])).filenames == ["p01.jpg", "p03.jpg"]
+
+
+def test_relight_project_reads_its_images_folder_skips_and_dome(tmp_path):
+    directions = [[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8], [-0.6, 0, 0.8]]
+    positions = [[0, 0, 300], [180, 0, 240], [0, 180, 240], [-180, 0, 240]]
+    images = [{"filename": f"im{i}.png", "skip": i == 2, "direction": {"x": 0, "y": 0, "z": 0}} for i in range(4)]
+    project = {"application": "RelightLab", "width": 8, "height": 6, "folder": "photos", "images": images,
+               "dome": _dome(directions, "lights3d", positions)}
+    (tmp_path / "photos").mkdir()
+    for i in range(4):
+        write_image(tmp_path / "photos" / f"im{i}.png", np.full((6, 8, 3), 0.2 + 0.1 * i, np.float32))
+    (tmp_path / "capture.relight").write_text(json.dumps(project))
+    lights = read_lights(tmp_path / "capture.relight")
+    assert lights.filenames == ["photos/im0.png", "photos/im1.png", "photos/im3.png"]
+    np.testing.assert_allclose(lights.directions, [directions[i] for i in (0, 1, 3)], atol=1e-15)
+    np.testing.assert_allclose(lights.positions, [positions[i] for i in (0, 1, 3)])
+    assert find_light_file(tmp_path) == tmp_path / "capture.relight"
+    field = ReflectanceField.load(tmp_path)
+    assert field.light_count == 3 and field.lights.positions is not None
+    np.testing.assert_allclose(field.images[2], 0.5, atol=0.01)
+
+
+def test_relight_project_without_dome_directions_uses_each_images_direction(tmp_path):
+    images = [{"filename": f"im{i}.jpg", "direction": {"x": x, "y": 0, "z": 1}} for i, x in enumerate((0, 1))]
+    (tmp_path / "a.relight").write_text(json.dumps({"folder": ".", "images": images, "dome": {"directions": []}}))
+    lights = read_lights(tmp_path / "a.relight", check_files=False)
+    assert lights.filenames == ["im0.jpg", "im1.jpg"] and lights.positions is None
+    np.testing.assert_allclose(lights.directions[1], [math.sqrt(0.5), 0, math.sqrt(0.5)])
+
+
+@pytest.mark.parametrize(("name", "content", "needle"), [
+    ("a.dome", b"{not json", "not a JSON light file"),
+    ("a.dome", b"[1, 2]", "expected a JSON object"),
+    ("a.dome", json.dumps({"directions": [{"x": 0, "y": 0}]}).encode(), "'directions' entry 0 is not an {x, y, z}"),
+    ("a.dome", json.dumps({"directions": [{"x": 0, "y": 0, "z": 0}]}).encode(), "zero or not finite"),
+    ("a.dome", json.dumps({"directions": []}).encode(), "holds no light directions"),
+    ("a.dome", json.dumps({"directions": [[0, 0, 1], [0, 0, 2]]}).encode(), "give the same light direction"),
+    ("a.dome", json.dumps({"lightConfiguration": "lights3d", "directions": [[0, 0, 1]],
+                           "positions3d": [[0, 0, 1], [0, 0, 2]]}).encode(), "2 'positions3d' for 1 light"),
+    ("a.relight", json.dumps({"images": "x", "dome": {}}).encode(), "no 'images' list"),
+    ("a.relight", json.dumps({"images": []}).encode(), "no 'dome' object"),
+    ("a.relight", json.dumps({"images": [{"skip": False}], "dome": {}}).encode(), "image 0 of the project has no"),
+    ("a.txt", b"1\na 0 0 1\n", "not a light file"),
+])
+def test_json_light_files_reject_with_one_line(tmp_path, name, content, needle):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(InputError) as excinfo:
+        read_lights(path, check_files=False)
+    assert needle in _single_line_error(excinfo, path)
+
+
+def test_relight_project_names_a_missing_image(tmp_path):
+    images = [{"filename": "gone.jpg"}]
+    (tmp_path / "a.relight").write_text(json.dumps({"images": images, "dome": {"directions": [[0, 0, 1]]}}))
+    with pytest.raises(InputError) as excinfo:
+        read_lights(tmp_path / "a.relight")
+    assert "'gone.jpg' not found" in _single_line_error(excinfo, tmp_path / "a.relight")

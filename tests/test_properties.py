@@ -30,7 +30,7 @@ from hypothesis import strategies as st  # noqa: E402
 
 from warp_highlights.io.fieldfile import load_field  # noqa: E402
 from warp_highlights.io.images import image_shape, image_size, read_image, write_image  # noqa: E402
-from warp_highlights.io.lightfile import read_lp, write_lp  # noqa: E402
+from warp_highlights.io.lightfile import read_lights, read_lp, write_lp  # noqa: E402
 from warp_highlights.model.errors import InputError  # noqa: E402
 from warp_highlights.model.lights import LightSet  # noqa: E402
 
@@ -338,9 +338,36 @@ def test_light_file_reader_raises_only_input_errors(workdir, content, check_file
     except InputError as error:
         _one_line(error, path)
         return
-    assert lights.light_count >= 1 and len(lights.filenames) == lights.light_count
+    # a file of directions without names pairs the folder's images, or (unchecked) gives no names
+    assert lights.light_count >= 1 and (lights.filenames is None or len(lights.filenames) == lights.light_count)
     assert np.all(np.isfinite(lights.directions))
     np.testing.assert_allclose(np.linalg.norm(lights.directions, axis=1), 1.0, atol=1e-12)
+
+
+_JSON_VALUE = st.recursive(
+    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | st.text(max_size=8),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
+        st.sampled_from(["x", "y", "z", "directions", "images", "dome", "filename", "skip", "direction", "folder",
+                         "lightConfiguration", "positions3d", "positionsSphere"]), inner, max_size=5),
+    max_leaves=30)
+
+
+@_settings()
+@given(document=st.one_of(_JSON_VALUE, st.fixed_dictionaries({
+    "directions": st.lists(st.fixed_dictionaries({axis: st.floats(-2, 2) for axis in "xyz"}), max_size=6),
+    "lightConfiguration": st.sampled_from(["directional", "spherical", "lights3d", 3]),
+    "positions3d": st.lists(st.lists(st.floats(), min_size=3, max_size=3), max_size=6)})),
+    suffix=st.sampled_from([".dome", ".relight"]), check_files=st.booleans())
+def test_relight_json_light_files_raise_only_input_errors(workdir, document, suffix, check_files):
+    path = workdir / f"fuzz{suffix}"
+    path.write_text(json.dumps(document))
+    try:
+        lights = read_lights(path, check_files=check_files)
+    except InputError as error:
+        _one_line(error, path)
+        return
+    assert lights.light_count >= 1 and np.all(np.isfinite(lights.directions))
+    assert lights.positions is None or lights.positions.shape == lights.directions.shape
 
 
 # --- field files --------------------------------------------------------------------------------------

@@ -70,6 +70,7 @@ __getattr__, __dir__, _exported = _lazy_exports(
         "InputError": "model.errors",
         # files
         "read_lp": "io.lightfile",
+        "read_lights": "io.lightfile",
         "write_lp": "io.lightfile",
         "ReflectanceField": "io.dataset",
         "save_field": "io.fieldfile",

@@ -258,7 +258,7 @@ def check_not_capture_image(output) -> None:
             continue
         for light_file in light_files:
             try:
-                names = read_lp(light_file, check_files=False).filenames
+                names = read_lp(light_file, check_files=False).filenames or []
             except (InputError, OSError, ValueError, UnicodeError):
                 continue
             if any(_same_file(folder / name, output) for name in names):

@@ -42,7 +42,8 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
     lights.add_argument("--dome", action="store_true", help="lights on the upper hemisphere only (an RTI dome)")
     lights.add_argument("--min-elevation", type=in_range(float, 0.0, 80.0, unit="degrees"), default=10.0,
                         help="lowest dome light, 0..80 degrees (default 10)")
-    lights.add_argument("--lights-file", type=Path, help="take the light directions from this .lp file instead")
+    lights.add_argument("--lights-file", type=Path,
+                        help="take the light directions from this light file instead (.lp, .dome or .relight)")
     lights.add_argument(
         "--heldout",
         default="centroids",
@@ -99,11 +100,11 @@ def _sheet_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _light_sets(args) -> tuple:
-    from ..io.lightfile import read_lp
+    from ..io.lightfile import read_lights
     from ..model.lights import LightSet
 
     if args.lights_file is not None:
-        lights = read_lp(args.lights_file, check_files=False)
+        lights = read_lights(args.lights_file, check_files=False)
     elif args.dome:
         lights = LightSet.fibonacci_dome(args.lights, min_elevation_deg=args.min_elevation)
     else:
@@ -113,7 +114,7 @@ def _light_sets(args) -> tuple:
     if heldout.lower() == "none":
         heldout = None
     elif heldout.lower() != "centroids":
-        heldout = LightSet(read_lp(Path(heldout), check_files=False).directions)
+        heldout = LightSet(read_lights(Path(heldout), check_files=False).directions)
     else:
         heldout = "centroids"
     return lights, heldout

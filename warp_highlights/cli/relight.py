@@ -42,7 +42,7 @@ def _relight_arguments(parser: argparse.ArgumentParser) -> None:
                         help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. "
                              "--light -0.5,0.2,1; repeatable")
     parser.add_argument("--lights", type=Path, metavar="FILE.lp",
-                        help="also relight every direction of this .lp light file")
+                        help="also relight every direction of this light file (.lp, or relight's .dome or .relight)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="image file (.exr linear; .png, .tif or .jpg sRGB) for one light; a folder for several "
                              "(EXR images + lights.lp)")
@@ -199,11 +199,11 @@ HELDOUT_OR_HOLDOUT = "give either --heldout FOLDER or --holdout-every K, not bot
 
 def _run_relight(args) -> int:
     from ..io.fieldfile import load_field
-    from ..io.lightfile import read_lp
+    from ..io.lightfile import read_lights
 
     directions = [parse_direction(text) for text in args.light]
     if args.lights is not None:
-        directions += list(read_lp(args.lights, check_files=False).directions)
+        directions += list(read_lights(args.lights, check_files=False).directions)
     if not directions:
         raise InputError(NO_LIGHT)
     output = Path(args.output)

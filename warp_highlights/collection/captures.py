@@ -162,9 +162,9 @@ def image_size(capture: Capture) -> tuple[int, int]:
     """(width, height) in pixels of the capture's images, from its first image's header (nothing decoded)."""
     from ..io.dataset import find_light_file
     from ..io.images import image_header
-    from ..io.lightfile import read_lp
+    from ..io.lightfile import read_lights
 
     light_file = find_light_file(capture.folder)
-    lights = read_lp(light_file, check_files=False)
+    lights = read_lights(light_file, check_files=False)
     shape = image_header(light_file.parent / lights.filenames[0], max_pixels=None).shape
     return int(shape[1]), int(shape[0])

@@ -4,6 +4,7 @@ the atomic writing every output goes through.
 Imports the model only (ARCHITECTURE.md).
 
 - ``read_lp``: read an RTI ``.lp`` light file into a ``LightSet``.
+- ``read_lights``: read any light file (``.lp``, relight's ``.dome`` or ``.relight``) into a ``LightSet``.
 - ``write_lp``: write a ``LightSet`` as an ``.lp`` file, atomically.
 - ``read_image``: one EXR (linear), PNG or JPEG (sRGB, decoded to linear) file as float32.
 - ``write_image``: the same formats out, atomically; refuses non-finite images.
@@ -33,7 +34,7 @@ from .._api import lazy_exports
 __getattr__, __dir__, __all__ = lazy_exports(
     __name__,
     {
-        **dict.fromkeys(["read_lp", "write_lp"], "lightfile"),
+        **dict.fromkeys(["read_lp", "read_lights", "write_lp"], "lightfile"),
         **dict.fromkeys(
             [
                 "read_image", "write_image", "image_size", "image_shape", "DEFAULT_MAX_PIXELS", "IMAGE_EXTENSIONS",

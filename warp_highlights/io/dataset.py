@@ -45,7 +45,7 @@ from .images import (
     read_pixels,
     write_image,
 )
-from .lightfile import read_lp, write_lp
+from .lightfile import LIGHT_FILE_SUFFIXES, read_lights, write_lp
 
 __all__ = ["HELDOUT_FOLDER", "DatasetWriter", "LoadStopped", "ReflectanceField", "capture_differences",
            "capture_fingerprint", "dataset_folder_entry", "find_heldout_folder", "find_light_file", "has_light_file"]
@@ -284,10 +284,8 @@ class ReflectanceField:
                              f"{self.light_count - held.sum()}; a fit needs at least 4")
 
         def part(mask) -> ReflectanceField:
-            names = (None if self.lights.filenames is None
-                     else [n for n, keep in zip(self.lights.filenames, mask) if keep])
             pick = lambda a: None if a is None else a[mask].copy()
-            return ReflectanceField(self.images[mask].copy(), LightSet(self.lights.directions[mask], names),
+            return ReflectanceField(self.images[mask].copy(), self.lights.take(mask),
                                     specular=pick(self.specular), diffuse=pick(self.diffuse), mask=self.mask,
                                     root=self.root,
                                     source=self.source)
@@ -501,7 +499,7 @@ class _ImageGroup:
 
     @classmethod
     def plan(cls, light_file: Path) -> _ImageGroup:
-        lights = read_lp(light_file, check_files=True)
+        lights = read_lights(light_file, check_files=True)
         images = [light_file.parent / name for name in lights.filenames]
         specular, diffuse = (_component_paths(light_file.parent, kind, images) for kind in _COMPONENTS)
         return cls(light_file, lights, images, specular, diffuse)
@@ -701,17 +699,21 @@ def _existing_folder(folder) -> Path:
 
 
 def find_light_file(folder: Path) -> Path:
-    """A dataset folder's light file: ``lights.lp``, else the one ``*.lp`` other than ``heldout.lp`` (``InputError`` for
-    none or several)."""
+    """A dataset folder's light file: ``lights.lp``, else the one ``*.lp`` other than ``heldout.lp``, else the one
+    relight ``*.relight`` project, else the one ``*.dome`` (``InputError`` for none, or several of the first kind
+    found)."""
     if (folder / "lights.lp").is_file():
         return folder / "lights.lp"
-    candidates = sorted(p for p in folder.glob("*.lp") if p.name != "heldout.lp" and p.is_file())
-    if not candidates:
-        raise InputError(f"{folder}: no light file (lights.lp or another .lp) in the dataset folder")
-    if len(candidates) > 1:
-        names = ", ".join(p.name for p in candidates)
-        raise InputError(f"{folder}: several light files ({names}); keep one or name it lights.lp")
-    return candidates[0]
+    for suffix in LIGHT_FILE_SUFFIXES:
+        candidates = sorted(p for p in folder.iterdir()
+                            if p.suffix.lower() == suffix and p.name != "heldout.lp" and p.is_file())
+        if len(candidates) > 1:
+            names = ", ".join(p.name for p in candidates)
+            raise InputError(f"{folder}: several light files ({names}); keep one or name it lights.lp")
+        if candidates:
+            return candidates[0]
+    raise InputError(f"{folder}: no light file (lights.lp or another .lp, or relight's .relight or .dome) in the "
+                     "dataset folder")
 
 
 HELDOUT_FOLDER = "Test"
@@ -720,10 +722,12 @@ HELDOUT_FOLDER = "Test"
 
 
 def has_light_file(folder: Path) -> bool:
-    """Whether ``folder`` is a folder holding a light file (a ``*.lp`` other than ``heldout.lp``)."""
+    """Whether ``folder`` is a folder holding a light file (a ``*.lp`` other than ``heldout.lp``, a ``*.relight`` or a
+    ``*.dome``)."""
     try:
         return (folder.is_dir()
-                and any(p.suffix.lower() == ".lp" and p.name != "heldout.lp" and p.is_file() for p in folder.iterdir()))
+                and any(p.suffix.lower() in LIGHT_FILE_SUFFIXES and p.name != "heldout.lp" and p.is_file()
+                        for p in folder.iterdir()))
     except OSError:
         return False
 

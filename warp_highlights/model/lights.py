@@ -26,10 +26,14 @@ class LightSet:
     Attributes:
         directions: ``(n, 3)`` float64 unit vectors towards the lights (normalised on construction).
         filenames: Image paths relative to the dataset folder, one per light, as in the ``.lp`` file.
+        positions: ``(n, 3)`` float64 the lights' positions in millimetres where the light file gives them
+            (relight's ``.dome``/``.relight`` files: LED positions), in the directions' frame; None elsewhere.
+            Kept for a near-light model; the fit uses the directions.
     """
 
     directions: np.ndarray
     filenames: list[str] | None = None
+    positions: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         directions = np.asarray(self.directions, dtype=np.float64)
@@ -44,6 +48,18 @@ class LightSet:
             self.filenames = [str(name) for name in self.filenames]
             if len(self.filenames) != len(directions):
                 raise InputError(f"{len(self.filenames)} file names for {len(directions)} light directions")
+        if self.positions is not None:
+            positions = np.asarray(self.positions, dtype=np.float64)
+            if positions.shape != directions.shape or not np.isfinite(positions).all():
+                raise InputError(f"light positions must be {len(directions)} finite (x, y, z) rows, got shape "
+                                 f"{positions.shape}")
+            self.positions = positions
+
+    def take(self, rows) -> LightSet:
+        """The lights ``rows`` (indices or a boolean mask) with their file names and positions."""
+        rows = np.flatnonzero(rows) if np.asarray(rows).dtype == bool else np.asarray(rows, dtype=np.int64)
+        names = None if self.filenames is None else [self.filenames[i] for i in rows]
+        return LightSet(self.directions[rows], names, None if self.positions is None else self.positions[rows])
 
     @property
     def light_count(self) -> int:

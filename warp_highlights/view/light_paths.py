@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.lightfile import read_lp
+from ..io.lightfile import LIGHT_FILE_SUFFIXES, read_lights
 from ..model.errors import InputError
 
 __all__ = ["LIGHT_PATH_FORMS", "checked_frame_count", "finite_number", "great_circle", "orbit", "parse_light_path",
@@ -278,10 +278,10 @@ def _parse_orbit(rest: str, frames: int) -> np.ndarray:
 
 def _parse_list(rest: str, frames: int) -> np.ndarray:
     if not rest:
-        raise InputError("expected list:FILE with an .lp light file or a text file of 'x y z' lines")
+        raise InputError("expected list:FILE with a light file (.lp, .dome, .relight) or a text file of 'x y z' lines")
     path = Path(rest)
-    if path.suffix.lower() == ".lp":
-        directions = read_lp(path, check_files=False).directions
+    if path.suffix.lower() in LIGHT_FILE_SUFFIXES:
+        directions = read_lights(path, check_files=False).directions
     else:
         directions = _read_direction_file(path)
     return through_directions(directions, frames)
