@@ -1,4 +1,5 @@
-"""``warp-highlights export`` and ``serve``: a fitted field as a static web page, and serving it locally."""
+"""``warp-highlights export`` and ``serve``: a fitted field as a static web page (or a capture in relight's web layout,
+for OpenLIME), and serving it locally."""
 
 from __future__ import annotations
 
@@ -6,19 +7,43 @@ import argparse
 from pathlib import Path
 
 from ..model.errors import InputError
-from .args import Command, check_output_file, check_output_folder, in_range
+from .args import (
+    Command,
+    add_pixel_limit_option,
+    check_output_file,
+    check_output_folder,
+    in_range,
+    pixel_limit,
+    size_option,
+)
 
 __all__ = ["COMMANDS"]
 
 PAGE_SUFFIXES = (".html", ".htm")
 """The file endings ``export --single-file`` takes for its page (a name without one gets ``.html``)."""
+OPENLIME_MODELS = ("ptm", "hsh", "rbf")
+"""``export --format openlime --model``'s choices: ``web.openlime.OPENLIME_MODELS`` (named here so that the
+parser is built without NumPy or Pillow)."""
 
 
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit); with --format "
+                        "openlime, the capture folder (a light file and its images)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with "
                              "--single-file the HTML file (.html is added to a name without a suffix)")
+    parser.add_argument("--format", choices=("page", "openlime"), default="page",
+                        help="page: this project's viewer of the field, moving highlights included (default); "
+                             "openlime: relight's web layout (info.json and plane_N.jpg) that OpenLIME opens, a "
+                             "classic RTI model of the capture (--model)")
+    parser.add_argument("--model", choices=OPENLIME_MODELS, default="hsh",
+                        help="with --format openlime: ptm (18 planes), hsh (order 3, 27 planes, the default) or rbf "
+                             "(18 principal components, interpolated over the lights)")
+    parser.add_argument("--size", type=size_option("export size"),
+                        help="with --format openlime: WIDTHxHEIGHT, same aspect ratio, at most the images' size "
+                             "(default: the images' size)")
+    parser.add_argument("--linear", action="store_true", help="with --format openlime: PNG/JPEG values are linear")
+    add_pixel_limit_option(parser)
     parser.add_argument("--single-file", action="store_true",
                         help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: "
                              "mail services cap a "
@@ -39,6 +64,8 @@ def _run_export(args) -> int:
     from ..web.export import export_viewer, single_file_page
 
     output = Path(args.output)
+    if args.format == "openlime":
+        return _export_openlime(args, output)
     if args.single_file:
         added = not output.suffix
         if added:
@@ -61,6 +88,44 @@ def _run_export(args) -> int:
     print(f"wrote the viewer of {args.field} to {output} ({bytes_text(size)}; the field file: "
           f"{bytes_text(Path(args.field).stat().st_size)}); "
           f"open it with: warp-highlights serve {output}")
+    return 0
+
+
+def _openlime_entry(relative: str) -> bool:
+    """A file of an OpenLIME export (how one written before manifests existed is recognised)."""
+    return relative == "info.json" or (relative.startswith("plane_") and relative.endswith(".jpg"))
+
+
+def _export_openlime(args, output: Path) -> int:
+    import numpy as np
+
+    from ..io.atomic import atomic_folder
+    from ..io.dataset import ReflectanceField
+    from ..io.images import linear_to_srgb
+    from ..io.resample import resize_stack, working_size
+    from ..model.memory import bytes_text
+    from ..web.openlime import export_openlime
+
+    source = Path(args.field)
+    if source.is_file():
+        raise InputError(f"{source}: --format openlime fits {args.model.upper()} to a capture's images: give the "
+                         "capture folder (its light file and images), not a field file")
+    check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
+                        inputs=[source])
+    dataset = ReflectanceField.load(source, linear=args.linear, progress=not args.quiet,
+                                    max_pixels=pixel_limit(args))
+    images = dataset.images
+    if args.size is not None:
+        size = working_size(dataset.width, dataset.height, args.size)
+        images = resize_stack(images, *size)
+    values = linear_to_srgb(np.clip(images, 0.0, 1.0)) if images.ndim == 4 else images
+    with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary:
+        info = export_openlime(values, dataset.lights.directions, temporary, model=args.model)
+        size = sum(p.stat().st_size for p in temporary.iterdir())
+    print(f"wrote {args.model.upper()} of {source} ({dataset.light_count} lights, {info['width']}x{info['height']}) "
+          f"for OpenLIME to {output} ({bytes_text(size)}: info.json and {len(list(output.glob('plane_*.jpg')))} "
+          f"planes); open its info.json in an OpenLIME layer of type 'rti'. OpenLIME's shaders draw the classic "
+          f"model only: the moving highlights show in this project's own page (export FIELD)")
     return 0
 
 

@@ -1,0 +1,239 @@
+"""export --format openlime: relight's web layout written, relit here with OpenLIME's formulas, and opened by
+OpenLIME itself (1.2.6, ../shared/tools/openlime, GPL-3.0: served to the browser from a temporary folder,
+never part of the project) in headless Chromium."""
+
+from __future__ import annotations
+
+import functools
+import http.server
+import json
+import math
+import os
+import shutil
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import sample_data_root
+from warp_highlights.cli import main
+from warp_highlights.io.dataset import ReflectanceField
+from warp_highlights.io.images import linear_to_srgb
+from warp_highlights.io.lightfile import write_lp
+from warp_highlights.model.lights import LightSet
+from warp_highlights.quality.metrics import psnr_8bit
+from warp_highlights.relight.baselines import fit_baseline
+from warp_highlights.web.openlime import OPENLIME_MODELS, export_openlime, openlime_weights, relight_openlime
+
+OPENLIME = Path(os.environ.get("WARP_HIGHLIGHTS_OPENLIME", sample_data_root().parent / "tools" / "openlime"))
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+# the light (x, y) of the page tests; OpenLIME takes z = sqrt(1 - x^2 - y^2)
+PAGE_LIGHTS = [(0.3, 0.5), (-0.5, 0.2), (0.1, -0.7), (0.0, 0.0), (-0.6, -0.6)]
+# the keys OpenLIME's RTI shader may receive: it copies every info.json key onto itself, so a stray one breaks it
+RTI_KEYS = {"width", "height", "format", "type", "colorspace", "nplanes", "lights", "materials", "basis", "quality"}
+
+
+def _rgb8(values) -> np.ndarray:
+    return np.round(255.0 * np.clip(values, 0.0, 1.0)).astype(np.uint8)
+
+
+def _lit(xy) -> np.ndarray:
+    x, y = xy
+    return np.array([x, y, math.sqrt(max(0.0, 1.0 - x * x - y * y))])
+
+
+def _capture(count: int = 30, size: tuple[int, int] = (24, 16), seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """(n, H, W, 3) display values in [0.05, 0.95] of a smooth bumpy Lambertian plate (what JPEG planes keep, as
+    photographs' coefficient planes are) and their (n, 3) dome lights."""
+    rng = np.random.default_rng(seed)
+    lights = LightSet.fibonacci_dome(count, min_elevation_deg=15).directions
+    height, width = size
+    v, u = np.mgrid[0:height, 0:width] / max(height, width)
+    phase = rng.uniform(0, 2 * np.pi, size=2)
+    normal = np.stack([0.4 * np.sin(5 * u + phase[0]), 0.4 * np.cos(4 * v + phase[1]), np.ones_like(u)], axis=2)
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    albedo = 0.6 + 0.3 * np.stack([np.sin(3 * u), np.cos(2 * v), np.sin(2 * (u + v))], axis=2) * rng.uniform(0.5, 1, 3)
+    shade = np.clip(np.einsum("hwk,nk->nhw", normal, lights), 0, 1)[..., None]
+    return (0.05 + 0.9 * albedo * shade).astype(np.float32), lights
+
+
+@pytest.mark.parametrize(("model", "method"), [("ptm", "ptm"), ("hsh", "hsh3")])
+def test_ptm_and_hsh_exports_relight_as_the_baselines_do(tmp_path, model, method):
+    values, lights = _capture()
+    info = export_openlime(values, lights, tmp_path, model=model)
+    assert set(info) <= RTI_KEYS and info["nplanes"] == {"ptm": 18, "hsh": 27}[model]
+    jpegs = sorted(p.name for p in tmp_path.glob("plane_*.jpg"))
+    assert jpegs == [f"plane_{j}.jpg" for j in range(info["nplanes"] // 3)]
+    queries = np.array([_lit(xy) for xy in PAGE_LIGHTS])
+    baseline = fit_baseline(method, values, lights, device="cpu").relight(queries)
+    relit = relight_openlime(tmp_path, queries)
+    # the same least-squares model (the same span of the basis), apart from the planes' 8-bit quantisation
+    assert min(psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(relit, baseline)) >= 45.0
+
+
+def test_hsh_weights_use_openlimes_constants():
+    weights = openlime_weights("hsh", [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [3.0, 4.0, 0.0]])
+    assert weights[0, 0] == pytest.approx(1 / math.sqrt(2 * 3.1415))
+    assert weights[0, 2] == pytest.approx(math.sqrt(3 / (2 * 3.1415)))  # theta 0: cos 1
+    theta = 3.1415 / 2 - 0.15  # the horizon clamped, as OpenLIME does
+    assert weights[1, 2] == pytest.approx(math.sqrt(3 / (2 * 3.1415)) * (2 * math.cos(theta) - 1))
+    np.testing.assert_allclose(weights[2, 1:4:2] / weights[2, 1], [1.0, 4 / 3])  # (x, y) beyond 1 scaled to unit length
+    np.testing.assert_allclose(openlime_weights("ptm", [[0.6, 0.0, 0.8]])[0], [1, 0.6, 0, 0.36, 0, 0])
+
+
+def test_rbf_export_with_every_component_is_the_adaptive_blend_of_the_images(tmp_path):
+    values, lights = _capture(count=12, size=(20, 14))
+    info = export_openlime(values, lights, tmp_path, model="rbf", planes=36)
+    assert set(info) <= RTI_KEYS and info["colorspace"] == "mrgb" and info["nplanes"] == 36
+    assert len(info["basis"]) == 37 * 12 * 3 and min(info["basis"]) >= 0 and max(info["basis"]) <= 255
+    queries = np.array([_lit(xy) for xy in PAGE_LIGHTS])
+    weights = openlime_weights("rbf", queries, info=info)
+    np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+    blend = np.einsum("qn,nhwc->qhwc", weights, values.astype(np.float64))
+    relit = relight_openlime(tmp_path, queries)
+    assert min(psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(relit, blend)) >= 40.0
+
+
+def test_export_openlime_command_writes_the_folder_and_refuses_a_field(tmp_path, small_field, capsys):
+    values, lights = _capture(count=20)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    from warp_highlights.io.images import srgb_to_linear, write_image
+
+    names = [f"im{i:02d}.png" for i in range(len(lights))]
+    for name, image in zip(names, values):
+        write_image(capture / name, srgb_to_linear(image))
+    write_lp(LightSet(lights), capture / "lights.lp", filenames=names)
+    assert main(["export", str(capture), "-o", str(tmp_path / "ptm"), "--format", "openlime", "--model", "ptm"]) == 0
+    assert "for OpenLIME" in capsys.readouterr().out
+    info = json.loads((tmp_path / "ptm" / "info.json").read_text())
+    assert (info["type"], info["width"], info["height"]) == ("ptm", 16, 24)  # size is (H, W)
+    assert main(["export", str(capture), "-o", str(tmp_path / "ptm"), "--format", "openlime"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert main(["export", str(small_field), "-o", str(tmp_path / "no"), "--format", "openlime"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "give the capture folder" in error and "\n" not in error and not (tmp_path / "no").exists()
+
+
+# --- OpenLIME itself, in headless Chromium --------------------------------------------------------
+
+PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
+<style>body{margin:0}</style></head><body><div id="v"></div>
+<script src="openlime.min.js"></script>
+<script>
+window.olReady = false;
+(async () => {
+  const info = await (await fetch('data/info.json')).json();
+  const W = info.width, H = info.height, div = document.getElementById('v');
+  div.style.width = W + 'px'; div.style.height = H + 'px';
+  const viewer = new OpenLIME.Viewer(div, {canvas: {preserveDrawingBuffer: true, targetfps: 1}});
+  Object.assign(viewer.canvasElement.style, {width: W + 'px', height: H + 'px', display: 'block'});
+  const layer = new OpenLIME.Layer({type: 'rti', url: 'data/info.json', layout: 'image'});
+  viewer.addLayer('capture', layer);
+  let draws = 0;
+  viewer.addEvent('draw', () => draws++);
+  const loaded = () => layer.status === 'ready' && layer.tiles.get(0) && layer.tiles.get(0).missing === 0;
+  while (!loaded()) await new Promise(r => setTimeout(r, 20));
+  window.relightAt = async (x, y) => {
+    layer.setLight([x, y], 0);
+    const first = draws;
+    while (draws < first + 6) await new Promise(r => setTimeout(r, 20));
+    const copy = document.createElement('canvas');
+    copy.width = W; copy.height = H;
+    const context = copy.getContext('2d');
+    context.drawImage(viewer.canvasElement, 0, 0);
+    return Array.from(context.getImageData(0, 0, W, H).data);
+  };
+  window.olReady = true;
+})();
+</script></body></html>
+"""
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Headless Chromium (software GL) through Playwright, for the module."""
+    if not (OPENLIME / "openlime.min.js").is_file():
+        pytest.skip(f"OpenLIME not found at {OPENLIME} (set WARP_HIGHLIGHTS_OPENLIME)")
+    if CHROMIUM is None:
+        pytest.skip("no chromium on the PATH (apt install chromium)")
+    playwright = pytest.importorskip("playwright.sync_api",
+                                     reason="Playwright for Python is not installed (pip install playwright)")
+    with playwright.sync_playwright() as driver:
+        launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
+        yield launched
+        launched.close()
+
+
+@contextmanager
+def openlime_page(browser, export: Path, site: Path):
+    """OpenLIME's page over ``export`` (copied with OpenLIME into ``site``), served on 127.0.0.1 and loaded; the
+    tab's console errors in ``tab.errors``."""
+    site.mkdir()
+    shutil.copy(OPENLIME / "openlime.min.js", site)
+    shutil.copytree(export, site / "data")
+    (site / "index.html").write_text(PAGE)
+    handler = functools.partial(_QuietHandler, directory=str(site))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    tab = browser.new_page()
+    tab.errors = []
+    tab.on("console", lambda message: tab.errors.append(message.text) if message.type == "error" else None)
+    tab.on("pageerror", lambda error: tab.errors.append(str(error)))
+    try:
+        tab.goto(f"http://127.0.0.1:{server.server_address[1]}/index.html")
+        tab.wait_for_function("window.olReady === true", timeout=60_000)
+        yield tab
+    finally:
+        tab.close()
+        server.shutdown()
+        server.server_close()
+
+
+class _QuietHandler(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args) -> None:  # no request lines in the test output
+        pass
+
+
+def page_scores(tab, export: Path) -> list[float]:
+    """8-bit PSNR (dB) of OpenLIME's canvas against ``relight_openlime`` at each of ``PAGE_LIGHTS``."""
+    info = json.loads((export / "info.json").read_text())
+    expected = relight_openlime(export, np.array([_lit(xy) for xy in PAGE_LIGHTS]))
+    scores = []
+    for (x, y), reference in zip(PAGE_LIGHTS, expected):
+        canvas = np.array(tab.evaluate(f"relightAt({x}, {y})"), np.uint8).reshape(info["height"], info["width"], 4)
+        scores.append(psnr_8bit(canvas[..., :3], _rgb8(reference)))
+    return scores
+
+
+SAMPLES = {"dome": ("synthrti-object1-material5/Dome", (96, 96)), "statue": ("realrti-item11", (96, 90))}
+
+
+@pytest.fixture(scope="module")
+def sample_values(data_root):
+    """Each sample's display values at a small size, with its lights."""
+    from warp_highlights.io.resample import resize_stack
+
+    loaded = {}
+    for name, (folder, size) in SAMPLES.items():
+        field = ReflectanceField.load(data_root / folder)
+        loaded[name] = (linear_to_srgb(np.clip(resize_stack(field.images, *size), 0, 1)), field.lights.directions)
+    return loaded
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("sample", sorted(SAMPLES))
+@pytest.mark.parametrize("model", OPENLIME_MODELS)
+def test_openlime_shows_the_samples_as_relit_here(browser, sample_values, sample, model, tmp_path):
+    values, lights = sample_values[sample]
+    export = tmp_path / "export"
+    export.mkdir()
+    export_openlime(values, lights, export, model=model)
+    with openlime_page(browser, export, tmp_path / "site") as tab:
+        scores = page_scores(tab, export)
+        assert not tab.errors, tab.errors
+    # OpenLIME shows its value through pow(v, 2.2), an 8-bit buffer and pow(v, 1 / 2.2): dark levels are coarser
+    assert min(scores) >= 35.0, scores

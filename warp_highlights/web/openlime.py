@@ -1,0 +1,225 @@
+"""A capture as relight's web layout, the folder OpenLIME opens (``type: 'rti'``): ``info.json`` and
+``plane_0.jpg``, ``plane_1.jpg``, ... holding three coefficient planes each; and the same folder relit here
+(``relight_openlime``), with OpenLIME's own formulas, as the reference its page is compared with.
+
+The models (fitted to the images' 8-bit sRGB display values in [0, 1], which OpenLIME shows as they are):
+
+- ``ptm``: per pixel and channel, the biquadratic 1, x, y, x^2, xy, y^2 of the light's (x, y) (18 planes,
+  colour space ``rgb``), least squares;
+- ``hsh``: the 9 hemispherical harmonics of order 3 (27 planes, ``rgb``), with OpenLIME's constants (pi as
+  3.1415, the light's polar angle clamped at 3.1415 / 2 - 0.15), least squares;
+- ``rbf``: the images' principal components over the lights (``RBF_PLANES`` planes, colour space ``mrgb``):
+  each pixel's values at every light and channel are the mean plus its coefficients times the
+  components; a query blends the lights' mean and components with OpenLIME's adaptive Gaussian weights
+  (exp(-k d_i^2), k = 8 / the e^(-2d)-weighted mean distance d to the lights, normalised).
+
+Coefficient planes are quantised as relight does: each plane between its 0.25% and 99.75% quantiles
+(``scale`` = high - low, ``bias`` = -low / scale; a byte b stands for (b / 255 - bias) scale), written as
+4:4:4 JPEGs of quality 95 without a colour profile (what a browser decodes as Pillow does). Lights use the
+``LightSet`` frame (x right, y up the image), which is OpenLIME's ``setLight([x, y])`` too.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from ..model.errors import InputError
+
+__all__ = ["OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "openlime_weights", "relight_openlime"]
+
+OPENLIME_MODELS = ("ptm", "hsh", "rbf")
+"""The models ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them)."""
+RBF_PLANES = 18
+"""Principal components an ``rbf`` export keeps: relight's default for its rbf and bilinear fits (6 JPEGs)."""
+QUANTILES = (0.0025, 0.9975)
+"""Each plane's quantisation range, as relight's ``rangeQuantile`` 0.995 (outliers clamp to it)."""
+JPEG_QUALITY = 95
+"""relight's JPEG quality for the planes."""
+_PI = 3.1415  # OpenLIME's value of pi in its HSH weights
+_HSH_MIN_ELEVATION = 0.15  # OpenLIME clamps the light's polar angle at _PI / 2 - this (radians)
+_RBF_ALPHA, _RBF_BETA = 8.0, 2.0  # OpenLIME's adaptive RBF: k = alpha / (d weighted by e^(-beta d))
+_BAND_VALUES = 1 << 24  # float64 values of one band of rows in the least-squares fit and the projections
+
+
+def export_openlime(values: np.ndarray, directions: np.ndarray, folder, *, model: str,
+                    planes: int = RBF_PLANES) -> dict:
+    """Write ``values`` (n, H, W, 3) display values in [0, 1] at the (n, 3) light directions as ``model``
+    (``OPENLIME_MODELS``) into ``folder`` (existing and empty): ``info.json`` and the plane JPEGs. Returns the
+    info.json object."""
+    if model not in OPENLIME_MODELS:
+        raise InputError(f"OpenLIME model {model!r}: one of {', '.join(OPENLIME_MODELS)}")
+    values = np.asarray(values, dtype=np.float32)
+    if values.ndim != 4 or values.shape[3] != 3:
+        raise InputError("OpenLIME's RTI layer shows colour (RGB) captures; this capture has one channel")
+    directions = _unit(directions)
+    n, height, width, _ = values.shape
+    info: dict = {"width": int(width), "height": int(height), "format": "jpg", "type": model, "quality": JPEG_QUALITY,
+                  "lights": [round(float(v), 6) for v in directions.ravel()]}
+    if model == "rbf":
+        coefficients, extra = _principal_planes(values, planes)
+        info.update(colorspace="mrgb", nplanes=int(coefficients.shape[-1]))
+    else:
+        basis = openlime_weights(model, directions)
+        if n < basis.shape[1]:
+            raise InputError(f"a {model.upper()} fit needs at least {basis.shape[1]} lights; the capture has {n}")
+        coefficients = _least_squares(values, basis)  # (H, W, M, 3): plane 3j + c is coefficient j of channel c
+        coefficients = coefficients.reshape(height, width, -1)
+        info.update(colorspace="rgb", nplanes=int(coefficients.shape[-1]))
+        extra = {}
+    scale, bias = _write_planes(coefficients, Path(folder))
+    material = {"scale": scale, "bias": bias}
+    if model == "rbf":
+        material["range"] = extra.pop("range")
+    info["materials"] = [material]
+    info.update(extra)
+    Path(folder, "info.json").write_text(json.dumps(info))
+    return info
+
+
+def openlime_weights(model: str, directions, *, info: dict | None = None) -> np.ndarray:
+    """(Q, M) float64 the basis values OpenLIME gives the (Q, 3) light directions (only x and y count: z is
+    sqrt(1 - x^2 - y^2), (x, y) scaled to unit length beyond it): ``ptm`` (M = 6), ``hsh`` (M = 9); for
+    ``rbf``, the (Q, n) adaptive weights of the n lights of ``info``."""
+    xy = np.asarray(directions, dtype=np.float64).reshape(-1, 3)[:, :2].copy()
+    radius = np.hypot(xy[:, 0], xy[:, 1])
+    xy[radius > 1] /= radius[radius > 1, None]
+    x, y = xy[:, 0], xy[:, 1]
+    z = np.sqrt(np.maximum(0.0, 1.0 - x * x - y * y))
+    if model == "ptm":
+        return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    if model == "hsh":
+        phi = np.arctan2(y, x)
+        phi = np.where(phi < 0, 2 * _PI + phi, phi)
+        theta = np.minimum(np.arccos(np.clip(z, -1, 1)), _PI / 2 - _HSH_MIN_ELEVATION)
+        ct = np.cos(theta)
+        s = np.sqrt(np.maximum(ct - ct * ct, 0.0))
+        cp, sp = np.cos(phi), np.sin(phi)
+        return np.stack([
+            np.full_like(x, 1 / math.sqrt(2 * _PI)),
+            math.sqrt(6 / _PI) * cp * s,
+            math.sqrt(3 / (2 * _PI)) * (2 * ct - 1),
+            math.sqrt(6 / _PI) * s * sp,
+            math.sqrt(30 / _PI) * np.cos(2 * phi) * (ct * ct - ct),
+            math.sqrt(30 / _PI) * cp * (2 * ct - 1) * s,
+            math.sqrt(5 / (2 * _PI)) * (1 - 6 * ct + 6 * ct * ct),
+            math.sqrt(30 / _PI) * (2 * ct - 1) * s * sp,
+            math.sqrt(30 / _PI) * (ct * ct - ct) * np.sin(2 * phi),
+        ], axis=1)
+    if model == "rbf":
+        if info is None:
+            raise ValueError("rbf weights need the export's info (its lights)")
+        lights = np.asarray(info["lights"], dtype=np.float64).reshape(-1, 3)
+        queries = np.stack([x, y, z], axis=1)
+        distance = np.linalg.norm(queries[:, None, :] - lights[None], axis=2)
+        falloff = np.exp(-_RBF_BETA * distance)
+        spread = (distance * falloff).sum(axis=1) / falloff.sum(axis=1)
+        weights = np.exp(-(_RBF_ALPHA / spread)[:, None] * distance ** 2)
+        return weights / weights.sum(axis=1, keepdims=True)
+    raise InputError(f"OpenLIME model {model!r}: one of {', '.join(OPENLIME_MODELS)}")
+
+
+def relight_openlime(folder, directions) -> np.ndarray:
+    """(Q, H, W, 3) float64 display values: the export in ``folder`` relit at the (Q, 3) directions as OpenLIME's
+    shader computes them (before its 8-bit output), from the planes as decoded from their JPEGs."""
+    folder = Path(folder)
+    try:
+        info = json.loads((folder / "info.json").read_text())
+        model, nplanes = info["type"], int(info["nplanes"])
+        material = info["materials"][0]
+        scale, bias = np.asarray(material["scale"], np.float64), np.asarray(material["bias"], np.float64)
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise InputError(f"{folder}: not an OpenLIME RTI export ({exc})") from exc
+    jpegs = [np.asarray(Image.open(folder / f"plane_{j}.jpg").convert("RGB"), np.float64) / 255.0
+             for j in range(math.ceil(nplanes / 3))]
+    planes = np.concatenate(jpegs, axis=2)[..., :nplanes]
+    coefficients = (planes - bias) * scale  # (H, W, nplanes)
+    if model == "rbf":
+        weights = openlime_weights("rbf", directions, info=info)  # (Q, n)
+        lights = weights.shape[1]
+        basis = np.asarray(info["basis"], np.float64).reshape(nplanes + 1, lights, 3)
+        ranges = np.asarray(material["range"], np.float64)
+        components = np.concatenate([basis[:1] / 255.0, (basis[1:] - 127.0) / ranges[:, None, None]])
+        blended = np.einsum("qi,tic->qtc", weights, components)  # (Q, nplanes + 1, 3)
+        return blended[:, None, None, 0, :] + np.einsum("hwp,qpc->qhwc", coefficients, blended[:, 1:, :])
+    weights = openlime_weights(model, directions)[:, : nplanes // 3]
+    height, width = coefficients.shape[:2]
+    return np.einsum("qm,hwmc->qhwc", weights, coefficients.reshape(height, width, -1, 3))
+
+
+def _unit(directions) -> np.ndarray:
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+def _least_squares(values: np.ndarray, basis: np.ndarray) -> np.ndarray:
+    """(H, W, M, 3) float32 the least-squares coefficients of the (n, H, W, 3) values in the (n, M) basis, a band
+    of rows at a time."""
+    n, height, width, _ = values.shape
+    solve = np.linalg.pinv(basis)  # (M, n)
+    out = np.empty((height, width, basis.shape[1], 3), np.float32)
+    rows = max(1, _BAND_VALUES // max(1, n * width * 3))
+    for top in range(0, height, rows):
+        band = values[:, top : top + rows].astype(np.float64)
+        out[top : top + rows] = np.einsum("mn,nhwc->hwmc", solve, band)
+    return out
+
+
+def _principal_planes(values: np.ndarray, planes: int) -> tuple[np.ndarray, dict]:
+    """(H, W, P) float32 each pixel's coefficients on the first P principal components of its 3n values (every
+    light and channel), and the info entries: ``basis`` (the mean as bytes, each component at 127 + range
+    times its values, (P + 1) x n x 3 integers in 0..255) and ``range`` (P,)."""
+    n, height, width, _ = values.shape
+    planes = max(1, min(int(planes), 3 * n, height * width))
+    rows = max(1, _BAND_VALUES // max(1, n * width * 3))
+    total = np.zeros(3 * n)
+    products = np.zeros((3 * n, 3 * n))
+    for top in range(0, height, rows):
+        band = values[:, top : top + rows].transpose(1, 2, 0, 3).reshape(-1, 3 * n).astype(np.float64)
+        total += band.sum(axis=0)
+        products += band.T @ band
+    count = height * width
+    mean = total / count
+    covariance = products / count - np.outer(mean, mean)
+    eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+    components = eigenvectors[:, ::-1][:, :planes].T  # (P, 3n), largest variance first
+    ranges = 127.0 / np.maximum(np.abs(components).max(axis=1), 1e-12)
+    mean_bytes = np.clip(np.round(255.0 * mean), 0, 255)
+    component_bytes = np.clip(np.round(127.0 + ranges[:, None] * components), 0, 255)
+    # project on the components as the page will decode them: the quantised mean and components
+    decoded_mean = mean_bytes / 255.0
+    decoded = (component_bytes - 127.0) / ranges[:, None]
+    solve = np.linalg.pinv(decoded.T)  # (P, 3n): least squares on the decoded components
+    coefficients = np.empty((height, width, planes), np.float32)
+    for top in range(0, height, rows):
+        band = values[:, top : top + rows].transpose(1, 2, 0, 3).astype(np.float64)
+        shape = band.shape[:2]
+        centred = band.reshape(-1, 3 * n) - decoded_mean
+        coefficients[top : top + rows] = (centred @ solve.T).reshape(*shape, planes)
+    basis = np.concatenate([mean_bytes[None], component_bytes]).reshape(planes + 1, n, 3)
+    return coefficients, {"basis": [int(v) for v in basis.ravel()], "range": [float(r) for r in ranges]}
+
+
+def _write_planes(coefficients: np.ndarray, folder: Path) -> tuple[list[float], list[float]]:
+    """Quantise the (H, W, P) planes (each between its ``QUANTILES``) into ``plane_j.jpg`` (planes 3j..3j+2 in its
+    R, G, B; a last JPEG's missing channels 0) in ``folder``; returns each plane's scale and bias."""
+    height, width, count = coefficients.shape
+    scale, bias = [], []
+    padded = math.ceil(count / 3) * 3
+    quantised = np.zeros((height, width, padded), np.uint8)
+    for p in range(count):
+        plane = coefficients[..., p]
+        low, high = (float(v) for v in np.quantile(plane, QUANTILES))
+        if not high > low:
+            high = low + 1e-6
+        quantised[..., p] = np.clip(np.round(255.0 * ((plane - low) / (high - low))), 0, 255)
+        scale.append(high - low)
+        bias.append(-low / (high - low))
+    for j in range(padded // 3):
+        Image.fromarray(quantised[..., 3 * j : 3 * j + 3], "RGB").save(
+            folder / f"plane_{j}.jpg", quality=JPEG_QUALITY, subsampling=0)
+    return scale, bias
