@@ -25,7 +25,13 @@ from warp_highlights.io.lightfile import write_lp
 from warp_highlights.model.lights import LightSet
 from warp_highlights.quality.metrics import psnr_8bit
 from warp_highlights.relight.baselines import fit_baseline
-from warp_highlights.web.openlime import OPENLIME_MODELS, export_openlime, openlime_weights, relight_openlime
+from warp_highlights.web.openlime import (
+    OPENLIME_MODELS,
+    export_openlime,
+    export_openlime_neural,
+    openlime_weights,
+    relight_openlime,
+)
 
 OPENLIME = Path(os.environ.get("WARP_HIGHLIGHTS_OPENLIME", sample_data_root().parent / "tools" / "openlime"))
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -118,6 +124,79 @@ def test_export_openlime_command_writes_the_folder_and_refuses_a_field(tmp_path,
     assert "give the capture folder" in error and "\n" not in error and not (tmp_path / "no").exists()
 
 
+# --- a learned residual as OpenLIME's neural layer ------------------------------------------------
+
+NEURAL_KEYS = {"width", "height", "format", "type", "quality", "planes", "samples", "colorspace", "min", "max",
+               "weights", "biases"}
+
+
+@pytest.fixture(scope="module")
+def learned_field(small_donut, tmp_path_factory):
+    """The small donut fitted with a learned residual (a few epochs) and saved: (field, path)."""
+    from conftest import FAST_FIT
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.fieldfile import save_field
+    from warp_highlights.model.config import FitSettings
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=6",
+                                                     "residual.learned_tune_epochs=2"])
+    field = fit_field(dataset, device="cpu", settings=settings, progress=False)
+    path = tmp_path_factory.mktemp("openlime-neural") / "learned.whf"
+    save_field(field, path)
+    return field, path
+
+
+@pytest.fixture(scope="module")
+def neural_export(learned_field, tmp_path_factory):
+    """``learned_field`` exported as OpenLIME's neural layer (a 20-18 decoder, 40 epochs): (folder, info, figures)."""
+    from warp_highlights.model.config import DistilSettings
+
+    folder = tmp_path_factory.mktemp("neural")
+    info, figures = export_openlime_neural(learned_field[0], folder, hidden=(20, 18),
+                                           settings=DistilSettings(epochs=40, seconds=0))
+    return folder, info, figures
+
+
+def test_neural_export_writes_openlimes_layout_and_relights_as_the_field(learned_field, neural_export):
+    from warp_highlights.residual.cpu_training import CpuDecoder
+    from warp_highlights.residual.opponent import decode_display
+
+    field, _ = learned_field
+    folder, info, figures = neural_export
+    assert set(info) == NEURAL_KEYS and info["planes"] == 9 and info["samples"] == 20  # 18 padded to 20 too
+    assert sorted(p.name for p in folder.glob("plane_*.jpg")) == ["plane_1.jpg", "plane_2.jpg", "plane_3.jpg"]
+    assert [len(w) for w in info["weights"]] == [20 * 12, 20 * 20, 3 * 20]
+    assert [len(b) for b in info["biases"]] == [20, 20, 3]
+    second, third = np.asarray(info["weights"][1]).reshape(20, 20), np.asarray(info["weights"][2]).reshape(3, 20)
+    assert not second[18:].any() and not third[:, 18:].any() and not info["biases"][1][18]  # padded units: zero
+    # the folder relit here against the field's learned residual as shown (sRGB of the residual over the exposure)
+    learned = field.residual.learned
+    teacher = CpuDecoder(learned.codes.reshape(-1, 9).astype(np.float32), learned.weights)
+    upper = field.lights.directions[field.lights.directions[:, 2] > 0]
+    shown = linear_to_srgb(np.clip(decode_display(teacher.decode(upper.astype(np.float32))) * learned.unit
+                                   / field.exposure, 0, 1)).reshape(len(upper), field.height, field.width, 3)
+    mine = relight_openlime(folder, upper)
+    score = np.mean([psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(mine, shown)])
+    assert figures["captured_psnr_db"] >= 30.0 and figures["between_psnr_db"] >= 30.0, figures
+    assert score == pytest.approx(figures["captured_psnr_db"], abs=0.5)  # the folder decodes as the export measured
+
+
+def test_export_neural_command_says_what_it_kept_and_refuses_what_it_cannot_show(learned_field, small_field,
+                                                                                tmp_path, capsys):
+    _, path = learned_field
+    assert main(["export", str(path), "-o", str(tmp_path / "n"), "--format", "openlime", "--model", "neural",
+                 "--seconds", "2", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "OpenLIME's neural layer" in out and "decoder 48-48" in out and "cannot draw the field's moving" in out
+    assert json.loads((tmp_path / "n" / "info.json").read_text())["samples"] == 48
+    for source, needle in ((small_field, "a lowrank residual"), (path.parent, "give the field file")):
+        assert main(["export", str(source), "-o", str(tmp_path / "no"), "--format", "openlime", "--model",
+                     "neural"]) == 2
+        error = capsys.readouterr().err.strip()
+        assert needle in error and "\n" not in error and not (tmp_path / "no").exists()
+
+
 # --- OpenLIME itself, in headless Chromium --------------------------------------------------------
 
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
@@ -131,7 +210,8 @@ window.olReady = false;
   div.style.width = W + 'px'; div.style.height = H + 'px';
   const viewer = new OpenLIME.Viewer(div, {canvas: {preserveDrawingBuffer: true, targetfps: 1}});
   Object.assign(viewer.canvasElement.style, {width: W + 'px', height: H + 'px', display: 'block'});
-  const layer = new OpenLIME.Layer({type: 'rti', url: 'data/info.json', layout: 'image'});
+  const layer = new OpenLIME.Layer({type: info.type === 'neural' ? 'neural' : 'rti', url: 'data/info.json',
+                                    layout: 'image'});
   viewer.addLayer('capture', layer);
   let draws = 0;
   viewer.addEvent('draw', () => draws++);
@@ -237,3 +317,11 @@ def test_openlime_shows_the_samples_as_relit_here(browser, sample_values, sample
         assert not tab.errors, tab.errors
     # OpenLIME shows its value through pow(v, 2.2), an 8-bit buffer and pow(v, 1 / 2.2): dark levels are coarser
     assert min(scores) >= 35.0, scores
+
+
+def test_openlime_shows_the_neural_layer_as_relit_here(browser, neural_export, tmp_path):
+    folder, _, _ = neural_export
+    with openlime_page(browser, folder, tmp_path / "site") as tab:
+        scores = page_scores(tab, folder)
+        assert not tab.errors or all(error.startswith("fps slow") for error in tab.errors), tab.errors
+    assert min(scores) >= 30.0, scores

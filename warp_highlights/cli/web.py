@@ -21,9 +21,9 @@ __all__ = ["COMMANDS"]
 
 PAGE_SUFFIXES = (".html", ".htm")
 """The file endings ``export --single-file`` takes for its page (a name without one gets ``.html``)."""
-OPENLIME_MODELS = ("ptm", "hsh", "rbf")
-"""``export --format openlime --model``'s choices: ``web.openlime.OPENLIME_MODELS`` (named here so that the
-parser is built without NumPy or Pillow)."""
+OPENLIME_MODELS = ("ptm", "hsh", "rbf", "neural")
+"""``export --format openlime --model``'s choices: ``web.openlime.OPENLIME_MODELS`` and the learned residual's
+neural layer (named here so that the parser is built without NumPy or Pillow)."""
 
 
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
@@ -37,8 +37,11 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
                              "openlime: relight's web layout (info.json and plane_N.jpg) that OpenLIME opens, a "
                              "classic RTI model of the capture (--model)")
     parser.add_argument("--model", choices=OPENLIME_MODELS, default="hsh",
-                        help="with --format openlime: ptm (18 planes), hsh (order 3, 27 planes, the default) or rbf "
-                             "(18 principal components, interpolated over the lights)")
+                        help="with --format openlime: a capture's ptm (18 planes), hsh (order 3, 27 planes, the "
+                             "default) or rbf (18 principal components, interpolated over the lights); or a learned "
+                             "field's neural layer (its codes and a decoder of OpenLIME's shape distilled from its)")
+    parser.add_argument("--seconds", type=float, default=120.0,
+                        help="with --model neural: the distillation's time at most, seconds (default: %(default)s)")
     parser.add_argument("--size", type=size_option("export size"),
                         help="with --format openlime: WIDTHxHEIGHT, same aspect ratio, at most the images' size "
                              "(default: the images' size)")
@@ -107,6 +110,8 @@ def _export_openlime(args, output: Path) -> int:
     from ..web.openlime import export_openlime
 
     source = Path(args.field)
+    if args.model == "neural":
+        return _export_openlime_neural(args, source, output)
     if source.is_file():
         raise InputError(f"{source}: --format openlime fits {args.model.upper()} to a capture's images: give the "
                          "capture folder (its light file and images), not a field file")
@@ -126,6 +131,41 @@ def _export_openlime(args, output: Path) -> int:
           f"for OpenLIME to {output} ({bytes_text(size)}: info.json and {len(list(output.glob('plane_*.jpg')))} "
           f"planes); open its info.json in an OpenLIME layer of type 'rti'. OpenLIME's shaders draw the classic "
           f"model only: the moving highlights show in this project's own page (export FIELD)")
+    return 0
+
+
+def _export_openlime_neural(args, source: Path, output: Path) -> int:
+    import dataclasses
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from ..io.atomic import atomic_folder
+    from ..io.fieldfile import load_field
+    from ..model.config import DistilSettings
+    from ..model.memory import bytes_text
+    from ..web.openlime import NEURAL_HIDDEN_OPENLIME, export_openlime_neural
+
+    if source.is_dir():
+        raise InputError(f"{source}: --model neural shows a field's learned residual: give the field file (fit "
+                         "--residual learned), or export the capture's ptm, hsh or rbf")
+    check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
+                        inputs=[source])
+    field = load_field(source)
+    settings = dataclasses.replace(DistilSettings(), hidden=NEURAL_HIDDEN_OPENLIME, seconds=float(args.seconds))
+    with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary, \
+            tqdm(total=100, unit="%", desc="distil for OpenLIME", disable=args.quiet, leave=False) as bar:
+        info, figures = export_openlime_neural(field, temporary, settings=settings,
+                                               progress=lambda done: bar.update(round(100 * done) - bar.n))
+        size = sum(p.stat().st_size for p in temporary.iterdir())
+    moving = bool(np.asarray(field.estimated.active).any())
+    print(f"wrote the learned residual of {source} for OpenLIME's neural layer to {output} ({bytes_text(size)}; "
+          f"{info['width']}x{info['height']}, decoder {'-'.join(map(str, figures['hidden']))}): it gives the field's "
+          f"images back at {figures['captured_psnr_db']:.1f} dB at its {figures['lights']} lights above the image "
+          f"plane and "
+          f"{figures['between_psnr_db']:.1f} dB between them (8-bit sRGB, after {figures['seconds']:.0f} s). "
+          + ("OpenLIME cannot draw the field's moving highlights: they show in this project's own page (export "
+             "FIELD)" if moving else "The field keeps no moving highlights: this is its whole image"))
     return 0
 
 

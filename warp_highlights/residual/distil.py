@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..io.images import linear_to_srgb
 from ..model.config import DistilSettings
 from ..model.errors import InputError
 from ..model.memory import check_memory
@@ -28,11 +29,12 @@ from ..model.residual import (
     parse_hidden,
 )
 from ..model.threads import NUMPY_THREADS, parallel_map
-from ..quality.metrics import srgb_psnr
+from ..quality.metrics import psnr_8bit, srgb_psnr
 from .cpu_training import CpuDecoder, _Adam, blas_on_one_thread
 from .opponent import decode_display
 
-__all__ = ["DistilReport", "decoder_multiply_adds", "distil_decoder", "directions_between", "parse_hidden"]
+__all__ = ["DistilReport", "decoder_multiply_adds", "directions_between", "distil_decoder", "distil_display_decoder",
+           "parse_hidden"]
 
 _FIRST_RATE, _FINAL_RATE = 3e-3, 3e-4  # the learning rate's schedule (the fitted decoder's, ``residual.learned``)
 _NOVEL_SEED = 12_345  # the directions the agreement is measured at between the lights: the same for every student
@@ -88,12 +90,76 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
     ``progress(fraction)`` as training goes, ``log`` a line a round."""
     settings = settings or DistilSettings()
     hidden = parse_hidden(",".join(str(int(w)) for w in (settings.hidden if hidden is None else hidden)))
-    height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32)
     teacher = CpuDecoder(codes, learned.weights)
+    parameters, epochs, seconds = _train_student(lambda pool: teacher.decode(pool), codes, hidden, directions, faces,
+                                                 settings=settings, learn_codes=settings.learn_codes, planar=False,
+                                                 log=log, progress=progress)
+    student_codes = learned.codes
+    if settings.learn_codes:
+        student_codes = parameters.views(parameters.flat)[-1].reshape(learned.codes.shape).astype(np.float16)
+    student = NeuralResidual(student_codes, tuple(parameters.weights()), learned.unit, learned.light_count)
+    between = directions_between(directions, faces, len(directions), np.random.default_rng(_NOVEL_SEED))
+    report = DistilReport(hidden=hidden, teacher_hidden=learned.hidden, multiply_adds=decoder_multiply_adds(hidden),
+                          teacher_multiply_adds=decoder_multiply_adds(learned.hidden), epochs=epochs, seconds=seconds,
+                          captured_psnr_db=agreement(student, learned, directions),
+                          between_psnr_db=agreement(student, learned, between))
+    return student, report
+
+
+def distil_display_decoder(learned: NeuralResidual, codes: np.ndarray, hidden, directions: np.ndarray,
+                           faces: np.ndarray, *, exposure: float, settings: DistilSettings | None = None, log=None,
+                           progress=None) -> tuple[list[np.ndarray], dict]:
+    """A decoder of ``hidden`` widths over the (H, W, 9) ``codes`` (kept as given: e.g. ``learned``'s as a viewer
+    stores them) that takes the light as (x, y, 0) and gives the relit image's 8-bit-ready sRGB display values
+    in [0, 1]: ``learned``'s residual (field units) over ``exposure``, clipped to [0, 1] and sRGB-encoded, as
+    OpenLIME's neural layer draws. Trained at the (n, 3) light ``directions`` and between them (inside
+    ``faces``). Returns its weights and biases (``decoder_layer_shapes`` order) and figures: epochs,
+    seconds, the lights, and the 8-bit PSNR (dB) of its image against the teacher's at the captured lights and between
+    them (``captured_psnr_db``, ``between_psnr_db``)."""
+    settings = settings or DistilSettings()
+    hidden = parse_hidden(",".join(str(int(w)) for w in hidden))
+    teacher = CpuDecoder(learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32), learned.weights)
+    scale = float(learned.unit) / float(exposure)
+
+    def shown(pool: np.ndarray) -> np.ndarray:  # (D, P, 3) what the teacher's image shows, sRGB in [0, 1]
+        return linear_to_srgb(np.clip(decode_display(teacher.decode(pool)) * scale, 0.0, 1.0)).astype(np.float32)
+
+    flat_codes = np.asarray(codes, np.float32).reshape(-1, NEURAL_CODE_SIZE)
+    parameters, epochs, seconds = _train_student(shown, flat_codes, hidden, directions, faces, settings=settings,
+                                                 learn_codes=False, planar=True, log=log, progress=progress)
+    weights = parameters.weights()
+    student = CpuDecoder(flat_codes, weights)
+
+    def score(queries: np.ndarray) -> float:
+        queries = np.asarray(queries, np.float32)
+        mine = np.clip(student.decode(_planar(queries)), 0.0, 1.0)
+        theirs = shown(queries)
+        return float(np.mean([psnr_8bit(np.round(255 * a).astype(np.uint8), np.round(255 * b).astype(np.uint8))
+                              for a, b in zip(mine, theirs)]))
+
+    between = directions_between(directions, faces, len(directions), np.random.default_rng(_NOVEL_SEED))
+    return weights, {"hidden": list(hidden), "lights": len(directions), "epochs": round(epochs, 2),
+                     "seconds": round(seconds, 2),
+                     "captured_psnr_db": round(score(directions), 3), "between_psnr_db": round(score(between), 3)}
+
+
+def _planar(directions: np.ndarray) -> np.ndarray:
+    """Directions as (x, y, 0): the light as OpenLIME's neural layer passes it."""
+    planar = np.array(directions, np.float32)
+    planar[..., 2] = 0.0
+    return planar
+
+
+def _train_student(targets_of, codes: np.ndarray, hidden: tuple[int, ...], directions: np.ndarray,
+                   faces: np.ndarray, *, settings: DistilSettings, learn_codes: bool, planar: bool, log=None,
+                   progress=None) -> tuple[_Student, float, float]:
+    """A student of ``hidden`` widths over the (P, 9) ``codes`` (learning along where ``learn_codes``) trained on
+    ``targets_of(pool)`` (D, P, 3) at the (n, 3) ``directions`` and new ones between them each round (its input
+    the directions as (x, y, 0) where ``planar``); returns it, its epochs and seconds."""
     directions = np.asarray(directions, np.float32)
     rng = np.random.default_rng(settings.seed)
-    parameters = _Student(hidden, rng, codes if settings.learn_codes else None)
+    parameters = _Student(hidden, rng, codes if learn_codes else None)
     adam = _Adam(parameters.flat.size, threads=NUMPY_THREADS)
     pixels = len(codes)
     batch = int(settings.batch)
@@ -103,7 +169,7 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
     total_steps = rounds * steps_per_round
     started = time.perf_counter()
     step, epochs, spent = 0, 0.0, 0.0
-    check_memory(pool_size * pixels * 3 * 2, f"distilling a decoder at {width}x{height}",
+    check_memory(pool_size * pixels * 3 * 2, f"distilling a decoder of {pixels} pixels",
                  "distil a field fitted at a smaller --size",
                  detail="the teacher's outputs at the lights and between them")
     with blas_on_one_thread() as threads:
@@ -111,7 +177,8 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
         for round_index in range(rounds):
             novel = directions_between(directions, faces, pool_size - len(directions), rng)
             pool = np.concatenate([directions, novel])
-            targets = teacher.decode(pool).astype(np.float16)  # (D, P, 3) display units
+            targets = targets_of(pool).astype(np.float16)  # (D, P, 3)
+            inputs = _planar(pool) if planar else pool
             for _ in range(steps_per_round):
                 spent = (time.perf_counter() - started) / settings.seconds if settings.seconds else 0.0
                 done = max(step / max(total_steps - 1, 1), spent)
@@ -121,9 +188,9 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
                 lights = rng.integers(0, len(pool), batch)
                 chosen = rng.integers(0, pixels, batch)
                 shards = np.array_split(np.arange(batch), len(workers))
-                current = parameters.views(parameters.flat)[-1] if settings.learn_codes else codes
+                current = parameters.views(parameters.flat)[-1] if learn_codes else codes
                 parallel_map(lambda k: workers[k].gradient(current[chosen[shards[k]]], chosen[shards[k]],
-                                                           pool[lights[shards[k]]],
+                                                           inputs[lights[shards[k]]],
                                                            targets[lights[shards[k]], chosen[shards[k]]]),
                              range(len(workers)))
                 parameters.grad[:] = sum(worker.grad for worker in workers) / np.float32(batch)
@@ -137,17 +204,7 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
                     f"{time.perf_counter() - started:.1f} s")
             if spent >= 1.0:
                 break
-    seconds = time.perf_counter() - started
-    student_codes = learned.codes
-    if settings.learn_codes:
-        student_codes = parameters.views(parameters.flat)[-1].reshape(learned.codes.shape).astype(np.float16)
-    student = NeuralResidual(student_codes, tuple(parameters.weights()), learned.unit, learned.light_count)
-    between = directions_between(directions, faces, len(directions), np.random.default_rng(_NOVEL_SEED))
-    report = DistilReport(hidden=hidden, teacher_hidden=learned.hidden, multiply_adds=decoder_multiply_adds(hidden),
-                          teacher_multiply_adds=decoder_multiply_adds(learned.hidden), epochs=epochs, seconds=seconds,
-                          captured_psnr_db=agreement(student, learned, directions),
-                          between_psnr_db=agreement(student, learned, between))
-    return student, report
+    return parameters, epochs, time.perf_counter() - started
 
 
 def agreement(student: NeuralResidual, teacher: NeuralResidual, directions: np.ndarray) -> float:

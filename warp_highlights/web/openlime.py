@@ -13,6 +13,12 @@ The models (fitted to the images' 8-bit sRGB display values in [0, 1], which Ope
   components; a query blends the lights' mean and components with OpenLIME's adaptive Gaussian weights
   (exp(-k d_i^2), k = 8 / the e^(-2d)-weighted mean distance d to the lights, normalised).
 
+A field's learned residual goes to OpenLIME's neural layer (``type: 'neural'``, ``export_openlime_neural``):
+its 9 codes a pixel, each quantised to 8 bits between its minimum and maximum, in ``plane_1.jpg`` ..
+``plane_3.jpg``, and a decoder of OpenLIME's shape (the 9 codes and the light's x and y, two hidden ELU
+layers, sRGB out) distilled from the field's (``residual.distil.distil_display_decoder``) over the codes as
+the JPEGs give them back.
+
 Coefficient planes are quantised as relight does: each plane between its 0.25% and 99.75% quantiles
 (``scale`` = high - low, ``bias`` = -low / scale; a byte b stands for (b / 255 - bias) scale), written as
 4:4:4 JPEGs of quality 95 without a colour profile (what a browser decodes as Pillow does). Lights use the
@@ -30,10 +36,17 @@ from PIL import Image
 
 from ..model.errors import InputError
 
-__all__ = ["OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "openlime_weights", "relight_openlime"]
+__all__ = ["NEURAL_HIDDEN_OPENLIME", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "export_openlime_neural",
+           "openlime_weights", "relight_openlime"]
 
 OPENLIME_MODELS = ("ptm", "hsh", "rbf")
-"""The models ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them)."""
+"""The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
+learned residual is its neural layer (``export_openlime_neural``)."""
+NEURAL_HIDDEN_OPENLIME = (48, 48)
+"""The hidden widths of the decoder distilled for OpenLIME's neural layer (two layers, its shape): the fitted
+decoder's width (48-48 students lost 0.50 dB on the dome sample and 1.73 on the statue against the fitted
+decoder, ``DistilSettings``)."""
+_CODE_PLANES = 9  # OpenLIME's neural layer takes 9 codes a pixel, three a JPEG
 RBF_PLANES = 18
 """Principal components an ``rbf`` export keeps: relight's default for its rbf and bilinear fits (6 JPEGs)."""
 QUANTILES = (0.0025, 0.9975)
@@ -79,6 +92,71 @@ def export_openlime(values: np.ndarray, directions: np.ndarray, folder, *, model
     info.update(extra)
     Path(folder, "info.json").write_text(json.dumps(info))
     return info
+
+
+def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, settings=None, log=None,
+                           progress=None) -> tuple[dict, dict]:
+    """Write ``field``'s learned residual as OpenLIME's neural layer into ``folder`` (existing and empty): the codes
+    as ``plane_1.jpg`` .. ``plane_3.jpg`` and ``info.json`` with the distilled decoder (``hidden`` widths, padded
+    to multiples of 4 with zero units). Returns the info.json object and the distillation's figures
+    (``residual.distil.distil_display_decoder``)."""
+    from ..residual.distil import distil_display_decoder
+
+    residual = field.residual
+    if residual is None or residual.learned is None:
+        kind = "no residual" if residual is None else f"a {residual.kind} residual"
+        raise InputError(f"the field holds {kind}: OpenLIME's neural layer shows a learned one (fit with --residual "
+                         "learned), or export the capture's PTM, HSH or RBF with --model")
+    learned = residual.learned
+    codes = np.asarray(learned.codes, np.float32)
+    height, width, count = codes.shape
+    if count != _CODE_PLANES:
+        raise InputError(f"the field's learned residual has {count} codes a pixel; OpenLIME's neural layer takes 9")
+    low, high = codes.reshape(-1, count).min(axis=0), codes.reshape(-1, count).max(axis=0)
+    high = np.where(high > low, high, low + 1e-6)
+    folder = Path(folder)
+    quantised = np.clip(np.round(255.0 * (codes - low) / (high - low)), 0, 255).astype(np.uint8)
+    for k in range(3):
+        Image.fromarray(quantised[..., 3 * k : 3 * k + 3], "RGB").save(
+            folder / f"plane_{k + 1}.jpg", quality=JPEG_QUALITY, subsampling=0)
+    stored = np.concatenate([np.asarray(Image.open(folder / f"plane_{k + 1}.jpg").convert("RGB"), np.float64)
+                             for k in range(3)], axis=2) / 255.0 * (high - low) + low
+    directions, faces = _upper_lights(field)
+    weights, figures = distil_display_decoder(learned, stored.astype(np.float32), hidden, directions, faces,
+                                              exposure=field.exposure, settings=settings, log=log, progress=progress)
+    samples = -(-max(int(w) for w in hidden) // 4) * 4
+    padded_inputs = (_CODE_PLANES + 2 + 3) // 4 * 4  # the codes, x, y and a zero: 12
+    layers, biases = [], []
+    inputs = padded_inputs
+    for index in range(0, len(weights), 2):
+        w, b = weights[index], weights[index + 1][:, 0]
+        outputs = 3 if index == len(weights) - 2 else samples
+        block = np.zeros((outputs, inputs), np.float64)
+        block[: w.shape[0], : w.shape[1]] = w
+        bias = np.zeros(outputs)
+        bias[: len(b)] = b
+        layers.append([round(float(v), 7) for v in block.ravel()])
+        biases.append([round(float(v), 7) for v in bias])
+        inputs = samples
+    info = {"width": int(width), "height": int(height), "format": "jpg", "type": "neural", "quality": JPEG_QUALITY,
+            "planes": _CODE_PLANES, "samples": samples, "colorspace": "rgb",
+            "min": [float(v) for v in low], "max": [float(v) for v in high], "weights": layers, "biases": biases}
+    (folder / "info.json").write_text(json.dumps(info))
+    return info, figures
+
+
+def _upper_lights(field) -> tuple[np.ndarray, np.ndarray]:
+    """The field's lights above the image plane and the triangles among them: OpenLIME's neural layer takes the
+    light's (x, y) only, which cannot tell a light below the plane from its mirror image above."""
+    directions = np.asarray(field.lights.directions, np.float64)
+    upper = directions[:, 2] > 0
+    faces = np.asarray(field.triangulation.faces, np.int64)
+    faces = faces[upper[faces].all(axis=1)]
+    if not len(faces):
+        raise InputError("the field has no triangle of lights above the image plane (z > 0): OpenLIME's neural "
+                         "layer relights from the upper hemisphere only")
+    renumbered = np.cumsum(upper) - 1
+    return directions[upper], renumbered[faces]
 
 
 def openlime_weights(model: str, directions, *, info: dict | None = None) -> np.ndarray:
@@ -129,6 +207,8 @@ def relight_openlime(folder, directions) -> np.ndarray:
     folder = Path(folder)
     try:
         info = json.loads((folder / "info.json").read_text())
+        if info.get("type") == "neural":
+            return _relight_neural(folder, info, directions)
         model, nplanes = info["type"], int(info["nplanes"])
         material = info["materials"][0]
         scale, bias = np.asarray(material["scale"], np.float64), np.asarray(material["bias"], np.float64)
@@ -149,6 +229,29 @@ def relight_openlime(folder, directions) -> np.ndarray:
     weights = openlime_weights(model, directions)[:, : nplanes // 3]
     height, width = coefficients.shape[:2]
     return np.einsum("qm,hwmc->qhwc", weights, coefficients.reshape(height, width, -1, 3))
+
+
+def _relight_neural(folder: Path, info: dict, directions) -> np.ndarray:
+    """OpenLIME's neural layer: the codes from the JPEGs between ``min`` and ``max``, the decoder over the codes and
+    the light's (x, y), ELU hidden layers, its output the display values."""
+    low, high = np.asarray(info["min"], np.float64), np.asarray(info["max"], np.float64)
+    codes = np.concatenate([np.asarray(Image.open(folder / f"plane_{k + 1}.jpg").convert("RGB"), np.float64)
+                            for k in range(3)], axis=2) / 255.0 * (high - low) + low
+    height, width, _ = codes.shape
+    samples = int(info["samples"])
+    shapes = [(samples, -1), (samples, samples), (3, samples)]
+    layers = [np.asarray(w, np.float64).reshape(shape) for w, shape in zip(info["weights"], shapes)]
+    biases = [np.asarray(b, np.float64) for b in info["biases"]]
+    flat = codes.reshape(-1, _CODE_PLANES)
+    images = []
+    for x, y, _ in np.asarray(directions, np.float64).reshape(-1, 3):
+        values = np.concatenate([flat, np.tile([x, y], (len(flat), 1)), np.zeros((len(flat), layers[0].shape[1]
+                                                                                   - _CODE_PLANES - 2))], axis=1)
+        for w, b in zip(layers[:-1], biases[:-1]):
+            z = values @ w.T + b
+            values = np.where(z > 0, z, np.expm1(np.minimum(z, 0.0)))
+        images.append((values @ layers[-1].T + biases[-1]).reshape(height, width, 3))
+    return np.stack(images)
 
 
 def _unit(directions) -> np.ndarray:
