@@ -80,7 +80,8 @@ def _render_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _info_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dataset", type=Path, help="dataset folder (a .lp light file and its images), or a highlight-"
-                        "field file (.whf): its lights, Gaussians, how many move and what they carry, its residual")
+                        "field file (.whf): its lights, Gaussians, how many move and what they carry, its residual; "
+                        "or an RTIViewer .ptm or .rti file")
     parser.add_argument("--heldout", type=Path, help="folder with held-out lights and images, if not inside DATASET")
     parser.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON (a field: its fit report)")
@@ -203,6 +204,17 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
 def _run_info(args) -> int:
     from ..io.dataset import ReflectanceField
 
+    if args.dataset.is_file() and args.dataset.suffix.lower() in (".ptm", ".rti"):
+        from ..io.legacy_rti import read_legacy_rti
+
+        model = read_legacy_rti(args.dataset)
+        figures = {"format": model.source, "model": model.kind, "width": model.width, "height": model.height,
+                   "coefficients_per_channel": int(model.coefficients.shape[2])}
+        print(json.dumps(figures, indent=2) if args.json else
+              f"{args.dataset}: {model.source} ({model.kind.upper()}), {model.width}x{model.height}, "
+              f"{figures['coefficients_per_channel']} coefficients a channel; relight it with warp-highlights relight "
+              f"{args.dataset.name} --light X,Y,Z -o OUT.png (no moving highlights: a classic RTI model)")
+        return 0
     if args.dataset.is_file():
         from ..io.fieldfile import load_field
 

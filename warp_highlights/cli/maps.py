@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -32,7 +33,8 @@ MAP_FILES = {
 
 
 def _maps_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit), or an RTIViewer "
+                        ".ptm or .rti file (its model relit at 64 dome lights)")
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output folder for the maps (PNG 16-bit and EXR each, mask, maps.json)")
     parser.add_argument("--flatten", nargs="?", const="trend", choices=FLATTEN_MODES, default=None,
@@ -62,10 +64,19 @@ def _run_maps(args) -> int:
     output = Path(args.output)
     check_output_folder(output, overwrite=args.overwrite, legacy=_maps_folder_entry, kind="surface maps",
                         inputs=[args.field])
-    field = load_field(args.field)
-    device = check_device(args.device)
-    with tqdm(total=field.light_count, unit="light", desc="maps", disable=args.quiet, leave=False) as bar:
-        maps = surface_maps(field, device=device, flatten=args.flatten, progress=lambda done: bar.update(done - bar.n))
+    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+        from ..io.legacy_rti import read_legacy_rti
+        from ..relight.legacy import MAPS_LIGHTS, legacy_surface_maps
+
+        model = read_legacy_rti(args.field)
+        maps = legacy_surface_maps(model, flatten=args.flatten)
+        field = SimpleNamespace(width=model.width, height=model.height, light_count=MAPS_LIGHTS)
+    else:
+        field = load_field(args.field)
+        device = check_device(args.device)
+        with tqdm(total=field.light_count, unit="light", desc="maps", disable=args.quiet, leave=False) as bar:
+            maps = surface_maps(field, device=device, flatten=args.flatten,
+                                progress=lambda done: bar.update(done - bar.n))
     colour = maps.highlight_colour
     peak = colour.max(axis=2, keepdims=True)
     with atomic_folder(output, kind="surface maps", overwrite=args.overwrite, legacy=_maps_folder_entry) as temporary:

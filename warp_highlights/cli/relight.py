@@ -37,7 +37,8 @@ image (3840 x 2160) takes a few seconds on a 2-core CPU (benchmarks/bench_religh
 
 
 def _relight_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit)")
+    parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit), or an RTIViewer "
+                        ".ptm or .rti file (relit with its own model)")
     parser.add_argument("--light", action="append", default=[], metavar="X,Y,Z",
                         help="light direction towards the light, camera space (x right, y up, z to the camera), e.g. "
                              "--light -0.5,0.2,1; repeatable")
@@ -54,7 +55,7 @@ def _relight_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _animate_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("field", type=Path, help="highlight-field file")
+    parser.add_argument("field", type=Path, help="highlight-field file, or an RTIViewer .ptm or .rti file")
     parser.add_argument("--path", required=True,
                         help="light path, e.g. orbit:35, great:-1,0.2,1:1,0.2,1, list:lights.lp")
     parser.add_argument("-o", "--output", type=Path, required=True,
@@ -222,6 +223,8 @@ def _run_relight(args) -> int:
                             inputs=inputs)
     else:
         check_output_file(output, overwrite=args.overwrite, inputs=inputs)
+    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+        return _relight_legacy(args, np.asarray(directions, dtype=np.float64), output, several)
     if not several:
         return _relight_one(args, directions[0], output)
     field = load_field(args.field)
@@ -308,6 +311,35 @@ def _output_bits(args, field, output: Path) -> int:
     return 16 if int(source.get("bits", 8)) > 8 else 8
 
 
+def _relight_legacy(args, directions: np.ndarray, output: Path, several: bool) -> int:
+    """``relight`` of an RTIViewer ``.ptm`` or ``.rti`` file, with its own model: one image, or a folder of
+    relit_NNNN.exr and lights.lp."""
+    from ..io.atomic import atomic_folder
+    from ..io.images import srgb_to_linear, write_image
+    from ..io.legacy_rti import read_legacy_rti
+    from ..io.lightfile import write_lp
+    from ..io.resample import resize_stack, working_size
+    from ..model.lights import LightSet
+    from ..relight.legacy import relight_legacy
+
+    model = read_legacy_rti(args.field)
+    images = srgb_to_linear(relight_legacy(model, directions))
+    if args.size is not None:
+        images = resize_stack(images, *working_size(model.width, model.height, args.size))
+    if not several:
+        write_image(output, images[0], **({"bits": int(args.bits)} if args.bits != "auto" else {}))
+        print(f"wrote {output} ({images.shape[2]}x{images.shape[1]}, {model.source} of {args.field})")
+        return 0
+    digits = max(4, len(str(len(directions) - 1)))
+    names = [f"relit_{i:0{digits}d}.exr" for i in range(len(directions))]
+    with atomic_folder(output, kind="relit images", overwrite=args.overwrite, legacy=_relit_folder_entry) as temporary:
+        for name, image in zip(names, images):
+            write_image(temporary / name, image)
+        write_lp(LightSet(directions), temporary / "lights.lp", filenames=names)
+    print(f"wrote {len(directions)} images and lights.lp to {output} ({model.source} of {args.field})")
+    return 0
+
+
 def _relit_folder_entry(relative: str) -> bool:
     """A file of a relit-images folder (how one written before manifests existed is recognised)."""
     return (relative == "lights.lp"
@@ -367,6 +399,8 @@ def _run_animate(args) -> int:
         check_not_capture_image(args.output)
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
+    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+        return _animate_legacy(args, kind, directions, frames_format)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
     field = load_field(args.field)
     if args.size is None:
@@ -401,6 +435,38 @@ def _run_animate(args) -> int:
           f"{time.perf_counter() - started:.1f} s")
     if moved:
         _warn_outside_many(f"the light of {moved} of {len(directions)} frames lies")
+    return 0
+
+
+def _animate_legacy(args, kind: str, directions: np.ndarray, frames_format: str) -> int:
+    """``animate`` of an RTIViewer ``.ptm`` or ``.rti`` file, relit with its own model (no moving highlights)."""
+    from tqdm import tqdm
+
+    from ..io.images import srgb_to_linear
+    from ..io.legacy_rti import read_legacy_rti
+    from ..io.resample import resize_stack, working_size
+    from ..relight.legacy import relight_legacy
+    from ..view.animation import default_animation_size, write_animation
+
+    if args.compare or args.specular_only:
+        raise InputError(f"{args.field} holds one classic RTI model: it animates alone (leave out --compare and "
+                         "--specular-only)")
+    model = read_legacy_rti(args.field)
+    size = working_size(model.width, model.height, args.size or default_animation_size(kind, model.width,
+                                                                                       model.height))
+
+    def frames():
+        for direction in directions:
+            image = srgb_to_linear(relight_legacy(model, direction[None]))
+            yield resize_stack(image, *size)[0] if size != (model.width, model.height) else image[0]
+
+    started = time.perf_counter()
+    with tqdm(total=len(directions), unit="frame", desc="animate", disable=args.quiet, leave=False) as bar:
+        path = write_animation(frames(), args.output, fps=args.fps, frame_count=len(directions),
+                               overwrite=args.overwrite,
+                               progress=lambda done: bar.update(done - bar.n), frames_format=frames_format)
+    print(f"wrote {path}: {len(directions)} frames of the {model.source} in {args.field}, {size[0]}x{size[1]}, "
+          f"{time.perf_counter() - started:.1f} s")
     return 0
 
 

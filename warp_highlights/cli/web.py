@@ -21,6 +21,10 @@ __all__ = ["COMMANDS"]
 
 PAGE_SUFFIXES = (".html", ".htm")
 """The file endings ``export --single-file`` takes for its page (a name without one gets ``.html``)."""
+LEGACY_SUFFIXES = (".ptm", ".rti")
+"""RTIViewer's files, which ``export --format openlime`` takes as well as captures (``io.legacy_rti``)."""
+PTM_TO_OPENLIME = (5, 3, 4, 0, 2, 1)
+"""A .ptm file's coefficients (lu^2, lv^2, lu lv, lu, lv, 1) in OpenLIME's order (1, x, y, x^2, xy, y^2)."""
 OPENLIME_MODELS = ("ptm", "hsh", "rbf", "neural")
 """``export --format openlime --model``'s choices: ``web.openlime.OPENLIME_MODELS`` and the learned residual's
 neural layer (named here so that the parser is built without NumPy or Pillow)."""
@@ -32,14 +36,16 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--output", type=Path, required=True,
                         help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with "
                              "--single-file the HTML file (.html is added to a name without a suffix)")
-    parser.add_argument("--format", choices=("page", "openlime"), default="page",
+    parser.add_argument("--format", choices=("page", "openlime", "ptm", "rti"), default="page",
                         help="page: this project's viewer of the field, moving highlights included (default); "
                              "openlime: relight's web layout (info.json and plane_N.jpg) that OpenLIME opens, a "
-                             "classic RTI model of the capture (--model)")
-    parser.add_argument("--model", choices=OPENLIME_MODELS, default="hsh",
+                             "classic RTI model of the capture (--model); ptm, rti: the capture's PTM or HSH (order 3) "
+                             "as a file for RTIViewer (-o FILE.ptm or FILE.rti)")
+    parser.add_argument("--model", choices=OPENLIME_MODELS, default=None,
                         help="with --format openlime: a capture's ptm (18 planes), hsh (order 3, 27 planes, the "
                              "default) or rbf (18 principal components, interpolated over the lights); or a learned "
-                             "field's neural layer (its codes and a decoder of OpenLIME's shape distilled from its)")
+                             "field's neural layer (its codes and a decoder of OpenLIME's shape distilled from its); "
+                             "a .ptm or .rti file goes as the model it holds")
     parser.add_argument("--seconds", type=float, default=120.0,
                         help="with --model neural: the distillation's time at most, seconds (default: %(default)s)")
     parser.add_argument("--size", type=size_option("export size"),
@@ -69,6 +75,8 @@ def _run_export(args) -> int:
     output = Path(args.output)
     if args.format == "openlime":
         return _export_openlime(args, output)
+    if args.format in ("ptm", "rti"):
+        return _export_legacy(args, output)
     if args.single_file:
         added = not output.suffix
         if added:
@@ -100,16 +108,14 @@ def _openlime_entry(relative: str) -> bool:
 
 
 def _export_openlime(args, output: Path) -> int:
-    import numpy as np
-
     from ..io.atomic import atomic_folder
-    from ..io.dataset import ReflectanceField
-    from ..io.images import linear_to_srgb
-    from ..io.resample import resize_stack, working_size
     from ..model.memory import bytes_text
     from ..web.openlime import export_openlime
 
     source = Path(args.field)
+    if source.suffix.lower() in LEGACY_SUFFIXES:
+        return _export_legacy_to_openlime(args, source, output)
+    args.model = args.model or "hsh"
     if args.model == "neural":
         return _export_openlime_neural(args, source, output)
     if source.is_file():
@@ -117,13 +123,7 @@ def _export_openlime(args, output: Path) -> int:
                          "capture folder (its light file and images), not a field file")
     check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
                         inputs=[source])
-    dataset = ReflectanceField.load(source, linear=args.linear, progress=not args.quiet,
-                                    max_pixels=pixel_limit(args))
-    images = dataset.images
-    if args.size is not None:
-        size = working_size(dataset.width, dataset.height, args.size)
-        images = resize_stack(images, *size)
-    values = linear_to_srgb(np.clip(images, 0.0, 1.0)) if images.ndim == 4 else images
+    dataset, values = _capture_values(args, source)
     with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary:
         info = export_openlime(values, dataset.lights.directions, temporary, model=args.model)
         size = sum(p.stat().st_size for p in temporary.iterdir())
@@ -132,6 +132,69 @@ def _export_openlime(args, output: Path) -> int:
           f"planes); open its info.json in an OpenLIME layer of type 'rti'. OpenLIME's shaders draw the classic "
           f"model only: the moving highlights show in this project's own page (export FIELD)")
     return 0
+
+
+def _export_legacy_to_openlime(args, source: Path, output: Path) -> int:
+    """An RTIViewer .ptm or .rti file's model as OpenLIME's layer of the same model (its coefficients as they are)."""
+    from ..io.atomic import atomic_folder
+    from ..io.legacy_rti import read_legacy_rti
+    from ..model.memory import bytes_text
+    from ..web.openlime import export_openlime_coefficients
+
+    check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
+                        inputs=[source])
+    model = read_legacy_rti(source)
+    if args.model not in (None, model.kind):
+        raise InputError(f"{source} holds a {model.kind.upper()}: it goes to OpenLIME as one (leave out --model "
+                         f"{args.model})")
+    coefficients = model.coefficients[:, :, list(PTM_TO_OPENLIME)] if model.kind == "ptm" else model.coefficients
+    with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary:
+        export_openlime_coefficients(coefficients, temporary, model=model.kind)
+        size = sum(p.stat().st_size for p in temporary.iterdir())
+    print(f"wrote the {model.kind.upper()} of {source} ({model.width}x{model.height}) for OpenLIME to {output} "
+          f"({bytes_text(size)}); open its info.json in an OpenLIME layer of type 'rti'")
+    return 0
+
+
+def _export_legacy(args, output: Path) -> int:
+    import numpy as np
+
+    from ..io.legacy_rti import write_hsh_rti, write_ptm
+    from ..model.memory import bytes_text
+    from ..relight.legacy import fit_legacy
+
+    source = Path(args.field)
+    if output.suffix.lower() != f".{args.format}":
+        raise InputError(f"-o {output}: --format {args.format} writes one .{args.format} file; give a name ending in "
+                         f".{args.format}")
+    if source.is_file():
+        raise InputError(f"{source}: --format {args.format} fits the capture's images: give the capture folder, not a "
+                         "file (a .ptm or .rti goes to OpenLIME with --format openlime)")
+    check_output_file(output, overwrite=args.overwrite, inputs=[source])
+    dataset, values = _capture_values(args, source)
+    if values.ndim != 4:
+        raise InputError(f"{source}: RTIViewer's .{args.format} files hold colour (RGB) captures; this one is grey")
+    coefficients = fit_legacy(args.format, values, dataset.lights.directions)
+    (write_ptm if args.format == "ptm" else write_hsh_rti)(output, np.asarray(coefficients))
+    print(f"wrote {'PTM' if args.format == 'ptm' else 'HSH (order 3)'} of {source} ({dataset.light_count} lights, "
+          f"{values.shape[2]}x{values.shape[1]}) to {output} ({bytes_text(output.stat().st_size)}) for RTIViewer; "
+          f"the moving highlights show only in this project's own page (export FIELD)")
+    return 0
+
+
+def _capture_values(args, source: Path):
+    """The capture at ``source`` (``--size``, ``--linear``) and its images' sRGB display values in [0, 1]."""
+    import numpy as np
+
+    from ..io.dataset import ReflectanceField
+    from ..io.images import linear_to_srgb
+    from ..io.resample import resize_stack, working_size
+
+    dataset = ReflectanceField.load(source, linear=args.linear, progress=not args.quiet, max_pixels=pixel_limit(args))
+    images = dataset.images
+    if args.size is not None:
+        images = resize_stack(images, *working_size(dataset.width, dataset.height, args.size))
+    return dataset, linear_to_srgb(np.clip(images, 0.0, 1.0))
 
 
 def _export_openlime_neural(args, source: Path, output: Path) -> int:

@@ -70,7 +70,7 @@ from ..model.residual import LUMINANCE_WEIGHTS
 from .relighter import Relighter
 
 __all__ = ["NormalFit", "NormalLean", "SurfaceMaps", "channel_albedo", "fill_from_neighbours", "fit_normals",
-           "flatten_normals", "normal_lean", "surface_maps", "white_level"]
+           "flatten_normals", "maps_from_images", "normal_lean", "surface_maps", "white_level"]
 
 _FLAT = np.array([0.0, 0.0, 1.0], dtype=np.float32)  # the normal of a pixel without an estimate
 _MIN_NBAR = 1e-6  # |rho n| below this (field units) is no surface: a black or never-lit pixel
@@ -165,24 +165,38 @@ def surface_maps(field, *, device=None, flatten: bool | str = False, settings: M
     directions = field.lights.directions
     # (n, H, W, C): the captured images, as the field keeps them
     captured = relighter.relight(directions, progress=progress).full
+    colour = None if field.residual is None else field.residual.highlight_colour
+    return maps_from_images(captured, directions, exposure=field.exposure, white=white_level(field),
+                            highlight_colour=colour, flatten=flatten, settings=settings)
+
+
+def maps_from_images(captured: np.ndarray, directions: np.ndarray, *, exposure: float = 1.0,
+                     white: float | None = None, highlight_colour: np.ndarray | None = None,
+                     flatten: bool | str = False, settings: MapSettings | None = None) -> SurfaceMaps:
+    """``surface_maps`` of (n, H, W[, C]) images (linear, in units of which ``exposure`` is one display white) at
+    the (n, 3) light ``directions``: what a field's captured lights give, or a classic RTI model relit at any
+    lights. ``white``: the saturation level of the images (None: none clip); ``highlight_colour``: (H, W, C), or
+    None for white."""
+    if flatten is True:
+        flatten = "trend"
+    settings = settings or MapSettings()
     captured = np.maximum(np.nan_to_num(captured, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
     if captured.ndim == 3:
         captured = captured[..., None]
-    channels = captured.shape[3]
-    white = white_level(field)
+    count, height, width, channels = captured.shape
     usable = None
     if white is not None:
         usable = ~np.any(captured >= settings.saturation * white, axis=3).reshape(len(directions), -1)
     weights = np.asarray(LUMINANCE_WEIGHTS if channels == 3 else (1.0,), dtype=np.float32)
     luminance = (captured @ weights).reshape(len(directions), -1)  # (n, P)
-    shape = (field.height, field.width)
+    shape = (height, width)
     fit = fit_normals(luminance, directions, settings=settings, usable=usable, shape=shape)
     del luminance, usable
     determined = fit.mask.reshape(shape)
-    normals = fit.normals.reshape(field.height, field.width, 3)
+    normals = fit.normals.reshape(height, width, 3)
     albedo = channel_albedo(captured.reshape(len(directions), -1, channels), directions, fit.normals, fit.inliers)
     del captured
-    albedo = np.where(determined[..., None], albedo.reshape(field.height, field.width, channels), 0.0)
+    albedo = np.where(determined[..., None], albedo.reshape(height, width, channels), 0.0)
     known = np.concatenate([normals.astype(np.float64), albedo], axis=2)
     known, mask = fill_from_neighbours(known, determined, fit.surface.reshape(shape), settings.neighbourhood)
     filled = mask & ~determined
@@ -193,17 +207,17 @@ def surface_maps(field, *, device=None, flatten: bool | str = False, settings: M
     lean = normal_lean(normals, mask)
     if flatten:
         normals = flatten_normals(normals, mask, level=flatten == "level")
-    albedo = np.where(mask[..., None], albedo, 0.0) / field.exposure
-    colour = None if field.residual is None else field.residual.highlight_colour
+    albedo = np.where(mask[..., None], albedo, 0.0) / exposure
+    colour = highlight_colour
     if colour is None:
-        colour = np.ones((field.height, field.width, channels), dtype=np.float32)
+        colour = np.ones((height, width, channels), dtype=np.float32)
     return SurfaceMaps(
         normals=normals.astype(np.float32),
         albedo=np.nan_to_num(albedo, nan=0.0, posinf=0.0).astype(np.float32),
         highlight_colour=np.maximum(np.asarray(colour, dtype=np.float32), 0.0),
         mask=mask,
         lit_lights=fit.inliers.sum(axis=0).reshape(shape).astype(np.int32),
-        coloured_highlights=field.residual is not None and field.residual.highlight_colour is not None,
+        coloured_highlights=highlight_colour is not None,
         filled=filled & mask,
         shadow_fit=fit.shadow_fit.reshape(shape) & mask,
         lean=lean,

@@ -36,8 +36,8 @@ from PIL import Image
 
 from ..model.errors import InputError
 
-__all__ = ["NEURAL_HIDDEN_OPENLIME", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "export_openlime_neural",
-           "openlime_weights", "relight_openlime"]
+__all__ = ["NEURAL_HIDDEN_OPENLIME", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "export_openlime_coefficients",
+           "export_openlime_neural", "openlime_weights", "relight_openlime"]
 
 OPENLIME_MODELS = ("ptm", "hsh", "rbf")
 """The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
@@ -73,23 +73,31 @@ def export_openlime(values: np.ndarray, directions: np.ndarray, folder, *, model
     n, height, width, _ = values.shape
     info: dict = {"width": int(width), "height": int(height), "format": "jpg", "type": model, "quality": JPEG_QUALITY,
                   "lights": [round(float(v), 6) for v in directions.ravel()]}
-    if model == "rbf":
-        coefficients, extra = _principal_planes(values, planes)
-        info.update(colorspace="mrgb", nplanes=int(coefficients.shape[-1]))
-    else:
+    if model != "rbf":
         basis = openlime_weights(model, directions)
         if n < basis.shape[1]:
             raise InputError(f"a {model.upper()} fit needs at least {basis.shape[1]} lights; the capture has {n}")
-        coefficients = _least_squares(values, basis)  # (H, W, M, 3): plane 3j + c is coefficient j of channel c
-        coefficients = coefficients.reshape(height, width, -1)
-        info.update(colorspace="rgb", nplanes=int(coefficients.shape[-1]))
-        extra = {}
+        # (H, W, M, 3): plane 3j + c is coefficient j of channel c
+        return export_openlime_coefficients(_least_squares(values, basis), folder, model=model, extra=info)
+    coefficients, extra = _principal_planes(values, planes)
+    info.update(colorspace="mrgb", nplanes=int(coefficients.shape[-1]))
     scale, bias = _write_planes(coefficients, Path(folder))
-    material = {"scale": scale, "bias": bias}
-    if model == "rbf":
-        material["range"] = extra.pop("range")
-    info["materials"] = [material]
+    info["materials"] = [{"scale": scale, "bias": bias, "range": extra.pop("range")}]
     info.update(extra)
+    Path(folder, "info.json").write_text(json.dumps(info))
+    return info
+
+
+def export_openlime_coefficients(coefficients: np.ndarray, folder, *, model: str, extra: dict | None = None) -> dict:
+    """Write (H, W, M, 3) ``ptm`` (M = 6 in OpenLIME's order 1, x, y, x^2, xy, y^2) or ``hsh`` (M = 4 or 9)
+    coefficients of display values into ``folder`` (existing and empty) as OpenLIME's ``rgb`` layer; ``extra``:
+    more info.json entries (the lights). Returns the info.json object."""
+    coefficients = np.asarray(coefficients, np.float32)
+    height, width, terms, _ = coefficients.shape
+    info = {"width": int(width), "height": int(height), "format": "jpg", "type": model, "quality": JPEG_QUALITY,
+            **(extra or {}), "colorspace": "rgb", "nplanes": int(3 * terms)}
+    scale, bias = _write_planes(coefficients.reshape(height, width, -1), Path(folder))
+    info["materials"] = [{"scale": scale, "bias": bias}]
     Path(folder, "info.json").write_text(json.dumps(info))
     return info
 

@@ -1,0 +1,117 @@
+"""``export --format openlime`` on the two samples: each model's size, export time and its images as OpenLIME
+computes them (``web.openlime.relight_openlime``: the page matches it to 35 dB or better, ``tests/test_openlime.py``)
+at the held-out lights, in 8-bit sRGB PSNR / SSIM, next to the same fits unquantised.
+
+    python benchmarks/bench_openlime.py                        # both samples, with the neural layer: ~10 min, 2 cores
+    python benchmarks/bench_openlime.py --cases synth --no-neural
+
+The dome sample at 160 x 160 at its Test lights, the statue at 192 x 181 with every 5th light held out
+(``bench_quality.load_case``). ptm, hsh and rbf are fitted to the captured lights' sRGB values; the neural layer
+is a learned residual fitted with ``fit --residual learned`` on this CPU (``--teacher-seconds``), then distilled
+into OpenLIME's decoder for ``--distil-seconds``; its row gives the field's own score beside it (what the
+distillation and the 8-bit codes cost).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_quality import SIZES, load_case  # noqa: E402
+
+from warp_highlights.fit.pipeline import fit_field  # noqa: E402
+from warp_highlights.io.images import linear_to_srgb, srgb_to_linear  # noqa: E402
+from warp_highlights.model.config import DistilSettings, FitSettings  # noqa: E402
+from warp_highlights.quality.metrics import srgb_scores  # noqa: E402
+from warp_highlights.relight.baselines import fit_baseline  # noqa: E402
+from warp_highlights.relight.evaluation import resize_stack  # noqa: E402
+from warp_highlights.relight.relighter import Relighter  # noqa: E402
+from warp_highlights.web.openlime import (  # noqa: E402
+    NEURAL_HIDDEN_OPENLIME,
+    OPENLIME_MODELS,
+    export_openlime,
+    export_openlime_neural,
+    relight_openlime,
+)
+
+UNQUANTISED = {"ptm": "ptm", "hsh": "hsh3", "rbf": None}  # the project's own fit of the same model, unquantised
+
+
+def score(relit_srgb: np.ndarray, truth_linear: np.ndarray) -> tuple[float, float]:
+    """Mean 8-bit sRGB PSNR / SSIM of display values against linear truth."""
+    psnr, ssim = srgb_scores(srgb_to_linear(np.clip(relit_srgb, 0, 1)), truth_linear)
+    return float(np.mean(psnr)), float(np.mean(ssim))
+
+
+def run(case: str, args) -> list[dict]:
+    dataset = load_case(case, "cpu", "cpu")
+    width, height = SIZES[case][0]
+    images = resize_stack(dataset.images, width, height)
+    truth = resize_stack(dataset.heldout.images, width, height)
+    values = linear_to_srgb(np.clip(images, 0, 1))
+    held = dataset.heldout.lights.directions
+    rows = []
+    for model in OPENLIME_MODELS:
+        with tempfile.TemporaryDirectory() as folder:
+            started = time.perf_counter()
+            export_openlime(values, dataset.lights.directions, folder, model=model)
+            seconds = time.perf_counter() - started
+            size = sum(p.stat().st_size for p in Path(folder).iterdir())
+            psnr, ssim = score(relight_openlime(folder, held), truth)
+        own = ""
+        if UNQUANTISED[model]:
+            fitted = fit_baseline(UNQUANTISED[model], values, dataset.lights.directions, device="cpu")
+            own = "%.2f" % score(fitted.relight(held), truth)[0]
+        rows.append(dict(case=case, model=model, kb=size / 1e3, seconds=seconds, psnr=psnr, ssim=ssim, own=own))
+        print(rows[-1], flush=True)
+    if args.neural:
+        settings = FitSettings().with_overrides(["residual.kind=learned",
+                                                 f"residual.learned_seconds={args.teacher_seconds}"])
+        field = fit_field(dataset, device="cpu", size=(width, height), settings=settings, progress=False)
+        own = Relighter(field, device="cpu").relight(held).full / field.exposure
+        own_psnr = float(np.mean(srgb_scores(np.clip(own, 0, None), truth)[0]))
+        with tempfile.TemporaryDirectory() as folder:
+            started = time.perf_counter()
+            _, figures = export_openlime_neural(field, folder, settings=replace(
+                DistilSettings(), hidden=NEURAL_HIDDEN_OPENLIME, seconds=args.distil_seconds))
+            seconds = time.perf_counter() - started
+            size = sum(p.stat().st_size for p in Path(folder).iterdir())
+            psnr, ssim = score(relight_openlime(folder, held), truth)
+        rows.append(dict(case=case, model="neural", kb=size / 1e3, seconds=seconds, psnr=psnr, ssim=ssim,
+                         own="%.2f (the field)" % own_psnr, note=figures))
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--cases", default="synth,statue")
+    parser.add_argument("--no-neural", dest="neural", action="store_false")
+    parser.add_argument("--teacher-seconds", type=float, default=120.0)
+    parser.add_argument("--distil-seconds", type=float, default=120.0)
+    args = parser.parse_args()
+    rows = [row for case in args.cases.split(",") for row in run(case, args)]
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    print(f"\n{platform.machine()} {platform.node()}, {datetime.date.today()}, commit {commit}\n")
+    print("| capture | model | size (kB) | export (s) | PSNR / SSIM at held-out lights | unquantised |")
+    print("|---|---|---|---|---|---|")
+    for row in rows:
+        print(f"| {row['case']} | {row['model']} | {row['kb']:.0f} | {row['seconds']:.1f} | "
+              f"{row['psnr']:.2f} / {row['ssim']:.4f} | {row['own']} |")
+
+
+if __name__ == "__main__":
+    main()

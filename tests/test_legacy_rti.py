@@ -1,0 +1,168 @@
+"""RTIViewer's .ptm and .rti files: written, read back to their quantisation, relit as the baselines, refused in
+one line when malformed, and taken by info, relight and export."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from warp_highlights.cli import main
+from warp_highlights.io.images import read_image, srgb_to_linear, write_image
+from warp_highlights.io.legacy_rti import read_legacy_rti, write_hsh_rti, write_ptm
+from warp_highlights.io.lightfile import write_lp
+from warp_highlights.model.errors import InputError
+from warp_highlights.model.lights import LightSet
+from warp_highlights.quality.metrics import psnr_8bit
+from warp_highlights.relight.baselines import fit_baseline
+from warp_highlights.relight.legacy import fit_legacy, relight_legacy
+
+QUERIES = np.array([[0.3, 0.5, 0.81], [-0.5, 0.2, 0.84], [0.1, -0.7, 0.7], [0.0, 0.0, 1.0]])
+
+
+def _rgb8(values) -> np.ndarray:
+    return np.round(255.0 * np.clip(values, 0.0, 1.0)).astype(np.uint8)
+
+
+def _capture(count: int = 25, height: int = 12, width: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """(n, H, W, 3) display values of a smooth Lambertian plate and its (n, 3) dome lights."""
+    lights = LightSet.fibonacci_dome(count, min_elevation_deg=15).directions
+    v, u = np.mgrid[0:height, 0:width] / max(height, width)
+    normal = np.stack([0.4 * np.sin(5 * u), 0.3 * np.cos(4 * v), np.ones_like(u)], axis=2)
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    albedo = np.stack([0.5 + 0.3 * u, 0.6 + 0.2 * v, 0.4 + 0.3 * u * v], axis=2)
+    shade = np.clip(np.einsum("hwk,nk->nhw", normal, lights), 0, 1)[..., None]
+    return (0.05 + 0.9 * albedo * shade).astype(np.float32), lights
+
+
+@pytest.mark.parametrize(("suffix", "method"), [(".ptm", "ptm"), (".rti", "hsh3")])
+def test_written_files_read_back_to_their_quantisation_and_relight_as_the_baseline(tmp_path, suffix, method):
+    values, lights = _capture()
+    coefficients = fit_legacy(suffix[1:], values, lights, device="cpu")
+    path = tmp_path / f"a{suffix}"
+    (write_ptm if suffix == ".ptm" else write_hsh_rti)(path, coefficients)
+    model = read_legacy_rti(path)
+    assert model.kind == ("ptm" if suffix == ".ptm" else "hsh") and (model.height, model.width) == (12, 20)
+    span = coefficients.max(axis=(0, 1, 3)) - coefficients.min(axis=(0, 1, 3))  # one scale a coefficient
+    assert (np.abs(model.coefficients - coefficients).max(axis=(0, 1, 3)) <= span / 255 * 0.5 + 1e-6).all()
+    baseline = fit_baseline(method, values, lights, device="cpu").relight(QUERIES)
+    relit = relight_legacy(model, QUERIES)
+    assert min(psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(relit, baseline)) >= 40.0
+
+
+def test_ptm_rows_are_stored_bottom_up(tmp_path):
+    coefficients = np.zeros((3, 2, 6, 3), np.float32)
+    coefficients[0, :, 5] = 1.0  # the top row is white under any light (the constant term)
+    write_ptm(tmp_path / "a.ptm", coefficients)
+    data = (tmp_path / "a.ptm").read_bytes()
+    body = np.frombuffer(data[-3 * 3 * 2 * 6:], np.uint8).reshape(3, 3, 2, 6)  # channel, row, pixel, coefficient
+    assert body[0, 2, 0, 5] > body[0, 0, 0, 5]  # the file's last row is the image's top
+    assert np.allclose(read_legacy_rti(tmp_path / "a.ptm").coefficients[0, :, 5], 1.0, atol=1 / 255)
+
+
+def test_lrgb_ptm_is_the_luminance_polynomial_times_the_colour(tmp_path):
+    height, width = 2, 3
+    rng = np.random.default_rng(1)
+    luminance = rng.integers(0, 256, (height, width, 6), dtype=np.uint8)
+    rgb = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    scale, bias = [0.5, 0.4, 0.3, 0.8, 0.9, 1.0], [10, 20, 30, 40, 50, 0]
+    header = f"PTM_1.2\nPTM_FORMAT_LRGB\n{width}\n{height}\n{' '.join(map(str, scale))}\n{' '.join(map(str, bias))}\n"
+    (tmp_path / "l.ptm").write_bytes(header.encode() + luminance.tobytes() + rgb.tobytes())
+    model = read_legacy_rti(tmp_path / "l.ptm")
+    expected = ((luminance - np.array(bias)) * np.array(scale) / 255.0)[..., :, None] * (rgb / 255.0)[..., None, :]
+    np.testing.assert_allclose(model.coefficients, expected[::-1], rtol=1e-5, atol=1e-6)
+    assert model.source == "PTM_FORMAT_LRGB"
+
+
+@pytest.mark.parametrize(("content", "needle"), [
+    (b"PTM_1.2\nPTM_FORMAT_JPEG_RGB\n2\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n", "save the PTM uncompressed"),
+    (b"PTM_1.1\nPTM_FORMAT_RGB\n", "PTM_1.2 files are read"),
+    (b"PTM_1.2\nPTM_FORMAT_RGB\n99999999\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n", "1 to 65536 a side"),
+    (b"PTM_1.2\nPTM_FORMAT_RGB\n2\n2\n1 1 1 1 1\n0 0 0 0 0 0\n", "expected 6 scales"),
+    (b"PTM_1.2\nPTM_FORMAT_RGB\n2\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n" + bytes(10), "truncated"),
+    (b"#HSH1.2\n1\n2 2 3\n9 2 1\n", "RTI type 1"),
+    (b"#HSH1.2\n3\n2 2 1\n9 2 1\n", "RGB (3) files are read"),
+    (b"#HSH1.2\n3\n2 2 3\n16 2 1\n", "4 or 9"),
+    (b"#HSH1.2\n3\n2 2 3\n9 2 1\n" + struct.pack("<18f", *([float("nan")] * 18)) + bytes(108), "not finite"),
+    (b"PTM_1.2\nPTM", "header ends early"),
+])
+def test_malformed_files_are_refused_in_one_line(tmp_path, content, needle):
+    path = tmp_path / ("a.rti" if content.startswith(b"#") else "a.ptm")
+    path.write_bytes(content)
+    with pytest.raises(InputError) as excinfo:
+        read_legacy_rti(path)
+    message = str(excinfo.value)
+    assert needle in message and "\n" not in message and path.name in message
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(header=st.lists(st.sampled_from(["PTM_1.2", "PTM_FORMAT_RGB", "PTM_FORMAT_LRGB", "#HSH1.2", "3", "9 2 1",
+                                        "4 2 1", "2 2 3", "65537", "2", "1 1 1 1 1 1", "0 0 0 0 0 0", "-1", "x",
+                                        "1e400 1 1 1 1 1", ""]), min_size=0, max_size=8),
+       tail=st.binary(max_size=200), suffix=st.sampled_from([".ptm", ".rti"]))
+def test_reader_raises_only_one_line_input_errors(tmp_path, header, tail, suffix):
+    path = tmp_path / f"fuzz{suffix}"
+    path.write_bytes("\n".join(header).encode() + b"\n" + tail)
+    try:
+        model = read_legacy_rti(path)
+    except InputError as error:
+        assert "\n" not in str(error)
+        return
+    assert np.isfinite(model.coefficients).all() and model.coefficients.size <= 3 * 9 * len(tail)
+
+
+def test_export_info_and_relight_commands(tmp_path, capsys):
+    values, lights = _capture(count=20)
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    names = [f"im{i:02d}.png" for i in range(len(lights))]
+    for name, image in zip(names, values):
+        write_image(capture / name, srgb_to_linear(image))
+    write_lp(LightSet(lights), capture / "lights.lp", filenames=names)
+    for file_format in ("ptm", "rti"):
+        path = tmp_path / f"c.{file_format}"
+        assert main(["export", str(capture), "--format", file_format, "-o", str(path), "-q"]) == 0
+        assert "for RTIViewer" in capsys.readouterr().out
+        assert main(["info", str(path)]) == 0
+        assert "20x12" in capsys.readouterr().out
+        assert main(["relight", str(path), "--light", "0.3,0.5,1", "-o", str(tmp_path / f"{file_format}.png")]) == 0
+        relit = read_image(tmp_path / f"{file_format}.png")
+        expected = relight_legacy(read_legacy_rti(path), np.array([[0.3, 0.5, 1.0]]))[0]
+        assert psnr_8bit(_rgb8(np.clip(relit, 0, 1)), _rgb8(srgb_to_linear(expected))) >= 45.0
+    assert main(["export", str(capture), "--format", "ptm", "-o", str(tmp_path / "x.rti")]) == 2
+    assert "name ending in .ptm" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "c.ptm"), "--format", "rti", "-o", str(tmp_path / "y.rti")]) == 2
+    assert "give the capture folder" in capsys.readouterr().err
+
+
+def test_animate_maps_and_openlime_export_take_legacy_files(tmp_path, capsys):
+    from warp_highlights.io.images import read_image as read
+    from warp_highlights.web.openlime import relight_openlime
+
+    values, lights = _capture(count=30, height=24, width=32)
+    for file_format, model_name in (("ptm", "ptm"), ("rti", "hsh")):
+        path = tmp_path / f"c.{file_format}"
+        (write_ptm if file_format == "ptm" else write_hsh_rti)(path, fit_legacy(file_format, values, lights,
+                                                                                device="cpu"))
+        model = read_legacy_rti(path)
+        assert main(["animate", str(path), "--path", "orbit:40", "--frames", "6", "-o",
+                     str(tmp_path / f"{file_format}-frames"), "-q"]) == 0
+        frames = sorted((tmp_path / f"{file_format}-frames").glob("*.png"))
+        assert len(frames) == 6 and read(frames[0]).shape == (24, 32, 3)
+        assert main(["animate", str(path), "--path", "orbit:40", "--specular-only", "-o", str(tmp_path / "x.gif")]) == 2
+        assert "animates alone" in capsys.readouterr().err
+        # maps: the plate's normals lean as its normal field does (x from sin(5u), y from cos(4v))
+        assert main(["maps", str(path), "-o", str(tmp_path / f"{file_format}-maps"), "-q"]) == 0
+        normals = read(tmp_path / f"{file_format}-maps" / "normals.exr")
+        assert normals.shape == (24, 32, 3) and np.all(normals[..., 2] > 0.5)
+        u = np.arange(32) / 32
+        assert np.corrcoef(normals[12, :, 0], np.sin(5 * u))[0, 1] > 0.9
+        # OpenLIME: the file's coefficients as they are (PTM reordered to OpenLIME's basis)
+        folder = tmp_path / f"{file_format}-openlime"
+        assert main(["export", str(path), "--format", "openlime", "-o", str(folder), "-q"]) == 0
+        relit = relight_openlime(folder, QUERIES)
+        expected = relight_legacy(model, QUERIES)
+        assert min(psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(relit, expected)) >= 40.0, model_name
