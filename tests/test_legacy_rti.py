@@ -98,6 +98,14 @@ def test_malformed_files_are_refused_in_one_line(tmp_path, content, needle):
     assert needle in message and "\n" not in message and path.name in message
 
 
+def test_info_on_a_malformed_file_exits_2_in_one_line(tmp_path, capsys):
+    path = tmp_path / "bad.ptm"
+    path.write_bytes(b"PTM_1.2\nPTM_FORMAT_RGB\n4\n4\n1 1 1 1 1 1\n0 0 0 0 0 0\n" + bytes(5))
+    assert main(["info", str(path)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "truncated" in error and "\n" not in error
+
+
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(header=st.lists(st.sampled_from(["PTM_1.2", "PTM_FORMAT_RGB", "PTM_FORMAT_LRGB", "#HSH1.2", "3", "9 2 1",
                                         "4 2 1", "2 2 3", "65537", "2", "1 1 1 1 1 1", "0 0 0 0 0 0", "-1", "x",
@@ -153,7 +161,9 @@ def test_animate_maps_and_openlime_export_take_legacy_files(tmp_path, capsys):
         frames = sorted((tmp_path / f"{file_format}-frames").glob("*.png"))
         assert len(frames) == 6 and read(frames[0]).shape == (24, 32, 3)
         assert main(["animate", str(path), "--path", "orbit:40", "--specular-only", "-o", str(tmp_path / "x.gif")]) == 2
-        assert "animates alone" in capsys.readouterr().err
+        assert "leave out --specular-only" in capsys.readouterr().err
+        assert main(["relight", str(path), "--light", "0,0,1", "--method", "alpha", "-o", str(tmp_path / "x.png")]) == 2
+        assert "leave out --method" in capsys.readouterr().err
         # maps: the plate's normals lean as its normal field does (x from sin(5u), y from cos(4v))
         assert main(["maps", str(path), "-o", str(tmp_path / f"{file_format}-maps"), "-q"]) == 0
         normals = read(tmp_path / f"{file_format}-maps" / "normals.exr")

@@ -322,6 +322,7 @@ def _relight_legacy(args, directions: np.ndarray, output: Path, several: bool) -
     from ..model.lights import LightSet
     from ..relight.legacy import relight_legacy
 
+    _check_legacy_options(args)
     model = read_legacy_rti(args.field)
     images = srgb_to_linear(relight_legacy(model, directions))
     if args.size is not None:
@@ -438,6 +439,18 @@ def _run_animate(args) -> int:
     return 0
 
 
+def _check_legacy_options(args) -> None:
+    """Refuse the options that a field's highlights or residual take and a .ptm or .rti file has no part for."""
+    given = [name for name, value, default in (("--method", args.method, "circular"),
+                                               ("--diffuse", args.diffuse, "auto"),
+                                               ("--specular-only", args.specular_only, False),
+                                               ("--specular-colour", args.specular_colour, None),
+                                               ("--dataset", args.dataset, None)) if value != default]
+    if given:
+        raise InputError(f"{args.field} holds one classic RTI model, relit as it is: leave out {', '.join(given)} "
+                         "(they choose among a field's highlights and residual)")
+
+
 def _animate_legacy(args, kind: str, directions: np.ndarray, frames_format: str) -> int:
     """``animate`` of an RTIViewer ``.ptm`` or ``.rti`` file, relit with its own model (no moving highlights)."""
     from tqdm import tqdm
@@ -448,9 +461,9 @@ def _animate_legacy(args, kind: str, directions: np.ndarray, frames_format: str)
     from ..relight.legacy import relight_legacy
     from ..view.animation import default_animation_size, write_animation
 
-    if args.compare or args.specular_only:
-        raise InputError(f"{args.field} holds one classic RTI model: it animates alone (leave out --compare and "
-                         "--specular-only)")
+    if args.compare:
+        raise InputError(f"{args.field} holds one classic RTI model: it animates alone (leave out --compare)")
+    _check_legacy_options(args)
     model = read_legacy_rti(args.field)
     size = working_size(model.width, model.height, args.size or default_animation_size(kind, model.width,
                                                                                        model.height))

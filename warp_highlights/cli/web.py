@@ -267,7 +267,8 @@ def _stopped_serving(args) -> str:
 
 COMMANDS = (
     Command("export", _export_arguments, _run_export,
-            help="write a fitted field as a static web page that relights it in the browser (WebGL2)",
+            help="write a fitted field as a static web page that relights it in the browser (WebGL2), or a capture "
+                 "for OpenLIME or RTIViewer",
             description="Write a viewer of the field into a folder: index.html, viewer.js, manifest.json and the "
                         "field's arrays "
             "(little-endian binaries). The page locates the light in the triangulation, moves the "
@@ -276,7 +277,10 @@ COMMANDS = (
             "file://: serve it with "
             "warp-highlights serve, or write one file that opens from disk with --single-file. Every residual "
             "kind (low rank, "
-            "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights.",
+            "uncompressed, learned); the alpha blend is the blend of the field's own images of its captured lights. "
+            "--format openlime writes relight's web layout for OpenLIME instead (a capture's PTM, HSH or RBF, a .ptm "
+            "or .rti file's model, or a learned field's neural layer), --format ptm or rti a capture's PTM or HSH "
+            "for RTIViewer; neither viewer can move the highlights.",
             check=_check_export),
     Command("serve", _serve_arguments, _run_serve, help="serve an exported viewer on 127.0.0.1 (this computer only)",
             description="Serve a folder written by warp-highlights export over HTTP on 127.0.0.1 only: never reachable "
