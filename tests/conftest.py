@@ -1,8 +1,10 @@
-"""Shared fixtures: Warp devices to test on, the sample datasets, and the figures ``view.plots`` draws."""
+"""Shared fixtures: Warp devices to test on, the sample datasets, small captures and fields, headless Chromium, and the
+figures ``view.plots`` draws."""
 
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -148,3 +150,68 @@ def panel_pixels(figure, png) -> list[tuple[str, object]]:
         columns = slice(round(box.x0 + dx), round(box.x1 - dx))
         panels.append((ax.get_title(), pixels[rows, columns]))
     return panels
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """Headless Chromium (software GL) through Playwright, for the session; skips where either is absent."""
+    if CHROMIUM is None:
+        pytest.skip("no chromium on the PATH (apt install chromium)")
+    playwright = pytest.importorskip("playwright.sync_api",
+                                     reason="Playwright for Python is not installed (pip install playwright)")
+    with playwright.sync_playwright() as driver:
+        launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
+        yield launched
+        launched.close()
+
+
+@pytest.fixture(scope="session")
+def small_learned_field(small_donut, tmp_path_factory):
+    """The small donut fitted with a learned residual (``FAST_FIT``, a few epochs) and saved: (field, path)."""
+    from warp_highlights.fit.pipeline import fit_field
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.io.fieldfile import save_field
+    from warp_highlights.model.config import FitSettings
+
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=6",
+                                                     "residual.learned_tune_epochs=2"])
+    field = fit_field(dataset, device="cpu", settings=settings, progress=False)
+    path = tmp_path_factory.mktemp("learned") / "learned.whf"
+    save_field(field, path)
+    return field, path
+
+
+def smooth_plate(count: int = 25, height: int = 12, width: int = 20):
+    """(n, H, W, 3) float32 display values in [0.05, 0.95] of a smooth bumpy Lambertian plate under a Fibonacci dome
+    of ``count`` lights above 15 degrees (what JPEG planes and 8-bit coefficients keep, as a photograph's do), and
+    the (n, 3) lights."""
+    import numpy as np
+
+    from warp_highlights.model.lights import LightSet
+
+    lights = LightSet.fibonacci_dome(count, min_elevation_deg=15).directions
+    v, u = np.mgrid[0:height, 0:width] / max(height, width)
+    normal = np.stack([0.4 * np.sin(5 * u), 0.3 * np.cos(4 * v), np.ones_like(u)], axis=2)
+    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
+    albedo = np.stack([0.5 + 0.3 * u, 0.6 + 0.2 * v, 0.4 + 0.3 * u * v], axis=2)
+    shade = np.clip(np.einsum("hwk,nk->nhw", normal, lights), 0, 1)[..., None]
+    return (0.05 + 0.9 * albedo * shade).astype(np.float32), lights
+
+
+def write_capture(folder: Path, values, lights) -> Path:
+    """``folder`` made a capture: the (n, H, W, 3) display values as PNGs im00.png ... and their lights.lp."""
+    from warp_highlights.io.images import srgb_to_linear, write_image
+    from warp_highlights.io.lightfile import write_lp
+    from warp_highlights.model.lights import LightSet
+
+    folder.mkdir(parents=True)
+    names = [f"im{i:02d}.png" for i in range(len(lights))]
+    for name, image in zip(names, values):
+        write_image(folder / name, srgb_to_linear(image))
+    write_lp(LightSet(lights), folder / "lights.lp", filenames=names)
+    return folder

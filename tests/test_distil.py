@@ -10,7 +10,6 @@ import zipfile
 import numpy as np
 import pytest
 
-from conftest import FAST_FIT
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import (
     NEURAL_HIDDEN,
@@ -150,20 +149,9 @@ def test_directions_between_lie_inside_the_lights_triangles():
 
 
 @pytest.fixture(scope="module")
-def learned_field(small_donut, tmp_path_factory):
-    """The small donut fitted with a learned residual (a few epochs) and saved: (field, path)."""
-    from warp_highlights.fit.pipeline import fit_field
-    from warp_highlights.io.dataset import ReflectanceField
-    from warp_highlights.io.fieldfile import save_field
-    from warp_highlights.model.config import FitSettings
-
-    dataset = ReflectanceField.load(small_donut, progress=False)
-    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=6",
-                                                     "residual.learned_tune_epochs=2"])
-    field = fit_field(dataset, device="cpu", settings=settings, progress=False)
-    path = tmp_path_factory.mktemp("distil") / "learned.whf"
-    save_field(field, path)
-    return field, path
+def learned_field(small_learned_field):
+    """The small donut fitted with a learned residual: (field, path) (``conftest.small_learned_field``)."""
+    return small_learned_field
 
 
 def test_a_distilled_decoder_learns_its_teacher(learned_field):

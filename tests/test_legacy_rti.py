@@ -10,12 +10,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import smooth_plate, write_capture
 from warp_highlights.cli import main
-from warp_highlights.io.images import read_image, srgb_to_linear, write_image
+from warp_highlights.io.images import read_image, srgb_to_linear
 from warp_highlights.io.legacy_rti import read_legacy_rti, write_hsh_rti, write_ptm
-from warp_highlights.io.lightfile import write_lp
 from warp_highlights.model.errors import InputError
-from warp_highlights.model.lights import LightSet
 from warp_highlights.quality.metrics import psnr_8bit
 from warp_highlights.relight.baselines import fit_baseline
 from warp_highlights.relight.legacy import fit_legacy, relight_legacy
@@ -27,20 +26,9 @@ def _rgb8(values) -> np.ndarray:
     return np.round(255.0 * np.clip(values, 0.0, 1.0)).astype(np.uint8)
 
 
-def _capture(count: int = 25, height: int = 12, width: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """(n, H, W, 3) display values of a smooth Lambertian plate and its (n, 3) dome lights."""
-    lights = LightSet.fibonacci_dome(count, min_elevation_deg=15).directions
-    v, u = np.mgrid[0:height, 0:width] / max(height, width)
-    normal = np.stack([0.4 * np.sin(5 * u), 0.3 * np.cos(4 * v), np.ones_like(u)], axis=2)
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-    albedo = np.stack([0.5 + 0.3 * u, 0.6 + 0.2 * v, 0.4 + 0.3 * u * v], axis=2)
-    shade = np.clip(np.einsum("hwk,nk->nhw", normal, lights), 0, 1)[..., None]
-    return (0.05 + 0.9 * albedo * shade).astype(np.float32), lights
-
-
 @pytest.mark.parametrize(("suffix", "method"), [(".ptm", "ptm"), (".rti", "hsh3")])
 def test_written_files_read_back_to_their_quantisation_and_relight_as_the_baseline(tmp_path, suffix, method):
-    values, lights = _capture()
+    values, lights = smooth_plate()
     coefficients = fit_legacy(suffix[1:], values, lights, device="cpu")
     path = tmp_path / f"a{suffix}"
     (write_ptm if suffix == ".ptm" else write_hsh_rti)(path, coefficients)
@@ -123,13 +111,7 @@ def test_reader_raises_only_one_line_input_errors(tmp_path, header, tail, suffix
 
 
 def test_export_info_and_relight_commands(tmp_path, capsys):
-    values, lights = _capture(count=20)
-    capture = tmp_path / "capture"
-    capture.mkdir()
-    names = [f"im{i:02d}.png" for i in range(len(lights))]
-    for name, image in zip(names, values):
-        write_image(capture / name, srgb_to_linear(image))
-    write_lp(LightSet(lights), capture / "lights.lp", filenames=names)
+    capture = write_capture(tmp_path / "capture", *smooth_plate(count=20))
     for file_format in ("ptm", "rti"):
         path = tmp_path / f"c.{file_format}"
         assert main(["export", str(capture), "--format", file_format, "-o", str(path), "-q"]) == 0
@@ -150,7 +132,7 @@ def test_animate_maps_and_openlime_export_take_legacy_files(tmp_path, capsys):
     from warp_highlights.io.images import read_image as read
     from warp_highlights.web.openlime import relight_openlime
 
-    values, lights = _capture(count=30, height=24, width=32)
+    values, lights = smooth_plate(count=30, height=24, width=32)
     for file_format, model_name in (("ptm", "ptm"), ("rti", "hsh")):
         path = tmp_path / f"c.{file_format}"
         (write_ptm if file_format == "ptm" else write_hsh_rti)(path, fit_legacy(file_format, values, lights,

@@ -17,12 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import sample_data_root
+from conftest import sample_data_root, smooth_plate, write_capture
 from warp_highlights.cli import main
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.images import linear_to_srgb
-from warp_highlights.io.lightfile import write_lp
-from warp_highlights.model.lights import LightSet
 from warp_highlights.quality.metrics import psnr_8bit
 from warp_highlights.relight.baselines import fit_baseline
 from warp_highlights.web.openlime import (
@@ -34,8 +32,6 @@ from warp_highlights.web.openlime import (
 )
 
 OPENLIME = Path(os.environ.get("WARP_HIGHLIGHTS_OPENLIME", sample_data_root().parent / "tools" / "openlime"))
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 # the light (x, y) of the page tests; OpenLIME takes z = sqrt(1 - x^2 - y^2)
 PAGE_LIGHTS = [(0.3, 0.5), (-0.5, 0.2), (0.1, -0.7), (0.0, 0.0), (-0.6, -0.6)]
 # the keys OpenLIME's RTI shader may receive: it copies every info.json key onto itself, so a stray one breaks it
@@ -51,24 +47,9 @@ def _lit(xy) -> np.ndarray:
     return np.array([x, y, math.sqrt(max(0.0, 1.0 - x * x - y * y))])
 
 
-def _capture(count: int = 30, size: tuple[int, int] = (24, 16), seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """(n, H, W, 3) display values in [0.05, 0.95] of a smooth bumpy Lambertian plate (what JPEG planes keep, as
-    photographs' coefficient planes are) and their (n, 3) dome lights."""
-    rng = np.random.default_rng(seed)
-    lights = LightSet.fibonacci_dome(count, min_elevation_deg=15).directions
-    height, width = size
-    v, u = np.mgrid[0:height, 0:width] / max(height, width)
-    phase = rng.uniform(0, 2 * np.pi, size=2)
-    normal = np.stack([0.4 * np.sin(5 * u + phase[0]), 0.4 * np.cos(4 * v + phase[1]), np.ones_like(u)], axis=2)
-    normal /= np.linalg.norm(normal, axis=2, keepdims=True)
-    albedo = 0.6 + 0.3 * np.stack([np.sin(3 * u), np.cos(2 * v), np.sin(2 * (u + v))], axis=2) * rng.uniform(0.5, 1, 3)
-    shade = np.clip(np.einsum("hwk,nk->nhw", normal, lights), 0, 1)[..., None]
-    return (0.05 + 0.9 * albedo * shade).astype(np.float32), lights
-
-
 @pytest.mark.parametrize(("model", "method"), [("ptm", "ptm"), ("hsh", "hsh3")])
 def test_ptm_and_hsh_exports_relight_as_the_baselines_do(tmp_path, model, method):
-    values, lights = _capture()
+    values, lights = smooth_plate()
     info = export_openlime(values, lights, tmp_path, model=model)
     assert set(info) <= RTI_KEYS and info["nplanes"] == {"ptm": 18, "hsh": 27}[model]
     jpegs = sorted(p.name for p in tmp_path.glob("plane_*.jpg"))
@@ -91,7 +72,7 @@ def test_hsh_weights_use_openlimes_constants():
 
 
 def test_rbf_export_with_every_component_is_the_adaptive_blend_of_the_images(tmp_path):
-    values, lights = _capture(count=12, size=(20, 14))
+    values, lights = smooth_plate(count=12, height=20, width=14)
     info = export_openlime(values, lights, tmp_path, model="rbf", planes=36)
     assert set(info) <= RTI_KEYS and info["colorspace"] == "mrgb" and info["nplanes"] == 36
     assert len(info["basis"]) == 37 * 12 * 3 and min(info["basis"]) >= 0 and max(info["basis"]) <= 255
@@ -104,15 +85,7 @@ def test_rbf_export_with_every_component_is_the_adaptive_blend_of_the_images(tmp
 
 
 def test_export_openlime_command_writes_the_folder_and_refuses_a_field(tmp_path, small_field, capsys):
-    values, lights = _capture(count=20)
-    capture = tmp_path / "capture"
-    capture.mkdir()
-    from warp_highlights.io.images import srgb_to_linear, write_image
-
-    names = [f"im{i:02d}.png" for i in range(len(lights))]
-    for name, image in zip(names, values):
-        write_image(capture / name, srgb_to_linear(image))
-    write_lp(LightSet(lights), capture / "lights.lp", filenames=names)
+    capture = write_capture(tmp_path / "capture", *smooth_plate(count=20, height=24, width=16))
     assert main(["export", str(capture), "-o", str(tmp_path / "ptm"), "--format", "openlime", "--model", "ptm"]) == 0
     assert "for OpenLIME" in capsys.readouterr().out
     info = json.loads((tmp_path / "ptm" / "info.json").read_text())
@@ -131,20 +104,9 @@ NEURAL_KEYS = {"width", "height", "format", "type", "quality", "planes", "sample
 
 
 @pytest.fixture(scope="module")
-def learned_field(small_donut, tmp_path_factory):
-    """The small donut fitted with a learned residual (a few epochs) and saved: (field, path)."""
-    from conftest import FAST_FIT
-    from warp_highlights.fit.pipeline import fit_field
-    from warp_highlights.io.fieldfile import save_field
-    from warp_highlights.model.config import FitSettings
-
-    dataset = ReflectanceField.load(small_donut, progress=False)
-    settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=6",
-                                                     "residual.learned_tune_epochs=2"])
-    field = fit_field(dataset, device="cpu", settings=settings, progress=False)
-    path = tmp_path_factory.mktemp("openlime-neural") / "learned.whf"
-    save_field(field, path)
-    return field, path
+def learned_field(small_learned_field):
+    """The small donut fitted with a learned residual: (field, path) (``conftest.small_learned_field``)."""
+    return small_learned_field
 
 
 @pytest.fixture(scope="module")
@@ -234,26 +196,19 @@ window.olReady = false;
 
 
 @pytest.fixture(scope="module")
-def browser():
-    """Headless Chromium (software GL) through Playwright, for the module."""
+def openlime_js() -> Path:
+    """OpenLIME's bundle (skips where it is absent)."""
     if not (OPENLIME / "openlime.min.js").is_file():
         pytest.skip(f"OpenLIME not found at {OPENLIME} (set WARP_HIGHLIGHTS_OPENLIME)")
-    if CHROMIUM is None:
-        pytest.skip("no chromium on the PATH (apt install chromium)")
-    playwright = pytest.importorskip("playwright.sync_api",
-                                     reason="Playwright for Python is not installed (pip install playwright)")
-    with playwright.sync_playwright() as driver:
-        launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
-        yield launched
-        launched.close()
+    return OPENLIME / "openlime.min.js"
 
 
 @contextmanager
-def openlime_page(browser, export: Path, site: Path):
+def openlime_page(browser, openlime_js: Path, export: Path, site: Path):
     """OpenLIME's page over ``export`` (copied with OpenLIME into ``site``), served on 127.0.0.1 and loaded; the
     tab's console errors in ``tab.errors``."""
     site.mkdir()
-    shutil.copy(OPENLIME / "openlime.min.js", site)
+    shutil.copy(openlime_js, site)
     shutil.copytree(export, site / "data")
     (site / "index.html").write_text(PAGE)
     handler = functools.partial(_QuietHandler, directory=str(site))
@@ -307,21 +262,21 @@ def sample_values(data_root):
 @pytest.mark.realdata
 @pytest.mark.parametrize("sample", sorted(SAMPLES))
 @pytest.mark.parametrize("model", OPENLIME_MODELS)
-def test_openlime_shows_the_samples_as_relit_here(browser, sample_values, sample, model, tmp_path):
+def test_openlime_shows_the_samples_as_relit_here(browser, openlime_js, sample_values, sample, model, tmp_path):
     values, lights = sample_values[sample]
     export = tmp_path / "export"
     export.mkdir()
     export_openlime(values, lights, export, model=model)
-    with openlime_page(browser, export, tmp_path / "site") as tab:
+    with openlime_page(browser, openlime_js, export, tmp_path / "site") as tab:
         scores = page_scores(tab, export)
         assert not tab.errors, tab.errors
     # OpenLIME shows its value through pow(v, 2.2), an 8-bit buffer and pow(v, 1 / 2.2): dark levels are coarser
     assert min(scores) >= 35.0, scores
 
 
-def test_openlime_shows_the_neural_layer_as_relit_here(browser, neural_export, tmp_path):
+def test_openlime_shows_the_neural_layer_as_relit_here(browser, openlime_js, neural_export, tmp_path):
     folder, _, _ = neural_export
-    with openlime_page(browser, folder, tmp_path / "site") as tab:
+    with openlime_page(browser, openlime_js, folder, tmp_path / "site") as tab:
         scores = page_scores(tab, folder)
         assert not tab.errors or all(error.startswith("fps slow") for error in tab.errors), tab.errors
     assert min(scores) >= 30.0, scores

@@ -8,7 +8,6 @@ from __future__ import annotations
 import dataclasses
 import gzip
 import json
-import shutil
 import threading
 from contextlib import contextmanager
 
@@ -16,22 +15,7 @@ import numpy as np
 import pytest
 
 DIRECTIONS = [(0.3, 0.5, 1.0), (-0.5, 0.2, 1.0), (0.1, -0.7, 0.4), (0.9, 0.1, 0.1), (-0.2, -0.3, -1.0)]
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-SOFTWARE_GL = ["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 READY = "window.whReady === true || document.getElementById('status').textContent.startsWith('error')"
-
-
-@pytest.fixture(scope="module")
-def browser():
-    """Headless Chromium (software GL) through Playwright, for the module."""
-    if CHROMIUM is None:
-        pytest.skip("no chromium on the PATH (apt install chromium)")
-    playwright = pytest.importorskip("playwright.sync_api",
-                                     reason="Playwright for Python is not installed (pip install playwright)")
-    with playwright.sync_playwright() as driver:
-        launched = driver.chromium.launch(executable_path=CHROMIUM, args=SOFTWARE_GL)
-        yield launched
-        launched.close()
 
 
 @contextmanager
