@@ -66,7 +66,8 @@ def test_lrgb_ptm_is_the_luminance_polynomial_times_the_colour(tmp_path):
 
 
 @pytest.mark.parametrize(("content", "needle"), [
-    (b"PTM_1.2\nPTM_FORMAT_JPEG_RGB\n2\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n", "save the PTM uncompressed"),
+    (b"PTM_1.2\nPTM_FORMAT_JPEG_RGB\n2\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n", "header ends early"),
+    (b"PTM_1.2\nPTM_FORMAT_LUM\n", "is not read here"),
     (b"PTM_1.1\nPTM_FORMAT_RGB\n", "PTM_1.2 files are read"),
     (b"PTM_1.2\nPTM_FORMAT_RGB\n99999999\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n", "1 to 65536 a side"),
     (b"PTM_1.2\nPTM_FORMAT_RGB\n2\n2\n1 1 1 1 1\n0 0 0 0 0 0\n", "expected 6 scales"),
@@ -97,7 +98,9 @@ def test_info_on_a_malformed_file_exits_2_in_one_line(tmp_path, capsys):
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(header=st.lists(st.sampled_from(["PTM_1.2", "PTM_FORMAT_RGB", "PTM_FORMAT_LRGB", "#HSH1.2", "3", "9 2 1",
                                         "4 2 1", "2 2 3", "65537", "2", "1 1 1 1 1 1", "0 0 0 0 0 0", "-1", "x",
-                                        "1e400 1 1 1 1 1", ""]), min_size=0, max_size=8),
+                                        "1e400 1 1 1 1 1", "", "PTM_FORMAT_JPEG_RGB", "PTM_FORMAT_JPEG_LRGB", "90",
+                                        " ".join(["0"] * 9), " ".join(["-1"] * 9), " ".join(map(str, range(9))),
+                                        " ".join(["5"] * 9)]), min_size=0, max_size=16),
        tail=st.binary(max_size=200), suffix=st.sampled_from([".ptm", ".rti"]))
 def test_reader_raises_only_one_line_input_errors(tmp_path, header, tail, suffix):
     path = tmp_path / f"fuzz{suffix}"
@@ -158,3 +161,72 @@ def test_animate_maps_and_openlime_export_take_legacy_files(tmp_path, capsys):
         relit = relight_openlime(folder, QUERIES)
         expected = relight_legacy(model, QUERIES)
         assert min(psnr_8bit(_rgb8(a), _rgb8(b)) for a, b in zip(relit, expected)) >= 40.0, model_name
+
+
+def _jpeg_ptm(path, raw: np.ndarray, scale, bias, *, layout: str, predicted: dict | None = None,
+              side: dict | None = None) -> None:
+    """A JPEG PTM of the (planes, H, W) bytes ``raw`` (plane i: coefficient i mod 6 of block i div 6), each plane a
+    greyscale JPEG of quality 100; ``predicted``: plane -> (reference, inverted), stored as the difference + 128;
+    ``side``: plane -> [(offset, byte)] corrections."""
+    import io
+
+    from PIL import Image
+
+    count, height, width = raw.shape
+    predicted, side = predicted or {}, side or {}
+    streams, sides, references, transforms = [], [], [], []
+    for plane in range(count):
+        values = raw[plane].astype(np.int64)
+        reference, inverted = predicted.get(plane, (-1, False))
+        if reference >= 0:
+            base = raw[reference].astype(np.int64)
+            values = (values - (255 - base if inverted else base) + 128) % 256
+        buffer = io.BytesIO()
+        Image.fromarray(values.astype(np.uint8), "L").save(buffer, "JPEG", quality=100)
+        streams.append(buffer.getvalue())
+        sides.append(b"".join(struct.pack(">IB", offset, byte) for offset, byte in side.get(plane, [])))
+        references.append(reference)
+        transforms.append(1 if inverted else 0)
+    ints = lambda values: " ".join(str(int(v)) for v in values)  # noqa: E731
+    order = list(range(count))
+    header = "\n".join(["PTM_1.2", f"PTM_FORMAT_JPEG_{layout}", str(width), str(height), " ".join(map(str, scale)),
+                        ints(bias), "100", ints(transforms), ints([0] * count),
+                        ints([0] * count), ints(order), ints(references), ints(map(len, streams)),
+                        ints(map(len, sides))]) + "\n"
+    path.write_bytes(header.encode() + b"".join(s + t for s, t in zip(streams, sides)))
+
+
+@pytest.mark.parametrize("layout", ["RGB", "LRGB"])
+def test_jpeg_ptm_planes_read_as_the_uncompressed_layout(tmp_path, layout):
+    height, width = 16, 24
+    v, u = np.mgrid[0:height, 0:width]
+    count = 18 if layout == "RGB" else 9
+    raw = np.stack([(40 + 7 * k + 3 * u + 2 * v) % 200 + 20 for k in range(count)]).astype(np.uint8)  # smooth
+    scale, bias = [0.5, 0.4, 0.3, 0.8, 0.9, 1.0], [10, 20, 30, 40, 50, 0]
+    side = {2: [(5, 250), (width * height + 7, 1)]}  # the second record lies outside the plane: ignored
+    _jpeg_ptm(tmp_path / "j.ptm", raw, scale, bias, layout=layout, predicted={1: (0, False), 4: (3, True)}, side=side)
+    expected = raw.copy()
+    expected[2].reshape(-1)[5] = 250
+    if layout == "RGB":
+        body = expected.reshape(3, 6, height, width).transpose(0, 2, 3, 1).tobytes()
+    else:
+        body = np.stack(list(expected[:6]), axis=-1).tobytes() + np.stack(list(expected[6:]), axis=-1).tobytes()
+    numbers = f"{' '.join(map(str, scale))}\n{' '.join(map(str, bias))}\n"
+    header = f"PTM_1.2\nPTM_FORMAT_{layout}\n{width}\n{height}\n{numbers}"
+    (tmp_path / "r.ptm").write_bytes(header.encode() + body)
+    jpeg, uncompressed = read_legacy_rti(tmp_path / "j.ptm"), read_legacy_rti(tmp_path / "r.ptm")
+    assert jpeg.source == f"PTM_FORMAT_JPEG_{layout}" and jpeg.coefficients.shape == uncompressed.coefficients.shape
+    # JPEG of quality 100 keeps a smooth plane to a few levels (an LRGB's colour too); the side information exactly
+    assert np.abs(jpeg.coefficients - uncompressed.coefficients).max() <= 6 * max(scale) / 255.0
+    np.testing.assert_allclose(jpeg.coefficients[height - 1, 5, 2], uncompressed.coefficients[height - 1, 5, 2],
+                               atol=1e-6)
+
+
+def test_jpeg_ptm_with_motion_vectors_is_refused(tmp_path):
+    path = tmp_path / "m.ptm"
+    ones = " ".join(["1"] * 18)
+    zeros = " ".join(["0"] * 18)
+    path.write_bytes(f"PTM_1.2\nPTM_FORMAT_JPEG_RGB\n2\n2\n1 1 1 1 1 1\n0 0 0 0 0 0\n90\n{zeros}\n{ones}\n{zeros}\n"
+                     f"{' '.join(map(str, range(18)))}\n{' '.join(['-1'] * 18)}\n{zeros}\n{zeros}\n".encode())
+    with pytest.raises(InputError, match="motion compensation"):
+        read_legacy_rti(path)

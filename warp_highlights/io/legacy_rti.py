@@ -1,6 +1,6 @@
 """RTIViewer's files: ``.ptm`` (polynomial texture maps, format 1.2: ``PTM_FORMAT_RGB`` and ``PTM_FORMAT_LRGB``,
-uncompressed) and ``.rti`` (hemispherical harmonics, RTI type 3), read into and written from per-pixel
-coefficients.
+uncompressed or as JPEG streams, ``PTM_FORMAT_JPEG_RGB`` and ``PTM_FORMAT_JPEG_LRGB``) and ``.rti``
+(hemispherical harmonics, RTI type 3), read into and written from per-pixel coefficients.
 
 Both hold, per pixel and colour channel, the coefficients c_m of M basis functions of the light direction
 (PTM: lu^2, lv^2, lu lv, lu, lv, 1 of the light's (x, y); HSH: ``relight.baselines.hsh_basis``), as bytes with a
@@ -10,7 +10,13 @@ polynomial is the luminance, times the pixel's RGB: read here as its per-channel
 
 - ``.ptm``: the lines ``PTM_1.2``, the format, the width, the height, 6 scales, 6 integer biases, then the
   bytes: for RGB, each channel's (R, G, B) rows of 6 coefficients a pixel; for LRGB, the rows of 6 luminance
-  coefficients a pixel, then the rows of R, G, B. A coefficient is (byte - bias) scale, in 0..255 units.
+  coefficients a pixel, then the rows of R, G, B. A coefficient is (byte - bias) scale, in 0..255 units. The
+  JPEG variants add the lines: the quality, then for each of the 18 (RGB) or 9 (LRGB) planes its transform,
+  motion x and y (0 here), decoding order, reference plane (-1, or a plane it is predicted from: its value is
+  the stream's plus the reference's (or 255 minus it, where the transform's bit 0 is set) minus 128, modulo
+  256), JPEG size and side-information size; then each plane's greyscale JPEG followed by its side
+  information (5-byte records: a big-endian offset and the byte there). Plane i is coefficient i mod 6 of
+  block i div 6, the blocks of the uncompressed layout.
 - ``.rti``: ``#`` comment lines, the RTI type (3), ``width height 3``, ``terms basis_type element_size``,
   ``terms`` float32 scales then biases (little-endian), then per pixel its R, G and B terms as bytes. A
   coefficient is byte / 255 scale + bias.
@@ -18,6 +24,7 @@ polynomial is the luminance, times the pixel's RGB: read here as its per-channel
 
 from __future__ import annotations
 
+import io
 import math
 import re
 import struct
@@ -25,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from ..model.errors import InputError
 from .atomic import atomic_file
@@ -37,7 +45,8 @@ MAX_SIDE = 1 << 16
 """The widest and tallest image a legacy file may declare (pixels): larger headers are refused before any
 allocation."""
 _HEADER_BYTES = 4096  # the text header of either format is read within this many bytes
-_PTM_FORMATS = {"PTM_FORMAT_RGB": "rgb", "PTM_FORMAT_LRGB": "lrgb"}
+_PTM_FORMATS = {"PTM_FORMAT_RGB": "rgb", "PTM_FORMAT_LRGB": "lrgb", "PTM_FORMAT_JPEG_RGB": "rgb",
+                "PTM_FORMAT_JPEG_LRGB": "lrgb"}
 _PTM_TERMS = 6
 
 
@@ -157,14 +166,16 @@ def _read_ptm(path: Path, data: bytes) -> LegacyRTI:
     if version != "PTM_1.2":
         raise InputError(f"{path}: PTM version {version[:20]!r}; PTM_1.2 files are read")
     if fmt not in _PTM_FORMATS:
-        raise InputError(f"{path}: {fmt[:30]!r} is not read here (uncompressed PTM_FORMAT_RGB and PTM_FORMAT_LRGB "
-                         "are); save the PTM uncompressed")
+        raise InputError(f"{path}: {fmt[:30]!r} is not read here (PTM_FORMAT_RGB, PTM_FORMAT_LRGB and their JPEG "
+                         "variants are)")
     rest, offset = _lines(path, data, 4, offset=offset)
     lines = [version, fmt, *rest]
     width, height = _size(path, *(_numbers(path, line, 1, "width/height", int)[0] for line in lines[2:4]))
     scale = np.array(_numbers(path, lines[4], _PTM_TERMS, "scales"), np.float64)
     bias = np.array(_numbers(path, lines[5], _PTM_TERMS, "biases", int), np.float64)
     pixels = width * height
+    if "JPEG" in fmt:
+        data, offset = _jpeg_planes(path, data, offset, width, height, _PTM_FORMATS[fmt]), 0
     if _PTM_FORMATS[fmt] == "rgb":
         raw = _body(path, data, offset, 3 * pixels * _PTM_TERMS).reshape(3, height, width, _PTM_TERMS)
         values = (raw.astype(np.float64) - bias) * scale / 255.0
@@ -175,6 +186,52 @@ def _read_ptm(path: Path, data: bytes) -> LegacyRTI:
         rgb = raw[pixels * _PTM_TERMS :].reshape(height, width, 3) / 255.0
         coefficients = (luminance[..., :, None] * rgb[..., None, :])[::-1]
     return LegacyRTI("ptm", np.ascontiguousarray(coefficients, np.float32), fmt)
+
+
+def _jpeg_planes(path: Path, data: bytes, offset: int, width: int, height: int, layout: str) -> bytes:
+    """A JPEG PTM's planes decoded, predicted and corrected, as the uncompressed layout's bytes."""
+    count = 18 if layout == "rgb" else 9
+    lines, offset = _lines(path, data, 8, offset=offset)
+    table = [_numbers(path, line, count, what, int) for line, what in
+             zip(lines[1:], ("transforms", "motion vectors x", "motion vectors y", "orders", "reference planes",
+                             "JPEG sizes", "side-information sizes"))]
+    transforms, motion_x, motion_y, order, reference, sizes, sides = (np.array(row, np.int64) for row in table)
+    if motion_x.any() or motion_y.any():
+        raise InputError(f"{path}: its planes use motion compensation, which is not read here")
+    if sorted(order) != list(range(count)) or ((reference < -1) | (reference >= count)).any() \
+            or (sizes < 0).any() or (sides < 0).any() or (sides % 5).any():
+        raise InputError(f"{path}: the JPEG planes' order, references or sizes are not a valid table")
+    if len(data) - offset < int(sizes.sum() + sides.sum()):
+        raise InputError(f"{path}: truncated: the JPEG planes need {int(sizes.sum() + sides.sum())} bytes, "
+                         f"{len(data) - offset} are there")
+    planes, corrections = [], []
+    for size, side in zip(sizes, sides):
+        stream = data[offset : offset + size]
+        offset += size
+        try:
+            with Image.open(io.BytesIO(stream)) as image:
+                if image.size != (width, height):
+                    raise InputError(f"{path}: a JPEG plane of {image.size[0]}x{image.size[1]} in a {width}x{height} "
+                                     "PTM")
+                planes.append(np.asarray(image.convert("L"), np.uint8).copy())
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+            raise InputError(f"{path}: a JPEG plane cannot be decoded ({exc})") from None
+        corrections.append(np.frombuffer(data, np.uint8, side, offset).reshape(-1, 5))
+        offset += side
+    for plane in np.argsort(order):  # in decoding order: a reference is decoded before the planes predicted from it
+        if reference[plane] >= 0:
+            base = planes[reference[plane]].astype(np.int64)
+            base = 255 - base if transforms[plane] & 1 else base
+            planes[plane] = ((planes[plane].astype(np.int64) + base - 128) % 256).astype(np.uint8)
+        records = corrections[plane]
+        if len(records):
+            where = (records[:, :4].astype(np.int64) * [1 << 24, 1 << 16, 1 << 8, 1]).sum(axis=1)
+            keep = where < width * height
+            planes[plane].reshape(-1)[where[keep]] = records[keep, 4]
+    if layout == "rgb":  # blocks R, G, B of 6 coefficients a pixel
+        return np.stack(planes).reshape(3, _PTM_TERMS, height, width).transpose(0, 2, 3, 1).tobytes()
+    luminance = np.stack(planes[:_PTM_TERMS], axis=-1)
+    return luminance.tobytes() + np.stack(planes[_PTM_TERMS:], axis=-1).tobytes()
 
 
 def _read_hsh(path: Path, data: bytes) -> LegacyRTI:
