@@ -161,38 +161,9 @@ def test_export_neural_command_says_what_it_kept_and_refuses_what_it_cannot_show
 
 # --- OpenLIME itself, in headless Chromium --------------------------------------------------------
 
-PAGE = """<!doctype html><html><head><meta charset="utf-8"><link rel="icon" href="data:,">
-<style>body{margin:0}</style></head><body><div id="v"></div>
-<script src="openlime.min.js"></script>
-<script>
-window.olReady = false;
-(async () => {
-  const info = await (await fetch('data/info.json')).json();
-  const W = info.width, H = info.height, div = document.getElementById('v');
-  div.style.width = W + 'px'; div.style.height = H + 'px';
-  const viewer = new OpenLIME.Viewer(div, {canvas: {preserveDrawingBuffer: true, targetfps: 1}});
-  Object.assign(viewer.canvasElement.style, {width: W + 'px', height: H + 'px', display: 'block'});
-  const layer = new OpenLIME.Layer({type: info.type === 'neural' ? 'neural' : 'rti', url: 'data/info.json',
-                                    layout: 'image'});
-  viewer.addLayer('capture', layer);
-  let draws = 0;
-  viewer.addEvent('draw', () => draws++);
-  const loaded = () => layer.status === 'ready' && layer.tiles.get(0) && layer.tiles.get(0).missing === 0;
-  while (!loaded()) await new Promise(r => setTimeout(r, 20));
-  window.relightAt = async (x, y) => {
-    layer.setLight([x, y], 0);
-    const first = draws;
-    while (draws < first + 6) await new Promise(r => setTimeout(r, 20));
-    const copy = document.createElement('canvas');
-    copy.width = W; copy.height = H;
-    const context = copy.getContext('2d');
-    context.drawImage(viewer.canvasElement, 0, 0);
-    return Array.from(context.getImageData(0, 0, W, H).data);
-  };
-  window.olReady = true;
-})();
-</script></body></html>
-"""
+PAGE = (Path(__file__).parent / "data" / "openlime-page.html").read_text()
+"""A bare page of OpenLIME's viewer over ``data/info.json``: ``window.relightAt(x, y)`` sets the light and gives the
+canvas's RGBA bytes (benchmarks/bench_openlime.py --page uses it too)."""
 
 
 @pytest.fixture(scope="module")
