@@ -95,6 +95,12 @@ def test_export_openlime_command_writes_the_folder_and_refuses_a_field(tmp_path,
     assert main(["export", str(small_field), "-o", str(tmp_path / "no"), "--format", "openlime"]) == 2
     error = capsys.readouterr().err.strip()
     assert "give the capture folder" in error and "\n" not in error and not (tmp_path / "no").exists()
+    for options, needle in ((["--model", "ptm"], "--model does not apply to --format page"),
+                            (["--format", "openlime", "--single-file"], "--single-file does not apply"),
+                            (["--format", "openlime", "--model", "ptm", "--seconds", "5"], "--model neural only"),
+                            (["--format", "openlime", "--model", "neural", "--seconds", "0"], "positive number")):
+        assert main(["export", str(capture), "-o", str(tmp_path / "no"), *options]) == 2
+        assert needle in capsys.readouterr().err
 
 
 # --- a learned residual as OpenLIME's neural layer ------------------------------------------------

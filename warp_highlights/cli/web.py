@@ -49,9 +49,10 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=120.0,
                         help="with --model neural: the distillation's time at most, seconds (default: %(default)s)")
     parser.add_argument("--size", type=size_option("export size"),
-                        help="with --format openlime: WIDTHxHEIGHT, same aspect ratio, at most the images' size "
-                             "(default: the images' size)")
-    parser.add_argument("--linear", action="store_true", help="with --format openlime: PNG/JPEG values are linear")
+                        help="with --format openlime, ptm or rti and a capture: WIDTHxHEIGHT, same aspect ratio, at "
+                             "most the images' size (default: the images' size)")
+    parser.add_argument("--linear", action="store_true",
+                        help="with --format openlime, ptm or rti and a capture: its PNG/JPEG values are linear")
     add_pixel_limit_option(parser)
     parser.add_argument("--single-file", action="store_true",
                         help="write one self-contained HTML file that opens from disk, for e-mail (at most 15 MiB: "
@@ -233,6 +234,19 @@ def _export_openlime_neural(args, source: Path, output: Path) -> int:
 
 
 def _check_export(args) -> None:
+    allowed = {"page": {"single_file"}, "openlime": {"model", "seconds", "size", "linear"}, "ptm": {"size", "linear"},
+               "rti": {"size", "linear"}}[args.format]
+    given = {"single_file": args.single_file, "model": args.model is not None, "seconds": args.seconds != 120.0,
+             "size": args.size is not None, "linear": args.linear}
+    stray = [name for name, set_ in given.items() if set_ and name not in allowed]
+    if stray:
+        options = ", ".join("--" + name.replace("_", "-") for name in stray)
+        raise InputError(f"{options} {'does' if len(stray) == 1 else 'do'} not apply to --format {args.format}; "
+                         "leave it out or choose the format it is for (export --help)")
+    if args.model not in (None, "neural") and args.seconds != 120.0:
+        raise InputError("--seconds is the neural layer's distillation time: it applies to --model neural only")
+    if not args.seconds > 0 or args.seconds == float("inf"):
+        raise InputError(f"--seconds must be a positive number of seconds, got {args.seconds}")
     suffix = Path(args.output).suffix
     if args.single_file and suffix and suffix.lower() not in PAGE_SUFFIXES:
         raise InputError(f"-o {args.output}: --single-file writes an HTML page; give a name ending in .html (or no "
