@@ -107,6 +107,12 @@ def score(relit_srgb: np.ndarray, truth_linear: np.ndarray) -> tuple[float, floa
     return float(np.mean(psnr)), float(np.mean(ssim))
 
 
+def _say(row: dict) -> None:
+    """A row as it comes, its page strip left out."""
+    print({key: (value[:3] if key == "page" and value is not None else value) for key, value in row.items()},
+          flush=True)
+
+
 def run(case: str, args, browser=None) -> list[dict]:
     dataset = load_case(case, "cpu", "cpu")
     width, height = SIZES[case][0]
@@ -129,7 +135,7 @@ def run(case: str, args, browser=None) -> list[dict]:
             own = "%.2f" % score(fitted.relight(held), truth)[0]
         rows.append(dict(case=case, model=model, kb=size / 1e3, seconds=seconds, psnr=psnr, ssim=ssim, own=own,
                          page=page))
-        print(rows[-1], flush=True)
+        _say(rows[-1])
     if args.neural:
         settings = FitSettings().with_overrides(["residual.kind=learned",
                                                  f"residual.learned_seconds={args.teacher_seconds}"])
@@ -146,7 +152,7 @@ def run(case: str, args, browser=None) -> list[dict]:
             page = page_scores(browser, Path(folder)) if browser is not None else None
         rows.append(dict(case=case, model="neural", kb=size / 1e3, seconds=seconds, psnr=psnr, ssim=ssim,
                          own="%.2f (the field)" % own_psnr, note=figures, page=page))
-        print(rows[-1], flush=True)
+        _say(rows[-1])
     if browser is not None:
         strip = np.concatenate([row["page"][3] for row in rows], axis=1)
         Image.fromarray(strip).save(Path(__file__).parent / "results" / "images" / f"openlime-{case}.png")
