@@ -1,6 +1,7 @@
-"""A capture as relight's web layout, the folder OpenLIME opens (``type: 'rti'``): ``info.json`` and
-``plane_0.jpg``, ``plane_1.jpg``, ... holding three coefficient planes each; and the same folder relit here
-(``relight_openlime``), with OpenLIME's own formulas, as the reference its page is compared with.
+"""A capture (or a legacy file's model, or a learned field's residual) as relight's web layout, the folder OpenLIME
+opens (``type: 'rti'``): ``info.json`` and ``plane_0.jpg``, ``plane_1.jpg``, ... holding three coefficient planes
+each; and the same folder relit here (``relight_openlime``), with OpenLIME's own formulas, as the reference its page
+is compared with.
 
 The models (fitted to the images' 8-bit sRGB display values in [0, 1], which OpenLIME shows as they are):
 
@@ -43,9 +44,10 @@ OPENLIME_MODELS = ("ptm", "hsh", "rbf")
 """The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
 learned residual is its neural layer (``export_openlime_neural``)."""
 NEURAL_HIDDEN_OPENLIME = (48, 48)
-"""The hidden widths of the decoder distilled for OpenLIME's neural layer (two layers, its shape): the fitted
-decoder's width (48-48 students lost 0.50 dB on the dome sample and 1.73 on the statue against the fitted
-decoder, ``DistilSettings``)."""
+"""The hidden widths of the decoder distilled for OpenLIME's neural layer (two layers, its shape), the fitted
+decoder's width: in this shape (the light's x and y only, the codes at 8 bits) the dome sample's Test lights
+lost 5.2 dB and the statue's held-out lights 2.5 dB against the fields after 120 s of distillation on 2 cores
+(``benchmarks/bench_openlime.py``); 48-48 students of the usual shape lost 0.50 and 1.73 (``DistilSettings``)."""
 _CODE_PLANES = 9  # OpenLIME's neural layer takes 9 codes a pixel, three a JPEG
 RBF_PLANES = 18
 """Principal components an ``rbf`` export keeps: relight's default for its rbf and bilinear fits (6 JPEGs)."""
