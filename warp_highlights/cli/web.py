@@ -32,10 +32,12 @@ neural layer (named here so that the parser is built without NumPy or Pillow).""
 
 def _export_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("field", type=Path, help="highlight-field file (from warp-highlights fit); with --format "
-                        "openlime, the capture folder (a light file and its images)")
+                        "openlime, a capture folder (a light file and its images), a .ptm or .rti file, or with "
+                        "--model neural a learned field; with --format ptm or rti, a capture folder")
     parser.add_argument("-o", "--output", type=Path, required=True,
-                        help="output folder (index.html, viewer.js, manifest.json and the field's arrays), or with "
-                             "--single-file the HTML file (.html is added to a name without a suffix)")
+                        help="output folder (index.html, viewer.js, manifest.json and the field's arrays; with "
+                             "--format openlime info.json and the planes), or with --single-file the HTML file "
+                             "(.html is added to a name without a suffix), or with --format ptm or rti the file")
     parser.add_argument("--format", choices=("page", "openlime", "ptm", "rti"), default="page",
                         help="page: this project's viewer of the field, moving highlights included (default); "
                              "openlime: relight's web layout (info.json and plane_N.jpg) that OpenLIME opens, a "
