@@ -34,7 +34,6 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -47,13 +46,12 @@ from bench_quality import SIZES, load_case  # noqa: E402
 
 from warp_highlights.fit.pipeline import fit_field  # noqa: E402
 from warp_highlights.io.images import linear_to_srgb, srgb_to_linear  # noqa: E402
-from warp_highlights.model.config import DistilSettings, FitSettings  # noqa: E402
+from warp_highlights.model.config import FitSettings  # noqa: E402
 from warp_highlights.quality.metrics import psnr_8bit, srgb_scores  # noqa: E402
 from warp_highlights.relight.baselines import fit_baseline  # noqa: E402
 from warp_highlights.relight.evaluation import resize_stack  # noqa: E402
 from warp_highlights.relight.relighter import Relighter  # noqa: E402
 from warp_highlights.web.openlime import (  # noqa: E402
-    NEURAL_HIDDEN_OPENLIME,
     OPENLIME_MODELS,
     export_openlime,
     export_openlime_neural,
@@ -144,8 +142,7 @@ def run(case: str, args, browser=None) -> list[dict]:
         own_psnr = float(np.mean(srgb_scores(np.clip(own, 0, None), truth)[0]))
         with tempfile.TemporaryDirectory() as folder:
             started = time.perf_counter()
-            _, figures = export_openlime_neural(field, folder, settings=replace(
-                DistilSettings(), hidden=NEURAL_HIDDEN_OPENLIME, seconds=args.distil_seconds))
+            _, figures = export_openlime_neural(field, folder, seconds=args.distil_seconds)
             seconds = time.perf_counter() - started
             size = sum(p.stat().st_size for p in Path(folder).iterdir())
             psnr, ssim = score(relight_openlime(folder, held), truth)

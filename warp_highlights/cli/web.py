@@ -49,7 +49,8 @@ def _export_arguments(parser: argparse.ArgumentParser) -> None:
                              "field's neural layer (its codes and a decoder of OpenLIME's shape distilled from its); "
                              "a .ptm or .rti file goes as the model it holds")
     parser.add_argument("--seconds", type=float, default=120.0,
-                        help="with --model neural: the distillation's time at most, seconds (default: %(default)s)")
+                        help="with --model neural: the distillation's time, seconds; longer comes closer to the "
+                             "field's images (default: %(default)s)")
     parser.add_argument("--size", type=size_option("export size"),
                         help="with --format openlime, ptm or rti and a capture: WIDTHxHEIGHT, same aspect ratio, at "
                              "most the images' size (default: the images' size)")
@@ -201,16 +202,13 @@ def _capture_values(args, source: Path):
 
 
 def _export_openlime_neural(args, source: Path, output: Path) -> int:
-    import dataclasses
-
     import numpy as np
     from tqdm import tqdm
 
     from ..io.atomic import atomic_folder
     from ..io.fieldfile import load_field
-    from ..model.config import DistilSettings
     from ..model.memory import bytes_text
-    from ..web.openlime import NEURAL_HIDDEN_OPENLIME, export_openlime_neural
+    from ..web.openlime import export_openlime_neural
 
     if source.is_dir():
         raise InputError(f"{source}: --model neural shows a field's learned residual: give the field file (fit "
@@ -218,10 +216,9 @@ def _export_openlime_neural(args, source: Path, output: Path) -> int:
     check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
                         inputs=[source])
     field = load_field(source)
-    settings = dataclasses.replace(DistilSettings(), hidden=NEURAL_HIDDEN_OPENLIME, seconds=float(args.seconds))
     with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary, \
             tqdm(total=100, unit="%", desc="distil for OpenLIME", disable=args.quiet, leave=False) as bar:
-        info, figures = export_openlime_neural(field, temporary, settings=settings,
+        info, figures = export_openlime_neural(field, temporary, seconds=args.seconds,
                                                progress=lambda done: bar.update(round(100 * done) - bar.n))
         size = sum(p.stat().st_size for p in temporary.iterdir())
     moving = bool(np.asarray(field.estimated.active).any())

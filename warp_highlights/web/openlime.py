@@ -37,8 +37,8 @@ from PIL import Image
 
 from ..model.errors import InputError
 
-__all__ = ["NEURAL_HIDDEN_OPENLIME", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime", "export_openlime_coefficients",
-           "export_openlime_neural", "openlime_weights", "relight_openlime"]
+__all__ = ["NEURAL_HIDDEN_OPENLIME", "NEURAL_SECONDS", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime",
+           "export_openlime_coefficients", "export_openlime_neural", "openlime_weights", "relight_openlime"]
 
 OPENLIME_MODELS = ("ptm", "hsh", "rbf")
 """The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
@@ -48,6 +48,10 @@ NEURAL_HIDDEN_OPENLIME = (48, 48)
 decoder's width: in this shape (the light's x and y only, the codes at 8 bits) the dome sample's Test lights
 lost 5.2 dB and the statue's held-out lights 2.5 dB against the fields after 120 s of distillation on 2 cores
 (``benchmarks/bench_openlime.py``); 48-48 students of the usual shape lost 0.50 and 1.73 (``DistilSettings``)."""
+NEURAL_SECONDS = 120.0
+"""The neural layer's distillation time, seconds, unless told: ``DistilSettings.seconds``'s default (on 2 cores, 60
+epochs of the dome sample at 160 x 160). Longer comes closer to the field's images."""
+_UNBOUNDED_EPOCHS = 1_000_000  # the distillation's epochs when its time ends it
 _CODE_PLANES = 9  # OpenLIME's neural layer takes 9 codes a pixel, three a JPEG
 RBF_PLANES = 18
 """Principal components an ``rbf`` export keeps: relight's default for its rbf and bilinear fits (6 JPEGs)."""
@@ -104,13 +108,18 @@ def export_openlime_coefficients(coefficients: np.ndarray, folder, *, model: str
     return info
 
 
-def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, settings=None, log=None,
-                           progress=None) -> tuple[dict, dict]:
+def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, seconds: float = NEURAL_SECONDS,
+                           settings=None, log=None, progress=None) -> tuple[dict, dict]:
     """Write ``field``'s learned residual as OpenLIME's neural layer into ``folder`` (existing and empty): the codes
     as ``plane_1.jpg`` .. ``plane_3.jpg`` and ``info.json`` with the distilled decoder (``hidden`` widths, padded
-    to multiples of 4 with zero units). Returns the info.json object and the distillation's figures
+    to multiples of 4 with zero units), distilled for ``seconds`` (its learning rate falling over them), or as
+    ``settings`` (a ``DistilSettings``) say. Returns the info.json object and the distillation's figures
     (``residual.distil.distil_display_decoder``)."""
+    from ..model.config import DistilSettings
     from ..residual.distil import distil_display_decoder
+
+    if settings is None:  # the time, not an epoch count, ends it: a longer distillation comes closer
+        settings = DistilSettings(hidden=tuple(hidden), seconds=float(seconds), epochs=_UNBOUNDED_EPOCHS)
 
     residual = field.residual
     if residual is None or residual.learned is None:
