@@ -203,10 +203,9 @@ def _check_disk_space(out: Path, lights, heldout, settings, *, half: bool, quiet
 
 def _run_info(args) -> int:
     from ..io.dataset import ReflectanceField
+    from ..io.legacy_rti import is_legacy_rti, read_legacy_rti
 
-    if args.dataset.is_file() and args.dataset.suffix.lower() in (".ptm", ".rti"):
-        from ..io.legacy_rti import read_legacy_rti
-
+    if args.dataset.is_file() and is_legacy_rti(args.dataset):
         model = read_legacy_rti(args.dataset)
         figures = {"format": model.source, "model": model.kind, "width": model.width, "height": model.height,
                    "coefficients_per_channel": int(model.coefficients.shape[2])}

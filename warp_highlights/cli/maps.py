@@ -64,7 +64,9 @@ def _run_maps(args) -> int:
     output = Path(args.output)
     check_output_folder(output, overwrite=args.overwrite, legacy=_maps_folder_entry, kind="surface maps",
                         inputs=[args.field])
-    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+    from ..io.legacy_rti import is_legacy_rti
+
+    if is_legacy_rti(args.field):
         from ..io.legacy_rti import read_legacy_rti
         from ..relight.legacy import MAPS_LIGHTS, legacy_surface_maps
 

@@ -200,6 +200,7 @@ HELDOUT_OR_HOLDOUT = "give either --heldout FOLDER or --holdout-every K, not bot
 
 def _run_relight(args) -> int:
     from ..io.fieldfile import load_field
+    from ..io.legacy_rti import is_legacy_rti
     from ..io.lightfile import read_lights
 
     directions = [parse_direction(text) for text in args.light]
@@ -223,7 +224,7 @@ def _run_relight(args) -> int:
                             inputs=inputs)
     else:
         check_output_file(output, overwrite=args.overwrite, inputs=inputs)
-    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+    if is_legacy_rti(args.field):
         return _relight_legacy(args, np.asarray(directions, dtype=np.float64), output, several)
     if not several:
         return _relight_one(args, directions[0], output)
@@ -391,6 +392,7 @@ def _parse_methods(text: str) -> tuple[str, ...]:
 
 def _run_animate(args) -> int:
     from ..io.fieldfile import load_field
+    from ..io.legacy_rti import is_legacy_rti
     from ..view.animation import check_animation_output, default_animation_size, write_animation
     from ..view.light_paths import parse_light_path
 
@@ -400,7 +402,7 @@ def _run_animate(args) -> int:
         check_not_capture_image(args.output)
     kind = check_animation_output(args.output, overwrite=args.overwrite, frames_format=frames_format)
     directions = parse_light_path(args.path, args.frames)
-    if Path(args.field).suffix.lower() in (".ptm", ".rti"):
+    if is_legacy_rti(args.field):
         return _animate_legacy(args, kind, directions, frames_format)
     methods = _parse_methods(args.methods) if args.compare else (args.method,)
     field = load_field(args.field)

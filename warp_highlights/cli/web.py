@@ -21,10 +21,6 @@ __all__ = ["COMMANDS"]
 
 PAGE_SUFFIXES = (".html", ".htm")
 """The file endings ``export --single-file`` takes for its page (a name without one gets ``.html``)."""
-LEGACY_SUFFIXES = (".ptm", ".rti")
-"""RTIViewer's files, which ``export --format openlime`` takes as well as captures (``io.legacy_rti``)."""
-PTM_TO_OPENLIME = (5, 3, 4, 0, 2, 1)
-"""A .ptm file's coefficients (lu^2, lv^2, lu lv, lu, lv, 1) in OpenLIME's order (1, x, y, x^2, xy, y^2)."""
 OPENLIME_MODELS = ("ptm", "hsh", "rbf", "neural")
 """``export --format openlime --model``'s choices: ``web.openlime.OPENLIME_MODELS`` and the learned residual's
 neural layer (named here so that the parser is built without NumPy or Pillow)."""
@@ -113,11 +109,12 @@ def _openlime_entry(relative: str) -> bool:
 
 def _export_openlime(args, output: Path) -> int:
     from ..io.atomic import atomic_folder
+    from ..io.legacy_rti import is_legacy_rti
     from ..model.memory import bytes_text
     from ..web.openlime import export_openlime
 
     source = Path(args.field)
-    if source.suffix.lower() in LEGACY_SUFFIXES:
+    if is_legacy_rti(source):
         return _export_legacy_to_openlime(args, source, output)
     args.model = args.model or "hsh"
     if args.model == "neural":
@@ -143,7 +140,7 @@ def _export_legacy_to_openlime(args, source: Path, output: Path) -> int:
     from ..io.atomic import atomic_folder
     from ..io.legacy_rti import read_legacy_rti
     from ..model.memory import bytes_text
-    from ..web.openlime import export_openlime_coefficients
+    from ..web.openlime import export_openlime_coefficients, openlime_coefficients
 
     check_output_folder(output, overwrite=args.overwrite, legacy=_openlime_entry, kind="OpenLIME export",
                         inputs=[source])
@@ -151,7 +148,7 @@ def _export_legacy_to_openlime(args, source: Path, output: Path) -> int:
     if args.model not in (None, model.kind):
         raise InputError(f"{source} holds a {model.kind.upper()}: it goes to OpenLIME as one (leave out --model "
                          f"{args.model})")
-    coefficients = model.coefficients[:, :, list(PTM_TO_OPENLIME)] if model.kind == "ptm" else model.coefficients
+    coefficients = openlime_coefficients(model)
     with atomic_folder(output, kind="OpenLIME export", overwrite=args.overwrite, legacy=_openlime_entry) as temporary:
         export_openlime_coefficients(coefficients, temporary, model=model.kind)
         size = sum(p.stat().st_size for p in temporary.iterdir())

@@ -32,12 +32,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from ..model.errors import InputError
 from .atomic import atomic_file
 
-__all__ = ["LEGACY_SUFFIXES", "LegacyRTI", "read_legacy_rti", "write_hsh_rti", "write_ptm"]
+__all__ = ["LEGACY_SUFFIXES", "LegacyRTI", "is_legacy_rti", "read_legacy_rti", "write_hsh_rti", "write_ptm"]
 
 LEGACY_SUFFIXES = (".ptm", ".rti")
 """The RTIViewer files ``read_legacy_rti`` reads."""
@@ -66,6 +65,12 @@ class LegacyRTI:
     @property
     def height(self) -> int:
         return int(self.coefficients.shape[0])
+
+
+def is_legacy_rti(path) -> bool:
+    """Whether ``path`` names a ``.ptm`` or ``.rti`` file (by its suffix): what the looking commands read with
+    ``read_legacy_rti`` rather than as a field."""
+    return Path(path).suffix.lower() in LEGACY_SUFFIXES
 
 
 def read_legacy_rti(path) -> LegacyRTI:
@@ -190,6 +195,7 @@ def _read_ptm(path: Path, data: bytes) -> LegacyRTI:
 
 def _jpeg_planes(path: Path, data: bytes, offset: int, width: int, height: int, layout: str) -> bytes:
     """A JPEG PTM's planes decoded, predicted and corrected, as the uncompressed layout's bytes."""
+    from PIL import Image, UnidentifiedImageError  # only JPEG PTMs need it
     count = 18 if layout == "rgb" else 9
     lines, offset = _lines(path, data, 8, offset=offset)
     table = [_numbers(path, line, count, what, int) for line, what in

@@ -38,7 +38,8 @@ from PIL import Image
 from ..model.errors import InputError
 
 __all__ = ["NEURAL_HIDDEN_OPENLIME", "NEURAL_SECONDS", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime",
-           "export_openlime_coefficients", "export_openlime_neural", "openlime_weights", "relight_openlime"]
+           "export_openlime_coefficients", "export_openlime_neural", "openlime_coefficients", "openlime_weights",
+           "relight_openlime"]
 
 OPENLIME_MODELS = ("ptm", "hsh", "rbf")
 """The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
@@ -51,6 +52,7 @@ lost 5.2 dB and the statue's held-out lights 2.5 dB against the fields after 120
 NEURAL_SECONDS = 120.0
 """The neural layer's distillation time, seconds, unless told: ``DistilSettings.seconds``'s default (on 2 cores, 60
 epochs of the dome sample at 160 x 160). Longer comes closer to the field's images."""
+_PTM_TO_OPENLIME = (5, 3, 4, 0, 2, 1)  # a .ptm file's coefficients, picked in OpenLIME's order
 _UNBOUNDED_EPOCHS = 1_000_000  # the distillation's epochs when its time ends it
 _CODE_PLANES = 9  # OpenLIME's neural layer takes 9 codes a pixel, three a JPEG
 RBF_PLANES = 18
@@ -106,6 +108,12 @@ def export_openlime_coefficients(coefficients: np.ndarray, folder, *, model: str
     info["materials"] = [{"scale": scale, "bias": bias}]
     Path(folder, "info.json").write_text(json.dumps(info))
     return info
+
+
+def openlime_coefficients(model) -> np.ndarray:
+    """(H, W, M, 3) a legacy file's (``io.legacy_rti.LegacyRTI``) coefficients in the order of OpenLIME's basis:
+    a PTM's lu^2, lv^2, lu lv, lu, lv, 1 as 1, x, y, x^2, xy, y^2; an HSH's as they are."""
+    return model.coefficients[:, :, list(_PTM_TO_OPENLIME)] if model.kind == "ptm" else model.coefficients
 
 
 def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, seconds: float = NEURAL_SECONDS,
