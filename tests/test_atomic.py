@@ -265,6 +265,28 @@ def test_signals_wait_for_the_end_of_a_deferred_block():
 
 
 @pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals need the main thread")
+def test_a_signal_after_the_end_of_a_command_whose_output_is_in_place_is_held(tmp_path):
+    """The finished command is returning: an interruption now would report outputs that are whole as cut."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    handle_termination(hold_after_output=True)
+    try:
+        with atomic_file(tmp_path / "out.txt", overwrite=False) as temporary:
+            temporary.write_text("whole")
+        assert end_of_command() is None
+        os.kill(os.getpid(), signal.SIGINT)  # held: no KeyboardInterrupt
+        time.sleep(0.05)
+        handle_termination()  # a new command: signals interrupt again
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+    finally:
+        end_of_command()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    assert (tmp_path / "out.txt").read_text() == "whole"
+
+
+@pytest.mark.skipif(threading.current_thread() is not threading.main_thread(), reason="signals need the main thread")
 def test_an_interrupt_raised_inside_a_library_s_weakref_callback_is_delivered_again_without_a_traceback(capfd):
     """A signal that lands in a weakref callback defined as a lambda (matplotlib's transforms have
     them, and frames cannot tell it for a callback): the interpreter would print the interruption and

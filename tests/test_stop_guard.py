@@ -31,9 +31,12 @@ out = Path(sys.argv[1])
 _BLOCKED = """
 with atomic.atomic_file(out, overwrite=False) as temporary:
     temporary.write_text("half")
-    print("ready", flush=True)
     lock = threading.Lock()
     lock.acquire()
+    try:  # the signal may come while "ready" is still being printed: lost too
+        print("ready", flush=True)
+    except KeyboardInterrupt:
+        pass
     while True:  # a main thread that never stops: every interruption it is given is lost
         try:
             lock.acquire()

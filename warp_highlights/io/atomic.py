@@ -139,11 +139,14 @@ def handle_termination(*, hold_after_output: bool = False) -> None:
 
 
 def end_of_command() -> int | None:
-    """Stop holding signals after outputs and cancel pending re-deliveries; returns a signal that
-    arrived while they were held (the command finished all the same), or None."""
+    """Cancel pending re-deliveries; returns a signal that arrived while signals were held after outputs (the
+    command finished all the same), or None. Where an output is in place, signals stay held until the handlers
+    are replaced (the next :func:`handle_termination`, or the process's end): one arriving while the finished
+    command returns would otherwise report an interruption of outputs that are complete."""
     global _hold_after_output, _output_committed, _pending_signal, _import_retries
     held = _pending_signal if _output_committed and not _deferring else None
-    _hold_after_output = _output_committed = False
+    if not _output_committed:
+        _hold_after_output = False
     if held is not None:
         _pending_signal = None
     while _retry_timers:
