@@ -7,6 +7,7 @@ ground truth rendered at every frame, on scenes made to hold what real captures 
     python benchmarks/bench_motion.py --photos      # also the samples: photos with every k-th light held out (k = 2,
                                                     # 3, 5) and the dome sample on 16, 25, 49 spread lights
     python benchmarks/bench_motion.py --set retarget.search_radius=0   # any fit setting, as `fit --set` takes it
+    python benchmarks/bench_motion.py --scenes "" --photos dome-sample  # the dome sample on 16, 25, 49 lights alone
 
 Scenes (``synth`` renders; shape, lobe):
 - ``donut-sharp``: the smooth donut, Blinn-Phong shininess 800: small bright highlights, no relief.
@@ -297,7 +298,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scale", choices=sorted(SCALES), default="cpu")
     parser.add_argument("--device", default=None)
-    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--scenes", default=",".join(SCENES),
+                        help=f"comma-separated, of {', '.join(SCENES)}; empty: none (the samples alone, --photos)")
     parser.add_argument("--captures", default=None, help="comma-separated (default: the scale's)")
     parser.add_argument("--frames", type=int, default=96)
     parser.add_argument("--learned", action="store_true", help="also the learned residual alone on a CPU (slow)")
@@ -313,10 +315,14 @@ def main() -> None:
     out = Path(os.environ.get("OUT") or Path(__file__).resolve().parent / "results" / f"motion-{args.scale}")
     out.mkdir(parents=True, exist_ok=True)
     captures = args.captures.split(",") if args.captures else SCALES[args.scale][1]
+    scenes = [scene for scene in args.scenes.split(",") if scene]
+    unknown = sorted(set(scenes) - set(SCENES))
+    if unknown:
+        parser.error(f"unknown scenes {', '.join(unknown)}; choose from {', '.join(SCENES)}")
     results = []
     with tempfile.TemporaryDirectory() as scratch:
         pictures = Path(scratch)
-        for scene in args.scenes.split(","):
+        for scene in scenes:
             for capture in captures:
                 started = time.perf_counter()
                 results.append(run_scene(scene, capture, args.scale, device, args.frames, args.learned, pictures,
@@ -325,7 +331,7 @@ def main() -> None:
                 print(f"{scene} {capture}: moving {r['moving']}, fits {r['fit_seconds']} s, "
                       f"{time.perf_counter() - started:.0f} s in all", file=sys.stderr, flush=True)
         # the pictures of the path where the field loses most to the blend, and of the one where it gains most
-        for which, pick in (("worst", min), ("best", max)):
+        for which, pick in (("worst", min), ("best", max)) if results else ():
             r = pick(results, key=lambda r, which=which: r[f"{which}_gap_db"])
             for suffix in (".png", ".gif", ".txt"):
                 shutil.copyfile(pictures / f"{r['scene']}-{r['capture']}-{which}{suffix}", out / f"{which}{suffix}")
@@ -336,7 +342,8 @@ def main() -> None:
               "settings": args.set,
               "results": results, "photos": photos}
     (out / "bench_motion.json").write_text(json.dumps(report, indent=1))
-    print(table(results))
+    if results:
+        print(table(results))
     if photos:
         print()
         print(photo_table(photos))

@@ -1,8 +1,8 @@
 """Diffuse/specular segmentation of a reflectance field, one thread per pixel and channel (docs/method.md, Fitting step
 1).
 
-Every (pixel, channel) fits the Lambertian model D~_i = nbar . omega_i + k_a to its samples I_i over the
-lights, by a 4 x 4 normal-equation solve, robustly:
+Every (pixel, channel) fits the Lambertian model D~_i = nbar . omega_i + k_a, k_a >= 0, to its samples I_i over
+the lights, by a 4 x 4 normal-equation solve (a 3 x 3 one with k_a = 0 where the free k_a is negative), robustly:
 
 1. L = the lights with I_i >= t (shadowed or unlit samples say nothing about nbar);
 2. fit over the current set, residuals l_i = |I_i - D~_i| over L, median m~; the next set is
@@ -60,8 +60,10 @@ def _in_set(value: float, direction: wp.vec3, threshold: float, fit: wp.vec4, li
 
 @wp.func
 def _solve(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3), q: int, threshold: float, fit: wp.vec4,
-           limit: float) -> wp.vec4:
-    """Least-squares (nbar, k_a) over the set defined by (fit, limit); NaN vector when singular."""
+           limit: float, nonnegative: int) -> wp.vec4:
+    """Least-squares (nbar, k_a) over the set defined by (fit, limit); where ``nonnegative`` and the free fit's k_a
+    is negative, the fit of nbar alone with k_a = 0 (the least-squares minimum under k_a >= 0); NaN vector when
+    singular."""
     normal = wp.mat44()
     rhs = wp.vec4()
     for i in range(images.shape[0]):
@@ -77,7 +79,18 @@ def _solve(images: wp.array2d(dtype=float), directions: wp.array(dtype=wp.vec3),
         normal[k, k] = normal[k, k] + ridge
     if wp.determinant(normal) <= 1.0e-12 * trace * trace * trace * trace:
         return wp.vec4(wp.nan, wp.nan, wp.nan, wp.nan)
-    return wp.inverse(normal) * rhs
+    free = wp.inverse(normal) * rhs
+    if free[3] >= 0.0 or nonnegative == 0:
+        return free
+    # an ambient term below zero is no light at all: a highlight or a shadow has bent the fit
+    # (SegmentationSettings.nonnegative_ambient)
+    block = wp.mat33(normal[0, 0], normal[0, 1], normal[0, 2], normal[1, 0], normal[1, 1], normal[1, 2],
+                     normal[2, 0], normal[2, 1], normal[2, 2])
+    trace3 = block[0, 0] + block[1, 1] + block[2, 2]
+    if wp.determinant(block) <= 1.0e-12 * trace3 * trace3 * trace3:
+        return wp.vec4(wp.nan, wp.nan, wp.nan, wp.nan)
+    lit = wp.inverse(block) * wp.vec3(rhs[0], rhs[1], rhs[2])
+    return wp.vec4(lit[0], lit[1], lit[2], 0.0)
 
 
 @wp.func
@@ -153,6 +166,7 @@ def segment_pixels(
     threshold: float,
     outlier_factor: float,
     outlier_floor: float,
+    nonnegative: int,
     max_iterations: int,
     min_valid: int,
     floor: float,
@@ -186,7 +200,7 @@ def segment_pixels(
     # the current set is the one defined by (set_fit, set_limit); limit -1 = every valid light
     set_fit = wp.vec4()
     set_limit = float(-1.0)
-    fit = _solve(images, directions, q, threshold, set_fit, set_limit)
+    fit = _solve(images, directions, q, threshold, set_fit, set_limit, nonnegative)
     iterations = int(1)
     while iterations < max_iterations and not wp.isnan(fit[0]):
         largest = float(0.0)
@@ -206,7 +220,7 @@ def segment_pixels(
                 changed = 1
         if changed == 0 or kept < min_valid:
             break
-        refit = _solve(images, directions, q, threshold, fit, limit)
+        refit = _solve(images, directions, q, threshold, fit, limit, nonnegative)
         if wp.isnan(refit[0]):
             break
         set_fit = fit
@@ -364,9 +378,8 @@ def segment(images, directions, *, settings: SegmentationSettings | None = None,
     lambert = wp.empty(columns, dtype=wp.vec4, device=device)
     status = wp.empty(columns, dtype=wp.vec2i, device=device)
     light_directions = wp.array(directions, dtype=wp.vec3, device=device)
-    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.max_iterations), int(s.min_valid_lights),
-                 s.diffuse_floor, s.diffuse_offset,
-                 int(keep_diffuse)]
+    constants = [s.valid_threshold, s.outlier_factor, s.outlier_floor, int(s.nonnegative_ambient),
+                 int(s.max_iterations), int(s.min_valid_lights), s.diffuse_floor, s.diffuse_offset, int(keep_diffuse)]
 
     def run(part: slice, _stop) -> None:
         outputs = [diffuse[:, part] if keep_diffuse else diffuse, specular[:, part], lambert[part], status[part]]

@@ -162,7 +162,9 @@ def fit_field(
             if not isinstance(specular_luminance, wp.array):
                 specular_luminance = wp.array(specular_luminance, dtype=float, device=device)
             # what the later stages need of the full-size parts, in host memory; the device keeps none of them
-            specular = host_array(seg.specular) if keep_specular else None
+            # float16 in every case, as the bands keep it (``specular_dtype``): the highlight colour is the same whether
+            # the stack was segmented whole or in bands
+            specular = host_array(seg.specular).astype(np.float16, copy=False) if keep_specular else None
             # as the field keeps them
             diffuse_images = host_array(seg.diffuse).astype(np.float16) if diffuse == "images" else None
             shrunk_images = seg.shrunk_images  # the images at the Gaussians' size, where made on the device

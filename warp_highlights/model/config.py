@@ -196,6 +196,12 @@ class SegmentationSettings:
             the thesis has it: on an exactly Lambertian pixel the residuals are float32 rounding
             noise (~1e-6), and twice their median would drop lights on noise alone, refit on fewer
             lights and run to the iteration cap. 1e-4 is far below any visible highlight.
+        nonnegative_ambient: the ambient term k_a is kept >= 0 (where a fit's k_a comes out negative, nbar is
+            fitted alone with k_a = 0, the least-squares minimum under that bound); the thesis fits it freely.
+            Light adds up, so a negative ambient only ever explains a highlight: with few lit samples (a
+            sparse capture, a broad lobe) the free fit takes the top light's highlight into a steep normal
+            and a negative offset and leaves it out of the specular part. Measured on the dome sample fitted
+            on 16, 25 and 49 of its lights (docs/method.md, Fitting step 1, has the figures and the command).
         max_iterations: cap on the fits per pixel, the first included (method.md: 10).
         min_valid_lights: pixels with fewer valid lights are all diffuse (4 unknowns need 4 lights).
         diffuse_floor, diffuse_offset: the fitted diffuse becomes max(D~, floor) + offset before
@@ -205,6 +211,7 @@ class SegmentationSettings:
     valid_threshold: float = 0.05
     outlier_factor: float = 2.0
     outlier_floor: float = 1e-4
+    nonnegative_ambient: bool = True
     max_iterations: int = 10
     min_valid_lights: int = 4
     diffuse_floor: float = 0.05
@@ -459,8 +466,9 @@ per tile, tiles per block (the weights' gradients add up in the block), threads 
 those ``benchmarks/bench_learned_training.py --parts tiles`` tries on an NVIDIA H200."""
 LEARNED_MATHDX = False
 """Whether the learned residual's tile products use cuBLASDx (``enable_mathdx_gemm``): on an NVIDIA H200 it
-made the first training step compile for 357 s instead of 17 s and trained no faster (58 against 64 million
-samples a second, ``benchmarks/bench_learned_training.py``)."""
+makes the first training step compile for minutes and trains slower: 147 million samples a second against
+202 million with Warp's own products, the first step 160 s on an empty kernel cache (the step of
+``LEARNED_TILE``; ``benchmarks/bench_learned_training.py --parts kernel --mathdx 1``)."""
 
 
 @dataclass(frozen=True)
