@@ -216,3 +216,26 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
         )
         relit = Relighter(field, device="cpu", scale=1.0 / factor).relight(directions[light][None]).full[0]
         assert abs(srgb_psnr(relit, images[light] / factor) - moving_psnr) < 0.05
+
+
+@pytest.mark.parametrize("kind", ["lowrank", "learned"])
+def test_a_fit_whose_gaussians_all_stay_keeps_none(small_donut, monkeypatch, kind):
+    """Where no Gaussian moves, the field keeps none: drawn in place they would only be blended, as the residual
+    is, and a learned residual would have to learn the images less their highlights (the dome sample on 16
+    lights: 29.52 dB at its Test lights with its unmoving Gaussians kept, 32.80 without, on an H200)."""
+    import warp_highlights.fit.pipeline as pipeline
+    from conftest import FAST_FIT
+    from warp_highlights.fit.moving import MoveDecision
+    from warp_highlights.io.dataset import ReflectanceField
+
+    original = pipeline.decide_moving
+    monkeypatch.setattr(pipeline, "decide_moving",
+                        lambda *args, **kwargs: MoveDecision(np.zeros_like(original(*args, **kwargs).moving),
+                                                             np.zeros(0)))
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    extra = ["residual.learned_epochs=2"] if kind == "learned" else []
+    settings = FitSettings().with_overrides(FAST_FIT + [f"residual.kind={kind}"] + extra)
+    field = pipeline.fit_field(dataset, settings=settings, device="cpu")
+    assert field.report["estimation"]["gaussians_per_light"]["max"] > 0  # there were Gaussians to keep
+    assert field.report["residual"]["kept_gaussians"] == 0 and not field.estimated.active.any()
+    assert field.residual.highlight_colour is None

@@ -254,10 +254,13 @@ def fit_field(
                     f"{verdict['with_gaussians_psnr_db']:.2f} dB, the images alone "
                     f"{verdict['images_alone_psnr_db']:.2f} dB"
                     + ("" if settled is None else f" (settled after {settled} epochs)"))
-            if not check.moves or (learned_check is not None and not learned_check.keeps_gaussians):
-                # blending beat moving at the left-out lights (or the images learned alone beat the learned
-                # residual with its Gaussians): the highlights stay in the residual (the images themselves)
-                # and the field keeps no Gaussians, which leaves their bytes to the residual
+            if (not moving.any() or not check.moves
+                    or (learned_check is not None and not learned_check.keeps_gaussians)):
+                # no Gaussian moves (each would only be blended in place, as the residual is, and a learned
+                # residual would learn the images less their highlights), or blending beat moving at the left-out
+                # lights, or the images learned alone beat the learned residual with its Gaussians: the
+                # highlights stay in the residual (the images themselves) and the field keeps no Gaussians,
+                # which leaves their bytes to the residual
                 # one free slot each
                 kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)
                 moving = np.zeros((len(source.active), 1), dtype=bool)
