@@ -128,6 +128,7 @@ def score(frames: np.ndarray, truth, *, moving: bool) -> dict:
     out = {"psnr": psnr, "ssim": ssim}
     motion = motion_scores(frames, truth.full, truth.specular, truth.diffuse)
     out["ghost"], out["position_rpx"] = motion.ghost_share, motion.position_error_rpx
+    out["visible_ghost"] = motion.visible_ghost_share
     if moving:
         out["flicker"] = motion.flicker
     return out
@@ -264,8 +265,8 @@ def run_photos(scale: str, device, learned: bool, overrides: list[str], samples)
 
 def table(results: list[dict]) -> str:
     """One Markdown row per (scene, capture, method): along the paths and at the centroids."""
-    lines = ["| scene | lights | method | moving | path PSNR | path SSIM | ghost | position (rpx) | flicker | "
-             "centroid PSNR |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | lights | method | moving | path PSNR | path SSIM | ghost | visible ghost | position (rpx) | "
+             "flicker | centroid PSNR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         along = [p for p in r["paths"] if p != "centroids"]
         for method in r["paths"]["centroids"]:
@@ -276,7 +277,8 @@ def table(results: list[dict]) -> str:
 
             moving = r["moving"].get(method, "")
             lines.append(f"| {r['scene']} | {r['capture']} | {method} | {moving} | {mean('psnr'):.2f} | "
-                         f"{mean('ssim'):.4f} | {mean('ghost'):.3f} | {mean('position_rpx'):.2f} | "
+                         f"{mean('ssim'):.4f} | {mean('ghost'):.3f} | {mean('visible_ghost'):.3f} | "
+                         f"{mean('position_rpx'):.2f} | "
                          f"{mean('flicker'):.2f} | {r['paths']['centroids'][method]['psnr']:.2f} |")
     return "\n".join(lines)
 

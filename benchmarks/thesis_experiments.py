@@ -1,7 +1,7 @@
 """The thesis' experiments 4.2 and 4.5.4 on our data: render, fit and evaluate donut and teapot.
 
     python benchmarks/thesis_experiments.py WORK [--shapes donut teapot] [--lights 250] [--size 480x270] [--device
-    cuda:0]
+    cuda:0] [--set STAGE.NAME=VALUE ...]
 
 For every shape this runs the three commands a user would run, in WORK:
 
@@ -47,8 +47,11 @@ def main() -> None:
     parser.add_argument("--lights", type=int, default=250)
     parser.add_argument("--size", default="480x270")
     parser.add_argument("--device", default=None)
+    parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE",
+                        help="fit setting, repeatable (warp-highlights fit --list-settings)")
     args = parser.parse_args()
     device = ["--device", args.device] if args.device else []
+    settings = [part for setting in args.set for part in ("--set", setting)]
     args.work.mkdir(parents=True, exist_ok=True)
     rows = []
     for shape in args.shapes:
@@ -59,7 +62,7 @@ def main() -> None:
             "render": run(["render", shape, str(data), "--lights", str(args.lights), "--size", args.size, "--overwrite",
                            "-q", *device]),
             "fit": run(["fit", str(data), "-o", str(field), "--report", str(args.work / f"{shape}-fit.json"),
-                        "--overwrite", "-q", *device]),
+                        "--overwrite", "-q", *device, *settings]),
             "evaluate": run(["evaluate", str(field), str(data), "-o", str(evaluation), "--overwrite", "-q", *device]),
         }
         report = json.loads((evaluation / "report.json").read_text())
@@ -71,10 +74,11 @@ def main() -> None:
             shutil.copy(args.work / f"{shape}-fit.json", out / f"{shape}-fit.json")
 
     print()
-    print(f"{args.lights} Fibonacci lights, {args.size}, specular PSNR (dB) at every triangle centroid:")
-    print(
-        "| shape | triangles | method | mean | p5 | p95 | circular > alpha | Gaussians / light | fit s | evaluate s |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"{args.lights} Fibonacci lights, {args.size}, specular PSNR (dB) at every triangle centroid"
+          + (f", fitted with {' '.join(args.set)}" if args.set else "") + "; full image: 8-bit sRGB PSNR:")
+    print("| shape | triangles | method | mean | p5 | p95 | circular > alpha | full image | moving / Gaussians | "
+          "Gaussians / light | fit s | evaluate s |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for shape, report, _fit, seconds in rows:
         specular = report["summary"]["specular"]
         for method in ("circular", "straight", "alpha"):
@@ -82,8 +86,12 @@ def main() -> None:
             share = f"{100 * specular['circular_beats_alpha']:.0f}%" if method == "circular" else ""
             per_light = f"{report['gaussians']['per_light']['mean']:.1f}" if method == "circular" else ""
             times = (f"{seconds['fit']:.1f}", f"{seconds['evaluate']:.1f}") if method == "circular" else ("", "")
+            full = report["summary"]["full_srgb"].get(method)
+            full = f"{full['mean']:.2f}" if full else ""
+            moving = (f"{report['moving_gaussians']} / {report['gaussians']['per_light']['total']}"
+                      if method == "circular" else "")
             print(f"| {shape} | {report['heldout']} | {method} | {s['mean']:.2f} | {s['p5']:.2f} | {s['p95']:.2f} | "
-                  f"{share} | {per_light} | {times[0]} | {times[1]} |")
+                  f"{share} | {full} | {moving} | {per_light} | {times[0]} | {times[1]} |")
 
 
 if __name__ == "__main__":

@@ -25,8 +25,8 @@ from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
 # products without cuBLASDx (``LEARNED_MATHDX``)
 wp.set_module_options({"enable_backward": False, "enable_mathdx_gemm": LEARNED_MATHDX})
 
-__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "decode", "initial_model",
-           "samples_fit", "used_lights"]
+__all__ = ["BLOCK", "CODE_SIZE", "HIDDEN", "MAX_SAMPLES", "NeuralDecoder", "QueryDecoder", "bound_decoded", "decode",
+           "initial_model", "samples_fit", "used_lights"]
 
 CODE_SIZE = wp.constant(NEURAL_CODE_SIZE)
 """Numbers per pixel: NeuralRTI's code size."""
@@ -182,6 +182,15 @@ def store_decoded(values: wp.array2d[float], first: int, count: int, pixels: int
             if x > 0.04045:
                 linear = wp.pow((x + 0.055) / 1.055, 2.4)
             out[q, pixel, c] = wp.float16(wp.clamp(wp.sign(v) * linear * unit, -6.0e4, 6.0e4))
+
+
+@wp.kernel
+def bound_decoded(bounds: wp.array3d[wp.float16], out: wp.array3d[wp.float16]):
+    """out[q, pixel, c] kept within [bounds[0, pixel, c], bounds[1, pixel, c]]: a learned residual's decoded values
+    (field units) within its bounds (``model.residual.learned_bounds``)."""
+    q, pixel = wp.tid()
+    for c in range(3):
+        out[q, pixel, c] = wp.min(wp.max(out[q, pixel, c], bounds[0, pixel, c]), bounds[1, pixel, c])
 
 
 class QueryDecoder:

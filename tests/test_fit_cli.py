@@ -478,6 +478,10 @@ def test_evaluate_scores_a_light_path_against_rendered_truth(fitted, small_donut
         assert len(scores["psnr_db"]["per_frame"]) == 12 and len(scores["flicker_levels"]["per_frame"]) == 11
         assert 15 < scores["psnr_db"]["mean"] < 60 and 0 < scores["ssim"]["mean"] <= 1
     assert path["circular"]["ghost_share"]["mean"] < path["alpha"]["ghost_share"]["mean"]
+    for method in ("circular", "alpha"):
+        assert 0 <= path[method]["visible_ghost_share"]["mean"] <= path[method]["ghost_share"]["mean"]
+    assert path["circular"]["visible_ghost_share"]["mean"] < path["alpha"]["visible_ghost_share"]["mean"]
+    assert "| visible ghost share |" in printed
     assert path["circular"]["position_error_rpx"]["mean"] < path["alpha"]["position_error_rpx"]["mean"]
 
 

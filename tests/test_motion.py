@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from warp_highlights.quality.motion import REFERENCE_HEIGHT_PX, flicker, highlight_motion, motion_scores
+from warp_highlights.quality.motion import (
+    NONE_LEVEL,
+    REFERENCE_HEIGHT_PX,
+    flicker,
+    highlight_motion,
+    motion_scores,
+    visible_ghost_share,
+)
 
 HEIGHT, WIDTH = 90, 160
 
@@ -25,9 +32,11 @@ def test_the_truth_scores_no_ghost_no_offset_and_no_flicker():
     truth, specular, diffuse = _path(np.linspace(30, 130, 12))
     scores = motion_scores(truth, truth, specular, diffuse)
     np.testing.assert_allclose(scores.ghost_share, 0.0, atol=1e-12)
+    np.testing.assert_allclose(scores.visible_ghost_share, 0.0, atol=1e-12)
     np.testing.assert_allclose(scores.position_error_rpx, 0.0, atol=1e-9)
     np.testing.assert_allclose(scores.flicker, 0.0)
-    assert scores.summary() == {"ghost_share": 0.0, "position_error_rpx": 0.0, "flicker_levels": 0.0}
+    assert scores.summary() == {"ghost_share": 0.0, "visible_ghost_share": 0.0, "position_error_rpx": 0.0,
+                                "flicker_levels": 0.0}
 
 
 def test_a_shifted_highlight_is_off_by_its_shift_in_reference_pixels():
@@ -47,6 +56,26 @@ def test_a_cross_fade_shows_its_two_half_highlights_as_ghosts():
     np.testing.assert_allclose(ghost, 1.0, rtol=0.02)
     faded, _ = highlight_motion(truth * 0 + 0.2 + 0.5 * specular, truth, specular, diffuse)
     assert faded[0] < 1e-9  # dimmer but in place: no ghost
+    # each half copy (peak 1, half the truth's 2) is seen where it is at least NONE_LEVEL of the truth's peak: a
+    # Gaussian lobe holds the share 1 - level / its peak of its energy there
+    np.testing.assert_allclose(visible_ghost_share(blend, truth, specular), 1.0 - NONE_LEVEL * 2.0, rtol=0.02)
+
+
+def test_faint_shading_error_is_ghost_light_but_no_visible_ghost():
+    """Shading a little too bright over the whole frame (1% of the highlight's peak) adds light where the truth
+    has no highlight, which the ghost share counts (here several times the highlight's energy); none of it
+    looks like a highlight, so the visible ghost share is 0. A highlight copy as bright as a tenth of the peak
+    beside it is seen."""
+    truth, specular, diffuse = _path([80.0])
+    brighter = truth + 0.01 * 2.0
+    ghost, _ = highlight_motion(brighter, truth, specular, diffuse)
+    assert ghost[0] > 1.0
+    assert visible_ghost_share(brighter, truth, specular)[0] == 0.0
+    copy = brighter + 0.1 * _blob(45.0, 30.0)[None, ..., None]
+    seen = visible_ghost_share(copy, truth, specular)[0]
+    expected = (0.1 * _blob(45.0, 30.0) + 0.02)[0.1 * _blob(45.0, 30.0) + 0.02 >= NONE_LEVEL * 2.0].sum() / _blob(
+        45.0, 80.0).sum()
+    np.testing.assert_allclose(seen, expected, rtol=1e-6)
 
 
 def test_a_jumping_highlight_flickers_more_than_one_that_glides_late():
@@ -61,3 +90,4 @@ def test_frames_without_a_highlight_score_nan_not_zero():
     truth, specular, diffuse = _path([80.0])
     ghost, error = highlight_motion(truth, truth, specular * 0, diffuse)
     assert np.isnan(ghost[0]) and np.isnan(error[0])
+    assert np.isnan(visible_ghost_share(truth, truth, specular * 0)[0])

@@ -4,6 +4,8 @@ training that lowers the loss, and a learned field fitted, saved, loaded and rel
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import warp as wp
@@ -162,6 +164,12 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     np.testing.assert_array_equal(loaded.residual.learned.codes, learned.codes)
     for got, want in zip(loaded.residual.learned.weights, learned.weights):
         np.testing.assert_array_equal(got, want)
+    # bounds: the decoder's values at the captured lights lie inside, widened by their span on either side
+    np.testing.assert_array_equal(loaded.residual.learned.bounds, learned.bounds)
+    captured = learned_images(dataclasses.replace(learned, bounds=None), dataset.lights.directions)
+    low, high = captured.min(axis=0), captured.max(axis=0)
+    np.testing.assert_allclose(learned.bounds[0], low - (high - low), atol=2e-3 * max(1.0, float(np.abs(high).max())))
+    np.testing.assert_allclose(learned.bounds[1], high + (high - low), atol=2e-3 * max(1.0, float(np.abs(high).max())))
     directions = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86], [0.0, -0.7, 0.71]])
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     relit = Relighter(loaded, device="cpu").relight(directions)
@@ -192,6 +200,38 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     assert "residual.learned" in load_error(broken)
     rewrite(data, broken, drop=("residual/learned_w2.npy",))
     assert "learned_w2" in load_error(broken)
+    rewrite(data, broken, drop=("residual/learned_bounds.npy",))
+    assert "learned_bounds" in load_error(broken)
+    # a file written before the bounds (version 6): relit unbounded
+    rewrite(data, broken, drop=("residual/learned_bounds.npy",),
+            header=lambda h: {**h, "format_version": 6,
+                              "residual": {**h["residual"], "learned": {
+                                  k: v for k, v in h["residual"]["learned"].items() if k != "bounds"}}})
+    assert load_field(broken).residual.learned.bounds is None
+
+
+def test_relit_learned_residual_stays_within_its_bounds(device):
+    """``bound_decoded`` keeps every decoded value within its pixel's bounds (the float64 reference:
+    ``learned_images``), on a decoder whose values pass the bounds on purpose."""
+    directions, targets = _problem(seed=8, lights=4, pixels=60)
+    model = neural.initial_model(targets, seed=5)
+    codes = model.codes.reshape(6, 10, neural.CODE_SIZE).astype(np.float16)
+    learned = NeuralResidual(codes, tuple(model.weights), 1.5, 4)
+    free = learned_images(learned, directions)
+    rng = np.random.default_rng(2)
+    low = np.quantile(free, 0.3, axis=0) + rng.uniform(-0.01, 0.01, free.shape[1:])
+    bounds = np.stack([low, low + rng.uniform(0.0, 0.05, low.shape)]).astype(np.float16)
+    bounded = NeuralResidual(codes, tuple(model.weights), 1.5, 4, bounds)
+    want = learned_images(bounded, directions)
+    assert np.any(want != free)  # the bounds bind somewhere
+    decoder = neural.QueryDecoder(codes.reshape(60, -1).astype(np.float32), model.weights, 1.5, device=device)
+    out = wp.empty((4, 60, 3), dtype=wp.float16, device=device)
+    decoder.decode(wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device), out)
+    wp.launch(neural.bound_decoded, dim=(4, 60), inputs=[wp.array(bounds.reshape(2, 60, 3), dtype=wp.float16,
+                                                                    device=device)], outputs=[out], device=device)
+    got = out.numpy().astype(np.float64).reshape(want.shape)
+    assert np.all(got >= bounds[0].astype(np.float64)) and np.all(got <= bounds[1].astype(np.float64))
+    np.testing.assert_allclose(got, want, atol=2e-3)
 
 
 def test_learned_residual_needs_colour_images():
@@ -214,6 +254,11 @@ def test_learned_residual_checks_its_arrays():
         NeuralResidual(np.zeros((4, 5, 9), np.float16), weights[:-1], 2.0, 7)
     with pytest.raises(InputError, match="unit"):
         NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, -1.0, 7)
+    with pytest.raises(InputError, match="bounds"):
+        NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, 2.0, 7, np.zeros((2, 4, 4, 3), np.float16))
+    with pytest.raises(InputError, match="bounds"):
+        NeuralResidual(np.zeros((4, 5, 9), np.float16), weights, 2.0, 7, np.stack([np.ones((4, 5, 3)),
+                                                                                   np.zeros((4, 5, 3))]))
     with pytest.raises(InputError, match="exactly one"):
         ResidualModel(images=np.zeros((7, 4, 5, 3), np.float16), learned=good)
     with pytest.raises(InputError, match="per query"):

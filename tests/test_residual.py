@@ -765,14 +765,14 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
     path = tmp_path / "f.whf"
     save_field(field, path)
     if written_as != "current":
-        assert FORMAT_VERSION == 6
+        assert FORMAT_VERSION == 7
         version = int(written_as.split()[1])
         data = path.read_bytes()
-        def residual_before(r):  # no learned residual before version 3, no decoder widths before version 6
+        def residual_before(r):  # no learned residual before version 3, no decoder widths before 6, no bounds before 7
             learned = r.get("learned")
             r = {key: value for key, value in r.items() if key != "learned" or version > 2}
             if "learned" in r and learned is not None:
-                r["learned"] = {key: value for key, value in learned.items() if key != "hidden"}
+                r["learned"] = {key: value for key, value in learned.items() if key not in ("hidden", "bounds")}
             return r
 
         stacks = {name: getattr(field.residual, name) for name in ("luminance", "chroma")

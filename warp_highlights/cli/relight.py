@@ -741,9 +741,10 @@ def _blank_example_note(key: str, image: np.ndarray, *, kept: bool, added_to: st
 def print_path_table(scores: dict) -> None:
     """``evaluate --path``'s scores as a Markdown table on stdout (means over the frames)."""
     print(f"along {scores['spec']} ({scores['frames']} frames, ground truth rendered anew):")
-    print("| method | 8-bit sRGB PSNR | SSIM | ghost share | position error (rpx) | flicker (8-bit levels) |")
-    print("|---|---|---|---|---|---|")
-    names = ("psnr_db", "ssim", "ghost_share", "position_error_rpx", "flicker_levels")
+    print("| method | 8-bit sRGB PSNR | SSIM | ghost share | visible ghost share | position error (rpx) | "
+          "flicker (8-bit levels) |")
+    print("|---|---|---|---|---|---|---|")
+    names = ("psnr_db", "ssim", "ghost_share", "visible_ghost_share", "position_error_rpx", "flicker_levels")
     for method, values in scores.items():
         if isinstance(values, dict):
             cells = ["n/a" if values[k]["mean"] is None else f"{values[k]['mean']:.{3 if k == 'ssim' else 2}f}"

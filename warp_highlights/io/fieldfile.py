@@ -3,7 +3,7 @@ one thing, the file format (every version's reader and the current writer), so i
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (``docs/file-format.md``).
 
-File format (version 6; any file name, ``.whf`` suggested): a zip archive written through
+File format (version 7; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
 entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
 zip (``numpy.load`` can open those), or, for the basis codes and arrays of 64 KiB or more, the
@@ -55,6 +55,9 @@ entry                           dtype, shape     contents
 ``..._b0``, ... ``..._b3``                       (``model.residual.decoder_layer_shapes`` of the
                                                  header's ``residual.learned.hidden``: version 6;
                                                  before, the fitted decoder's ``NEURAL_HIDDEN``)
+``residual/learned_bounds.npy`` <f2 (2, 3, H, W) version 7, where ``residual.learned.bounds`` is true:
+                                                 the lowest and highest value of the relit residual
+                                                 per pixel and channel (``learned_bounds``)
 ==============================  ===============  =================================================
 
 (The ``gaussians/`` count and slot entries end in ``.npy`` too.) The diffuse arrays are stored as
@@ -78,6 +81,8 @@ deflated ``.npy`` entry; they load unchanged.
 
 Version 5 files have no ``residual.learned.hidden``: their decoder is the fitted one (``NEURAL_HIDDEN``, eight
 arrays); they load unchanged.
+
+Version 6 files have no ``residual/learned_bounds``: their learned residual relights unbounded, as it did.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -131,7 +136,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "array_entry_bytes", "field_size_report", 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _CHUNKED_BYTES = 1 << 16
@@ -164,6 +169,7 @@ _RESIDUAL_IMAGES = "residual/images.npy"
 _RESIDUAL_COLOUR = "residual/colour.npy"
 _RESIDUAL_SCALE = "residual/scale.npy"
 _LEARNED_CODES = "residual/learned_codes.npy"
+_LEARNED_BOUNDS = "residual/learned_bounds.npy"
 
 
 def _learned_weight_names(layers: int) -> tuple[str, ...]:
@@ -360,8 +366,11 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     layout["learned"] = None
     if residual.learned is not None:
         learned = residual.learned
-        layout["learned"] = {"unit": learned.unit, "lights": learned.light_count, "hidden": list(learned.hidden)}
+        layout["learned"] = {"unit": learned.unit, "lights": learned.light_count, "hidden": list(learned.hidden),
+                             "bounds": learned.bounds is not None}
         arrays.append((_LEARNED_CODES, learned.codes.transpose(2, 0, 1).astype("<f2")))
+        if learned.bounds is not None:
+            arrays.append((_LEARNED_BOUNDS, learned.bounds.transpose(0, 3, 1, 2).astype("<f2")))
         names = _learned_weight_names(len(learned.hidden) + 1)
         arrays += [(name, weight.astype("<f4")) for name, weight in zip(names, learned.weights)]
     if residual.images is not None:
@@ -1012,8 +1021,12 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
                                  f"widths of 1 to {NEURAL_HIDDEN[0]}, got {hidden!r}")
         weights = tuple(read(name, "<f4", shape) for name, shape in zip(_learned_weight_names(len(hidden) + 1),
                                                                        decoder_layer_shapes(hidden)))
+        bounded = part.get("bounds", False)
+        if not isinstance(bounded, bool):
+            raise _corrupt(path, f"header entry residual.learned.bounds must be true or false, got {bounded!r}")
+        bounds = read(_LEARNED_BOUNDS, "<f2", (2, 3, height, width)).transpose(0, 2, 3, 1) if bounded else None
         try:
-            learned = NeuralResidual(codes, weights, float(part["unit"]), lights)
+            learned = NeuralResidual(codes, weights, float(part["unit"]), lights, bounds)
         except InputError as exc:
             raise _corrupt(path, str(exc)) from None
     elif not compressed:

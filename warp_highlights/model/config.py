@@ -605,6 +605,16 @@ class ResidualSettings:
             (8.0-12.6 dB) and above the 2.3 dB by which the 250-light donut's two kinds ended apart: such
             a close race learns both to the end. (How far a gap moves after a quarter of training has not
             been measured on captures beyond these two.)
+        learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range its
+            decoder gives at the captured lights widened by that range's span on either side
+            (``model.residual.learned_bounds``, stored in the field). On by default: with 16 lights the decoder
+            lit the black background of the renders of ``benchmarks/bench_motion.py`` on some frames (2-core
+            CPU, ``--scenes donut-sharp,teapot-tiles --captures dome16 --set residual.kind=learned``, and with
+            ``--set residual.learned_bounds=false``: along the paths the sharp donut's field 32.58 -> 33.14 dB,
+            SSIM 0.851 -> 0.920; the tiled teapot 30.64 -> 30.92 dB, SSIM 0.858 -> 0.932). The dome sample and
+            the statue score the same either way (the CPU, ``benchmarks/bench_quality.py --cases synth,statue
+            --set residual.kind=learned``): the span on either side leaves a highlight that is brighter
+            between two lights than at either its peak.
     """
 
     kind: str = "auto"
@@ -628,6 +638,7 @@ class ResidualSettings:
     learned_tune_epochs: int = 40
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
+    learned_bounds: bool = True
 
     def __post_init__(self):
         _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")

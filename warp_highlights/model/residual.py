@@ -37,7 +37,7 @@ from .errors import InputError, finite_array
 __all__ = ["COLOUR_STEP", "CompressedChunks", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
            "NEURAL_HIDDEN", "NEURAL_INPUTS", "NEURAL_LAYER_SHAPES", "NEURAL_MAX_HIDDEN", "NeuralResidual",
            "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "decoder_layer_shapes",
-           "decoder_widths", "parse_hidden", "standard_decoder"]
+           "decoder_widths", "learned_bounds", "parse_hidden", "standard_decoder"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -271,12 +271,15 @@ class NeuralResidual:
             (``NEURAL_LAYER_SHAPES``), or a smaller one's (1 to ``NEURAL_MAX_HIDDEN`` hidden layers no wider).
         unit: field units per display unit (the fit's exposure factor).
         light_count: lights it was trained on.
+        bounds: (2, H, W, 3) float16 field units, or None: per pixel and channel the lowest and highest value
+            a relit residual may take (``learned_bounds``); None leaves it unbounded (files before version 7).
     """
 
     codes: np.ndarray
     weights: tuple
     unit: float
     light_count: int
+    bounds: np.ndarray | None = None
 
     @property
     def hidden(self) -> tuple[int, ...]:
@@ -306,10 +309,32 @@ class NeuralResidual:
         if not (np.isfinite(self.unit) and self.unit > 0) or int(self.light_count) < 1:
             raise InputError(
                 f"a learned residual needs a unit > 0 and at least one light, got {self.unit} and {self.light_count}")
+        if self.bounds is not None:
+            bounds = finite_array(self.bounds, np.float16, "learned residual bounds")
+            if bounds.shape != (2, *codes.shape[:2], 3) or np.any(bounds[0] > bounds[1]):
+                raise InputError(f"learned residual bounds must have shape (2, {codes.shape[0]}, {codes.shape[1]}, 3), "
+                                 f"the lows not above the highs, got {bounds.shape}")
+            object.__setattr__(self, "bounds", bounds)
         object.__setattr__(self, "codes", codes)
         object.__setattr__(self, "weights", weights)
         object.__setattr__(self, "unit", float(self.unit))
         object.__setattr__(self, "light_count", int(self.light_count))
+
+
+def learned_bounds(lowest: np.ndarray, highest: np.ndarray) -> np.ndarray:
+    """(2, H, W, 3) float16 bounds of a learned residual from the (H, W, 3) lowest and highest values its decoder
+    gives at the captured lights (field units): that range widened by its own span on either side.
+
+    Between the captured lights a decoder trained on them is free, and where they hardly constrain it (a pixel
+    that every light leaves dark, a direction far from any light) it can answer with light the capture never
+    shows: a lit background that flashes in on some frames of an animation. Values inside the widened range
+    stay as they are: a highlight brighter between two lights than at either (the dome sample's broad
+    highlight) keeps its peak. Measured with ``benchmarks/bench_motion.py`` and ``benchmarks/bench_quality.py``
+    (docs/method.md, The residual).
+    """
+    lowest, highest = np.asarray(lowest, np.float64), np.asarray(highest, np.float64)
+    span = highest - lowest
+    return np.clip(np.stack([lowest - span, highest + span]), -FLOAT16_SAFE, FLOAT16_SAFE).astype(np.float16)
 
 
 

@@ -36,7 +36,7 @@ def score_path(field, dataset, directions: np.ndarray, *, methods=("circular", "
                renderer=None) -> dict:
     """Relight ``field`` at ``directions`` ((F, 3), a path) with each method and score every frame.
 
-    Returns a dict: ``frames``, and per method ``psnr_db``, ``ssim``, ``ghost_share``,
+    Returns a dict: ``frames``, and per method ``psnr_db``, ``ssim``, ``ghost_share``, ``visible_ghost_share``,
     ``position_error_rpx``, ``flicker_levels`` (each ``{"mean", "per_frame"}``; flicker per step between
     frames; NaN frames, without a highlight in the truth, left out of the means as null).
     """
@@ -62,6 +62,7 @@ def score_path(field, dataset, directions: np.ndarray, *, methods=("circular", "
         motion = motion_scores(frames, *parts)
         result[method] = {name: _summary(values) for name, values in (
             ("psnr_db", psnr), ("ssim", ssim), ("ghost_share", motion.ghost_share),
+            ("visible_ghost_share", motion.visible_ghost_share),
             ("position_error_rpx", motion.position_error_rpx), ("flicker_levels", motion.flicker))}
     return result
 

@@ -37,7 +37,7 @@ from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
 from ..kernels import upsample
 from ..kernels.chunks import map_chunks, problem_chunks
-from ..kernels.neural import QueryDecoder
+from ..kernels.neural import QueryDecoder, bound_decoded
 from ..kernels.raster import Rasterizer
 from ..model.config import RasterSettings
 from ..model.errors import InputError
@@ -267,11 +267,15 @@ class Relighter:
         images = np.zeros((1, 1, 1), dtype=np.float16)
         self._stacks = {name: LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
         residual_scale = np.ones(1, np.float32)
-        self._learned = None
+        self._learned = self._learned_bounds = None
         width, height = self.source_width, self.source_height
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
             codes = resample_image(learned.codes.astype(np.float32), width, height).reshape(-1, learned.codes.shape[2])
+            if learned.bounds is not None:  # resampled as the codes are
+                bounds = np.stack([resample_image(plane.astype(np.float32), width, height).reshape(-1, 3)
+                                   for plane in learned.bounds])
+                self._learned_bounds = wp.array(bounds.astype(np.float16), dtype=wp.float16, device=device)
             if device.is_cuda:  # the fitted decoder's tile kernels, a smaller decoder embedded in its shape
                 self._learned = QueryDecoder(codes, learned.standard_weights, learned.unit, device=device)
             else:  # NumPy's threads on the CPU, at the decoder's own size
@@ -414,6 +418,9 @@ class Relighter:
                                                device=self.device)
                 # at the direction as located: clamped to a dome's rim
                 self._learned.decode(buffers.located, buffers.decoded)
+                if self._learned_bounds is not None:
+                    wp.launch(bound_decoded, dim=buffers.decoded.shape[:2], inputs=[self._learned_bounds],
+                              outputs=[buffers.decoded], device=self.device)
                 images = buffers.decoded
             self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=images)
         return buffers

@@ -130,7 +130,7 @@ def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
 
 def learned_images(learned: NeuralResidual, directions) -> np.ndarray:
     """(Q, H, W, 3) float64 residuals at (Q, 3) unit directions (the float64 reference of the relighter's decode),
-    for a decoder of any shape."""
+    for a decoder of any shape, kept within the residual's bounds where it has them."""
     weights = [w.astype(np.float64) for w in learned.weights]
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float64)
@@ -142,4 +142,8 @@ def learned_images(learned: NeuralResidual, directions) -> np.ndarray:
             h = elu(w @ h + b)
         y = weights[-2] @ h + weights[-1]
         out.append(learned.unit * decode_display(y.T).reshape(height, width, 3))
-    return np.stack(out)
+    out = np.stack(out)
+    if learned.bounds is not None:
+        bounds = learned.bounds.astype(np.float64)
+        out = np.minimum(np.maximum(out, bounds[0]), bounds[1])
+    return out

@@ -98,7 +98,9 @@ def distil_decoder(learned: NeuralResidual, hidden, directions: np.ndarray, face
     student_codes = learned.codes
     if settings.learn_codes:
         student_codes = parameters.views(parameters.flat)[-1].reshape(learned.codes.shape).astype(np.float16)
-    student = NeuralResidual(student_codes, tuple(parameters.weights()), learned.unit, learned.light_count)
+    # the capture's range, which bounds the student's values as it bounds the fitted decoder's
+    student = NeuralResidual(student_codes, tuple(parameters.weights()), learned.unit, learned.light_count,
+                             learned.bounds)
     between = directions_between(directions, faces, len(directions), np.random.default_rng(_NOVEL_SEED))
     report = DistilReport(hidden=hidden, teacher_hidden=learned.hidden, multiply_adds=decoder_multiply_adds(hidden),
                           teacher_multiply_adds=decoder_multiply_adds(learned.hidden), epochs=epochs, seconds=seconds,

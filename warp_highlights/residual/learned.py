@@ -28,6 +28,7 @@ from ..model.errors import InputError
 from ..model.residual import (
     NeuralResidual,
     ResidualModel,
+    learned_bounds,
 )
 from ..quality.metrics import srgb_psnr
 from .cpu_training import decode_cpu, train_decoder_cpu
@@ -58,7 +59,8 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
     models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
                              used=used, initial=start, tune=tune)
-    return _residual_model(models[0], height, width, factor, n, colour), history[0]
+    residual = _residual_model(models[0], height, width, factor, n, colour)
+    return (bounded(residual, directions, device) if settings.learned_bounds else residual), history[0]
 
 
 def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
@@ -262,8 +264,29 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     else:
         check = LearnedCheck(lights, *score(trained))
     keeps = check.keeps_gaussians
-    return dataclasses.replace(check, winner=models[0] if keeps else models[1],
+    winner = models[0 if keeps else 1]
+    return dataclasses.replace(check, winner=bounded(winner, directions, device) if settings.learned_bounds else winner,
                                history=tuple(histories[0 if keeps else 1]))
+
+
+_BOUNDS_CHUNK_BYTES = 1 << 28
+"""At most this many bytes of decoded values (float32) at once while finding a learned residual's bounds."""
+
+
+def bounded(residual: ResidualModel, directions: np.ndarray, device) -> ResidualModel:
+    """``residual`` with its learned residual's bounds (``model.residual.learned_bounds``): its decoder's lowest and
+    highest values at the (n, 3) captured light directions, decoded a few lights at a time on the device."""
+    learned = residual.learned
+    height, width, _ = learned.codes.shape
+    directions = np.asarray(directions, np.float32)
+    chunk = max(1, _BOUNDS_CHUNK_BYTES // (12 * height * width))
+    lowest = highest = None
+    for start in range(0, len(directions), chunk):
+        values = _decoded(learned, directions[start:start + chunk], device)
+        low, high = values.min(axis=0), values.max(axis=0)
+        lowest = low if lowest is None else np.minimum(lowest, low)
+        highest = high if highest is None else np.maximum(highest, high)
+    return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=learned_bounds(lowest, highest)))
 
 
 def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:

@@ -211,6 +211,8 @@ def _learned_arrays(learned, arrays: dict) -> dict:
     height, width, _ = learned.codes.shape
     arrays["learned_codes"] = np.ascontiguousarray(learned.codes.reshape(height, width, NEURAL_CODE_SIZE // 3,
                                                                          3).transpose(2, 0, 1, 3), dtype="<f2")
+    if learned.bounds is not None:  # (2, H, W, 3) float16: the lowest and the highest value a pixel takes
+        arrays["learned_bounds"] = np.ascontiguousarray(learned.bounds, dtype="<f2")
     padded = [-(-w // 4) * 4 for w in learned.hidden]
     for index, (weights, shape) in enumerate(zip(learned.weights, decoder_layer_shapes(padded))):
         wide = np.zeros(shape, dtype="<f4")

@@ -229,7 +229,7 @@ function learnedSource(m) {
   };
   const hiddenBlocks = G.slice(1).map((g, i) => `layout(std140) uniform Hidden${i + 1} { vec4 w${i + 1}[${4 * g * G[i]}]; };`).join("\n");
   return `
-uniform sampler2DArray learnedCodes;
+uniform sampler2DArray learnedCodes;${m.arrays.learned_bounds ? "\nuniform sampler2DArray learnedBounds;" : ""}
 layout(std140) uniform Decoder { vec4 decoder[${L.vec4s}]; };
 ${hiddenBlocks}
 float decodeDisplay(float y) { float t = abs(y); return sign(y) * (t <= 0.04045 ? t / 12.92 : pow((t + 0.055) / 1.055, 2.4)); }
@@ -241,8 +241,10 @@ ${G.map((g, k) => layer(k, k === 0 ? "z" : `h${k - 1}`, k === 0 ? 3 : G[k - 1]))
   vec3 y = decoder[${L.outBias}].xyz;
   for (int q = 0; q < ${G[last]}; q++) y += vec3(dot(decoder[${L.out} + q], h${last}[q]), dot(decoder[${L.out + G[last]} + q], h${last}[q]), dot(decoder[${L.out + 2 * G[last]} + q], h${last}[q]));
   vec3 r = clamp(decoder[${L.unit}].x * vec3(decodeDisplay(y.x), decodeDisplay(y.y), decodeDisplay(y.z)), -${FLOAT16_SAFE}, ${FLOAT16_SAFE});
-  // float16, as Relighter keeps it
-  return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);
+  // float16, as Relighter keeps it${m.arrays.learned_bounds ? `, within the residual's bounds (PORTING.md 1.5c)
+  r = vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);
+  return clamp(r, texelFetch(learnedBounds, ivec3(pixel, 0), 0).rgb, texelFetch(learnedBounds, ivec3(pixel, 1), 0).rgb);` : `
+  return vec3(unpackHalf2x16(packHalf2x16(r.xy)), unpackHalf2x16(packHalf2x16(vec2(r.z, 0.0))).x);`}
 }`;
 }
 
@@ -363,6 +365,7 @@ export class Viewer {
       this.mode = "images";
     } else if (kind === "learned") {
       this.texture("learned_codes", true);
+      if (arrays.learned_bounds) this.texture("learned_bounds", true);
       this.mode = "learned";
     } else {
       throw new Error(`unknown residual kind ${kind}`);
