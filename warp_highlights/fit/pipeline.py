@@ -39,7 +39,7 @@ from ..residual.inputs import (
     render_own_on_device,
 )
 from ..residual.kind import resolve_kind
-from ..residual.learned import check_learned, learn_residual, learned_epochs, learns_anew
+from ..residual.learned import bounded, check_learned, learn_residual, learned_epochs, learns_anew
 from ..residual.rate import gaussian_bytes
 from .estimation import estimate
 from .moving import decide_moving
@@ -291,7 +291,9 @@ def fit_field(
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
                                                                      initial=winner, tune=winner is not None)
-            else:
+            if learned and settings.residual.learned_bounds:  # the decided residual, whichever way it was learned
+                residual_model = bounded(residual_model, dataset.lights.directions, device)
+            if not learned:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,
                                                     other_bytes=gaussian_bytes(kept, kept_retargeted),

@@ -286,6 +286,12 @@ class NeuralResidual:
         """The decoder's hidden layers' widths (``NEURAL_HIDDEN`` for a fitted one)."""
         return decoder_widths(self.weights)
 
+    def within_bounds(self, values: np.ndarray) -> np.ndarray:
+        """(..., H, W, 3) residual values (field units) kept within ``bounds``; as they are without bounds."""
+        if self.bounds is None:
+            return values
+        return np.clip(values, self.bounds[0].astype(values.dtype), self.bounds[1].astype(values.dtype))
+
     @property
     def standard_weights(self) -> tuple:
         """The decoder as the fitted decoder's eight arrays, computing the same (``standard_decoder``)."""

@@ -142,8 +142,4 @@ def learned_images(learned: NeuralResidual, directions) -> np.ndarray:
             h = elu(w @ h + b)
         y = weights[-2] @ h + weights[-1]
         out.append(learned.unit * decode_display(y.T).reshape(height, width, 3))
-    out = np.stack(out)
-    if learned.bounds is not None:
-        bounds = learned.bounds.astype(np.float64)
-        out = np.minimum(np.maximum(out, bounds[0]), bounds[1])
-    return out
+    return learned.within_bounds(np.stack(out))

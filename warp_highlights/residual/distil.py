@@ -122,14 +122,12 @@ def distil_display_decoder(learned: NeuralResidual, codes: np.ndarray, hidden, d
     settings = settings or DistilSettings()
     hidden = parse_hidden(",".join(str(int(w)) for w in hidden))
     teacher = CpuDecoder(learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float32), learned.weights)
-    unit, exposure = float(learned.unit), float(exposure)
-    bounds = None if learned.bounds is None else learned.bounds.astype(np.float32).reshape(2, -1, 3)
+    height, width, _ = learned.codes.shape
 
     def shown(pool: np.ndarray) -> np.ndarray:  # (D, P, 3) what the teacher's image shows, sRGB in [0, 1]
-        values = decode_display(teacher.decode(pool)) * unit  # field units, within the residual's bounds
-        if bounds is not None:
-            values = np.minimum(np.maximum(values, bounds[0]), bounds[1])
-        return linear_to_srgb(np.clip(values / exposure, 0.0, 1.0)).astype(np.float32)
+        values = decode_display(teacher.decode(pool)).reshape(len(pool), height, width, 3) * np.float32(learned.unit)
+        values = learned.within_bounds(values).reshape(len(pool), -1, 3) / np.float32(exposure)
+        return linear_to_srgb(np.clip(values, 0.0, 1.0)).astype(np.float32)
 
     flat_codes = np.asarray(codes, np.float32).reshape(-1, NEURAL_CODE_SIZE)
     parameters, epochs, seconds = _train_student(shown, flat_codes, hidden, directions, faces, settings=settings,

@@ -35,7 +35,7 @@ from .cpu_training import decode_cpu, train_decoder_cpu
 from .inputs import residual_of
 from .opponent import decode_display, encode_display
 
-__all__ = ["LearnedCheck", "check_learned", "learn_residual"]
+__all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual"]
 
 _FIRST_RATE, _TUNE_RATE = 3e-3, 3e-4  # the learning rate's schedule; the check's winner goes on at its final rate
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
@@ -59,8 +59,7 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
     models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
                              used=used, initial=start, tune=tune)
-    residual = _residual_model(models[0], height, width, factor, n, colour)
-    return (bounded(residual, directions, device) if settings.learned_bounds else residual), history[0]
+    return _residual_model(models[0], height, width, factor, n, colour), history[0]
 
 
 def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
@@ -264,8 +263,7 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     else:
         check = LearnedCheck(lights, *score(trained))
     keeps = check.keeps_gaussians
-    winner = models[0 if keeps else 1]
-    return dataclasses.replace(check, winner=bounded(winner, directions, device) if settings.learned_bounds else winner,
+    return dataclasses.replace(check, winner=models[0] if keeps else models[1],
                                history=tuple(histories[0 if keeps else 1]))
 
 
