@@ -13,8 +13,9 @@ between steps 2 and 3):
    (corner k's moved set in slots k N .. k N + N - 1), ready for the rasterizer.
 3. ``compose_images`` (query x pixel, or query x row on the CPU): I' = scale max(B' + c(x) S', 0) with B' the residual
    (residual transfer: a barycentric blend of the per-light residual images, or the low-rank
-   residual from per-query weights that ``blend_images`` blends), the Lambertian model, a blend of
-   per-light images, or nothing; ``blend_images`` is the alpha-blend baseline of a per-light stack.
+   residual from per-query weights that ``blend_images`` blends, or ``blend_rbf`` with radial basis
+   weights over every light), the Lambertian model, a blend of per-light images, or nothing;
+   ``blend_images`` is the alpha-blend baseline of a per-light stack.
 
 A low-rank residual reaches the device as its codes: ``dequantise_basis`` makes the pixel-major
 float32 basis that ``compose_images`` reads, and ``decode_low_rank`` decodes every captured light's
@@ -284,6 +285,27 @@ def blend_images(
     w = weights[q]
     out[q, i] = (w[0] * stack[face_vertices[f, 0], i] + w[1] * stack[face_vertices[f, 1], i]
                  + w[2] * stack[face_vertices[f, 2], i])
+
+
+@wp.kernel(enable_backward=False)
+def blend_rbf(
+    rows: wp.array2d(dtype=wp.float64),
+    lights: wp.array(dtype=wp.vec3d),
+    inverse_sigma_squared: wp.float64,
+    located: wp.array(dtype=wp.vec3),
+    out: wp.array2d(dtype=float),
+):
+    """out[q, i] = sum_j exp(-|w_q - l_j|^2 / sigma^2) rows[j, i], in float64: a radial basis blend of per-light
+    rows already multiplied by (K + lambda I)^-1 (``model.rbf``; a low-rank residual's weights), at the
+    located query directions w_q (on a dome's rim where a query lies outside)."""
+    q, i = wp.tid()
+    w = located[q]
+    d = wp.vec3d(wp.float64(w[0]), wp.float64(w[1]), wp.float64(w[2]))
+    total = wp.float64(0.0)
+    for j in range(lights.shape[0]):
+        r = d - lights[j]
+        total += wp.exp(-wp.dot(r, r) * inverse_sigma_squared) * rows[j, i]
+    out[q, i] = float(total)
 
 
 @wp.func

@@ -1095,9 +1095,10 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     again = tmp_path / "again.whf"
     save_field(field, again)
     old_header, new_header = _headers(path, again)
-    assert new_header["format_version"] == FORMAT_VERSION == 7
+    assert new_header["format_version"] == FORMAT_VERSION == 8
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")
+    assert new_header["residual"].pop("rbf_sigma") is None  # version 8: the triangle's weights, as version 4 blends
     # the settings' residual booleans saved as the kind they resolved to; the rest of the header as it was
     old_residual, new_residual = old_header["settings"].pop("residual"), new_header["settings"].pop("residual")
     assert new_residual == {"kind": "lowrank", **{k: v for k, v in old_residual.items() if k not in RESIDUAL_BOOLEANS}}

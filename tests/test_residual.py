@@ -41,10 +41,12 @@ from warp_highlights.residual.build import (
 from warp_highlights.residual.decode import (
     decoded_images,
     light_images,
+    light_weights,
     stack_basis,
     stack_light_images,
 )
 from warp_highlights.residual.inputs import highlight_colour
+from warp_highlights.residual.interpolation import residual_sigma
 from warp_highlights.residual.opponent import from_opponent, to_opponent
 from warp_highlights.residual.principal import PrincipalImages
 from warp_highlights.residual.quantise import fit_stack, quantised_stack
@@ -563,20 +565,19 @@ def donut_fields(small_donut, tmp_path_factory):
     """The small donut fitted twice: low-rank residual (default) and uncompressed; with its dataset."""
     dataset = ReflectanceField.load(small_donut, progress=False)
     fits = {}
-    for name, extra in (("lowrank", []), ("images", ["residual.kind=images"])):
+    for name, extra in (("lowrank", ["residual.interpolation=triangle"]), ("images", ["residual.kind=images"])):
         fits[name] = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT + extra), device="cpu",
                                progress=False)
+    # the same residual weighed with radial basis weights over every light
+    lowrank = fits["lowrank"]
+    sigma = residual_sigma(lowrank.residual, lowrank.lights.directions)
+    fits["rbf"] = dataclasses.replace(lowrank, residual=dataclasses.replace(lowrank.residual, rbf_sigma=sigma))
     return dataset, fits
 
 
 def _reference_full(field, directions, scale) -> np.ndarray:
     """float64 residual transfer: blended residual + c(x) S', S' from the relighter's own interpolated sets."""
-    tri = field.triangulation
-    location = tri.locate(directions)
-    weights = np.zeros((len(directions), field.light_count))
-    for k in range(3):
-        np.add.at(weights, (np.arange(len(directions)), tri.faces[location.faces, k]), location.barycentric[:, k])
-    residual = light_images(field.residual, weights)
+    residual = light_images(field.residual, light_weights(field.residual, field.triangulation, directions))
     relighter = Relighter(field, device="cpu")
     sets = relighter.interpolated_sets(directions)
     specular = render_reference(sets, field.height, field.width, field.fit_settings().raster)
@@ -585,7 +586,8 @@ def _reference_full(field, directions, scale) -> np.ndarray:
 
 
 @pytest.mark.parametrize("kind, decode",
-                         [("lowrank", "query"), ("lowrank", "load"), ("lowrank", "auto"), ("images", "auto")])
+                         [("lowrank", "query"), ("lowrank", "load"), ("lowrank", "auto"), ("images", "auto"),
+                          ("rbf", "query"), ("rbf", "auto")])
 def test_compose_matches_the_float64_reference(donut_fields, kind, decode, device):
     _, fits = donut_fields
     field = fits[kind]
@@ -600,11 +602,7 @@ def _reference_full_larger(field, directions, scale, width: int, height: int, *,
     """``_reference_full`` at a larger output size, as the field's arrays resampled to it on the host
     (``resample_image``) compose: the residual (its linear part and its per-pixel scale ``apart`` when the
     low-rank basis is read per query, else the decoded images) and c(x) each resampled."""
-    tri = field.triangulation
-    location = tri.locate(directions)
-    weights = np.zeros((len(directions), field.light_count))
-    for k in range(3):
-        np.add.at(weights, (np.arange(len(directions)), tri.faces[location.faces, k]), location.barycentric[:, k])
+    weights = light_weights(field.residual, field.triangulation, directions)
     residual = light_images(field.residual, weights).astype(np.float64)
     lowrank_scale = apart and field.residual.scale is not None
     if lowrank_scale:  # decoded = scale x linear part: the two are resampled apart
@@ -621,7 +619,8 @@ def _reference_full_larger(field, directions, scale, width: int, height: int, *,
     return scale * np.maximum(grown + colour * specular[..., None], 0.0)
 
 
-@pytest.mark.parametrize("kind, decode", [("lowrank", "query"), ("lowrank", "load"), ("images", "auto")])
+@pytest.mark.parametrize("kind, decode", [("lowrank", "query"), ("lowrank", "load"), ("images", "auto"),
+                                          ("rbf", "query")])
 def test_a_larger_output_is_the_host_resampled_composition(donut_fields, kind, decode, device, monkeypatch):
     """Relit at 2.5 times the field's size from its arrays at their own size: the image the arrays resampled on
     the host give (float rounding; float16 images where they are decoded once), and no array is resampled to
@@ -765,7 +764,7 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
     path = tmp_path / "f.whf"
     save_field(field, path)
     if written_as != "current":
-        assert FORMAT_VERSION == 7
+        assert FORMAT_VERSION == 8
         version = int(written_as.split()[1])
         data = path.read_bytes()
         def residual_before(r):  # no learned residual before version 3, no decoder widths before 6, no bounds before 7

@@ -55,12 +55,14 @@ def _export(field_path, folder) -> None:
 
 @pytest.fixture(scope="module")
 def fields(small_field, tmp_path_factory):
-    """The fitted small donut (low-rank residual) and three variants of it, saved: its residual
-    uncompressed, and a learned residual of random weights (the page's decoder against the reference), with
+    """The fitted small donut (low-rank residual, weighed by the triangle's weights and by radial basis weights)
+    and three variants of it, saved: its residual uncompressed, and a learned residual of random weights (the
+    page's decoder against the reference), with
     the fitted decoder's shape and with a smaller one (two hidden layers of 20 and 13 units)."""
     from warp_highlights.io.fieldfile import load_field, save_field
     from warp_highlights.model.residual import NEURAL_LAYER_SHAPES, NeuralResidual, decoder_layer_shapes
     from warp_highlights.residual.decode import decoded_images
+    from warp_highlights.residual.interpolation import residual_sigma
 
     field = load_field(small_field)
     residual = field.residual
@@ -70,7 +72,10 @@ def fields(small_field, tmp_path_factory):
     student = tuple((rng.normal(size=shape) / np.sqrt(shape[1])).astype(np.float32)
                     for shape in decoder_layer_shapes((20, 13)))
     codes = rng.normal(size=(field.height, field.width, 9)).astype(np.float16)
+    sigma = residual_sigma(residual, field.lights.directions)
     variants = {
+        "lowrank": dataclasses.replace(residual, rbf_sigma=None),
+        "rbf": dataclasses.replace(residual, rbf_sigma=sigma),
         "images": dataclasses.replace(residual, images=decoded_images(residual), luminance=None, chroma=None,
                                       scale=None),
         "learned": dataclasses.replace(residual, learned=NeuralResidual(codes, weights, 0.3, field.light_count),
@@ -79,7 +84,7 @@ def fields(small_field, tmp_path_factory):
                                        luminance=None, chroma=None, scale=None),
     }
     root = tmp_path_factory.mktemp("web-fields")
-    paths = {"lowrank": small_field}
+    paths = {}
     for name, variant in variants.items():
         paths[name] = root / f"{name}.whf"
         save_field(dataclasses.replace(field, residual=variant), paths[name])
@@ -146,13 +151,14 @@ def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float
     ("lowrank", "auto", ["circular", "straight", "alpha"]),
     ("lowrank", "query", ["circular", "straight", "alpha"]),
     ("images", "auto", ["circular", "straight", "alpha"]),
+    ("rbf", "auto", ["circular", "straight", "alpha"]),
     ("learned", "auto", ["circular", "straight"]),
     ("student", "auto", ["circular", "straight"]),
 ])  # fmt: skip
 def test_the_page_relights_as_relight_does(browser, exported, fields, kind, decode, methods):
     with served(exported[kind]) as url, opened(browser, f"{url}?decode={decode}") as tab:
         mode = tab.evaluate("whViewer.mode")
-        assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images",
+        assert mode == {"lowrank": "decoded" if decode == "auto" else "stack", "images": "images", "rbf": "stack",
                         "learned": "learned", "student": "learned"}[kind]
         if mode == "decoded":
             assert tab.evaluate("whViewer.decodedCount()") == tab.evaluate("whViewer.manifest.lights")
@@ -458,12 +464,13 @@ def _read_array(folder, spec) -> np.ndarray:
 
 def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
     from warp_highlights.io.fieldfile import load_field
+    from warp_highlights.model.rbf import rbf_kernel, rbf_weights
     from warp_highlights.web.export import WEB_FORMAT
 
     for kind, folder in exported.items():
         manifest = json.loads((folder / "manifest.json").read_text())
         assert manifest["format"] == "warp-highlights web viewer" and manifest["version"] == WEB_FORMAT
-        assert manifest["residual"]["kind"] == {"student": "learned"}.get(kind, kind)
+        assert manifest["residual"]["kind"] == {"student": "learned", "rbf": "lowrank"}.get(kind, kind)
         for name, spec in manifest["arrays"].items():
             size = np.dtype(spec["dtype"]).itemsize * int(np.prod(spec["shape"]))
             assert _read_array(folder, spec).nbytes == size, name
@@ -480,6 +487,18 @@ def test_export_writes_the_manifest_and_arrays_it_names(exported, fields):
     kept = load_field(fields["student"]).residual.learned.weights[2]
     np.testing.assert_array_equal(padded[:13], kept)
     assert not padded[13:].any() and not _read_array(exported["student"], student["arrays"]["learned_w2"])[:, 13:].any()
+    # a radial basis residual: its width, and (K + lambda I)^-1 over the lights in float64 (model.rbf)
+    rbf = json.loads((exported["rbf"] / "manifest.json").read_text())
+    sigma = load_field(fields["rbf"]).residual.rbf_sigma
+    triangle = json.loads((exported["lowrank"] / "manifest.json").read_text())
+    assert rbf["residual"]["rbf_sigma"] == sigma and "rbf_sigma" not in triangle["residual"]
+    assert "rbf_inverse" in rbf["arrays"] and "rbf_inverse" not in triangle["arrays"]
+    lights = load_field(fields["rbf"]).lights.directions
+    inverse = _read_array(exported["rbf"], rbf["arrays"]["rbf_inverse"])  # (n, n): phi(w) times it
+    assert inverse.dtype == np.float64 and inverse.shape == (len(lights), len(lights))
+    queries = np.array([[0.3, 0.2, 0.93], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(rbf_kernel(queries, lights, sigma) @ inverse, rbf_weights(queries, lights, sigma),
+                               atol=1e-8)
     # the packed low-rank codes give back the field's codes
     field, manifest = load_field(fields["lowrank"]), json.loads((exported["lowrank"] / "manifest.json").read_text())
     stack, spec = field.residual.chroma, manifest["arrays"]["chroma_codes"]

@@ -295,6 +295,12 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             print(f"  learned check at {learned['lights']} left-out lights: residual + moved Gaussians "
                   f"{learned['with_gaussians_psnr_db']:.2f} dB, "
                   f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
+        weighing = residual.get("residual_interpolation") or {}
+        if weighing.get("lights") and "rbf_psnr_db" in weighing:
+            verdict = ("radial basis weights over every light" if weighing["chosen"] == "rbf"
+                       else "the triangle's weights")
+            print(f"  residual interpolation at {weighing['lights']} left-out lights: the triangle's "
+                  f"{weighing['triangle_psnr_db']:.2f} dB, radial basis {weighing['rbf_psnr_db']:.2f} dB: {verdict}")
     parts = field_size_report(field)
     print("  file: " + ", ".join(f"{name} {value / 1e6:.2f} MB" for name, value in parts.items()))
 

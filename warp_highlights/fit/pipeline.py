@@ -38,6 +38,7 @@ from ..residual.inputs import (
     render_own,
     render_own_on_device,
 )
+from ..residual.interpolation import choose_interpolation
 from ..residual.kind import resolve_kind
 from ..residual.learned import bounded, check_learned, learn_residual, learned_epochs, learns_anew
 from ..residual.rate import gaussian_bytes
@@ -45,7 +46,7 @@ from .estimation import estimate
 from .moving import decide_moving
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
-from .validation import check_moving, plan_check
+from .validation import check_moving, leave_one_out, plan_check, spread_lights
 
 __all__ = ["DIFFUSE_CHOICES", "default_exposure", "exposure_factor", "fit_field", "moving_energy_share"]
 
@@ -196,7 +197,7 @@ def fit_field(
         compression: dict = {}  # the low-rank residual's budget and captured-light score
         anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
-        check = learned_check = None
+        check = learned_check = interpolation = None
         if residual:
             with timer.stage("residual"):
                 decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual,
@@ -304,6 +305,19 @@ def fit_field(
                     log(f"the residual gave the captured lights back at under "
                         f"{settings.residual.min_captured_psnr_db:g} dB within {100 * budget:.0f}% of the capture; "
                         f"it takes {100 * compression['size_budget']:.0f}% ({compression['captured_psnr_db']:.1f} dB)")
+            if kind == "lowrank" and settings.residual.interpolation != "triangle":
+                with timer.stage("residual interpolation"):
+                    directions = dataset.lights.directions
+                    loo = (plan.loo if len(plan.loo.lights) or dataset.light_count < 5
+                           else leave_one_out(directions, spread_lights(directions, settings.residual.check_lights)))
+                    residual_model, interpolation = choose_interpolation(
+                        residual_model, images if images.ndim == 4 else images[..., None], own, colour, directions,
+                        loo.lights, loo.vertices, loo.barycentric, factor=factor, settings=settings.residual)
+                verdict = interpolation.report()
+                if "rbf_psnr_db" in verdict:
+                    log(f"residual interpolation at {verdict['lights']} lights: the triangle's "
+                        f"{verdict['triangle_psnr_db']:.2f} dB, radial basis {verdict['rbf_psnr_db']:.2f} dB: "
+                        f"{verdict['chosen']}")
             held = None
     finally:  # an error or Ctrl-C meanwhile: the plan not left running (it is host work of a fraction of a second)
         if planning is not None:
@@ -361,6 +375,7 @@ def fit_field(
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
+            "residual_interpolation": interpolation.report() if interpolation is not None else None,
             "luminance_rank": residual_model.luminance.rank if kind == "lowrank" else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,
             "basis_bits": residual_model.luminance.bits if kind == "lowrank" else None,

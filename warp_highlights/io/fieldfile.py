@@ -84,6 +84,10 @@ arrays); they load unchanged.
 
 Version 6 files have no ``residual/learned_bounds``: their learned residual relights unbounded, as it did.
 
+Version 7 files have no header entry ``residual.rbf_sigma`` (version 8: null, or the radial basis width with
+which a low-rank residual's lights are weighed, ``ResidualModel.rbf_sigma``): they relight with the triangle's
+weights, as they did.
+
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
 """
@@ -136,7 +140,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "array_entry_bytes", "field_size_report", 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _CHUNKED_BYTES = 1 << 16
@@ -361,7 +365,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     """The header layout and the (name, array) entries of a residual model, planes channel-first."""
     layout = {"channels": residual.channels, "compressed": residual.kind == "lowrank",
               "highlight_colour": residual.highlight_colour is not None,
-              "scale": residual.scale is not None}
+              "scale": residual.scale is not None, "rbf_sigma": residual.rbf_sigma}
     arrays = []
     layout["learned"] = None
     if residual.learned is not None:
@@ -689,6 +693,11 @@ def _read_header(path: Path, archive: zipfile.ZipFile) -> dict:
 
 def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    """A finite JSON number (not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _header_int(
@@ -1068,10 +1077,13 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
     colour = None
     if with_colour:
         colour = colour_from_codes(read(_RESIDUAL_COLOUR, "<u1", (channels, height, width)).transpose(1, 2, 0))
+    sigma = layout.get("rbf_sigma")  # version 8
+    if sigma is not None and (not _is_number(sigma) or not 0 < sigma <= 4):
+        raise _corrupt(path, f"header entry residual.rbf_sigma must be null or a number in (0, 4], got {sigma!r}")
     try:
         return ResidualModel(images=images, luminance=stacks.get("luminance"), chroma=stacks.get("chroma"),
                              highlight_colour=colour, scale=scale,
-                             learned=learned)
+                             learned=learned, rbf_sigma=sigma)
     except InputError as exc:
         raise _corrupt(path, str(exc)) from None
 

@@ -12,7 +12,9 @@ three kinds (``ResidualModel.kind``):
   split, luminance Y = 0.2126 R + 0.7152 G + 0.0722 B and chroma (B - Y, R - Y), each a
   :class:`LowRankStack`: a mean image plus k basis images with per-light weights. Blending the
   weights barycentrically blends the images exactly, so a query costs k multiply-adds per pixel and
-  plane. Normalising by s(x) spreads the approximation error in proportion to each pixel's
+  plane. A low-rank residual may instead be interpolated with radial basis weights over every light
+  (``rbf_sigma``, ``model.rbf``): the same blend of the weight rows, with other weights. Normalising by s(x)
+  spreads the approximation error in proportion to each pixel's
   brightness, as the eye (and 8-bit sRGB) sees it, instead of letting bright pixels take all of it;
   dark backgrounds stay dark. The basis images are kept as 8- or 16-bit codes with a per-image range, and
   s(x) as float16, exactly as the field file stores them.
@@ -355,6 +357,8 @@ class ResidualModel:
         highlight_colour: (H, W, C) float32 c(x) >= 0 (luminance 1 for a grey highlight), or None (white).
         scale: (H, W) float32 s(x) > 0 multiplying the low-rank stacks, or None (1).
         learned: a ``NeuralResidual`` instead of images or stacks, or None.
+        rbf_sigma: a low-rank residual's radial basis width (chord units, ``model.rbf``): relighting weighs its
+            lights phi(w)^T (K + lambda I)^-1 instead of the query's barycentric weights; None: the triangle's.
         channels: C, 1 or 3.
     """
 
@@ -364,6 +368,7 @@ class ResidualModel:
     highlight_colour: np.ndarray | None = None
     scale: np.ndarray | None = None
     learned: NeuralResidual | None = None
+    rbf_sigma: float | None = None
 
     def __post_init__(self):
         if sum(part is not None for part in (self.images, self.luminance, self.learned)) != 1:
@@ -386,6 +391,12 @@ class ResidualModel:
                 if self.chroma.mean.shape != lum.mean.shape[:2] + (2,) or len(self.chroma.weights) != len(lum.weights):
                     raise InputError(
                         "the residual chroma stack must have 2 planes of the luminance's size and the same light count")
+        if self.rbf_sigma is not None:
+            sigma = float(self.rbf_sigma)
+            if self.luminance is None or not (np.isfinite(sigma) and 0.0 < sigma <= 4.0):
+                raise InputError(f"a radial basis interpolation goes with a low-rank residual and needs a width in "
+                                 f"(0, 4] (chord units), got {self.rbf_sigma}")
+            object.__setattr__(self, "rbf_sigma", sigma)
         if self.scale is not None:
             scale = finite_array(self.scale, np.float32, "residual scale")
             if self.images is not None or scale.shape != (self.height, self.width) or np.any(scale <= 0):
@@ -403,6 +414,12 @@ class ResidualModel:
     def kind(self) -> str:
         """"lowrank", "learned" or "images": how the residual is stored."""
         return "lowrank" if self.luminance is not None else "learned" if self.learned is not None else "images"
+
+    @property
+    def interpolation(self) -> str:
+        """"rbf" (radial basis weights over every light) or "triangle" (the query's barycentric weights);
+        a learned residual is decoded, not interpolated: "triangle" (unused)."""
+        return "rbf" if self.rbf_sigma is not None else "triangle"
 
     @property
     def light_count(self) -> int:
@@ -439,6 +456,8 @@ class ResidualModel:
         else:
             chroma = f" + chroma rank {self.chroma.rank}" if self.chroma is not None else ""
             kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"
+            if self.rbf_sigma is not None:
+                kind += f", radial basis weights (sigma {self.rbf_sigma:.3g})"
         colour = "per-pixel" if self.highlight_colour is not None else "white"
         return f"residual: {kind}; highlight colour {colour}"
 

@@ -30,6 +30,7 @@ import warp as wp
 
 from ..kernels import baselines as kernels
 from ..model.errors import InputError
+from ..model.rbf import RBF_REGULARISATION, RBF_SIGMA_FACTORS, loo_sigma, rbf_kernel, rbf_loo_errors, rbf_system
 from ..model.triangulation import unit_query_directions
 
 __all__ = [
@@ -55,16 +56,6 @@ _COEFFICIENTS = {"ptm": 6, "hsh2": 4, "hsh3": 9}
 PINV_RCOND = 1e-10
 """Singular values of the PTM/HSH basis matrix below this fraction of the largest count as zero: a term
 the light directions do not determine (e.g. all lights at one elevation) gets the minimum-norm fit."""
-
-RBF_REGULARISATION = 1e-6
-"""lambda added to the RBF kernel matrix's unit diagonal: keeps (K + lambda I) invertible for nearly
-coincident lights; the interpolant then misses a training image by about lambda times its weights."""
-
-RBF_SIGMA_FACTORS = np.geomspace(0.5, 3.0, 41)
-"""sigma candidates of the leave-one-out search, as multiples of the median chord from each light to its
-nearest neighbour (0.34 on a 49-light dome). Larger sigma makes K so ill-conditioned that lambda, not
-the data, shapes the interpolant (on the SynthRTI dome a second leave-one-out dip at 5 spacings
-scores far worse on held-out lights)."""
 
 RBF_LOO_PIXELS = 4096
 """Pixels (all their channels) drawn, without replacement and with a fixed seed, to score the sigma
@@ -121,25 +112,6 @@ def baseline_basis(method: str, directions) -> np.ndarray:
         f"baseline_basis takes ptm, hsh2 or hsh3, got '{method}' (rbf depends on its lights: use BaselineModel.basis)")
 
 
-def rbf_kernel(directions, centres, sigma: float) -> np.ndarray:
-    """(Q, n) float64 exp(-(|w_q - c_i| / sigma)^2) for unit directions w (Q, 3) and centres c (n, 3)."""
-    w = np.asarray(directions, dtype=np.float64)
-    c = np.asarray(centres, dtype=np.float64)
-    chord2 = np.maximum((w * w).sum(1)[:, None] + (c * c).sum(1)[None, :] - 2.0 * w @ c.T, 0.0)
-    return np.exp(-chord2 / (sigma * sigma))
-
-
-def rbf_loo_errors(matrix: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(n, S) leave-one-out errors of kernel interpolation, Rippa's closed form, float64.
-
-    For each column y of ``values`` (n, S): e_i = (A^-1 y)_i / (A^-1)_ii with A = ``matrix`` (n, n),
-    the error at light i of the interpolant fitted to the other n - 1 lights (exact for a regularised
-    kernel matrix too: the prediction at light i uses K's off-diagonal row, not lambda).
-    """
-    inverse = np.linalg.inv(np.asarray(matrix, dtype=np.float64))
-    return (inverse @ np.asarray(values, dtype=np.float64)) / np.diag(inverse)[:, None]
-
-
 def choose_rbf_sigma(images, directions, *, regularisation: float = RBF_REGULARISATION, candidates=None,
                      pixels: int = RBF_LOO_PIXELS, seed: int = 0) -> tuple[float, np.ndarray, np.ndarray]:
     """The RBF sigma with the least mean squared leave-one-out error over a subsample of pixels.
@@ -164,26 +136,11 @@ def choose_rbf_sigma(images, directions, *, regularisation: float = RBF_REGULARI
     n = len(images)
     if n < 2:
         raise InputError("choosing the rbf sigma by leave-one-out needs at least 2 lights; pass sigma")
-    if candidates is None:
-        chord = np.linalg.norm(directions[:, None] - directions[None], axis=2)
-        np.fill_diagonal(chord, np.inf)
-        spacing = float(np.median(chord.min(axis=1)))
-        if not spacing > 0.0:
-            raise InputError(
-                "most lights coincide with another; the rbf sigma cannot be chosen from their spacing; pass sigma")
-        candidates = RBF_SIGMA_FACTORS * spacing
-    candidates = np.asarray(candidates, dtype=np.float64).reshape(-1)
-    if candidates.size == 0 or not np.all(np.isfinite(candidates) & (candidates > 0)):
-        raise InputError("rbf sigma candidates must be positive finite numbers")
     flat = images.reshape(n, -1, images.shape[3])
     count = flat.shape[1]
     chosen = (np.sort(np.random.default_rng(seed).choice(count, size=pixels, replace=False)) if count > pixels
               else slice(None))
-    values = flat[:, chosen].reshape(n, -1).astype(np.float64)
-    errors = np.empty(len(candidates))
-    for k, sigma in enumerate(candidates):
-        errors[k] = np.mean(rbf_loo_errors(_rbf_system(directions, float(sigma), regularisation), values) ** 2)
-    return float(candidates[int(np.argmin(errors))]), candidates, errors
+    return loo_sigma(flat[:, chosen].reshape(n, -1), directions, candidates=candidates, regularisation=regularisation)
 
 
 class BaselineModel:
@@ -215,7 +172,7 @@ class BaselineModel:
         self._planes = planes
         self.coefficient_count = planes.shape[0]
         self.bytes_per_pixel_8bit = self.coefficient_count * self.channels
-        self._rbf_inverse = np.linalg.inv(_rbf_system(lights, sigma, regularisation)) if method == "rbf" else None
+        self._rbf_inverse = np.linalg.inv(rbf_system(lights, sigma, regularisation)) if method == "rbf" else None
         self.max_batch = max(1, _CHUNK_BYTES // (4 * self.height * self.width * self.channels))
 
     def basis(self, directions) -> np.ndarray:
@@ -310,11 +267,6 @@ def _is_number(value) -> bool:
     """A finite real number (not a bool)."""
     return (isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
             and bool(np.isfinite(value)))
-
-
-def _rbf_system(lights: np.ndarray, sigma: float, regularisation: float) -> np.ndarray:
-    """(n, n) K + lambda I of the RBF interpolation over the lights."""
-    return rbf_kernel(lights, lights, sigma) + regularisation * np.eye(len(lights))
 
 
 def _checked_inputs(images, directions) -> tuple[np.ndarray, np.ndarray]:

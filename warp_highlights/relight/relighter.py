@@ -52,6 +52,7 @@ from ..residual.device import (
     decode_on_load,
     decode_residual,
     decodes_on_device,
+    rbf_rows,
 )
 from .interpolation import edge_rows
 
@@ -268,6 +269,7 @@ class Relighter:
         self._stacks = {name: LowRankArrays.empty(device, planes) for name, planes in (("luminance", 1), ("chroma", 2))}
         residual_scale = np.ones(1, np.float32)
         self._learned = self._learned_bounds = None
+        self._rbf = None  # a radial basis residual's rows and lights (``rbf_rows``)
         width, height = self.source_width, self.source_height
         if self.diffuse == kernels.DIFFUSE_DECODED:
             learned = residual.learned
@@ -291,6 +293,8 @@ class Relighter:
                 residual_scale = resample_image(residual.scale, width, height).reshape(-1)
             if residual.chroma is not None:
                 self._stacks["chroma"] = LowRankArrays.upload(residual.chroma, width, height, device)
+            if residual.rbf_sigma is not None:
+                self._rbf = rbf_rows(residual, self.field.triangulation.directions, device)
         self._lambert = wp.array(np.ascontiguousarray(lambert), dtype=wp.vec4, device=device)
         self._diffuse_images = (images if isinstance(images, wp.array)
                                 else wp.array(images, dtype=wp.float16, device=device))
@@ -477,7 +481,11 @@ class Relighter:
             if out is None or out.shape != (buffers.count, stack.rank + 1):
                 out = buffers.coefficients[name] = wp.zeros((buffers.count, stack.rank + 1), dtype=float,
                                                             device=self.device)
-            if mode == kernels.DIFFUSE_LOWRANK and stack.uploaded:
+            if mode == kernels.DIFFUSE_LOWRANK and stack.uploaded and self._rbf is not None:
+                wp.launch(kernels.blend_rbf, dim=(buffers.count, stack.rank + 1),
+                          inputs=[self._rbf.rows[name], self._rbf.lights, self._rbf.inverse_sigma_squared,
+                                  buffers.located], outputs=[out], device=self.device)
+            elif mode == kernels.DIFFUSE_LOWRANK and stack.uploaded:
                 wp.launch(kernels.blend_images, dim=(buffers.count, stack.rank + 1),
                           inputs=[stack.weights, self._face_vertices, buffers.faces, buffers.weights], outputs=[out],
                           device=self.device)

@@ -16,8 +16,11 @@ the data classes it fills are ``model.residual``'s. Imports the model, io and th
 - ``learn_residual``: the learned residual (codes and an MLP), trained on the residual images.
 - ``check_learned``: whether the learned residual keeps the moving Gaussians or learns the images alone.
 - ``LearnedCheck``: what ``check_learned`` measured at its left-out lights.
+- ``choose_interpolation``: the triangle's or radial basis weights for a low-rank residual, by leave-one-out.
+- ``InterpolationChoice``: what ``choose_interpolation`` measured at its left-out lights.
 - ``decoded_images``: every captured light's residual image, float16.
 - ``light_images``: the residual blended with per-light weights, float64 (the reference).
+- ``light_weights``: the per-light weights relighting blends the residual with at query directions, float64.
 - ``learned_images``: a learned residual at query directions, float64 (the reference).
 - ``decode_residual``: a low-rank residual's images decoded on a Warp device.
 - ``to_opponent``: linear RGB -> luminance and chroma (B - Y, R - Y); ``from_opponent`` the inverse.
@@ -36,7 +39,8 @@ __getattr__, __dir__, __all__ = lazy_exports(
         **dict.fromkeys(["quantised_stack", "fit_stack"], "quantise"),
         **dict.fromkeys(["allocate", "StackPlan"], "rate"),
         **dict.fromkeys(["learn_residual", "check_learned", "LearnedCheck"], "learned"),
-        **dict.fromkeys(["decoded_images", "light_images", "learned_images"], "decode"),
+        **dict.fromkeys(["choose_interpolation", "InterpolationChoice"], "interpolation"),
+        **dict.fromkeys(["decoded_images", "light_images", "light_weights", "learned_images"], "decode"),
         "decode_residual": "device",
         **dict.fromkeys(["to_opponent", "from_opponent"], "opponent"),
     },

@@ -9,6 +9,7 @@ from typing import Iterator
 import numpy as np
 
 from ..model.errors import InputError
+from ..model.rbf import rbf_weights
 from ..model.residual import (
     FLOAT16_SAFE,
     NEURAL_CODE_SIZE,
@@ -21,7 +22,7 @@ from ..model.threads import parallel_map
 from .opponent import decode_display, from_opponent
 
 __all__ = ["band_basis", "decoded_blocks", "decoded_images", "decoded_lights", "learned_images", "light_images",
-           "stack_basis", "stack_images", "stack_light_images"]
+           "light_weights", "stack_basis", "stack_images", "stack_light_images"]
 
 DECODE_BAND_VALUES = 1 << 20
 """Basis values (rows x width x rank) ``decoded_blocks`` dequantises in a thread at a time (4 MB of float32)."""
@@ -110,6 +111,19 @@ def decoded_lights(residual: ResidualModel, lights: np.ndarray) -> np.ndarray:
 
     parallel_map(band, bands)
     return out
+
+
+def light_weights(residual: ResidualModel, triangulation, directions) -> np.ndarray:
+    """(Q, n) float64 weights of the captured lights with which relighting blends the ``residual`` at query
+    ``directions`` (Q, 3) located on the field's ``triangulation`` (projected onto a dome's rim where outside):
+    the query's barycentric weights on its triangle's corners, or for a radial basis residual
+    (``ResidualModel.rbf_sigma``) phi(w)^T (K + lambda I)^-1 over every light (``model.rbf``)."""
+    location = triangulation.locate(np.atleast_2d(np.asarray(directions, dtype=np.float64)))
+    if residual.rbf_sigma is not None:
+        return rbf_weights(location.directions, triangulation.directions, residual.rbf_sigma)
+    weights = np.zeros((len(location.faces), len(triangulation.directions)))
+    np.add.at(weights, (np.arange(len(location.faces))[:, None], location.vertices), location.barycentric)
+    return weights
 
 
 def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:

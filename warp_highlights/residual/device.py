@@ -1,5 +1,6 @@
-"""A low-rank residual on a Warp device: its stacks uploaded for the relighter's per-query decode, or every
-captured light's image decoded there once; and the rule that decides between the two."""
+"""A low-rank residual on a Warp device: its stacks uploaded for the relighter's per-query decode (with a radial
+basis residual's rows), or every captured light's image decoded there once; and the rule that decides between
+the two."""
 
 from __future__ import annotations
 
@@ -10,12 +11,14 @@ import warp as wp
 
 from ..io.resample import resample_image
 from ..kernels import interpolation as kernels
+from ..model.errors import InputError
 from ..model.memory import device_free_memory
+from ..model.rbf import rbf_system
 from ..model.residual import LowRankStack, ResidualModel, code_levels
 from .decode import stack_basis
 
-__all__ = ["DECODED_RESIDUAL_BYTES", "DECODED_RESIDUAL_SHARE", "RESIDUAL_DECODES", "LowRankArrays", "decode_on_load",
-           "decode_residual", "decodes_on_device"]
+__all__ = ["DECODED_RESIDUAL_BYTES", "DECODED_RESIDUAL_SHARE", "RESIDUAL_DECODES", "LowRankArrays", "RbfRows",
+           "decode_on_load", "decode_residual", "decodes_on_device", "rbf_rows"]
 
 RESIDUAL_DECODES = ("auto", "query", "load")
 """How a ``Relighter`` decodes a low-rank residual (its ``residual_decode`` argument)."""
@@ -35,6 +38,11 @@ def decode_on_load(residual: ResidualModel, output_pixels: int, decode: str, dev
     """Whether a low-rank ``residual`` is decoded once into images (see ``Relighter``'s ``residual_decode``):
     for "auto", where its float16 images fit ``DECODED_RESIDUAL_SHARE`` of the free memory of a CUDA
     ``device`` (else ``DECODED_RESIDUAL_BYTES``) and blending three of them reads less than the basis."""
+    if residual.rbf_sigma is not None:
+        if decode == "load":
+            raise InputError("this field's residual weighs every captured light (radial basis), which images decoded "
+                             "once per light cannot serve; relight it with residual_decode 'query' or 'auto'")
+        return False
     if decode != "auto":
         return decode == "load"
     held = residual.light_count * output_pixels * residual.channels * 2
@@ -87,6 +95,29 @@ class LowRankArrays:
         else:
             basis = np.zeros((height * width, 1, planes), np.float32)
         return cls(array(mean), array(basis), array(weights), stack.rank)
+
+
+@dataclass(frozen=True)
+class RbfRows:
+    """A radial basis residual on the device (``kernels.interpolation.blend_rbf``): each stack's per-light rows
+    (n, k + 1) float64 multiplied by (K + lambda I)^-1 (``model.rbf``), the lights (n,) vec3d and 1 / sigma^2."""
+
+    rows: dict
+    lights: wp.array
+    inverse_sigma_squared: float
+
+
+def rbf_rows(residual: ResidualModel, lights: np.ndarray, device) -> RbfRows:
+    """``RbfRows`` of a low-rank ``residual`` with ``rbf_sigma`` at its unit ``lights`` (n, 3), solved in float64 on
+    the host: the large, cancelling values of a badly conditioned K stay in float64 (the kernel sums in it)."""
+    lights = np.asarray(lights, dtype=np.float64)
+    system = rbf_system(lights, residual.rbf_sigma)
+    rows = {}
+    for name, stack in (("luminance", residual.luminance), ("chroma", residual.chroma)):
+        if stack is not None:
+            per_light = np.concatenate([stack.weights, stack.mean_weights[:, None]], axis=1).astype(np.float64)
+            rows[name] = wp.array(np.linalg.solve(system, per_light), dtype=wp.float64, device=device)
+    return RbfRows(rows, wp.array(lights, dtype=wp.vec3d, device=device), 1.0 / residual.rbf_sigma ** 2)
 
 
 def decode_residual(residual: ResidualModel, device) -> wp.array:

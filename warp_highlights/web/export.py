@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.errors import InputError
+from ..model.rbf import rbf_system
 from ..model.residual import (
     COLOUR_STEP,
     NEURAL_CODE_SIZE,
@@ -26,7 +27,7 @@ from ..relight.relighter import face_edge_rows, rim_tables
 __all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays",
            "export_viewer", "single_file_page"]
 
-WEB_FORMAT = 2
+WEB_FORMAT = 3
 """Version of the exported layout that viewer.js reads."""
 MANIFEST = "manifest.json"
 MAX_PAGE_GAUSSIANS = 512
@@ -83,6 +84,9 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
         kind, details = "lowrank", {name: _stack_arrays(name, stack, arrays)
                                     for name, stack in (("luminance", residual.luminance), ("chroma", residual.chroma))
                                     if stack is not None}
+        if residual.rbf_sigma is not None:  # the page weighs every light phi(w)^T (K + lambda I)^-1 (model.rbf)
+            details["rbf_sigma"] = residual.rbf_sigma
+            arrays["rbf_inverse"] = np.linalg.inv(rbf_system(field.lights.directions, residual.rbf_sigma)).astype("<f8")
     else:
         kind, details = "images", {}
         arrays["images"] = np.ascontiguousarray(residual.images, dtype="<f2")  # (n, H, W, C)

@@ -6,7 +6,7 @@
 // This file holds one thing: the page's relighting, as Relighter does it.
 
 const TYPES = { "<f8": Float64Array, "<f4": Float32Array, "<f2": Uint16Array, "<i4": Int32Array, "|u1": Uint8Array, "<u2": Uint16Array };
-export const FORMAT_VERSION = 2;
+export const FORMAT_VERSION = 3;
 const DECODED_BYTES = 512 * 1024 * 1024; // largest decoded residual stack (as Relighter's DECODED_RESIDUAL_BYTES)
 const FLOAT16_SAFE = "6.0e4";
 
@@ -114,6 +114,20 @@ function arc(mA, mB, delta, t, straightBelow) {
   const k = Math.sin(t * delta / 2) / sh, phi = (t - 1) * delta / 2;
   const c = Math.cos(phi), s = Math.sin(phi);
   return [mA[0] + k * (c * chord[0] - s * chord[1]), mA[1] + k * (s * chord[0] + c * chord[1])];
+}
+
+export function rbfWeights(m, a, located) {
+  // every light's radial basis weight phi(w)^T (K + lambda I)^-1 at the located direction w: PORTING.md section 5.2
+  const n = m.lights, s2 = m.residual.rbf_sigma * m.residual.rbf_sigma, phi = new Float64Array(n), out = new Float64Array(n);
+  for (let j = 0; j < n; j++) {
+    const dx = located[0] - a.directions[3 * j], dy = located[1] - a.directions[3 * j + 1], dz = located[2] - a.directions[3 * j + 2];
+    phi[j] = Math.exp(-(dx * dx + dy * dy + dz * dz) / s2);
+  }
+  for (let j = 0; j < n; j++) {
+    if (phi[j] === 0) continue;
+    for (let i = 0; i < n; i++) out[i] += phi[j] * a.rbf_inverse[j * n + i];
+  }
+  return out;
 }
 
 export function movedGaussians(m, a, location, method) {
@@ -357,8 +371,10 @@ export class Viewer {
       // decode each light once into a float16 layer when the browser can render to one, else per frame
       const layerBytes = width * height * (channels === 3 ? 8 : 2);
       const canDecode = gl.getExtension("EXT_color_buffer_float") && n <= gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS) && n * layerBytes <= DECODED_BYTES;
+      const rbf = Boolean(manifest.residual.rbf_sigma);
+      if (decode === "load" && rbf) throw new Error("this field's residual weighs every light (radial basis): images decoded once per light cannot serve it");
       if (decode === "load" && !canDecode) throw new Error("this browser cannot hold the decoded residual images (float16 render targets)");
-      this.mode = canDecode && decode !== "query" ? "decoded" : "stack";
+      this.mode = canDecode && decode !== "query" && !rbf ? "decoded" : "stack";
     } else if (kind === "images") {
       if (n > gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS)) throw new Error(`this browser holds ${gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS)} images per texture, the field has ${n} lights`);
       this.texture("images", true, "residualImages");
@@ -371,6 +387,7 @@ export class Viewer {
       throw new Error(`unknown residual kind ${kind}`);
     }
     this.decoded = new Uint8Array(n);
+    this.allLights = Array.from({ length: n }, (_, i) => i);
     if (this.mode !== "decoded") this.decoded.fill(1);
     // one program a way of drawing; a decoded field starts with "stack" and adds "layers" (prepareLayers)
     const way = this.mode === "decoded" ? "stack" : this.mode;
@@ -633,6 +650,8 @@ export class Viewer {
     if (this.drawnWith === "layers" || this.drawnWith === "images") {
       program.set("corners", "3i", ...corners);
       program.set("weights", "3f", ...w);
+    } else if (this.drawnWith === "stack" && m.residual.rbf_sigma && method !== "alpha") {
+      this.setStack(program, rbfWeights(m, this.arrays, this.location.located), this.allLights);
     } else if (this.drawnWith === "stack") {
       this.setStack(program, w, corners);
     } else {
