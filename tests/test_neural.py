@@ -325,9 +325,29 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     blob[:, 2:4, 3:6] = 1.5
     wrong = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings, device="cpu")
     assert np.all(wrong.with_gaussians < wrong.images_alone) and not wrong.keeps_gaussians
+    gap = float(np.mean(wrong.images_alone) - np.mean(wrong.with_gaussians))
+    assert gap > settings.learned_tie_margin_db
+    # a margin beyond the gap keeps the Gaussians: the residual's model is the winner
+    tied = check_learned(images, own, None, directions, left_out, blob, factor=2.0, device="cpu",
+                         settings=dataclasses.replace(settings, learned_tie_margin_db=gap + 0.1))
+    assert tied.keeps_gaussians and tied.report()["keeps_gaussians"] and tied.tie_margin_db == gap + 0.1
+    np.testing.assert_allclose(tied.images_alone, wrong.images_alone, rtol=1e-6)
     # the images alone, learned without the left-out lights
     np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)
     assert wrong.settled_epoch is None and wrong.report()["settled_epoch"] is None
+
+
+def test_a_near_tie_keeps_the_moving_gaussians():
+    """The images alone must lead by more than ``learned_tie_margin_db`` for the check to drop the Gaussians."""
+    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual.learned import LearnedCheck
+
+    lights = np.array([1, 4])
+    assert ResidualSettings().learned_tie_margin_db == 0.5
+    for alone, margin, keeps in ((20.4, 0.5, True), (20.4, 0.0, False), (20.8, 0.5, False), (19.0, 0.0, True)):
+        check = LearnedCheck(lights, np.array([20.0, 20.2]), np.array([alone, alone]), tie_margin_db=margin)
+        assert check.keeps_gaussians == keeps, (alone, margin)
+    assert LearnedCheck(np.zeros(0, np.int64), np.zeros(0), np.zeros(0)).keeps_gaussians
 
 
 def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled():

@@ -1114,3 +1114,18 @@ def test_the_learned_checks_winner_learns_anew_where_its_unseen_lights_are_many(
     assert not learns_anew(settings, True, 6, 250) and not learns_anew(settings, True, 6, 49)  # 7, 32 <= 40
     assert learns_anew(settings, True, 6, 16) and learns_anew(settings, False, 6, 16)  # 98, 75 > 40
     assert not learns_anew(ResidualSettings(learned_tune_epochs=100), True, 6, 16)
+
+
+def test_decoded_images_round_alike_whatever_the_blas_threads():
+    """A low-rank residual decoded once per light is the same bit for bit whether the BLAS library may thread its
+    products or not (it blocks a float32 product by its thread count): relighting on one core gives the images of
+    relighting on all of them."""
+    import threadpoolctl
+
+    rng = np.random.default_rng(3)
+    stack = rng.normal(size=(24, 90, 160, 1)).astype(np.float32)
+    residual = ResidualModel(luminance=fit_stack(stack, 20, bits=16))
+    free = decoded_images(residual)
+    with threadpoolctl.threadpool_limits(limits=1, user_api="blas"):
+        single = decoded_images(residual)
+    np.testing.assert_array_equal(free, single)

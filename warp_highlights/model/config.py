@@ -608,6 +608,12 @@ class ResidualSettings:
             (8.0-12.6 dB) and above the 2.3 dB by which the 250-light donut's two kinds ended apart: such
             a close race learns both to the end. (How far a gap moves after a quarter of training has not
             been measured on captures beyond these two.)
+        learned_tie_margin_db: the learned check keeps the moving Gaussians unless the images learned alone lead at
+            its left-out lights by more than this, dB (mean 8-bit sRGB PSNR): a near tie keeps the highlights
+            moving, which the move check has found better than blending. 0.5: on an NVIDIA H200 the sharp donut
+            of ``benchmarks/bench_motion.py`` on 16 lights (480x270) tied at 17.3-17.5 against 17.5-17.6 dB in three
+            fits, where along the paths the field with its moving Gaussians had scored 31.89 dB and the
+            learned residual alone 30.03; the dome sample's images alone lead by 8-12 dB.
         learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range its
             decoder gives at the captured lights widened by that range's span on either side
             (``model.residual.learned_bounds``, stored in the field). On by default: with 16 lights the decoder
@@ -656,6 +662,7 @@ class ResidualSettings:
     learned_tune_epochs: int = 40
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
+    learned_tie_margin_db: float = 0.5
     learned_bounds: bool = True
     interpolation: str = "triangle"
     interpolation_margin_db: float = 0.1
@@ -700,6 +707,8 @@ class ResidualSettings:
                  f"learned_settle_fraction must be in (0, 1], got {self.learned_settle_fraction}")
         _require(math.isfinite(self.learned_settle_margin_db) and self.learned_settle_margin_db >= 0,
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
+        _require(math.isfinite(self.learned_tie_margin_db) and self.learned_tie_margin_db >= 0,
+                 f"learned_tie_margin_db must be >= 0, got {self.learned_tie_margin_db}")
 
 
 @dataclass(frozen=True)

@@ -6,11 +6,18 @@ from __future__ import annotations
 import os
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor, wait
+from contextlib import contextmanager
 
 import numpy as np
 
-__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "cancel_and_wait", "child_initializer", "core_count",
-           "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool", "submit"]
+try:
+    import threadpoolctl
+except ImportError:  # BLAS threads its own products
+    threadpoolctl = None
+
+__all__ = ["NUMPY_THREADS", "PREFAULT_BYTES", "all_finite", "blas_on_one_thread", "cancel_and_wait",
+           "child_initializer", "core_count", "gather", "in_worker", "mapped_empty", "parallel_map", "shared_pool",
+           "submit"]
 
 
 def core_count() -> int:
@@ -23,6 +30,26 @@ def core_count() -> int:
 
 NUMPY_THREADS = core_count()
 """Threads ``parallel_map`` uses: the cores this process may run on."""
+
+_CONTROLLER = None
+
+
+@contextmanager
+def blas_on_one_thread():
+    """A context that yields the threads to split NumPy work over: the cores (``NUMPY_THREADS``), the BLAS
+    library held to one thread each meanwhile (threadpoolctl); 1 where threadpoolctl is missing, BLAS left
+    to thread its own products. A BLAS library threading its products stalls for milliseconds at a time
+    when another process takes a core (ten times slower on a busy 2-core machine), one thread each does not;
+    and a product split by the caller alone rounds the same whatever the cores (a BLAS library blocks a
+    float32 product by its thread count)."""
+    global _CONTROLLER
+    if threadpoolctl is None or NUMPY_THREADS == 1:
+        yield 1
+        return
+    if _CONTROLLER is None:  # finds the BLAS libraries loaded (milliseconds): once
+        _CONTROLLER = threadpoolctl.ThreadpoolController()
+    with _CONTROLLER.limit(limits=1, user_api="blas"):
+        yield NUMPY_THREADS
 
 
 _POOL: ThreadPoolExecutor | None = None

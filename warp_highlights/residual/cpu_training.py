@@ -2,7 +2,7 @@
 
 The forward and backward passes are written out as matrix products over a batch of (light, pixel)
 samples (rows), the rows split among one thread per core, each with BLAS on one thread
-(``blas_on_one_thread``), the element-wise steps in place in buffers allocated once.
+(``model.threads.blas_on_one_thread``), the element-wise steps in place in buffers allocated once.
 ``train_decoder_cpu`` has the arguments, the loss, the Adam steps and the schedule of
 ``kernels.neural_training.train_decoder``; ``CpuDecoder`` and ``decode_cpu`` decode a learned residual at query
 directions, the first layer's code part computed once per pixel for every direction.
@@ -11,20 +11,14 @@ directions, the first layer's code part computed once per pixel for every direct
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 
 import numpy as np
 
-try:
-    import threadpoolctl
-except ImportError:  # BLAS threads its own products
-    threadpoolctl = None
-
 from ..kernels.neural import NeuralDecoder, initial_model, used_lights
 from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES, decoder_widths
-from ..model.threads import NUMPY_THREADS, parallel_map
+from ..model.threads import blas_on_one_thread, parallel_map
 
-__all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "blas_on_one_thread", "decode_cpu", "train_decoder_cpu"]
+__all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "decode_cpu", "train_decoder_cpu"]
 
 CODE = NEURAL_CODE_SIZE
 HIDDEN = NEURAL_LAYER_SHAPES[0][0]
@@ -104,25 +98,6 @@ class _Adam:
             params[a:b] -= s
 
         parallel_map(part, range(len(self.bounds) - 1))
-
-
-_CONTROLLER = None
-
-
-@contextmanager
-def blas_on_one_thread():
-    """A context that yields the threads to split NumPy work over: the cores (``NUMPY_THREADS``), the BLAS
-    library held to one thread each meanwhile (threadpoolctl); 1 where threadpoolctl is missing, BLAS left
-    to thread its own products. A BLAS library threading its products stalls for milliseconds at a time
-    when another process takes a core (ten times slower on a busy 2-core machine), one thread each does not."""
-    global _CONTROLLER
-    if threadpoolctl is None or NUMPY_THREADS == 1:
-        yield 1
-        return
-    if _CONTROLLER is None:  # finds the BLAS libraries loaded (milliseconds): once
-        _CONTROLLER = threadpoolctl.ThreadpoolController()
-    with _CONTROLLER.limit(limits=1, user_api="blas"):
-        yield NUMPY_THREADS
 
 
 def _elu(z: np.ndarray, out: np.ndarray, e: np.ndarray, zeros: np.ndarray) -> None:

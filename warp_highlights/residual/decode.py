@@ -18,7 +18,7 @@ from ..model.residual import (
     ResidualModel,
     code_levels,
 )
-from ..model.threads import parallel_map
+from ..model.threads import blas_on_one_thread, parallel_map
 from .opponent import decode_display, from_opponent
 
 __all__ = ["band_basis", "decoded_blocks", "decoded_images", "decoded_lights", "learned_images", "light_images",
@@ -109,7 +109,8 @@ def decoded_lights(residual: ResidualModel, lights: np.ndarray) -> np.ndarray:
         rgb = y[..., None] if len(parts) == 1 else from_opponent(y, parts[1] * scale[rows, :, None])
         out[:, rows] = np.clip(rgb, -FLOAT16_SAFE, FLOAT16_SAFE)
 
-    parallel_map(band, bands)
+    with blas_on_one_thread():  # the bands' products round alike whatever the cores
+        parallel_map(band, bands)
     return out
 
 

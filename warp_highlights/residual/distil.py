@@ -28,9 +28,9 @@ from ..model.residual import (
     decoder_layer_shapes,
     parse_hidden,
 )
-from ..model.threads import NUMPY_THREADS, parallel_map
+from ..model.threads import NUMPY_THREADS, blas_on_one_thread, parallel_map
 from ..quality.metrics import psnr_8bit, srgb_psnr
-from .cpu_training import CpuDecoder, _Adam, blas_on_one_thread
+from .cpu_training import CpuDecoder, _Adam
 from .opponent import decode_display
 
 __all__ = ["DistilReport", "decoder_multiply_adds", "directions_between", "distil_decoder", "distil_display_decoder",

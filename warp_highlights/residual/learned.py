@@ -181,7 +181,8 @@ class LearnedCheck:
     winner's model; ``settled_epoch``: the epoch after which the loser stopped learning, its order settled
     (None: both learned to the end, without those lights), and the scores are those of that epoch;
     ``learned_every_light``: the winner learned from every light after it (the check's lights too), so it
-    needs no more training; ``history``: its loss per epoch."""
+    needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
+    and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``)."""
 
     lights: np.ndarray
     with_gaussians: np.ndarray
@@ -190,11 +191,14 @@ class LearnedCheck:
     settled_epoch: int | None = None
     learned_every_light: bool = False
     history: tuple = ()
+    tie_margin_db: float = 0.0
 
     @property
     def keeps_gaussians(self) -> bool:
-        """True unless the images learned alone scored higher on average (no light checked: True)."""
-        return not len(self.lights) or float(np.mean(self.with_gaussians)) >= float(np.mean(self.images_alone))
+        """True unless the images learned alone scored higher on average by more than ``tie_margin_db`` (a tie keeps
+        the moving highlights; no light checked: True)."""
+        return not len(self.lights) or (float(np.mean(self.with_gaussians))
+                                        >= float(np.mean(self.images_alone)) - self.tie_margin_db)
 
     def report(self) -> dict:
         """Plain figures for the fit report: the lights checked, the verdict and, where any were checked, both
@@ -224,6 +228,7 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
         return LearnedCheck(lights, np.zeros(0), np.zeros(0))
+    tie = settings.learned_tie_margin_db
     used = np.setdiff1d(np.arange(len(images)), lights)
     scale = np.float32(1.0 / factor)
     truth = np.asarray(images[lights], np.float32) * scale
@@ -251,7 +256,7 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
         settled_at.append((asked[0] * max(1, round(settings.learned_settle_fraction
                                                    * learned_epochs(settings, wp.get_device(device).is_cuda))),
                            first, second))
-        return 0 if gap > 0 else 1
+        return 0 if gap >= -tie else 1
 
     # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
@@ -259,9 +264,9 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
     if settled_at:  # scored when the order settled, while the left-out lights were still left out
         epoch, first, second = settled_at[0]
-        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True)
+        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True, tie_margin_db=tie)
     else:
-        check = LearnedCheck(lights, *score(trained))
+        check = LearnedCheck(lights, *score(trained), tie_margin_db=tie)
     keeps = check.keeps_gaussians
     return dataclasses.replace(check, winner=models[0] if keeps else models[1],
                                history=tuple(histories[0 if keeps else 1]))
