@@ -32,7 +32,7 @@ def _collection_arguments(parser: argparse.ArgumentParser) -> None:
                             "--size worked out from its "
                        "images; for captures of different sizes)")
     group.add_argument("--residual", choices=list(RESIDUAL_KINDS),
-                       help="as fit --residual (default: fit's, learned on CUDA, lowrank elsewhere)")
+                       help="as fit --residual (default: fit's auto)")
     group.add_argument("--diffuse", choices=["lambert", "images", "none"], help="as fit --diffuse")
     group.add_argument("--exposure", type=exposure_option, help="as fit --exposure")
     group.add_argument("--linear", action="store_true", help="PNG/JPEG values are linear, not sRGB (fit and evaluate)")
