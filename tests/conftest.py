@@ -70,7 +70,6 @@ FAST_FIT = [
     "estimation.densify_every=50",
     "retarget.rigid_iterations=40",
     "retarget.iterations=80",
-    "residual.learned_epochs=8",  # where a learned residual is chosen (nothing moving on the CPU): a few epochs
 ]
 """Overrides that keep a test fit of ``small_donut`` to a few seconds on one CPU core."""
 
@@ -97,7 +96,6 @@ TINY_FIT = [
     "--set", "estimation.densify_every=10",
     "--set", "retarget.rigid_iterations=10",
     "--set", "retarget.iterations=20",
-    "--set", "residual.learned_epochs=4",
 ]  # fmt: skip
 """``fit`` options for a fit of a few tenths of a second (the reliability tests need a field, not a good one)."""
 

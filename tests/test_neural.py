@@ -430,7 +430,7 @@ def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds()
     """Where no Gaussian moves and "auto" chose low rank on the CPU for a colour capture, the epochs of its samples
     (lights x pixels) that the training time holds at the CPU's pace: measured where not given; no answer for a
     concrete kind, a grey capture, a CUDA device's choice, the setting at 0 or past the decoder's 2^31 samples."""
-    from warp_highlights.model.config import LEARNED_SECONDS_CPU, ResidualSettings
+    from warp_highlights.model.config import LEARNED_EPOCHS_CPU, LEARNED_SECONDS_CPU, ResidualSettings
     from warp_highlights.residual.cpu_training import training_rate
     from warp_highlights.residual.kind import still_epochs
 
@@ -438,6 +438,9 @@ def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds()
     capture = dict(light_count=40, size=(300, 200), channels=3)
     assert still_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e6) == pytest.approx(
         1e6 * LEARNED_SECONDS_CPU / (40 * 300 * 200))
+    # never more than the schedule's epochs
+    assert still_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e12) == LEARNED_EPOCHS_CPU
+    assert still_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_epochs=7), **capture, rate=1e12) == 7
     assert still_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_seconds=60.0), **capture,
                         rate=1e6) == pytest.approx(1e6 * 60.0 / (40 * 300 * 200))
     for requested, resolved in (("lowrank", "lowrank"), ("auto", "learned"), ("images", "images")):
@@ -448,9 +451,10 @@ def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds()
                         channels=3, rate=1e15) is None
     if wp.is_cuda_available():
         assert still_epochs("auto", "lowrank", "cuda:0", settings, **capture) is None
-    # measured: more samples a second than zero, and a pace that a small capture's time holds many epochs of
+    # measured: more samples a second than zero, and a pace whose time holds a small capture's whole schedule
     assert training_rate(steps=2) > 0
-    assert still_epochs("auto", "lowrank", "cpu", settings, light_count=8, size=(16, 16), channels=3) > 1000
+    small = dict(light_count=8, size=(16, 16), channels=3)
+    assert still_epochs("auto", "lowrank", "cpu", settings, **small) == LEARNED_EPOCHS_CPU
 
 
 def test_fields_stored_with_the_residual_booleans_read_as_their_kind():

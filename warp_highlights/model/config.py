@@ -641,17 +641,18 @@ class ResidualSettings:
         still_learned_epochs: where "auto" chose a low-rank residual on the CPU and no Gaussian moves (the move
             check found blending better, or none could move), the fit learns the residual instead, as "auto" does on
             CUDA, if its training time (``learned_seconds``) holds at least this many epochs at the pace the CPU
-            trains at when the fit gets there (``residual.kind.still_epochs``); 0: never. With nothing moving, both
-            residuals cross-fade the highlights, and a learned one that has had its epochs interpolates the rest
-            better. The samples learned alone for 120 s on a 2-core machine, against the low-rank residual (8-bit
-            sRGB PSNR / SSIM at the held-out lights, ``benchmarks/bench_quality.py --cases statue,coin,multi --set
-            residual.kind=learned``): the coin photographs 27.06 / 0.834 after 43 epochs against 22.51 / 0.776; the
-            statue 32.79 / 0.931 after 31 epochs against 33.03 / 0.935, and 34.09 / 0.945 after 80 (the same machine
-            earlier that day, at 2.6 times the pace); the multi-object sample 25.14 / 0.801 after 36 epochs (25.61 /
-            0.824 after 118) against 24.68 / 0.846. The pace is timed over 32 steps before the fit would learn
-            (``residual.cpu_training.training_rate``), which counted 41-44, 29-33 and 37-41 epochs for the three on
-            that machine: 36, between the statue's 31 (below) and the coin's 43 (far above), learns the coin
-            photographs and the multi-object sample and keeps the statue low rank there.
+            trains at when the fit gets there, and at most its schedule's (``residual.kind.still_epochs``); 0:
+            never. With nothing moving, both residuals cross-fade the highlights, and a learned one that has had its
+            epochs interpolates the rest better. The samples learned alone for 120 s on a 2-core machine, against
+            the low-rank residual (8-bit sRGB PSNR / SSIM at the held-out lights, ``benchmarks/bench_quality.py
+            --cases statue,coin,multi --set residual.kind=learned``): the coin photographs 27.06 / 0.834 after 43
+            epochs against 22.51 / 0.776; the statue 32.79 / 0.931 after 31 epochs against 33.03 / 0.935, and 34.09
+            / 0.945 after 80 (the same machine earlier that day, at 2.6 times the pace); the multi-object sample
+            25.14 / 0.801 after 36 epochs (25.61 / 0.824 after 118) against 24.68 / 0.846. The pace is timed over 32
+            steps before the fit would learn (``residual.cpu_training.training_rate``), which counted 41-44, 29-33
+            and 37-41 epochs for the three on that machine: 36, between the statue's 31 (below) and the coin's 43
+            (far above), learns the coin photographs and the multi-object sample and keeps the statue low rank
+            there.
     """
 
     kind: str = "auto"

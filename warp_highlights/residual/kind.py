@@ -51,9 +51,10 @@ def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tup
 def still_epochs(requested: str, resolved: str, device, settings: ResidualSettings, *, light_count: int,
                  size: tuple[int, int], channels: int, rate: float | None = None) -> float | None:
     """For a fit whose Gaussians do not move, where "auto" (``requested``) had resolved to "lowrank" on the CPU for a
-    colour capture: the epochs of its lights x pixels samples that the CPU's training time (``settings.learned_seconds``
-    or its default) holds at ``rate`` samples a second (default: measured now, ``residual.cpu_training.training_rate``
-    at the capture's pixel count up to ``_RATE_PIXELS``); the fit learns its residual instead where they are at least
+    colour capture: the epochs a learned residual would run, those of its lights x pixels samples that the CPU's
+    training time (``settings.learned_seconds`` or its default) holds at ``rate`` samples a second (default: measured
+    now, ``residual.cpu_training.training_rate`` at the capture's pixel count up to ``_RATE_PIXELS``), at most its
+    schedule's (``learned_epochs``); the fit learns its residual instead where they are at least
     ``settings.still_learned_epochs``. None where the question does not arise (another kind asked for or chosen, a
     CUDA device, one channel, the setting at 0, more samples than the decoder indexes)."""
     if requested != "auto" or resolved != "lowrank" or wp.get_device(device).is_cuda or channels != 3:
@@ -62,14 +63,14 @@ def still_epochs(requested: str, resolved: str, device, settings: ResidualSettin
         return None
     from ..kernels.neural import samples_fit
     from .cpu_training import training_rate
-    from .learned import learned_seconds
+    from .learned import learned_epochs, learned_seconds
 
     pixels = size[0] * size[1]
     if not samples_fit(light_count, pixels):
         return None
     if rate is None:
         rate = training_rate(pixels=min(pixels, _RATE_PIXELS))
-    return rate * learned_seconds(settings, False) / (light_count * pixels)
+    return min(float(learned_epochs(settings, False)), rate * learned_seconds(settings, False) / (light_count * pixels))
 
 
 _RATE_PIXELS = 1 << 18
