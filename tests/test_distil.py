@@ -195,7 +195,9 @@ def test_distil_command_writes_a_field_that_saves_loads_and_relights(learned_fie
     assert "decoder 16-16" in said and "dB at the" in said
     small = load_field(output)
     assert small.residual.learned.hidden == (16, 16)
-    assert small.report["distilled"]["hidden"] == [16, 16] and small.report["distilled"]["seconds"] <= 3.5
+    distilled = small.report["distilled"]
+    # it stops at the first epoch's end past the bound: at most about one epoch over (a busy machine's epochs are long)
+    assert distilled["hidden"] == [16, 16] and distilled["seconds"] <= 3.0 + max(0.5, 1.5 * 3.0 / distilled["epochs"])
     with zipfile.ZipFile(output) as archive:
         header = json.loads(archive.read("header.json"))
         assert header["residual"]["learned"]["hidden"] == [16, 16]
