@@ -426,6 +426,33 @@ def test_the_residual_kind_is_resolved_for_the_device_and_the_capture():
             resolve_kind("learned", device, channels=1)
 
 
+def test_a_small_capture_takes_smaller_batches_on_cuda_so_that_an_epoch_holds_enough_steps():
+    """On CUDA the batch is cut where an epoch would hold under LEARNED_STEPS_PER_EPOCH steps, never below the CPU's
+    batch; large captures keep the device's batch; a set batch and the CPU's are never changed."""
+    from warp_highlights.model.config import (
+        LEARNED_BATCH_CPU,
+        LEARNED_BATCH_CUDA,
+        LEARNED_STEPS_PER_EPOCH,
+        ResidualSettings,
+    )
+    from warp_highlights.residual.learned import learned_batch
+
+    settings = ResidualSettings()
+    dome_sample = 49 * 320 * 320
+    assert learned_batch(settings, True, dome_sample) == LEARNED_BATCH_CUDA  # 76 steps an epoch at most
+    assert dome_sample // LEARNED_BATCH_CUDA >= LEARNED_STEPS_PER_EPOCH
+    small = 16 * 160 * 90  # 3.5 steps an epoch at the device's batch
+    batch = learned_batch(settings, True, small)
+    assert LEARNED_BATCH_CPU <= batch < LEARNED_BATCH_CUDA
+    assert small / batch >= min(LEARNED_STEPS_PER_EPOCH, small / LEARNED_BATCH_CPU)
+    middle = 49 * 160 * 90
+    assert learned_batch(settings, True, middle) == middle // LEARNED_STEPS_PER_EPOCH
+    assert learned_batch(settings, True, 100) == LEARNED_BATCH_CPU  # a tiny capture: not below the CPU's batch
+    for samples in (100, small, dome_sample):
+        assert learned_batch(settings, False, samples) == LEARNED_BATCH_CPU
+        assert learned_batch(dataclasses.replace(settings, learned_batch=1000), True, samples) == 1000
+
+
 def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds():
     """Where no Gaussian moves and "auto" chose low rank on the CPU for a colour capture, the epochs of its samples
     (lights x pixels) that the training time holds at the CPU's pace: measured where not given; no answer for a

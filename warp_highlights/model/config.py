@@ -451,6 +451,13 @@ LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
 LEARNED_BATCH_CPU = 1 << 12
 """The same on the CPU (``ResidualSettings.learned_batch`` says where both came from)."""
+LEARNED_STEPS_PER_EPOCH = 64
+"""On CUDA, a small capture's batch is cut (down to ``LEARNED_BATCH_CPU``) so that an epoch holds at least this
+many Adam steps (``residual.learned.learned_batch``). At 65,536 samples a step, 160x90 renders of 16 or 49 lights
+took 3.5 or 11 steps an epoch and their learned residual stayed far below the one the CPU learns at 4,096 a step;
+at 4,096 (56 and 172 steps) the GPU default gained 2.3-14 dB along the paths of ``benchmarks/bench_motion.py``
+(the table in docs/method.md). The dome sample (320x320, 49 lights) takes 77 steps an epoch at 65,536 and keeps
+its batch."""
 LEARNED_EPOCHS_CUDA = 260
 """A learned residual's epochs on CUDA when ``ResidualSettings.learned_epochs`` is 0."""
 LEARNED_EPOCHS_CPU = 200
@@ -570,7 +577,8 @@ class ResidualSettings:
             (``benchmarks/bench_learned_training.py``); 200 on the CPU, where ``learned_seconds`` ends
             training first on a 192-pixel capture.
         learned_batch: (light, pixel) samples per Adam step; 0 (default) by device: 65,536 on CUDA
-            (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), 4,096 on the CPU
+            (131,072 ran 4% faster but reached 44.17 dB after 50 epochs against 46.50), less for a small
+            capture, so that an epoch holds ``LEARNED_STEPS_PER_EPOCH`` steps (not under 4,096), 4,096 on the CPU
             (as good as 2,048 after 180 s on the dome sample and the statue, 48.66 / 34.48 dB against
             48.73 / 34.46, at 1.4 times its samples a second; 8,192 fell to 33.31 dB on the statue:
             ``benchmarks/bench_cpu_learned.py``).

@@ -20,6 +20,7 @@ from ..model.config import (
     LEARNED_EPOCHS_CUDA,
     LEARNED_SECONDS_CPU,
     LEARNED_SECONDS_CUDA,
+    LEARNED_STEPS_PER_EPOCH,
     LEARNED_TUNE_SECONDS_CPU,
     LEARNED_TUNE_SECONDS_CUDA,
     ResidualSettings,
@@ -49,7 +50,7 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
     ``settings.learned_seconds`` or ``learned_epochs`` at most (``learned_seconds``, ``learned_epochs``),
-    ``learned_batch`` samples a step; ``progress(1)`` after
+    as many samples a step as ``learned_batch`` gives; ``progress(1)`` after
     each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
     go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
     rate (the learned check's winner learning the lights it left out). Returns it and the loss per epoch."""
@@ -101,7 +102,8 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
     seconds = learned_seconds(settings, on_cuda, tune)
     epochs = int(settings.learned_tune_epochs) if tune else learned_epochs(settings, on_cuda)
     rates = {"lr": _TUNE_RATE if tune else _FIRST_RATE, "final_lr": _TUNE_RATE, "epochs": epochs}
-    batch = int(settings.learned_batch) or (LEARNED_BATCH_CUDA if on_cuda else LEARNED_BATCH_CPU)
+    samples = (len(targets[0]) if used is None else len(used)) * np.shape(targets[0])[1]
+    batch = learned_batch(settings, on_cuda, samples)
     options = dict(device=device, batch=batch, log=say, used=used, seconds=seconds, **rates)
     epoch = max(1, round(settings.learned_settle_fraction * rates["epochs"]))
     if on_cuda:
@@ -120,6 +122,17 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
     return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used)
+
+
+def learned_batch(settings: ResidualSettings, on_cuda: bool, samples: int) -> int:
+    """(light, pixel) samples per Adam step for an epoch of ``samples``: the setting, or where it is 0 the device's
+    default, on CUDA cut for a small capture so that an epoch holds ``LEARNED_STEPS_PER_EPOCH`` steps, never below
+    the CPU's batch."""
+    if int(settings.learned_batch):
+        return int(settings.learned_batch)
+    if not on_cuda:
+        return LEARNED_BATCH_CPU
+    return int(min(LEARNED_BATCH_CUDA, max(LEARNED_BATCH_CPU, int(samples) // LEARNED_STEPS_PER_EPOCH)))
 
 
 def learned_epochs(settings: ResidualSettings, on_cuda: bool) -> int:
