@@ -441,7 +441,7 @@ def test_a_small_capture_takes_smaller_batches_on_cuda_so_that_an_epoch_holds_en
     dome_sample = 49 * 320 * 320
     assert learned_batch(settings, True, dome_sample) == LEARNED_BATCH_CUDA  # 76 steps an epoch at most
     assert dome_sample // LEARNED_BATCH_CUDA >= LEARNED_STEPS_PER_EPOCH
-    small = 16 * 160 * 90  # 3.5 steps an epoch at the device's batch
+    small = 16 * 160 * 90  # 4 steps an epoch at the device's batch
     batch = learned_batch(settings, True, small)
     assert LEARNED_BATCH_CPU <= batch < LEARNED_BATCH_CUDA
     assert small / batch >= min(LEARNED_STEPS_PER_EPOCH, small / LEARNED_BATCH_CPU)

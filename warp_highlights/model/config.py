@@ -454,7 +454,7 @@ LEARNED_BATCH_CPU = 1 << 12
 LEARNED_STEPS_PER_EPOCH = 64
 """On CUDA, a small capture's batch is cut (down to ``LEARNED_BATCH_CPU``) so that an epoch holds at least this
 many Adam steps (``residual.learned.learned_batch``). At 65,536 samples a step, 160x90 renders of 16 or 49 lights
-took 3.5 or 11 steps an epoch and their learned residual stayed far below the one the CPU learns at 4,096 a step;
+took 4 or 11 steps an epoch and their learned residual stayed far below the one the CPU learns at 4,096 a step;
 at 4,096 (56 and 172 steps) the GPU default gained 2.3-14.5 dB along the paths of ``benchmarks/bench_motion.py``
 (the table in docs/method.md). The dome sample (320x320, 49 lights) takes 77 steps an epoch at 65,536 and keeps
 its batch."""
