@@ -439,7 +439,7 @@ def test_a_small_capture_takes_smaller_batches_on_cuda_so_that_an_epoch_holds_en
 
     settings = ResidualSettings()
     dome_sample = 49 * 320 * 320
-    assert learned_batch(settings, True, dome_sample) == LEARNED_BATCH_CUDA  # 76 steps an epoch at most
+    assert learned_batch(settings, True, dome_sample) == LEARNED_BATCH_CUDA  # 77 steps an epoch
     assert dome_sample // LEARNED_BATCH_CUDA >= LEARNED_STEPS_PER_EPOCH
     small = 16 * 160 * 90  # 4 steps an epoch at the device's batch
     batch = learned_batch(settings, True, small)
@@ -451,6 +451,32 @@ def test_a_small_capture_takes_smaller_batches_on_cuda_so_that_an_epoch_holds_en
     for samples in (100, small, dome_sample):
         assert learned_batch(settings, False, samples) == LEARNED_BATCH_CPU
         assert learned_batch(dataclasses.replace(settings, learned_batch=1000), True, samples) == 1000
+
+
+def test_a_learned_residual_trains_on_cuda_with_the_batch_of_its_capture(monkeypatch):
+    """The device's trainer gets ``learned_batch`` of the samples it learns from: every light, or the ``used`` ones
+    (the learned check's)."""
+    import types
+
+    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual import learned
+
+    seen = []
+
+    def trainer(targets, directions, *, batch, **options):
+        seen.append(batch)
+        return [None] * len(targets), np.zeros((1, len(targets)))
+
+    monkeypatch.setattr(learned, "train_decoders", trainer)
+    monkeypatch.setattr(learned.wp, "get_device", lambda device=None: types.SimpleNamespace(is_cuda=True))
+    lights, pixels = 16, 100_000
+    targets = np.zeros((lights, pixels, 3), np.float32)
+    directions = np.tile([0.0, 0.0, 1.0], (lights, 1))
+    settings = ResidualSettings()
+    learned._train([targets], directions, settings=settings, device="cuda:0")
+    learned._train([targets, targets], directions, settings=settings, device="cuda:0", used=np.arange(8))
+    assert seen == [learned.learned_batch(settings, True, lights * pixels),
+                    learned.learned_batch(settings, True, 8 * pixels)] == [25_000, 12_500]
 
 
 def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds():
