@@ -12,6 +12,7 @@ import warp as wp
 
 from reference import render as render_reference
 from warp_highlights.fit.validation import (
+    apart_inside,
     check_moving,
     leave_one_out,
     plan_check,
@@ -57,6 +58,61 @@ def test_each_left_out_light_lies_in_a_face_of_the_other_lights_triangulation():
         assert np.all(weights >= -1e-12) and abs(weights.sum() - 1) < 1e-12
         point = weights @ directions[corners]  # on the face's plane, along the left-out direction
         np.testing.assert_allclose(point / np.linalg.norm(point), directions[light], atol=1e-9)
+
+
+def _random_dome(count: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(count, 3))
+    directions[:, 2] = np.abs(directions[:, 2]) + 0.15
+    return directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("name, directions", [
+    ("dome16", LightSet.fibonacci_dome(16).directions),
+    ("dome49", LightSet.fibonacci_dome(49).directions),
+    ("sphere40", LightSet.fibonacci_sphere(40).directions),
+    ("random30", _random_dome(30, 3)),
+    ("random60", _random_dome(60, 8)),
+])
+def test_lights_left_out_together_lie_between_captured_neighbours(name, directions):
+    """``apart_inside`` against brute force: left out all at once, every chosen light lies inside the rest's
+    dome, in the very triangle (and at the weights) it has when left out alone; no two share an edge; every
+    inside light not chosen touches a chosen one (nothing more could be added); the first is the inside light
+    farthest from the rim (on a sphere, nearest the lights' mean direction)."""
+    n = len(directions)
+    triangulation = SphericalTriangulation(directions)
+    loo = leave_one_out(directions, np.arange(n))
+    rows = apart_inside(loo, triangulation)
+    assert len(rows) and len(set(rows.tolist())) == len(rows)
+    chosen = loo.lights[rows]
+    rest = np.setdiff1d(np.arange(n), chosen)
+    location = SphericalTriangulation(directions[rest]).locate(directions[chosen])
+    assert not location.clamped.any()
+    for row, corners, weights in zip(rows, rest[location.vertices], location.barycentric):
+        alone = dict(zip(loo.vertices[row].tolist(), loo.barycentric[row]))
+        assert sorted(alone) == sorted(corners.tolist())
+        np.testing.assert_allclose([alone[c] for c in corners.tolist()], weights, atol=1e-9)
+    touching = {(int(a), int(b)) for a, b in triangulation.directed_edges()}
+    for a in chosen:
+        for b in chosen:
+            assert (int(a), int(b)) not in touching
+    inside = loo.lights[loo.inside]
+    for light in np.setdiff1d(inside, chosen):
+        assert any((int(light), int(c)) in touching for c in chosen)
+    rim = np.unique(triangulation.boundary_edges())
+    if len(rim):
+        away = [min(np.arccos(np.clip(directions[light] @ directions[r], -1, 1)) for r in rim) for light in inside]
+        assert chosen[0] == inside[int(np.argmax(away))]
+    else:
+        centre = directions.sum(axis=0)
+        assert chosen[0] == int(np.argmax(directions @ centre))
+
+
+def test_no_light_is_taken_where_every_left_out_light_lies_on_the_rim():
+    directions = LightSet.fibonacci_dome(16).directions
+    loo = leave_one_out(directions, np.arange(16))
+    rim_only = dataclasses.replace(loo, inside=np.zeros(len(loo.lights), bool))
+    assert apart_inside(rim_only, SphericalTriangulation(directions)).size == 0
 
 
 def test_the_plan_retargets_exactly_the_triangle_edges_the_capture_lacks():
@@ -128,7 +184,8 @@ def test_the_check_keeps_the_moved_highlights_it_is_asked_for():
     directions, edges, estimated, own, images = _scene()
     retargeted = _one_gaussian_sets(np.array([_highlight_at(directions[b]) for b in edges[:, 1]]))
     check = _check(directions, edges, estimated, retargeted, own, images, keep=4)
-    assert len(check.kept_lights) == 4 and set(check.kept_lights) <= set(check.lights)
+    plan = plan_check(directions, edges, 16)
+    assert check.kept_lights.tolist() == sorted(plan.loo.lights[plan.apart[:4]].tolist())
     assert check.kept_highlights.shape == (4, SIZE, SIZE, 3) and check.kept_highlights.max() > 0.5
     for light, drawn in zip(check.kept_lights, check.kept_highlights):
         row = int(np.flatnonzero(check.lights == light)[0])

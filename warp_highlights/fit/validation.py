@@ -16,8 +16,9 @@ The directed edges of those triangles that the capture's own triangulation lacks
 is lower, no Gaussian moves. Only the prediction leaves j out: the Gaussians, their move decisions, the
 highlight colour and the segmentation were fitted with image j among the others, which favours moving
 a little (the check is conservative about blending). For a learned residual, the moved highlights of
-a few checked lights are kept (``keep``): ``residual.learned.check_learned`` scores the learned residual
-with them there. Units: images in the field's units (``factor`` divides them back to display units,
+a few checked lights are kept (``keep``): ``residual.learned.check_learned`` leaves those lights out together
+and scores the learned residual with them there, so they are lights that lie between captured neighbours
+(``apart_inside``). Units: images in the field's units (``factor`` divides them back to display units,
 1 = white).
 """
 
@@ -42,7 +43,8 @@ from ..quality.metrics import psnr_8bit, psnr_of_mse
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
 
-__all__ = ["CheckPlan", "LeaveOneOut", "MoveCheck", "check_moving", "leave_one_out", "plan_check", "spread_lights"]
+__all__ = ["CheckPlan", "LeaveOneOut", "MoveCheck", "apart_inside", "check_moving", "leave_one_out", "plan_check",
+           "spread_lights"]
 
 _RENDER_BYTES = 256 * 2**20  # the left-out lights' highlights are drawn in batches of at most this many bytes
 _SCORE_BYTES = 2 * 2**30  # the lights scored at once take at most this much memory for their images ...
@@ -59,12 +61,14 @@ class LeaveOneOut:
     Attributes:
         lights: (m,) int the left-out lights; vertices: (m, 3) int their triangles' corners (indices
         into all lights); barycentric: (m, 3) float64 the weights of l_j (of its rim projection where it
-        lies outside the others' dome, as the relighter would clamp it).
+        lies outside the others' dome, as the relighter would clamp it); inside: (m,) bool, True where
+        l_j lies inside the others' dome (not clamped onto its rim; None: all inside).
     """
 
     lights: np.ndarray
     vertices: np.ndarray
     barycentric: np.ndarray
+    inside: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -124,7 +128,7 @@ def leave_one_out(directions: np.ndarray, lights: np.ndarray) -> LeaveOneOut:
     cannot be triangulated are skipped)."""
     directions = np.asarray(directions, dtype=np.float64)
     n = len(directions)
-    kept, vertices, weights = [], [], []
+    kept, vertices, weights, inside = [], [], [], []
     for light in np.asarray(lights, dtype=np.int64):
         others = np.delete(np.arange(n), light)
         try:
@@ -134,17 +138,57 @@ def leave_one_out(directions: np.ndarray, lights: np.ndarray) -> LeaveOneOut:
         kept.append(light)
         vertices.append(others[location.vertices])
         weights.append(location.barycentric)
+        inside.append(not bool(location.clamped))
     if not kept:
-        return LeaveOneOut(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)))
-    return LeaveOneOut(np.asarray(kept), np.asarray(vertices), np.asarray(weights))
+        return LeaveOneOut(np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros(0, bool))
+    return LeaveOneOut(np.asarray(kept), np.asarray(vertices), np.asarray(weights), np.asarray(inside))
+
+
+def apart_inside(loo: LeaveOneOut, triangulation: SphericalTriangulation) -> np.ndarray:
+    """Rows of ``loo`` that can be left out together, in the order to take them: lights inside the other
+    lights' dome, no two joined by an edge of the capture's ``triangulation``, spread by farthest-point
+    sampling from its rim (on a sphere, from the light nearest the lights' mean direction), so that they
+    fill the dome's inside rather than ring it.
+
+    Left out together, such lights keep the triangles they have when left out one at a time (only their own
+    stars are filled anew, from corners that stay), so each lies between captured neighbours, as a query
+    between the lights would: a light on the rim of a dome, or beside another left-out light, would be
+    extrapolated from far away instead."""
+    directions = np.asarray(triangulation.directions, dtype=np.float64)
+    lights = np.asarray(loo.lights, dtype=np.int64)
+    free = np.ones(len(lights), bool) if loo.inside is None else np.asarray(loo.inside, bool).copy()
+    if not free.any():
+        return np.zeros(0, np.int64)
+    row_of = np.full(len(directions), -1, np.int64)
+    row_of[lights] = np.arange(len(lights))
+    edges = np.asarray(triangulation.directed_edges(), dtype=np.int64)
+    rim = np.unique(np.asarray(triangulation.boundary_edges(), dtype=np.int64))
+    if len(rim):  # cosine to the nearest rim light
+        closest = (directions[lights] @ directions[rim].T).max(axis=1)
+    else:
+        centre = directions.sum(axis=0)
+        closest = -(directions[lights] @ centre) if np.linalg.norm(centre) > 1e-12 else np.zeros(len(lights))
+    chosen = []
+    while free.any():
+        row = int(np.flatnonzero(free)[np.argmin(closest[free])])
+        chosen.append(row)
+        free[row] = False
+        touching = row_of[edges[edges[:, 0] == lights[row], 1]]
+        free[touching[touching >= 0]] = False
+        reached = directions[lights] @ directions[lights[row]]
+        closest = reached if not len(rim) and len(chosen) == 1 else np.maximum(closest, reached)
+    return np.asarray(chosen, dtype=np.int64)
 
 
 @dataclass(frozen=True)
 class CheckPlan:
-    """The left-out lights and the directed edges (k, 2) their triangles need beyond the capture's own."""
+    """The left-out lights and the directed edges (k, 2) their triangles need beyond the capture's own;
+    ``apart``: the rows of ``loo`` that a check leaving several lights out at once may take, in order
+    (``apart_inside``)."""
 
     loo: LeaveOneOut
     missing: np.ndarray
+    apart: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def plan_check(directions: np.ndarray, edges: np.ndarray, count: int) -> CheckPlan:
@@ -153,11 +197,12 @@ def plan_check(directions: np.ndarray, edges: np.ndarray, count: int) -> CheckPl
     loo = leave_one_out(directions, spread_lights(directions, count) if count > 0 and n >= 5 else np.zeros(0, np.int64))
     if not len(loo.lights):
         return CheckPlan(loo, np.zeros((0, 2), np.int32))
+    apart = apart_inside(loo, SphericalTriangulation(directions))
     corners = loo.vertices
     wanted = np.concatenate([corners[:, [a, b]] for a in range(3) for b in range(3) if a != b]).astype(np.int64)
     have = edges[:, 0].astype(np.int64) * n + edges[:, 1]
     missing = np.setdiff1d(np.unique(wanted[:, 0] * n + wanted[:, 1]), have)
-    return CheckPlan(loo, np.stack([missing // n, missing % n], axis=1).astype(np.int32))
+    return CheckPlan(loo, np.stack([missing // n, missing % n], axis=1).astype(np.int32), apart)
 
 
 def check_moving(
@@ -193,8 +238,9 @@ def check_moving(
         colour: (H, W, C) the highlight colour c(x), or None for white.
         factor: the fit's exposure factor (field units per display unit).
         progress: optional ``advance(steps)`` for the retargeting of the missing edges.
-        keep: keep the moved highlights of this many checked lights, spread over them (for the
-            learned residual's check, ``residual.learned.check_learned``).
+        keep: keep the moved highlights of up to this many checked lights, the first of ``plan.apart`` (lights
+            inside the others' dome, none beside another: the learned residual's check leaves them out together,
+            ``residual.learned.check_learned``).
         held: ``images`` and ``own`` on the CUDA device already (``residual.inputs.HeldImages``), scored there.
         directions: (n, 3) the lights' directions, for retargeting's start (``fit.retargeting.retarget``).
     """
@@ -226,8 +272,7 @@ def check_moving(
     tint = np.ones((1, 1, images.shape[-1]), np.float32) if colour is None else np.asarray(colour, np.float32)
     scale = np.float32(1.0 / factor)
     moving_psnr, blend_psnr = np.empty(len(loo.lights)), np.empty(len(loo.lights))
-    kept_rows = (np.unique(np.linspace(0, len(loo.lights) - 1, min(keep, len(loo.lights))).round().astype(np.int64))
-                 if keep > 0 else np.zeros(0, np.int64))
+    kept_rows = np.sort(plan.apart[:keep]) if keep > 0 else np.zeros(0, np.int64)
     kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     # lights scored at once, in threads

@@ -582,11 +582,13 @@ class ResidualSettings:
             (as good as 2,048 after 180 s on the dome sample and the statue, 48.66 / 34.48 dB against
             48.73 / 34.46, at 1.4 times its samples a second; 8,192 fell to 33.31 dB on the statue:
             ``benchmarks/bench_cpu_learned.py``).
-        learned_check: where the move check keeps the Gaussians, this many of its left-out lights
-            (spread) decide whether the learned residual keeps them too (``residual.learned.check_learned``):
+        learned_check: where the move check keeps the Gaussians, up to this many of its left-out lights
+            decide whether the learned residual keeps them too (``residual.learned.check_learned``):
             two models learn without those lights, side by side on CUDA, the residual (scored with the
             Gaussians moved there) and the images alone (NeuralRTI); the better one goes on learning from
-            every light. 6, an eighth of the dome sample's 49 lights, spread like the move check's: on an
+            every light. The lights lie inside the others' dome and no two share an edge of the triangulation
+            (``fit.validation.apart_inside``: 3 of a 16-light dome, 6 of 25 or 49), so each is predicted from its
+            captured neighbours as a light between them would be. 6, an eighth of the dome sample's 49 lights: on an
             NVIDIA H100 the two kinds differed by 7 dB on the dome sample (the images alone ahead) and by
             2.3 dB the other way on the 250-light donut (``benchmarks/bench_neural_residual.py``), far more
             than 6 lights' spread. 0 keeps the Gaussians unchecked (one model, trained once).
@@ -595,7 +597,7 @@ class ResidualSettings:
             device: 5 on CUDA, 15 on the CPU (two thirds and an eighth of ``learned_seconds``).
         learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``, for 6 lights out of
             43-250. Where the check's lights are a larger share of the capture than these epochs are of a
-            whole training (``residual.learned.learns_anew``: 6 of 16 lights), the decided residual learns
+            whole training (``residual.learned.learns_anew``: 3 of 16 lights, 6 of 25), the decided residual learns
             anew from every light instead: on the 16-light bumpy donut of benchmarks/bench_motion.py (2-core
             CPU) the tuned winner scored 28.50 dB along the paths, learning anew 30.44 (the learned residual
             alone's).
