@@ -591,7 +591,8 @@ class ResidualSettings:
             captured neighbours as a light between them would be. 6, an eighth of the dome sample's 49 lights: on an
             NVIDIA H100 the two kinds differed by 7 dB on the dome sample (the images alone ahead) and by
             2.3 dB the other way on the 250-light donut (``benchmarks/bench_neural_residual.py``), far more
-            than 6 lights' spread. 0 keeps the Gaussians unchecked (one model, trained once).
+            than 6 lights' spread. 0, or a capture with no light inside the others' dome, keeps the Gaussians
+            unchecked (one model, trained once).
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
             left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
             device: 5 on CUDA, 15 on the CPU (two thirds and an eighth of ``learned_seconds``).
