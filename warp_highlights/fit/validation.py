@@ -62,13 +62,13 @@ class LeaveOneOut:
         lights: (m,) int the left-out lights; vertices: (m, 3) int their triangles' corners (indices
         into all lights); barycentric: (m, 3) float64 the weights of l_j (of its rim projection where it
         lies outside the others' dome, as the relighter would clamp it); inside: (m,) bool, True where
-        l_j lies inside the others' dome (not clamped onto its rim; None: all inside).
+        l_j lies inside the others' dome (not clamped onto its rim).
     """
 
     lights: np.ndarray
     vertices: np.ndarray
     barycentric: np.ndarray
-    inside: np.ndarray | None = None
+    inside: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -156,7 +156,7 @@ def apart_inside(loo: LeaveOneOut, triangulation: SphericalTriangulation) -> np.
     extrapolated from far away instead."""
     directions = np.asarray(triangulation.directions, dtype=np.float64)
     lights = np.asarray(loo.lights, dtype=np.int64)
-    free = np.ones(len(lights), bool) if loo.inside is None else np.asarray(loo.inside, bool).copy()
+    free = np.asarray(loo.inside, bool).copy()
     if not free.any():
         return np.zeros(0, np.int64)
     row_of = np.full(len(directions), -1, np.int64)
