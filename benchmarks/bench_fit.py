@@ -3,10 +3,13 @@
     python benchmarks/bench_fit.py                       # 250-light 480x270 donut, rendered first
     python benchmarks/bench_fit.py --lights 64 --size 240x135 --device cpu    # the CPU-sized fit
     python benchmarks/bench_fit.py --dataset data/donut  # an existing dataset
+    python benchmarks/bench_fit.py --dataset ../shared/data/synthrti-object1-material5/Dome --size 160x160 \
+        --device cpu --set residual.kind=lowrank --parts-per-worker 1,4   # CPU threads' parts, in one run
 
 Prints a table of seconds per stage (best of --repeat fits after a warm-up that compiles the kernels)
-and the field's file size; writes the full report to $OUT/bench_fit.json when OUT is set. Runs from a
-plain checkout with only warp, numpy and scipy (PYTHONPATH=$PWD), as on a GPU machine without the project installed.
+and the field's file size, and with --parts-per-worker one row per value (``kernels.chunks.CPU_PARTS_PER_WORKER``);
+writes the full report to $OUT/bench_fit.json when OUT is set. Runs from a plain checkout with only warp, numpy and
+scipy (PYTHONPATH=$PWD), as on a GPU machine without the project installed.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from warp_highlights.fit.pipeline import fit_field
 from warp_highlights.io.dataset import ReflectanceField
 from warp_highlights.io.fieldfile import field_size_report, save_field
+from warp_highlights.kernels import chunks
 from warp_highlights.model.config import FitSettings
 from warp_highlights.model.lights import LightSet
 from warp_highlights.synth.render import (
@@ -44,18 +48,24 @@ def main() -> None:
     parser.add_argument("--dataset", type=Path, help="an existing dataset folder (default: render the donut)")
     parser.add_argument("--shape", default="donut")
     parser.add_argument("--lights", type=int, default=250)
-    parser.add_argument("--size", default="480x270")
+    parser.add_argument("--size", default=None,
+                        help="WIDTHxHEIGHT: the render's size (default 480x270), or the size an existing --dataset is "
+                             "fitted at (default its images')")
     parser.add_argument("--device", default=None)
     parser.add_argument("--workers", type=int, default=None, help="CPU threads (default: one per core)")
     parser.add_argument("--repeat", type=int, default=1, help="timed fits after the warm-up (default 1)")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         help="hyper-parameter override STAGE.NAME=VALUE")
+    parser.add_argument("--parts-per-worker", default=str(chunks.CPU_PARTS_PER_WORKER),
+                        help="comma-separated values of kernels.chunks.CPU_PARTS_PER_WORKER to time, each in turn "
+                             f"(default {chunks.CPU_PARTS_PER_WORKER})")
     args = parser.parse_args()
+    parts = [int(v) for v in args.parts_per_worker.split(",") if v.strip()]
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
     settings = FitSettings().with_overrides(args.overrides)
-    width, height = (int(v) for v in args.size.split("x"))
+    width, height = (int(v) for v in (args.size or "480x270").split("x"))
 
     with tempfile.TemporaryDirectory() as scratch:
         folder = args.dataset
@@ -68,7 +78,9 @@ def main() -> None:
             print(f"rendered {args.shape}: {args.lights} lights {width}x{height} in "
                   f"{time.perf_counter() - started:.1f} s")
         started = time.perf_counter()
-        data = ReflectanceField.load(folder, progress=False, heldout=False, components=False)  # what fit loads
+        data = ReflectanceField.load(folder, progress=False, heldout=False, components=False,  # what fit loads
+                                     size=(width, height) if args.size and args.dataset is not None else None)
+        width, height = data.width, data.height
         load_seconds = time.perf_counter() - started
 
         # warm-up: compiles every kernel (cached on disk afterwards) with a very short fit
@@ -76,16 +88,20 @@ def main() -> None:
                                         "retarget.rigid_iterations=1", "retarget.iterations=1"])
         fit_field(data, settings=warm, device=device, workers=args.workers)
 
-        best = None
-        for _ in range(max(1, args.repeat)):
-            wp.synchronize_device(device)
-            started = time.perf_counter()
-            field = fit_field(data, settings=settings, device=device, workers=args.workers)
-            wp.synchronize_device(device)
-            total = time.perf_counter() - started
-            if best is None or total < best[0]:
-                best = (total, field)
-        total, field = best
+        by_parts = []
+        for per_worker in parts:
+            chunks.CPU_PARTS_PER_WORKER = per_worker
+            best = None
+            for _ in range(max(1, args.repeat)):
+                wp.synchronize_device(device)
+                started = time.perf_counter()
+                field = fit_field(data, settings=settings, device=device, workers=args.workers)
+                wp.synchronize_device(device)
+                total = time.perf_counter() - started
+                if best is None or total < best[0]:
+                    best = (total, field)
+            by_parts.append((per_worker, *best))
+        _, total, field = by_parts[-1]
         path = Path(scratch) / "field.whf"
         size = save_field(field, path)
 
@@ -113,6 +129,13 @@ def main() -> None:
         ratio = (f"{thesis / seconds:.0f}x" if comparable and thesis and seconds > 0
                  else ("" if comparable else "n/a (other size)"))
         print(f"| {name} | {seconds:.2f} | {thesis if thesis is not None else ''} | {ratio} |")
+    if len(by_parts) > 1:
+        print("\n| CPU parts per worker | estimation | retargeting | move check | total (s) |")
+        print("|---|---|---|---|---|")
+        for per_worker, seconds, fitted in by_parts:
+            stage = fitted.report["seconds"]
+            print(f"| {per_worker} | {stage.get('estimation', 0.0):.1f} | {stage.get('retargeting', 0.0):.1f} | "
+                  f"{stage.get('move check', 0.0):.1f} | {seconds:.1f} |")
     if os.environ.get("OUT"):
         out = Path(os.environ["OUT"]) / "bench_fit.json"
         out.write_text(json.dumps({"device": str(device), "device_name": _device_name(device),

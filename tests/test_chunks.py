@@ -26,6 +26,20 @@ def test_chunks_cover_every_problem_once():
             assert len(chunks) == min(workers, count)
 
 
+def test_parts_per_worker_cut_a_threaded_batch_finer():
+    """Several workers take ``per_worker`` parts each as they come (problems differ in cost); one worker keeps one
+    part; a part still holds at most ``most_each`` problems."""
+    for count in (1, 5, 49, 252):
+        for workers in (1, 2, 3):
+            chunks = problem_chunks(count, "cpu", workers, per_worker=8)
+            covered = np.concatenate([np.arange(count)[c] for c in chunks])
+            np.testing.assert_array_equal(covered, np.arange(count))
+            assert len(chunks) == (min(8 * workers, count) if workers > 1 else 1)
+    assert sorted(c.stop - c.start for c in problem_chunks(49, "cpu", 2, per_worker=8)) == [3] * 15 + [4]
+    assert len(problem_chunks(100, "cpu", 2, per_worker=8, most_each=5)) == 20
+    assert memory_chunks(49, "cpu", 2, bytes_each=1.0, per_worker=8) == problem_chunks(49, "cpu", 2, per_worker=8)
+
+
 def test_a_failing_chunk_stops_the_others_and_its_error_wins():
     started = time.perf_counter()
 

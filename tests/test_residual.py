@@ -759,7 +759,7 @@ def test_where_nothing_moves_auto_learns_the_residual_on_the_cpu(donut_fields, m
     slow = fit_field(dataset, settings=FitSettings().with_overrides(FAST_FIT), device="cpu", progress=False,
                      log=lines.append)
     assert slow.report["residual_kind"]["resolved"] == "lowrank" and slow.report["residual"]["still_epochs"] == 12.0
-    assert any("the residual stays low rank (about 12 epochs in 120 s" in line for line in lines)
+    assert any("the residual stays low rank (about 12 epochs in 100 s" in line for line in lines)
 
 
 def test_the_default_field_relights_every_captured_light_close_to_its_image(donut_fields):

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..kernels import chunks as chunking
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, problem_chunks
 from ..kernels.losses import LogL1Loss, clipped_mse
 from ..kernels.optim import GaussianAdam
@@ -102,7 +103,7 @@ def estimate(
         source = np.ascontiguousarray(targets.numpy() if isinstance(targets, wp.array) else targets, dtype=np.float32)
     if source.ndim != 3:
         raise InputError(f"estimation targets must have shape (lights, height, width), got {tuple(source.shape)}")
-    chunks = problem_chunks(source.shape[0], device, workers,
+    chunks = problem_chunks(source.shape[0], device, workers, per_worker=chunking.CPU_PARTS_PER_WORKER,
                             most_each=problems_per_launch(source.shape[1], source.shape[2], raster))
     graphs = device.is_cuda if graphs is None else bool(graphs)
     if graphs and not device.is_cuda:
@@ -116,7 +117,8 @@ def estimate(
         return _Estimator(device_targets, s, raster, device).run(stop, chunk_progress(progress, chunk, source.shape[0]),
                                                                  graphs=graphs)
 
-    # a device's parts (over one launch's pixels) run in turn; the CPU's on at most ``workers`` threads
+    # a device's parts (over one launch's pixels) run in turn; the CPU's on at most ``workers`` threads, taken as they
+    # come
     parts = map_chunks(run, chunks, parallel=not device.is_cuda,
                        threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from ..kernels import chunks as chunking
 from ..kernels.chunks import Cancelled, chunk_progress, map_chunks, memory_chunks
 from ..kernels.losses import EnergyLoss, LogL1Loss, StructureLoss
 from ..kernels.optim import GaussianAdam
@@ -117,7 +118,7 @@ def retarget(
     # phase 1's search reads each light's image blurred by its grid step, blurred once here for every edge
     smooth = (blurred(all_targets, search_blur_px(rpx_to_normalized(s.search_step_rpx), all_targets.shape[1]))
               if s.search_radius > 0 else None)
-    chunks = memory_chunks(len(edges), device, workers,
+    chunks = memory_chunks(len(edges), device, workers, per_worker=chunking.CPU_PARTS_PER_WORKER,
                            bytes_each=_IMAGES_PER_EDGE * image_bytes + 1024 * estimated.capacity,
                            most_each=problems_per_launch(all_targets.shape[1], all_targets.shape[2], raster))
 
@@ -127,7 +128,7 @@ def retarget(
                            headings=None if headings is None else headings[chunk], smooth=smooth)
         return job.run(stop, chunk_progress(progress, chunk, len(edges)), graphs=graphs)
 
-    # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads
+    # a device's parts do not fit it together; the CPU's run on at most ``workers`` threads, taken as they come
     parts = map_chunks(run, chunks, parallel=not device.is_cuda,
                        threads=workers if workers is not None else core_count())
     params = GaussianParams.concatenate([p[0] for p in parts])
