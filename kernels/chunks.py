@@ -23,9 +23,9 @@ smaller arrays, the fit's other stages and other programs); a batch that needs m
 
 CPU_PARTS_PER_WORKER = 2
 """Parts per CPU thread that the fit's batches of lights or edges are cut into (``problem_chunks``'s ``per_worker``),
-taken by the threads as they come: problems differ in cost (a dome's low lights, without highlights, are fitted in a
-tenth of the time of its glossy ones, and they come in order of elevation), so one part per thread left one thread
-with most of the work; each part's launches cost time too. Whole low-rank fits on 2 cores, the same Gaussians in
+taken by the threads as they come: problems differ in cost (a dome's low lights, without highlights, are fitted far
+faster than its glossy ones, and they come in order of elevation), so one part per thread left one thread with most
+of the work; each part's launches cost time too. Whole low-rank fits on 2 cores, the same Gaussians in
 every case (``benchmarks/bench_fit.py --device cpu --set residual.kind=lowrank --parts-per-worker ...``, the values
 in one run): the dome sample at 160x160, 109.2 s with 1 part per thread, 95.8 and 90.6 with 2, 80.4 with 4; the
 statue at 192x181 (54 evenly lit lights), 71.8 s with 1, 72.4 with 2, 85.1 and 83.4 with 4."""
