@@ -74,8 +74,8 @@ def training_rate(train, targets, lights, seconds: float, batch: int) -> float:
     """Samples a second of ``train`` from its second epoch to the end of the epoch after ``seconds``."""
     stamps = []
 
-    def log(message: str) -> None:  # "... (lr x, 12.3 s)": seconds since the first step
-        stamps.append(float(message.rsplit(", ", 1)[1].split()[0]))
+    def log(message: str) -> None:  # "... (lr x, 12.3 s)" or "... (12.3 s)": seconds since the first step
+        stamps.append(float(message.rsplit("(", 1)[1].rsplit(", ", 1)[-1].split()[0]))
 
     train(targets, lights, epochs=1000, batch=batch, seconds=seconds, log=log)
     if len(stamps) < 2:
