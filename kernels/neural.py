@@ -20,6 +20,7 @@ import warp as wp
 
 from warp_highlights.model.config import LEARNED_MATHDX
 from warp_highlights.model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES
+from warp_highlights.model.threads import blas_on_one_thread, parallel_map
 
 # decoding only (training has its own adjoint, ``kernels.neural_training``): no backward code to compile; tile
 # products without cuBLASDx (``LEARNED_MATHDX``)
@@ -225,16 +226,30 @@ class QueryDecoder:
                       outputs=[out], device=self.device)
 
 
+INITIAL_BAND = 1 << 14
+"""Pixels ``initial_model`` reads at a time on a thread (their n x 3 targets in float64: 8 MB for 64 lights)."""
+
+
 def initial_model(targets: np.ndarray, *, seed: int = 0) -> NeuralDecoder:
     """Codes from the leading principal components of the (n, P, 3) targets (unit variance), weights
-    uniform in +-1/sqrt(fan-in)."""
+    uniform in +-1/sqrt(fan-in). The covariance is summed in float64 over bands of ``INITIAL_BAND`` pixels
+    on the threads, the targets never copied whole."""
+    targets = np.asarray(targets)
     n, pixels, _ = targets.shape
-    flat = targets.transpose(1, 0, 2).reshape(pixels, -1).astype(np.float64)
-    flat = flat - flat.mean(axis=0)
-    gram = flat.T @ flat
-    values, vectors = np.linalg.eigh(gram)
-    leading = vectors[:, ::-1][:, :CODE_SIZE]
-    codes = flat @ leading
+    bands = [slice(start, min(start + INITIAL_BAND, pixels)) for start in range(0, pixels, INITIAL_BAND)]
+    rows = lambda band: targets[:, band].transpose(1, 0, 2).reshape(-1, 3 * n).astype(np.float64)  # noqa: E731
+
+    def moments(band: slice) -> tuple[np.ndarray, np.ndarray]:
+        flat = rows(band)
+        return flat.sum(axis=0), flat.T @ flat
+
+    with blas_on_one_thread():
+        parts = parallel_map(moments, bands)
+        mean = sum(part[0] for part in parts) / pixels
+        gram = sum(part[1] for part in parts) - pixels * np.outer(mean, mean)
+        values, vectors = np.linalg.eigh(gram)
+        leading = vectors[:, ::-1][:, :CODE_SIZE]
+        codes = np.concatenate(parallel_map(lambda band: (rows(band) - mean) @ leading, bands))
     codes /= np.maximum(codes.std(axis=0), 1e-12)
     if codes.shape[1] < CODE_SIZE:
         codes = np.concatenate([codes, np.zeros((pixels, CODE_SIZE - codes.shape[1]))], axis=1)

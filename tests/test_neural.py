@@ -98,6 +98,40 @@ def test_training_learns_a_smooth_reflectance(device):
     assert np.mean(np.sum((decoded - targets) ** 2, axis=-1)) < 0.05 * variance
 
 
+def test_initial_codes_summed_in_bands_are_the_whole_stack_s_components(monkeypatch):
+    """Bands of pixels on the threads give the components of the whole (n P, 3 n) float64 stack, centred."""
+    directions, targets = _problem(lights=4, pixels=1000)
+    targets[:, :, 1] += np.linspace(0.0, 2.0, 4)[:, None] * targets[:, :, 0]  # one leading direction
+    monkeypatch.setattr(neural, "INITIAL_BAND", 64)
+    codes = neural.initial_model(targets).codes
+    flat = targets.transpose(1, 0, 2).reshape(1000, -1).astype(np.float64)
+    flat -= flat.mean(axis=0)
+    _, vectors = np.linalg.eigh(flat.T @ flat)
+    want = flat @ vectors[:, ::-1][:, : neural.CODE_SIZE]
+    want /= want.std(axis=0)
+    # each component up to its sign
+    np.testing.assert_allclose(np.abs(np.sum(codes * want, axis=0)) / 1000, 1.0, rtol=1e-4)
+
+
+def test_display_encoding_in_bands_is_the_formula(monkeypatch):
+    """``encode_display`` and ``decode_display`` over many bands on the threads against the float64 formula."""
+    from warp_highlights.residual import opponent
+
+    monkeypatch.setattr(opponent, "ENCODING_BAND", 1000)
+    values = np.random.default_rng(2).normal(0.0, 0.4, (7, 3001)).astype(np.float32)
+    values[0, :4] = [0.0, 1.5, -3.0, 0.003]
+    x = np.minimum(np.abs(values.astype(np.float64)), 1.0)
+    want = np.sign(values) * np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    encoded = encode_display(values)
+    assert encoded.dtype == np.float32 and encoded.shape == values.shape
+    np.testing.assert_allclose(encoded, want, rtol=1e-6, atol=1e-7)
+    y = np.abs(want)
+    linear = np.sign(want) * np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+    np.testing.assert_allclose(decode_display(want), linear, rtol=1e-12)
+    np.testing.assert_allclose(decode_display(encoded), linear, rtol=2e-6, atol=1e-8)
+    assert decode_display(want).dtype == np.float64 and decode_display(encoded).dtype == np.float32
+
+
 def test_display_encoding_round_trips():
     values = np.array([-2.0, -0.5, -1e-3, 0.0, 1e-4, 0.002, 0.2, 0.9])
     encoded = encode_display(values)
@@ -295,7 +329,7 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     """No highlights: the residual is the images, so both models learn the same and score the same
     (the Gaussians kept); moved highlights that add a wrong bright blob lose to the images alone, whose
     model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
-    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.model.config import LEARNED_RESIDUAL_RATE, ResidualSettings
     from warp_highlights.quality.metrics import srgb_psnr
     from warp_highlights.residual.learned import check_learned
 
@@ -309,8 +343,10 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
               * [1.0, 0.8, 0.6]).astype(np.float32)
     own = np.zeros(images.shape[:3], np.float32)
     left_out = np.array([2, 6])
-    # settling never cuts in (its epoch is the last): both models learn as ``learn_residual`` would
-    settings = ResidualSettings(kind="learned", learned_epochs=4, learned_seconds=60.0, learned_settle_fraction=1.0)
+    # settling never cuts in (its epoch is the last): both models learn as ``learn_residual`` would, the images
+    # alone at the check's rate
+    settings = ResidualSettings(kind="learned", learned_epochs=4, learned_seconds=60.0, learned_settle_fraction=1.0,
+                                learned_rate=LEARNED_RESIDUAL_RATE)
     same = check_learned(images, own, None, directions, left_out, np.zeros((2, 6, 8, 3), np.float32), factor=2.0,
                          settings=settings, device="cpu")
     np.testing.assert_array_equal(same.lights, left_out)
@@ -549,3 +585,32 @@ def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donu
     if wp.is_cuda_available():
         field = fit_field(data, settings=FitSettings().with_overrides(FAST_FIT), device="cuda:0")
         assert field.residual is not None and field.residual.learned is None and field.residual.luminance is not None
+
+
+def test_images_learned_alone_start_at_the_faster_rate(monkeypatch):
+    """``learn_residual`` starts images without highlights taken out (``own`` all zero) at ``learned_rate`` (by device
+    where 0) and a residual with highlights taken out at ``LEARNED_RESIDUAL_RATE``; tuning at the final rate."""
+    from warp_highlights.model.config import (
+        LEARNED_FINAL_RATE,
+        LEARNED_RATE_CPU,
+        LEARNED_RESIDUAL_RATE,
+        ResidualSettings,
+    )
+    from warp_highlights.residual import learned as learned_module
+
+    starts = []
+    train = learned_module.train_decoder_cpu
+    monkeypatch.setattr(learned_module, "train_decoder_cpu",
+                        lambda *args, **kwargs: starts.append(kwargs["lr"]) or train(*args, **kwargs))
+    directions, targets = _problem(lights=5, pixels=12)
+    images = targets.reshape(5, 3, 4, 3)
+    own = np.zeros((5, 3, 4), np.float32)
+    settings = ResidualSettings(kind="learned", learned_epochs=1)
+    learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu")
+    learn_residual(images, own, None, directions, factor=1.0, device="cpu",
+                   settings=dataclasses.replace(settings, learned_rate=0.02))
+    own[:, 1, 2] = 0.1
+    model, _ = learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu")
+    learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu", initial=model.learned,
+                   tune=True)
+    assert starts == [LEARNED_RATE_CPU, 0.02, LEARNED_RESIDUAL_RATE, LEARNED_FINAL_RATE]

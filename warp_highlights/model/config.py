@@ -462,6 +462,19 @@ LEARNED_EPOCHS_CUDA = 260
 """A learned residual's epochs on CUDA when ``ResidualSettings.learned_epochs`` is 0."""
 LEARNED_EPOCHS_CPU = 200
 """The same on the CPU (``ResidualSettings.learned_epochs`` says where both came from)."""
+LEARNED_RATE_CUDA = 1e-2
+"""The learning rate at the start of the schedule of images learned alone (no Gaussian kept) on CUDA when
+``ResidualSettings.learned_rate`` is 0."""
+LEARNED_RATE_CPU = 1e-2
+"""The same on the CPU (``ResidualSettings.learned_rate`` says where both came from)."""
+LEARNED_RESIDUAL_RATE = 3e-3
+"""The learning rate at the start of the schedule of a residual with moving Gaussians taken out, and of both models
+of the learned check, on every device. On the 250-light donut (``benchmarks/bench_quality.py --scale gpu --cases
+donut``, NVIDIA H200) 1e-2 lowered the check's residual with its Gaussians from 41.65 to 38.22 dB at the check's
+lights (the images alone 39.39 with either rate), and the field lost its moving highlights."""
+LEARNED_FINAL_RATE = 3e-4
+"""The learning rate at the end of a learned residual's schedule (``ResidualSettings.learned_epochs``), and the rate
+at which the learned check's winner goes on learning from every light."""
 LEARNED_SECONDS_CUDA = 7.5
 """A learned residual's training time at most on CUDA when ``ResidualSettings.learned_seconds`` is 0, seconds."""
 LEARNED_SECONDS_CPU = 100.0
@@ -562,9 +575,9 @@ class ResidualSettings:
         learned_seconds: the learned residual's training time at most, seconds (the learned check's two
             models together, or the one model without it; compiling the kernels is not counted); 0 (default)
             by device: 7.5 on CUDA, so that the statue sample (43 lights, 567x534, 13 million samples an
-            epoch), where training binds, fits in 11.4 s on an NVIDIA H200 (``fit_field``, its images loaded; the
-            whole command took 13.6 s at 59f719f, within 15). Longer training scores higher there, at a time:
-            31.91 / 32.17 / 32.38 dB
+            epoch), where training binds, fits in 9.8 s on an NVIDIA H200 (``fit_field``, its images loaded; the
+            whole command of its 54 lights takes 14.3 s, within 15). Longer training scores higher there, at a
+            time: at a learning rate of 3e-3 (before ``learned_rate``), 31.91 / 32.17 / 32.38 dB
             at its held-out lights with 7.5 / 10 / 12 s (the alpha blend 32.06), ``fit_field`` 11.4 / 14.2 /
             15.7 s (``benchmarks/bench_quality.py --scale gpu --cases statue --set
             residual.learned_seconds=...``); the dome sample trains 246-247 of its 260 epochs within 7.5 s. 100
@@ -574,7 +587,18 @@ class ResidualSettings:
             ``benchmarks/bench_quality.py --cases statue --set residual.kind=learned --set
             residual.learned_seconds=...``; NumPy trains 0.5-0.8 million samples a second there,
             ``benchmarks/bench_cpu_learned.py``).
-        learned_epochs: the epochs of the learning rate's schedule (from 3e-3 to 3e-4), at most; 0
+        learned_rate: the learning rate at the start of the schedule of images learned alone (no Gaussian kept),
+            decaying geometrically to 3e-4 (``LEARNED_FINAL_RATE``) over ``learned_epochs``; a residual with
+            moving Gaussians and the learned check start at 3e-3 (``LEARNED_RESIDUAL_RATE``). 0 (default) by
+            device: 1e-2 on CUDA and on the CPU. On an NVIDIA H200, where training stops at ``learned_seconds``
+            far from converged, 3e-3 / 1e-2 / 2e-2 scored 31.84 / 33.26 / 31.75 dB on the statue (43 lights,
+            567x534; the alpha blend 32.06; 7e-3: 32.84), 26.02 / 27.02 / 26.63 on the coin and 48.67 / 48.96 /
+            50.70 on the dome sample (its images learned alone, at these rates in the check too)
+            (``benchmarks/bench_quality.py --scale gpu --cases statue,coin,synth --set residual.learned_rate=...``).
+            On a 2-core CPU the statue at 192x181 scored 33.35 with 3e-3 and 34.52 with 1e-2
+            (``benchmarks/bench_quality.py --cases statue --set residual.kind=learned --set
+            residual.learned_rate=...``).
+        learned_epochs: the epochs of the learning rate's schedule (from ``learned_rate`` to 3e-4), at most; 0
             (default) by device: 260 on CUDA, where the dome sample's images learned alone reach 44.09 /
             46.50 / 47.56 / 48.57 dB at its Test lights after 25 / 50 / 100 / 200 epochs (5.2 s for 200)
             and its whole fit 48.23 dB with 200 and 48.68 dB with 260 (14.0 s), 48.66 with 280
@@ -688,6 +712,7 @@ class ResidualSettings:
     highlight_colour: bool = True
     colour_prior: float = 0.01
     learned_seconds: float = 0.0
+    learned_rate: float = 0.0
     learned_epochs: int = 0
     learned_batch: int = 0
     learned_check: int = 6
@@ -728,6 +753,8 @@ class ResidualSettings:
                  f"colour_prior must be > 0, got {self.colour_prior}")
         _require(math.isfinite(self.learned_seconds) and self.learned_seconds >= 0,
                  f"learned_seconds must be >= 0 (0: by device), got {self.learned_seconds}")
+        _require(math.isfinite(self.learned_rate) and 0 <= self.learned_rate <= 1,
+                 f"learned_rate must be in [0, 1] (0: by device), got {self.learned_rate}")
         _require(0 <= int(self.learned_epochs) <= 100000,
                  f"learned_epochs must be in [0, 100000] (0: by device), got {self.learned_epochs}")
         _require(0 <= int(self.learned_batch) <= 1 << 24,
@@ -759,7 +786,9 @@ class DistilSettings:
         seconds: training time at most (0: no limit but ``epochs``). 120: the 60 epochs of a 24-24-24 student
             took 118 s for the dome sample at 160x160 and 146 s for the statue at 192x181 on 2 cores.
         epochs: passes over the pool's (direction, pixel) samples at most; the learning rate falls from
-            3e-3 to 3e-4 over them (or over ``seconds`` where that ends first), as the fitted decoder's.
+            ``rate`` to 3e-4 (``LEARNED_FINAL_RATE``) over them (or over ``seconds`` where that ends first).
+        rate: the learning rate at the start: 3e-3, the fitted decoder's rate when the students'
+            figures above were measured.
         epochs_per_round: the new directions between the lights are drawn anew every this many epochs.
         pool_factor: a round's directions are the captured ones and (``pool_factor`` - 1) times as many
             between them (2: as many new as captured; the student learns the relighting between the
@@ -776,6 +805,7 @@ class DistilSettings:
     hidden: tuple = (24, 24, 24)
     seconds: float = 120.0
     epochs: int = 60
+    rate: float = 3e-3
     epochs_per_round: int = 4
     pool_factor: float = 2.0
     batch: int = 4096
@@ -791,6 +821,7 @@ class DistilSettings:
         _require(math.isfinite(self.pool_factor) and self.pool_factor > 1,
                  f"pool_factor must be > 1, got {self.pool_factor}")
         _require(int(self.batch) >= 1, f"batch must be >= 1, got {self.batch}")
+        _require(math.isfinite(self.rate) and 0 < self.rate <= 1, f"rate must be in (0, 1], got {self.rate}")
 
 
 FLATTEN_MODES = ("trend", "level")

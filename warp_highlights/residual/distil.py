@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..io.images import linear_to_srgb
-from ..model.config import DistilSettings
+from ..model.config import LEARNED_FINAL_RATE, DistilSettings
 from ..model.errors import InputError
 from ..model.memory import check_memory
 from ..model.residual import (
@@ -36,7 +36,6 @@ from .opponent import decode_display
 __all__ = ["DistilReport", "decoder_multiply_adds", "directions_between", "distil_decoder", "distil_display_decoder",
            "parse_hidden"]
 
-_FIRST_RATE, _FINAL_RATE = 3e-3, 3e-4  # the learning rate's schedule (the fitted decoder's, ``residual.learned``)
 _NOVEL_SEED = 12_345  # the directions the agreement is measured at between the lights: the same for every student
 
 
@@ -188,7 +187,7 @@ def _train_student(targets_of, codes: np.ndarray, hidden: tuple[int, ...], direc
                 done = max(step / max(total_steps - 1, 1), spent)
                 if spent >= 1.0:
                     break
-                rate = _FIRST_RATE * (_FINAL_RATE / _FIRST_RATE) ** min(done, 1.0)
+                rate = settings.rate * (LEARNED_FINAL_RATE / settings.rate) ** min(done, 1.0)
                 lights = rng.integers(0, len(pool), batch)
                 chosen = rng.integers(0, pixels, batch)
                 shards = np.array_split(np.arange(batch), len(workers))

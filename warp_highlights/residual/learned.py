@@ -18,6 +18,10 @@ from ..model.config import (
     LEARNED_BATCH_CUDA,
     LEARNED_EPOCHS_CPU,
     LEARNED_EPOCHS_CUDA,
+    LEARNED_FINAL_RATE,
+    LEARNED_RATE_CPU,
+    LEARNED_RATE_CUDA,
+    LEARNED_RESIDUAL_RATE,
     LEARNED_SECONDS_CPU,
     LEARNED_SECONDS_CUDA,
     LEARNED_STEPS_PER_EPOCH,
@@ -31,6 +35,7 @@ from ..model.residual import (
     ResidualModel,
     learned_bounds,
 )
+from ..model.threads import parallel_map
 from ..quality.metrics import srgb_psnr
 from .cpu_training import decode_cpu, train_decoder_cpu
 from .inputs import residual_of
@@ -38,7 +43,6 @@ from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual"]
 
-_FIRST_RATE, _TUNE_RATE = 3e-3, 3e-4  # the learning rate's schedule; the check's winner goes on at its final rate
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
 
@@ -50,7 +54,8 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
     ``settings.learned_seconds`` or ``learned_epochs`` at most (``learned_seconds``, ``learned_epochs``),
-    as many samples a step as ``learned_batch`` gives; ``progress(1)`` after
+    as many samples a step as ``learned_batch`` gives, from ``learned_rate`` where ``own`` is all zero (the images
+    learned alone) and ``LEARNED_RESIDUAL_RATE`` where highlights were taken out; ``progress(1)`` after
     each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
     go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
     rate (the learned check's winner learning the lights it left out). Returns it and the loss per epoch."""
@@ -58,20 +63,29 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     n, height, width, _ = np.shape(images)
     start = None if initial is None else [NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
+    alone = not np.any(own)  # no highlight kept: the images themselves
+    rate = learned_rate(settings, wp.get_device(device).is_cuda) if alone else LEARNED_RESIDUAL_RATE
     models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
-                             used=used, initial=start, tune=tune)
+                             used=used, initial=start, tune=tune, rate=rate)
     return _residual_model(models[0], height, width, factor, n, colour), history[0]
 
 
 def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
     """(n, H*W, 3) float32: the residual of the images minus their own highlights in colour c, in signed sRGB
-    display units (the field's units over ``factor``)."""
-    images = np.asarray(images, dtype=np.float32)
-    if images.ndim != 4 or images.shape[3] != 3:
+    display units (the field's units over ``factor``), a light at a time on each thread."""
+    if np.ndim(images) != 4 or np.shape(images)[3] != 3:
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
-    n, height, width, _ = images.shape
+    n, height, width, _ = np.shape(images)
     tint = np.ones((1, 1, 3), np.float32) if colour is None else colour
-    return encode_display(residual_of(images, own, tint) / np.float32(factor)).reshape(n, height * width, 3)
+    out = np.empty((n, height * width, 3), np.float32)
+
+    def light(i: int) -> None:
+        residual = residual_of(np.asarray(images[i], np.float32), own[i], tint)
+        residual /= np.float32(factor)
+        encode_display(residual, out=out[i])
+
+    parallel_map(light, range(n))
+    return out
 
 
 def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float, lights: int,
@@ -83,9 +97,11 @@ def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float
 
 def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
-           tune: bool = False, settle=None, settle_used=None) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           tune: bool = False, settle=None, settle_used=None,
+           rate: float = LEARNED_RESIDUAL_RATE) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU; returns them and each one's loss per epoch. ``settle(models)``, called after each
+    the other on the CPU, the learning rate from ``rate`` (``LEARNED_FINAL_RATE`` where ``tune``); returns them and
+    each one's loss per epoch. ``settle(models)``, called after each
     ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
     ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
     ``settle_used`` lights from then on (default ``used``)."""
@@ -101,7 +117,7 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
     on_cuda = device.is_cuda
     seconds = learned_seconds(settings, on_cuda, tune)
     epochs = int(settings.learned_tune_epochs) if tune else learned_epochs(settings, on_cuda)
-    rates = {"lr": _TUNE_RATE if tune else _FIRST_RATE, "final_lr": _TUNE_RATE, "epochs": epochs}
+    rates = {"lr": LEARNED_FINAL_RATE if tune else rate, "final_lr": LEARNED_FINAL_RATE, "epochs": epochs}
     samples = (len(targets[0]) if used is None else len(used)) * np.shape(targets[0])[1]
     batch = learned_batch(settings, on_cuda, samples)
     options = dict(device=device, batch=batch, log=say, used=used, seconds=seconds, **rates)
@@ -138,6 +154,12 @@ def learned_batch(settings: ResidualSettings, on_cuda: bool, samples: int) -> in
 def learned_epochs(settings: ResidualSettings, on_cuda: bool) -> int:
     """The epochs of the learning rate's schedule: the setting, or where it is 0 the device's default."""
     return int(settings.learned_epochs) or (LEARNED_EPOCHS_CUDA if on_cuda else LEARNED_EPOCHS_CPU)
+
+
+def learned_rate(settings: ResidualSettings, on_cuda: bool) -> float:
+    """The learning rate at the start of the images' schedule where they are learned alone: the setting, or where
+    it is 0 the device's default."""
+    return float(settings.learned_rate) or (LEARNED_RATE_CUDA if on_cuda else LEARNED_RATE_CPU)
 
 
 def learns_anew(settings: ResidualSettings, on_cuda: bool, unseen: int, light_count: int) -> bool:
@@ -291,27 +313,39 @@ _BOUNDS_CHUNK_BYTES = 1 << 28
 
 def bounded(residual: ResidualModel, directions: np.ndarray, device) -> ResidualModel:
     """``residual`` with its learned residual's bounds (``model.residual.learned_bounds``): its decoder's lowest and
-    highest values at the (n, 3) captured light directions, decoded a few lights at a time on the device."""
+    highest values at the (n, 3) captured light directions, decoded a few lights at a time on the device. The
+    display encoding is increasing, so the extremes are found among the decoder's outputs and only they are
+    converted to field units."""
     learned = residual.learned
     height, width, _ = learned.codes.shape
     directions = np.asarray(directions, np.float32)
     chunk = max(1, _BOUNDS_CHUNK_BYTES // (12 * height * width))
     lowest = highest = None
     for start in range(0, len(directions), chunk):
-        values = _decoded(learned, directions[start:start + chunk], device)
+        values = _decoded_display(learned, directions[start:start + chunk], device)
         low, high = values.min(axis=0), values.max(axis=0)
         lowest = low if lowest is None else np.minimum(lowest, low)
         highest = high if highest is None else np.maximum(highest, high)
-    return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=learned_bounds(lowest, highest)))
+    ends = [learned.unit * decode_display(end).reshape(height, width, 3) for end in (lowest, highest)]
+    bounds = learned_bounds(np.minimum(*ends), np.maximum(*ends))
+    return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=bounds))
+
+
+def _decoded_display(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
+    """(Q, H W, 3) float32 the learned residual's decoder outputs (signed sRGB display units) at (Q, 3) directions,
+    decoded on the device (NumPy on the CPU)."""
+    device = wp.get_device(device)
+    height, width, _ = learned.codes.shape
+    codes = learned.codes.reshape(height * width, -1).astype(np.float32)
+    directions = np.asarray(directions, np.float32)
+    if device.is_cuda:
+        return decode(NeuralDecoder(codes, list(learned.standard_weights)), directions, device=device)
+    return decode_cpu(codes, learned.weights, directions)
 
 
 def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
     """(Q, H, W, 3) the learned residual (field units) at (Q, 3) directions, decoded on the device (NumPy on the
     CPU)."""
-    device = wp.get_device(device)
     height, width, _ = learned.codes.shape
-    codes = learned.codes.reshape(height * width, -1).astype(np.float32)
-    directions = np.asarray(directions, np.float32)
-    values = (decode(NeuralDecoder(codes, list(learned.standard_weights)), directions, device=device) if device.is_cuda
-              else decode_cpu(codes, learned.weights, directions))
+    values = _decoded_display(learned, directions, device)
     return learned.unit * decode_display(values).reshape(len(values), height, width, 3)

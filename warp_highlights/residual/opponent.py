@@ -9,8 +9,9 @@ import numpy as np
 from ..model.residual import (
     LUMINANCE_WEIGHTS,
 )
+from ..model.threads import parallel_map
 
-__all__ = ["decode_display", "encode_display", "from_opponent", "luminance_of", "to_opponent"]
+__all__ = ["ENCODING_BAND", "decode_display", "encode_display", "from_opponent", "luminance_of", "to_opponent"]
 
 
 def luminance_of(rgb: np.ndarray) -> np.ndarray:
@@ -41,15 +42,57 @@ def from_opponent(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
     return np.stack([y + cr, y - (wr * cr + wb * cb) / wg, y + cb], axis=-1)
 
 
-def encode_display(linear: np.ndarray) -> np.ndarray:
+ENCODING_BAND = 1 << 18
+"""Values ``encode_display`` and ``decode_display`` convert at a time on a thread (a megabyte of float32: a band's
+temporaries stay in the core's cache, and a stack of images is converted at the cores' speed)."""
+
+
+def encode_display(linear: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Signed sRGB encoding, float32 (display units, 1 = white): sign(x) srgb(|x|), |x| clipped at 1:
-    what the learned residual is trained on, so that its squared error is the one 8-bit sRGB PSNR measures."""
-    x = np.minimum(np.abs(linear), 1.0)
-    encoded = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (np.sign(linear) * encoded).astype(np.float32)
+    what the learned residual is trained on, so that its squared error is the one 8-bit sRGB PSNR measures.
+    Into ``out`` (contiguous float32 of the same size) when given."""
+    linear = np.asarray(linear)
+    out = np.empty(linear.shape, np.float32) if out is None else out
+    _in_bands(_encode_band, linear, out)
+    return out
 
 
 def decode_display(encoded: np.ndarray) -> np.ndarray:
-    """Linear values of signed-sRGB-encoded ones: sign(v) srgb^-1(|v|) (the learned residual's output)."""
-    x = np.abs(encoded)
-    return np.sign(encoded) * np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+    """Linear values of signed-sRGB-encoded ones: sign(v) srgb^-1(|v|) (the learned residual's output), float64 for
+    float64 values, else float32."""
+    encoded = np.asarray(encoded)
+    out = np.empty(encoded.shape, np.float64 if encoded.dtype == np.float64 else np.float32)
+    _in_bands(_decode_band, encoded, out)
+    return out
+
+
+def _in_bands(convert, values: np.ndarray, out: np.ndarray) -> None:
+    """``convert(source, target)`` over bands of ``ENCODING_BAND`` of the flattened arrays, spread over the threads."""
+    source, target = np.ascontiguousarray(values).reshape(-1), out.reshape(-1)
+    bands = [slice(start, start + ENCODING_BAND) for start in range(0, source.size, ENCODING_BAND)]
+    if len(bands) == 1:
+        convert(source, target)
+        return
+    parallel_map(lambda band: convert(source[band], target[band]), bands)
+
+
+def _encode_band(linear: np.ndarray, out: np.ndarray) -> None:
+    x = np.minimum(np.abs(linear, out=out), np.float32(1.0), out=out)
+    low = x <= np.float32(0.0031308)
+    linear_part = x * np.float32(12.92)
+    np.power(x, np.float32(1 / 2.4), out=x)
+    x *= np.float32(1.055)
+    x -= np.float32(0.055)
+    np.copyto(x, linear_part, where=low)
+    np.multiply(x, np.sign(linear), out=x)  # sign(0) = 0 keeps a zero unsigned
+
+
+def _decode_band(encoded: np.ndarray, out: np.ndarray) -> None:
+    x = np.abs(encoded, out=out)
+    low = x <= 0.04045
+    linear_part = x / out.dtype.type(12.92)
+    x += out.dtype.type(0.055)
+    x /= out.dtype.type(1.055)
+    np.power(x, out.dtype.type(2.4), out=x)
+    np.copyto(x, linear_part, where=low)
+    np.multiply(x, np.sign(encoded), out=x)
