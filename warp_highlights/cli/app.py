@@ -129,7 +129,8 @@ def _run(args) -> int:
         terminated = signum == signal.SIGTERM
         message = ("terminated (SIGTERM)" if terminated else "interrupted") + "; nothing partial was left behind"
         status = EXIT_TERMINATED if terminated else EXIT_INTERRUPTED
-    _close_progress_bars()
+    # every progress bar was closed as the command unwound (each lives in a with block or an exit stack), so the
+    # message starts on its own line
     print(f"{name}: {message}", file=sys.stderr)
     return status
 
@@ -185,18 +186,6 @@ def _ignore_signals() -> None:
 def _restore_signal_handlers(previous) -> None:
     for signum, handler in (previous or {}).items():
         signal.signal(signum, handler)
-
-
-def _close_progress_bars() -> None:
-    """End any progress bar left open by the failure, so the error starts on its own line."""
-    tqdm = sys.modules.get("tqdm")
-    if tqdm is None:
-        return
-    for bar in list(getattr(tqdm.tqdm, "_instances", ())):
-        try:
-            bar.close()
-        except Exception:  # a half-torn-down bar must not hide the real error
-            pass
 
 
 def _value_options(parser: argparse.ArgumentParser) -> set[str]:
