@@ -130,6 +130,10 @@ def test_display_encoding_in_bands_is_the_formula(monkeypatch):
     np.testing.assert_allclose(decode_display(want), linear, rtol=1e-12)
     np.testing.assert_allclose(decode_display(encoded), linear, rtol=2e-6, atol=1e-8)
     assert decode_display(want).dtype == np.float64 and decode_display(encoded).dtype == np.float32
+    into = np.empty((7 * 3001,), np.float32)
+    assert encode_display(values, out=into) is into and np.array_equal(into.reshape(values.shape), encoded)
+    with pytest.raises(ValueError, match="contiguous float32"):
+        encode_display(values, out=np.empty((3001, 7), np.float32).T)
 
 
 def test_display_encoding_round_trips():

@@ -53,6 +53,8 @@ def encode_display(linear: np.ndarray, out: np.ndarray | None = None) -> np.ndar
     Into ``out`` (contiguous float32 of the same size) when given."""
     linear = np.asarray(linear)
     out = np.empty(linear.shape, np.float32) if out is None else out
+    if out.dtype != np.float32 or out.size != linear.size or not out.flags.c_contiguous:
+        raise ValueError(f"out must be contiguous float32 of {linear.size} values, got {out.dtype} {out.shape}")
     _in_bands(_encode_band, linear, out)
     return out
 
