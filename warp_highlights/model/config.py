@@ -592,9 +592,10 @@ class ResidualSettings:
             moving Gaussians and the learned check start at 3e-3 (``LEARNED_RESIDUAL_RATE``). 0 (default) by
             device: 1e-2 on CUDA and on the CPU. On an NVIDIA H200, where training stops at ``learned_seconds``
             far from converged, 3e-3 / 1e-2 / 2e-2 scored 31.84 / 33.26 / 31.75 dB on the statue (43 lights,
-            567x534; the alpha blend 32.06; 7e-3: 32.84), 26.02 / 27.02 / 26.63 on the coin and 48.67 / 48.96 /
-            50.70 on the dome sample (its images learned alone, at these rates in the check too)
-            (``benchmarks/bench_quality.py --scale gpu --cases statue,coin,synth --set residual.learned_rate=...``).
+            567x534; the alpha blend 32.06; 7e-3: 32.84) and 26.02 / 27.02 / 26.63 on the coin
+            (``benchmarks/bench_quality.py --scale gpu --cases statue,coin --set residual.learned_rate=...``); with
+            the learned check at the same rates, the dome sample 48.67 / 48.96 / 50.70
+            (``benchmarks/results/bench_quality_h200_learned_rate_sweep.json``).
             On a 2-core CPU the statue at 192x181 scored 33.35 with 3e-3 and 34.52 with 1e-2
             (``benchmarks/bench_quality.py --cases statue --set residual.kind=learned --set
             residual.learned_rate=...``).
