@@ -186,15 +186,17 @@ def scatter_code_gradients(samples: wp.array[wp.int64], pixels: int, feature_gra
 
 
 @wp.kernel
-def adam_flat(step: wp.array[wp.int64], batch: int, total: wp.int64, epochs: int, lr: float, final_lr: float,
+def adam_flat(step: wp.array[wp.int64], batch: int, total: wp.int64, epochs: int, lr: wp.array[float],
+              final_lr: float,
               params: wp.array[float], gradients: wp.array[float], first: wp.array[float], second: wp.array[float]):
-    """Adam on every parameter; the learning rate decays geometrically from ``lr`` (first epoch) to
-    ``final_lr`` (epoch ``epochs``); the gradient is zeroed once used."""
+    """Adam on every parameter; parameter i's learning rate decays geometrically from ``lr[i]`` (first epoch; each
+    model's own) to ``final_lr`` (epoch ``epochs``); the gradient is zeroed once used."""
     i = wp.tid()
     t = step[0] + wp.int64(1)
     epoch = (step[0] * wp.int64(batch)) / total
     fraction = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
-    rate = lr * wp.pow(final_lr / lr, fraction)
+    start = lr[i]
+    rate = start * wp.pow(final_lr / start, fraction)
     g = gradients[i]
     gradients[i] = 0.0
     m = ADAM_BETA1 * first[i] + (1.0 - ADAM_BETA1) * g
@@ -235,6 +237,11 @@ class _FlatParameters:
         self.gradients = [self.gradient[int(a):int(b)].reshape(shape)
                           for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
 
+    def per_model(self, values) -> np.ndarray:
+        """A float32 vector of this layout holding ``values[m]`` in every entry of model m."""
+        values = np.asarray(values, np.float32)
+        return np.concatenate([np.repeat(values, int(np.prod(shape[1:]))) for shape in self.shapes])
+
     def models(self) -> list[NeuralDecoder]:
         arrays = [view.numpy() for view in self.views]
         return [NeuralDecoder(arrays[0][m].copy(), [a[m].copy() for a in arrays[1:]]) for m in range(len(arrays[0]))]
@@ -253,7 +260,8 @@ class _FlatParameters:
 @dataclass
 class DecoderTrainer:
     """The device state of M decoders learning (M, n, P, 3) display-unit targets at (n, 3) lights from
-    the ``used`` lights, ``batch`` samples a step; ``steps(k)`` runs k steps (a CUDA graph on CUDA)."""
+    the ``used`` lights, ``batch`` samples a step, each from its own first learning rate (``lr``: one for all, or M);
+    ``steps(k)`` runs k steps (a CUDA graph on CUDA)."""
 
     targets: np.ndarray
     lights: np.ndarray
@@ -261,7 +269,7 @@ class DecoderTrainer:
     models: list[NeuralDecoder]
     batch: int
     epochs: int
-    lr: float = 3e-3
+    lr: float | tuple = 3e-3
     final_lr: float = 3e-4
     seed: int = 0
     device: object = None
@@ -278,6 +286,10 @@ class DecoderTrainer:
         self.blocks = self.batch // unit
         self.kernel = make_train_tiles(columns, sub_batches)
         self.params = _FlatParameters(self.models, device)
+        self.rates = np.broadcast_to(np.asarray(self.lr, np.float64), (count,)).copy()
+        if not (np.all(np.isfinite(self.rates)) and np.all(self.rates > 0)):
+            raise ValueError(f"learning rates must be > 0, got {self.lr}")
+        self.rate_array = wp.array(self.params.per_model(self.rates), dtype=float, device=device)
         self.first = wp.zeros(self.params.size, dtype=float, device=device)
         self.second = wp.zeros(self.params.size, dtype=float, device=device)
         self.step = wp.zeros(1, dtype=wp.int64, device=device)
@@ -308,7 +320,7 @@ class DecoderTrainer:
         wp.launch(scatter_code_gradients, dim=self.batch, inputs=[self.samples, self.pixels, self.feature_gradients],
                   outputs=[p.gradients[0]], device=device)
         wp.launch(adam_flat, dim=p.size,
-                  inputs=[self.step, self.batch, self.total, self.epochs, self.lr, self.final_lr],
+                  inputs=[self.step, self.batch, self.total, self.epochs, self.rate_array, self.final_lr],
                   outputs=[p.flat, p.gradient, self.first, self.second], device=device)
         wp.launch(advance, dim=1, outputs=[self.step], device=device)
 
@@ -342,8 +354,8 @@ class DecoderTrainer:
         wp.synchronize_device(self.device)
         models = self.result()
         alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used if used is None else np.asarray(used),
-                               [models[m]], self.batch, self.epochs, self.lr, self.final_lr, self.seed, self.device,
-                               self.tile)
+                               [models[m]], self.batch, self.epochs, float(self.rates[m]), self.final_lr, self.seed,
+                               self.device, self.tile)
         for mine, theirs in ((self.first, alone.first), (self.second, alone.second)):
             theirs.assign(self.params.one_model(mine.numpy(), m))
         step = int(self.step.numpy()[0])
@@ -353,20 +365,21 @@ class DecoderTrainer:
 
 
 def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16,
-                   lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None, log=None,
+                   lr: float | tuple = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None,
+                   log=None,
                    used: np.ndarray | None = None,
                    initial: list[NeuralDecoder] | None = None, settle=None,
                    settle_epoch: int = 0,
                    settle_used: np.ndarray | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by side: Adam on
     the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
-    geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until ``seconds`` of training have passed;
-    compiling the kernels and ``settle``'s scoring are not counted). ``used``: the lights learned from (default all;
-    the others' targets are never read). ``initial``: models to go on training (default: ``initial_model`` of each
-    model's used targets). ``settle(models)``, called after every ``settle_epoch`` epochs with the models as they
-    are while more than one learns, may return the index of the one model that goes on (the others stop there: their
-    loss is NaN from then on) or None (all go on, to be asked again); the one that goes on learns from
-    ``settle_used`` lights from then on (default ``used``).
+    geometrically from ``lr`` (one for every model, or one each) to ``final_lr`` over ``epochs`` (or until
+    ``seconds`` of training have passed; compiling the kernels and ``settle``'s scoring are not counted). ``used``:
+    the lights learned from (default all; the others' targets are never read). ``initial``: models to go on training
+    (default: ``initial_model`` of each model's used targets). ``settle(models)``, called after every
+    ``settle_epoch`` epochs with the models as they are while more than one learns, may return the index of the one
+    model that goes on (the others stop there: their loss is NaN from then on) or None (all go on, to be asked
+    again); the one that goes on learns from ``settle_used`` lights from then on (default ``used``).
     Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)

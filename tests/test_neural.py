@@ -391,10 +391,11 @@ def test_a_near_tie_keeps_the_moving_gaussians():
 
 
 def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled():
-    """On the CPU the check's models learn one after the other: both the first half of the schedule, then, their
-    order settled (a margin of 0 dB), the winner alone the second half from where it was, at the schedule's rates,
+    """On the CPU the check's models learn one after the other, each from its own first rate (the residual's
+    ``LEARNED_RESIDUAL_RATE``, the images' ``learned_rate``): both the first half of the schedule, then, their
+    order settled (a margin of 0 dB), the winner alone the second half from where it was, at its schedule's rates,
     from every light (the verdict is taken); both are scored as they were at the half."""
-    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.model.config import LEARNED_RATE_CPU, LEARNED_RESIDUAL_RATE, ResidualSettings
     from warp_highlights.residual import cpu_training
     from warp_highlights.residual.learned import _targets, check_learned
 
@@ -413,14 +414,19 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     assert check.settled_epoch == 2 and not check.keeps_gaussians
     used = np.setdiff1d(np.arange(9), left_out)
     options = dict(device="cpu", batch=64, used=used, seconds=60.0)
-    halfway = 3e-3 * 0.1 ** (1 / 3)
-    first, _ = cpu_training.train_decoder_cpu(_targets(images, own, None, 2.0), directions, epochs=2, lr=3e-3,
-                                              final_lr=halfway, **{**options, "seconds": 60.0 / 6 * 2})
-    alone = _targets(images, np.zeros_like(own), None, 2.0)
-    start, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=3e-3, final_lr=halfway,
+    # each from its own first rate (the residual's and the images'), down to 3e-4 over the 4 epochs
+    def rate_at(lr, epoch):
+        return lr * (3e-4 / lr) ** (epoch / 3)
+
+    first, _ = cpu_training.train_decoder_cpu(_targets(images, own, None, 2.0), directions, epochs=2,
+                                              lr=LEARNED_RESIDUAL_RATE, final_lr=rate_at(LEARNED_RESIDUAL_RATE, 1),
                                               **{**options, "seconds": 60.0 / 6 * 2})
-    end, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=3e-3 * 0.1 ** (2 / 3), final_lr=3e-4,
-                                            initial=start, **{**options, "used": None})
+    alone = _targets(images, np.zeros_like(own), None, 2.0)
+    start, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=LEARNED_RATE_CPU,
+                                              final_lr=rate_at(LEARNED_RATE_CPU, 1),
+                                              **{**options, "seconds": 60.0 / 6 * 2})
+    end, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=rate_at(LEARNED_RATE_CPU, 2),
+                                            final_lr=3e-4, initial=start, **{**options, "used": None})
     np.testing.assert_allclose(check.winner.learned.codes.reshape(-1, 9).astype(np.float32),
                                end.codes.astype(np.float16).astype(np.float32), atol=1e-3)
     assert check.learned_every_light and len(check.history) == 4

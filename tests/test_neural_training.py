@@ -101,15 +101,18 @@ def test_the_fused_step_gradients_match_central_differences(device):
 
 
 def test_adam_matches_its_formula(device):
-    """One flat Adam launch: moments, bias correction, the epoch's learning rate; the gradient zeroed."""
+    """One flat Adam launch: moments, bias correction, each parameter's learning rate at the epoch (from its own
+    first rate); the gradient zeroed."""
     rng = np.random.default_rng(3)
     params, grads = rng.normal(size=50), rng.normal(size=50)
     first, second = rng.normal(size=50) * 0.1, rng.uniform(0.0, 0.1, 50)
     arrays = [wp.array(a.astype(np.float32), dtype=float, device=device) for a in (params, grads, first, second)]
     step = wp.array(np.array([7], np.int64), dtype=wp.int64, device=device)
-    batch, total, epochs, lr, final_lr = 64, 100, 10, 3e-3, 3e-4
-    wp.launch(neural_training.adam_flat, dim=50, inputs=[step, batch, total, epochs, lr, final_lr], outputs=arrays,
-              device=device)
+    batch, total, epochs, final_lr = 64, 100, 10, 3e-4
+    lr = np.where(np.arange(50) < 20, 3e-3, 1e-2)
+    wp.launch(neural_training.adam_flat, dim=50,
+              inputs=[step, batch, total, epochs, wp.array(lr.astype(np.float32), dtype=float, device=device),
+                      final_lr], outputs=arrays, device=device)
     epoch = 7 * 64 // 100
     rate = lr * (final_lr / lr) ** (epoch / (epochs - 1))
     m = 0.9 * first + 0.1 * grads
@@ -134,6 +137,25 @@ def test_models_side_by_side_learn_as_each_alone(device):
         np.testing.assert_allclose(history[:, m], alone_history, rtol=1e-4)
     with pytest.raises(ValueError, match="initial models"):
         neural_training.train_decoders(targets, directions, device=device, epochs=1, initial=together[:1])
+
+
+def test_models_side_by_side_each_learn_at_their_own_rate(device):
+    """Two models from two first learning rates in the same launches end as each would alone at its rate, and a
+    settled winner goes on at its own rate."""
+    directions, targets = _problem(seed=11, lights=4, pixels=48)
+    rates = (3e-3, 1e-2)
+    together, _ = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64, lr=rates)
+    kept, _ = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64, lr=rates,
+                                             settle=lambda models: 1, settle_epoch=1)
+    for m, rate in enumerate(rates):
+        alone, _ = neural_training.train_decoder(targets[m], directions, device=device, epochs=3, batch=64, lr=rate)
+        np.testing.assert_allclose(together[m].codes, alone.codes, rtol=1e-4, atol=1e-5)
+        for got, want in zip(together[m].weights, alone.weights):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(kept[1].codes, together[1].codes, rtol=1e-4, atol=1e-5)
+    assert not np.allclose(together[0].codes, together[1].codes, atol=1e-3)
+    with pytest.raises(ValueError, match="learning rates"):
+        neural_training.train_decoders(targets, directions, device=device, epochs=1, lr=(3e-3, 0.0))
 
 
 def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device):

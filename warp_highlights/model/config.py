@@ -468,10 +468,11 @@ LEARNED_RATE_CUDA = 1e-2
 LEARNED_RATE_CPU = 1e-2
 """The same on the CPU (``ResidualSettings.learned_rate`` says where both came from)."""
 LEARNED_RESIDUAL_RATE = 3e-3
-"""The learning rate at the start of the schedule of a residual with moving Gaussians taken out, and of both models
-of the learned check, on every device. On the 250-light donut (``benchmarks/bench_quality.py --scale gpu --cases
-donut``, NVIDIA H200) 1e-2 lowered the check's residual with its Gaussians from 41.65 to 38.22 dB at the check's
-lights (the images alone 39.39 with either rate), and the field lost its moving highlights."""
+"""The learning rate at the start of the schedule of a residual with moving Gaussians taken out, on every device, in
+the field and in the learned check (whose images-alone model starts at ``ResidualSettings.learned_rate``: each
+candidate at its own rate). On the 250-light donut (``benchmarks/bench_quality.py --scale gpu --cases donut``, NVIDIA
+H200) 1e-2 lowered the check's residual with its Gaussians from 41.65 to 38.22 dB at the check's lights (the images
+alone 39.39 with either rate), and the field lost its moving highlights."""
 LEARNED_FINAL_RATE = 3e-4
 """The learning rate at the end of a learned residual's schedule (``ResidualSettings.learned_epochs``), and the rate
 at which the learned check's winner goes on learning from every light."""
@@ -588,17 +589,21 @@ class ResidualSettings:
             residual.learned_seconds=...``; NumPy trains 0.5-0.8 million samples a second there,
             ``benchmarks/bench_cpu_learned.py``).
         learned_rate: the learning rate at the start of the schedule of images learned alone (no Gaussian kept),
-            decaying geometrically to 3e-4 (``LEARNED_FINAL_RATE``) over ``learned_epochs``; a residual with
-            moving Gaussians and the learned check start at 3e-3 (``LEARNED_RESIDUAL_RATE``). 0 (default) by
-            device: 1e-2 on CUDA and on the CPU. On an NVIDIA H200, where training stops at ``learned_seconds``
-            far from converged, 3e-3 / 1e-2 / 2e-2 scored 31.84 / 33.26 / 31.75 dB on the statue (43 lights,
-            567x534; the alpha blend 32.06; 7e-3: 32.84) and 26.02 / 27.02 / 26.63 on the coin
-            (``benchmarks/bench_quality.py --scale gpu --cases statue,coin --set residual.learned_rate=...``); with
-            the learned check at the same rates, the dome sample 48.67 / 48.96 / 50.70
-            (``benchmarks/results/bench_quality_h200_learned_rate_sweep.json``).
-            On a 2-core CPU the statue at 192x181 scored 33.35 with 3e-3 and 34.52 with 1e-2
-            (``benchmarks/bench_quality.py --cases statue --set residual.kind=learned --set
-            residual.learned_rate=...``).
+            decaying geometrically to 3e-4 (``LEARNED_FINAL_RATE``) over ``learned_epochs``, in the field and for the
+            learned check's images-alone model; a residual with moving Gaussians (the check's other model too) starts at
+            3e-3 (``LEARNED_RESIDUAL_RATE``). 0 (default) by device: 1e-2 on CUDA and on the CPU. On an NVIDIA H200,
+            where training stops at ``learned_seconds`` far from converged, 3e-3 / 1e-2 / 2e-2 scored 31.84 / 33.26 /
+            31.75 dB on the statue (43 lights, 567x534; the alpha blend 32.06; 7e-3: 32.84) and 26.02 / 27.02 / 26.63 on
+            the coin (``benchmarks/bench_quality.py --scale gpu --cases statue,coin --set residual.learned_rate=...``);
+            with the learned check at the same rates, the dome sample 48.67 / 48.96 / 50.70
+            (``benchmarks/results/bench_quality_h200_learned_rate_sweep.json``). Where the check drops the Gaussians its
+            images-alone model is the field's residual: with that model at 3e-3, then at 1e-2, the tiled teapot of 49
+            lights scored 33.70 and 35.37 dB along the paths (the learned residual alone 36.32-36.35;
+            ``benchmarks/bench_motion.py --scale gpu --scenes teapot-tiles,donut-sharp --captures dome49``) and the dome
+            sample 48.57 and 48.97 at its Test lights (``warp-highlights evaluate``); the first at 435a60e, the second
+            with each model at its own rate (``benchmarks/results/motion-gpu/bench_motion-dome49-check-rates.json``). On
+            a 2-core CPU the statue at 192x181 scored 33.35 with 3e-3 and 34.52 with 1e-2 (``benchmarks/bench_quality.py
+            --cases statue --set residual.kind=learned --set residual.learned_rate=...``).
         learned_epochs: the epochs of the learning rate's schedule (from ``learned_rate`` to 3e-4), at most; 0
             (default) by device: 260 on CUDA, where the dome sample's images learned alone reach 44.09 /
             46.50 / 47.56 / 48.57 dB at its Test lights after 25 / 50 / 100 / 200 epochs (5.2 s for 200)

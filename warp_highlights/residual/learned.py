@@ -98,9 +98,10 @@ def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float
 def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None, settle_used=None,
-           rate: float = LEARNED_RESIDUAL_RATE) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           rate: float | tuple = LEARNED_RESIDUAL_RATE) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU, the learning rate from ``rate`` (``LEARNED_FINAL_RATE`` where ``tune``); returns them and
+    the other on the CPU, the learning rate from ``rate`` (one for every model, or one each; ``LEARNED_FINAL_RATE``
+    where ``tune``); returns them and
     each one's loss per epoch. ``settle(models)``, called after each
     ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
     ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
@@ -117,7 +118,8 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
     on_cuda = device.is_cuda
     seconds = learned_seconds(settings, on_cuda, tune)
     epochs = int(settings.learned_tune_epochs) if tune else learned_epochs(settings, on_cuda)
-    rates = {"lr": LEARNED_FINAL_RATE if tune else rate, "final_lr": LEARNED_FINAL_RATE, "epochs": epochs}
+    starts = np.broadcast_to(np.asarray(LEARNED_FINAL_RATE if tune else rate, np.float64), (len(targets),))
+    rates = {"lr": tuple(map(float, starts)), "final_lr": LEARNED_FINAL_RATE, "epochs": epochs}
     samples = (len(targets[0]) if used is None else len(used)) * np.shape(targets[0])[1]
     batch = learned_batch(settings, on_cuda, samples)
     options = dict(device=device, batch=batch, log=say, used=used, seconds=seconds, **rates)
@@ -134,7 +136,7 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
     if settle is None or len(targets) < 2 or epoch >= rates["epochs"]:
         trained = [train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
-                                     **{**options, "seconds": seconds / len(targets)})
+                                     **{**options, "lr": options["lr"][m], "seconds": seconds / len(targets)})
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
     return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used)
@@ -183,28 +185,33 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
                            settle_used=None):
     """The learned check's models on the CPU, one after the other in two parts: each its first ``settle_epoch``
     epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both).
-    The second part goes on from the first's models with the schedule's learning rates, its Adam moments
-    new, a lone winner from the ``settle_used`` lights (default the first part's); the time is shared in
-    proportion to the epochs each part learns."""
-    epochs, lr, final_lr = options["epochs"], options["lr"], options["final_lr"]
-    rate_at = lambda epoch: lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))  # noqa: E731
+    The second part goes on from the first's models with each model's schedule of learning rates (``options["lr"]``:
+    one first rate each), its Adam moments new, a lone winner from the ``settle_used`` lights (default the first
+    part's); the time is shared in proportion to the epochs each part learns."""
+    epochs, final_lr = options["epochs"], options["final_lr"]
+
+    def rate_at(m: int, epoch: int) -> float:  # model m's learning rate at that epoch of its schedule
+        return options["lr"][m] * (final_lr / options["lr"][m]) ** (epoch / max(epochs - 1, 1))
+
     count, seconds = len(targets), options["seconds"]
     share = seconds / (count * settle_epoch + (epochs - settle_epoch))  # seconds an epoch if one wins
-    first = dict(options, epochs=settle_epoch, final_lr=rate_at(settle_epoch - 1), seconds=share * settle_epoch)
     models, histories = [], []
     for m, target in enumerate(targets):
+        first = dict(options, epochs=settle_epoch, lr=options["lr"][m], final_lr=rate_at(m, settle_epoch - 1),
+                     seconds=share * settle_epoch)
         model, history = train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
                                            **first)
         models.append(model)
         histories.append(history)
     kept = settle(models)
     going_on = range(count) if kept is None else [int(kept)]
-    rest = dict(options, epochs=epochs - settle_epoch, lr=rate_at(settle_epoch),
+    rest = dict(options, epochs=epochs - settle_epoch,
                 seconds=max(share, (seconds - share * count * settle_epoch) / len(going_on)))
     if kept is not None and settle_used is not None:
         rest["used"] = settle_used
     for m in going_on:
-        models[m], history = train_decoder_cpu(targets[m], directions, initial=models[m], **rest)
+        models[m], history = train_decoder_cpu(targets[m], directions, initial=models[m],
+                                               **{**rest, "lr": rate_at(m, settle_epoch)})
         histories[m] = histories[m] + history
     return models, histories
 
@@ -294,8 +301,11 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
         return 0 if gap >= -tie else 1
 
     # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
+    # each model from the first learning rate it would learn at in the field: the residual with its Gaussians
+    # taken out at LEARNED_RESIDUAL_RATE, the images at ``learned_rate``
+    rates = (LEARNED_RESIDUAL_RATE, learned_rate(settings, wp.get_device(device).is_cuda))
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
-                                settle=settle, settle_used=np.arange(n))
+                                settle=settle, settle_used=np.arange(n), rate=rates)
     models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
     if settled_at:  # scored when the order settled, while the left-out lights were still left out
         epoch, first, second = settled_at[0]
