@@ -99,10 +99,9 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None, settle_used=None,
            rate: float | tuple = LEARNED_RESIDUAL_RATE) -> tuple[list[NeuralDecoder], list[list[float]]]:
-    """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after
-    the other on the CPU, the learning rate from ``rate`` (one for every model, or one each; ``LEARNED_FINAL_RATE``
-    where ``tune``); returns them and
-    each one's loss per epoch. ``settle(models)``, called after each
+    """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after the other
+    on the CPU, the learning rate from ``rate`` (one for every model, or one each; ``LEARNED_FINAL_RATE`` where
+    ``tune``); returns them and each one's loss per epoch. ``settle(models)``, called after each
     ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
     ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
     ``settle_used`` lights from then on (default ``used``)."""
