@@ -10,6 +10,9 @@ Parts (each a subprocess, so that each starts with its own Warp configuration an
   cuBLASDx tile products (``enable_mathdx_gemm``) and once with Warp's own: the first step on an empty
   kernel cache (compile and load), samples a second for one model and for two side by side, the
   decoder's first decode, and 8-bit sRGB PSNR at the 20 Test lights after ``--epochs`` epochs;
+- ``tiles``: samples a second of each tile shape of ``--tiles`` at batches of 65,536 and 131,072, and the
+  PSNR after ``--epochs`` epochs of the fastest at each batch;
+- ``launches``: microseconds of each of the step's launches and of the whole step, for each tile shape;
 - ``torch``: the same model, initial values, Adam, learning-rate schedule, batch and shuffled epochs in
   PyTorch (eager), samples a second and PSNR after the same epochs;
 - ``fit``: ``warp-highlights fit`` with the defaults, timed as a command: the dome sample on an empty
@@ -133,7 +136,7 @@ def part_tiles(args) -> dict:
     result = {"size": [width, height], "lights": n}
     for batch in (1 << 16, 1 << 17):
         best = None
-        for tile in ((64, 1, 64), (64, 4, 64), (64, 4, 128), (64, 8, 128), (64, 8, 256), (32, 8, 64)):
+        for tile in args.tile_list:
             trainer = neural_training.DecoderTrainer(targets[None], directions, np.arange(n), [model], batch, 100,
                                                      device=device, tile=tile)
             t = time.perf_counter()
@@ -161,6 +164,59 @@ def part_tiles(args) -> dict:
                 "seconds": time.perf_counter() - t}
             row = result[f"best batch {batch} epochs {epochs}"]
             print(f"tiles best {best[0]} batch {batch}, {epochs} epochs: {row}", file=sys.stderr, flush=True)
+    return result
+
+
+def _launch_seconds(wp, device, launch) -> float:
+    """Seconds of one ``launch()``: on CUDA from events around a graph of ``LAUNCH_REPEATS`` of them (so that
+    the host's launch cost does not count), on the CPU from the clock."""
+    if not device.is_cuda:
+        launch()
+        t = time.perf_counter()
+        for _ in range(LAUNCH_REPEATS):
+            launch()
+        wp.synchronize_device(device)
+        return (time.perf_counter() - t) / LAUNCH_REPEATS
+    with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+        for _ in range(LAUNCH_REPEATS):
+            launch()
+    wp.capture_launch(capture.graph)  # warm
+    start, end = wp.Event(device, enable_timing=True), wp.Event(device, enable_timing=True)
+    wp.record_event(start)
+    wp.capture_launch(capture.graph)
+    wp.record_event(end)
+    wp.synchronize_event(end)
+    return 1e-3 * wp.get_event_elapsed_time(start, end) / LAUNCH_REPEATS
+
+
+def part_launches(args) -> dict:
+    """Microseconds of each of the step's launches (each replayed ``LAUNCH_REPEATS`` times in one CUDA graph)
+    and of the whole step, for each tile shape of ``--tiles``; one model, the dome sample, ``--batch``."""
+    import warp as wp
+
+    wp.init()
+    from warp_highlights.kernels import neural, neural_training
+
+    device = wp.get_device(args.device)
+    targets, directions, _, _, width, height = dome_problem(args.size)
+    n = len(targets)
+    model = neural.initial_model(targets, seed=0)
+    result = {"size": [width, height], "lights": n, "batch": args.batch, "repeats": LAUNCH_REPEATS}
+    for tile in args.tile_list:
+        try:
+            trainer = neural_training.DecoderTrainer(targets[None], directions, np.arange(n), [model], args.batch,
+                                                     100, device=device, tile=tile)
+            trainer.steps(trainer.steps_per_epoch)  # compiles, captures the step's graph
+            trainer.losses()
+            row = {name: 1e6 * _launch_seconds(wp, device, launch)
+                   for name, launch in trainer.launches() + [("step", trainer.launch_step)]}
+        except Exception as error:  # a shape the device cannot run (shared memory): reported, the others go on
+            result[str(tile)] = {"error": f"{type(error).__name__}: {error}"}
+            print(f"launches {tile}: {result[str(tile)]}", file=sys.stderr, flush=True)
+            continue
+        row["samples_per_second"] = trainer.batch / (row["step"] * 1e-6)
+        result[str(tile)] = row
+        print(f"launches {tile}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items()), file=sys.stderr, flush=True)
     return result
 
 
@@ -270,7 +326,9 @@ def part_fit(args) -> dict:
     return result
 
 
-PARTS = {"kernel": part_kernel, "tiles": part_tiles, "torch": part_torch, "fit": part_fit}
+PARTS = {"kernel": part_kernel, "tiles": part_tiles, "launches": part_launches, "torch": part_torch, "fit": part_fit}
+LAUNCH_REPEATS = 50
+DEFAULT_TILES = "64,1,64;64,4,64;64,4,128;64,8,128;64,8,256;32,8,64"
 
 
 def _child(args, part: str, mathdx: int | None = None) -> dict:
@@ -279,7 +337,7 @@ def _child(args, part: str, mathdx: int | None = None) -> dict:
         if part == "kernel" and not args.warm_cache:
             env["WARP_CACHE_PATH"] = cache  # an empty kernel cache: a fresh machine's compile
         command = [sys.executable, __file__, "--child", part, "--device", args.device, "--batch", str(args.batch),
-                   "--epochs", ",".join(map(str, args.epoch_list)), "--mathdx", str(mathdx or 0)]
+                   "--epochs", ",".join(map(str, args.epoch_list)), "--mathdx", str(mathdx or 0), "--tiles", args.tiles]
         if args.size:
             command += ["--size", str(args.size)]
         done = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -300,9 +358,12 @@ def main() -> None:
     parser.add_argument("--fit-set", default="", help="fit part: --set overrides, space-separated STAGE.NAME=VALUE")
     parser.add_argument("--no-fit-cold", dest="fit_cold", action="store_false",
                         help="fit part: leave out the fit on an empty kernel cache")
+    parser.add_argument("--tiles", default=DEFAULT_TILES,
+                        help="tiles and launches parts: samples per tile, tiles per block, threads; ';' between shapes")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     args.epoch_list = [int(e) for e in args.epochs.split(",") if e]
+    args.tile_list = [tuple(int(v) for v in shape.split(",")) for shape in args.tiles.split(";") if shape]
     if args.child:
         print(json.dumps(PARTS[args.child](args)))
         return
@@ -314,7 +375,7 @@ def main() -> None:
             for mathdx in ([1, 0] if args.mathdx is None else [args.mathdx]):
                 results[f"kernel mathdx={mathdx}"] = _child(args, "kernel", mathdx)
                 print(part, mathdx, results[f"kernel mathdx={mathdx}"], file=sys.stderr, flush=True)
-        elif part in ("torch", "fit", "tiles"):
+        elif part in ("torch", "fit", "tiles", "launches"):
             results[part] = part_fit(args) if part == "fit" else _child(args, part)
             print(part, results[part], file=sys.stderr, flush=True)
     if os.environ.get("OUT"):
@@ -324,7 +385,7 @@ def main() -> None:
           + " | ".join(f"PSNR {e} ep (dB) / s" for e in args.epoch_list) + " |")
     print("|---|---|---|---|" + "---|" * len(args.epoch_list))
     for label, row in results.items():
-        if not isinstance(row, dict) or label in ("fit", "tiles") or "error" in row:
+        if not isinstance(row, dict) or label in ("fit", "tiles", "launches") or "error" in row:
             if isinstance(row, dict) and "error" in row:
                 print(f"| {label} | error: {row['error'].splitlines()[-1] if row['error'] else '?'} |")
             continue
@@ -334,6 +395,11 @@ def main() -> None:
         cells += [f"{row.get(f'psnr_{e}', float('nan')):.2f} / {row.get(f'train_seconds_{e}', float('nan')):.1f}"
                   for e in args.epoch_list]
         print(f"| {label} | " + " | ".join(cells) + " |")
+    for label, row in results.get("launches", {}).items():
+        if isinstance(row, dict) and "error" not in row:
+            cells = [f"{k} {v:.1f} us" if k != "samples_per_second" else f"{v / 1e6:.1f} M samples/s"
+                     for k, v in row.items()]
+            print(f"| launches {label} | " + " | ".join(cells) + " |")
     for label, row in results.get("fit", {}).items():
         print(f"| fit {label} | {row.get('seconds', float('nan')):.1f} s | PSNR {row.get('psnr', float('nan')):.2f} dB "
               f"| moving {row.get('moving')} | {row.get('error', '')[-200:]} |")

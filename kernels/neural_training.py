@@ -1,19 +1,21 @@
 """Training the learned residual's decoder (``kernels.neural``) on the device: a fused step with a
 hand-written adjoint, Adam on the device, samples shuffled on the device, a CUDA graph per step.
 
-One step is five launches, none of which needs a host value, so a CUDA graph replays it:
+One step is six launches, none of which needs a host value, so a CUDA graph replays it:
 
 1. ``gather_batch``: ``batch`` (light, pixel) samples of the current epoch's shuffle (a keyed Feistel
    permutation of the used samples, ``shuffled_sample``), their features [code, light direction] and
    targets, for every model;
 2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the MLP forward, the squared error and the
-   whole backward pass (tile matrix products), the weights' gradients added to the gradient buffer
-   and the features' gradients stored;
-3. ``scatter_code_gradients``: the features' gradients added to their pixels' codes;
-4. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
+   whole backward pass (tile matrix products); each block's sums of the weights' gradients stored as
+   its partial sums, the features' gradients stored;
+3. ``sum_partials``: the blocks' partial sums added to the gradient buffer, block by block (the same
+   sum in every run);
+4. ``scatter_code_gradients``: the features' gradients added to their pixels' codes;
+5. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
    buffer), the learning rate of the step's epoch from the device's step counter; it zeroes the
    gradients it used;
-5. ``advance``: the step counter + 1.
+6. ``advance``: the step counter + 1.
 
 ``M`` models (the learned check's two candidates) train side by side in the same launches, on the
 same samples, each with its own targets. Loss values stay on the device until an epoch's end.
@@ -24,6 +26,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,19 +110,22 @@ def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bit
 @functools.cache
 def make_train_tiles(columns: int, sub_batches: int):
     """The fused step's kernel for tiles of ``columns`` samples, each tile block looping over
-    ``sub_batches`` of them: the weights' gradients add up in the block (shared memory) and reach the
-    gradient buffer once a block, which keeps the atomic adds on those few thousand numbers from
-    serialising the launch."""
+    ``sub_batches`` of them: the weights' gradients add up in the block and are stored once a block as
+    its partial sums (``sum_partials`` adds them up), so no atomic add serialises the launch and the sum
+    is the same in every run. The block keeps few tiles in shared memory (each layer's product is
+    written into one scratch tile, each activation into its own, the bias gradients add up in
+    registers), so that two blocks fit on a multiprocessor."""
 
     @wp.kernel(module="unique", module_options=_MODULE_OPTIONS)
     def train_tiles(features: wp.array3d[float], batch_targets: wp.array3d[float], scale: float,
                     w0: wp.array3d[float], b0: wp.array3d[float], w1: wp.array3d[float], b1: wp.array3d[float],
                     w2: wp.array3d[float], b2: wp.array3d[float], w3: wp.array3d[float], b3: wp.array3d[float],
-                    g0: wp.array3d[float], c0: wp.array3d[float], g1: wp.array3d[float], c1: wp.array3d[float],
-                    g2: wp.array3d[float], c2: wp.array3d[float], g3: wp.array3d[float], c3: wp.array3d[float],
+                    g0: wp.array4d[float], c0: wp.array4d[float], g1: wp.array4d[float], c1: wp.array4d[float],
+                    g2: wp.array4d[float], c2: wp.array4d[float], g3: wp.array4d[float], c3: wp.array4d[float],
                     feature_gradients: wp.array3d[float], loss: wp.array2d[float]):
         """Model m, ``sub_batches`` tiles of ``columns`` samples: loss += scale * sum |y - t|^2; the
-        gradients of that term added into g* (weights) and c* (biases); d loss / d features stored."""
+        gradients of that term stored in g*[block, m] (weights) and c*[block, m] (biases); d loss / d
+        features stored."""
         m, block = wp.tid()
         weight0 = wp.tile_load(w0[m], shape=(HIDDEN, INPUTS))
         weight1 = wp.tile_load(w1[m], shape=(HIDDEN, HIDDEN))
@@ -129,49 +135,78 @@ def make_train_tiles(columns: int, sub_batches: int):
         bias1 = wp.tile_broadcast(wp.tile_load(b1[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
         bias2 = wp.tile_broadcast(wp.tile_load(b2[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
         bias3 = wp.tile_broadcast(wp.tile_load(b3[m], shape=(OUTPUTS, 1)), shape=(OUTPUTS, columns))
-        sum0 = wp.tile_zeros(shape=(HIDDEN, INPUTS), dtype=float)
-        sum1 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float)
-        sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float)
-        sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float)
-        bias_sum0 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
-        bias_sum1 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
-        bias_sum2 = wp.tile_zeros(shape=(HIDDEN, 1), dtype=float)
-        bias_sum3 = wp.tile_zeros(shape=(OUTPUTS, 1), dtype=float)
-        squares = wp.tile_zeros(shape=(1,), dtype=float)
-        ones = wp.tile_ones(shape=(columns, 1), dtype=float)
+        sum0 = wp.tile_zeros(shape=(HIDDEN, INPUTS), dtype=float, storage="shared")
+        sum1 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
+        sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
+        sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float, storage="shared")
+        hidden = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float, storage="shared")  # scratch: products
+        h1 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float, storage="shared")
+        h2 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float, storage="shared")
+        h3 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float, storage="shared")
+        d = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float, storage="shared")  # d loss / d pre-activation
+        y = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float, storage="shared")
+        bias_sum0 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
+        bias_sum1 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
+        bias_sum2 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
+        bias_sum3 = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float)
+        squares = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float)
         for sub in range(sub_batches):
             offset = (block * sub_batches + sub) * columns
             x = wp.tile_load(features[m], shape=(INPUTS, columns), offset=(0, offset))
-            h1 = wp.tile_map(elu, wp.tile_matmul(weight0, x) + bias0)
-            h2 = wp.tile_map(elu, wp.tile_matmul(weight1, h1) + bias1)
-            h3 = wp.tile_map(elu, wp.tile_matmul(weight2, h2) + bias2)
-            error = (wp.tile_matmul(weight3, h3) + bias3
-                     - wp.tile_load(batch_targets[m], shape=(OUTPUTS, columns), offset=(0, offset)))
-            squares += wp.tile_sum(wp.tile_map(wp.mul, error, error))
-            d = error * (2.0 * scale)  # d loss / d y
-            wp.tile_matmul(d, wp.tile_transpose(h3), sum3)
-            wp.tile_matmul(d, ones, bias_sum3)
-            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight3), d), h3)
+            wp.tile_matmul(weight0, x, hidden, beta=0.0)
+            wp.tile_assign(h1, wp.tile_map(elu, hidden + bias0))
+            wp.tile_matmul(weight1, h1, hidden, beta=0.0)
+            wp.tile_assign(h2, wp.tile_map(elu, hidden + bias1))
+            wp.tile_matmul(weight2, h2, hidden, beta=0.0)
+            wp.tile_assign(h3, wp.tile_map(elu, hidden + bias2))
+            wp.tile_matmul(weight3, h3, y, beta=0.0)
+            error = y + bias3 - wp.tile_load(batch_targets[m], shape=(OUTPUTS, columns), offset=(0, offset))
+            squares += wp.tile_map(wp.mul, error, error)
+            output_gradient = error * (2.0 * scale)  # d loss / d y
+            bias_sum3 += output_gradient
+            wp.tile_assign(y, output_gradient)
+            wp.tile_matmul(y, wp.tile_transpose(h3), sum3)
+            wp.tile_matmul(wp.tile_transpose(weight3), y, hidden, beta=0.0)
+            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h3))
+            bias_sum2 += d
             wp.tile_matmul(d, wp.tile_transpose(h2), sum2)
-            wp.tile_matmul(d, ones, bias_sum2)
-            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight2), d), h2)
+            wp.tile_matmul(wp.tile_transpose(weight2), d, hidden, beta=0.0)
+            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h2))
+            bias_sum1 += d
             wp.tile_matmul(d, wp.tile_transpose(h1), sum1)
-            wp.tile_matmul(d, ones, bias_sum1)
-            d = wp.tile_map(elu_gradient, wp.tile_matmul(wp.tile_transpose(weight1), d), h1)
+            wp.tile_matmul(wp.tile_transpose(weight1), d, hidden, beta=0.0)
+            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h1))
+            bias_sum0 += d
             wp.tile_matmul(d, wp.tile_transpose(x), sum0)
-            wp.tile_matmul(d, ones, bias_sum0)
-            wp.tile_store(feature_gradients[m], wp.tile_matmul(wp.tile_transpose(weight0), d), offset=(0, offset))
-        wp.tile_atomic_add(loss[m], squares * scale)
-        wp.tile_atomic_add(g0[m], sum0)
-        wp.tile_atomic_add(c0[m], bias_sum0)
-        wp.tile_atomic_add(g1[m], sum1)
-        wp.tile_atomic_add(c1[m], bias_sum1)
-        wp.tile_atomic_add(g2[m], sum2)
-        wp.tile_atomic_add(c2[m], bias_sum2)
-        wp.tile_atomic_add(g3[m], sum3)
-        wp.tile_atomic_add(c3[m], bias_sum3)
+            wp.tile_matmul(wp.tile_transpose(weight0), d, x, beta=0.0)  # x is spent: its gradient takes its place
+            wp.tile_store(feature_gradients[m], x, offset=(0, offset))
+        wp.tile_atomic_add(loss[m], wp.tile_sum(squares) * scale)
+        wp.tile_store(g0[block, m], sum0)
+        wp.tile_store(g1[block, m], sum1)
+        wp.tile_store(g2[block, m], sum2)
+        wp.tile_store(g3[block, m], sum3)
+        # the bias gradients' row sums, each through the scratch tiles (a register tile would take shared memory
+        # of its own)
+        wp.tile_assign(hidden, bias_sum0)
+        wp.tile_store(c0[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
+        wp.tile_assign(hidden, bias_sum1)
+        wp.tile_store(c1[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
+        wp.tile_assign(hidden, bias_sum2)
+        wp.tile_store(c2[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
+        wp.tile_assign(y, bias_sum3)
+        wp.tile_store(c3[block, m], wp.tile_reshape(wp.tile_sum(y, axis=1), shape=(OUTPUTS, 1)))
 
     return train_tiles
+
+
+@wp.kernel
+def sum_partials(partials: wp.array2d[float], start: int, gradients: wp.array[float]):
+    """gradients[start + i] += the sum over blocks b of partials[b, i], in the order of b."""
+    i = wp.tid()
+    total = float(0.0)
+    for b in range(partials.shape[0]):
+        total += partials[b, i]
+    gradients[start + i] = gradients[start + i] + total
 
 
 @wp.kernel
@@ -236,6 +271,21 @@ class _FlatParameters:
         self.views = [self.flat[int(a):int(b)].reshape(shape) for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
         self.gradients = [self.gradient[int(a):int(b)].reshape(shape)
                           for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
+        self.starts = starts
+
+    def block_partials(self, blocks: int, device) -> tuple[wp.array, list[wp.array]]:
+        """A (blocks, weights) float32 buffer for each block's sums of the weights' gradients, in this layout's
+        order after the codes, and its views for the eight weight arrays, each (blocks, M, rows, cols)."""
+        weights = self.size - int(self.starts[1])
+        partials = wp.zeros((blocks, weights), dtype=float, device=device)
+        item = np.dtype(np.float32).itemsize
+        views = []
+        for a, shape in zip(self.starts[1:-1], self.shapes[1:]):
+            rows, cols = shape[1:]
+            strides = (weights * item, rows * cols * item, cols * item, item)
+            views.append(wp.array(ptr=partials.ptr + (int(a) - int(self.starts[1])) * item, dtype=float,
+                                  shape=(blocks, *shape), strides=strides, device=device))
+        return partials, views
 
     def per_model(self, values) -> np.ndarray:
         """A float32 vector of this layout holding ``values[m]`` in every entry of model m."""
@@ -286,6 +336,7 @@ class DecoderTrainer:
         self.blocks = self.batch // unit
         self.kernel = make_train_tiles(columns, sub_batches)
         self.params = _FlatParameters(self.models, device)
+        self.partials, self.partial_views = self.params.block_partials(self.blocks, device)
         self.rates = np.broadcast_to(np.asarray(self.lr, np.float64), (count,)).copy()
         if not (np.all(np.isfinite(self.rates)) and np.all(self.rates > 0)):
             raise ValueError(f"learning rates must be > 0, got {self.lr}")
@@ -308,35 +359,50 @@ class DecoderTrainer:
     def steps_per_epoch(self) -> int:
         return -(-self.total // self.batch)
 
-    def _launch_step(self) -> None:
+    def launches(self) -> list[tuple[str, Callable[[], None]]]:
+        """The step's launches in order, each as (its kernel's name, a function that queues it)."""
         device, p, count = self.device, self.params, len(self.models)
-        wp.launch(gather_batch, dim=self.batch,
-                  inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
-                          p.views[0], self.light_array, self.target_array],
-                  outputs=[self.samples, self.features, self.batch_targets], device=device)
-        wp.launch_tiled(self.kernel, dim=[count, self.blocks],
-                        inputs=[self.features, self.batch_targets, 1.0 / self.batch, *p.views[1:], *p.gradients[1:]],
-                        outputs=[self.feature_gradients, self.loss], block_dim=self.threads, device=device)
-        wp.launch(scatter_code_gradients, dim=self.batch, inputs=[self.samples, self.pixels, self.feature_gradients],
-                  outputs=[p.gradients[0]], device=device)
-        wp.launch(adam_flat, dim=p.size,
-                  inputs=[self.step, self.batch, self.total, self.epochs, self.rate_array, self.final_lr],
-                  outputs=[p.flat, p.gradient, self.first, self.second], device=device)
-        wp.launch(advance, dim=1, outputs=[self.step], device=device)
+        return [
+            ("gather_batch", lambda: wp.launch(
+                gather_batch, dim=self.batch,
+                inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
+                        p.views[0], self.light_array, self.target_array],
+                outputs=[self.samples, self.features, self.batch_targets], device=device)),
+            ("train_tiles", lambda: wp.launch_tiled(
+                self.kernel, dim=[count, self.blocks],
+                inputs=[self.features, self.batch_targets, 1.0 / self.batch, *p.views[1:], *self.partial_views],
+                outputs=[self.feature_gradients, self.loss], block_dim=self.threads, device=device)),
+            ("sum_partials", lambda: wp.launch(
+                sum_partials, dim=self.partials.shape[1], inputs=[self.partials, int(p.starts[1])],
+                outputs=[p.gradient], device=device)),
+            ("scatter_code_gradients", lambda: wp.launch(
+                scatter_code_gradients, dim=self.batch, inputs=[self.samples, self.pixels, self.feature_gradients],
+                outputs=[p.gradients[0]], device=device)),
+            ("adam_flat", lambda: wp.launch(
+                adam_flat, dim=p.size,
+                inputs=[self.step, self.batch, self.total, self.epochs, self.rate_array, self.final_lr],
+                outputs=[p.flat, p.gradient, self.first, self.second], device=device)),
+            ("advance", lambda: wp.launch(advance, dim=1, outputs=[self.step], device=device)),
+        ]
+
+    def launch_step(self) -> None:
+        """Queue one training step."""
+        for _, launch in self.launches():
+            launch()
 
     def steps(self, count: int) -> None:
         """Run ``count`` training steps (queued; ``losses`` or ``result`` waits for them)."""
         if self.device.is_cuda and self.graph is None and count > 1:
-            self._launch_step()  # loads the modules outside the capture
+            self.launch_step()  # loads the modules outside the capture
             count -= 1
             with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                self._launch_step()
+                self.launch_step()
             self.graph = capture.graph
         for _ in range(count):
             if self.graph is not None:
                 wp.capture_launch(self.graph)
             else:
-                self._launch_step()
+                self.launch_step()
 
     def losses(self) -> np.ndarray:
         """(M,) the loss summed over the steps since the last call (a mean squared error a step), then zeroed."""
