@@ -487,11 +487,13 @@ LEARNED_TUNE_SECONDS_CPU = 12.5
 LEARNED_TILE = (64, 8, 256)
 """The learned residual's training step on the device (``kernels.neural_training.make_train_tiles``): samples
 per tile, tiles per block (the weights' gradients add up in the block), threads per block; the fastest of
-those ``benchmarks/bench_learned_training.py --parts tiles`` tries on an NVIDIA H200."""
+those ``benchmarks/bench_learned_training.py --parts tiles`` and ``--parts launches`` try on an NVIDIA H200
+(279.6 million samples a second; (64, 8, 192) as fast, 288 threads or more do not launch)."""
 LEARNED_MATHDX = False
 """Whether the learned residual's tile products use cuBLASDx (``enable_mathdx_gemm``): on an NVIDIA H200 it
 makes the first training step compile for minutes and trains slower: 147 million samples a second against
-202 million with Warp's own products, the first step 160 s on an empty kernel cache (the step of
+202 million with Warp's own products at the time (276 million since the step's shared-memory reads spread over the
+banks), the first step 160 s on an empty kernel cache (the step of
 ``LEARNED_TILE``; ``benchmarks/bench_learned_training.py --parts kernel --mathdx 1``)."""
 
 
