@@ -144,7 +144,7 @@ def make_train_tiles(columns: int, sub_batches: int):
         sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
         sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float, storage="shared")
         # Each of these is a view of a tile one column wider, so that walking down a column crosses the
-        # shared-memory banks (a row stride of 65 or 49 floats, not 64 or 48, which land in one bank).
+        # shared-memory banks (a row stride of 65 or 49 floats; one of 64 or 48 puts a column in one or two).
         padded_hidden = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
         hidden = wp.tile_view(padded_hidden, offset=(0, 0), shape=(HIDDEN, columns))  # scratch: products
         padded_h1 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
