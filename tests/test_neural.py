@@ -202,12 +202,19 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     np.testing.assert_array_equal(loaded.residual.learned.codes, learned.codes)
     for got, want in zip(loaded.residual.learned.weights, learned.weights):
         np.testing.assert_array_equal(got, want)
-    # bounds: the decoder's values at the captured lights lie inside, widened by their span on either side
+    # bounds: the range of what it learned (the images less their own highlights) at the captured lights, widened by
+    # the images' own range on either side
     np.testing.assert_array_equal(loaded.residual.learned.bounds, learned.bounds)
-    captured = learned_images(dataclasses.replace(learned, bounds=None), dataset.lights.directions)
-    low, high = captured.min(axis=0), captured.max(axis=0)
-    np.testing.assert_allclose(learned.bounds[0], low - (high - low), atol=2e-3 * max(1.0, float(np.abs(high).max())))
-    np.testing.assert_allclose(learned.bounds[1], high + (high - low), atol=2e-3 * max(1.0, float(np.abs(high).max())))
+    from warp_highlights.residual.inputs import render_own
+
+    images = dataset.images.astype(np.float64) * field.exposure
+    own = render_own(field.estimated, field.height, field.width, raster=settings.raster, device="cpu")
+    tint = np.ones(3) if field.residual.highlight_colour is None else field.residual.highlight_colour
+    residual = images - own[..., None].astype(np.float64) * tint
+    span = images.max(axis=0) - images.min(axis=0)
+    tolerance = 2e-3 * max(1.0, float(np.abs(residual).max() + span.max()))
+    np.testing.assert_allclose(learned.bounds[0], residual.min(axis=0) - span, atol=tolerance)
+    np.testing.assert_allclose(learned.bounds[1], residual.max(axis=0) + span, atol=tolerance)
     directions = np.array([[0.3, 0.2, 0.93], [-0.5, 0.1, 0.86], [0.0, -0.7, 0.71]])
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     relit = Relighter(loaded, device="cpu").relight(directions)

@@ -318,7 +318,7 @@ def fit_field(
                                                                      progress=advance,
                                                                      initial=winner, tune=winner is not None)
             if learned and settings.residual.learned_bounds:  # the decided residual, whichever way it was learned
-                residual_model = bounded(residual_model, dataset.lights.directions, device)
+                residual_model = bounded(residual_model, images, own, colour)
             if not learned:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,

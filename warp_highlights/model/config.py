@@ -670,9 +670,10 @@ class ResidualSettings:
             of ``benchmarks/bench_motion.py`` on 16 lights (480x270) tied at 17.3-17.5 against 17.5-17.6 dB in three
             fits, where along the paths the field with its moving Gaussians had scored 31.89 dB and the
             learned residual alone 30.03; the dome sample's images alone lead by 8-12 dB.
-        learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range its
-            decoder gives at the captured lights widened by that range's span on either side
-            (``model.residual.learned_bounds``, stored in the field). On by default: with 16 lights the decoder
+        learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range of what it
+            learned at the captured lights (the images less their own highlights) widened on either side by the
+            images' own range (``model.residual.learned_bounds``, stored in the field; until the range came from
+            the decoder's values, whose error let a haze of a few 8-bit levels over a black background through). On by default: with 16 lights the decoder
             lit the black background of the renders of ``benchmarks/bench_motion.py`` on some frames (2-core
             CPU, ``--scenes donut-sharp,teapot-tiles --captures dome16 --set residual.kind=learned``, and with
             ``--set residual.learned_bounds=false``: along the paths the sharp donut's field 32.58 -> 33.14 dB,

@@ -329,19 +329,23 @@ class NeuralResidual:
         object.__setattr__(self, "light_count", int(self.light_count))
 
 
-def learned_bounds(lowest: np.ndarray, highest: np.ndarray) -> np.ndarray:
-    """(2, H, W, 3) float16 bounds of a learned residual from the (H, W, 3) lowest and highest values its decoder
-    gives at the captured lights (field units): that range widened by its own span on either side.
+def learned_bounds(lowest: np.ndarray, highest: np.ndarray, span: np.ndarray | None = None) -> np.ndarray:
+    """(2, H, W, 3) float16 bounds of a learned residual from the (H, W, 3) lowest and highest values of what it
+    learned at the captured lights (field units, ``residual.learned.bounded``): that range widened on either side by
+    ``span`` (H, W, 3), the range of the captured images themselves (default: its own).
 
     Between the captured lights a decoder trained on them is free, and where they hardly constrain it (a pixel
     that every light leaves dark, a direction far from any light) it can answer with light the capture never
-    shows: a lit background that flashes in on some frames of an animation. Values inside the widened range
-    stay as they are: a highlight brighter between two lights than at either (the dome sample's broad
-    highlight) keeps its peak. Measured with ``benchmarks/bench_motion.py`` and ``benchmarks/bench_quality.py``
+    shows: a lit background that flashes in on some frames of an animation, or a faint haze over it. Values inside
+    the widened range stay as they are: a highlight brighter between two lights than at either (the dome sample's
+    broad highlight) keeps its peak. Widened by the images' range, not the residual's, a pixel that no captured
+    light shows lit stays within what its residual took there: the faint tails of the Gaussians taken out of it
+    vary from light to light, and widened by that variation a black background let a haze of a few 8-bit levels
+    through. Measured with ``benchmarks/bench_motion.py`` and ``benchmarks/bench_quality.py``
     (docs/method.md, The residual).
     """
     lowest, highest = np.asarray(lowest, np.float64), np.asarray(highest, np.float64)
-    span = highest - lowest
+    span = highest - lowest if span is None else np.asarray(span, np.float64)
     return np.clip(np.stack([lowest - span, highest + span]), -FLOAT16_SAFE, FLOAT16_SAFE).astype(np.float16)
 
 

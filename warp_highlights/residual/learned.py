@@ -38,7 +38,7 @@ from ..model.residual import (
 from ..model.threads import parallel_map
 from ..quality.metrics import srgb_psnr
 from .cpu_training import decode_cpu, train_decoder_cpu
-from .inputs import residual_of
+from .inputs import residual_of, row_bands
 from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual"]
@@ -316,27 +316,33 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
                                history=tuple(histories[0 if keeps else 1]))
 
 
-_BOUNDS_CHUNK_BYTES = 1 << 28
-"""At most this many bytes of decoded values (float32) at once while finding a learned residual's bounds."""
+def bounded(residual: ResidualModel, images: np.ndarray, own: np.ndarray, colour: np.ndarray | None) -> ResidualModel:
+    """``residual`` with its learned residual's bounds (``model.residual.learned_bounds``) from what it learned, per
+    pixel and channel: the lowest and highest over the captured lights of the (n, H, W, 3) images (field units) less
+    their own (n, H, W) highlights in colour c (None: white), widened by the images' own range, a band of rows at a
+    time on each thread. The decoder's values are not used: its error at the captured lights (a faint haze over a
+    background that every light leaves black) would widen the bounds by as much."""
+    n, height, width, channels = np.shape(images)
+    tint = None if colour is None else np.asarray(colour, np.float32)
+    white = np.ones((1, 1, channels), np.float32)
+    lowest = np.empty((height, width, channels), np.float32)
+    highest, span = np.empty_like(lowest), np.empty_like(lowest)
 
+    def band(rows: slice) -> None:
+        low = high = darkest = brightest = None
+        tint_rows = white if tint is None else tint[rows]
+        for i in range(n):
+            image = np.asarray(images[i, rows], np.float32)
+            values = residual_of(image, own[i, rows], tint_rows)
+            low = values if low is None else np.minimum(low, values)
+            high = values if high is None else np.maximum(high, values)
+            darkest = image if darkest is None else np.minimum(darkest, image)
+            brightest = image if brightest is None else np.maximum(brightest, image)
+        lowest[rows], highest[rows], span[rows] = low, high, brightest - darkest
 
-def bounded(residual: ResidualModel, directions: np.ndarray, device) -> ResidualModel:
-    """``residual`` with its learned residual's bounds (``model.residual.learned_bounds``): its decoder's lowest and
-    highest values at the (n, 3) captured light directions, decoded a few lights at a time on the device. The
-    display encoding is increasing, so the extremes are found among the decoder's outputs and only they are
-    converted to field units."""
+    parallel_map(band, row_bands(images))
     learned = residual.learned
-    height, width, _ = learned.codes.shape
-    directions = np.asarray(directions, np.float32)
-    chunk = max(1, _BOUNDS_CHUNK_BYTES // (12 * height * width))
-    lowest = highest = None
-    for start in range(0, len(directions), chunk):
-        values = _decoded_display(learned, directions[start:start + chunk], device)
-        low, high = values.min(axis=0), values.max(axis=0)
-        lowest = low if lowest is None else np.minimum(lowest, low)
-        highest = high if highest is None else np.maximum(highest, high)
-    ends = [learned.unit * decode_display(end).reshape(height, width, 3) for end in (lowest, highest)]
-    bounds = learned_bounds(np.minimum(*ends), np.maximum(*ends))
+    bounds = learned_bounds(lowest, highest, span)
     return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=bounds))
 
 
