@@ -671,16 +671,15 @@ class ResidualSettings:
             fits, where along the paths the field with its moving Gaussians had scored 31.89 dB and the
             learned residual alone 30.03; the dome sample's images alone lead by 8-12 dB.
         learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range of what it
-            learned at the captured lights (the images less their own highlights) widened on either side by the
-            images' own range (``model.residual.learned_bounds``, stored in the field; the decoder's own values
-            there would carry its error, a haze of a few 8-bit levels over a black background). On by default:
-            with 16 lights the decoder lit the black background of the renders of ``benchmarks/bench_motion.py``
-            on some frames (2-core CPU, ``--scenes donut-sharp,teapot-tiles --captures dome16 --set residual.kind=learned``, and with
-            ``--set residual.learned_bounds=false``: along the paths the sharp donut's field 32.58 -> 33.14 dB,
-            SSIM 0.851 -> 0.920; the tiled teapot 30.64 -> 30.92 dB, SSIM 0.858 -> 0.932). The dome sample and
-            the statue score the same either way (the CPU, ``benchmarks/bench_quality.py --cases synth,statue
-            --set residual.kind=learned``): the span on either side leaves a highlight that is brighter
-            between two lights than at either its peak.
+            learned at the captured lights (the images less their own highlights) widened on either side by the images'
+            own range (``model.residual.learned_bounds``, stored in the field; the decoder's own values there would
+            carry its error, a haze of a few 8-bit levels over a black background). On by default: with 16 lights the
+            decoder lit the black background of the renders of ``benchmarks/bench_motion.py`` on some frames (2-core
+            CPU, ``--scenes donut-sharp,teapot-tiles --captures dome16 --set residual.kind=learned``, and with ``--set
+            residual.learned_bounds=false``: along the paths the sharp donut's field 32.58 -> 33.14 dB, SSIM 0.851 ->
+            0.920; the tiled teapot 30.64 -> 30.92 dB, SSIM 0.858 -> 0.932). The dome sample and the statue score the
+            same either way (the CPU, ``benchmarks/bench_quality.py --cases synth,statue --set residual.kind=learned``):
+            the span on either side leaves a highlight that is brighter between two lights than at either its peak.
         interpolation: how relighting weighs the captured lights of a low-rank residual: "triangle" (default), the
             barycentric weights of the query's triangle (the alpha blend's: local, a light's image reaches only
             its own triangles); "rbf", Gaussian radial basis weights over every light (``model.rbf``, sigma by
