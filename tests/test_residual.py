@@ -1146,10 +1146,12 @@ def test_the_learned_checks_winner_learns_anew_where_its_unseen_lights_are_many(
     from warp_highlights.model.config import ResidualSettings
     from warp_highlights.residual.learned import learns_anew
 
-    settings = ResidualSettings()  # 40 tune epochs; 260 epochs on CUDA, 200 on the CPU
-    assert not learns_anew(settings, True, 6, 250) and not learns_anew(settings, True, 6, 49)  # 7, 32 <= 40
-    assert learns_anew(settings, True, 6, 16) and learns_anew(settings, False, 6, 16)  # 98, 75 > 40
-    assert not learns_anew(ResidualSettings(learned_tune_epochs=100), True, 6, 16)
+    settings = ResidualSettings()  # learned_anew_share 0.15, on every device
+    assert not learns_anew(settings, 6, 250) and not learns_anew(settings, 6, 49)  # 0.024, 0.122
+    assert learns_anew(settings, 3, 16) and learns_anew(settings, 6, 25)  # 0.19, 0.24
+    assert not learns_anew(settings, 6, 40) and learns_anew(settings, 6, 39)  # 0.150, 0.154
+    assert not learns_anew(ResidualSettings(learned_anew_share=0.5), 6, 16)
+    assert learns_anew(ResidualSettings(learned_anew_share=0.0), 1, 250)
 
 
 def test_decoded_images_round_alike_whatever_the_blas_threads():

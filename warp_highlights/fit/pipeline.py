@@ -300,7 +300,7 @@ def fit_field(
             cuda = wp.get_device(device).is_cuda
             # where the check's left-out lights are a large share of the capture, its winner (fitted without them
             # for a while) is not kept: the decided residual learns anew from every light
-            anew = learned_check is not None and learns_anew(settings.residual, cuda, len(learned_check.lights),
+            anew = learned_check is not None and learns_anew(settings.residual, len(learned_check.lights),
                                                              dataset.light_count)
             if learned and learned_check is not None and learned_check.learned_every_light and not anew:
                 # the check's winner learned from every light once its verdict settled

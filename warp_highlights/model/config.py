@@ -642,12 +642,17 @@ class ResidualSettings:
         learned_tune_seconds: how long the check's winner goes on learning from every light, the
             left-out ones included, at the final learning rate (3e-4), seconds at most; 0 (default) by
             device: 5 on CUDA, 12.5 on the CPU (two thirds and an eighth of ``learned_seconds``).
-        learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``, for 6 lights out of
-            43-250. Where the check's lights are a larger share of the capture than these epochs are of a
-            whole training (``residual.learned.learns_anew``: 3 of 16 lights, 6 of 25), the decided residual learns
-            anew from every light instead: on the 16-light bumpy donut of benchmarks/bench_motion.py (2-core
-            CPU) the tuned winner scored 28.50 dB along the paths, learning anew 30.44 (the learned residual
-            alone's).
+        learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``.
+        learned_anew_share: where the check's lights are more than this share of the capture, settled or not, the
+            decided residual learns anew from every light instead of tuning the check's winner
+            (``residual.learned.learns_anew``: 3 of 16 lights, 6 of 25, not 6 of 49), on every device. 0.15: about
+            the share that the 40 tune epochs are of CUDA's 260 (6 of 39 lights, 0.154, learn anew); against their
+            share of the CPU's 200 epochs, 3 of 16 lights would tune there. On a 2-core CPU at 3 of 16 lights, learning anew raised the learned field
+            along the paths of ``benchmarks/bench_motion.py`` from 32.12 to 33.31 dB on the sharp donut (its
+            Gaussians kept), 31.00 to 32.48 on the tiled teapot, 29.98 to 31.81 on the bumpy donut and 45.36 to 47.35
+            on the broad sphere, the fit 50-53 s -> 68-72 s (``--scenes donut-sharp,teapot-tiles,bumpy-metal,
+            sphere-broad --captures dome16 --set residual.kind=learned``, and ``--set residual.learned_anew_share=1``
+            to tune).
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored, and on CUDA again after each such fraction while both learn; once their order has settled
             (``learned_settle_margin_db``), the loser stops and the winner learns on alone, in half the time a
@@ -732,6 +737,7 @@ class ResidualSettings:
     learned_check: int = 6
     learned_tune_seconds: float = 0.0
     learned_tune_epochs: int = 40
+    learned_anew_share: float = 0.15
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
     learned_tie_margin_db: float = 0.5
@@ -776,6 +782,8 @@ class ResidualSettings:
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
         _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds >= 0,
                  f"learned_tune_seconds must be >= 0 (0: by device), got {self.learned_tune_seconds}")
+        _require(math.isfinite(self.learned_anew_share) and 0 <= self.learned_anew_share <= 1,
+                 f"learned_anew_share must be in [0, 1], got {self.learned_anew_share}")
         _require(1 <= int(self.learned_tune_epochs) <= 100000,
                  f"learned_tune_epochs must be in [1, 100000], got {self.learned_tune_epochs}")
         _require(math.isfinite(self.learned_settle_fraction) and 0 < self.learned_settle_fraction <= 1,

@@ -5,7 +5,6 @@ and its check: whether it keeps the moving Gaussians or learns the images alone.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,13 +162,12 @@ def learned_rate(settings: ResidualSettings, on_cuda: bool) -> float:
     return float(settings.learned_rate) or (LEARNED_RATE_CUDA if on_cuda else LEARNED_RATE_CPU)
 
 
-def learns_anew(settings: ResidualSettings, on_cuda: bool, unseen: int, light_count: int) -> bool:
-    """Whether the learned check's winner, trained without ``unseen`` of ``light_count`` lights to the end, should
-    learn anew from every light rather than tune: where those lights' share of a whole training
-    (``learned_epochs``) is more than ``learned_tune_epochs``. A model fitted to 10 of 16 lights and tuned on all
-    16 stayed 2 dB below one that learned all 16 from the start (benchmarks/bench_motion.py, bumpy donut)."""
-    share = unseen / max(light_count, 1)
-    return math.ceil(share * learned_epochs(settings, on_cuda)) > int(settings.learned_tune_epochs)
+def learns_anew(settings: ResidualSettings, unseen: int, light_count: int) -> bool:
+    """Whether the learned check's winner, trained without ``unseen`` of ``light_count`` lights, should learn anew
+    from every light rather than tune: where those lights are more than ``settings.learned_anew_share`` of the
+    capture, whatever the device. A model fitted to 10 of 16 lights and tuned on all 16 stayed 2 dB below one that
+    learned all 16 from the start (benchmarks/bench_motion.py, bumpy donut)."""
+    return unseen / max(light_count, 1) > float(settings.learned_anew_share)
 
 
 def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = False) -> float:
