@@ -647,12 +647,12 @@ class ResidualSettings:
             decided residual learns anew from every light instead of tuning the check's winner
             (``residual.learned.learns_anew``: 3 of 16 lights, 6 of 25, not 6 of 49), on every device. 0.15: about
             the share that the 40 tune epochs are of CUDA's 260 (6 of 39 lights, 0.154, learn anew); against their
-            share of the CPU's 200 epochs, 3 of 16 lights would tune there. On a 2-core CPU at 3 of 16 lights, learning anew raised the learned field
-            along the paths of ``benchmarks/bench_motion.py`` from 32.12 to 33.31 dB on the sharp donut (its
-            Gaussians kept), 31.00 to 32.48 on the tiled teapot, 29.98 to 31.81 on the bumpy donut and 45.36 to 47.35
-            on the broad sphere, the fit 50-53 s -> 68-72 s (``--scenes donut-sharp,teapot-tiles,bumpy-metal,
-            sphere-broad --captures dome16 --set residual.kind=learned``, and ``--set residual.learned_anew_share=1``
-            to tune).
+            share of the CPU's 200 epochs, 3 of 16 lights would tune there. On a 2-core CPU at 3 of 16 lights,
+            learning anew raised the learned field along the paths of ``benchmarks/bench_motion.py`` from 32.12 to
+            33.31 dB on the sharp donut (its Gaussians kept), 31.00 to 32.48 on the tiled teapot, 29.98 to 31.81 on
+            the bumpy donut and 45.36 to 47.35 on the broad sphere, the fit 50-53 s -> 68-72 s (``--scenes
+            donut-sharp,teapot-tiles,bumpy-metal,sphere-broad --captures dome16 --set residual.kind=learned``, and
+            ``--set residual.learned_anew_share=1`` to tune).
         learned_settle_fraction: after this fraction of ``learned_epochs`` the check's two models are
             scored, and on CUDA again after each such fraction while both learn; once their order has settled
             (``learned_settle_margin_db``), the loser stops and the winner learns on alone, in half the time a
