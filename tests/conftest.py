@@ -70,8 +70,10 @@ FAST_FIT = [
     "estimation.densify_every=50",
     "retarget.rigid_iterations=40",
     "retarget.iterations=80",
+    "residual.cpu_learned_epochs=0",
 ]
-"""Overrides that keep a test fit of ``small_donut`` to a few seconds on one CPU core."""
+"""Overrides that keep a test fit of ``small_donut`` to a few seconds on one CPU core ("auto" keeps a low-rank
+residual on the CPU: these tests need a field, not a trained decoder)."""
 
 
 @pytest.fixture(scope="session")
@@ -96,6 +98,7 @@ TINY_FIT = [
     "--set", "estimation.densify_every=10",
     "--set", "retarget.rigid_iterations=10",
     "--set", "retarget.iterations=20",
+    "--set", "residual.cpu_learned_epochs=0",
 ]  # fmt: skip
 """``fit`` options for a fit of a few tenths of a second (the reliability tests need a field, not a good one)."""
 

@@ -532,35 +532,35 @@ def test_a_learned_residual_trains_on_cuda_with_the_batch_of_its_capture(monkeyp
                     learned.learned_batch(settings, True, 8 * pixels)] == [25_000, 12_500]
 
 
-def test_where_nothing_moves_the_cpu_counts_the_epochs_its_training_time_holds():
-    """Where no Gaussian moves and "auto" chose low rank on the CPU for a colour capture, the epochs of its samples
+def test_auto_on_the_cpu_counts_the_epochs_its_training_time_holds():
+    """Where "auto" resolved to low rank on the CPU for a colour capture, the epochs of its samples
     (lights x pixels) that the training time holds at the CPU's pace: measured where not given; no answer for a
     concrete kind, a grey capture, a CUDA device's choice, the setting at 0 or past the decoder's 2^31 samples."""
     from warp_highlights.model.config import LEARNED_EPOCHS_CPU, LEARNED_SECONDS_CPU, ResidualSettings
     from warp_highlights.residual.cpu_training import training_rate
-    from warp_highlights.residual.kind import still_epochs
+    from warp_highlights.residual.kind import cpu_epochs
 
     settings = ResidualSettings()
     capture = dict(light_count=40, size=(300, 200), channels=3)
-    assert still_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e6) == pytest.approx(
+    assert cpu_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e6) == pytest.approx(
         1e6 * LEARNED_SECONDS_CPU / (40 * 300 * 200))
     # never more than the schedule's epochs
-    assert still_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e12) == LEARNED_EPOCHS_CPU
-    assert still_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_epochs=7), **capture, rate=1e12) == 7
-    assert still_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_seconds=60.0), **capture,
+    assert cpu_epochs("auto", "lowrank", "cpu", settings, **capture, rate=1e12) == LEARNED_EPOCHS_CPU
+    assert cpu_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_epochs=7), **capture, rate=1e12) == 7
+    assert cpu_epochs("auto", "lowrank", "cpu", ResidualSettings(learned_seconds=60.0), **capture,
                         rate=1e6) == pytest.approx(1e6 * 60.0 / (40 * 300 * 200))
     for requested, resolved in (("lowrank", "lowrank"), ("auto", "learned"), ("images", "images")):
-        assert still_epochs(requested, resolved, "cpu", settings, **capture, rate=1e6) is None
-    assert still_epochs("auto", "lowrank", "cpu", settings, **dict(capture, channels=1), rate=1e6) is None
-    assert still_epochs("auto", "lowrank", "cpu", ResidualSettings(still_learned_epochs=0), **capture) is None
-    assert still_epochs("auto", "lowrank", "cpu", settings, light_count=1 << 16, size=(1 << 8, 1 << 8),
+        assert cpu_epochs(requested, resolved, "cpu", settings, **capture, rate=1e6) is None
+    assert cpu_epochs("auto", "lowrank", "cpu", settings, **dict(capture, channels=1), rate=1e6) is None
+    assert cpu_epochs("auto", "lowrank", "cpu", ResidualSettings(cpu_learned_epochs=0), **capture) is None
+    assert cpu_epochs("auto", "lowrank", "cpu", settings, light_count=1 << 16, size=(1 << 8, 1 << 8),
                         channels=3, rate=1e15) is None
     if wp.is_cuda_available():
-        assert still_epochs("auto", "lowrank", "cuda:0", settings, **capture) is None
+        assert cpu_epochs("auto", "lowrank", "cuda:0", settings, **capture) is None
     # measured: more samples a second than zero, and a pace whose time holds a small capture's whole schedule
     assert training_rate(steps=2) > 0
     small = dict(light_count=8, size=(16, 16), channels=3)
-    assert still_epochs("auto", "lowrank", "cpu", settings, **small) == LEARNED_EPOCHS_CPU
+    assert cpu_epochs("auto", "lowrank", "cpu", settings, **small) == LEARNED_EPOCHS_CPU
 
 
 def test_fields_stored_with_the_residual_booleans_read_as_their_kind():
@@ -576,6 +576,16 @@ def test_fields_stored_with_the_residual_booleans_read_as_their_kind():
         values["residual"].update(compressed=compressed, learned=learned, learned_on_cuda=on_cuda)
         assert FitSettings.from_dict(values).residual.kind == kind
 
+
+
+def test_fields_stored_with_a_renamed_residual_setting_read_under_its_new_name():
+    """``residual.still_learned_epochs`` of older field files reads as ``residual.cpu_learned_epochs``."""
+    from warp_highlights.model.config import FitSettings
+
+    values = FitSettings().to_dict()
+    del values["residual"]["cpu_learned_epochs"]
+    values["residual"]["still_learned_epochs"] = 17
+    assert FitSettings.from_dict(values).residual.cpu_learned_epochs == 17
 
 def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donut, monkeypatch):
     """The training samples are indexed light x pixels + pixel in int32: past 2^31 (1,036 lights of 1920x1080) the

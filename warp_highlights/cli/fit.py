@@ -51,9 +51,9 @@ def _fit_arguments(parser: argparse.ArgumentParser) -> None:
                              "trained for up to residual.learned_epochs or learned_seconds: about 10 s on a GPU, 2 "
                              "minutes on a CPU; where the Gaussians move, a check decides whether it keeps them or "
                              "learns the images alone), images (uncompressed float16, exact at the captured "
-                             "lights), none (then use --diffuse), or auto (default: learned on CUDA; on the CPU "
-                             "lowrank, learned where no highlight moves and the capture learns in time "
-                             "(residual.still_learned_epochs); lowrank for one-channel captures)")
+                             "lights), none (then use --diffuse), or auto (default: learned on CUDA, and on the CPU "
+                             "where the capture learns in time (residual.cpu_learned_epochs), else lowrank; lowrank "
+                             "for one-channel captures)")
     parser.add_argument("--diffuse", choices=["lambert", "images", "none"], default="none",
                         help="also store the per-pixel Lambertian model (lambert), that plus the diffuse images "
                              "(images), or not (default none)")

@@ -39,7 +39,7 @@ from ..residual.inputs import (
     render_own_on_device,
 )
 from ..residual.interpolation import choose_interpolation
-from ..residual.kind import resolve_kind, still_epochs
+from ..residual.kind import cpu_epochs, resolve_kind
 from ..residual.learned import (
     bounded,
     check_learned,
@@ -106,6 +106,18 @@ def fit_field(
     # once: the stages read it
     kind = resolve_kind(requested_kind, device, light_count=dataset.light_count, size=(width, height),
                         channels=dataset.channels)
+    # on the CPU: the epochs a learned residual would get in its training time at this machine's pace
+    epochs_in_time = cpu_epochs(requested_kind, kind, device, settings.residual, light_count=dataset.light_count,
+                                size=(width, height), channels=dataset.channels)
+    if epochs_in_time is not None:
+        wanted = settings.residual.cpu_learned_epochs
+        pace = (f"about {epochs_in_time:.0f} epochs in {learned_seconds(settings.residual, False):g} s at this CPU's "
+                f"pace")
+        if epochs_in_time >= wanted:
+            kind = "learned"
+            log(f"the residual is learned ({pace})")
+        else:
+            log(f"the residual is low rank ({pace}, under residual.cpu_learned_epochs={wanted})")
     settings = dataclasses.replace(settings, residual=dataclasses.replace(settings.residual, kind=kind))
     residual = kind != "none"
     learned = kind == "learned"
@@ -204,7 +216,6 @@ def fit_field(
         compression: dict = {}  # the low-rank residual's budget and captured-light score
         anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
-        epochs_in_time = None  # nothing moving on the CPU: the epochs a learned residual would get (``still_epochs``)
         check = learned_check = interpolation = None
         if residual:
             with timer.stage("residual"):
@@ -278,23 +289,6 @@ def fit_field(
                 own, colour = np.zeros_like(own), None
                 if held is not None:
                     held.own = None  # the residual's stacks read the zeros from the host
-                epochs_in_time = still_epochs(requested_kind, kind, device, settings.residual,
-                                              light_count=dataset.light_count, size=(width, height),
-                                              channels=images.shape[-1] if images.ndim == 4 else 1)
-                if epochs_in_time is not None:
-                    wanted = settings.residual.still_learned_epochs
-                    pace = (f"about {epochs_in_time:.0f} epochs in "
-                            f"{learned_seconds(settings.residual, False):g} s at this CPU's pace")
-                    if epochs_in_time >= wanted:
-                        # nothing moves: as on CUDA, the residual is learned (it interpolates what both cross-fade
-                        # better)
-                        kind, learned, held = "learned", True, None
-                        settings = dataclasses.replace(settings,
-                                                       residual=dataclasses.replace(settings.residual, kind=kind))
-                        log(f"no highlight moves: the residual is learned ({pace})")
-                    else:
-                        log(f"no highlight moves; the residual stays low rank ({pace}, under "
-                            f"residual.still_learned_epochs={wanted})")
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
             cuda = wp.get_device(device).is_cuda
@@ -400,8 +394,8 @@ def fit_field(
             "median_support": support_median,
             "move_check": check.report() if check is not None else None,
             "learned_check": learned_check.report() if learned_check is not None else None,
-            # nothing moved on the CPU: the epochs its training time held, which chose learned or low rank
-            "still_epochs": None if epochs_in_time is None else round(float(epochs_in_time), 1),
+            # "auto" on the CPU: the epochs its training time held, which chose learned or low rank
+            "cpu_epochs": None if epochs_in_time is None else round(float(epochs_in_time), 1),
             "residual_interpolation": interpolation.report() if interpolation is not None else None,
             "luminance_rank": residual_model.luminance.rank if kind == "lowrank" else None,
             "chroma_rank": residual_model.chroma.rank if residual_model.chroma is not None else None,

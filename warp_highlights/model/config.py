@@ -508,11 +508,10 @@ class ResidualSettings:
             them (9 numbers per pixel and an MLP of code + direction, NeuralRTI's model, ``kernels.neural``);
             "images" keeps them uncompressed as float16 (exact at the captured lights, as large as the alpha
             blend's input); "none" keeps no residual (relight with a diffuse model instead). "auto"
-            (default): learned on a CUDA device, low rank elsewhere, and there learned too where no Gaussian
-            moves and the training time holds enough epochs (``still_learned_epochs``). Where the Gaussians move, a
-            learned residual on the CPU drops them (docs/method.md, The residual) and takes four times as long; on
-            CUDA the learned residual scored higher at held-out lights on the samples
-            (``benchmarks/bench_quality.py``, with ``--set residual.kind=...``), in seconds of training.
+            (default): learned on a CUDA device, and on the CPU where its training time holds enough epochs of the
+            capture (``cpu_learned_epochs``), else low rank; the learned residual scored higher at held-out lights on
+            the samples (``benchmarks/bench_quality.py``, with ``--set residual.kind=...``; docs/method.md, The
+            residual).
         size_budget: the largest share of the 8-bit capture (lights x pixels x channels bytes) the
             whole field file may take: the residual's basis images, their number and their
             quantisation (``residual.rate.allocate_steps``) are chosen to fill what the Gaussians,
@@ -700,12 +699,12 @@ class ResidualSettings:
             (each from the other lights, the same light's own highlights added to both) at least this much
             better in mean 8-bit sRGB PSNR, dB. 0.1: a tie keeps the local triangle blend, whose images
             equal the captured ones at the lights (a regularised radial basis misses them by a little).
-        still_learned_epochs: where "auto" chose a low-rank residual on the CPU and no Gaussian moves (the move
-            check found blending better, or none could move), the fit learns the residual instead, as "auto" does on
-            CUDA, if its training time (``learned_seconds``) holds at least this many epochs at the pace the CPU
-            trains at when the fit gets there, and at most its schedule's (``residual.kind.still_epochs``); 0:
-            never. With nothing moving, both residuals cross-fade the highlights, and a learned one that has had its
-            epochs interpolates the rest better. The samples learned alone for 120 s on a 2-core machine, against
+        cpu_learned_epochs: where "auto" fits a colour capture on the CPU, the residual is learned, as on CUDA (the
+            learned check decides whether it keeps the moving Gaussians), if its training time (``learned_seconds``)
+            holds at least this many epochs of the capture at the pace the CPU trains at when the fit starts, and at
+            most its schedule's (``residual.kind.cpu_epochs``); else it is low rank; 0: always low rank. A learned
+            residual that has had its epochs interpolates the images between the lights better than the low-rank
+            one, and a short one worse. The samples learned alone for 120 s on a 2-core machine, against
             the low-rank residual (8-bit sRGB PSNR / SSIM at the held-out lights, ``benchmarks/bench_quality.py
             --cases statue,coin,multi --set residual.kind=learned``): the coin photographs 27.06 / 0.834 after 43
             epochs against 22.51 / 0.776; the statue 32.79 / 0.931 after 31 epochs against 33.03 / 0.935, and 34.09
@@ -714,7 +713,8 @@ class ResidualSettings:
             steps before the fit would learn (``residual.cpu_training.training_rate``), which counted 41-44, 29-33
             and 37-41 epochs in 120 s for the three on that machine: 36 epochs in 120 s, between the statue's 31
             (below) and the coin's 43 (far above), learns the coin photographs and the multi-object sample and keeps
-            the statue low rank there; 30, the same pace in the 100 s of ``learned_seconds``.
+            the statue low rank there; 30, the same pace in the 100 s of ``learned_seconds``. Where Gaussians move,
+            CPU_LEARNED_FIGURES
     """
 
     kind: str = "auto"
@@ -744,7 +744,7 @@ class ResidualSettings:
     learned_bounds: bool = True
     interpolation: str = "triangle"
     interpolation_margin_db: float = 0.1
-    still_learned_epochs: int = 30
+    cpu_learned_epochs: int = 30
 
     def __post_init__(self):
         _require(self.kind in RESIDUAL_KINDS, f"kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{self.kind}'")
@@ -792,7 +792,7 @@ class ResidualSettings:
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
         _require(math.isfinite(self.learned_tie_margin_db) and self.learned_tie_margin_db >= 0,
                  f"learned_tie_margin_db must be >= 0, got {self.learned_tie_margin_db}")
-        _require(self.still_learned_epochs >= 0, f"still_learned_epochs must be >= 0, got {self.still_learned_epochs}")
+        _require(self.cpu_learned_epochs >= 0, f"cpu_learned_epochs must be >= 0, got {self.cpu_learned_epochs}")
 
 
 @dataclass(frozen=True)
@@ -1013,9 +1013,10 @@ class FitSettings:
     def from_dict(cls, values: dict) -> FitSettings:
         """Inverse of ``to_dict``; unknown keys are an ``InputError``. Settings stored by fields written
         before ``ResidualSettings.kind`` (its booleans ``compressed``, ``learned``, ``learned_on_cuda``) read as
-        the kind they stood for."""
+        the kind they stood for, and renamed ones (``RESIDUAL_RENAMED``) under today's names."""
         if isinstance(values, dict) and isinstance(values.get("residual"), dict):
-            values = {**values, "residual": _residual_kind_of_booleans(values["residual"])}
+            values = {**values, "residual": _renamed(_residual_kind_of_booleans(values["residual"]),
+                                                     RESIDUAL_RENAMED)}
         return _build(cls, values, "settings")
 
     def with_overrides(self, overrides: list[str]) -> FitSettings:
@@ -1044,6 +1045,15 @@ class FitSettings:
 
 RESIDUAL_BOOLEANS = ("compressed", "learned", "learned_on_cuda")
 """The residual settings that ``ResidualSettings.kind`` replaced, as older field files store them."""
+
+
+RESIDUAL_RENAMED = {"still_learned_epochs": "cpu_learned_epochs"}
+"""Residual settings under the names older field files store them: old name -> today's."""
+
+
+def _renamed(values: dict, names: dict) -> dict:
+    """``values`` with each key of ``names`` under its new name (where the new one is not there already)."""
+    return {names.get(key, key) if names.get(key) not in values else key: value for key, value in values.items()}
 
 
 def _residual_kind_of_booleans(values: dict) -> dict:

@@ -1,5 +1,5 @@
 """Which residual a fit builds: ``ResidualSettings.kind`` resolved once, when the fit starts, from "auto" to
-the concrete kind for the device and the capture's size."""
+the concrete kind for the device, the capture's size and, on the CPU, the pace it trains at."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import warp as wp
 from ..model.config import RESIDUAL_KINDS, ResidualSettings
 from ..model.errors import InputError
 
-__all__ = ["CONCRETE_KINDS", "resolve_kind", "still_epochs"]
+__all__ = ["CONCRETE_KINDS", "cpu_epochs", "resolve_kind"]
 
 CONCRETE_KINDS = tuple(kind for kind in RESIDUAL_KINDS if kind != "auto")
 """The kinds a fitted field can have: "lowrank", "learned", "images", "none"."""
@@ -21,10 +21,11 @@ _LOG = logging.getLogger(__name__)
 def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tuple[int, int] | None = None,
                  channels: int | None = None) -> str:
     """The concrete kind for ``kind`` (``RESIDUAL_KINDS``) on a Warp ``device``: "auto" is "learned" on a CUDA
-    device and "lowrank" elsewhere. Given ``light_count`` and the working ``size`` (width, height), a learned
-    residual past the decoder's 2^31 (light, pixel) samples is refused where asked for (``InputError``) and
-    replaced by "lowrank", with a warning, where "auto" chose it. A capture of one ``channels`` (grey, infrared,
-    one band) has a low-rank residual under "auto": the learned decoder draws colour."""
+    device and "lowrank" elsewhere (where ``cpu_epochs`` may then choose "learned"). Given ``light_count`` and the
+    working ``size`` (width, height), a learned residual past the decoder's 2^31 (light, pixel) samples is refused
+    where asked for (``InputError``) and replaced by "lowrank", with a warning, where "auto" chose it. A capture of
+    one ``channels`` (grey, infrared, one band) has a low-rank residual under "auto": the learned decoder draws
+    colour."""
     if kind not in RESIDUAL_KINDS:
         raise InputError(f"residual kind must be one of {', '.join(RESIDUAL_KINDS)}, got '{kind}'")
     if kind != "auto" and kind != "learned":
@@ -48,18 +49,18 @@ def resolve_kind(kind: str, device, *, light_count: int | None = None, size: tup
     return concrete
 
 
-def still_epochs(requested: str, resolved: str, device, settings: ResidualSettings, *, light_count: int,
-                 size: tuple[int, int], channels: int, rate: float | None = None) -> float | None:
-    """For a fit whose Gaussians do not move, where "auto" (``requested``) had resolved to "lowrank" on the CPU for a
-    colour capture: the epochs a learned residual would run, those of its lights x pixels samples that the CPU's
-    training time (``settings.learned_seconds`` or its default) holds at ``rate`` samples a second (default: measured
-    now, ``residual.cpu_training.training_rate`` at the capture's pixel count up to ``_RATE_PIXELS``), at most its
-    schedule's (``learned_epochs``); the fit learns its residual instead where they are at least
-    ``settings.still_learned_epochs``. None where the question does not arise (another kind asked for or chosen, a
-    CUDA device, one channel, the setting at 0, more samples than the decoder indexes)."""
+def cpu_epochs(requested: str, resolved: str, device, settings: ResidualSettings, *, light_count: int,
+               size: tuple[int, int], channels: int, rate: float | None = None) -> float | None:
+    """Where "auto" (``requested``) resolved to "lowrank" on the CPU for a colour capture: the epochs a learned
+    residual would run, those of its lights x pixels samples that the CPU's training time (``settings.learned_seconds``
+    or its default) holds at ``rate`` samples a second (default: measured now, ``residual.cpu_training.training_rate``
+    at the capture's pixel count up to ``_RATE_PIXELS``), at most its schedule's (``learned_epochs``); the fit learns
+    its residual instead where they are at least ``settings.cpu_learned_epochs``. None where the question does not
+    arise (another kind asked for or chosen, a CUDA device, one channel, the setting at 0, more samples than the
+    decoder indexes)."""
     if requested != "auto" or resolved != "lowrank" or wp.get_device(device).is_cuda or channels != 3:
         return None
-    if settings.still_learned_epochs <= 0:
+    if settings.cpu_learned_epochs <= 0:
         return None
     from ..kernels.neural import samples_fit
     from .cpu_training import training_rate
@@ -74,4 +75,4 @@ def still_epochs(requested: str, resolved: str, device, settings: ResidualSettin
 
 
 _RATE_PIXELS = 1 << 18
-"""``still_epochs`` times the CPU's training on at most this many pixels (the codes' Adam step grows with them)."""
+"""``cpu_epochs`` times the CPU's training on at most this many pixels (the codes' Adam step grows with them)."""
