@@ -64,10 +64,17 @@ def test_info_summarises_a_dataset(tmp_path, capsys):
 
 
 def test_demo_renders_and_draws_a_contact_sheet(tmp_path):
+    """The demo's folder holds the dataset and the contact sheet; ``demo.json`` says whether the highlights' animation
+    shows moving Gaussians, as the field holds them."""
+    from warp_highlights.io.fieldfile import load_field
+
     out = tmp_path / "demo"
     assert main(["demo", str(out), "--lights", "12", "--size", "64x36", "-q"]) == 0
     assert (out / "donut" / "lights.lp").is_file()
     assert (out / "donut-contact-sheet.png").stat().st_size > 1000
+    said = json.loads((out / "demo.json").read_text())["files"]["orbit-highlights.gif"]
+    moving = bool(load_field(out / "donut.whf").moving_mask.any())
+    assert ("watch them glide" in said) == moving and ("keeps no moving Gaussian" in said) != moving
 
 
 @pytest.mark.parametrize("choice", ["auto", "lowrank", "learned"])

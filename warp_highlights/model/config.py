@@ -714,7 +714,11 @@ class ResidualSettings:
             and 37-41 epochs in 120 s for the three on that machine: 36 epochs in 120 s, between the statue's 31
             (below) and the coin's 43 (far above), learns the coin photographs and the multi-object sample and keeps
             the statue low rank there; 30, the same pace in the 100 s of ``learned_seconds``. Where Gaussians move,
-            CPU_LEARNED_FIGURES
+            the learned residual and its check score higher too (2-core CPU, 2026-12-05): the dome sample 48.99 /
+            0.993 at its Test lights in a 155 s fit, against 42.14 / 0.979 for the low-rank field and its 135 moving
+            Gaussians (docs/method.md, The residual); along the paths of ``benchmarks/bench_motion.py`` 0.05-14.76 dB
+            above the low-rank field on its ten renders, the sharp donut's moving Gaussians kept
+            (benchmarks/README.md).
     """
 
     kind: str = "auto"
