@@ -39,7 +39,7 @@ tape.backward(loss=loss)
 wh.GaussianAdam(batch).step()
 data = wh.ReflectanceField(images=image.full, lights=lights.LightSet.fibonacci_sphere(4))
 quick = wh.FitSettings().with_overrides(["estimation.iterations=3", "retarget.rigid_iterations=2",
-                                         "retarget.iterations=2"])
+                                         "retarget.iterations=2", "residual.cpu_learned_epochs=0"])
 field = wh.fit_field(data, settings=quick, device="cpu")
 import tempfile, pathlib
 with tempfile.TemporaryDirectory() as folder:
