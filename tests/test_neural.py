@@ -577,7 +577,6 @@ def test_fields_stored_with_the_residual_booleans_read_as_their_kind():
         assert FitSettings.from_dict(values).residual.kind == kind
 
 
-
 def test_fields_stored_with_a_renamed_residual_setting_read_under_its_new_name():
     """``residual.still_learned_epochs`` of older field files reads as ``residual.cpu_learned_epochs``."""
     from warp_highlights.model.config import FitSettings
@@ -586,6 +585,7 @@ def test_fields_stored_with_a_renamed_residual_setting_read_under_its_new_name()
     del values["residual"]["cpu_learned_epochs"]
     values["residual"]["still_learned_epochs"] = 17
     assert FitSettings.from_dict(values).residual.cpu_learned_epochs == 17
+
 
 def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donut, monkeypatch):
     """The training samples are indexed light x pixels + pixel in int32: past 2^31 (1,036 lights of 1920x1080) the

@@ -185,12 +185,12 @@ def _make_demo(work: Path, out: Path, *, lights: int, size: tuple[int, int], fra
     panels = (np.concatenate([c, s, a], axis=1)
               for c, s, a in zip(circular.specular, straight.specular, alpha.specular))
     write_animation(panels, work / "orbit-highlights.gif", fps=24, frame_count=frames, overwrite=True)
+    seen = ("(watch them glide vs cross-fade)" if field.moving_mask.any() else
+            "(this field keeps no moving Gaussian, its checks found the images relit better without them: the first "
+            "two panels are dark, and its residual carries the highlights in orbit.gif; warp-highlights info "
+            "donut.whf says why)")
     made.append(("orbit-highlights.gif", "the highlights alone, side by side, left to right: circular, straight, alpha "
-                                         "blend " + ("(watch them glide vs cross-fade)" if field.moving_mask.any() else
-                                                     "(this field keeps no moving Gaussian, its checks found the "
-                                                     "images relit better without them: the first two panels are "
-                                                     "dark, and its residual carries the highlights in orbit.gif; "
-                                                     "warp-highlights info donut.whf says why)")))
+                                         f"blend {seen}"))
     step("animate", t, f"{frames} frames x 4 renders")
 
     total = time.perf_counter() - started
