@@ -94,6 +94,12 @@ PHOTOS = {"statue": ("realrti-item11", (192, 181)), "coin-photo": ("realrti-item
 SAMPLES = (*PHOTOS, "dome-sample")
 
 
+def _checks(field) -> dict:
+    """The fit's move check and learned check, as its report has them (empty where it has none)."""
+    residual = (field.report or {}).get("residual") or {}
+    return {name: residual[name] for name in ("move_check", "learned_check") if residual.get(name)}
+
+
 def _direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
     e, a = np.radians(elevation_deg), np.radians(azimuth_deg)
     return np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
@@ -168,6 +174,7 @@ def run_scene(scene: str, capture: str, scale: str, device, frames: int, learned
               "fit_seconds": {k: round(v, 2) for k, v in seconds.items()},
               "moving": {k: int(f.moving_mask.sum()) for k, f in fields.items()},
               "gaussians": {k: int(f.counts.sum()) for k, f in fields.items()},
+              "checks": {k: _checks(f) for k, f in fields.items()},
               "paths": {}}
     worst = best = None
     for path, directions in paths.items():
@@ -228,6 +235,7 @@ def _photo_row(name: str, dataset: ReflectanceField, size, device, learned: bool
                             else (), progress=lambda _: None)
         rows.append({"photo": name, **labels, "lights": dataset.light_count, "fit": kind,
                      "fit_seconds": round(seconds, 2), "moving": int(field.moving_mask.sum()),
+                     "checks": _checks(field),
                      "psnr": {m: round(float(np.mean(v)), 2) for m, v in ev.full_srgb_psnr.items()},
                      "ssim": {m: round(float(np.mean(v)), 4) for m, v in ev.full_ssim.items()}})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)

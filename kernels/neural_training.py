@@ -4,8 +4,8 @@ hand-written adjoint, Adam on the device, samples shuffled on the device, a CUDA
 One step is six launches, none of which needs a host value, so a CUDA graph replays it:
 
 1. ``gather_batch``: ``batch`` (light, pixel) samples of the current epoch's shuffle (a keyed Feistel
-   permutation of the used samples, ``shuffled_sample``), their features [code, light direction] and
-   targets, for every model;
+   permutation of the used samples, ``shuffled_sample``), their features [code, light direction, sqrt(g), g]
+   (g the Gaussians' luminance for a model that sees the highlights, else 0) and targets, for every model;
 2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the MLP forward, the squared error and the
    whole backward pass (tile matrix products); each block's sums of the weights' gradients stored as
    its partial sums, the features' gradients stored;
@@ -18,7 +18,9 @@ One step is six launches, none of which needs a host value, so a CUDA graph repl
 6. ``advance``: the step counter + 1.
 
 ``M`` models (the learned check's two candidates) train side by side in the same launches, on the
-same samples, each with its own targets. Loss values stay on the device until an epoch's end.
+same samples, each with its own targets. Loss values stay on the device until an epoch's end. Every model
+trains with ``INPUTS`` = 14 inputs: one that does not see the highlights has zero inputs for them, so the
+gradient of its w0's last two columns is 0 and they stay 0 (they are dropped from its result).
 """
 
 from __future__ import annotations
@@ -33,8 +35,20 @@ import numpy as np
 import warp as wp
 
 from warp_highlights.model.config import LEARNED_MATHDX, LEARNED_TILE
+from warp_highlights.model.residual import NEURAL_INPUTS, sees_highlights
 
-from .neural import CODE_SIZE, HIDDEN, INPUTS, OUTPUTS, NeuralDecoder, elu, initial_model, used_lights
+from .neural import (
+    CODE_SIZE,
+    HIDDEN,
+    HIGHLIGHT_ROW,
+    INPUTS,
+    OUTPUTS,
+    NeuralDecoder,
+    elu,
+    initial_model,
+    kernel_weights,
+    used_lights,
+)
 
 __all__ = ["DecoderTrainer", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder", "train_decoders"]
 
@@ -85,10 +99,12 @@ def shuffled_sample(position: wp.int64, total: wp.int64, key: int, half_bits: in
 @wp.kernel
 def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bits: int, seed: int,
                  used: wp.array[wp.int32], pixels: int, codes: wp.array3d[float], lights: wp.array[wp.vec3],
-                 targets: wp.array3d[wp.vec3],
+                 targets: wp.array3d[wp.vec3], highlights: wp.array2d[float], sees: wp.array[wp.int32],
                  samples: wp.array[wp.int64], features: wp.array3d[float], batch_targets: wp.array3d[float]):
     """Sample i of this step: its (used light, pixel) index into ``samples``, and for each model m its
-    features (INPUTS, batch) and targets (OUTPUTS, batch)."""
+    features (INPUTS, batch) and targets (OUTPUTS, batch). The features' last two rows: sqrt(g), g for g =
+    max(highlights[light, pixel], 0) (display units) where ``sees[m]`` is not 0, else 0 and 0 (``highlights`` is
+    then not read: it may be empty)."""
     i = wp.tid()
     position = step[0] * wp.int64(batch) + wp.int64(i)
     epoch = position / total
@@ -102,6 +118,11 @@ def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bit
             features[m, k, i] = codes[m, pixel, k]
         for k in range(3):
             features[m, CODE_SIZE + k, i] = direction[k]
+        g = float(0.0)
+        if sees[m] != 0:
+            g = wp.max(highlights[light, pixel], 0.0)
+        features[m, HIGHLIGHT_ROW, i] = wp.sqrt(g)
+        features[m, HIGHLIGHT_ROW + 1, i] = g
         target = targets[m, light, pixel]
         for c in range(OUTPUTS):
             batch_targets[m, c, i] = target[c]
@@ -280,8 +301,9 @@ class _FlatParameters:
         count, pixels = len(models), len(models[0].codes)
         shapes = [(count, pixels, CODE_SIZE)] + [(count, *shape) for shape in _WEIGHT_SHAPES]
         sizes = [int(np.prod(shape)) for shape in shapes]
+        weights = [kernel_weights(m.weights) for m in models]
         host = np.concatenate([np.stack([m.codes for m in models]).ravel()]
-                              + [np.stack([m.weights[k] for m in models]).ravel() for k in range(len(_WEIGHT_SHAPES))])
+                              + [np.stack([w[k] for w in weights]).ravel() for k in range(len(_WEIGHT_SHAPES))])
         self.size = int(sum(sizes))
         self.flat = wp.array(host.astype(np.float32), dtype=float, device=device)
         self.gradient = wp.zeros(self.size, dtype=float, device=device)
@@ -311,9 +333,16 @@ class _FlatParameters:
         values = np.asarray(values, np.float32)
         return np.concatenate([np.repeat(values, int(np.prod(shape[1:]))) for shape in self.shapes])
 
-    def models(self) -> list[NeuralDecoder]:
+    def models(self, sees) -> list[NeuralDecoder]:
+        """The M models (copies); w0 keeps the highlights' two columns where ``sees[m]``, else drops them."""
         arrays = [view.numpy() for view in self.views]
-        return [NeuralDecoder(arrays[0][m].copy(), [a[m].copy() for a in arrays[1:]]) for m in range(len(arrays[0]))]
+        models = []
+        for m in range(len(arrays[0])):
+            weights = [a[m].copy() for a in arrays[1:]]
+            if not sees[m]:
+                weights[0] = np.ascontiguousarray(weights[0][:, :NEURAL_INPUTS])
+            models.append(NeuralDecoder(arrays[0][m].copy(), weights))
+        return models
 
     def one_model(self, flat: np.ndarray, m: int) -> np.ndarray:
         """Model m's part of a buffer of this layout (parameters, a gradient, Adam's moments), in the layout of
@@ -330,7 +359,10 @@ class _FlatParameters:
 class DecoderTrainer:
     """The device state of M decoders learning (M, n, P, 3) display-unit targets at (n, 3) lights from
     the ``used`` lights, ``batch`` samples a step, each from its own first learning rate (``lr``: one for all, or M);
-    ``steps(k)`` runs k steps (a CUDA graph on CUDA)."""
+    ``steps(k)`` runs k steps (a CUDA graph on CUDA). ``highlights``: (n, P) the Gaussians' luminance at each light
+    and pixel (display units), or None; ``sees``: per model whether it takes them (default: every model when
+    ``highlights`` is given). A model's w0 has 12 columns (given zero weights for the highlights' inputs) or, for a
+    model that sees them, 14."""
 
     targets: np.ndarray
     lights: np.ndarray
@@ -343,10 +375,24 @@ class DecoderTrainer:
     seed: int = 0
     device: object = None
     tile: tuple[int, int, int] = LEARNED_TILE
+    highlights: np.ndarray | None = None
+    sees: tuple | None = None
 
     def __post_init__(self):
         device = self.device = wp.get_device(self.device)
         count, n, pixels, _ = self.targets.shape
+        self.sees = _seeing_models(count, self.highlights, self.sees)
+        for m, model in enumerate(self.models):
+            if sees_highlights(model.weights) and not self.sees[m]:
+                raise ValueError(f"model {m}'s decoder takes the highlights' inputs but does not see the highlights")
+        self.highlight_array = wp.empty((0, 0), dtype=float, device=device)  # read by no model
+        if self.highlights is not None:
+            highlights = np.asarray(self.highlights, np.float32)
+            if highlights.shape != (n, pixels):
+                raise ValueError(f"highlights must be ({n}, {pixels}), got shape {highlights.shape}")
+            if any(self.sees):
+                self.highlight_array = wp.array(np.ascontiguousarray(highlights), dtype=float, device=device)
+        self.sees_array = wp.array(np.asarray(self.sees, np.int32), dtype=wp.int32, device=device)
         self.pixels = pixels
         self.total = len(self.used) * pixels
         columns, sub_batches, self.threads = self.tile
@@ -385,7 +431,7 @@ class DecoderTrainer:
             ("gather_batch", lambda: wp.launch(
                 gather_batch, dim=self.batch,
                 inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
-                        p.views[0], self.light_array, self.target_array],
+                        p.views[0], self.light_array, self.target_array, self.highlight_array, self.sees_array],
                 outputs=[self.samples, self.features, self.batch_targets], device=device)),
             ("train_tiles", lambda: wp.launch_tiled(
                 self.kernel, dim=[count, self.blocks],
@@ -430,7 +476,8 @@ class DecoderTrainer:
         return values
 
     def result(self) -> list[NeuralDecoder]:
-        return self.params.models()
+        """The models as they are: w0 with 14 columns for a model that sees the highlights, else 12."""
+        return self.params.models(self.sees)
 
     def keep(self, m: int, used: np.ndarray | None = None) -> DecoderTrainer:
         """A trainer of model m alone that goes on where this one is (parameters, Adam's moments, step);
@@ -440,7 +487,7 @@ class DecoderTrainer:
         models = self.result()
         alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used if used is None else np.asarray(used),
                                [models[m]], self.batch, self.epochs, float(self.rates[m]), self.final_lr, self.seed,
-                               self.device, self.tile)
+                               self.device, self.tile, self.highlights, self.sees[m:m + 1])
         for mine, theirs in ((self.first, alone.first), (self.second, alone.second)):
             theirs.assign(self.params.one_model(mine.numpy(), m))
         step = int(self.step.numpy()[0])
@@ -449,13 +496,28 @@ class DecoderTrainer:
         return alone
 
 
+def _seeing_models(count: int, highlights, sees) -> tuple[bool, ...]:
+    """Per model whether it sees the highlights: ``sees`` (one bool per model), by default every model when
+    ``highlights`` is given and none otherwise (ValueError for a model that sees them without them)."""
+    if sees is None:
+        return (highlights is not None,) * count
+    sees = tuple(bool(s) for s in np.asarray(sees, dtype=bool).reshape(-1))
+    if len(sees) != count:
+        raise ValueError(f"sees must hold one flag for each of the {count} models, got {len(sees)}")
+    if any(sees) and highlights is None:
+        raise ValueError("a model that sees the highlights trains with them: pass highlights")
+    return sees
+
+
 def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40, batch: int = 1 << 16,
                    lr: float | tuple = 3e-3, final_lr: float = 3e-4, seed: int = 0, seconds: float | None = None,
                    log=None,
                    used: np.ndarray | None = None,
                    initial: list[NeuralDecoder] | None = None, settle=None,
                    settle_epoch: int = 0,
-                   settle_used: np.ndarray | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
+                   settle_used: np.ndarray | None = None,
+                   highlights: np.ndarray | None = None,
+                   sees=None) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by side: Adam on
     the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
     geometrically from ``lr`` (one for every model, or one each) to ``final_lr`` over ``epochs`` (or until
@@ -465,6 +527,10 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     ``settle_epoch`` epochs with the models as they are while more than one learns, may return the index of the one
     model that goes on (the others stop there: their loss is NaN from then on) or None (all go on, to be asked
     again); the one that goes on learns from ``settle_used`` lights from then on (default ``used``).
+    ``highlights``: (n, P) float32 the Gaussians' luminance at each light and pixel (display units); ``sees``: one
+    bool per model, whether it takes them as inputs (default: every model when ``highlights`` is given). A model
+    that sees them is returned with w0 of 14 columns (an initial one of 12 starts with zero weights for them), the
+    others with 12.
     Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
@@ -474,7 +540,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     models = [initial_model(targets[m][used], seed=seed) for m in range(count)] if initial is None else list(initial)
     if len(models) != count or any(m.codes.shape != (pixels, CODE_SIZE) for m in models):
         raise ValueError(f"initial models must be {count}, each with codes of {pixels} pixels")
-    trainer = DecoderTrainer(targets, lights, used, models, batch, epochs, lr, final_lr, seed, device)
+    trainer = DecoderTrainer(targets, lights, used, models, batch, epochs, lr, final_lr, seed, device,
+                             highlights=highlights, sees=sees)
     trainer.steps(1)  # compiles and loads the kernels (minutes on a fresh CUDA machine): not training time
     wp.synchronize_device(device)
     started = time.perf_counter()
@@ -507,7 +574,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
 
 def train_decoder(targets: np.ndarray, lights: np.ndarray, *, initial: NeuralDecoder | None = None,
                   **options) -> tuple[NeuralDecoder, list[float]]:
-    """``train_decoders`` for one model: (n, P, 3) targets; returns the model and its mean loss per epoch."""
+    """``train_decoders`` for one model: (n, P, 3) targets (and ``highlights``, ``sees``: passed on in ``options``);
+    returns the model and its mean loss per epoch."""
     models, history = train_decoders(np.asarray(targets)[None], lights,
                                       initial=None if initial is None else [initial], **options)
     return models[0], [float(v) for v in history[:, 0]]

@@ -13,6 +13,7 @@ import pytest
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import (
     NEURAL_HIDDEN,
+    NEURAL_INPUTS,
     NEURAL_LAYER_SHAPES,
     NeuralResidual,
     decoder_layer_shapes,
@@ -94,19 +95,23 @@ def test_the_cpu_decoder_of_a_smaller_decoder_matches_its_reference(hidden):
     np.testing.assert_allclose(out, reference, atol=2e-3 * max(1.0, np.abs(reference).max()))
 
 
-@pytest.mark.parametrize("learns_codes", [False, True])
-def test_the_student_s_gradient_matches_central_differences(learns_codes):
-    """Weights, biases and (where they learn) the codes of the rows' pixels, some pixels taken twice."""
+@pytest.mark.parametrize(("learns_codes", "sees"), [(False, False), (True, False), (True, True)])
+def test_the_student_s_gradient_matches_central_differences(learns_codes, sees):
+    """Weights, biases and (where they learn) the codes of the rows' pixels, some pixels taken twice; a student that
+    sees the highlights takes sqrt(g), g after the direction."""
+    from warp_highlights.model.residual import highlight_inputs
     from warp_highlights.residual.distil import _Student, _Worker
 
     rng = np.random.default_rng(4)
     codes = rng.normal(size=(4, 9))
-    student = _Student((5, 4), np.random.default_rng(3), codes if learns_codes else None)
+    student = _Student((5, 4), np.random.default_rng(3), codes if learns_codes else None, sees=sees)
     student.flat = student.flat.astype(np.float64)
     student.grad = np.zeros_like(student.flat)
     worker = _Worker(student)
     pixels = np.array([0, 2, 2, 3, 1, 0, 2, 3, 3, 1, 2])
     directions, targets = rng.normal(size=(11, 3)), rng.normal(size=(11, 3))
+    if sees:
+        directions = np.concatenate([directions, highlight_inputs(rng.uniform(0.0, 3.0, 11))], axis=1)
 
     def current_codes():
         return student.views(student.flat)[-1] if learns_codes else codes
@@ -118,7 +123,7 @@ def test_the_student_s_gradient_matches_central_differences(learns_codes):
 
     worker.gradient(current_codes()[pixels], pixels, directions, targets)
     analytic = worker.grad.copy()
-    weight_count = sum(rows * cols for rows, cols in decoder_layer_shapes((5, 4)))
+    weight_count = sum(rows * cols for rows, cols in decoder_layer_shapes((5, 4), sees))
     assert analytic.size == weight_count + learns_codes * codes.size
     step = 1e-6
     for i in range(student.flat.size):
@@ -154,12 +159,42 @@ def learned_field(small_learned_field):
     return small_learned_field
 
 
+def _plain(learned: NeuralResidual) -> NeuralResidual:
+    """``learned`` with a decoder of code and direction only (w0's first 12 columns)."""
+    import dataclasses
+
+    return dataclasses.replace(learned, weights=(learned.weights[0][:, :NEURAL_INPUTS], *learned.weights[1:]))
+
+
+def _seeing(learned: NeuralResidual, seed: int = 6) -> NeuralResidual:
+    """``learned`` with a decoder that sees the highlights: as it is, or w0's 12 columns and two non-zero ones for
+    sqrt(g), g."""
+    import dataclasses
+
+    if learned.sees_highlights:
+        return learned
+    w0 = learned.weights[0]
+    extra = np.random.default_rng(seed).normal(0.0, 0.5, (len(w0), 2)).astype(np.float32)
+    return dataclasses.replace(learned, weights=(np.concatenate([w0, extra], axis=1), *learned.weights[1:]))
+
+
+def _saved(field, learned: NeuralResidual, path):
+    """``field`` with ``learned`` as its residual's, saved at ``path``: (field, path)."""
+    import dataclasses
+
+    from warp_highlights.io.fieldfile import save_field
+
+    field = dataclasses.replace(field, residual=dataclasses.replace(field.residual, learned=learned))
+    save_field(field, path)
+    return field, path
+
+
 def test_a_distilled_decoder_learns_its_teacher(learned_field):
     from warp_highlights.model.config import DistilSettings
     from warp_highlights.residual.distil import agreement, distil_decoder
 
     field, _ = learned_field
-    teacher = field.residual.learned
+    teacher = _plain(field.residual.learned)
     directions, faces = field.lights.directions, field.triangulation.faces
     untrained, _ = distil_decoder(teacher, (24, 24), directions, faces, settings=DistilSettings(epochs=1, seconds=0,
                                                                                               epochs_per_round=1))
@@ -182,13 +217,71 @@ def test_a_distilled_decoder_learns_its_teacher(learned_field):
     assert np.array_equal(fixed.codes, teacher.codes) and fixed_report.captured_psnr_db > first + 3.0
 
 
+def _display_images(learned: NeuralResidual, directions: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """(Q, H, W, 3) a decoder's display values (at least 0) at (Q, 3) directions with (Q, P) g (display units)."""
+    from warp_highlights.residual.cpu_training import CpuDecoder
+    from warp_highlights.residual.opponent import decode_display
+
+    decoder = CpuDecoder(learned.codes.reshape(-1, 9).astype(np.float32), learned.weights)
+    values = decode_display(decoder.decode(np.asarray(directions, np.float32), highlights=g))
+    return np.maximum(values, 0.0).reshape(len(directions), *learned.codes.shape[:2], 3)
+
+
+def test_a_student_of_a_decoder_that_sees_the_highlights_sees_them_too(learned_field):
+    """Its w0 has 14 columns; teacher and student decode with the Gaussians moved to each direction, and the student
+    learns the teacher's images with them (without them it is further off)."""
+    from warp_highlights.cli.distil import _moved_highlights
+    from warp_highlights.model.config import DistilSettings
+    from warp_highlights.quality.metrics import srgb_psnr
+    from warp_highlights.residual.distil import agreement, distil_decoder
+
+    field, _ = learned_field
+    teacher = _seeing(field.residual.learned)
+    directions, faces = field.lights.directions, field.triangulation.faces
+    highlights = _moved_highlights(field)
+    assert highlights(directions[:2]).shape == (2, field.height, field.width)
+    untrained, _ = distil_decoder(teacher, (24, 24), directions, faces, highlights=highlights,
+                                  settings=DistilSettings(epochs=1, seconds=0, epochs_per_round=1))
+    student, report = distil_decoder(teacher, (24, 24), directions, faces, highlights=highlights,
+                                     settings=DistilSettings(epochs=12, seconds=0))
+    assert student.sees_highlights and [w.shape for w in student.weights[:2]] == [(24, 14), (24, 1)]
+    assert report.multiply_adds == 14 * 24 + 24 * 24 + 24 * 3 and report.teacher_multiply_adds == 5424
+    first = agreement(untrained, teacher, directions, highlights)
+    assert report.captured_psnr_db > first + 3.0 and report.between_psnr_db > 30.0, (first, report)
+    assert report.captured_psnr_db == pytest.approx(agreement(student, teacher, directions, highlights))
+    # the student's highlights are its inputs: without them (g = 0) it gives the teacher's images back worse
+    g = highlights(directions).reshape(len(directions), -1) / np.float32(teacher.unit)
+    theirs, seen, blind = (_display_images(model, directions, g if sees else np.zeros_like(g))
+                           for model, sees in ((teacher, True), (student, True), (student, False)))
+    scores = [np.mean([srgb_psnr(a, b) for a, b in zip(mine, theirs)]) for mine in (seen, blind)]
+    assert scores[0] == pytest.approx(report.captured_psnr_db, abs=0.01) and scores[1] < scores[0] - 3.0, scores
+    with pytest.raises(InputError, match="pass highlights") as refused:
+        distil_decoder(teacher, (24, 24), directions, faces, settings=DistilSettings(epochs=1, seconds=0))
+    assert "\n" not in str(refused.value)
+
+
+def test_distil_command_distils_a_decoder_that_sees_the_highlights(learned_field, tmp_path, capsys):
+    from warp_highlights.cli import main
+    from warp_highlights.io.fieldfile import load_field
+
+    field, _ = learned_field
+    _, path = _saved(field, _seeing(field.residual.learned), tmp_path / "seeing.whf")
+    assert load_field(path).residual.learned.sees_highlights
+    output = tmp_path / "small.whf"
+    assert main(["distil", str(path), "-o", str(output), "--hidden", "16,16", "--seconds", "3", "-q"]) == 0
+    said = capsys.readouterr().out
+    assert "decoder 16-16" in said and "it sees the highlights" in said and "\n" not in said.strip()
+    small = load_field(output).residual.learned
+    assert small.hidden == (16, 16) and small.sees_highlights and small.weights[0].shape == (16, 14)
+
+
 def test_distil_command_writes_a_field_that_saves_loads_and_relights(learned_field, tmp_path, capsys):
     from warp_highlights.cli import main
     from warp_highlights.io.fieldfile import load_field
     from warp_highlights.relight.relighter import Relighter
     from warp_highlights.residual.decode import learned_images
 
-    field, path = learned_field
+    field, path = _saved(learned_field[0], _plain(learned_field[0].residual.learned), tmp_path / "plain.whf")
     output = tmp_path / "small.whf"
     assert main(["distil", str(path), "-o", str(output), "--hidden", "16,16", "--seconds", "3", "-q"]) == 0
     said = capsys.readouterr().out

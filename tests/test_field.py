@@ -1095,7 +1095,7 @@ def test_a_version_4_field_loads_relights_and_saves_the_same(tmp_path):
     again = tmp_path / "again.whf"
     save_field(field, again)
     old_header, new_header = _headers(path, again)
-    assert new_header["format_version"] == FORMAT_VERSION == 8
+    assert new_header["format_version"] == FORMAT_VERSION == 9
     for header in (old_header, new_header):
         header.pop("format_version"), header.pop("library_version")
     assert new_header["residual"].pop("rbf_sigma") is None  # version 8: the triangle's weights, as version 4 blends

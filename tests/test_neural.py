@@ -12,6 +12,7 @@ import warp as wp
 
 import reference
 from conftest import FAST_FIT
+from test_neural_training import highlight_decoder_reference, seeing_decoder
 from warp_highlights.kernels import neural, neural_training
 from warp_highlights.model.errors import InputError
 from warp_highlights.model.residual import (
@@ -67,6 +68,67 @@ def test_query_decoder_decodes_fewer_queries_than_its_buffers_hold(device, monke
     srgb = np.abs(want)
     linear = np.where(srgb > 0.04045, ((srgb + 0.055) / 1.055) ** 2.4, srgb / 12.92) * np.sign(want) * 2.0
     np.testing.assert_allclose(results[1][0], linear, rtol=2e-3, atol=1e-4)
+
+
+def _display_to_field(values: np.ndarray, unit: float) -> np.ndarray:
+    """Decoded display values as ``store_decoded`` turns them into field units (float64)."""
+    x = np.abs(values)
+    return np.sign(values) * np.where(x > 0.04045, ((x + 0.055) / 1.055) ** 2.4, x / 12.92) * unit
+
+
+def test_a_decoder_that_sees_the_highlights_decodes_as_the_reference(device):
+    """w0 of 14 columns: [code, direction, sqrt(g), g] per sample over several batches (the last one padded), g
+    below 0 taken as 0; the highlights are required, and a decoder without their inputs refuses them."""
+    directions, _ = _problem(lights=5, pixels=70)
+    model = seeing_decoder(70, seed=1)
+    assert model.sees_highlights and model.weights[0].shape == (neural.HIDDEN, 14)
+    g = np.random.default_rng(2).uniform(-0.5, 3.0, (5, 70)).astype(np.float32)
+    got = neural.decode(model, directions, device=device, batch=100, highlights=g)
+    want = highlight_decoder_reference(model.codes, model.weights, directions, g)
+    np.testing.assert_allclose(got, want, atol=2e-5, rtol=1e-4)
+    blind = neural.decode(neural.NeuralDecoder(model.codes, [model.weights[0][:, :12], *model.weights[1:]]),
+                          directions, device=device)
+    assert np.abs(got - blind).max() > 0.1  # the highlights count
+    with pytest.raises(ValueError, match="sees the highlights"):
+        neural.decode(model, directions, device=device)
+    unseeing = neural.initial_model(_problem()[1], seed=3)
+    with pytest.raises(ValueError, match="without highlight inputs"):
+        neural.decode(unseeing, directions, device=device, highlights=g)
+
+
+def test_the_query_decoder_takes_the_highlights_in_field_units(device):
+    """Highlights (Q, H, W) in field units, divided by the unit (2.5) inside: the float16 field-unit values of the
+    reference; a decoder of 12 columns decodes bit for bit as the same decoder given zero weights for the highlights'
+    inputs and any highlights."""
+    directions, targets = _problem(lights=4, pixels=60)
+    unit = 2.5
+    model = seeing_decoder(60, seed=4)
+    g = np.random.default_rng(5).uniform(-0.2, 2.0, (4, 60)).astype(np.float32)
+    decoder = neural.QueryDecoder(model.codes, model.weights, unit, device=device, batch=100)
+    assert decoder.sees_highlights
+    queries = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=device)
+    out = wp.empty((4, 60, 3), dtype=wp.float16, device=device)
+    field = wp.array((g * unit).reshape(4, 6, 10), dtype=float, device=device)
+    decoder.decode(queries, out, highlights=field)
+    want = _display_to_field(highlight_decoder_reference(model.codes, model.weights, directions, g), unit)
+    np.testing.assert_allclose(out.numpy().astype(np.float64), want, rtol=2e-3, atol=1e-3)
+    with pytest.raises(ValueError, match="sees the highlights"):
+        decoder.decode(queries, out)
+
+    plain = neural.initial_model(targets, seed=6)
+    blind = neural.QueryDecoder(plain.codes, plain.weights, unit, device=device, batch=100)
+    assert not blind.sees_highlights and blind.weights[0].shape == (neural.HIDDEN, neural.INPUTS)
+    with pytest.raises(ValueError, match="without highlight inputs"):
+        blind.decode(queries, out, highlights=field)
+    blind.decode(queries, out)
+    padded = [np.concatenate([plain.weights[0], np.zeros((neural.HIDDEN, 2), np.float32)], axis=1),
+              *plain.weights[1:]]
+    zero_weighted = wp.empty((4, 60, 3), dtype=wp.float16, device=device)
+    neural.QueryDecoder(plain.codes, padded, unit, device=device, batch=100).decode(queries, zero_weighted,
+                                                                                   highlights=field)
+    np.testing.assert_array_equal(out.numpy(), zero_weighted.numpy())
+    want = _display_to_field(reference.neural_decoder(plain.codes, plain.weights, directions), unit)
+    np.testing.assert_allclose(out.numpy().astype(np.float64), want, rtol=2e-3, atol=1e-3)
 
 
 def test_initial_codes_are_the_leading_components():
@@ -183,8 +245,10 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     from warp_highlights.relight.relighter import Relighter
 
     dataset = ReflectanceField.load(small_donut, progress=False)
+    # the residual the moved Gaussians are added to (a decoder that sees them: ``test_seeing_decoder.py``)
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2",
-                                                     "residual.learned_tune_epochs=2"])
+                                                     "residual.learned_tune_epochs=2",
+                                                     "residual.learned_sees_gaussians=false"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None

@@ -1,7 +1,7 @@
 """The learned residual's training step (``kernels.neural_training``) against float64 NumPy: the device
 shuffle is a permutation of each epoch's samples, the fused step's loss and gradients match central
-differences of the reference decoder, Adam matches its float64 formula, and models trained side by side
-equal models trained alone."""
+differences of the reference decoder (with and without the highlights' inputs), Adam matches its float64 formula,
+and models trained side by side equal models trained alone."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import warp as wp
 
 import reference
 from warp_highlights.kernels import neural, neural_training
+from warp_highlights.model.residual import NEURAL_HIDDEN, decoder_layer_shapes
 
 
 def _problem(seed=0, lights=5, pixels=40, models=2):
@@ -19,6 +20,31 @@ def _problem(seed=0, lights=5, pixels=40, models=2):
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     targets = rng.uniform(0.0, 1.0, (models, lights, pixels, 3)).astype(np.float32)
     return directions, targets
+
+
+def highlight_decoder_reference(codes, weights, directions, luminance) -> np.ndarray:
+    """(L, P, 3) float64: a decoder that sees the highlights, y = W3 elu(W2 elu(W1 elu(W0 [z, w, sqrt g, g] + b0) + b1)
+    + b2) + b3, for (P, 9) codes at (L, 3) directions with (L, P) luminance g (display units, negative taken as 0)."""
+    w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float64) for w in weights)
+    codes = np.asarray(codes, np.float64)
+    g = np.maximum(np.asarray(luminance, np.float64), 0.0)
+
+    def elu(v):
+        return np.where(v > 0, v, np.expm1(np.minimum(v, 0.0)))
+
+    out = []
+    for direction, row in zip(np.asarray(directions, np.float64).reshape(-1, 3), g):
+        x = np.concatenate([codes, np.tile(direction, (len(codes), 1)), np.sqrt(row)[:, None], row[:, None]], axis=1).T
+        out.append((w3 @ elu(w2 @ elu(w1 @ elu(w0 @ x + b0) + b1) + b2) + b3).T)
+    return np.stack(out)
+
+
+def seeing_decoder(pixels: int, seed: int = 0) -> neural.NeuralDecoder:
+    """Random codes and a random decoder whose w0 has the highlights' two columns (weights about 1/sqrt(fan-in))."""
+    rng = np.random.default_rng(seed)
+    shapes = decoder_layer_shapes(NEURAL_HIDDEN, highlights=True)
+    weights = [rng.normal(0.0, 1.0 / np.sqrt(shape[1]), shape).astype(np.float32) for shape in shapes]
+    return neural.NeuralDecoder(rng.normal(size=(pixels, neural.CODE_SIZE)).astype(np.float32), weights)
 
 
 @wp.kernel
@@ -89,6 +115,125 @@ def test_the_fused_step_gradients_match_central_differences(device):
                 assert gradient[index] == pytest.approx(numeric, rel=2e-3, abs=2e-6), (m, which, index)
         unseen = np.setdiff1d(np.arange(40), pixel)
         assert np.all(gradients[0][m][unseen] == 0.0)
+
+
+def test_the_fused_step_gradients_of_a_model_that_sees_the_highlights_match_central_differences(device):
+    """A model that sees the highlights beside one that does not, in the same launches: the seeing model's loss and
+    gradients (codes, the eight weight arrays, w0's two highlight columns in full) those of the float64 reference
+    with [code, direction, sqrt(g), g] inputs; the other's highlight columns get no gradient and it matches the
+    reference without highlights."""
+    directions, targets = _problem(seed=2)
+    g = np.random.default_rng(3).uniform(-0.3, 2.0, (5, 40)).astype(np.float32)
+    seeing = seeing_decoder(40, seed=5)
+    models = [seeing, neural.initial_model(targets[1], seed=3)]
+    trainer = neural_training.DecoderTrainer(targets, directions, np.arange(5), models, 150, 10, device=device,
+                                             tile=(32, 3, 32), highlights=g, sees=(True, False))
+    samples, loss, gradients = _one_step_gradients(trainer)
+    light, pixel = samples // 40, samples % 40
+    rng = np.random.default_rng(0)
+    for m in range(2):
+        params = [models[m].codes.astype(np.float64)] + [w.astype(np.float64) for w in models[m].weights]
+
+        def mse(values, m=m):
+            if m == 0:
+                decoded = highlight_decoder_reference(values[0], values[1:], directions, g)
+            else:
+                decoded = reference.neural_decoder(values[0], values[1:], directions)
+            return np.sum((decoded[light, pixel] - targets[m][light, pixel]) ** 2) / len(samples)
+
+        assert loss[m] == pytest.approx(mse(params), rel=1e-5)
+        checked = []
+        for which in range(len(params)):
+            indices = []
+            for _ in range(3):
+                index = tuple(int(rng.integers(0, s)) for s in params[which].shape)
+                if which == 0:
+                    index = (int(pixel[rng.integers(len(pixel))]), index[1])  # a pixel the step saw
+                indices.append(index)
+            if which == 1 and m == 0:  # every unit's weights of sqrt(g) and g
+                indices += [(row, column) for row in range(neural.HIDDEN) for column in (12, 13)]
+            checked.append(len(indices))
+            for index in indices:
+                plus = [p.copy() for p in params]
+                minus = [p.copy() for p in params]
+                plus[which][index] += 1e-4
+                minus[which][index] -= 1e-4
+                numeric = (mse(plus) - mse(minus)) / 2e-4
+                assert gradients[which][m][index] == pytest.approx(numeric, rel=2e-3, abs=2e-6), (m, which, index)
+        assert gradients[1].shape[2] == neural.INPUTS
+    assert np.any(gradients[1][0][:, 12:] != 0.0) and not np.any(gradients[1][1][:, 12:])
+    result = trainer.result()
+    assert result[0].weights[0].shape == (neural.HIDDEN, 14) and result[1].weights[0].shape == (neural.HIDDEN, 12)
+
+
+def _highlight_problem(seed=0, lights=24, pixels=64):
+    """Targets that are a function of the Gaussians' luminance g alone, g drawn anew for every light and pixel: the
+    direction and the pixel's code cannot predict them, g can."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(lights, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    g = rng.uniform(0.0, 1.0, (lights, pixels)).astype(np.float32)
+    one = np.stack([g, 1.0 - g, np.sqrt(g)], axis=-1).astype(np.float32)
+    return directions, np.stack([one, one]), g
+
+
+def test_a_model_that_sees_informative_highlights_learns_what_one_that_does_not_cannot(device):
+    """Two models side by side on 16 of 24 lights, the first seeing the highlights: its w0 comes back with 14
+    columns, the other's with 12; on targets only g predicts, the seeing one ends far below the other, at the lights
+    it learned and at the 8 left out, and each ends as it would learn alone."""
+    directions, targets, g = _highlight_problem()
+    used, left_out = np.arange(16), np.arange(16, 24)
+    options = dict(device=device, epochs=30, batch=64, lr=1e-2, final_lr=1e-3, used=used)
+    models, history = neural_training.train_decoders(targets, directions, highlights=g, sees=[True, False],
+                                                     **options)
+    assert history.shape == (30, 2) and np.all(np.isfinite(history))
+    assert models[0].weights[0].shape == (neural.HIDDEN, 14) and models[1].weights[0].shape == (neural.HIDDEN, 12)
+    assert history[-1, 0] < 0.1 * history[-1, 1]
+    errors = [np.mean(np.sum((decoded - targets[0][left_out]) ** 2, axis=-1))
+              for decoded in (neural.decode(models[0], directions[left_out], device=device, highlights=g[left_out]),
+                              neural.decode(models[1], directions[left_out], device=device))]
+    assert errors[0] < 0.1 * errors[1]
+    seeing, seeing_history = neural_training.train_decoder(targets[0], directions, highlights=g, **options)
+    blind, blind_history = neural_training.train_decoder(targets[1], directions, **options)
+    for together, alone in ((models[0], seeing), (models[1], blind)):
+        np.testing.assert_allclose(together.codes, alone.codes, rtol=1e-4, atol=1e-5)
+        for got, want in zip(together.weights, alone.weights):
+            assert got.shape == want.shape
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(history[:, 0], seeing_history, rtol=1e-4)
+    np.testing.assert_allclose(history[:, 1], blind_history, rtol=1e-4)
+
+
+def test_a_model_that_sees_the_highlights_may_start_from_one_that_does_not(device):
+    """An initial decoder of 12 columns goes on with zero weights for the highlights' inputs (its first step's loss
+    is its own); it is settled on and goes on alone as it would have; 14 columns are for seeing models only, and
+    a seeing model needs the highlights."""
+    directions, targets, g = _highlight_problem(seed=1, lights=6, pixels=48)
+    options = dict(device=device, epochs=3, batch=64)
+    start, _ = neural_training.train_decoder(targets[1], directions, **options)
+    trainer = neural_training.DecoderTrainer(targets[:1], directions, np.arange(6), [start], 64, 3, device=device,
+                                             highlights=g)
+    _, loss, _ = _one_step_gradients(trainer)
+    samples = trainer.samples.numpy()
+    decoded = reference.neural_decoder(start.codes, start.weights, directions)
+    light, pixel = samples // 48, samples % 48
+    want = np.sum((decoded[light, pixel] - targets[0][light, pixel]) ** 2) / len(samples)
+    assert loss[0] == pytest.approx(want, rel=1e-5)
+    kept, _ = neural_training.train_decoders(targets, directions, initial=[start, start], highlights=g,
+                                             sees=[False, True], settle=lambda models: 1, settle_epoch=1, **options)
+    alone, _ = neural_training.train_decoder(targets[1], directions, initial=start, highlights=g, **options)
+    assert kept[1].weights[0].shape == alone.weights[0].shape == (neural.HIDDEN, 14)
+    assert kept[0].weights[0].shape == (neural.HIDDEN, 12)
+    np.testing.assert_allclose(kept[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
+    for got, want in zip(kept[1].weights, alone.weights):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="does not see"):
+        neural_training.train_decoders(targets, directions, initial=[alone, start], highlights=g, sees=[False, True],
+                                       **options)
+    with pytest.raises(ValueError, match="pass highlights"):
+        neural_training.train_decoders(targets, directions, sees=[True, False], **options)
+    with pytest.raises(ValueError, match="highlights must be"):
+        neural_training.train_decoders(targets, directions, highlights=g[:, :10], **options)
 
 
 def test_the_weights_gradients_are_the_same_in_every_run(device):

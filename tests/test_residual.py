@@ -802,7 +802,7 @@ def test_residual_file_round_trip(donut_fields, kind, written_as, tmp_path):
     path = tmp_path / "f.whf"
     save_field(field, path)
     if written_as != "current":
-        assert FORMAT_VERSION == 8
+        assert FORMAT_VERSION == 9
         version = int(written_as.split()[1])
         data = path.read_bytes()
         def residual_before(r):  # no learned residual before version 3, no decoder widths before 6, no bounds before 7

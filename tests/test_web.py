@@ -244,6 +244,120 @@ def test_a_learned_field_offers_no_alpha_blend(browser, exported):
 
 
 @pytest.fixture(scope="module")
+def seeing(fields, tmp_path_factory):
+    """The learned variant with a decoder that sees the highlights (w0's 12 columns and two non-zero ones, for sqrt(g)
+    and g), and bounds; exported from memory: (field, folder)."""
+    from warp_highlights.io.fieldfile import load_field
+    from warp_highlights.model.residual import learned_bounds
+    from warp_highlights.web.export import export_viewer
+
+    field = load_field(fields["learned"])
+    learned = field.residual.learned
+    rng = np.random.default_rng(11)
+    w0 = np.concatenate([learned.weights[0], rng.normal(0.0, 0.6, (len(learned.weights[0]), 2))], axis=1)
+    low = np.full((field.height, field.width, 3), -0.05)
+    bounds = learned_bounds(low, low + rng.uniform(0.3, 3.0, low.shape), np.zeros_like(low))
+    seeing_learned = dataclasses.replace(learned, weights=(w0.astype(np.float32), *learned.weights[1:]), bounds=bounds)
+    assert seeing_learned.sees_highlights
+    field = dataclasses.replace(field, residual=dataclasses.replace(field.residual, learned=seeing_learned))
+    folder = tmp_path_factory.mktemp("web-seeing") / "seeing"
+    folder.mkdir()
+    export_viewer(field, folder)
+    return field, folder
+
+
+def _gaussian_luminance(field, direction, method: str) -> np.ndarray:
+    """(H, W) float32 S' of the relighter's moved Gaussians (field units) at ``direction`` by ``method``."""
+    from warp_highlights.relight.relighter import Relighter
+
+    relighter = Relighter(dataclasses.replace(field, residual=None), device="cpu", diffuse="none")
+    relit = relighter.relight(np.asarray(direction, np.float64), method=method, full=False)
+    assert not relit.clamped  # a full sphere: the decoder takes the query's own unit direction
+    return relit.specular
+
+
+def _seeing_reference(field, direction, specular: np.ndarray, *, scale: float = 1.0,
+                      highlights: bool = True) -> np.ndarray:
+    """(H, W, 3) float64 relit image of a field whose decoder sees the highlights: the decoder at the unit direction
+    with sqrt(g), g (g = max(S', 0) / unit; 0 where not ``highlights``), unit * decode_display of it clipped to
+    +-6e4 and rounded to float16 as the relighter keeps it, within the bounds, no Gaussians added, times ``scale``,
+    clamped at 0."""
+    from warp_highlights.residual.opponent import decode_display
+
+    learned = field.residual.learned
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    codes = learned.codes.reshape(-1, 9).astype(np.float64)
+    g = np.maximum(specular.astype(np.float64).reshape(-1), 0.0) / learned.unit * highlights
+    h = np.concatenate([codes, np.broadcast_to(d, (len(codes), 3)), np.sqrt(g)[:, None], g[:, None]], axis=1).T
+    weights = [w.astype(np.float64) for w in learned.weights]
+    for w, b in zip(weights[0:-2:2], weights[1:-2:2]):
+        z = w @ h + b
+        h = np.where(z > 0, z, np.expm1(np.minimum(z, 0.0)))
+    y = (weights[-2] @ h + weights[-1]).T
+    values = np.clip(learned.unit * decode_display(y), -6e4, 6e4).astype(np.float16).astype(np.float64)
+    values = learned.within_bounds(values.reshape(field.height, field.width, 3))
+    return scale * np.maximum(values, 0.0)
+
+
+def _relighter_sees(field) -> bool:
+    """Whether ``Relighter`` relights a field whose decoder sees the highlights (else it refuses in one error)."""
+    from warp_highlights.model.errors import InputError
+    from warp_highlights.relight.relighter import Relighter
+
+    try:
+        Relighter(field, device="cpu").relight(np.array([0.0, 0.0, 1.0]))
+    except (InputError, ValueError):
+        return False
+    return True
+
+
+@pytest.mark.parametrize("stops", [0.0, 1.0])
+def test_a_decoder_that_sees_the_highlights_relights_in_the_page_as_in_the_library(browser, seeing, stops):
+    """The page's decoder takes sqrt(g), g of the Gaussians it draws and gives the whole image; it matches the float64
+    reference (and ``Relighter``, where it relights such a decoder) as the learned page does."""
+    from warp_highlights.quality.metrics import psnr_8bit
+    from warp_highlights.relight.relighter import Relighter
+
+    field, folder = seeing
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest["version"] == 4 and manifest["residual"]["sees_highlights"] is True
+    assert manifest["arrays"]["learned_w0"]["shape"] == [48, 14]
+    scale = 2.0**stops / field.exposure
+    relighter = Relighter(field, device="cpu", scale=scale) if _relighter_sees(field) else None
+    moved = []
+    with served(folder) as url, opened(browser, url) as tab:
+        assert tab.evaluate("whViewer.mode") == "learned" and "sees the highlights" in tab.text_content("#status")
+        for method in ("circular", "straight"):
+            for direction in DIRECTIONS:
+                tab.evaluate(f"whSetLight({direction[0]}, {direction[1]}, {direction[2]}, '{method}', {stops})")
+                shown = _canvas(tab, field.width, field.height)
+                specular = _gaussian_luminance(field, direction, method)
+                reference = _seeing_reference(field, direction, specular, scale=scale)
+                expected = [_rgb8(reference)]
+                if relighter is not None:
+                    expected.append(_rgb8(relighter.relight(np.asarray(direction), method=method).full))
+                for image in expected:
+                    assert psnr_8bit(shown, image) >= 40.0, (method, direction)
+                    assert np.mean(np.abs(shown.astype(int) - image) > 1) < 0.002, (method, direction)
+                # the highlights are the decoder's inputs, not added on top, and they change its image
+                blind = _rgb8(_seeing_reference(field, direction, specular, scale=scale, highlights=False))
+                added = _rgb8(reference + scale * specular[..., None])
+                moved.append((psnr_8bit(shown, blind), psnr_8bit(shown, added)))
+        assert tab.errors == []
+    assert min(blind for blind, _ in moved) < 35.0 and min(added for _, added in moved) < 35.0, moved
+
+
+def test_a_twelve_column_learned_field_exports_as_it_did(exported, fields, seeing):
+    """Only a decoder that sees the highlights gets the layout's version 4 and the flag."""
+    plain = json.loads((exported["learned"] / "manifest.json").read_text())
+    assert plain["version"] == 3 and "sees_highlights" not in plain["residual"]
+    assert plain["arrays"]["learned_w0"]["shape"] == [48, 12]
+    _, folder = seeing
+    w0 = _read_array(folder, json.loads((folder / "manifest.json").read_text())["arrays"]["learned_w0"])
+    np.testing.assert_array_equal(w0, seeing[0].residual.learned.weights[0])
+
+
+@pytest.fixture(scope="module")
 def statue_field(data_root, tmp_path_factory):
     """The real statue sample, fitted small and fast through the command line (71 x 67), low rank (none of its
     Gaussians moves, so "auto" would learn its residual on the CPU: a page without the alpha blend)."""

@@ -291,9 +291,11 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
                   f"blending {check['blend_psnr_db']:.2f} dB (8-bit sRGB): {verdict}")
         learned = residual.get("learned_check") or {}
         if learned.get("lights"):
-            verdict = ("the learned residual keeps them" if learned["keeps_gaussians"]
-                       else "the images are learned alone (the field keeps no Gaussians)")
-            print(f"  learned check at {learned['lights']} left-out lights: residual + moved Gaussians "
+            sees = learned.get("sees_gaussians", False)
+            verdict = (("the decoder keeps them as its inputs" if sees else "the learned residual keeps them")
+                       if learned["keeps_gaussians"] else "the images are learned alone (the field keeps no Gaussians)")
+            candidate = "a decoder that sees the moved Gaussians" if sees else "residual + moved Gaussians"
+            print(f"  learned check at {learned['lights']} left-out lights: {candidate} "
                   f"{learned['with_gaussians_psnr_db']:.2f} dB, "
                   f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
         weighing = residual.get("residual_interpolation") or {}

@@ -128,9 +128,12 @@ def fit_field(
     planning = None
     # the move check's left-out lights, host work that depends on the lights alone, planned in a thread while the device
     # fits (the fit's thread mostly waits for it)
+    # a learned residual that sees the Gaussians learns from every light's moved ones: every light is checked
+    sees = learned and settings.residual.learned_sees_gaussians
+    check_count = dataset.light_count if sees else settings.residual.check_lights
     if residual and device.is_cuda:
-        planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges,
-                                                        settings.residual.check_lights), name="check-plan")
+        planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, check_count),
+                                name="check-plan")
     try:
         with timer.stage("segmentation"):
             images = resize_stack(dataset.images, width, height)
@@ -240,7 +243,7 @@ def fit_field(
                 if planning is not None and moving.any():
                     plan = planning.result()
                 else:
-                    lights = settings.residual.check_lights if moving.any() else 0
+                    lights = check_count if moving.any() else 0
                     plan = plan_check(dataset.lights.directions, edges, lights)
                 iterations = settings.retarget.rigid_iterations + settings.retarget.iterations
                 check_images, check_own, check_colour = images, own, colour
@@ -259,22 +262,30 @@ def fit_field(
                                          progress=advance,
                                          keep=settings.residual.learned_check if learned else 0,
                                          held=held if check_images is images else None,
-                                         directions=dataset.lights.directions)
-            if learned and check.moves and len(check.kept_lights):
+                                         directions=dataset.lights.directions, draw_all=sees)
+                seen = None  # every light's Gaussians moved there from the other lights, where the decoder sees them
+                if sees and check.moved_luminance is not None:
+                    seen = own.copy()  # a light the others cannot locate sees its own
+                    seen[check.lights] = check.moved_luminance
+            # a decoder that sees the Gaussians is weighed by the learned check alone: the move check weighs moving
+            # against blending the images, which it does not do
+            weighed = check.moves or (seen is not None and moving.any() and len(check.kept_lights) > 0)
+            if learned and weighed and len(check.kept_lights):
                 epochs = learned_epochs(settings.residual, wp.get_device(device).is_cuda)
                 with timer.stage("learned check"), _bar(progress, "learned check", 2 * epochs,
                                                         1) as advance:
                     learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights,
                                                   check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device,
-                                                  progress=advance)
+                                                  progress=advance, seen=seen)
                 verdict = learned_check.report()
                 settled = learned_check.settled_epoch
-                log(f"learned check at {verdict['lights']} lights: with the Gaussians "
-                    f"{verdict['with_gaussians_psnr_db']:.2f} dB, the images alone "
+                log(f"learned check at {verdict['lights']} lights: with the Gaussians"
+                    + (" as the decoder's inputs " if verdict["sees_gaussians"] else " ")
+                    + f"{verdict['with_gaussians_psnr_db']:.2f} dB, the images alone "
                     f"{verdict['images_alone_psnr_db']:.2f} dB"
                     + ("" if settled is None else f" (settled after {settled} epochs)"))
-            if (not moving.any() or not check.moves
+            if (not moving.any() or not weighed
                     or (learned_check is not None and not learned_check.keeps_gaussians)):
                 # no Gaussian moves (each would only be blended in place, as the residual is, and a learned
                 # residual would learn the images less their highlights), or blending beat moving at the left-out
@@ -286,7 +297,7 @@ def fit_field(
                 moving = np.zeros((len(source.active), 1), dtype=bool)
                 path_delta, path_centre = (np.zeros((len(edges), 1), np.float32),
                                            np.zeros((len(edges), 1, 2), np.float32))
-                own, colour = np.zeros_like(own), None
+                own, colour, seen = np.zeros_like(own), None, None
                 if held is not None:
                     held.own = None  # the residual's stacks read the zeros from the host
             if kind == "images":
@@ -310,9 +321,12 @@ def fit_field(
                                                                      factor=factor,
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
-                                                                     initial=winner, tune=winner is not None)
+                                                                     initial=winner, tune=winner is not None,
+                                                                     highlights=seen)
             if learned and settings.residual.learned_bounds:  # the decided residual, whichever way it was learned
-                residual_model = bounded(residual_model, images, own, colour)
+                # a decoder that sees the Gaussians learned the images themselves
+                taken = (own, colour) if seen is None else (np.zeros_like(own), None)
+                residual_model = bounded(residual_model, images, *taken)
             if not learned:
                 with timer.stage("residual compression"):
                     residual_model = build_residual(images, own, colour, settings=settings.residual,

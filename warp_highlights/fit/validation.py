@@ -75,7 +75,8 @@ class LeaveOneOut:
 class MoveCheck:
     """What ``check_moving`` measured: (m,) 8-bit sRGB PSNR (dB) of both predictions per checked light,
     and where asked (``keep``), the moved highlights c(x) G'(l_j) drawn at some of them: (h, H, W, C)
-    field units at the lights ``kept_lights`` (h,) (indices into all lights)."""
+    field units at the lights ``kept_lights`` (h,) (indices into all lights); where asked (``draw_all``),
+    ``moved_luminance`` (m, H, W): every checked light's moved Gaussians G'(l_j), field units, untinted."""
 
     lights: np.ndarray
     moving_psnr: np.ndarray
@@ -83,6 +84,7 @@ class MoveCheck:
     extra_edges: int
     kept_lights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     kept_highlights: np.ndarray | None = None
+    moved_luminance: np.ndarray | None = None
 
     @property
     def moves(self) -> bool:
@@ -225,6 +227,7 @@ def check_moving(
     keep: int = 0,
     held=None,
     directions: np.ndarray | None = None,
+    draw_all: bool = False,
 ) -> MoveCheck:
     """Score moving against blending at the left-out lights of ``plan``.
 
@@ -243,6 +246,8 @@ def check_moving(
             ``residual.learned.check_learned``).
         held: ``images`` and ``own`` on the CUDA device already (``residual.inputs.HeldImages``), scored there.
         directions: (n, 3) the lights' directions, for retargeting's start (``fit.retargeting.retarget``).
+        draw_all: keep every checked light's moved Gaussians (``MoveCheck.moved_luminance``): the inputs a learned
+            residual that sees the highlights trains with (``residual.learned``).
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
@@ -274,6 +279,7 @@ def check_moving(
     moving_psnr, blend_psnr = np.empty(len(loo.lights)), np.empty(len(loo.lights))
     kept_rows = np.sort(plan.apart[:keep]) if keep > 0 else np.zeros(0, np.int64)
     kept = np.zeros((len(kept_rows), height, width, images.shape[-1]), np.float32)
+    moved_luminance = np.zeros((len(loo.lights), height, width), np.float32) if draw_all else None
     chunk = max(1, _RENDER_BYTES // (4 * height * width))
     # lights scored at once, in threads
     at_once = max(1, min(NUMPY_THREADS, _SCORE_BYTES // (_SCORE_COPIES * images[0].nbytes)))
@@ -289,6 +295,8 @@ def check_moving(
     for start in range(0, len(loo.lights), chunk):
         rows = np.arange(start, min(start + chunk, len(loo.lights)))
         drawn_there = raster.render(GaussianBatch.from_numpy(sets.take(rows), device=device, requires_grad=False))
+        if moved_luminance is not None:
+            moved_luminance[rows] = to_host(drawn_there)
         # scored there (``kernels.scores``): 48 lights in one launch, not 144 sRGB images in host threads
         if scored is not None:
             moving_psnr[rows], blend_psnr[rows] = scored.psnr(rows, drawn_there, loo.barycentric[rows])
@@ -310,7 +318,7 @@ def check_moving(
         for group in range(0, len(rows), at_once):
             parallel_map(lambda q, drawn=drawn, start=start: score(q, drawn[q - start]), rows[group : group + at_once])
     return MoveCheck(loo.lights, moving_psnr, blend_psnr, len(missing), loo.lights[kept_rows],
-                     kept if len(kept_rows) else None)
+                     kept if len(kept_rows) else None, moved_luminance)
 
 
 class _DeviceScores:

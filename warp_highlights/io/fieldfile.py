@@ -3,7 +3,7 @@ one thing, the file format (every version's reader and the current writer), so i
 
 The model it stores is :class:`warp_highlights.model.field.HighlightField` (``docs/file-format.md``).
 
-File format (version 7; any file name, ``.whf`` suggested): a zip archive written through
+File format (version 9; any file name, ``.whf`` suggested): a zip archive written through
 ``zipfile``'s documented API, atomically (temporary file in the same folder, fsync, rename). Its first
 entry is ``header.json``; every other entry is a standard little-endian ``.npy`` array: deflated by the
 zip (``numpy.load`` can open those), or, for the basis codes and arrays of 64 KiB or more, the
@@ -54,7 +54,8 @@ entry                           dtype, shape     contents
 ``residual/learned_w0.npy``,    <f4              its MLP's weights and biases, one pair per layer
 ``..._b0``, ... ``..._b3``                       (``model.residual.decoder_layer_shapes`` of the
                                                  header's ``residual.learned.hidden``: version 6;
-                                                 before, the fitted decoder's ``NEURAL_HIDDEN``)
+                                                 before, the fitted decoder's ``NEURAL_HIDDEN``;
+                                                 w0 two columns wider where ``highlights``)
 ``residual/learned_bounds.npy`` <f2 (2, 3, H, W) version 7, where ``residual.learned.bounds`` is true:
                                                  the lowest and highest value of the relit residual
                                                  per pixel and channel (``learned_bounds``)
@@ -87,6 +88,10 @@ Version 6 files have no ``residual/learned_bounds``: their learned residual reli
 Version 7 files have no header entry ``residual.rbf_sigma`` (version 8: null, or the radial basis width with
 which a low-rank residual's lights are weighed, ``ResidualModel.rbf_sigma``): they relight with the triangle's
 weights, as they did.
+
+Version 8 files have no header entry ``residual.learned.highlights`` (version 9: true where the decoder also takes
+the Gaussians' luminance at the pixel, ``model.residual.highlight_inputs``: its w0 has two more columns, and its
+values are the whole image): their decoder takes the code and the direction, as it did.
 
 A new format version: raise ``FORMAT_VERSION``, write the new layout, and keep reading every older
 version in ``_build_field`` (``load_field`` refuses files newer than ``FORMAT_VERSION``).
@@ -140,7 +145,7 @@ __all__ = ["FORMAT_VERSION", "MAGIC", "array_entry_bytes", "field_size_report", 
 MAGIC = "warp-highlights field"
 """The ``magic`` string in every field file's header."""
 
-FORMAT_VERSION = 8
+FORMAT_VERSION = 9
 """Version of the file format that ``save_field`` writes; ``load_field`` reads this and older versions."""
 
 _CHUNKED_BYTES = 1 << 16
@@ -371,7 +376,7 @@ def _residual_entries(residual: ResidualModel) -> tuple[dict, list]:
     if residual.learned is not None:
         learned = residual.learned
         layout["learned"] = {"unit": learned.unit, "lights": learned.light_count, "hidden": list(learned.hidden),
-                             "bounds": learned.bounds is not None}
+                             "bounds": learned.bounds is not None, "highlights": learned.sees_highlights}
         arrays.append((_LEARNED_CODES, learned.codes.transpose(2, 0, 1).astype("<f2")))
         if learned.bounds is not None:
             arrays.append((_LEARNED_BOUNDS, learned.bounds.transpose(0, 3, 1, 2).astype("<f2")))
@@ -1028,8 +1033,11 @@ def _read_residual(path: Path, layout, read, n: int, height: int, width: int, ve
                 or not all(_is_int(w) and 1 <= w <= NEURAL_HIDDEN[0] for w in hidden)):
             raise _corrupt(path, f"header entry residual.learned.hidden must list 1 to {NEURAL_MAX_HIDDEN} layer "
                                  f"widths of 1 to {NEURAL_HIDDEN[0]}, got {hidden!r}")
+        sees = part.get("highlights", False)
+        if not isinstance(sees, bool):
+            raise _corrupt(path, f"header entry residual.learned.highlights must be true or false, got {sees!r}")
         weights = tuple(read(name, "<f4", shape) for name, shape in zip(_learned_weight_names(len(hidden) + 1),
-                                                                       decoder_layer_shapes(hidden)))
+                                                                       decoder_layer_shapes(hidden, sees)))
         bounded = part.get("bounds", False)
         if not isinstance(bounded, bool):
             raise _corrupt(path, f"header entry residual.learned.bounds must be true or false, got {bounded!r}")

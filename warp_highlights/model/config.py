@@ -674,6 +674,22 @@ class ResidualSettings:
             of ``benchmarks/bench_motion.py`` on 16 lights (480x270) tied at 17.3-17.5 against 17.5-17.6 dB in three
             fits, where along the paths the field with its moving Gaussians had scored 31.89 dB and the
             learned residual alone 30.03; the dome sample's images alone lead by 8-12 dB.
+        learned_sees_gaussians: the learned check's model with the moving Gaussians is a decoder that sees them (their
+            luminance at the pixel among its inputs, ``model.residual.highlight_inputs``) and learns the images
+            themselves, trained at each light with the Gaussians moved there from the other lights (every light is
+            then checked by the move check, which draws them), and the learned check alone decides whether the field
+            keeps them (the move check's verdict weighs moving against blending the images, which such a decoder
+            does not do); off, it is a residual of the images less each light's
+            own Gaussians, with the moved ones added to it. Subtracting each light's own fit leaves a residual that
+            is jagged in the light direction and that a decoder cannot interpolate; a decoder that sees the moved
+            Gaussians learns how far to trust them (``benchmarks/bench_motion.py``, docs/method.md, The residual).
+        learned_seeing_margin_db: ``learned_tie_margin_db`` where the model with the Gaussians is a decoder that sees
+            them (``learned_sees_gaussians``): both it and the images alone learn the images, so a tie tells nothing
+            of the Gaussians, and the images alone keep the field unless it scores at least as high. 0: on the tiled
+            teapot of ``benchmarks/bench_motion.py`` (16 lights, 2-core CPU) the decoder that sees them scored 27.00
+            against 27.19 dB at the check's 3 lights, was kept under a 0.5 dB margin, and scored 31.63 dB along the
+            paths against the images alone's 32.48; the sharp and the bumpy donut led at the check (28.21 against
+            27.55, 24.33 against 24.01) and along the paths (32.88 against 31.42, 32.02 against 31.81).
         learned_bounds: keep a learned residual's relit values, per pixel and channel, within the range of what it
             learned at the captured lights (the images less their own highlights) widened on either side by the images'
             own range (``model.residual.learned_bounds``, stored in the field; the decoder's own values there would
@@ -745,6 +761,8 @@ class ResidualSettings:
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
     learned_tie_margin_db: float = 0.5
+    learned_sees_gaussians: bool = True
+    learned_seeing_margin_db: float = 0.0
     learned_bounds: bool = True
     interpolation: str = "triangle"
     interpolation_margin_db: float = 0.1
@@ -796,6 +814,8 @@ class ResidualSettings:
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
         _require(math.isfinite(self.learned_tie_margin_db) and self.learned_tie_margin_db >= 0,
                  f"learned_tie_margin_db must be >= 0, got {self.learned_tie_margin_db}")
+        _require(math.isfinite(self.learned_seeing_margin_db) and self.learned_seeing_margin_db >= 0,
+                 f"learned_seeing_margin_db must be >= 0, got {self.learned_seeing_margin_db}")
         _require(self.cpu_learned_epochs >= 0, f"cpu_learned_epochs must be >= 0, got {self.cpu_learned_epochs}")
 
 

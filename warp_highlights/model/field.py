@@ -323,8 +323,9 @@ class HighlightField:
                          f"blending {check['blend_psnr_db']:.2f} dB")
         learned = residual.get("learned_check") or {}
         if learned.get("lights"):
-            parts.append(f"learned check: with the Gaussians {learned['with_gaussians_psnr_db']:.2f} dB, the images "
-                         f"alone {learned['images_alone_psnr_db']:.2f} dB")
+            seeing = " as the decoder's inputs" if learned.get("sees_gaussians") else ""
+            parts.append(f"learned check: with the Gaussians{seeing} {learned['with_gaussians_psnr_db']:.2f} dB, the "
+                         f"images alone {learned['images_alone_psnr_db']:.2f} dB")
         return "".join(f"; {part}" for part in parts)
 
     def describe(self) -> str:

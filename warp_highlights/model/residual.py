@@ -37,9 +37,11 @@ import numpy as np
 from .errors import InputError, finite_array
 
 __all__ = ["COLOUR_STEP", "CompressedChunks", "FLOAT16_SAFE", "LUMINANCE_WEIGHTS", "LowRankStack", "NEURAL_CODE_SIZE",
-           "NEURAL_HIDDEN", "NEURAL_INPUTS", "NEURAL_LAYER_SHAPES", "NEURAL_MAX_HIDDEN", "NeuralResidual",
+           "NEURAL_HIDDEN", "NEURAL_HIGHLIGHT_INPUTS", "NEURAL_INPUTS", "NEURAL_LAYER_SHAPES", "NEURAL_MAX_HIDDEN",
+           "NeuralResidual",
            "ResidualModel", "code_levels", "colour_codes", "colour_from_codes", "decoder_layer_shapes",
-           "decoder_widths", "learned_bounds", "parse_hidden", "standard_decoder"]
+           "decoder_widths", "highlight_inputs", "learned_bounds", "parse_hidden", "sees_highlights",
+           "standard_decoder"]
 
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 """Rec. 709 / sRGB primaries, linear: luminance Y of an RGB value."""
@@ -192,14 +194,25 @@ NEURAL_CODE_SIZE = 9
 """Numbers per pixel of a learned residual (``kernels.neural.CODE_SIZE``)."""
 NEURAL_INPUTS = NEURAL_CODE_SIZE + 3
 """A decoder's inputs: the pixel's code and the unit light direction (x, y, z)."""
+NEURAL_HIGHLIGHT_INPUTS = 2
+"""Inputs a decoder that sees the highlights takes after the code and the direction: sqrt(g) and g, g the
+Gaussians' luminance at the pixel for that light, display units (``highlight_inputs``)."""
 NEURAL_HIDDEN = (48, 48, 48)
 """The hidden layers' widths of the decoder a fit learns (``kernels.neural``; NeuralRTI: three of 50)."""
 
 
-def decoder_layer_shapes(hidden) -> tuple:
+def highlight_inputs(luminance) -> np.ndarray:
+    """(..., 2) float32 (sqrt(g), g) of the Gaussians' luminance g (display units, negative values taken as 0): the
+    inputs a decoder that sees the highlights takes after the code and the direction."""
+    g = np.maximum(np.asarray(luminance, np.float32), np.float32(0.0))
+    return np.stack([np.sqrt(g), g], axis=-1)
+
+
+def decoder_layer_shapes(hidden, highlights: bool = False) -> tuple:
     """Shapes of the weight and bias arrays w0, b0, ..., of a decoder with ``hidden`` layer widths: each
-    hidden layer (width, inputs) and (width, 1), then the RGB output's (3, last width) and (3, 1)."""
-    widths = [NEURAL_INPUTS, *map(int, hidden), 3]
+    hidden layer (width, inputs) and (width, 1), then the RGB output's (3, last width) and (3, 1); ``highlights``:
+    the first layer also takes ``NEURAL_HIGHLIGHT_INPUTS``."""
+    widths = [NEURAL_INPUTS + (NEURAL_HIGHLIGHT_INPUTS if highlights else 0), *map(int, hidden), 3]
     return tuple(shape for inputs, outputs in zip(widths[:-1], widths[1:]) for shape in ((outputs, inputs),
                                                                                          (outputs, 1)))
 
@@ -229,6 +242,11 @@ def decoder_widths(weights) -> tuple[int, ...]:
     return tuple(int(np.shape(w)[0]) for w in list(weights)[0:-2:2])
 
 
+def sees_highlights(weights) -> bool:
+    """Whether a decoder's weight arrays (w0, b0, ...) take the highlights' inputs (``highlight_inputs``)."""
+    return int(np.shape(list(weights)[0])[1]) == NEURAL_INPUTS + NEURAL_HIGHLIGHT_INPUTS
+
+
 def standard_decoder(weights) -> tuple:
     """The eight float32 arrays (``NEURAL_LAYER_SHAPES``) of a decoder that computes exactly what ``weights``
     (1 to ``NEURAL_MAX_HIDDEN`` hidden layers no wider than ``NEURAL_HIDDEN``) computes, up to float32
@@ -238,7 +256,8 @@ def standard_decoder(weights) -> tuple:
     of (h + 1) is h + 1 itself."""
     weights = [np.asarray(w, np.float32) for w in weights]
     widths = decoder_widths(weights)
-    if len(widths) == NEURAL_MAX_HIDDEN and all(w.shape == s for w, s in zip(weights, NEURAL_LAYER_SHAPES)):
+    shapes = decoder_layer_shapes(NEURAL_HIDDEN, sees_highlights(weights))
+    if len(widths) == NEURAL_MAX_HIDDEN and all(w.shape == s for w, s in zip(weights, shapes)):
         return tuple(weights)
     layers = [[w, b.reshape(-1)] for w, b in zip(weights[0::2], weights[1::2])]
     last = len(widths)  # the output layer's index
@@ -250,7 +269,7 @@ def standard_decoder(weights) -> tuple:
         for k in range(last + 1, NEURAL_MAX_HIDDEN):
             layers[k][1] = np.zeros(widths[-1], np.float32)  # already shifted
     standard = []
-    for (w, b), (w_shape, b_shape) in zip(layers, zip(NEURAL_LAYER_SHAPES[0::2], NEURAL_LAYER_SHAPES[1::2])):
+    for (w, b), (w_shape, b_shape) in zip(layers, zip(shapes[0::2], shapes[1::2])):
         padded = np.zeros(w_shape, np.float32)
         padded[:w.shape[0], :w.shape[1]] = w
         bias = np.zeros(b_shape, np.float32)
@@ -265,7 +284,9 @@ def standard_decoder(weights) -> tuple:
 
 @dataclass(frozen=True, eq=False)
 class NeuralResidual:
-    """A learned residual: R(x, w) = unit * decode_display(MLP(code(x), w)), field units, RGB.
+    """A learned residual: R(x, w) = unit * decode_display(MLP(code(x), w)), field units, RGB; for a decoder that
+    sees the highlights, the whole image unit * decode_display(MLP(code(x), w, sqrt(g), g)), g the moved Gaussians'
+    luminance at x in display units (``highlight_inputs``).
 
     Attributes:
         codes: (H, W, 9) float16 per-pixel codes.
@@ -288,6 +309,12 @@ class NeuralResidual:
         """The decoder's hidden layers' widths (``NEURAL_HIDDEN`` for a fitted one)."""
         return decoder_widths(self.weights)
 
+    @property
+    def sees_highlights(self) -> bool:
+        """Whether the decoder also takes the Gaussians' luminance at the pixel (``highlight_inputs``): its output is
+        then the whole image, the Gaussians its inputs, not added to it."""
+        return sees_highlights(self.weights)
+
     def within_bounds(self, values: np.ndarray) -> np.ndarray:
         """(..., H, W, 3) residual values (field units) kept within ``bounds``; as they are without bounds."""
         if self.bounds is None:
@@ -309,7 +336,7 @@ class NeuralResidual:
             raise InputError(f"a learned residual's decoder has 1 to {NEURAL_MAX_HIDDEN} hidden layers: 4 to "
                              f"{2 * NEURAL_MAX_HIDDEN + 2} weight arrays, got {len(weights)}")
         widths = decoder_widths(weights)
-        expected = decoder_layer_shapes(widths)
+        expected = decoder_layer_shapes(widths, sees_highlights(weights))
         if (any(w.shape != shape for w, shape in zip(weights, expected))
                 or any(not 1 <= width <= limit for width, limit in zip(widths, NEURAL_HIDDEN))):
             raise InputError(f"learned residual weights must have shapes {list(expected)} with hidden layers of 1 to "
@@ -456,7 +483,8 @@ class ResidualModel:
             kind = f"{self.light_count} residual images (float16)"
         elif self.learned is not None:
             layers = "-".join(map(str, self.learned.hidden))
-            kind = f"learned ({NEURAL_CODE_SIZE} numbers per pixel and an MLP, hidden layers {layers})"
+            inputs = ", code, direction and the moved Gaussians in" if self.learned.sees_highlights else ""
+            kind = f"learned ({NEURAL_CODE_SIZE} numbers per pixel and an MLP, hidden layers {layers}{inputs})"
         else:
             chroma = f" + chroma rank {self.chroma.rank}" if self.chroma is not None else ""
             kind = f"low rank: luminance rank {self.luminance.rank}{chroma} ({self.luminance.bits}-bit bases)"

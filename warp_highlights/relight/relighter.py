@@ -192,6 +192,7 @@ class Relighter:
         self._least_sigma = (raster or settings.raster).upsampled_min_sigma_px / field.height
         self.straight_below = float(settings.paths.straight_below)
         threads = 1 if self.device.is_cuda else core_count()  # a CPU launch runs on one thread: large images split
+        self._source_raster = None  # the field's size, for a decoder that sees the Gaussians of a larger output
         self.raster = Rasterizer(self.height, self.width, settings=raster or settings.raster, device=self.device,
                                  threads=threads)
         self.diffuse, self._residual_images = _diffuse_mode(field, diffuse)
@@ -421,13 +422,32 @@ class Relighter:
                     buffers.decoded = wp.empty((buffers.count, self._learned.pixels, 3), dtype=wp.float16,
                                                device=self.device)
                 # at the direction as located: clamped to a dome's rim
-                self._learned.decode(buffers.located, buffers.decoded)
+                seen = self._seen_highlights(buffers, raster) if self._learned.sees_highlights else None
+                self._learned.decode(buffers.located, buffers.decoded, seen)
                 if self._learned_bounds is not None:
                     wp.launch(bound_decoded, dim=buffers.decoded.shape[:2], inputs=[self._learned_bounds],
                               outputs=[buffers.decoded], device=self.device)
                 images = buffers.decoded
-            self._compose(buffers, buffers.specular, add_specular=True, mode=self.diffuse, images=images)
+            # a decoder that sees the Gaussians gives the whole image: they are its inputs, not added to it
+            sees = self._learned is not None and self._learned.sees_highlights
+            self._compose(buffers, buffers.specular, add_specular=not sees, mode=self.diffuse, images=images)
         return buffers
+
+    def _seen_highlights(self, buffers: _DeviceQueries, raster: Rasterizer) -> wp.array:
+        """(Q, pixels) the moved Gaussians' luminance (field units) at the field's size, where the learned residual
+        is decoded: the output's render, or for a larger output one more render at the field's size."""
+        pixels = self.source_width * self.source_height
+        if not self.upsampled:
+            return buffers.specular.reshape((buffers.count, pixels))
+        if buffers.source_specular is None:
+            buffers.source_specular = wp.empty((buffers.count, pixels), dtype=float, device=self.device)
+        if self._source_raster is None:
+            self._source_raster = Rasterizer(self.source_height, self.source_width, settings=raster.settings,
+                                             device=self.device, threads=1 if self.device.is_cuda else core_count())
+        self._source_raster.render(buffers.sets,
+                                   out=buffers.source_specular.reshape((buffers.count, self.source_height,
+                                                                        self.source_width)))
+        return buffers.source_specular
 
     def _locate(self, buffers: _DeviceQueries) -> None:
         wp.launch(kernels.deepest_faces, dim=buffers.depths.shape, inputs=[buffers.directions, self._edge_normals],

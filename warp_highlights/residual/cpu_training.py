@@ -15,14 +15,22 @@ import time
 import numpy as np
 
 from ..kernels.neural import NeuralDecoder, initial_model, used_lights
-from ..model.residual import NEURAL_CODE_SIZE, NEURAL_LAYER_SHAPES, decoder_widths
+from ..model.residual import (
+    NEURAL_CODE_SIZE,
+    NEURAL_HIGHLIGHT_INPUTS,
+    NEURAL_LAYER_SHAPES,
+    decoder_widths,
+    sees_highlights,
+)
 from ..model.threads import blas_on_one_thread, parallel_map
 
-__all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "decode_cpu", "train_decoder_cpu", "training_rate"]
+__all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "decode_cpu", "seeing_model", "train_decoder_cpu",
+           "training_rate"]
 
 CODE = NEURAL_CODE_SIZE
 HIDDEN = NEURAL_LAYER_SHAPES[0][0]
 INPUTS = NEURAL_LAYER_SHAPES[0][1]  # code + light direction
+SEEING_INPUTS = INPUTS + NEURAL_HIGHLIGHT_INPUTS  # and the highlights' (sqrt(g), g)
 BATCH_CPU = 1 << 12
 """Samples per Adam step of ``train_decoder_cpu``: on 2 cores, 180 s of the images learned alone gave the statue
 34.5 dB at 2,048 and 4,096 and 33.3 at 8,192 (fewer steps), the dome 48.7 dB at 2,048 and 4,096; 4,096 trains
@@ -36,11 +44,13 @@ _BETA1, _BETA2, _EPS = 0.9, 0.999, 1e-8  # warp.optim.Adam's defaults, as kernel
 
 class _Parameters:
     """Codes and weights as views into one flat float32 vector (and its gradient's), so that one Adam
-    step is a few passes over the vector. The first layer is held as (HIDDEN, INPUTS + 1): w0 | b0."""
+    step is a few passes over the vector. The first layer is held as (HIDDEN, inputs + 1): w0 | b0, inputs 12 or,
+    where it sees the highlights, 14."""
 
     def __init__(self, model: NeuralDecoder):
         pixels = len(model.codes)
         w0, b0, w1, b1, w2, b2, w3, b3 = (np.asarray(w, np.float32) for w in model.weights)
+        self.inputs = w0.shape[1]
         parts = [np.asarray(model.codes, np.float32), np.concatenate([w0, b0], axis=1), w1, b1.reshape(-1), w2,
                  b2.reshape(-1), w3, b3.reshape(-1)]
         sizes = [p.size for p in parts]
@@ -57,7 +67,7 @@ class _Parameters:
 
     def model(self) -> NeuralDecoder:
         """The current codes and the eight weight arrays (copies)."""
-        return NeuralDecoder(self.codes.copy(), [self.w0[:, :INPUTS].copy(), self.w0[:, INPUTS:].copy(),
+        return NeuralDecoder(self.codes.copy(), [self.w0[:, :self.inputs].copy(), self.w0[:, self.inputs:].copy(),
                                                  self.w1.copy(), self.b1.reshape(-1, 1).copy(), self.w2.copy(),
                                                  self.b2.reshape(-1, 1).copy(), self.w3.copy(),
                                                  self.b3.reshape(-1, 1).copy()])
@@ -111,10 +121,12 @@ class _Worker:
     """One thread's share of a batch: buffers for ``size`` samples (rows), its forward and backward pass, and
     its own gradient of the weights (a flat vector laid out as ``_Parameters.grad`` past the codes)."""
 
-    def __init__(self, size: int, pixels: int, weight_count: int):
+    def __init__(self, size: int, pixels: int, weight_count: int, inputs: int = INPUTS):
         f = np.float32
-        self.x = np.empty((size, INPUTS + 1), f)
-        self.x[:, INPUTS] = 1.0  # the first layer's bias
+        self.inputs = inputs
+        self.x = np.empty((size, inputs + 1), f)
+        self.x[:, inputs] = 1.0  # the first layer's bias
+        self.g = np.empty(size, f) if inputs > INPUTS else None
         self.z = np.empty((size, HIDDEN), f)
         self.h = [np.empty((size, HIDDEN), f) for _ in range(3)]
         self.grad = np.empty((size, HIDDEN), f)
@@ -130,10 +142,11 @@ class _Worker:
         self.weight_grad = np.zeros(weight_count, f)
 
     def run(self, samples: np.ndarray, scale: float, p: _Parameters, lights: np.ndarray, targets: np.ndarray,
-            code_grad: np.ndarray, slots: np.ndarray) -> float:
+            code_grad: np.ndarray, slots: np.ndarray, highlights: np.ndarray | None = None) -> float:
         """Squared error summed over RGB and the samples = light * pixels + pixel; the gradient of ``scale``
         times it: the weights' into ``weight_grad``, each sample's code row into ``code_grad`` and its
-        place in the flat codes (pixel * CODE + k) into ``slots``."""
+        place in the flat codes (pixel * CODE + k) into ``slots``. ``highlights``: (n * pixels,) the Gaussians'
+        luminance of each sample (display units), for a decoder that sees them."""
         n = len(samples)
         x, z, zeros = self.x[:n], self.z[:n], self.zeros[:n]
         h, e = [a[:n] for a in self.h], [a[:n] for a in self.e]
@@ -141,6 +154,11 @@ class _Worker:
         np.divmod(samples, self.pixels, out=(light, pixel))
         np.take(p.codes, pixel, axis=0, out=x[:, :CODE], mode="clip")
         np.take(lights, light, axis=0, out=x[:, CODE:INPUTS], mode="clip")
+        if self.g is not None:  # sqrt(g), g of each sample
+            g = self.g[:n]
+            np.take(highlights, samples, out=g, mode="clip")
+            np.maximum(g, np.float32(0.0), out=x[:, INPUTS + 1])
+            np.sqrt(x[:, INPUTS + 1], out=x[:, INPUTS])
         np.take(targets, samples, axis=0, out=self.target[:n], mode="clip")
         # forward
         np.matmul(x, p.w0.T, out=z)
@@ -192,23 +210,24 @@ class _Batch:
     """A step's forward and backward pass over a batch of at most ``size`` samples, its rows split among
     ``threads`` workers; the gradient lands in ``_Parameters.grad`` (every entry)."""
 
-    def __init__(self, size: int, pixels: int, weight_count: int, threads: int = 1):
+    def __init__(self, size: int, pixels: int, weight_count: int, threads: int = 1, inputs: int = INPUTS):
         self.threads = max(1, min(int(threads), size))
         share = -(-size // self.threads)
-        self.workers = [_Worker(share, pixels, weight_count) for _ in range(self.threads)]
+        self.workers = [_Worker(share, pixels, weight_count, inputs) for _ in range(self.threads)]
         self.code_grad = np.empty((size, CODE), np.float32)
         self.slots = np.empty((size, CODE), np.int64)
 
-    def step(self, samples: np.ndarray, p: _Parameters, lights: np.ndarray, targets: np.ndarray) -> float:
+    def step(self, samples: np.ndarray, p: _Parameters, lights: np.ndarray, targets: np.ndarray,
+             highlights: np.ndarray | None = None) -> float:
         """Loss (mean over the samples of the squared error summed over RGB) of samples = light * pixels +
-        pixel, and its gradient."""
+        pixel, and its gradient; ``highlights`` as ``_Worker.run`` takes them."""
         n = len(samples)
         bounds = np.linspace(0, n, min(self.threads, n) + 1).astype(np.int64)
 
         def part(i: int) -> float:
             a, b = bounds[i], bounds[i + 1]
             return self.workers[i].run(samples[a:b], 1.0 / n, p, lights, targets, self.code_grad[a:b],
-                                       self.slots[a:b])
+                                       self.slots[a:b], highlights)
 
         squared = sum(parallel_map(part, range(len(bounds) - 1)))
         weights = p.grad[p.codes.size :]
@@ -224,14 +243,17 @@ class _Batch:
 def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, epochs: int = 40,
                       batch: int = BATCH_CPU, lr: float = 3e-3, final_lr: float = 3e-4, seed: int = 0,
                       seconds: float | None = None, log=None, used: np.ndarray | None = None,
-                      initial: NeuralDecoder | None = None) -> tuple[NeuralDecoder, list[float]]:
+                      initial: NeuralDecoder | None = None,
+                      highlights: np.ndarray | None = None) -> tuple[NeuralDecoder, list[float]]:
     """``kernels.neural_training.train_decoder`` on the CPU in NumPy: fit codes and weights to (n, P, 3) display-unit
     targets at (n, 3) lights by Adam on the mean squared error over shuffled (light, pixel) samples, ``batch``
     a step, the learning rate decaying geometrically from ``lr`` to ``final_lr`` over ``epochs`` (or until
     ``seconds`` have passed since the first step). ``used``: the lights to learn from (default all; the
     others' targets are never read); ``initial``: a model to go on training (default ``initial_model`` of
-    the used lights' targets); ``device``: None or the CPU (as ``train_decoder`` takes it). Returns the model and
-    the mean loss of each epoch."""
+    the used lights' targets); ``device``: None or the CPU (as ``train_decoder`` takes it); ``highlights``: (n, P)
+    the Gaussians' luminance at each light and pixel (display units): the decoder sees them (``highlight_inputs``; an
+    initial decoder that does not is given zero weights for them). Returns the model and the mean loss of each
+    epoch."""
     if device is not None and str(device) != "cpu":
         raise ValueError(f"train_decoder_cpu trains on the CPU, not on {device}")
     targets = np.ascontiguousarray(targets, np.float32)
@@ -240,6 +262,12 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
     model = initial_model(targets[used], seed=seed) if initial is None else initial
     if model.codes.shape != (pixels, CODE):
         raise ValueError(f"initial codes {model.codes.shape} do not match {pixels} pixels")
+    flat_highlights = None
+    if highlights is not None:
+        flat_highlights = np.ascontiguousarray(np.asarray(highlights, np.float32).reshape(n * pixels))
+        model = seeing_model(model)
+    elif sees_highlights(model.weights):
+        raise ValueError("a decoder that sees the highlights trains with them: pass highlights")
     lights = np.ascontiguousarray(np.asarray(lights, np.float32).reshape(n, 3))
     flat_targets = targets.reshape(n * pixels, 3)
     total = len(used) * pixels
@@ -249,7 +277,8 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
     started = None
     with blas_on_one_thread() as threads:
         adam = _Adam(params.flat.size, threads)
-        buffers = _Batch(min(int(batch), total), pixels, params.flat.size - params.codes.size, threads)
+        buffers = _Batch(min(int(batch), total), pixels, params.flat.size - params.codes.size, threads,
+                         params.inputs)
         for epoch in range(epochs):
             rate = lr * (final_lr / lr) ** (epoch / max(epochs - 1, 1))
             shuffled = rng.permutation(total)
@@ -257,7 +286,8 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
                 shuffled = used[shuffled // pixels] * pixels + shuffled % pixels
             epoch_loss = 0.0
             for start in range(0, total, batch):
-                epoch_loss += buffers.step(shuffled[start : start + batch], params, lights, flat_targets)
+                epoch_loss += buffers.step(shuffled[start : start + batch], params, lights, flat_targets,
+                                           flat_highlights)
                 adam.step(params.flat, params.grad, rate)
                 if started is None:
                     started = time.perf_counter()
@@ -268,6 +298,16 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
             if seconds is not None and time.perf_counter() - started > seconds:
                 break
     return params.model(), history
+
+
+def seeing_model(model: NeuralDecoder) -> NeuralDecoder:
+    """``model`` as a decoder that sees the highlights: its first layer given zero weights for their inputs where it
+    has none (it computes what it did while they are 0)."""
+    if sees_highlights(model.weights):
+        return model
+    w0 = np.asarray(model.weights[0], np.float32)
+    padded = np.concatenate([w0, np.zeros((len(w0), NEURAL_HIGHLIGHT_INPUTS), np.float32)], axis=1)
+    return NeuralDecoder(model.codes, [padded, *model.weights[1:]])
 
 
 def training_rate(steps: int = 32, batch: int = BATCH_CPU, pixels: int = 1 << 14) -> float:
@@ -310,7 +350,9 @@ class CpuDecoder:
         self.widths = decoder_widths(weights)
         w0, b0 = weights[0], weights[1]
         self.code_weights = np.ascontiguousarray(w0[:, :CODE].T)
-        self.light_weights, self.b0 = w0[:, CODE:].T.astype(np.float32), b0.reshape(-1)
+        self.light_weights, self.b0 = w0[:, CODE:INPUTS].T.astype(np.float32), b0.reshape(-1)
+        # (2, first width): the weights of sqrt(g) and g, for a decoder that sees the highlights
+        self.highlight_weights = np.ascontiguousarray(w0[:, INPUTS:].T) if sees_highlights(weights) else None
         # the hidden layers after the first, then the output layer
         self.layers = [(np.ascontiguousarray(w.T), b.reshape(-1)) for w, b in zip(weights[2::2], weights[3::2])]
         self.code_part = None
@@ -318,11 +360,23 @@ class CpuDecoder:
             with blas_on_one_thread():
                 self.code_part = self.codes @ self.code_weights
 
-    def decode(self, directions: np.ndarray, out: np.ndarray | None = None, unit: float | None = None) -> np.ndarray:
+    @property
+    def sees_highlights(self) -> bool:
+        """Whether the decoder takes the Gaussians' luminance at each pixel (``decode``'s ``highlights``)."""
+        return self.highlight_weights is not None
+
+    def decode(self, directions: np.ndarray, out: np.ndarray | None = None, unit: float | None = None,
+               highlights: np.ndarray | None = None, highlight_scale: float = 1.0) -> np.ndarray:
         """(Q, 3) unit directions -> (Q, P, 3) float32 display units, or with ``unit`` (field units per display
-        unit) float16 field units as ``kernels.neural.store_decoded`` stores them; into ``out`` when given."""
+        unit) float16 field units as ``kernels.neural.store_decoded`` stores them; into ``out`` when given.
+        ``highlights``: (Q, P) the Gaussians' luminance at each query and pixel, times ``highlight_scale`` in display
+        units: required by a decoder that sees them, refused by one that does not."""
         directions = np.asarray(directions, np.float32).reshape(-1, 3)
         pixels = len(self.codes)
+        if (highlights is None) == self.sees_highlights:
+            raise ValueError("a decoder that sees the highlights decodes with them, and only such a decoder does")
+        if highlights is not None:
+            highlights = np.asarray(highlights, np.float32).reshape(len(directions), pixels)
         if out is None:
             out = np.empty((len(directions), pixels, 3), np.float32 if unit is None else np.float16)
         if out.shape != (len(directions), pixels, 3):
@@ -332,12 +386,16 @@ class CpuDecoder:
         chunks = [slice(start, min(start + size, pixels)) for start in range(0, pixels, size)]
         with blas_on_one_thread() as threads:
             groups = [chunks[i::threads] for i in range(min(threads, len(chunks)))]
-            parallel_map(lambda group: self._decode_chunks(group, size, light_part, out, unit), groups)
+            parallel_map(lambda group: self._decode_chunks(group, size, light_part, out, unit, highlights,
+                                                           np.float32(highlight_scale)), groups)
         return out
 
     def _decode_chunks(self, chunks: list[slice], size: int, light_part: np.ndarray, out: np.ndarray,
-                       unit: float | None) -> None:
+                       unit: float | None, highlights: np.ndarray | None = None,
+                       highlight_scale: np.float32 = np.float32(1.0)) -> None:
         f = np.float32
+        if highlights is not None:  # g, sqrt(g) and one of their products with the first layer's weights
+            g, root, term = np.empty(size, f), np.empty(size, f), np.empty((size, self.widths[0]), f)
         # per hidden layer: its pre-activation, elu's kept exponent, its values, zeros
         buffers = [tuple(np.empty((size, width), f) for _ in range(3)) + (np.zeros((size, width), f),)
                    for width in self.widths]
@@ -357,6 +415,13 @@ class CpuDecoder:
             for q in range(len(light_part)):
                 z, slope, h, zeros = (buffer[:k] for buffer in buffers[0])
                 np.add(codes, light_part[q], out=z)
+                if highlights is not None:
+                    np.multiply(highlights[q, rows], highlight_scale, out=g[:k])
+                    np.maximum(g[:k], f(0.0), out=g[:k])
+                    np.sqrt(g[:k], out=root[:k])
+                    for column, weights in zip((root[:k], g[:k]), self.highlight_weights):
+                        np.multiply(column[:, None], weights, out=term[:k])
+                        z += term[:k]
                 _elu(z, h, slope, zeros)
                 for (w, _), b, layer in zip(self.layers[:-1], biases, buffers[1:]):
                     z, slope, following, zeros = (buffer[:k] for buffer in layer)
@@ -404,9 +469,17 @@ class CpuQueryDecoder:
         self.pixels = len(self.decoder.codes)
         self.unit = float(unit)
 
-    def decode(self, directions, out) -> None:
-        """(Q,) vec3 unit directions -> out (Q, P, 3) float16, field units (Warp CPU arrays or NumPy arrays)."""
-        self.decoder.decode(_host(directions), out=_host(out), unit=self.unit)
+    @property
+    def sees_highlights(self) -> bool:
+        """Whether ``decode`` takes the Gaussians' luminance (``CpuDecoder.sees_highlights``)."""
+        return self.decoder.sees_highlights
+
+    def decode(self, directions, out, highlights=None) -> None:
+        """(Q,) vec3 unit directions -> out (Q, P, 3) float16, field units (Warp CPU arrays or NumPy arrays);
+        ``highlights``: (Q, P) the Gaussians' luminance in field units, for a decoder that sees them."""
+        self.decoder.decode(_host(directions), out=_host(out), unit=self.unit,
+                            highlights=None if highlights is None else _host(highlights),
+                            highlight_scale=1.0 / self.unit)
 
 
 def _host(array) -> np.ndarray:
@@ -414,7 +487,8 @@ def _host(array) -> np.ndarray:
     return array if isinstance(array, np.ndarray) else array.numpy()
 
 
-def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray) -> np.ndarray:
+def decode_cpu(codes: np.ndarray, weights, directions: np.ndarray, highlights: np.ndarray | None = None) -> np.ndarray:
     """(Q, P, 3) float32 display-unit values of a learned residual with (P, CODE) codes and its decoder's weight
-    arrays at (Q, 3) unit directions (``CpuDecoder``)."""
-    return CpuDecoder(codes, weights).decode(directions)
+    arrays at (Q, 3) unit directions (``CpuDecoder``); ``highlights``: (Q, P) display units, for a decoder that sees
+    them."""
+    return CpuDecoder(codes, weights).decode(directions, highlights=highlights)

@@ -143,16 +143,24 @@ def light_images(residual: ResidualModel, weights: np.ndarray) -> np.ndarray:
     return from_opponent(y, chroma)
 
 
-def learned_images(learned: NeuralResidual, directions) -> np.ndarray:
+def learned_images(learned: NeuralResidual, directions, highlights: np.ndarray | None = None) -> np.ndarray:
     """(Q, H, W, 3) float64 residuals at (Q, 3) unit directions (the float64 reference of the relighter's decode),
-    for a decoder of any shape, kept within the residual's bounds where it has them."""
+    for a decoder of any shape, kept within the residual's bounds where it has them; ``highlights``: (Q, H, W) the
+    Gaussians' luminance there (field units), for a decoder that sees them (its values are then the whole image)."""
+    if (highlights is None) == learned.sees_highlights:
+        raise InputError("a learned residual that sees the highlights decodes with them, and only such a one does")
     weights = [w.astype(np.float64) for w in learned.weights]
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(-1, NEURAL_CODE_SIZE).astype(np.float64)
     elu = lambda v: np.where(v > 0, v, np.expm1(np.minimum(v, 0.0)))
     out = []
-    for direction in np.asarray(directions, dtype=np.float64).reshape(-1, 3):
-        h = np.concatenate([codes, np.broadcast_to(direction, (len(codes), 3))], axis=1).T
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    for q, direction in enumerate(directions):
+        columns = [codes, np.broadcast_to(direction, (len(codes), 3))]
+        if highlights is not None:
+            g = np.maximum(np.asarray(highlights[q], np.float64).reshape(-1) / learned.unit, 0.0)
+            columns += [np.sqrt(g)[:, None], g[:, None]]
+        h = np.concatenate(columns, axis=1).T
         for w, b in zip(weights[0:-2:2], weights[1:-2:2]):
             h = elu(w @ h + b)
         y = weights[-2] @ h + weights[-1]

@@ -48,7 +48,8 @@ _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000
 def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray, *,
                    factor: float,
                    settings: ResidualSettings, device, log=None, progress=None, used: np.ndarray | None = None,
-                   initial: NeuralResidual | None = None, tune: bool = False) -> tuple[ResidualModel, list[float]]:
+                   initial: NeuralResidual | None = None, tune: bool = False,
+                   highlights: np.ndarray | None = None) -> tuple[ResidualModel, list[float]]:
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
@@ -57,16 +58,27 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     learned alone) and ``LEARNED_RESIDUAL_RATE`` where highlights were taken out; ``progress(1)`` after
     each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
     go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
-    rate (the learned check's winner learning the lights it left out). Returns it and the loss per epoch."""
-    targets = _targets(images, own, colour, factor)
+    rate (the learned check's winner learning the lights it left out). ``highlights``: (n, H, W) the Gaussians'
+    luminance at each light (field units, each light's moved from the others: ``MoveCheck.moved_luminance``): the
+    decoder sees them and learns the images themselves (``own`` is not taken out). Returns it and the loss per
+    epoch."""
+    sees = highlights is not None
+    targets = _targets(images, np.zeros_like(own) if sees else own, None if sees else colour, factor)
     n, height, width, _ = np.shape(images)
     start = None if initial is None else [NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
-    alone = not np.any(own)  # no highlight kept: the images themselves
+    alone = sees or not np.any(own)  # no highlight taken out: the images themselves
     rate = learned_rate(settings, wp.get_device(device).is_cuda) if alone else LEARNED_RESIDUAL_RATE
     models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
-                             used=used, initial=start, tune=tune, rate=rate)
+                             used=used, initial=start, tune=tune, rate=rate,
+                             inputs=[_display_inputs(highlights, factor) if sees else None])
     return _residual_model(models[0], height, width, factor, n, colour), history[0]
+
+
+def _display_inputs(highlights: np.ndarray, factor: float) -> np.ndarray:
+    """(n, H W) float32 the Gaussians' luminance of (n, H, W) ``highlights`` (field units) in display units."""
+    n = len(highlights)
+    return np.ascontiguousarray(np.asarray(highlights, np.float32).reshape(n, -1) * np.float32(1.0 / factor))
 
 
 def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
@@ -97,14 +109,18 @@ def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float
 def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: ResidualSettings, device, log=None,
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None, settle_used=None,
-           rate: float | tuple = LEARNED_RESIDUAL_RATE) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           rate: float | tuple = LEARNED_RESIDUAL_RATE,
+           inputs: list | None = None) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after the other
     on the CPU, the learning rate from ``rate`` (one for every model, or one each; ``LEARNED_FINAL_RATE`` where
     ``tune``); returns them and each one's loss per epoch. ``settle(models)``, called after each
     ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
     ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
-    ``settle_used`` lights from then on (default ``used``)."""
+    ``settle_used`` lights from then on (default ``used``). ``inputs``: per model None or the (n, P) Gaussians'
+    luminance (display units) that it sees (one array for every model that sees them)."""
     device = wp.get_device(device)
+    inputs = [None] * len(targets) if inputs is None else list(inputs)
+    seen = next((g for g in inputs if g is not None), None)
     learning = [len(targets) if device.is_cuda else 1]  # models that advance the bar an epoch
 
     def say(message: str) -> None:  # once an epoch, for every model learning
@@ -130,14 +146,16 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
 
         models, history = train_decoders(np.stack(targets), directions, initial=initial,
                                          settle=None if settle is None else settled, settle_epoch=epoch,
-                                         settle_used=settle_used, **options)
+                                         settle_used=settle_used, highlights=seen,
+                                         sees=[g is not None for g in inputs], **options)
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
     if settle is None or len(targets) < 2 or epoch >= rates["epochs"]:
         trained = [train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
+                                     highlights=inputs[m],
                                      **{**options, "lr": options["lr"][m], "seconds": seconds / len(targets)})
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
-    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used)
+    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used, inputs)
 
 
 def learned_batch(settings: ResidualSettings, on_cuda: bool, samples: int) -> int:
@@ -179,7 +197,7 @@ def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = Fals
 
 
 def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_epoch: int, settle,
-                           settle_used=None):
+                           settle_used=None, inputs=None):
     """The learned check's models on the CPU, one after the other in two parts: each its first ``settle_epoch``
     epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both).
     The second part goes on from the first's models with each model's schedule of learning rates (``options["lr"]``:
@@ -197,7 +215,7 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
         first = dict(options, epochs=settle_epoch, lr=options["lr"][m], final_lr=rate_at(m, settle_epoch - 1),
                      seconds=share * settle_epoch)
         model, history = train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
-                                           **first)
+                                           highlights=None if inputs is None else inputs[m], **first)
         models.append(model)
         histories.append(history)
     kept = settle(models)
@@ -208,6 +226,7 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
         rest["used"] = settle_used
     for m in going_on:
         models[m], history = train_decoder_cpu(targets[m], directions, initial=models[m],
+                                               highlights=None if inputs is None else inputs[m],
                                                **{**rest, "lr": rate_at(m, settle_epoch)})
         histories[m] = histories[m] + history
     return models, histories
@@ -215,13 +234,14 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
 
 @dataclass(frozen=True)
 class LearnedCheck:
-    """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the learned
-    residual plus the moved highlights (``with_gaussians``) and of the images learned alone, and the
-    winner's model; ``settled_epoch``: the epoch after which the loser stopped learning, its order settled
-    (None: both learned to the end, without those lights), and the scores are those of that epoch;
-    ``learned_every_light``: the winner learned from every light after it (the check's lights too), so it
-    needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
-    and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``)."""
+    """What ``check_learned`` measured at its left-out lights (m,): 8-bit sRGB PSNR (dB) of the model with the
+    moved highlights (``with_gaussians``: a decoder that sees them, or a learned residual they are added to) and of
+    the images learned alone, and the winner's model; ``settled_epoch``: the epoch after which the loser stopped
+    learning, its order settled (None: both learned to the end, without those lights), and the scores are those of
+    that epoch; ``learned_every_light``: the winner learned from every light after it (the check's lights too), so
+    it needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
+    and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``, or ``learned_seeing_margin_db``);
+    ``sees_gaussians``: the model with the Gaussians was a decoder that sees them (``check_learned``'s ``seen``)."""
 
     lights: np.ndarray
     with_gaussians: np.ndarray
@@ -231,6 +251,7 @@ class LearnedCheck:
     learned_every_light: bool = False
     history: tuple = ()
     tie_margin_db: float = 0.0
+    sees_gaussians: bool = False
 
     @property
     def keeps_gaussians(self) -> bool:
@@ -247,13 +268,13 @@ class LearnedCheck:
             scores = {"with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
                       "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3)}
         return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians,
-                "settled_epoch": self.settled_epoch}
+                "sees_gaussians": self.sees_gaussians, "settled_epoch": self.settled_epoch}
 
 
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
                   lights: np.ndarray,
                   highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device,
-                  progress=None) -> LearnedCheck:
+                  progress=None, seen: np.ndarray | None = None) -> LearnedCheck:
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
@@ -263,24 +284,36 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     until their order has settled (a gap of ``learned_settle_margin_db`` or more, asked after each
     ``learned_settle_fraction`` of the epochs on CUDA, after the first on the CPU; else both to the end), as it
     changes with training (a short run favours the residual, whose Gaussians carry the highlights from the start).
-    ``progress(1)`` after each epoch."""
+    ``progress(1)`` after each epoch.
+
+    ``seen``: (n, H, W) every light's Gaussians moved there from the other lights (field units, untinted:
+    ``MoveCheck.moved_luminance``). Given, the first model is a decoder that sees the Gaussians (their luminance is
+    among its inputs) and learns the images themselves, as the second does: trained with ``seen`` at its lights and
+    scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not used)."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
         return LearnedCheck(lights, np.zeros(0), np.zeros(0))
-    tie = settings.learned_tie_margin_db
+    # a decoder that sees the Gaussians learns the images as the other does: no lead is granted to it
+    tie = settings.learned_seeing_margin_db if seen is not None else settings.learned_tie_margin_db
     used = np.setdiff1d(np.arange(len(images)), lights)
     scale = np.float32(1.0 / factor)
     truth = np.asarray(images[lights], np.float32) * scale
     n, height, width, _ = np.shape(images)
-    targets = [_targets(images, own, colour, factor), _targets(images, np.zeros_like(own), None, factor)]
-    tints, added = (colour, None), (highlights, np.zeros_like(highlights))
+    alone = _targets(images, np.zeros_like(own), None, factor)
+    sees = seen is not None
+    targets = [alone if sees else _targets(images, own, colour, factor), alone]
+    inputs = [_display_inputs(seen, factor) if sees else None, None]
+    tints = (colour, None)
+    added = (np.zeros_like(highlights) if sees else highlights, np.zeros_like(highlights))
+    checked = (np.asarray(seen[lights], np.float32) if sees else None, None)  # the Gaussians a decoder sees there
     settled_at = []
 
     def score(models) -> list[np.ndarray]:
         rows = []
-        for model, tint, extra in zip(models, tints, added):
+        for model, tint, extra, g in zip(models, tints, added, checked):
             residual = _residual_model(model, height, width, factor, n, tint)
-            predicted = np.maximum(_decoded(residual.learned, directions[lights], device) + extra, 0.0)  # as relit
+            decoded = _decoded(residual.learned, directions[lights], device, g)
+            predicted = np.maximum(decoded + extra, 0.0)  # as relit
             rows.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
         return rows
 
@@ -300,15 +333,17 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
     # each model from the first learning rate it would learn at in the field: the residual with its Gaussians
     # taken out at LEARNED_RESIDUAL_RATE, the images at ``learned_rate``
-    rates = (LEARNED_RESIDUAL_RATE, learned_rate(settings, wp.get_device(device).is_cuda))
+    images_rate = learned_rate(settings, wp.get_device(device).is_cuda)
+    rates = (images_rate if sees else LEARNED_RESIDUAL_RATE, images_rate)
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
-                                settle=settle, settle_used=np.arange(n), rate=rates)
+                                settle=settle, settle_used=np.arange(n), rate=rates, inputs=inputs)
     models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
     if settled_at:  # scored when the order settled, while the left-out lights were still left out
         epoch, first, second = settled_at[0]
-        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True, tie_margin_db=tie)
+        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True, tie_margin_db=tie,
+                             sees_gaussians=sees)
     else:
-        check = LearnedCheck(lights, *score(trained), tie_margin_db=tie)
+        check = LearnedCheck(lights, *score(trained), tie_margin_db=tie, sees_gaussians=sees)
     keeps = check.keeps_gaussians
     return dataclasses.replace(check, winner=models[0] if keeps else models[1],
                                history=tuple(histories[0 if keeps else 1]))
@@ -344,21 +379,26 @@ def bounded(residual: ResidualModel, images: np.ndarray, own: np.ndarray, colour
     return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=bounds))
 
 
-def _decoded_display(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
+def _decoded_display(learned: NeuralResidual, directions: np.ndarray, device,
+                     highlights: np.ndarray | None = None) -> np.ndarray:
     """(Q, H W, 3) float32 the learned residual's decoder outputs (signed sRGB display units) at (Q, 3) directions,
-    decoded on the device (NumPy on the CPU)."""
+    decoded on the device (NumPy on the CPU); ``highlights``: (Q, H, W) the Gaussians' luminance there (field units),
+    for a decoder that sees them."""
     device = wp.get_device(device)
     height, width, _ = learned.codes.shape
     codes = learned.codes.reshape(height * width, -1).astype(np.float32)
     directions = np.asarray(directions, np.float32)
+    inputs = None if highlights is None else _display_inputs(highlights, learned.unit)
     if device.is_cuda:
-        return decode(NeuralDecoder(codes, list(learned.standard_weights)), directions, device=device)
-    return decode_cpu(codes, learned.weights, directions)
+        return decode(NeuralDecoder(codes, list(learned.standard_weights)), directions, device=device,
+                      highlights=inputs)
+    return decode_cpu(codes, learned.weights, directions, inputs)
 
 
-def _decoded(learned: NeuralResidual, directions: np.ndarray, device) -> np.ndarray:
+def _decoded(learned: NeuralResidual, directions: np.ndarray, device,
+             highlights: np.ndarray | None = None) -> np.ndarray:
     """(Q, H, W, 3) the learned residual (field units) at (Q, 3) directions, decoded on the device (NumPy on the
-    CPU)."""
+    CPU); ``highlights`` as ``_decoded_display`` takes them."""
     height, width, _ = learned.codes.shape
-    values = _decoded_display(learned, directions, device)
+    values = _decoded_display(learned, directions, device, highlights)
     return learned.unit * decode_display(values).reshape(len(values), height, width, 3)

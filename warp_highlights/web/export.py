@@ -24,11 +24,14 @@ from ..model.residual import (
 )
 from ..relight.relighter import face_edge_rows, rim_tables
 
-__all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays", "export_arrays",
-           "export_viewer", "single_file_page"]
+__all__ = ["MANIFEST", "MAX_PAGE_GAUSSIANS", "SEEING_WEB_FORMAT", "SINGLE_FILE_LIMIT", "WEB_FORMAT", "encoded_arrays",
+           "export_arrays", "export_viewer", "single_file_page"]
 
 WEB_FORMAT = 3
 """Version of the exported layout that viewer.js reads."""
+SEEING_WEB_FORMAT = 4
+"""Version of the layout of a field whose learned decoder sees the highlights (``residual.sees_highlights``: w0 of
+14 columns): version 3's, which a viewer that reads version 3 only refuses rather than draw it wrongly."""
 MANIFEST = "manifest.json"
 MAX_PAGE_GAUSSIANS = 512
 """Gaussians one query may draw: WebGL2 guarantees a 16 KiB uniform block, 32 bytes a Gaussian."""
@@ -91,8 +94,9 @@ def export_arrays(field) -> tuple[dict, dict[str, np.ndarray]]:
         kind, details = "images", {}
         arrays["images"] = np.ascontiguousarray(residual.images, dtype="<f2")  # (n, H, W, C)
     settings = field.fit_settings()
+    seeing = residual.learned is not None and residual.learned.sees_highlights
     manifest = {
-        "format": "warp-highlights web viewer", "version": WEB_FORMAT,
+        "format": "warp-highlights web viewer", "version": SEEING_WEB_FORMAT if seeing else WEB_FORMAT,
         "width": field.width, "height": field.height, "channels": channels, "lights": field.light_count,
         "faces": int(tri.face_count), "capacity": field.capacity, "max_gaussians": max(most, 1),
         "is_dome": rim is not None,
@@ -211,15 +215,17 @@ def _stack_arrays(name: str, stack, arrays: dict) -> dict:
 
 def _learned_arrays(learned, arrays: dict) -> dict:
     """Add a learned residual's codes, three to a texel (3, H, W, 3) float16, and its decoder's weight arrays, each
-    hidden layer padded with zero units to a multiple of 4 (the page's vec4s; the same values)."""
+    hidden layer padded with zero units to a multiple of 4 (the page's vec4s; the same values); w0 has 14 columns
+    where the decoder sees the highlights (``sees_highlights`` in the details), else 12."""
     height, width, _ = learned.codes.shape
     arrays["learned_codes"] = np.ascontiguousarray(learned.codes.reshape(height, width, NEURAL_CODE_SIZE // 3,
                                                                          3).transpose(2, 0, 1, 3), dtype="<f2")
     if learned.bounds is not None:  # (2, H, W, 3) float16: the lowest and the highest value a pixel takes
         arrays["learned_bounds"] = np.ascontiguousarray(learned.bounds, dtype="<f2")
     padded = [-(-w // 4) * 4 for w in learned.hidden]
-    for index, (weights, shape) in enumerate(zip(learned.weights, decoder_layer_shapes(padded))):
+    seeing = learned.sees_highlights
+    for index, (weights, shape) in enumerate(zip(learned.weights, decoder_layer_shapes(padded, seeing))):
         wide = np.zeros(shape, dtype="<f4")
         wide[:weights.shape[0], :weights.shape[1]] = weights
         arrays[f"learned_{'wb'[index % 2]}{index // 2}"] = wide
-    return {"unit": float(learned.unit), "hidden": padded}
+    return {"unit": float(learned.unit), "hidden": padded, **({"sees_highlights": True} if seeing else {})}

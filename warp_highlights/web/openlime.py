@@ -18,7 +18,9 @@ A field's learned residual goes to OpenLIME's neural layer (``type: 'neural'``, 
 its 9 codes a pixel, each quantised to 8 bits between its minimum and maximum, in ``plane_1.jpg`` ..
 ``plane_3.jpg``, and a decoder of OpenLIME's shape (the 9 codes and the light's x and y, two hidden ELU
 layers, sRGB out) distilled from the field's (``residual.distil.distil_display_decoder``) over the codes as
-the JPEGs give them back.
+the JPEGs give them back. A decoder that sees the highlights is distilled from the field's relit image, its teacher
+decoding with the moved Gaussians of each direction (``SEEING_NOTE``): OpenLIME's layer takes code and light only,
+so its highlights cross-fade between the lights rather than move.
 
 Coefficient planes are quantised as relight does: each plane between its 0.25% and 99.75% quantiles
 (``scale`` = high - low, ``bias`` = -low / scale; a byte b stands for (b / 255 - bias) scale), written as
@@ -37,9 +39,9 @@ from PIL import Image
 
 from ..model.errors import InputError
 
-__all__ = ["NEURAL_HIDDEN_OPENLIME", "NEURAL_SECONDS", "OPENLIME_MODELS", "RBF_PLANES", "export_openlime",
-           "export_openlime_coefficients", "export_openlime_neural", "openlime_coefficients", "openlime_weights",
-           "relight_openlime"]
+__all__ = ["NEURAL_HIDDEN_OPENLIME", "NEURAL_SECONDS", "OPENLIME_MODELS", "RBF_PLANES", "SEEING_NOTE",
+           "export_openlime", "export_openlime_coefficients", "export_openlime_neural", "openlime_coefficients",
+           "openlime_weights", "relight_openlime"]
 
 OPENLIME_MODELS = ("ptm", "hsh", "rbf")
 """The models of a capture ``export --format openlime --model`` writes (OpenLIME's RTI layer draws them); a field's
@@ -52,6 +54,10 @@ lost 5.2 dB and the statue's held-out lights 2.5 dB against the fields after 120
 NEURAL_SECONDS = 120.0
 """The neural layer's distillation time, seconds, unless told: ``DistilSettings.seconds``'s default (on 2 cores, 60
 epochs of the dome sample at 160 x 160). Longer comes closer to the field's images."""
+SEEING_NOTE = ("the field's decoder sees the highlights; OpenLIME's neural layer takes code and light only, so there "
+               "they cross-fade between the lights rather than move (they move in this project's own page: export "
+               "FIELD)")
+"""The line a neural export of a decoder that sees the highlights adds to its figures (``note``) and its log."""
 _PTM_TO_OPENLIME = (5, 3, 4, 0, 2, 1)  # a .ptm file's coefficients, picked in OpenLIME's order
 _UNBOUNDED_EPOCHS = 1_000_000  # the distillation's epochs when its time ends it
 _CODE_PLANES = 9  # OpenLIME's neural layer takes 9 codes a pixel, three a JPEG
@@ -122,7 +128,8 @@ def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, seco
     as ``plane_1.jpg`` .. ``plane_3.jpg`` and ``info.json`` with the distilled decoder (``hidden`` widths, padded
     to multiples of 4 with zero units), distilled for ``seconds`` (its learning rate falling over them), or as
     ``settings`` (a ``DistilSettings``) say. Returns the info.json object and the distillation's figures
-    (``residual.distil.distil_display_decoder``)."""
+    (``residual.distil.distil_display_decoder``; ``note``: ``SEEING_NOTE`` where the field's decoder sees the
+    highlights, its teacher then the field's relit image, which ``log`` is told too)."""
     from ..model.config import DistilSettings
     from ..residual.distil import distil_display_decoder
 
@@ -149,8 +156,14 @@ def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, seco
     stored = np.concatenate([np.asarray(Image.open(folder / f"plane_{k + 1}.jpg").convert("RGB"), np.float64)
                              for k in range(3)], axis=2) / 255.0 * (high - low) + low
     directions, faces = _upper_lights(field)
+    highlights = _moved_highlights(field) if learned.sees_highlights else None
     weights, figures = distil_display_decoder(learned, stored.astype(np.float32), hidden, directions, faces,
-                                              exposure=field.exposure, settings=settings, log=log, progress=progress)
+                                              exposure=field.exposure, settings=settings, log=log, progress=progress,
+                                              highlights=highlights)
+    if learned.sees_highlights:
+        figures["note"] = SEEING_NOTE
+        if log is not None:
+            log(SEEING_NOTE)
     samples = -(-max(int(w) for w in hidden) // 4) * 4
     padded_inputs = (_CODE_PLANES + 2 + 3) // 4 * 4  # the codes, x, y and a zero: 12
     layers, biases = [], []
@@ -170,6 +183,17 @@ def export_openlime_neural(field, folder, *, hidden=NEURAL_HIDDEN_OPENLIME, seco
             "min": [float(v) for v in low], "max": [float(v) for v in high], "weights": layers, "biases": biases}
     (folder / "info.json").write_text(json.dumps(info))
     return info, figures
+
+
+def _moved_highlights(field):
+    """(D, 3) directions -> (D, H, W) float32 the luminance of ``field``'s Gaussians moved to them (circular paths,
+    field units: the relighter's S', which a decoder that sees the highlights takes)."""
+    import dataclasses
+
+    from ..relight.relighter import Relighter
+
+    relighter = Relighter(dataclasses.replace(field, residual=None), diffuse="none")
+    return lambda directions: relighter.relight(np.asarray(directions, np.float64).reshape(-1, 3), full=False).specular
 
 
 def _upper_lights(field) -> tuple[np.ndarray, np.ndarray]:

@@ -2,11 +2,13 @@
 // The light is located and the Gaussians are moved on the CPU (float64); fragment shaders draw them and
 // add the residual: each captured light's residual decoded once into a float16 texture layer and
 // blended from the three corner lights (low-rank and uncompressed fields), or the learned residual's
-// decoder run per pixel at the located direction.
+// decoder run per pixel at the located direction (a decoder that sees the highlights takes the Gaussians'
+// luminance at the pixel as inputs and gives the whole image: the Gaussians are not added to it).
 // This file holds one thing: the page's relighting, as Relighter does it.
 
 const TYPES = { "<f8": Float64Array, "<f4": Float32Array, "<f2": Uint16Array, "<i4": Int32Array, "|u1": Uint8Array, "<u2": Uint16Array };
 export const FORMAT_VERSION = 3;
+const SEEING_FORMAT_VERSION = 4; // version 3's layout, a learned decoder that sees the highlights
 const DECODED_BYTES = 512 * 1024 * 1024; // largest decoded residual stack (as Relighter's DECODED_RESIDUAL_BYTES)
 const FLOAT16_SAFE = "6.0e4";
 
@@ -49,8 +51,9 @@ async function fromBase64(text) {
 }
 
 function checkManifest(manifest) {
-  if (manifest.format !== "warp-highlights web viewer" || manifest.version !== FORMAT_VERSION) {
-    throw new Error(`manifest.json is not a warp-highlights viewer of version ${FORMAT_VERSION}: export the field again with this version`);
+  const seeing = Boolean(manifest.residual && manifest.residual.sees_highlights);
+  if (manifest.format !== "warp-highlights web viewer" || manifest.version !== (seeing ? SEEING_FORMAT_VERSION : FORMAT_VERSION)) {
+    throw new Error(`manifest.json is not a warp-highlights viewer of version ${FORMAT_VERSION} or ${SEEING_FORMAT_VERSION}: export the field again with this version`);
   }
   return manifest;
 }
@@ -218,26 +221,31 @@ vec3 residual(ivec2 pixel) {
 }
 
 function decoderLayout(m) {
-  // the learned residual's decoder in vec4s: hidden widths (multiples of 4), and the Decoder block's offsets (in
-  // vec4s) of w0 (a row of 3 vec4s per unit: the 9 code inputs, then the direction's three, which the first bias
-  // takes in per frame), each hidden bias, the output layer's rows and bias, and the unit
+  // the learned residual's decoder in vec4s: hidden widths (multiples of 4), w0's columns (12, or 14 where it sees
+  // the highlights), and the Decoder block's offsets (in vec4s) of w0 (a row of 3 vec4s per unit: the 9 code inputs,
+  // then the direction's three, which the first bias takes in per frame), each hidden bias, the output layer's rows
+  // and bias, the unit, and where it sees the highlights the weights of sqrt(g) and of g (two vec4s per four units)
   const hidden = (m.residual && m.residual.hidden) || [48, 48, 48];
+  const seeing = Boolean(m.residual && m.residual.sees_highlights);
   const groups = hidden.map((w) => w / 4);
   const biases = [];
   let at = 3 * hidden[0];
   for (const g of groups) { biases.push(at); at += g; }
-  const out = at, outBias = out + 3 * groups[groups.length - 1], unit = outBias + 1;
-  return { hidden, groups, biases, out, outBias, unit, vec4s: unit + 1 };
+  const out = at, outBias = out + 3 * groups[groups.length - 1], unit = outBias + 1, highlights = unit + 1;
+  const vec4s = highlights + (seeing ? 2 * groups[0] : 0);
+  return { hidden, groups, biases, out, outBias, unit, seeing, columns: seeing ? 14 : 12, highlights, vec4s };
 }
 
 function learnedSource(m) {
-  // R(x, d) = unit * decode_display(MLP(z(x), d)), the direction folded into the first bias (PORTING.md 1.5c)
+  // R(x, d) = unit * decode_display(MLP(z(x), d)), the direction folded into the first bias (PORTING.md 1.5c); a
+  // decoder that sees the highlights also takes sqrt(g) and g, g = max(S, 0) / unit of the pixel's S (field units)
   const L = decoderLayout(m), G = L.groups, last = G.length - 1;
   const layer = (k, input, inGroups) => {
     const weights = k === 0 ? "decoder" : `w${k}`, bias = `decoder[${L.biases[k]} + r]`;
     const dots = (row) => Array.from({ length: inGroups }, (_, q) => `dot(${weights}[${row} * ${inGroups} + ${q}], ${input}[${q}])`).join(" + ");
+    const seen = k === 0 && L.seeing ? ` + decoder[${L.highlights} + 2 * r] * root + decoder[${L.highlights} + 2 * r + 1] * g` : "";
     return `  for (int r = 0; r < ${G[k]}; r++) {
-    vec4 v = vec4(${[0, 1, 2, 3].map((t) => dots(`(4 * r + ${t})`)).join(",\n                  ")}) + ${bias};
+    vec4 v = vec4(${[0, 1, 2, 3].map((t) => dots(`(4 * r + ${t})`)).join(",\n                  ")}) + ${bias}${seen};
     h${k}[r] = max(v, 0.0) + exp(min(v, 0.0)) - 1.0;
   }`;
   };
@@ -247,7 +255,8 @@ uniform sampler2DArray learnedCodes;${m.arrays.learned_bounds ? "\nuniform sampl
 layout(std140) uniform Decoder { vec4 decoder[${L.vec4s}]; };
 ${hiddenBlocks}
 float decodeDisplay(float y) { float t = abs(y); return sign(y) * (t <= 0.04045 ? t / 12.92 : pow((t + 0.055) / 1.055, 2.4)); }
-vec3 residual(ivec2 pixel) {
+vec3 residual(ivec2 pixel${L.seeing ? ", float S" : ""}) {${L.seeing ? `
+  float g = max(S, 0.0) / decoder[${L.unit}].x, root = sqrt(g);` : ""}
   vec3 c0 = texelFetch(learnedCodes, ivec3(pixel, 0), 0).rgb, c1 = texelFetch(learnedCodes, ivec3(pixel, 1), 0).rgb, c2 = texelFetch(learnedCodes, ivec3(pixel, 2), 0).rgb;
   vec4 z[3] = vec4[3](vec4(c0, c1.r), vec4(c1.gb, c2.rg), vec4(c2.b, 0.0, 0.0, 0.0));
   ${G.map((g, k) => `vec4 h${k}[${g}];`).join(" ")}
@@ -267,6 +276,9 @@ function mainShader(m, source) {
   const integer = colour && colour.dtype === "|u1";
   const take = m.channels === 3 ? ".rgb" : ".rrr";
   const tint = !colour ? "vec3(1.0)" : integer ? `vec3(texelFetch(colourMap, pixel, 0)${take}) * ${m.colour_step.toExponential(12)}` : `texelFetch(colourMap, pixel, 0)${take}`;
+  // a decoder that sees the highlights gives the whole image, S its input: the tinted Gaussians are not added
+  const seeing = m.residual.kind === "learned" && Boolean(m.residual.sees_highlights);
+  const value = seeing ? "residual(pixel, S)" : `residual(pixel) + ${m.channels === 3 ? "specularColour" : "vec3(specularColour.x)"} * tint * S`;
   return `${HEADER}
 layout(std140) uniform Gaussians { vec4 gaussians[${2 * m.max_gaussians}]; };
 uniform int count; uniform vec3 specularColour; uniform float scale;
@@ -288,8 +300,7 @@ void main() {
     float d2 = u * u * g1.y + v * v * g1.z;
     if (d2 < CUTOFF2) S += g0.z * (exp(-0.5 * d2) - TAU);
   }
-  vec3 tint = ${tint};
-  vec3 rgb = scale * max(residual(pixel) + ${m.channels === 3 ? "specularColour" : "vec3(specularColour.x)"} * tint * S, 0.0);
+${seeing ? "" : `  vec3 tint = ${tint};\n`}  vec3 rgb = scale * max(${value}, 0.0);
   colour = vec4(encode(rgb.r), encode(rgb.g), encode(rgb.b), 1.0);
 }`;
 }
@@ -490,11 +501,17 @@ export class Viewer {
 
   uploadDecoder() {
     // the learned residual's weights in std140 blocks (decoderLayout): rows of vec4, the direction's columns of w0
-    // zeroed (the first bias takes them in per frame)
-    const a = this.arrays, L = decoderLayout(this.manifest), G = L.groups, last = G.length - 1;
+    // zeroed (the first bias takes them in per frame); where it sees the highlights, w0's last two columns a vec4 of
+    // four units' sqrt(g) weights, then one of their g weights
+    const a = this.arrays, L = decoderLayout(this.manifest), G = L.groups, last = G.length - 1, w0 = a.learned_w0;
     const decoder = new Float32Array(4 * L.vec4s);
-    decoder.set(a.learned_w0);
-    for (let i = 0; i < L.hidden[0]; i++) for (let j = 9; j < 12; j++) decoder[i * 12 + j] = 0;
+    for (let i = 0; i < L.hidden[0]; i++) {
+      for (let j = 0; j < 9; j++) decoder[i * 12 + j] = w0[i * L.columns + j];
+      if (L.seeing) {
+        const at = 4 * (L.highlights + 2 * Math.floor(i / 4)) + (i % 4);
+        decoder[at] = w0[i * L.columns + 12]; decoder[at + 4] = w0[i * L.columns + 13];
+      }
+    }
     G.forEach((_, k) => decoder.set(a[`learned_b${k}`], 4 * L.biases[k]));
     decoder.set(a[`learned_w${last + 1}`], 4 * L.out); decoder.set(a[`learned_b${last + 1}`], 4 * L.outBias);
     decoder[4 * L.unit] = this.manifest.residual.unit;
@@ -656,8 +673,8 @@ export class Viewer {
       this.setStack(program, w, corners);
     } else {
       const d = this.location.located, v = this.decoderValues, w0 = this.arrays.learned_w0, b0 = this.arrays.learned_b0;
-      const L = decoderLayout(m), first = 4 * L.biases[0];
-      for (let i = 0; i < L.hidden[0]; i++) v[first + i] = b0[i] + w0[i * 12 + 9] * d[0] + w0[i * 12 + 10] * d[1] + w0[i * 12 + 11] * d[2];
+      const L = decoderLayout(m), first = 4 * L.biases[0], c = L.columns;
+      for (let i = 0; i < L.hidden[0]; i++) v[first + i] = b0[i] + w0[i * c + 9] * d[0] + w0[i * c + 10] * d[1] + w0[i * c + 11] * d[2];
       gl.bindBuffer(gl.UNIFORM_BUFFER, this.blocks.Decoder.buffer);
       gl.bufferSubData(gl.UNIFORM_BUFFER, first * 4, v.subarray(first, first + L.hidden[0]));
     }
