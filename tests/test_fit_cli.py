@@ -95,9 +95,8 @@ def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, caps
     verdict = load_field(out).report["residual"]["learned_check"]
     assert ("learned check at 3 left-out lights" in text
             and f"images alone {verdict['images_alone_psnr_db']:.2f} dB" in text)
-    # by default the model with the Gaussians is a decoder that sees them
-    assert verdict["sees_gaussians"] and "a decoder that sees the moved Gaussians" in text
-    assert ("the decoder keeps them as its inputs" in text) == verdict["keeps_gaussians"]
+    assert not verdict["sees_gaussians"] and "residual + moved Gaussians" in text
+    assert ("the learned residual keeps them" in text) == verdict["keeps_gaussians"]
 
 
 def test_a_field_with_invalid_stored_settings_is_refused(fitted, tmp_path):

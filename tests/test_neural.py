@@ -245,10 +245,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     from warp_highlights.relight.relighter import Relighter
 
     dataset = ReflectanceField.load(small_donut, progress=False)
-    # the residual the moved Gaussians are added to (a decoder that sees them: ``test_seeing_decoder.py``)
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2",
-                                                     "residual.learned_tune_epochs=2",
-                                                     "residual.learned_sees_gaussians=false"])
+                                                     "residual.learned_tune_epochs=2"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     learned = field.residual.learned
     assert learned is not None and field.residual.images is None and field.residual.luminance is None

@@ -140,6 +140,7 @@ def test_field_file_keeps_a_decoder_that_sees_the_highlights(small_donut, tmp_pa
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2",
                                                      "residual.learned_tune_epochs=2",
                                                      "residual.learned_seeing_margin_db=100",
+                                                     "residual.learned_sees_gaussians=true",
                                                      "residual.move_support=0"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     verdict = field.report["residual"]["learned_check"]
@@ -191,6 +192,7 @@ def test_learned_check_weighs_a_seeing_decoder_where_the_move_check_prefers_blen
     dataset = ReflectanceField.load(small_donut, progress=False)
     base = FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2", "residual.learned_tune_epochs=2",
                        "residual.move_support=0", "residual.learned_seeing_margin_db=100",
+                       "residual.learned_sees_gaussians=true",
                        "residual.learned_tie_margin_db=100"]
     seeing = pipeline.fit_field(dataset, device="cpu", settings=FitSettings().with_overrides(base), progress=False)
     report = seeing.report["residual"]
