@@ -14,10 +14,9 @@ import time
 
 import numpy as np
 
-from ..kernels.neural import NeuralDecoder, initial_model, used_lights
+from ..kernels.neural import NeuralDecoder, initial_model, kernel_weights, used_lights
 from ..model.residual import (
     NEURAL_CODE_SIZE,
-    NEURAL_HIGHLIGHT_INPUTS,
     NEURAL_LAYER_SHAPES,
     decoder_widths,
     sees_highlights,
@@ -30,7 +29,6 @@ __all__ = ["BATCH_CPU", "CpuDecoder", "CpuQueryDecoder", "decode_cpu", "seeing_m
 CODE = NEURAL_CODE_SIZE
 HIDDEN = NEURAL_LAYER_SHAPES[0][0]
 INPUTS = NEURAL_LAYER_SHAPES[0][1]  # code + light direction
-SEEING_INPUTS = INPUTS + NEURAL_HIGHLIGHT_INPUTS  # and the highlights' (sqrt(g), g)
 BATCH_CPU = 1 << 12
 """Samples per Adam step of ``train_decoder_cpu``: on 2 cores, 180 s of the images learned alone gave the statue
 34.5 dB at 2,048 and 4,096 and 33.3 at 8,192 (fewer steps), the dome 48.7 dB at 2,048 and 4,096; 4,096 trains
@@ -123,7 +121,6 @@ class _Worker:
 
     def __init__(self, size: int, pixels: int, weight_count: int, inputs: int = INPUTS):
         f = np.float32
-        self.inputs = inputs
         self.x = np.empty((size, inputs + 1), f)
         self.x[:, inputs] = 1.0  # the first layer's bias
         self.g = np.empty(size, f) if inputs > INPUTS else None
@@ -303,11 +300,7 @@ def train_decoder_cpu(targets: np.ndarray, lights: np.ndarray, *, device=None, e
 def seeing_model(model: NeuralDecoder) -> NeuralDecoder:
     """``model`` as a decoder that sees the highlights: its first layer given zero weights for their inputs where it
     has none (it computes what it did while they are 0)."""
-    if sees_highlights(model.weights):
-        return model
-    w0 = np.asarray(model.weights[0], np.float32)
-    padded = np.concatenate([w0, np.zeros((len(w0), NEURAL_HIGHLIGHT_INPUTS), np.float32)], axis=1)
-    return NeuralDecoder(model.codes, [padded, *model.weights[1:]])
+    return NeuralDecoder(model.codes, kernel_weights(model.weights))
 
 
 def training_rate(steps: int = 32, batch: int = BATCH_CPU, pixels: int = 1 << 14) -> float:
