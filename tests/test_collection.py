@@ -145,6 +145,7 @@ def test_captures_are_found_in_nested_folders_and_named_uniquely(tmp_path):
     assert fingerprint(found["tablet"]) != before  # a held-out light file changed: the capture is redone
 
 
+@pytest.mark.slow
 def test_every_good_capture_is_processed_and_the_corrupt_one_reported(collected):
     output, run = collected
     assert run.returncode == 1, run.stderr[-2000:]  # some failed
@@ -174,6 +175,7 @@ def test_every_good_capture_is_processed_and_the_corrupt_one_reported(collected)
     assert sum(any(cell.startswith("viewer") for cell in row) for row in rows) == 6
 
 
+@pytest.mark.slow
 def test_a_rerun_does_nothing_other_options_and_force_redo(collected, captures):
     output, _ = collected
     before = _finished(output)
@@ -194,6 +196,7 @@ def test_a_rerun_does_nothing_other_options_and_force_redo(collected, captures):
     assert len(json.loads((output / "collection.json").read_text())["captures"]) == 6
 
 
+@pytest.mark.slow
 def test_outputs_are_those_of_the_commands_run_by_hand(collected, captures, tmp_path):
     from warp_highlights.io.fieldfile import load_field
 
@@ -226,6 +229,7 @@ def test_outputs_are_those_of_the_commands_run_by_hand(collected, captures, tmp_
                 assert path.read_bytes() == (output / name / "viewer" / path.name).read_bytes(), path.name
 
 
+@pytest.mark.slow
 def test_ctrl_c_leaves_nothing_partial_and_a_rerun_completes_exactly_the_rest(captures, tmp_path):
     output = tmp_path / "interrupted"
     run = _collection(str(captures / "museum-a"), str(captures / "museum-b" / "sphere-c"),
@@ -373,6 +377,7 @@ def _table_rows(page: str) -> list[list[str]]:
     return parser.rows
 
 
+@pytest.mark.slow
 def test_the_gallery_opens_in_a_browser_and_its_links_lead_to_the_viewers(collected, tmp_path):
     """As a person would: the served gallery in headless Chromium shows every thumbnail, and a capture's viewer link
     opens a viewer that draws (the exported page's own readiness flag), without console errors."""

@@ -189,6 +189,7 @@ def _saved(field, learned: NeuralResidual, path):
     return field, path
 
 
+@pytest.mark.slow
 def test_a_distilled_decoder_learns_its_teacher(learned_field):
     from warp_highlights.model.config import DistilSettings
     from warp_highlights.residual.distil import agreement, distil_decoder

@@ -469,6 +469,7 @@ def test_full_psnr_of_every_method_is_in_the_datasets_units(exposed):
     assert max(means.values()) - min(means.values()) < 6.0, means
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 def test_evaluate_the_real_dome_capture_at_its_test_lights(data_root, tmp_path):
     """SynthRTI: fit the 49 dome lights at 80x80, score the 20 held-out Test lights (full images only)."""

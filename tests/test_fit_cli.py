@@ -235,7 +235,8 @@ def test_bad_input_is_one_line(arguments, message, small_donut, tmp_path, capsys
 
 @pytest.mark.realdata
 @pytest.mark.parametrize(("folder", "size"),
-                         [("synthrti-object1-material5/Dome", "80x80"), ("realrti-item11", "71x67")])
+                         [pytest.param("synthrti-object1-material5/Dome", "80x80", marks=pytest.mark.slow),
+                          ("realrti-item11", "71x67")])
 def test_fit_real_dome_captures(data_root, folder, size, tmp_path):
     """JPEG RTI domes (sRGB decoded, dirs.lp) fit end to end at a small working size."""
     out = tmp_path / "field.whf"
@@ -377,6 +378,7 @@ def test_a_device_that_is_not_there_is_reported_before_a_large_capture_is_decode
         assert decoded == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("verbose", [False, True])
 def test_a_small_capture_decodes_while_warp_starts_unless_verbose(verbose, small_donut, tmp_path, monkeypatch):
     """At most ``EARLY_LOAD_BYTES`` of stacks decode before the warm-up has started Warp (held back here

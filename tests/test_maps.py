@@ -619,6 +619,7 @@ def test_maps_folder_is_replaced_with_overwrite(tiny_sphere, tmp_path):
     assert (output / "normals.png").is_file()
 
 
+@pytest.mark.slow
 def test_dome_sample_normals_against_its_rendered_normal_map(data_root):
     """The rendered dome sample's normals.png: a nearly flat relief (0.6 degrees from (0, 0, 1), median).
     Its dome's near lights make the estimate lean away from the centre; flattened it is within a degree."""

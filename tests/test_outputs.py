@@ -431,6 +431,7 @@ def _one_wrote(results, command: str, target: Path) -> None:
     assert err.startswith(f"warp-highlights {command}: error: output {target}"), err
 
 
+@pytest.mark.slow
 def test_two_relights_to_one_new_name_exactly_one_writes(tiny_sphere, tmp_path):
     _, field = tiny_sphere
     for repetition in range(RACE_REPETITIONS):

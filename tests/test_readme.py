@@ -15,7 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCUMENTS = sorted([README, ROOT / "CHANGELOG.md", ROOT / "ARCHITECTURE.md", ROOT / "benchmarks" / "README.md",
                     *(ROOT / "docs").glob("*.md")])
-TEST_COMMAND = "python3 -m venv .venv && . .venv/bin/activate && pip install -e '.[test]' && python -m pytest -q"
+TEST_COMMAND = ("python3 -m venv .venv && . .venv/bin/activate && pip install -e '.[test]' "
+                "&& python -m pytest -q -m \"not slow\"")
 
 # Work history: issue numbers, numbered tickets, working sessions, machines lent or borrowed, helpers.
 # "helper" stays allowed before the nouns that make it code ("a helper function").

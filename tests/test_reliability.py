@@ -87,7 +87,7 @@ FOLDER_VARIANTS = {
     "demo": (("demo", "{out}", "--lights", "9", "--size", "32x18", "--frames", "2", "--device", "cpu"),
              ("demo", "{out}", "--lights", "8", "--size", "32x18", "--frames", "2", "--device", "cpu")),
 }  # fmt: skip
-SLOW_FOLDERS = {"demo"}
+SLOW_FOLDERS = {"demo", "evaluate"}
 """Folder commands whose replacement tests run the command three times for real: marked slow."""
 
 

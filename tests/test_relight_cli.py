@@ -616,6 +616,7 @@ def test_evaluate_a_dataset_without_a_renderer_skips_the_triangle_plot(small_fie
 # --- demo ------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_demo_writes_an_index_of_what_it_made(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", str(out), "--lights", "16", "--size", "64x36", "--frames", "4", "--device", "cpu", "-q"]) == 0
@@ -673,6 +674,7 @@ def test_demo_bad_options(tmp_path, capsys):
     assert _tree(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_overwrite_never_deletes_other_files(small_field, small_donut, tmp_path, capsys):
     """--overwrite replaces only folders holding what the command itself writes."""
     for argv in (

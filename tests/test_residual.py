@@ -727,6 +727,7 @@ def test_where_blending_wins_the_check_the_field_keeps_no_gaussians_and_gives_ba
     np.testing.assert_array_equal(Relighter(back, device="cpu").relight(dataset.lights.directions[:4]).full, relit)
 
 
+@pytest.mark.slow
 def test_auto_learns_the_residual_on_the_cpu_where_its_time_holds_the_epochs(donut_fields, monkeypatch):
     """"auto" on the CPU learns the residual where the training time holds ``cpu_learned_epochs`` of the capture at
     the CPU's pace, as on CUDA (the learned check decides on the moving Gaussians), and says so; with the setting at 0,

@@ -149,11 +149,11 @@ def _check_page(tab, field_path, methods, directions=DIRECTIONS, *, stops: float
 
 @pytest.mark.parametrize(("kind", "decode", "methods"), [
     ("lowrank", "auto", ["circular", "straight", "alpha"]),
-    ("lowrank", "query", ["circular", "straight", "alpha"]),
-    ("images", "auto", ["circular", "straight", "alpha"]),
-    ("rbf", "auto", ["circular", "straight", "alpha"]),
-    ("learned", "auto", ["circular", "straight"]),
-    ("student", "auto", ["circular", "straight"]),
+    pytest.param("lowrank", "query", ["circular", "straight", "alpha"], marks=pytest.mark.slow),
+    pytest.param("images", "auto", ["circular", "straight", "alpha"], marks=pytest.mark.slow),
+    pytest.param("rbf", "auto", ["circular", "straight", "alpha"], marks=pytest.mark.slow),
+    pytest.param("learned", "auto", ["circular", "straight"], marks=pytest.mark.slow),
+    pytest.param("student", "auto", ["circular", "straight"], marks=pytest.mark.slow),
 ])  # fmt: skip
 def test_the_page_relights_as_relight_does(browser, exported, fields, kind, decode, methods):
     with served(exported[kind]) as url, opened(browser, f"{url}?decode={decode}") as tab:
@@ -311,7 +311,7 @@ def _relighter_sees(field) -> bool:
     return True
 
 
-@pytest.mark.parametrize("stops", [0.0, 1.0])
+@pytest.mark.parametrize("stops", [0.0, pytest.param(1.0, marks=pytest.mark.slow)])
 def test_a_decoder_that_sees_the_highlights_relights_in_the_page_as_in_the_library(browser, seeing, stops):
     """The page's decoder takes sqrt(g), g of the Gaussians it draws and gives the whole image; it matches the float64
     reference (and ``Relighter``, where it relights such a decoder) as the learned page does."""
