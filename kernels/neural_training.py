@@ -517,7 +517,7 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
                    settle_epoch: int = 0,
                    settle_used: np.ndarray | None = None,
                    highlights: np.ndarray | None = None,
-                   sees=None) -> tuple[list[NeuralDecoder], np.ndarray]:
+                   sees=None, stop_when_settled: bool = False) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by side: Adam on
     the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
     geometrically from ``lr`` (one for every model, or one each) to ``final_lr`` over ``epochs`` (or until
@@ -530,7 +530,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     ``highlights``: (n, P) float32 the Gaussians' luminance at each light and pixel (display units); ``sees``: one
     bool per model, whether it takes them as inputs (default: every model when ``highlights`` is given). A model
     that sees them is returned with w0 of 14 columns (an initial one of 12 starts with zero weights for them), the
-    others with 12.
+    others with 12. ``stop_when_settled``: once ``settle`` has named one, every model stops there (a check whose
+    winner will not be kept).
     Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
@@ -559,6 +560,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
                 and epoch + 1 < epochs):
             scoring = time.perf_counter()
             kept = settle(trainer.result())
+            if kept is not None and stop_when_settled:
+                break
             if kept is not None:
                 stopped = trainer.result()
                 trainer, going_on = trainer.keep(int(kept), used=settle_used), [int(kept)]

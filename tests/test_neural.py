@@ -499,6 +499,15 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     np.testing.assert_allclose(check.winner.learned.codes.reshape(-1, 9).astype(np.float32),
                                end.codes.astype(np.float16).astype(np.float32), atol=1e-3)
     assert check.learned_every_light and len(check.history) == 4
+    # where the winner will not be kept (the field learns anew), both stop once settled, the scores the same
+    stopped = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings,
+                            device="cpu", winner_kept=False)
+    assert stopped.settled_epoch == 2 and not stopped.keeps_gaussians and not stopped.learned_every_light
+    assert len(stopped.history) == 2
+    np.testing.assert_allclose(stopped.winner.learned.codes.reshape(-1, 9).astype(np.float32),
+                               start.codes.astype(np.float16).astype(np.float32), atol=1e-3)
+    np.testing.assert_allclose(stopped.with_gaussians, check.with_gaussians, rtol=1e-6)
+    np.testing.assert_allclose(stopped.images_alone, check.images_alone, rtol=1e-6)
 
     def scores(model, added):
         relit = learned_images(NeuralResidual(model.codes.reshape(6, 8, -1).astype(np.float16), tuple(model.weights),

@@ -336,6 +336,29 @@ def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device)
     np.testing.assert_allclose(both[1].codes, alone.codes, rtol=1e-4, atol=1e-5)
 
 
+def test_a_settled_order_stops_every_model_where_asked(device):
+    """``stop_when_settled``: once ``settle`` names a model, every model stops there, returned as they were (the
+    check of a field that learns anew keeps neither); an unsettled order goes on as without it."""
+    directions, targets = _problem(seed=7, lights=4, pixels=48)
+    seen = []
+
+    def keep_second(models):
+        seen.append(models)
+        return 1
+
+    models, history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
+                                                     settle=keep_second, settle_epoch=1, stop_when_settled=True)
+    assert len(seen) == 1 and history.shape == (1, 2) and np.isfinite(history).all()
+    for model, then in zip(models, seen[0]):
+        np.testing.assert_array_equal(model.codes, then.codes)
+    first, _ = neural_training.train_decoders(targets, directions, device=device, epochs=1, batch=64)
+    for model, want in zip(models, first):
+        np.testing.assert_allclose(model.codes, want.codes, rtol=1e-4, atol=1e-5)
+    _, unsettled = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
+                                                  settle=lambda models: None, settle_epoch=1, stop_when_settled=True)
+    assert unsettled.shape == (3, 2) and np.isfinite(unsettled).all()
+
+
 def test_an_order_not_settled_is_asked_again_after_each_settle_epoch(device):
     """``settle`` returning None leaves both models learning and is asked again ``settle_epoch`` epochs later; once it
     names a model the other stops there and it is not asked again."""

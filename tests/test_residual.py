@@ -1149,12 +1149,15 @@ def test_the_learned_checks_winner_learns_anew_where_its_unseen_lights_are_many(
     from warp_highlights.model.config import ResidualSettings
     from warp_highlights.residual.learned import learns_anew
 
-    settings = ResidualSettings()  # learned_anew_share 0.15, on every device
-    assert not learns_anew(settings, 6, 250) and not learns_anew(settings, 6, 49)  # 0.024, 0.122
-    assert learns_anew(settings, 3, 16) and learns_anew(settings, 6, 25)  # 0.19, 0.24
-    assert not learns_anew(settings, 6, 40) and learns_anew(settings, 6, 39)  # 0.150, 0.154
-    assert not learns_anew(ResidualSettings(learned_anew_share=0.5), 6, 16)
-    assert learns_anew(ResidualSettings(learned_anew_share=0.0), 1, 250)
+    settings = ResidualSettings()  # learned_anew_share by device: 0.15 on the CPU, 0 on CUDA
+    assert not learns_anew(settings, 6, 250, False) and not learns_anew(settings, 6, 49, False)  # 0.024, 0.122
+    assert learns_anew(settings, 3, 16, False) and learns_anew(settings, 6, 25, False)  # 0.19, 0.24
+    assert not learns_anew(settings, 6, 40, False) and learns_anew(settings, 6, 39, False)  # 0.150, 0.154
+    assert learns_anew(settings, 6, 49, True) and learns_anew(settings, 1, 250, True)  # always on CUDA
+    for on_cuda in (False, True):  # a share set is the same on every device
+        assert not learns_anew(ResidualSettings(learned_anew_share=0.5), 6, 16, on_cuda)
+        assert learns_anew(ResidualSettings(learned_anew_share=0.0), 1, 250, on_cuda)
+        assert not learns_anew(ResidualSettings(learned_anew_share=0.15), 6, 49, on_cuda)
 
 
 def test_decoded_images_round_alike_whatever_the_blas_threads():

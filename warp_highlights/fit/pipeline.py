@@ -271,13 +271,16 @@ def fit_field(
             # against blending the images, which it does not do
             weighed = check.moves or (seen is not None and moving.any() and len(check.kept_lights) > 0)
             if learned and weighed and len(check.kept_lights):
-                epochs = learned_epochs(settings.residual, wp.get_device(device).is_cuda)
+                on_cuda = wp.get_device(device).is_cuda
+                epochs = learned_epochs(settings.residual, on_cuda)
+                # where the decided residual will learn anew, the check's winner is not kept: it stops once settled
+                anew = learns_anew(settings.residual, len(check.kept_lights), dataset.light_count, on_cuda)
                 with timer.stage("learned check"), _bar(progress, "learned check", 2 * epochs,
                                                         1) as advance:
                     learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights,
                                                   check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device,
-                                                  progress=advance, seen=seen)
+                                                  progress=advance, seen=seen, winner_kept=not anew)
                 verdict = learned_check.report()
                 settled = learned_check.settled_epoch
                 log(f"learned check at {verdict['lights']} lights: with the Gaussians"
@@ -306,7 +309,7 @@ def fit_field(
             # where the check's left-out lights are a large share of the capture, its winner (fitted without them
             # for a while) is not kept: the decided residual learns anew from every light
             anew = learned_check is not None and learns_anew(settings.residual, len(learned_check.lights),
-                                                             dataset.light_count)
+                                                             dataset.light_count, cuda)
             if learned and learned_check is not None and learned_check.learned_every_light and not anew:
                 # the check's winner learned from every light once its verdict settled
                 residual_model, learned_history = learned_check.winner, list(learned_check.history)

@@ -484,6 +484,11 @@ LEARNED_TUNE_SECONDS_CUDA = 5.0
 """The learned check's winner's time on every light at most on CUDA when ``learned_tune_seconds`` is 0, seconds."""
 LEARNED_TUNE_SECONDS_CPU = 12.5
 """The same on the CPU."""
+LEARNED_ANEW_SHARE_CUDA = 0.0
+"""``ResidualSettings.learned_anew_share`` on CUDA when the setting is negative: the learned check's winner never tunes
+there, the decided residual always learns anew (it says where the value came from)."""
+LEARNED_ANEW_SHARE_CPU = 0.15
+"""The same on the CPU."""
 LEARNED_TILE = (64, 8, 256)
 """The learned residual's training step on the device (``kernels.neural_training.make_train_tiles``): samples
 per tile, tiles per block (the weights' gradients add up in the block), threads per block; the fastest of
@@ -644,9 +649,17 @@ class ResidualSettings:
         learned_tune_epochs: its epochs at most: 40, about a sixth of ``learned_epochs``.
         learned_anew_share: where the check's lights are more than this share of the capture, settled or not, the
             decided residual learns anew from every light instead of tuning the check's winner
-            (``residual.learned.learns_anew``: 3 of 16 lights, 6 of 25, not 6 of 49), on every device. 0.15: about
-            the share that the 40 tune epochs are of CUDA's 260 (6 of 39 lights, 0.154, learn anew); against their
-            share of the CPU's 200 epochs, 3 of 16 lights would tune there. On a 2-core CPU at 3 of 16 lights,
+            (``residual.learned.learns_anew``); negative (default, -1): by device, 0 on CUDA (always anew) and
+            0.15 on the CPU (3 of 16 lights, 6 of 25, not 6 of 49). On CUDA learning anew costs at most
+            ``learned_seconds`` (7.5 s) more, and at 49 lights (6 left out, 0.12) it raised the fields along the paths
+            of ``benchmarks/bench_motion.py`` (480x270, NVIDIA H100) from 52.82 to 55.01 dB on the broad sphere, 38.21
+            to 39.33 on the sharp donut (its Gaussians kept) and 35.55 to 36.41 on the tiled teapot, each then level
+            with the learned residual alone or above it, and the dome sample from 48.98-49.04 to 49.25 dB at its Test
+            lights, its warm fit 10.2 s -> 15.7 s (``--scale gpu --device cuda:0 --captures dome49 --scenes
+            sphere-broad,donut-sharp,teapot-tiles --set residual.learned_anew_share=0``; benchmarks/README.md). On the
+            CPU it would cost up to ``learned_seconds`` (100 s) more, beyond the 3 minutes a 2-core machine has for the
+            dome sample's fit (155 s at 160x160 with tuning), so there the share is 0.15: about the share that the
+            40 tune epochs are of CUDA's 260 (6 of 39 lights, 0.154, learn anew). On a 2-core CPU at 3 of 16 lights,
             learning anew raised the learned field along the paths of ``benchmarks/bench_motion.py`` from 32.12 to
             33.31 dB on the sharp donut (its Gaussians kept), 31.00 to 32.48 on the tiled teapot, 29.98 to 31.81 on
             the bumpy donut and 45.36 to 47.35 on the broad sphere, the fit 50-53 s -> 68-72 s (``--scenes
@@ -763,7 +776,7 @@ class ResidualSettings:
     learned_check: int = 6
     learned_tune_seconds: float = 0.0
     learned_tune_epochs: int = 40
-    learned_anew_share: float = 0.15
+    learned_anew_share: float = -1.0
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
     learned_tie_margin_db: float = 0.5
@@ -810,8 +823,9 @@ class ResidualSettings:
         _require(0 <= int(self.learned_check) <= 1000, f"learned_check must be in [0, 1000], got {self.learned_check}")
         _require(math.isfinite(self.learned_tune_seconds) and self.learned_tune_seconds >= 0,
                  f"learned_tune_seconds must be >= 0 (0: by device), got {self.learned_tune_seconds}")
-        _require(math.isfinite(self.learned_anew_share) and 0 <= self.learned_anew_share <= 1,
-                 f"learned_anew_share must be in [0, 1], got {self.learned_anew_share}")
+        _require(math.isfinite(self.learned_anew_share) and self.learned_anew_share <= 1,
+                 f"learned_anew_share must be in [0, 1], or negative for the device's default, got "
+                 f"{self.learned_anew_share}")
         _require(1 <= int(self.learned_tune_epochs) <= 100000,
                  f"learned_tune_epochs must be in [1, 100000], got {self.learned_tune_epochs}")
         _require(math.isfinite(self.learned_settle_fraction) and 0 < self.learned_settle_fraction <= 1,

@@ -13,6 +13,8 @@ import warp as wp
 from ..kernels.neural import NeuralDecoder, decode
 from ..kernels.neural_training import train_decoders
 from ..model.config import (
+    LEARNED_ANEW_SHARE_CPU,
+    LEARNED_ANEW_SHARE_CUDA,
     LEARNED_BATCH_CPU,
     LEARNED_BATCH_CUDA,
     LEARNED_EPOCHS_CPU,
@@ -110,14 +112,16 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
            progress=None, used=None, initial: list[NeuralDecoder] | None = None,
            tune: bool = False, settle=None, settle_used=None,
            rate: float | tuple = LEARNED_RESIDUAL_RATE,
-           inputs: list | None = None) -> tuple[list[NeuralDecoder], list[list[float]]]:
+           inputs: list | None = None,
+           stop_when_settled: bool = False) -> tuple[list[NeuralDecoder], list[list[float]]]:
     """Decoders for each of the (n, P, 3) ``targets``, side by side in the same launches on CUDA, one after the other
     on the CPU, the learning rate from ``rate`` (one for every model, or one each; ``LEARNED_FINAL_RATE`` where
     ``tune``); returns them and each one's loss per epoch. ``settle(models)``, called after each
     ``learned_settle_fraction`` of the epochs while both learn (on the CPU once, in two parts:
     ``_train_settling_on_cpu``), returns the index of the one model to go on, or None; that one learns from the
-    ``settle_used`` lights from then on (default ``used``). ``inputs``: per model None or the (n, P) Gaussians'
-    luminance (display units) that it sees (one array for every model that sees them)."""
+    ``settle_used`` lights from then on (default ``used``), or, ``stop_when_settled``, every model stops there.
+    ``inputs``: per model None or the (n, P) Gaussians' luminance (display units) that it sees (one array for every
+    model that sees them)."""
     device = wp.get_device(device)
     inputs = [None] * len(targets) if inputs is None else list(inputs)
     seen = next((g for g in inputs if g is not None), None)
@@ -147,7 +151,8 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
         models, history = train_decoders(np.stack(targets), directions, initial=initial,
                                          settle=None if settle is None else settled, settle_epoch=epoch,
                                          settle_used=settle_used, highlights=seen,
-                                         sees=[g is not None for g in inputs], **options)
+                                         sees=[g is not None for g in inputs], stop_when_settled=stop_when_settled,
+                                         **options)
         return models, [list(map(float, history[:, m])) for m in range(len(targets))]
     if settle is None or len(targets) < 2 or epoch >= rates["epochs"]:
         trained = [train_decoder_cpu(target, directions, initial=None if initial is None else initial[m],
@@ -155,7 +160,8 @@ def _train(targets: list[np.ndarray], directions: np.ndarray, *, settings: Resid
                                      **{**options, "lr": options["lr"][m], "seconds": seconds / len(targets)})
                    for m, target in enumerate(targets)]
         return [model for model, _ in trained], [history for _, history in trained]
-    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used, inputs)
+    return _train_settling_on_cpu(targets, directions, initial, options, epoch, settle, settle_used, inputs,
+                                  stop_when_settled)
 
 
 def learned_batch(settings: ResidualSettings, on_cuda: bool, samples: int) -> int:
@@ -180,12 +186,16 @@ def learned_rate(settings: ResidualSettings, on_cuda: bool) -> float:
     return float(settings.learned_rate) or (LEARNED_RATE_CUDA if on_cuda else LEARNED_RATE_CPU)
 
 
-def learns_anew(settings: ResidualSettings, unseen: int, light_count: int) -> bool:
+def learns_anew(settings: ResidualSettings, unseen: int, light_count: int, on_cuda: bool) -> bool:
     """Whether the learned check's winner, trained without ``unseen`` of ``light_count`` lights, should learn anew
     from every light rather than tune: where those lights are more than ``settings.learned_anew_share`` of the
-    capture, whatever the device. A model fitted to 10 of 16 lights and tuned on all 16 stayed 2 dB below one that
-    learned all 16 from the start (benchmarks/bench_motion.py, bumpy donut)."""
-    return unseen / max(light_count, 1) > float(settings.learned_anew_share)
+    capture (negative: the device's share, ``LEARNED_ANEW_SHARE_CUDA`` / ``_CPU``). A model fitted to 10 of 16 lights
+    and tuned on all 16 stayed 2 dB below one that learned all 16 from the start (benchmarks/bench_motion.py, bumpy
+    donut); on CUDA, 6 of 49 left out and tuned stayed 0.9-2.2 dB below."""
+    share = float(settings.learned_anew_share)
+    if share < 0:
+        share = LEARNED_ANEW_SHARE_CUDA if on_cuda else LEARNED_ANEW_SHARE_CPU
+    return unseen / max(light_count, 1) > share
 
 
 def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = False) -> float:
@@ -197,9 +207,10 @@ def learned_seconds(settings: ResidualSettings, on_cuda: bool, tune: bool = Fals
 
 
 def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_epoch: int, settle,
-                           settle_used=None, inputs=None):
+                           settle_used=None, inputs=None, stop_when_settled: bool = False):
     """The learned check's models on the CPU, one after the other in two parts: each its first ``settle_epoch``
-    epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both).
+    epochs of the schedule, then, once ``settle`` has scored them, the rest for the winner alone (or for both; none
+    where settled and ``stop_when_settled``).
     The second part goes on from the first's models with each model's schedule of learning rates (``options["lr"]``:
     one first rate each), its Adam moments new, a lone winner from the ``settle_used`` lights (default the first
     part's); the time is shared in proportion to the epochs each part learns."""
@@ -219,6 +230,8 @@ def _train_settling_on_cpu(targets, directions, initial, options: dict, settle_e
         models.append(model)
         histories.append(history)
     kept = settle(models)
+    if kept is not None and stop_when_settled:
+        return models, histories
     going_on = range(count) if kept is None else [int(kept)]
     rest = dict(options, epochs=epochs - settle_epoch,
                 seconds=max(share, (seconds - share * count * settle_epoch) / len(going_on)))
@@ -274,7 +287,7 @@ class LearnedCheck:
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
                   lights: np.ndarray,
                   highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device,
-                  progress=None, seen: np.ndarray | None = None) -> LearnedCheck:
+                  progress=None, seen: np.ndarray | None = None, winner_kept: bool = True) -> LearnedCheck:
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
@@ -289,7 +302,10 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     ``seen``: (n, H, W) every light's Gaussians moved there from the other lights (field units, untinted:
     ``MoveCheck.moved_luminance``). Given, the first model is a decoder that sees the Gaussians (their luminance is
     among its inputs) and learns the images themselves, as the second does: trained with ``seen`` at its lights and
-    scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not used)."""
+    scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not used).
+
+    ``winner_kept`` False (the field's residual will learn anew, ``learns_anew``): once the order has settled both
+    models stop, and the winner is returned as it was then."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
         return LearnedCheck(lights, np.zeros(0), np.zeros(0))
@@ -336,12 +352,13 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     images_rate = learned_rate(settings, wp.get_device(device).is_cuda)
     rates = (images_rate if sees else LEARNED_RESIDUAL_RATE, images_rate)
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
-                                settle=settle, settle_used=np.arange(n), rate=rates, inputs=inputs)
+                                settle=settle, settle_used=np.arange(n), rate=rates, inputs=inputs,
+                                stop_when_settled=not winner_kept)
     models = [_residual_model(model, height, width, factor, n, tint) for model, tint in zip(trained, tints)]
     if settled_at:  # scored when the order settled, while the left-out lights were still left out
         epoch, first, second = settled_at[0]
-        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=True, tie_margin_db=tie,
-                             sees_gaussians=sees)
+        check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=winner_kept,
+                             tie_margin_db=tie, sees_gaussians=sees)
     else:
         check = LearnedCheck(lights, *score(trained), tie_margin_db=tie, sees_gaussians=sees)
     keeps = check.keeps_gaussians
