@@ -310,17 +310,23 @@ def test_models_side_by_side_each_learn_at_their_own_rate(device):
         neural_training.train_decoders(targets, directions, device=device, epochs=1, lr=(3e-3, 0.0))
 
 
-def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device):
-    """``settle`` keeps model 1 after the first of three epochs: model 0 is returned as it was then (its loss NaN
-    afterwards), model 1 ends as if it had learned alone all along (parameters, Adam's moments and the step carried
-    over); None keeps both."""
-    directions, targets = _problem(seed=7, lights=4, pixels=48)
+def _keeping_second():
+    """A ``settle`` that keeps model 1 the first time it is asked, and the list of the models it was shown."""
     seen = []
 
     def keep_second(models):
         seen.append(models)
         return 1
 
+    return seen, keep_second
+
+
+def test_a_settled_order_stops_the_loser_and_the_winner_goes_on_as_alone(device):
+    """``settle`` keeps model 1 after the first of three epochs: model 0 is returned as it was then (its loss NaN
+    afterwards), model 1 ends as if it had learned alone all along (parameters, Adam's moments and the step carried
+    over); None keeps both."""
+    directions, targets = _problem(seed=7, lights=4, pixels=48)
+    seen, keep_second = _keeping_second()
     models, history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
                                                      settle=keep_second, settle_epoch=1)
     assert len(seen) == 1 and np.isnan(history[1:, 0]).all() and np.isfinite(history[:, 1]).all()
@@ -340,12 +346,7 @@ def test_a_settled_order_stops_every_model_where_asked(device):
     """``stop_when_settled``: once ``settle`` names a model, every model stops there, returned as they were (the
     check of a field that learns anew keeps neither); an unsettled order goes on as without it."""
     directions, targets = _problem(seed=7, lights=4, pixels=48)
-    seen = []
-
-    def keep_second(models):
-        seen.append(models)
-        return 1
-
+    seen, keep_second = _keeping_second()
     models, history = neural_training.train_decoders(targets, directions, device=device, epochs=3, batch=64,
                                                      settle=keep_second, settle_epoch=1, stop_when_settled=True)
     assert len(seen) == 1 and history.shape == (1, 2) and np.isfinite(history).all()
