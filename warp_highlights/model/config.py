@@ -656,9 +656,12 @@ class ResidualSettings:
             to 39.33 on the sharp donut (its Gaussians kept) and 35.55 to 36.41 on the tiled teapot, each then level
             with the learned residual alone or above it, and the dome sample from 48.98-49.04 to 49.25 dB at its Test
             lights, its warm fit 10.2 s -> 15.7 s (``--scale gpu --device cuda:0 --captures dome49 --scenes
-            sphere-broad,donut-sharp,teapot-tiles --set residual.learned_anew_share=0``; benchmarks/README.md). On the
-            CPU it would cost up to ``learned_seconds`` (100 s) more, beyond the 3 minutes a 2-core machine has for the
-            dome sample's fit (155 s at 160x160 with tuning), so there the share is 0.15: about the share that the
+            sphere-broad,donut-sharp,teapot-tiles --set residual.learned_anew_share=0``; benchmarks/README.md). On a
+            2-core CPU learning anew took the dome sample's fit at 160x160 to 243 s and 49.31 dB at its Test lights
+            (tuned: 155 s, 49.77 dB; ``benchmarks/bench_quality.py --cases synth --set residual.learned_anew_share=0``),
+            beyond the 3 minutes a 2-core machine has for it, though it raised the 49-light broad sphere along the
+            paths from 53.79 to 54.95 dB (learned alone 54.07; ``benchmarks/bench_motion.py --scenes sphere-broad
+            --captures dome49 --learned``, and the ``--set``), so there the share is 0.15: about the share that the
             40 tune epochs are of CUDA's 260 (6 of 39 lights, 0.154, learn anew). On a 2-core CPU at 3 of 16 lights,
             learning anew raised the learned field along the paths of ``benchmarks/bench_motion.py`` from 32.12 to
             33.31 dB on the sharp donut (its Gaussians kept), 31.00 to 32.48 on the tiled teapot, 29.98 to 31.81 on
