@@ -273,7 +273,9 @@ def fit_field(
             if learned and weighed and len(check.kept_lights):
                 on_cuda = wp.get_device(device).is_cuda
                 epochs = learned_epochs(settings.residual, on_cuda)
-                # where the decided residual will learn anew, the check's winner is not kept: it stops once settled
+                # where the check's left-out lights are a large share of the capture (on CUDA: always), its winner
+                # (fitted without them for a while) is not kept, the decided residual learns anew from every light:
+                # the check stops once settled
                 anew = learns_anew(settings.residual, len(check.kept_lights), dataset.light_count, on_cuda)
                 with timer.stage("learned check"), _bar(progress, "learned check", 2 * epochs,
                                                         1) as advance:
@@ -306,10 +308,6 @@ def fit_field(
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
             cuda = wp.get_device(device).is_cuda
-            # where the check's left-out lights are a large share of the capture, its winner (fitted without them
-            # for a while) is not kept: the decided residual learns anew from every light
-            anew = learned_check is not None and learns_anew(settings.residual, len(learned_check.lights),
-                                                             dataset.light_count, cuda)
             if learned and learned_check is not None and learned_check.learned_every_light and not anew:
                 # the check's winner learned from every light once its verdict settled
                 residual_model, learned_history = learned_check.winner, list(learned_check.history)
