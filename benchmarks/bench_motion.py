@@ -141,9 +141,10 @@ def score(frames: np.ndarray, truth, *, moving: bool) -> dict:
 
 
 def run_scene(scene: str, capture: str, scale: str, device, frames: int, learned: bool, pictures: Path | None,
-              overrides: list[str]) -> dict:
+              overrides: list[str], size: tuple[int, int] | None = None) -> dict:
     shape, material = SCENES[scene]
     (width, height), _, samples = SCALES[scale]
+    width, height = size or (width, height)
     renderer = Renderer(make_shape(shape), material=material,
                         settings=RenderSettings(width=width, height=height, samples_per_pixel=samples),
                         rotation=view_rotation(shape), device=device)
@@ -312,6 +313,7 @@ def main() -> None:
                         help=f"comma-separated, of {', '.join(SCENES)}; empty: none (the samples alone, --photos)")
     parser.add_argument("--captures", default=None, help="comma-separated (default: the scale's)")
     parser.add_argument("--frames", type=int, default=96)
+    parser.add_argument("--size", default=None, metavar="WxH", help="the renders' size (default: the scale's)")
     parser.add_argument("--learned", action="store_true", help="also the learned residual alone on a CPU (slow)")
     parser.add_argument("--photos", nargs="?", const=",".join(SAMPLES), default="",
                         help="also the samples (default all; or a comma-separated choice of "
@@ -325,6 +327,14 @@ def main() -> None:
     out = Path(os.environ.get("OUT") or Path(__file__).resolve().parent / "results" / f"motion-{args.scale}")
     out.mkdir(parents=True, exist_ok=True)
     captures = args.captures.split(",") if args.captures else SCALES[args.scale][1]
+    size = None
+    if args.size:
+        try:
+            size = tuple(int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            size = ()
+        if len(size) != 2 or min(size) < 16:
+            parser.error(f"--size takes WIDTHxHEIGHT of at least 16 pixels each, got '{args.size}'")
     scenes = [scene for scene in args.scenes.split(",") if scene]
     unknown = sorted(set(scenes) - set(SCENES))
     if unknown:
@@ -336,7 +346,7 @@ def main() -> None:
             for capture in captures:
                 started = time.perf_counter()
                 results.append(run_scene(scene, capture, args.scale, device, args.frames, args.learned, pictures,
-                                         args.set))
+                                         args.set, size))
                 r = results[-1]
                 print(f"{scene} {capture}: moving {r['moving']}, fits {r['fit_seconds']} s, "
                       f"{time.perf_counter() - started:.0f} s in all", file=sys.stderr, flush=True)

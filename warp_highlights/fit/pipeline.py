@@ -141,7 +141,9 @@ def fit_field(
             if factor != 1.0:
                 images = images * np.float32(factor)
             # for the highlight colour
-            keep_specular = residual and images.ndim == 4 and settings.residual.highlight_colour
+            # and for a learned residual's diffuse part under the highlights
+            under = learned and not sees and settings.residual.diffuse_under_highlights > 0
+            keep_specular = residual and images.ndim == 4 and (settings.residual.highlight_colour or under)
             gaussian_width, gaussian_height = settings.estimation.gaussian_size(width, height)
             # the specular part kept as float16 (for the highlight colour alone: half the host memory, and on CUDA half
             # the bytes to bring down); short of host memory (CPU): bands whose specular luminance is shrunk band by
@@ -216,6 +218,7 @@ def fit_field(
         path_delta, path_centre = decisions.delta.astype(np.float32), decisions.centre.astype(np.float32)
         residual_model = None
         learned_history = None
+        specular_under = None  # the specular part, where a learned residual learns the diffuse part under them
         compression: dict = {}  # the low-rank residual's budget and captured-light score
         anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
@@ -231,9 +234,11 @@ def fit_field(
                 if images_up is None:
                     own_up = None  # nothing held: the device lets it go
                 colour = None
-                if specular is not None:
+                if specular is not None and settings.residual.highlight_colour:
                     colour = highlight_colour(specular, own, prior=settings.residual.colour_prior)
-                    del specular
+                # what a learned residual learns under the highlights (``residual.inputs.diffuse_under_highlights``)
+                specular_under = specular if under else None
+                specular = None
             with timer.stage("move check"):
                 # held there, where small (the segmentation's upload, the own highlights' render), for the check's
                 # scores and the compressed residual's stacks
@@ -282,7 +287,8 @@ def fit_field(
                     learned_check = check_learned(images, own, colour, dataset.lights.directions, check.kept_lights,
                                                   check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device,
-                                                  progress=advance, seen=seen, winner_kept=not anew)
+                                                  progress=advance, seen=seen, winner_kept=not anew,
+                                                  specular=specular_under)
                 verdict = learned_check.report()
                 settled = learned_check.settled_epoch
                 log(f"learned check at {verdict['lights']} lights: with the Gaussians"
@@ -302,7 +308,7 @@ def fit_field(
                 moving = np.zeros((len(source.active), 1), dtype=bool)
                 path_delta, path_centre = (np.zeros((len(edges), 1), np.float32),
                                            np.zeros((len(edges), 1, 2), np.float32))
-                own, colour, seen = np.zeros_like(own), None, None
+                own, colour, seen, specular_under = np.zeros_like(own), None, None, None
                 if held is not None:
                     held.own = None  # the residual's stacks read the zeros from the host
             if kind == "images":
@@ -323,7 +329,8 @@ def fit_field(
                                                                      settings=settings.residual, device=device, log=log,
                                                                      progress=advance,
                                                                      initial=winner, tune=winner is not None,
-                                                                     highlights=seen)
+                                                                     highlights=seen, specular=specular_under)
+            specular_under = None
             if learned and settings.residual.learned_bounds:  # the decided residual, whichever way it was learned
                 # a decoder that sees the Gaussians learned the images themselves
                 taken = (own, colour) if seen is None else (np.zeros_like(own), None)

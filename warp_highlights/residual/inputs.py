@@ -23,7 +23,8 @@ from ..model.residual import (
 )
 from ..model.threads import parallel_map
 
-__all__ = ["BAND_VALUES", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HeldImages", "SCALE_FLOOR", "highlight_colour",
+__all__ = ["BAND_VALUES", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HeldImages", "SCALE_FLOOR",
+           "diffuse_under_highlights", "highlight_colour",
            "hold_images", "holds_images", "render_own", "render_own_on_device", "residual_of", "residual_scale",
            "row_bands", "scale_of_mean_square"]
 
@@ -123,6 +124,21 @@ def residual_of(images: np.ndarray, own: np.ndarray, tint: np.ndarray) -> np.nda
     """R = I - c(x) R(x; G): (..., C) images less their own (...) highlights in the (..., C) colour
     ``tint`` (broadcast from the right: pixels, rows or whole images), float32."""
     return images - own[..., None] * tint
+
+
+def diffuse_under_highlights(residual: np.ndarray, image: np.ndarray, own: np.ndarray, specular: np.ndarray,
+                             level: float) -> np.ndarray:
+    """In place and returned: one light's (H, W, C) ``residual`` (its image less its own highlights) becomes the
+    (H, W, C) ``image`` less its (H, W, C) ``specular`` part (the segmentation's diffuse part) wherever its own (H, W)
+    highlights ``own`` are at least ``level`` of their brightest pixel: what the Gaussians miss of a highlight there
+    is that light's alone (``ResidualSettings.diffuse_under_highlights``). Unchanged where ``own`` is all zero or
+    ``level`` is 0."""
+    peak = float(np.max(own)) if own.size else 0.0
+    if level <= 0 or not peak > 0:
+        return residual
+    under = own >= np.float32(level * peak)
+    residual[under] = image[under] - specular[under]
+    return residual
 
 
 def row_bands(images: np.ndarray) -> list[slice]:

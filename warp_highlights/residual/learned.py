@@ -39,7 +39,7 @@ from ..model.residual import (
 from ..model.threads import parallel_map
 from ..quality.metrics import srgb_psnr
 from .cpu_training import decode_cpu, train_decoder_cpu
-from .inputs import residual_of, row_bands
+from .inputs import diffuse_under_highlights, residual_of, row_bands
 from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual"]
@@ -51,7 +51,8 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                    factor: float,
                    settings: ResidualSettings, device, log=None, progress=None, used: np.ndarray | None = None,
                    initial: NeuralResidual | None = None, tune: bool = False,
-                   highlights: np.ndarray | None = None) -> tuple[ResidualModel, list[float]]:
+                   highlights: np.ndarray | None = None,
+                   specular: np.ndarray | None = None) -> tuple[ResidualModel, list[float]]:
     """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
     own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
     display units (the field's units over ``factor``) at the (n, 3) light directions, for
@@ -62,10 +63,12 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
     rate (the learned check's winner learning the lights it left out). ``highlights``: (n, H, W) the Gaussians'
     luminance at each light (field units, each light's moved from the others: ``MoveCheck.moved_luminance``): the
-    decoder sees them and learns the images themselves (``own`` is not taken out). Returns it and the loss per
-    epoch."""
+    decoder sees them and learns the images themselves (``own`` is not taken out). ``specular``: (n, H, W, 3) the
+    segmentation's specular part (field units): under each light's own highlights the residual learns the diffuse
+    part (``settings.diffuse_under_highlights``). Returns it and the loss per epoch."""
     sees = highlights is not None
-    targets = _targets(images, np.zeros_like(own) if sees else own, None if sees else colour, factor)
+    targets = _targets(images, np.zeros_like(own) if sees else own, None if sees else colour, factor,
+                       None if sees else specular, settings.diffuse_under_highlights)
     n, height, width, _ = np.shape(images)
     start = None if initial is None else [NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
@@ -83,9 +86,12 @@ def _display_inputs(highlights: np.ndarray, factor: float) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(highlights, np.float32).reshape(n, -1) * np.float32(1.0 / factor))
 
 
-def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float) -> np.ndarray:
+def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, factor: float,
+             specular: np.ndarray | None = None, level: float = 0.0) -> np.ndarray:
     """(n, H*W, 3) float32: the residual of the images minus their own highlights in colour c, in signed sRGB
-    display units (the field's units over ``factor``), a light at a time on each thread."""
+    display units (the field's units over ``factor``), a light at a time on each thread; with the (n, H, W, 3)
+    ``specular`` part, the diffuse part where a light's own highlights are at least ``level`` of their brightest
+    (``inputs.diffuse_under_highlights``)."""
     if np.ndim(images) != 4 or np.shape(images)[3] != 3:
         raise InputError("a learned residual needs colour (RGB) images; fit grey captures with --residual lowrank")
     n, height, width, _ = np.shape(images)
@@ -93,7 +99,10 @@ def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, fac
     out = np.empty((n, height * width, 3), np.float32)
 
     def light(i: int) -> None:
-        residual = residual_of(np.asarray(images[i], np.float32), own[i], tint)
+        image = np.asarray(images[i], np.float32)
+        residual = residual_of(image, own[i], tint)
+        if specular is not None:
+            diffuse_under_highlights(residual, image, own[i], np.asarray(specular[i], np.float32), level)
         residual /= np.float32(factor)
         encode_display(residual, out=out[i])
 
@@ -253,7 +262,8 @@ class LearnedCheck:
     learning, its order settled (None: both learned to the end, without those lights), and the scores are those of
     that epoch; ``learned_every_light``: the winner learned from every light after it (the check's lights too), so
     it needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
-    and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``, or ``learned_seeing_margin_db``);
+    (negative: how far they must trail) and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``,
+    or ``learned_seeing_margin_db``);
     ``sees_gaussians``: the model with the Gaussians was a decoder that sees them (``check_learned``'s ``seen``)."""
 
     lights: np.ndarray
@@ -268,8 +278,8 @@ class LearnedCheck:
 
     @property
     def keeps_gaussians(self) -> bool:
-        """True unless the images learned alone scored higher on average by more than ``tie_margin_db`` (a tie keeps
-        the moving highlights; no light checked: True)."""
+        """True unless the images learned alone scored higher on average by more than ``tie_margin_db`` (negative:
+        unless the model with the Gaussians scored higher by at least its magnitude; no light checked: True)."""
         return not len(self.lights) or (float(np.mean(self.with_gaussians))
                                         >= float(np.mean(self.images_alone)) - self.tie_margin_db)
 
@@ -287,7 +297,8 @@ class LearnedCheck:
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
                   lights: np.ndarray,
                   highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device,
-                  progress=None, seen: np.ndarray | None = None, winner_kept: bool = True) -> LearnedCheck:
+                  progress=None, seen: np.ndarray | None = None, winner_kept: bool = True,
+                  specular: np.ndarray | None = None) -> LearnedCheck:
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
@@ -305,7 +316,8 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not used).
 
     ``winner_kept`` False (the field's residual will learn anew, ``learns_anew``): once the order has settled both
-    models stop, and the winner is returned as it was then."""
+    models stop, and the winner is returned as it was then. ``specular``: as ``learn_residual`` takes it, for the
+    first model."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
         return LearnedCheck(lights, np.zeros(0), np.zeros(0))
@@ -317,7 +329,8 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     n, height, width, _ = np.shape(images)
     alone = _targets(images, np.zeros_like(own), None, factor)
     sees = seen is not None
-    targets = [alone if sees else _targets(images, own, colour, factor), alone]
+    targets = [alone if sees else _targets(images, own, colour, factor, specular, settings.diffuse_under_highlights),
+               alone]
     inputs = [_display_inputs(seen, factor) if sees else None, None]
     tints = (colour, None)
     added = (np.zeros_like(highlights) if sees else highlights, np.zeros_like(highlights))
