@@ -215,6 +215,8 @@ def part_launches(args) -> dict:
             print(f"launches {tile}: {result[str(tile)]}", file=sys.stderr, flush=True)
             continue
         row["samples_per_second"] = trainer.batch / (row["step"] * 1e-6)
+        if device.is_cuda:  # registers a thread decide how many blocks a multiprocessor runs
+            row.update(wp.get_cuda_kernel_properties(trainer.kernel, device, block_dim=trainer.threads))
         result[str(tile)] = row
         print(f"launches {tile}: " + ", ".join(f"{k} {v:.1f}" for k, v in row.items()), file=sys.stderr, flush=True)
     return result
@@ -359,7 +361,8 @@ def main() -> None:
     parser.add_argument("--no-fit-cold", dest="fit_cold", action="store_false",
                         help="fit part: leave out the fit on an empty kernel cache")
     parser.add_argument("--tiles", default=DEFAULT_TILES,
-                        help="tiles and launches parts: samples per tile, tiles per block, threads; ';' between shapes")
+                        help="tiles and launches parts: samples per tile, tiles per block, threads[, blocks per SM "
+                             "(launch bounds)]; ';' between shapes")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     args.epoch_list = [int(e) for e in args.epochs.split(",") if e]

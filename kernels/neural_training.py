@@ -135,11 +135,12 @@ def make_train_tiles(columns: int, sub_batches: int):
     its partial sums (``sum_partials`` adds them up), so no atomic add serialises the launch and the sum
     is the same in every run. The block keeps few tiles in shared memory (each layer's product is
     written into one scratch tile, each activation into its own, the bias gradients add up in
-    registers). A weight gradient's product sums over the samples: its right operand is the activation
-    copied with its samples as rows first, since read through a transposed view every thread of a warp
-    would read the same shared-memory bank."""
+    registers); a layer's gradient takes its activation's place once the activation is spent. A weight
+    gradient's product sums over the samples: its right operand is the activation read through a transposed
+    view, whose rows are one column wider than they are used, so that the threads of a warp walking down a
+    column read different shared-memory banks."""
 
-    wide_columns, wide_hidden = columns + 1, HIDDEN + 1  # the padded tiles' row lengths
+    wide_columns = columns + 1  # the padded tiles' row length
 
     @wp.kernel(module="unique", module_options=_MODULE_OPTIONS)
     def train_tiles(features: wp.array3d[float], batch_targets: wp.array3d[float], scale: float,
@@ -165,7 +166,7 @@ def make_train_tiles(columns: int, sub_batches: int):
         sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
         sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float, storage="shared")
         # Each of these is a view of a tile one column wider, so that walking down a column crosses the
-        # shared-memory banks (a row stride of 65 or 49 floats; one of 64 or 48 puts a column in one or two).
+        # shared-memory banks (a row stride of 65 floats; one of 64 puts a column in one).
         padded_hidden = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
         hidden = wp.tile_view(padded_hidden, offset=(0, 0), shape=(HIDDEN, columns))  # scratch: products
         padded_h1 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
@@ -174,11 +175,6 @@ def make_train_tiles(columns: int, sub_batches: int):
         h2 = wp.tile_view(padded_h2, offset=(0, 0), shape=(HIDDEN, columns))
         padded_h3 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
         h3 = wp.tile_view(padded_h3, offset=(0, 0), shape=(HIDDEN, columns))
-        padded_d = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
-        d = wp.tile_view(padded_d, offset=(0, 0), shape=(HIDDEN, columns))  # d loss / d pre-activation
-        # scratch: an activation with its samples as rows, the right operand of a weight gradient's product
-        padded_rows = wp.tile_zeros(shape=(columns, wide_hidden), dtype=float, storage="shared")
-        rows = wp.tile_view(padded_rows, offset=(0, 0), shape=(columns, HIDDEN))
         input_rows = wp.tile_zeros(shape=(columns, INPUTS), dtype=float, storage="shared")
         y = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float, storage="shared")
         bias_sum0 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
@@ -201,24 +197,21 @@ def make_train_tiles(columns: int, sub_batches: int):
             output_gradient = error * (2.0 * scale)  # d loss / d y
             bias_sum3 += output_gradient
             wp.tile_assign(y, output_gradient)
-            wp.tile_assign(rows, wp.tile_transpose(h3))
-            wp.tile_matmul(y, rows, sum3)
+            wp.tile_matmul(y, wp.tile_transpose(h3), sum3)
             wp.tile_matmul(wp.tile_transpose(weight3), y, hidden, beta=0.0)
-            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h3))
-            bias_sum2 += d
-            wp.tile_assign(rows, wp.tile_transpose(h2))
-            wp.tile_matmul(d, rows, sum2)
-            wp.tile_matmul(wp.tile_transpose(weight2), d, hidden, beta=0.0)
-            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h2))
-            bias_sum1 += d
-            wp.tile_assign(rows, wp.tile_transpose(h1))
-            wp.tile_matmul(d, rows, sum1)
-            wp.tile_matmul(wp.tile_transpose(weight1), d, hidden, beta=0.0)
-            wp.tile_assign(d, wp.tile_map(elu_gradient, hidden, h1))
-            bias_sum0 += d
+            wp.tile_assign(h3, wp.tile_map(elu_gradient, hidden, h3))  # d loss / d pre-activation, in h3's place
+            bias_sum2 += h3
+            wp.tile_matmul(h3, wp.tile_transpose(h2), sum2)
+            wp.tile_matmul(wp.tile_transpose(weight2), h3, hidden, beta=0.0)
+            wp.tile_assign(h2, wp.tile_map(elu_gradient, hidden, h2))
+            bias_sum1 += h2
+            wp.tile_matmul(h2, wp.tile_transpose(h1), sum1)
+            wp.tile_matmul(wp.tile_transpose(weight1), h2, hidden, beta=0.0)
+            wp.tile_assign(h1, wp.tile_map(elu_gradient, hidden, h1))
+            bias_sum0 += h1
             wp.tile_assign(input_rows, wp.tile_transpose(x))
-            wp.tile_matmul(d, input_rows, sum0)
-            wp.tile_matmul(wp.tile_transpose(weight0), d, x, beta=0.0)  # x is spent: its gradient takes its place
+            wp.tile_matmul(h1, input_rows, sum0)
+            wp.tile_matmul(wp.tile_transpose(weight0), h1, x, beta=0.0)  # x is spent: its gradient takes its place
             wp.tile_store(feature_gradients[m], x, offset=(0, offset))
         wp.tile_atomic_add(loss[m], wp.tile_sum(squares) * scale)
         wp.tile_store(g0[block, m], sum0)
