@@ -1,21 +1,20 @@
 """Training the learned residual's decoder (``kernels.neural``) on the device: a fused step with a
 hand-written adjoint, Adam on the device, samples shuffled on the device, a CUDA graph per step.
 
-One step is six launches, none of which needs a host value, so a CUDA graph replays it:
+One step is four launches, none of which needs a host value, so a CUDA graph replays it:
 
 1. ``gather_batch``: ``batch`` (light, pixel) samples of the current epoch's shuffle (a keyed Feistel
-   permutation of the used samples, ``shuffled_sample``), their features [code, light direction, sqrt(g), g]
-   (g the Gaussians' luminance for a model that sees the highlights, else 0) and targets, for every model;
-2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the MLP forward, the squared error and the
-   whole backward pass (tile matrix products); each block's sums of the weights' gradients stored as
-   its partial sums, the features' gradients stored;
-3. ``sum_partials``: the blocks' partial sums added to the gradient buffer, block by block (the same
-   sum in every run);
-4. ``scatter_code_gradients``: the features' gradients added to their pixels' codes;
-5. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
-   buffer), the learning rate of the step's epoch from the device's step counter; it zeroes the
-   gradients it used;
-6. ``advance``: the step counter + 1.
+   permutation of the used samples, ``shuffled_sample``): their pixels, and for every model the features that
+   do not belong to the pixel [light direction, sqrt(g), g] (g the Gaussians' luminance for a model that sees the
+   highlights, else 0) and the targets;
+2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the pixels' codes gathered, the MLP forward, the
+   squared error and the whole backward pass (tile matrix products); the codes' gradients added to their
+   pixels' (atomic adds); each block's sums of the weights' and biases' gradients stored as its partial sums;
+3. ``sum_partials``: the blocks' partial sums added to the gradient buffer, block by block (the same sum in
+   every run); its first thread also writes the step's Adam scalars (the schedule's position, the two bias
+   corrections) and advances the step counter;
+4. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
+   buffer), the learning rate of the step's epoch; it zeroes the gradients it used.
 
 ``M`` models (the learned check's two candidates) train side by side in the same launches, on the
 same samples, each with its own targets. Loss values stay on the device until an epoch's end. Every model
@@ -50,7 +49,8 @@ from .neural import (
     used_lights,
 )
 
-__all__ = ["DecoderTrainer", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder", "train_decoders"]
+__all__ = ["DecoderTrainer", "LIGHT_ROWS", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder",
+           "train_decoders"]
 
 _MODULE_OPTIONS = {"enable_backward": False, "enable_mathdx_gemm": LEARNED_MATHDX, "max_unroll": 0}
 # the hand-written adjoint is the only one: no tape, no generated backward code to compile
@@ -60,6 +60,9 @@ ADAM_BETA1 = 0.9
 ADAM_BETA2 = 0.999
 ADAM_EPSILON = 1e-8
 """Adam's constants: those of ``warp.optim.Adam`` and PyTorch's default."""
+
+LIGHT_ROWS = INPUTS - CODE_SIZE
+"""The features a sample takes from its light rather than its pixel: direction (3), sqrt(g), g."""
 
 _WEIGHT_SHAPES = ((HIDDEN, INPUTS), (HIDDEN, 1), (HIDDEN, HIDDEN), (HIDDEN, 1), (HIDDEN, HIDDEN), (HIDDEN, 1),
                   (OUTPUTS, HIDDEN), (OUTPUTS, 1))
@@ -98,13 +101,14 @@ def shuffled_sample(position: wp.int64, total: wp.int64, key: int, half_bits: in
 
 @wp.kernel
 def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bits: int, seed: int,
-                 used: wp.array[wp.int32], pixels: int, codes: wp.array3d[float], lights: wp.array[wp.vec3],
+                 used: wp.array[wp.int32], pixels: int, lights: wp.array[wp.vec3],
                  targets: wp.array3d[wp.vec3], highlights: wp.array2d[float], sees: wp.array[wp.int32],
-                 samples: wp.array[wp.int64], features: wp.array3d[float], batch_targets: wp.array3d[float]):
-    """Sample i of this step: its (used light, pixel) index into ``samples``, and for each model m its
-    features (INPUTS, batch) and targets (OUTPUTS, batch). The features' last two rows: sqrt(g), g for g =
+                 samples: wp.array[wp.int64], pixel_index: wp.array[wp.int32], light_features: wp.array3d[float],
+                 batch_targets: wp.array3d[float]):
+    """Sample i of this step: its (used light, pixel) index into ``samples``, its pixel into ``pixel_index``, and
+    for each model m its light's features (LIGHT_ROWS, batch): the direction, then sqrt(g), g for g =
     max(highlights[light, pixel], 0) (display units) where ``sees[m]`` is not 0, else 0 and 0 (``highlights`` is
-    then not read: it may be empty)."""
+    then not read: it may be empty); and its targets (OUTPUTS, batch)."""
     i = wp.tid()
     position = step[0] * wp.int64(batch) + wp.int64(i)
     epoch = position / total
@@ -112,173 +116,195 @@ def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bit
     light = used[int(sample / wp.int64(pixels))]
     pixel = int(sample % wp.int64(pixels))
     samples[i] = wp.int64(light) * wp.int64(pixels) + wp.int64(pixel)
+    pixel_index[i] = pixel
     direction = lights[light]
-    for m in range(codes.shape[0]):
-        for k in range(CODE_SIZE):
-            features[m, k, i] = codes[m, pixel, k]
+    for m in range(light_features.shape[0]):
         for k in range(3):
-            features[m, CODE_SIZE + k, i] = direction[k]
+            light_features[m, k, i] = direction[k]
         g = float(0.0)
         if sees[m] != 0:
             g = wp.max(highlights[light, pixel], 0.0)
-        features[m, HIGHLIGHT_ROW, i] = wp.sqrt(g)
-        features[m, HIGHLIGHT_ROW + 1, i] = g
+        light_features[m, HIGHLIGHT_ROW - CODE_SIZE, i] = wp.sqrt(g)
+        light_features[m, HIGHLIGHT_ROW - CODE_SIZE + 1, i] = g
         target = targets[m, light, pixel]
         for c in range(OUTPUTS):
             batch_targets[m, c, i] = target[c]
 
 
 @functools.cache
-def make_train_tiles(columns: int, sub_batches: int):
-    """The fused step's kernel for tiles of ``columns`` samples, each tile block looping over
-    ``sub_batches`` of them: the weights' gradients add up in the block and are stored once a block as
-    its partial sums (``sum_partials`` adds them up), so no atomic add serialises the launch and the sum
-    is the same in every run. The block keeps few tiles in shared memory (each layer's product is
-    written into one scratch tile, each activation into its own, the bias gradients add up in
-    registers); a layer's gradient takes its activation's place once the activation is spent. A weight
-    gradient's product sums over the samples: its right operand is the activation read through a transposed
-    view, whose rows are one column wider than they are used, so that the threads of a warp walking down a
-    column read different shared-memory banks."""
+def make_train_tiles(columns: int, sub_batches: int, threads: int = 0, blocks_per_sm: int = 0):
+    """The fused step's kernel for tiles of ``columns`` samples, each tile block (of ``threads`` threads) looping
+    over ``sub_batches`` of them; ``blocks_per_sm`` > 0 asks the compiler for registers enough for that many
+    blocks on a multiprocessor (CUDA's launch bounds), 0 leaves it free. The weights' and biases' gradients add
+    up in the block and are stored once a block as its partial sums (``sum_partials`` adds them up), so no atomic
+    add serialises the launch and the sum is the same in every run. Shared memory is three allocations (arenas),
+    every tile a view at a fixed offset into one, so that a thread keeps three base addresses rather than one for
+    each tile (registers decide how many blocks an SM runs). A layer's gradient takes its activation's place (the
+    activation is spent once its weights' gradient is summed); each activation carries a row of ones, so its
+    weights' gradient product gives the bias's gradient too, in one more column. Rows of activations are one
+    column wider than they are used (a row stride of ``columns`` + 1), so that walking down a column, as the
+    weights' gradients' products do through a transposed view, crosses the shared-memory banks."""
 
-    wide_columns = columns + 1  # the padded tiles' row length
+    wide = columns + 1
+    H, I, O, C, L = HIDDEN, INPUTS, OUTPUTS, CODE_SIZE, LIGHT_ROWS
+    G = H + 1  # an activation's rows and a constant row of ones: its weights' and its bias' gradients in one product
+    I1 = I + 1  # the inputs and a constant one
+    activation_rows = H + 3 * G + O + I1  # hidden (products), h1, h2, h3 (each with its ones row), y, x (and ones)
+    weight_rows = 2 * (2 * H + O)  # w1, w2, w3 (each with its bias as the last column), then their gradients' sums
+    input_rows = 2 * H + columns  # w0 (and b0), its gradient's sum (and b0's), x with its samples as rows (and ones)
+    bounds = {"launch_bounds": (threads, blocks_per_sm)} if blocks_per_sm > 0 else {}
 
-    @wp.kernel(module="unique", module_options=_MODULE_OPTIONS)
-    def train_tiles(features: wp.array3d[float], batch_targets: wp.array3d[float], scale: float,
+    @wp.kernel(module="unique", module_options=_MODULE_OPTIONS, **bounds)
+    def train_tiles(light_features: wp.array3d[float], pixel_index: wp.array[wp.int32], codes: wp.array3d[float],
+                    code_gradients: wp.array3d[float], batch_targets: wp.array3d[float], scale: float,
                     w0: wp.array3d[float], b0: wp.array3d[float], w1: wp.array3d[float], b1: wp.array3d[float],
                     w2: wp.array3d[float], b2: wp.array3d[float], w3: wp.array3d[float], b3: wp.array3d[float],
                     g0: wp.array4d[float], c0: wp.array4d[float], g1: wp.array4d[float], c1: wp.array4d[float],
                     g2: wp.array4d[float], c2: wp.array4d[float], g3: wp.array4d[float], c3: wp.array4d[float],
-                    feature_gradients: wp.array3d[float], loss: wp.array2d[float]):
-        """Model m, ``sub_batches`` tiles of ``columns`` samples: loss += scale * sum |y - t|^2; the
-        gradients of that term stored in g*[block, m] (weights) and c*[block, m] (biases); d loss / d
-        features stored."""
+                    loss: wp.array2d[float]):
+        """Model m, ``sub_batches`` tiles of ``columns`` samples: loss += scale * sum |y - t|^2; the gradients of
+        that term stored in g*[block, m] (weights) and c*[block, m] (biases), and added to ``code_gradients``
+        (M, CODE_SIZE, P: a transposed view) at the samples' pixels. ``codes``: (M, CODE_SIZE, P), a transposed
+        view."""
         m, block = wp.tid()
-        weight0 = wp.tile_load(w0[m], shape=(HIDDEN, INPUTS))
-        weight1 = wp.tile_load(w1[m], shape=(HIDDEN, HIDDEN))
-        weight2 = wp.tile_load(w2[m], shape=(HIDDEN, HIDDEN))
-        weight3 = wp.tile_load(w3[m], shape=(OUTPUTS, HIDDEN))
-        bias0 = wp.tile_broadcast(wp.tile_load(b0[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
-        bias1 = wp.tile_broadcast(wp.tile_load(b1[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
-        bias2 = wp.tile_broadcast(wp.tile_load(b2[m], shape=(HIDDEN, 1)), shape=(HIDDEN, columns))
-        bias3 = wp.tile_broadcast(wp.tile_load(b3[m], shape=(OUTPUTS, 1)), shape=(OUTPUTS, columns))
-        sum0 = wp.tile_zeros(shape=(HIDDEN, INPUTS), dtype=float, storage="shared")
-        sum1 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
-        sum2 = wp.tile_zeros(shape=(HIDDEN, HIDDEN), dtype=float, storage="shared")
-        sum3 = wp.tile_zeros(shape=(OUTPUTS, HIDDEN), dtype=float, storage="shared")
-        # Each of these is a view of a tile one column wider, so that walking down a column crosses the
-        # shared-memory banks (a row stride of 65 floats; one of 64 puts a column in one).
-        padded_hidden = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
-        hidden = wp.tile_view(padded_hidden, offset=(0, 0), shape=(HIDDEN, columns))  # scratch: products
-        padded_h1 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
-        h1 = wp.tile_view(padded_h1, offset=(0, 0), shape=(HIDDEN, columns))
-        padded_h2 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
-        h2 = wp.tile_view(padded_h2, offset=(0, 0), shape=(HIDDEN, columns))
-        padded_h3 = wp.tile_zeros(shape=(HIDDEN, wide_columns), dtype=float, storage="shared")
-        h3 = wp.tile_view(padded_h3, offset=(0, 0), shape=(HIDDEN, columns))
-        input_rows = wp.tile_zeros(shape=(columns, INPUTS), dtype=float, storage="shared")
-        y = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float, storage="shared")
-        bias_sum0 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
-        bias_sum1 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
-        bias_sum2 = wp.tile_zeros(shape=(HIDDEN, columns), dtype=float)
-        bias_sum3 = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float)
-        squares = wp.tile_zeros(shape=(OUTPUTS, columns), dtype=float)
+        activations = wp.tile_zeros(shape=(activation_rows, wide), dtype=float, storage="shared")
+        weights = wp.tile_zeros(shape=(weight_rows, G), dtype=float, storage="shared")
+        inputs = wp.tile_zeros(shape=(input_rows, I1), dtype=float, storage="shared")
+        hidden = wp.tile_view(activations, offset=(0, 0), shape=(H, columns))  # scratch: products
+        h1 = wp.tile_view(activations, offset=(H, 0), shape=(H, columns))
+        h2 = wp.tile_view(activations, offset=(H + G, 0), shape=(H, columns))
+        h3 = wp.tile_view(activations, offset=(H + 2 * G, 0), shape=(H, columns))
+        h1_ones = wp.tile_view(activations, offset=(H, 0), shape=(G, columns))  # h1 and its row of ones
+        h2_ones = wp.tile_view(activations, offset=(H + G, 0), shape=(G, columns))
+        h3_ones = wp.tile_view(activations, offset=(H + 2 * G, 0), shape=(G, columns))
+        x_ones = wp.tile_view(activations, offset=(H + 3 * G + O, 0), shape=(I1, columns))
+        # as a layer's right operand the ones add the bias (the weights' last column); seen with their samples as
+        # rows, they make the gradients' sums give the bias's gradient in their last column
+        h1_rows = wp.tile_transpose(h1_ones)
+        h2_rows = wp.tile_transpose(h2_ones)
+        h3_rows = wp.tile_transpose(h3_ones)
+        for layer in range(wp.static(3)):  # the rows of ones: set once, never overwritten
+            wp.tile_assign(wp.tile_view(activations, offset=(H + H + layer * G, 0), shape=(1, columns)),
+                           wp.tile_ones(shape=(1, columns), dtype=float))
+        wp.tile_assign(wp.tile_view(activations, offset=(H + 3 * G + O + I, 0), shape=(1, columns)),
+                       wp.tile_ones(shape=(1, columns), dtype=float))
+        y = wp.tile_view(activations, offset=(H + 3 * G, 0), shape=(O, columns))
+        x = wp.tile_view(activations, offset=(H + 3 * G + O, 0), shape=(I, columns))
+        x_codes = wp.tile_view(activations, offset=(H + 3 * G + O, 0), shape=(C, columns))
+        x_lights = wp.tile_view(activations, offset=(H + 3 * G + O + C, 0), shape=(L, columns))
+        weight1 = wp.tile_view(weights, offset=(0, 0), shape=(H, H))
+        weight2 = wp.tile_view(weights, offset=(H, 0), shape=(H, H))
+        weight3 = wp.tile_view(weights, offset=(2 * H, 0), shape=(O, H))
+        layer1 = wp.tile_view(weights, offset=(0, 0), shape=(H, G))  # [w1 | b1]
+        layer2 = wp.tile_view(weights, offset=(H, 0), shape=(H, G))
+        layer3 = wp.tile_view(weights, offset=(2 * H, 0), shape=(O, G))
+        sum1 = wp.tile_view(weights, offset=(2 * H + O, 0), shape=(H, G))
+        sum2 = wp.tile_view(weights, offset=(3 * H + O, 0), shape=(H, G))
+        sum3 = wp.tile_view(weights, offset=(4 * H + O, 0), shape=(O, G))
+        weight0 = wp.tile_view(inputs, offset=(0, 0), shape=(H, I))
+        layer0 = wp.tile_view(inputs, offset=(0, 0), shape=(H, I1))  # [w0 | b0]
+        sum0 = wp.tile_view(inputs, offset=(H, 0), shape=(H, I1))
+        x_rows = wp.tile_view(inputs, offset=(2 * H, 0), shape=(columns, I))  # x with its samples as rows, then ones
+        wp.tile_assign(wp.tile_view(inputs, offset=(2 * H, I), shape=(columns, 1)),
+                       wp.tile_ones(shape=(columns, 1), dtype=float))
+        x_rows_ones = wp.tile_view(inputs, offset=(2 * H, 0), shape=(columns, I1))
+        wp.tile_assign(weight0, wp.tile_load(w0[m], shape=(H, I), storage="register"))
+        wp.tile_assign(weight1, wp.tile_load(w1[m], shape=(H, H), storage="register"))
+        wp.tile_assign(weight2, wp.tile_load(w2[m], shape=(H, H), storage="register"))
+        wp.tile_assign(weight3, wp.tile_load(w3[m], shape=(O, H), storage="register"))
+        wp.tile_assign(wp.tile_view(inputs, offset=(0, I), shape=(H, 1)), wp.tile_load(b0[m], shape=(H, 1),
+                                                                                    storage="register"))
+        wp.tile_assign(wp.tile_view(weights, offset=(0, H), shape=(H, 1)), wp.tile_load(b1[m], shape=(H, 1),
+                                                                                     storage="register"))
+        wp.tile_assign(wp.tile_view(weights, offset=(H, H), shape=(H, 1)), wp.tile_load(b2[m], shape=(H, 1),
+                                                                                     storage="register"))
+        wp.tile_assign(wp.tile_view(weights, offset=(2 * H, H), shape=(O, 1)), wp.tile_load(b3[m], shape=(O, 1),
+                                                                                         storage="register"))
+        squares = wp.tile_zeros(shape=(O, columns), dtype=float)
         for sub in range(sub_batches):
             offset = (block * sub_batches + sub) * columns
-            x = wp.tile_load(features[m], shape=(INPUTS, columns), offset=(0, offset))
-            wp.tile_matmul(weight0, x, hidden, beta=0.0)
-            wp.tile_assign(h1, wp.tile_map(elu, hidden + bias0))
-            wp.tile_matmul(weight1, h1, hidden, beta=0.0)
-            wp.tile_assign(h2, wp.tile_map(elu, hidden + bias1))
-            wp.tile_matmul(weight2, h2, hidden, beta=0.0)
-            wp.tile_assign(h3, wp.tile_map(elu, hidden + bias2))
-            wp.tile_matmul(weight3, h3, y, beta=0.0)
-            error = y + bias3 - wp.tile_load(batch_targets[m], shape=(OUTPUTS, columns), offset=(0, offset))
+            pixels = wp.tile_load(pixel_index, shape=(columns,), offset=(offset,), storage="shared")
+            wp.tile_assign(x_codes, wp.tile_load_indexed(codes[m], pixels, shape=(C, columns), axis=1))
+            wp.tile_assign(x_lights, wp.tile_load(light_features[m], shape=(L, columns), offset=(0, offset),
+                                                  storage="register"))
+            wp.tile_matmul(layer0, x_ones, hidden, beta=0.0)
+            wp.tile_assign(h1, wp.tile_map(elu, hidden))
+            wp.tile_matmul(layer1, h1_ones, hidden, beta=0.0)
+            wp.tile_assign(h2, wp.tile_map(elu, hidden))
+            wp.tile_matmul(layer2, h2_ones, hidden, beta=0.0)
+            wp.tile_assign(h3, wp.tile_map(elu, hidden))
+            wp.tile_matmul(layer3, h3_ones, y, beta=0.0)
+            error = y - wp.tile_load(batch_targets[m], shape=(O, columns), offset=(0, offset))
             squares += wp.tile_map(wp.mul, error, error)
-            output_gradient = error * (2.0 * scale)  # d loss / d y
-            bias_sum3 += output_gradient
-            wp.tile_assign(y, output_gradient)
-            wp.tile_matmul(y, wp.tile_transpose(h3), sum3)
+            wp.tile_assign(y, error * (2.0 * scale))  # d loss / d y
+            wp.tile_matmul(y, h3_rows, sum3)
             wp.tile_matmul(wp.tile_transpose(weight3), y, hidden, beta=0.0)
-            wp.tile_assign(h3, wp.tile_map(elu_gradient, hidden, h3))  # d loss / d pre-activation, in h3's place
-            bias_sum2 += h3
-            wp.tile_matmul(h3, wp.tile_transpose(h2), sum2)
+            wp.tile_assign(h3, wp.tile_map(elu_gradient, hidden, h3))  # d loss / d layer 3's pre-activation
+            wp.tile_matmul(h3, h2_rows, sum2)
             wp.tile_matmul(wp.tile_transpose(weight2), h3, hidden, beta=0.0)
             wp.tile_assign(h2, wp.tile_map(elu_gradient, hidden, h2))
-            bias_sum1 += h2
-            wp.tile_matmul(h2, wp.tile_transpose(h1), sum1)
+            wp.tile_matmul(h2, h1_rows, sum1)
             wp.tile_matmul(wp.tile_transpose(weight1), h2, hidden, beta=0.0)
             wp.tile_assign(h1, wp.tile_map(elu_gradient, hidden, h1))
-            bias_sum0 += h1
-            wp.tile_assign(input_rows, wp.tile_transpose(x))
-            wp.tile_matmul(h1, input_rows, sum0)
+            wp.tile_assign(x_rows, wp.tile_transpose(x))
+            wp.tile_matmul(h1, x_rows_ones, sum0)
             wp.tile_matmul(wp.tile_transpose(weight0), h1, x, beta=0.0)  # x is spent: its gradient takes its place
-            wp.tile_store(feature_gradients[m], x, offset=(0, offset))
+            wp.tile_atomic_add_indexed(code_gradients[m], pixels, x_codes * 1.0, axis=1)
         wp.tile_atomic_add(loss[m], wp.tile_sum(squares) * scale)
-        wp.tile_store(g0[block, m], sum0)
-        wp.tile_store(g1[block, m], sum1)
-        wp.tile_store(g2[block, m], sum2)
-        wp.tile_store(g3[block, m], sum3)
-        # the bias gradients' row sums, each through the scratch tiles (a register tile would take shared memory
-        # of its own)
-        wp.tile_assign(hidden, bias_sum0)
-        wp.tile_store(c0[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
-        wp.tile_assign(hidden, bias_sum1)
-        wp.tile_store(c1[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
-        wp.tile_assign(hidden, bias_sum2)
-        wp.tile_store(c2[block, m], wp.tile_reshape(wp.tile_sum(hidden, axis=1), shape=(HIDDEN, 1)))
-        wp.tile_assign(y, bias_sum3)
-        wp.tile_store(c3[block, m], wp.tile_reshape(wp.tile_sum(y, axis=1), shape=(OUTPUTS, 1)))
+        wp.tile_store(g0[block, m], wp.tile_view(sum0, offset=(0, 0), shape=(H, I)))
+        wp.tile_store(c0[block, m], wp.tile_view(sum0, offset=(0, I), shape=(H, 1)))
+        wp.tile_store(g1[block, m], wp.tile_view(sum1, offset=(0, 0), shape=(H, H)))
+        wp.tile_store(c1[block, m], wp.tile_view(sum1, offset=(0, H), shape=(H, 1)))
+        wp.tile_store(g2[block, m], wp.tile_view(sum2, offset=(0, 0), shape=(H, H)))
+        wp.tile_store(c2[block, m], wp.tile_view(sum2, offset=(0, H), shape=(H, 1)))
+        wp.tile_store(g3[block, m], wp.tile_view(sum3, offset=(0, 0), shape=(O, H)))
+        wp.tile_store(c3[block, m], wp.tile_view(sum3, offset=(0, H), shape=(O, 1)))
 
     return train_tiles
 
 
+@wp.func
+def adam_scalars(step: wp.int64, batch: int, total: wp.int64, epochs: int, scalars: wp.array[float]):
+    """Adam's step ``step`` (0-based): scalars[0] = the learning-rate schedule's position in [0, 1] (the step's
+    epoch over ``epochs`` - 1), scalars[1] and scalars[2] = 1 - beta1^t and 1 - beta2^t for t = step + 1."""
+    t = step + wp.int64(1)
+    epoch = (step * wp.int64(batch)) / total
+    scalars[0] = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
+    scalars[1] = 1.0 - wp.pow(ADAM_BETA1, float(t))
+    scalars[2] = 1.0 - wp.pow(ADAM_BETA2, float(t))
+
+
 @wp.kernel
-def sum_partials(partials: wp.array2d[float], start: int, gradients: wp.array[float]):
-    """gradients[start + i] += the sum over blocks b of partials[b, i], in the order of b."""
+def sum_partials(partials: wp.array2d[float], start: int, gradients: wp.array[float], step: wp.array[wp.int64],
+                 batch: int, total: wp.int64, epochs: int, scalars: wp.array[float]):
+    """gradients[start + i] += the sum over blocks b of partials[b, i], in the order of b; thread 0 also writes the
+    step's Adam scalars (``adam_scalars``) and advances the step counter (no other thread reads it)."""
     i = wp.tid()
-    total = float(0.0)
+    total_sum = float(0.0)
     for b in range(partials.shape[0]):
-        total += partials[b, i]
-    gradients[start + i] = gradients[start + i] + total
+        total_sum += partials[b, i]
+    gradients[start + i] = gradients[start + i] + total_sum
+    if i == 0:
+        adam_scalars(step[0], batch, total, epochs, scalars)
+        step[0] = step[0] + wp.int64(1)
 
 
 @wp.kernel
-def scatter_code_gradients(samples: wp.array[wp.int64], pixels: int, feature_gradients: wp.array3d[float],
-                           code_gradients: wp.array3d[float]):
-    """Each sample's code gradient added to its pixel's, for every model."""
-    i = wp.tid()
-    pixel = int(samples[i] % wp.int64(pixels))
-    for m in range(code_gradients.shape[0]):
-        for k in range(CODE_SIZE):
-            wp.atomic_add(code_gradients, m, pixel, k, feature_gradients[m, k, i])
-
-
-@wp.kernel
-def adam_flat(step: wp.array[wp.int64], batch: int, total: wp.int64, epochs: int, lr: wp.array[float],
-              final_lr: float,
+def adam_flat(scalars: wp.array[float], log_lr: wp.array[float], log_final_lr: float,
               params: wp.array[float], gradients: wp.array[float], first: wp.array[float], second: wp.array[float]):
-    """Adam on every parameter; parameter i's learning rate decays geometrically from ``lr[i]`` (first epoch; each
-    model's own) to ``final_lr`` (epoch ``epochs``); the gradient is zeroed once used."""
+    """Adam on every parameter; parameter i's learning rate decays geometrically from exp(``log_lr[i]``) (first
+    epoch; each model's own) to exp(``log_final_lr``) (epoch ``epochs``), at the position and with the bias
+    corrections of ``scalars`` (``adam_scalars``); the gradient is zeroed once used."""
     i = wp.tid()
-    t = step[0] + wp.int64(1)
-    epoch = (step[0] * wp.int64(batch)) / total
-    fraction = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
-    start = lr[i]
-    rate = start * wp.pow(final_lr / start, fraction)
+    fraction = scalars[0]
+    rate = wp.exp((1.0 - fraction) * log_lr[i] + fraction * log_final_lr)
     g = gradients[i]
     gradients[i] = 0.0
     m = ADAM_BETA1 * first[i] + (1.0 - ADAM_BETA1) * g
     v = ADAM_BETA2 * second[i] + (1.0 - ADAM_BETA2) * g * g
     first[i] = m
     second[i] = v
-    correction1 = 1.0 - wp.pow(ADAM_BETA1, float(t))
-    correction2 = 1.0 - wp.pow(ADAM_BETA2, float(t))
-    params[i] = params[i] - rate * (m / correction1) / (wp.sqrt(v / correction2) + ADAM_EPSILON)
-
-
-@wp.kernel
-def advance(step: wp.array[wp.int64]):
-    step[0] = step[0] + wp.int64(1)
+    params[i] = params[i] - rate * (m / scalars[1]) / (wp.sqrt(v / scalars[2]) + ADAM_EPSILON)
 
 
 def _feistel_half_bits(total: int) -> int:
@@ -306,6 +332,15 @@ class _FlatParameters:
         self.gradients = [self.gradient[int(a):int(b)].reshape(shape)
                           for a, b, shape in zip(starts[:-1], starts[1:], shapes)]
         self.starts = starts
+
+    def codes_by_row(self, gradient: bool = False) -> wp.array:
+        """The codes (or their gradients), (M, P, CODE_SIZE), as an (M, CODE_SIZE, P) view: a code's number k of
+        every pixel along a row, as the training tiles gather them."""
+        codes = (self.gradients if gradient else self.views)[0]
+        count, pixels, size = codes.shape
+        item = np.dtype(np.float32).itemsize
+        return wp.array(ptr=codes.ptr, dtype=float, shape=(count, size, pixels),
+                        strides=(pixels * size * item, item, size * item), device=codes.device)
 
     def block_partials(self, blocks: int, device) -> tuple[wp.array, list[wp.array]]:
         """A (blocks, weights) float32 buffer for each block's sums of the weights' gradients, in this layout's
@@ -367,7 +402,7 @@ class DecoderTrainer:
     final_lr: float = 3e-4
     seed: int = 0
     device: object = None
-    tile: tuple[int, int, int] = LEARNED_TILE
+    tile: tuple[int, ...] = LEARNED_TILE
     highlights: np.ndarray | None = None
     sees: tuple | None = None
 
@@ -388,17 +423,18 @@ class DecoderTrainer:
         self.sees_array = wp.array(np.asarray(self.sees, np.int32), dtype=wp.int32, device=device)
         self.pixels = pixels
         self.total = len(self.used) * pixels
-        columns, sub_batches, self.threads = self.tile
+        columns, sub_batches, self.threads, *bounds = self.tile
         unit = columns * sub_batches  # samples per tile block
         self.batch = max(unit, -(-int(self.batch) // unit) * unit)
         self.blocks = self.batch // unit
-        self.kernel = make_train_tiles(columns, sub_batches)
+        self.kernel = make_train_tiles(columns, sub_batches, self.threads, *bounds)
         self.params = _FlatParameters(self.models, device)
         self.partials, self.partial_views = self.params.block_partials(self.blocks, device)
         self.rates = np.broadcast_to(np.asarray(self.lr, np.float64), (count,)).copy()
         if not (np.all(np.isfinite(self.rates)) and np.all(self.rates > 0)):
             raise ValueError(f"learning rates must be > 0, got {self.lr}")
-        self.rate_array = wp.array(self.params.per_model(self.rates), dtype=float, device=device)
+        self.log_rates = wp.array(np.log(self.params.per_model(self.rates)), dtype=float, device=device)
+        self.scalars = wp.zeros(3, dtype=float, device=device)  # Adam's (``adam_scalars``), written every step
         self.first = wp.zeros(self.params.size, dtype=float, device=device)
         self.second = wp.zeros(self.params.size, dtype=float, device=device)
         self.step = wp.zeros(1, dtype=wp.int64, device=device)
@@ -407,9 +443,11 @@ class DecoderTrainer:
         self.light_array = wp.array(np.asarray(self.lights, np.float32), dtype=wp.vec3, device=device)
         self.used_array = wp.array(np.asarray(self.used, np.int32), dtype=wp.int32, device=device)
         self.samples = wp.zeros(self.batch, dtype=wp.int64, device=device)
-        self.features = wp.zeros((count, INPUTS, self.batch), dtype=float, device=device)
+        self.pixel_index = wp.zeros(self.batch, dtype=wp.int32, device=device)
+        self.light_features = wp.zeros((count, LIGHT_ROWS, self.batch), dtype=float, device=device)
         self.batch_targets = wp.zeros((count, OUTPUTS, self.batch), dtype=float, device=device)
-        self.feature_gradients = wp.zeros((count, INPUTS, self.batch), dtype=float, device=device)
+        self.codes_by_row = self.params.codes_by_row()
+        self.code_gradients_by_row = self.params.codes_by_row(gradient=True)
         self.half_bits = _feistel_half_bits(self.total)
         self.graph = None
 
@@ -424,23 +462,20 @@ class DecoderTrainer:
             ("gather_batch", lambda: wp.launch(
                 gather_batch, dim=self.batch,
                 inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
-                        p.views[0], self.light_array, self.target_array, self.highlight_array, self.sees_array],
-                outputs=[self.samples, self.features, self.batch_targets], device=device)),
+                        self.light_array, self.target_array, self.highlight_array, self.sees_array],
+                outputs=[self.samples, self.pixel_index, self.light_features, self.batch_targets], device=device)),
             ("train_tiles", lambda: wp.launch_tiled(
                 self.kernel, dim=[count, self.blocks],
-                inputs=[self.features, self.batch_targets, 1.0 / self.batch, *p.views[1:], *self.partial_views],
-                outputs=[self.feature_gradients, self.loss], block_dim=self.threads, device=device)),
+                inputs=[self.light_features, self.pixel_index, self.codes_by_row, self.code_gradients_by_row,
+                        self.batch_targets, 1.0 / self.batch, *p.views[1:], *self.partial_views],
+                outputs=[self.loss], block_dim=self.threads, device=device)),
             ("sum_partials", lambda: wp.launch(
-                sum_partials, dim=self.partials.shape[1], inputs=[self.partials, int(p.starts[1])],
-                outputs=[p.gradient], device=device)),
-            ("scatter_code_gradients", lambda: wp.launch(
-                scatter_code_gradients, dim=self.batch, inputs=[self.samples, self.pixels, self.feature_gradients],
-                outputs=[p.gradients[0]], device=device)),
+                sum_partials, dim=self.partials.shape[1],
+                inputs=[self.partials, int(p.starts[1]), p.gradient, self.step, self.batch, self.total, self.epochs,
+                        self.scalars], device=device)),
             ("adam_flat", lambda: wp.launch(
-                adam_flat, dim=p.size,
-                inputs=[self.step, self.batch, self.total, self.epochs, self.rate_array, self.final_lr],
+                adam_flat, dim=p.size, inputs=[self.scalars, self.log_rates, math.log(self.final_lr)],
                 outputs=[p.flat, p.gradient, self.first, self.second], device=device)),
-            ("advance", lambda: wp.launch(advance, dim=1, outputs=[self.step], device=device)),
         ]
 
     def launch_step(self) -> None:

@@ -253,18 +253,27 @@ def test_the_weights_gradients_are_the_same_in_every_run(device):
 
 
 def test_adam_matches_its_formula(device):
-    """One flat Adam launch: moments, bias correction, each parameter's learning rate at the epoch (from its own
-    first rate); the gradient zeroed."""
+    """A step's Adam: ``sum_partials`` adds the blocks' partial sums to the gradients, writes the step's scalars
+    and advances the step counter; one flat Adam launch then gives the moments, bias correction, each parameter's
+    learning rate at the epoch (from its own first rate); the gradient zeroed."""
     rng = np.random.default_rng(3)
     params, grads = rng.normal(size=50), rng.normal(size=50)
     first, second = rng.normal(size=50) * 0.1, rng.uniform(0.0, 0.1, 50)
+    partials = rng.normal(size=(3, 30))  # three blocks' sums of the last 30 parameters' gradients
     arrays = [wp.array(a.astype(np.float32), dtype=float, device=device) for a in (params, grads, first, second)]
     step = wp.array(np.array([7], np.int64), dtype=wp.int64, device=device)
+    scalars = wp.zeros(3, dtype=float, device=device)
     batch, total, epochs, final_lr = 64, 100, 10, 3e-4
+    wp.launch(neural_training.sum_partials, dim=30,
+              inputs=[wp.array(partials.astype(np.float32), dtype=float, device=device), 20, arrays[1], step, batch,
+                      total, epochs, scalars], device=device)
+    assert step.numpy()[0] == 8
+    grads = grads + np.concatenate([np.zeros(20), partials.sum(axis=0)])
+    np.testing.assert_allclose(arrays[1].numpy(), grads, rtol=1e-5, atol=1e-6)
     lr = np.where(np.arange(50) < 20, 3e-3, 1e-2)
     wp.launch(neural_training.adam_flat, dim=50,
-              inputs=[step, batch, total, epochs, wp.array(lr.astype(np.float32), dtype=float, device=device),
-                      final_lr], outputs=arrays, device=device)
+              inputs=[scalars, wp.array(np.log(lr).astype(np.float32), dtype=float, device=device), np.log(final_lr)],
+              outputs=arrays, device=device)
     epoch = 7 * 64 // 100
     rate = lr * (final_lr / lr) ** (epoch / (epochs - 1))
     m = 0.9 * first + 0.1 * grads

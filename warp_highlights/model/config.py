@@ -493,7 +493,9 @@ LEARNED_TILE = (64, 8, 256)
 """The learned residual's training step on the device (``kernels.neural_training.make_train_tiles``): samples
 per tile, tiles per block (the weights' gradients add up in the block), threads per block; the fastest of
 those ``benchmarks/bench_learned_training.py --parts tiles`` and ``--parts launches`` try on an NVIDIA H200
-(279.6 million samples a second; (64, 8, 192) as fast, 288 threads or more do not launch)."""
+(279.6 million samples a second; (64, 8, 192) as fast, 288 threads or more do not launch). An optional fourth
+number asks the compiler for registers enough for that many blocks a multiprocessor (CUDA's launch bounds; ``--tiles
+"64,8,256,2"`` measures it)."""
 LEARNED_MATHDX = False
 """Whether the learned residual's tile products use cuBLASDx (``enable_mathdx_gemm``): on an NVIDIA H200 it
 makes the first training step compile for minutes and trains slower: 147 million samples a second against
