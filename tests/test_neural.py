@@ -405,7 +405,7 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     model is the winner; the scores are 8-bit sRGB PSNR of each model at the left-out lights."""
     from warp_highlights.model.config import LEARNED_RESIDUAL_RATE, ResidualSettings
     from warp_highlights.quality.metrics import srgb_psnr
-    from warp_highlights.residual.learned import check_learned
+    from warp_highlights.residual.learned import bounded, check_learned
 
     rng = np.random.default_rng(7)
     directions = rng.normal(size=(9, 3))
@@ -426,10 +426,12 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     np.testing.assert_array_equal(same.lights, left_out)
     np.testing.assert_allclose(same.with_gaussians, same.images_alone)
     assert same.keeps_gaussians and same.report()["keeps_gaussians"]
-    model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu",
-                              used=np.array([0, 1, 3, 4, 5, 7, 8]))
+    used = np.array([0, 1, 3, 4, 5, 7, 8])
+    model, _ = learn_residual(images, own, None, directions, factor=2.0, settings=settings, device="cpu", used=used)
+    # scored as relit: within the bounds of what it learned, from its own lights
+    within = bounded(model, images[used], own[used], None).learned
     want = [srgb_psnr(np.maximum(p, 0) / 2.0, t / 2.0)
-            for p, t in zip(learned_images(model.learned, directions[left_out]), images[left_out])]
+            for p, t in zip(learned_images(within, directions[left_out]), images[left_out])]
     np.testing.assert_allclose(same.images_alone, want, rtol=1e-6)
     blob = np.zeros((2, 6, 8, 3), np.float32)
     blob[:, 2:4, 3:6] = 1.5
@@ -445,6 +447,41 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     # the images alone, learned without the left-out lights
     np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)
     assert wrong.settled_epoch is None and wrong.report()["settled_epoch"] is None
+
+
+def test_learned_check_scores_each_model_within_the_bounds_of_what_it_learned():
+    """The check scores a model as the field relights it: within the range of its targets at the lights it learned
+    from (``learned_bounds``), so a column that every light leaves black stays black at the left-out lights, where
+    the decoder alone would light it; without the bounds (``learned_bounds=False``) it is scored as decoded."""
+    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual.learned import bounded, check_learned
+
+    rng = np.random.default_rng(5)
+    directions = rng.normal(size=(8, 3))
+    directions[:, 2] = np.abs(directions[:, 2]) + 0.2
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    images = rng.uniform(0.2, 0.7, (8, 6, 8, 3)).astype(np.float32)
+    images[:, :, :2] = 0.0  # a background no light reaches
+    own = np.zeros(images.shape[:3], np.float32)
+    left_out, used = np.array([3, 5]), np.array([0, 1, 2, 4, 6, 7])
+    settings = ResidualSettings(kind="learned", learned_epochs=3, learned_seconds=60.0, learned_settle_fraction=1.0,
+                                learned_batch=64)
+    none = np.zeros((2, 6, 8, 3), np.float32)
+    check = check_learned(images, own, None, directions, left_out, none, factor=1.0, settings=settings, device="cpu")
+    free = check_learned(images, own, None, directions, left_out, none, factor=1.0, device="cpu",
+                         settings=dataclasses.replace(settings, learned_bounds=False))
+    model, _ = learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu", used=used)
+    decoded = learned_images(model.learned, directions[left_out])
+    within = learned_images(bounded(model, images[used], own[used], None).learned, directions[left_out])
+    assert np.abs(decoded[:, :, :2]).max() > 1e-3  # the decoder alone lights the background a little
+    np.testing.assert_array_equal(within[:, :, :2], 0.0)  # the bounds keep it black
+    np.testing.assert_allclose(check.images_alone, [srgb_psnr(np.maximum(p, 0), t) for p, t in
+                                                    zip(within, images[left_out])], rtol=1e-6)
+    np.testing.assert_allclose(free.images_alone, [srgb_psnr(np.maximum(p, 0), t) for p, t in
+                                                   zip(decoded, images[left_out])], rtol=1e-6)
+    # the residual's model (here the images too, at its own rate) lit the background: kept black, it scores higher
+    assert np.all(check.with_gaussians > free.with_gaussians)
+    assert np.all(check.images_alone >= free.images_alone)
 
 
 def test_the_gaussians_are_kept_within_the_tie_margin():
@@ -469,7 +506,7 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     from every light (the verdict is taken); both are scored as they were at the half."""
     from warp_highlights.model.config import LEARNED_RATE_CPU, LEARNED_RESIDUAL_RATE, ResidualSettings
     from warp_highlights.residual import cpu_training
-    from warp_highlights.residual.learned import _targets, check_learned
+    from warp_highlights.residual.learned import _targets, bounded, check_learned
 
     rng = np.random.default_rng(8)
     directions = rng.normal(size=(9, 3))
@@ -513,8 +550,9 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     np.testing.assert_allclose(stopped.images_alone, check.images_alone, rtol=1e-6)
 
     def scores(model, added):
-        relit = learned_images(NeuralResidual(model.codes.reshape(6, 8, -1).astype(np.float16), tuple(model.weights),
-                                              2.0, 9), directions[left_out])
+        learned = NeuralResidual(model.codes.reshape(6, 8, -1).astype(np.float16), tuple(model.weights), 2.0, 9)
+        learned = bounded(ResidualModel(learned=learned), images[used], own[used], None).learned
+        relit = learned_images(learned, directions[left_out])
         return [srgb_psnr(np.maximum(p + b, 0) / 2.0, t / 2.0) for p, b, t in zip(relit, added, images[left_out])]
 
     np.testing.assert_allclose(check.with_gaussians, scores(first, blob), rtol=1e-4)

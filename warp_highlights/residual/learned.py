@@ -337,11 +337,17 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     checked = (np.asarray(seen[lights], np.float32) if sees else None, None)  # the Gaussians a decoder sees there
     settled_at = []
 
+    # each candidate is scored as the field would relight it: within the bounds (``learned_bounds``) of what it
+    # learned, from the lights it learned (the left-out lights' images are not seen)
+    takes = ((np.zeros_like(own), None) if sees else (own, colour), (np.zeros_like(own), None))
+
     def score(models) -> list[np.ndarray]:
         rows = []
-        for model, tint, extra, g in zip(models, tints, added, checked):
+        for model, tint, extra, g, taken in zip(models, tints, added, checked, takes):
             residual = _residual_model(model, height, width, factor, n, tint)
-            decoded = _decoded(residual.learned, directions[lights], device, g)
+            if settings.learned_bounds:
+                residual = bounded(residual, images[used], taken[0][used], taken[1])
+            decoded = residual.learned.within_bounds(_decoded(residual.learned, directions[lights], device, g))
             predicted = np.maximum(decoded + extra, 0.0)  # as relit
             rows.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
         return rows
