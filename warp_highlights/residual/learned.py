@@ -111,9 +111,9 @@ def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, fac
 
 
 def _residual_model(model: NeuralDecoder, height: int, width: int, factor: float, lights: int,
-                    colour: np.ndarray | None) -> ResidualModel:
+                    colour: np.ndarray | None, bounds: np.ndarray | None = None) -> ResidualModel:
     learned = NeuralResidual(model.codes.reshape(height, width, -1).astype(np.float16), tuple(model.weights),
-                             float(factor), lights)
+                             float(factor), lights, bounds)
     return ResidualModel(learned=learned, highlight_colour=colour)
 
 
@@ -338,16 +338,17 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     settled_at = []
 
     # each candidate is scored as the field would relight it: within the bounds (``learned_bounds``) of what it
-    # learned, from the lights it learned (the left-out lights' images are not seen)
-    takes = ((np.zeros_like(own), None) if sees else (own, colour), (np.zeros_like(own), None))
+    # learned, from the lights it learned (the left-out lights' images are not seen); once, before training
+    limits = (None, None)
+    if settings.learned_bounds:
+        alone_bounds = residual_bounds(images[used], np.zeros_like(own[used]), None)
+        limits = (alone_bounds if sees else residual_bounds(images[used], own[used], colour), alone_bounds)
 
     def score(models) -> list[np.ndarray]:
         rows = []
-        for model, tint, extra, g, taken in zip(models, tints, added, checked, takes):
-            residual = _residual_model(model, height, width, factor, n, tint)
-            if settings.learned_bounds:
-                residual = bounded(residual, images[used], taken[0][used], taken[1])
-            decoded = residual.learned.within_bounds(_decoded(residual.learned, directions[lights], device, g))
+        for model, tint, extra, g, bounds in zip(models, tints, added, checked, limits):
+            learned = _residual_model(model, height, width, factor, n, tint, bounds).learned
+            decoded = learned.within_bounds(_decoded(learned, directions[lights], device, g))
             predicted = np.maximum(decoded + extra, 0.0)  # as relit
             rows.append(np.array([srgb_psnr(p * scale, t) for p, t in zip(predicted, truth)]))
         return rows
@@ -386,11 +387,18 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
 
 
 def bounded(residual: ResidualModel, images: np.ndarray, own: np.ndarray, colour: np.ndarray | None) -> ResidualModel:
-    """``residual`` with its learned residual's bounds (``model.residual.learned_bounds``) from what it learned, per
-    pixel and channel: the lowest and highest over the captured lights of the (n, H, W, 3) images (field units) less
-    their own (n, H, W) highlights in colour c (None: white), widened by the images' own range, a band of rows at a
-    time on each thread. The decoder's values are not used: its error at the captured lights (a faint haze over a
-    background that every light leaves black) would widen the bounds by as much."""
+    """``residual`` with its learned residual's bounds (``residual_bounds``)."""
+    learned = residual.learned
+    bounds = residual_bounds(images, own, colour)
+    return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=bounds))
+
+
+def residual_bounds(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None) -> np.ndarray:
+    """A learned residual's bounds (``model.residual.learned_bounds``) from what it learned, per pixel and channel:
+    the lowest and highest over the captured lights of the (n, H, W, 3) images (field units) less their own (n, H,
+    W) highlights in colour c (None: white), widened by the images' own range, a band of rows at a time on each
+    thread. The decoder's values are not used: its error at the captured lights (a faint haze over a background
+    that every light leaves black) would widen the bounds by as much."""
     n, height, width, channels = np.shape(images)
     tint = None if colour is None else np.asarray(colour, np.float32)
     white = np.ones((1, 1, channels), np.float32)
@@ -410,9 +418,7 @@ def bounded(residual: ResidualModel, images: np.ndarray, own: np.ndarray, colour
         lowest[rows], highest[rows], span[rows] = low, high, brightest - darkest
 
     parallel_map(band, row_bands(images))
-    learned = residual.learned
-    bounds = learned_bounds(lowest, highest, span)
-    return dataclasses.replace(residual, learned=dataclasses.replace(learned, bounds=bounds))
+    return learned_bounds(lowest, highest, span)
 
 
 def _decoded_display(learned: NeuralResidual, directions: np.ndarray, device,
