@@ -174,7 +174,7 @@ def _seeing(learned: NeuralResidual, seed: int = 6) -> NeuralResidual:
     if learned.sees_highlights:
         return learned
     w0 = learned.weights[0]
-    extra = np.random.default_rng(seed).normal(0.0, 0.5, (len(w0), 2)).astype(np.float32)
+    extra = np.random.default_rng(seed).normal(0.0, 1.0, (len(w0), 2)).astype(np.float32)
     return dataclasses.replace(learned, weights=(np.concatenate([w0, extra], axis=1), *learned.weights[1:]))
 
 

@@ -465,7 +465,7 @@ def test_learned_check_scores_each_model_within_the_bounds_of_what_it_learned():
     own = np.zeros(images.shape[:3], np.float32)
     left_out, used = np.array([3, 5]), np.array([0, 1, 2, 4, 6, 7])
     settings = ResidualSettings(kind="learned", learned_epochs=3, learned_seconds=60.0, learned_settle_fraction=1.0,
-                                learned_batch=64)
+                                learned_batch=64, learned_residual_rate=3e-3)
     none = np.zeros((2, 6, 8, 3), np.float32)
     check = check_learned(images, own, None, directions, left_out, none, factor=1.0, settings=settings, device="cpu")
     free = check_learned(images, own, None, directions, left_out, none, factor=1.0, device="cpu",
@@ -479,7 +479,8 @@ def test_learned_check_scores_each_model_within_the_bounds_of_what_it_learned():
                                                     zip(within, images[left_out])], rtol=1e-6)
     np.testing.assert_allclose(free.images_alone, [srgb_psnr(np.maximum(p, 0), t) for p, t in
                                                    zip(decoded, images[left_out])], rtol=1e-6)
-    # the residual's model (here the images too, at its own rate) lit the background: kept black, it scores higher
+    # the residual's model (here the images too, at its own, slower rate) lit the background: kept black, it scores
+    # higher
     assert np.all(check.with_gaussians > free.with_gaussians)
     assert np.all(check.images_alone >= free.images_alone)
 
@@ -501,12 +502,14 @@ def test_the_gaussians_are_kept_within_the_tie_margin():
 
 def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled():
     """On the CPU the check's models learn one after the other, each from its own first rate (the residual's
-    ``LEARNED_RESIDUAL_RATE``, the images' ``learned_rate``): both the first half of the schedule, then, their
+    ``learned_residual_rate``, the images' ``learned_rate``): both the first half of the schedule, then, their
     order settled (a margin of 0 dB), the winner alone the second half from where it was, at its schedule's rates,
     from every light (the verdict is taken); both are scored as they were at the half."""
-    from warp_highlights.model.config import LEARNED_RATE_CPU, LEARNED_RESIDUAL_RATE, ResidualSettings
+    from warp_highlights.model.config import LEARNED_RATE_CPU, ResidualSettings
     from warp_highlights.residual import cpu_training
     from warp_highlights.residual.learned import _targets, bounded, check_learned
+
+    residual_rate = LEARNED_RATE_CPU / 2  # unlike the images', so that each model's own rate tells
 
     rng = np.random.default_rng(8)
     directions = rng.normal(size=(9, 3))
@@ -518,7 +521,7 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
     blob = np.zeros((2, 6, 8, 3), np.float32)
     blob[:, 2:4, 3:6] = 1.5  # the Gaussians' highlights where there are none: the images alone win
     settings = ResidualSettings(kind="learned", learned_epochs=4, learned_seconds=60.0, learned_settle_fraction=0.5,
-                                learned_settle_margin_db=0.0, learned_batch=64)
+                                learned_settle_margin_db=0.0, learned_batch=64, learned_residual_rate=residual_rate)
     check = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings, device="cpu")
     assert check.settled_epoch == 2 and not check.keeps_gaussians
     used = np.setdiff1d(np.arange(9), left_out)
@@ -528,7 +531,7 @@ def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled
         return lr * (3e-4 / lr) ** (epoch / 3)
 
     first, _ = cpu_training.train_decoder_cpu(_targets(images, own, None, 2.0), directions, epochs=2,
-                                              lr=LEARNED_RESIDUAL_RATE, final_lr=rate_at(LEARNED_RESIDUAL_RATE, 1),
+                                              lr=residual_rate, final_lr=rate_at(residual_rate, 1),
                                               **{**options, "seconds": 60.0 / 6 * 2})
     alone = _targets(images, np.zeros_like(own), None, 2.0)
     start, _ = cpu_training.train_decoder_cpu(alone, directions, epochs=2, lr=LEARNED_RATE_CPU,
@@ -728,7 +731,8 @@ def test_more_samples_than_a_32_bit_index_are_refused_before_any_work(small_donu
 
 def test_images_learned_alone_start_at_the_faster_rate(monkeypatch):
     """``learn_residual`` starts images without highlights taken out (``own`` all zero) at ``learned_rate`` (by device
-    where 0) and a residual with highlights taken out at ``LEARNED_RESIDUAL_RATE``; tuning at the final rate."""
+    where 0) and a residual with highlights taken out at ``learned_residual_rate`` (``LEARNED_RESIDUAL_RATE`` where 0),
+    whatever ``learned_rate`` says; tuning at the final rate."""
     from warp_highlights.model.config import (
         LEARNED_FINAL_RATE,
         LEARNED_RATE_CPU,
@@ -752,7 +756,9 @@ def test_images_learned_alone_start_at_the_faster_rate(monkeypatch):
     model, _ = learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu")
     learn_residual(images, own, None, directions, factor=1.0, settings=settings, device="cpu", initial=model.learned,
                    tune=True)
-    assert starts == [LEARNED_RATE_CPU, 0.02, LEARNED_RESIDUAL_RATE, LEARNED_FINAL_RATE]
+    learn_residual(images, own, None, directions, factor=1.0, device="cpu",
+                   settings=dataclasses.replace(settings, learned_rate=0.02, learned_residual_rate=0.005))
+    assert starts == [LEARNED_RATE_CPU, 0.02, LEARNED_RESIDUAL_RATE, LEARNED_FINAL_RATE, 0.005]
 
 
 def test_the_residual_learns_the_diffuse_part_under_a_light_s_own_highlights():

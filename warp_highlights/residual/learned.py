@@ -73,7 +73,7 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     start = None if initial is None else [NeuralDecoder(initial.codes.reshape(height * width, -1).astype(np.float32),
                                                         [np.asarray(w, np.float32) for w in initial.weights])]
     alone = sees or not np.any(own)  # no highlight taken out: the images themselves
-    rate = learned_rate(settings, wp.get_device(device).is_cuda) if alone else LEARNED_RESIDUAL_RATE
+    rate = learned_rate(settings, wp.get_device(device).is_cuda) if alone else residual_rate(settings)
     models, history = _train([targets], directions, settings=settings, device=device, log=log, progress=progress,
                              used=used, initial=start, tune=tune, rate=rate,
                              inputs=[_display_inputs(highlights, factor) if sees else None])
@@ -193,6 +193,12 @@ def learned_rate(settings: ResidualSettings, on_cuda: bool) -> float:
     """The learning rate at the start of the images' schedule where they are learned alone: the setting, or where
     it is 0 the device's default."""
     return float(settings.learned_rate) or (LEARNED_RATE_CUDA if on_cuda else LEARNED_RATE_CPU)
+
+
+def residual_rate(settings: ResidualSettings) -> float:
+    """The learning rate at the start of the schedule of a residual with moving Gaussians taken out: the setting, or
+    where it is 0 ``LEARNED_RESIDUAL_RATE`` (on every device)."""
+    return float(settings.learned_residual_rate) or LEARNED_RESIDUAL_RATE
 
 
 def learns_anew(settings: ResidualSettings, unseen: int, light_count: int, on_cuda: bool) -> bool:
@@ -370,7 +376,7 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     # each model from the first learning rate it would learn at in the field: the residual with its Gaussians
     # taken out at LEARNED_RESIDUAL_RATE, the images at ``learned_rate``
     images_rate = learned_rate(settings, wp.get_device(device).is_cuda)
-    rates = (images_rate if sees else LEARNED_RESIDUAL_RATE, images_rate)
+    rates = (images_rate if sees else residual_rate(settings), images_rate)
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
                                 settle=settle, settle_used=np.arange(n), rate=rates, inputs=inputs,
                                 stop_when_settled=not winner_kept)
