@@ -53,19 +53,19 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
                    initial: NeuralResidual | None = None, tune: bool = False,
                    highlights: np.ndarray | None = None,
                    specular: np.ndarray | None = None) -> tuple[ResidualModel, list[float]]:
-    """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their
-    own (n, H, W) highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB
-    display units (the field's units over ``factor``) at the (n, 3) light directions, for
-    ``settings.learned_seconds`` or ``learned_epochs`` at most (``learned_seconds``, ``learned_epochs``),
-    as many samples a step as ``learned_batch`` gives, from ``learned_rate`` where ``own`` is all zero (the images
-    learned alone) and ``LEARNED_RESIDUAL_RATE`` where highlights were taken out; ``progress(1)`` after
-    each epoch, ``log`` a line now and then; ``used``: the lights it learns from (default all). ``initial``: a model to
-    go on training; ``tune``: for ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning
-    rate (the learned check's winner learning the lights it left out). ``highlights``: (n, H, W) the Gaussians'
-    luminance at each light (field units, each light's moved from the others: ``MoveCheck.moved_luminance``): the
-    decoder sees them and learns the images themselves (``own`` is not taken out). ``specular``: (n, H, W, 3) the
-    segmentation's specular part (field units): under each light's own highlights the residual learns the diffuse
-    part (``settings.diffuse_under_highlights``). Returns it and the loss per epoch."""
+    """A ``ResidualModel`` holding a learned residual of the (n, H, W, 3) images (field units) minus their own (n, H, W)
+    highlights in colour c: ``kernels.neural`` trained on the residual in signed sRGB display units (the field's
+    units over ``factor``) at the (n, 3) light directions, for ``settings.learned_seconds`` or ``learned_epochs`` at
+    most (``learned_seconds``, ``learned_epochs``), as many samples a step as ``learned_batch`` gives, from
+    ``learned_rate`` where ``own`` is all zero (the images learned alone) and ``learned_residual_rate`` where
+    highlights were taken out (``residual_rate``); ``progress(1)`` after each epoch, ``log`` a line now and then;
+    ``used``: the lights it learns from (default all). ``initial``: a model to go on training; ``tune``: for
+    ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning rate (the learned check's
+    winner learning the lights it left out). ``highlights``: (n, H, W) the Gaussians' luminance at each light (field
+    units, each light's moved from the others: ``MoveCheck.moved_luminance``): the decoder sees them and learns the
+    images themselves (``own`` is not taken out). ``specular``: (n, H, W, 3) the segmentation's specular part (field
+    units): under each light's own highlights the residual learns the diffuse part
+    (``settings.diffuse_under_highlights``). Returns it and the loss per epoch."""
     sees = highlights is not None
     targets = _targets(images, np.zeros_like(own) if sees else own, None if sees else colour, factor,
                        None if sees else specular, settings.diffuse_under_highlights)
@@ -374,7 +374,7 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
 
     # once settled, the verdict is taken: the winner learns from every light for the rest of its schedule
     # each model from the first learning rate it would learn at in the field: the residual with its Gaussians
-    # taken out at LEARNED_RESIDUAL_RATE, the images at ``learned_rate``
+    # taken out at ``learned_residual_rate``, the images at ``learned_rate``
     images_rate = learned_rate(settings, wp.get_device(device).is_cuda)
     rates = (images_rate if sees else residual_rate(settings), images_rate)
     trained, histories = _train(targets, directions, settings=settings, device=device, progress=progress, used=used,
