@@ -201,3 +201,58 @@ def test_learned_check_weighs_a_seeing_decoder_where_the_move_check_prefers_blen
     added = pipeline.fit_field(dataset, device="cpu", progress=False,
                                settings=FitSettings().with_overrides(base + ["residual.learned_sees_gaussians=false"]))
     assert not added.report["residual"].get("learned_check") and not added.estimated.active.any()
+
+
+@pytest.mark.parametrize("inputs", ["moved", "own"])
+def test_a_seeing_decoder_learns_with_the_moved_or_its_own_gaussians(small_donut, monkeypatch, inputs):
+    """``residual.learned_seeing_inputs``: "moved" trains the check's decoder with every light's Gaussians moved there
+    from the other lights; "own" with each light's own, but the check's left-out lights with the moved ones (as a
+    query between the lights gets them), and the field's decoder learns every light with its own."""
+    import warp_highlights.fit.pipeline as pipeline
+    from warp_highlights.io.dataset import ReflectanceField
+    from warp_highlights.model.config import FitSettings
+
+    seen = {}
+    real_moving, real_check, real_learn = pipeline.check_moving, pipeline.check_learned, pipeline.learn_residual
+
+    def check_moving(*args, **kwargs):
+        seen["move"] = real_moving(*args, **kwargs)
+        return seen["move"]
+
+    def check_learned(images, own, *args, **kwargs):
+        seen["check"] = (own.copy(), np.array(kwargs["seen"]))
+        return real_check(images, own, *args, **kwargs)
+
+    def learn_residual(images, own, *args, **kwargs):
+        seen["learn"] = (own.copy(), None if kwargs.get("highlights") is None else np.array(kwargs["highlights"]))
+        return real_learn(images, own, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "check_moving", check_moving)
+    monkeypatch.setattr(pipeline, "check_learned", check_learned)
+    monkeypatch.setattr(pipeline, "learn_residual", learn_residual)
+    dataset = ReflectanceField.load(small_donut, progress=False)
+    settings = FitSettings().with_overrides(FAST_FIT + [
+        "residual.kind=learned", "residual.learned_epochs=2", "residual.learned_tune_epochs=1",
+        "residual.move_support=0", "residual.learned_seeing_margin_db=100", "residual.learned_sees_gaussians=true",
+        "residual.learned_anew_share=0", f"residual.learned_seeing_inputs={inputs}"])
+    field = pipeline.fit_field(dataset, device="cpu", settings=settings, progress=False)
+    assert field.report["residual"]["learned_check"]["keeps_gaussians"] and field.residual.learned.sees_highlights
+    move = seen["move"]
+    own, checked = seen["check"]
+    kept = np.asarray(move.kept_lights)
+    assert len(kept) and np.any(own > 0)
+    rows = [list(map(int, move.lights)).index(int(light)) for light in kept]
+    # the check's left-out lights: the Gaussians moved there, whichever the setting
+    np.testing.assert_array_equal(checked[kept], move.moved_luminance[rows])
+    others = np.setdiff1d(np.arange(len(own)), kept)
+    learned_own, learned_with = seen["learn"]
+    if inputs == "own":
+        np.testing.assert_array_equal(checked[others], own[others])
+        np.testing.assert_array_equal(learned_with, learned_own)
+    else:
+        assert move.lights.size == dataset.light_count
+        moved = np.setdiff1d(np.asarray(move.lights), kept)
+        rows = [list(map(int, move.lights)).index(int(light)) for light in moved]
+        np.testing.assert_array_equal(checked[moved], move.moved_luminance[rows])
+        assert not np.array_equal(checked[moved], own[moved])
+        np.testing.assert_array_equal(learned_with, checked)

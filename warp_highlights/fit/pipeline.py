@@ -130,7 +130,9 @@ def fit_field(
     # fits (the fit's thread mostly waits for it)
     # a learned residual that sees the Gaussians learns from every light's moved ones: every light is checked
     sees = learned and settings.residual.learned_sees_gaussians
-    check_count = dataset.light_count if sees else settings.residual.check_lights
+    # every light learns with its moved Gaussians, or with its own and the learned check's lights with the moved
+    sees_own = sees and settings.residual.learned_seeing_inputs == "own"
+    check_count = dataset.light_count if sees and not sees_own else settings.residual.check_lights
     if residual and device.is_cuda:
         planning = InBackground(lambda stop: plan_check(dataset.lights.directions, edges, check_count),
                                 name="check-plan")
@@ -268,10 +270,15 @@ def fit_field(
                                          keep=settings.residual.learned_check if learned else 0,
                                          held=held if check_images is images else None,
                                          directions=dataset.lights.directions, draw_all=sees)
-                seen = None  # every light's Gaussians moved there from the other lights, where the decoder sees them
+                seen = None  # the Gaussians a decoder that sees them learns each light with (and is checked with)
                 if sees and check.moved_luminance is not None:
                     seen = own.copy()  # a light the others cannot locate sees its own
-                    seen[check.lights] = check.moved_luminance
+                    # its own at every light, the moved ones at the learned check's; or the moved ones at every light
+                    if sees_own:
+                        row = {int(light): k for k, light in enumerate(check.lights)}
+                        seen[check.kept_lights] = check.moved_luminance[[row[int(k)] for k in check.kept_lights]]
+                    else:
+                        seen[check.lights] = check.moved_luminance
             # a decoder that sees the Gaussians is weighed by the learned check alone: the move check weighs moving
             # against blending the images, which it does not do
             weighed = check.moves or (seen is not None and moving.any() and len(check.kept_lights) > 0)
@@ -314,6 +321,8 @@ def fit_field(
             if kind == "images":
                 held = None  # the residual keeps the images themselves: nothing more reads them there
             cuda = wp.get_device(device).is_cuda
+            if seen is not None and sees_own:
+                seen = own  # the field's decoder learns every light with its own Gaussians
             if learned and learned_check is not None and learned_check.learned_every_light and not anew:
                 # the check's winner learned from every light once its verdict settled
                 residual_model, learned_history = learned_check.winner, list(learned_check.history)

@@ -446,6 +446,9 @@ RESIDUAL_KINDS = ("auto", "lowrank", "learned", "images", "none")
 
 RESIDUAL_INTERPOLATIONS = ("auto", "triangle", "rbf")
 """How relighting weighs a low-rank residual's captured lights (``ResidualSettings.interpolation``)."""
+SEEING_INPUTS = ("moved", "own")
+"""Which Gaussians a decoder that sees them learns each captured light with
+(``ResidualSettings.learned_seeing_inputs``)."""
 
 LEARNED_BATCH_CUDA = 1 << 16
 """Samples per Adam step of a learned residual on CUDA when ``ResidualSettings.learned_batch`` is 0."""
@@ -728,6 +731,14 @@ class ResidualSettings:
             32.02 / 31.68 dB along the paths, against 33.31 / 31.81 / 32.48 for the default (the sharp donut's
             Gaussians kept as a residual's, the others' images learned alone) and 31.42 / 31.81 / 32.48 for the
             images learned alone (benchmarks/README.md; docs/method.md, The residual).
+        learned_seeing_inputs: the Gaussians a decoder that sees them (``learned_sees_gaussians``) learns each captured
+            light with: "moved" (default), each light's moved there from its triangle in the other lights'
+            triangulation, so that it learns how far an interpolated highlight can be trusted; "own", each light's own
+            fitted Gaussians, as a query at that light gets them, so that it learns to draw the highlight where the
+            Gaussians put it (the learned check still scores it with the moved ones at its left-out lights, and the
+            move check then draws those lights alone). Figures: docs/method.md, The residual, and the setting's row
+            in ``benchmarks/README.md`` (``benchmarks/bench_motion.py --set residual.learned_sees_gaussians=true --set
+            residual.learned_seeing_inputs=own``).
         learned_seeing_margin_db: ``learned_tie_margin_db`` where the model with the Gaussians is a decoder that sees
             them (``learned_sees_gaussians``): both it and the images alone learn the images, so a tie tells nothing
             of the Gaussians, and the images alone keep the field unless it scores at least as high. 0: on the tiled
@@ -820,6 +831,7 @@ class ResidualSettings:
     learned_settle_margin_db: float = 3.0
     learned_tie_margin_db: float = -0.5
     learned_sees_gaussians: bool = False
+    learned_seeing_inputs: str = "moved"
     learned_seeing_margin_db: float = 0.0
     learned_bounds: bool = True
     diffuse_under_highlights: float = 0.02
@@ -876,6 +888,8 @@ class ResidualSettings:
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
         _require(math.isfinite(self.learned_tie_margin_db),
                  f"learned_tie_margin_db must be a finite number of dB, got {self.learned_tie_margin_db}")
+        _require(self.learned_seeing_inputs in SEEING_INPUTS,
+                 f"learned_seeing_inputs must be one of {', '.join(SEEING_INPUTS)}, got '{self.learned_seeing_inputs}'")
         _require(math.isfinite(self.learned_seeing_margin_db) and self.learned_seeing_margin_db >= 0,
                  f"learned_seeing_margin_db must be >= 0, got {self.learned_seeing_margin_db}")
         _require(self.cpu_learned_epochs >= 0, f"cpu_learned_epochs must be >= 0, got {self.cpu_learned_epochs}")
