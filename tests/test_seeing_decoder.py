@@ -256,3 +256,11 @@ def test_a_seeing_decoder_learns_with_the_moved_or_its_own_gaussians(small_donut
         np.testing.assert_array_equal(checked[moved], move.moved_luminance[rows])
         assert not np.array_equal(checked[moved], own[moved])
         np.testing.assert_array_equal(learned_with, checked)
+
+
+def test_seeing_inputs_are_moved_or_own():
+    from warp_highlights.model.config import ResidualSettings
+
+    assert ResidualSettings().learned_seeing_inputs == "moved"
+    with pytest.raises(InputError, match="learned_seeing_inputs must be one of moved, own, got 'both'"):
+        ResidualSettings(learned_seeing_inputs="both")

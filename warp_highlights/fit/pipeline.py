@@ -128,9 +128,9 @@ def fit_field(
     planning = None
     # the move check's left-out lights, host work that depends on the lights alone, planned in a thread while the device
     # fits (the fit's thread mostly waits for it)
-    # a learned residual that sees the Gaussians learns from every light's moved ones: every light is checked
+    # a decoder that sees the Gaussians learns every light with its moved ones (every light is checked), or with its
+    # own, the learned check's lights with the moved ones (``residual.learned_seeing_inputs``)
     sees = learned and settings.residual.learned_sees_gaussians
-    # every light learns with its moved Gaussians, or with its own and the learned check's lights with the moved
     sees_own = sees and settings.residual.learned_seeing_inputs == "own"
     check_count = dataset.light_count if sees and not sees_own else settings.residual.check_lights
     if residual and device.is_cuda:
