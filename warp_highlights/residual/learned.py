@@ -62,7 +62,8 @@ def learn_residual(images: np.ndarray, own: np.ndarray, colour: np.ndarray | Non
     ``used``: the lights it learns from (default all). ``initial``: a model to go on training; ``tune``: for
     ``settings.learned_tune_epochs`` or ``learned_tune_seconds`` at the final learning rate (the learned check's
     winner learning the lights it left out). ``highlights``: (n, H, W) the Gaussians' luminance at each light (field
-    units, each light's moved from the others: ``MoveCheck.moved_luminance``): the decoder sees them and learns the
+    units: each light's moved from the others, ``MoveCheck.moved_luminance``, or its own, as
+    ``ResidualSettings.learned_seeing_inputs`` says): the decoder sees them and learns the
     images themselves (``own`` is not taken out). ``specular``: (n, H, W, 3) the segmentation's specular part (field
     units): under each light's own highlights the residual learns the diffuse part
     (``settings.diffuse_under_highlights``). Returns it and the loss per epoch."""
@@ -316,10 +317,12 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     changes with training (a short run favours the residual, whose Gaussians carry the highlights from the start).
     ``progress(1)`` after each epoch.
 
-    ``seen``: (n, H, W) every light's Gaussians moved there from the other lights (field units, untinted:
-    ``MoveCheck.moved_luminance``). Given, the first model is a decoder that sees the Gaussians (their luminance is
-    among its inputs) and learns the images themselves, as the second does: trained with ``seen`` at its lights and
-    scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not used).
+    ``seen``: (n, H, W) each light's Gaussians (field units, untinted): at ``lights`` those moved there from the other
+    lights (``MoveCheck.moved_luminance``), at the others the moved ones or their own
+    (``ResidualSettings.learned_seeing_inputs``). Given, the first model is a decoder that sees the Gaussians (their
+    luminance is among its inputs) and learns the images themselves, as the second does: trained with ``seen`` at
+    its lights and scored with ``seen`` at the left-out ones, the moved highlights there (``highlights`` is not
+    used).
 
     ``winner_kept`` False (the field's residual will learn anew, ``learns_anew``): once the order has settled both
     models stop, and the winner is returned as it was then. ``specular``: as ``learn_residual`` takes it, for the
