@@ -6,13 +6,15 @@ reached, next to a PyTorch implementation of the same model and optimiser; and t
 
 Parts (each a subprocess, so that each starts with its own Warp configuration and kernel cache):
 - ``kernel``: the dome sample's images (``synthrti-object1-material5``, Dome/ at its own 320x320) learned
-  alone (NeuralRTI: the targets are the images in display units) by ``kernels.neural_training``, once with
-  cuBLASDx tile products (``enable_mathdx_gemm``) and once with Warp's own: the first step on an empty
-  kernel cache (compile and load), samples a second for one model and for two side by side, the
-  decoder's first decode, and 8-bit sRGB PSNR at the 20 Test lights after ``--epochs`` epochs;
+  alone (NeuralRTI: the targets are the images in display units) by ``kernels.neural_training``: on the
+  tensor cores (``kernels.neural_tensor_cores``), with cuBLASDx tile products (``enable_mathdx_gemm``) and
+  with Warp's own (``--tensor-cores``, ``--mathdx``): the first step on an empty kernel cache (compile and
+  load), samples a second for one model and for two side by side, the decoder's first decode, and 8-bit
+  sRGB PSNR at the 20 Test lights after ``--epochs`` epochs;
 - ``tiles``: samples a second of each tile shape of ``--tiles`` at batches of 65,536 and 131,072, and the
   PSNR after ``--epochs`` epochs of the fastest at each batch;
-- ``launches``: microseconds of each of the step's launches and of the whole step, for each tile shape;
+- ``launches``: microseconds of each of the step's launches and of the whole step, for each tile shape of
+  ``--tiles`` and each number of passes a block of ``--passes`` on the tensor cores;
 - ``torch``: the same model, initial values, Adam, learning-rate schedule, batch and shuffled epochs in
   PyTorch (eager), samples a second and PSNR after the same epochs;
 - ``fit``: ``warp-highlights fit`` with the defaults, timed as a command: the dome sample on an empty
@@ -85,18 +87,21 @@ def part_kernel(args) -> dict:
     device = wp.get_device(args.device)
     targets, directions, test_directions, truth, width, height = dome_problem(args.size)
     n, pixels, _ = targets.shape
-    result = {"mathdx": bool(args.mathdx), "size": [width, height], "lights": n, "batch": args.batch,
-              "device": device.name}
+    tensor_cores = bool(args.tensor_cores)
+    result = {"mathdx": bool(args.mathdx), "tensor_cores": tensor_cores, "size": [width, height], "lights": n,
+              "batch": args.batch, "device": device.name}
     used = np.arange(n)
     model = neural.initial_model(targets, seed=0)
     t = time.perf_counter()
-    trainer = neural_training.DecoderTrainer(targets[None], directions, used, [model], args.batch, 100, device=device)
+    trainer = neural_training.DecoderTrainer(targets[None], directions, used, [model], args.batch, 100, device=device,
+                                             tensor_cores=tensor_cores)
     trainer.steps(1)
     wp.synchronize_device(device)
     result["first_step_seconds"] = time.perf_counter() - t  # compile + load on an empty cache
     for count in (1, 2):
         trainer = neural_training.DecoderTrainer(np.repeat(targets[None], count, axis=0), directions, used,
-                                                 [model] * count, args.batch, 100, device=device)
+                                                 [model] * count, args.batch, 100, device=device,
+                                                 tensor_cores=tensor_cores)
         trainer.steps(trainer.steps_per_epoch)  # captures the graph
         trainer.losses()
         t = time.perf_counter()
@@ -114,7 +119,7 @@ def part_kernel(args) -> dict:
     for epochs in args.epoch_list:
         t = time.perf_counter()
         models, history = neural_training.train_decoders(targets[None], directions, device=device, epochs=epochs,
-                                                         batch=args.batch)
+                                                         batch=args.batch, tensor_cores=tensor_cores)
         result[f"train_seconds_{epochs}"] = time.perf_counter() - t
         result[f"psnr_{epochs}"] = test_psnr(models[0].codes, models[0].weights, test_directions, truth)
         result[f"final_mse_{epochs}"] = float(history[-1, 0])
@@ -191,7 +196,8 @@ def _launch_seconds(wp, device, launch) -> float:
 
 def part_launches(args) -> dict:
     """Microseconds of each of the step's launches (each replayed ``LAUNCH_REPEATS`` times in one CUDA graph)
-    and of the whole step, for each tile shape of ``--tiles``; one model, the dome sample, ``--batch``."""
+    and of the whole step, for each tile shape of ``--tiles`` (Warp's tile products) and each number of passes of
+    ``--passes`` (tensor cores); one model, the dome sample, ``--batch``."""
     import warp as wp
 
     wp.init()
@@ -202,10 +208,12 @@ def part_launches(args) -> dict:
     n = len(targets)
     model = neural.initial_model(targets, seed=0)
     result = {"size": [width, height], "lights": n, "batch": args.batch, "repeats": LAUNCH_REPEATS}
-    for tile in args.tile_list:
+    shapes = [(str(tile), {"tile": tile, "tensor_cores": False}) for tile in args.tile_list]
+    shapes += [(f"tensor cores, {p} passes", {"tensor_cores": True, "tensor_passes": p}) for p in args.pass_list]
+    for tile, options in shapes:
         try:
             trainer = neural_training.DecoderTrainer(targets[None], directions, np.arange(n), [model], args.batch,
-                                                     100, device=device, tile=tile)
+                                                     100, device=device, **options)
             trainer.steps(trainer.steps_per_epoch)  # compiles, captures the step's graph
             trainer.losses()
             row = {name: 1e6 * _launch_seconds(wp, device, launch)
@@ -333,13 +341,17 @@ LAUNCH_REPEATS = 50
 DEFAULT_TILES = "64,1,64;64,4,64;64,4,128;64,8,128;64,8,256;32,8,64"
 
 
-def _child(args, part: str, mathdx: int | None = None) -> dict:
+def _child(args, part: str, mathdx: int | None = None, tensor_cores: int | None = None) -> dict:
     env = dict(os.environ)
     with tempfile.TemporaryDirectory() as cache:
         if part == "kernel" and not args.warm_cache:
             env["WARP_CACHE_PATH"] = cache  # an empty kernel cache: a fresh machine's compile
         command = [sys.executable, __file__, "--child", part, "--device", args.device, "--batch", str(args.batch),
-                   "--epochs", ",".join(map(str, args.epoch_list)), "--mathdx", str(mathdx or 0), "--tiles", args.tiles]
+                   "--epochs", ",".join(map(str, args.epoch_list)), "--mathdx", str(mathdx or 0), "--tiles", args.tiles,
+                   "--passes", args.passes]
+        tensor_cores = args.tensor_cores if tensor_cores is None else tensor_cores
+        if tensor_cores is not None:
+            command += ["--tensor-cores", str(tensor_cores)]
         if args.size:
             command += ["--size", str(args.size)]
         done = subprocess.run(command, env=env, capture_output=True, text=True)
@@ -356,6 +368,10 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1 << 16)
     parser.add_argument("--epochs", default="25,50,100", help="epochs of the PSNR runs, comma-separated")
     parser.add_argument("--mathdx", type=int, default=None, help="kernel part: 1 or 0 (default: both)")
+    parser.add_argument("--tensor-cores", type=int, default=None,
+                        help="kernel and launches parts: 1 (the tensor cores' step) or 0 (Warp's tile products; "
+                             "--mathdx says which) (default: both)")
+    parser.add_argument("--passes", default="1,2,4", help="launches part: passes a block of the tensor cores' step")
     parser.add_argument("--warm-cache", action="store_true", help="kernel part: the usual kernel cache")
     parser.add_argument("--fit-set", default="", help="fit part: --set overrides, space-separated STAGE.NAME=VALUE")
     parser.add_argument("--no-fit-cold", dest="fit_cold", action="store_false",
@@ -367,6 +383,11 @@ def main() -> None:
     args = parser.parse_args()
     args.epoch_list = [int(e) for e in args.epochs.split(",") if e]
     args.tile_list = [tuple(int(v) for v in shape.split(",")) for shape in args.tiles.split(";") if shape]
+    args.pass_list = [int(p) for p in args.passes.split(",") if p]
+    if args.child == "launches" and args.tensor_cores == 0:
+        args.pass_list = []
+    elif args.child == "launches" and args.tensor_cores == 1:
+        args.tile_list = []
     if args.child:
         print(json.dumps(PARTS[args.child](args)))
         return
@@ -375,9 +396,12 @@ def main() -> None:
     results = {"machine": platform.node(), "date": datetime.date.today().isoformat(), "commit": commit}
     for part in args.parts.split(","):
         if part == "kernel":
-            for mathdx in ([1, 0] if args.mathdx is None else [args.mathdx]):
-                results[f"kernel mathdx={mathdx}"] = _child(args, "kernel", mathdx)
-                print(part, mathdx, results[f"kernel mathdx={mathdx}"], file=sys.stderr, flush=True)
+            variants = [("kernel tensor cores", 0, 1)] if args.tensor_cores in (None, 1) else []
+            if args.tensor_cores in (None, 0):
+                variants += [(f"kernel mathdx={m}", m, 0) for m in ([1, 0] if args.mathdx is None else [args.mathdx])]
+            for label, mathdx, tensor_cores in variants:
+                results[label] = _child(args, "kernel", mathdx, tensor_cores)
+                print(label, results[label], file=sys.stderr, flush=True)
         elif part in ("torch", "fit", "tiles", "launches"):
             results[part] = part_fit(args) if part == "fit" else _child(args, part)
             print(part, results[part], file=sys.stderr, flush=True)

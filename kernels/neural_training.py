@@ -1,20 +1,20 @@
 """Training the learned residual's decoder (``kernels.neural``) on the device: a fused step with a
 hand-written adjoint, Adam on the device, samples shuffled on the device, a CUDA graph per step.
 
-One step is four launches, none of which needs a host value, so a CUDA graph replays it:
+One step is three launches, none of which needs a host value, so a CUDA graph replays it:
 
 1. ``gather_batch``: ``batch`` (light, pixel) samples of the current epoch's shuffle (a keyed Feistel
    permutation of the used samples, ``shuffled_sample``): their pixels, and for every model the features that
    do not belong to the pixel [light direction, sqrt(g), g] (g the Gaussians' luminance for a model that sees the
-   highlights, else 0) and the targets;
-2. ``train_tiles`` (``make_train_tiles``): per tile of samples, the pixels' codes gathered, the MLP forward, the
+   highlights, else 0) and the targets; its first thread writes the step's number for Adam;
+2. ``train_tiles`` (``make_train_tiles``; on a GPU with tensor cores ``kernels.neural_tensor_cores``, the same work
+   with TF32 products): per tile of samples, the pixels' codes gathered, the MLP forward, the
    squared error and the whole backward pass (tile matrix products); the codes' gradients added to their
    pixels' (atomic adds); each block's sums of the weights' and biases' gradients stored as its partial sums;
-3. ``sum_partials``: the blocks' partial sums added to the gradient buffer, block by block (the same sum in
-   every run); its first thread also writes the step's Adam scalars (the schedule's position, the two bias
-   corrections) and advances the step counter;
-4. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
-   buffer), the learning rate of the step's epoch; it zeroes the gradients it used.
+3. ``adam_flat``: Adam over every parameter of every model (codes and weights are views of one flat
+   buffer), the learning rate of the step's epoch; a weight's gradient is the sum of the blocks' partial sums, added
+   block by block (the same sum in every run); it zeroes the gradients it used, and its first thread advances the
+   step counter.
 
 ``M`` models (the learned check's two candidates) train side by side in the same launches, on the
 same samples, each with its own targets. Loss values stay on the device until an epoch's end. Every model
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from warp_highlights.model.config import LEARNED_MATHDX, LEARNED_TILE
+from warp_highlights.model.config import LEARNED_MATHDX, LEARNED_TENSOR_CORES, LEARNED_TENSOR_PASSES, LEARNED_TILE
 from warp_highlights.model.residual import NEURAL_INPUTS, sees_highlights
 
 from .neural import (
@@ -48,9 +48,10 @@ from .neural import (
     kernel_weights,
     used_lights,
 )
+from .neural_tensor_cores import MIN_ARCH, SAMPLES_PER_PASS, THREADS, make_tensor_core_step
 
-__all__ = ["DecoderTrainer", "LIGHT_ROWS", "make_train_tiles", "elu_gradient", "shuffled_sample", "train_decoder",
-           "train_decoders"]
+__all__ = ["DecoderTrainer", "LIGHT_ROWS", "make_train_tiles", "elu_gradient", "has_tensor_cores", "shuffled_sample",
+           "train_decoder", "train_decoders"]
 
 _MODULE_OPTIONS = {"enable_backward": False, "enable_mathdx_gemm": LEARNED_MATHDX, "max_unroll": 0}
 # the hand-written adjoint is the only one: no tape, no generated backward code to compile
@@ -104,12 +105,15 @@ def gather_batch(step: wp.array[wp.int64], batch: int, total: wp.int64, half_bit
                  used: wp.array[wp.int32], pixels: int, lights: wp.array[wp.vec3],
                  targets: wp.array3d[wp.vec3], highlights: wp.array2d[float], sees: wp.array[wp.int32],
                  samples: wp.array[wp.int64], pixel_index: wp.array[wp.int32], light_features: wp.array3d[float],
-                 batch_targets: wp.array3d[float]):
+                 batch_targets: wp.array3d[float], adam_step: wp.array[wp.int64]):
     """Sample i of this step: its (used light, pixel) index into ``samples``, its pixel into ``pixel_index``, and
     for each model m its light's features (LIGHT_ROWS, batch): the direction, then sqrt(g), g for g =
     max(highlights[light, pixel], 0) (display units) where ``sees[m]`` is not 0, else 0 and 0 (``highlights`` is
-    then not read: it may be empty); and its targets (OUTPUTS, batch)."""
+    then not read: it may be empty); and its targets (OUTPUTS, batch). Thread 0 writes the step's number for Adam
+    (1-based) into ``adam_step``."""
     i = wp.tid()
+    if i == 0:
+        adam_step[0] = step[0] + wp.int64(1)
     position = step[0] * wp.int64(batch) + wp.int64(i)
     epoch = position / total
     sample = shuffled_sample(position - epoch * total, total, seed * 65599 + int(epoch), half_bits)
@@ -136,7 +140,7 @@ def make_train_tiles(columns: int, sub_batches: int, threads: int = 0, blocks_pe
     """The fused step's kernel for tiles of ``columns`` samples, each tile block (of ``threads`` threads) looping
     over ``sub_batches`` of them; ``blocks_per_sm`` > 0 asks the compiler for registers enough for that many
     blocks on a multiprocessor (CUDA's launch bounds), 0 leaves it free. The weights' and biases' gradients add
-    up in the block and are stored once a block as its partial sums (``sum_partials`` adds them up), so no atomic
+    up in the block and are stored once a block as its partial sums (``adam_flat`` adds them up), so no atomic
     add serialises the launch and the sum is the same in every run. Shared memory is three allocations (arenas),
     every tile a view at a fixed offset into one, so that a thread keeps three base addresses rather than one for
     each tile (registers decide how many blocks an SM runs). A layer's gradient takes its activation's place (the
@@ -263,48 +267,56 @@ def make_train_tiles(columns: int, sub_batches: int, threads: int = 0, blocks_pe
     return train_tiles
 
 
-@wp.func
-def adam_scalars(step: wp.int64, batch: int, total: wp.int64, epochs: int, scalars: wp.array[float]):
-    """Adam's step ``step`` (0-based): scalars[0] = the learning-rate schedule's position in [0, 1] (the step's
-    epoch over ``epochs`` - 1), scalars[1] and scalars[2] = 1 - beta1^t and 1 - beta2^t for t = step + 1."""
-    t = step + wp.int64(1)
-    epoch = (step * wp.int64(batch)) / total
-    scalars[0] = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
-    scalars[1] = 1.0 - wp.pow(ADAM_BETA1, float(t))
-    scalars[2] = 1.0 - wp.pow(ADAM_BETA2, float(t))
-
-
 @wp.kernel
-def sum_partials(partials: wp.array2d[float], start: int, gradients: wp.array[float], step: wp.array[wp.int64],
-                 batch: int, total: wp.int64, epochs: int, scalars: wp.array[float]):
-    """gradients[start + i] += the sum over blocks b of partials[b, i], in the order of b; thread 0 also writes the
-    step's Adam scalars (``adam_scalars``) and advances the step counter (no other thread reads it)."""
-    i = wp.tid()
-    total_sum = float(0.0)
-    for b in range(partials.shape[0]):
-        total_sum += partials[b, i]
-    gradients[start + i] = gradients[start + i] + total_sum
-    if i == 0:
-        adam_scalars(step[0], batch, total, epochs, scalars)
-        step[0] = step[0] + wp.int64(1)
-
-
-@wp.kernel
-def adam_flat(scalars: wp.array[float], log_lr: wp.array[float], log_final_lr: float,
-              params: wp.array[float], gradients: wp.array[float], first: wp.array[float], second: wp.array[float]):
-    """Adam on every parameter; parameter i's learning rate decays geometrically from exp(``log_lr[i]``) (first
-    epoch; each model's own) to exp(``log_final_lr``) (epoch ``epochs``), at the position and with the bias
-    corrections of ``scalars`` (``adam_scalars``); the gradient is zeroed once used."""
-    i = wp.tid()
-    fraction = scalars[0]
+def adam_flat(adam_step: wp.array[wp.int64], batch: int, total: wp.int64, epochs: int, partials: wp.array2d[float],
+              start: int, log_lr: wp.array[float], log_final_lr: float, params: wp.array[float],
+              gradients: wp.array[float], first: wp.array[float], second: wp.array[float], step: wp.array[wp.int64]):
+    """Adam's step t = ``adam_step[0]`` (1-based) on every parameter: parameter i >= ``start`` (a weight) takes as its
+    gradient the sum over blocks b of ``partials[b, i - start]``; parameter i's learning rate
+    decays geometrically from exp(``log_lr[i]``) (first epoch; each model's own) to exp(``log_final_lr``) (epoch
+    ``epochs`` - 1) at the epoch of step t - 1 (``batch`` samples a step, ``total`` an epoch); bias corrections
+    1 - beta^t; the gradient is zeroed once used. Thread 0 sets the step counter ``step`` to t (no other thread
+    reads it). Thread k takes parameter k + ``start`` (modulo their number): the weights, whose sums take longest,
+    start first."""
+    k = wp.tid()
+    i = k + start
+    if i >= params.shape[0]:
+        i -= params.shape[0]
+    t = adam_step[0]
+    epoch = ((t - wp.int64(1)) * wp.int64(batch)) / total
+    fraction = wp.min(float(epoch) / float(wp.max(epochs - 1, 1)), 1.0)
     rate = wp.exp((1.0 - fraction) * log_lr[i] + fraction * log_final_lr)
     g = gradients[i]
+    if i >= start:  # four sums side by side (their loads in flight together), then added: the same order every run
+        column = i - start
+        blocks = partials.shape[0]
+        sums = wp.vec4(0.0)
+        b = int(0)
+        while b + 4 <= blocks:
+            sums += wp.vec4(partials[b, column], partials[b + 1, column], partials[b + 2, column],
+                            partials[b + 3, column])
+            b += 4
+        while b < blocks:
+            sums[0] = sums[0] + partials[b, column]
+            b += 1
+        g += (sums[0] + sums[1]) + (sums[2] + sums[3])
     gradients[i] = 0.0
     m = ADAM_BETA1 * first[i] + (1.0 - ADAM_BETA1) * g
     v = ADAM_BETA2 * second[i] + (1.0 - ADAM_BETA2) * g * g
     first[i] = m
     second[i] = v
-    params[i] = params[i] - rate * (m / scalars[1]) / (wp.sqrt(v / scalars[2]) + ADAM_EPSILON)
+    correction1 = 1.0 - wp.pow(ADAM_BETA1, float(t))
+    correction2 = 1.0 - wp.pow(ADAM_BETA2, float(t))
+    params[i] = params[i] - rate * (m / correction1) / (wp.sqrt(v / correction2) + ADAM_EPSILON)
+    if k == 0:
+        step[0] = t
+
+
+def has_tensor_cores(device) -> bool:
+    """Whether ``device`` trains on tensor cores by default: ``LEARNED_TENSOR_CORES`` and a CUDA GPU of compute
+    capability 8.0 or newer."""
+    device = wp.get_device(device)
+    return bool(LEARNED_TENSOR_CORES) and device.is_cuda and device.arch >= MIN_ARCH
 
 
 def _feistel_half_bits(total: int) -> int:
@@ -390,7 +402,9 @@ class DecoderTrainer:
     ``steps(k)`` runs k steps (a CUDA graph on CUDA). ``highlights``: (n, P) the Gaussians' luminance at each light
     and pixel (display units), or None; ``sees``: per model whether it takes them (default: every model when
     ``highlights`` is given). A model's w0 has 12 columns (given zero weights for the highlights' inputs) or, for a
-    model that sees them, 14."""
+    model that sees them, 14. ``tensor_cores``: whether the step's products run on the GPU's tensor cores (TF32
+    inputs, float32 sums; default ``has_tensor_cores``), in blocks of ``tensor_passes`` passes of 128 samples; else
+    Warp's tile products in ``tile`` shapes."""
 
     targets: np.ndarray
     lights: np.ndarray
@@ -405,6 +419,8 @@ class DecoderTrainer:
     tile: tuple[int, ...] = LEARNED_TILE
     highlights: np.ndarray | None = None
     sees: tuple | None = None
+    tensor_cores: bool | None = None
+    tensor_passes: int = LEARNED_TENSOR_PASSES
 
     def __post_init__(self):
         device = self.device = wp.get_device(self.device)
@@ -423,18 +439,29 @@ class DecoderTrainer:
         self.sees_array = wp.array(np.asarray(self.sees, np.int32), dtype=wp.int32, device=device)
         self.pixels = pixels
         self.total = len(self.used) * pixels
-        columns, sub_batches, self.threads, *bounds = self.tile
-        unit = columns * sub_batches  # samples per tile block
+        if self.tensor_cores is None:
+            self.tensor_cores = has_tensor_cores(device)
+        if self.tensor_cores:
+            if not (device.is_cuda and device.arch >= MIN_ARCH):
+                raise ValueError(f"tensor cores need a CUDA GPU of compute capability 8.0 or newer, not {device}")
+            if int(self.tensor_passes) < 1:
+                raise ValueError(f"tensor_passes must be >= 1, got {self.tensor_passes}")
+            unit = SAMPLES_PER_PASS * int(self.tensor_passes)
+            self.threads = THREADS
+            self.kernel = make_tensor_core_step(int(self.tensor_passes))
+        else:
+            columns, sub_batches, self.threads, *bounds = self.tile
+            unit = columns * sub_batches  # samples per tile block
+            self.kernel = make_train_tiles(columns, sub_batches, self.threads, *bounds)
         self.batch = max(unit, -(-int(self.batch) // unit) * unit)
         self.blocks = self.batch // unit
-        self.kernel = make_train_tiles(columns, sub_batches, self.threads, *bounds)
         self.params = _FlatParameters(self.models, device)
         self.partials, self.partial_views = self.params.block_partials(self.blocks, device)
         self.rates = np.broadcast_to(np.asarray(self.lr, np.float64), (count,)).copy()
         if not (np.all(np.isfinite(self.rates)) and np.all(self.rates > 0)):
             raise ValueError(f"learning rates must be > 0, got {self.lr}")
         self.log_rates = wp.array(np.log(self.params.per_model(self.rates)), dtype=float, device=device)
-        self.scalars = wp.zeros(3, dtype=float, device=device)  # Adam's (``adam_scalars``), written every step
+        self.adam_step = wp.zeros(1, dtype=wp.int64, device=device)  # the step's number for Adam (1-based)
         self.first = wp.zeros(self.params.size, dtype=float, device=device)
         self.second = wp.zeros(self.params.size, dtype=float, device=device)
         self.step = wp.zeros(1, dtype=wp.int64, device=device)
@@ -463,19 +490,18 @@ class DecoderTrainer:
                 gather_batch, dim=self.batch,
                 inputs=[self.step, self.batch, self.total, self.half_bits, self.seed, self.used_array, self.pixels,
                         self.light_array, self.target_array, self.highlight_array, self.sees_array],
-                outputs=[self.samples, self.pixel_index, self.light_features, self.batch_targets], device=device)),
+                outputs=[self.samples, self.pixel_index, self.light_features, self.batch_targets, self.adam_step],
+                device=device)),
             ("train_tiles", lambda: wp.launch_tiled(
                 self.kernel, dim=[count, self.blocks],
                 inputs=[self.light_features, self.pixel_index, self.codes_by_row, self.code_gradients_by_row,
                         self.batch_targets, 1.0 / self.batch, *p.views[1:], *self.partial_views],
                 outputs=[self.loss], block_dim=self.threads, device=device)),
-            ("sum_partials", lambda: wp.launch(
-                sum_partials, dim=self.partials.shape[1],
-                inputs=[self.partials, int(p.starts[1]), p.gradient, self.step, self.batch, self.total, self.epochs,
-                        self.scalars], device=device)),
             ("adam_flat", lambda: wp.launch(
-                adam_flat, dim=p.size, inputs=[self.scalars, self.log_rates, math.log(self.final_lr)],
-                outputs=[p.flat, p.gradient, self.first, self.second], device=device)),
+                adam_flat, dim=p.size,
+                inputs=[self.adam_step, self.batch, self.total, self.epochs, self.partials, int(p.starts[1]),
+                        self.log_rates, math.log(self.final_lr)],
+                outputs=[p.flat, p.gradient, self.first, self.second, self.step], device=device)),
         ]
 
     def launch_step(self) -> None:
@@ -497,6 +523,14 @@ class DecoderTrainer:
             else:
                 self.launch_step()
 
+    def step_gradients(self) -> list[np.ndarray]:
+        """The gradients a step's training launch leaves for Adam (after ``launches()`` up to ``adam_flat``), float64:
+        the codes' (M, P, CODE_SIZE), then each weight array's (M, rows, cols), the sum of the blocks' partial sums."""
+        flat = self.params.gradient.numpy().astype(np.float64)
+        flat[int(self.params.starts[1]):] += self.partials.numpy().astype(np.float64).sum(axis=0)
+        starts = self.params.starts
+        return [flat[int(a):int(b)].reshape(shape) for a, b, shape in zip(starts[:-1], starts[1:], self.params.shapes)]
+
     def losses(self) -> np.ndarray:
         """(M,) the loss summed over the steps since the last call (a mean squared error a step), then zeroed."""
         values = self.loss.numpy()[:, 0].astype(np.float64)
@@ -515,7 +549,8 @@ class DecoderTrainer:
         models = self.result()
         alone = DecoderTrainer(self.targets[m:m + 1], self.lights, self.used if used is None else np.asarray(used),
                                [models[m]], self.batch, self.epochs, float(self.rates[m]), self.final_lr, self.seed,
-                               self.device, self.tile, self.highlights, self.sees[m:m + 1])
+                               self.device, self.tile, self.highlights, self.sees[m:m + 1], self.tensor_cores,
+                               self.tensor_passes)
         for mine, theirs in ((self.first, alone.first), (self.second, alone.second)):
             theirs.assign(self.params.one_model(mine.numpy(), m))
         step = int(self.step.numpy()[0])
@@ -545,7 +580,8 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
                    settle_epoch: int = 0,
                    settle_used: np.ndarray | None = None,
                    highlights: np.ndarray | None = None,
-                   sees=None, stop_when_settled: bool = False) -> tuple[list[NeuralDecoder], np.ndarray]:
+                   sees=None, stop_when_settled: bool = False,
+                   tensor_cores: bool | None = None) -> tuple[list[NeuralDecoder], np.ndarray]:
     """Fit M decoders (codes and weights) to (M, n, P, 3) display-unit targets at (n, 3) lights, side by side: Adam on
     the mean squared error over shuffled (light, pixel) samples, ``batch`` a step, the learning rate decaying
     geometrically from ``lr`` (one for every model, or one each) to ``final_lr`` over ``epochs`` (or until
@@ -559,7 +595,7 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     bool per model, whether it takes them as inputs (default: every model when ``highlights`` is given). A model
     that sees them is returned with w0 of 14 columns (an initial one of 12 starts with zero weights for them), the
     others with 12. ``stop_when_settled``: once ``settle`` has named one, every model stops there (a check whose
-    winner will not be kept).
+    winner will not be kept). ``tensor_cores``: ``DecoderTrainer``'s.
     Returns the models and the (epochs run, M) mean loss of each epoch."""
     device = wp.get_device(device)
     targets = np.ascontiguousarray(targets, np.float32)
@@ -570,7 +606,7 @@ def train_decoders(targets: np.ndarray, lights: np.ndarray, *, device=None, epoc
     if len(models) != count or any(m.codes.shape != (pixels, CODE_SIZE) for m in models):
         raise ValueError(f"initial models must be {count}, each with codes of {pixels} pixels")
     trainer = DecoderTrainer(targets, lights, used, models, batch, epochs, lr, final_lr, seed, device,
-                             highlights=highlights, sees=sees)
+                             highlights=highlights, sees=sees, tensor_cores=tensor_cores)
     trainer.steps(1)  # compiles and loads the kernels (minutes on a fresh CUDA machine): not training time
     wp.synchronize_device(device)
     started = time.perf_counter()

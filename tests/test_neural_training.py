@@ -1,7 +1,8 @@
-"""The learned residual's training step (``kernels.neural_training``) against float64 NumPy: the device
-shuffle is a permutation of each epoch's samples, the fused step's loss and gradients match central
-differences of the reference decoder (with and without the highlights' inputs), Adam matches its float64 formula,
-and models trained side by side equal models trained alone."""
+"""The learned residual's training step (``kernels.neural_training``, Warp's tile products; the tensor cores'
+step in ``test_neural_tensor_cores.py``) against float64 NumPy: the device shuffle is a permutation of each epoch's
+samples, the fused step's loss and gradients match central differences of the reference decoder (with and without
+the highlights' inputs), Adam matches its float64 formula, and models trained side by side equal models trained
+alone."""
 
 from __future__ import annotations
 
@@ -75,8 +76,7 @@ def _one_step_gradients(trainer):
         if name == "adam_flat":
             break
         launch()
-    p = trainer.params
-    return trainer.samples.numpy(), trainer.loss.numpy()[:, 0], [g.numpy() for g in p.gradients]
+    return trainer.samples.numpy(), trainer.loss.numpy()[:, 0], trainer.step_gradients()
 
 
 def test_the_fused_step_gradients_match_central_differences(device):
@@ -87,7 +87,7 @@ def test_the_fused_step_gradients_match_central_differences(device):
     used = np.array([0, 2, 4])
     models = [neural.initial_model(targets[m][used], seed=m + 2) for m in range(2)]
     trainer = neural_training.DecoderTrainer(targets, directions, used, models, 150, 10, device=device,
-                                             tile=(32, 3, 32))  # 2 blocks of 3 tiles
+                                             tile=(32, 3, 32), tensor_cores=False)  # 2 blocks of 3 tiles
     assert trainer.batch == 192 and trainer.blocks == 2 and trainer.total == 120
     samples, loss, gradients = _one_step_gradients(trainer)
     light, pixel = samples // 40, samples % 40
@@ -127,7 +127,8 @@ def test_the_fused_step_gradients_of_a_model_that_sees_the_highlights_match_cent
     seeing = seeing_decoder(40, seed=5)
     models = [seeing, neural.initial_model(targets[1], seed=3)]
     trainer = neural_training.DecoderTrainer(targets, directions, np.arange(5), models, 150, 10, device=device,
-                                             tile=(32, 3, 32), highlights=g, sees=(True, False))
+                                             tile=(32, 3, 32), highlights=g, sees=(True, False),
+                                             tensor_cores=False)
     samples, loss, gradients = _one_step_gradients(trainer)
     light, pixel = samples // 40, samples % 40
     rng = np.random.default_rng(0)
@@ -244,7 +245,7 @@ def test_the_weights_gradients_are_the_same_in_every_run(device):
     runs = []
     for _ in range(2):
         trainer = neural_training.DecoderTrainer(targets, directions, np.arange(5), models, 1024, 10, device=device,
-                                                 tile=(32, 4, 32))
+                                                 tile=(32, 4, 32), tensor_cores=False)
         assert trainer.blocks == 8
         runs.append(_one_step_gradients(trainer)[2][1:])
     for first, second in zip(*runs):
@@ -253,27 +254,26 @@ def test_the_weights_gradients_are_the_same_in_every_run(device):
 
 
 def test_adam_matches_its_formula(device):
-    """A step's Adam: ``sum_partials`` adds the blocks' partial sums to the gradients, writes the step's scalars
-    and advances the step counter; one flat Adam launch then gives the moments, bias correction, each parameter's
-    learning rate at the epoch (from its own first rate); the gradient zeroed."""
+    """A step's Adam, one flat launch: a weight's gradient is its blocks' partial sums added to the gradient buffer;
+    the moments, the bias corrections of step t, each parameter's learning rate at the epoch of step t - 1 (from its
+    own first rate); the gradient zeroed; the step counter set to t."""
     rng = np.random.default_rng(3)
     params, grads = rng.normal(size=50), rng.normal(size=50)
     first, second = rng.normal(size=50) * 0.1, rng.uniform(0.0, 0.1, 50)
+    grads[20:] = 0.0  # the weights' entries: only their partial sums
     partials = rng.normal(size=(3, 30))  # three blocks' sums of the last 30 parameters' gradients
     arrays = [wp.array(a.astype(np.float32), dtype=float, device=device) for a in (params, grads, first, second)]
+    adam_step = wp.array(np.array([8], np.int64), dtype=wp.int64, device=device)
     step = wp.array(np.array([7], np.int64), dtype=wp.int64, device=device)
-    scalars = wp.zeros(3, dtype=float, device=device)
     batch, total, epochs, final_lr = 64, 100, 10, 3e-4
-    wp.launch(neural_training.sum_partials, dim=30,
-              inputs=[wp.array(partials.astype(np.float32), dtype=float, device=device), 20, arrays[1], step, batch,
-                      total, epochs, scalars], device=device)
+    lr = np.where(np.arange(50) < 20, 3e-3, 1e-2)
+    partial_array = wp.array(partials.astype(np.float32), dtype=float, device=device)
+    wp.launch(neural_training.adam_flat, dim=50,
+              inputs=[adam_step, batch, total, epochs, partial_array, 20,
+                      wp.array(np.log(lr).astype(np.float32), dtype=float, device=device), np.log(final_lr)],
+              outputs=[*arrays, step], device=device)
     assert step.numpy()[0] == 8
     grads = grads + np.concatenate([np.zeros(20), partials.sum(axis=0)])
-    np.testing.assert_allclose(arrays[1].numpy(), grads, rtol=1e-5, atol=1e-6)
-    lr = np.where(np.arange(50) < 20, 3e-3, 1e-2)
-    wp.launch(neural_training.adam_flat, dim=50,
-              inputs=[scalars, wp.array(np.log(lr).astype(np.float32), dtype=float, device=device), np.log(final_lr)],
-              outputs=arrays, device=device)
     epoch = 7 * 64 // 100
     rate = lr * (final_lr / lr) ** (epoch / (epochs - 1))
     m = 0.9 * first + 0.1 * grads
