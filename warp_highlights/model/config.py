@@ -501,16 +501,16 @@ number asks the compiler for registers enough for that many blocks a multiproces
 LEARNED_TENSOR_CORES = True
 """Whether the learned residual trains on a CUDA GPU's tensor cores where it has them (compute capability 8.0 or
 newer: ``kernels.neural_tensor_cores``, TF32 products with float32 sums) rather than through Warp's tile products
-(``LEARNED_TILE``): on an NVIDIA H200 the dome sample learned at 636 million samples a second against 285 million
-through the tile products and 21.8 million for PyTorch's eager step of the same model in the same run, 46.41 dB at
-its Test lights after 50 epochs against 46.49 and 46.48, its first step 1.2 s on an empty kernel cache
+(``LEARNED_TILE``): on an NVIDIA H100 the dome sample learned at 776 million samples a second against 290 million
+through the tile products and 33.8 million for PyTorch's eager step of the same model in the same run, 47.41 dB at its
+Test lights after 100 epochs against 47.56 and 47.57, its first step 0.7 s on an empty kernel cache against 6.0 s
 (``benchmarks/bench_learned_training.py --parts launches,kernel,torch --mathdx 0``; Warp's tile products through
-cuBLASDx, the other way to the tensor cores, compile for minutes: ``LEARNED_MATHDX``)."""
+cuBLASDx, its own way to the tensor cores, compile for minutes: ``LEARNED_MATHDX``)."""
 LEARNED_TENSOR_PASSES = 4
 """Passes of 128 samples a block of the tensor-core step takes: a step of 65,536 samples is then 128 blocks, one wave
-on an H100's 132 multiprocessors (one block each: the block's 214 KiB of shared memory). On an NVIDIA H200 a step
-took 101 us with 4 passes, 118 us with 2 (256 blocks, two waves) and 154 us with 1
-(``benchmarks/bench_learned_training.py --parts launches --passes 1,2,4``)."""
+on an H100's 132 multiprocessors (one block each: the block's 214 KiB of shared memory). On an NVIDIA H100 a step
+took 82.9 us with 4 passes and 97.1 us with 2 (256 blocks, two waves;
+``benchmarks/bench_learned_training.py --parts launches --passes 2,4``)."""
 LEARNED_MATHDX = False
 """Whether the learned residual's tile products use cuBLASDx (``enable_mathdx_gemm``): on an NVIDIA H200 it
 makes the first training step compile for minutes and trains slower: 147 million samples a second against
