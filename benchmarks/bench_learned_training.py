@@ -11,8 +11,8 @@ Parts (each a subprocess, so that each starts with its own Warp configuration an
   with Warp's own (``--tensor-cores``, ``--mathdx``): the first step on an empty kernel cache (compile and
   load), samples a second for one model and for two side by side, the decoder's first decode, and 8-bit
   sRGB PSNR at the 20 Test lights after ``--epochs`` epochs;
-- ``tiles``: samples a second of each tile shape of ``--tiles`` at batches of 65,536 and 131,072, and the
-  PSNR after ``--epochs`` epochs of the fastest at each batch;
+- ``tiles``: samples a second of each tile shape of ``--tiles`` (Warp's tile products) at batches of 65,536 and
+  131,072, and the PSNR after ``--epochs`` epochs of the fastest at each batch;
 - ``launches``: microseconds of each of the step's launches and of the whole step, for each tile shape of
   ``--tiles`` and each number of passes a block of ``--passes`` on the tensor cores;
 - ``torch``: the same model, initial values, Adam, learning-rate schedule, batch and shuffled epochs in
@@ -143,7 +143,7 @@ def part_tiles(args) -> dict:
         best = None
         for tile in args.tile_list:
             trainer = neural_training.DecoderTrainer(targets[None], directions, np.arange(n), [model], batch, 100,
-                                                     device=device, tile=tile)
+                                                     device=device, tile=tile, tensor_cores=False)
             t = time.perf_counter()
             trainer.steps(trainer.steps_per_epoch)
             trainer.losses()
@@ -161,7 +161,7 @@ def part_tiles(args) -> dict:
         for epochs in args.epoch_list:
             t = time.perf_counter()
             trainer = neural_training.DecoderTrainer(targets[None], directions, np.arange(n), [model], batch, epochs,
-                                                     device=device, tile=best[0])
+                                                     device=device, tile=best[0], tensor_cores=False)
             trainer.steps(epochs * trainer.steps_per_epoch)
             trained = trainer.result()[0]
             result[f"best batch {batch} epochs {epochs}"] = {
