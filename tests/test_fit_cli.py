@@ -96,6 +96,7 @@ def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, caps
     assert ("learned check at 3 left-out lights" in text
             and f"images alone {verdict['images_alone_psnr_db']:.2f} dB" in text)
     assert not verdict["sees_gaussians"] and "residual + moved Gaussians" in text
+    assert f"({verdict['exact_residual_psnr_db']:.2f} dB with its residual exact)" in text
     assert ("the learned residual keeps them" in text) == verdict["keeps_gaussians"]
 
 

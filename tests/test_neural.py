@@ -437,6 +437,16 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
     blob[:, 2:4, 3:6] = 1.5
     wrong = check_learned(images, own, None, directions, left_out, blob, factor=2.0, settings=settings, device="cpu")
     assert np.all(wrong.with_gaussians < wrong.images_alone) and not wrong.keeps_gaussians
+    # with its residual exact (the images: no highlights of their own) the first model shows image + blob
+    np.testing.assert_allclose(same.exact_residual, [100.0, 100.0])
+    np.testing.assert_allclose(wrong.exact_residual, [srgb_psnr((images[j] + b) / 2.0, images[j] / 2.0)
+                                                      for j, b in zip(left_out, blob)], rtol=1e-6)
+    assert wrong.report()["exact_residual_psnr_db"] == pytest.approx(np.mean(wrong.exact_residual), abs=1e-3)
+    per_light = wrong.report()["per_light"]
+    assert per_light["light"] == left_out.tolist()
+    for name, values in (("with_gaussians_psnr_db", wrong.with_gaussians), ("images_alone_psnr_db", wrong.images_alone),
+                         ("exact_residual_psnr_db", wrong.exact_residual)):
+        np.testing.assert_allclose(per_light[name], values, atol=0.005)
     gap = float(np.mean(wrong.images_alone) - np.mean(wrong.with_gaussians))
     assert gap > settings.learned_tie_margin_db
     # a margin beyond the gap keeps the Gaussians: the residual's model is the winner
@@ -829,3 +839,38 @@ def test_a_fit_hands_the_specular_part_to_the_learned_residual_where_it_learns_t
         else:
             assert specular is None, name
     assert (field.residual.highlight_colour is None) == ("residual.highlight_colour=false" in overrides)
+
+
+def test_exact_residual_scores_are_the_image_less_its_own_highlights_plus_the_moved_ones():
+    """Float64 reference: at each left-out light, the image less its own highlights in colour c (the diffuse part
+    where they are at least ``level`` of their brightest), plus the moved highlights, clipped at 0 and shown in 8-bit
+    sRGB, against the image."""
+    from warp_highlights.io.images import display_rgb8
+    from warp_highlights.residual.learned import exact_residual_scores
+
+    rng = np.random.default_rng(3)
+    images = rng.uniform(0.0, 1.6, (5, 6, 7, 3)).astype(np.float32)
+    own = np.zeros((5, 6, 7), np.float32)
+    own[:, 2:4, 1:5] = rng.uniform(0.2, 1.0, (5, 2, 4))
+    own[:, 2, 1] = 1.2  # the brightest: the diffuse part is learned where own >= 0.5 * 1.2
+    colour = rng.uniform(0.5, 1.0, (6, 7, 3)).astype(np.float32)
+    specular = rng.uniform(0.0, 0.8, (5, 6, 7, 3)).astype(np.float32)
+    lights = np.array([1, 4])
+    moved = rng.uniform(-0.1, 1.0, (2, 6, 7, 3)).astype(np.float32)
+    factor, level = 1.7, 0.5
+    got = exact_residual_scores(images, own, colour, lights, moved, factor=factor, specular=specular, level=level)
+    want = []
+    for k, j in enumerate(lights):
+        image = images[j].astype(np.float64)
+        residual = image - own[j][..., None].astype(np.float64) * colour
+        under = own[j] >= level * own[j].max()
+        residual[under] = image[under] - specular[j][under]
+        shown = np.maximum(residual + moved[k], 0.0) / factor
+        a, b = display_rgb8(shown).astype(np.float64), display_rgb8(image / factor).astype(np.float64)
+        want.append(10 * np.log10(255.0**2 / np.mean((a - b) ** 2)))
+    np.testing.assert_allclose(got, want, atol=0.02)
+    # without the specular part: the image less its own highlights alone
+    plain = exact_residual_scores(images, own, None, lights, moved, factor=factor)
+    for k, j in enumerate(lights):
+        shown = np.maximum(images[j] - own[j][..., None] + moved[k], 0.0) / factor
+        assert plain[k] == pytest.approx(srgb_psnr(shown, images[j] / factor), abs=1e-9)

@@ -295,8 +295,10 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             verdict = (("the decoder keeps them as its inputs" if sees else "the learned residual keeps them")
                        if learned["keeps_gaussians"] else "the images are learned alone (the field keeps no Gaussians)")
             candidate = "a decoder that sees the moved Gaussians" if sees else "residual + moved Gaussians"
+            exact = learned.get("exact_residual_psnr_db")
+            exact = "" if exact is None else f" ({exact:.2f} dB with its residual exact)"
             print(f"  learned check at {learned['lights']} left-out lights: {candidate} "
-                  f"{learned['with_gaussians_psnr_db']:.2f} dB, "
+                  f"{learned['with_gaussians_psnr_db']:.2f} dB{exact}, "
                   f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
         weighing = residual.get("residual_interpolation") or {}
         if weighing.get("lights") and "rbf_psnr_db" in weighing:

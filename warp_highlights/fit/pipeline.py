@@ -300,8 +300,10 @@ def fit_field(
                 settled = learned_check.settled_epoch
                 log(f"learned check at {verdict['lights']} lights: with the Gaussians"
                     + (" as the decoder's inputs " if verdict["sees_gaussians"] else " ")
-                    + f"{verdict['with_gaussians_psnr_db']:.2f} dB, the images alone "
-                    f"{verdict['images_alone_psnr_db']:.2f} dB"
+                    + f"{verdict['with_gaussians_psnr_db']:.2f} dB"
+                    + (f" ({verdict['exact_residual_psnr_db']:.2f} with its residual exact)"
+                       if "exact_residual_psnr_db" in verdict else "")
+                    + f", the images alone {verdict['images_alone_psnr_db']:.2f} dB"
                     + ("" if settled is None else f" (settled after {settled} epochs)"))
             if (not moving.any() or not weighed
                     or (learned_check is not None and not learned_check.keeps_gaussians)):

@@ -324,8 +324,10 @@ class HighlightField:
         learned = residual.get("learned_check") or {}
         if learned.get("lights"):
             seeing = " as the decoder's inputs" if learned.get("sees_gaussians") else ""
-            parts.append(f"learned check: with the Gaussians{seeing} {learned['with_gaussians_psnr_db']:.2f} dB, the "
-                         f"images alone {learned['images_alone_psnr_db']:.2f} dB")
+            exact = learned.get("exact_residual_psnr_db")
+            exact = "" if not isinstance(exact, (int, float)) else f" ({exact:.2f} with its residual exact)"
+            parts.append(f"learned check: with the Gaussians{seeing} {learned['with_gaussians_psnr_db']:.2f} dB"
+                         f"{exact}, the images alone {learned['images_alone_psnr_db']:.2f} dB")
         return "".join(f"; {part}" for part in parts)
 
     def describe(self) -> str:

@@ -271,7 +271,9 @@ class LearnedCheck:
     it needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
     (negative: how far they must trail) and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``,
     or ``learned_seeing_margin_db``);
-    ``sees_gaussians``: the model with the Gaussians was a decoder that sees them (``check_learned``'s ``seen``)."""
+    ``sees_gaussians``: the model with the Gaussians was a decoder that sees them (``check_learned``'s ``seen``);
+    ``exact_residual``: (m,) the scores of that model with its residual exact at each left-out light
+    (``exact_residual_scores``: what moving the Gaussians there costs by itself; None for a decoder that sees them)."""
 
     lights: np.ndarray
     with_gaussians: np.ndarray
@@ -282,6 +284,7 @@ class LearnedCheck:
     history: tuple = ()
     tie_margin_db: float = 0.0
     sees_gaussians: bool = False
+    exact_residual: np.ndarray | None = None
 
     @property
     def keeps_gaussians(self) -> bool:
@@ -292,11 +295,19 @@ class LearnedCheck:
 
     def report(self) -> dict:
         """Plain figures for the fit report: the lights checked, the verdict and, where any were checked, both
-        models' mean scores."""
+        models' mean scores (and the first's with its residual exact, where measured), and each light's."""
         scores = {}
         if len(self.lights):
             scores = {"with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
                       "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3)}
+            if self.exact_residual is not None and len(self.exact_residual):
+                scores["exact_residual_psnr_db"] = round(float(np.mean(self.exact_residual)), 3)
+            # each light's: where the verdict comes from
+            scores["per_light"] = {"light": [int(j) for j in self.lights],
+                                   "with_gaussians_psnr_db": [round(float(v), 2) for v in self.with_gaussians],
+                                   "images_alone_psnr_db": [round(float(v), 2) for v in self.images_alone]}
+            if self.exact_residual is not None and len(self.exact_residual):
+                scores["per_light"]["exact_residual_psnr_db"] = [round(float(v), 2) for v in self.exact_residual]
         return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians,
                 "sees_gaussians": self.sees_gaussians, "settled_epoch": self.settled_epoch}
 
@@ -391,8 +402,34 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     else:
         check = LearnedCheck(lights, *score(trained), tie_margin_db=tie, sees_gaussians=sees)
     keeps = check.keeps_gaussians
+    exact = None if sees else exact_residual_scores(images, own, colour, lights, highlights, factor=factor,
+                                                    specular=specular, level=settings.diffuse_under_highlights)
     return dataclasses.replace(check, winner=models[0] if keeps else models[1],
-                               history=tuple(histories[0 if keeps else 1]))
+                               history=tuple(histories[0 if keeps else 1]), exact_residual=exact)
+
+
+def exact_residual_scores(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, lights: np.ndarray,
+                          highlights: np.ndarray, *, factor: float, specular: np.ndarray | None = None,
+                          level: float = 0.0) -> np.ndarray:
+    """(m,) 8-bit sRGB PSNR (dB) at each left-out light of ``lights`` of what a learned residual with the Gaussians
+    would show there if its residual were exact: the residual it learns at that light (the (n, H, W, 3) image less
+    its own (n, H, W) highlights in colour c, or the diffuse part under them with the ``specular`` part, as
+    ``_targets`` takes them), plus the (m, H, W, 3) ``highlights`` moved there from the other lights, against the
+    image; field units, ``factor`` per display unit. Where it is low the Gaussians' move loses, whatever the residual
+    learns; where it is high and the model's own score is not, the residual does."""
+    tint = np.ones((1, 1, 3), np.float32) if colour is None else np.asarray(colour, np.float32)
+    scale = np.float32(1.0 / factor)
+
+    def light(k: int) -> float:
+        j = int(lights[k])
+        image = np.asarray(images[j], np.float32)
+        residual = residual_of(image, np.asarray(own[j], np.float32), tint)
+        if specular is not None:
+            diffuse_under_highlights(residual, image, own[j], np.asarray(specular[j], np.float32), level)
+        shown = np.maximum(residual + np.asarray(highlights[k], np.float32), 0.0)  # as relit
+        return srgb_psnr(shown * scale, image * scale)
+
+    return np.array(parallel_map(light, range(len(lights))), dtype=np.float64)
 
 
 def bounded(residual: ResidualModel, images: np.ndarray, own: np.ndarray, colour: np.ndarray | None) -> ResidualModel:
