@@ -375,7 +375,7 @@ class RetargetSettings:
             (29.72 -> 28.12); it lowered the tiled teapot's ghost share (0.352 -> 0.314) at the same PSNR and moved
             the others' scores by at most 0.02 dB; the dome sample fitted on 25 and 49 of its lights (``--scenes ""
             --photos dome-sample``, the same two settings) scored 35.99 -> 36.45 and 42.14 -> 41.87 dB at its Test
-            lights.
+            lights (``benchmarks/results/motion-cpu/bench_motion-vanish-share-{0.01,0}-7151c63.json``).
     """
 
     rigid_iterations: int = 50
