@@ -1128,3 +1128,20 @@ def _assert_relights_as_recorded(field, recorded: str) -> None:
 def _headers(*paths: Path) -> tuple[dict, ...]:
     """The ``header.json`` of each field file."""
     return tuple(json.loads(entries(path.read_bytes())["header.json"]) for path in paths)
+
+
+def test_describe_gives_the_checks_figures_from_the_fit_report():
+    """``info``'s summary: the move check's and the learned check's scores, the latter's with its residual exact
+    where the report has it (left out where it has not)."""
+    field = make_field(LightSet.fibonacci_dome(16), size=(48, 27))
+    field.moving = field.estimated.active.copy()  # the figures follow the moving Gaussians' line
+    check = {"lights": 6, "with_gaussians_psnr_db": 28.605, "images_alone_psnr_db": 41.331,
+             "exact_residual_psnr_db": 28.971, "keeps_gaussians": False, "sees_gaussians": False}
+    field.report = {"residual": {"moving_specular_share": 0.4, "learned_check": check,
+                                 "move_check": {"lights": 48, "moving_psnr_db": 38.331, "blend_psnr_db": 35.708}}}
+    text = field.describe()
+    assert "move check at 48 left-out lights: moving 38.33 dB, blending 35.71 dB" in text
+    assert ("learned check: with the Gaussians 28.61 dB (28.97 with its residual exact), the images alone 41.33 dB"
+            in text)
+    field.report["residual"]["learned_check"] = {k: v for k, v in check.items() if k != "exact_residual_psnr_db"}
+    assert "learned check: with the Gaussians 28.61 dB, the images alone 41.33 dB" in field.describe()
