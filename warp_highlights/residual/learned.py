@@ -300,14 +300,14 @@ class LearnedCheck:
         if len(self.lights):
             scores = {"with_gaussians_psnr_db": round(float(np.mean(self.with_gaussians)), 3),
                       "images_alone_psnr_db": round(float(np.mean(self.images_alone)), 3)}
+            # each light's too: where the verdict comes from
+            per_light = {"light": [int(j) for j in self.lights],
+                         "with_gaussians_psnr_db": [round(float(v), 2) for v in self.with_gaussians],
+                         "images_alone_psnr_db": [round(float(v), 2) for v in self.images_alone]}
             if self.exact_residual is not None and len(self.exact_residual):
                 scores["exact_residual_psnr_db"] = round(float(np.mean(self.exact_residual)), 3)
-            # each light's: where the verdict comes from
-            scores["per_light"] = {"light": [int(j) for j in self.lights],
-                                   "with_gaussians_psnr_db": [round(float(v), 2) for v in self.with_gaussians],
-                                   "images_alone_psnr_db": [round(float(v), 2) for v in self.images_alone]}
-            if self.exact_residual is not None and len(self.exact_residual):
-                scores["per_light"]["exact_residual_psnr_db"] = [round(float(v), 2) for v in self.exact_residual]
+                per_light["exact_residual_psnr_db"] = [round(float(v), 2) for v in self.exact_residual]
+            scores["per_light"] = per_light
         return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians,
                 "sees_gaussians": self.sees_gaussians, "settled_epoch": self.settled_epoch}
 
