@@ -28,8 +28,8 @@ import warp as wp
 
 from warp_highlights.model.gaussians import GaussianBatch, GaussianParams
 
-__all__ = ["blur_along", "blurred", "candidate_offsets", "component_members", "image_headings", "search_blur_px",
-           "search_translations", "searched_translations"]
+__all__ = ["blur_along", "blurred", "candidate_offsets", "component_members", "half_vector_changes", "image_headings",
+           "search_blur_px", "search_translations", "searched_translations"]
 
 
 @wp.kernel(enable_backward=False)
@@ -148,13 +148,21 @@ def image_headings(directions: np.ndarray, edges: np.ndarray) -> np.ndarray:
     y up, z to the camera): the change of the half-vector h = (l + v) / |l + v| for a camera along +z,
     projected on the image. A highlight sits where the surface's normal is h, so on a convex surface it
     moves with h (on a concave one against it: the prior is symmetric). Zero where h barely changes."""
+    image = half_vector_changes(directions, edges)
+    length = np.linalg.norm(image, axis=1, keepdims=True)
+    return np.where(length > 1e-6, image / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+
+
+def half_vector_changes(directions: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E, 2) float64 change of the half-vector h = (l + v) / |l + v| (camera along +z) along each directed edge
+    (source, target) of lights ``directions`` ((n, 3): x right, y up, z to the camera), on the image plane (x
+    right, y down, as the Gaussians' means)."""
     directions = np.asarray(directions, dtype=np.float64)
     half = directions + np.array([0.0, 0.0, 1.0])
     half /= np.maximum(np.linalg.norm(half, axis=1, keepdims=True), 1e-12)
+    edges = np.asarray(edges, dtype=np.int64)
     change = half[edges[:, 1]] - half[edges[:, 0]]
-    image = np.stack([change[:, 0], -change[:, 1]], axis=1)
-    length = np.linalg.norm(image, axis=1, keepdims=True)
-    return np.where(length > 1e-6, image / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+    return np.stack([change[:, 0], -change[:, 1]], axis=1)
 
 
 def candidate_offsets(radius: float, step: float) -> np.ndarray:

@@ -218,6 +218,7 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     the check's moving prediction scores what the Relighter gives for a field built over the other lights."""
     import warp_highlights.fit.pipeline as pipeline
     from conftest import FAST_FIT
+    from warp_highlights.fit.lost import lost_slots, place_lost
     from warp_highlights.fit.paths import decide_paths
     from warp_highlights.fit.retargeting import restore_vanished, retarget
     from warp_highlights.io.dataset import ReflectanceField
@@ -251,8 +252,15 @@ def test_the_moving_prediction_is_what_the_relighter_draws_over_the_other_lights
     extra = np.array(sorted(wanted - {tuple(e) for e in edges.tolist()}), dtype=np.int32)
     more = retarget(estimated, specular, extra, settings=settings.retarget, raster=settings.raster, device="cpu",
                     directions=directions).params
-    more, _ = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share,
-                               sigma_eps=settings.raster.sigma_eps)
+    more, vanished = restore_vanished(estimated.take(extra[:, 0]), more, settings.retarget.vanish_share,
+                                      sigma_eps=settings.raster.sigma_eps)
+    # the lost ones placed where their motion expects them, as the fit's own edges' are
+    motion = calls["kwargs"]["motion"]
+    assert motion is not None
+    lost = lost_slots(estimated.take(extra[:, 0]), more, vanished, specular.shape[2] / specular.shape[1],
+                      settings.retarget.lost_share)
+    more, _, _ = place_lost(estimated.take(extra[:, 0]), more, lost, extra, directions, motion, specular,
+                            landing=settings.residual.move_support, raster=settings.raster)
     every_edge = np.concatenate([edges, extra])
     every_set = GaussianParams.concatenate([retargeted, more], axis=0)
     paths = decide_paths(estimated.take(every_edge[:, 0]), every_set, settings.paths)

@@ -262,6 +262,10 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
           f"{quality['min']:.1f}")
     print(f"  retargeting fit loss: source {ret['source_loss']['mean']:.1f} -> rigid {ret['rigid_loss']['mean']:.1f} "
           f"-> final {ret['loss']['mean']:.1f} (mean); improved on {100 * ret['improved_share']:.0f}% of edges")
+    if ret.get("vanished_slots") is not None:
+        print(f"  retargeted Gaussians that lost their highlight: {ret['vanished_slots']} vanished; sent where their "
+              f"motion expects it: {ret.get('left_frame_slots', 0)} out of the frame, {ret.get('followed_slots', 0)} "
+              f"inside it")
     print(f"  segmentation: {report['segmentation']['few_light_pixels']} pixels left all diffuse (fewer "
           f"than 4 lit samples)")
     residual = report.get("residual")

@@ -24,14 +24,19 @@ class MoveDecision:
 
 def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray,
                   specular_luminance: wp.array,
-                  *, settings: ResidualSettings, raster: RasterSettings) -> MoveDecision:
-    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``."""
+                  *, settings: ResidualSettings, raster: RasterSettings,
+                  left_frame: np.ndarray | None = None) -> MoveDecision:
+    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``.
+    ``left_frame``: (E, N) bool slots sent out of the frame (``fit.lost``), which have nothing to land on and
+    leave the median (NaN support)."""
     n, capacity = estimated.active.shape
     device = specular_luminance.device
     batch = GaussianBatch.from_numpy(retargeted, device=device, requires_grad=False)
     values = support_fractions(batch, edges[:, 1], specular_luminance, settings=raster)
     values = np.where(retargeted.active, values, np.nan)
     values[values < 0] = 0.0  # a retargeted Gaussian that draws nothing explains nothing
+    if left_frame is not None:
+        values[left_frame] = np.nan
     if settings.move_support <= 0:
         return MoveDecision(estimated.active.copy(), values)
     order = np.argsort(edges[:, 0], kind="stable")

@@ -50,6 +50,7 @@ from ..residual.learned import (
 )
 from ..residual.rate import gaussian_bytes
 from .estimation import estimate
+from .lost import follow_lost
 from .moving import decide_moving
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
@@ -213,6 +214,14 @@ def fit_field(
             edge_sources = source.take(edges[:, 0])
             sets, vanished = restore_vanished(edge_sources, retargeted.params, settings.retarget.vanish_share,
                                               sigma_eps=settings.raster.sigma_eps)
+            left_frame = followed = np.zeros_like(vanished)
+            motion = None
+            if settings.retarget.follow_lost:
+                placed = follow_lost(edge_sources, sets, vanished, edges, dataset.lights.directions,
+                                     specular_luminance, share=settings.retarget.lost_share,
+                                     ridge=settings.retarget.motion_ridge, landing=settings.residual.move_support,
+                                     raster=settings.raster)
+                sets, left_frame, followed, motion = placed.sets, placed.left_frame, placed.followed, placed.motion
             decisions = decide_paths(edge_sources, sets, settings.paths)
 
         moving = source.active.copy()
@@ -228,6 +237,7 @@ def fit_field(
         if residual:
             with timer.stage("residual"):
                 decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual,
+                                         left_frame=left_frame,
                                          raster=settings.raster)
                 moving = decision.moving
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
@@ -269,7 +279,7 @@ def fit_field(
                                          progress=advance,
                                          keep=settings.residual.learned_check if learned else 0,
                                          held=held if check_images is images else None,
-                                         directions=dataset.lights.directions, draw_all=sees)
+                                         directions=dataset.lights.directions, draw_all=sees, motion=motion)
                 seen = None  # the Gaussians a decoder that sees them learns each light with (and is checked with)
                 if sees and check.moved_luminance is not None:
                     seen = own.copy()  # a light the others cannot locate sees its own
@@ -417,6 +427,8 @@ def fit_field(
             "improved_share": float(np.mean(retargeted.loss <= retargeted.source_loss + 1e-6)),
             "restored_slots": int(retargeted.restored.sum()),
             "vanished_slots": int(vanished.sum()),
+            "left_frame_slots": int(left_frame.sum()),
+            "followed_slots": int(followed.sum()),
         },
         "residual": None if residual_model is None else {
             "moving_gaussians": int(moving.sum()),

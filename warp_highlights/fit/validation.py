@@ -40,6 +40,7 @@ from ..model.interpolation import move_sets
 from ..model.threads import NUMPY_THREADS, parallel_map
 from ..model.triangulation import SphericalTriangulation
 from ..quality.metrics import psnr_8bit, psnr_of_mse
+from .lost import lost_slots, place_lost
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
 
@@ -228,6 +229,7 @@ def check_moving(
     held=None,
     directions: np.ndarray | None = None,
     draw_all: bool = False,
+    motion: np.ndarray | None = None,
 ) -> MoveCheck:
     """Score moving against blending at the left-out lights of ``plan``.
 
@@ -248,6 +250,8 @@ def check_moving(
         directions: (n, 3) the lights' directions, for retargeting's start (``fit.retargeting.retarget``).
         draw_all: keep every checked light's moved Gaussians (``MoveCheck.moved_luminance``): the inputs a learned
             residual that sees the highlights trains with (``residual.learned``).
+        motion: (n, N, 2, 2) the Gaussians' ``fit.lost.expected_motion``: the missing edges' lost Gaussians are placed
+            as the fit's own edges' are (``fit.lost.place_lost``; None: left as retargeting left them).
     """
     loo, missing = plan.loo, plan.missing
     if not len(loo.lights) or not moving.any():
@@ -259,8 +263,14 @@ def check_moving(
                          device=device, directions=directions,
                          workers=workers, progress=progress)
         extra_sources = estimated.take(missing[:, 0])
-        extra_sets, _ = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share,
-                                         sigma_eps=settings.raster.sigma_eps)
+        extra_sets, vanished = restore_vanished(extra_sources, extra.params, settings.retarget.vanish_share,
+                                                sigma_eps=settings.raster.sigma_eps)
+        if motion is not None and directions is not None:
+            lost = lost_slots(extra_sources, extra_sets, vanished, specular_luminance.shape[2]
+                              / specular_luminance.shape[1], settings.retarget.lost_share)
+            extra_sets, _, _ = place_lost(extra_sources, extra_sets, lost, missing, directions, motion,
+                                          specular_luminance, landing=settings.residual.move_support,
+                                          raster=settings.raster)
         extra_delta = decide_paths(extra_sources, extra_sets, settings.paths).delta.astype(np.float32)
         joined = np.concatenate([edges, missing])
         order = np.lexsort((joined[:, 1], joined[:, 0]))

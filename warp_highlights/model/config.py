@@ -376,6 +376,31 @@ class RetargetSettings:
             the others' scores by at most 0.02 dB; the dome sample fitted on 25 and 49 of its lights (``--scenes ""
             --photos dome-sample``, the same two settings) scored 35.99 -> 36.45 and 42.14 -> 41.87 dB at its Test
             lights (``benchmarks/results/motion-cpu/bench_motion-vanish-share-{0.01,0}-7151c63.json``).
+        follow_lost: a retargeted Gaussian that lost its highlight (vanished, or pushed out of the picture by
+            retargeting) goes, with its source's shape and brightness, where its own motion expects the highlight on
+            the target, if that is outside the frame (it glides off the picture's edge instead of fading in place),
+            or inside it where the target's specular part holds it (``residual.move_support``: a highlight that
+            travelled further than the search followed); elsewhere it stays as before (``fit.lost``: each Gaussian's
+            motion fitted as a linear map of the half-vector's change, from the edges on which it kept its
+            highlight). The dome sample (a flat object under a perspective camera: its highlight crosses the frame
+            and leaves it below 50 degrees) fitted on 16, 25 and 49 of its lights with a low-rank residual, 8-bit
+            sRGB PSNR at its Test lights (2-core CPU, 160x160, ``python benchmarks/bench_motion.py --scenes ""
+            --photos dome-sample --set residual.kind=lowrank``, and with ``--set retarget.follow_lost=false``;
+            moving Gaussians in brackets): 29.57 (0) -> 29.89 (6), 35.99 (56) -> 36.30 (66), 42.14 (135) -> 43.21
+            (150); its move check at 49 lights, moving against blending, 38.33 -> 41.43 against 35.71 dB. On an H100
+            at 320x320 (``--scale gpu --device cuda:0``) the learned check's moved Gaussians at 49 lights scored
+            28.67 -> 34.87 dB against 43.89-44.66 for the images learned alone, so the GPU default still keeps none
+            there. The 16-light renders of ``benchmarks/bench_motion.py`` (``--captures dome16 --frames 48 --set
+            residual.kind=lowrank``, mean PSNR along the three paths) moved within 0.1 dB on the CPU (the tiled
+            teapot 30.64 -> 30.72, ghost share 0.352 -> 0.340) and within 0.2 on an H100 at 480x270 (the tiled
+            teapot 30.06 -> 30.22, the bumpy donut 27.42 -> 27.23); a highlight that crosses a flat object and
+            leaves the frame (``tests/test_lost.py``, 25 dome lights) is relit along a path at half the RMS error.
+        lost_share: a retargeted Gaussian with less than this share of the light that it had inside the frame at
+            its source still inside it has left the picture (``fit.lost.lost_slots``). 0.1, the share of
+            ``residual.move_support``: a Gaussian left with a tenth of its light in the picture has all but left it.
+        motion_ridge: how strongly each Gaussian's fitted motion is pulled towards the capture's common isotropic
+            one, in shares of the median edge's squared half-vector change (0.25: a quarter of one edge's
+            evidence, so a Gaussian found on two edges or more follows its own).
     """
 
     rigid_iterations: int = 50
@@ -389,6 +414,9 @@ class RetargetSettings:
     structure: StructureLossSettings = StructureLossSettings()
     components: ComponentSettings = ComponentSettings()
     vanish_share: float = 0.01
+    follow_lost: bool = True
+    lost_share: float = 0.1
+    motion_ridge: float = 0.25
     search_radius: float = 0.35
     search_step_rpx: float = 4.0
     search_prior: float = 0.1
@@ -400,6 +428,10 @@ class RetargetSettings:
     def __post_init__(self):
         _require(math.isfinite(self.vanish_share) and 0 <= self.vanish_share < 1,
                  f"vanish_share must be in [0, 1), got {self.vanish_share}")
+        _require(math.isfinite(self.lost_share) and 0 <= self.lost_share <= 1,
+                 f"lost_share must be in [0, 1], got {self.lost_share}")
+        _require(math.isfinite(self.motion_ridge) and self.motion_ridge > 0,
+                 f"motion_ridge must be > 0, got {self.motion_ridge}")
         _require(math.isfinite(self.search_radius) and 0 <= self.search_radius <= 2,
                  f"search_radius must be in [0, 2] image heights, got {self.search_radius}")
         _require(math.isfinite(self.search_step_rpx) and 0.5 <= self.search_step_rpx <= 270,
