@@ -217,3 +217,15 @@ def test_a_highlight_that_crosses_and_leaves_the_frame_is_followed_along_a_path(
     assert errors[True] * 1.6 < errors[False], errors
     assert reports[True]["left_frame_slots"] > 0 and reports[True]["followed_slots"] > 0
     assert reports[False]["left_frame_slots"] == reports[False]["followed_slots"] == 0
+
+
+def test_in_frame_share_is_the_same_in_blocks(monkeypatch):
+    """Many sets are sampled a block of rows at a time, with the same shares."""
+    import warp_highlights.fit.lost as lost
+
+    rng = np.random.default_rng(2)
+    sets = _sets(50, 3, rng)
+    sets.mean[:] = rng.uniform(-0.3, 2.0, (50, 3, 2))
+    whole = in_frame_share(sets, 16 / 9)
+    monkeypatch.setattr(lost, "_SAMPLES_AT_ONCE", 1000)
+    np.testing.assert_array_equal(in_frame_share(sets, 16 / 9), whole)

@@ -41,6 +41,9 @@ _GRID = 17
 0.03 of sampling a million points, ``tests/test_lost.py``; enough to tell a Gaussian in the picture from one
 pushed out of it)."""
 
+_SAMPLES_AT_ONCE = 1 << 22
+"""Samples ``in_frame_share`` holds at once (about 32 MiB an array), however many edges and slots."""
+
 
 @dataclass(frozen=True)
 class LostPlacement:
@@ -89,15 +92,20 @@ def in_frame_share(params: GaussianParams, aspect: float) -> np.ndarray:
     from the Gaussian sampled at a fixed grid of its own standard coordinates (within 3 sigma, weighted by
     the density); 0 for a free slot."""
     axis = np.linspace(-3.0, 3.0, _GRID)
-    u, v = np.meshgrid(axis, axis, indexing="xy")
-    density = np.exp(-0.5 * (u**2 + v**2)).ravel()
-    cos, sin = np.cos(params.theta)[..., None], np.sin(params.theta)[..., None]
-    du = np.abs(params.sigma[..., 0])[..., None] * u.ravel()
-    dv = np.abs(params.sigma[..., 1])[..., None] * v.ravel()
-    x = params.mean[..., 0, None] + cos * du - sin * dv
-    y = params.mean[..., 1, None] + sin * du + cos * dv
-    inside = (x >= 0) & (x <= aspect) & (y >= 0) & (y <= 1)
-    return np.where(params.active, inside @ density / density.sum(), 0.0)
+    u, v = (grid.ravel() for grid in np.meshgrid(axis, axis, indexing="xy"))
+    density = np.exp(-0.5 * (u**2 + v**2))
+    density /= density.sum()
+    share = np.zeros(params.active.shape)
+    step = max(1, _SAMPLES_AT_ONCE // (u.size * max(1, params.active.shape[1])))  # rows a block: bounded memory
+    for start in range(0, len(share), step):
+        rows = slice(start, start + step)
+        cos, sin = np.cos(params.theta[rows])[..., None], np.sin(params.theta[rows])[..., None]
+        du = np.abs(params.sigma[rows, :, 0])[..., None] * u
+        dv = np.abs(params.sigma[rows, :, 1])[..., None] * v
+        x = params.mean[rows, :, 0, None] + cos * du - sin * dv
+        y = params.mean[rows, :, 1, None] + sin * du + cos * dv
+        share[rows] = ((x >= 0) & (x <= aspect) & (y >= 0) & (y <= 1)) @ density
+    return np.where(params.active, share, 0.0)
 
 
 def lost_slots(sources: GaussianParams, sets: GaussianParams, vanished: np.ndarray, aspect: float,
