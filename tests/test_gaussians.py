@@ -121,3 +121,16 @@ def test_host_writes_bump_the_generation_of_exactly_the_new_slots(device):
     np.testing.assert_array_equal(batch.generation.numpy(), before)
     batch.add([0], amplitude=[1.0], mean=[[0.5, 0.5]], sigma=[[0.01, 0.01]], theta=[0.0])
     np.testing.assert_array_equal(batch.generation.numpy() - before, [[0, 1, 0], [0, 0, 0]])
+
+
+def test_where_takes_the_masked_slots_from_one_batch_and_the_rest_from_the_other():
+    first, second = GaussianParams.empty(2, 3), GaussianParams.empty(2, 3)
+    first.amplitude[:] = 1.0
+    first.mean[:] = 0.25
+    first.active[:] = True
+    mask = np.array([[True, False, True], [False, False, True]])
+    joined = first.where(mask, second)
+    np.testing.assert_array_equal(joined.amplitude, np.where(mask, 1.0, 0.0))
+    np.testing.assert_array_equal(joined.mean, np.where(mask[..., None], 0.25, 0.0) * np.ones((1, 1, 2)))
+    np.testing.assert_array_equal(joined.active, mask)
+    np.testing.assert_array_equal(joined.weight, np.ones((2, 3)))

@@ -152,9 +152,7 @@ def place_lost(sources: GaussianParams, sets: GaussianParams, lost: np.ndarray, 
         followed[rows] = moved.active[rows] & (support >= landing)
     left = lost & outside
     placed = left | followed
-    out = GaussianParams(**{name: np.where(placed.reshape(placed.shape + (1,) * (getattr(sets, name).ndim - 2)),
-                                           getattr(sources, name), getattr(sets, name))
-                            for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
+    out = sources.where(placed, sets)
     out.mean = np.where(placed[..., None], expected, out.mean)
     return out, left, followed
 

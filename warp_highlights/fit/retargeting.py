@@ -238,8 +238,4 @@ def restore_vanished(sources: GaussianParams, retargeted: GaussianParams, share:
     vanished = retargeted.active & sources.active & (after < share * before)
     if not vanished.any():
         return retargeted, vanished
-    kept = GaussianParams(**{name: np.where(vanished.reshape(vanished.shape
-                                                             + (1,) * (getattr(retargeted, name).ndim - 2)),
-                                            getattr(sources, name), getattr(retargeted, name))
-                             for name in ("amplitude", "mean", "sigma", "theta", "weight", "active")})
-    return kept, vanished
+    return sources.where(vanished, retargeted), vanished

@@ -141,6 +141,13 @@ class GaussianParams(_SlotShape):
         """The problems ``rows`` (an index array, repeats allowed), e.g. every directed edge's source set."""
         return GaussianParams(**{f.name: getattr(self, f.name)[rows] for f in fields(self)})
 
+    def where(self, slots: np.ndarray, other: GaussianParams) -> GaussianParams:
+        """A new batch of this shape: the (B, N) ``slots`` from this one, the others from ``other``."""
+        slots = np.asarray(slots, dtype=bool)
+        return GaussianParams(**{f.name: np.where(slots.reshape(slots.shape + (1,) * (getattr(self, f.name).ndim - 2)),
+                                                  getattr(self, f.name), getattr(other, f.name))
+                                 for f in fields(self)})
+
     @classmethod
     def concatenate(cls, parts: list[GaussianParams], *, axis: int = 0) -> GaussianParams:
         """Join batches along the problems (axis 0) or, for equal problem counts, along the slots (axis 1)."""
