@@ -95,9 +95,11 @@ SAMPLES = (*PHOTOS, "dome-sample")
 
 
 def _checks(field) -> dict:
-    """The fit's move check and learned check, as its report has them (empty where it has none)."""
+    """The fit's move check, learned check and median motion coherence (``fit.coherence``), as its report has them
+    (empty where it has none)."""
     residual = (field.report or {}).get("residual") or {}
-    return {name: residual[name] for name in ("move_check", "learned_check") if residual.get(name)}
+    return {name: residual[name] for name in ("move_check", "learned_check", "motion_coherence")
+            if residual.get(name) is not None}
 
 
 def _direction(elevation_deg: float, azimuth_deg: float) -> np.ndarray:

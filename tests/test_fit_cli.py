@@ -65,6 +65,8 @@ def test_info_on_a_field_says_how_much_moves(fitted, capsys):
     moving = next(line for line in lines if line.startswith("moving Gaussians:"))
     assert moving.startswith(f"moving Gaussians: {report['moving_gaussians']} of ")
     assert f"carrying {100 * report['moving_specular_share']:.0f}% of the specular energy" in moving
+    assert 0.6 < report["motion_coherence"] <= 1.0  # a smooth donut: its highlights glide (random hops: about 0)
+    assert f"median motion coherence {report['motion_coherence']:.2f}" in moving
     assert main(["info", str(out), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["residual"] == report
 

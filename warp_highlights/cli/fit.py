@@ -284,9 +284,15 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             kind = "uncompressed images"
         share = residual.get("moving_specular_share")
         carried = "" if share is None else f" (carrying {100 * share:.0f}% of the specular energy)"
+        glints = residual.get("incoherent_gaussians") or 0
+        why = f" ({glints} of them glints whose motion does not follow the light)" if glints else ""
         print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move{carried}, "
-              f"{residual['staying_gaussians']} blend in place; "
+              f"{residual['staying_gaussians']} blend in place{why}; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
+        coherence = residual.get("motion_coherence")
+        if coherence is not None:
+            print(f"  motion: the Gaussians follow the light with a median coherence of {coherence:.2f} "
+                  "(1: highlights that glide, 0: glints that hop at random)")
         check = residual.get("move_check") or {}
         if check.get("lights"):
             verdict = ("the Gaussians move" if check["moves"]

@@ -49,12 +49,14 @@ _SAMPLES_AT_ONCE = 1 << 22
 class LostPlacement:
     """Attributes: sets (E, N) the retargeted sets with the lost slots placed; left_frame, followed (E, N) bool the
     lost slots sent out of the frame and those sent to their expected place inside it; motion (n, N, 2, 2) the
-    ``expected_motion`` (for the move check's edges)."""
+    ``expected_motion`` (for the move check's edges); found (E, N) bool the slots it was fitted on (those that kept
+    their highlight)."""
 
     sets: GaussianParams
     left_frame: np.ndarray
     followed: np.ndarray
     motion: np.ndarray
+    found: np.ndarray
 
 
 def expected_motion(sources: GaussianParams, retargeted: GaussianParams, found: np.ndarray, edges: np.ndarray,
@@ -164,7 +166,8 @@ def follow_lost(sources: GaussianParams, sets: GaussianParams, vanished: np.ndar
     (``lost_slots``, ``place_lost``)."""
     _, height, width = specular_luminance.shape
     lost = lost_slots(sources, sets, vanished, width / height, share)
-    motion = expected_motion(sources, sets, sources.active & sets.active & ~lost, edges, directions, ridge=ridge)
+    found = sources.active & sets.active & ~lost
+    motion = expected_motion(sources, sets, found, edges, directions, ridge=ridge)
     out, left, followed = place_lost(sources, sets, lost, edges, directions, motion, specular_luminance,
                                      landing=landing, raster=raster)
-    return LostPlacement(out, left, followed, motion)
+    return LostPlacement(out, left, followed, motion, found)

@@ -16,19 +16,23 @@ __all__ = ["MoveDecision", "decide_moving"]
 
 @dataclass(frozen=True)
 class MoveDecision:
-    """Attributes: moving (n, N) bool; support (E, N) float64 per directed edge (-1 where a slot draws nothing)."""
+    """Attributes: moving (n, N) bool; support (E, N) float64 per directed edge (-1 where a slot draws nothing);
+    incoherent (n, N) bool the slots held back because their motion does not follow the light
+    (``fit.coherence``)."""
 
     moving: np.ndarray
     support: np.ndarray
+    incoherent: np.ndarray | None = None
 
 
 def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray,
                   specular_luminance: wp.array,
                   *, settings: ResidualSettings, raster: RasterSettings,
-                  left_frame: np.ndarray | None = None) -> MoveDecision:
-    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``.
+                  left_frame: np.ndarray | None = None, coherence: np.ndarray | None = None) -> MoveDecision:
+    """Which estimated Gaussians move: median support over the outgoing edges >= ``settings.move_support``, and
+    motion coherence (``fit.coherence``) at least ``settings.move_coherence`` where it is known.
     ``left_frame``: (E, N) bool slots sent out of the frame (``fit.lost``), which have nothing to land on and
-    leave the median (NaN support)."""
+    leave the median (NaN support). ``coherence``: (n, N) the slots' motion coherence (NaN: no verdict)."""
     n, capacity = estimated.active.shape
     device = specular_luminance.device
     batch = GaussianBatch.from_numpy(retargeted, device=device, requires_grad=False)
@@ -37,8 +41,11 @@ def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: 
     values[values < 0] = 0.0  # a retargeted Gaussian that draws nothing explains nothing
     if left_frame is not None:
         values[left_frame] = np.nan
+    incoherent = np.zeros_like(estimated.active)
+    if coherence is not None and settings.move_coherence > -1:
+        incoherent = estimated.active & (np.nan_to_num(coherence, nan=np.inf) < settings.move_coherence)
     if settings.move_support <= 0:
-        return MoveDecision(estimated.active.copy(), values)
+        return MoveDecision(estimated.active & ~incoherent, values, incoherent)
     order = np.argsort(edges[:, 0], kind="stable")
     sources = edges[order, 0]
     starts = np.searchsorted(sources, np.arange(n + 1))
@@ -50,7 +57,7 @@ def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: 
     padded[sources, position] = for_light
     median = _nan_median(padded)
     moving = estimated.active & (np.nan_to_num(median, nan=0.0) >= settings.move_support)
-    return MoveDecision(moving, values)
+    return MoveDecision(moving & ~incoherent, values, incoherent & moving)
 
 
 def _nan_median(values: np.ndarray) -> np.ndarray:

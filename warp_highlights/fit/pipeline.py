@@ -49,8 +49,9 @@ from ..residual.learned import (
     learns_anew,
 )
 from ..residual.rate import gaussian_bytes
+from .coherence import motion_coherence
 from .estimation import estimate
-from .lost import follow_lost
+from .lost import expected_motion, follow_lost
 from .moving import decide_moving
 from .paths import decide_paths
 from .retargeting import restore_vanished, retarget
@@ -222,6 +223,13 @@ def fit_field(
                                      ridge=settings.retarget.motion_ridge, landing=settings.residual.move_support,
                                      raster=settings.raster)
                 sets, left_frame, followed, motion = placed.sets, placed.left_frame, placed.followed, placed.motion
+                found = placed.found
+            else:
+                found = edge_sources.active & sets.active & ~vanished
+            # whether each Gaussian's motion follows the light (reported; holds back glints where asked)
+            fitted = motion if motion is not None else expected_motion(
+                edge_sources, sets, found, edges, dataset.lights.directions, ridge=settings.retarget.motion_ridge)
+            coherence = motion_coherence(edge_sources, sets, found, edges, dataset.lights.directions, fitted)
             decisions = decide_paths(edge_sources, sets, settings.paths)
 
         moving = source.active.copy()
@@ -233,13 +241,17 @@ def fit_field(
         compression: dict = {}  # the low-rank residual's budget and captured-light score
         anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
+        incoherent = 0  # Gaussians held in place because their motion does not follow the light (``fit.coherence``)
+        decided = np.isfinite(coherence) & source.active
+        coherence_median = round(float(np.median(coherence[decided])), 3) if decided.any() else None
         check = learned_check = interpolation = None
         if residual:
             with timer.stage("residual"):
                 decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual,
-                                         left_frame=left_frame,
+                                         left_frame=left_frame, coherence=coherence,
                                          raster=settings.raster)
                 moving = decision.moving
+                incoherent = int(decision.incoherent.sum()) if decision.incoherent is not None else 0
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
                 own_up = render_own_on_device(source, height, width, raster=settings.raster, device=device)
                 own = to_host(own_up)
@@ -433,6 +445,10 @@ def fit_field(
         "residual": None if residual_model is None else {
             "moving_gaussians": int(moving.sum()),
             "staying_gaussians": int(kept.active.sum() - moving.sum()),
+            "incoherent_gaussians": incoherent,
+            # the median motion coherence of the Gaussians that have one (``fit.coherence``): near 1 where highlights
+            # glide with the light, near 0 where glints twinkle in place
+            "motion_coherence": coherence_median,
             "kept_gaussians": int(kept.active.sum()),
             # what the moving Gaussians carry of the specular part the segmentation found
             "moving_specular_share": moving_share,

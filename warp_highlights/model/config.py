@@ -631,6 +631,22 @@ class ResidualSettings:
             at its Test lights, 35.99 at 0.1, the blend 32.34), and the renders of
             ``benchmarks/bench_motion.py`` moved 3-62 fewer Gaussians and changed by under 0.05 dB
             (2-core CPU; the table in benchmarks/README.md, bench_motion.py).
+        move_coherence: a Gaussian whose motion coherence (``fit.coherence``: the share of its retargeted
+            displacements that a linear map of the half-vector's change explains, about 0 for glints that hop to a
+            random neighbour, 1 for a highlight that glides) is below this stays in place and blends; -1 (default):
+            off, every Gaussian is free of it. The fit reports the median either way (``residual.motion_coherence``):
+            on the renders of ``benchmarks/bench_motion.py`` at 16 / 49 lights the bumpy donut's Gaussians have 0.47 /
+            0.39, the tiled teapot's 0.68 / 0.72, the sharp donut's 0.96 / 0.97, the broad sphere's 0.98 at 16. Off,
+            because holding glints back gained too little for what it cost where highlights glide far: at 0 / 0.3 /
+            0.5 / 0.7 the bumpy donut of 16 lights went from 27.64 dB along the paths (529 moving Gaussians) to 27.73 /
+            27.92 / 28.03 / 28.09 (436 / 347 / 259 / 160; the alpha blend 28.33), the sharp donut from 31.75 to 31.75 /
+            31.73 / 31.69 / 31.48, the tiled teapot from 30.78 to 30.75 / 30.75 / 30.75 / 30.64, and at 49 lights at
+            0.3 the sharp donut lost 0.23 dB (37.03 -> 36.80); the dome sample on 25 spread lights at 0.5 held the
+            top light's broad glow (coherence 0.36 over 10 edges: it sweeps 83 pixels of 160, no longer linearly) and
+            fell from 36.30 to 34.48 dB at its Test lights, 36.36 at 0.3 (2-core CPU, low-rank residual,
+            ``benchmarks/bench_motion.py --scenes donut-sharp,teapot-tiles,bumpy-metal --captures dome16 --set
+            residual.kind=lowrank --set residual.move_coherence=...``, and ``--captures dome49``, ``--scenes ""
+            --photos dome-sample``).
         check_lights: captured lights left out one at a time to check that moving beats blending on
             this capture (``fit.validation``): each is relit from the triangle of the other lights
             that holds it, with the Gaussians moved (its missing edges retargeted) and with the
@@ -874,6 +890,7 @@ class ResidualSettings:
     basis_bits: int = 0
     chroma_rank: int = 0
     move_support: float = 0.1
+    move_coherence: float = -1.0
     check_lights: int = 48
     highlight_colour: bool = True
     colour_prior: float = 0.01
@@ -920,6 +937,8 @@ class ResidualSettings:
         _require(int(self.basis_bits) in (0, 8, 16), f"basis_bits must be 0 (choose), 8 or 16, got {self.basis_bits}")
         _require(math.isfinite(self.move_support) and 0 <= self.move_support <= 1,
                  f"move_support must be in [0, 1], got {self.move_support}")
+        _require(math.isfinite(self.move_coherence) and -1 <= self.move_coherence <= 1,
+                 f"move_coherence must be in [-1, 1] (-1: off), got {self.move_coherence}")
         _require(0 <= int(self.check_lights) <= 100000, f"check_lights must be in [0, 100000], got {self.check_lights}")
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0,
                  f"colour_prior must be > 0, got {self.colour_prior}")

@@ -317,6 +317,9 @@ class HighlightField:
         share = residual.get("moving_specular_share")
         if isinstance(share, (int, float)):
             parts.append(f"carrying {100 * share:.0f}% of the specular energy")
+        coherence = residual.get("motion_coherence")
+        if isinstance(coherence, (int, float)):
+            parts.append(f"median motion coherence {coherence:.2f} (1: gliding, 0: glints)")
         check = residual.get("move_check") or {}
         if check.get("lights"):
             parts.append(f"move check at {check['lights']} left-out lights: moving {check['moving_psnr_db']:.2f} dB, "
