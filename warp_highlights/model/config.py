@@ -641,10 +641,10 @@ class ResidualSettings:
             0.5 / 0.7 the bumpy donut of 16 lights went from 27.64 dB along the paths (529 moving Gaussians) to 27.73 /
             27.92 / 28.03 / 28.09 (436 / 347 / 259 / 160; the alpha blend 28.33), the sharp donut from 31.75 to 31.75 /
             31.73 / 31.69 / 31.48, the tiled teapot from 30.78 to 30.75 / 30.75 / 30.75 / 30.64, and at 49 lights at
-            0.3 the sharp donut lost 0.23 dB (37.03 -> 36.80); the dome sample on 25 spread lights at 0.5 held the
-            top light's broad glow (coherence 0.36 over 10 edges: it sweeps 83 pixels of 160, no longer linearly) and
-            fell from 36.30 to 34.48 dB at its Test lights, 36.36 at 0.3 (2-core CPU, low-rank residual,
-            ``benchmarks/bench_motion.py --scenes donut-sharp,teapot-tiles,bumpy-metal --captures dome16 --set
+            0.3 the sharp donut lost 0.23 dB (37.03 -> 36.80); the dome sample on 25 spread lights at 0.5 held back
+            one Gaussian more than at 0.3, the top light's broad glow, which sweeps across the frame and past its edge
+            (not linearly), and fell from 36.30 to 34.48 dB at its Test lights, 36.36 at 0.3 (2-core CPU, low-rank
+            residual, ``benchmarks/bench_motion.py --scenes donut-sharp,teapot-tiles,bumpy-metal --captures dome16 --set
             residual.kind=lowrank --set residual.move_coherence=...``, and ``--captures dome49``, ``--scenes ""
             --photos dome-sample``).
         check_lights: captured lights left out one at a time to check that moving beats blending on
