@@ -337,6 +337,7 @@ def fit_field(
                 # one free slot each
                 kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)
                 moving = np.zeros((len(source.active), 1), dtype=bool)
+                incoherent = 0  # none kept: none held back either
                 path_delta, path_centre = (np.zeros((len(edges), 1), np.float32),
                                            np.zeros((len(edges), 1, 2), np.float32))
                 own, colour, seen, specular_under = np.zeros_like(own), None, None, None
