@@ -221,3 +221,22 @@ def write_capture(folder: Path, values, lights) -> Path:
         write_image(folder / name, srgb_to_linear(image))
     write_lp(LightSet(lights), folder / "lights.lp", filenames=names)
     return folder
+
+
+def centred_blob_sets(problems: int, slots: int, size: int = 32):
+    """``problems`` sets of ``slots`` equal Gaussians (sigma 0.08 image heights, amplitude 1) at the centre of a
+    ``size`` x ``size`` image, and a (2, size, size) CPU stack of two images holding the same Gaussian there: a
+    target every slot lands on."""
+    import numpy as np
+    import warp as wp
+
+    from warp_highlights.model.gaussians import GaussianParams
+
+    sets = GaussianParams.empty(problems, slots)
+    sets.active[:] = True
+    sets.amplitude[:] = 1.0
+    sets.mean[:] = [0.5, 0.5]
+    sets.sigma[:] = 0.08
+    y, x = (np.mgrid[0:size, 0:size] + 0.5) / size
+    blob = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / (2 * 0.08**2)).astype(np.float32)
+    return sets, wp.array(np.stack([blob, blob]), dtype=float, device="cpu")

@@ -3,8 +3,8 @@ about 0; too few edges or a slot that barely moves give no verdict; ``decide_mov
 
 import numpy as np
 import pytest
-import warp as wp
 
+from conftest import centred_blob_sets
 from warp_highlights.fit.coherence import motion_coherence
 from warp_highlights.fit.lost import expected_motion
 from warp_highlights.fit.moving import decide_moving
@@ -96,17 +96,9 @@ def test_a_glide_is_coherent_and_random_hops_are_not():
 def test_decide_moving_holds_back_incoherent_gaussians_and_lets_the_undecided_move():
     """Three slots that land on their target: coherent, incoherent, undecided (NaN). At a threshold of 0.5 the
     incoherent one stays and is reported; at -1 (off) all three move."""
-    height = width = 32
-    sources = GaussianParams.empty(2, 3)
-    sources.active[:] = True
-    sources.amplitude[:] = 1.0
-    sources.mean[:] = [0.5, 0.5]
-    sources.sigma[:] = 0.08
+    sources, targets = centred_blob_sets(2, 3)
     edges = np.array([[0, 1], [1, 0]])
     retargeted = sources.take(edges[:, 0])
-    y, x = (np.mgrid[0:height, 0:width] + 0.5) / height
-    blob = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / (2 * 0.08**2)).astype(np.float32)
-    targets = wp.array(np.stack([blob, blob]), dtype=float, device="cpu")
     coherence = np.array([[0.9, 0.1, np.nan], [0.9, 0.1, np.nan]])
     held = decide_moving(sources, retargeted, edges, targets, settings=ResidualSettings(move_coherence=0.5),
                          raster=RasterSettings(), coherence=coherence)

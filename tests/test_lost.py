@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from conftest import centred_blob_sets
 from warp_highlights.fit.lost import expected_motion, in_frame_share, lost_slots, place_lost
 from warp_highlights.fit.moving import decide_moving
 from warp_highlights.kernels.search import half_vector_changes
@@ -155,21 +156,11 @@ def test_slots_sent_out_of_the_frame_leave_the_move_support_median(left):
     """One Gaussian with three outgoing edges: lands on one, partly beside the target's highlight on the second,
     draws nothing on the third. Counted as 0 the third edge makes the median the second's share; sent out of the
     frame, it leaves the median, which is then the mean of the first two."""
-    import warp as wp
-
-    height = width = 32
-    sources = GaussianParams.empty(2, 1)
-    sources.active[:] = True
-    sources.amplitude[:] = 1.0
-    sources.mean[:] = [0.5, 0.5]
-    sources.sigma[:] = 0.08
+    sources, targets = centred_blob_sets(2, 1)
     edges = np.array([[0, 1], [0, 1], [0, 1], [1, 0]])
     retargeted = sources.take(edges[:, 0])
     retargeted.mean[1, 0] = [0.8, 0.5]  # half beside the target's highlight
     retargeted.mean[2, 0] = [-1.0, 0.5]  # out of the frame: draws nothing
-    y, x = (np.mgrid[0:height, 0:width] + 0.5) / height
-    blob = np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / (2 * 0.08**2)).astype(np.float32)
-    targets = wp.array(np.stack([blob, blob]), dtype=float, device="cpu")
     left_frame = np.zeros((4, 1), bool)
     left_frame[2] = left
     decision = decide_moving(sources, retargeted, edges, targets, settings=ResidualSettings(move_support=0.5),
