@@ -175,7 +175,7 @@ def browser():
 @pytest.fixture(scope="session")
 def small_learned_field(small_donut, tmp_path_factory):
     """The small donut fitted with a learned residual (``FAST_FIT``, a few epochs) and saved: (field, path). Its
-    learned check keeps the moving Gaussians whatever it scores (a tie margin beyond any gap): over so few epochs its
+    learned check keeps the moving Gaussians whatever it scores (tie margins beyond any gap, gliding or not): over so few epochs its
     verdict says little, and the tests of what a learned field holds need them."""
     from warp_highlights.fit.pipeline import fit_field
     from warp_highlights.io.dataset import ReflectanceField
@@ -185,7 +185,8 @@ def small_learned_field(small_donut, tmp_path_factory):
     dataset = ReflectanceField.load(small_donut, progress=False)
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=6",
                                                      "residual.learned_tune_epochs=2",
-                                                     "residual.learned_tie_margin_db=100"])
+                                                     "residual.learned_tie_margin_db=100",
+                                                     "residual.learned_glide_margin_db=100"])
     field = fit_field(dataset, device="cpu", settings=settings, progress=False)
     path = tmp_path_factory.mktemp("learned") / "learned.whf"
     save_field(field, path)

@@ -1145,3 +1145,6 @@ def test_describe_gives_the_checks_figures_from_the_fit_report():
             in text)
     field.report["residual"]["learned_check"] = {k: v for k, v in check.items() if k != "exact_residual_psnr_db"}
     assert "learned check: with the Gaussians 28.61 dB, the images alone 41.33 dB" in field.describe()
+    assert "(the Gaussians glide)" not in field.describe()
+    field.report["residual"]["learned_check"]["glides"] = True
+    assert "the images alone 41.33 dB (the Gaussians glide)" in field.describe()

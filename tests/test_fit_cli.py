@@ -109,7 +109,8 @@ def test_fit_holds_back_the_gaussians_whose_motion_does_not_follow_the_light(sma
 def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, capsys):
     """``fit --residual learned`` says what the learned check measured and what it chose."""
     out = tmp_path / "learned.whf"
-    settings = ["residual.learned_epochs=2", "residual.learned_check=3"]
+    # every measured capture glides at a threshold of -1: the glide's margin decides
+    settings = ["residual.learned_epochs=2", "residual.learned_check=3", "residual.learned_glide_coherence=-1"]
     assert main(["fit", str(small_donut), "-o", str(out), "--size", "48x27", "--residual", "learned", "-q",
                  *_overrides(),
                  *[arg for item in settings for arg in ("--set", item)]]) == 0
@@ -120,6 +121,13 @@ def test_learned_fit_summary_gives_the_learned_check(small_donut, tmp_path, caps
     assert not verdict["sees_gaussians"] and "residual + moved Gaussians" in text
     assert f"({verdict['exact_residual_psnr_db']:.2f} dB with its residual exact)" in text
     assert ("the learned residual keeps them" in text) == verdict["keeps_gaussians"]
+    # and by which margin: the glide's where the capture's Gaussians glide with the light
+    margin = verdict["tie_margin_db"]
+    measured = load_field(out).report["residual"]["motion_coherence"] is not None
+    assert verdict["glides"] == measured and margin == (1.0 if measured else -0.5)
+    rule = (f"kept unless the images alone lead by more than {margin:.1f} dB" if margin >= 0
+            else f"kept where the Gaussians lead by at least {-margin:.1f} dB")
+    assert f"({'they glide: ' if verdict['glides'] else ''}{rule})" in text
 
 
 def test_a_field_with_invalid_stored_settings_is_refused(fitted, tmp_path):

@@ -243,6 +243,7 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     from warp_highlights.io.fieldfile import load_field, save_field
     from warp_highlights.model.config import FitSettings
     from warp_highlights.relight.relighter import Relighter
+    from warp_highlights.residual.learned import tie_margin
 
     dataset = ReflectanceField.load(small_donut, progress=False)
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=2",
@@ -254,7 +255,9 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     # the move check let the Gaussians move, so the learned check ran
     verdict = field.report["residual"]["learned_check"]
     assert field.report["residual"]["move_check"]["moves"] and verdict["lights"] == 6
-    margin = settings.residual.learned_tie_margin_db
+    # the margin of a capture whose Gaussians glide, or the plain one
+    margin = tie_margin(settings.residual, coherence=field.report["residual"]["motion_coherence"])
+    assert verdict["tie_margin_db"] == margin and verdict["glides"] == (margin == settings.residual.learned_glide_margin_db)
     keeps = verdict["with_gaussians_psnr_db"] >= verdict["images_alone_psnr_db"] - margin
     assert verdict["keeps_gaussians"] == keeps and bool(field.estimated.active.any()) == keeps
     assert (learned.unit == pytest.approx(field.exposure)
@@ -454,6 +457,17 @@ def test_learned_check_scores_both_models_at_the_left_out_lights():
                          settings=dataclasses.replace(settings, learned_tie_margin_db=gap + 0.1))
     assert tied.keeps_gaussians and tied.report()["keeps_gaussians"] and tied.tie_margin_db == gap + 0.1
     np.testing.assert_allclose(tied.images_alone, wrong.images_alone, rtol=1e-6)
+    # where the capture's Gaussians glide (its median motion coherence at the threshold or above) the glide's margin
+    # decides: beyond the gap it keeps them; below the threshold the plain margin drops them
+    gliding = dataclasses.replace(settings, learned_glide_coherence=0.9, learned_glide_margin_db=gap + 0.1)
+    glide = check_learned(images, own, None, directions, left_out, blob, factor=2.0, device="cpu", settings=gliding,
+                          coherence=0.9)
+    assert glide.keeps_gaussians and glide.glides and glide.report()["glides"]
+    assert glide.report()["tie_margin_db"] == pytest.approx(gap + 0.1)
+    hops = check_learned(images, own, None, directions, left_out, blob, factor=2.0, device="cpu", settings=gliding,
+                         coherence=0.89)
+    assert not hops.keeps_gaussians and not hops.glides and hops.tie_margin_db == settings.learned_tie_margin_db
+    np.testing.assert_allclose(hops.with_gaussians, wrong.with_gaussians, rtol=1e-6)
     # the images alone, learned without the left-out lights
     np.testing.assert_array_equal(wrong.winner.learned.codes, model.learned.codes)
     assert wrong.settled_epoch is None and wrong.report()["settled_epoch"] is None
@@ -508,6 +522,28 @@ def test_the_gaussians_are_kept_within_the_tie_margin():
         check = LearnedCheck(lights, np.array([20.0, 20.2]), np.array([alone, alone]), tie_margin_db=margin)
         assert check.keeps_gaussians == keeps, (alone, margin)
     assert LearnedCheck(np.zeros(0, np.int64), np.zeros(0), np.zeros(0)).keeps_gaussians
+
+
+def test_the_tie_margin_is_the_glides_where_the_gaussians_follow_the_light():
+    """``tie_margin``: a decoder that sees the Gaussians gets ``learned_seeing_margin_db``; a capture whose median
+    motion coherence reaches ``learned_glide_coherence`` (default 0.9) ``learned_glide_margin_db`` (1.0); below it,
+    unmeasured (None, NaN) or with the threshold above 1 (off), ``learned_tie_margin_db``."""
+    from warp_highlights.model.config import ResidualSettings
+    from warp_highlights.residual.learned import glides, tie_margin
+
+    settings = ResidualSettings()
+    assert (settings.learned_glide_coherence, settings.learned_glide_margin_db) == (0.9, 1.0)
+    for coherence, want in ((0.96, 1.0), (0.9, 1.0), (0.899, -0.5), (0.3, -0.5), (-0.2, -0.5), (None, -0.5),
+                            (float("nan"), -0.5)):
+        assert tie_margin(settings, coherence=coherence) == want, coherence
+        assert glides(settings, coherence) == (want == 1.0)
+    assert tie_margin(settings, sees=True, coherence=0.99) == settings.learned_seeing_margin_db
+    off = dataclasses.replace(settings, learned_glide_coherence=1.5)
+    assert tie_margin(off, coherence=1.0) == -0.5 and not glides(off, 1.0)
+    for name, bad in (("learned_glide_coherence", 2.5), ("learned_glide_coherence", float("nan")),
+                      ("learned_glide_margin_db", float("inf"))):
+        with pytest.raises(ValueError, match=name):
+            ResidualSettings(**{name: bad})
 
 
 def test_the_learned_check_on_the_cpu_stops_the_loser_once_the_order_has_settled():
@@ -829,7 +865,8 @@ def test_a_fit_hands_the_specular_part_to_the_learned_residual_where_it_learns_t
     dataset = ReflectanceField.load(small_donut, progress=False)
     settings = FitSettings().with_overrides(FAST_FIT + ["residual.kind=learned", "residual.learned_epochs=1",
                                                      "residual.learned_tune_epochs=1", "residual.move_support=0",
-                                                     "residual.learned_tie_margin_db=100"] + overrides)
+                                                     "residual.learned_tie_margin_db=100",
+                                                     "residual.learned_glide_margin_db=100"] + overrides)
     field = pipeline.fit_field(dataset, device="cpu", settings=settings, progress=False)
     assert set(handed) == {"check_learned", "learn_residual"}
     for name, specular in handed.items():

@@ -307,9 +307,15 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             candidate = "a decoder that sees the moved Gaussians" if sees else "residual + moved Gaussians"
             exact = learned.get("exact_residual_psnr_db")
             exact = "" if exact is None else f" ({exact:.2f} dB with its residual exact)"
+            margin = learned.get("tie_margin_db")
+            rule = ""
+            if margin is not None:
+                rule = (f"kept unless the images alone lead by more than {margin:.1f} dB" if margin >= 0
+                        else f"kept where the Gaussians lead by at least {-margin:.1f} dB")
+                rule = f" ({'they glide: ' if learned.get('glides') else ''}{rule})"
             print(f"  learned check at {learned['lights']} left-out lights: {candidate} "
                   f"{learned['with_gaussians_psnr_db']:.2f} dB{exact}, "
-                  f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}")
+                  f"images alone {learned['images_alone_psnr_db']:.2f} dB: {verdict}{rule}")
         weighing = residual.get("residual_interpolation") or {}
         if weighing.get("lights") and "rbf_psnr_db" in weighing:
             verdict = ("radial basis weights over every light" if weighing["chosen"] == "rbf"

@@ -317,7 +317,7 @@ def fit_field(
                                                   check.kept_highlights,
                                                   factor=factor, settings=settings.residual, device=device,
                                                   progress=advance, seen=seen, winner_kept=not anew,
-                                                  specular=specular_under)
+                                                  specular=specular_under, coherence=coherence_median)
                 verdict = learned_check.report()
                 settled = learned_check.settled_epoch
                 log(f"learned check at {verdict['lights']} lights: with the Gaussians"

@@ -788,6 +788,23 @@ class ResidualSettings:
             sample's 8-16 dB. 0.5, in the Gaussians' favour, was the margin while the residual's decoder spread each
             light's misfit of the Gaussians between the lights and the check's lights were spread over the whole dome
             (the sharp donut on 16 lights then tied at 17.3-17.5 against 17.5-17.6 dB on an NVIDIA H200).
+        learned_glide_coherence: where the capture's Gaussians glide, their median motion coherence
+            (``fit.coherence``, measured over every light's edges) at least this, the learned check keeps them unless the
+            images learned alone lead at its left-out lights by more than ``learned_glide_margin_db`` instead of
+            ``learned_tie_margin_db``; above 1: off. The check's few lights (3 of 16) tie both where keeping the
+            Gaussians pays along the paths and where it costs; a glide is where moving them is right, and the measure
+            that tells glides from glints uses every light. 0.9: the smooth renders of ``benchmarks/bench_motion.py``
+            glide at 0.96-0.98 (the sharp donut, the broad sphere; 16 and 49 lights), the tiled teapot and the bumpy
+            donut at 0.39-0.72, the samples at 0.23-0.74 (the dome sample 0.74; 2-core CPU, ``--captures
+            dome16,dome49 --set residual.kind=lowrank``, ``benchmarks/bench_quality.py``).
+        learned_glide_margin_db: ``learned_tie_margin_db`` where the Gaussians glide (``learned_glide_coherence``), dB.
+            1.0: the sharp donut of 16 lights ties at its check's 3 lights, the Gaussians 0.28 dB ahead on a 2-core
+            CPU at 320x180 and 0.23-0.30 in earlier runs on an NVIDIA H100 at 480x270, where keeping them scores 34.82
+            against 32.18 dB for the learned residual alone along the paths of ``benchmarks/bench_motion.py`` (CPU;
+            ``--size 320x180 --scenes donut-sharp --captures dome16 --learned``) and 34.29 against 31.52 with them kept
+            by force (H100, ``--scale gpu --set residual.learned_tie_margin_db=100``); the
+            broad sphere, gliding too, puts the images alone 2.9 dB ahead at its check (CPU, 160x90) and drops its
+            Gaussians under either margin (benchmarks/README.md).
         learned_sees_gaussians: the learned check's model with the moving Gaussians is a decoder that sees them (their
             luminance at the pixel among its inputs, ``model.residual.highlight_inputs``) and learns the images
             themselves, trained at each light with the Gaussians moved there from the other lights (every light is
@@ -906,6 +923,8 @@ class ResidualSettings:
     learned_settle_fraction: float = 0.25
     learned_settle_margin_db: float = 3.0
     learned_tie_margin_db: float = -0.5
+    learned_glide_coherence: float = 0.9
+    learned_glide_margin_db: float = 1.0
     learned_sees_gaussians: bool = False
     learned_seeing_inputs: str = "moved"
     learned_seeing_margin_db: float = 0.0
@@ -966,6 +985,10 @@ class ResidualSettings:
                  f"learned_settle_margin_db must be >= 0, got {self.learned_settle_margin_db}")
         _require(math.isfinite(self.learned_tie_margin_db),
                  f"learned_tie_margin_db must be a finite number of dB, got {self.learned_tie_margin_db}")
+        _require(math.isfinite(self.learned_glide_coherence) and -1 <= self.learned_glide_coherence <= 2,
+                 f"learned_glide_coherence must be in [-1, 2] (above 1: off), got {self.learned_glide_coherence}")
+        _require(math.isfinite(self.learned_glide_margin_db),
+                 f"learned_glide_margin_db must be a finite number of dB, got {self.learned_glide_margin_db}")
         _require(self.learned_seeing_inputs in SEEING_INPUTS,
                  f"learned_seeing_inputs must be one of {', '.join(SEEING_INPUTS)}, got '{self.learned_seeing_inputs}'")
         _require(math.isfinite(self.learned_seeing_margin_db) and self.learned_seeing_margin_db >= 0,

@@ -330,7 +330,8 @@ class HighlightField:
             exact = learned.get("exact_residual_psnr_db")
             exact = "" if not isinstance(exact, (int, float)) else f" ({exact:.2f} with its residual exact)"
             parts.append(f"learned check: with the Gaussians{seeing} {learned['with_gaussians_psnr_db']:.2f} dB"
-                         f"{exact}, the images alone {learned['images_alone_psnr_db']:.2f} dB")
+                         f"{exact}, the images alone {learned['images_alone_psnr_db']:.2f} dB"
+                         + (" (the Gaussians glide)" if learned.get("glides") else ""))
         return "".join(f"; {part}" for part in parts)
 
     def describe(self) -> str:

@@ -42,7 +42,7 @@ from .cpu_training import decode_cpu, train_decoder_cpu
 from .inputs import diffuse_under_highlights, residual_of, row_bands
 from .opponent import decode_display, encode_display
 
-__all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual"]
+__all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual", "tie_margin"]
 
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
@@ -269,9 +269,10 @@ class LearnedCheck:
     learning, its order settled (None: both learned to the end, without those lights), and the scores are those of
     that epoch; ``learned_every_light``: the winner learned from every light after it (the check's lights too), so
     it needs no more training; ``history``: its loss per epoch; ``tie_margin_db``: how far the images alone may lead
-    (negative: how far they must trail) and the Gaussians still be kept (``ResidualSettings.learned_tie_margin_db``,
-    or ``learned_seeing_margin_db``);
+    (negative: how far they must trail) and the Gaussians still be kept (``tie_margin``: ``learned_tie_margin_db``,
+    ``learned_glide_margin_db`` or ``learned_seeing_margin_db``);
     ``sees_gaussians``: the model with the Gaussians was a decoder that sees them (``check_learned``'s ``seen``);
+    ``glides``: the capture's Gaussians glide with the light (``tie_margin``), so the glide's margin applied;
     ``exact_residual``: (m,) the scores of that model with its residual exact at each left-out light
     (``exact_residual_scores``: what moving the Gaussians there costs by itself; None for a decoder that sees them)."""
 
@@ -285,6 +286,7 @@ class LearnedCheck:
     tie_margin_db: float = 0.0
     sees_gaussians: bool = False
     exact_residual: np.ndarray | None = None
+    glides: bool = False
 
     @property
     def keeps_gaussians(self) -> bool:
@@ -309,14 +311,32 @@ class LearnedCheck:
                 per_light["exact_residual_psnr_db"] = [round(float(v), 2) for v in self.exact_residual]
             scores["per_light"] = per_light
         return {"lights": int(len(self.lights)), **scores, "keeps_gaussians": self.keeps_gaussians,
+                "tie_margin_db": float(self.tie_margin_db), "glides": self.glides,
                 "sees_gaussians": self.sees_gaussians, "settled_epoch": self.settled_epoch}
+
+
+def tie_margin(settings: ResidualSettings, *, sees: bool = False, coherence: float | None = None) -> float:
+    """How far the images learned alone may lead the model with the Gaussians at the learned check's lights (dB) and
+    the Gaussians still be kept: ``learned_seeing_margin_db`` for a decoder that sees them (it learns the images as
+    the other does: no lead is granted to it), ``learned_glide_margin_db`` where the capture's median motion
+    ``coherence`` reaches ``learned_glide_coherence`` (the Gaussians glide with the light), else
+    ``learned_tie_margin_db``."""
+    if sees:
+        return settings.learned_seeing_margin_db
+    return settings.learned_glide_margin_db if glides(settings, coherence) else settings.learned_tie_margin_db
+
+
+def glides(settings: ResidualSettings, coherence: float | None) -> bool:
+    """Whether a capture's Gaussians glide with the light: their median motion ``coherence`` (None: not measured)
+    reaches ``learned_glide_coherence``."""
+    return coherence is not None and bool(np.isfinite(coherence)) and coherence >= settings.learned_glide_coherence
 
 
 def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, directions: np.ndarray,
                   lights: np.ndarray,
                   highlights: np.ndarray, *, factor: float, settings: ResidualSettings, device,
                   progress=None, seen: np.ndarray | None = None, winner_kept: bool = True,
-                  specular: np.ndarray | None = None) -> LearnedCheck:
+                  specular: np.ndarray | None = None, coherence: float | None = None) -> LearnedCheck:
     """Whether a learned residual should keep the moving Gaussians: two models learn, each as long as
     ``learn_residual`` would, from every light but ``lights`` (m,): one the residual of the (n, H, W, 3)
     images (field units) minus their own (n, H, W) highlights in colour c, the other the images alone
@@ -337,12 +357,14 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
 
     ``winner_kept`` False (the field's residual will learn anew, ``learns_anew``): once the order has settled both
     models stop, and the winner is returned as it was then. ``specular``: as ``learn_residual`` takes it, for the
-    first model."""
+    first model. ``coherence``: the capture's median motion coherence (``fit.coherence``); where it reaches
+    ``learned_glide_coherence`` the Gaussians glide and the tie margin is ``learned_glide_margin_db``
+    (``tie_margin``)."""
     lights = np.asarray(lights, dtype=np.int64)
     if not len(lights):
         return LearnedCheck(lights, np.zeros(0), np.zeros(0))
-    # a decoder that sees the Gaussians learns the images as the other does: no lead is granted to it
-    tie = settings.learned_seeing_margin_db if seen is not None else settings.learned_tie_margin_db
+    tie = tie_margin(settings, sees=seen is not None, coherence=coherence)
+    gliding = seen is None and glides(settings, coherence)
     used = np.setdiff1d(np.arange(len(images)), lights)
     scale = np.float32(1.0 / factor)
     truth = np.asarray(images[lights], np.float32) * scale
@@ -398,9 +420,9 @@ def check_learned(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None
     if settled_at:  # scored when the order settled, while the left-out lights were still left out
         epoch, first, second = settled_at[0]
         check = LearnedCheck(lights, first, second, settled_epoch=epoch, learned_every_light=winner_kept,
-                             tie_margin_db=tie, sees_gaussians=sees)
+                             tie_margin_db=tie, sees_gaussians=sees, glides=gliding)
     else:
-        check = LearnedCheck(lights, *score(trained), tie_margin_db=tie, sees_gaussians=sees)
+        check = LearnedCheck(lights, *score(trained), tie_margin_db=tie, sees_gaussians=sees, glides=gliding)
     keeps = check.keeps_gaussians
     exact = None if sees else exact_residual_scores(images, own, colour, lights, highlights, factor=factor,
                                                     specular=specular, level=settings.diffuse_under_highlights)
