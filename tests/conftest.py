@@ -175,8 +175,8 @@ def browser():
 @pytest.fixture(scope="session")
 def small_learned_field(small_donut, tmp_path_factory):
     """The small donut fitted with a learned residual (``FAST_FIT``, a few epochs) and saved: (field, path). Its
-    learned check keeps the moving Gaussians whatever it scores (tie margins beyond any gap, gliding or not): over so few epochs its
-    verdict says little, and the tests of what a learned field holds need them."""
+    learned check keeps the moving Gaussians whatever it scores (tie margins beyond any gap, gliding or not): over so
+    few epochs its verdict says little, and the tests of what a learned field holds need them."""
     from warp_highlights.fit.pipeline import fit_field
     from warp_highlights.io.dataset import ReflectanceField
     from warp_highlights.io.fieldfile import save_field

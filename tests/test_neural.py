@@ -257,7 +257,8 @@ def test_learned_field_fits_saves_and_relights_as_the_reference(small_donut, tmp
     assert field.report["residual"]["move_check"]["moves"] and verdict["lights"] == 6
     # the margin of a capture whose Gaussians glide, or the plain one
     margin = tie_margin(settings.residual, coherence=field.report["residual"]["motion_coherence"])
-    assert verdict["tie_margin_db"] == margin and verdict["glides"] == (margin == settings.residual.learned_glide_margin_db)
+    glide = settings.residual.learned_glide_margin_db
+    assert verdict["tie_margin_db"] == margin and verdict["glides"] == (margin == glide)
     keeps = verdict["with_gaussians_psnr_db"] >= verdict["images_alone_psnr_db"] - margin
     assert verdict["keeps_gaussians"] == keeps and bool(field.estimated.active.any()) == keeps
     assert (learned.unit == pytest.approx(field.exposure)
@@ -526,17 +527,17 @@ def test_the_gaussians_are_kept_within_the_tie_margin():
 
 def test_the_tie_margin_is_the_glides_where_the_gaussians_follow_the_light():
     """``tie_margin``: a decoder that sees the Gaussians gets ``learned_seeing_margin_db``; a capture whose median
-    motion coherence reaches ``learned_glide_coherence`` (default 0.9) ``learned_glide_margin_db`` (1.0); below it,
+    motion coherence reaches ``learned_glide_coherence`` (default 0.9) ``learned_glide_margin_db`` (0.5); below it,
     unmeasured (None, NaN) or with the threshold above 1 (off), ``learned_tie_margin_db``."""
     from warp_highlights.model.config import ResidualSettings
     from warp_highlights.residual.learned import glides, tie_margin
 
     settings = ResidualSettings()
-    assert (settings.learned_glide_coherence, settings.learned_glide_margin_db) == (0.9, 1.0)
-    for coherence, want in ((0.96, 1.0), (0.9, 1.0), (0.899, -0.5), (0.3, -0.5), (-0.2, -0.5), (None, -0.5),
+    assert (settings.learned_glide_coherence, settings.learned_glide_margin_db) == (0.9, 0.5)
+    for coherence, want in ((0.96, 0.5), (0.9, 0.5), (0.899, -0.5), (0.3, -0.5), (-0.2, -0.5), (None, -0.5),
                             (float("nan"), -0.5)):
         assert tie_margin(settings, coherence=coherence) == want, coherence
-        assert glides(settings, coherence) == (want == 1.0)
+        assert glides(settings, coherence) == (want == 0.5)
     assert tie_margin(settings, sees=True, coherence=0.99) == settings.learned_seeing_margin_db
     off = dataclasses.replace(settings, learned_glide_coherence=1.5)
     assert tie_margin(off, coherence=1.0) == -0.5 and not glides(off, 1.0)
