@@ -42,7 +42,7 @@ from .cpu_training import decode_cpu, train_decoder_cpu
 from .inputs import diffuse_under_highlights, residual_of, row_bands
 from .opponent import decode_display, encode_display
 
-__all__ = ["LearnedCheck", "bounded", "check_learned", "learn_residual", "tie_margin"]
+__all__ = ["LearnedCheck", "bounded", "check_learned", "glides", "learn_residual", "tie_margin"]
 
 _EVERY_FEW_EPOCHS = tuple(f"epoch {k}/" for k in (1, 10, 50, 100, 200, 400, 1000))  # the learned residual's log lines
 
