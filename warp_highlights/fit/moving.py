@@ -22,7 +22,7 @@ class MoveDecision:
 
     moving: np.ndarray
     support: np.ndarray
-    incoherent: np.ndarray | None = None
+    incoherent: np.ndarray
 
 
 def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray,

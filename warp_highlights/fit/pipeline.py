@@ -251,7 +251,7 @@ def fit_field(
                                          left_frame=left_frame, coherence=coherence,
                                          raster=settings.raster)
                 moving = decision.moving
-                incoherent = int(decision.incoherent.sum()) if decision.incoherent is not None else 0
+                incoherent = int(decision.incoherent.sum())
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
                 own_up = render_own_on_device(source, height, width, raster=settings.raster, device=device)
                 own = to_host(own_up)
