@@ -19,6 +19,7 @@ would win the check. 8-bit sRGB PSNR (dB), means over the check's lights.
 
     python benchmarks/bench_check_parts.py        # the sharp donut, bumpy donut, tiled teapot (16 lights), dome sample
     python benchmarks/bench_check_parts.py --cases teapot-tiles:dome49 --size 320x180
+    python benchmarks/bench_check_parts.py --device cuda:0 --size 480x270     # fitted on a GPU
     python benchmarks/bench_check_parts.py --set residual.diffuse_under_highlights=0
 
 Cases: ``SCENE:CAPTURE`` of ``bench_motion.py`` (rendered at ``--size``, default its CPU size) or
@@ -57,11 +58,11 @@ BASELINES = ("ptm", "hsh2", "hsh3", "rbf")
 DOME_SAMPLE_SIZE = (160, 160)
 
 
-def load(case: str, size: tuple[int, int] | None) -> tuple[ReflectanceField, dict]:
+def load(case: str, size: tuple[int, int] | None, device: str) -> tuple[ReflectanceField, dict]:
     """The capture of ``case`` and how to fit it: at which size, and for a render (linear, white = 1) at which
     exposure, as ``bench_quality.py`` and ``bench_motion.py`` fit them."""
     if case == "dome-sample":
-        return bench_quality.load_case("synth", "cpu", "cpu"), {"size": DOME_SAMPLE_SIZE}
+        return bench_quality.load_case("synth", "cpu", device), {"size": DOME_SAMPLE_SIZE}
     scene, _, capture = case.partition(":")
     if scene not in bench_motion.SCENES or capture not in bench_motion.CAPTURES:
         raise SystemExit(f"unknown case '{case}': use dome-sample or SCENE:CAPTURE of {', '.join(bench_motion.SCENES)}"
@@ -71,14 +72,15 @@ def load(case: str, size: tuple[int, int] | None) -> tuple[ReflectanceField, dic
     renderer = bench_motion.Renderer(bench_motion.make_shape(shape), material=material,
                                      settings=bench_motion.RenderSettings(width=width, height=height,
                                                                           samples_per_pixel=4),
-                                     rotation=bench_motion.view_rotation(shape), device="cpu")
+                                     rotation=bench_motion.view_rotation(shape), device=device)
     lights = bench_motion.CAPTURES[capture]()
     captured = renderer.render(lights.directions)
     return ReflectanceField(images=captured.full, lights=lights, specular=captured.specular,
                             diffuse=captured.diffuse, mask=renderer.mask), {"exposure": 1.0}
 
 
-def recorded_check(dataset: ReflectanceField, fit: dict, settings: FitSettings) -> tuple[dict, object] | None:
+def recorded_check(dataset: ReflectanceField, fit: dict, settings: FitSettings,
+                   device: str) -> tuple[dict, object] | None:
     """Fits ``dataset`` (``fit``: ``fit_field``'s size or exposure) and returns the learned check's arguments and
     its result (None: the fit ran no learned check)."""
     calls = []
@@ -90,7 +92,7 @@ def recorded_check(dataset: ReflectanceField, fit: dict, settings: FitSettings) 
         return result
 
     with mock.patch.object(pipeline, "check_learned", side_effect=record):
-        pipeline.fit_field(dataset, device="cpu", progress=False, settings=settings, **fit)
+        pipeline.fit_field(dataset, device=device, progress=False, settings=settings, **fit)
     if not calls:
         return None
     args, kwargs, result = calls[0]
@@ -151,6 +153,7 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--cases", default="donut-sharp:dome16,bumpy-metal:dome16,teapot-tiles:dome16,dome-sample")
+    parser.add_argument("--device", default=None, help="Warp device to fit on (default: Warp's)")
     parser.add_argument("--size", default=None, metavar="WxH", help="the renders' size (default 160x90)")
     parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE",
                         help="a fit setting, as `fit --set` takes it (repeatable); the residual is learned")
@@ -164,14 +167,15 @@ def main() -> None:
         if len(size) != 2 or min(size) < 16:
             parser.error(f"--size takes WIDTHxHEIGHT of at least 16 pixels each, got '{args.size}'")
     wp.init()
+    device = str(wp.get_device(args.device))
     settings = FitSettings().with_overrides(["residual.kind=learned", *args.set])
     out = Path(os.environ.get("OUT") or Path(__file__).resolve().parent / "results")
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for case in [c for c in args.cases.split(",") if c]:
         started = time.perf_counter()
-        dataset, fit = load(case, size)
-        recorded = recorded_check(dataset, fit, settings)
+        dataset, fit = load(case, size, device)
+        recorded = recorded_check(dataset, fit, settings, device)
         if recorded is None:
             print(f"{case}: the fit ran no learned check (no Gaussian moved, or the move check dropped them)")
             continue
@@ -183,7 +187,8 @@ def main() -> None:
         print(f"{case}: {time.perf_counter() - started:.0f} s")
     if rows:
         print(table(rows))
-    (out / "bench_check_parts.json").write_text(json.dumps({"settings": args.set, "rows": rows}, indent=1))
+    (out / "bench_check_parts.json").write_text(json.dumps({"device": device, "size": args.size, "settings": args.set,
+                                                            "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":
