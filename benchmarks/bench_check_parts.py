@@ -158,14 +158,7 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="STAGE.NAME=VALUE",
                         help="a fit setting, as `fit --set` takes it (repeatable); the residual is learned")
     args = parser.parse_args()
-    size = None
-    if args.size:
-        try:
-            size = tuple(int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            size = ()
-        if len(size) != 2 or min(size) < 16:
-            parser.error(f"--size takes WIDTHxHEIGHT of at least 16 pixels each, got '{args.size}'")
+    size = bench_motion.render_size(parser, args.size)
     wp.init()
     device = str(wp.get_device(args.device))
     settings = FitSettings().with_overrides(["residual.kind=learned", *args.set])

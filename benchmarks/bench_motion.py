@@ -307,6 +307,20 @@ def photo_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def render_size(parser: argparse.ArgumentParser, text: str | None) -> tuple[int, int] | None:
+    """``--size WxH`` as (width, height) of at least 16 pixels each (None where not given); else the parser's
+    error (exit 2)."""
+    if not text:
+        return None
+    try:
+        size = tuple(int(v) for v in text.lower().split("x"))
+    except ValueError:
+        size = ()
+    if len(size) != 2 or min(size) < 16:
+        parser.error(f"--size takes WIDTHxHEIGHT of at least 16 pixels each, got '{text}'")
+    return size
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scale", choices=sorted(SCALES), default="cpu")
@@ -329,14 +343,7 @@ def main() -> None:
     out = Path(os.environ.get("OUT") or Path(__file__).resolve().parent / "results" / f"motion-{args.scale}")
     out.mkdir(parents=True, exist_ok=True)
     captures = args.captures.split(",") if args.captures else SCALES[args.scale][1]
-    size = None
-    if args.size:
-        try:
-            size = tuple(int(v) for v in args.size.lower().split("x"))
-        except ValueError:
-            size = ()
-        if len(size) != 2 or min(size) < 16:
-            parser.error(f"--size takes WIDTHxHEIGHT of at least 16 pixels each, got '{args.size}'")
+    size = render_size(parser, args.size)
     scenes = [scene for scene in args.scenes.split(",") if scene]
     unknown = sorted(set(scenes) - set(SCENES))
     if unknown:
