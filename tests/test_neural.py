@@ -879,6 +879,30 @@ def test_a_fit_hands_the_specular_part_to_the_learned_residual_where_it_learns_t
     assert (field.residual.highlight_colour is None) == ("residual.highlight_colour=false" in overrides)
 
 
+def test_learned_target_is_the_image_less_its_own_highlights_and_the_diffuse_part_under_them():
+    """Float64 reference: the image less its own highlights in colour c, and where they are at least ``level`` of
+    their brightest the image less its specular part; without the specular part (or at level 0) no such region."""
+    from warp_highlights.residual.inputs import learned_target
+
+    rng = np.random.default_rng(5)
+    image = rng.uniform(0.0, 1.6, (6, 7, 3)).astype(np.float32)
+    own = np.zeros((6, 7), np.float32)
+    own[1:4, 2:6] = rng.uniform(0.1, 1.0, (3, 4))
+    own[2, 3] = 1.5
+    colour = rng.uniform(0.5, 1.0, (6, 7, 3)).astype(np.float32)
+    specular = rng.uniform(0.0, 0.8, (6, 7, 3)).astype(np.float32)
+    want = image.astype(np.float64) - own[..., None].astype(np.float64) * colour
+    under = own >= 0.4 * own.max()
+    assert 0 < under.sum() < (own > 0).sum()
+    diffuse = want.copy()
+    diffuse[under] = image[under].astype(np.float64) - specular[under]
+    got = learned_target(image, own, colour, specular, 0.4)
+    assert got.dtype == np.float32 and got.shape == image.shape
+    np.testing.assert_allclose(got, diffuse, atol=1e-6)
+    np.testing.assert_allclose(learned_target(image, own, colour), want, atol=1e-6)
+    np.testing.assert_allclose(learned_target(image, own, colour, specular, 0.0), want, atol=1e-6)
+
+
 def test_exact_residual_scores_are_the_image_less_its_own_highlights_plus_the_moved_ones():
     """Float64 reference: at each left-out light, the image less its own highlights in colour c (the diffuse part
     where they are at least ``level`` of their brightest), plus the moved highlights, clipped at 0 and shown in 8-bit

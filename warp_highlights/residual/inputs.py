@@ -25,7 +25,8 @@ from ..model.threads import parallel_map
 
 __all__ = ["BAND_VALUES", "HELD_IMAGES_BYTES", "HELD_IMAGES_SHARE", "HeldImages", "SCALE_FLOOR",
            "diffuse_under_highlights", "highlight_colour",
-           "hold_images", "holds_images", "render_own", "render_own_on_device", "residual_of", "residual_scale",
+           "hold_images", "holds_images", "learned_target", "render_own", "render_own_on_device", "residual_of",
+           "residual_scale",
            "row_bands", "scale_of_mean_square"]
 
 SCALE_FLOOR = 2.0**-10
@@ -138,6 +139,18 @@ def diffuse_under_highlights(residual: np.ndarray, image: np.ndarray, own: np.nd
         return residual
     under = own >= np.float32(level * peak)
     residual[under] = image[under] - specular[under]
+    return residual
+
+
+def learned_target(image: np.ndarray, own: np.ndarray, tint: np.ndarray, specular: np.ndarray | None = None,
+                   level: float = 0.0) -> np.ndarray:
+    """(H, W, C) float32 what a learned residual learns at one light (field units): the (H, W, C) ``image`` less its
+    own (H, W) highlights in colour ``tint`` (``residual_of``), and with its (H, W, C) ``specular`` part the diffuse
+    part under them (``diffuse_under_highlights`` at ``level``)."""
+    image = np.asarray(image, np.float32)
+    residual = residual_of(image, np.asarray(own, np.float32), tint)
+    if specular is not None:
+        diffuse_under_highlights(residual, image, own, np.asarray(specular, np.float32), level)
     return residual
 
 

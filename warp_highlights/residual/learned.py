@@ -39,7 +39,7 @@ from ..model.residual import (
 from ..model.threads import parallel_map
 from ..quality.metrics import srgb_psnr
 from .cpu_training import decode_cpu, train_decoder_cpu
-from .inputs import diffuse_under_highlights, residual_of, row_bands
+from .inputs import learned_target, residual_of, row_bands
 from .opponent import decode_display, encode_display
 
 __all__ = ["LearnedCheck", "bounded", "check_learned", "glides", "learn_residual", "tie_margin"]
@@ -100,10 +100,7 @@ def _targets(images: np.ndarray, own: np.ndarray, colour: np.ndarray | None, fac
     out = np.empty((n, height * width, 3), np.float32)
 
     def light(i: int) -> None:
-        image = np.asarray(images[i], np.float32)
-        residual = residual_of(image, own[i], tint)
-        if specular is not None:
-            diffuse_under_highlights(residual, image, own[i], np.asarray(specular[i], np.float32), level)
+        residual = learned_target(images[i], own[i], tint, None if specular is None else specular[i], level)
         residual /= np.float32(factor)
         encode_display(residual, out=out[i])
 
@@ -444,12 +441,9 @@ def exact_residual_scores(images: np.ndarray, own: np.ndarray, colour: np.ndarra
 
     def light(k: int) -> float:
         j = int(lights[k])
-        image = np.asarray(images[j], np.float32)
-        residual = residual_of(image, np.asarray(own[j], np.float32), tint)
-        if specular is not None:
-            diffuse_under_highlights(residual, image, own[j], np.asarray(specular[j], np.float32), level)
+        residual = learned_target(images[j], own[j], tint, None if specular is None else specular[j], level)
         shown = np.maximum(residual + np.asarray(highlights[k], np.float32), 0.0)  # as relit
-        return srgb_psnr(shown * scale, image * scale)
+        return srgb_psnr(shown * scale, np.asarray(images[j], np.float32) * scale)
 
     return np.array(parallel_map(light, range(len(lights))), dtype=np.float64)
 
