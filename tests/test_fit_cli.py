@@ -102,7 +102,7 @@ def test_fit_holds_back_the_gaussians_whose_motion_does_not_follow_the_light(sma
     held = counts["0.8"]["incoherent_gaussians"]
     assert 0 < held < counts["-1"]["moving_gaussians"]
     assert counts["0.8"]["moving_gaussians"] == counts["-1"]["moving_gaussians"] - held
-    assert f"({held} of them glints whose motion does not follow the light)" in text
+    assert f"blend in place ({held} glints whose motion does not follow the light)" in text
     assert "follow the light with a median coherence of" in text
 
 

@@ -261,6 +261,6 @@ def test_a_seeing_decoder_learns_with_the_moved_or_its_own_gaussians(small_donut
 def test_seeing_inputs_are_moved_or_own():
     from warp_highlights.model.config import ResidualSettings
 
-    assert ResidualSettings().learned_seeing_inputs == "moved"
+    assert ResidualSettings().learned_seeing_inputs == "own"
     with pytest.raises(InputError, match="learned_seeing_inputs must be one of moved, own, got 'both'"):
         ResidualSettings(learned_seeing_inputs="both")

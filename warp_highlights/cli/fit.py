@@ -284,10 +284,14 @@ def _print_fit_summary(field, output: Path, written: int, seconds: float) -> Non
             kind = "uncompressed images"
         share = residual.get("moving_specular_share")
         carried = "" if share is None else f" (carrying {100 * share:.0f}% of the specular energy)"
-        glints = residual.get("incoherent_gaussians") or 0
-        why = f" ({glints} of them glints whose motion does not follow the light)" if glints else ""
-        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move{carried}, "
-              f"{residual['staying_gaussians']} blend in place{why}; "
+        glints, near = residual.get("incoherent_gaussians") or 0, residual.get("near_gaussians") or 0
+        reasons = ([f"{glints} glints whose motion does not follow the light"] if glints else []) + (
+            [f"{near} whose highlight travels too little between the lights to be moved"] if near else [])
+        why = f" ({'; '.join(reasons)})" if reasons else ""
+        left = residual.get("left_gaussians") or 0
+        staying = (f"{left} are left to the learned residual" if left
+                   else f"{residual['staying_gaussians']} blend in place")
+        print(f"  residual: {kind}; {residual['moving_gaussians']} Gaussians move{carried}, {staying}{why}; "
               f"highlight colour {'per pixel' if residual['highlight_colour'] else 'white'}")
         coherence = residual.get("motion_coherence")
         if coherence is not None:

@@ -242,6 +242,8 @@ def fit_field(
         anew = False  # the learned residual learned anew from every light rather than go on from the check's winner
         support_median = None
         incoherent = 0  # Gaussians held in place because their motion does not follow the light (``fit.coherence``)
+        near = 0  # Gaussians held in place because their highlight travels too little to be moved (``fit.moving``)
+        left = 0  # Gaussians that do not move, left to a decoder that sees the others (``residual.learned_seeing_*``)
         decided = np.isfinite(coherence) & source.active
         coherence_median = round(float(np.median(coherence[decided])), 3) if decided.any() else None
         check = learned_check = interpolation = None
@@ -249,9 +251,20 @@ def fit_field(
             with timer.stage("residual"):
                 decision = decide_moving(source, sets, edges, specular_luminance, settings=settings.residual,
                                          left_frame=left_frame, coherence=coherence,
+                                         least_coherence=(settings.residual.learned_seeing_coherence if sees
+                                                          else settings.residual.move_coherence),
+                                         least_travel=settings.residual.learned_seeing_travel if sees else 0.0,
                                          raster=settings.raster)
                 moving = decision.moving
+                if sees:
+                    # a decoder that sees the moving Gaussians learns the highlights that stay as it learns the images:
+                    # only the moving ones are its inputs and kept
+                    left = int((source.active & ~moving).sum())
+                    source = source.where(moving, GaussianParams.empty(*moving.shape))
+                    sets = sets.where(moving[edges[:, 0]], GaussianParams.empty(*sets.active.shape))
+                    kept, kept_retargeted = source, sets
                 incoherent = int(decision.incoherent.sum())
+                near = int(decision.near.sum())
                 support_median = float(np.nanmedian(decision.support)) if np.isfinite(decision.support).any() else 0.0
                 own_up = render_own_on_device(source, height, width, raster=settings.raster, device=device)
                 own = to_host(own_up)
@@ -337,7 +350,7 @@ def fit_field(
                 # one free slot each
                 kept, kept_retargeted = GaussianParams.empty(len(source.active), 1), GaussianParams.empty(len(edges), 1)
                 moving = np.zeros((len(source.active), 1), dtype=bool)
-                incoherent = 0  # none kept: none held back either
+                incoherent = near = left = 0  # none kept: none held back either
                 path_delta, path_centre = (np.zeros((len(edges), 1), np.float32),
                                            np.zeros((len(edges), 1, 2), np.float32))
                 own, colour, seen, specular_under = np.zeros_like(own), None, None, None
@@ -447,6 +460,8 @@ def fit_field(
             "moving_gaussians": int(moving.sum()),
             "staying_gaussians": int(kept.active.sum() - moving.sum()),
             "incoherent_gaussians": incoherent,
+            "near_gaussians": near,
+            "left_gaussians": left,
             # the median motion coherence of the Gaussians that have one (``fit.coherence``): near 1 where highlights
             # glide with the light, near 0 where glints twinkle in place
             "motion_coherence": coherence_median,

@@ -808,30 +808,45 @@ class ResidualSettings:
             benchmarks/README.md has the table.
         learned_sees_gaussians: the learned check's model with the moving Gaussians is a decoder that sees them (their
             luminance at the pixel among its inputs, ``model.residual.highlight_inputs``) and learns the images
-            themselves, trained at each light with the Gaussians moved there from the other lights (every light is
-            then checked by the move check, which draws them), and the learned check alone decides whether the field
-            keeps them (the move check's verdict weighs moving against blending the images, which such a decoder
-            does not do); off, it is a residual of the images less each light's
-            own Gaussians, with the moved ones added to it. Subtracting each light's own fit leaves a residual that
-            is jagged in the light direction, and a decoder that sees the moved Gaussians learns how far to trust
-            them; it keeps them more often, but along the paths it does not score higher yet, so it is off by default.
-            On the 16-light renders of ``benchmarks/bench_motion.py`` (2-core CPU, ``--scenes
-            donut-sharp,bumpy-metal,teapot-tiles --captures dome16 --learned --set
-            residual.learned_sees_gaussians=true``) it kept the moving Gaussians on all three and scored 32.88 /
-            32.02 / 31.68 dB along the paths, against 33.31 / 31.81 / 32.48 for the default (the sharp donut's
-            Gaussians kept as a residual's, the others' images learned alone) and 31.42 / 31.81 / 32.48 for the
-            images learned alone (benchmarks/README.md; docs/method.md, The residual).
+            themselves, and the learned check alone decides whether the field keeps them (the move check's verdict
+            weighs moving against blending the images, which such a decoder does not do); the Gaussians that do not
+            move (``move_support``, ``learned_seeing_coherence``, ``learned_seeing_travel``) are not among its inputs
+            and the field does not keep them: it learns those highlights from the images, as the images learned alone
+            do. Off (default), it is a residual of the images less each light's own Gaussians, with the moved ones
+            added to it. On the 16-light renders of ``benchmarks/bench_motion.py`` (2-core CPU, 160x90, ``--scenes
+            sphere-broad,donut-sharp,bumpy-metal,teapot-tiles --captures dome16 --learned --set
+            residual.learned_sees_gaussians=true``) it scored 47.34 / 33.86 / 31.81 / 32.67 dB along the paths with
+            0 / 183 / 0 / 70 moving Gaussians and ghost shares 0.076 / 0.272 / 0.159 / 0.330, against 47.34 / 35.02 /
+            31.81 / 32.48 (0 / 215 / 0 / 0; ghosts 0.076 / 0.322 / 0.159 / 0.468) for the default and 47.34 / 31.42 /
+            31.81 / 32.48 for the images learned alone: fewer ghosts, and the teapot's highlights move, but 1.16 dB
+            less on the sharp donut, so it stays off (benchmarks/README.md, bench_motion.py).
         learned_seeing_inputs: the Gaussians a decoder that sees them (``learned_sees_gaussians``) learns each captured
-            light with: "moved" (default), each light's moved there from its triangle in the other lights'
-            triangulation, so that it learns how far an interpolated highlight can be trusted; "own", each light's own
-            fitted Gaussians, as a query at that light gets them, so that it learns to draw the highlight where the
-            Gaussians put it (the learned check still scores it with the moved ones at its left-out lights, and the
-            move check then draws those lights alone). "moved" stays the default: on the renders of
-            ``benchmarks/bench_motion.py`` (2-core CPU, 160x90, ``--set residual.learned_sees_gaussians=true --set
-            residual.learned_seeing_inputs=own``) "own" kept the sharp donut's Gaussians with fewer ghosts (ghost share
-            0.249 against 0.286 for "moved" at 16 lights) and 34.45 against 32.88 dB along the paths, and dropped the
-            bumpy donut's (31.82 dB against 32.02 kept), but it kept 23 Gaussians on the broad sphere and lost 1.46 dB
-            there to the default (benchmarks/README.md, bench_motion.py).
+            light with: "own" (default), each light's own fitted Gaussians, as a query at that light gets them, so that
+            it learns to draw the highlight where the Gaussians put it (the learned check still scores it with the
+            moved ones at its left-out lights, and the move check then draws those lights alone); "moved", each light's
+            moved there from its triangle in the other lights' triangulation, so that it learns how far an
+            interpolated highlight can be trusted. On the renders of ``benchmarks/bench_motion.py`` (2-core CPU,
+            160x90, 16 lights, ``--set residual.learned_sees_gaussians=true`` with each, before
+            ``learned_seeing_coherence`` and ``learned_seeing_travel``) "own" kept the sharp donut's Gaussians with
+            fewer ghosts (ghost share 0.249 against 0.286) and 34.45 against 32.88 dB along the paths; it kept 23
+            Gaussians of the broad sphere and lost 1.46 dB there, which ``learned_seeing_travel`` holds back.
+        learned_seeing_coherence: ``move_coherence`` for a decoder that sees the Gaussians (``learned_sees_gaussians``):
+            a Gaussian whose motion coherence (``fit.coherence``) is below this stays, and the decoder learns its
+            highlight from the images. 0.8: on the 16-light renders of ``benchmarks/bench_motion.py`` (2-core CPU,
+            160x90, ``--scenes donut-sharp,bumpy-metal,teapot-tiles --captures dome16 --learned --set
+            residual.learned_sees_gaussians=true --set residual.learned_seeing_travel=0``) the learned check kept 183 /
+            118 / 94 moving Gaussians on the sharp donut, the bumpy donut and the tiled teapot, which scored 33.86 /
+            32.22 / 32.58 dB along the paths against 31.42 / 31.81 / 32.48 for the images learned alone (ghost share
+            of the teapot 0.318 against 0.468); without it the check dropped the teapot's and the bumpy donut's
+            (benchmarks/README.md). -1: off.
+        learned_seeing_travel: a Gaussian moves, for a decoder that sees the Gaussians, only where its highlight
+            travels at least this many of its own standard deviations (along the way) on the median of its outgoing
+            edges (``fit.moving.travel_in_sigmas``); nearer, a cross-fade of the neighbours is nearly a move, and the
+            decoder learns the highlight from the images. 4.0: on the 16-light renders of
+            ``benchmarks/bench_motion.py`` (2-core CPU, 160x90) at 0 the broad sphere kept 23 and scored 45.88 dB
+            along the paths against 47.34 for the images learned alone; at 4.0 its check dropped the few left and it
+            scored 47.34, and the sharp donut kept its 183 (``--set residual.learned_sees_gaussians=true``, and with
+            ``--set residual.learned_seeing_travel=0``). 0: off.
         learned_seeing_margin_db: ``learned_tie_margin_db`` where the model with the Gaussians is a decoder that sees
             them (``learned_sees_gaussians``): both it and the images alone learn the images, so a tie tells nothing
             of the Gaussians, and the images alone keep the field unless it scores at least as high. 0: on the tiled
@@ -927,7 +942,9 @@ class ResidualSettings:
     learned_glide_coherence: float = 0.9
     learned_glide_margin_db: float = 0.5
     learned_sees_gaussians: bool = False
-    learned_seeing_inputs: str = "moved"
+    learned_seeing_coherence: float = 0.8
+    learned_seeing_travel: float = 4.0
+    learned_seeing_inputs: str = "own"
     learned_seeing_margin_db: float = 0.0
     learned_bounds: bool = True
     diffuse_under_highlights: float = 0.02
@@ -959,6 +976,10 @@ class ResidualSettings:
                  f"move_support must be in [0, 1], got {self.move_support}")
         _require(math.isfinite(self.move_coherence) and -1 <= self.move_coherence <= 1,
                  f"move_coherence must be in [-1, 1] (-1: off), got {self.move_coherence}")
+        _require(math.isfinite(self.learned_seeing_travel) and self.learned_seeing_travel >= 0,
+                 f"learned_seeing_travel must be >= 0 standard deviations (0: off), got {self.learned_seeing_travel}")
+        _require(math.isfinite(self.learned_seeing_coherence) and -1 <= self.learned_seeing_coherence <= 1,
+                 f"learned_seeing_coherence must be in [-1, 1] (-1: off), got {self.learned_seeing_coherence}")
         _require(0 <= int(self.check_lights) <= 100000, f"check_lights must be in [0, 100000], got {self.check_lights}")
         _require(math.isfinite(self.colour_prior) and self.colour_prior > 0,
                  f"colour_prior must be > 0, got {self.colour_prior}")
