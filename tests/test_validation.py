@@ -296,7 +296,7 @@ def test_a_fit_whose_gaussians_all_stay_keeps_none(small_donut, monkeypatch, kin
     original = pipeline.decide_moving
     monkeypatch.setattr(pipeline, "decide_moving",
                         lambda *args, **kwargs: MoveDecision(np.zeros_like(original(*args, **kwargs).moving),
-                                                             np.zeros(0), np.zeros(0, bool)))
+                                                             np.zeros(0), np.zeros(0, bool), np.zeros(0, bool)))
     dataset = ReflectanceField.load(small_donut, progress=False)
     extra = ["residual.learned_epochs=2"] if kind == "learned" else []
     settings = FitSettings().with_overrides(FAST_FIT + [f"residual.kind={kind}"] + extra)

@@ -24,7 +24,7 @@ class MoveDecision:
     moving: np.ndarray
     support: np.ndarray
     incoherent: np.ndarray
-    near: np.ndarray | None = None
+    near: np.ndarray
 
 
 def decide_moving(estimated: GaussianParams, retargeted: GaussianParams, edges: np.ndarray,
