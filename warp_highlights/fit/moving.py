@@ -8,6 +8,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels.support import support_fractions
+from ..model.components import gaussian_covariances
 from ..model.config import RasterSettings, ResidualSettings
 from ..model.gaussians import GaussianBatch, GaussianParams
 
@@ -70,10 +71,7 @@ def travel_in_sigmas(sources: GaussianParams, retargeted: GaussianParams) -> np.
     moved = retargeted.mean - sources.mean
     distance = np.linalg.norm(moved, axis=-1)
     unit = moved / np.maximum(distance, 1e-300)[..., None]
-    cos, sin = np.cos(sources.theta), np.sin(sources.theta)
-    along_major = unit[..., 0] * cos + unit[..., 1] * sin  # the displacement in the Gaussian's own axes
-    along_minor = -unit[..., 0] * sin + unit[..., 1] * cos
-    sigma = np.hypot(along_major * sources.sigma[..., 0], along_minor * sources.sigma[..., 1])
+    sigma = np.sqrt(np.einsum("...i,...ij,...j->...", unit, gaussian_covariances(sources.sigma, sources.theta), unit))
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(distance > 0, distance / sigma, 0.0)
     return np.where(sources.active & retargeted.active & np.isfinite(ratio), ratio, np.nan)
